@@ -1,0 +1,1 @@
+//! Chi-squared test harness (to be written).

@@ -1,0 +1,1 @@
+//! Sample generation (to be written).

@@ -1,0 +1,448 @@
+//! Scene description for Tessera: what is in a scene, where it came from, and whether it
+//! is valid.
+//!
+//! A [`Scene`] is a flat, world-space description: triangle meshes with the node
+//! hierarchy's transforms already applied, analytic spheres, materials, textures,
+//! punctual lights, an optional uniform environment and one camera. It is produced by
+//!
+//! - [`gltf_import::load_path`] / [`gltf_import::load_slice`] from glTF 2.0 (`.gltf` with
+//!   external or embedded buffers, or `.glb`), and
+//! - [`builtin::load`] for the built-in scenes addressed as `builtin:NAME`.
+//!
+//! Use [`load`] to resolve a scene argument as the command line gives it.
+//!
+//! Units: lengths are in scene units (metres for glTF), emitted radiance in W/(m² sr) per
+//! linear-RGB channel, punctual intensities in W/sr, directional irradiance in W/m².
+//! Every loader validates its output with [`Scene::validate`], so a renderer may assume
+//! finite geometry, in-range indices and physically meaningful parameters.
+//!
+//! ```
+//! let scene = tessera_scene::load("builtin:cornell-box").unwrap();
+//! assert!(scene.triangle_count() > 0);
+//! ```
+#![deny(missing_docs)]
+
+pub mod builtin;
+pub mod gltf_import;
+
+use glam::{Mat4, Vec2, Vec3};
+use std::path::Path;
+
+/// Largest scene file accepted, in bytes (glTF JSON, .glb, or the sum of its buffers).
+pub const MAX_INPUT_BYTES: u64 = 1 << 30;
+
+/// An error while loading or validating a scene. The message names the file and the
+/// element (node, mesh, material, accessor index) that is wrong.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The scene argument names nothing we know (`builtin:NAME` with an unknown name, or
+    /// an unsupported extension).
+    #[error("unknown scene {0:?}: expected a .gltf/.glb path or builtin:NAME (one of {1})")]
+    Unknown(String, String),
+    /// Reading a file failed.
+    #[error("cannot read {path}: {source}")]
+    Io {
+        /// The file that could not be read.
+        path: String,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The input is larger than [`MAX_INPUT_BYTES`].
+    #[error("{path}: {bytes} bytes is larger than the limit of {limit} bytes")]
+    TooLarge {
+        /// The offending file.
+        path: String,
+        /// Its size.
+        bytes: u64,
+        /// The limit.
+        limit: u64,
+    },
+    /// The glTF document is malformed or uses something we cannot render.
+    #[error("{file}: {message}")]
+    Gltf {
+        /// The file (or `<memory>`).
+        file: String,
+        /// What is wrong, naming the element.
+        message: String,
+    },
+    /// The scene failed validation.
+    #[error("invalid scene {scene}: {message}")]
+    Invalid {
+        /// Scene name.
+        scene: String,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+/// A pinhole or thin-lens perspective camera.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Camera {
+    /// Camera name (glTF camera or node name), if any.
+    pub name: Option<String>,
+    /// World-from-camera rigid transform. The camera looks down its local -Z axis with +Y
+    /// up, as glTF defines it.
+    pub world_from_camera: Mat4,
+    /// Vertical field of view in radians.
+    pub yfov: f32,
+    /// Aspect ratio width/height from the scene, if it specifies one; the image size
+    /// decides otherwise.
+    pub aspect_ratio: Option<f32>,
+    /// Radius of the thin-lens aperture in scene units; 0 is a pinhole.
+    pub aperture_radius: f32,
+    /// Distance to the plane in focus (only used when `aperture_radius > 0`).
+    pub focus_distance: f32,
+}
+
+/// A triangle mesh in world space.
+#[derive(Clone, Debug, Default)]
+pub struct Mesh {
+    /// Name of the glTF mesh/node, for error messages and statistics.
+    pub name: String,
+    /// World-space vertex positions.
+    pub positions: Vec<Vec3>,
+    /// World-space unit shading normals, one per vertex, if the source had them.
+    pub normals: Option<Vec<Vec3>>,
+    /// Texture coordinates (TEXCOORD_0), one per vertex, if present.
+    pub uvs: Option<Vec<Vec2>>,
+    /// Triangles as vertex indices, counter-clockwise seen from the front.
+    pub indices: Vec<[u32; 3]>,
+    /// Index into [`Scene::materials`].
+    pub material: u32,
+}
+
+/// An analytic sphere (built-in scenes use these for spherical lights and glass balls).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sphere {
+    /// Centre in world space.
+    pub center: Vec3,
+    /// Radius (> 0).
+    pub radius: f32,
+    /// Index into [`Scene::materials`].
+    pub material: u32,
+}
+
+/// Reference to a texture with the texture-coordinate set it uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TextureRef {
+    /// Index into [`Scene::textures`].
+    pub texture: u32,
+}
+
+/// An RGB texture in linear space (sRGB-encoded images are decoded on import).
+#[derive(Clone, Debug)]
+pub struct Texture {
+    /// Width in texels.
+    pub width: u32,
+    /// Height in texels.
+    pub height: u32,
+    /// Linear RGB texels, row-major from the top row.
+    pub texels: Vec<Vec3>,
+    /// Wrap (repeat) rather than clamp coordinates outside [0, 1].
+    pub repeat: bool,
+}
+
+/// How a surface scatters light. The variants name the physics; `tessera-render` turns
+/// each into a BSDF.
+#[derive(Clone, Debug, PartialEq)]
+pub enum MaterialKind {
+    /// Lambertian diffuse reflection with the given albedo.
+    Diffuse {
+        /// Reflectance in [0, 1] per channel.
+        albedo: Vec3,
+    },
+    /// Veach's energy-conserving modified Phong (Lafortune & Willems 1994): a diffuse
+    /// part `kd / pi` plus `ks (n + 2) / (2 pi) cos^n(alpha)` around the mirror direction.
+    /// `kd + ks <= 1` per channel keeps it energy conserving.
+    Phong {
+        /// Diffuse reflectance.
+        kd: Vec3,
+        /// Specular reflectance.
+        ks: Vec3,
+        /// Phong exponent n >= 0.
+        exponent: f32,
+    },
+    /// A rough conductor with a GGX (Trowbridge–Reitz) microfacet distribution and
+    /// Schlick's Fresnel from the normal-incidence reflectance `f0`.
+    Conductor {
+        /// Reflectance at normal incidence.
+        f0: Vec3,
+        /// Perceptual roughness in [0, 1] (alpha = roughness²).
+        roughness: f32,
+    },
+    /// glTF 2.0 metallic-roughness: a dielectric base (Fresnel specular layer over a
+    /// diffuse lobe) blended with a metal by `metallic`, plus KHR_materials_transmission.
+    MetallicRoughness {
+        /// Base colour factor (linear RGB).
+        base_color: Vec3,
+        /// Optional base-colour texture, multiplied with `base_color`.
+        base_color_texture: Option<TextureRef>,
+        /// Metalness in [0, 1].
+        metallic: f32,
+        /// Perceptual roughness in [0, 1].
+        roughness: f32,
+        /// KHR_materials_transmission factor in [0, 1].
+        transmission: f32,
+        /// Index of refraction (KHR_materials_ior, default 1.5).
+        ior: f32,
+    },
+    /// An ideal mirror.
+    Mirror {
+        /// Reflectance per channel.
+        reflectance: Vec3,
+    },
+    /// A smooth (roughness 0) or rough (GGX) dielectric interface: glass.
+    Dielectric {
+        /// Index of refraction of the inside relative to the outside.
+        ior: f32,
+        /// Perceptual roughness; 0 is a smooth interface with Fresnel and total internal
+        /// reflection.
+        roughness: f32,
+        /// Transmission tint per channel.
+        tint: Vec3,
+    },
+}
+
+/// A material: the scattering model plus emission.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Material {
+    /// Name, for messages.
+    pub name: String,
+    /// Scattering.
+    pub kind: MaterialKind,
+    /// Emitted radiance in W/(m² sr), linear RGB (glTF: emissiveFactor x
+    /// KHR_materials_emissive_strength).
+    pub emission: Vec3,
+    /// Emission (and, for thin surfaces, scattering) on both sides; otherwise only along
+    /// the geometric normal.
+    pub double_sided: bool,
+}
+
+impl Material {
+    /// A Lambertian material that does not emit.
+    pub fn diffuse(name: &str, albedo: Vec3) -> Self {
+        Self {
+            name: name.to_string(),
+            kind: MaterialKind::Diffuse { albedo },
+            emission: Vec3::ZERO,
+            double_sided: false,
+        }
+    }
+
+    /// True when the material emits light.
+    pub fn is_emissive(&self) -> bool {
+        self.emission.max_element() > 0.0
+    }
+}
+
+/// A punctual or distant light (KHR_lights_punctual), in radiometric units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PunctualLight {
+    /// Isotropic point light.
+    Point {
+        /// Position in world space.
+        position: Vec3,
+        /// Radiant intensity in W/sr per channel.
+        intensity: Vec3,
+    },
+    /// Spot light with a smooth falloff between the inner and outer cone angles.
+    Spot {
+        /// Position in world space.
+        position: Vec3,
+        /// Unit direction the spot points to.
+        direction: Vec3,
+        /// Radiant intensity on the axis in W/sr per channel.
+        intensity: Vec3,
+        /// Inner cone half-angle in radians (full intensity inside).
+        inner_angle: f32,
+        /// Outer cone half-angle in radians (zero outside).
+        outer_angle: f32,
+    },
+    /// Directional (distant) light.
+    Directional {
+        /// Unit direction the light travels in.
+        direction: Vec3,
+        /// Irradiance on a surface facing the light, W/m² per channel.
+        irradiance: Vec3,
+    },
+}
+
+/// A scene ready to be built into a renderable form.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// Scene name (file name or `builtin:NAME`).
+    pub name: String,
+    /// The camera to render from.
+    pub camera: Camera,
+    /// World-space triangle meshes.
+    pub meshes: Vec<Mesh>,
+    /// Analytic spheres.
+    pub spheres: Vec<Sphere>,
+    /// Materials referenced by meshes and spheres.
+    pub materials: Vec<Material>,
+    /// Textures referenced by materials.
+    pub textures: Vec<Texture>,
+    /// Punctual and directional lights.
+    pub lights: Vec<PunctualLight>,
+    /// Uniform environment radiance seen by rays that leave the scene, W/(m² sr).
+    pub environment: Option<Vec3>,
+    /// Default image size for this scene (width, height).
+    pub default_resolution: (u32, u32),
+}
+
+impl Scene {
+    /// Number of triangles over all meshes.
+    pub fn triangle_count(&self) -> usize {
+        self.meshes.iter().map(|m| m.indices.len()).sum()
+    }
+
+    /// Checks every invariant the renderer relies on: finite numbers, in-range indices,
+    /// positive radii, parameters within their physical ranges.
+    pub fn validate(&self) -> Result<(), SceneError> {
+        let bad = |message: String| {
+            Err(SceneError::Invalid {
+                scene: self.name.clone(),
+                message,
+            })
+        };
+        let cam = &self.camera;
+        if !cam.world_from_camera.is_finite() {
+            return bad("camera transform is not finite".into());
+        }
+        if !(cam.yfov > 0.0 && cam.yfov < std::f32::consts::PI) {
+            return bad(format!("camera yfov {} is outside (0, pi)", cam.yfov));
+        }
+        if !(cam.aperture_radius >= 0.0 && cam.aperture_radius.is_finite()) {
+            return bad(format!("camera aperture {} is invalid", cam.aperture_radius));
+        }
+        if cam.aperture_radius > 0.0 && !(cam.focus_distance > 0.0 && cam.focus_distance.is_finite()) {
+            return bad(format!("camera focus distance {} is invalid", cam.focus_distance));
+        }
+        let nmat = self.materials.len() as u32;
+        for (i, m) in self.meshes.iter().enumerate() {
+            if m.material >= nmat {
+                return bad(format!("mesh {i} ({}) uses material {} of {nmat}", m.name, m.material));
+            }
+            if let Some(p) = m.positions.iter().position(|p| !p.is_finite()) {
+                return bad(format!("mesh {i} ({}) vertex {p} is not finite", m.name));
+            }
+            let nv = m.positions.len() as u32;
+            if let Some(t) = m.indices.iter().position(|t| t.iter().any(|&v| v >= nv)) {
+                return bad(format!(
+                    "mesh {i} ({}) triangle {t} indexes past its {nv} vertices",
+                    m.name
+                ));
+            }
+            if let Some(n) = &m.normals {
+                if n.len() != m.positions.len() || n.iter().any(|v| !v.is_finite()) {
+                    return bad(format!("mesh {i} ({}) has invalid normals", m.name));
+                }
+            }
+            if let Some(uv) = &m.uvs {
+                if uv.len() != m.positions.len() || uv.iter().any(|v| !v.is_finite()) {
+                    return bad(format!("mesh {i} ({}) has invalid texture coordinates", m.name));
+                }
+            }
+        }
+        for (i, s) in self.spheres.iter().enumerate() {
+            if !s.center.is_finite() || !(s.radius > 0.0 && s.radius.is_finite()) {
+                return bad(format!("sphere {i} has an invalid centre or radius"));
+            }
+            if s.material >= nmat {
+                return bad(format!("sphere {i} uses material {} of {nmat}", s.material));
+            }
+        }
+        let ntex = self.textures.len() as u32;
+        for (i, m) in self.materials.iter().enumerate() {
+            let unit = |v: Vec3| v.is_finite() && v.min_element() >= 0.0;
+            if !unit(m.emission) {
+                return bad(format!("material {i} ({}) has invalid emission", m.name));
+            }
+            let ok = match &m.kind {
+                MaterialKind::Diffuse { albedo } => unit(*albedo) && albedo.max_element() <= 1.0,
+                MaterialKind::Phong { kd, ks, exponent } => {
+                    unit(*kd) && unit(*ks) && (*kd + *ks).max_element() <= 1.0 + 1e-6 && *exponent >= 0.0 && exponent.is_finite()
+                }
+                MaterialKind::Conductor { f0, roughness } => {
+                    unit(*f0) && f0.max_element() <= 1.0 && (0.0..=1.0).contains(roughness)
+                }
+                MaterialKind::MetallicRoughness {
+                    base_color,
+                    base_color_texture,
+                    metallic,
+                    roughness,
+                    transmission,
+                    ior,
+                } => {
+                    unit(*base_color)
+                        && base_color.max_element() <= 1.0
+                        && base_color_texture.is_none_or(|t| t.texture < ntex)
+                        && (0.0..=1.0).contains(metallic)
+                        && (0.0..=1.0).contains(roughness)
+                        && (0.0..=1.0).contains(transmission)
+                        && *ior >= 1.0
+                        && ior.is_finite()
+                }
+                MaterialKind::Mirror { reflectance } => unit(*reflectance) && reflectance.max_element() <= 1.0,
+                MaterialKind::Dielectric { ior, roughness, tint } => {
+                    *ior > 0.0 && ior.is_finite() && (0.0..=1.0).contains(roughness) && unit(*tint) && tint.max_element() <= 1.0
+                }
+            };
+            if !ok {
+                return bad(format!("material {i} ({}) has parameters out of range: {:?}", m.name, m.kind));
+            }
+        }
+        for (i, t) in self.textures.iter().enumerate() {
+            if t.width == 0 || t.height == 0 || t.texels.len() != (t.width as usize) * (t.height as usize) {
+                return bad(format!("texture {i} has inconsistent size"));
+            }
+        }
+        for (i, l) in self.lights.iter().enumerate() {
+            let ok = match l {
+                PunctualLight::Point { position, intensity } => position.is_finite() && intensity.is_finite() && intensity.min_element() >= 0.0,
+                PunctualLight::Spot { position, direction, intensity, inner_angle, outer_angle } => {
+                    position.is_finite()
+                        && direction.is_normalized()
+                        && intensity.is_finite()
+                        && intensity.min_element() >= 0.0
+                        && *inner_angle >= 0.0
+                        && inner_angle <= outer_angle
+                        && *outer_angle <= std::f32::consts::FRAC_PI_2
+                }
+                PunctualLight::Directional { direction, irradiance } => {
+                    direction.is_normalized() && irradiance.is_finite() && irradiance.min_element() >= 0.0
+                }
+            };
+            if !ok {
+                return bad(format!("light {i} has invalid parameters: {l:?}"));
+            }
+        }
+        if let Some(e) = self.environment {
+            if !(e.is_finite() && e.min_element() >= 0.0) {
+                return bad("environment radiance is invalid".into());
+            }
+        }
+        let (w, h) = self.default_resolution;
+        if w == 0 || h == 0 {
+            return bad("default resolution is zero".into());
+        }
+        Ok(())
+    }
+}
+
+/// Resolves a scene argument: `builtin:NAME` or a path to a `.gltf`/`.glb` file.
+pub fn load(arg: &str) -> Result<Scene, SceneError> {
+    load_with_camera(arg, None)
+}
+
+/// Like [`load`], choosing the glTF camera with the given name (glTF files only).
+pub fn load_with_camera(arg: &str, camera: Option<&str>) -> Result<Scene, SceneError> {
+    if let Some(name) = arg.strip_prefix("builtin:") {
+        return builtin::load(name);
+    }
+    let path = Path::new(arg);
+    match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()) {
+        Some(ext) if ext == "gltf" || ext == "glb" => gltf_import::load_path(path, camera),
+        _ => Err(SceneError::Unknown(arg.to_string(), builtin::NAMES.join(", "))),
+    }
+}
