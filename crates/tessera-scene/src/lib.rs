@@ -345,7 +345,7 @@ impl Scene {
             }
         }
         for (i, s) in self.spheres.iter().enumerate() {
-            if !s.center.is_finite() || !(s.radius > 0.0 && s.radius.is_finite()) {
+            if !(s.center.is_finite() && s.radius > 0.0 && s.radius.is_finite()) {
                 return bad(format!("sphere {i} has an invalid centre or radius"));
             }
             if s.material >= nmat {

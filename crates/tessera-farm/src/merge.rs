@@ -1,0 +1,838 @@
+//! Canonical merging of unit results into tile and frame statistics.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::plan::{FramePlan, PlanError, TileRect};
+use crate::result::{ResultError, UnitResult};
+use crate::stats::PixelStats;
+
+/// What [`TileAccumulator::offer`] / [`FrameAccumulator::offer`] did with a result.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Offer {
+    /// The result extended the contiguous prefix of merged passes and was folded in,
+    /// together with any buffered results that became contiguous.
+    Merged {
+        /// Number of passes merged by this offer (this result's and any released buffered
+        /// ones); the new total is [`TileAccumulator::merged_passes`].
+        passes_merged: u32,
+    },
+    /// The result was accepted and buffered until the passes before it are merged.
+    Buffered,
+    /// The result covers exactly the passes of a unit already merged or buffered; nothing
+    /// changed.
+    Duplicate {
+        /// Whether its digest equals the stored one. `false` means two renders of the same
+        /// work differ: a faulty worker, or non-deterministic rendering.
+        identical: bool,
+    },
+}
+
+/// Why a result could not be merged. The accumulator is unchanged after any error.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MergeError {
+    /// The result failed validation.
+    #[error("invalid result: {0}")]
+    Invalid(#[from] ResultError),
+    /// The result belongs to another frame.
+    #[error("result is for frame {frame}, the accumulator holds frame {expected}")]
+    WrongFrame {
+        /// Frame of the result.
+        frame: u32,
+        /// Frame of the accumulator.
+        expected: u32,
+    },
+    /// The result's passes partly overlap an earlier unit without being exactly that unit.
+    #[error("tile {tile}: passes {first_pass}..{end_pass} overlap the earlier unit with passes {other_first}..{other_end}")]
+    Overlap {
+        /// Tile index.
+        tile: u32,
+        /// First pass of the result.
+        first_pass: u32,
+        /// One past the last pass of the result.
+        end_pass: u64,
+        /// First pass of the earlier unit.
+        other_first: u32,
+        /// One past the last pass of the earlier unit.
+        other_end: u64,
+    },
+}
+
+/// Bookkeeping for one accepted unit of a tile.
+#[derive(Debug, Clone)]
+struct UnitRecord {
+    pass_count: u32,
+    digest: u64,
+    /// The pass means while the unit waits for earlier passes; `None` once merged.
+    pending: Option<Vec<[f32; 3]>>,
+}
+
+/// The merged state of one tile: its pixels' statistics over passes `0..merged_passes`,
+/// merged strictly in pass order.
+///
+/// Results may arrive in any order. A result is buffered until it extends the contiguous
+/// prefix of merged passes, then folded pass by pass in pass order, so the statistics are
+/// bit-identical however the passes were split into units and in whatever order they
+/// arrived (DESIGN §2). Every accepted unit's pass range and digest are remembered for
+/// duplicate detection.
+#[derive(Debug, Clone)]
+pub struct TileAccumulator {
+    rect: TileRect,
+    pixels: Vec<PixelStats>,
+    merged_passes: u32,
+    /// Accepted units keyed by first pass; their ranges never overlap, and those below
+    /// `merged_passes` tile `0..merged_passes` exactly.
+    units: BTreeMap<u32, UnitRecord>,
+}
+
+impl TileAccumulator {
+    /// An empty accumulator for one tile (allocates `rect.pixel_count()` statistics).
+    pub fn new(rect: TileRect) -> Self {
+        Self {
+            rect,
+            pixels: vec![PixelStats::default(); rect.pixel_count()],
+            merged_passes: 0,
+            units: BTreeMap::new(),
+        }
+    }
+
+    /// Offers a result for this tile.
+    ///
+    /// The result is checked with [`UnitResult::validate_for_tile`] (pass ranges are only
+    /// bounded by `u32` here; [`FrameAccumulator::offer`] bounds them by the plan). Units
+    /// may arrive in any order; each must either overlap no earlier unit or cover exactly
+    /// the passes of one, in which case it is a duplicate: its digest is compared with the
+    /// stored one and [`Offer::Duplicate`] is returned without merging. Partial overlap is
+    /// [`MergeError::Overlap`]. On any error the accumulator is unchanged.
+    pub fn offer(&mut self, result: UnitResult) -> Result<Offer, MergeError> {
+        result.validate_for_tile(&self.rect)?;
+        self.offer_validated(result)
+    }
+
+    /// [`TileAccumulator::offer`] for a result already validated against this tile.
+    fn offer_validated(&mut self, result: UnitResult) -> Result<Offer, MergeError> {
+        let first = result.unit.first_pass;
+        let count = result.unit.pass_count;
+        let end = result.unit.end_pass();
+
+        // The unit starting at or before `first`, then the first one starting after it.
+        if let Some((&f, rec)) = self.units.range(..=first).next_back() {
+            if f == first && rec.pass_count == count {
+                return Ok(Offer::Duplicate {
+                    identical: rec.digest == result.digest(),
+                });
+            }
+            let rec_end = u64::from(f) + u64::from(rec.pass_count);
+            if rec_end > u64::from(first) {
+                return Err(self.overlap(first, end, f, rec_end));
+            }
+        }
+        if let Some((&f, rec)) = self.units.range(first.saturating_add(1)..).next() {
+            if u64::from(f) < end {
+                let rec_end = u64::from(f) + u64::from(rec.pass_count);
+                return Err(self.overlap(first, end, f, rec_end));
+            }
+        }
+
+        let digest = result.digest();
+        if first != self.merged_passes {
+            self.units.insert(
+                first,
+                UnitRecord {
+                    pass_count: count,
+                    digest,
+                    pending: Some(result.pass_means),
+                },
+            );
+            return Ok(Offer::Buffered);
+        }
+        self.units.insert(
+            first,
+            UnitRecord {
+                pass_count: count,
+                digest,
+                pending: None,
+            },
+        );
+        self.fold(&result.pass_means, count);
+        let mut passes_merged = count;
+        // Release buffered units that are now contiguous.
+        while let Some(rec) = self.units.get_mut(&self.merged_passes) {
+            let Some(means) = rec.pending.take() else {
+                break;
+            };
+            let n = rec.pass_count;
+            self.fold(&means, n);
+            passes_merged = passes_merged.saturating_add(n);
+        }
+        Ok(Offer::Merged { passes_merged })
+    }
+
+    fn overlap(&self, first: u32, end: u64, other_first: u32, other_end: u64) -> MergeError {
+        MergeError::Overlap {
+            tile: self.rect.index,
+            first_pass: first,
+            end_pass: end,
+            other_first,
+            other_end,
+        }
+    }
+
+    /// Folds `pass_count` passes of validated means (pass-major) into the statistics, pass
+    /// by pass, and advances `merged_passes`.
+    fn fold(&mut self, means: &[[f32; 3]], pass_count: u32) {
+        let n = self.pixels.len();
+        if n > 0 {
+            for pass in means.chunks_exact(n) {
+                for (stats, &rgb) in self.pixels.iter_mut().zip(pass) {
+                    stats.push(rgb);
+                }
+            }
+        }
+        self.merged_passes = self.merged_passes.saturating_add(pass_count);
+    }
+
+    /// Number of passes merged: every pixel's statistics cover passes `0..merged_passes()`.
+    pub fn merged_passes(&self) -> u32 {
+        self.merged_passes
+    }
+
+    /// Per-pixel statistics, row-major within the tile.
+    pub fn pixels(&self) -> &[PixelStats] {
+        &self.pixels
+    }
+
+    /// The tile.
+    pub fn rect(&self) -> TileRect {
+        self.rect
+    }
+
+    /// Number of accepted units still waiting for earlier passes.
+    pub fn buffered_units(&self) -> usize {
+        self.units.values().filter(|r| r.pending.is_some()).count()
+    }
+}
+
+/// A whole frame being merged: one [`TileAccumulator`] per tile of the plan, plus
+/// image-level views.
+#[derive(Debug, Clone)]
+pub struct FrameAccumulator {
+    plan: FramePlan,
+    frame: u32,
+    tiles: Vec<TileAccumulator>,
+}
+
+impl FrameAccumulator {
+    /// An empty accumulator for frame 0 of a plan; see [`FrameAccumulator::for_frame`].
+    ///
+    /// # Panics
+    /// If the plan is invalid ([`FramePlan::validate`] fails), which cannot happen for
+    /// plans from [`FramePlan::new`], [`FramePlan::for_spp`] or deserialization. Use
+    /// [`FrameAccumulator::try_new`] for plans assembled by hand.
+    pub fn new(plan: FramePlan) -> Self {
+        Self::for_frame(plan, 0)
+    }
+
+    /// An empty accumulator for the given frame of a plan; results of other frames are
+    /// rejected with [`MergeError::WrongFrame`].
+    ///
+    /// # Panics
+    /// If the plan is invalid, as for [`FrameAccumulator::new`].
+    pub fn for_frame(plan: FramePlan, frame: u32) -> Self {
+        match Self::try_new(plan, frame) {
+            Ok(acc) => acc,
+            Err(e) => panic!("FrameAccumulator needs a valid plan: {e}"),
+        }
+    }
+
+    /// An empty accumulator for the given frame, or the reason the plan is invalid.
+    pub fn try_new(plan: FramePlan, frame: u32) -> Result<Self, PlanError> {
+        plan.validate()?;
+        Ok(Self {
+            plan,
+            frame,
+            tiles: plan.tiles().map(TileAccumulator::new).collect(),
+        })
+    }
+
+    /// The plan.
+    pub fn plan(&self) -> &FramePlan {
+        &self.plan
+    }
+
+    /// The frame number this accumulator accepts.
+    pub fn frame(&self) -> u32 {
+        self.frame
+    }
+
+    /// Offers a result: checks the frame, validates it against the plan
+    /// ([`UnitResult::validate`]), then offers it to its tile (see
+    /// [`TileAccumulator::offer`]). On any error nothing changes.
+    pub fn offer(&mut self, result: UnitResult) -> Result<Offer, MergeError> {
+        if result.unit.frame != self.frame {
+            return Err(MergeError::WrongFrame {
+                frame: result.unit.frame,
+                expected: self.frame,
+            });
+        }
+        result.validate(&self.plan)?;
+        match self.tiles.get_mut(result.unit.tile as usize) {
+            Some(tile) => tile.offer_validated(result),
+            // Unreachable after validation; kept panic-free.
+            None => Err(MergeError::Invalid(ResultError::UnknownTile {
+                tile: result.unit.tile,
+                tile_count: self.plan.tile_count(),
+            })),
+        }
+    }
+
+    /// The accumulator of one tile, if the index exists.
+    pub fn tile(&self, index: u32) -> Option<&TileAccumulator> {
+        self.tiles.get(index as usize)
+    }
+
+    /// All tile accumulators in tile order.
+    pub fn tiles(&self) -> &[TileAccumulator] {
+        &self.tiles
+    }
+
+    /// Whether every tile has merged all of the plan's passes.
+    pub fn complete(&self) -> bool {
+        self.tiles
+            .iter()
+            .all(|t| t.merged_passes() >= self.plan.passes)
+    }
+
+    /// Sum over tiles of their merged passes.
+    pub fn merged_pass_count(&self) -> u64 {
+        self.tiles
+            .iter()
+            .map(|t| u64::from(t.merged_passes()))
+            .sum()
+    }
+
+    /// Assembles the image layers (row-major over the whole frame).
+    pub fn image(&self) -> FrameImage {
+        let (w, h) = (self.plan.width as usize, self.plan.height as usize);
+        let n = w * h;
+        let mut img = FrameImage {
+            width: self.plan.width,
+            height: self.plan.height,
+            mean: vec![[0.0; 3]; n],
+            variance_of_mean: vec![[0.0; 3]; n],
+            passes: vec![0; n],
+            samples: vec![0; n],
+            relative_error: vec![0.0; n],
+        };
+        for tile in &self.tiles {
+            let r = tile.rect();
+            let samples = tile
+                .merged_passes()
+                .saturating_mul(self.plan.samples_per_pass);
+            for (row, stats) in tile
+                .pixels()
+                .chunks_exact(r.width.max(1) as usize)
+                .enumerate()
+            {
+                let start = (r.y0 as usize + row) * w + r.x0 as usize;
+                for (i, s) in stats.iter().enumerate() {
+                    let p = start + i;
+                    img.mean[p] = s.mean.map(|m| m as f32);
+                    if s.passes >= 2 {
+                        img.variance_of_mean[p] = s.variance_of_mean().map(|v| v as f32);
+                        img.relative_error[p] = s.relative_error() as f32;
+                    }
+                    img.passes[p] = s.passes;
+                    img.samples[p] = samples;
+                }
+            }
+        }
+        img
+    }
+
+    /// Image relative error estimate: the root mean square of
+    /// [`PixelStats::relative_error`] over the pixels with at least 2 merged passes
+    /// (DESIGN §3). Pixels with fewer passes have no error estimate and are excluded;
+    /// 0 if no pixel has 2 passes. Never NaN.
+    pub fn image_error(&self) -> f64 {
+        let mut sum = 0.0f64;
+        let mut count = 0u64;
+        for tile in &self.tiles {
+            if tile.merged_passes() < 2 {
+                continue;
+            }
+            for s in tile.pixels() {
+                let rel = s.relative_error();
+                sum += rel * rel;
+                count += 1;
+            }
+        }
+        if count == 0 {
+            return 0.0;
+        }
+        let e = (sum / count as f64).sqrt();
+        if e.is_nan() {
+            0.0
+        } else {
+            e
+        }
+    }
+}
+
+/// The image layers of a frame, each row-major with `width * height` entries.
+///
+/// Pixels with fewer than 2 merged passes have no error estimate: their
+/// `variance_of_mean` and `relative_error` are stored as 0 (image formats and viewers
+/// handle infinities badly); look at `passes` to tell them apart.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameImage {
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Mean radiance (mean of the pass means).
+    pub mean: Vec<[f32; 3]>,
+    /// Estimated variance of the mean per channel (0 with fewer than 2 passes).
+    pub variance_of_mean: Vec<[f32; 3]>,
+    /// Merged passes per pixel.
+    pub passes: Vec<u32>,
+    /// Merged samples per pixel, `passes * samples_per_pass`.
+    pub samples: Vec<u32>,
+    /// Relative error per pixel, see [`PixelStats::relative_error`] (0 with fewer than 2
+    /// passes).
+    pub relative_error: Vec<f32>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plan::WorkUnit;
+    use crate::test_util::Rng;
+
+    /// A deterministic, irregular pass mean for (tile, pass, pixel): what a renderer would
+    /// return for that unit no matter how the passes are grouped.
+    fn pass_mean(tile: u32, pass: u32, pixel: usize) -> [f32; 3] {
+        let mut rng =
+            Rng::new((u64::from(tile) << 40) ^ (u64::from(pass) << 20) ^ pixel as u64 ^ 0xabcdef);
+        // Occasional fireflies make the sums sensitive to order.
+        let scale = if rng.uniform() < 0.05 { 1e3 } else { 1.0 };
+        [0, 1, 2].map(|_| (scale * rng.uniform()) as f32)
+    }
+
+    fn render(plan: &FramePlan, unit: WorkUnit) -> UnitResult {
+        let rect = plan.tile(unit.tile);
+        let mut pass_means = Vec::with_capacity(unit.pass_count as usize * rect.pixel_count());
+        for pass in unit.first_pass..unit.first_pass + unit.pass_count {
+            pass_means.extend((0..rect.pixel_count()).map(|i| pass_mean(unit.tile, pass, i)));
+        }
+        UnitResult {
+            unit,
+            width: rect.width,
+            height: rect.height,
+            pass_means,
+        }
+    }
+
+    fn plan() -> FramePlan {
+        FramePlan::new(37, 23, 8, 4, 12).unwrap()
+    }
+
+    /// Every bit of the merged state, for exact comparison.
+    fn snapshot(acc: &FrameAccumulator) -> Vec<u64> {
+        let mut out = Vec::new();
+        for t in acc.tiles() {
+            out.push(u64::from(t.merged_passes()));
+            out.push(t.buffered_units() as u64);
+            for s in t.pixels() {
+                out.push(u64::from(s.passes));
+                out.extend(s.mean.iter().chain(&s.m2).map(|v| v.to_bits()));
+                out.push(s.mean_lum.to_bits());
+                out.push(s.m2_lum.to_bits());
+            }
+        }
+        out
+    }
+
+    fn image_bits(img: &FrameImage) -> Vec<u32> {
+        let mut out = vec![img.width, img.height];
+        out.extend(img.mean.iter().flatten().map(|v| v.to_bits()));
+        out.extend(img.variance_of_mean.iter().flatten().map(|v| v.to_bits()));
+        out.extend(&img.passes);
+        out.extend(&img.samples);
+        out.extend(img.relative_error.iter().map(|v| v.to_bits()));
+        out
+    }
+
+    fn merge_all(plan: &FramePlan, per: u32, seed: Option<u64>) -> FrameAccumulator {
+        let mut units = plan.units(0, per);
+        if let Some(seed) = seed {
+            Rng::new(seed).shuffle(&mut units);
+        }
+        let mut acc = FrameAccumulator::new(*plan);
+        let mut merged = 0u64;
+        for u in units {
+            match acc.offer(render(plan, u)).unwrap() {
+                Offer::Merged { passes_merged } => merged += u64::from(passes_merged),
+                Offer::Buffered => {}
+                Offer::Duplicate { .. } => panic!("unexpected duplicate"),
+            }
+            assert_eq!(acc.merged_pass_count(), merged);
+        }
+        assert!(acc.complete());
+        assert_eq!(
+            acc.merged_pass_count(),
+            u64::from(plan.tile_count()) * u64::from(plan.passes)
+        );
+        acc
+    }
+
+    #[test]
+    fn merge_is_bit_identical_across_splits_and_orders() {
+        let plan = plan();
+        let reference = merge_all(&plan, 1, None);
+        let ref_state = snapshot(&reference);
+        let ref_image = image_bits(&reference.image());
+        let ref_error = reference.image_error().to_bits();
+        for per in [1, 4, 5, 12, 100] {
+            for seed in [None, Some(1), Some(2), Some(3)] {
+                let acc = merge_all(&plan, per, seed);
+                assert!(snapshot(&acc) == ref_state, "per {per} seed {seed:?}");
+                assert!(
+                    image_bits(&acc.image()) == ref_image,
+                    "per {per} seed {seed:?}"
+                );
+                assert_eq!(acc.image_error().to_bits(), ref_error);
+            }
+        }
+        // And the state really is the in-order fold of the pass means.
+        let t = reference.tile(14).unwrap();
+        let mut s = PixelStats::default();
+        for pass in 0..plan.passes {
+            s.push(pass_mean(14, pass, 3));
+        }
+        assert_eq!(t.pixels()[3], s);
+        // A different order of pushes gives different bits (the test can detect it).
+        let mut r = PixelStats::default();
+        for pass in (0..plan.passes).rev() {
+            r.push(pass_mean(14, pass, 3));
+        }
+        assert_ne!(
+            (r.mean.map(f64::to_bits), r.m2.map(f64::to_bits)),
+            (s.mean.map(f64::to_bits), s.m2.map(f64::to_bits))
+        );
+    }
+
+    #[test]
+    fn buffering_and_merge_counts() {
+        let plan = plan();
+        let mut acc = TileAccumulator::new(plan.tile(4));
+        let unit = |first_pass, pass_count| WorkUnit {
+            frame: 0,
+            tile: 4,
+            first_pass,
+            pass_count,
+        };
+        assert_eq!(acc.offer(render(&plan, unit(4, 4))), Ok(Offer::Buffered));
+        assert_eq!(acc.offer(render(&plan, unit(2, 2))), Ok(Offer::Buffered));
+        assert_eq!(acc.merged_passes(), 0);
+        assert_eq!(acc.buffered_units(), 2);
+        assert!(acc.pixels().iter().all(|s| s.passes == 0));
+        assert_eq!(
+            acc.offer(render(&plan, unit(0, 2))),
+            Ok(Offer::Merged { passes_merged: 8 })
+        );
+        assert_eq!(acc.merged_passes(), 8);
+        assert_eq!(acc.buffered_units(), 0);
+        assert_eq!(
+            acc.offer(render(&plan, unit(8, 4))),
+            Ok(Offer::Merged { passes_merged: 4 })
+        );
+        assert!(acc.pixels().iter().all(|s| s.passes == 12));
+        assert_eq!(acc.rect(), plan.tile(4));
+    }
+
+    #[test]
+    fn duplicates_are_detected_and_change_nothing() {
+        let plan = plan();
+        let mut acc = FrameAccumulator::new(plan);
+        let u = |tile, first_pass, pass_count| WorkUnit {
+            frame: 0,
+            tile,
+            first_pass,
+            pass_count,
+        };
+        acc.offer(render(&plan, u(3, 0, 4))).unwrap(); // merged
+        acc.offer(render(&plan, u(3, 8, 4))).unwrap(); // buffered
+        let before = snapshot(&acc);
+
+        // Equal copies, of a merged and of a buffered unit.
+        for unit in [u(3, 0, 4), u(3, 8, 4)] {
+            assert_eq!(
+                acc.offer(render(&plan, unit)),
+                Ok(Offer::Duplicate { identical: true })
+            );
+            assert!(snapshot(&acc) == before);
+        }
+        // Modified copies: one bit of one value.
+        for unit in [u(3, 0, 4), u(3, 8, 4)] {
+            let mut r = render(&plan, unit);
+            r.pass_means[17][2] = f32::from_bits(r.pass_means[17][2].to_bits() ^ 1);
+            assert_eq!(acc.offer(r), Ok(Offer::Duplicate { identical: false }));
+            assert!(snapshot(&acc) == before);
+        }
+        // Partial overlaps are errors and change nothing either.
+        for (first, count) in [(0, 1), (2, 4), (3, 2), (6, 3), (9, 1), (0, 12)] {
+            let err = acc.offer(render(&plan, u(3, first, count))).unwrap_err();
+            assert!(matches!(err, MergeError::Overlap { tile: 3, .. }), "{err}");
+            assert!(snapshot(&acc) == before);
+        }
+        assert_eq!(
+            acc.offer(render(&plan, u(3, 2, 4)))
+                .unwrap_err()
+                .to_string(),
+            "tile 3: passes 2..6 overlap the earlier unit with passes 0..4"
+        );
+        // The gap still merges, releasing the buffered unit.
+        assert_eq!(
+            acc.offer(render(&plan, u(3, 4, 4))),
+            Ok(Offer::Merged { passes_merged: 8 })
+        );
+        assert_eq!(
+            acc.offer(render(&plan, u(3, 4, 4))),
+            Ok(Offer::Duplicate { identical: true })
+        );
+    }
+
+    #[test]
+    fn invalid_results_are_rejected_and_change_nothing() {
+        let plan = plan();
+        let mut acc = FrameAccumulator::new(plan);
+        acc.offer(render(
+            &plan,
+            WorkUnit {
+                frame: 0,
+                tile: 14,
+                first_pass: 0,
+                pass_count: 2,
+            },
+        ))
+        .unwrap();
+        let before = snapshot(&acc);
+        let good = || {
+            render(
+                &plan,
+                WorkUnit {
+                    frame: 0,
+                    tile: 14,
+                    first_pass: 2,
+                    pass_count: 3,
+                },
+            )
+        };
+        let mut bad: Vec<UnitResult> = Vec::new();
+        let mut r = good();
+        r.width += 1;
+        bad.push(r);
+        let mut r = good();
+        r.height = 8;
+        bad.push(r);
+        let mut r = good();
+        r.pass_means.pop();
+        bad.push(r);
+        let mut r = good();
+        r.pass_means.push([0.0; 3]);
+        bad.push(r);
+        let mut r = good();
+        r.pass_means[40][1] = f32::NAN;
+        bad.push(r);
+        let mut r = good();
+        r.pass_means[0][0] = f32::NEG_INFINITY;
+        bad.push(r);
+        let mut r = good();
+        r.pass_means[104][2] = -1e-30;
+        bad.push(r);
+        let mut r = good();
+        r.unit.tile = 15;
+        bad.push(r);
+        let mut r = good();
+        r.unit.tile = u32::MAX;
+        bad.push(r);
+        let mut r = good();
+        r.unit.first_pass = 10; // passes 10..13 of 12
+        bad.push(r);
+        let mut r = good();
+        r.unit.first_pass = u32::MAX;
+        bad.push(r);
+        let mut r = good();
+        r.unit.pass_count = 0;
+        r.pass_means.clear();
+        bad.push(r);
+        for r in bad {
+            let err = acc.offer(r.clone()).unwrap_err();
+            assert!(matches!(err, MergeError::Invalid(_)), "{err}");
+            assert!(snapshot(&acc) == before, "{err}");
+            // The tile accumulator alone rejects it too (except the plan's pass bound).
+            if r.unit.tile == 14 && r.unit.first_pass != 10 {
+                let mut t = acc.tile(14).unwrap().clone();
+                assert!(t.offer(r).is_err());
+            }
+        }
+        let mut r = good();
+        r.unit.frame = 1;
+        assert_eq!(
+            acc.offer(r),
+            Err(MergeError::WrongFrame {
+                frame: 1,
+                expected: 0
+            })
+        );
+        assert!(snapshot(&acc) == before);
+        // A tile accumulator refuses other tiles' results.
+        let mut t = TileAccumulator::new(plan.tile(13));
+        assert!(matches!(
+            t.offer(good()),
+            Err(MergeError::Invalid(ResultError::WrongTile { .. }))
+        ));
+        // Frame accumulators for other frames.
+        let mut acc1 = FrameAccumulator::for_frame(plan, 1);
+        let mut r = good();
+        r.unit.frame = 1;
+        r.unit.first_pass = 0;
+        assert_eq!(acc1.frame(), 1);
+        assert_eq!(acc1.offer(r), Ok(Offer::Merged { passes_merged: 3 }));
+    }
+
+    #[test]
+    fn try_new_rejects_invalid_plans() {
+        let mut p = plan();
+        p.tile_size = 0;
+        assert_eq!(
+            FrameAccumulator::try_new(p, 0).unwrap_err(),
+            PlanError::TileSize(0)
+        );
+        assert_eq!(
+            FrameAccumulator::try_new(plan(), 0).unwrap().plan(),
+            &plan()
+        );
+    }
+
+    fn constant(plan: &FramePlan, unit: WorkUnit, rgb: [f32; 3]) -> UnitResult {
+        let rect = plan.tile(unit.tile);
+        UnitResult {
+            unit,
+            width: rect.width,
+            height: rect.height,
+            pass_means: vec![rgb; unit.pass_count as usize * rect.pixel_count()],
+        }
+    }
+
+    #[test]
+    fn image_error_of_constant_image_is_zero() {
+        let plan = FramePlan::new(20, 9, 8, 2, 5).unwrap();
+        let mut acc = FrameAccumulator::new(plan);
+        assert_eq!(acc.image_error(), 0.0);
+        for u in plan.units(0, 2) {
+            acc.offer(constant(&plan, u, [0.3, 0.7, 0.1])).unwrap();
+        }
+        assert!(acc.complete());
+        assert_eq!(acc.image_error(), 0.0);
+        let img = acc.image();
+        assert!(img.mean.iter().all(|&m| m == [0.3, 0.7, 0.1]));
+        assert!(img.variance_of_mean.iter().all(|&v| v == [0.0; 3]));
+        assert!(img.passes.iter().all(|&p| p == 5));
+        assert!(img.samples.iter().all(|&s| s == 10));
+        assert!(img.relative_error.iter().all(|&r| r == 0.0));
+    }
+
+    /// A hand-computed case. 8x1 image, 4-pixel tiles, S = 3:
+    /// - tile 0 gets 2 passes: pixel 0 sees (1,0,0) then (0,0,0), so its luminance goes
+    ///   0.2126 then 0; mean 0.1063, m2 = 2 * 0.1063^2, variance of the mean
+    ///   m2 / (2 * 1) = 0.1063^2 and rel = 0.1063 / (0.1063 + 0.01). Pixel 1 sees (2,2,2)
+    ///   then (4,4,4): lum 2 and 4, mean 3, m2 = 2, var = 1, rel = 1 / 3.01. Pixels 2 and 3
+    ///   see zeros: rel = 0.
+    /// - tile 1 gets 1 pass: excluded.
+    ///
+    /// image error = sqrt((rel0^2 + rel1^2) / 4).
+    #[test]
+    fn image_error_hand_computed() {
+        let plan = FramePlan::new(8, 1, 4, 3, 4).unwrap();
+        let mut acc = FrameAccumulator::new(plan);
+        let unit = |tile, first_pass| WorkUnit {
+            frame: 0,
+            tile,
+            first_pass,
+            pass_count: 1,
+        };
+        let result = |u: WorkUnit, px: [[f32; 3]; 4]| UnitResult {
+            unit: u,
+            width: 4,
+            height: 1,
+            pass_means: px.to_vec(),
+        };
+        let z = [0.0; 3];
+        acc.offer(result(unit(0, 0), [[1.0, 0.0, 0.0], [2.0; 3], z, z]))
+            .unwrap();
+        // Only one pass so far: nothing to estimate.
+        assert_eq!(acc.image_error(), 0.0);
+        acc.offer(result(unit(0, 1), [z, [4.0; 3], z, z])).unwrap();
+        acc.offer(result(unit(1, 0), [[9.0, 0.0, 0.0], [1.0; 3], z, [5.0; 3]]))
+            .unwrap();
+
+        let l0 = 0.2126f64 / 2.0;
+        let rel0 = l0 / (l0 + 0.01);
+        let rel1 = 1.0 / 3.01;
+        let expected = ((rel0 * rel0 + rel1 * rel1) / 4.0).sqrt();
+        let got = acc.image_error();
+        assert!(
+            (got - expected).abs() <= 1e-12 * expected,
+            "{got} vs {expected}"
+        );
+
+        let img = acc.image();
+        assert_eq!(img.passes, vec![2, 2, 2, 2, 1, 1, 1, 1]);
+        assert_eq!(img.samples, vec![6, 6, 6, 6, 3, 3, 3, 3]);
+        assert_eq!(img.mean[0], [0.5, 0.0, 0.0]);
+        assert_eq!(img.mean[1], [3.0; 3]);
+        assert_eq!(img.mean[4], [9.0, 0.0, 0.0]);
+        assert_eq!(img.variance_of_mean[0], [0.25, 0.0, 0.0]);
+        assert_eq!(img.variance_of_mean[1], [1.0; 3]);
+        // One pass: no estimate, stored as 0.
+        assert_eq!(img.variance_of_mean[7], [0.0; 3]);
+        assert_eq!(img.relative_error[7], 0.0);
+        assert!((f64::from(img.relative_error[0]) - rel0).abs() < 1e-6);
+        assert!((f64::from(img.relative_error[1]) - rel1).abs() < 1e-6);
+        assert!(!acc.complete());
+        assert_eq!(acc.merged_pass_count(), 3);
+    }
+
+    /// The image is assembled at the right place: tile-local pixel (x, y) of tile t lands at
+    /// (x0 + x, y0 + y).
+    #[test]
+    fn image_layout() {
+        let plan = FramePlan::new(37, 23, 8, 1, 1).unwrap();
+        let mut acc = FrameAccumulator::new(plan);
+        for u in plan.units(0, 1) {
+            let rect = plan.tile(u.tile);
+            let mut pass_means = Vec::new();
+            for y in 0..rect.height {
+                for x in 0..rect.width {
+                    pass_means.push([(rect.x0 + x) as f32, (rect.y0 + y) as f32, 0.0]);
+                }
+            }
+            let r = UnitResult {
+                unit: u,
+                width: rect.width,
+                height: rect.height,
+                pass_means,
+            };
+            assert_eq!(acc.offer(r), Ok(Offer::Merged { passes_merged: 1 }));
+        }
+        let img = acc.image();
+        for y in 0..23u32 {
+            for x in 0..37u32 {
+                assert_eq!(img.mean[(y * 37 + x) as usize], [x as f32, y as f32, 0.0]);
+            }
+        }
+    }
+}

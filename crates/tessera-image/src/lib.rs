@@ -1,0 +1,166 @@
+//! Image output for Tessera: the merged statistics of a frame
+//! ([`tessera_farm::FrameImage`]) as a multi-layer OpenEXR file or an sRGB PNG.
+//!
+//! Shared by the local renderer and the coordinator, which never links the renderer.
+//!
+//! EXR layout (one part, 32-bit float channels, ZIP compression, written single-threaded
+//! so the bytes are a pure function of the image):
+//!
+//! | channels | meaning |
+//! |---|---|
+//! | `R`, `G`, `B` | the beauty: mean radiance per pixel, W/(m² sr), linear Rec. 709 |
+//! | `variance.R`, `variance.G`, `variance.B` | estimated variance of the mean, from the spread of independent passes (0 with fewer than 2 passes) |
+//! | `relerr.Y` | estimated relative standard error of the pixel's luminance |
+//! | `passes.Y` | number of passes merged |
+//! | `samples.Y` | samples per pixel merged |
+//!
+//! PNG: the beauty clamped to [0, 1] and encoded with the sRGB transfer function, 8 bits.
+#![deny(missing_docs)]
+
+use exr::prelude::{
+    read, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, ReadChannels, ReadLayers,
+    WritableImage,
+};
+use std::io::Cursor;
+use tessera_farm::FrameImage;
+
+/// Errors encoding or decoding images.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    /// EXR encoding or decoding failed.
+    #[error("exr: {0}")]
+    Exr(String),
+    /// PNG encoding failed.
+    #[error("png: {0}")]
+    Png(String),
+    /// The file name has no supported extension.
+    #[error("unsupported output {0:?}: use a .exr or .png file name")]
+    Format(String),
+    /// Writing the file failed.
+    #[error("cannot write {path}: {source}")]
+    Io {
+        /// Path.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// A layer is missing from a file being read.
+    #[error("exr file has no channel {0}")]
+    MissingChannel(String),
+}
+
+/// Encodes the frame as a multi-layer EXR file.
+pub fn encode_exr(img: &FrameImage) -> Result<Vec<u8>, ImageError> {
+    let n = (img.width as usize) * (img.height as usize);
+    let chan = |name: &str, f: &dyn Fn(usize) -> f32| -> AnyChannel<FlatSamples> {
+        AnyChannel::new(name, FlatSamples::F32((0..n).map(f).collect()))
+    };
+    let channels = vec![
+        chan("R", &|i| img.mean[i][0]),
+        chan("G", &|i| img.mean[i][1]),
+        chan("B", &|i| img.mean[i][2]),
+        chan("variance.R", &|i| img.variance_of_mean[i][0]),
+        chan("variance.G", &|i| img.variance_of_mean[i][1]),
+        chan("variance.B", &|i| img.variance_of_mean[i][2]),
+        chan("relerr.Y", &|i| img.relative_error[i]),
+        chan("passes.Y", &|i| img.passes[i] as f32),
+        chan("samples.Y", &|i| img.samples[i] as f32),
+    ];
+    let layer = Layer::new(
+        (img.width as usize, img.height as usize),
+        LayerAttributes::named("tessera"),
+        Encoding::SMALL_LOSSLESS,
+        AnyChannels::sort(channels.into()),
+    );
+    let image = Image::from_layer(layer);
+    let mut out = Cursor::new(Vec::new());
+    image.write().non_parallel().to_buffered(&mut out).map_err(|e| ImageError::Exr(e.to_string()))?;
+    Ok(out.into_inner())
+}
+
+/// The sRGB transfer function (IEC 61966-2-1) of a linear value in [0, 1].
+pub fn srgb_encode(linear: f32) -> f32 {
+    let c = linear.clamp(0.0, 1.0);
+    if c <= 0.0031308 {
+        12.92 * c
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// Encodes 8-bit RGB pixels (row-major) as PNG.
+pub fn encode_png_rgb8(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>, ImageError> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, width, height);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
+        let mut w = enc.write_header().map_err(|e| ImageError::Png(e.to_string()))?;
+        w.write_image_data(rgb).map_err(|e| ImageError::Png(e.to_string()))?;
+    }
+    Ok(out)
+}
+
+/// Encodes the beauty as an sRGB PNG (clamped, 8 bits).
+pub fn encode_png(img: &FrameImage) -> Result<Vec<u8>, ImageError> {
+    let rgb: Vec<u8> = img
+        .mean
+        .iter()
+        .flat_map(|p| p.map(|c| (srgb_encode(c) * 255.0 + 0.5) as u8))
+        .collect();
+    encode_png_rgb8(img.width, img.height, &rgb)
+}
+
+/// Writes the frame to `path`, choosing EXR or PNG by the extension.
+pub fn write_image(path: &std::path::Path, img: &FrameImage) -> Result<(), ImageError> {
+    let ext = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+    let bytes = match ext.as_deref() {
+        Some("exr") => encode_exr(img)?,
+        Some("png") => encode_png(img)?,
+        _ => return Err(ImageError::Format(path.display().to_string())),
+    };
+    std::fs::write(path, bytes).map_err(|source| ImageError::Io { path: path.display().to_string(), source })
+}
+
+/// A decoded EXR: width, height and the named float channels.
+pub struct ExrChannels {
+    /// Width.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+    /// Channels by name, each row-major.
+    pub channels: Vec<(String, Vec<f32>)>,
+}
+
+impl ExrChannels {
+    /// The channel called `name`.
+    pub fn get(&self, name: &str) -> Result<&[f32], ImageError> {
+        self.channels
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, v)| v.as_slice())
+            .ok_or_else(|| ImageError::MissingChannel(name.to_string()))
+    }
+}
+
+/// Reads every channel of the first layer of an EXR file (used for references and tests).
+pub fn read_exr(bytes: &[u8]) -> Result<ExrChannels, ImageError> {
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(|e| ImageError::Exr(e.to_string()))?;
+    let size = image.layer_data.size;
+    let channels = image
+        .layer_data
+        .channel_data
+        .list
+        .iter()
+        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
+        .collect();
+    Ok(ExrChannels { width: size.0, height: size.1, channels })
+}

@@ -1,0 +1,203 @@
+//! Owen-scrambled Sobol' points in two dimensions, in pure `u32` arithmetic.
+//!
+//! The construction follows Burley 2020, "Practical Hash-based Owen Scrambling" (JCGT 9(4)):
+//!
+//! 1. the sample index is itself Owen-scrambled ("shuffled"), which turns the first `S`
+//!    indices into a random aligned block of `2^m >= S` consecutive indices of the sequence,
+//!    visited in a random nested order;
+//! 2. the Sobol' point of that index is computed from the generator matrices of
+//!    dimensions 0 and 1;
+//! 3. every coordinate is Owen-scrambled (nested uniform scrambling, seed 000 §6.7) with a
+//!    hash-based Laine–Karras permutation applied to the bit-reversed value.
+//!
+//! Only Sobol' dimensions 0 and 1 are ever used: higher dimensions of the integrand get
+//! fresh, independently scrambled and shuffled copies of this 2D set (padding by Latin
+//! supercube sampling, seed 000 §6.8; see `super::PixelSampler`). Dimensions 0 and 1 of
+//! Sobol' form a (0,2)-sequence in base 2, so every aligned block of `2^m` points is a
+//! (0,m,2)-net, and Owen scrambling preserves the net property with probability one
+//! (seed 000 §6.7).
+
+/// Generator matrix of Sobol' dimension 1 as 32 direction numbers `v_k = m_k / 2^k`, stored
+/// as 0.32 fixed point; index bit `k` toggles `v_{k+1}`.
+///
+/// Dimension 1 uses the primitive polynomial `x + 1` (degree 1), whose recurrence for the
+/// odd integers `m_k` is `m_k = 2 m_{k-1} XOR m_{k-1}` with `m_1 = 1` (Bratley & Fox 1988).
+/// The result is Pascal's triangle modulo 2 (1, 3, 5, 15, 17, 51, ...), so it is generated
+/// here rather than pasted as a table.
+const SOBOL_DIM1: [u32; 32] = {
+    let mut v = [0u32; 32];
+    let mut m: u32 = 1;
+    let mut k = 0;
+    while k < 32 {
+        // m_{k+1} has at most k + 1 significant bits; shifting by 31 - k left-aligns
+        // m_{k+1} / 2^{k+1} in 0.32 fixed point.
+        v[k] = m << (31 - k);
+        m ^= m << 1;
+        k += 1;
+    }
+    v
+};
+
+/// Sobol' dimension 0 of `index` in 0.32 fixed point: the van der Corput radical inverse in
+/// base 2, i.e. the bit reversal of the index (its generator matrix is the identity).
+#[inline]
+pub(crate) fn sobol_dim0(index: u32) -> u32 {
+    index.reverse_bits()
+}
+
+/// Sobol' dimension 1 of `index` in 0.32 fixed point: the XOR of the direction numbers
+/// selected by the set bits of the index (a matrix–vector product over GF(2)).
+#[inline]
+pub(crate) fn sobol_dim1(index: u32) -> u32 {
+    let mut bits = index;
+    let mut x = 0u32;
+    while bits != 0 {
+        let k = bits.trailing_zeros();
+        x ^= SOBOL_DIM1[k as usize];
+        bits &= bits - 1;
+    }
+    x
+}
+
+/// Laine–Karras style hash permutation on a bit-reversed integer, with Vegdahl's improved
+/// constants ("Building a better LK hash", 2021, as used by Blender Cycles).
+///
+/// Every step (XOR with a multiple by an even constant, adding the seed, multiplying by an
+/// odd constant) changes bit `i` only as a function of bits `<= i`, and flips bit `i` by a
+/// function of the bits strictly below it. On reversed bits "below" means "more significant
+/// digits of the original value", which is exactly Owen's nested uniform scrambling: the
+/// permutation applied to digit `k` depends on the preceding `k - 1` digits (seed 000 §6.7).
+#[inline]
+pub(crate) fn laine_karras_permutation(mut x: u32, seed: u32) -> u32 {
+    x ^= x.wrapping_mul(0x3d20_adea);
+    x = x.wrapping_add(seed);
+    x = x.wrapping_mul((seed >> 16) | 1);
+    x ^= x.wrapping_mul(0x0552_6c56);
+    x ^= x.wrapping_mul(0x53a2_2864);
+    x
+}
+
+/// Base-2 Owen scrambling (nested uniform scrambling, seed 000 §6.7) of a 0.32 fixed-point
+/// value, or of an integer index (Burley 2020 §3: the same operation shuffles the index).
+#[inline]
+pub(crate) fn nested_uniform_scramble(x: u32, seed: u32) -> u32 {
+    laine_karras_permutation(x.reverse_bits(), seed).reverse_bits()
+}
+
+/// Seeds of one Owen-scrambled, shuffled 2D Sobol' point set.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Scramble {
+    /// Seed of the index shuffle (the Latin supercube permutation of seed 000 §6.8).
+    pub(crate) shuffle: u32,
+    /// Seed of the Owen scramble of coordinate 0.
+    pub(crate) x: u32,
+    /// Seed of the Owen scramble of coordinate 1.
+    pub(crate) y: u32,
+}
+
+/// Point `index` of a shuffled, Owen-scrambled 2D Sobol' set, in 0.32 fixed point.
+///
+/// For `index < 2^m` the shuffled indices are a permutation of one aligned block of `2^m`
+/// consecutive sequence indices: the Owen scramble of the index permutes its low `m` bits
+/// among themselves and maps the (all-zero) high bits to a seed-dependent constant. Such a
+/// block of a (0,2)-sequence is a (0,m,2)-net.
+#[inline]
+pub(crate) fn shuffled_scrambled_sobol_2d(index: u32, s: Scramble) -> (u32, u32) {
+    let i = nested_uniform_scramble(index, s.shuffle);
+    (
+        nested_uniform_scramble(sobol_dim0(i), s.x),
+        nested_uniform_scramble(sobol_dim1(i), s.y),
+    )
+}
+
+/// Point `index` of a shuffled, Owen-scrambled 1D Sobol' (van der Corput) set, in 0.32
+/// fixed point; any `2^m` consecutive shuffled indices starting at 0 are stratified into
+/// `2^m` equal intervals.
+#[inline]
+pub(crate) fn shuffled_scrambled_sobol_1d(index: u32, shuffle: u32, seed: u32) -> u32 {
+    let i = nested_uniform_scramble(index, shuffle);
+    nested_uniform_scramble(sobol_dim0(i), seed)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sobol_dim1_matches_known_prefix() {
+        // Sobol' dimension 2 in the usual 1-based numbering (Joe–Kuo table line 1), points
+        // 0..8 in natural (not Gray-code) order: v_1 = 1/2, v_2 = 3/4, v_3 = 5/8 and XORs.
+        let expected = [0.0, 0.5, 0.75, 0.25, 0.625, 0.125, 0.375, 0.875];
+        for (i, e) in expected.iter().enumerate() {
+            let x = sobol_dim1(i as u32) as f64 / 4294967296.0;
+            assert_eq!(x, *e, "index {i}");
+        }
+        // m_k for x + 1 is Pascal's triangle mod 2: 1, 3, 5, 15, 17, 51.
+        let m: Vec<u32> = (0..6).map(|k| SOBOL_DIM1[k] >> (31 - k)).collect();
+        assert_eq!(m, vec![1, 3, 5, 15, 17, 51]);
+    }
+
+    #[test]
+    fn unscrambled_blocks_are_0_m_2_nets() {
+        // Every aligned block of 2^m points of dims (0,1) is a (0,m,2)-net: one point in
+        // each elementary interval of area 2^-m.
+        for m in 1..=8u32 {
+            for block in [0u32, 1, 7, 1000] {
+                let pts: Vec<(u32, u32)> = (0..(1u32 << m))
+                    .map(|i| {
+                        let idx = (block << m) | i;
+                        (sobol_dim0(idx), sobol_dim1(idx))
+                    })
+                    .collect();
+                assert!(is_net(&pts, m), "m = {m}, block = {block}");
+            }
+        }
+    }
+
+    #[test]
+    fn scrambled_shuffled_sets_stay_nets() {
+        for m in 1..=8u32 {
+            for seed in 0..20u32 {
+                let s = Scramble {
+                    shuffle: seed.wrapping_mul(0x9e37_79b9),
+                    x: seed.wrapping_mul(0x85eb_ca6b) ^ 0x1234,
+                    y: seed.wrapping_mul(0xc2b2_ae35) ^ 0x5678,
+                };
+                let pts: Vec<(u32, u32)> = (0..(1u32 << m))
+                    .map(|i| shuffled_scrambled_sobol_2d(i, s))
+                    .collect();
+                assert!(is_net(&pts, m), "m = {m}, seed = {seed}");
+            }
+        }
+    }
+
+    #[test]
+    fn owen_scramble_is_a_bijection_on_prefixes() {
+        // Nested scrambling maps each dyadic interval of length 2^-k onto one of the same
+        // length: the top k bits of the output depend only on the top k bits of the input.
+        for seed in [0u32, 1, 0xdead_beef, 0x1357_9bdf] {
+            let mut seen = [false; 256];
+            for top in 0..256u32 {
+                let a = nested_uniform_scramble(top << 24, seed) >> 24;
+                let b = nested_uniform_scramble((top << 24) | 0x00ab_cdef, seed) >> 24;
+                assert_eq!(a, b);
+                assert!(!seen[a as usize]);
+                seen[a as usize] = true;
+            }
+        }
+    }
+
+    /// True when the 2^m points have exactly one point in every elementary interval
+    /// [a 2^-k, (a+1) 2^-k) x [b 2^-(m-k), (b+1) 2^-(m-k)), k = 0..=m.
+    fn is_net(pts: &[(u32, u32)], m: u32) -> bool {
+        (0..=m).all(|k| {
+            let mut hit = vec![false; 1 << m];
+            pts.iter().all(|&(x, y)| {
+                let cx = if k == 0 { 0 } else { x >> (32 - k) };
+                let cy = if k == m { 0 } else { y >> (32 - (m - k)) };
+                let cell = ((cx << (m - k)) | cy) as usize;
+                !std::mem::replace(&mut hit[cell], true)
+            })
+        })
+    }
+}
