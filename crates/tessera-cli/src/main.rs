@@ -14,7 +14,11 @@ use tessera_render::sampling::SamplerKind;
 use tessera_render::scene::RenderScene;
 
 #[derive(Parser)]
-#[command(name = "tessera", version, about = "Tessera: a distributed Monte Carlo render farm")]
+#[command(
+    name = "tessera",
+    version,
+    about = "Tessera: a distributed Monte Carlo render farm"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -134,11 +138,14 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     if job.spp == 0 {
         bail!("--spp must be at least 1");
     }
-    let plan = FramePlan::for_spp(width, height, job.spp, job.tile_size).context("invalid image or sampling settings")?;
+    let plan = FramePlan::for_spp(width, height, job.spp, job.tile_size)
+        .context("invalid image or sampling settings")?;
     let integrator = match job.integrator.as_str() {
         // The scene-analysis plan will refine this; for now every scene gets the path tracer.
         "auto" => IntegratorKind::Path,
-        other => other.parse::<IntegratorKind>().map_err(anyhow::Error::msg)?,
+        other => other
+            .parse::<IntegratorKind>()
+            .map_err(anyhow::Error::msg)?,
     };
     if job.max_depth == 0 || job.max_depth > 1024 {
         bail!("--max-depth {} must be between 1 and 1024", job.max_depth);
@@ -152,11 +159,20 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
         rr_depth: 3,
     };
     let render_scene = RenderScene::build(&scene, width, height)?;
-    Ok(Prepared { scene, render_scene, plan, settings })
+    Ok(Prepared {
+        scene,
+        render_scene,
+        plan,
+        settings,
+    })
 }
 
 fn render(args: RenderArgs) -> Result<()> {
-    let ext = args.output.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+    let ext = args
+        .output
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase());
     if !matches!(ext.as_deref(), Some("exr") | Some("png")) {
         bail!("output {} must end in .exr or .png", args.output.display());
     }
@@ -164,20 +180,29 @@ fn render(args: RenderArgs) -> Result<()> {
     let bar = if std::io::stderr().is_terminal() {
         let bar = indicatif::ProgressBar::new(p.plan.unit_count(1));
         bar.set_style(
-            indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} units, eta {eta}")
-                .expect("static template")
-                .progress_chars("=> "),
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:40}] {pos}/{len} units, eta {eta}",
+            )
+            .expect("static template")
+            .progress_chars("=> "),
         );
         Some(bar)
     } else {
         None
     };
     let start = Instant::now();
-    let acc = render_frame(&p.render_scene, &p.settings, &p.plan, 0, args.job.threads, |done, _| {
-        if let Some(b) = &bar {
-            b.set_position(done as u64);
-        }
-    });
+    let acc = render_frame(
+        &p.render_scene,
+        &p.settings,
+        &p.plan,
+        0,
+        args.job.threads,
+        |done, _| {
+            if let Some(b) = &bar {
+                b.set_position(done as u64);
+            }
+        },
+    );
     let seconds = start.elapsed().as_secs_f64();
     if let Some(b) = bar {
         b.finish_and_clear();
@@ -230,15 +255,32 @@ fn bench(args: BenchArgs) -> Result<()> {
         tile_size: 32,
     };
     let p = prepare(&job)?;
-    let threads = if args.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { args.threads };
+    let threads = if args.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.threads
+    };
     let paths = p.plan.width as f64 * p.plan.height as f64 * p.plan.spp() as f64;
     let mut rates = Vec::new();
     for i in 0..args.repeat.max(1) {
         let start = Instant::now();
-        let acc = render_frame(&p.render_scene, &p.settings, &p.plan, 0, args.threads, |_, _| {});
+        let acc = render_frame(
+            &p.render_scene,
+            &p.settings,
+            &p.plan,
+            0,
+            args.threads,
+            |_, _| {},
+        );
         let s = start.elapsed().as_secs_f64();
         rates.push(paths / s);
-        println!("run {}: {:.3} s, {:.0} paths/s, estimated error {:.4}", i + 1, s, paths / s, acc.image_error());
+        println!(
+            "run {}: {:.3} s, {:.0} paths/s, estimated error {:.4}",
+            i + 1,
+            s,
+            paths / s,
+            acc.image_error()
+        );
     }
     rates.sort_by(f64::total_cmp);
     let median = rates[rates.len() / 2];

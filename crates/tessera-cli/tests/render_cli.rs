@@ -16,13 +16,28 @@ fn temp_dir(name: &str) -> PathBuf {
 
 fn render(out: &Path, extra: &[&str]) -> String {
     let o = tessera()
-        .args(["render", "builtin:cornell-box", "--width", "64", "--height", "48", "--spp", "16", "-o"])
+        .args([
+            "render",
+            "builtin:cornell-box",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--spp",
+            "16",
+            "-o",
+        ])
         .arg(out)
         .args(extra)
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&o.stdout).to_string();
-    assert!(o.status.success(), "render failed: {}\n{}", stdout, String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "render failed: {}\n{}",
+        stdout,
+        String::from_utf8_lossy(&o.stderr)
+    );
     stdout
 }
 
@@ -41,7 +56,17 @@ fn exr_is_bit_identical_for_any_thread_count_and_across_runs() {
     // The layers are there and the beauty is plausible.
     let exr = tessera_image::read_exr(&files[0]).unwrap();
     assert_eq!((exr.width, exr.height), (64, 48));
-    for name in ["R", "G", "B", "variance.R", "variance.G", "variance.B", "relerr.Y", "passes.Y", "samples.Y"] {
+    for name in [
+        "R",
+        "G",
+        "B",
+        "variance.R",
+        "variance.G",
+        "variance.B",
+        "relerr.Y",
+        "passes.Y",
+        "samples.Y",
+    ] {
         let c = exr.get(name).unwrap();
         assert!(c.iter().all(|v| v.is_finite() && *v >= 0.0), "{name}");
     }
@@ -58,8 +83,16 @@ fn png_output_and_summary() {
     let stdout = render(&out, &[]);
     let bytes = std::fs::read(&out).unwrap();
     assert_eq!(&bytes[1..4], b"PNG");
-    for needle in ["samples per pixel: 16", "seconds:", "estimated relative error:", "paths per second:"] {
-        assert!(stdout.contains(needle), "summary lacks {needle:?}:\n{stdout}");
+    for needle in [
+        "samples per pixel: 16",
+        "seconds:",
+        "estimated relative error:",
+        "paths per second:",
+    ] {
+        assert!(
+            stdout.contains(needle),
+            "summary lacks {needle:?}:\n{stdout}"
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -68,18 +101,55 @@ fn png_output_and_summary() {
 fn bad_arguments_are_reported_not_panicked() {
     let dir = temp_dir("bad");
     for (args, needle) in [
-        (vec!["render", "builtin:nope", "-o", "x.exr"], "unknown scene"),
-        (vec!["render", "builtin:cornell-box", "-o", "x.tiff"], ".exr or .png"),
-        (vec!["render", "builtin:cornell-box", "-o", "x.exr", "--spp", "0"], "--spp"),
-        (vec!["render", "builtin:cornell-box", "-o", "x.exr", "--width", "0", "--height", "5"], "invalid"),
-        (vec!["render", "missing.gltf", "-o", "x.exr"], "missing.gltf"),
-        (vec!["render", "builtin:cornell-box", "-o", "x.exr", "--mis", "nope"], "MIS"),
+        (
+            vec!["render", "builtin:nope", "-o", "x.exr"],
+            "unknown scene",
+        ),
+        (
+            vec!["render", "builtin:cornell-box", "-o", "x.tiff"],
+            ".exr or .png",
+        ),
+        (
+            vec!["render", "builtin:cornell-box", "-o", "x.exr", "--spp", "0"],
+            "--spp",
+        ),
+        (
+            vec![
+                "render",
+                "builtin:cornell-box",
+                "-o",
+                "x.exr",
+                "--width",
+                "0",
+                "--height",
+                "5",
+            ],
+            "invalid",
+        ),
+        (
+            vec!["render", "missing.gltf", "-o", "x.exr"],
+            "missing.gltf",
+        ),
+        (
+            vec![
+                "render",
+                "builtin:cornell-box",
+                "-o",
+                "x.exr",
+                "--mis",
+                "nope",
+            ],
+            "MIS",
+        ),
     ] {
         let o = tessera().current_dir(&dir).args(&args).output().unwrap();
         let stderr = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success(), "{args:?} succeeded");
         assert!(!stderr.contains("panicked"), "{args:?} panicked: {stderr}");
-        assert!(stderr.contains(needle), "{args:?}: {stderr} lacks {needle:?}");
+        assert!(
+            stderr.contains(needle),
+            "{args:?}: {stderr} lacks {needle:?}"
+        );
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

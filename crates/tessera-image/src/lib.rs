@@ -18,8 +18,8 @@
 #![deny(missing_docs)]
 
 use exr::prelude::{
-    read, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, ReadChannels, ReadLayers,
-    WritableImage,
+    read, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes,
+    ReadChannels, ReadLayers, WritableImage,
 };
 use std::io::Cursor;
 use tessera_farm::FrameImage;
@@ -74,7 +74,11 @@ pub fn encode_exr(img: &FrameImage) -> Result<Vec<u8>, ImageError> {
     );
     let image = Image::from_layer(layer);
     let mut out = Cursor::new(Vec::new());
-    image.write().non_parallel().to_buffered(&mut out).map_err(|e| ImageError::Exr(e.to_string()))?;
+    image
+        .write()
+        .non_parallel()
+        .to_buffered(&mut out)
+        .map_err(|e| ImageError::Exr(e.to_string()))?;
     Ok(out.into_inner())
 }
 
@@ -96,8 +100,11 @@ pub fn encode_png_rgb8(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>, I
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
         enc.set_source_srgb(png::SrgbRenderingIntent::Perceptual);
-        let mut w = enc.write_header().map_err(|e| ImageError::Png(e.to_string()))?;
-        w.write_image_data(rgb).map_err(|e| ImageError::Png(e.to_string()))?;
+        let mut w = enc
+            .write_header()
+            .map_err(|e| ImageError::Png(e.to_string()))?;
+        w.write_image_data(rgb)
+            .map_err(|e| ImageError::Png(e.to_string()))?;
     }
     Ok(out)
 }
@@ -114,13 +121,19 @@ pub fn encode_png(img: &FrameImage) -> Result<Vec<u8>, ImageError> {
 
 /// Writes the frame to `path`, choosing EXR or PNG by the extension.
 pub fn write_image(path: &std::path::Path, img: &FrameImage) -> Result<(), ImageError> {
-    let ext = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase());
     let bytes = match ext.as_deref() {
         Some("exr") => encode_exr(img)?,
         Some("png") => encode_png(img)?,
         _ => return Err(ImageError::Format(path.display().to_string())),
     };
-    std::fs::write(path, bytes).map_err(|source| ImageError::Io { path: path.display().to_string(), source })
+    std::fs::write(path, bytes).map_err(|source| ImageError::Io {
+        path: path.display().to_string(),
+        source,
+    })
 }
 
 /// A decoded EXR: width, height and the named float channels.
@@ -162,5 +175,9 @@ pub fn read_exr(bytes: &[u8]) -> Result<ExrChannels, ImageError> {
         .iter()
         .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
         .collect();
-    Ok(ExrChannels { width: size.0, height: size.1, channels })
+    Ok(ExrChannels {
+        width: size.0,
+        height: size.1,
+        channels,
+    })
 }

@@ -56,10 +56,18 @@ impl CameraModel {
             let p_lens = Vec3::new(l.x, l.y, 0.0);
             let p_focus = dir_cam * self.focus_distance;
             let o = self.world_from_camera.transform_point3(p_lens);
-            let d = self.world_from_camera.transform_vector3(p_focus - p_lens).normalize();
+            let d = self
+                .world_from_camera
+                .transform_vector3(p_focus - p_lens)
+                .normalize();
             (o, d)
         } else {
-            (self.origin, self.world_from_camera.transform_vector3(dir_cam).normalize())
+            (
+                self.origin,
+                self.world_from_camera
+                    .transform_vector3(dir_cam)
+                    .normalize(),
+            )
         }
     }
 }

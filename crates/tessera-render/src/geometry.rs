@@ -117,7 +117,11 @@ impl WatertightRay {
     fn new(origin: Vec3, dir: Vec3) -> Self {
         let a = dir.abs();
         let kz = if a.x > a.y {
-            if a.x > a.z { 0 } else { 2 }
+            if a.x > a.z {
+                0
+            } else {
+                2
+            }
         } else if a.y > a.z {
             1
         } else {
@@ -126,7 +130,15 @@ impl WatertightRay {
         let kx = (kz + 1) % 3;
         let ky = (kx + 1) % 3;
         let d = Vec3::new(dir[kx], dir[ky], dir[kz]);
-        Self { origin, kx, ky, kz, sx: -d.x / d.z, sy: -d.y / d.z, sz: 1.0 / d.z }
+        Self {
+            origin,
+            kx,
+            ky,
+            kz,
+            sx: -d.x / d.z,
+            sy: -d.y / d.z,
+            sz: 1.0 / d.z,
+        }
     }
 
     /// Returns (t, b0, b1, b2) for a hit with `t < t_max`, or `None`.
@@ -202,7 +214,13 @@ impl WatertightRay {
 /// is computed from the distance of the centre to the ray line, which does not cancel
 /// catastrophically for small or distant spheres.
 #[inline]
-pub fn intersect_sphere(center: Vec3, radius: f32, origin: Vec3, dir: Vec3, t_max: f32) -> Option<f32> {
+pub fn intersect_sphere(
+    center: Vec3,
+    radius: f32,
+    origin: Vec3,
+    dir: Vec3,
+    t_max: f32,
+) -> Option<f32> {
     let f = origin - center;
     let a = dir.length_squared();
     let b_half = -f.dot(dir);
@@ -213,7 +231,11 @@ pub fn intersect_sphere(center: Vec3, radius: f32, origin: Vec3, dir: Vec3, t_ma
     }
     let c = f.length_squared() - radius * radius;
     let sq = disc.sqrt();
-    let q = if b_half >= 0.0 { b_half + sq } else { b_half - sq };
+    let q = if b_half >= 0.0 {
+        b_half + sq
+    } else {
+        b_half - sq
+    };
     let (mut t0, mut t1) = (c / q, q / a);
     if t0 > t1 {
         std::mem::swap(&mut t0, &mut t1);
@@ -250,7 +272,11 @@ impl Geometry {
                 &mut build_time,
             );
             // Store triangles in leaf order so the hot loop indexes them directly.
-            let ordered = bvh.primitive_indices.iter().map(|&i| triangles[i as usize]).collect();
+            let ordered = bvh
+                .primitive_indices
+                .iter()
+                .map(|&i| triangles[i as usize])
+                .collect();
             (bvh, ordered)
         };
         let mut lo = Vec3::splat(f32::INFINITY);
@@ -270,7 +296,13 @@ impl Geometry {
         } else {
             (Vec3::ZERO, 1.0)
         };
-        Self { bvh, triangles: ordered, spheres, bounds_center, bounds_radius }
+        Self {
+            bvh,
+            triangles: ordered,
+            spheres,
+            bounds_center,
+            bounds_radius,
+        }
     }
 
     /// The nearest hit along `origin + t dir` with `0 < t < t_max`. `dir` need not be
@@ -282,7 +314,11 @@ impl Geometry {
             let wt = WatertightRay::new(origin, dir);
             let shift = TRAVERSAL_SHIFT;
             let shifted_origin = Vec3A::from(origin - dir * shift);
-            let traversal_max = if t_max.is_finite() { (t_max + shift) * (1.0 + 1e-5) } else { t_max };
+            let traversal_max = if t_max.is_finite() {
+                (t_max + shift) * (1.0 + 1e-5)
+            } else {
+                t_max
+            };
             let ray = Ray::new(shifted_origin, Vec3A::from(dir), 0.0, traversal_max);
             let mut hit = RayHit::none();
             let tris = &self.triangles;
@@ -291,7 +327,14 @@ impl Geometry {
                 match wt.intersect(&tri.p, best_t) {
                     Some((t, _b0, b1, b2)) => {
                         best_t = t;
-                        best = Some(Hit { t, primitive: Primitive::Triangle { index: id as u32, b1, b2 } });
+                        best = Some(Hit {
+                            t,
+                            primitive: Primitive::Triangle {
+                                index: id as u32,
+                                b1,
+                                b2,
+                            },
+                        });
                         // The traversal ray's parameter, rounded up so pruning is conservative.
                         (t + shift) * (1.0 + 1e-5)
                     }
@@ -302,7 +345,10 @@ impl Geometry {
         for (i, s) in self.spheres.iter().enumerate() {
             if let Some(t) = intersect_sphere(s.center, s.radius, origin, dir, best_t) {
                 best_t = t;
-                best = Some(Hit { t, primitive: Primitive::Sphere { index: i as u32 } });
+                best = Some(Hit {
+                    t,
+                    primitive: Primitive::Sphere { index: i as u32 },
+                });
             }
         }
         best
@@ -321,12 +367,19 @@ impl Geometry {
         let wt = WatertightRay::new(origin, dir);
         let shift = TRAVERSAL_SHIFT;
         let traversal_max = (t_max + shift) * (1.0 + 1e-5);
-        let ray = Ray::new(Vec3A::from(origin - dir * shift), Vec3A::from(dir), 0.0, traversal_max);
+        let ray = Ray::new(
+            Vec3A::from(origin - dir * shift),
+            Vec3A::from(dir),
+            0.0,
+            traversal_max,
+        );
         let tris = &self.triangles;
-        !self.bvh.ray_traverse_miss(ray, |_, id| match wt.intersect(&tris[id].p, t_max) {
-            Some(_) => 0.0,
-            None => f32::INFINITY,
-        })
+        !self
+            .bvh
+            .ray_traverse_miss(ray, |_, id| match wt.intersect(&tris[id].p, t_max) {
+                Some(_) => 0.0,
+                None => f32::INFINITY,
+            })
     }
 }
 
@@ -381,7 +434,13 @@ mod tests {
         let b = Vec3::new(s, -s, 0.0);
         let c = Vec3::new(s, s, 0.0);
         let d = Vec3::new(-s, s, 0.0);
-        let rec = |p, i| TriangleRecord { p, mesh: 0, index: i, material: 0, light: NO_LIGHT };
+        let rec = |p, i| TriangleRecord {
+            p,
+            mesh: 0,
+            index: i,
+            material: 0,
+            light: NO_LIGHT,
+        };
         vec![rec([a, b, c], 0), rec([a, c, d], 1)]
     }
 
@@ -391,7 +450,9 @@ mod tests {
         // triangles must hit; a Möller–Trumbore test loses a fraction of these.
         let mut rng = 0x1234_5678_9abc_def0u64;
         let mut next = || {
-            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            rng = rng
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((rng >> 40) as f32) / (1u64 << 24) as f32
         };
         // A fan of 64 triangles around the origin, slightly irregular.
@@ -426,7 +487,10 @@ mod tests {
                 misses += 1;
             }
         }
-        assert_eq!(misses, 0, "{misses} of {total} rays slipped through shared edges");
+        assert_eq!(
+            misses, 0,
+            "{misses} of {total} rays slipped through shared edges"
+        );
     }
 
     #[test]
@@ -449,10 +513,24 @@ mod tests {
 
     #[test]
     fn sphere_intersection_is_accurate_for_tiny_and_distant_spheres() {
-        let t = intersect_sphere(Vec3::new(0.0, 0.0, -1e4), 0.01, Vec3::ZERO, -Vec3::Z, f32::INFINITY).unwrap();
+        let t = intersect_sphere(
+            Vec3::new(0.0, 0.0, -1e4),
+            0.01,
+            Vec3::ZERO,
+            -Vec3::Z,
+            f32::INFINITY,
+        )
+        .unwrap();
         assert!((t - (1e4 - 0.01)).abs() < 2e-3, "{t}");
         let t = intersect_sphere(Vec3::ZERO, 1.0, Vec3::ZERO, Vec3::X, f32::INFINITY).unwrap();
         assert!((t - 1.0).abs() < 1e-6);
-        assert!(intersect_sphere(Vec3::ZERO, 1.0, Vec3::new(0.0, 2.0, 0.0), Vec3::X, f32::INFINITY).is_none());
+        assert!(intersect_sphere(
+            Vec3::ZERO,
+            1.0,
+            Vec3::new(0.0, 2.0, 0.0),
+            Vec3::X,
+            f32::INFINITY
+        )
+        .is_none());
     }
 }

@@ -46,7 +46,12 @@ impl Default for RenderSettings {
 
 /// Renders one work unit. The caller guarantees that `unit` belongs to `plan` and that
 /// `scene` was built for the plan's image size.
-pub fn render_unit(scene: &RenderScene, settings: &RenderSettings, plan: &FramePlan, unit: WorkUnit) -> UnitResult {
+pub fn render_unit(
+    scene: &RenderScene,
+    settings: &RenderSettings,
+    plan: &FramePlan,
+    unit: WorkUnit,
+) -> UnitResult {
     let rect = plan.tile(unit.tile);
     let pixels = (rect.width * rect.height) as usize;
     let spp = plan.samples_per_pass;
@@ -62,7 +67,8 @@ pub fn render_unit(scene: &RenderScene, settings: &RenderSettings, plan: &FrameP
         for y in rect.y0..rect.y0 + rect.height {
             for x in rect.x0..rect.x0 + rect.width {
                 let pixel = y * plan.width + x;
-                let mut sampler = PixelSampler::new(settings.sampler, settings.seed, unit.frame, pixel, pass);
+                let mut sampler =
+                    PixelSampler::new(settings.sampler, settings.seed, unit.frame, pixel, pass);
                 let mut sum = [0.0f64; 3];
                 for i in 0..spp {
                     sampler.start_sample(i);
@@ -80,11 +86,20 @@ pub fn render_unit(scene: &RenderScene, settings: &RenderSettings, plan: &FrameP
                     }
                 }
                 let inv = 1.0 / spp as f64;
-                pass_means.push([(sum[0] * inv) as f32, (sum[1] * inv) as f32, (sum[2] * inv) as f32]);
+                pass_means.push([
+                    (sum[0] * inv) as f32,
+                    (sum[1] * inv) as f32,
+                    (sum[2] * inv) as f32,
+                ]);
             }
         }
     }
-    UnitResult { unit, width: rect.width, height: rect.height, pass_means }
+    UnitResult {
+        unit,
+        width: rect.width,
+        height: rect.height,
+        pass_means,
+    }
 }
 
 /// Renders a whole frame on `threads` threads (0 = all cores), calling `progress(done,
@@ -100,8 +115,11 @@ pub fn render_frame(
 ) -> FrameAccumulator {
     let units = plan.units(frame, 1);
     let total = units.len();
-    let mut acc = FrameAccumulator::new(plan.clone());
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("thread pool");
+    let mut acc = FrameAccumulator::new(*plan);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .expect("thread pool");
     let (tx, rx) = std::sync::mpsc::channel();
     pool.in_place_scope(|scope| {
         scope.spawn(move |_| {

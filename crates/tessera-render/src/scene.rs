@@ -11,12 +11,12 @@ use crate::bsdf::{
 };
 use crate::camera::CameraModel;
 use crate::geometry::{
-    sphere_point, triangle_point, Geometry, Hit, Primitive, SphereRecord, SurfacePoint, TriangleRecord,
-    NO_LIGHT,
+    sphere_point, triangle_point, Geometry, Hit, Primitive, SphereRecord, SurfacePoint,
+    TriangleRecord, NO_LIGHT,
 };
 use crate::light::{
-    environment::Environment, punctual::Punctual, sphere::SphereLight, triangle::TriangleLight, Light,
-    LightSet,
+    environment::Environment, punctual::Punctual, sphere::SphereLight, triangle::TriangleLight,
+    Light, LightSet,
 };
 use glam::{Vec2, Vec3};
 use tessera_scene::{Material, MaterialKind, PunctualLight, Scene, Texture};
@@ -72,7 +72,13 @@ impl RenderScene {
                         lights.push(Light::Triangle(l));
                     }
                 }
-                triangles.push(TriangleRecord { p, mesh: mi as u32, index: ti as u32, material: mesh.material, light });
+                triangles.push(TriangleRecord {
+                    p,
+                    mesh: mi as u32,
+                    index: ti as u32,
+                    material: mesh.material,
+                    light,
+                });
             }
         }
         let mut spheres = Vec::with_capacity(scene.spheres.len());
@@ -81,22 +87,46 @@ impl RenderScene {
             let mut light = NO_LIGHT;
             if mat.is_emissive() {
                 light = lights.len() as u32;
-                lights.push(Light::Sphere(SphereLight { center: s.center, radius: s.radius, radiance: mat.emission }));
+                lights.push(Light::Sphere(SphereLight {
+                    center: s.center,
+                    radius: s.radius,
+                    radiance: mat.emission,
+                }));
             }
-            spheres.push(SphereRecord { center: s.center, radius: s.radius, material: s.material, light });
+            spheres.push(SphereRecord {
+                center: s.center,
+                radius: s.radius,
+                material: s.material,
+                light,
+            });
         }
         let geometry = Geometry::build(triangles, spheres);
         for l in &scene.lights {
             lights.push(Light::Punctual(match *l {
-                PunctualLight::Point { position, intensity } => Punctual::Point { position, intensity },
-                PunctualLight::Spot { position, direction, intensity, inner_angle, outer_angle } => Punctual::Spot {
+                PunctualLight::Point {
+                    position,
+                    intensity,
+                } => Punctual::Point {
+                    position,
+                    intensity,
+                },
+                PunctualLight::Spot {
+                    position,
+                    direction,
+                    intensity,
+                    inner_angle,
+                    outer_angle,
+                } => Punctual::Spot {
                     position,
                     axis: direction,
                     intensity,
                     cos_inner: inner_angle.cos(),
                     cos_outer: outer_angle.cos(),
                 },
-                PunctualLight::Directional { direction, irradiance } => Punctual::Directional {
+                PunctualLight::Directional {
+                    direction,
+                    irradiance,
+                } => Punctual::Directional {
                     direction,
                     irradiance,
                     scene_radius: geometry.bounds_radius,
@@ -104,12 +134,19 @@ impl RenderScene {
             }));
         }
         if let Some(radiance) = scene.environment {
-            lights.push(Light::Environment(Environment { radiance, scene_radius: geometry.bounds_radius }));
+            lights.push(Light::Environment(Environment {
+                radiance,
+                scene_radius: geometry.bounds_radius,
+            }));
         }
         let meshes = scene
             .meshes
             .iter()
-            .map(|m| MeshShading { indices: m.indices.clone(), normals: m.normals.clone(), uvs: m.uvs.clone() })
+            .map(|m| MeshShading {
+                indices: m.indices.clone(),
+                normals: m.normals.clone(),
+                uvs: m.uvs.clone(),
+            })
             .collect();
         Ok(Self {
             geometry,
@@ -141,21 +178,36 @@ impl RenderScene {
                 let tri = &self.geometry.triangles[index as usize];
                 let b0 = 1.0 - b1 - b2;
                 let (p, p_error) = triangle_point(&tri.p, b0, b1, b2);
-                let ng = (tri.p[1] - tri.p[0]).cross(tri.p[2] - tri.p[0]).normalize_or(Vec3::Z);
+                let ng = (tri.p[1] - tri.p[0])
+                    .cross(tri.p[2] - tri.p[0])
+                    .normalize_or(Vec3::Z);
                 let mesh = &self.meshes[tri.mesh as usize];
                 let idx = mesh.indices[tri.index as usize];
                 let mut ns = ng;
                 if let Some(n) = &mesh.normals {
-                    let interp = b0 * n[idx[0] as usize] + b1 * n[idx[1] as usize] + b2 * n[idx[2] as usize];
+                    let interp =
+                        b0 * n[idx[0] as usize] + b1 * n[idx[1] as usize] + b2 * n[idx[2] as usize];
                     if let Some(v) = interp.try_normalize() {
                         ns = if v.dot(ng) < 0.0 { -v } else { v };
                     }
                 }
                 let uv = match &mesh.uvs {
-                    Some(uv) => b0 * uv[idx[0] as usize] + b1 * uv[idx[1] as usize] + b2 * uv[idx[2] as usize],
+                    Some(uv) => {
+                        b0 * uv[idx[0] as usize]
+                            + b1 * uv[idx[1] as usize]
+                            + b2 * uv[idx[2] as usize]
+                    }
                     None => Vec2::new(b1, b2),
                 };
-                SurfacePoint { p, p_error, ng, ns, uv, material: tri.material, light: tri.light }
+                SurfacePoint {
+                    p,
+                    p_error,
+                    ng,
+                    ns,
+                    uv,
+                    material: tri.material,
+                    light: tri.light,
+                }
             }
             Primitive::Sphere { index } => {
                 let s = &self.geometry.spheres[index as usize];
@@ -164,7 +216,15 @@ impl RenderScene {
                     0.5 + n.z.atan2(n.x) / std::f32::consts::TAU,
                     n.y.clamp(-1.0, 1.0).acos() / std::f32::consts::PI,
                 );
-                SurfacePoint { p, p_error, ng: n, ns: n, uv, material: s.material, light: s.light }
+                SurfacePoint {
+                    p,
+                    p_error,
+                    ng: n,
+                    ns: n,
+                    uv,
+                    material: s.material,
+                    light: s.light,
+                }
             }
         }
     }
@@ -191,7 +251,11 @@ impl RenderScene {
     fn texture(&self, index: u32, uv: Vec2) -> Vec3 {
         let t = &self.textures[index as usize];
         let wrap = |v: f32, n: u32| -> u32 {
-            let v = if t.repeat { v - v.floor() } else { v.clamp(0.0, 1.0) };
+            let v = if t.repeat {
+                v - v.floor()
+            } else {
+                v.clamp(0.0, 1.0)
+            };
             ((v * n as f32) as u32).min(n - 1)
         };
         let x = wrap(uv.x, t.width);
@@ -204,17 +268,33 @@ impl RenderScene {
     pub fn bsdf(&self, sp: &SurfacePoint) -> Bsdf {
         let m = &self.materials[sp.material as usize];
         match &m.kind {
-            MaterialKind::Diffuse { albedo } => Bsdf::single(Lobe::Diffuse(Diffuse { albedo: *albedo })),
-            MaterialKind::Phong { kd, ks, exponent } => {
-                Bsdf::single(Lobe::Phong(Phong { kd: *kd, ks: *ks, exponent: *exponent }))
+            MaterialKind::Diffuse { albedo } => {
+                Bsdf::single(Lobe::Diffuse(Diffuse { albedo: *albedo }))
             }
+            MaterialKind::Phong { kd, ks, exponent } => Bsdf::single(Lobe::Phong(Phong {
+                kd: *kd,
+                ks: *ks,
+                exponent: *exponent,
+            })),
             MaterialKind::Conductor { f0, roughness } => Bsdf::single(Lobe::Conductor(Conductor {
                 f0: *f0,
                 alpha: (roughness * roughness).max(MIN_ALPHA),
             })),
-            MaterialKind::Mirror { reflectance } => Bsdf::single(Lobe::Mirror(Mirror { reflectance: *reflectance })),
-            MaterialKind::Dielectric { ior, tint, .. } => Bsdf::single(Lobe::Glass(Glass { eta: *ior, tint: *tint })),
-            MaterialKind::MetallicRoughness { base_color, base_color_texture, metallic, roughness, transmission, ior } => {
+            MaterialKind::Mirror { reflectance } => Bsdf::single(Lobe::Mirror(Mirror {
+                reflectance: *reflectance,
+            })),
+            MaterialKind::Dielectric { ior, tint, .. } => Bsdf::single(Lobe::Glass(Glass {
+                eta: *ior,
+                tint: *tint,
+            })),
+            MaterialKind::MetallicRoughness {
+                base_color,
+                base_color_texture,
+                metallic,
+                roughness,
+                transmission,
+                ior,
+            } => {
                 let mut base = *base_color;
                 if let Some(t) = base_color_texture {
                     base *= self.texture(t.texture, sp.uv);
@@ -227,8 +307,17 @@ impl RenderScene {
                 // as solid glass, with its own Fresnel reflection, tinted by the base colour).
                 Bsdf::mixture(&[
                     (Lobe::Conductor(Conductor { f0: base, alpha }), *metallic),
-                    (Lobe::GltfDielectric(GltfDielectric { base, alpha, f0 }), dielectric * (1.0 - transmission)),
-                    (Lobe::Glass(Glass { eta: *ior, tint: base }), dielectric * transmission),
+                    (
+                        Lobe::GltfDielectric(GltfDielectric { base, alpha, f0 }),
+                        dielectric * (1.0 - transmission),
+                    ),
+                    (
+                        Lobe::Glass(Glass {
+                            eta: *ior,
+                            tint: base,
+                        }),
+                        dielectric * transmission,
+                    ),
                 ])
             }
         }

@@ -13,7 +13,14 @@ use tessera_scene::builtin::{self, look_at_camera, FURNACE_ALBEDO, FURNACE_EMISS
 use tessera_scene::{Material, MaterialKind, Mesh, Scene, Sphere};
 
 fn settings(integrator: IntegratorKind, mis: MisHeuristic, sampler: SamplerKind) -> RenderSettings {
-    RenderSettings { integrator, mis, sampler, seed: 7, max_depth: 1000, rr_depth: 3 }
+    RenderSettings {
+        integrator,
+        mis,
+        sampler,
+        seed: 7,
+        max_depth: 1000,
+        rr_depth: 3,
+    }
 }
 
 fn scaled_furnace(scale: f32) -> Scene {
@@ -31,13 +38,27 @@ fn furnace_matches_analytic_radiance_at_every_scale() {
     let expected = (FURNACE_EMISSION / (1.0 - FURNACE_ALBEDO)) as f64;
     for scale in [1.0f32, 1e-4, 1e4] {
         for mis in [MisHeuristic::Power, MisHeuristic::Balance] {
-            let acc = render(&scaled_furnace(scale), 16, 16, 64, &settings(IntegratorKind::Path, mis, SamplerKind::Sobol));
+            let acc = render(
+                &scaled_furnace(scale),
+                16,
+                16,
+                64,
+                &settings(IntegratorKind::Path, mis, SamplerKind::Sobol),
+            );
             for c in 0..3 {
                 let (mean, se) = image_mean(&acc, c);
                 let z = (mean - expected) / se;
-                eprintln!("furnace scale {scale} {mis} channel {c}: {mean:.5} ± {se:.5} (z = {z:.2})");
-                assert!(z.abs() < 3.0, "scale {scale}: {mean} vs {expected}, z = {z}");
-                assert!((mean - expected).abs() < 0.005 * expected, "scale {scale}: {mean} vs {expected}");
+                eprintln!(
+                    "furnace scale {scale} {mis} channel {c}: {mean:.5} ± {se:.5} (z = {z:.2})"
+                );
+                assert!(
+                    z.abs() < 3.0,
+                    "scale {scale}: {mean} vs {expected}, z = {z}"
+                );
+                assert!(
+                    (mean - expected).abs() < 0.005 * expected,
+                    "scale {scale}: {mean} vs {expected}"
+                );
             }
         }
     }
@@ -72,7 +93,11 @@ fn plane_under_sphere(r: f32, h: f32, radiance: f32, albedo: f32) -> Scene {
         name: "plane-under-sphere".into(),
         camera,
         meshes: vec![mesh],
-        spheres: vec![Sphere { center: v(0.0, h, 0.0), radius: r, material: 1 }],
+        spheres: vec![Sphere {
+            center: v(0.0, h, 0.0),
+            radius: r,
+            material: 1,
+        }],
         materials,
         textures: vec![],
         lights: vec![],
@@ -91,10 +116,26 @@ fn plane_under_spherical_light_matches_pi_l_sin2_alpha() {
         let expected = (albedo * radiance * sin2) as f64;
         let scene = plane_under_sphere(r, h, radiance, albedo);
         for (integrator, mis, sampler) in [
-            (IntegratorKind::Direct, MisHeuristic::Power, SamplerKind::Sobol),
-            (IntegratorKind::Path, MisHeuristic::Balance, SamplerKind::Independent),
-            (IntegratorKind::Direct, MisHeuristic::Maximum, SamplerKind::Sobol),
-            (IntegratorKind::Direct, MisHeuristic::Cutoff(0.1), SamplerKind::Independent),
+            (
+                IntegratorKind::Direct,
+                MisHeuristic::Power,
+                SamplerKind::Sobol,
+            ),
+            (
+                IntegratorKind::Path,
+                MisHeuristic::Balance,
+                SamplerKind::Independent,
+            ),
+            (
+                IntegratorKind::Direct,
+                MisHeuristic::Maximum,
+                SamplerKind::Sobol,
+            ),
+            (
+                IntegratorKind::Direct,
+                MisHeuristic::Cutoff(0.1),
+                SamplerKind::Independent,
+            ),
         ] {
             let acc = render(&scene, 8, 8, 256, &settings(integrator, mis, sampler));
             let (mean, se) = image_mean(&acc, 0);

@@ -8,7 +8,13 @@ use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
 
 /// Renders `scene` at `w` x `h`, `spp` samples per pixel, on all cores.
-pub fn render(scene: &Scene, w: u32, h: u32, spp: u32, settings: &RenderSettings) -> FrameAccumulator {
+pub fn render(
+    scene: &Scene,
+    w: u32,
+    h: u32,
+    spp: u32,
+    settings: &RenderSettings,
+) -> FrameAccumulator {
     let rs = RenderScene::build(scene, w, h).unwrap();
     let plan = FramePlan::for_spp(w, h, spp, 16).unwrap();
     render_frame(&rs, settings, &plan, 0, 0, |_, _| {})
@@ -20,6 +26,11 @@ pub fn image_mean(acc: &FrameAccumulator, channel: usize) -> (f64, f64) {
     let img = acc.image();
     let n = img.mean.len() as f64;
     let mean = img.mean.iter().map(|p| p[channel] as f64).sum::<f64>() / n;
-    let var = img.variance_of_mean.iter().map(|v| v[channel] as f64).sum::<f64>() / (n * n);
+    let var = img
+        .variance_of_mean
+        .iter()
+        .map(|v| v[channel] as f64)
+        .sum::<f64>()
+        / (n * n);
     (mean, var.sqrt())
 }

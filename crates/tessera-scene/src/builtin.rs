@@ -75,13 +75,31 @@ fn block(name: &str, material: u32, top: [[f32; 2]; 4], height: f32) -> Vec<Mesh
     let b = |i: usize| Vec3::new(top[i][0], 0.0, top[i][1]);
     // Orient the top face upward: counter-clockwise seen from +y.
     let n = (t(1) - t(0)).cross(t(2) - t(0));
-    let order: [usize; 4] = if n.y > 0.0 { [0, 1, 2, 3] } else { [3, 2, 1, 0] };
-    let mut meshes = vec![quad(&format!("{name}-top"), material, t(order[0]), t(order[1]), t(order[2]), t(order[3]))];
+    let order: [usize; 4] = if n.y > 0.0 {
+        [0, 1, 2, 3]
+    } else {
+        [3, 2, 1, 0]
+    };
+    let mut meshes = vec![quad(
+        &format!("{name}-top"),
+        material,
+        t(order[0]),
+        t(order[1]),
+        t(order[2]),
+        t(order[3]),
+    )];
     for k in 0..4 {
         let (i, j) = (order[k], order[(k + 1) % 4]);
         // Side quad, counter-clockwise seen from outside (top face is CCW seen from above,
         // so walking i -> j the outside is on the right; b(j), b(i), t(i), t(j) faces out).
-        meshes.push(quad(&format!("{name}-side{k}"), material, b(i), b(j), t(j), t(i)));
+        meshes.push(quad(
+            &format!("{name}-side{k}"),
+            material,
+            b(i),
+            b(j),
+            t(j),
+            t(i),
+        ));
     }
     meshes
 }
@@ -107,7 +125,9 @@ pub fn cornell_box() -> Scene {
         Material::diffuse("green", Vec3::new(0.14, 0.45, 0.091)),
         Material {
             name: "light".into(),
-            kind: MaterialKind::Diffuse { albedo: Vec3::splat(0.78) },
+            kind: MaterialKind::Diffuse {
+                albedo: Vec3::splat(0.78),
+            },
             emission: Vec3::new(17.0, 12.0, 4.0),
             double_sided: false,
         },
@@ -115,11 +135,46 @@ pub fn cornell_box() -> Scene {
     let (x1, y1, z1) = (0.5528, 0.5488, 0.5592);
     let v = Vec3::new;
     let mut meshes = vec![
-        quad("floor", 0, v(0.0, 0.0, 0.0), v(0.0, 0.0, z1), v(x1, 0.0, z1), v(x1, 0.0, 0.0)),
-        quad("ceiling", 0, v(0.0, y1, 0.0), v(x1, y1, 0.0), v(x1, y1, z1), v(0.0, y1, z1)),
-        quad("back", 0, v(0.0, 0.0, z1), v(0.0, y1, z1), v(x1, y1, z1), v(x1, 0.0, z1)),
-        quad("red-wall", 1, v(x1, 0.0, 0.0), v(x1, 0.0, z1), v(x1, y1, z1), v(x1, y1, 0.0)),
-        quad("green-wall", 2, v(0.0, 0.0, 0.0), v(0.0, y1, 0.0), v(0.0, y1, z1), v(0.0, 0.0, z1)),
+        quad(
+            "floor",
+            0,
+            v(0.0, 0.0, 0.0),
+            v(0.0, 0.0, z1),
+            v(x1, 0.0, z1),
+            v(x1, 0.0, 0.0),
+        ),
+        quad(
+            "ceiling",
+            0,
+            v(0.0, y1, 0.0),
+            v(x1, y1, 0.0),
+            v(x1, y1, z1),
+            v(0.0, y1, z1),
+        ),
+        quad(
+            "back",
+            0,
+            v(0.0, 0.0, z1),
+            v(0.0, y1, z1),
+            v(x1, y1, z1),
+            v(x1, 0.0, z1),
+        ),
+        quad(
+            "red-wall",
+            1,
+            v(x1, 0.0, 0.0),
+            v(x1, 0.0, z1),
+            v(x1, y1, z1),
+            v(x1, y1, 0.0),
+        ),
+        quad(
+            "green-wall",
+            2,
+            v(0.0, 0.0, 0.0),
+            v(0.0, y1, 0.0),
+            v(0.0, y1, z1),
+            v(0.0, 0.0, z1),
+        ),
         quad(
             "light",
             3,
@@ -132,18 +187,33 @@ pub fn cornell_box() -> Scene {
     meshes.extend(block(
         "short-block",
         0,
-        [[0.130, 0.065], [0.082, 0.225], [0.240, 0.272], [0.290, 0.114]],
+        [
+            [0.130, 0.065],
+            [0.082, 0.225],
+            [0.240, 0.272],
+            [0.290, 0.114],
+        ],
         0.165,
     ));
     meshes.extend(block(
         "tall-block",
         0,
-        [[0.423, 0.247], [0.265, 0.296], [0.314, 0.456], [0.472, 0.406]],
+        [
+            [0.423, 0.247],
+            [0.265, 0.296],
+            [0.314, 0.456],
+            [0.472, 0.406],
+        ],
         0.330,
     ));
     Scene {
         name: "builtin:cornell-box".into(),
-        camera: look_at_camera(v(0.278, 0.273, -0.8), v(0.278, 0.273, 0.0), Vec3::Y, 39.3077),
+        camera: look_at_camera(
+            v(0.278, 0.273, -0.8),
+            v(0.278, 0.273, 0.0),
+            Vec3::Y,
+            39.3077,
+        ),
         meshes,
         spheres: vec![],
         materials,
@@ -162,7 +232,7 @@ pub fn cornell_box() -> Scene {
 ///   the same power (4π²·L·r² ≈ 39.5 W per channel).
 /// - Plates: four 8 m x 1.5 m rectangles below and in front of the lights, each tilted so
 ///   that it mirrors the light row toward the camera. Modified Phong, kd = 0.05 (grey),
-///   ks = 0.75, exponents 20, 100, 1000, 10000 from the farthest (roughest) to the nearest
+///   ks = 0.75, exponents 50, 300, 2000, 15000 from the farthest (roughest) to the nearest
 ///   (smoothest).
 /// - A dark diffuse floor (albedo 0.1) and back wall catch the diffuse light.
 /// - Camera at (0, 2, 15) looking at (0, -2, 2.5), vertical field of view 28°; 768 x 512.
@@ -180,17 +250,31 @@ pub fn veach_mis() -> Scene {
             emission: Vec3::splat(1.0 / (r * r)),
             double_sided: false,
         });
-        spheres.push(Sphere { center: v(x, 0.0, 0.0), radius: r, material: materials.len() as u32 - 1 });
+        spheres.push(Sphere {
+            center: v(x, 0.0, 0.0),
+            radius: r,
+            material: materials.len() as u32 - 1,
+        });
     }
-    let exponents = [20.0f32, 100.0, 1000.0, 10000.0];
+    let exponents = [50.0f32, 300.0, 2000.0, 15000.0];
     // Plate centres (far to near) and the point on the light row they mirror.
-    let centers = [v(0.0, -0.8, 3.2), v(0.0, -1.6, 4.6), v(0.0, -2.3, 6.0), v(0.0, -2.9, 7.4)];
+    // Chosen so the camera sees them at 12.5°, 17°, 21.5° and 26° below the horizon.
+    let centers = [
+        v(0.0, -1.10, 1.0),
+        v(0.0, -1.91, 2.2),
+        v(0.0, -2.57, 3.4),
+        v(0.0, -3.07, 4.6),
+    ];
     let light_row = v(0.0, 0.0, 0.0);
     let mut meshes = Vec::new();
     for (k, (&c, &n)) in centers.iter().zip(exponents.iter()).enumerate() {
         materials.push(Material {
             name: format!("plate{k}"),
-            kind: MaterialKind::Phong { kd: Vec3::splat(0.05), ks: Vec3::splat(0.75), exponent: n },
+            kind: MaterialKind::Phong {
+                kd: Vec3::splat(0.05),
+                ks: Vec3::splat(0.75),
+                exponent: n,
+            },
             emission: Vec3::ZERO,
             double_sided: false,
         });
@@ -210,8 +294,22 @@ pub fn veach_mis() -> Scene {
         }
         meshes.push(q);
     }
-    meshes.push(quad("floor", 0, v(-10.0, -4.0, -4.0), v(-10.0, -4.0, 12.0), v(10.0, -4.0, 12.0), v(10.0, -4.0, -4.0)));
-    meshes.push(quad("back", 0, v(-10.0, -4.0, -4.0), v(10.0, -4.0, -4.0), v(10.0, 8.0, -4.0), v(-10.0, 8.0, -4.0)));
+    meshes.push(quad(
+        "floor",
+        0,
+        v(-10.0, -4.0, -4.0),
+        v(-10.0, -4.0, 12.0),
+        v(10.0, -4.0, 12.0),
+        v(10.0, -4.0, -4.0),
+    ));
+    meshes.push(quad(
+        "back",
+        0,
+        v(-10.0, -4.0, -4.0),
+        v(10.0, -4.0, -4.0),
+        v(10.0, 8.0, -4.0),
+        v(-10.0, 8.0, -4.0),
+    ));
     Scene {
         name: "builtin:veach-mis".into(),
         camera: look_at_camera(eye, v(0.0, -2.0, 2.5), Vec3::Y, 28.0),
@@ -241,7 +339,9 @@ pub fn furnace() -> Scene {
     let v = Vec3::new;
     let materials = vec![Material {
         name: "wall".into(),
-        kind: MaterialKind::Diffuse { albedo: Vec3::splat(FURNACE_ALBEDO) },
+        kind: MaterialKind::Diffuse {
+            albedo: Vec3::splat(FURNACE_ALBEDO),
+        },
         emission: Vec3::splat(FURNACE_EMISSION),
         double_sided: false,
     }];
@@ -289,7 +389,11 @@ pub fn caustic() -> Scene {
         Material::diffuse("floor", Vec3::splat(0.8)),
         Material {
             name: "glass".into(),
-            kind: MaterialKind::Dielectric { ior: 1.5, roughness: 0.0, tint: Vec3::ONE },
+            kind: MaterialKind::Dielectric {
+                ior: 1.5,
+                roughness: 0.0,
+                tint: Vec3::ONE,
+            },
             emission: Vec3::ZERO,
             double_sided: false,
         },
@@ -300,10 +404,25 @@ pub fn caustic() -> Scene {
             double_sided: false,
         },
     ];
-    let meshes = vec![quad("floor", 0, v(-5.0, 0.0, -5.0), v(-5.0, 0.0, 5.0), v(5.0, 0.0, 5.0), v(5.0, 0.0, -5.0))];
+    let meshes = vec![quad(
+        "floor",
+        0,
+        v(-5.0, 0.0, -5.0),
+        v(-5.0, 0.0, 5.0),
+        v(5.0, 0.0, 5.0),
+        v(5.0, 0.0, -5.0),
+    )];
     let spheres = vec![
-        Sphere { center: v(0.0, 0.5, 0.0), radius: 0.5, material: 1 },
-        Sphere { center: v(0.3, 2.5, -0.5), radius: 0.05, material: 2 },
+        Sphere {
+            center: v(0.0, 0.5, 0.0),
+            radius: 0.5,
+            material: 1,
+        },
+        Sphere {
+            center: v(0.3, 2.5, -0.5),
+            radius: 0.05,
+            material: 2,
+        },
     ];
     Scene {
         name: "builtin:caustic".into(),

@@ -313,15 +313,26 @@ impl Scene {
             return bad(format!("camera yfov {} is outside (0, pi)", cam.yfov));
         }
         if !(cam.aperture_radius >= 0.0 && cam.aperture_radius.is_finite()) {
-            return bad(format!("camera aperture {} is invalid", cam.aperture_radius));
+            return bad(format!(
+                "camera aperture {} is invalid",
+                cam.aperture_radius
+            ));
         }
-        if cam.aperture_radius > 0.0 && !(cam.focus_distance > 0.0 && cam.focus_distance.is_finite()) {
-            return bad(format!("camera focus distance {} is invalid", cam.focus_distance));
+        if cam.aperture_radius > 0.0
+            && !(cam.focus_distance > 0.0 && cam.focus_distance.is_finite())
+        {
+            return bad(format!(
+                "camera focus distance {} is invalid",
+                cam.focus_distance
+            ));
         }
         let nmat = self.materials.len() as u32;
         for (i, m) in self.meshes.iter().enumerate() {
             if m.material >= nmat {
-                return bad(format!("mesh {i} ({}) uses material {} of {nmat}", m.name, m.material));
+                return bad(format!(
+                    "mesh {i} ({}) uses material {} of {nmat}",
+                    m.name, m.material
+                ));
             }
             if let Some(p) = m.positions.iter().position(|p| !p.is_finite()) {
                 return bad(format!("mesh {i} ({}) vertex {p} is not finite", m.name));
@@ -340,7 +351,10 @@ impl Scene {
             }
             if let Some(uv) = &m.uvs {
                 if uv.len() != m.positions.len() || uv.iter().any(|v| !v.is_finite()) {
-                    return bad(format!("mesh {i} ({}) has invalid texture coordinates", m.name));
+                    return bad(format!(
+                        "mesh {i} ({}) has invalid texture coordinates",
+                        m.name
+                    ));
                 }
             }
         }
@@ -361,7 +375,11 @@ impl Scene {
             let ok = match &m.kind {
                 MaterialKind::Diffuse { albedo } => unit(*albedo) && albedo.max_element() <= 1.0,
                 MaterialKind::Phong { kd, ks, exponent } => {
-                    unit(*kd) && unit(*ks) && (*kd + *ks).max_element() <= 1.0 + 1e-6 && *exponent >= 0.0 && exponent.is_finite()
+                    unit(*kd)
+                        && unit(*ks)
+                        && (*kd + *ks).max_element() <= 1.0 + 1e-6
+                        && *exponent >= 0.0
+                        && exponent.is_finite()
                 }
                 MaterialKind::Conductor { f0, roughness } => {
                     unit(*f0) && f0.max_element() <= 1.0 && (0.0..=1.0).contains(roughness)
@@ -383,24 +401,51 @@ impl Scene {
                         && *ior >= 1.0
                         && ior.is_finite()
                 }
-                MaterialKind::Mirror { reflectance } => unit(*reflectance) && reflectance.max_element() <= 1.0,
-                MaterialKind::Dielectric { ior, roughness, tint } => {
-                    *ior > 0.0 && ior.is_finite() && (0.0..=1.0).contains(roughness) && unit(*tint) && tint.max_element() <= 1.0
+                MaterialKind::Mirror { reflectance } => {
+                    unit(*reflectance) && reflectance.max_element() <= 1.0
+                }
+                MaterialKind::Dielectric {
+                    ior,
+                    roughness,
+                    tint,
+                } => {
+                    *ior > 0.0
+                        && ior.is_finite()
+                        && (0.0..=1.0).contains(roughness)
+                        && unit(*tint)
+                        && tint.max_element() <= 1.0
                 }
             };
             if !ok {
-                return bad(format!("material {i} ({}) has parameters out of range: {:?}", m.name, m.kind));
+                return bad(format!(
+                    "material {i} ({}) has parameters out of range: {:?}",
+                    m.name, m.kind
+                ));
             }
         }
         for (i, t) in self.textures.iter().enumerate() {
-            if t.width == 0 || t.height == 0 || t.texels.len() != (t.width as usize) * (t.height as usize) {
+            if t.width == 0
+                || t.height == 0
+                || t.texels.len() != (t.width as usize) * (t.height as usize)
+            {
                 return bad(format!("texture {i} has inconsistent size"));
             }
         }
         for (i, l) in self.lights.iter().enumerate() {
             let ok = match l {
-                PunctualLight::Point { position, intensity } => position.is_finite() && intensity.is_finite() && intensity.min_element() >= 0.0,
-                PunctualLight::Spot { position, direction, intensity, inner_angle, outer_angle } => {
+                PunctualLight::Point {
+                    position,
+                    intensity,
+                } => {
+                    position.is_finite() && intensity.is_finite() && intensity.min_element() >= 0.0
+                }
+                PunctualLight::Spot {
+                    position,
+                    direction,
+                    intensity,
+                    inner_angle,
+                    outer_angle,
+                } => {
                     position.is_finite()
                         && direction.is_normalized()
                         && intensity.is_finite()
@@ -409,8 +454,13 @@ impl Scene {
                         && inner_angle <= outer_angle
                         && *outer_angle <= std::f32::consts::FRAC_PI_2
                 }
-                PunctualLight::Directional { direction, irradiance } => {
-                    direction.is_normalized() && irradiance.is_finite() && irradiance.min_element() >= 0.0
+                PunctualLight::Directional {
+                    direction,
+                    irradiance,
+                } => {
+                    direction.is_normalized()
+                        && irradiance.is_finite()
+                        && irradiance.min_element() >= 0.0
                 }
             };
             if !ok {
@@ -441,8 +491,15 @@ pub fn load_with_camera(arg: &str, camera: Option<&str>) -> Result<Scene, SceneE
         return builtin::load(name);
     }
     let path = Path::new(arg);
-    match path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()) {
+    match path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+    {
         Some(ext) if ext == "gltf" || ext == "glb" => gltf_import::load_path(path, camera),
-        _ => Err(SceneError::Unknown(arg.to_string(), builtin::NAMES.join(", "))),
+        _ => Err(SceneError::Unknown(
+            arg.to_string(),
+            builtin::NAMES.join(", "),
+        )),
     }
 }

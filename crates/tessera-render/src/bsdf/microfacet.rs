@@ -63,7 +63,9 @@ impl Conductor {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return Vec3::ZERO;
         }
-        let Some(h) = half_vector(wo, wi) else { return Vec3::ZERO };
+        let Some(h) = half_vector(wo, wi) else {
+            return Vec3::ZERO;
+        };
         let f = fresnel_schlick(self.f0, wi.dot(h));
         f * (ggx_d(h, self.alpha) * g2(wo, wi, self.alpha) / (4.0 * wo.z))
     }
@@ -117,7 +119,9 @@ impl GltfDielectric {
         if wo.z <= 0.0 || wi.z <= 0.0 {
             return Vec3::ZERO;
         }
-        let Some(h) = half_vector(wo, wi) else { return Vec3::ZERO };
+        let Some(h) = half_vector(wo, wi) else {
+            return Vec3::ZERO;
+        };
         let f = fresnel_schlick(Vec3::splat(self.f0), wo.dot(h)).x;
         let spec = f * ggx_d(h, self.alpha) * g2(wo, wi, self.alpha) / (4.0 * wo.z);
         self.base * ((1.0 - f) * FRAC_1_PI * wi.z) + Vec3::splat(spec)

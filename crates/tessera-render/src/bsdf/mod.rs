@@ -134,7 +134,11 @@ pub struct Bsdf {
 impl Bsdf {
     /// A BSDF with a single lobe.
     pub fn single(lobe: Lobe) -> Self {
-        Self { lobes: [lobe; 3], weights: [1.0, 0.0, 0.0], count: 1 }
+        Self {
+            lobes: [lobe; 3],
+            weights: [1.0, 0.0, 0.0],
+            count: 1,
+        }
     }
 
     /// A mixture; weights are normalised to sum to one and zero-weight lobes dropped.
@@ -213,10 +217,20 @@ impl Bsdf {
         let wi = flip_z(wi, flip);
         if lobe.is_delta() {
             // f_mix / p_mix = (w f) / (w p): the mixture weight cancels.
-            return Some(BsdfSample { wi, weight, pdf: w * pdf, delta: true });
+            return Some(BsdfSample {
+                wi,
+                weight,
+                pdf: w * pdf,
+                delta: true,
+            });
         }
         if self.count == 1 {
-            return Some(BsdfSample { wi, weight, pdf, delta: false });
+            return Some(BsdfSample {
+                wi,
+                weight,
+                pdf,
+                delta: false,
+            });
         }
         // The direction could have come from any non-delta lobe: weight by the mixture.
         let f = self.eval(wo, wi);
@@ -224,7 +238,12 @@ impl Bsdf {
         if p <= 0.0 {
             return None;
         }
-        Some(BsdfSample { wi, weight: f / p, pdf: p, delta: false })
+        Some(BsdfSample {
+            wi,
+            weight: f / p,
+            pdf: p,
+            delta: false,
+        })
     }
 }
 
@@ -234,7 +253,11 @@ impl Bsdf {
 /// internal reflection.
 #[inline]
 pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> f32 {
-    let (cos_i, eta) = if cos_i < 0.0 { (-cos_i, 1.0 / eta) } else { (cos_i, eta) };
+    let (cos_i, eta) = if cos_i < 0.0 {
+        (-cos_i, 1.0 / eta)
+    } else {
+        (cos_i, eta)
+    };
     let sin2_t = (1.0 - cos_i * cos_i).max(0.0) / (eta * eta);
     if sin2_t >= 1.0 {
         return 1.0;
@@ -251,3 +274,6 @@ pub fn fresnel_schlick(f0: Vec3, cos: f32) -> Vec3 {
     let m = (1.0 - cos.clamp(0.0, 1.0)).powi(5);
     f0 + (Vec3::ONE - f0) * m
 }
+
+#[cfg(test)]
+mod tests;

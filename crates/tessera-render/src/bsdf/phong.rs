@@ -67,7 +67,11 @@ impl Phong {
         }
         let pd = self.p_diffuse();
         let cos_alpha = Self::mirror(wo).dot(wi);
-        let spec = if cos_alpha > 0.0 { phong_lobe_pdf(cos_alpha, self.exponent) } else { 0.0 };
+        let spec = if cos_alpha > 0.0 {
+            phong_lobe_pdf(cos_alpha, self.exponent)
+        } else {
+            0.0
+        };
         pd * cosine_hemisphere_pdf(wi.z) + (1.0 - pd) * spec
     }
 
@@ -91,4 +95,3 @@ impl Phong {
         Some((wi, self.eval(wo, wi) / pdf, pdf))
     }
 }
-

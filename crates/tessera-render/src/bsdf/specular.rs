@@ -49,7 +49,11 @@ impl Glass {
             return Some((Vec3::new(-wo.x, -wo.y, wo.z), Vec3::ONE, f));
         }
         // Relative index across the interface as seen from wo's side.
-        let eta = if cos_o > 0.0 { self.eta } else { 1.0 / self.eta };
+        let eta = if cos_o > 0.0 {
+            self.eta
+        } else {
+            1.0 / self.eta
+        };
         let sin2_t = (1.0 - cos_o * cos_o).max(0.0) / (eta * eta);
         if sin2_t >= 1.0 {
             return None; // unreachable: F = 1 under total internal reflection

@@ -65,10 +65,11 @@ impl MisHeuristic {
     /// technique has density `q` at the same point.
     #[inline]
     pub fn weight(self, p: f32, q: f32) -> f32 {
-        if !(p > 0.0) {
+        // NaN densities count as zero.
+        if p.is_nan() || p <= 0.0 {
             return 0.0;
         }
-        if !(q > 0.0) {
+        if q.is_nan() || q <= 0.0 {
             return 1.0;
         }
         match self {
@@ -110,7 +111,9 @@ impl FromStr for MisHeuristic {
             "cutoff" => Ok(Self::Cutoff(0.1)),
             _ => {
                 if let Some(a) = s.strip_prefix("cutoff:") {
-                    let a: f32 = a.parse().map_err(|_| format!("cutoff threshold {a:?} is not a number"))?;
+                    let a: f32 = a
+                        .parse()
+                        .map_err(|_| format!("cutoff threshold {a:?} is not a number"))?;
                     if a > 0.0 && a <= 1.0 {
                         return Ok(Self::Cutoff(a));
                     }
@@ -140,8 +143,19 @@ mod tests {
     #[test]
     fn heuristics_partition_unity() {
         // For two techniques the weights of the same point must sum to one.
-        for h in [MisHeuristic::Balance, MisHeuristic::Power, MisHeuristic::Cutoff(0.1), MisHeuristic::Maximum] {
-            for (p, q) in [(1.0f32, 1.0f32), (1.0, 0.01), (3.0, 7.0), (1e-30, 1e30), (1e30, 1e-30)] {
+        for h in [
+            MisHeuristic::Balance,
+            MisHeuristic::Power,
+            MisHeuristic::Cutoff(0.1),
+            MisHeuristic::Maximum,
+        ] {
+            for (p, q) in [
+                (1.0f32, 1.0f32),
+                (1.0, 0.01),
+                (3.0, 7.0),
+                (1e-30, 1e30),
+                (1e30, 1e-30),
+            ] {
                 let s = h.weight(p, q) + h.weight(q, p);
                 assert!((s - 1.0).abs() < 1e-5, "{h}: {p} {q} -> {s}");
             }

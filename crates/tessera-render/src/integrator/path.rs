@@ -35,7 +35,13 @@ pub struct PathSettings {
 
 /// Radiance along the ray `(origin, dir)`. Consumes dimensions from `sampler` in a fixed
 /// order so that the result is a pure function of the sampler state.
-pub fn radiance(scene: &RenderScene, s: &PathSettings, mut origin: Vec3, mut dir: Vec3, sampler: &mut PixelSampler) -> Vec3 {
+pub fn radiance(
+    scene: &RenderScene,
+    s: &PathSettings,
+    mut origin: Vec3,
+    mut dir: Vec3,
+    sampler: &mut PixelSampler,
+) -> Vec3 {
     let max_depth = match s.kind {
         IntegratorKind::Direct => 1,
         IntegratorKind::Path => s.max_depth,
@@ -54,7 +60,13 @@ pub fn radiance(scene: &RenderScene, s: &PathSettings, mut origin: Vec3, mut dir
                 let w = if prev_delta {
                     1.0
                 } else {
-                    let pl = scene.lights.pmf(env_index) * scene.lights.lights[env_index].pdf_li(prev_p, dir, Vec3::ZERO, Vec3::ZERO);
+                    let pl = scene.lights.pmf(env_index)
+                        * scene.lights.lights[env_index].pdf_li(
+                            prev_p,
+                            dir,
+                            Vec3::ZERO,
+                            Vec3::ZERO,
+                        );
                     s.mis.weight(prev_pdf, pl)
                 };
                 l += beta * le * w;
@@ -72,7 +84,8 @@ pub fn radiance(scene: &RenderScene, s: &PathSettings, mut origin: Vec3, mut dir
                     1.0
                 } else {
                     let li = sp.light as usize;
-                    let pl = scene.lights.pmf(li) * scene.lights.lights[li].pdf_li(prev_p, dir, sp.p, sp.ng);
+                    let pl = scene.lights.pmf(li)
+                        * scene.lights.lights[li].pdf_li(prev_p, dir, sp.p, sp.ng);
                     s.mis.weight(prev_pdf, pl)
                 };
                 l += beta * le * w;
@@ -109,7 +122,11 @@ pub fn radiance(scene: &RenderScene, s: &PathSettings, mut origin: Vec3, mut dir
                         };
                         if visible {
                             let p_light = pmf * ls.pdf;
-                            let w = if ls.delta { 1.0 } else { s.mis.weight(p_light, bsdf.pdf(wo, wi)) };
+                            let w = if ls.delta {
+                                1.0
+                            } else {
+                                s.mis.weight(p_light, bsdf.pdf(wo, wi))
+                            };
                             l += beta * f * ls.li * (w / p_light);
                         }
                     }
@@ -120,7 +137,9 @@ pub fn radiance(scene: &RenderScene, s: &PathSettings, mut origin: Vec3, mut dir
         // 4. Sample the BSDF for the next direction.
         let u_bsdf = sampler.next_1d();
         let u_bsdf2 = sampler.next_2d();
-        let Some(bs) = bsdf.sample(wo, u_bsdf, u_bsdf2) else { break };
+        let Some(bs) = bsdf.sample(wo, u_bsdf, u_bsdf2) else {
+            break;
+        };
         let wi_world = frame.to_world(bs.wi);
         if wi_world.dot(sp.ng).signum() != bs.wi.z.signum() {
             break; // crosses the geometric surface on the wrong side

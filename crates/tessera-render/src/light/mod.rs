@@ -126,9 +126,16 @@ impl LightSet {
         if let Some(last) = cdf.last_mut() {
             *last = 1.0;
         }
-        let environment =
-            lights.iter().position(|l| matches!(l, Light::Environment(_))).map(|i| i as u32);
-        Self { lights, cdf, pmf, environment }
+        let environment = lights
+            .iter()
+            .position(|l| matches!(l, Light::Environment(_)))
+            .map(|i| i as u32);
+        Self {
+            lights,
+            cdf,
+            pmf,
+            environment,
+        }
     }
 
     /// True if no light has positive power.
@@ -142,7 +149,10 @@ impl LightSet {
         if self.lights.is_empty() {
             return None;
         }
-        let i = self.cdf.partition_point(|&c| c <= u).min(self.lights.len() - 1);
+        let i = self
+            .cdf
+            .partition_point(|&c| c <= u)
+            .min(self.lights.len() - 1);
         let p = self.pmf[i];
         if p <= 0.0 {
             return None;
@@ -156,3 +166,6 @@ impl LightSet {
         self.pmf.get(index).copied().unwrap_or(0.0)
     }
 }
+
+#[cfg(test)]
+mod tests;

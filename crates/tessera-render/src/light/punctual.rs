@@ -62,18 +62,26 @@ impl Punctual {
             Punctual::Point { intensity, .. } => 4.0 * PI * intensity,
             // Integral of the falloff over the sphere, approximated by the cone between the
             // inner and outer angles (used only to choose lights, never for radiance).
-            Punctual::Spot { intensity, cos_inner, cos_outer, .. } => {
-                2.0 * PI * intensity * (1.0 - 0.5 * (cos_inner + cos_outer))
-            }
-            Punctual::Directional { irradiance, scene_radius, .. } => {
-                PI * scene_radius * scene_radius * irradiance
-            }
+            Punctual::Spot {
+                intensity,
+                cos_inner,
+                cos_outer,
+                ..
+            } => 2.0 * PI * intensity * (1.0 - 0.5 * (cos_inner + cos_outer)),
+            Punctual::Directional {
+                irradiance,
+                scene_radius,
+                ..
+            } => PI * scene_radius * scene_radius * irradiance,
         }
     }
 
     pub(crate) fn sample_li(&self, p_ref: Vec3) -> Option<LightSample> {
         match *self {
-            Punctual::Point { position, intensity } => {
+            Punctual::Point {
+                position,
+                intensity,
+            } => {
                 let d = position - p_ref;
                 let d2 = d.length_squared();
                 if d2 <= 0.0 {
@@ -91,7 +99,13 @@ impl Punctual {
                     delta: true,
                 })
             }
-            Punctual::Spot { position, axis, intensity, cos_inner, cos_outer } => {
+            Punctual::Spot {
+                position,
+                axis,
+                intensity,
+                cos_inner,
+                cos_outer,
+            } => {
                 let d = position - p_ref;
                 let d2 = d.length_squared();
                 if d2 <= 0.0 {
@@ -114,7 +128,11 @@ impl Punctual {
                     delta: true,
                 })
             }
-            Punctual::Directional { direction, irradiance, .. } => Some(LightSample {
+            Punctual::Directional {
+                direction,
+                irradiance,
+                ..
+            } => Some(LightSample {
                 wi: -direction,
                 dist: f32::INFINITY,
                 p: Vec3::ZERO,

@@ -62,14 +62,27 @@ impl SphereLight {
         let phi = TAU * u.y;
         let frame = Frame::from_normal(to_center / d);
         let wi = frame
-            .to_world(Vec3::new(sin_theta * phi.cos(), sin_theta * phi.sin(), cos_theta))
+            .to_world(Vec3::new(
+                sin_theta * phi.cos(),
+                sin_theta * phi.sin(),
+                cos_theta,
+            ))
             .normalize();
         // Distance to the near intersection along wi.
         let r2 = self.radius * self.radius;
         let ds = d * cos_theta - (r2 - d2 * sin2_theta).max(0.0).sqrt();
         let (p, p_error, n) = sphere_point(self.center, self.radius, p_ref + wi * ds);
         let pdf = 1.0 / (TAU * omc);
-        Some(LightSample { wi, dist: (p - p_ref).length(), p, p_error, n, li: self.radiance, pdf, delta: false })
+        Some(LightSample {
+            wi,
+            dist: (p - p_ref).length(),
+            p,
+            p_error,
+            n,
+            li: self.radiance,
+            pdf,
+            delta: false,
+        })
     }
 
     fn sample_area(&self, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
@@ -86,7 +99,16 @@ impl SphereLight {
         }
         let area = 4.0 * PI * self.radius * self.radius;
         let pdf = dist2 / (cos_l * area);
-        Some(LightSample { wi, dist, p, p_error, n, li: self.radiance, pdf, delta: false })
+        Some(LightSample {
+            wi,
+            dist,
+            p,
+            p_error,
+            n,
+            li: self.radiance,
+            pdf,
+            delta: false,
+        })
     }
 
     pub(crate) fn pdf_li(&self, p_ref: Vec3, p_light: Vec3, n_light: Vec3) -> f32 {

@@ -38,7 +38,13 @@ impl TriangleLight {
         if !(len > 0.0 && len.is_finite()) {
             return None;
         }
-        Some(Self { p, n: c / len, area: 0.5 * len, radiance, two_sided })
+        Some(Self {
+            p,
+            n: c / len,
+            area: 0.5 * len,
+            radiance,
+            two_sided,
+        })
     }
 
     /// Radiance leaving the light toward `w` (unit, pointing away from the light).
@@ -75,7 +81,16 @@ impl TriangleLight {
         if !pdf.is_finite() {
             return None;
         }
-        Some(LightSample { wi, dist, p, p_error, n: self.n, li, pdf, delta: false })
+        Some(LightSample {
+            wi,
+            dist,
+            p,
+            p_error,
+            n: self.n,
+            li,
+            pdf,
+            delta: false,
+        })
     }
 
     pub(crate) fn pdf_li(&self, p_ref: Vec3, p_light: Vec3, n_light: Vec3) -> f32 {

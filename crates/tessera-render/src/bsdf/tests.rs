@@ -1,0 +1,1 @@
+//! Chi-squared tests of the BSDFs (to be written).

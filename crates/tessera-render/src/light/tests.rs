@@ -1,0 +1,1 @@
+//! Chi-squared tests of light sampling (to be written).
