@@ -216,7 +216,7 @@ fn render(args: RenderArgs) -> Result<()> {
         p.plan.width,
         p.plan.height,
         p.settings.integrator,
-        format_sampler(p.settings.sampler),
+        p.settings.sampler.as_str(),
         p.settings.mis,
         args.output.display()
     );
@@ -230,13 +230,6 @@ fn render(args: RenderArgs) -> Result<()> {
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
     Ok(())
-}
-
-fn format_sampler(s: SamplerKind) -> &'static str {
-    match s {
-        SamplerKind::Sobol => "sobol",
-        SamplerKind::Independent => "independent",
-    }
 }
 
 fn bench(args: BenchArgs) -> Result<()> {

@@ -56,16 +56,26 @@ pub fn offset_ray_origin(p: Vec3, p_error: Vec3, n: Vec3, w: Vec3) -> Vec3 {
     if w.dot(n) < 0.0 {
         offset = -offset;
     }
-    let mut po = p + offset;
-    // Round away from p so the offset is not lost to rounding.
-    for i in 0..3 {
-        if offset[i] > 0.0 {
-            po[i] = next_float_up(po[i]);
-        } else if offset[i] < 0.0 {
-            po[i] = next_float_down(po[i]);
-        }
+    let po = p + offset;
+    // Round away from p so the offset is not lost to rounding: one ulp in the direction of
+    // the offset, per coordinate (written without a loop so it stays branch-light).
+    Vec3::new(
+        round_away(po.x, offset.x),
+        round_away(po.y, offset.y),
+        round_away(po.z, offset.z),
+    )
+}
+
+/// Moves `v` one ulp in the direction of the sign of `o` (not at all for `o == 0`).
+#[inline(always)]
+fn round_away(v: f32, o: f32) -> f32 {
+    if o > 0.0 {
+        next_float_up(v)
+    } else if o < 0.0 {
+        next_float_down(v)
+    } else {
+        v
     }
-    po
 }
 
 /// Luminance of linear Rec. 709 RGB.

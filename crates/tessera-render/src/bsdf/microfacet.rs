@@ -15,7 +15,8 @@
 use super::fresnel_schlick;
 use crate::math::luminance;
 use crate::sampling::warp::{
-    cosine_hemisphere_pdf, ggx_d, ggx_g1, ggx_lambda, sample_ggx_vndf, square_to_cosine_hemisphere,
+    cosine_hemisphere_pdf, ggx_d, ggx_g1, ggx_lambda, ggx_vndf_pdf, sample_ggx_vndf,
+    square_to_cosine_hemisphere,
 };
 use glam::{Vec2, Vec3};
 use std::f32::consts::FRAC_1_PI;
@@ -36,7 +37,8 @@ fn vndf_reflection_pdf(wo: Vec3, h: Vec3, alpha: f32) -> f32 {
     if dot <= 0.0 || wo.z <= 0.0 {
         return 0.0;
     }
-    ggx_g1(wo, alpha) * ggx_d(h, alpha) / (4.0 * wo.z)
+    // Jacobian of the reflection h -> wi: 1 / (4 wo·h); the VNDF pdf is the grazing-safe form.
+    ggx_vndf_pdf(wo, h, alpha) / (4.0 * dot)
 }
 
 #[inline]

@@ -130,9 +130,15 @@ pub fn hash_combine(seed: u64, v: u64) -> u64 {
 /// copies of one sequence, while each 2D set keeps its stratification. For `S` a power of two
 /// every set is exactly stratified; for other `S` the first `S` points of a `2^m` set are used,
 /// which stays unbiased because each point is uniformly distributed (seed 000 §6.7).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct PixelSampler {
     kind: SamplerKind,
+    /// The seeds of point sets `0..64` of this pass, filled on first use: they depend on
+    /// (pass seed, dimension) only, so the S samples of a pass share them (a cache, not
+    /// state: values never depend on whether a seed was cached).
+    scrambles: [sobol::Scramble; SOBOL_DIMENSIONS as usize],
+    /// Bit `d` set when `scrambles[d]` is filled.
+    filled: u64,
     /// `hash(job seed, frame, pixel, pass)`: the seed of every randomization in this pass.
     pass_seed: u64,
     /// `hash(pass seed, index)`, cached for the independent generator.
@@ -151,6 +157,12 @@ impl PixelSampler {
         );
         let mut sampler = PixelSampler {
             kind,
+            scrambles: [sobol::Scramble {
+                shuffle: 0,
+                x: 0,
+                y: 0,
+            }; SOBOL_DIMENSIONS as usize],
+            filled: 0,
             pass_seed,
             sample_seed: 0,
             index: 0,
@@ -172,7 +184,7 @@ impl PixelSampler {
         let d = self.take_dimension();
         let bits = match self.kind {
             SamplerKind::Sobol if d < SOBOL_DIMENSIONS => {
-                let s = self.scramble(d);
+                let s = self.cached_scramble(d);
                 sobol::shuffled_scrambled_sobol_1d(self.index, s.shuffle, s.x)
             }
             _ => (self.random_bits(d) >> 32) as u32,
@@ -185,7 +197,7 @@ impl PixelSampler {
         let d = self.take_dimension();
         let (x, y) = match self.kind {
             SamplerKind::Sobol if d < SOBOL_DIMENSIONS => {
-                sobol::shuffled_scrambled_sobol_2d(self.index, self.scramble(d))
+                sobol::shuffled_scrambled_sobol_2d(self.index, self.cached_scramble(d))
             }
             _ => {
                 let h = self.random_bits(d);
@@ -200,6 +212,17 @@ impl PixelSampler {
         let d = self.dimension;
         self.dimension = d.wrapping_add(1);
         d
+    }
+
+    /// [`Self::scramble`] through the per-pass cache (`d < 64`).
+    #[inline]
+    fn cached_scramble(&mut self, d: u32) -> sobol::Scramble {
+        let bit = 1u64 << d;
+        if self.filled & bit == 0 {
+            self.scrambles[d as usize] = self.scramble(d);
+            self.filled |= bit;
+        }
+        self.scrambles[d as usize]
     }
 
     /// The three 32-bit seeds of point set `d` of this pass (index shuffle and the two
@@ -444,7 +467,25 @@ mod tests {
     }
 
     #[test]
-    fn pixel_sampler_is_small() {
-        assert!(std::mem::size_of::<PixelSampler>() <= 32);
+    fn pixel_sampler_fits_on_the_stack_without_heap() {
+        // 64 cached scramble seeds plus counters: stack-only, no allocation per pixel.
+        assert!(std::mem::size_of::<PixelSampler>() <= 1024);
+    }
+
+    #[test]
+    fn cached_scrambles_do_not_change_values() {
+        // Drawing samples in a different order (so the cache fills differently) gives the
+        // same values: the cache is invisible.
+        let mut a = PixelSampler::new(SamplerKind::Sobol, 5, 0, 17, 3);
+        let mut forward = Vec::new();
+        for i in 0..8 {
+            a.start_sample(i);
+            forward.push((a.next_2d(), a.next_1d(), a.next_2d()));
+        }
+        for i in (0..8).rev() {
+            let mut b = PixelSampler::new(SamplerKind::Sobol, 5, 0, 17, 3);
+            b.start_sample(i);
+            assert_eq!(forward[i as usize], (b.next_2d(), b.next_1d(), b.next_2d()));
+        }
     }
 }
