@@ -208,7 +208,7 @@ fn render(args: RenderArgs) -> Result<()> {
         b.finish_and_clear();
     }
     let image = acc.image();
-    tessera_image::write_image(&args.output, &image)?;
+    tessera_image::write_image(&args.output, &image, Some(&metadata_json(&p)))?;
     let paths = p.plan.width as f64 * p.plan.height as f64 * p.plan.spp() as f64;
     println!(
         "rendered {} ({}x{}, {} integrator, {} sampler, {} MIS) to {}",
@@ -230,6 +230,24 @@ fn render(args: RenderArgs) -> Result<()> {
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
     Ok(())
+}
+
+/// The render settings as one JSON object for the EXR header (stable key order).
+fn metadata_json(p: &Prepared) -> String {
+    format!(
+        "{{\"scene\":{:?},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{}}}",
+        p.scene.name,
+        p.plan.width,
+        p.plan.height,
+        p.plan.spp(),
+        p.plan.samples_per_pass,
+        p.plan.passes,
+        p.settings.integrator,
+        p.settings.mis,
+        p.settings.sampler.as_str(),
+        p.settings.seed,
+        p.settings.max_depth
+    )
 }
 
 fn bench(args: BenchArgs) -> Result<()> {

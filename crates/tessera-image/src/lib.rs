@@ -17,6 +17,7 @@
 //! PNG: the beauty clamped to [0, 1] and encoded with the sRGB transfer function, 8 bits.
 #![deny(missing_docs)]
 
+use exr::meta::attribute::{AttributeValue, Text};
 use exr::prelude::{
     read, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes,
     ReadChannels, ReadLayers, WritableImage,
@@ -49,8 +50,14 @@ pub enum ImageError {
     MissingChannel(String),
 }
 
-/// Encodes the frame as a multi-layer EXR file.
-pub fn encode_exr(img: &FrameImage) -> Result<Vec<u8>, ImageError> {
+/// Name of the EXR header attribute holding Tessera's metadata (render settings and plan).
+pub const METADATA_ATTRIBUTE: &str = "tessera";
+
+/// Encodes the frame as a multi-layer EXR file. `metadata` (e.g. the render settings and
+/// plan as JSON) is stored as one text attribute, [`METADATA_ATTRIBUTE`]: a single
+/// attribute, because the EXR writer stores extra attributes in hash-map order and more
+/// than one would make the bytes vary between runs.
+pub fn encode_exr(img: &FrameImage, metadata: Option<&str>) -> Result<Vec<u8>, ImageError> {
     let n = (img.width as usize) * (img.height as usize);
     let chan = |name: &str, f: &dyn Fn(usize) -> f32| -> AnyChannel<FlatSamples> {
         AnyChannel::new(name, FlatSamples::F32((0..n).map(f).collect()))
@@ -66,9 +73,17 @@ pub fn encode_exr(img: &FrameImage) -> Result<Vec<u8>, ImageError> {
         chan("passes.Y", &|i| img.passes[i] as f32),
         chan("samples.Y", &|i| img.samples[i] as f32),
     ];
+    let mut attributes = LayerAttributes::named("tessera");
+    if let Some(m) = metadata {
+        let text = Text::new_or_none(m)
+            .ok_or_else(|| ImageError::Exr("metadata is not Latin-1 text".into()))?;
+        attributes
+            .other
+            .insert(Text::from(METADATA_ATTRIBUTE), AttributeValue::Text(text));
+    }
     let layer = Layer::new(
         (img.width as usize, img.height as usize),
-        LayerAttributes::named("tessera"),
+        attributes,
         Encoding::SMALL_LOSSLESS,
         AnyChannels::sort(channels.into()),
     );
@@ -119,14 +134,19 @@ pub fn encode_png(img: &FrameImage) -> Result<Vec<u8>, ImageError> {
     encode_png_rgb8(img.width, img.height, &rgb)
 }
 
-/// Writes the frame to `path`, choosing EXR or PNG by the extension.
-pub fn write_image(path: &std::path::Path, img: &FrameImage) -> Result<(), ImageError> {
+/// Writes the frame to `path`, choosing EXR or PNG by the extension; `metadata` goes into
+/// the EXR header (PNG files do not carry it).
+pub fn write_image(
+    path: &std::path::Path,
+    img: &FrameImage,
+    metadata: Option<&str>,
+) -> Result<(), ImageError> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase());
     let bytes = match ext.as_deref() {
-        Some("exr") => encode_exr(img)?,
+        Some("exr") => encode_exr(img, metadata)?,
         Some("png") => encode_png(img)?,
         _ => return Err(ImageError::Format(path.display().to_string())),
     };
@@ -136,8 +156,10 @@ pub fn write_image(path: &std::path::Path, img: &FrameImage) -> Result<(), Image
     })
 }
 
-/// A decoded EXR: width, height and the named float channels.
+/// A decoded EXR: width, height, the named float channels and Tessera's metadata.
 pub struct ExrChannels {
+    /// The [`METADATA_ATTRIBUTE`] text, if present.
+    pub metadata: Option<String>,
     /// Width.
     pub width: usize,
     /// Height.
@@ -175,7 +197,17 @@ pub fn read_exr(bytes: &[u8]) -> Result<ExrChannels, ImageError> {
         .iter()
         .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
         .collect();
+    let metadata = image
+        .layer_data
+        .attributes
+        .other
+        .get(&Text::from(METADATA_ATTRIBUTE))
+        .and_then(|v| match v {
+            AttributeValue::Text(t) => Some(t.to_string()),
+            _ => None,
+        });
     Ok(ExrChannels {
+        metadata,
         width: size.0,
         height: size.1,
         channels,
