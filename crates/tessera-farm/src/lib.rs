@@ -68,6 +68,7 @@
 mod merge;
 mod plan;
 mod result;
+mod schedule;
 mod stats;
 
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
@@ -77,6 +78,7 @@ pub use plan::{
     TARGET_MIN_PASSES,
 };
 pub use result::{ResultError, UnitResult};
+pub use schedule::{JobId, Lease, Progress, Scheduler, SubmitError, Submitted, WorkerId};
 pub use stats::{luminance, PixelStats, LUMINANCE_WEIGHTS, REL_EPS};
 
 #[cfg(test)]

@@ -1,0 +1,601 @@
+//! Leasing work units to workers: priorities, coarse-to-fine order, deadlines, fencing
+//! tokens, re-leasing after expiry, and one merge per unit however often it is rendered.
+//!
+//! The [`Scheduler`] is pure: the caller passes the clock (`now_ms`) into every call, so
+//! the coordinator drives it from real time and tests drive it from a counter.
+//!
+//! Order (issue 3): jobs of higher priority first, then first come first served; within a
+//! job, frames in order and, within a frame, coarse to fine — the first pass chunk of every
+//! tile before any tile's second chunk — so a preview covers the whole frame early.
+//!
+//! A lease carries a unique, increasing `lease_id` that acts as a fencing token: a result
+//! is only merged if it answers a lease the scheduler issued for exactly that unit. A lease
+//! whose deadline passes returns its unit to the queue (at its canonical position, so the
+//! order stays coarse to fine). A late result for a re-leased unit is still useful: being
+//! deterministic, it is merged if the unit is not merged yet, and compared with the merged
+//! copy otherwise (a mismatch is a faulty-worker event).
+
+use crate::merge::{FrameAccumulator, MergeError, Offer};
+use crate::plan::{FramePlan, WorkUnit};
+use crate::result::UnitResult;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// Identifier of a job.
+pub type JobId = u64;
+/// Identifier of a worker.
+pub type WorkerId = u64;
+
+/// A unit leased to a worker until `deadline_ms`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Lease {
+    /// Fencing token: unique and increasing over the scheduler's life.
+    pub lease_id: u64,
+    /// The job.
+    pub job: JobId,
+    /// The unit to render.
+    pub unit: WorkUnit,
+    /// The worker holding it.
+    pub worker: WorkerId,
+    /// When the lease lapses unless extended by a heartbeat.
+    pub deadline_ms: u64,
+}
+
+/// What became of a submitted result.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Submitted {
+    /// Merged (or buffered until the passes before it arrive).
+    Accepted,
+    /// The unit had already been merged; `identical` tells whether the copies agree
+    /// (rendering is deterministic, so a mismatch means a faulty worker).
+    Duplicate {
+        /// The copies are bit-identical.
+        identical: bool,
+    },
+}
+
+/// Why a submission was refused.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SubmitError {
+    /// No lease with this id was ever issued for this unit (or the job is gone).
+    #[error("lease {0} is unknown or does not cover this unit")]
+    UnknownLease(u64),
+    /// The job was canceled.
+    #[error("job {0} was canceled")]
+    Canceled(JobId),
+    /// The result is malformed (wrong size, non-finite values, ...): counted against the
+    /// worker.
+    #[error("rejected result: {0}")]
+    Invalid(#[from] MergeError),
+}
+
+/// Progress of one job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct Progress {
+    /// Units in the whole job.
+    pub units_total: u64,
+    /// Units merged (including buffered ones).
+    pub units_done: u64,
+    /// Units currently leased.
+    pub units_leased: u64,
+    /// Tile-passes merged over all frames.
+    pub passes_done: u64,
+    /// Tile-passes planned over all frames.
+    pub passes_planned: u64,
+    /// Frames whose every tile has all its passes.
+    pub frames_done: u32,
+}
+
+struct Job {
+    priority: i32,
+    seq: u64,
+    plan: FramePlan,
+    first_frame: u32,
+    passes_per_unit: u32,
+    frames: Vec<FrameAccumulator>,
+    /// Canonical index of the next never-leased unit.
+    cursor: u64,
+    /// Units returned to the queue (expired or given back), by canonical index.
+    returned: BTreeSet<u64>,
+    /// Canonical indices of merged units.
+    done: BTreeSet<u64>,
+    /// Outstanding leases by canonical unit index.
+    leased: BTreeMap<u64, u64>,
+    canceled: bool,
+}
+
+impl Job {
+    fn chunks(&self) -> u64 {
+        self.plan.chunks_per_tile(self.passes_per_unit) as u64
+    }
+
+    fn units_per_frame(&self) -> u64 {
+        self.chunks() * self.plan.tile_count() as u64
+    }
+
+    fn units_total(&self) -> u64 {
+        self.units_per_frame() * self.frames.len() as u64
+    }
+
+    /// The unit with canonical index `i`: frame-major, then pass chunk, then tile.
+    fn unit(&self, i: u64) -> WorkUnit {
+        let per_frame = self.units_per_frame();
+        let frame = (i / per_frame) as u32;
+        let r = i % per_frame;
+        let tiles = self.plan.tile_count() as u64;
+        let chunk = (r / tiles) as u32;
+        let tile = (r % tiles) as u32;
+        let first_pass = chunk * self.passes_per_unit;
+        let pass_count = self.passes_per_unit.min(self.plan.passes - first_pass);
+        WorkUnit {
+            frame: self.first_frame + frame,
+            tile,
+            first_pass,
+            pass_count,
+        }
+    }
+
+    /// Inverse of [`Job::unit`]; `None` if `u` is not one of this job's units.
+    fn index(&self, u: &WorkUnit) -> Option<u64> {
+        let frame = u.frame.checked_sub(self.first_frame)? as u64;
+        if frame >= self.frames.len() as u64
+            || u.tile >= self.plan.tile_count()
+            || u.first_pass % self.passes_per_unit != 0
+        {
+            return None;
+        }
+        let i = frame * self.units_per_frame()
+            + (u.first_pass / self.passes_per_unit) as u64 * self.plan.tile_count() as u64
+            + u.tile as u64;
+        (i < self.units_total() && self.unit(i) == *u).then_some(i)
+    }
+
+    fn next_index(&mut self) -> Option<u64> {
+        if let Some(&i) = self.returned.iter().next() {
+            self.returned.remove(&i);
+            return Some(i);
+        }
+        if self.cursor < self.units_total() {
+            self.cursor += 1;
+            return Some(self.cursor - 1);
+        }
+        None
+    }
+
+    fn has_work(&self) -> bool {
+        !self.canceled && (!self.returned.is_empty() || self.cursor < self.units_total())
+    }
+}
+
+/// The lease table and work queues of all jobs.
+pub struct Scheduler {
+    lease_ms: u64,
+    jobs: BTreeMap<JobId, Job>,
+    leases: BTreeMap<u64, Lease>,
+    /// Leases that lapsed or were given back, with their (job, canonical unit index): a
+    /// late result may still answer one of them, and only them.
+    lapsed: BTreeMap<u64, (JobId, u64)>,
+    next_lease_id: u64,
+    next_seq: u64,
+}
+
+impl Scheduler {
+    /// A scheduler whose leases last `lease_ms` unless extended; lease ids start after
+    /// `first_lease_id` (pass the largest id ever issued when restarting, so fencing tokens
+    /// never repeat).
+    pub fn new(lease_ms: u64, first_lease_id: u64) -> Self {
+        Self {
+            lease_ms,
+            jobs: BTreeMap::new(),
+            leases: BTreeMap::new(),
+            lapsed: BTreeMap::new(),
+            next_lease_id: first_lease_id + 1,
+            next_seq: 0,
+        }
+    }
+
+    /// Adds a job rendering `frames` (inclusive range) of `plan`, cut into units of
+    /// `passes_per_unit` passes. Jobs added earlier run first among equal priorities.
+    pub fn add_job(
+        &mut self,
+        id: JobId,
+        priority: i32,
+        plan: FramePlan,
+        frames: std::ops::RangeInclusive<u32>,
+        passes_per_unit: u32,
+    ) {
+        let frames: Vec<FrameAccumulator> = frames
+            .map(|f| FrameAccumulator::for_frame(plan, f))
+            .collect();
+        let first_frame = frames.first().map_or(0, |f| f.frame());
+        self.next_seq += 1;
+        self.jobs.insert(
+            id,
+            Job {
+                priority,
+                seq: self.next_seq,
+                plan,
+                first_frame,
+                passes_per_unit: passes_per_unit.max(1),
+                frames,
+                cursor: 0,
+                returned: BTreeSet::new(),
+                done: BTreeSet::new(),
+                leased: BTreeMap::new(),
+                canceled: false,
+            },
+        );
+    }
+
+    /// Leases up to `max_units` units to `worker`.
+    pub fn lease(&mut self, worker: WorkerId, now_ms: u64, max_units: usize) -> Vec<Lease> {
+        let mut order: Vec<(i32, u64, JobId)> = self
+            .jobs
+            .iter()
+            .filter(|(_, j)| j.has_work())
+            .map(|(&id, j)| (-j.priority, j.seq, id))
+            .collect();
+        order.sort_unstable();
+        let mut out = Vec::new();
+        for (_, _, id) in order {
+            let job = self.jobs.get_mut(&id).expect("listed job exists");
+            while out.len() < max_units {
+                let Some(i) = job.next_index() else { break };
+                let lease = Lease {
+                    lease_id: self.next_lease_id,
+                    job: id,
+                    unit: job.unit(i),
+                    worker,
+                    deadline_ms: now_ms.saturating_add(self.lease_ms),
+                };
+                self.next_lease_id += 1;
+                job.leased.insert(i, lease.lease_id);
+                self.leases.insert(lease.lease_id, lease);
+                out.push(lease);
+            }
+            if out.len() >= max_units {
+                break;
+            }
+        }
+        out
+    }
+
+    /// Extends the given leases held by `worker`; returns the ones extended with their new
+    /// deadlines (leases that lapsed or belong to someone else are not).
+    pub fn extend(&mut self, worker: WorkerId, lease_ids: &[u64], now_ms: u64) -> Vec<(u64, u64)> {
+        let mut out = Vec::new();
+        for id in lease_ids {
+            if let Some(l) = self.leases.get_mut(id) {
+                if l.worker == worker && l.deadline_ms >= now_ms {
+                    l.deadline_ms = now_ms.saturating_add(self.lease_ms);
+                    out.push((*id, l.deadline_ms));
+                }
+            }
+        }
+        out
+    }
+
+    /// Returns the units of every lease whose deadline has passed to the queue.
+    pub fn expire(&mut self, now_ms: u64) -> Vec<Lease> {
+        let expired: Vec<Lease> = self
+            .leases
+            .values()
+            .filter(|l| l.deadline_ms < now_ms)
+            .copied()
+            .collect();
+        for l in &expired {
+            self.release(l.lease_id);
+        }
+        expired
+    }
+
+    /// Gives leases back (a worker shutting down): their units return to the queue.
+    pub fn give_back(&mut self, worker: WorkerId, lease_ids: &[u64]) {
+        for id in lease_ids {
+            if self.leases.get(id).is_some_and(|l| l.worker == worker) {
+                self.release(*id);
+            }
+        }
+    }
+
+    /// Extends every lease deadline to at least `deadline_ms` (a restarted coordinator's
+    /// grace period for workers to reconnect).
+    pub fn grace(&mut self, deadline_ms: u64) {
+        for l in self.leases.values_mut() {
+            l.deadline_ms = l.deadline_ms.max(deadline_ms);
+        }
+    }
+
+    fn release(&mut self, lease_id: u64) {
+        let Some(l) = self.leases.remove(&lease_id) else {
+            return;
+        };
+        if let Some(job) = self.jobs.get_mut(&l.job) {
+            if let Some(i) = job.index(&l.unit) {
+                self.lapsed.insert(lease_id, (l.job, i));
+                if job.leased.get(&i) == Some(&lease_id) {
+                    job.leased.remove(&i);
+                    if !job.done.contains(&i) && !job.canceled {
+                        job.returned.insert(i);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Accepts the result of `lease_id`. The lease must have been issued for exactly the
+    /// result's unit (it may have lapsed: a late result is still merged once or compared).
+    pub fn submit(
+        &mut self,
+        lease_id: u64,
+        job_id: JobId,
+        result: UnitResult,
+    ) -> Result<Submitted, SubmitError> {
+        let job = self
+            .jobs
+            .get_mut(&job_id)
+            .ok_or(SubmitError::UnknownLease(lease_id))?;
+        if job.canceled {
+            return Err(SubmitError::Canceled(job_id));
+        }
+        let i = job
+            .index(&result.unit)
+            .ok_or(SubmitError::UnknownLease(lease_id))?;
+        let issued = match self.leases.get(&lease_id) {
+            Some(l) => l.job == job_id && l.unit == result.unit,
+            // A lapsed lease answers only for the unit it was issued for.
+            None => self.lapsed.get(&lease_id) == Some(&(job_id, i)),
+        };
+        if !issued {
+            return Err(SubmitError::UnknownLease(lease_id));
+        }
+        let frame = (result.unit.frame - job.first_frame) as usize;
+        let outcome = job.frames[frame].offer(result)?;
+        // The unit is done: drop its lease (if the live lease is another worker's, that
+        // worker's copy will be compared when it arrives).
+        self.leases.remove(&lease_id);
+        self.lapsed.remove(&lease_id);
+        if job.leased.get(&i) == Some(&lease_id) {
+            job.leased.remove(&i);
+        }
+        job.returned.remove(&i);
+        job.done.insert(i);
+        Ok(match outcome {
+            Offer::Duplicate { identical } => Submitted::Duplicate { identical },
+            Offer::Merged { .. } | Offer::Buffered => Submitted::Accepted,
+        })
+    }
+
+    /// Cancels a job: nothing more is leased; returns the outstanding leases to drop.
+    pub fn cancel(&mut self, job_id: JobId) -> Vec<Lease> {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return Vec::new();
+        };
+        job.canceled = true;
+        job.returned.clear();
+        let ids: Vec<u64> = job.leased.values().copied().collect();
+        job.leased.clear();
+        ids.iter().filter_map(|id| self.leases.remove(id)).collect()
+    }
+
+    /// Removes a job entirely (after it is done and stored, or canceled).
+    pub fn remove_job(&mut self, job_id: JobId) {
+        self.cancel(job_id);
+        self.jobs.remove(&job_id);
+        self.lapsed.retain(|_, (j, _)| *j != job_id);
+    }
+
+    /// The merged state of one frame of a job.
+    pub fn frame(&self, job_id: JobId, frame: u32) -> Option<&FrameAccumulator> {
+        let job = self.jobs.get(&job_id)?;
+        job.frames.get(frame.checked_sub(job.first_frame)? as usize)
+    }
+
+    /// Progress of a job.
+    pub fn progress(&self, job_id: JobId) -> Option<Progress> {
+        let job = self.jobs.get(&job_id)?;
+        let tiles = job.plan.tile_count() as u64;
+        Some(Progress {
+            units_total: job.units_total(),
+            units_done: job.done.len() as u64,
+            units_leased: job.leased.len() as u64,
+            passes_done: job.frames.iter().map(|f| f.merged_pass_count()).sum(),
+            passes_planned: tiles * job.plan.passes as u64 * job.frames.len() as u64,
+            frames_done: job.frames.iter().filter(|f| f.complete()).count() as u32,
+        })
+    }
+
+    /// True once every frame of the job is complete.
+    pub fn is_complete(&self, job_id: JobId) -> bool {
+        self.jobs
+            .get(&job_id)
+            .is_some_and(|j| j.frames.iter().all(|f| f.complete()))
+    }
+
+    /// All outstanding leases.
+    pub fn leases(&self) -> impl Iterator<Item = &Lease> {
+        self.leases.values()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn result(plan: &FramePlan, unit: WorkUnit, value: f32) -> UnitResult {
+        let rect = plan.tile(unit.tile);
+        let n = rect.pixel_count() * unit.pass_count as usize;
+        let pass_means = (0..n).map(|k| [value + (k % 7) as f32 * 0.01; 3]).collect();
+        UnitResult {
+            unit,
+            width: rect.width,
+            height: rect.height,
+            pass_means,
+        }
+    }
+
+    fn plan() -> FramePlan {
+        FramePlan::new(40, 30, 16, 4, 6).unwrap() // 6 tiles, 6 passes
+    }
+
+    #[test]
+    fn priority_then_fifo_then_coarse_to_fine() {
+        let p = plan();
+        let mut s = Scheduler::new(1000, 0);
+        s.add_job(1, 0, p, 0..=0, 2);
+        s.add_job(2, 5, p, 0..=0, 2);
+        s.add_job(3, 0, p, 0..=0, 2);
+        let leases = s.lease(9, 0, 100);
+        assert_eq!(leases.len(), 3 * 18);
+        let jobs: Vec<JobId> = leases.iter().map(|l| l.job).collect();
+        assert!(jobs[..18].iter().all(|&j| j == 2));
+        assert!(jobs[18..36].iter().all(|&j| j == 1));
+        assert!(jobs[36..].iter().all(|&j| j == 3));
+        // Coarse to fine: every tile's first chunk before any second chunk.
+        let firsts: Vec<u32> = leases[..18].iter().map(|l| l.unit.first_pass).collect();
+        assert_eq!(firsts, [[0; 6], [2; 6], [4; 6]].concat());
+        // Fencing tokens are unique and increasing.
+        assert!(leases.windows(2).all(|w| w[0].lease_id < w[1].lease_id));
+    }
+
+    #[test]
+    fn expired_leases_are_released_in_canonical_order_and_merged_once() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=1, 3);
+        let a = s.lease(1, 0, 3);
+        // Heartbeat keeps lease a[0] alive; the others lapse.
+        assert_eq!(s.extend(1, &[a[0].lease_id], 50).len(), 1);
+        assert!(
+            s.extend(2, &[a[1].lease_id], 50).is_empty(),
+            "not the holder"
+        );
+        let expired = s.expire(120);
+        assert_eq!(expired.len(), 2);
+        // The next lease hands out the expired units first, in canonical order.
+        let b = s.lease(2, 130, 2);
+        assert_eq!(
+            b.iter().map(|l| l.unit).collect::<Vec<_>>(),
+            vec![a[1].unit, a[2].unit]
+        );
+        // Both the late worker and the new holder submit: merged once, compared once.
+        assert_eq!(
+            s.submit(a[1].lease_id, 1, result(&p, a[1].unit, 0.5)),
+            Ok(Submitted::Accepted)
+        );
+        assert_eq!(
+            s.submit(b[0].lease_id, 1, result(&p, b[0].unit, 0.5)),
+            Ok(Submitted::Duplicate { identical: true })
+        );
+        // A copy that differs is flagged.
+        assert_eq!(
+            s.submit(b[1].lease_id, 1, result(&p, b[1].unit, 0.5)),
+            Ok(Submitted::Accepted)
+        );
+        assert_eq!(
+            s.submit(a[2].lease_id, 1, result(&p, a[2].unit, 0.25)),
+            Ok(Submitted::Duplicate { identical: false })
+        );
+    }
+
+    #[test]
+    fn bad_submissions_are_refused_and_change_nothing() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=0, 6);
+        let l = s.lease(1, 0, 2);
+        // A lease id never issued.
+        assert_eq!(
+            s.submit(999, 1, result(&p, l[0].unit, 0.5)),
+            Err(SubmitError::UnknownLease(999))
+        );
+        // A lease for another unit.
+        assert!(s
+            .submit(l[0].lease_id, 1, result(&p, l[1].unit, 0.5))
+            .is_err());
+        // Wrong size and NaN.
+        let mut r = result(&p, l[0].unit, 0.5);
+        r.width -= 1;
+        assert!(matches!(
+            s.submit(l[0].lease_id, 1, r),
+            Err(SubmitError::Invalid(_))
+        ));
+        let mut r = result(&p, l[0].unit, 0.5);
+        r.pass_means[3][1] = f32::NAN;
+        assert!(matches!(
+            s.submit(l[0].lease_id, 1, r),
+            Err(SubmitError::Invalid(_))
+        ));
+        assert_eq!(s.progress(1).unwrap().units_done, 0);
+        // The genuine result still goes in.
+        assert_eq!(
+            s.submit(l[0].lease_id, 1, result(&p, l[0].unit, 0.5)),
+            Ok(Submitted::Accepted)
+        );
+        assert_eq!(s.progress(1).unwrap().units_done, 1);
+    }
+
+    #[test]
+    fn a_job_completes_bit_identically_whatever_the_worker_interleaving() {
+        let p = plan();
+        let run = |workers: u64, seed: u64| {
+            let mut s = Scheduler::new(100, 0);
+            s.add_job(7, 0, p, 0..=0, 2);
+            let mut now = 0;
+            let mut rng = seed;
+            let mut held: Vec<Lease> = Vec::new();
+            while !s.is_complete(7) {
+                now += 10;
+                for w in 0..workers {
+                    held.extend(s.lease(w, now, 1));
+                }
+                rng = rng
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                // Deliver a pseudo-random held lease; sometimes drop one (a dead worker).
+                if held.is_empty() {
+                    s.expire(now + 1000);
+                    continue;
+                }
+                let k = (rng >> 33) as usize % held.len();
+                let l = held.swap_remove(k);
+                if rng % 5 == 0 {
+                    continue;
+                }
+                let _ = s.submit(l.lease_id, 7, result(&p, l.unit, 0.5 + l.unit.tile as f32));
+                if rng % 3 == 0 {
+                    s.expire(now + 1000);
+                }
+            }
+            s.frame(7, 0).unwrap().image()
+        };
+        let a = run(1, 1);
+        for (w, seed) in [(3, 2), (5, 3)] {
+            let b = run(w, seed);
+            assert!(a
+                .mean
+                .iter()
+                .zip(&b.mean)
+                .all(|(x, y)| x.map(f32::to_bits) == y.map(f32::to_bits)));
+            assert!(a
+                .variance_of_mean
+                .iter()
+                .zip(&b.variance_of_mean)
+                .all(|(x, y)| x.map(f32::to_bits) == y.map(f32::to_bits)));
+        }
+    }
+
+    #[test]
+    fn cancel_stops_leasing_and_returns_outstanding_leases() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        let l = s.lease(1, 0, 4);
+        let dropped = s.cancel(1);
+        assert_eq!(dropped.len(), 4);
+        assert!(s.lease(1, 10, 4).is_empty());
+        assert_eq!(
+            s.submit(l[0].lease_id, 1, result(&p, l[0].unit, 0.5)),
+            Err(SubmitError::Canceled(1))
+        );
+    }
+}
