@@ -146,7 +146,7 @@ impl WatertightRay {
     fn intersect(&self, p: &[Vec3; 3], t_max: f32) -> Option<(f32, f32, f32, f32)> {
         let (kx, ky, kz) = (self.kx, self.ky, self.kz);
         let tr = |v: Vec3| {
-            let q = v - self.origin;
+            let q = (v - self.origin).to_array();
             Vec3::new(q[kx], q[ky], q[kz])
         };
         let mut p0t = tr(p[0]);
