@@ -139,7 +139,7 @@ impl Job {
         let frame = u.frame.checked_sub(self.first_frame)? as u64;
         if frame >= self.frames.len() as u64
             || u.tile >= self.plan.tile_count()
-            || u.first_pass % self.passes_per_unit != 0
+            || !u.first_pass.is_multiple_of(self.passes_per_unit)
         {
             return None;
         }
@@ -558,11 +558,11 @@ mod tests {
                 }
                 let k = (rng >> 33) as usize % held.len();
                 let l = held.swap_remove(k);
-                if rng % 5 == 0 {
+                if rng.is_multiple_of(5) {
                     continue;
                 }
                 let _ = s.submit(l.lease_id, 7, result(&p, l.unit, 0.5 + l.unit.tile as f32));
-                if rng % 3 == 0 {
+                if rng.is_multiple_of(3) {
                     s.expire(now + 1000);
                 }
             }

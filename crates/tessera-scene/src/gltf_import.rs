@@ -1104,7 +1104,7 @@ impl<'a> Importer<'a> {
                 (0..n as u32).collect()
             }
         };
-        if indices.len() % 3 != 0 {
+        if !indices.len().is_multiple_of(3) {
             return self.err(format!(
                 "{what}: {} indices is not a multiple of 3 (mode TRIANGLES)",
                 indices.len()

@@ -40,6 +40,8 @@ const SOBOL_DIM1: [u32; 32] = {
 
 /// Sobol' dimension 0 of `index` in 0.32 fixed point: the van der Corput radical inverse in
 /// base 2, i.e. the bit reversal of the index (its generator matrix is the identity).
+/// (The hot path folds this reversal away; kept as the textbook reference for tests.)
+#[cfg(test)]
 #[inline]
 pub(crate) fn sobol_dim0(index: u32) -> u32 {
     index.reverse_bits()
@@ -73,6 +75,8 @@ const SOBOL_DIM1_BYTES: [[u32; 256]; 4] = {
 
 /// Sobol' dimension 1 of `index` in 0.32 fixed point: the XOR of the direction numbers
 /// selected by the set bits of the index (a matrix–vector product over GF(2)).
+/// (The hot path uses [`sobol_dim1_reversed`]; this is the reference for tests.)
+#[cfg(test)]
 #[inline]
 pub(crate) fn sobol_dim1(index: u32) -> u32 {
     let [b0, b1, b2, b3] = index.to_le_bytes();

@@ -1,0 +1,367 @@
+//! Response bodies: jobs, workers, scenes, convergence history.
+
+use serde::{Deserialize, Serialize};
+
+use crate::settings::JobSettings;
+
+/// Life-cycle state of a job; serialized in lowercase.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobState {
+    /// Accepted, no unit leased yet.
+    Queued,
+    /// Units are being rendered.
+    Running,
+    /// Every planned pass is merged, or a stopping criterion (target error, time limit,
+    /// adaptive stopping) was met.
+    Done,
+    /// The job cannot complete (e.g. its scene failed to load); see [`JobStatus::error`].
+    Failed,
+    /// Canceled with `DELETE /api/v1/jobs/{id}`.
+    Canceled,
+}
+
+impl JobState {
+    /// Whether the job will not change any more (done, failed or canceled).
+    pub fn is_terminal(self) -> bool {
+        matches!(self, Self::Done | Self::Failed | Self::Canceled)
+    }
+
+    /// The string form, e.g. `"queued"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Queued => "queued",
+            Self::Running => "running",
+            Self::Done => "done",
+            Self::Failed => "failed",
+            Self::Canceled => "canceled",
+        }
+    }
+}
+
+/// `GET /api/v1/jobs/{id}` (and the body of a successful `POST /api/v1/jobs`): a job and
+/// its progress.
+///
+/// Pass counts are summed over tiles and frames: a job of F frames of T tiles with P passes
+/// each plans `F * T * P` passes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobStatus {
+    /// Job id.
+    pub id: u64,
+    /// The job's name, if it was given one.
+    pub name: Option<String>,
+    /// Life-cycle state.
+    pub state: JobState,
+    /// The scene reference (`"builtin:NAME"` or content hash).
+    pub scene: String,
+    /// The settings, in canonical form (every default filled in).
+    pub settings: JobSettings,
+    /// The resolved image width (known once the scene is loaded).
+    #[serde(default)]
+    pub width: Option<u32>,
+    /// The resolved image height (known once the scene is loaded).
+    #[serde(default)]
+    pub height: Option<u32>,
+    /// Number of frames.
+    pub frames_total: u32,
+    /// Number of frames with every planned pass merged.
+    pub frames_done: u32,
+    /// Tiles per frame times frames.
+    pub tiles_total: u64,
+    /// Passes planned, over all tiles and frames.
+    pub passes_planned: u64,
+    /// Passes merged, over all tiles and frames.
+    pub passes_done: u64,
+    /// Samples per pixel merged so far, averaged over the pixels of all frames (not an
+    /// integer under adaptive stopping).
+    pub spp_so_far: f64,
+    /// The current image error estimate (RMS relative error, DESIGN §3); `None` until
+    /// every pixel has at least two passes.
+    pub error_estimate: Option<f64>,
+    /// The requested target error, if any.
+    pub target_error: Option<f64>,
+    /// Seconds since the job started running (0 while queued).
+    pub elapsed_seconds: f64,
+    /// Estimated seconds until done; `None` when not yet predictable.
+    pub eta_seconds: Option<f64>,
+    /// When the job was accepted, Unix milliseconds.
+    pub created_unix_ms: u64,
+    /// Scheduling priority (higher first).
+    pub priority: i32,
+    /// Faulty-worker events on this job: refused results (wrong size, non-finite values)
+    /// and duplicate results that differ from the merged copy.
+    pub faults: u64,
+    /// Why the job failed, when `state` is `failed`.
+    #[serde(default)]
+    pub error: Option<String>,
+}
+
+/// `GET /api/v1/jobs`: one page of jobs, newest first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobList {
+    /// The jobs of this page.
+    pub jobs: Vec<JobStatus>,
+    /// Pass as `?cursor=` to get the next page; `None` on the last page.
+    pub next_cursor: Option<String>,
+}
+
+/// Query string of `GET /api/v1/jobs`.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobListQuery {
+    /// `next_cursor` of the previous page.
+    #[serde(default)]
+    pub cursor: Option<String>,
+    /// Page size (the server caps it).
+    #[serde(default)]
+    pub limit: Option<u32>,
+    /// Only jobs in this state.
+    #[serde(default)]
+    pub state: Option<JobState>,
+}
+
+/// Image file format of `GET /api/v1/jobs/{id}/image`; serialized in lowercase.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageFormat {
+    /// 8-bit sRGB PNG of the mean. The default.
+    #[default]
+    Png,
+    /// Multi-layer float OpenEXR (mean, variance of the mean, passes, ...).
+    Exr,
+}
+
+impl ImageFormat {
+    /// The MIME type of the response.
+    pub fn content_type(self) -> &'static str {
+        match self {
+            Self::Png => "image/png",
+            Self::Exr => "image/x-exr",
+        }
+    }
+}
+
+/// Query string of `GET /api/v1/jobs/{id}/image`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImageQuery {
+    /// File format; default PNG.
+    #[serde(default)]
+    pub format: ImageFormat,
+    /// Frame number; default the job's first frame.
+    #[serde(default)]
+    pub frame: Option<u32>,
+}
+
+/// State of a worker; serialized in lowercase.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WorkerState {
+    /// Connected, holding no lease.
+    Idle,
+    /// Connected, rendering leased units.
+    Busy,
+    /// Shutting down: finishing or returning its leases.
+    Draining,
+    /// Missed its heartbeats; its leases were (or will be) returned to the queue.
+    Lost,
+}
+
+/// One worker in `GET /api/v1/workers`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WorkerInfo {
+    /// Worker id (assigned at registration).
+    pub id: u64,
+    /// The name the worker registered with.
+    pub name: String,
+    /// Render threads.
+    pub threads: u32,
+    /// Current state.
+    pub state: WorkerState,
+    /// Last heartbeat, Unix milliseconds.
+    pub last_heartbeat_unix_ms: u64,
+    /// Units whose results were accepted.
+    pub units_done: u64,
+    /// Recent throughput in camera paths per second.
+    pub paths_per_second: f64,
+    /// Faulty-worker events: refused results and mismatching duplicates.
+    pub faults: u64,
+    /// The worker's Tessera version.
+    #[serde(default)]
+    pub version: String,
+}
+
+/// `GET /api/v1/workers`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WorkerList {
+    /// The workers, by id.
+    pub workers: Vec<WorkerInfo>,
+}
+
+/// `POST /api/v1/scenes`: the stored scene's content hash and statistics.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SceneUploaded {
+    /// Lowercase hex SHA-256 of the uploaded bytes: the `scene` of a job.
+    pub hash: String,
+    /// Size of the upload in bytes.
+    pub bytes: u64,
+    /// Triangles in the scene.
+    pub triangles: u64,
+    /// Meshes (glTF mesh primitives).
+    pub meshes: u32,
+    /// Materials.
+    pub materials: u32,
+    /// Lights (punctual lights and emissive meshes).
+    pub lights: u32,
+}
+
+/// One point of a job's convergence history, for the dashboard's error-versus-time plot.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HistoryPoint {
+    /// Seconds since the job started running.
+    pub elapsed_seconds: f64,
+    /// Samples per pixel merged at that time (averaged over pixels).
+    pub spp: f64,
+    /// Image error estimate at that time; `None` before every pixel had two passes.
+    pub error_estimate: Option<f64>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn status() -> JobStatus {
+        JobStatus {
+            id: 42,
+            name: Some("turntable".into()),
+            state: JobState::Running,
+            scene: "builtin:cornell-box".into(),
+            settings: JobSettings::new("builtin:cornell-box"),
+            width: Some(256),
+            height: Some(256),
+            frames_total: 1,
+            frames_done: 0,
+            tiles_total: 64,
+            passes_planned: 512,
+            passes_done: 100,
+            spp_so_far: 12.5,
+            error_estimate: Some(0.031),
+            target_error: None,
+            elapsed_seconds: 3.25,
+            eta_seconds: Some(10.0),
+            created_unix_ms: 1_700_000_000_000,
+            priority: 0,
+            faults: 1,
+            error: None,
+        }
+    }
+
+    fn round_trip<T>(v: &T) -> serde_json::Value
+    where
+        T: Serialize + serde::de::DeserializeOwned + PartialEq + std::fmt::Debug,
+    {
+        let s = serde_json::to_string(v).unwrap();
+        assert_eq!(&serde_json::from_str::<T>(&s).unwrap(), v);
+        serde_json::from_str(&s).unwrap()
+    }
+
+    #[test]
+    fn job_status_json() {
+        let v = round_trip(&status());
+        assert_eq!(v["state"], "running");
+        assert_eq!(v["settings"]["spp"], 64);
+        assert_eq!(v["settings"]["mis"], "power");
+        assert_eq!(v["target_error"], serde_json::Value::Null);
+        assert_eq!(v["eta_seconds"], 10.0);
+        let list = JobList {
+            jobs: vec![status(), status()],
+            next_cursor: Some("41".into()),
+        };
+        let v = round_trip(&list);
+        assert_eq!(v["jobs"].as_array().unwrap().len(), 2);
+        assert_eq!(v["next_cursor"], "41");
+        // Optional additions may be absent (an older server).
+        let mut v = serde_json::to_value(status()).unwrap();
+        let obj = v.as_object_mut().unwrap();
+        obj.remove("width");
+        obj.remove("height");
+        obj.remove("error");
+        let s: JobStatus = serde_json::from_value(v).unwrap();
+        assert_eq!((s.width, s.error), (None, None));
+    }
+
+    #[test]
+    fn states() {
+        for (s, name, terminal) in [
+            (JobState::Queued, "queued", false),
+            (JobState::Running, "running", false),
+            (JobState::Done, "done", true),
+            (JobState::Failed, "failed", true),
+            (JobState::Canceled, "canceled", true),
+        ] {
+            assert_eq!(serde_json::to_value(s).unwrap(), json!(name));
+            assert_eq!(s.as_str(), name);
+            assert_eq!(s.is_terminal(), terminal);
+        }
+        assert!(serde_json::from_value::<JobState>(json!("cancelled")).is_err());
+    }
+
+    #[test]
+    fn workers_scenes_history() {
+        let w = WorkerInfo {
+            id: 3,
+            name: "render-3".into(),
+            threads: 8,
+            state: WorkerState::Busy,
+            last_heartbeat_unix_ms: 1_700_000_000_123,
+            units_done: 77,
+            paths_per_second: 1.5e6,
+            faults: 0,
+            version: "0.1.0".into(),
+        };
+        let v = round_trip(&WorkerList {
+            workers: vec![w.clone()],
+        });
+        assert_eq!(v["workers"][0]["state"], "busy");
+        assert_eq!(v["workers"][0]["paths_per_second"], 1.5e6);
+
+        let sc = SceneUploaded {
+            hash: "ab".repeat(32),
+            bytes: 1234,
+            triangles: 36,
+            meshes: 3,
+            materials: 2,
+            lights: 1,
+        };
+        assert_eq!(
+            round_trip(&sc),
+            json!({"hash": "ab".repeat(32), "bytes": 1234, "triangles": 36,
+                   "meshes": 3, "materials": 2, "lights": 1})
+        );
+        let h = HistoryPoint {
+            elapsed_seconds: 1.0,
+            spp: 8.0,
+            error_estimate: None,
+        };
+        assert_eq!(
+            round_trip(&h),
+            json!({"elapsed_seconds": 1.0, "spp": 8.0, "error_estimate": null})
+        );
+    }
+
+    #[test]
+    fn queries() {
+        let q: ImageQuery = serde_json::from_value(json!({})).unwrap();
+        assert_eq!(q, ImageQuery::default());
+        assert_eq!(q.format.content_type(), "image/png");
+        let q: ImageQuery = serde_json::from_value(json!({"format": "exr", "frame": 3})).unwrap();
+        assert_eq!((q.format, q.frame), (ImageFormat::Exr, Some(3)));
+        assert!(serde_json::from_value::<ImageQuery>(json!({"format": "tiff"})).is_err());
+        assert!(serde_json::from_value::<ImageQuery>(json!({"fromat": "exr"})).is_err());
+        let q: JobListQuery =
+            serde_json::from_value(json!({"state": "done", "limit": 10})).unwrap();
+        assert_eq!(q.state, Some(JobState::Done));
+        round_trip(&q);
+    }
+}

@@ -1,0 +1,933 @@
+//! Checked conversions between wire messages and domain types.
+
+use std::fmt;
+
+use tessera_api::{IntegratorChoice, MisChoice, RenderConfig, SamplerChoice, SceneRef};
+use tessera_farm::{FramePlan, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES};
+use tessera_farm::{MAX_TILE_SIZE, MIN_TILE_SIZE};
+
+use crate::v1;
+
+/// Largest tile index any valid plan can have: a 16384 x 16384 image cut into 4-pixel
+/// tiles has 4096 x 4096 tiles.
+pub const MAX_TILE_INDEX: u32 = {
+    let per_side = MAX_DIMENSION.div_ceil(MIN_TILE_SIZE);
+    per_side * per_side - 1
+};
+
+/// A wire message failed validation: which field (a dotted path such as `"plan.width"`)
+/// and why.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ProtoError {
+    /// The offending field, as a dotted path from the converted message.
+    pub field: String,
+    /// What is wrong with it.
+    pub reason: String,
+}
+
+impl ProtoError {
+    /// An error for `field`.
+    pub fn new(field: impl Into<String>, reason: impl fmt::Display) -> Self {
+        Self {
+            field: field.into(),
+            reason: reason.to_string(),
+        }
+    }
+
+    /// The same error seen from the enclosing message: `field` becomes `parent.field`.
+    pub fn within(mut self, parent: &str) -> Self {
+        self.field = format!("{parent}.{}", self.field);
+        self
+    }
+
+    fn missing(field: &str) -> Self {
+        Self::new(field, "missing")
+    }
+}
+
+impl fmt::Display for ProtoError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}: {}", self.field, self.reason)
+    }
+}
+
+impl std::error::Error for ProtoError {}
+
+impl From<ProtoError> for tonic::Status {
+    /// `INVALID_ARGUMENT` with the message `"field: reason"`.
+    fn from(e: ProtoError) -> Self {
+        tonic::Status::invalid_argument(e.to_string())
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// FramePlan
+
+impl From<&FramePlan> for v1::FramePlan {
+    fn from(p: &FramePlan) -> Self {
+        Self {
+            width: p.width,
+            height: p.height,
+            tile_size: p.tile_size,
+            samples_per_pass: p.samples_per_pass,
+            passes: p.passes,
+        }
+    }
+}
+
+impl From<FramePlan> for v1::FramePlan {
+    fn from(p: FramePlan) -> Self {
+        Self::from(&p)
+    }
+}
+
+impl TryFrom<v1::FramePlan> for FramePlan {
+    type Error = ProtoError;
+
+    /// Validates with [`FramePlan::new`]; the error names the field out of range
+    /// (`passes` when the total amount of work is too large).
+    fn try_from(p: v1::FramePlan) -> Result<Self, ProtoError> {
+        FramePlan::new(p.width, p.height, p.tile_size, p.samples_per_pass, p.passes).map_err(|e| {
+            let field = match &e {
+                PlanError::Size { width, .. } if !(1..=MAX_DIMENSION).contains(width) => "width",
+                PlanError::Size { .. } => "height",
+                PlanError::TileSize(_) => "tile_size",
+                PlanError::SamplesPerPass(_) | PlanError::Spp { .. } => "samples_per_pass",
+                PlanError::Passes(_) | PlanError::TooMuchWork { .. } => "passes",
+            };
+            ProtoError::new(field, e)
+        })
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// WorkUnit
+
+impl From<&WorkUnit> for v1::WorkUnit {
+    fn from(u: &WorkUnit) -> Self {
+        Self {
+            frame: u.frame,
+            tile: u.tile,
+            first_pass: u.first_pass,
+            pass_count: u.pass_count,
+        }
+    }
+}
+
+impl From<WorkUnit> for v1::WorkUnit {
+    fn from(u: WorkUnit) -> Self {
+        Self::from(&u)
+    }
+}
+
+impl TryFrom<v1::WorkUnit> for WorkUnit {
+    type Error = ProtoError;
+
+    /// Checks what can be checked without the plan: `pass_count >= 1`, the passes end
+    /// within the largest plan (65536 passes) and the tile index is below
+    /// [`MAX_TILE_INDEX`]. Whether the unit belongs to a given plan is checked by
+    /// [`LeasedUnit`] and by `UnitResult::validate`.
+    fn try_from(u: v1::WorkUnit) -> Result<Self, ProtoError> {
+        if u.pass_count == 0 {
+            return Err(ProtoError::new("pass_count", "must be at least 1, got 0"));
+        }
+        let end = u64::from(u.first_pass) + u64::from(u.pass_count);
+        if end > u64::from(MAX_PASSES) {
+            return Err(ProtoError::new(
+                "pass_count",
+                format_args!(
+                    "passes {}..{end} exceed the limit of {MAX_PASSES} passes",
+                    u.first_pass
+                ),
+            ));
+        }
+        if u.tile > MAX_TILE_INDEX {
+            return Err(ProtoError::new(
+                "tile",
+                format_args!("must be at most {MAX_TILE_INDEX}, got {}", u.tile),
+            ));
+        }
+        Ok(WorkUnit {
+            frame: u.frame,
+            tile: u.tile,
+            first_pass: u.first_pass,
+            pass_count: u.pass_count,
+        })
+    }
+}
+
+/// Checks that `unit` is a unit of `plan`: its tile exists and its passes lie within the
+/// plan's. Field names are relative to the unit.
+fn check_unit_in_plan(unit: &WorkUnit, plan: &FramePlan) -> Result<(), ProtoError> {
+    if unit.tile >= plan.tile_count() {
+        return Err(ProtoError::new(
+            "tile",
+            format_args!(
+                "tile {} is not in the plan, which has {} tiles",
+                unit.tile,
+                plan.tile_count()
+            ),
+        ));
+    }
+    if unit.end_pass() > u64::from(plan.passes) {
+        return Err(ProtoError::new(
+            "pass_count",
+            format_args!(
+                "passes {}..{} exceed the plan's {} passes",
+                unit.first_pass,
+                unit.end_pass(),
+                plan.passes
+            ),
+        ));
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------
+// UnitResult <-> SubmitResultRequest
+
+impl v1::SubmitResultRequest {
+    /// The request submitting `result`, rendered in `render_seconds` under lease
+    /// `lease_id` by worker `worker_id`. The pass means are flattened to r, g, b
+    /// interleaved floats.
+    pub fn from_result(
+        worker_id: u64,
+        lease_id: u64,
+        result: &UnitResult,
+        render_seconds: f64,
+    ) -> Self {
+        Self {
+            worker_id,
+            lease_id,
+            unit: Some(result.unit.into()),
+            width: result.width,
+            height: result.height,
+            pass_means: result.pass_means.as_flattened().to_vec(),
+            render_seconds,
+        }
+    }
+
+    /// Checks the fields other than the pass means themselves and returns the unit.
+    fn check_shape(&self) -> Result<WorkUnit, ProtoError> {
+        let unit: WorkUnit = self
+            .unit
+            .ok_or_else(|| ProtoError::missing("unit"))?
+            .try_into()
+            .map_err(|e: ProtoError| e.within("unit"))?;
+        for (field, v) in [("width", self.width), ("height", self.height)] {
+            if !(1..=MAX_TILE_SIZE).contains(&v) {
+                return Err(ProtoError::new(
+                    field,
+                    format_args!("must be between 1 and {MAX_TILE_SIZE} (a tile), got {v}"),
+                ));
+            }
+        }
+        let len = self.pass_means.len();
+        if !len.is_multiple_of(3) {
+            return Err(ProtoError::new(
+                "pass_means",
+                format_args!("has {len} values, not a multiple of 3 (r, g, b)"),
+            ));
+        }
+        let expected =
+            3 * u64::from(unit.pass_count) * u64::from(self.width) * u64::from(self.height);
+        if len as u64 != expected {
+            return Err(ProtoError::new(
+                "pass_means",
+                format_args!(
+                    "has {len} values, expected 3 x {} passes x {} x {} pixels = {expected}",
+                    unit.pass_count, self.width, self.height
+                ),
+            ));
+        }
+        if !(self.render_seconds >= 0.0 && self.render_seconds.is_finite()) {
+            return Err(ProtoError::new(
+                "render_seconds",
+                format_args!("must be finite and >= 0, got {}", self.render_seconds),
+            ));
+        }
+        Ok(unit)
+    }
+}
+
+fn unflatten(values: &[f32]) -> Vec<[f32; 3]> {
+    values.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+impl TryFrom<&v1::SubmitResultRequest> for UnitResult {
+    type Error = ProtoError;
+
+    /// Checks the message's own consistency: the unit (as for [`WorkUnit`]), `width` and
+    /// `height` in 1..=256, `pass_means` holding exactly `3 * pass_count * width * height`
+    /// values, `render_seconds` finite and non-negative. The values themselves (finite,
+    /// non-negative) and the fit to the plan are checked by `UnitResult::validate`, which
+    /// the merge runs before anything is merged.
+    fn try_from(r: &v1::SubmitResultRequest) -> Result<Self, ProtoError> {
+        let unit = r.check_shape()?;
+        Ok(UnitResult {
+            unit,
+            width: r.width,
+            height: r.height,
+            pass_means: unflatten(&r.pass_means),
+        })
+    }
+}
+
+impl TryFrom<v1::SubmitResultRequest> for UnitResult {
+    type Error = ProtoError;
+
+    /// As the conversion from a reference.
+    fn try_from(r: v1::SubmitResultRequest) -> Result<Self, ProtoError> {
+        UnitResult::try_from(&r)
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// RenderSettings <-> RenderConfig
+
+impl From<IntegratorChoice> for v1::Integrator {
+    fn from(i: IntegratorChoice) -> Self {
+        match i {
+            IntegratorChoice::Auto => Self::Auto,
+            IntegratorChoice::Path => Self::Path,
+            IntegratorChoice::Direct => Self::Direct,
+            IntegratorChoice::Bdpt => Self::Bdpt,
+        }
+    }
+}
+
+impl From<SamplerChoice> for v1::Sampler {
+    fn from(s: SamplerChoice) -> Self {
+        match s {
+            SamplerChoice::Sobol => Self::Sobol,
+            SamplerChoice::Independent => Self::Independent,
+        }
+    }
+}
+
+impl From<&RenderConfig> for v1::RenderSettings {
+    fn from(c: &RenderConfig) -> Self {
+        let (mis, alpha) = match c.mis {
+            MisChoice::Balance => (v1::MisHeuristic::Balance, 0.0),
+            MisChoice::Power => (v1::MisHeuristic::Power, 0.0),
+            MisChoice::Cutoff(a) => (v1::MisHeuristic::Cutoff, a),
+            MisChoice::Maximum => (v1::MisHeuristic::Maximum, 0.0),
+        };
+        Self {
+            integrator: v1::Integrator::from(c.integrator).into(),
+            mis: mis.into(),
+            mis_cutoff_alpha: alpha,
+            sampler: v1::Sampler::from(c.sampler).into(),
+            seed: c.seed,
+            max_depth: c.max_depth,
+            rr_depth: c.rr_depth,
+        }
+    }
+}
+
+impl From<RenderConfig> for v1::RenderSettings {
+    fn from(c: RenderConfig) -> Self {
+        Self::from(&c)
+    }
+}
+
+/// Decodes an enum field: unknown values and the UNSPECIFIED zero are errors.
+fn enum_field<E: TryFrom<i32> + PartialEq>(
+    field: &str,
+    value: i32,
+    unspecified: E,
+) -> Result<E, ProtoError> {
+    match E::try_from(value) {
+        Ok(e) if e == unspecified => Err(ProtoError::new(field, "not set (UNSPECIFIED)")),
+        Ok(e) => Ok(e),
+        Err(_) => Err(ProtoError::new(
+            field,
+            format_args!("unknown value {value} (a newer peer?)"),
+        )),
+    }
+}
+
+impl TryFrom<v1::RenderSettings> for RenderConfig {
+    type Error = ProtoError;
+
+    /// Rejects UNSPECIFIED and unknown enum values (guessing would break determinism), a
+    /// cutoff threshold outside (0, 1], `max_depth` outside 1..=1024 and `rr_depth` above
+    /// 1024.
+    fn try_from(s: v1::RenderSettings) -> Result<Self, ProtoError> {
+        let integrator = match enum_field("integrator", s.integrator, v1::Integrator::Unspecified)?
+        {
+            v1::Integrator::Auto => IntegratorChoice::Auto,
+            v1::Integrator::Path => IntegratorChoice::Path,
+            v1::Integrator::Direct => IntegratorChoice::Direct,
+            v1::Integrator::Bdpt => IntegratorChoice::Bdpt,
+            v1::Integrator::Unspecified => unreachable!("rejected by enum_field"),
+        };
+        let mis = match enum_field("mis", s.mis, v1::MisHeuristic::Unspecified)? {
+            v1::MisHeuristic::Balance => MisChoice::Balance,
+            v1::MisHeuristic::Power => MisChoice::Power,
+            v1::MisHeuristic::Maximum => MisChoice::Maximum,
+            v1::MisHeuristic::Cutoff => {
+                let a = s.mis_cutoff_alpha;
+                if !(a > 0.0 && a <= 1.0) {
+                    return Err(ProtoError::new(
+                        "mis_cutoff_alpha",
+                        format_args!("must be in (0, 1] with the cutoff heuristic, got {a}"),
+                    ));
+                }
+                MisChoice::Cutoff(a)
+            }
+            v1::MisHeuristic::Unspecified => unreachable!("rejected by enum_field"),
+        };
+        let sampler = match enum_field("sampler", s.sampler, v1::Sampler::Unspecified)? {
+            v1::Sampler::Sobol => SamplerChoice::Sobol,
+            v1::Sampler::Independent => SamplerChoice::Independent,
+            v1::Sampler::Unspecified => unreachable!("rejected by enum_field"),
+        };
+        let config = RenderConfig {
+            integrator,
+            mis,
+            sampler,
+            seed: s.seed,
+            max_depth: s.max_depth,
+            rr_depth: s.rr_depth,
+        };
+        config.validate().map_err(|e| {
+            let field = e.field.clone().unwrap_or_default();
+            let reason = e
+                .message
+                .strip_prefix(&format!("{field}: "))
+                .unwrap_or(&e.message)
+                .to_owned();
+            ProtoError::new(field, reason)
+        })?;
+        Ok(config)
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Lease
+
+/// A validated [`v1::Lease`]: one leased work unit and everything needed to render it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LeasedUnit {
+    /// The lease id (fencing token).
+    pub lease_id: u64,
+    /// The lease deadline, Unix milliseconds.
+    pub deadline_unix_ms: u64,
+    /// The job.
+    pub job_id: u64,
+    /// The scene.
+    pub scene: SceneRef,
+    /// How samples are computed.
+    pub settings: RenderConfig,
+    /// The job's frame plan.
+    pub plan: FramePlan,
+    /// The unit to render; a unit of `plan`.
+    pub unit: WorkUnit,
+}
+
+impl From<&LeasedUnit> for v1::Lease {
+    fn from(l: &LeasedUnit) -> Self {
+        Self {
+            lease_id: l.lease_id,
+            deadline_unix_ms: l.deadline_unix_ms,
+            job_id: l.job_id,
+            scene_hash: l.scene.to_string(),
+            settings: Some((&l.settings).into()),
+            plan: Some((&l.plan).into()),
+            unit: Some((&l.unit).into()),
+        }
+    }
+}
+
+impl From<LeasedUnit> for v1::Lease {
+    fn from(l: LeasedUnit) -> Self {
+        Self::from(&l)
+    }
+}
+
+impl TryFrom<v1::Lease> for LeasedUnit {
+    type Error = ProtoError;
+
+    /// Validates every part (field names are dotted paths such as `"plan.width"`) and that
+    /// the unit lies within the plan.
+    fn try_from(l: v1::Lease) -> Result<Self, ProtoError> {
+        let scene: SceneRef = l
+            .scene_hash
+            .parse()
+            .map_err(|e| ProtoError::new("scene_hash", e))?;
+        let settings: RenderConfig = l
+            .settings
+            .ok_or_else(|| ProtoError::missing("settings"))?
+            .try_into()
+            .map_err(|e: ProtoError| e.within("settings"))?;
+        let plan: FramePlan = l
+            .plan
+            .ok_or_else(|| ProtoError::missing("plan"))?
+            .try_into()
+            .map_err(|e: ProtoError| e.within("plan"))?;
+        let unit: WorkUnit = l
+            .unit
+            .ok_or_else(|| ProtoError::missing("unit"))?
+            .try_into()
+            .map_err(|e: ProtoError| e.within("unit"))?;
+        check_unit_in_plan(&unit, &plan).map_err(|e| e.within("unit"))?;
+        Ok(Self {
+            lease_id: l.lease_id,
+            deadline_unix_ms: l.deadline_unix_ms,
+            job_id: l.job_id,
+            scene,
+            settings,
+            plan,
+            unit,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use prost::Message;
+
+    /// A way to break a message, and the field the error must name.
+    type Case<M> = (&'static str, fn(&mut M));
+    type BoxedCase<M> = (&'static str, Box<dyn Fn(&mut M)>);
+
+    const HASH: &str = "9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08";
+
+    fn plan() -> FramePlan {
+        FramePlan::for_spp(70, 50, 64, 32).unwrap()
+    }
+
+    /// A result for `unit` of `plan()` whose values encode (pass, pixel, channel).
+    fn result(unit: WorkUnit) -> UnitResult {
+        let rect = plan().tile(unit.tile);
+        let mut pass_means = Vec::new();
+        for p in 0..unit.pass_count {
+            for px in 0..rect.pixel_count() {
+                let v = p as f32 + px as f32 / 1000.0;
+                pass_means.push([v, v + 0.25, v + 0.5]);
+            }
+        }
+        UnitResult {
+            unit,
+            width: rect.width,
+            height: rect.height,
+            pass_means,
+        }
+    }
+
+    /// Encodes and decodes through the protobuf wire format.
+    fn wire<M: Message + Default>(m: &M) -> M {
+        M::decode(m.encode_to_vec().as_slice()).unwrap()
+    }
+
+    #[test]
+    fn frame_plan_round_trip() {
+        for p in [
+            plan(),
+            FramePlan::new(1, 1, 4, 1, 1).unwrap(),
+            FramePlan::new(16384, 16384, 256, 1024, 4).unwrap(),
+        ] {
+            let w = wire(&v1::FramePlan::from(&p));
+            assert_eq!(FramePlan::try_from(w).unwrap(), p);
+        }
+    }
+
+    #[test]
+    fn frame_plan_rejections_name_the_field() {
+        let good = v1::FramePlan::from(plan());
+        let cases: [Case<v1::FramePlan>; 9] = [
+            ("width", |p| p.width = 0),
+            ("width", |p| p.width = 1_000_000),
+            ("height", |p| p.height = 0),
+            ("height", |p| p.height = u32::MAX),
+            ("tile_size", |p| p.tile_size = 2),
+            ("tile_size", |p| p.tile_size = 1 << 30),
+            ("samples_per_pass", |p| p.samples_per_pass = 0),
+            ("passes", |p| p.passes = 0),
+            ("passes", |p| {
+                // Every field in range, but far too much work in total.
+                p.width = 16384;
+                p.height = 16384;
+                p.samples_per_pass = 1024;
+                p.passes = 65536;
+            }),
+        ];
+        for (field, f) in cases {
+            let mut p = good;
+            f(&mut p);
+            let e = FramePlan::try_from(p).unwrap_err();
+            assert_eq!(e.field, field, "{e}");
+            assert!(e.to_string().starts_with(&format!("{field}: ")));
+        }
+        // An all-default (empty) message is invalid, not a 0x0 image.
+        assert_eq!(
+            FramePlan::try_from(v1::FramePlan::default())
+                .unwrap_err()
+                .field,
+            "width"
+        );
+    }
+
+    #[test]
+    fn work_unit_round_trip_and_rejections() {
+        for u in plan().units(3, 3) {
+            assert_eq!(WorkUnit::try_from(wire(&v1::WorkUnit::from(u))).unwrap(), u);
+        }
+        let u = v1::WorkUnit {
+            frame: 0,
+            tile: 0,
+            first_pass: 0,
+            pass_count: 0,
+        };
+        assert_eq!(WorkUnit::try_from(u).unwrap_err().field, "pass_count");
+        let u = v1::WorkUnit {
+            first_pass: 65535,
+            pass_count: 2,
+            ..u
+        };
+        assert_eq!(WorkUnit::try_from(u).unwrap_err().field, "pass_count");
+        let u = v1::WorkUnit {
+            first_pass: u32::MAX,
+            pass_count: u32::MAX,
+            ..u
+        };
+        assert_eq!(WorkUnit::try_from(u).unwrap_err().field, "pass_count");
+        let u = v1::WorkUnit {
+            tile: MAX_TILE_INDEX + 1,
+            first_pass: 0,
+            pass_count: 1,
+            ..u
+        };
+        assert_eq!(WorkUnit::try_from(u).unwrap_err().field, "tile");
+        let u = v1::WorkUnit {
+            tile: MAX_TILE_INDEX,
+            first_pass: 65535,
+            pass_count: 1,
+            ..u
+        };
+        assert!(WorkUnit::try_from(u).is_ok());
+        // MAX_TILE_INDEX is the last tile of the finest possible plan.
+        let finest = FramePlan::new(16384, 16384, 4, 1, 1).unwrap();
+        assert_eq!(finest.tile_count() - 1, MAX_TILE_INDEX);
+    }
+
+    #[test]
+    fn unit_result_round_trip() {
+        let p = plan();
+        for unit in p.units(2, 3) {
+            let r = result(unit);
+            let req = v1::SubmitResultRequest::from_result(5, 77, &r, 1.5);
+            assert_eq!(
+                req.pass_means.len(),
+                3 * unit.pass_count as usize * p.tile(unit.tile).pixel_count()
+            );
+            // Interleaved r, g, b.
+            assert_eq!(&req.pass_means[..3], &r.pass_means[0][..]);
+            let req = wire(&req);
+            assert_eq!((req.worker_id, req.lease_id), (5, 77));
+            assert_eq!(req.render_seconds, 1.5);
+            let back = UnitResult::try_from(&req).unwrap();
+            // Bit-exact, and still valid for the plan.
+            assert_eq!(back.digest(), r.digest());
+            assert_eq!(back, r);
+            back.validate(&p).unwrap();
+            assert_eq!(UnitResult::try_from(req).unwrap(), r);
+        }
+    }
+
+    #[test]
+    fn pass_means_are_packed_on_the_wire() {
+        let unit = WorkUnit {
+            frame: 0,
+            tile: 0,
+            first_pass: 0,
+            pass_count: 1,
+        };
+        let r = UnitResult {
+            unit,
+            width: 4,
+            height: 4,
+            pass_means: vec![[1.0, 2.0, 3.0]; 16],
+        };
+        let bytes = v1::SubmitResultRequest::from_result(1, 1, &r, 0.0).encode_to_vec();
+        // 48 floats of 4 bytes plus a few bytes of tags and lengths (unpacked would add a
+        // tag byte per float).
+        assert!(bytes.len() < 48 * 4 + 32, "{} bytes", bytes.len());
+    }
+
+    #[test]
+    fn unit_result_rejections_name_the_field() {
+        let r = result(plan().units(0, 2)[0]);
+        let good = v1::SubmitResultRequest::from_result(1, 2, &r, 0.5);
+        let cases: [Case<v1::SubmitResultRequest>; 12] = [
+            ("unit", |q| q.unit = None),
+            ("unit.pass_count", |q| {
+                q.unit.as_mut().unwrap().pass_count = 0
+            }),
+            ("width", |q| q.width = 0),
+            ("height", |q| q.height = 0),
+            ("width", |q| q.width = 100_000),
+            ("height", |q| q.height = u32::MAX),
+            ("pass_means", |q| {
+                q.pass_means.pop();
+            }),
+            ("pass_means", |q| q.pass_means.push(1.0)),
+            ("pass_means", |q| {
+                q.pass_means.truncate(q.pass_means.len() - 3)
+            }),
+            ("pass_means", |q| q.pass_means.extend([0.0; 3])),
+            ("render_seconds", |q| q.render_seconds = f64::NAN),
+            ("render_seconds", |q| q.render_seconds = -1.0),
+        ];
+        for (field, f) in cases {
+            let mut q = good.clone();
+            f(&mut q);
+            let e = UnitResult::try_from(&q).unwrap_err();
+            assert_eq!(e.field, field, "{e}");
+        }
+        let mut q = good.clone();
+        q.pass_means.pop();
+        let e = UnitResult::try_from(&q).unwrap_err();
+        assert!(e.reason.contains("not a multiple of 3"), "{e}");
+        let status = tonic::Status::from(e);
+        assert_eq!(status.code(), tonic::Code::InvalidArgument);
+        assert!(status.message().starts_with("pass_means: "));
+        // Right shape, but the wrong tile size for the plan: caught by the farm's validate.
+        let mut q = good.clone();
+        q.width -= 1;
+        q.pass_means
+            .truncate(3 * 2 * q.width as usize * q.height as usize);
+        let back = UnitResult::try_from(&q).unwrap();
+        assert!(back.validate(&plan()).is_err());
+        // Non-finite values pass the shape check and are refused by the farm's validate.
+        let mut q = good;
+        q.pass_means[4] = f32::NAN;
+        let back = UnitResult::try_from(&q).unwrap();
+        assert!(back.validate(&plan()).is_err());
+    }
+
+    fn configs() -> Vec<RenderConfig> {
+        let mut out = Vec::new();
+        for integrator in [
+            IntegratorChoice::Auto,
+            IntegratorChoice::Path,
+            IntegratorChoice::Direct,
+            IntegratorChoice::Bdpt,
+        ] {
+            for mis in [
+                MisChoice::Balance,
+                MisChoice::Power,
+                MisChoice::Cutoff(0.1),
+                MisChoice::Cutoff(1.0),
+                MisChoice::Maximum,
+            ] {
+                for sampler in [SamplerChoice::Sobol, SamplerChoice::Independent] {
+                    out.push(RenderConfig {
+                        integrator,
+                        mis,
+                        sampler,
+                        seed: 0xdead_beef_0123_4567,
+                        max_depth: 7,
+                        rr_depth: 3,
+                    });
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn render_settings_round_trip() {
+        for c in configs() {
+            let w = wire(&v1::RenderSettings::from(&c));
+            assert_eq!(RenderConfig::try_from(w).unwrap(), c);
+        }
+        let c = RenderConfig {
+            max_depth: 1024,
+            rr_depth: 1024,
+            seed: u64::MAX,
+            ..RenderConfig::default()
+        };
+        assert_eq!(
+            RenderConfig::try_from(v1::RenderSettings::from(c)).unwrap(),
+            c
+        );
+    }
+
+    #[test]
+    fn render_settings_rejections_name_the_field() {
+        let good = v1::RenderSettings::from(RenderConfig::default());
+        let cases: [Case<v1::RenderSettings>; 11] = [
+            ("integrator", |s| s.integrator = 0),
+            ("integrator", |s| s.integrator = 99),
+            ("mis", |s| s.mis = 0),
+            ("mis", |s| s.mis = -1),
+            ("sampler", |s| s.sampler = 0),
+            ("sampler", |s| s.sampler = 3),
+            ("mis_cutoff_alpha", |s| {
+                s.mis = v1::MisHeuristic::Cutoff.into();
+                s.mis_cutoff_alpha = 0.0;
+            }),
+            ("mis_cutoff_alpha", |s| {
+                s.mis = v1::MisHeuristic::Cutoff.into();
+                s.mis_cutoff_alpha = f32::NAN;
+            }),
+            ("max_depth", |s| s.max_depth = 0),
+            ("max_depth", |s| s.max_depth = 1025),
+            ("rr_depth", |s| s.rr_depth = u32::MAX),
+        ];
+        for (field, f) in cases {
+            let mut s = good;
+            f(&mut s);
+            let e = RenderConfig::try_from(s).unwrap_err();
+            assert_eq!(e.field, field, "{e}");
+            assert!(!e.reason.starts_with(field), "{e}");
+        }
+        // The empty message is rejected rather than read as some default.
+        assert!(RenderConfig::try_from(v1::RenderSettings::default()).is_err());
+        // The cutoff threshold is ignored by the other heuristics.
+        let mut s = good;
+        s.mis_cutoff_alpha = 7.0;
+        assert!(RenderConfig::try_from(s).is_ok());
+    }
+
+    fn leased() -> LeasedUnit {
+        let p = plan();
+        LeasedUnit {
+            lease_id: 12,
+            deadline_unix_ms: 1_700_000_000_000,
+            job_id: 3,
+            scene: SceneRef::Hash(HASH.into()),
+            settings: configs()[7],
+            plan: p,
+            unit: *p.units(4, 2).last().unwrap(),
+        }
+    }
+
+    #[test]
+    fn lease_round_trip() {
+        let l = leased();
+        let w = wire(&v1::Lease::from(&l));
+        assert_eq!(w.scene_hash, HASH);
+        assert_eq!(LeasedUnit::try_from(w).unwrap(), l);
+        let l = LeasedUnit {
+            scene: SceneRef::Builtin("cornell-box".into()),
+            ..leased()
+        };
+        let w = v1::Lease::from(l.clone());
+        assert_eq!(w.scene_hash, "builtin:cornell-box");
+        assert_eq!(LeasedUnit::try_from(w).unwrap(), l);
+        // A whole LeaseResponse survives the wire.
+        let resp = v1::LeaseResponse {
+            leases: vec![v1::Lease::from(leased()), v1::Lease::from(l)],
+            retry_after_ms: 0,
+        };
+        assert_eq!(wire(&resp), resp);
+    }
+
+    #[test]
+    fn lease_rejections_name_the_field() {
+        let good = v1::Lease::from(leased());
+        let tiles = plan().tile_count();
+        let passes = plan().passes;
+        let cases: Vec<BoxedCase<v1::Lease>> = vec![
+            ("scene_hash", Box::new(|l| l.scene_hash.clear())),
+            (
+                "scene_hash",
+                Box::new(|l| l.scene_hash = "../../etc/passwd".into()),
+            ),
+            ("settings", Box::new(|l| l.settings = None)),
+            (
+                "settings.sampler",
+                Box::new(|l| l.settings.as_mut().unwrap().sampler = 0),
+            ),
+            ("plan", Box::new(|l| l.plan = None)),
+            (
+                "plan.tile_size",
+                Box::new(|l| l.plan.as_mut().unwrap().tile_size = 0),
+            ),
+            ("unit", Box::new(|l| l.unit = None)),
+            (
+                "unit.pass_count",
+                Box::new(|l| l.unit.as_mut().unwrap().pass_count = 0),
+            ),
+            (
+                "unit.tile",
+                Box::new(move |l| l.unit.as_mut().unwrap().tile = tiles),
+            ),
+            (
+                "unit.pass_count",
+                Box::new(move |l| {
+                    let u = l.unit.as_mut().unwrap();
+                    u.first_pass = passes - 1;
+                    u.pass_count = 2;
+                }),
+            ),
+        ];
+        for (field, f) in cases {
+            let mut l = good.clone();
+            f(&mut l);
+            let e = LeasedUnit::try_from(l).unwrap_err();
+            assert_eq!(e.field, field, "{e}");
+        }
+    }
+
+    #[test]
+    fn generated_service_metadata() {
+        use tonic::server::NamedService;
+        struct Nop;
+        #[tonic::async_trait]
+        impl crate::WorkerService for Nop {
+            async fn register(
+                &self,
+                _: tonic::Request<v1::RegisterRequest>,
+            ) -> Result<tonic::Response<v1::RegisterResponse>, tonic::Status> {
+                Err(tonic::Status::unimplemented("register"))
+            }
+            async fn heartbeat(
+                &self,
+                _: tonic::Request<v1::HeartbeatRequest>,
+            ) -> Result<tonic::Response<v1::HeartbeatResponse>, tonic::Status> {
+                Err(tonic::Status::unimplemented("heartbeat"))
+            }
+            async fn lease_work(
+                &self,
+                _: tonic::Request<v1::LeaseRequest>,
+            ) -> Result<tonic::Response<v1::LeaseResponse>, tonic::Status> {
+                Err(tonic::Status::unimplemented("lease_work"))
+            }
+            async fn submit_result(
+                &self,
+                _: tonic::Request<v1::SubmitResultRequest>,
+            ) -> Result<tonic::Response<v1::SubmitResultResponse>, tonic::Status> {
+                Err(tonic::Status::unimplemented("submit_result"))
+            }
+            type FetchSceneStream = std::pin::Pin<
+                Box<
+                    dyn tonic::codegen::tokio_stream::Stream<
+                            Item = Result<v1::SceneChunk, tonic::Status>,
+                        > + Send,
+                >,
+            >;
+            async fn fetch_scene(
+                &self,
+                _: tonic::Request<v1::FetchSceneRequest>,
+            ) -> Result<tonic::Response<Self::FetchSceneStream>, tonic::Status> {
+                Err(tonic::Status::unimplemented("fetch_scene"))
+            }
+            async fn return_leases(
+                &self,
+                _: tonic::Request<v1::ReturnLeasesRequest>,
+            ) -> Result<tonic::Response<v1::ReturnLeasesResponse>, tonic::Status> {
+                Err(tonic::Status::unimplemented("return_leases"))
+            }
+        }
+        let _server = crate::WorkerServiceServer::new(Nop);
+        assert_eq!(
+            <crate::WorkerServiceServer<Nop> as NamedService>::NAME,
+            crate::SERVICE_NAME
+        );
+    }
+}
