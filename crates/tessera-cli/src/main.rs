@@ -7,11 +7,12 @@ use clap::{Args, Parser, Subcommand};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Instant;
-use tessera_farm::FramePlan;
+use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::integrator::{IntegratorKind, MisHeuristic};
 use tessera_render::render::{render_frame, RenderSettings};
 use tessera_render::sampling::SamplerKind;
 use tessera_render::scene::RenderScene;
+use tessera_scene::analysis::{analyse, PlannedIntegrator, RenderPlan};
 
 #[derive(Parser)]
 #[command(
@@ -48,7 +49,9 @@ struct JobArgs {
     /// Image height (default: the scene's).
     #[arg(long)]
     height: Option<u32>,
-    /// auto, path or direct.
+    /// auto (follow the scene's render plan), path or direct. An explicit integrator
+    /// overrides the plan and renders with the general configuration (max depth 16 unless
+    /// --max-depth is given).
     #[arg(long, default_value = "auto")]
     integrator: String,
     /// MIS heuristic: balance, power, cutoff[:ALPHA] or maximum.
@@ -63,9 +66,10 @@ struct JobArgs {
     /// Worker threads (0 = all cores). The image does not depend on it.
     #[arg(long, default_value_t = 0)]
     threads: usize,
-    /// Maximum path depth (number of bounces).
-    #[arg(long, default_value_t = 16)]
-    max_depth: u32,
+    /// Maximum path depth (number of bounces). Default: the render plan's with
+    /// --integrator auto, 16 otherwise.
+    #[arg(long)]
+    max_depth: Option<u32>,
     /// Tile edge in pixels.
     #[arg(long, default_value_t = 32)]
     tile_size: u32,
@@ -117,12 +121,24 @@ fn main() {
     }
 }
 
+/// Maximum path depth of the general configuration (an explicit `--integrator`).
+const GENERAL_MAX_DEPTH: u32 = 16;
+/// Russian roulette start depth of the general configuration.
+const GENERAL_RR_DEPTH: u32 = 3;
+
 /// A validated job: the scene, its render scene, the plan and the settings.
 struct Prepared {
     scene: tessera_scene::Scene,
-    render_scene: RenderScene,
+    /// The renderable scene; not built for a black render.
+    render_scene: Option<RenderScene>,
     plan: FramePlan,
     settings: RenderSettings,
+    /// The scene analysis (DESIGN §4), with `overridden` set if the user forced settings.
+    render_plan: RenderPlan,
+    /// Render an all-black image without tracing a ray (the plan found no light).
+    black: bool,
+    /// How this build follows the plan, when it cannot do so exactly (bdpt fallback).
+    notes: Vec<String>,
 }
 
 fn prepare(job: &JobArgs) -> Result<Prepared> {
@@ -140,31 +156,95 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     }
     let plan = FramePlan::for_spp(width, height, job.spp, job.tile_size)
         .context("invalid image or sampling settings")?;
-    let integrator = match job.integrator.as_str() {
-        // The scene-analysis plan will refine this; for now every scene gets the path tracer.
-        "auto" => IntegratorKind::Path,
-        other => other
-            .parse::<IntegratorKind>()
-            .map_err(anyhow::Error::msg)?,
+    if let Some(d) = job.max_depth {
+        if d == 0 || d > 1024 {
+            bail!("--max-depth {d} must be between 1 and 1024");
+        }
+    }
+    // Analyse the scene (DESIGN §4); `auto` follows the plan, anything else overrides it.
+    let mut render_plan = analyse(&scene);
+    let mut notes = Vec::new();
+    let mut black = false;
+    let mut forced = Vec::new();
+    let (integrator, plan_depth, rr_depth) = match job.integrator.as_str() {
+        "auto" => match render_plan.integrator {
+            PlannedIntegrator::Black => {
+                black = true;
+                // Nothing is traced; these settings only fill the metadata.
+                (IntegratorKind::Direct, 1, render_plan.rr_depth)
+            }
+            PlannedIntegrator::Direct => (IntegratorKind::Direct, 1, render_plan.rr_depth),
+            PlannedIntegrator::Path => (
+                IntegratorKind::Path,
+                render_plan.max_depth,
+                render_plan.rr_depth,
+            ),
+            PlannedIntegrator::Bdpt => {
+                let kind = "bdpt".parse::<IntegratorKind>().unwrap_or_else(|_| {
+                    notes.push(format!(
+                        "the plan chose bdpt, which this build does not have yet: rendering \
+                         with path (max depth {}), which renders caustics from delta lights \
+                         not at all and from tiny lights only with high variance",
+                        job.max_depth.unwrap_or(render_plan.max_depth)
+                    ));
+                    IntegratorKind::Path
+                });
+                (kind, render_plan.max_depth, render_plan.rr_depth)
+            }
+        },
+        other => {
+            let kind = other
+                .parse::<IntegratorKind>()
+                .map_err(anyhow::Error::msg)?;
+            forced.push(format!("--integrator {other}"));
+            (kind, GENERAL_MAX_DEPTH, GENERAL_RR_DEPTH)
+        }
     };
-    if job.max_depth == 0 || job.max_depth > 1024 {
-        bail!("--max-depth {} must be between 1 and 1024", job.max_depth);
+    if let Some(d) = job.max_depth {
+        if d != plan_depth {
+            forced.push(format!("--max-depth {d}"));
+        }
+    }
+    if !forced.is_empty() {
+        render_plan.set_override(&forced.join(" "));
     }
     let settings = RenderSettings {
         integrator,
         mis: job.mis,
         sampler: job.sampler,
         seed: job.seed,
-        max_depth: job.max_depth,
-        rr_depth: 3,
+        max_depth: job.max_depth.unwrap_or(plan_depth),
+        rr_depth,
     };
-    let render_scene = RenderScene::build(&scene, width, height)?;
+    let render_scene = if black {
+        None
+    } else {
+        Some(RenderScene::build(&scene, width, height)?)
+    };
     Ok(Prepared {
         scene,
         render_scene,
         plan,
         settings,
+        render_plan,
+        black,
+        notes,
     })
+}
+
+/// The image of a frame with no light: zero mean and variance with the plan's pass and
+/// sample counts, exactly what merging all-zero passes gives, without tracing a ray.
+fn black_image(plan: &FramePlan) -> FrameImage {
+    let n = plan.width as usize * plan.height as usize;
+    FrameImage {
+        width: plan.width,
+        height: plan.height,
+        mean: vec![[0.0; 3]; n],
+        variance_of_mean: vec![[0.0; 3]; n],
+        passes: vec![plan.passes; n],
+        samples: vec![plan.spp(); n],
+        relative_error: vec![0.0; n],
+    }
 }
 
 fn render(args: RenderArgs) -> Result<()> {
@@ -177,6 +257,33 @@ fn render(args: RenderArgs) -> Result<()> {
         bail!("output {} must end in .exr or .png", args.output.display());
     }
     let p = prepare(&args.job)?;
+    print!("{}", p.render_plan.summary());
+    for note in &p.notes {
+        println!("note: {note}");
+    }
+    if p.black {
+        let start = Instant::now();
+        let image = black_image(&p.plan);
+        tessera_image::write_image(&args.output, &image, Some(&metadata_json(&p)))?;
+        let seconds = start.elapsed().as_secs_f64();
+        println!(
+            "rendered {} ({}x{}, black: the render plan found no light, no ray traced) to {}",
+            p.scene.name,
+            p.plan.width,
+            p.plan.height,
+            args.output.display()
+        );
+        println!(
+            "samples per pixel: {} ({} passes of {})",
+            p.plan.spp(),
+            p.plan.passes,
+            p.plan.samples_per_pass
+        );
+        println!("seconds: {seconds:.3}");
+        println!("estimated relative error: {:.4}", 0.0);
+        println!("paths per second: 0");
+        return Ok(());
+    }
     let bar = if std::io::stderr().is_terminal() {
         let bar = indicatif::ProgressBar::new(p.plan.unit_count(1));
         bar.set_style(
@@ -191,8 +298,9 @@ fn render(args: RenderArgs) -> Result<()> {
         None
     };
     let start = Instant::now();
+    let render_scene = p.render_scene.as_ref().expect("built unless black");
     let acc = render_frame(
-        &p.render_scene,
+        render_scene,
         &p.settings,
         &p.plan,
         0,
@@ -232,21 +340,29 @@ fn render(args: RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// The render settings as one JSON object for the EXR header (stable key order).
+/// The render settings and the render plan as one JSON object for the EXR header (stable
+/// key order). A black render (no light) has integrator "black".
 fn metadata_json(p: &Prepared) -> String {
+    let integrator = if p.black {
+        "black".to_string()
+    } else {
+        p.settings.integrator.to_string()
+    };
     format!(
-        "{{\"scene\":{:?},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{}}}",
+        "{{\"scene\":{:?},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"plan\":{}}}",
         p.scene.name,
         p.plan.width,
         p.plan.height,
         p.plan.spp(),
         p.plan.samples_per_pass,
         p.plan.passes,
-        p.settings.integrator,
+        integrator,
         p.settings.mis,
         p.settings.sampler.as_str(),
         p.settings.seed,
-        p.settings.max_depth
+        p.settings.max_depth,
+        p.settings.rr_depth,
+        p.render_plan.to_json()
     )
 }
 
@@ -262,10 +378,12 @@ fn bench(args: BenchArgs) -> Result<()> {
         sampler: SamplerKind::Sobol,
         seed: 0,
         threads: args.threads,
-        max_depth: args.max_depth,
+        max_depth: Some(args.max_depth),
         tile_size: 32,
     };
     let p = prepare(&job)?;
+    // An explicit integrator never takes the black shortcut.
+    let render_scene = p.render_scene.as_ref().expect("built unless black");
     let threads = if args.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
@@ -276,7 +394,7 @@ fn bench(args: BenchArgs) -> Result<()> {
     for i in 0..args.repeat.max(1) {
         let start = Instant::now();
         let acc = render_frame(
-            &p.render_scene,
+            render_scene,
             &p.settings,
             &p.plan,
             0,

@@ -22,6 +22,7 @@
 //! ```
 #![deny(missing_docs)]
 
+pub mod analysis;
 pub mod builtin;
 pub mod gltf_import;
 

@@ -1,0 +1,579 @@
+//! The render plan of every built-in and glTF test scene is what a rendering engineer would
+//! write down; synthetic scenes exercise each rule (black, direct-only, depth of field,
+//! textures, tiny lights, rough glass, emitters that do not scatter).
+
+use glam::Vec3;
+use tessera_scene::analysis::{analyse, EffectKind, PlannedIntegrator, RenderPlan};
+use tessera_scene::builtin::look_at_camera;
+use tessera_scene::{
+    Material, MaterialKind, Mesh, PunctualLight, Scene, Sphere, Texture, TextureRef,
+};
+
+use EffectKind::*;
+
+fn scene_path(name: &str) -> String {
+    format!("{}/../../scenes/{name}", env!("CARGO_MANIFEST_DIR"))
+}
+
+fn plan_of(arg: &str) -> RenderPlan {
+    analyse(&tessera_scene::load(arg).unwrap())
+}
+
+/// Asserts that exactly `present` are found, that `absent` lists the rest, and that the
+/// plan is internally consistent.
+fn assert_effects(name: &str, plan: &RenderPlan, present: &[EffectKind]) {
+    let mut found: Vec<EffectKind> = plan.effects.iter().map(|e| e.kind).collect();
+    found.sort();
+    let mut want = present.to_vec();
+    want.sort();
+    assert_eq!(found, want, "{name}: effects\n{}", plan.summary());
+    for k in EffectKind::ALL {
+        assert_eq!(
+            plan.absent.contains(&k),
+            !present.contains(&k),
+            "{name}: absent list wrong for {k}"
+        );
+    }
+    for e in &plan.effects {
+        assert!(!e.evidence.is_empty(), "{name}: {} has no evidence", e.kind);
+    }
+    assert!(
+        plan.reasons.iter().any(|r| r.contains("static scene")),
+        "{name}: motion is not explained"
+    );
+    assert_eq!(plan.lens_sampling, plan.has(DepthOfField), "{name}");
+    // The JSON is valid, ASCII, and agrees with the struct.
+    let json = plan.to_json();
+    assert!(json.is_ascii(), "{json}");
+    assert!(json.starts_with("{\"integrator\":"), "{json}");
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(v["integrator"], plan.integrator.as_str());
+    assert_eq!(v["max_depth"], plan.max_depth);
+    assert_eq!(v["rr_depth"], plan.rr_depth);
+    assert_eq!(v["effects"].as_array().unwrap().len(), plan.effects.len());
+    assert_eq!(v["absent"].as_array().unwrap().len(), plan.absent.len());
+    assert!(v["overridden"].is_null());
+    // The summary names every effect and the integrator.
+    let text = plan.summary();
+    for e in &plan.effects {
+        assert!(
+            text.contains(&format!("{}: {}", e.kind, e.evidence)),
+            "{text}"
+        );
+    }
+    assert!(
+        text.starts_with(&format!("render plan: {}", plan.integrator)),
+        "{text}"
+    );
+}
+
+fn evidence(plan: &RenderPlan, kind: EffectKind) -> &str {
+    plan.evidence(kind)
+        .unwrap_or_else(|| panic!("no {kind}:\n{}", plan.summary()))
+}
+
+#[test]
+fn cornell_box_is_a_closed_bright_diffuse_room() {
+    for arg in [
+        "builtin:cornell-box".to_string(),
+        scene_path("cornell-box.gltf"),
+    ] {
+        let plan = plan_of(&arg);
+        assert_effects(&arg, &plan, &[DirectArea, IndirectDiffuse]);
+        let area = evidence(&plan, DirectArea);
+        assert!(
+            area.contains("2 emissive triangles in material 3 'light'"),
+            "{arg}: {area}"
+        );
+        assert!(evidence(&plan, IndirectDiffuse).contains("(closed)"));
+        assert_eq!(plan.integrator, PlannedIntegrator::Path, "{arg}");
+        assert_eq!((plan.max_depth, plan.rr_depth), (16, 3), "{arg}");
+        assert!(!plan.lens_sampling);
+        let text = plan.summary();
+        for needle in [
+            "pinhole camera: no lens sampling",
+            "nothing transmits: no refraction paths",
+            "no specular surfaces: no caustic technique",
+        ] {
+            assert!(text.contains(needle), "{arg}: {text}");
+        }
+    }
+}
+
+#[test]
+fn veach_mis_has_four_sphere_lights_and_glossy_plates() {
+    let plan = plan_of("builtin:veach-mis");
+    assert_effects(
+        "veach-mis",
+        &plan,
+        &[DirectSphere, IndirectDiffuse, GlossyReflection],
+    );
+    assert!(evidence(&plan, DirectSphere).starts_with("4 emissive spheres"));
+    let glossy = evidence(&plan, GlossyReflection);
+    for plate in ["plate0", "plate1", "plate2", "plate3"] {
+        assert!(glossy.contains(plate), "{glossy}");
+    }
+    // The emitters have zero albedo: they are lights, not surfaces.
+    assert!(!glossy.contains("light"), "{glossy}");
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+    // Dark and open: no need for a deep path.
+    assert_eq!((plan.max_depth, plan.rr_depth), (8, 3));
+}
+
+#[test]
+fn furnace_is_a_closed_bright_emitting_box() {
+    let plan = plan_of("builtin:furnace");
+    assert_effects("furnace", &plan, &[DirectArea, IndirectDiffuse]);
+    assert!(evidence(&plan, DirectArea).starts_with("12 emissive triangles"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+    assert_eq!(plan.max_depth, 16);
+}
+
+#[test]
+fn caustic_scene_needs_bdpt_for_its_tiny_light() {
+    let plan = plan_of("builtin:caustic");
+    assert_effects(
+        "caustic",
+        &plan,
+        &[
+            DirectSphere,
+            DirectEnvironment,
+            IndirectDiffuse,
+            SpecularReflection,
+            Refraction,
+            TotalInternalReflection,
+            Caustics,
+            DeltaLitCaustics,
+        ],
+    );
+    // Radius 0.05 against a scene radius of about 7.2: 0.7 %, below the 1 % threshold.
+    let delta = evidence(&plan, DeltaLitCaustics);
+    assert!(
+        delta.contains("radius 0.05 (0.70% of the scene radius 7.19)"),
+        "{delta}"
+    );
+    assert!(evidence(&plan, Refraction).contains("material 1 'glass'"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+    assert_eq!((plan.max_depth, plan.rr_depth), (12, 5));
+    assert!(plan
+        .reasons
+        .iter()
+        .any(|r| r.contains("falls back to path")));
+}
+
+#[test]
+fn glass_spot_gltf_is_a_delta_lit_caustic() {
+    let plan = plan_of(&scene_path("glass-spot.gltf"));
+    assert_effects(
+        "glass-spot",
+        &plan,
+        &[
+            DirectSpot,
+            IndirectDiffuse,
+            SpecularReflection,
+            Refraction,
+            TotalInternalReflection,
+            Caustics,
+            DeltaLitCaustics,
+        ],
+    );
+    assert_eq!(evidence(&plan, DirectSpot), "1 spot light");
+    assert!(evidence(&plan, DeltaLitCaustics).contains("1 spot light"));
+    assert!(evidence(&plan, Refraction).contains("material 1 'glass'"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+    assert_eq!(plan.max_depth, 12);
+}
+
+// ---- synthetic scenes ----
+
+fn quad(material: u32, corners: [Vec3; 4]) -> Mesh {
+    Mesh {
+        name: "quad".into(),
+        positions: corners.to_vec(),
+        normals: None,
+        uvs: None,
+        indices: vec![[0, 1, 2], [0, 2, 3]],
+        material,
+    }
+}
+
+/// A 10 m x 10 m floor at y = 0 facing up.
+fn floor(material: u32) -> Mesh {
+    let v = Vec3::new;
+    quad(
+        material,
+        [
+            v(-5.0, 0.0, -5.0),
+            v(-5.0, 0.0, 5.0),
+            v(5.0, 0.0, 5.0),
+            v(5.0, 0.0, -5.0),
+        ],
+    )
+}
+
+fn base_scene(materials: Vec<Material>, meshes: Vec<Mesh>) -> Scene {
+    Scene {
+        name: "synthetic".into(),
+        camera: look_at_camera(
+            Vec3::new(0.0, 2.0, 6.0),
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::Y,
+            40.0,
+        ),
+        meshes,
+        spheres: vec![],
+        materials,
+        textures: vec![],
+        lights: vec![],
+        environment: None,
+        default_resolution: (64, 48),
+    }
+}
+
+/// Validates a synthetic scene (as every loader does) and analyses it.
+fn analyse_valid(scene: &Scene) -> RenderPlan {
+    scene.validate().unwrap();
+    analyse(scene)
+}
+
+fn point_light() -> PunctualLight {
+    PunctualLight::Point {
+        position: Vec3::new(0.0, 3.0, 0.0),
+        intensity: Vec3::splat(10.0),
+    }
+}
+
+fn metallic_roughness(metallic: f32, roughness: f32, transmission: f32) -> MaterialKind {
+    MaterialKind::MetallicRoughness {
+        base_color: Vec3::splat(0.8),
+        base_color_texture: None,
+        metallic,
+        roughness,
+        transmission,
+        ior: 1.5,
+    }
+}
+
+#[test]
+fn no_light_renders_black() {
+    let mut scene = tessera_scene::builtin::cornell_box();
+    for m in &mut scene.materials {
+        m.emission = Vec3::ZERO;
+    }
+    let plan = analyse_valid(&scene);
+    assert_effects("dark cornell", &plan, &[]);
+    assert_eq!(plan.integrator, PlannedIntegrator::Black);
+    assert_eq!(plan.max_depth, 0);
+    assert!(plan
+        .reasons
+        .iter()
+        .any(|r| r == "no light: the image is black"));
+
+    // Lights with zero power are no lights either.
+    let mut scene = base_scene(
+        vec![Material::diffuse("floor", Vec3::splat(0.5))],
+        vec![floor(0)],
+    );
+    scene.lights.push(PunctualLight::Point {
+        position: Vec3::Y,
+        intensity: Vec3::ZERO,
+    });
+    scene.environment = Some(Vec3::ZERO);
+    assert_eq!(analyse_valid(&scene).integrator, PlannedIntegrator::Black);
+
+    // A point light with nothing to shine on is invisible.
+    let mut scene = base_scene(vec![], vec![]);
+    scene.lights.push(point_light());
+    let plan = analyse_valid(&scene);
+    assert_eq!(plan.integrator, PlannedIntegrator::Black);
+    assert!(plan.has(DirectPoint));
+    assert!(
+        plan.reasons[0].contains("the image is black"),
+        "{:?}",
+        plan.reasons
+    );
+}
+
+#[test]
+fn single_plane_under_a_point_light_is_direct_lighting_only() {
+    let mut scene = base_scene(
+        vec![Material::diffuse("floor", Vec3::splat(0.5))],
+        vec![floor(0)],
+    );
+    scene.lights.push(point_light());
+    let plan = analyse_valid(&scene);
+    assert_effects("plane", &plan, &[DirectPoint]);
+    assert_eq!(plan.integrator, PlannedIntegrator::Direct);
+    assert_eq!(plan.max_depth, 1);
+
+    // The same plane split into two meshes is still one plane.
+    let mut split = scene.clone();
+    let mut second = floor(0);
+    for p in &mut second.positions {
+        p.x += 10.0;
+    }
+    split.meshes.push(second);
+    assert_eq!(analyse_valid(&split).integrator, PlannedIntegrator::Direct);
+
+    // A second plane facing it: light bounces between them.
+    let mut two = scene.clone();
+    let v = Vec3::new;
+    two.meshes.push(quad(
+        0,
+        [
+            v(-5.0, 0.0, -5.0),
+            v(5.0, 0.0, -5.0),
+            v(5.0, 5.0, -5.0),
+            v(-5.0, 5.0, -5.0),
+        ],
+    ));
+    let plan = analyse_valid(&two);
+    assert_effects("two planes", &plan, &[DirectPoint, IndirectDiffuse]);
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+    assert_eq!(plan.max_depth, 8);
+
+    // A glossy plane needs more than the direct integrator offers.
+    let mut glossy = scene.clone();
+    glossy.materials[0].kind = metallic_roughness(0.0, 0.5, 0.0);
+    let plan = analyse_valid(&glossy);
+    assert_effects("glossy plane", &plan, &[DirectPoint, GlossyReflection]);
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+}
+
+#[test]
+fn an_emitter_without_albedo_is_only_a_light() {
+    let v = Vec3::new;
+    let light = |albedo: f32| Material {
+        name: "panel".into(),
+        kind: MaterialKind::Diffuse {
+            albedo: Vec3::splat(albedo),
+        },
+        emission: Vec3::splat(5.0),
+        double_sided: false,
+    };
+    let panel = quad(
+        1,
+        [
+            v(-1.0, 3.0, -1.0),
+            v(1.0, 3.0, -1.0),
+            v(1.0, 3.0, 1.0),
+            v(-1.0, 3.0, 1.0),
+        ],
+    );
+    let black = base_scene(
+        vec![Material::diffuse("floor", Vec3::splat(0.5)), light(0.0)],
+        vec![floor(0), panel.clone()],
+    );
+    let plan = analyse_valid(&black);
+    assert_effects("black panel", &plan, &[DirectArea]);
+    assert_eq!(plan.integrator, PlannedIntegrator::Direct);
+    // A panel that reflects sends floor light back down.
+    let white = base_scene(
+        vec![Material::diffuse("floor", Vec3::splat(0.5)), light(0.5)],
+        vec![floor(0), panel],
+    );
+    let plan = analyse_valid(&white);
+    assert_effects("white panel", &plan, &[DirectArea, IndirectDiffuse]);
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+}
+
+#[test]
+fn aperture_means_depth_of_field_and_lens_sampling() {
+    let mut scene = tessera_scene::builtin::cornell_box();
+    scene.camera.aperture_radius = 0.01;
+    scene.camera.focus_distance = 1.0;
+    let plan = analyse_valid(&scene);
+    assert_effects(
+        "cornell dof",
+        &plan,
+        &[DirectArea, IndirectDiffuse, DepthOfField],
+    );
+    assert!(plan.lens_sampling);
+    assert!(evidence(&plan, DepthOfField).contains("aperture radius 0.01"));
+    assert!(plan.reasons.iter().any(|r| r.contains("lens sampling on")));
+}
+
+#[test]
+fn used_textures_are_found_and_unused_ones_ignored() {
+    let textured = Material {
+        name: "checker".into(),
+        kind: MaterialKind::MetallicRoughness {
+            base_color: Vec3::ONE,
+            base_color_texture: Some(TextureRef { texture: 0 }),
+            metallic: 0.0,
+            roughness: 1.0,
+            transmission: 0.0,
+            ior: 1.5,
+        },
+        emission: Vec3::ZERO,
+        double_sided: false,
+    };
+    let mut scene = base_scene(
+        vec![textured, Material::diffuse("plain", Vec3::splat(0.5))],
+        vec![floor(0)],
+    );
+    scene.textures.push(Texture {
+        width: 2,
+        height: 1,
+        texels: vec![Vec3::ZERO, Vec3::ONE],
+        repeat: true,
+    });
+    scene.lights.push(point_light());
+    scene.validate().unwrap();
+    let plan = analyse_valid(&scene);
+    assert_effects("textured", &plan, &[DirectPoint, Textures]);
+    assert!(evidence(&plan, Textures).contains("material 0 'checker'"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Direct);
+
+    scene.meshes[0].material = 1;
+    assert!(!analyse_valid(&scene).has(Textures));
+}
+
+#[test]
+fn gltf_material_layers_classify_by_roughness_and_weights() {
+    let cases: [(MaterialKind, &[EffectKind]); 7] = [
+        // A plain glTF wall: rough dielectric coat over diffuse is diffuse.
+        (metallic_roughness(0.0, 1.0, 0.0), &[]),
+        (metallic_roughness(0.0, 0.5, 0.0), &[GlossyReflection]),
+        (metallic_roughness(0.0, 0.01, 0.0), &[SpecularReflection]),
+        (metallic_roughness(1.0, 0.6, 0.0), &[GlossyReflection]),
+        (
+            metallic_roughness(0.0, 0.3, 1.0),
+            &[GlossyReflection, Refraction, TotalInternalReflection],
+        ),
+        (
+            MaterialKind::Conductor {
+                f0: Vec3::splat(0.9),
+                roughness: 0.01,
+            },
+            &[SpecularReflection],
+        ),
+        (
+            MaterialKind::Phong {
+                kd: Vec3::ZERO,
+                ks: Vec3::splat(0.5),
+                exponent: 100.0,
+            },
+            &[GlossyReflection],
+        ),
+    ];
+    for (kind, classes) in cases {
+        // A lit white floor with a ball of the material on it.
+        let mut scene = base_scene(
+            vec![
+                Material::diffuse("floor", Vec3::splat(0.8)),
+                Material {
+                    name: "ball".into(),
+                    kind: kind.clone(),
+                    emission: Vec3::ZERO,
+                    double_sided: false,
+                },
+            ],
+            vec![floor(0)],
+        );
+        scene.spheres.push(Sphere {
+            center: Vec3::new(0.0, 0.5, 0.0),
+            radius: 0.5,
+            material: 1,
+        });
+        scene.environment = Some(Vec3::splat(1.0));
+        scene.validate().unwrap();
+        let plan = analyse_valid(&scene);
+        let mut want = vec![DirectEnvironment, IndirectDiffuse];
+        want.extend_from_slice(classes);
+        if classes.contains(&SpecularReflection) {
+            // A smooth reflector focuses the environment onto the floor, but the
+            // environment is no delta light.
+            want.push(Caustics);
+        }
+        assert_effects(&format!("{kind:?}"), &plan, &want);
+        assert_eq!(plan.integrator, PlannedIntegrator::Path, "{kind:?}");
+        let refracts = classes.contains(&Refraction);
+        assert_eq!(plan.max_depth, if refracts { 12 } else { 8 }, "{kind:?}");
+        assert_eq!(plan.rr_depth, if refracts { 5 } else { 3 }, "{kind:?}");
+    }
+}
+
+#[test]
+fn caustics_need_a_smooth_specular_surface_and_bdpt_needs_a_small_light() {
+    // A large light: caustics, but a path tracer finds them by BSDF sampling.
+    let mut scene = tessera_scene::builtin::caustic();
+    scene.spheres[1].radius = 0.5;
+    let plan = analyse_valid(&scene);
+    assert!(plan.has(Caustics) && !plan.has(DeltaLitCaustics));
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+
+    // Rough glass: refraction without caustics.
+    let mut scene = tessera_scene::builtin::caustic();
+    scene.materials[1].kind = MaterialKind::Dielectric {
+        ior: 1.5,
+        roughness: 0.3,
+        tint: Vec3::ONE,
+    };
+    let plan = analyse_valid(&scene);
+    assert!(plan.has(Refraction) && plan.has(GlossyReflection));
+    assert!(!plan.has(Caustics) && !plan.has(SpecularReflection));
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+
+    // A mirror ball under a point light: a delta-lit reflective caustic, no refraction.
+    let mut scene = base_scene(
+        vec![
+            Material::diffuse("floor", Vec3::splat(0.8)),
+            Material {
+                name: "mirror".into(),
+                kind: MaterialKind::Mirror {
+                    reflectance: Vec3::splat(0.9),
+                },
+                emission: Vec3::ZERO,
+                double_sided: false,
+            },
+        ],
+        vec![floor(0)],
+    );
+    scene.spheres.push(Sphere {
+        center: Vec3::new(0.0, 0.5, 0.0),
+        radius: 0.5,
+        material: 1,
+    });
+    scene.lights.push(point_light());
+    let plan = analyse_valid(&scene);
+    assert_effects(
+        "mirror ball",
+        &plan,
+        &[
+            DirectPoint,
+            IndirectDiffuse,
+            SpecularReflection,
+            Caustics,
+            DeltaLitCaustics,
+        ],
+    );
+    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+    assert_eq!((plan.max_depth, plan.rr_depth), (8, 3));
+}
+
+#[test]
+fn override_is_recorded_in_summary_and_json() {
+    let mut plan = plan_of("builtin:caustic");
+    plan.set_override("--integrator path");
+    let o = plan.overridden.clone().unwrap();
+    assert!(
+        o.contains("--integrator path") && o.contains("chose bdpt"),
+        "{o}"
+    );
+    assert!(plan.summary().contains(&format!("overridden: {o}")));
+    let v: serde_json::Value = serde_json::from_str(&plan.to_json()).unwrap();
+    assert_eq!(v["overridden"], o.as_str());
+}
+
+#[test]
+fn json_escapes_names() {
+    let mut scene = tessera_scene::builtin::cornell_box();
+    scene.materials[3].name = "l\"ight\\ \u{e9}\u{1F4A1}\n".into();
+    let plan = analyse_valid(&scene);
+    let json = plan.to_json();
+    assert!(json.is_ascii(), "{json}");
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let area = v["effects"][0]["evidence"].as_str().unwrap();
+    assert!(area.contains("l\"ight\\ \u{e9}\u{1F4A1}\n"), "{area}");
+}
