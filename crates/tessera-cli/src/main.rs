@@ -154,6 +154,9 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     if job.spp == 0 {
         bail!("--spp must be at least 1");
     }
+    if job.threads > 4096 {
+        bail!("--threads {} must be at most 4096 (0 = all cores)", job.threads);
+    }
     let plan = FramePlan::for_spp(width, height, job.spp, job.tile_size)
         .context("invalid image or sampling settings")?;
     if let Some(d) = job.max_depth {
