@@ -1,0 +1,317 @@
+//! Binary encoding of tile checkpoints (format in the [module docs](super)) and their
+//! validation against a job's plan. Pure functions, shared by every store implementation.
+
+use tessera_api::FrameRange;
+use tessera_farm::{FramePlan, PixelStats};
+
+use super::{UnitDigest, CHECKPOINT_FORMAT_VERSION};
+
+/// Bytes of the header of both blobs: version (u8) and count (u32).
+const HEADER_BYTES: usize = 5;
+/// Bytes per pixel in the statistics blob: `passes` (u32) and 8 f64.
+pub(crate) const PIXEL_BYTES: usize = 4 + 8 * 8;
+/// Bytes per unit in the digest blob: `first_pass`, `pass_count` (u32) and `digest` (u64).
+pub(crate) const UNIT_BYTES: usize = 4 + 4 + 8;
+
+/// Encodes per-pixel statistics. The caller guarantees `pixels.len() <= u32::MAX` (a tile
+/// has at most 256 x 256 pixels).
+pub(crate) fn encode_stats(pixels: &[PixelStats]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + PIXEL_BYTES * pixels.len());
+    out.push(CHECKPOINT_FORMAT_VERSION);
+    out.extend_from_slice(&(pixels.len() as u32).to_le_bytes());
+    for p in pixels {
+        out.extend_from_slice(&p.passes.to_le_bytes());
+        for v in p.mean.iter().chain(&p.m2).chain([&p.mean_lum, &p.m2_lum]) {
+            out.extend_from_slice(&v.to_bits().to_le_bytes());
+        }
+    }
+    out
+}
+
+/// Encodes unit digests.
+pub(crate) fn encode_units(units: &[UnitDigest]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + UNIT_BYTES * units.len());
+    out.push(CHECKPOINT_FORMAT_VERSION);
+    out.extend_from_slice(&(units.len() as u32).to_le_bytes());
+    for u in units {
+        out.extend_from_slice(&u.first_pass.to_le_bytes());
+        out.extend_from_slice(&u.pass_count.to_le_bytes());
+        out.extend_from_slice(&u.digest.to_le_bytes());
+    }
+    out
+}
+
+/// Checks the header of a blob and returns its records.
+fn records<'a>(blob: &'a [u8], what: &str, record_bytes: usize) -> Result<&'a [u8], String> {
+    let Some((&version, rest)) = blob.split_first() else {
+        return Err(format!("{what} blob is empty"));
+    };
+    if version != CHECKPOINT_FORMAT_VERSION {
+        return Err(format!(
+            "{what} blob has format version {version}, this build reads version {CHECKPOINT_FORMAT_VERSION}"
+        ));
+    }
+    let Some((count, body)) = rest.split_first_chunk::<4>() else {
+        return Err(format!(
+            "{what} blob is truncated: {} bytes, shorter than its {HEADER_BYTES}-byte header",
+            blob.len()
+        ));
+    };
+    let count = u32::from_le_bytes(*count) as usize;
+    let expected = count as u64 * record_bytes as u64;
+    if body.len() as u64 != expected {
+        return Err(format!(
+            "{what} blob holds {} bytes of records, its header announces {count} records of {record_bytes} bytes ({expected} bytes)",
+            body.len()
+        ));
+    }
+    Ok(body)
+}
+
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    let mut a = [0u8; 4];
+    a.copy_from_slice(&b[at..at + 4]);
+    u32::from_le_bytes(a)
+}
+
+fn u64_at(b: &[u8], at: usize) -> u64 {
+    let mut a = [0u8; 8];
+    a.copy_from_slice(&b[at..at + 8]);
+    u64::from_le_bytes(a)
+}
+
+/// Decodes per-pixel statistics; the error says what is wrong.
+pub(crate) fn decode_stats(blob: &[u8]) -> Result<Vec<PixelStats>, String> {
+    let body = records(blob, "statistics", PIXEL_BYTES)?;
+    Ok(body
+        .chunks_exact(PIXEL_BYTES)
+        .map(|r| {
+            let f = |i: usize| f64::from_bits(u64_at(r, 4 + 8 * i));
+            PixelStats {
+                passes: u32_at(r, 0),
+                mean: [f(0), f(1), f(2)],
+                m2: [f(3), f(4), f(5)],
+                mean_lum: f(6),
+                m2_lum: f(7),
+            }
+        })
+        .collect())
+}
+
+/// Decodes unit digests; the error says what is wrong.
+pub(crate) fn decode_units(blob: &[u8]) -> Result<Vec<UnitDigest>, String> {
+    let body = records(blob, "unit digest", UNIT_BYTES)?;
+    Ok(body
+        .chunks_exact(UNIT_BYTES)
+        .map(|r| UnitDigest {
+            first_pass: u32_at(r, 0),
+            pass_count: u32_at(r, 4),
+            digest: u64_at(r, 8),
+        })
+        .collect())
+}
+
+/// Checks that a checkpoint fits its job: frame in range, tile in the plan, one statistic
+/// per pixel, `merged_passes` within the plan, finite values, no pixel beyond
+/// `merged_passes`, units tiling `0..merged_passes` in order.
+pub(crate) fn check_checkpoint(
+    plan: &FramePlan,
+    frames: FrameRange,
+    frame: u32,
+    tile: u32,
+    merged_passes: u32,
+    pixels: &[PixelStats],
+    units: &[UnitDigest],
+) -> Result<(), String> {
+    if !(frames.start..=frames.end).contains(&frame) {
+        return Err(format!(
+            "frame {frame} is outside the job's frames {}..={}",
+            frames.start, frames.end
+        ));
+    }
+    let Some(rect) = plan.get_tile(tile) else {
+        return Err(format!(
+            "tile {tile} does not exist (the plan has {} tiles)",
+            plan.tile_count()
+        ));
+    };
+    if pixels.len() != rect.pixel_count() {
+        return Err(format!(
+            "{} pixel statistics for a {}x{} tile ({} pixels)",
+            pixels.len(),
+            rect.width,
+            rect.height,
+            rect.pixel_count()
+        ));
+    }
+    if merged_passes > plan.passes {
+        return Err(format!(
+            "merged_passes {merged_passes} exceeds the plan's {} passes",
+            plan.passes
+        ));
+    }
+    for (i, p) in pixels.iter().enumerate() {
+        if p.passes > merged_passes {
+            return Err(format!(
+                "pixel {i} has {} passes, more than the tile's merged_passes {merged_passes}",
+                p.passes
+            ));
+        }
+        let finite = p
+            .mean
+            .iter()
+            .chain(&p.m2)
+            .chain([&p.mean_lum, &p.m2_lum])
+            .all(|v| v.is_finite());
+        if !finite {
+            return Err(format!("pixel {i} has a non-finite statistic: {p:?}"));
+        }
+    }
+    let mut next = 0u64;
+    for (i, u) in units.iter().enumerate() {
+        if u.pass_count == 0 || u64::from(u.first_pass) != next {
+            return Err(format!(
+                "unit {i} (passes {}..{}) does not continue the merged passes at {next}",
+                u.first_pass,
+                u64::from(u.first_pass) + u64::from(u.pass_count)
+            ));
+        }
+        next += u64::from(u.pass_count);
+    }
+    if next != u64::from(merged_passes) {
+        return Err(format!(
+            "the units cover passes 0..{next}, merged_passes is {merged_passes}"
+        ));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stats(n: usize) -> Vec<PixelStats> {
+        (0..n)
+            .map(|i| {
+                let mut s = PixelStats::default();
+                for k in 0..3 {
+                    s.push([0.1 * i as f32, 0.3 + k as f32, 1.0 / 3.0 + i as f32]);
+                }
+                s
+            })
+            .collect()
+    }
+
+    #[test]
+    fn stats_round_trip_bit_exact() {
+        let mut px = stats(17);
+        px[3].mean[1] = f64::from_bits(0x3ff0_0000_0000_0001);
+        px[4].m2_lum = -0.0;
+        px[5].mean_lum = f64::MIN_POSITIVE / 4.0; // subnormal
+        let blob = encode_stats(&px);
+        assert_eq!(blob.len(), HEADER_BYTES + 17 * PIXEL_BYTES);
+        assert_eq!(blob[0], 1);
+        let back = decode_stats(&blob).unwrap();
+        assert_eq!(back.len(), px.len());
+        for (a, b) in px.iter().zip(&back) {
+            assert_eq!(a.passes, b.passes);
+            let bits = |s: &PixelStats| {
+                let mut v = vec![];
+                v.extend(s.mean.map(f64::to_bits));
+                v.extend(s.m2.map(f64::to_bits));
+                v.push(s.mean_lum.to_bits());
+                v.push(s.m2_lum.to_bits());
+                v
+            };
+            assert_eq!(bits(a), bits(b));
+        }
+        assert_eq!(decode_stats(&encode_stats(&[])).unwrap(), vec![]);
+    }
+
+    #[test]
+    fn layout_is_little_endian() {
+        let p = PixelStats {
+            passes: 0x0102_0304,
+            mean: [1.0, 0.0, 0.0],
+            ..Default::default()
+        };
+        let blob = encode_stats(&[p]);
+        assert_eq!(&blob[..9], &[1, 1, 0, 0, 0, 4, 3, 2, 1]);
+        assert_eq!(&blob[9..17], &1.0f64.to_bits().to_le_bytes());
+        let u = encode_units(&[UnitDigest {
+            first_pass: 2,
+            pass_count: 3,
+            digest: 0x0102_0304_0506_0708,
+        }]);
+        assert_eq!(
+            u,
+            [1, 1, 0, 0, 0, 2, 0, 0, 0, 3, 0, 0, 0, 8, 7, 6, 5, 4, 3, 2, 1]
+        );
+    }
+
+    #[test]
+    fn malformed_blobs_are_errors() {
+        let blob = encode_stats(&stats(4));
+        for cut in [0, 1, 4, 5, 6, blob.len() - 1] {
+            let e = decode_stats(&blob[..cut]).unwrap_err();
+            assert!(!e.is_empty());
+        }
+        let mut longer = blob.clone();
+        longer.push(0);
+        assert!(decode_stats(&longer).unwrap_err().contains("announces 4"));
+        let mut v2 = blob.clone();
+        v2[0] = 2;
+        assert!(decode_stats(&v2).unwrap_err().contains("format version 2"));
+        let mut huge = blob.clone();
+        huge[1..5].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(decode_stats(&huge).is_err());
+        let units = encode_units(&[UnitDigest {
+            first_pass: 0,
+            pass_count: 1,
+            digest: 7,
+        }]);
+        assert!(decode_units(&units[..units.len() - 3]).is_err());
+        assert!(decode_units(&[]).unwrap_err().contains("empty"));
+    }
+
+    #[test]
+    fn checkpoints_are_checked_against_the_plan() {
+        let plan = FramePlan::new(10, 6, 4, 2, 8).unwrap(); // tiles 4x4, 4x4, 2x4, 4x2, ...
+        let frames = FrameRange { start: 2, end: 3 };
+        let u = |first_pass, pass_count| UnitDigest {
+            first_pass,
+            pass_count,
+            digest: 1,
+        };
+        let px = stats(16);
+        let ok = |frame, tile, merged, px: &[PixelStats], units: &[UnitDigest]| {
+            check_checkpoint(&plan, frames, frame, tile, merged, px, units)
+        };
+        ok(2, 0, 3, &px, &[u(0, 2), u(2, 1)]).unwrap();
+        ok(3, 2, 3, &stats(8), &[u(0, 3)]).unwrap();
+        ok(3, 2, 0, &[PixelStats::default(); 8], &[]).unwrap();
+        assert!(ok(1, 0, 3, &px, &[u(0, 3)])
+            .unwrap_err()
+            .contains("frame 1"));
+        assert!(ok(2, 6, 3, &px, &[u(0, 3)]).unwrap_err().contains("tile 6"));
+        assert!(ok(2, 2, 3, &px, &[u(0, 3)])
+            .unwrap_err()
+            .contains("16 pixel"));
+        assert!(ok(2, 0, 9, &px, &[u(0, 9)]).unwrap_err().contains("9"));
+        assert!(ok(2, 0, 2, &px, &[u(0, 2)])
+            .unwrap_err()
+            .contains("3 passes"));
+        assert!(ok(2, 0, 3, &px, &[u(0, 2)]).unwrap_err().contains("0..2"));
+        assert!(ok(2, 0, 3, &px, &[u(0, 2), u(3, 1)])
+            .unwrap_err()
+            .contains("unit 1"));
+        assert!(ok(2, 0, 3, &px, &[u(0, 0), u(0, 3)])
+            .unwrap_err()
+            .contains("unit 0"));
+        let mut nan = px.clone();
+        nan[5].m2[2] = f64::NAN;
+        assert!(ok(2, 0, 3, &nan, &[u(0, 3)])
+            .unwrap_err()
+            .contains("pixel 5"));
+    }
+}

@@ -1,0 +1,439 @@
+//! The durable store of the farm: the truth that survives `kill -9` (DESIGN §6).
+//!
+//! The coordinator keeps its working state in memory (the [`Scheduler`](tessera_farm::Scheduler)
+//! and its accumulators) and writes everything that must survive a crash through the
+//! [`Store`] trait:
+//!
+//! - **jobs** ([`NewJob`] in, [`JobRecord`] out): accepted submissions with their plan,
+//!   frame range, priority and life-cycle state, optionally deduplicated by an idempotency
+//!   key;
+//! - **scenes**: uploaded scene files by content hash;
+//! - **tile checkpoints** ([`TileCheckpointRef`] in, [`TileCheckpoint`] out): the merged
+//!   per-pixel statistics of one tile of one frame, with the digests of the merged units,
+//!   upserted as passes merge;
+//! - the **lease high-water mark**, so fencing tokens never repeat after a restart;
+//! - **convergence history** points per job ([`HistoryPoint`]);
+//! - **worker fault events** ([`FaultEvent`]).
+//!
+//! [`SqliteStore`] implements it on one SQLite file (WAL, `synchronous=FULL`); the trait is
+//! object safe (`Arc<dyn Store>`) so a PostgreSQL store can follow.
+//!
+//! # Tile checkpoint format (version 1)
+//!
+//! A checkpoint row holds two little-endian binary blobs. The statistics blob:
+//!
+//! | bytes | content |
+//! |-------|---------|
+//! | 1     | format version, `1` |
+//! | 4     | pixel count `n` (u32) |
+//! | 68 n  | per pixel, row-major within the tile: `passes` (u32), then `mean[0..3]`, `m2[0..3]`, `mean_lum`, `m2_lum` (8 f64, IEEE 754 bits) |
+//!
+//! The unit digest blob:
+//!
+//! | bytes | content |
+//! |-------|---------|
+//! | 1     | format version, `1` |
+//! | 4     | unit count `u` (u32) |
+//! | 16 u  | per merged unit in pass order: `first_pass` (u32), `pass_count` (u32), `digest` (u64) |
+//!
+//! f64 values are stored by their bits, so a round trip is bit-exact. Decoding checks the
+//! version, the lengths, that the pixel count matches the tile of the job's plan, that
+//! every value is finite, that no pixel has more passes than the tile merged, and that the
+//! units cover passes `0..merged_passes` contiguously; any violation is
+//! [`StoreError::CorruptTile`] naming the job, frame and tile.
+
+mod codec;
+mod sqlite;
+
+pub use sqlite::{SqliteStore, DATABASE_FILE};
+
+use async_trait::async_trait;
+use tessera_api::{FrameRange, HistoryPoint, JobState};
+use tessera_farm::{FramePlan, JobId, PixelStats};
+
+/// Current version of the tile checkpoint blob formats (the leading byte of each blob).
+pub const CHECKPOINT_FORMAT_VERSION: u8 = 1;
+
+/// Why a store operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The database reported an error (I/O, locking, constraint, ...).
+    #[error("database error: {0}")]
+    Database(#[from] sqlx::Error),
+    /// The data directory could not be created.
+    #[error("cannot create data directory {path}: {source}")]
+    DataDir {
+        /// The directory.
+        path: std::path::PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The job does not exist.
+    #[error("job {0} does not exist")]
+    JobNotFound(JobId),
+    /// The caller passed a value the store refuses to write (the message names it).
+    #[error("invalid store input: {0}")]
+    InvalidInput(String),
+    /// A stored tile checkpoint cannot be decoded or does not fit its job's plan.
+    #[error("corrupt checkpoint of job {job}, frame {frame}, tile {tile}: {reason}")]
+    CorruptTile {
+        /// The job.
+        job: JobId,
+        /// The frame.
+        frame: u32,
+        /// The tile index.
+        tile: u32,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Another stored record is invalid (the message names the table, row and field).
+    #[error("corrupt store record: {0}")]
+    Corrupt(String),
+    /// The database was written by a newer build with a schema this build does not know.
+    #[error("database schema version {found} is newer than the newest this build knows ({supported}); use a newer tessera")]
+    SchemaTooNew {
+        /// Version found in the database.
+        found: i64,
+        /// Newest version this build can migrate to.
+        supported: i64,
+    },
+}
+
+/// Shorthand for results of store operations.
+pub type StoreResult<T> = Result<T, StoreError>;
+
+/// A job to insert: everything the coordinator needs to resume it after a restart.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NewJob {
+    /// The settings as submitted, in canonical JSON (the store keeps the text verbatim).
+    pub settings_json: String,
+    /// The frame plan (resolution, tiles, passes).
+    pub plan: FramePlan,
+    /// Frames to render (inclusive); `start <= end`.
+    pub frames: FrameRange,
+    /// Passes per work unit (at least 1), so units are cut the same way after a restart.
+    pub passes_per_unit: u32,
+    /// Scheduling priority (higher first).
+    pub priority: i32,
+    /// `"builtin:NAME"` or the content hash of an uploaded scene.
+    pub scene_ref: String,
+    /// A label for people.
+    pub name: Option<String>,
+    /// Deduplication key of the submission: a second insert with the same key returns the
+    /// first job.
+    pub idempotency_key: Option<String>,
+    /// When the job was accepted, Unix milliseconds (at most `i64::MAX`).
+    pub created_unix_ms: u64,
+}
+
+/// A stored job.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobRecord {
+    /// Job id: assigned by the store, increasing, never reused.
+    pub id: JobId,
+    /// The settings as submitted, verbatim.
+    pub settings_json: String,
+    /// The frame plan.
+    pub plan: FramePlan,
+    /// Frames to render (inclusive).
+    pub frames: FrameRange,
+    /// Passes per work unit.
+    pub passes_per_unit: u32,
+    /// Scheduling priority (higher first).
+    pub priority: i32,
+    /// `"builtin:NAME"` or the content hash of an uploaded scene.
+    pub scene_ref: String,
+    /// A label for people.
+    pub name: Option<String>,
+    /// The idempotency key it was submitted with, if any.
+    pub idempotency_key: Option<String>,
+    /// Life-cycle state.
+    pub state: JobState,
+    /// Why it failed (or any message stored with the last state change).
+    pub error: Option<String>,
+    /// When it was accepted, Unix milliseconds.
+    pub created_unix_ms: u64,
+    /// When it first became `running`, Unix milliseconds.
+    pub started_unix_ms: Option<u64>,
+    /// When it reached a terminal state, Unix milliseconds.
+    pub finished_unix_ms: Option<u64>,
+}
+
+/// Order of [`Store::list_jobs`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
+pub enum JobOrder {
+    /// Highest id first (the API's `GET /jobs` order). The default.
+    #[default]
+    NewestFirst,
+    /// Lowest id first (submission order).
+    OldestFirst,
+}
+
+/// One page request of [`Store::list_jobs`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct JobQuery {
+    /// Only jobs strictly after this id in the chosen order (the last id of the previous
+    /// page); `None` for the first page.
+    pub cursor: Option<JobId>,
+    /// Page size; 0 gives an empty page.
+    pub limit: u32,
+    /// Only jobs in this state.
+    pub state: Option<JobState>,
+    /// Order of the page.
+    pub order: JobOrder,
+}
+
+impl JobQuery {
+    /// The first page of `limit` jobs, newest first, any state.
+    pub fn first(limit: u32) -> Self {
+        Self {
+            cursor: None,
+            limit,
+            state: None,
+            order: JobOrder::NewestFirst,
+        }
+    }
+}
+
+/// One merged unit of a tile: its pass range and [`UnitResult::digest`](tessera_farm::UnitResult::digest),
+/// kept so that a late duplicate of it can still be compared after a restart.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct UnitDigest {
+    /// First pass of the unit.
+    pub first_pass: u32,
+    /// Number of passes (at least 1).
+    pub pass_count: u32,
+    /// Digest of the unit's result.
+    pub digest: u64,
+}
+
+/// A tile checkpoint to save, borrowing the accumulator's data.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TileCheckpointRef<'a> {
+    /// The job.
+    pub job: JobId,
+    /// The frame (within the job's frame range).
+    pub frame: u32,
+    /// The tile index (within the job's plan).
+    pub tile: u32,
+    /// Passes merged: the statistics cover passes `0..merged_passes`.
+    pub merged_passes: u32,
+    /// Per-pixel statistics, row-major within the tile (`rect.pixel_count()` entries).
+    pub pixels: &'a [PixelStats],
+    /// The merged units in pass order, tiling `0..merged_passes` exactly.
+    pub units: &'a [UnitDigest],
+}
+
+/// A stored tile checkpoint (see the [module docs](self) for the format).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TileCheckpoint {
+    /// The job.
+    pub job: JobId,
+    /// The frame.
+    pub frame: u32,
+    /// The tile index.
+    pub tile: u32,
+    /// Passes merged: the statistics cover passes `0..merged_passes`.
+    pub merged_passes: u32,
+    /// Per-pixel statistics, row-major within the tile.
+    pub pixels: Vec<PixelStats>,
+    /// The merged units in pass order, tiling `0..merged_passes` exactly.
+    pub units: Vec<UnitDigest>,
+}
+
+impl TileCheckpoint {
+    /// A borrowed view, e.g. to save it again.
+    pub fn as_ref(&self) -> TileCheckpointRef<'_> {
+        TileCheckpointRef {
+            job: self.job,
+            frame: self.frame,
+            tile: self.tile,
+            merged_passes: self.merged_passes,
+            pixels: &self.pixels,
+            units: &self.units,
+        }
+    }
+}
+
+/// What a faulty worker did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum FaultKind {
+    /// A result was refused: wrong size, non-finite or negative values, bad pass range.
+    InvalidResult,
+    /// A duplicate result differed from the merged copy of the same unit.
+    DuplicateMismatch,
+    /// A result answered a lease the worker does not hold (wrong fencing token).
+    LeaseViolation,
+}
+
+impl FaultKind {
+    /// The stored string form, e.g. `"invalid_result"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::InvalidResult => "invalid_result",
+            Self::DuplicateMismatch => "duplicate_mismatch",
+            Self::LeaseViolation => "lease_violation",
+        }
+    }
+
+    /// Parses [`FaultKind::as_str`] output.
+    pub fn parse(s: &str) -> Option<Self> {
+        [
+            Self::InvalidResult,
+            Self::DuplicateMismatch,
+            Self::LeaseViolation,
+        ]
+        .into_iter()
+        .find(|k| k.as_str() == s)
+    }
+}
+
+/// A faulty-worker event.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FaultEvent {
+    /// The name the worker registered with.
+    pub worker: String,
+    /// The job concerned, if known (the store does not require it to exist).
+    pub job: Option<JobId>,
+    /// What happened.
+    pub kind: FaultKind,
+    /// Details for people (e.g. the validation error).
+    pub message: String,
+    /// When, Unix milliseconds (at most `i64::MAX`).
+    pub unix_ms: u64,
+}
+
+/// Which fault events [`Store::count_faults`] and [`Store::list_faults`] consider; the
+/// default matches all.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct FaultFilter {
+    /// Only events of this job.
+    pub job: Option<JobId>,
+    /// Only events of the worker with this name.
+    pub worker: Option<String>,
+}
+
+/// The durable state of the farm.
+///
+/// Contract shared by every implementation:
+/// - **Durability**: when a method that writes returns `Ok`, the write is committed and
+///   survives a crash of the process (and, for [`SqliteStore`], of the machine). A method
+///   that returns `Err` wrote nothing. Multi-row writes ([`Store::save_tiles`]) are atomic.
+/// - **Validation**: inputs the store could not read back are refused with
+///   [`StoreError::InvalidInput`] (invalid plans, tile checkpoints that do not fit their
+///   job's plan, non-finite history values, integers above `i64::MAX`). Stored data that
+///   cannot be decoded is reported as [`StoreError::CorruptTile`] or
+///   [`StoreError::Corrupt`], never a panic.
+/// - **Concurrency**: every method may be called concurrently from many tasks; writes are
+///   serialized by the store. Concurrent saves of the *same* tile are not ordered: the
+///   caller must not race them (the last committed save wins).
+/// - **Ids**: job ids are assigned by the store, increase with insertion order and are
+///   never reused, even after a restart.
+///
+/// The trait is object safe; hold it as `Arc<dyn Store>`.
+#[async_trait]
+pub trait Store: Send + Sync {
+    /// Inserts a job in state [`JobState::Queued`].
+    ///
+    /// Returns `(id, true)` for a new job. If `idempotency_key` is set and a job with the
+    /// same key exists, nothing is written and `(existing id, false)` is returned, whatever
+    /// the other fields (compare them with [`Store::get_job`] to detect a conflicting
+    /// reuse of a key). Refuses an invalid plan, `frames.start > frames.end` and
+    /// `passes_per_unit == 0`.
+    async fn insert_job(&self, job: NewJob) -> StoreResult<(JobId, bool)>;
+
+    /// The job with this id, if it exists.
+    async fn get_job(&self, id: JobId) -> StoreResult<Option<JobRecord>>;
+
+    /// One page of jobs (see [`JobQuery`]). Pass the last id of a page as the next
+    /// page's cursor; a page shorter than `limit` is the last one.
+    async fn list_jobs(&self, query: JobQuery) -> StoreResult<Vec<JobRecord>>;
+
+    /// Changes the state of a job and stores `error` with it (`None` clears it).
+    ///
+    /// `now_unix_ms` is recorded as the start time on the first change to
+    /// [`JobState::Running`] and as the finish time on a change to a terminal state.
+    /// A terminal state is final: on a job that is already done, failed or canceled
+    /// nothing changes and `Ok(false)` is returned; otherwise `Ok(true)`.
+    /// [`StoreError::JobNotFound`] if the job does not exist.
+    async fn set_job_state(
+        &self,
+        id: JobId,
+        state: JobState,
+        error: Option<String>,
+        now_unix_ms: u64,
+    ) -> StoreResult<bool>;
+
+    /// The jobs to resume after a restart: every queued or running job, oldest first (the
+    /// order to add them to the scheduler so first-come-first-served is kept).
+    async fn jobs_to_resume(&self) -> StoreResult<Vec<JobRecord>>;
+
+    /// Stores a scene file under its content hash (computed by the caller). Idempotent:
+    /// returns `true` if it was stored now, `false` if the hash was already present (the
+    /// stored bytes are kept).
+    async fn put_scene(&self, hash: &str, bytes: &[u8]) -> StoreResult<bool>;
+
+    /// The scene file with this hash, if stored.
+    async fn get_scene(&self, hash: &str) -> StoreResult<Option<Vec<u8>>>;
+
+    /// Whether a scene with this hash is stored (without reading it).
+    async fn scene_exists(&self, hash: &str) -> StoreResult<bool>;
+
+    /// Saves tile checkpoints atomically: one row per (job, frame, tile), replacing any
+    /// earlier checkpoint of the same tile.
+    ///
+    /// Each checkpoint is checked against its job's plan: the job exists
+    /// ([`StoreError::JobNotFound`]), the frame is in its range, the tile exists, there is
+    /// one statistic per tile pixel, `merged_passes` is within the plan, no pixel has more
+    /// passes than `merged_passes`, every value is finite and the units tile
+    /// `0..merged_passes` in order ([`StoreError::InvalidInput`]). On any error nothing is
+    /// saved.
+    async fn save_tiles(&self, tiles: &[TileCheckpointRef<'_>]) -> StoreResult<()>;
+
+    /// Saves one tile checkpoint; see [`Store::save_tiles`].
+    async fn save_tile(&self, tile: TileCheckpointRef<'_>) -> StoreResult<()> {
+        self.save_tiles(std::slice::from_ref(&tile)).await
+    }
+
+    /// The tile checkpoints of a job (of one frame if `frame` is given), ordered by frame
+    /// then tile. [`StoreError::JobNotFound`] if the job does not exist;
+    /// [`StoreError::CorruptTile`] if a checkpoint cannot be decoded or does not fit the
+    /// plan.
+    async fn load_tiles(&self, job: JobId, frame: Option<u32>) -> StoreResult<Vec<TileCheckpoint>>;
+
+    /// The lease-id high-water mark: the largest value ever passed to
+    /// [`Store::record_lease_high_water`], 0 initially.
+    ///
+    /// A restarted coordinator starts issuing lease ids above it
+    /// ([`Scheduler::new`](tessera_farm::Scheduler::new)`(lease_ms, max_lease_id)`). To keep
+    /// this cheap, reserve ids in blocks: record `next_id + BLOCK` before issuing ids up
+    /// to it, so fencing tokens never repeat even after `kill -9`.
+    async fn max_lease_id(&self) -> StoreResult<u64>;
+
+    /// Raises the lease-id high-water mark to `lease_id` (a lower value changes nothing).
+    async fn record_lease_high_water(&self, lease_id: u64) -> StoreResult<()>;
+
+    /// Appends a convergence history point to a job. Values must be finite
+    /// ([`StoreError::InvalidInput`]); [`StoreError::JobNotFound`] if the job does not
+    /// exist.
+    async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()>;
+
+    /// A job's history points in the order they were appended (empty for an unknown job).
+    async fn list_history(&self, job: JobId) -> StoreResult<Vec<HistoryPoint>>;
+
+    /// Records a faulty-worker event.
+    async fn record_fault(&self, fault: &FaultEvent) -> StoreResult<()>;
+
+    /// Number of fault events matching the filter.
+    async fn count_faults(&self, filter: &FaultFilter) -> StoreResult<u64>;
+
+    /// The newest `limit` fault events matching the filter, newest first.
+    async fn list_faults(&self, filter: &FaultFilter, limit: u32) -> StoreResult<Vec<FaultEvent>>;
+
+    /// Checks that the store answers (for `/healthz`).
+    async fn ping(&self) -> StoreResult<()>;
+
+    /// Waits for pending writes and closes the store; later calls fail. Dropping the store
+    /// without closing it loses nothing that was committed.
+    async fn close(&self);
+}

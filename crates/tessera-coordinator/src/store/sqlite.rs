@@ -1,0 +1,745 @@
+//! The SQLite implementation of [`Store`].
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use async_trait::async_trait;
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
+    SqliteSynchronous,
+};
+use sqlx::{Connection, Row};
+use tessera_api::{FrameRange, HistoryPoint, JobState};
+use tessera_farm::{FramePlan, JobId};
+
+use super::codec::{check_checkpoint, decode_stats, decode_units, encode_stats, encode_units};
+use super::{
+    FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, JobRecord, NewJob, Store, StoreError,
+    StoreResult, TileCheckpoint, TileCheckpointRef,
+};
+
+/// Name of the database file inside the data directory.
+pub const DATABASE_FILE: &str = "tessera.sqlite3";
+
+/// Schema migrations: (version, SQL). Applied in order, each in the same transaction as
+/// the bump of `schema_version`. Never edit a released migration; append a new one.
+const MIGRATIONS: &[(i64, &str)] = &[(1, include_str!("migrations/0001_initial.sql"))];
+
+/// How long a statement waits for a lock held by another connection before failing.
+const BUSY_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Read connections. SQLite serializes writers, so there is exactly one write connection.
+const READ_CONNECTIONS: u32 = 4;
+
+/// Columns of `jobs` read by [`job_from_row`], in its order.
+const JOB_COLUMNS: &str = "id, idempotency_key, name, scene_ref, settings_json, \
+     plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
+     first_frame, last_frame, passes_per_unit, priority, state, error, \
+     created_unix_ms, started_unix_ms, finished_unix_ms";
+
+/// Columns of `jobs` read by [`plan_from_row`].
+const PLAN_COLUMNS: &str = "plan_width, plan_height, plan_tile_size, plan_samples_per_pass, \
+     plan_passes, first_frame, last_frame";
+
+/// The farm's state in one SQLite file, `DIR/tessera.sqlite3`.
+///
+/// The database runs in WAL mode with `synchronous=FULL` (every commit is fsynced before it
+/// returns, so a committed write survives `kill -9` and power loss) and foreign keys on.
+/// All writes go through one connection (SQLite allows one writer at a time; serializing
+/// them in-process avoids lock contention), each write transaction starting with
+/// `BEGIN IMMEDIATE`; reads use a small pool of `query_only` connections and proceed
+/// concurrently with writes. One coordinator process per data directory.
+///
+/// Cloning is cheap and shares the connections.
+#[derive(Debug, Clone)]
+pub struct SqliteStore {
+    writer: SqlitePool,
+    reader: SqlitePool,
+    path: PathBuf,
+}
+
+impl SqliteStore {
+    /// Opens (creating if needed) the store in `dir`: creates the directory, opens
+    /// `dir/tessera.sqlite3` and brings its schema up to date.
+    ///
+    /// Fails with [`StoreError::SchemaTooNew`] if a newer build wrote the database.
+    pub async fn open(dir: &Path) -> StoreResult<Self> {
+        std::fs::create_dir_all(dir).map_err(|source| StoreError::DataDir {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        let path = dir.join(DATABASE_FILE);
+        let options = SqliteConnectOptions::new()
+            .filename(&path)
+            .journal_mode(SqliteJournalMode::Wal)
+            .synchronous(SqliteSynchronous::Full)
+            .foreign_keys(true)
+            .busy_timeout(BUSY_TIMEOUT);
+        let writer = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(options.clone().create_if_missing(true))
+            .await?;
+        migrate(&writer).await?;
+        let reader = SqlitePoolOptions::new()
+            .max_connections(READ_CONNECTIONS)
+            .connect_with(options.pragma("query_only", "ON"))
+            .await?;
+        Ok(Self {
+            writer,
+            reader,
+            path,
+        })
+    }
+
+    /// Path of the database file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The schema version of the database (the newest applied migration).
+    pub async fn schema_version(&self) -> StoreResult<i64> {
+        let v: Option<i64> = sqlx::query_scalar("SELECT MAX(version) FROM schema_version")
+            .fetch_one(&self.reader)
+            .await?;
+        Ok(v.unwrap_or(0))
+    }
+
+    /// Runs SQLite's `PRAGMA integrity_check`; [`StoreError::Corrupt`] lists the problems.
+    pub async fn integrity_check(&self) -> StoreResult<()> {
+        let rows: Vec<String> = sqlx::query_scalar("PRAGMA integrity_check")
+            .fetch_all(&self.reader)
+            .await?;
+        if rows.len() == 1 && rows[0] == "ok" {
+            Ok(())
+        } else {
+            Err(StoreError::Corrupt(format!(
+                "integrity check failed: {}",
+                rows.join("; ")
+            )))
+        }
+    }
+
+    /// The plan and frame range of a job, read through `executor`.
+    async fn job_plan<'e, E>(executor: E, job: JobId) -> StoreResult<(FramePlan, FrameRange)>
+    where
+        E: sqlx::Executor<'e, Database = sqlx::Sqlite>,
+    {
+        let row = sqlx::query(&format!("SELECT {PLAN_COLUMNS} FROM jobs WHERE id = ?1"))
+            .bind(to_i64(job, "job id")?)
+            .fetch_optional(executor)
+            .await?
+            .ok_or(StoreError::JobNotFound(job))?;
+        plan_from_row(&row, job)
+    }
+}
+
+/// Creates `schema_version` if needed and applies the missing migrations, all in one
+/// `BEGIN IMMEDIATE` transaction (two processes opening the same new directory cannot
+/// both migrate).
+async fn migrate(pool: &SqlitePool) -> StoreResult<()> {
+    let supported = MIGRATIONS.last().map_or(0, |m| m.0);
+    let mut conn = pool.acquire().await?;
+    let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+    sqlx::query(
+        "CREATE TABLE IF NOT EXISTS schema_version (\
+             version INTEGER PRIMARY KEY, applied_unix_ms INTEGER NOT NULL) STRICT",
+    )
+    .execute(&mut *tx)
+    .await?;
+    let current: Option<i64> = sqlx::query_scalar("SELECT MAX(version) FROM schema_version")
+        .fetch_one(&mut *tx)
+        .await?;
+    let current = current.unwrap_or(0);
+    if current > supported {
+        return Err(StoreError::SchemaTooNew {
+            found: current,
+            supported,
+        });
+    }
+    for &(version, sql) in MIGRATIONS.iter().filter(|m| m.0 > current) {
+        sqlx::raw_sql(sql).execute(&mut *tx).await?;
+        sqlx::query("INSERT INTO schema_version (version, applied_unix_ms) VALUES (?1, ?2)")
+            .bind(version)
+            .bind(now_unix_ms())
+            .execute(&mut *tx)
+            .await?;
+    }
+    tx.commit().await?;
+    Ok(())
+}
+
+fn now_unix_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+}
+
+/// A u64 to bind as INTEGER, refused above `i64::MAX`.
+fn to_i64(v: u64, what: &str) -> StoreResult<i64> {
+    i64::try_from(v).map_err(|_| StoreError::InvalidInput(format!("{what} {v} exceeds 2^63 - 1")))
+}
+
+/// Reads an integer column and converts it, reporting a stored value out of range as
+/// corrupt (`place` names the row).
+fn int_col<T: TryFrom<i64>>(
+    row: &SqliteRow,
+    col: &str,
+    place: &dyn Fn() -> String,
+) -> StoreResult<T> {
+    let v: i64 = row.try_get(col)?;
+    T::try_from(v)
+        .map_err(|_| StoreError::Corrupt(format!("{}: {col} = {v} is out of range", place())))
+}
+
+fn opt_int_col<T: TryFrom<i64>>(
+    row: &SqliteRow,
+    col: &str,
+    place: &dyn Fn() -> String,
+) -> StoreResult<Option<T>> {
+    let v: Option<i64> = row.try_get(col)?;
+    v.map(|v| {
+        T::try_from(v)
+            .map_err(|_| StoreError::Corrupt(format!("{}: {col} = {v} is out of range", place())))
+    })
+    .transpose()
+}
+
+fn plan_from_row(row: &SqliteRow, job: JobId) -> StoreResult<(FramePlan, FrameRange)> {
+    let place = || format!("jobs row {job}");
+    let plan = FramePlan::new(
+        int_col(row, "plan_width", &place)?,
+        int_col(row, "plan_height", &place)?,
+        int_col(row, "plan_tile_size", &place)?,
+        int_col(row, "plan_samples_per_pass", &place)?,
+        int_col(row, "plan_passes", &place)?,
+    )
+    .map_err(|e| StoreError::Corrupt(format!("{}: invalid plan: {e}", place())))?;
+    let frames = FrameRange {
+        start: int_col(row, "first_frame", &place)?,
+        end: int_col(row, "last_frame", &place)?,
+    };
+    if frames.start > frames.end {
+        return Err(StoreError::Corrupt(format!(
+            "{}: first_frame {} > last_frame {}",
+            place(),
+            frames.start,
+            frames.end
+        )));
+    }
+    Ok((plan, frames))
+}
+
+fn parse_state(s: &str) -> Option<JobState> {
+    [
+        JobState::Queued,
+        JobState::Running,
+        JobState::Done,
+        JobState::Failed,
+        JobState::Canceled,
+    ]
+    .into_iter()
+    .find(|st| st.as_str() == s)
+}
+
+fn job_from_row(row: &SqliteRow) -> StoreResult<JobRecord> {
+    let id: JobId = int_col(row, "id", &|| "jobs row".to_string())?;
+    let place = || format!("jobs row {id}");
+    let (plan, frames) = plan_from_row(row, id)?;
+    let state: String = row.try_get("state")?;
+    let state = parse_state(&state)
+        .ok_or_else(|| StoreError::Corrupt(format!("{}: unknown state {state:?}", place())))?;
+    let passes_per_unit: u32 = int_col(row, "passes_per_unit", &place)?;
+    if passes_per_unit == 0 {
+        return Err(StoreError::Corrupt(format!(
+            "{}: passes_per_unit is 0",
+            place()
+        )));
+    }
+    Ok(JobRecord {
+        id,
+        settings_json: row.try_get("settings_json")?,
+        plan,
+        frames,
+        passes_per_unit,
+        priority: int_col(row, "priority", &place)?,
+        scene_ref: row.try_get("scene_ref")?,
+        name: row.try_get("name")?,
+        idempotency_key: row.try_get("idempotency_key")?,
+        state,
+        error: row.try_get("error")?,
+        created_unix_ms: int_col(row, "created_unix_ms", &place)?,
+        started_unix_ms: opt_int_col(row, "started_unix_ms", &place)?,
+        finished_unix_ms: opt_int_col(row, "finished_unix_ms", &place)?,
+    })
+}
+
+fn check_finite(v: f64, what: &str) -> StoreResult<f64> {
+    if v.is_finite() {
+        Ok(v)
+    } else {
+        Err(StoreError::InvalidInput(format!(
+            "{what} must be finite, got {v}"
+        )))
+    }
+}
+
+/// The `WHERE` clause of a fault filter (binds added by [`bind_fault_filter`]).
+fn fault_where(filter: &FaultFilter) -> String {
+    let mut clauses = Vec::new();
+    if filter.job.is_some() {
+        clauses.push("job = ?");
+    }
+    if filter.worker.is_some() {
+        clauses.push("worker = ?");
+    }
+    if clauses.is_empty() {
+        String::new()
+    } else {
+        format!("WHERE {}", clauses.join(" AND "))
+    }
+}
+
+type SqliteQuery<'q> = sqlx::query::Query<'q, sqlx::Sqlite, sqlx::sqlite::SqliteArguments<'q>>;
+
+fn bind_fault_filter<'q>(
+    mut q: SqliteQuery<'q>,
+    filter: &'q FaultFilter,
+) -> StoreResult<SqliteQuery<'q>> {
+    if let Some(job) = filter.job {
+        q = q.bind(to_i64(job, "job id")?);
+    }
+    if let Some(worker) = &filter.worker {
+        q = q.bind(worker.as_str());
+    }
+    Ok(q)
+}
+
+#[async_trait]
+impl Store for SqliteStore {
+    async fn insert_job(&self, job: NewJob) -> StoreResult<(JobId, bool)> {
+        job.plan
+            .validate()
+            .map_err(|e| StoreError::InvalidInput(format!("job plan: {e}")))?;
+        if job.frames.start > job.frames.end {
+            return Err(StoreError::InvalidInput(format!(
+                "job frames: start {} > end {}",
+                job.frames.start, job.frames.end
+            )));
+        }
+        if job.passes_per_unit == 0 {
+            return Err(StoreError::InvalidInput(
+                "job passes_per_unit must be at least 1".into(),
+            ));
+        }
+        let created = to_i64(job.created_unix_ms, "created_unix_ms")?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let inserted: Option<i64> = sqlx::query_scalar(
+            "INSERT INTO jobs (idempotency_key, name, scene_ref, settings_json, \
+                 plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
+                 first_frame, last_frame, passes_per_unit, priority, state, created_unix_ms) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, 'queued', ?14) \
+             ON CONFLICT (idempotency_key) DO NOTHING \
+             RETURNING id",
+        )
+        .bind(job.idempotency_key.as_deref())
+        .bind(job.name.as_deref())
+        .bind(&job.scene_ref)
+        .bind(&job.settings_json)
+        .bind(i64::from(job.plan.width))
+        .bind(i64::from(job.plan.height))
+        .bind(i64::from(job.plan.tile_size))
+        .bind(i64::from(job.plan.samples_per_pass))
+        .bind(i64::from(job.plan.passes))
+        .bind(i64::from(job.frames.start))
+        .bind(i64::from(job.frames.end))
+        .bind(i64::from(job.passes_per_unit))
+        .bind(job.priority)
+        .bind(created)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let (id, created) = match inserted {
+            Some(id) => (id, true),
+            None => {
+                // Only a conflicting idempotency key makes the insert do nothing.
+                let id: i64 = sqlx::query_scalar("SELECT id FROM jobs WHERE idempotency_key = ?1")
+                    .bind(job.idempotency_key.as_deref())
+                    .fetch_one(&mut *tx)
+                    .await?;
+                (id, false)
+            }
+        };
+        tx.commit().await?;
+        let id = JobId::try_from(id)
+            .map_err(|_| StoreError::Corrupt(format!("jobs: negative id {id}")))?;
+        Ok((id, created))
+    }
+
+    async fn get_job(&self, id: JobId) -> StoreResult<Option<JobRecord>> {
+        let Ok(key) = i64::try_from(id) else {
+            return Ok(None);
+        };
+        sqlx::query(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?1"))
+            .bind(key)
+            .fetch_optional(&self.reader)
+            .await?
+            .as_ref()
+            .map(job_from_row)
+            .transpose()
+    }
+
+    async fn list_jobs(&self, query: JobQuery) -> StoreResult<Vec<JobRecord>> {
+        if query.limit == 0 {
+            return Ok(Vec::new());
+        }
+        let (cmp, dir, default_cursor) = match query.order {
+            JobOrder::NewestFirst => ("<", "DESC", i64::MAX),
+            JobOrder::OldestFirst => (">", "ASC", 0),
+        };
+        let cursor = match (query.cursor.map(i64::try_from), query.order) {
+            (None, _) => default_cursor,
+            (Some(Ok(c)), _) => c,
+            // A cursor above every possible id: all ids come after it newest first, none
+            // oldest first.
+            (Some(Err(_)), JobOrder::NewestFirst) => i64::MAX,
+            (Some(Err(_)), JobOrder::OldestFirst) => return Ok(Vec::new()),
+        };
+        let sql = format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE id {cmp} ?1 AND (?2 IS NULL OR state = ?2) \
+             ORDER BY id {dir} LIMIT ?3"
+        );
+        let rows = sqlx::query(&sql)
+            .bind(cursor)
+            .bind(query.state.map(JobState::as_str))
+            .bind(i64::from(query.limit))
+            .fetch_all(&self.reader)
+            .await?;
+        rows.iter().map(job_from_row).collect()
+    }
+
+    async fn set_job_state(
+        &self,
+        id: JobId,
+        state: JobState,
+        error: Option<String>,
+        now_unix_ms: u64,
+    ) -> StoreResult<bool> {
+        let key = i64::try_from(id).map_err(|_| StoreError::JobNotFound(id))?;
+        let now = to_i64(now_unix_ms, "now_unix_ms")?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let changed = sqlx::query(
+            "UPDATE jobs SET state = ?2, error = ?3, \
+                 started_unix_ms = CASE WHEN ?2 = 'running' AND started_unix_ms IS NULL \
+                     THEN ?4 ELSE started_unix_ms END, \
+                 finished_unix_ms = CASE WHEN ?2 IN ('done', 'failed', 'canceled') \
+                     THEN ?4 ELSE finished_unix_ms END \
+             WHERE id = ?1 AND state IN ('queued', 'running')",
+        )
+        .bind(key)
+        .bind(state.as_str())
+        .bind(error.as_deref())
+        .bind(now)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        let exists = changed > 0
+            || sqlx::query_scalar::<_, i64>("SELECT EXISTS (SELECT 1 FROM jobs WHERE id = ?1)")
+                .bind(key)
+                .fetch_one(&mut *tx)
+                .await?
+                != 0;
+        tx.commit().await?;
+        if exists {
+            Ok(changed > 0)
+        } else {
+            Err(StoreError::JobNotFound(id))
+        }
+    }
+
+    async fn jobs_to_resume(&self) -> StoreResult<Vec<JobRecord>> {
+        let rows = sqlx::query(&format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE state IN ('queued', 'running') ORDER BY id"
+        ))
+        .fetch_all(&self.reader)
+        .await?;
+        rows.iter().map(job_from_row).collect()
+    }
+
+    async fn put_scene(&self, hash: &str, bytes: &[u8]) -> StoreResult<bool> {
+        if hash.is_empty() {
+            return Err(StoreError::InvalidInput("scene hash is empty".into()));
+        }
+        let size = to_i64(bytes.len() as u64, "scene size")?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let stored = sqlx::query(
+            "INSERT INTO scenes (hash, size, data, stored_unix_ms) VALUES (?1, ?2, ?3, ?4) \
+             ON CONFLICT (hash) DO NOTHING",
+        )
+        .bind(hash)
+        .bind(size)
+        .bind(bytes)
+        .bind(now_unix_ms())
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        tx.commit().await?;
+        Ok(stored > 0)
+    }
+
+    async fn get_scene(&self, hash: &str) -> StoreResult<Option<Vec<u8>>> {
+        Ok(
+            sqlx::query_scalar("SELECT data FROM scenes WHERE hash = ?1")
+                .bind(hash)
+                .fetch_optional(&self.reader)
+                .await?,
+        )
+    }
+
+    async fn scene_exists(&self, hash: &str) -> StoreResult<bool> {
+        let exists: i64 =
+            sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM scenes WHERE hash = ?1)")
+                .bind(hash)
+                .fetch_one(&self.reader)
+                .await?;
+        Ok(exists != 0)
+    }
+
+    async fn save_tiles(&self, tiles: &[TileCheckpointRef<'_>]) -> StoreResult<()> {
+        if tiles.is_empty() {
+            return Ok(());
+        }
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let mut plans: Vec<(JobId, FramePlan, FrameRange)> = Vec::new();
+        for t in tiles {
+            let (plan, frames) = match plans.iter().find(|p| p.0 == t.job) {
+                Some(&(_, plan, frames)) => (plan, frames),
+                None => {
+                    let (plan, frames) = Self::job_plan(&mut *tx, t.job).await?;
+                    plans.push((t.job, plan, frames));
+                    (plan, frames)
+                }
+            };
+            check_checkpoint(
+                &plan,
+                frames,
+                t.frame,
+                t.tile,
+                t.merged_passes,
+                t.pixels,
+                t.units,
+            )
+            .map_err(|reason| {
+                StoreError::InvalidInput(format!(
+                    "checkpoint of job {}, frame {}, tile {}: {reason}",
+                    t.job, t.frame, t.tile
+                ))
+            })?;
+            sqlx::query(
+                "INSERT INTO tiles (job, frame, tile, merged_passes, stats, units) \
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6) \
+                 ON CONFLICT (job, frame, tile) DO UPDATE SET \
+                     merged_passes = excluded.merged_passes, \
+                     stats = excluded.stats, \
+                     units = excluded.units",
+            )
+            .bind(to_i64(t.job, "job id")?)
+            .bind(i64::from(t.frame))
+            .bind(i64::from(t.tile))
+            .bind(i64::from(t.merged_passes))
+            .bind(encode_stats(t.pixels))
+            .bind(encode_units(t.units))
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    async fn load_tiles(&self, job: JobId, frame: Option<u32>) -> StoreResult<Vec<TileCheckpoint>> {
+        let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
+        let (plan, frames) = Self::job_plan(&self.reader, job).await?;
+        let rows = sqlx::query(
+            "SELECT frame, tile, merged_passes, stats, units FROM tiles \
+             WHERE job = ?1 AND (?2 IS NULL OR frame = ?2) ORDER BY frame, tile",
+        )
+        .bind(key)
+        .bind(frame.map(i64::from))
+        .fetch_all(&self.reader)
+        .await?;
+        let place = || format!("tiles of job {job}");
+        rows.iter()
+            .map(|row| {
+                let frame: u32 = int_col(row, "frame", &place)?;
+                let tile: u32 = int_col(row, "tile", &place)?;
+                let corrupt = |reason: String| StoreError::CorruptTile {
+                    job,
+                    frame,
+                    tile,
+                    reason,
+                };
+                let merged_passes: u32 = int_col(row, "merged_passes", &place)?;
+                let stats: Vec<u8> = row.try_get("stats")?;
+                let units: Vec<u8> = row.try_get("units")?;
+                let pixels = decode_stats(&stats).map_err(corrupt)?;
+                let units = decode_units(&units).map_err(corrupt)?;
+                check_checkpoint(&plan, frames, frame, tile, merged_passes, &pixels, &units)
+                    .map_err(corrupt)?;
+                Ok(TileCheckpoint {
+                    job,
+                    frame,
+                    tile,
+                    merged_passes,
+                    pixels,
+                    units,
+                })
+            })
+            .collect()
+    }
+
+    async fn max_lease_id(&self) -> StoreResult<u64> {
+        let v: Option<i64> =
+            sqlx::query_scalar("SELECT value FROM counters WHERE name = 'lease_high_water'")
+                .fetch_optional(&self.reader)
+                .await?;
+        let v = v.ok_or_else(|| {
+            StoreError::Corrupt("counters: the lease_high_water row is missing".into())
+        })?;
+        u64::try_from(v)
+            .map_err(|_| StoreError::Corrupt(format!("counters: lease_high_water = {v}")))
+    }
+
+    async fn record_lease_high_water(&self, lease_id: u64) -> StoreResult<()> {
+        let v = to_i64(lease_id, "lease id")?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let n = sqlx::query(
+            "UPDATE counters SET value = MAX(value, ?1) WHERE name = 'lease_high_water'",
+        )
+        .bind(v)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if n != 1 {
+            return Err(StoreError::Corrupt(
+                "counters: the lease_high_water row is missing".into(),
+            ));
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {
+        let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
+        let elapsed = check_finite(point.elapsed_seconds, "history elapsed_seconds")?;
+        let spp = check_finite(point.spp, "history spp")?;
+        let error = point
+            .error_estimate
+            .map(|e| check_finite(e, "history error_estimate"))
+            .transpose()?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let n = sqlx::query(
+            "INSERT INTO history (job, elapsed_seconds, spp, error_estimate) \
+             SELECT ?1, ?2, ?3, ?4 WHERE EXISTS (SELECT 1 FROM jobs WHERE id = ?1)",
+        )
+        .bind(key)
+        .bind(elapsed)
+        .bind(spp)
+        .bind(error)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if n == 0 {
+            return Err(StoreError::JobNotFound(job));
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    async fn list_history(&self, job: JobId) -> StoreResult<Vec<HistoryPoint>> {
+        let Ok(key) = i64::try_from(job) else {
+            return Ok(Vec::new());
+        };
+        let rows = sqlx::query(
+            "SELECT elapsed_seconds, spp, error_estimate FROM history WHERE job = ?1 ORDER BY seq",
+        )
+        .bind(key)
+        .fetch_all(&self.reader)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                Ok(HistoryPoint {
+                    elapsed_seconds: r.try_get("elapsed_seconds")?,
+                    spp: r.try_get("spp")?,
+                    error_estimate: r.try_get("error_estimate")?,
+                })
+            })
+            .collect()
+    }
+
+    async fn record_fault(&self, fault: &FaultEvent) -> StoreResult<()> {
+        let job = fault.job.map(|j| to_i64(j, "fault job")).transpose()?;
+        let unix_ms = to_i64(fault.unix_ms, "fault unix_ms")?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        sqlx::query(
+            "INSERT INTO faults (worker, job, kind, message, unix_ms) VALUES (?1, ?2, ?3, ?4, ?5)",
+        )
+        .bind(&fault.worker)
+        .bind(job)
+        .bind(fault.kind.as_str())
+        .bind(&fault.message)
+        .bind(unix_ms)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    async fn count_faults(&self, filter: &FaultFilter) -> StoreResult<u64> {
+        let sql = format!("SELECT COUNT(*) AS n FROM faults {}", fault_where(filter));
+        let row = bind_fault_filter(sqlx::query(&sql), filter)?
+            .fetch_one(&self.reader)
+            .await?;
+        int_col(&row, "n", &|| "faults".to_string())
+    }
+
+    async fn list_faults(&self, filter: &FaultFilter, limit: u32) -> StoreResult<Vec<FaultEvent>> {
+        let sql = format!(
+            "SELECT worker, job, kind, message, unix_ms FROM faults {} ORDER BY id DESC LIMIT ?",
+            fault_where(filter)
+        );
+        let rows = bind_fault_filter(sqlx::query(&sql), filter)?
+            .bind(i64::from(limit))
+            .fetch_all(&self.reader)
+            .await?;
+        rows.iter()
+            .map(|r| {
+                let place = || "faults row".to_string();
+                let kind: String = r.try_get("kind")?;
+                Ok(FaultEvent {
+                    worker: r.try_get("worker")?,
+                    job: opt_int_col(r, "job", &place)?,
+                    kind: FaultKind::parse(&kind).ok_or_else(|| {
+                        StoreError::Corrupt(format!("faults row: unknown kind {kind:?}"))
+                    })?,
+                    message: r.try_get("message")?,
+                    unix_ms: int_col(r, "unix_ms", &place)?,
+                })
+            })
+            .collect()
+    }
+
+    async fn ping(&self) -> StoreResult<()> {
+        sqlx::query("SELECT 1").execute(&self.reader).await?;
+        Ok(())
+    }
+
+    async fn close(&self) {
+        self.writer.close().await;
+        self.reader.close().await;
+    }
+}

@@ -1,0 +1,433 @@
+//! The Tessera worker: a gRPC client loop around [`tessera_render::render::render_unit`].
+//!
+//! A worker registers with the coordinator, then repeatedly leases work units, renders
+//! them on all its threads and submits the per-pass results, while a heartbeat task keeps
+//! its leases alive. Scenes are fetched once by content hash (in chunks, verified against
+//! their SHA-256) and cached together with their built BVH, so a worker pays for a scene
+//! once however many units of it it renders. When the coordinator is away the worker
+//! reconnects with exponential backoff and registers again; on shutdown it finishes the
+//! units in hand, submits them, returns anything it has not started, and exits.
+//!
+//! Rendering is deterministic (DESIGN §2): the bytes a worker submits for a unit depend
+//! only on the scene, the settings and the unit, so the coordinator can compare duplicates.
+#![deny(missing_docs)]
+
+use rayon::prelude::*;
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+use std::future::Future;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use tessera_api::{IntegratorChoice, MisChoice, RenderConfig, SamplerChoice, SceneRef};
+use tessera_farm::FramePlan;
+use tessera_proto::v1;
+use tessera_proto::LeasedUnit;
+use tessera_render::integrator::{IntegratorKind, MisHeuristic};
+use tessera_render::render::{render_unit, RenderSettings};
+use tessera_render::sampling::SamplerKind;
+use tessera_render::scene::RenderScene;
+use tessera_scene::Scene;
+use tonic::metadata::MetadataValue;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Endpoint};
+use tonic::{Request, Status};
+
+/// How to run a worker.
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    /// The coordinator's gRPC URL, e.g. `http://127.0.0.1:50051`.
+    pub coordinator: String,
+    /// Rendering threads.
+    pub threads: usize,
+    /// A name shown in the coordinator's worker list.
+    pub name: String,
+    /// Bearer token for the coordinator's worker port, if it requires one.
+    pub token: Option<String>,
+}
+
+/// Errors that end a worker.
+#[derive(Debug, thiserror::Error)]
+pub enum WorkerError {
+    /// The configuration is unusable.
+    #[error("invalid worker configuration: {0}")]
+    Config(String),
+    /// The coordinator refused this worker's credentials.
+    #[error("the coordinator refused the worker token: {0}")]
+    Unauthenticated(String),
+}
+
+/// The render settings a lease asks for, as the renderer's types. `auto` and `bdpt` resolve
+/// to the path tracer here (the same choice `tessera render` makes), so every worker
+/// renders a unit identically.
+pub fn render_settings(config: &RenderConfig) -> RenderSettings {
+    RenderSettings {
+        integrator: match config.integrator {
+            IntegratorChoice::Direct => IntegratorKind::Direct,
+            IntegratorChoice::Auto | IntegratorChoice::Path | IntegratorChoice::Bdpt => {
+                IntegratorKind::Path
+            }
+        },
+        mis: match config.mis {
+            MisChoice::Balance => MisHeuristic::Balance,
+            MisChoice::Power => MisHeuristic::Power,
+            MisChoice::Cutoff(a) => MisHeuristic::Cutoff(a),
+            MisChoice::Maximum => MisHeuristic::Maximum,
+        },
+        sampler: match config.sampler {
+            SamplerChoice::Sobol => SamplerKind::Sobol,
+            SamplerChoice::Independent => SamplerKind::Independent,
+        },
+        seed: config.seed,
+        max_depth: config.max_depth,
+        rr_depth: config.rr_depth,
+    }
+}
+
+/// Adds the bearer token to every request.
+#[derive(Clone)]
+struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>);
+
+impl tonic::service::Interceptor for Auth {
+    fn call(&mut self, mut req: Request<()>) -> Result<Request<()>, Status> {
+        if let Some(v) = &self.0 {
+            req.metadata_mut().insert("authorization", v.clone());
+        }
+        Ok(req)
+    }
+}
+
+type Client = v1::worker_service_client::WorkerServiceClient<InterceptedService<Channel, Auth>>;
+
+/// Scenes and their built forms, by scene reference.
+#[derive(Default)]
+struct SceneCache {
+    scenes: HashMap<String, Arc<Scene>>,
+    /// Built render scenes by (scene, width, height); a handful at most.
+    built: Vec<(String, u32, u32, Arc<RenderScene>)>,
+}
+
+const BUILT_CACHE: usize = 4;
+
+/// Runs a worker until `shutdown` completes. Transport failures are retried with backoff;
+/// only a configuration error or a refused token ends it early.
+pub async fn run(
+    config: WorkerConfig,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), WorkerError> {
+    if config.threads == 0 || config.threads > 4096 {
+        return Err(WorkerError::Config(format!(
+            "threads {} must be between 1 and 4096",
+            config.threads
+        )));
+    }
+    let endpoint = Endpoint::from_shared(config.coordinator.clone())
+        .map_err(|e| WorkerError::Config(format!("coordinator URL {:?}: {e}", config.coordinator)))?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true);
+    let auth = match &config.token {
+        Some(t) => Some(
+            format!("Bearer {t}")
+                .parse()
+                .map_err(|_| WorkerError::Config("the token must be printable ASCII".into()))?,
+        ),
+        None => None,
+    };
+    let pool = Arc::new(
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(config.threads)
+            .thread_name(|i| format!("tessera-render-{i}"))
+            .build()
+            .map_err(|e| WorkerError::Config(format!("thread pool: {e}")))?,
+    );
+    let cache = Arc::new(Mutex::new(SceneCache::default()));
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let session = async {
+        let mut backoff = Duration::from_millis(100);
+        loop {
+            if *stop_rx.borrow() {
+                return Ok(());
+            }
+            match endpoint.connect().await {
+                Ok(channel) => {
+                    let client = v1::worker_service_client::WorkerServiceClient::with_interceptor(
+                        channel,
+                        Auth(auth.clone()),
+                    );
+                    match serve(&config, client, &pool, &cache, stop_rx.clone()).await {
+                        Ok(()) => return Ok(()),
+                        Err(s) if s.code() == tonic::Code::Unauthenticated => {
+                            return Err(WorkerError::Unauthenticated(s.message().to_string()))
+                        }
+                        Err(s) => {
+                            tracing::warn!(error = %s, "coordinator connection lost");
+                            backoff = Duration::from_millis(100);
+                        }
+                    }
+                }
+                Err(e) => tracing::debug!(error = %e, "coordinator not reachable"),
+            }
+            let mut stop = stop_rx.clone();
+            tokio::select! {
+                _ = tokio::time::sleep(backoff) => {}
+                _ = stop.changed() => {}
+            }
+            backoff = (backoff * 2).min(Duration::from_secs(5));
+        }
+    };
+    tokio::pin!(session);
+    tokio::pin!(shutdown);
+    tokio::select! {
+        r = &mut session => r,
+        _ = &mut shutdown => {
+            // Ask the session to finish what it holds, then wait for it.
+            let _ = stop_tx.send(true);
+            session.await
+        }
+    }
+}
+
+/// One registered session with the coordinator. Returns `Ok` when asked to stop, or the
+/// status that broke the connection.
+async fn serve(
+    config: &WorkerConfig,
+    mut client: Client,
+    pool: &Arc<rayon::ThreadPool>,
+    cache: &Arc<Mutex<SceneCache>>,
+    stop: tokio::sync::watch::Receiver<bool>,
+) -> Result<(), Status> {
+    let reg = client
+        .register(v1::RegisterRequest {
+            name: config.name.clone(),
+            threads: config.threads as u32,
+            version: env!("CARGO_PKG_VERSION").to_string(),
+            capabilities: vec!["path".into(), "direct".into()],
+        })
+        .await?
+        .into_inner();
+    let worker_id = reg.worker_id;
+    let heartbeat_every =
+        Duration::from_millis(u64::from(reg.heartbeat_interval_ms.clamp(50, 60_000)));
+    tracing::info!(worker_id, name = %config.name, "registered");
+    let mut paths_per_second = 0.0f64;
+    loop {
+        if *stop.borrow() {
+            return Ok(());
+        }
+        let resp = client
+            .lease_work(v1::LeaseRequest {
+                worker_id,
+                max_units: (config.threads * 2) as u32,
+            })
+            .await?
+            .into_inner();
+        if resp.leases.is_empty() {
+            let wait = Duration::from_millis(u64::from(resp.retry_after_ms.clamp(20, 2000)));
+            let mut stop = stop.clone();
+            tokio::select! {
+                _ = tokio::time::sleep(wait) => {}
+                _ = stop.changed() => {}
+            }
+            continue;
+        }
+        let mut leases = Vec::with_capacity(resp.leases.len());
+        for l in resp.leases {
+            match LeasedUnit::try_from(l) {
+                Ok(l) => leases.push(l),
+                Err(e) => tracing::warn!(error = %e, "coordinator sent an invalid lease"),
+            }
+        }
+        // Make sure every scene is here and built before the clock starts.
+        let mut jobs: Vec<(LeasedUnit, Arc<RenderScene>)> = Vec::with_capacity(leases.len());
+        let mut unusable = Vec::new();
+        for l in leases {
+            match scene_for(&mut client, cache, &l.scene, &l.plan).await {
+                Ok(rs) => jobs.push((l, rs)),
+                Err(e) => {
+                    tracing::warn!(scene = %l.scene, error = %e, "cannot load scene; returning lease");
+                    unusable.push(l.lease_id);
+                }
+            }
+        }
+        if !unusable.is_empty() {
+            client
+                .return_leases(v1::ReturnLeasesRequest {
+                    worker_id,
+                    lease_ids: unusable,
+                })
+                .await?;
+        }
+        // Render on the pool while heartbeats keep the leases alive.
+        let lease_ids: Vec<u64> = jobs.iter().map(|(l, _)| l.lease_id).collect();
+        let pool2 = pool.clone();
+        let started = Instant::now();
+        let mut render = tokio::task::spawn_blocking(move || {
+            pool2.install(|| {
+                jobs.par_iter()
+                    .map(|(l, rs)| {
+                        let t = Instant::now();
+                        let r = render_unit(rs, &render_settings(&l.settings), &l.plan, l.unit);
+                        let paths = r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass);
+                        (l.lease_id, r, t.elapsed().as_secs_f64(), paths)
+                    })
+                    .collect::<Vec<_>>()
+            })
+        });
+        let mut canceled: Vec<u64> = Vec::new();
+        let results = loop {
+            tokio::select! {
+                r = &mut render => break r.map_err(|e| Status::internal(format!("render task failed: {e}")))?,
+                _ = tokio::time::sleep(heartbeat_every) => {
+                    let hb = client
+                        .heartbeat(v1::HeartbeatRequest { worker_id, lease_ids: lease_ids.clone(), paths_per_second })
+                        .await?
+                        .into_inner();
+                    canceled.extend(hb.cancel);
+                }
+            }
+        };
+        let seconds = started.elapsed().as_secs_f64().max(1e-9);
+        let paths: f64 = results.iter().map(|r| r.3).sum();
+        paths_per_second = paths / seconds;
+        for (lease_id, result, secs, _) in results {
+            if canceled.contains(&lease_id) {
+                continue;
+            }
+            let req = v1::SubmitResultRequest::from_result(worker_id, lease_id, &result, secs);
+            let resp = client.submit_result(req).await?.into_inner();
+            if !resp.accepted {
+                tracing::warn!(lease_id, reason = %resp.reason, "result not accepted");
+            }
+        }
+    }
+}
+
+/// The built scene for a lease, from the cache or fetched and built now.
+async fn scene_for(
+    client: &mut Client,
+    cache: &Arc<Mutex<SceneCache>>,
+    scene: &SceneRef,
+    plan: &FramePlan,
+) -> Result<Arc<RenderScene>, String> {
+    let key = scene.to_string();
+    {
+        let c = cache
+            .lock()
+            .map_err(|_| "scene cache poisoned".to_string())?;
+        if let Some((_, _, _, rs)) = c
+            .built
+            .iter()
+            .find(|(k, w, h, _)| *k == key && *w == plan.width && *h == plan.height)
+        {
+            return Ok(rs.clone());
+        }
+    }
+    let cached = cache
+        .lock()
+        .map_err(|_| "scene cache poisoned".to_string())?
+        .scenes
+        .get(&key)
+        .cloned();
+    let parsed = match cached {
+        Some(s) => s,
+        None => {
+            let scene = match scene {
+                SceneRef::Builtin(name) => {
+                    tessera_scene::builtin::load(name).map_err(|e| e.to_string())?
+                }
+                SceneRef::Hash(hash) => {
+                    let bytes = fetch_scene(client, hash).await?;
+                    let name = format!("scene {hash}");
+                    tokio::task::spawn_blocking(move || {
+                        tessera_scene::gltf_import::load_slice(&bytes, &name, None, None)
+                    })
+                    .await
+                    .map_err(|e| e.to_string())?
+                    .map_err(|e| e.to_string())?
+                }
+            };
+            let scene = Arc::new(scene);
+            cache
+                .lock()
+                .map_err(|_| "scene cache poisoned".to_string())?
+                .scenes
+                .insert(key.clone(), scene.clone());
+            scene
+        }
+    };
+    let (w, h) = (plan.width, plan.height);
+    let built = tokio::task::spawn_blocking(move || RenderScene::build(&parsed, w, h))
+        .await
+        .map_err(|e| e.to_string())?
+        .map_err(|e| e.to_string())?;
+    let built = Arc::new(built);
+    let mut c = cache
+        .lock()
+        .map_err(|_| "scene cache poisoned".to_string())?;
+    c.built.push((key, w, h, built.clone()));
+    if c.built.len() > BUILT_CACHE {
+        c.built.remove(0);
+    }
+    Ok(built)
+}
+
+/// Fetches a scene's bytes by content hash and checks them against it.
+async fn fetch_scene(client: &mut Client, hash: &str) -> Result<Vec<u8>, String> {
+    let mut stream = client
+        .fetch_scene(v1::FetchSceneRequest {
+            scene_hash: hash.to_string(),
+        })
+        .await
+        .map_err(|s| format!("fetch scene {hash}: {}", s.message()))?
+        .into_inner();
+    let mut bytes = Vec::new();
+    while let Some(chunk) = stream
+        .message()
+        .await
+        .map_err(|s| format!("fetch scene {hash}: {}", s.message()))?
+    {
+        if chunk.offset != bytes.len() as u64 {
+            return Err(format!(
+                "scene {hash}: chunk at offset {} after {} bytes",
+                chunk.offset,
+                bytes.len()
+            ));
+        }
+        if chunk.total_size > tessera_scene::MAX_INPUT_BYTES {
+            return Err(format!(
+                "scene {hash}: {} bytes is too large",
+                chunk.total_size
+            ));
+        }
+        bytes.extend_from_slice(&chunk.data);
+    }
+    let digest = Sha256::digest(&bytes);
+    let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
+    if hex != hash {
+        return Err(format!("scene {hash}: received bytes hash to {hex}"));
+    }
+    Ok(bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn settings_map_every_choice() {
+        let mut c = RenderConfig {
+            integrator: IntegratorChoice::Direct,
+            mis: MisChoice::Cutoff(0.25),
+            sampler: SamplerChoice::Independent,
+            seed: 9,
+            max_depth: 5,
+            rr_depth: 2,
+        };
+        let s = render_settings(&c);
+        assert_eq!(s.integrator, IntegratorKind::Direct);
+        assert_eq!(s.mis, MisHeuristic::Cutoff(0.25));
+        assert_eq!(s.sampler, SamplerKind::Independent);
+        assert_eq!((s.seed, s.max_depth, s.rr_depth), (9, 5, 2));
+        c.integrator = IntegratorChoice::Auto;
+        assert_eq!(render_settings(&c).integrator, IntegratorKind::Path);
+    }
+}
