@@ -155,7 +155,10 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
         bail!("--spp must be at least 1");
     }
     if job.threads > 4096 {
-        bail!("--threads {} must be at most 4096 (0 = all cores)", job.threads);
+        bail!(
+            "--threads {} must be at most 4096 (0 = all cores)",
+            job.threads
+        );
     }
     let plan = FramePlan::for_spp(width, height, job.spp, job.tile_size)
         .context("invalid image or sampling settings")?;

@@ -73,7 +73,10 @@ fn exr_is_bit_identical_for_any_thread_count_and_across_runs() {
     assert!(exr.get("samples.Y").unwrap().iter().all(|&s| s == 16.0));
     // The settings travel in the header.
     let meta = exr.metadata.clone().unwrap_or_default();
-    assert!(meta.contains("\"seed\":3") && meta.contains("\"integrator\":\"path\""), "{meta}");
+    assert!(
+        meta.contains("\"seed\":3") && meta.contains("\"integrator\":\"path\""),
+        "{meta}"
+    );
     let mean_r: f32 = exr.get("R").unwrap().iter().sum::<f32>() / (64.0 * 48.0);
     assert!(mean_r > 0.05 && mean_r < 2.0, "mean red {mean_r}");
     let _ = std::fs::remove_dir_all(&dir);

@@ -319,7 +319,7 @@ impl Geometry {
             } else {
                 t_max
             };
-            let ray = Ray::new(shifted_origin, Vec3A::from(dir), 0.0, traversal_max);
+            let ray = Ray::new(shifted_origin, traversal_dir(dir), 0.0, traversal_max);
             let mut hit = RayHit::none();
             let tris = &self.triangles;
             self.bvh.ray_traverse(ray, &mut hit, |_, id| {
@@ -369,7 +369,7 @@ impl Geometry {
         let traversal_max = (t_max + shift) * (1.0 + 1e-5);
         let ray = Ray::new(
             Vec3A::from(origin - dir * shift),
-            Vec3A::from(dir),
+            traversal_dir(dir),
             0.0,
             traversal_max,
         );
@@ -381,6 +381,15 @@ impl Geometry {
                 None => f32::INFINITY,
             })
     }
+}
+
+/// The direction handed to obvhs. A third defect of obvhs 0.4.0: `safe_inverse(-0.0)` is
+/// `-1/ε` while the CWBVH picks the ray octant by `d < 0` (false for `-0.0`), so a ray with
+/// a negative-zero component (e.g. exactly along `-Z`) tests the wrong slab planes and
+/// misses. Adding `+0.0` turns `-0.0` into `+0.0` and leaves every other value unchanged.
+#[inline]
+fn traversal_dir(dir: Vec3) -> Vec3A {
+    Vec3A::from(dir + Vec3::ZERO)
 }
 
 /// Surface data at a hit, in world space.

@@ -13,13 +13,22 @@ fn gltf_cornell_box_has_the_builtin_radiance() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/cornell-box.gltf");
     let gltf = tessera_scene::load(path).unwrap();
     let builtin = tessera_scene::load("builtin:cornell-box").unwrap();
-    let settings = RenderSettings { seed: 1, ..RenderSettings::default() };
+    let settings = RenderSettings {
+        seed: 1,
+        ..RenderSettings::default()
+    };
     let a = render(&builtin, 32, 32, 64, &settings);
     let b = render(&gltf, 32, 32, 64, &settings);
     for c in 0..3 {
         let (ma, sa) = image_mean(&a, c);
         let (mb, sb) = image_mean(&b, c);
-        eprintln!("channel {c}: builtin {ma:.4} ± {sa:.4}, glTF {mb:.4} ± {sb:.4}, ratio {:.4}", mb / ma);
-        assert!((mb / ma - 1.0).abs() < 0.05, "channel {c}: builtin {ma} vs glTF {mb}");
+        eprintln!(
+            "channel {c}: builtin {ma:.4} ± {sa:.4}, glTF {mb:.4} ± {sb:.4}, ratio {:.4}",
+            mb / ma
+        );
+        assert!(
+            (mb / ma - 1.0).abs() < 0.05,
+            "channel {c}: builtin {ma} vs glTF {mb}"
+        );
     }
 }

@@ -90,13 +90,12 @@ impl MisHeuristic {
                     p / (p + q)
                 }
             }
-            Self::Maximum => {
-                if p >= q {
-                    1.0
-                } else {
-                    0.0
-                }
-            }
+            // Ties split evenly so the two weights still sum to one.
+            Self::Maximum => match p.partial_cmp(&q) {
+                Some(std::cmp::Ordering::Greater) => 1.0,
+                Some(std::cmp::Ordering::Less) => 0.0,
+                _ => 0.5,
+            },
         }
     }
 }

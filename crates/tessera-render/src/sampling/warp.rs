@@ -638,7 +638,10 @@ mod tests {
     /// Runs the cases on two threads (the test machine has two cores) and returns the
     /// failure messages.
     fn run_family(cases: &[Case], cfg: &Chi2Config) -> Vec<String> {
-        let (even, odd): (Vec<_>, Vec<_>) = cases.iter().enumerate().partition(|(i, _)| i.is_multiple_of(2));
+        let (even, odd): (Vec<_>, Vec<_>) = cases
+            .iter()
+            .enumerate()
+            .partition(|(i, _)| i.is_multiple_of(2));
         let run = |part: Vec<(usize, &Case)>| -> Vec<String> {
             part.into_iter()
                 .filter_map(|(_, (name, f))| match f(cfg) {
