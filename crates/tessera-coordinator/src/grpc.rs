@@ -256,33 +256,15 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         let (worker_id, lease_id) = (r.worker_id, r.lease_id);
         let result: Result<UnitResult, _> = UnitResult::try_from(r);
         let mut farm = self.lock()?;
-        let job = farm
-            .scheduler
-            .leases()
-            .find(|l| l.lease_id == lease_id)
-            .map(|l| l.job);
-        let outcome = match (result, job) {
+        // The scheduler knows the job of outstanding and lapsed leases alike, and checks
+        // that the lease was issued for exactly this unit.
+        let outcome = match (result, farm.scheduler.lease_job(lease_id)) {
             (Err(e), _) => Err(e.to_string()),
             (Ok(result), Some(job)) => farm
                 .scheduler
                 .submit(lease_id, job, result)
                 .map_err(|e| e.to_string()),
-            (Ok(result), None) => {
-                // A lapsed lease: find the job whose unit this is (the scheduler checks the
-                // lease was really issued for it).
-                let jobs: Vec<JobId> = farm.jobs.keys().copied().collect();
-                let mut outcome = Err(SubmitError::UnknownLease(lease_id).to_string());
-                for job in jobs {
-                    match farm.scheduler.submit(lease_id, job, result.clone()) {
-                        Err(SubmitError::UnknownLease(_)) => continue,
-                        other => {
-                            outcome = other.map_err(|e| e.to_string());
-                            break;
-                        }
-                    }
-                }
-                outcome
-            }
+            (Ok(_), None) => Err(SubmitError::UnknownLease(lease_id).to_string()),
         };
         let w = farm.workers.entry(worker_id).or_default();
         w.last_seen_ms = now_ms();

@@ -373,6 +373,10 @@ impl Scheduler {
         job.canceled = true;
         job.returned.clear();
         let ids: Vec<u64> = job.leased.values().copied().collect();
+        // Remember them so a late result is answered "canceled", not "unknown lease".
+        for (&i, &id) in &job.leased {
+            self.lapsed.insert(id, (job_id, i));
+        }
         job.leased.clear();
         ids.iter().filter_map(|id| self.leases.remove(id)).collect()
     }
@@ -409,6 +413,14 @@ impl Scheduler {
         self.jobs
             .get(&job_id)
             .is_some_and(|j| j.frames.iter().all(|f| f.complete()))
+    }
+
+    /// The job a lease was issued for, whether it is outstanding or has lapsed.
+    pub fn lease_job(&self, lease_id: u64) -> Option<JobId> {
+        self.leases
+            .get(&lease_id)
+            .map(|l| l.job)
+            .or_else(|| self.lapsed.get(&lease_id).map(|(j, _)| *j))
     }
 
     /// All outstanding leases.

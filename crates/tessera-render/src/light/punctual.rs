@@ -56,6 +56,27 @@ pub fn spot_falloff(cos_theta: f32, cos_inner: f32, cos_outer: f32) -> f32 {
     t * t
 }
 
+/// Light from an isotropic point of intensity `intensity` at `position`: `I / d²`.
+#[inline]
+fn point_sample(p_ref: Vec3, position: Vec3, intensity: Vec3) -> Option<LightSample> {
+    let d = position - p_ref;
+    let d2 = d.length_squared();
+    if d2 <= 0.0 {
+        return None;
+    }
+    let dist = d2.sqrt();
+    Some(LightSample {
+        wi: d / dist,
+        dist,
+        p: position,
+        p_error: Vec3::ZERO,
+        n: Vec3::ZERO,
+        li: intensity / d2,
+        pdf: 1.0,
+        delta: true,
+    })
+}
+
 impl Punctual {
     pub(crate) fn power(&self) -> Vec3 {
         match *self {
@@ -81,24 +102,7 @@ impl Punctual {
             Punctual::Point {
                 position,
                 intensity,
-            } => {
-                let d = position - p_ref;
-                let d2 = d.length_squared();
-                if d2 <= 0.0 {
-                    return None;
-                }
-                let dist = d2.sqrt();
-                Some(LightSample {
-                    wi: d / dist,
-                    dist,
-                    p: position,
-                    p_error: Vec3::ZERO,
-                    n: Vec3::ZERO,
-                    li: intensity / d2,
-                    pdf: 1.0,
-                    delta: true,
-                })
-            }
+            } => point_sample(p_ref, position, intensity),
             Punctual::Spot {
                 position,
                 axis,
@@ -106,27 +110,14 @@ impl Punctual {
                 cos_inner,
                 cos_outer,
             } => {
-                let d = position - p_ref;
-                let d2 = d.length_squared();
-                if d2 <= 0.0 {
-                    return None;
-                }
-                let dist = d2.sqrt();
-                let wi = d / dist;
-                let s = spot_falloff((-wi).dot(axis), cos_inner, cos_outer);
+                // A point light whose intensity falls off with the angle from the axis.
+                let mut ls = point_sample(p_ref, position, intensity)?;
+                let s = spot_falloff((-ls.wi).dot(axis), cos_inner, cos_outer);
                 if s <= 0.0 {
                     return None;
                 }
-                Some(LightSample {
-                    wi,
-                    dist,
-                    p: position,
-                    p_error: Vec3::ZERO,
-                    n: Vec3::ZERO,
-                    li: intensity * (s / d2),
-                    pdf: 1.0,
-                    delta: true,
-                })
+                ls.li *= s;
+                Some(ls)
             }
             Punctual::Directional {
                 direction,
