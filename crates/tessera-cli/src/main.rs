@@ -14,6 +14,8 @@ use tessera_render::sampling::SamplerKind;
 use tessera_render::scene::RenderScene;
 use tessera_scene::analysis::{analyse, PlannedIntegrator, RenderPlan};
 
+mod farm;
+
 #[derive(Parser)]
 #[command(
     name = "tessera",
@@ -31,6 +33,16 @@ enum Command {
     Render(RenderArgs),
     /// Measure rendering throughput (paths per second).
     Bench(BenchArgs),
+    /// The whole farm on this machine: a coordinator and local workers over loopback gRPC.
+    Serve(farm::ServeArgs),
+    /// Run a coordinator: HTTP API and dashboard, gRPC port for workers, SQLite store.
+    Coordinator(farm::CoordinatorArgs),
+    /// Run a worker that leases and renders work units from a coordinator.
+    Worker(farm::WorkerArgs),
+    /// Submit a job to a coordinator (optionally wait for it and download the image).
+    Submit(farm::SubmitArgs),
+    /// Show jobs of a coordinator.
+    Status(farm::StatusArgs),
 }
 
 #[derive(Args, Clone)]
@@ -114,6 +126,11 @@ fn main() {
     let result = match cli.command {
         Command::Render(args) => render(args),
         Command::Bench(args) => bench(args),
+        Command::Serve(args) => farm::serve(args),
+        Command::Coordinator(args) => farm::coordinator(args),
+        Command::Worker(args) => farm::worker(args),
+        Command::Submit(args) => farm::submit(args),
+        Command::Status(args) => farm::status(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

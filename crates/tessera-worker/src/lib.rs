@@ -267,7 +267,7 @@ async fn serve(
                         let t = Instant::now();
                         let r = render_unit(rs, &render_settings(&l.settings), &l.plan, l.unit);
                         let paths = r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass);
-                        (l.lease_id, r, t.elapsed().as_secs_f64(), paths)
+                        (l.lease_id, l.job_id, r, t.elapsed().as_secs_f64(), paths)
                     })
                     .collect::<Vec<_>>()
             })
@@ -286,13 +286,14 @@ async fn serve(
             }
         };
         let seconds = started.elapsed().as_secs_f64().max(1e-9);
-        let paths: f64 = results.iter().map(|r| r.3).sum();
+        let paths: f64 = results.iter().map(|r| r.4).sum();
         paths_per_second = paths / seconds;
-        for (lease_id, result, secs, _) in results {
+        for (lease_id, job_id, result, secs, _) in results {
             if canceled.contains(&lease_id) {
                 continue;
             }
-            let req = v1::SubmitResultRequest::from_result(worker_id, lease_id, &result, secs);
+            let mut req = v1::SubmitResultRequest::from_result(worker_id, lease_id, &result, secs);
+            req.job_id = job_id;
             let resp = client.submit_result(req).await?.into_inner();
             if !resp.accepted {
                 tracing::warn!(lease_id, reason = %resp.reason, "result not accepted");
