@@ -171,6 +171,15 @@ impl Client {
         Self::json(&self.finish(req.call())?)
     }
 
+    /// `GET PATH` outside the API prefix, e.g. `/metrics` or `/healthz`.
+    pub fn get_raw(&self, path: &str) -> Result<Vec<u8>, ClientError> {
+        let mut req = self.agent.get(format!("{}{path}", self.base));
+        if let Some(t) = &self.token {
+            req = req.header("authorization", format!("Bearer {t}"));
+        }
+        self.finish(req.call())
+    }
+
     /// `GET /workers`.
     pub fn workers(&self) -> Result<WorkerList, ClientError> {
         Self::json(&self.get_bytes("/workers")?)

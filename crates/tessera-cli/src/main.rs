@@ -43,6 +43,8 @@ enum Command {
     Submit(farm::SubmitArgs),
     /// Show jobs of a coordinator.
     Status(farm::StatusArgs),
+    /// Measure the farm's overhead: `tessera serve` against `tessera render`, side by side.
+    BenchFarm(farm::BenchFarmArgs),
 }
 
 #[derive(Args, Clone)]
@@ -131,6 +133,7 @@ fn main() {
         Command::Worker(args) => farm::worker(args),
         Command::Submit(args) => farm::submit(args),
         Command::Status(args) => farm::status(args),
+        Command::BenchFarm(args) => farm::bench_farm(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
