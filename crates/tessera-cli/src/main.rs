@@ -49,7 +49,7 @@ struct JobArgs {
     /// Image height (default: the scene's).
     #[arg(long)]
     height: Option<u32>,
-    /// auto (follow the scene's render plan), path or direct. An explicit integrator
+    /// auto (follow the scene's render plan), path, direct or bdpt. An explicit integrator
     /// overrides the plan and renders with the general configuration (max depth 16 unless
     /// --max-depth is given).
     #[arg(long, default_value = "auto")]
@@ -160,8 +160,6 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
             job.threads
         );
     }
-    let plan = FramePlan::for_spp(width, height, job.spp, job.tile_size)
-        .context("invalid image or sampling settings")?;
     if let Some(d) = job.max_depth {
         if d == 0 || d > 1024 {
             bail!("--max-depth {d} must be between 1 and 1024");
@@ -169,7 +167,7 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     }
     // Analyse the scene (DESIGN §4); `auto` follows the plan, anything else overrides it.
     let mut render_plan = analyse(&scene);
-    let mut notes = Vec::new();
+    let notes = Vec::new();
     let mut black = false;
     let mut forced = Vec::new();
     let (integrator, plan_depth, rr_depth) = match job.integrator.as_str() {
@@ -185,18 +183,11 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
                 render_plan.max_depth,
                 render_plan.rr_depth,
             ),
-            PlannedIntegrator::Bdpt => {
-                let kind = "bdpt".parse::<IntegratorKind>().unwrap_or_else(|_| {
-                    notes.push(format!(
-                        "the plan chose bdpt, which this build does not have yet: rendering \
-                         with path (max depth {}), which renders caustics from delta lights \
-                         not at all and from tiny lights only with high variance",
-                        job.max_depth.unwrap_or(render_plan.max_depth)
-                    ));
-                    IntegratorKind::Path
-                });
-                (kind, render_plan.max_depth, render_plan.rr_depth)
-            }
+            PlannedIntegrator::Bdpt => (
+                IntegratorKind::Bdpt,
+                render_plan.max_depth,
+                render_plan.rr_depth,
+            ),
         },
         other => {
             let kind = other
@@ -214,6 +205,14 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     if !forced.is_empty() {
         render_plan.set_override(&forced.join(" "));
     }
+    // bdpt splats light tracing anywhere on the film: one whole-frame tile keeps every
+    // splat in the unit being rendered (see tessera_render::integrator::bdpt).
+    let plan = if integrator == IntegratorKind::Bdpt {
+        FramePlan::whole_frame(width, height, job.spp)
+    } else {
+        FramePlan::for_spp(width, height, job.spp, job.tile_size)
+    }
+    .context("invalid image or sampling settings")?;
     let settings = RenderSettings {
         integrator,
         mis: job.mis,

@@ -52,6 +52,11 @@ pub fn render_unit(
     plan: &FramePlan,
     unit: WorkUnit,
 ) -> UnitResult {
+    if settings.integrator == IntegratorKind::Bdpt {
+        // Light tracing splats across pixels: see `integrator::bdpt` for how a unit stays
+        // deterministic (and why bdpt plans use one whole-frame tile).
+        return crate::integrator::bdpt::render_unit(scene, settings, plan, unit);
+    }
     let rect = plan.tile(unit.tile);
     let pixels = (rect.width * rect.height) as usize;
     let spp = plan.samples_per_pass;
