@@ -2,6 +2,8 @@
 //! same plan, per-unit rendering and canonical merge the farm uses; `tessera bench`
 //! measures throughput.
 
+mod bench_plan;
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use std::io::IsTerminal;
@@ -31,6 +33,9 @@ enum Command {
     Render(RenderArgs),
     /// Measure rendering throughput (paths per second).
     Bench(BenchArgs),
+    /// Compare the render plan's configuration with the general one (and bdpt with path on
+    /// the caustic scene): time to reach a target error, side by side.
+    BenchPlan(bench_plan::BenchPlanArgs),
 }
 
 #[derive(Args, Clone)]
@@ -114,6 +119,7 @@ fn main() {
     let result = match cli.command {
         Command::Render(args) => render(args),
         Command::Bench(args) => bench(args),
+        Command::BenchPlan(args) => bench_plan::bench_plan(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

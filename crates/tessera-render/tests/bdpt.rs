@@ -8,6 +8,9 @@
 //! the blocks for a family-wise level of 1%, with at least 32 passes so that the estimated
 //! standard errors are close to exact.
 
+mod common;
+
+use common::{assert_blocks_agree, block_passes, block_stats, normal_sf, z_critical};
 use glam::Vec3;
 use rayon::prelude::*;
 use tessera_farm::{FrameAccumulator, FramePlan};
@@ -32,117 +35,6 @@ fn whole_frame_plan(w: u32, h: u32, spp_per_pass: u32, passes: u32) -> FramePlan
     FramePlan::new(w, h, w.max(h).max(4), spp_per_pass, passes).unwrap()
 }
 
-/// Luminance of the per-pass means of `block x block` pixel blocks: `[pass][block]`.
-fn block_passes(
-    rs: &RenderScene,
-    s: &RenderSettings,
-    plan: &FramePlan,
-    block: u32,
-) -> Vec<Vec<f64>> {
-    let units = plan.units(0, 1);
-    let (bx, by) = (plan.width.div_ceil(block), plan.height.div_ceil(block));
-    let mut per_pass: Vec<(u32, Vec<f64>)> = units
-        .par_iter()
-        .map(|u| {
-            let r = render_unit(rs, s, plan, *u);
-            let rect = plan.tile(u.tile);
-            let mut sums = vec![0.0f64; (bx * by) as usize];
-            let mut counts = vec![0u32; (bx * by) as usize];
-            for y in 0..rect.height {
-                for x in 0..rect.width {
-                    let m = r.pass_means[(y * rect.width + x) as usize];
-                    let (gx, gy) = (rect.x0 + x, rect.y0 + y);
-                    let b = ((gy / block) * bx + gx / block) as usize;
-                    sums[b] += 0.2126 * m[0] as f64 + 0.7152 * m[1] as f64 + 0.0722 * m[2] as f64;
-                    counts[b] += 1;
-                }
-            }
-            (u.first_pass * 1_000_000 + u.tile, {
-                sums.iter().zip(&counts).map(|(s, &c)| s / c as f64).collect()
-            })
-        })
-        .collect();
-    assert_eq!(plan.tile_count(), 1, "block_passes wants one tile per pass");
-    per_pass.sort_by_key(|p| p.0);
-    per_pass.into_iter().map(|p| p.1).collect()
-}
-
-/// Mean and variance of the mean of each block across passes.
-fn block_stats(passes: &[Vec<f64>]) -> Vec<(f64, f64)> {
-    let k = passes.len() as f64;
-    (0..passes[0].len())
-        .map(|b| {
-            let mean = passes.iter().map(|p| p[b]).sum::<f64>() / k;
-            let var = passes.iter().map(|p| (p[b] - mean).powi(2)).sum::<f64>() / (k - 1.0);
-            (mean, var / k)
-        })
-        .collect()
-}
-
-/// `1 - Φ(z)` (complementary error function of Numerical Recipes §6.2, relative error
-/// below 1.2e-7).
-fn normal_sf(z: f64) -> f64 {
-    let x = z / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.5 * x.abs());
-    let y = t
-        * (-x * x - 1.26551223
-            + t * (1.00002368
-                + t * (0.37409196
-                    + t * (0.09678418
-                        + t * (-0.18628806
-                            + t * (0.27886807
-                                + t * (-1.13520398
-                                    + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
-            .exp();
-    let erfc = if x >= 0.0 { y } else { 2.0 - y };
-    0.5 * erfc
-}
-
-/// Two-sided critical |z| for `tests` comparisons at family-wise level `alpha` (Bonferroni).
-fn z_critical(alpha: f64, tests: usize) -> f64 {
-    let target = alpha / (2.0 * tests as f64);
-    let (mut lo, mut hi) = (0.0f64, 40.0f64);
-    for _ in 0..200 {
-        let mid = 0.5 * (lo + hi);
-        if normal_sf(mid) > target {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    0.5 * (lo + hi)
-}
-
-/// z-tests of two block images; returns the largest |z| after asserting it is below the
-/// Bonferroni threshold. Blocks where both estimates are exactly zero are skipped.
-fn assert_blocks_agree(name: &str, a: &[(f64, f64)], b: &[(f64, f64)]) -> f64 {
-    let tested: Vec<usize> = (0..a.len())
-        .filter(|&i| a[i].1 + b[i].1 > 0.0)
-        .collect();
-    let crit = z_critical(0.01, tested.len());
-    let mut worst = 0.0f64;
-    let mut sum_z2 = 0.0;
-    for &i in &tested {
-        let z = (a[i].0 - b[i].0) / (a[i].1 + b[i].1).sqrt();
-        sum_z2 += z * z;
-        worst = worst.max(z.abs());
-        assert!(
-            z.abs() < crit,
-            "{name}: block {i}: {:.5} ± {:.5} vs {:.5} ± {:.5}, z = {z:.2} (critical {crit:.2})",
-            a[i].0,
-            a[i].1.sqrt(),
-            b[i].0,
-            b[i].1.sqrt()
-        );
-    }
-    eprintln!(
-        "{name}: {} blocks, max |z| = {worst:.2} (critical {crit:.2}), mean z² = {:.2}",
-        tested.len(),
-        sum_z2 / tested.len().max(1) as f64
-    );
-    worst
-}
-
 #[test]
 fn z_critical_is_right() {
     assert!((z_critical(0.05, 1) - 1.95996).abs() < 1e-3);
@@ -154,18 +46,21 @@ fn compare_with_path(scene_name: &str, w: u32, h: u32, spp: u32, passes: u32, bl
     let scene = tessera_scene::load(scene_name).unwrap();
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = whole_frame_plan(w, h, spp, passes);
-    let bd = block_stats(&block_passes(
-        &rs,
-        &settings(IntegratorKind::Bdpt, 1, 16),
-        &plan,
-        block,
-    ));
-    let pt = block_stats(&block_passes(
-        &rs,
-        &settings(IntegratorKind::Path, 2, 16),
-        &plan,
-        block,
-    ));
+    let bd_passes = block_passes(&rs, &settings(IntegratorKind::Bdpt, 1, 16), &plan, block);
+    let pt_passes = block_passes(&rs, &settings(IntegratorKind::Path, 2, 16), &plan, block);
+    // The whole image as one block too.
+    let image = |p: &[Vec<f64>]| -> Vec<Vec<f64>> {
+        p.iter()
+            .map(|b| vec![b.iter().sum::<f64>() / b.len() as f64])
+            .collect()
+    };
+    assert_blocks_agree(
+        &format!("{scene_name} bdpt vs path, whole image"),
+        &block_stats(&image(&bd_passes)),
+        &block_stats(&image(&pt_passes)),
+    );
+    let bd = block_stats(&bd_passes);
+    let pt = block_stats(&pt_passes);
     let mb: f64 = bd.iter().map(|b| b.0).sum::<f64>() / bd.len() as f64;
     let mp: f64 = pt.iter().map(|b| b.0).sum::<f64>() / pt.len() as f64;
     eprintln!("{scene_name}: image mean luminance bdpt {mb:.5}, path {mp:.5}");

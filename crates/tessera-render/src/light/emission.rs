@@ -348,7 +348,7 @@ mod tests {
     fn chi2_dir(name: &str, cfg: &Chi2Config, light: Light, u_pos: Vec2) -> Result<f64, String> {
         let sample = |u: Vec2, _: f32| light.sample_le(u_pos, u, &WORLD).map(|s| s.dir);
         let n = light
-            .sample_le(u_pos, Vec2::splat(0.5), &WORLD)
+            .sample_le(u_pos, Vec2::new(0.25, 0.5), &WORLD)
             .map_or(Vec3::ZERO, |s| s.n);
         let pdf = |w: Vec3| light.pdf_le(n, w, &WORLD).1;
         let r = match light {
@@ -491,8 +491,12 @@ mod tests {
             let mean = sum / n as f64;
             let se = ((sum2 / n as f64 - mean * mean).max(0.0) / n as f64).sqrt();
             let exact = (factor * RADIANCE.x) as f64;
-            let z = (mean - exact) / se.max(1e-12);
-            eprintln!("emitted power {name}: {mean:.5} ± {se:.5}, closed form {exact:.5}, z = {z:.2}");
+            // Most of these estimators are constant (importance sampling proportional to the
+            // emission): their standard error is rounding only, hence the relative slack.
+            eprintln!(
+                "emitted power {name}: {mean:.5} ± {se:.5}, closed form {exact:.5}, relative difference {:.2e}",
+                (mean - exact) / exact
+            );
             assert!(
                 (mean - exact).abs() <= 3.0 * se + 1e-4 * exact,
                 "{name}: {mean} vs {exact}"
