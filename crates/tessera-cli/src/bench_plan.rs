@@ -48,9 +48,33 @@ struct Measured {
     error: f64,
     /// Predicted seconds to reach the target error.
     to_target: f64,
+    /// The image (for region errors).
+    image: Option<tessera_farm::FrameImage>,
 }
 
-fn measure(args: &BenchPlanArgs, scene: &str, integrator: &str, depth: Option<u32>) -> Result<Measured> {
+/// RMS relative error over the pixels of `mask`.
+fn region_error(image: &tessera_farm::FrameImage, mask: &[bool]) -> f64 {
+    let (mut sum, mut n) = (0.0f64, 0usize);
+    for (i, &m) in mask.iter().enumerate() {
+        if m {
+            let r = image.relative_error[i] as f64;
+            sum += r * r;
+            n += 1;
+        }
+    }
+    (sum / n.max(1) as f64).sqrt()
+}
+
+fn lum(p: [f32; 3]) -> f32 {
+    0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2]
+}
+
+fn measure(
+    args: &BenchPlanArgs,
+    scene: &str,
+    integrator: &str,
+    depth: Option<u32>,
+) -> Result<Measured> {
     let job = JobArgs {
         scene: scene.to_string(),
         camera: None,
@@ -70,7 +94,11 @@ fn measure(args: &BenchPlanArgs, scene: &str, integrator: &str, depth: Option<u3
         "{scene} {} (max depth {}{})",
         p.settings.integrator,
         p.settings.max_depth,
-        if integrator == "auto" { ", plan" } else { ", general" }
+        if integrator == "auto" {
+            ", plan"
+        } else {
+            ", general"
+        }
     );
     let Some(rs) = p.render_scene.as_ref() else {
         return Ok(Measured {
@@ -78,6 +106,7 @@ fn measure(args: &BenchPlanArgs, scene: &str, integrator: &str, depth: Option<u3
             seconds: 0.0,
             error: 0.0,
             to_target: 0.0,
+            image: None,
         });
     };
     let start = Instant::now();
@@ -90,6 +119,7 @@ fn measure(args: &BenchPlanArgs, scene: &str, integrator: &str, depth: Option<u3
         seconds,
         error,
         to_target,
+        image: Some(acc.image()),
     })
 }
 
@@ -124,6 +154,28 @@ pub fn bench_plan(args: BenchPlanArgs) -> Result<()> {
     let path = measure(&args, "builtin:caustic", "path", Some(12))?;
     let bdpt = measure(&args, "builtin:caustic", "bdpt", Some(12))?;
     report(&path, &bdpt, args.target_error);
+    // The caustic itself, approximated as the brightest 3% of the lower half of the bdpt
+    // image (the floor, where the focused light is far brighter than direct light).
+    if let (Some(a), Some(b)) = (&path.image, &bdpt.image) {
+        let (w, h) = (b.width as usize, b.height as usize);
+        let mut lower: Vec<f32> = (h / 2 * w..h * w).map(|i| lum(b.mean[i])).collect();
+        lower.sort_by(f32::total_cmp);
+        let cut = lower[lower.len() * 97 / 100];
+        let mask: Vec<bool> = (0..w * h)
+            .map(|i| i >= h / 2 * w && lum(b.mean[i]) >= cut)
+            .collect();
+        let (ea, eb) = (region_error(a, &mask), region_error(b, &mask));
+        let (ta, tb) = (
+            path.seconds * (ea / args.target_error).powi(2),
+            bdpt.seconds * (eb / args.target_error).powi(2),
+        );
+        println!(
+            "  caustic region ({} brightest floor pixels of the bdpt image): path error {ea:.4} -> {ta:.3} s, bdpt error {eb:.4} -> {tb:.3} s to {:.0}%; ratio {:.2}",
+            mask.iter().filter(|&&m| m).count(),
+            100.0 * args.target_error,
+            ta / tb.max(1e-12)
+        );
+    }
     for scene in tessera_scene::builtin::NAMES {
         let scene = format!("builtin:{scene}");
         println!("{scene}, general configuration vs the render plan:");

@@ -134,7 +134,10 @@ fn delta_lit_caustics_plan_bdpt() {
     assert!(!stdout.contains("note: the plan chose bdpt"), "{stdout}");
     assert_contains(
         &metadata(&out),
-        &["\"integrator\":\"bdpt\"", "\"max_depth\":12,\"rr_depth\":5,"],
+        &[
+            "\"integrator\":\"bdpt\"",
+            "\"max_depth\":12,\"rr_depth\":5,",
+        ],
     );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -228,7 +228,14 @@ fn bdpt_is_deterministic_across_threads_splits_and_reruns() {
         render_unit(&rs, &s, &plan, u).digest(),
         render_unit(&rs, &s, &plan, u).digest()
     );
-    let other = render_frame(&rs, &settings(IntegratorKind::Bdpt, 43, 8), &plan, 0, 2, |_, _| {});
+    let other = render_frame(
+        &rs,
+        &settings(IntegratorKind::Bdpt, 43, 8),
+        &plan,
+        0,
+        2,
+        |_, _| {},
+    );
     assert!(bits(&other) != bits(&one));
 }
 
@@ -247,7 +254,12 @@ fn bdpt_with_small_tiles_matches_the_whole_frame_tile() {
         let units = tiled.units(0, 1);
         let results: Vec<_> = units
             .par_iter()
-            .map(|u| (*u, render_unit(&rs, &settings(IntegratorKind::Bdpt, 6, 8), &tiled, *u)))
+            .map(|u| {
+                (
+                    *u,
+                    render_unit(&rs, &settings(IntegratorKind::Bdpt, 6, 8), &tiled, *u),
+                )
+            })
             .collect();
         let mut per_pass = vec![vec![0.0f64; 4]; tiled.passes as usize];
         for (u, r) in results {

@@ -62,7 +62,10 @@ pub fn block_passes(
                 }
             }
             (u.first_pass * 1_000_000 + u.tile, {
-                sums.iter().zip(&counts).map(|(s, &c)| s / c as f64).collect()
+                sums.iter()
+                    .zip(&counts)
+                    .map(|(s, &c)| s / c as f64)
+                    .collect()
             })
         })
         .collect();
@@ -120,9 +123,7 @@ pub fn z_critical(alpha: f64, tests: usize) -> f64 {
 /// z-tests of two block images; returns the largest |z| after asserting it is below the
 /// Bonferroni threshold. Blocks where both estimates are exactly zero are skipped.
 pub fn assert_blocks_agree(name: &str, a: &[(f64, f64)], b: &[(f64, f64)]) -> f64 {
-    let tested: Vec<usize> = (0..a.len())
-        .filter(|&i| a[i].1 + b[i].1 > 0.0)
-        .collect();
+    let tested: Vec<usize> = (0..a.len()).filter(|&i| a[i].1 + b[i].1 > 0.0).collect();
     let crit = z_critical(0.01, tested.len());
     let mut worst = 0.0f64;
     let mut sum_z2 = 0.0;
@@ -146,4 +147,3 @@ pub fn assert_blocks_agree(name: &str, a: &[(f64, f64)], b: &[(f64, f64)]) -> f6
     );
     worst
 }
-

@@ -961,8 +961,7 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
                 .into(),
         );
         reasons.push(
-            "bdpt light-traces onto the film: one whole-frame tile, units split by passes"
-                .into(),
+            "bdpt light-traces onto the film: one whole-frame tile, units split by passes".into(),
         );
         PlannedIntegrator::Bdpt
     } else {

@@ -338,7 +338,11 @@ impl Ctx<'_> {
         let t = offset_ray_origin(b, b_err, b_n, -d);
         let d = t - o;
         let dist = d.length();
-        dist > 0.0 && !self.scene.geometry.occluded(o, d / dist, dist * (1.0 - 1e-4))
+        dist > 0.0
+            && !self
+                .scene
+                .geometry
+                .occluded(o, d / dist, dist * (1.0 - 1e-4))
     }
 
     /// `G(a ↔ b)` with shading-normal cosines (pbrt's convention), times visibility.
@@ -516,7 +520,19 @@ fn camera_subpath(
         return 1;
     }
     let max = s.max_depth as usize + 2;
-    random_walk(ctx, s, path, 1, max, o, d, Vec3::ONE, pdf_dir, sampler, false)
+    random_walk(
+        ctx,
+        s,
+        path,
+        1,
+        max,
+        o,
+        d,
+        Vec3::ONE,
+        pdf_dir,
+        sampler,
+        false,
+    )
 }
 
 /// Builds the light subpath; returns its vertex count (0 without lights).
@@ -885,10 +901,10 @@ pub fn render_unit(
         for y in 0..plan.height {
             for x in 0..plan.width {
                 let pixel = y * plan.width + x;
-                let inside =
-                    x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th;
+                let inside = x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th;
                 let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
-                let mut cs = inside.then(|| PixelSampler::new(kind, settings.seed, unit.frame, pixel, pass));
+                let mut cs =
+                    inside.then(|| PixelSampler::new(kind, settings.seed, unit.frame, pixel, pass));
                 for i in 0..spp {
                     ls.start_sample(i);
                     let n_light = light_subpath(&ctx, &st, light, &mut ls);

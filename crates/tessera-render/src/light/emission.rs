@@ -26,13 +26,13 @@
 
 use super::punctual::{spot_falloff, Punctual};
 use super::Light;
+use crate::geometry::{sphere_point, triangle_point};
 use crate::math::luminance;
 use crate::sampling::warp::{
     cosine_hemisphere_pdf, square_to_concentric_disk, square_to_cosine_hemisphere,
-    square_to_uniform_cone, square_to_uniform_sphere, square_to_uniform_triangle,
-    uniform_cone_pdf, uniform_sphere_pdf, Frame,
+    square_to_uniform_cone, square_to_uniform_sphere, square_to_uniform_triangle, uniform_cone_pdf,
+    uniform_sphere_pdf, Frame,
 };
-use crate::geometry::{sphere_point, triangle_point};
 use glam::{Vec2, Vec3};
 use std::f32::consts::{FRAC_1_PI, PI};
 
@@ -362,7 +362,10 @@ mod tests {
 
     /// The disk position of a distant light, in disk coordinates scaled to the unit disk.
     fn chi2_disk(name: &str, cfg: &Chi2Config, light: Light, u_dir: Vec2) -> Result<f64, String> {
-        let dir = light.sample_le(Vec2::splat(0.5), u_dir, &WORLD).unwrap().dir;
+        let dir = light
+            .sample_le(Vec2::splat(0.5), u_dir, &WORLD)
+            .unwrap()
+            .dir;
         let f = Frame::from_normal(dir);
         let r = chi2_plane(
             name,
@@ -389,14 +392,38 @@ mod tests {
     fn emission_sampling_matches_pdf_chi2() {
         let u = Vec2::new(0.3, 0.7);
         let cases: Vec<(&str, Box<dyn Fn(&str, &Chi2Config) -> Result<f64, String>>)> = vec![
-            ("triangle direction", Box::new(move |n, c| chi2_dir(n, c, triangle(false), u))),
-            ("two-sided triangle direction", Box::new(move |n, c| chi2_dir(n, c, triangle(true), u))),
-            ("sphere direction", Box::new(move |n, c| chi2_dir(n, c, sphere(), u))),
-            ("point direction", Box::new(move |n, c| chi2_dir(n, c, point(), u))),
-            ("spot direction", Box::new(move |n, c| chi2_dir(n, c, spot(), u))),
-            ("environment direction", Box::new(move |n, c| chi2_dir(n, c, environment(), u))),
-            ("directional disk", Box::new(move |n, c| chi2_disk(n, c, directional(), u))),
-            ("environment disk", Box::new(move |n, c| chi2_disk(n, c, environment(), u))),
+            (
+                "triangle direction",
+                Box::new(move |n, c| chi2_dir(n, c, triangle(false), u)),
+            ),
+            (
+                "two-sided triangle direction",
+                Box::new(move |n, c| chi2_dir(n, c, triangle(true), u)),
+            ),
+            (
+                "sphere direction",
+                Box::new(move |n, c| chi2_dir(n, c, sphere(), u)),
+            ),
+            (
+                "point direction",
+                Box::new(move |n, c| chi2_dir(n, c, point(), u)),
+            ),
+            (
+                "spot direction",
+                Box::new(move |n, c| chi2_dir(n, c, spot(), u)),
+            ),
+            (
+                "environment direction",
+                Box::new(move |n, c| chi2_dir(n, c, environment(), u)),
+            ),
+            (
+                "directional disk",
+                Box::new(move |n, c| chi2_disk(n, c, directional(), u)),
+            ),
+            (
+                "environment disk",
+                Box::new(move |n, c| chi2_disk(n, c, environment(), u)),
+            ),
         ];
         let cfg = config(cases.len());
         let mut failures = Vec::new();
@@ -451,8 +478,16 @@ mod tests {
                     continue;
                 };
                 let (pp, pd) = light.pdf_le(s.n, s.dir, &WORLD);
-                assert!((pp - s.pdf_pos).abs() <= 1e-4 * s.pdf_pos, "{light:?}: {pp} vs {}", s.pdf_pos);
-                assert!((pd - s.pdf_dir).abs() <= 1e-3 * s.pdf_dir, "{light:?}: {pd} vs {}", s.pdf_dir);
+                assert!(
+                    (pp - s.pdf_pos).abs() <= 1e-4 * s.pdf_pos,
+                    "{light:?}: {pp} vs {}",
+                    s.pdf_pos
+                );
+                assert!(
+                    (pd - s.pdf_dir).abs() <= 1e-3 * s.pdf_dir,
+                    "{light:?}: {pd} vs {}",
+                    s.pdf_dir
+                );
             }
         }
     }
@@ -484,7 +519,9 @@ mod tests {
                 let u1 = Vec2::new(rng.next_f32(), rng.next_f32());
                 let u2 = Vec2::new(rng.next_f32(), rng.next_f32());
                 // Channel 0 carries RADIANCE.x = 2.
-                let w = light.sample_le(u1, u2, &WORLD).map_or(0.0, |s| s.weight().x as f64);
+                let w = light
+                    .sample_le(u1, u2, &WORLD)
+                    .map_or(0.0, |s| s.weight().x as f64);
                 sum += w;
                 sum2 += w * w;
             }
