@@ -67,6 +67,84 @@ fn compare_with_path(scene_name: &str, w: u32, h: u32, spp: u32, passes: u32, bl
     assert_blocks_agree(&format!("{scene_name} bdpt vs path"), &bd, &pt);
 }
 
+fn compare_scene_with_path(name: &str, scene: &Scene, w: u32, h: u32, max_depth: u32) {
+    let rs = RenderScene::build(scene, w, h).unwrap();
+    let plan = whole_frame_plan(w, h, 4, 32);
+    let bd = block_stats(&block_passes(
+        &rs,
+        &settings(IntegratorKind::Bdpt, 31, max_depth),
+        &plan,
+        4,
+    ));
+    let pt = block_stats(&block_passes(
+        &rs,
+        &settings(IntegratorKind::Path, 32, max_depth),
+        &plan,
+        4,
+    ));
+    assert_blocks_agree(&format!("{name} bdpt vs path"), &bd, &pt);
+}
+
+/// The thin lens: importance and lens sampling of `t = 1` for an open aperture.
+#[test]
+fn bdpt_agrees_with_path_through_a_thin_lens() {
+    let mut scene = tessera_scene::load("builtin:cornell-box").unwrap();
+    scene.camera.aperture_radius = 0.03;
+    scene.camera.focus_distance = 1.0;
+    compare_scene_with_path("cornell-box, thin lens", &scene, 24, 24, 8);
+}
+
+/// Emission sampling of the distant and cone lights in a full render: a diffuse ball and
+/// a glossy-free floor under a directional light, a spot light and a uniform environment.
+#[test]
+fn bdpt_agrees_with_path_under_directional_spot_and_environment_light() {
+    let v = Vec3::new;
+    let floor = Mesh {
+        name: "floor".into(),
+        positions: vec![
+            v(-2.0, 0.0, -2.0),
+            v(-2.0, 0.0, 2.0),
+            v(2.0, 0.0, 2.0),
+            v(2.0, 0.0, -2.0),
+        ],
+        normals: None,
+        uvs: None,
+        indices: vec![[0, 1, 2], [0, 2, 3]],
+        material: 0,
+    };
+    let scene = Scene {
+        name: "test:distant-lights".into(),
+        camera: look_at_camera(v(0.0, 1.5, 3.0), v(0.0, 0.3, 0.0), Vec3::Y, 45.0),
+        meshes: vec![floor],
+        spheres: vec![Sphere {
+            center: v(0.0, 0.5, 0.0),
+            radius: 0.5,
+            material: 1,
+        }],
+        materials: vec![
+            Material::diffuse("floor", Vec3::splat(0.6)),
+            Material::diffuse("ball", Vec3::new(0.8, 0.3, 0.2)),
+        ],
+        textures: vec![],
+        lights: vec![
+            PunctualLight::Directional {
+                direction: v(0.4, -1.0, -0.3).normalize(),
+                irradiance: Vec3::splat(1.5),
+            },
+            PunctualLight::Spot {
+                position: v(-1.0, 2.0, 1.0),
+                direction: v(0.5, -1.0, -0.5).normalize(),
+                intensity: Vec3::splat(4.0),
+                inner_angle: 0.3,
+                outer_angle: 0.5,
+            },
+        ],
+        environment: Some(Vec3::splat(0.3)),
+        default_resolution: (24, 24),
+    };
+    compare_scene_with_path("distant lights", &scene, 24, 24, 8);
+}
+
 #[test]
 fn bdpt_agrees_with_path_on_the_cornell_box() {
     compare_with_path("builtin:cornell-box", 32, 32, 4, 32, 4);
