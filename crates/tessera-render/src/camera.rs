@@ -172,7 +172,7 @@ impl CameraModel {
         };
         let d = p_lens - p_ref;
         let dist2 = d.length_squared();
-        if !(dist2 > 0.0) {
+        if dist2.is_nan() || dist2 <= 0.0 {
             return None;
         }
         let dist = dist2.sqrt();

@@ -516,7 +516,7 @@ fn camera_subpath(
     v.beta = Vec3::ONE;
     path[0] = v;
     let pdf_dir = camera.pdf_dir(o, d);
-    if !(pdf_dir > 0.0) {
+    if pdf_dir.is_nan() || pdf_dir <= 0.0 {
         return 1;
     }
     let max = s.max_depth as usize + 2;

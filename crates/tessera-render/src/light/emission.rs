@@ -391,7 +391,8 @@ mod tests {
     #[test]
     fn emission_sampling_matches_pdf_chi2() {
         let u = Vec2::new(0.3, 0.7);
-        let cases: Vec<(&str, Box<dyn Fn(&str, &Chi2Config) -> Result<f64, String>>)> = vec![
+        type Case = Box<dyn Fn(&str, &Chi2Config) -> Result<f64, String>>;
+        let cases: Vec<(&str, Case)> = vec![
             (
                 "triangle direction",
                 Box::new(move |n, c| chi2_dir(n, c, triangle(false), u)),
