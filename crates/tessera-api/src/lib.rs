@@ -14,6 +14,8 @@
 //!   [`ApiError::status`] giving the HTTP status.
 //! - Responses: [`JobStatus`], [`JobList`], [`WorkerInfo`], [`WorkerList`],
 //!   [`SceneUploaded`], [`HistoryPoint`].
+//! - [`resolve::resolve_job`] resolves a job against its scene (render plan, `auto`
+//!   integrator, frame plan) the same way for `tessera render` and the farm.
 //! - [`RenderConfig`] is the renderer-independent form of the render settings that
 //!   `tessera-proto` carries to workers.
 //!
@@ -29,7 +31,10 @@
 //! ```
 #![deny(missing_docs)]
 
+#[cfg(feature = "client")]
+pub mod client;
 mod error;
+pub mod resolve;
 mod settings;
 mod status;
 
@@ -41,8 +46,8 @@ pub use settings::{
     MAX_FRAMES, MAX_NAME_CHARS, MAX_SPP,
 };
 pub use status::{
-    HistoryPoint, ImageFormat, ImageQuery, JobList, JobListQuery, JobState, JobStatus,
-    SceneUploaded, WorkerInfo, WorkerList, WorkerState,
+    FrameQuery, History, HistoryPoint, ImageFormat, ImageQuery, JobList, JobListQuery, JobState,
+    JobStatus, SceneUploaded, TileInfo, TileMap, WorkerInfo, WorkerList, WorkerState,
 };
 
 /// Path prefix of every API v1 route.

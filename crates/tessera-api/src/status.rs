@@ -94,6 +94,15 @@ pub struct JobStatus {
     /// Why the job failed, when `state` is `failed`.
     #[serde(default)]
     pub error: Option<String>,
+    /// The render plan (DESIGN §4): the light-transport effects found in the scene with
+    /// their evidence, the absent ones, and the integrator configuration chosen for them,
+    /// as `tessera_scene::analysis::RenderPlan::to_json` writes it. `None` until the
+    /// scene has been analysed.
+    #[serde(default)]
+    pub plan: Option<serde_json::Value>,
+    /// Adaptive stopping mode (`off`, `sequential`, `unbiased`).
+    #[serde(default)]
+    pub adaptive: String,
 }
 
 /// `GET /api/v1/jobs`: one page of jobs, newest first.
@@ -226,6 +235,60 @@ pub struct HistoryPoint {
     pub error_estimate: Option<f64>,
 }
 
+/// `GET /api/v1/jobs/{id}/history`: the convergence history, oldest first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct History {
+    /// One point per merge step (thinned to at most a few thousand points).
+    pub points: Vec<HistoryPoint>,
+}
+
+/// One tile in `GET /api/v1/jobs/{id}/tiles`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TileInfo {
+    /// Tile index, row-major.
+    pub index: u32,
+    /// Left pixel column.
+    pub x: u32,
+    /// Top pixel row.
+    pub y: u32,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Passes merged into this tile.
+    pub passes: u32,
+    /// Mean samples per pixel merged into this tile.
+    pub spp: f64,
+    /// RMS relative error of the tile's pixels; `None` before two passes.
+    pub error: Option<f64>,
+    /// Whether the tile has stopped (all passes merged, or stopped adaptively).
+    pub done: bool,
+}
+
+/// `GET /api/v1/jobs/{id}/tiles?frame=F`: per-tile progress of one frame, for heat maps.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TileMap {
+    /// The frame.
+    pub frame: u32,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Passes planned per tile.
+    pub passes_planned: u32,
+    /// The tiles, by index.
+    pub tiles: Vec<TileInfo>,
+}
+
+/// Query string of `GET /api/v1/jobs/{id}/tiles`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameQuery {
+    /// Frame number; default the job's first frame.
+    #[serde(default)]
+    pub frame: Option<u32>,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -254,6 +317,8 @@ mod tests {
             priority: 0,
             faults: 1,
             error: None,
+            plan: None,
+            adaptive: "off".into(),
         }
     }
 

@@ -16,6 +16,8 @@ use tessera_render::sampling::SamplerKind;
 use tessera_render::scene::RenderScene;
 use tessera_scene::analysis::{analyse, PlannedIntegrator, RenderPlan};
 
+mod farm;
+
 #[derive(Parser)]
 #[command(
     name = "tessera",
@@ -36,6 +38,18 @@ enum Command {
     /// Compare the render plan's configuration with the general one (and bdpt with path on
     /// the caustic scene): time to reach a target error, side by side.
     BenchPlan(bench_plan::BenchPlanArgs),
+    /// The whole farm on this machine: a coordinator and local workers over loopback gRPC.
+    Serve(farm::ServeArgs),
+    /// Run a coordinator: HTTP API and dashboard, gRPC port for workers, SQLite store.
+    Coordinator(farm::CoordinatorArgs),
+    /// Run a worker that leases and renders work units from a coordinator.
+    Worker(farm::WorkerArgs),
+    /// Submit a job to a coordinator (optionally wait for it and download the image).
+    Submit(farm::SubmitArgs),
+    /// Show jobs of a coordinator.
+    Status(farm::StatusArgs),
+    /// Measure the farm's overhead: `tessera serve` against `tessera render`, side by side.
+    BenchFarm(farm::BenchFarmArgs),
 }
 
 #[derive(Args, Clone)]
@@ -120,6 +134,12 @@ fn main() {
         Command::Render(args) => render(args),
         Command::Bench(args) => bench(args),
         Command::BenchPlan(args) => bench_plan::bench_plan(args),
+        Command::Serve(args) => farm::serve(args),
+        Command::Coordinator(args) => farm::coordinator(args),
+        Command::Worker(args) => farm::worker(args),
+        Command::Submit(args) => farm::submit(args),
+        Command::Status(args) => farm::status(args),
+        Command::BenchFarm(args) => farm::bench_farm(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -17,6 +17,8 @@ use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
 use tonic::{Request, Response, Status};
 
+use crate::service::{Coordinator, JobRuntime};
+
 /// Milliseconds since the Unix epoch.
 pub fn now_ms() -> u64 {
     SystemTime::now()
@@ -39,6 +41,12 @@ pub struct WorkerEntry {
     pub paths_per_second: f64,
     /// Rejected results and mismatching duplicates.
     pub faults: u64,
+    /// The worker's Tessera version.
+    pub version: String,
+    /// Set when the worker announced it is shutting down.
+    pub draining: bool,
+    /// Seconds spent rendering the units it delivered, as it reported them.
+    pub render_seconds: f64,
 }
 
 /// A job as the service needs it to hand out leases.
@@ -62,17 +70,27 @@ pub struct Farm {
     pub jobs: BTreeMap<JobId, JobEntry>,
     /// Uploaded scene bytes by content hash.
     pub scenes: HashMap<String, Arc<Vec<u8>>>,
+    /// What the coordinator tracks per job besides the scheduler (empty when the service
+    /// runs without a [`Coordinator`]).
+    pub runtime: BTreeMap<JobId, JobRuntime>,
     next_worker: WorkerId,
 }
 
 impl Farm {
     /// An empty farm whose leases last `lease_ms`.
     pub fn new(lease_ms: u64) -> Self {
+        Self::with_first_lease(lease_ms, 0)
+    }
+
+    /// An empty farm whose lease ids start after `high_water` (the largest id an earlier
+    /// run may have issued), so fencing tokens never repeat across restarts.
+    pub fn with_first_lease(lease_ms: u64, high_water: u64) -> Self {
         Self {
-            scheduler: Scheduler::new(lease_ms, 0),
+            scheduler: Scheduler::new(lease_ms, high_water),
             workers: BTreeMap::new(),
             jobs: BTreeMap::new(),
             scenes: HashMap::new(),
+            runtime: BTreeMap::new(),
             next_worker: 1,
         }
     }
@@ -85,6 +103,9 @@ pub struct WorkerGrpc {
     token: Option<String>,
     heartbeat_ms: u32,
     lease_ms: u32,
+    /// With a coordinator, results are checkpointed in its store before they are
+    /// acknowledged, and lease ids are reserved durably.
+    core: Option<Coordinator>,
 }
 
 /// Size of the chunks scenes are streamed in.
@@ -103,6 +124,20 @@ impl WorkerGrpc {
             token,
             heartbeat_ms,
             lease_ms,
+            core: None,
+        }
+    }
+
+    /// The service of a [`Coordinator`]: its farm, its worker token and timings, and its
+    /// durable bookkeeping.
+    pub fn for_coordinator(core: Coordinator) -> Self {
+        let cfg = core.config();
+        Self {
+            farm: core.farm(),
+            token: cfg.worker_token.clone(),
+            heartbeat_ms: cfg.heartbeat_ms,
+            lease_ms: cfg.lease_ms.min(u64::from(u32::MAX)) as u32,
+            core: Some(core),
         }
     }
 
@@ -161,6 +196,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
                 name: r.name,
                 threads: r.threads,
                 last_seen_ms: now_ms(),
+                version: r.version.chars().take(64).collect(),
                 ..WorkerEntry::default()
             },
         );
@@ -187,12 +223,16 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
             w.paths_per_second = r.paths_per_second;
         }
         let extended = farm.scheduler.extend(r.worker_id, &r.lease_ids, now);
-        // Leases not extended are lapsed or canceled: tell the worker to drop them.
+        // Leases not extended are lapsed or canceled: tell the worker to drop them. Leases
+        // of a previous run of the coordinator (before a restart) are unknown here but their
+        // results are still adopted, so the worker keeps rendering them.
         let cancel = r
             .lease_ids
             .iter()
             .copied()
-            .filter(|id| !extended.iter().any(|(e, _)| e == id))
+            .filter(|id| {
+                !extended.iter().any(|(e, _)| e == id) && !farm.scheduler.is_previous_run_lease(*id)
+            })
             .collect();
         Ok(Response::new(v1::HeartbeatResponse {
             extended: extended
@@ -214,31 +254,53 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         self.authorize(&req)?;
         let r = req.into_inner();
         let now = now_ms();
-        let mut farm = self.lock()?;
-        if !farm.workers.contains_key(&r.worker_id) {
-            return Err(Status::not_found("unknown worker: register again"));
-        }
-        farm.scheduler.expire(now);
-        let leases = farm
-            .scheduler
-            .lease(r.worker_id, now, r.max_units.clamp(1, 256) as usize);
-        let mut out = Vec::with_capacity(leases.len());
-        for l in leases {
-            let Some(job) = farm.jobs.get(&l.job) else {
-                continue;
-            };
-            out.push(v1::Lease::from(LeasedUnit {
-                lease_id: l.lease_id,
-                deadline_unix_ms: l.deadline_ms,
-                job_id: l.job,
-                scene: job.scene.clone(),
-                settings: job.settings,
-                plan: job.plan,
-                unit: l.unit,
+        if self.core.as_ref().is_some_and(|c| c.leasing_paused()) {
+            // A restarted coordinator waits for workers to deliver what they were rendering.
+            if !self.lock()?.workers.contains_key(&r.worker_id) {
+                return Err(Status::not_found("unknown worker: register again"));
+            }
+            return Ok(Response::new(v1::LeaseResponse {
+                leases: Vec::new(),
+                retry_after_ms: 250,
             }));
         }
-        if let Some(w) = farm.workers.get_mut(&r.worker_id) {
-            w.last_seen_ms = now;
+        let out = {
+            let mut farm = self.lock()?;
+            if !farm.workers.contains_key(&r.worker_id) {
+                return Err(Status::not_found("unknown worker: register again"));
+            }
+            farm.scheduler.expire(now);
+            let leases = farm
+                .scheduler
+                .lease(r.worker_id, now, r.max_units.clamp(1, 256) as usize);
+            let mut out = Vec::with_capacity(leases.len());
+            for l in leases {
+                let Some(job) = farm.jobs.get(&l.job) else {
+                    continue;
+                };
+                out.push(v1::Lease::from(LeasedUnit {
+                    lease_id: l.lease_id,
+                    deadline_unix_ms: l.deadline_ms,
+                    job_id: l.job,
+                    scene: job.scene.clone(),
+                    settings: job.settings,
+                    plan: job.plan,
+                    unit: l.unit,
+                }));
+            }
+            if let Some(w) = farm.workers.get_mut(&r.worker_id) {
+                w.last_seen_ms = now;
+            }
+            out
+        };
+        if let Some(core) = &self.core {
+            let mut jobs: Vec<u64> = out.iter().map(|l| l.job_id).collect();
+            jobs.dedup();
+            if let Err(e) = core.after_lease(jobs).await {
+                // The reservation of lease ids could not be made durable: hand nothing out
+                // (the leases lapse and are issued again).
+                return Err(Status::unavailable(format!("coordinator store: {e}")));
+            }
         }
         let retry_after_ms = if out.is_empty() { 200 } else { 0 };
         Ok(Response::new(v1::LeaseResponse {
@@ -254,6 +316,14 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         self.authorize(&req)?;
         let r = req.into_inner();
         let (worker_id, lease_id) = (r.worker_id, r.lease_id);
+        if let Some(core) = &self.core {
+            let (job_hint, secs) = (r.job_id, r.render_seconds);
+            let result = UnitResult::try_from(r).map_err(|e| e.to_string());
+            let (accepted, reason) = core
+                .accept_result(worker_id, lease_id, job_hint, result, secs)
+                .await;
+            return Ok(Response::new(v1::SubmitResultResponse { accepted, reason }));
+        }
         let result: Result<UnitResult, _> = UnitResult::try_from(r);
         let mut farm = self.lock()?;
         // The scheduler knows the job of outstanding and lapsed leases alike, and checks

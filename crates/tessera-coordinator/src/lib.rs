@@ -5,7 +5,13 @@
 //!   high-water mark, convergence history, worker faults) behind the [`store::Store`]
 //!   trait, with the SQLite implementation [`store::SqliteStore`].
 //! - [`grpc`]: the worker-facing gRPC service over the farm's lease scheduler.
+//! - [`service`]: the job life cycle over both: submission, durable checkpoints as passes
+//!   merge, resume after a restart, status, images, cancel.
+//! - [`http`]: the axum HTTP API v1 (DESIGN §5) and the dashboard routes.
 #![deny(missing_docs)]
 
+pub mod dashboard;
 pub mod grpc;
+pub mod http;
+pub mod service;
 pub mod store;

@@ -212,6 +212,77 @@ impl TileAccumulator {
     pub fn buffered_units(&self) -> usize {
         self.units.values().filter(|r| r.pending.is_some()).count()
     }
+
+    /// The merged units `(first_pass, pass_count, digest)` in pass order: they tile
+    /// `0..merged_passes()` exactly. Buffered units are not included (a checkpoint holds
+    /// only merged state; buffered work is simply rendered again after a restart).
+    pub fn merged_units(&self) -> impl Iterator<Item = (u32, u32, u64)> + '_ {
+        self.units
+            .range(..self.merged_passes)
+            .filter(|(_, r)| r.pending.is_none())
+            .map(|(&f, r)| (f, r.pass_count, r.digest))
+    }
+
+    /// Rebuilds a tile from a checkpoint: per-pixel statistics over passes
+    /// `0..merged_passes` and the merged units `(first_pass, pass_count, digest)`.
+    ///
+    /// The restored accumulator continues bit-identically: merging the remaining passes
+    /// gives the same statistics as an uninterrupted merge, because the Welford state is
+    /// restored exactly (DESIGN §2, §6). Refuses a checkpoint whose pixel count does not
+    /// match the tile, whose units do not tile `0..merged_passes` contiguously, or whose
+    /// pixels claim more passes than were merged.
+    pub fn restore(
+        rect: TileRect,
+        merged_passes: u32,
+        pixels: Vec<PixelStats>,
+        units: &[(u32, u32, u64)],
+    ) -> Result<Self, String> {
+        if pixels.len() != rect.pixel_count() {
+            return Err(format!(
+                "tile {} has {} pixels, the checkpoint {}",
+                rect.index,
+                rect.pixel_count(),
+                pixels.len()
+            ));
+        }
+        if let Some(p) = pixels.iter().find(|p| p.passes > merged_passes) {
+            return Err(format!(
+                "tile {}: a pixel has {} passes, more than the {merged_passes} merged",
+                rect.index, p.passes
+            ));
+        }
+        let mut map = BTreeMap::new();
+        let mut next = 0u32;
+        for &(first, count, digest) in units {
+            if first != next || count == 0 {
+                return Err(format!(
+                    "tile {}: merged units are not contiguous at pass {next}",
+                    rect.index
+                ));
+            }
+            next = first.checked_add(count).ok_or("pass range overflows")?;
+            map.insert(
+                first,
+                UnitRecord {
+                    pass_count: count,
+                    digest,
+                    pending: None,
+                },
+            );
+        }
+        if next != merged_passes {
+            return Err(format!(
+                "tile {}: units cover passes 0..{next}, the checkpoint says {merged_passes}",
+                rect.index
+            ));
+        }
+        Ok(Self {
+            rect,
+            pixels,
+            merged_passes,
+            units: map,
+        })
+    }
 }
 
 /// A whole frame being merged: one [`TileAccumulator`] per tile of the plan, plus
@@ -295,6 +366,19 @@ impl FrameAccumulator {
     /// All tile accumulators in tile order.
     pub fn tiles(&self) -> &[TileAccumulator] {
         &self.tiles
+    }
+
+    /// Replaces a tile's state with a restored one (see [`TileAccumulator::restore`]);
+    /// refuses a tile whose rectangle is not the plan's tile of that index.
+    pub fn restore_tile(&mut self, tile: TileAccumulator) -> Result<(), String> {
+        let index = tile.rect().index;
+        match self.tiles.get_mut(index as usize) {
+            Some(slot) if slot.rect() == tile.rect() => {
+                *slot = tile;
+                Ok(())
+            }
+            _ => Err(format!("tile {index} does not belong to this frame's plan")),
+        }
     }
 
     /// Whether every tile has merged all of the plan's passes.

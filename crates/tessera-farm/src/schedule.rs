@@ -154,9 +154,13 @@ impl Job {
             self.returned.remove(&i);
             return Some(i);
         }
-        if self.cursor < self.units_total() {
+        // Units merged before a restart are skipped (a resumed job's `done` set is not a
+        // prefix of the canonical order).
+        while self.cursor < self.units_total() {
             self.cursor += 1;
-            return Some(self.cursor - 1);
+            if !self.done.contains(&(self.cursor - 1)) {
+                return Some(self.cursor - 1);
+            }
         }
         None
     }
@@ -176,6 +180,9 @@ pub struct Scheduler {
     lapsed: BTreeMap<u64, (JobId, u64)>,
     next_lease_id: u64,
     next_seq: u64,
+    /// The largest lease id issued by an earlier run of the coordinator (the high-water
+    /// mark it was restarted with); results answering such leases are adopted.
+    previous_run_max_lease: u64,
 }
 
 impl Scheduler {
@@ -190,7 +197,72 @@ impl Scheduler {
             lapsed: BTreeMap::new(),
             next_lease_id: first_lease_id + 1,
             next_seq: 0,
+            previous_run_max_lease: first_lease_id,
         }
+    }
+
+    /// Adds a job resumed after a restart: `frames` are its accumulators restored from the
+    /// store's checkpoints (in frame order, all of `plan`), cut into units of
+    /// `passes_per_unit` passes as before the restart. Units whose passes every checkpoint
+    /// already merged are done; everything else is leased again in canonical order.
+    ///
+    /// Checkpoints whose merged passes do not end on a unit boundary (impossible with the
+    /// same `passes_per_unit`) are refused: their next unit would overlap merged passes.
+    pub fn add_resumed_job(
+        &mut self,
+        id: JobId,
+        priority: i32,
+        plan: FramePlan,
+        frames: Vec<FrameAccumulator>,
+        passes_per_unit: u32,
+    ) -> Result<(), String> {
+        let passes_per_unit = passes_per_unit.max(1);
+        if frames.is_empty() {
+            return Err(format!("job {id}: no frames to resume"));
+        }
+        for (k, f) in frames.iter().enumerate() {
+            if *f.plan() != plan {
+                return Err(format!("job {id}: frame {} has another plan", f.frame()));
+            }
+            if k > 0 && f.frame() != frames[k - 1].frame() + 1 {
+                return Err(format!("job {id}: resumed frames are not consecutive"));
+            }
+            for t in f.tiles() {
+                let m = t.merged_passes();
+                if m > plan.passes || (m % passes_per_unit != 0 && m != plan.passes) {
+                    return Err(format!(
+                        "job {id}: frame {} tile {} merged {m} passes, not a whole number of \
+                         {passes_per_unit}-pass units",
+                        f.frame(),
+                        t.rect().index
+                    ));
+                }
+            }
+        }
+        let first_frame = frames[0].frame();
+        self.next_seq += 1;
+        let mut job = Job {
+            priority,
+            seq: self.next_seq,
+            plan,
+            first_frame,
+            passes_per_unit,
+            frames,
+            cursor: 0,
+            returned: BTreeSet::new(),
+            done: BTreeSet::new(),
+            leased: BTreeMap::new(),
+            canceled: false,
+        };
+        for i in 0..job.units_total() {
+            let u = job.unit(i);
+            let tile = &job.frames[(u.frame - first_frame) as usize].tiles()[u.tile as usize];
+            if u64::from(tile.merged_passes()) >= u.end_pass() {
+                job.done.insert(i);
+            }
+        }
+        self.jobs.insert(id, job);
+        Ok(())
     }
 
     /// Adds a job rendering `frames` (inclusive range) of `plan`, cut into units of
@@ -342,8 +414,14 @@ impl Scheduler {
             .ok_or(SubmitError::UnknownLease(lease_id))?;
         let issued = match self.leases.get(&lease_id) {
             Some(l) => l.job == job_id && l.unit == result.unit,
-            // A lapsed lease answers only for the unit it was issued for.
-            None => self.lapsed.get(&lease_id) == Some(&(job_id, i)),
+            // A lapsed lease answers only for the unit it was issued for. A lease of an
+            // earlier run of the coordinator (before a restart) is unknown to this one; its
+            // result is adopted: rendering is deterministic and the result is validated,
+            // then merged once or compared like any other.
+            None => {
+                self.lapsed.get(&lease_id) == Some(&(job_id, i))
+                    || (lease_id <= self.previous_run_max_lease && lease_id > 0)
+            }
         };
         if !issued {
             return Err(SubmitError::UnknownLease(lease_id));
@@ -415,6 +493,22 @@ impl Scheduler {
             .is_some_and(|j| j.frames.iter().all(|f| f.complete()))
     }
 
+    /// Whether `lease_id` was issued by an earlier run of the coordinator (at or below the
+    /// high-water mark this scheduler was created with).
+    pub fn is_previous_run_lease(&self, lease_id: u64) -> bool {
+        lease_id > 0 && lease_id <= self.previous_run_max_lease
+    }
+
+    /// The largest lease id issued so far (to persist as the high-water mark).
+    pub fn max_issued_lease_id(&self) -> u64 {
+        self.next_lease_id - 1
+    }
+
+    /// The ids of the jobs the scheduler holds.
+    pub fn job_ids(&self) -> impl Iterator<Item = JobId> + '_ {
+        self.jobs.keys().copied()
+    }
+
     /// The job a lease was issued for, whether it is outstanding or has lapsed.
     pub fn lease_job(&self, lease_id: u64) -> Option<JobId> {
         self.leases
@@ -432,6 +526,9 @@ impl Scheduler {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::merge::TileAccumulator;
+    use crate::stats::PixelStats;
+    use crate::FrameImage;
 
     fn result(plan: &FramePlan, unit: WorkUnit, value: f32) -> UnitResult {
         let rect = plan.tile(unit.tile);
@@ -544,6 +641,90 @@ mod tests {
             Ok(Submitted::Accepted)
         );
         assert_eq!(s.progress(1).unwrap().units_done, 1);
+    }
+
+    /// Renders job 7 to completion, but "crashes" after `crash_after` submissions: the
+    /// merged tiles are checkpointed (as the coordinator's store does), a new scheduler is
+    /// built from them with the old high-water mark, and one late result of the earlier
+    /// run is delivered to it.
+    fn run_with_restart(crash_after: usize) -> (FrameImage, u64) {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(7, 0, p, 0..=0, 2);
+        let mut submitted = 0;
+        let mut late = None;
+        while submitted < crash_after {
+            let mut ls = s.lease(1, 0, 2);
+            // Hold the last lease of the batch across the crash.
+            if submitted + ls.len() > crash_after {
+                late = ls.pop();
+            }
+            for l in ls {
+                s.submit(l.lease_id, 7, result(&p, l.unit, 0.5 + l.unit.tile as f32))
+                    .unwrap();
+                submitted += 1;
+            }
+            if late.is_some() {
+                break;
+            }
+        }
+        // Checkpoint what is merged, as the store would hold it.
+        let frame = s.frame(7, 0).unwrap();
+        let mut restored = FrameAccumulator::new(p);
+        for t in frame.tiles() {
+            let units: Vec<_> = t.merged_units().collect();
+            let tile =
+                TileAccumulator::restore(t.rect(), t.merged_passes(), t.pixels().to_vec(), &units)
+                    .unwrap();
+            restored.restore_tile(tile).unwrap();
+        }
+        let high_water = s.max_issued_lease_id();
+        let mut s2 = Scheduler::new(100, high_water);
+        s2.add_resumed_job(7, 0, p, vec![restored], 2).unwrap();
+        let mut adopted = 0;
+        if let Some(l) = late {
+            assert!(s2.is_previous_run_lease(l.lease_id));
+            s2.submit(l.lease_id, 7, result(&p, l.unit, 0.5 + l.unit.tile as f32))
+                .unwrap();
+            adopted += 1;
+        }
+        while !s2.is_complete(7) {
+            let ls = s2.lease(2, 0, 3);
+            assert!(!ls.is_empty(), "incomplete job with nothing to lease");
+            for l in ls {
+                assert!(
+                    l.lease_id > high_water,
+                    "fencing tokens repeat after a restart"
+                );
+                let _ = s2.submit(l.lease_id, 7, result(&p, l.unit, 0.5 + l.unit.tile as f32));
+            }
+        }
+        (s2.frame(7, 0).unwrap().image(), adopted)
+    }
+
+    #[test]
+    fn a_resumed_job_completes_bit_identically() {
+        let (reference, _) = run_with_restart(0);
+        for crash_after in [1, 5, 9, 17] {
+            let (image, adopted) = run_with_restart(crash_after);
+            assert_eq!(adopted, 1, "crash after {crash_after}");
+            assert_eq!(image, reference, "crash after {crash_after}");
+        }
+        // A checkpoint that does not end on a unit boundary is refused.
+        let p = plan();
+        let mut f = FrameAccumulator::new(p);
+        let rect = p.tile(0);
+        let units = [(0, 1, 0)];
+        let mut px = vec![PixelStats::default(); rect.pixel_count()];
+        px.iter_mut().for_each(|s| s.push([1.0; 3]));
+        f.restore_tile(TileAccumulator::restore(rect, 1, px, &units).unwrap())
+            .unwrap();
+        let mut s = Scheduler::new(100, 0);
+        assert!(s.add_resumed_job(1, 0, p, vec![f], 2).is_err());
+        // Units that do not tile the merged passes are refused.
+        let px = vec![PixelStats::default(); rect.pixel_count()];
+        assert!(TileAccumulator::restore(rect, 4, px.clone(), &[(0, 2, 0)]).is_err());
+        assert!(TileAccumulator::restore(rect, 2, px, &[(1, 1, 0)]).is_err());
     }
 
     #[test]

@@ -204,6 +204,7 @@ impl v1::SubmitResultRequest {
             height: result.height,
             pass_means: result.pass_means.as_flattened().to_vec(),
             render_seconds,
+            job_id: 0,
         }
     }
 

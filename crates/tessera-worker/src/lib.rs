@@ -209,8 +209,14 @@ async fn serve(
         Duration::from_millis(u64::from(reg.heartbeat_interval_ms.clamp(50, 60_000)));
     tracing::info!(worker_id, name = %config.name, "registered");
     let mut paths_per_second = 0.0f64;
+    let mut in_flight: Option<tokio::task::JoinHandle<Result<(), Status>>> = None;
     loop {
         if *stop.borrow() {
+            // Deliver what is rendered before leaving.
+            if let Some(h) = in_flight.take() {
+                h.await
+                    .map_err(|e| Status::internal(format!("submit task failed: {e}")))??;
+            }
             return Ok(());
         }
         let resp = client
@@ -267,7 +273,7 @@ async fn serve(
                         let t = Instant::now();
                         let r = render_unit(rs, &render_settings(&l.settings), &l.plan, l.unit);
                         let paths = r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass);
-                        (l.lease_id, r, t.elapsed().as_secs_f64(), paths)
+                        (l.lease_id, l.job_id, r, t.elapsed().as_secs_f64(), paths)
                     })
                     .collect::<Vec<_>>()
             })
@@ -286,18 +292,31 @@ async fn serve(
             }
         };
         let seconds = started.elapsed().as_secs_f64().max(1e-9);
-        let paths: f64 = results.iter().map(|r| r.3).sum();
+        let paths: f64 = results.iter().map(|r| r.4).sum();
         paths_per_second = paths / seconds;
-        for (lease_id, result, secs, _) in results {
-            if canceled.contains(&lease_id) {
-                continue;
-            }
-            let req = v1::SubmitResultRequest::from_result(worker_id, lease_id, &result, secs);
-            let resp = client.submit_result(req).await?.into_inner();
-            if !resp.accepted {
-                tracing::warn!(lease_id, reason = %resp.reason, "result not accepted");
-            }
+        // Submit in the background while the next units render: the coordinator commits
+        // each result to its store before acknowledging it, and the worker's threads should
+        // not wait for that. One batch is in flight at a time; its errors end the session.
+        if let Some(h) = in_flight.take() {
+            h.await
+                .map_err(|e| Status::internal(format!("submit task failed: {e}")))??;
         }
+        let mut c2 = client.clone();
+        in_flight = Some(tokio::spawn(async move {
+            for (lease_id, job_id, result, secs, _) in results {
+                if canceled.contains(&lease_id) {
+                    continue;
+                }
+                let mut req =
+                    v1::SubmitResultRequest::from_result(worker_id, lease_id, &result, secs);
+                req.job_id = job_id;
+                let resp = c2.submit_result(req).await?.into_inner();
+                if !resp.accepted {
+                    tracing::warn!(lease_id, reason = %resp.reason, "result not accepted");
+                }
+            }
+            Ok(())
+        }));
     }
 }
 

@@ -1,0 +1,497 @@
+//! The farm as users run it: real `tessera` processes on loopback, real HTTP and gRPC, a
+//! real SQLite file, `kill -9`. Every wait polls with a timeout; nothing sleeps a fixed
+//! time to let something happen.
+//!
+//! The reference for every image is `tessera render` with the same settings: rendering is
+//! a pure function of (scene, settings, seed, pixel, pass), so the farm's EXR must be
+//! byte-identical to it however the work was distributed or interrupted (DESIGN §2).
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use tessera_api::client::{Client, ClientError};
+use tessera_api::{JobSettings, JobState, JobStatus};
+
+const TIMEOUT: Duration = Duration::from_secs(240);
+
+fn tessera() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_tessera"))
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("tessera-e2e-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A child process killed (SIGKILL) when dropped, so a failing test leaves nothing behind.
+struct Proc(Option<Child>);
+
+impl Proc {
+    fn kill9(&mut self) {
+        if let Some(mut c) = self.0.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill9();
+    }
+}
+
+/// Reads the child's stdout until a line starts with each prefix; returns the rest of
+/// those lines. The remaining output is drained in the background.
+fn read_lines(child: &mut Child, prefixes: &[&str]) -> Vec<String> {
+    let stdout = child.stdout.take().expect("piped stdout");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                // Keep draining so the child never blocks on a full pipe.
+            }
+        }
+    });
+    let mut found = vec![None; prefixes.len()];
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while found.iter().any(Option::is_none) {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let line = rx
+            .recv_timeout(left)
+            .unwrap_or_else(|_| panic!("process did not print {prefixes:?}"));
+        for (i, p) in prefixes.iter().enumerate() {
+            if let Some(rest) = line.strip_prefix(p) {
+                found[i] = Some(rest.trim().to_string());
+            }
+        }
+    }
+    found.into_iter().map(Option::unwrap).collect()
+}
+
+/// A free loopback port (bound and released; used where a restarted coordinator must
+/// come back on the same address its workers reconnect to).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+struct Coord {
+    proc: Proc,
+    http: String,
+    grpc: String,
+}
+
+fn start_coordinator(data: &Path, http: &str, grpc: &str, extra: &[&str]) -> Coord {
+    let mut child = tessera()
+        .args(["coordinator", "--http", http, "--grpc", grpc, "--data"])
+        .arg(data)
+        .args([
+            "--lease-ms",
+            "1500",
+            "--heartbeat-ms",
+            "250",
+            "--grace-ms",
+            "1000",
+        ])
+        .args(extra)
+        .env_remove("TESSERA_API_TOKEN")
+        .env_remove("TESSERA_WORKER_TOKEN")
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let v = read_lines(&mut child, &["http: ", "grpc: "]);
+    let http = v[0].trim_end_matches("/api/v1").to_string();
+    Coord {
+        proc: Proc(Some(child)),
+        http,
+        grpc: v[1].clone(),
+    }
+}
+
+fn start_worker(grpc: &str, name: &str, extra: &[&str]) -> Proc {
+    Proc(Some(
+        tessera()
+            .args([
+                "worker",
+                "--coordinator",
+                grpc,
+                "--threads",
+                "1",
+                "--name",
+                name,
+            ])
+            .args(extra)
+            .env_remove("TESSERA_WORKER_TOKEN")
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap(),
+    ))
+}
+
+fn job(width: u32, height: u32, spp: u32) -> JobSettings {
+    let mut s = JobSettings::new("builtin:cornell-box");
+    s.width = Some(width);
+    s.height = Some(height);
+    s.spp = spp;
+    s.seed = 5;
+    s
+}
+
+/// `tessera render` of the same job: the reference EXR bytes.
+fn local_render(dir: &Path, s: &JobSettings) -> Vec<u8> {
+    let out = dir.join("local.exr");
+    let o = tessera()
+        .args(["render", &s.scene, "--width"])
+        .arg(s.width.unwrap().to_string())
+        .arg("--height")
+        .arg(s.height.unwrap().to_string())
+        .arg("--spp")
+        .arg(s.spp.to_string())
+        .arg("--seed")
+        .arg(s.seed.to_string())
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    std::fs::read(out).unwrap()
+}
+
+fn wait_done(client: &Client, id: u64) -> JobStatus {
+    let s = client
+        .wait(id, Duration::from_millis(100), TIMEOUT, |_| {})
+        .unwrap();
+    assert_eq!(
+        s.state,
+        JobState::Done,
+        "job ended {:?}: {:?}",
+        s.state,
+        s.error
+    );
+    s
+}
+
+/// Polls until `f` holds, panicking with `what` after the timeout.
+fn poll(what: &str, mut f: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !f() {
+        assert!(start.elapsed() < TIMEOUT, "timed out waiting for {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn one_and_three_workers_give_the_local_image_byte_for_byte() {
+    let dir = temp_dir("workers");
+    let s = job(48, 40, 32);
+    let reference = local_render(&dir, &s);
+    let mut images = Vec::new();
+    for workers in [1, 3] {
+        let data = dir.join(format!("data{workers}"));
+        let c = start_coordinator(&data, "127.0.0.1:0", "127.0.0.1:0", &[]);
+        let _ws: Vec<Proc> = (0..workers)
+            .map(|i| start_worker(&c.grpc, &format!("w{i}"), &[]))
+            .collect();
+        let client = Client::new(&c.http, None);
+        let st = client.submit(&s, None).unwrap();
+        let done = wait_done(&client, st.id);
+        assert_eq!(done.passes_done, done.passes_planned);
+        let exr = client.image(st.id, "exr").unwrap();
+        images.push(exr);
+        // Every worker took part when there are three (the plan has 2 x 2 tiles x 8 passes).
+        let w = client.workers().unwrap();
+        assert_eq!(w.workers.len(), workers);
+    }
+    assert!(
+        images[0] == reference,
+        "1 worker: EXR differs from tessera render"
+    );
+    assert!(
+        images[1] == reference,
+        "3 workers: EXR differs from tessera render"
+    );
+}
+
+#[test]
+fn a_killed_worker_loses_nothing() {
+    let dir = temp_dir("kill-worker");
+    let s = job(64, 64, 128);
+    let reference = local_render(&dir, &s);
+    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
+    let mut victim = start_worker(&c.grpc, "victim", &[]);
+    let client = Client::new(&c.http, None);
+    let st = client.submit(&s, None).unwrap();
+    // Kill the only worker in the middle of the job, holding leases.
+    poll("a third of the passes", || {
+        let j = client.job(st.id).unwrap();
+        j.passes_done * 3 >= j.passes_planned
+    });
+    victim.kill9();
+    let mid = client.job(st.id).unwrap();
+    assert!(
+        mid.passes_done < mid.passes_planned,
+        "the job finished before the kill"
+    );
+    // A new worker picks up the rest, including the dead worker's leases once they lapse.
+    let _w = start_worker(&c.grpc, "rescuer", &[]);
+    wait_done(&client, st.id);
+    let exr = client.image(st.id, "exr").unwrap();
+    assert!(exr == reference, "EXR after a worker was killed differs");
+}
+
+#[test]
+fn a_killed_coordinator_resumes_and_loses_no_job() {
+    let dir = temp_dir("kill-coordinator");
+    let data = dir.join("data");
+    let s = job(64, 64, 128);
+    let reference = local_render(&dir, &s);
+    let (http, grpc) = (
+        format!("127.0.0.1:{}", free_port()),
+        format!("127.0.0.1:{}", free_port()),
+    );
+    let mut c = start_coordinator(&data, &http, &grpc, &[]);
+    let _w1 = start_worker(&c.grpc, "w1", &[]);
+    let _w2 = start_worker(&c.grpc, "w2", &[]);
+    let client = Client::new(&c.http, None);
+    let running = client.submit(&s, None).unwrap();
+    // A second job that stays queued behind it (lower priority): it must survive too.
+    let mut queued = job(16, 16, 8);
+    queued.priority = -1;
+    queued.name = Some("queued".into());
+    let queued = client.submit(&queued, Some("key-1")).unwrap();
+    poll("a quarter of the passes", || {
+        let j = client.job(running.id).unwrap();
+        j.passes_done * 4 >= j.passes_planned
+    });
+    c.proc.kill9();
+    // Restart on the same data directory and addresses; the workers reconnect by themselves.
+    let c2 = start_coordinator(&data, &http, &grpc, &[]);
+    let client = Client::new(&c2.http, None);
+    let after = client.job(running.id).unwrap();
+    assert!(
+        after.passes_done > 0,
+        "merged passes were lost in the restart"
+    );
+    assert!(after.passes_done < after.passes_planned);
+    let done = wait_done(&client, running.id);
+    assert_eq!(done.passes_done, done.passes_planned);
+    let exr = client.image(running.id, "exr").unwrap();
+    assert!(exr == reference, "EXR after a coordinator restart differs");
+    // The queued job was not lost, and its idempotency key still maps to it.
+    let mut again = job(16, 16, 8);
+    again.priority = -1;
+    again.name = Some("queued".into());
+    assert_eq!(client.submit(&again, Some("key-1")).unwrap().id, queued.id);
+    wait_done(&client, queued.id);
+    assert_eq!(client.jobs(10, None).unwrap().jobs.len(), 2);
+}
+
+fn api_error(r: Result<impl std::fmt::Debug, ClientError>) -> (u16, tessera_api::ApiError) {
+    match r {
+        Err(ClientError::Api { status, error }) => (status, error),
+        other => panic!("expected an API error, got {other:?}"),
+    }
+}
+
+#[test]
+fn bad_input_gets_json_errors_and_the_coordinator_keeps_serving() {
+    let dir = temp_dir("bad-input");
+    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
+    let client = Client::new(&c.http, None);
+    for (body, field) in [
+        (r#"{"scene": "builtin:cornell-box", "spp": 0}"#, Some("spp")),
+        (
+            r#"{"scene": "builtin:cornell-box", "width": 100000}"#,
+            Some("width"),
+        ),
+        (r#"{"scene": "builtin:nope"}"#, Some("scene")),
+        (r#"{"scene": "builtin:cornell-box", "colour": 1}"#, None),
+        (
+            r#"{"scene": "builtin:cornell-box", "mis": "magic"}"#,
+            Some("mis"),
+        ),
+        (
+            r#"{"scene": "builtin:cornell-box", "target_error": -1}"#,
+            Some("target_error"),
+        ),
+        ("not json", None),
+    ] {
+        let (status, e) = api_error(client.submit_raw(body.as_bytes()));
+        assert_eq!(status, 400, "{body}: {e}");
+        if let Some(f) = field {
+            assert_eq!(e.field.as_deref(), Some(f), "{body}: {e}");
+        }
+        assert!(!e.message.is_empty());
+    }
+    for upload in [
+        &b""[..],
+        b"garbage",
+        b"glTF\x02\x00\x00\x00\xff\xff\xff\xff",
+        br#"{"asset": {"version": "2.0"}, "buffers": [{"byteLength": 10, "uri": "/etc/passwd"}]}"#,
+    ] {
+        let (status, e) = api_error(client.upload_scene(upload));
+        assert!((400..500).contains(&status), "{status}: {e}");
+    }
+    // A job naming a scene hash that was never uploaded.
+    let (status, e) = api_error(client.submit(&JobSettings::new("ab".repeat(32)), None));
+    assert_eq!((status, e.field.as_deref()), (400, Some("scene")));
+    let (status, _) = api_error(client.job(12345));
+    assert_eq!(status, 404);
+    let (status, _) = api_error(client.image(12345, "png"));
+    assert_eq!(status, 404);
+    // Still serving: a real upload and a job over it render.
+    let gltf = std::fs::read(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenes/cornell-box.gltf"
+    ))
+    .unwrap();
+    let up = client.upload_scene(&gltf).unwrap();
+    assert!(up.triangles > 0);
+    let _w = start_worker(&c.grpc, "w", &[]);
+    let mut s = JobSettings::new(up.hash);
+    (s.width, s.height, s.spp) = (Some(16), Some(16), 4);
+    let st = client.submit(&s, None).unwrap();
+    wait_done(&client, st.id);
+    let png = client.image(st.id, "png").unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+}
+
+#[test]
+fn tokens_are_required_when_configured() {
+    let dir = temp_dir("tokens");
+    let c = start_coordinator(
+        &dir.join("data"),
+        "127.0.0.1:0",
+        "127.0.0.1:0",
+        &[
+            "--api-token",
+            "api-s3cret",
+            "--worker-token",
+            "worker-s3cret",
+        ],
+    );
+    // HTTP: no token, wrong token, right token.
+    for token in [None, Some("wrong".to_string())] {
+        let (status, e) = api_error(Client::new(&c.http, token).jobs(5, None));
+        assert_eq!(status, 401, "{e}");
+    }
+    let client = Client::new(&c.http, Some("api-s3cret".into()));
+    let st = client.submit(&job(16, 16, 4), None).unwrap();
+    // gRPC: a worker without the token is refused and exits with an error; a worker with a
+    // wrong token too; the right one renders the job.
+    for extra in [&[][..], &["--token", "nope"][..]] {
+        let out = tessera()
+            .args(["worker", "--coordinator", &c.grpc, "--threads", "1"])
+            .args(extra)
+            .env_remove("TESSERA_WORKER_TOKEN")
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("token"), "{err}");
+    }
+    assert_eq!(client.job(st.id).unwrap().passes_done, 0);
+    let _w = start_worker(&c.grpc, "w", &["--token", "worker-s3cret"]);
+    wait_done(&client, st.id);
+}
+
+#[test]
+fn faulty_results_are_rejected_and_the_image_is_unaffected() {
+    use tessera_proto::v1;
+    let dir = temp_dir("faulty");
+    let s = job(32, 32, 16);
+    let reference = local_render(&dir, &s);
+    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
+    let client = Client::new(&c.http, None);
+    let st = client.submit(&s, None).unwrap();
+    // A faulty worker, speaking real gRPC from this test: it leases units and returns a
+    // result of the wrong size, then one with a NaN, then a negative value.
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let faults = rt.block_on(async {
+        let mut g = tessera_proto::WorkerServiceClient::connect(c.grpc.clone())
+            .await
+            .unwrap();
+        let reg = g
+            .register(v1::RegisterRequest {
+                name: "faulty".into(),
+                threads: 1,
+                version: "test".into(),
+                capabilities: vec![],
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let leases = g
+            .lease_work(v1::LeaseRequest {
+                worker_id: reg.worker_id,
+                max_units: 3,
+            })
+            .await
+            .unwrap()
+            .into_inner()
+            .leases;
+        assert_eq!(leases.len(), 3);
+        let mut rejected = 0;
+        for (k, l) in leases.into_iter().enumerate() {
+            let l = tessera_proto::LeasedUnit::try_from(l).unwrap();
+            let rect = l.plan.tile(l.unit.tile);
+            let n = rect.pixel_count() * l.unit.pass_count as usize * 3;
+            let mut pass_means = vec![0.5f32; n];
+            match k {
+                0 => {
+                    pass_means.pop();
+                }
+                1 => pass_means[7] = f32::NAN,
+                _ => pass_means[3] = -1.0,
+            }
+            let (width, height) = (rect.width, rect.height);
+            let unit = v1::WorkUnit::from(l.unit);
+            let r = g
+                .submit_result(v1::SubmitResultRequest {
+                    worker_id: reg.worker_id,
+                    lease_id: l.lease_id,
+                    unit: Some(unit),
+                    width,
+                    height,
+                    pass_means,
+                    render_seconds: 0.1,
+                    job_id: l.job_id,
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            assert!(!r.accepted, "a bad result was accepted");
+            assert!(!r.reason.is_empty());
+            rejected += 1;
+        }
+        rejected
+    });
+    assert_eq!(faults, 3);
+    let j = client.job(st.id).unwrap();
+    assert_eq!(j.passes_done, 0, "a rejected result was merged");
+    assert_eq!(j.faults, 3);
+    let w = client.workers().unwrap();
+    let faulty = w.workers.iter().find(|w| w.name == "faulty").unwrap();
+    assert_eq!(faulty.faults, 3);
+    // Honest workers finish the job (the faulty worker's leases lapse and are re-leased).
+    let _w = start_worker(&c.grpc, "honest", &[]);
+    wait_done(&client, st.id);
+    assert!(client.image(st.id, "exr").unwrap() == reference);
+    let metrics = String::from_utf8(client.get_raw("/metrics").unwrap()).unwrap();
+    assert!(
+        metrics.contains("tessera_worker_faults_total 3"),
+        "{metrics}"
+    );
+}

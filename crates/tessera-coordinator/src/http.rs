@@ -1,0 +1,332 @@
+//! The HTTP API v1 (DESIGN §5) and the dashboard, on axum.
+//!
+//! Every `/api/v1` route answers JSON; every failure is an [`ApiError`] serialized as
+//! `{"error": {"code", "message", "field"?}}` with its 4xx/5xx status, including malformed
+//! query strings, bodies and unknown routes (no framework-default plain-text errors).
+//! With an API token configured, `/api/v1` requires `Authorization: Bearer TOKEN` (401
+//! otherwise); `/healthz`, `/metrics` and the dashboard files are open, the dashboard
+//! asking its user for the token.
+
+use axum::body::Bytes;
+use axum::extract::rejection::BytesRejection;
+use axum::extract::{DefaultBodyLimit, Path, RawQuery, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use serde::de::DeserializeOwned;
+use tessera_api::{
+    ApiError, ErrorCode, FrameQuery, ImageFormat, ImageQuery, JobListQuery, JobSettings,
+    API_PREFIX, IDEMPOTENCY_KEY_HEADER,
+};
+
+use crate::service::{Coordinator, MAX_SCENE_BYTES};
+
+/// An [`ApiError`] as an HTTP response.
+pub struct HttpError(pub ApiError);
+
+impl From<ApiError> for HttpError {
+    fn from(e: ApiError) -> Self {
+        Self(e)
+    }
+}
+
+impl IntoResponse for HttpError {
+    fn into_response(self) -> Response {
+        let status =
+            StatusCode::from_u16(self.0.status()).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
+        let mut resp = (status, Json(&self.0)).into_response();
+        if status == StatusCode::UNAUTHORIZED {
+            resp.headers_mut().insert(
+                header::WWW_AUTHENTICATE,
+                HeaderValue::from_static("Bearer realm=\"tessera\""),
+            );
+        }
+        resp
+    }
+}
+
+type HttpResult<T> = Result<T, HttpError>;
+
+/// The content security policy of the dashboard: everything from this origin only.
+pub const DASHBOARD_CSP: &str = "default-src 'self'; img-src 'self' blob: data:; style-src 'self'; script-src 'self'; connect-src 'self'";
+
+/// The OpenAPI 3 description of the API, served at `/api/v1/openapi.json`.
+pub const OPENAPI_JSON: &str = include_str!("openapi.json");
+
+/// The router of the whole HTTP port.
+pub fn router(core: Coordinator) -> Router {
+    let api = Router::new()
+        .route("/jobs", post(submit_job).get(list_jobs))
+        .route("/jobs/{id}", get(get_job).delete(cancel_job))
+        .route("/jobs/{id}/image", get(job_image))
+        .route("/jobs/{id}/history", get(job_history))
+        .route("/jobs/{id}/tiles", get(job_tiles))
+        .route(
+            "/scenes",
+            post(upload_scene).layer(DefaultBodyLimit::max(MAX_SCENE_BYTES)),
+        )
+        .route("/builtins", get(builtins))
+        .route("/workers", get(workers))
+        .route("/openapi.json", get(openapi))
+        .fallback(api_not_found)
+        .layer(DefaultBodyLimit::max(1 << 20))
+        .layer(middleware::from_fn_with_state(core.clone(), require_token));
+    Router::new()
+        .nest(API_PREFIX, api)
+        .route("/healthz", get(healthz))
+        .route("/metrics", get(metrics))
+        .route("/", get(dashboard_asset))
+        .route("/index.html", get(dashboard_asset))
+        .route("/assets/{*path}", get(dashboard_asset))
+        .fallback(not_found)
+        .with_state(core)
+}
+
+async fn require_token(State(core): State<Coordinator>, req: Request, next: Next) -> Response {
+    if let Some(token) = &core.config().api_token {
+        let given = req
+            .headers()
+            .get(header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        let ok = given.is_some_and(|g| {
+            g.len() == token.len()
+                && g.bytes()
+                    .zip(token.bytes())
+                    .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+                    == 0
+        });
+        if !ok {
+            return HttpError(ApiError::new(
+                ErrorCode::Unauthorized,
+                "this API requires a bearer token: send Authorization: Bearer TOKEN",
+            ))
+            .into_response();
+        }
+    }
+    next.run(req).await
+}
+
+fn parse_query<T: DeserializeOwned + Default>(q: Option<String>) -> Result<T, ApiError> {
+    match q.as_deref() {
+        None | Some("") => Ok(T::default()),
+        Some(q) => serde_urlencoded::from_str(q).map_err(|e| {
+            ApiError::new(
+                ErrorCode::InvalidRequest,
+                format!("invalid query string: {e}"),
+            )
+        }),
+    }
+}
+
+fn parse_id(id: &str) -> Result<u64, ApiError> {
+    id.parse::<u64>().map_err(|_| {
+        ApiError::new(
+            ErrorCode::NotFound,
+            format!("job {id:?} does not exist: job ids are positive integers"),
+        )
+    })
+}
+
+async fn submit_job(
+    State(core): State<Coordinator>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult<Response> {
+    let body = body.map_err(body_error)?;
+    if let Some(ct) = headers.get(header::CONTENT_TYPE) {
+        let ct = ct.to_str().unwrap_or("");
+        if !ct.starts_with("application/json") {
+            return Err(ApiError::new(
+                ErrorCode::InvalidRequest,
+                format!("the job must be sent as application/json, not {ct:?}"),
+            )
+            .into());
+        }
+    }
+    let key = match headers.get(IDEMPOTENCY_KEY_HEADER) {
+        Some(v) => Some(
+            v.to_str()
+                .map_err(|_| ApiError::invalid_field("idempotency-key", "must be ASCII"))?
+                .to_string(),
+        ),
+        None => None,
+    };
+    let settings = JobSettings::from_json(&body)?;
+    let (status, created) = core.submit(settings, key).await?;
+    let code = if created {
+        StatusCode::CREATED
+    } else {
+        StatusCode::OK
+    };
+    let mut resp = (code, Json(status.clone())).into_response();
+    if let Ok(v) = HeaderValue::from_str(&format!("{API_PREFIX}/jobs/{}", status.id)) {
+        resp.headers_mut().insert(header::LOCATION, v);
+    }
+    Ok(resp)
+}
+
+async fn list_jobs(State(core): State<Coordinator>, RawQuery(q): RawQuery) -> HttpResult<Response> {
+    let q: JobListQuery = parse_query(q)?;
+    Ok(Json(core.list(q).await?).into_response())
+}
+
+async fn get_job(State(core): State<Coordinator>, Path(id): Path<String>) -> HttpResult<Response> {
+    Ok(Json(core.status(parse_id(&id)?).await?).into_response())
+}
+
+async fn cancel_job(
+    State(core): State<Coordinator>,
+    Path(id): Path<String>,
+) -> HttpResult<Response> {
+    Ok(Json(core.cancel(parse_id(&id)?).await?).into_response())
+}
+
+async fn job_history(
+    State(core): State<Coordinator>,
+    Path(id): Path<String>,
+) -> HttpResult<Response> {
+    Ok(Json(core.history(parse_id(&id)?).await?).into_response())
+}
+
+async fn job_tiles(
+    State(core): State<Coordinator>,
+    Path(id): Path<String>,
+    RawQuery(q): RawQuery,
+) -> HttpResult<Response> {
+    let q: FrameQuery = parse_query(q)?;
+    Ok(Json(core.tiles(parse_id(&id)?, q).await?).into_response())
+}
+
+async fn job_image(
+    State(core): State<Coordinator>,
+    Path(id): Path<String>,
+    RawQuery(q): RawQuery,
+) -> HttpResult<Response> {
+    let q: ImageQuery = parse_query(q)?;
+    let id = parse_id(&id)?;
+    let bytes = core.image(id, q).await?;
+    let mut resp = (
+        [
+            (header::CONTENT_TYPE, q.format.content_type()),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        bytes,
+    )
+        .into_response();
+    if q.format == ImageFormat::Exr {
+        if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"job-{id}.exr\"")) {
+            resp.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+        }
+    }
+    Ok(resp)
+}
+
+fn body_error(e: BytesRejection) -> ApiError {
+    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+        ApiError::new(
+            ErrorCode::TooLarge,
+            format!("the request body is too large: {}", e.body_text()),
+        )
+    } else {
+        ApiError::new(
+            ErrorCode::InvalidRequest,
+            format!("cannot read the request body: {}", e.body_text()),
+        )
+    }
+}
+
+async fn upload_scene(
+    State(core): State<Coordinator>,
+    body: Result<Bytes, BytesRejection>,
+) -> HttpResult<Response> {
+    let body = body.map_err(body_error)?;
+    let out = core.upload_scene(body.to_vec()).await?;
+    Ok((StatusCode::CREATED, Json(out)).into_response())
+}
+
+async fn builtins() -> Response {
+    let list: Vec<serde_json::Value> = tessera_scene::builtin::NAMES
+        .iter()
+        .map(|n| {
+            serde_json::json!({
+                "name": n,
+                "scene": format!("builtin:{n}"),
+                "description": builtin_description(n),
+            })
+        })
+        .collect();
+    Json(serde_json::json!({ "builtins": list })).into_response()
+}
+
+fn builtin_description(name: &str) -> &'static str {
+    match name {
+        "cornell-box" => "the classic Cornell box",
+        "veach-mis" => "Veach & Guibas 1995: four glossy plates, four spherical lights",
+        "furnace" => "a closed emitting box: every pixel is exactly 2.5",
+        "caustic" => "a glass sphere on a diffuse floor under a small light",
+        _ => "",
+    }
+}
+
+async fn workers(State(core): State<Coordinator>) -> HttpResult<Response> {
+    Ok(Json(core.workers()?).into_response())
+}
+
+async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/json")], OPENAPI_JSON).into_response()
+}
+
+async fn api_not_found(req: Request) -> HttpError {
+    HttpError(ApiError::new(
+        ErrorCode::NotFound,
+        format!("no API route {} {}", req.method(), req.uri().path()),
+    ))
+}
+
+async fn not_found(req: Request) -> HttpError {
+    HttpError(ApiError::new(
+        ErrorCode::NotFound,
+        format!("nothing at {}", req.uri().path()),
+    ))
+}
+
+async fn healthz(State(core): State<Coordinator>) -> Response {
+    match core.store().ping().await {
+        Ok(()) => (StatusCode::OK, "ok\n").into_response(),
+        Err(e) => (
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!("store unavailable: {e}\n"),
+        )
+            .into_response(),
+    }
+}
+
+async fn metrics(State(core): State<Coordinator>) -> HttpResult<Response> {
+    Ok((
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        core.metrics()?,
+    )
+        .into_response())
+}
+
+async fn dashboard_asset(req: Request) -> Response {
+    match crate::dashboard::asset(req.uri().path()) {
+        Some(a) => (
+            [
+                (header::CONTENT_TYPE, a.content_type),
+                (header::CONTENT_SECURITY_POLICY, DASHBOARD_CSP),
+                (header::CACHE_CONTROL, "no-cache"),
+            ],
+            a.bytes,
+        )
+            .into_response(),
+        None => HttpError(ApiError::new(
+            ErrorCode::NotFound,
+            format!("no dashboard file {}", req.uri().path()),
+        ))
+        .into_response(),
+    }
+}
