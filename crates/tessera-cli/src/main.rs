@@ -2,6 +2,8 @@
 //! same plan, per-unit rendering and canonical merge the farm uses; `tessera bench`
 //! measures throughput.
 
+mod adaptive;
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use std::io::IsTerminal;
@@ -94,6 +96,8 @@ struct RenderArgs {
     /// Output file: .exr (multi-layer float) or .png (sRGB).
     #[arg(short, long)]
     output: PathBuf,
+    #[command(flatten)]
+    adaptive: adaptive::AdaptiveArgs,
 }
 
 #[derive(Args)]
@@ -279,7 +283,8 @@ fn render(args: RenderArgs) -> Result<()> {
     if !matches!(ext.as_deref(), Some("exr") | Some("png")) {
         bail!("output {} must end in .exr or .png", args.output.display());
     }
-    let p = prepare(&args.job)?;
+    adaptive::check(&args.adaptive)?;
+    let mut p = prepare(&args.job)?;
     print!("{}", p.render_plan.summary());
     for note in &p.notes {
         println!("note: {note}");
@@ -305,7 +310,13 @@ fn render(args: RenderArgs) -> Result<()> {
         println!("seconds: {seconds:.3}");
         println!("estimated relative error: {:.4}", 0.0);
         println!("paths per second: 0");
+        if let Some(map) = &args.adaptive.spp_map {
+            adaptive::write_spp_map(map, &image)?;
+        }
         return Ok(());
+    }
+    if args.adaptive.active() {
+        return adaptive::render(&mut p, &args);
     }
     let bar = if std::io::stderr().is_terminal() {
         let bar = indicatif::ProgressBar::new(p.plan.unit_count(1));
@@ -360,6 +371,9 @@ fn render(args: RenderArgs) -> Result<()> {
     println!("seconds: {seconds:.3}");
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
+    if let Some(map) = &args.adaptive.spp_map {
+        adaptive::write_spp_map(map, &image)?;
+    }
     Ok(())
 }
 
