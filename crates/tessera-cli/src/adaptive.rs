@@ -39,7 +39,9 @@ pub struct AdaptiveArgs {
 impl AdaptiveArgs {
     /// Whether the render needs the adaptive round loop.
     pub fn active(&self) -> bool {
-        self.adaptive != AdaptiveMode::Off || self.target_error.is_some() || self.time_limit.is_some()
+        self.adaptive != AdaptiveMode::Off
+            || self.target_error.is_some()
+            || self.time_limit.is_some()
     }
 
     fn validate(&self) -> Result<()> {
@@ -60,7 +62,10 @@ impl AdaptiveArgs {
             );
         }
         if !(2..=1024).contains(&self.min_passes) {
-            bail!("--min-passes {} must be between 2 and 1024", self.min_passes);
+            bail!(
+                "--min-passes {} must be between 2 and 1024",
+                self.min_passes
+            );
         }
         if let Some(path) = &self.spp_map {
             check_png("--spp-map", path)?;
@@ -107,16 +112,18 @@ pub fn render(p: &mut Prepared, args: &RenderArgs) -> Result<()> {
     let settings = settings(a);
     if a.adaptive != AdaptiveMode::Off {
         // Adaptive decisions fall between passes: plan many short ones (at least 32).
-        p.plan = adaptive_plan(p.plan.width, p.plan.height, args.job.spp, args.job.tile_size)
-            .context("invalid image or sampling settings")?;
+        p.plan = adaptive_plan(
+            p.plan.width,
+            p.plan.height,
+            args.job.spp,
+            args.job.tile_size,
+        )
+        .context("invalid image or sampling settings")?;
     }
     let frame = AdaptiveFrame::new(p.plan, 0, settings).with_context(|| {
         format!(
             "--adaptive {} with --spp {} ({} passes of {})",
-            a.adaptive,
-            args.job.spp,
-            p.plan.passes,
-            p.plan.samples_per_pass
+            a.adaptive, args.job.spp, p.plan.passes, p.plan.samples_per_pass
         )
     })?;
     let Some(render_scene) = p.render_scene.as_ref() else {
@@ -194,10 +201,7 @@ pub fn render(p: &mut Prepared, args: &RenderArgs) -> Result<()> {
         None => println!("stopped: {}", out.stop.as_str()),
     }
     println!("seconds: {:.3}", out.seconds);
-    println!(
-        "estimated relative error: {:.4}",
-        out.frame.image_error()
-    );
+    println!("estimated relative error: {:.4}", out.frame.image_error());
     println!(
         "paths per second: {:.0}",
         out.paths as f64 / out.seconds.max(1e-9)

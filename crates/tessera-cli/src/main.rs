@@ -2,7 +2,9 @@
 //! same plan, per-unit rendering and canonical merge the farm uses; `tessera bench`
 //! measures throughput.
 
+mod accuracy;
 mod adaptive;
+mod figure5;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -101,7 +103,11 @@ struct RenderArgs {
 }
 
 #[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
 struct BenchArgs {
+    /// `tessera bench accuracy ...`; without a subcommand, the throughput bench.
+    #[command(subcommand)]
+    what: Option<BenchCommand>,
     /// Scene to render.
     #[arg(default_value = "builtin:cornell-box")]
     scene: String,
@@ -125,11 +131,21 @@ struct BenchArgs {
     repeat: u32,
 }
 
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// What accuracy costs in time: error against a reference for a ladder of budgets per
+    /// configuration (CSV, SVG, Markdown), and Veach & Guibas 1995 figure 5.
+    Accuracy(accuracy::AccuracyArgs),
+}
+
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Render(args) => render(args),
-        Command::Bench(args) => bench(args),
+        Command::Bench(mut args) => match args.what.take() {
+            Some(BenchCommand::Accuracy(a)) => accuracy::bench_accuracy(a),
+            None => bench(args),
+        },
         Command::Serve(args) => farm::serve(args),
         Command::Coordinator(args) => farm::coordinator(args),
         Command::Worker(args) => farm::worker(args),

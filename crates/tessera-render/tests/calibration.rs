@@ -14,8 +14,8 @@
 //! `measured² = mean_p ((lum m - lum r)² - v_r,lum) / (lum r + eps)²`.
 
 use std::sync::OnceLock;
-use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage, FramePlan};
 use tessera_farm::{luminance, REL_EPS};
+use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage, FramePlan};
 use tessera_render::adaptive::{render_adaptive, Limits};
 use tessera_render::render::{render_frame, RenderSettings};
 use tessera_render::scene::RenderScene;
@@ -24,11 +24,23 @@ const W: u32 = 32;
 const H: u32 = 32;
 
 fn settings(scene: &str, seed: u64) -> RenderSettings {
+    if scene.ends_with("veach-mis") {
+        // The glossy-highlights experiment (seed 002 §4.1) is direct lighting: light and
+        // BSDF sampling of the four lights, combined by MIS. (With indirect bounces the
+        // floor also sees the plates' caustics, rare paths that a 32x32 test at a few
+        // hundred spp resolves only as isolated fireflies: see the issue 4 report.)
+        return RenderSettings {
+            seed,
+            integrator: tessera_render::integrator::IntegratorKind::Direct,
+            max_depth: 1,
+            ..RenderSettings::default()
+        };
+    }
     RenderSettings {
         seed,
-        // Fewer bounces than the general 16 keep the tests fast; the estimate's calibration
+        // Fewer bounces than the general 16 keep the test fast; the estimate's calibration
         // does not depend on the depth.
-        max_depth: if scene.ends_with("veach-mis") { 3 } else { 6 },
+        max_depth: 6,
         ..RenderSettings::default()
     }
 }
@@ -38,7 +50,7 @@ fn render_scene(scene: &str) -> RenderScene {
     RenderScene::build(&s, W, H).unwrap()
 }
 
-/// The converged reference: 4096 spp (256 passes of 16), seed 1000.
+/// The converged reference: 8192 spp (512 passes of 16), seed 1000.
 fn reference(scene: &'static str) -> &'static FrameImage {
     static CORNELL: OnceLock<FrameImage> = OnceLock::new();
     static VEACH: OnceLock<FrameImage> = OnceLock::new();
@@ -49,7 +61,7 @@ fn reference(scene: &'static str) -> &'static FrameImage {
     };
     cell.get_or_init(|| {
         let rs = render_scene(scene);
-        let plan = FramePlan::new(W, H, 8, 16, 256).unwrap();
+        let plan = FramePlan::new(W, H, 8, 16, 512).unwrap();
         render_frame(&rs, &settings(scene, 1000), &plan, 0, 0, |_, _| {}).image()
     })
 }
@@ -81,8 +93,11 @@ fn measured_error(img: &FrameImage, r: &FrameImage) -> f64 {
 fn calibration(scene: &'static str) {
     let r = reference(scene);
     let rs = render_scene(scene);
-    // 128 spp as 64 passes of 2.
-    let plan = FramePlan::new(W, H, 8, 2, 64).unwrap();
+    // 1024 spp as 64 passes of 16: 63 degrees of freedom for each pixel's variance, and
+    // passes long enough that their means are close to normal (with 4 samples per pass
+    // the skew of rare bright paths pulls the coverage to ~92.5%: a pixel whose passes
+    // missed them has both a low mean and a low variance).
+    let plan = FramePlan::new(W, H, 8, 16, 64).unwrap();
     let acc = render_frame(&rs, &settings(scene, 7), &plan, 0, 0, |_, _| {});
     let img = acc.image();
     let (mut inside, mut counted) = (0usize, 0usize);
@@ -156,12 +171,16 @@ fn adaptive_render_meets_its_target_error() {
     for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
         let img = adaptive(scene, mode, target, 0);
         let measured = measured_error(&img, r);
-        let mean_spp = img.samples.iter().map(|&s| f64::from(s)).sum::<f64>() / img.samples.len() as f64;
+        let mean_spp =
+            img.samples.iter().map(|&s| f64::from(s)).sum::<f64>() / img.samples.len() as f64;
         eprintln!(
             "target {target} {mode}: measured error {measured:.4} ({:.2} x target), mean spp {mean_spp:.1} of 2048",
             measured / target
         );
-        assert!(measured <= 1.1 * target, "{mode}: measured {measured} > target {target}");
+        assert!(
+            measured <= 1.1 * target,
+            "{mode}: measured {measured} > target {target}"
+        );
         assert!(mean_spp < 2048.0, "{mode}: nothing was saved");
     }
 }
@@ -180,6 +199,9 @@ fn adaptive_render_is_bit_identical_for_any_thread_count() {
         let a = adaptive("builtin:veach-mis", mode, 0.1, 1);
         let b = adaptive("builtin:veach-mis", mode, 0.1, 2);
         assert!(bits(&a) == bits(&b), "{mode}");
-        assert!(a.samples.iter().min() < a.samples.iter().max(), "{mode}: not adaptive");
+        assert!(
+            a.samples.iter().min() < a.samples.iter().max(),
+            "{mode}: not adaptive"
+        );
     }
 }
