@@ -95,7 +95,9 @@ impl Run {
 }
 
 fn lum(rgb: [f32; 3]) -> f64 {
-    (0..3).map(|c| LUMINANCE_WEIGHTS[c] * f64::from(rgb[c])).sum()
+    (0..3)
+        .map(|c| LUMINANCE_WEIGHTS[c] * f64::from(rgb[c]))
+        .sum()
 }
 
 /// The reference's luminance variance of the mean, channels taken as independent.
@@ -165,7 +167,10 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
         bail!("--reference-spp must be at least 1");
     }
     if args.figure5_samples < 100 {
-        bail!("--figure5-samples {} must be at least 100", args.figure5_samples);
+        bail!(
+            "--figure5-samples {} must be at least 100",
+            args.figure5_samples
+        );
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating --out {}", args.out.display()))?;
@@ -185,7 +190,10 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     };
     let p = prepare(&job)?;
     let Some(rs) = p.render_scene.as_ref() else {
-        bail!("{}: the render plan found no light: nothing to measure", args.scene);
+        bail!(
+            "{}: the render plan found no light: nothing to measure",
+            args.scene
+        );
     };
     let base = p.settings;
     let (w, h) = (p.plan.width, p.plan.height);
@@ -317,7 +325,14 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
                         ..AdaptiveSettings::default()
                     },
                 )?;
-                let out = render_adaptive(rs, &settings, frame, args.threads, Limits::default(), |_| {});
+                let out = render_adaptive(
+                    rs,
+                    &settings,
+                    frame,
+                    args.threads,
+                    Limits::default(),
+                    |_| {},
+                );
                 let img = out.frame.image();
                 let (rmse, rel_mse) = measure(&img, reference);
                 runs.push(Run {
@@ -449,7 +464,10 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
         claims.summary()
     );
     println!("{md}");
-    println!("wrote accuracy.csv, accuracy.svg, accuracy.md, figure5.csv, figure5.svg to {}", args.out.display());
+    println!(
+        "wrote accuracy.csv, accuracy.svg, accuracy.md, figure5.csv, figure5.svg to {}",
+        args.out.display()
+    );
     Ok(())
 }
 
@@ -483,7 +501,12 @@ pub fn time_to_reach(points: &[(f64, f64)], target: f64) -> Option<f64> {
 
 /// A hand-written SVG line plot on log-log axes, one polyline per series, with decade
 /// grid lines and a legend.
-pub fn svg_plot(title: &str, xlabel: &str, ylabel: &str, series: &[(String, Vec<(f64, f64)>)]) -> String {
+pub fn svg_plot(
+    title: &str,
+    xlabel: &str,
+    ylabel: &str,
+    series: &[(String, Vec<(f64, f64)>)],
+) -> String {
     const COLOURS: [&str; 10] = [
         "#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf",
         "#7f7f7f", "#bcbd22",
@@ -508,7 +531,11 @@ pub fn svg_plot(title: &str, xlabel: &str, ylabel: &str, series: &[(String, Vec<
     let (y0, y1) = (y0.floor(), y1.ceil().max(y0.floor() + 1.0));
     let px = |x: f64| left + (x.log10() - x0) / (x1 - x0) * (w - left - right);
     let py = |y: f64| top + (y1 - y.log10()) / (y1 - y0) * (h - top - bottom);
-    let esc = |s: &str| s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;");
+    let esc = |s: &str| {
+        s.replace('&', "&amp;")
+            .replace('<', "&lt;")
+            .replace('>', "&gt;")
+    };
     let mut s = format!(
         "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"12\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"22\" font-size=\"15\" text-anchor=\"middle\">{}</text>\n",
         (w - right + left) / 2.0,
@@ -591,7 +618,10 @@ mod tests {
     #[test]
     fn time_to_reach_interpolates_on_log_log() {
         // error = 1/sqrt(t): reaches 0.1 at t = 100.
-        let pts: Vec<(f64, f64)> = [1.0, 10.0, 1000.0].iter().map(|&t: &f64| (t, 1.0 / t.sqrt())).collect();
+        let pts: Vec<(f64, f64)> = [1.0, 10.0, 1000.0]
+            .iter()
+            .map(|&t: &f64| (t, 1.0 / t.sqrt()))
+            .collect();
         let t = time_to_reach(&pts, 0.1).unwrap();
         assert!((t - 100.0).abs() < 1e-9, "{t}");
         assert_eq!(time_to_reach(&pts, 2.0), Some(1.0));
@@ -601,7 +631,15 @@ mod tests {
 
     #[test]
     fn svg_is_well_formed_enough() {
-        let s = svg_plot("a < b", "x", "y", &[("one".into(), vec![(1.0, 0.5), (10.0, 0.1)]), ("empty".into(), vec![])]);
+        let s = svg_plot(
+            "a < b",
+            "x",
+            "y",
+            &[
+                ("one".into(), vec![(1.0, 0.5), (10.0, 0.1)]),
+                ("empty".into(), vec![]),
+            ],
+        );
         assert!(s.starts_with("<svg") && s.trim_end().ends_with("</svg>"));
         assert!(s.contains("a &lt; b") && s.contains("polyline"));
     }

@@ -117,7 +117,8 @@ pub fn measure(roughness: f64, samples: u32, seed: u64) -> Row {
     let mut acc = [Welford::default(); 6];
     for _ in 0..samples {
         // Light (area) sampling: contribution, and the BSDF's density of the same direction.
-        let (c_l, pl_l, pb_l) = match light.sample_li(Vec3::ZERO, Vec2::new(rng.next(), rng.next())) {
+        let (c_l, pl_l, pb_l) = match light.sample_li(Vec3::ZERO, Vec2::new(rng.next(), rng.next()))
+        {
             Some(ls) if ls.pdf > 0.0 => {
                 let f = bsdf.eval(wo, ls.wi).x;
                 (f * ls.li.x / ls.pdf, ls.pdf, bsdf.pdf(wo, ls.wi))
@@ -298,7 +299,11 @@ mod tests {
                 .map(|(s, m)| s * m / (20_000f64).sqrt())
                 .fold(0.0, f64::max);
             for v in &m[1..] {
-                assert!((v - m[0]).abs() <= 5.0 * se, "r {}: means {m:?}", r.roughness);
+                assert!(
+                    (v - m[0]).abs() <= 5.0 * se,
+                    "r {}: means {m:?}",
+                    r.roughness
+                );
             }
         }
         let c = Claims::check(&rows);

@@ -267,7 +267,7 @@ pub fn adaptive_plan(
 }
 
 /// Per-pixel bookkeeping of the policy.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 struct PixelState {
     /// Sequential: the pixel stopped. Unused otherwise.
     stopped: bool,
@@ -280,7 +280,10 @@ struct PixelState {
 /// The adaptive state of one tile: per-pixel statistics of the passes each pixel keeps,
 /// and the policy's decisions. Feed it every unit result of the tile (in any order); it
 /// consumes passes in pass order.
-#[derive(Debug, Clone)]
+///
+/// Serializable, so a coordinator can checkpoint it with the tile's merged statistics
+/// (the policy state is not recoverable from [`crate::PixelStats`] alone).
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct AdaptiveTile {
     rect: TileRect,
     settings: AdaptiveSettings,
@@ -525,7 +528,7 @@ pub fn fresh_passes_needed(pilot: &PixelStats, target: f64, lo: u32, hi: u32) ->
 }
 
 /// The adaptive state of a whole frame: one [`AdaptiveTile`] per tile.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct AdaptiveFrame {
     plan: FramePlan,
     frame: u32,
