@@ -2,7 +2,10 @@
 //! same plan, per-unit rendering and canonical merge the farm uses; `tessera bench`
 //! measures throughput.
 
+mod accuracy;
+mod adaptive;
 mod bench_plan;
+mod figure5;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -101,10 +104,16 @@ struct RenderArgs {
     /// Output file: .exr (multi-layer float) or .png (sRGB).
     #[arg(short, long)]
     output: PathBuf,
+    #[command(flatten)]
+    adaptive: adaptive::AdaptiveArgs,
 }
 
 #[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
 struct BenchArgs {
+    /// `tessera bench accuracy ...`; without a subcommand, the throughput bench.
+    #[command(subcommand)]
+    what: Option<BenchCommand>,
     /// Scene to render.
     #[arg(default_value = "builtin:cornell-box")]
     scene: String,
@@ -128,11 +137,21 @@ struct BenchArgs {
     repeat: u32,
 }
 
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// What accuracy costs in time: error against a reference for a ladder of budgets per
+    /// configuration (CSV, SVG, Markdown), and Veach & Guibas 1995 figure 5.
+    Accuracy(accuracy::AccuracyArgs),
+}
+
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Render(args) => render(args),
-        Command::Bench(args) => bench(args),
+        Command::Bench(mut args) => match args.what.take() {
+            Some(BenchCommand::Accuracy(a)) => accuracy::bench_accuracy(a),
+            None => bench(args),
+        },
         Command::BenchPlan(args) => bench_plan::bench_plan(args),
         Command::Serve(args) => farm::serve(args),
         Command::Coordinator(args) => farm::coordinator(args),
@@ -287,7 +306,8 @@ fn render(args: RenderArgs) -> Result<()> {
     if !matches!(ext.as_deref(), Some("exr") | Some("png")) {
         bail!("output {} must end in .exr or .png", args.output.display());
     }
-    let p = prepare(&args.job)?;
+    adaptive::check(&args.adaptive)?;
+    let mut p = prepare(&args.job)?;
     print!("{}", p.render_plan.summary());
     for note in &p.notes {
         println!("note: {note}");
@@ -313,7 +333,13 @@ fn render(args: RenderArgs) -> Result<()> {
         println!("seconds: {seconds:.3}");
         println!("estimated relative error: {:.4}", 0.0);
         println!("paths per second: 0");
+        if let Some(map) = &args.adaptive.spp_map {
+            adaptive::write_spp_map(map, &image)?;
+        }
         return Ok(());
+    }
+    if args.adaptive.active() {
+        return adaptive::render(&mut p, &args);
     }
     let bar = if std::io::stderr().is_terminal() {
         let bar = indicatif::ProgressBar::new(p.plan.unit_count(1));
@@ -368,6 +394,9 @@ fn render(args: RenderArgs) -> Result<()> {
     println!("seconds: {seconds:.3}");
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
+    if let Some(map) = &args.adaptive.spp_map {
+        adaptive::write_spp_map(map, &image)?;
+    }
     Ok(())
 }
 

@@ -65,12 +65,17 @@
 //! ```
 #![deny(missing_docs)]
 
+mod adaptive;
 mod merge;
 mod plan;
 mod result;
 mod schedule;
 mod stats;
 
+pub use adaptive::{
+    adaptive_plan, eta_seconds, fresh_passes_needed, AdaptiveError, AdaptiveFrame, AdaptiveMode,
+    AdaptiveSettings, AdaptiveTile, ConvergencePoint,
+};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
 pub use plan::{
     FramePlan, PlanError, TileRect, WorkUnit, MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION,
