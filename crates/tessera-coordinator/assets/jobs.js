@@ -41,14 +41,14 @@ function progressCell(td, job) {
   let bar = td.querySelector("progress");
   if (!bar) {
     bar = h("progress", { max: 1 });
-    td.append(bar, h("span", { class: "sub" }));
+    td.append(h("span", { class: "bar-line" }, bar, h("span", { class: "sub" })));
   }
   const p = progress(job);
   bar.value = p;
   const words = `${int(job.passes_done)} of ${int(job.passes_planned)} passes`;
   bar.setAttribute("aria-label", `${Math.round(p * 100)} %, ${words}`);
   const early = job.state === "done" && job.passes_done < job.passes_planned ? " (stopped early)" : "";
-  setText(td.lastChild, `${int(job.passes_done)} / ${int(job.passes_planned)}${early}`);
+  setText(td.querySelector(".sub"), `${int(job.passes_done)} / ${int(job.passes_planned)}${early}`);
 }
 
 function errorCell(td, job) {
