@@ -28,7 +28,7 @@ use serde_json::{json, Value};
 const CHROMIUM: &str = "/usr/bin/chromium";
 const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
 /// The W3C WebDriver key of an element reference.
-const ELEMENT: &str = "element-6066-11e4-a52f-4f735466cecf";
+const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
 /// Long enough for a slow CI machine; the waits return as soon as the page is ready.
 const TIMEOUT: Duration = Duration::from_secs(180);
 
@@ -57,7 +57,10 @@ impl Guard {
             }
             std::thread::sleep(Duration::from_millis(50));
         }
-        eprintln!("{} did not stop on SIGTERM within 15 s: killing it", self.name);
+        eprintln!(
+            "{} did not stop on SIGTERM within 15 s: killing it",
+            self.name
+        );
         let _ = self.child.kill();
         self.child.wait().ok()
     }
@@ -71,11 +74,7 @@ impl Drop for Guard {
 
 /// Spawns `cmd` with stdout piped and stderr to `log`; returns the guard and a channel of
 /// its stdout lines (read on a thread, so the pipe never fills up).
-fn spawn(
-    name: &'static str,
-    mut cmd: Command,
-    log: &Path,
-) -> (Guard, mpsc::Receiver<String>) {
+fn spawn(name: &'static str, mut cmd: Command, log: &Path) -> (Guard, mpsc::Receiver<String>) {
     let err = std::fs::File::create(log).unwrap();
     let mut child = cmd
         .stdin(Stdio::null())
@@ -183,12 +182,22 @@ fn http(addr: &str, method: &str, path: &str, body: Option<&Value>) -> std::io::
     req += "\r\n";
     s.write_all(req.as_bytes())?;
     s.write_all(body.as_bytes())?;
+    // Read the head, then exactly Content-Length bytes (chromedriver keeps the
+    // connection open whatever `Connection: close` says), or chunks, or to the end.
     let mut raw = Vec::new();
-    s.read_to_end(&mut raw)?;
-    let split = raw
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .ok_or_else(|| std::io::Error::other("no end of headers"))?;
+    let mut buf = [0u8; 16384];
+    let split = loop {
+        if let Some(i) = raw.windows(4).position(|w| w == b"\r\n\r\n") {
+            break i;
+        }
+        let n = s.read(&mut buf)?;
+        if n == 0 {
+            return Err(std::io::Error::other(
+                "connection closed before the end of headers",
+            ));
+        }
+        raw.extend_from_slice(&buf[..n]);
+    };
     let head = String::from_utf8_lossy(&raw[..split]).to_string();
     let mut lines = head.split("\r\n");
     let status = lines
@@ -200,12 +209,41 @@ fn http(addr: &str, method: &str, path: &str, body: Option<&Value>) -> std::io::
         .filter_map(|l| l.split_once(':'))
         .map(|(k, v)| (k.trim().to_string(), v.trim().to_string()))
         .collect();
+    let find = |name: &str| {
+        headers
+            .iter()
+            .find(|(k, _)| k.eq_ignore_ascii_case(name))
+            .map(|(_, v)| v.clone())
+    };
     let mut body = raw[split + 4..].to_vec();
-    let chunked = headers.iter().any(|(k, v)| {
-        k.eq_ignore_ascii_case("transfer-encoding") && v.eq_ignore_ascii_case("chunked")
-    });
-    if chunked {
-        body = dechunk(&body)?;
+    if method == "HEAD" || status == 204 || status == 304 {
+        body.clear();
+    } else if let Some(len) = find("content-length") {
+        let len: usize = len
+            .parse()
+            .map_err(|_| std::io::Error::other(format!("bad Content-Length {len:?}")))?;
+        while body.len() < len {
+            let n = s.read(&mut buf)?;
+            if n == 0 {
+                return Err(std::io::Error::other("connection closed inside the body"));
+            }
+            body.extend_from_slice(&buf[..n]);
+        }
+        body.truncate(len);
+    } else if find("transfer-encoding").is_some_and(|v| v.eq_ignore_ascii_case("chunked")) {
+        loop {
+            if let Some(b) = dechunk(&body)? {
+                body = b;
+                break;
+            }
+            let n = s.read(&mut buf)?;
+            if n == 0 {
+                return Err(std::io::Error::other("connection closed inside a chunk"));
+            }
+            body.extend_from_slice(&buf[..n]);
+        }
+    } else {
+        s.read_to_end(&mut body)?;
     }
     Ok(Response {
         status,
@@ -214,20 +252,29 @@ fn http(addr: &str, method: &str, path: &str, body: Option<&Value>) -> std::io::
     })
 }
 
-fn dechunk(mut b: &[u8]) -> std::io::Result<Vec<u8>> {
+/// The body of a complete chunked message, or `None` while more bytes are needed.
+fn dechunk(mut b: &[u8]) -> std::io::Result<Option<Vec<u8>>> {
     let bad = || std::io::Error::other("bad chunked body");
     let mut out = Vec::new();
     loop {
-        let eol = b.windows(2).position(|w| w == b"\r\n").ok_or_else(bad)?;
+        let Some(eol) = b.windows(2).position(|w| w == b"\r\n") else {
+            return Ok(None);
+        };
         let size = std::str::from_utf8(&b[..eol]).map_err(|_| bad())?;
-        let size = usize::from_str_radix(size.split(';').next().unwrap().trim(), 16)
+        let size = usize::from_str_radix(size.split(';').next().unwrap_or("").trim(), 16)
             .map_err(|_| bad())?;
         b = &b[eol + 2..];
         if size == 0 {
-            return Ok(out);
+            return Ok(Some(out));
         }
-        out.extend_from_slice(b.get(..size).ok_or_else(bad)?);
-        b = b.get(size + 2..).ok_or_else(bad)?;
+        let Some(chunk) = b.get(..size) else {
+            return Ok(None);
+        };
+        out.extend_from_slice(chunk);
+        let Some(rest) = b.get(size + 2..) else {
+            return Ok(None);
+        };
+        b = rest;
     }
 }
 
@@ -463,7 +510,10 @@ fn dashboard_in_headless_chromium() {
     // The coordinator sends the page with a policy that forbids other hosts and inline code.
     let page = http(&addr, "GET", "/", None).expect("GET /");
     assert_eq!(page.status, 200);
-    assert!(page.header("content-type").unwrap_or("").starts_with("text/html"));
+    assert!(page
+        .header("content-type")
+        .unwrap_or("")
+        .starts_with("text/html"));
     let csp = page
         .header("content-security-policy")
         .expect("the dashboard is served with a Content-Security-Policy");
@@ -475,14 +525,26 @@ fn dashboard_in_headless_chromium() {
     ] {
         assert!(csp.contains(directive), "CSP {csp:?} lacks {directive:?}");
     }
-    assert!(!csp.contains("unsafe-inline") && !csp.contains('*'), "{csp}");
+    assert!(
+        !csp.contains("unsafe-inline") && !csp.contains('*'),
+        "{csp}"
+    );
 
     // The browser.
     let driver_log = artifacts.join("chromedriver.log");
     let mut cmd = Command::new(CHROMEDRIVER);
     cmd.args(["--port=0", &format!("--log-path={}", driver_log.display())]);
-    let (mut driver, driver_out) = spawn("chromedriver", cmd, &artifacts.join("chromedriver.stderr.log"));
-    let port = wait_line(&mut driver, &driver_out, "was started successfully on port", &driver_log);
+    let (mut driver, driver_out) = spawn(
+        "chromedriver",
+        cmd,
+        &artifacts.join("chromedriver.stderr.log"),
+    );
+    let port = wait_line(
+        &mut driver,
+        &driver_out,
+        "was started successfully on port",
+        &driver_log,
+    );
     let port = port.trim_end_matches('.');
     let browser = Browser::start(format!("127.0.0.1:{port}"), &tmp.path().join("chrome"));
 
@@ -490,7 +552,10 @@ fn dashboard_in_headless_chromium() {
     browser.goto(&format!("{url}#/submit"));
     // Record every request of the page, however long it polls (the default buffer is 250).
     browser
-        .exec("performance.setResourceTimingBufferSize(1000000);", json!([]))
+        .exec(
+            "performance.setResourceTimingBufferSize(1000000);",
+            json!([]),
+        )
         .unwrap();
     wait_for("the built-in scenes in the form", || {
         browser
@@ -499,7 +564,9 @@ fn dashboard_in_headless_chromium() {
                 json!([]),
             )
             .and_then(|v| {
-                if v.as_array().is_some_and(|a| a.iter().any(|o| o == "builtin:cornell-box")) {
+                if v.as_array()
+                    .is_some_and(|a| a.iter().any(|o| o == "builtin:cornell-box"))
+                {
                     Ok(())
                 } else {
                     Err(v.to_string())
@@ -515,11 +582,10 @@ fn dashboard_in_headless_chromium() {
 
     // The form navigates to the new job's page.
     let job_id: u64 = wait_for("the job page after submitting", || {
-        let v = browser
-            .exec(
-                "return [location.hash, document.querySelector('#submit-status')?.textContent ?? ''];",
-                json!([]),
-            )?;
+        let v = browser.exec(
+            "return [location.hash, document.querySelector('#submit-status')?.textContent ?? ''];",
+            json!([]),
+        )?;
         let hash = v[0].as_str().unwrap_or("");
         if let Some(id) = hash.strip_prefix("#/jobs/") {
             return id.parse().map_err(|e| format!("{hash}: {e}"));
@@ -544,7 +610,10 @@ fn dashboard_in_headless_chromium() {
             !["failed", "canceled"].contains(&state.as_str()),
             "job {job_id} ended {state}: {}",
             browser
-                .exec("return document.querySelector('main').innerText;", json!([]))
+                .exec(
+                    "return document.querySelector('main').innerText;",
+                    json!([])
+                )
                 .unwrap_or_default()
         );
         if state == "done" {
@@ -564,8 +633,14 @@ fn dashboard_in_headless_chromium() {
         }
     });
     println!("preview: {stats}");
-    assert_eq!((stats["width"].as_u64(), stats["height"].as_u64()), (Some(64), Some(64)));
-    assert!(stats["src"].as_str().unwrap().starts_with("blob:"), "{stats}");
+    assert_eq!(
+        (stats["width"].as_u64(), stats["height"].as_u64()),
+        (Some(64), Some(64))
+    );
+    assert!(
+        stats["src"].as_str().unwrap().starts_with("blob:"),
+        "{stats}"
+    );
     assert!(
         stats["variance"].as_f64().unwrap() > 1.0
             && stats["max"].as_f64().unwrap() - stats["min"].as_f64().unwrap() > 10.0,
@@ -657,7 +732,12 @@ fn dashboard_in_headless_chromium() {
         .filter(|u| !(u.starts_with(&format!("{origin}/")) || u.starts_with(&blob)))
         .collect();
     assert!(foreign.is_empty(), "requests to other hosts: {foreign:?}");
-    for needed in ["/assets/app.js", "/assets/style.css", "/api/v1/jobs", "/api/v1/workers"] {
+    for needed in [
+        "/assets/app.js",
+        "/assets/style.css",
+        "/api/v1/jobs",
+        "/api/v1/workers",
+    ] {
         assert!(
             requests.iter().any(|u| u.contains(needed)),
             "no request for {needed} in {requests:?}"
@@ -672,7 +752,10 @@ fn dashboard_in_headless_chromium() {
     // Nothing went wrong in the page: no error banner, no console errors (a CSP violation,
     // a failed request or a script error is logged as SEVERE).
     let banner = browser
-        .exec("return document.querySelector('#banner').hidden;", json!([]))
+        .exec(
+            "return document.querySelector('#banner').hidden;",
+            json!([]),
+        )
         .unwrap();
     assert_eq!(banner, json!(true), "the error banner is showing");
     let severe: Vec<Value> = browser

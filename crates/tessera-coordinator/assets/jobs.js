@@ -105,7 +105,7 @@ export function jobsView(poke) {
     h("caption", { class: "visually-hidden" }, "Jobs, newest first; select a column header to sort this page"),
     h("thead", {}, headRow), tbody);
   const empty = h("p", { class: "empty", hidden: true });
-  const summary = h("p", { class: "summary", "aria-live": "polite" });
+  const summary = h("p", { class: "summary" });
 
   const filter = h("select", { id: "jobs-filter", onchange: () => {
     state.filter = filter.value;

@@ -22,7 +22,7 @@ export function workersView() {
     h("caption", { class: "visually-hidden" }, "Workers registered with the coordinator"),
     h("thead", {}, h("tr", {}, COLUMNS.map(([label, , n]) => h("th", { scope: "col", class: n ? "num" : null }, label)))),
     tbody);
-  const summary = h("p", { class: "summary", "aria-live": "polite" });
+  const summary = h("p", { class: "summary" });
   const empty = h("p", { class: "empty", hidden: true }, "No worker has registered. Start one with `tessera worker --coordinator URL`.");
   const el = h("section", { "aria-labelledby": "workers-title" },
     h("h1", { id: "workers-title" }, "Workers"), summary, h("div", { class: "table-wrap" }, table), empty);

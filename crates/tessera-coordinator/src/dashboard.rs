@@ -107,7 +107,10 @@ mod tests {
             }
             for part in t.split("from \"./").skip(1) {
                 let r = &part[..part.find('"').unwrap()];
-                assert!(asset(&format!("/assets/{r}")).is_some(), "{name} imports {r}");
+                assert!(
+                    asset(&format!("/assets/{r}")).is_some(),
+                    "{name} imports {r}"
+                );
                 used.push(names().find(|n| *n == r).unwrap());
             }
         }
