@@ -46,7 +46,6 @@ pub fn resolve_job(
     scene: &Scene,
 ) -> Result<ResolvedJob, ApiError> {
     let (width, height) = job.resolution(scene.default_resolution);
-    let plan = job.plan(width, height)?;
     let mut render_plan = analyse(scene);
     let mut forced = Vec::new();
     let mut black = false;
@@ -89,6 +88,13 @@ pub fn resolve_job(
         ..job.render
     };
     config.validate()?;
+    // The frame plan follows the resolved integrator: bdpt (chosen by the plan or asked
+    // for) gets one whole-frame tile, see `ValidatedJob::plan`.
+    let plan = ValidatedJob {
+        render: config,
+        ..job.clone()
+    }
+    .plan(width, height)?;
     Ok(ResolvedJob {
         config,
         plan,
@@ -181,6 +187,23 @@ mod tests {
         );
         assert_eq!(r.config.max_depth, 3);
         assert!(r.render_plan.overridden.is_some());
+    }
+
+    #[test]
+    fn bdpt_gets_one_whole_frame_tile() {
+        // Chosen by the plan (a caustic lit by a tiny light) ...
+        let r = resolve(r#"{"scene": "builtin:caustic", "width": 320, "height": 240}"#);
+        assert_eq!(r.config.integrator, IntegratorChoice::Bdpt);
+        assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 320));
+        // ... or asked for; other integrators keep their tiles.
+        let r = resolve(
+            r#"{"scene": "builtin:cornell-box", "width": 300, "height": 200, "integrator": "bdpt"}"#,
+        );
+        assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 300));
+        let r = resolve(
+            r#"{"scene": "builtin:caustic", "width": 320, "height": 240, "integrator": "path"}"#,
+        );
+        assert_eq!(r.plan.tile_size, 32);
     }
 
     #[test]

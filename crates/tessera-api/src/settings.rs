@@ -736,13 +736,21 @@ pub struct ValidatedJob {
 
 impl ValidatedJob {
     /// The frame plan for the resolved image size ([`FramePlan::for_spp`] with this job's
-    /// spp and tile size), with failures as `invalid_field` errors (`width`, `height`,
-    /// `tile_size` or `spp`, the last when the total work is too large).
+    /// spp and tile size; for `bdpt`, [`FramePlan::whole_frame`]: one tile, because light
+    /// tracing splats anywhere on the film), with failures as `invalid_field` errors
+    /// (`width`, `height`, `tile_size` or `spp`, the last when the total work is too large;
+    /// `width` when a bdpt frame is too large for one tile).
     pub fn plan(&self, width: u32, height: u32) -> Result<FramePlan, ApiError> {
-        FramePlan::for_spp(width, height, self.spp, self.tile_size).map_err(|e| {
+        let plan = if self.render.integrator == IntegratorChoice::Bdpt {
+            FramePlan::whole_frame(width, height, self.spp)
+        } else {
+            FramePlan::for_spp(width, height, self.spp, self.tile_size)
+        };
+        plan.map_err(|e| {
             let field = match &e {
                 PlanError::Size { width, .. } if !(1..=MAX_DIMENSION).contains(width) => "width",
                 PlanError::Size { .. } => "height",
+                PlanError::WholeFrameTooLarge { .. } => "width",
                 PlanError::TileSize(_) => "tile_size",
                 PlanError::Spp { .. }
                 | PlanError::SamplesPerPass(_)
@@ -1183,6 +1191,15 @@ mod tests {
             (640, 480, 32, 64)
         );
         assert_eq!(j.plan(0, 480).unwrap_err().field.as_deref(), Some("width"));
+        // bdpt plans one whole-frame tile, and refuses frames too large for it by name.
+        let mut b = j.clone();
+        b.render.integrator = IntegratorChoice::Bdpt;
+        let p = b.plan(640, 480).unwrap();
+        assert_eq!((p.tile_count(), p.tile_size), (1, 640));
+        assert_eq!(p.spp(), j.plan(640, 480).unwrap().spp());
+        let e = b.plan(2048, 2048).unwrap_err();
+        assert_eq!(e.field.as_deref(), Some("width"));
+        assert!(e.to_string().contains("whole-frame tile"), "{e}");
         assert_eq!(j.plan(640, 0).unwrap_err().field.as_deref(), Some("height"));
         let mut big = j.clone();
         big.spp = MAX_SPP;

@@ -2,6 +2,11 @@
 //! same plan, per-unit rendering and canonical merge the farm uses; `tessera bench`
 //! measures throughput.
 
+mod accuracy;
+mod adaptive;
+mod bench_plan;
+mod figure5;
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use std::io::IsTerminal;
@@ -33,6 +38,9 @@ enum Command {
     Render(RenderArgs),
     /// Measure rendering throughput (paths per second).
     Bench(BenchArgs),
+    /// Compare the render plan's configuration with the general one (and bdpt with path on
+    /// the caustic scene): time to reach a target error, side by side.
+    BenchPlan(bench_plan::BenchPlanArgs),
     /// The whole farm on this machine: a coordinator and local workers over loopback gRPC.
     Serve(farm::ServeArgs),
     /// Run a coordinator: HTTP API and dashboard, gRPC port for workers, SQLite store.
@@ -63,7 +71,7 @@ struct JobArgs {
     /// Image height (default: the scene's).
     #[arg(long)]
     height: Option<u32>,
-    /// auto (follow the scene's render plan), path or direct. An explicit integrator
+    /// auto (follow the scene's render plan), path, direct or bdpt. An explicit integrator
     /// overrides the plan and renders with the general configuration (max depth 16 unless
     /// --max-depth is given).
     #[arg(long, default_value = "auto")]
@@ -96,10 +104,16 @@ struct RenderArgs {
     /// Output file: .exr (multi-layer float) or .png (sRGB).
     #[arg(short, long)]
     output: PathBuf,
+    #[command(flatten)]
+    adaptive: adaptive::AdaptiveArgs,
 }
 
 #[derive(Args)]
+#[command(args_conflicts_with_subcommands = true)]
 struct BenchArgs {
+    /// `tessera bench accuracy ...`; without a subcommand, the throughput bench.
+    #[command(subcommand)]
+    what: Option<BenchCommand>,
     /// Scene to render.
     #[arg(default_value = "builtin:cornell-box")]
     scene: String,
@@ -123,11 +137,22 @@ struct BenchArgs {
     repeat: u32,
 }
 
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// What accuracy costs in time: error against a reference for a ladder of budgets per
+    /// configuration (CSV, SVG, Markdown), and Veach & Guibas 1995 figure 5.
+    Accuracy(accuracy::AccuracyArgs),
+}
+
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Render(args) => render(args),
-        Command::Bench(args) => bench(args),
+        Command::Bench(mut args) => match args.what.take() {
+            Some(BenchCommand::Accuracy(a)) => accuracy::bench_accuracy(a),
+            None => bench(args),
+        },
+        Command::BenchPlan(args) => bench_plan::bench_plan(args),
         Command::Serve(args) => farm::serve(args),
         Command::Coordinator(args) => farm::coordinator(args),
         Command::Worker(args) => farm::worker(args),
@@ -180,8 +205,6 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
             job.threads
         );
     }
-    let plan = FramePlan::for_spp(width, height, job.spp, job.tile_size)
-        .context("invalid image or sampling settings")?;
     if let Some(d) = job.max_depth {
         if d == 0 || d > 1024 {
             bail!("--max-depth {d} must be between 1 and 1024");
@@ -189,7 +212,7 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     }
     // Analyse the scene (DESIGN §4); `auto` follows the plan, anything else overrides it.
     let mut render_plan = analyse(&scene);
-    let mut notes = Vec::new();
+    let notes = Vec::new();
     let mut black = false;
     let mut forced = Vec::new();
     let (integrator, plan_depth, rr_depth) = match job.integrator.as_str() {
@@ -205,18 +228,11 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
                 render_plan.max_depth,
                 render_plan.rr_depth,
             ),
-            PlannedIntegrator::Bdpt => {
-                let kind = "bdpt".parse::<IntegratorKind>().unwrap_or_else(|_| {
-                    notes.push(format!(
-                        "the plan chose bdpt, which this build does not have yet: rendering \
-                         with path (max depth {}), which renders caustics from delta lights \
-                         not at all and from tiny lights only with high variance",
-                        job.max_depth.unwrap_or(render_plan.max_depth)
-                    ));
-                    IntegratorKind::Path
-                });
-                (kind, render_plan.max_depth, render_plan.rr_depth)
-            }
+            PlannedIntegrator::Bdpt => (
+                IntegratorKind::Bdpt,
+                render_plan.max_depth,
+                render_plan.rr_depth,
+            ),
         },
         other => {
             let kind = other
@@ -234,6 +250,14 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     if !forced.is_empty() {
         render_plan.set_override(&forced.join(" "));
     }
+    // bdpt splats light tracing anywhere on the film: one whole-frame tile keeps every
+    // splat in the unit being rendered (see tessera_render::integrator::bdpt).
+    let plan = if integrator == IntegratorKind::Bdpt {
+        FramePlan::whole_frame(width, height, job.spp)
+    } else {
+        FramePlan::for_spp(width, height, job.spp, job.tile_size)
+    }
+    .context("invalid image or sampling settings")?;
     let settings = RenderSettings {
         integrator,
         mis: job.mis,
@@ -282,7 +306,8 @@ fn render(args: RenderArgs) -> Result<()> {
     if !matches!(ext.as_deref(), Some("exr") | Some("png")) {
         bail!("output {} must end in .exr or .png", args.output.display());
     }
-    let p = prepare(&args.job)?;
+    adaptive::check(&args.adaptive)?;
+    let mut p = prepare(&args.job)?;
     print!("{}", p.render_plan.summary());
     for note in &p.notes {
         println!("note: {note}");
@@ -308,7 +333,13 @@ fn render(args: RenderArgs) -> Result<()> {
         println!("seconds: {seconds:.3}");
         println!("estimated relative error: {:.4}", 0.0);
         println!("paths per second: 0");
+        if let Some(map) = &args.adaptive.spp_map {
+            adaptive::write_spp_map(map, &image)?;
+        }
         return Ok(());
+    }
+    if args.adaptive.active() {
+        return adaptive::render(&mut p, &args);
     }
     let bar = if std::io::stderr().is_terminal() {
         let bar = indicatif::ProgressBar::new(p.plan.unit_count(1));
@@ -363,6 +394,9 @@ fn render(args: RenderArgs) -> Result<()> {
     println!("seconds: {seconds:.3}");
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
+    if let Some(map) = &args.adaptive.spp_map {
+        adaptive::write_spp_map(map, &image)?;
+    }
     Ok(())
 }
 

@@ -129,13 +129,16 @@ fn delta_lit_caustics_plan_bdpt() {
         &stdout,
         &["render plan: bdpt (max depth 12", "delta-lit-caustics: "],
     );
-    // Until the bdpt integrator exists, the CLI falls back to path and says so.
-    assert!(
-        stdout.contains("bdpt integrator")
-            || (stdout.contains("note: the plan chose bdpt") && stdout.contains("path integrator")),
-        "{stdout}"
+    // The plan is followed: bdpt, no fallback note.
+    assert_contains(&stdout, &["bdpt integrator"]);
+    assert!(!stdout.contains("note: the plan chose bdpt"), "{stdout}");
+    assert_contains(
+        &metadata(&out),
+        &[
+            "\"integrator\":\"bdpt\"",
+            "\"max_depth\":12,\"rr_depth\":5,",
+        ],
     );
-    assert_contains(&metadata(&out), &["\"max_depth\":12,\"rr_depth\":5,"]);
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -8,8 +8,10 @@
 //! - [`service`]: the job life cycle over both: submission, durable checkpoints as passes
 //!   merge, resume after a restart, status, images, cancel.
 //! - [`http`]: the axum HTTP API v1 (DESIGN §5) and the dashboard routes.
+//! - [`dashboard`]: the browser dashboard's static files, embedded, served at `/`.
 #![deny(missing_docs)]
 
+/// The browser dashboard's static files (HTML, CSS, JavaScript modules), embedded.
 pub mod dashboard;
 pub mod grpc;
 pub mod http;

@@ -65,17 +65,22 @@
 //! ```
 #![deny(missing_docs)]
 
+mod adaptive;
 mod merge;
 mod plan;
 mod result;
 mod schedule;
 mod stats;
 
+pub use adaptive::{
+    adaptive_plan, eta_seconds, fresh_passes_needed, AdaptiveError, AdaptiveFrame, AdaptiveMode,
+    AdaptiveSettings, AdaptiveTile, ConvergencePoint,
+};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
 pub use plan::{
     FramePlan, PlanError, TileRect, WorkUnit, MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION,
-    MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS, MAX_TILE_SIZE, MIN_TILE_SIZE,
-    TARGET_MIN_PASSES,
+    MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS, MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS,
+    MIN_TILE_SIZE, TARGET_MIN_PASSES,
 };
 pub use result::{ResultError, UnitResult};
 pub use schedule::{JobId, Lease, Progress, Scheduler, SubmitError, Submitted, WorkerId};

@@ -6,8 +6,12 @@ use serde::{Deserialize, Serialize};
 pub const MAX_DIMENSION: u32 = 16384;
 /// Smallest accepted tile edge, in pixels.
 pub const MIN_TILE_SIZE: u32 = 4;
-/// Largest accepted tile edge, in pixels.
+/// Largest accepted tile edge, in pixels, except for a whole-frame tile (see
+/// [`FramePlan::whole_frame`]).
 pub const MAX_TILE_SIZE: u32 = 256;
+/// Largest frame, in pixels, that may be planned as one whole-frame tile (2^20: a unit
+/// result then holds at most 12 MiB of pass means per pass).
+pub const MAX_WHOLE_FRAME_PIXELS: u64 = 1 << 20;
 /// Largest accepted number of samples per pixel in one pass.
 pub const MAX_SAMPLES_PER_PASS: u32 = 1024;
 /// Largest accepted number of passes per pixel.
@@ -32,9 +36,19 @@ pub enum PlanError {
         /// Requested height.
         height: u32,
     },
-    /// Tile size outside [`MIN_TILE_SIZE`]..=[`MAX_TILE_SIZE`].
-    #[error("tile size {0} is invalid: must be in {MIN_TILE_SIZE}..={MAX_TILE_SIZE}")]
+    /// Tile size outside [`MIN_TILE_SIZE`]..=[`MAX_TILE_SIZE`] (and not a whole-frame tile).
+    #[error("tile size {0} is invalid: must be in {MIN_TILE_SIZE}..={MAX_TILE_SIZE}, or the larger image side for one whole-frame tile")]
     TileSize(u32),
+    /// A whole-frame tile was asked for a frame larger than [`MAX_WHOLE_FRAME_PIXELS`].
+    #[error("a {width}x{height} frame ({pixels} pixels) cannot be one whole-frame tile (bdpt): at most {MAX_WHOLE_FRAME_PIXELS} pixels (e.g. 1024x1024)")]
+    WholeFrameTooLarge {
+        /// Image width.
+        width: u32,
+        /// Image height.
+        height: u32,
+        /// `width * height`.
+        pixels: u64,
+    },
     /// Samples per pass outside 1..=[`MAX_SAMPLES_PER_PASS`].
     #[error("samples per pass {0} is invalid: must be in 1..={MAX_SAMPLES_PER_PASS}")]
     SamplesPerPass(u32),
@@ -120,7 +134,19 @@ impl FramePlan {
             return Err(PlanError::Size { width, height });
         }
         if !(MIN_TILE_SIZE..=MAX_TILE_SIZE).contains(&tile_size) {
-            return Err(PlanError::TileSize(tile_size));
+            // The one exception: a single tile covering the whole frame (bdpt, whose light
+            // tracing splats anywhere on the film), of bounded size.
+            if tile_size < MIN_TILE_SIZE || tile_size != width.max(height) {
+                return Err(PlanError::TileSize(tile_size));
+            }
+            let pixels = u64::from(width) * u64::from(height);
+            if pixels > MAX_WHOLE_FRAME_PIXELS {
+                return Err(PlanError::WholeFrameTooLarge {
+                    width,
+                    height,
+                    pixels,
+                });
+            }
         }
         if !(1..=MAX_SAMPLES_PER_PASS).contains(&samples_per_pass) {
             return Err(PlanError::SamplesPerPass(samples_per_pass));
@@ -170,6 +196,29 @@ impl FramePlan {
     /// | 100  | 8  | 13 | 104  |
     /// | 1000 | 16 | 63 | 1008 |
     pub fn for_spp(width: u32, height: u32, spp: u32, tile_size: u32) -> Result<Self, PlanError> {
+        let (samples_per_pass, passes) = Self::split_spp(spp)?;
+        Self::new(width, height, tile_size, samples_per_pass, passes)
+    }
+
+    /// Plans a frame as **one tile covering the whole frame**, with the passes of
+    /// [`FramePlan::for_spp`]. Bidirectional path tracing needs it: its light tracing
+    /// splats onto any pixel, and with one tile every splat lands in the unit being
+    /// rendered, so units are (frame, pass range) and the merge stays canonical. The tile
+    /// edge is `max(width, height)` (at least [`MIN_TILE_SIZE`]); frames above
+    /// [`MAX_WHOLE_FRAME_PIXELS`] are refused with [`PlanError::WholeFrameTooLarge`].
+    pub fn whole_frame(width: u32, height: u32, spp: u32) -> Result<Self, PlanError> {
+        let (samples_per_pass, passes) = Self::split_spp(spp)?;
+        let tile = width.max(height).max(MIN_TILE_SIZE);
+        Self::new(width, height, tile, samples_per_pass, passes)
+    }
+
+    /// True if one tile covers the whole frame.
+    pub fn is_whole_frame(&self) -> bool {
+        self.tile_size >= self.width && self.tile_size >= self.height
+    }
+
+    /// `(samples_per_pass, passes)` for a requested spp; see [`FramePlan::for_spp`].
+    fn split_spp(spp: u32) -> Result<(u32, u32), PlanError> {
         let max = MAX_AUTO_SAMPLES_PER_PASS * MAX_PASSES;
         if spp == 0 || spp > max {
             return Err(PlanError::Spp { spp, max });
@@ -179,7 +228,7 @@ impl FramePlan {
         let pow2 = 1u32 << (31 - target.leading_zeros());
         let samples_per_pass = pow2.min(MAX_AUTO_SAMPLES_PER_PASS);
         let passes = spp.div_ceil(samples_per_pass);
-        Self::new(width, height, tile_size, samples_per_pass, passes)
+        Ok((samples_per_pass, passes))
     }
 
     /// Checks that the fields satisfy the rules of [`FramePlan::new`].
@@ -583,6 +632,63 @@ mod tests {
         assert_eq!(de(16).unwrap(), FramePlan::new(64, 48, 16, 8, 8).unwrap());
         let err = de(1).unwrap_err().to_string();
         assert!(err.contains("tile size 1 is invalid"), "{err}");
+    }
+
+    #[test]
+    fn whole_frame_tiles() {
+        // Above the tile cap: one tile of edge max(width, height).
+        let p = FramePlan::whole_frame(640, 480, 64).unwrap();
+        assert_eq!((p.tile_size, p.tile_count()), (640, 1));
+        assert_eq!((p.samples_per_pass, p.passes), (8, 8));
+        assert!(p.is_whole_frame());
+        assert_eq!(
+            p.tile(0),
+            TileRect {
+                index: 0,
+                x0: 0,
+                y0: 0,
+                width: 640,
+                height: 480
+            }
+        );
+        check_cover(&p);
+        // Small frames: an ordinary plan with one tile (at least the minimum edge).
+        let p = FramePlan::whole_frame(3, 2, 4).unwrap();
+        assert_eq!((p.tile_size, p.tile_count()), (4, 1));
+        assert!(!FramePlan::new(64, 48, 16, 8, 8).unwrap().is_whole_frame());
+        // 1024 x 1024 is the largest square whole frame; a pixel more is refused by name.
+        assert!(FramePlan::whole_frame(1024, 1024, 1).is_ok());
+        assert!(FramePlan::whole_frame(16384, 64, 1).is_ok());
+        let err = FramePlan::whole_frame(1025, 1024, 1).unwrap_err();
+        assert_eq!(
+            err,
+            PlanError::WholeFrameTooLarge {
+                width: 1025,
+                height: 1024,
+                pixels: 1025 * 1024
+            }
+        );
+        assert!(err.to_string().contains("at most 1048576 pixels"), "{err}");
+        // Large tiles other than the whole frame stay invalid.
+        assert_eq!(
+            FramePlan::new(640, 480, 480, 1, 1),
+            Err(PlanError::TileSize(480))
+        );
+        assert_eq!(
+            FramePlan::new(640, 480, 641, 1, 1),
+            Err(PlanError::TileSize(641))
+        );
+        // Deserialization accepts a whole-frame plan (validation is the same).
+        use serde::de::value::{Error, MapDeserializer};
+        let fields = [
+            ("width", 640u32),
+            ("height", 480),
+            ("tile_size", 640),
+            ("samples_per_pass", 8),
+            ("passes", 8),
+        ];
+        let de = FramePlan::deserialize(MapDeserializer::<_, Error>::new(fields.into_iter()));
+        assert_eq!(de.unwrap(), FramePlan::whole_frame(640, 480, 64).unwrap());
     }
 
     #[test]

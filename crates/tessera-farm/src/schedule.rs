@@ -14,7 +14,19 @@
 //! order stays coarse to fine). A late result for a re-leased unit is still useful: being
 //! deterministic, it is merged if the unit is not merged yet, and compared with the merged
 //! copy otherwise (a mismatch is a faulty-worker event).
+//!
+//! Adaptive jobs ([`Scheduler::add_adaptive_job`], issue 4): each frame also keeps an
+//! [`AdaptiveFrame`] fed with every merged result. Its decisions are taken at fixed pass
+//! indices from each tile's own merged state, so the scheduler never leases a unit
+//! *beyond an open decision*: a unit whose first pass is at or past its tile's
+//! [`crate::AdaptiveTile::lease_horizon`] waits (in canonical order) until the passes
+//! before the boundary are merged and the decision is made, and units of a finished tile
+//! are dropped without being leased. No speculative work is leased, so nothing has to be
+//! thrown away, and which units exist is a function of the job alone: the image is
+//! bit-identical with any number of workers. The cost is a short pipeline stall per tile at
+//! each boundary (other tiles' units fill it when there are enough tiles).
 
+use crate::adaptive::{AdaptiveError, AdaptiveFrame, AdaptiveSettings};
 use crate::merge::{FrameAccumulator, MergeError, Offer};
 use crate::plan::{FramePlan, WorkUnit};
 use crate::result::UnitResult;
@@ -101,9 +113,101 @@ struct Job {
     /// Outstanding leases by canonical unit index.
     leased: BTreeMap<u64, u64>,
     canceled: bool,
+    /// Adaptive jobs only: the policy state and the units it holds back.
+    adaptive: Option<AdaptiveQueue>,
+}
+
+/// The adaptive part of a job: one policy state per frame, units waiting for a decision
+/// and units a decision made unnecessary (both by canonical index).
+struct AdaptiveQueue {
+    frames: Vec<AdaptiveFrame>,
+    waiting: BTreeSet<u64>,
+    skipped: BTreeSet<u64>,
+}
+
+/// What the adaptive policy says about leasing a unit now.
+#[derive(PartialEq)]
+enum Gate {
+    Lease,
+    Wait,
+    Skip,
 }
 
 impl Job {
+    /// Whether unit `i` may be leased now, must wait for a decision, or is not needed.
+    fn gate(&self, i: u64) -> Gate {
+        let Some(a) = &self.adaptive else {
+            return Gate::Lease;
+        };
+        let u = self.unit(i);
+        let tile = a
+            .frames
+            .get((u.frame - self.first_frame) as usize)
+            .and_then(|f| f.tile(u.tile));
+        match tile {
+            None => Gate::Skip,
+            Some(t) if t.finished() || u.first_pass >= t.end_pass() => Gate::Skip,
+            Some(t) if u.first_pass < t.lease_horizon() => Gate::Lease,
+            Some(_) => Gate::Wait,
+        }
+    }
+
+    /// The next adaptive unit to lease: a returned or waiting unit whose decision is made,
+    /// else the next one from the cursor (holding back those that must wait).
+    fn next_adaptive_index(&mut self) -> Option<u64> {
+        let candidates = self
+            .returned
+            .iter()
+            .chain(
+                self.adaptive
+                    .as_ref()
+                    .map(|a| &a.waiting)
+                    .into_iter()
+                    .flatten(),
+            )
+            .copied()
+            .collect::<Vec<u64>>();
+        let mut candidates = candidates;
+        // Canonical (coarse-to-fine) order across both sets.
+        candidates.sort_unstable();
+        candidates.dedup();
+        for i in candidates {
+            let gate = self.gate(i);
+            if gate == Gate::Wait {
+                continue;
+            }
+            self.returned.remove(&i);
+            let a = self.adaptive.as_mut()?;
+            a.waiting.remove(&i);
+            if gate == Gate::Lease {
+                return Some(i);
+            }
+            a.skipped.insert(i);
+        }
+        while self.cursor < self.units_total() {
+            let i = self.cursor;
+            self.cursor += 1;
+            if self.done.contains(&i) {
+                continue;
+            }
+            let gate = self.gate(i);
+            let a = self.adaptive.as_mut()?;
+            match gate {
+                Gate::Lease => return Some(i),
+                Gate::Wait => a.waiting.insert(i),
+                Gate::Skip => a.skipped.insert(i),
+            };
+        }
+        None
+    }
+
+    fn is_complete(&self) -> bool {
+        match &self.adaptive {
+            Some(a) => a.frames.iter().all(AdaptiveFrame::finished),
+            None => self.frames.iter().all(|f| f.complete()),
+        }
+    }
+
     fn chunks(&self) -> u64 {
         self.plan.chunks_per_tile(self.passes_per_unit) as u64
     }
@@ -150,6 +254,9 @@ impl Job {
     }
 
     fn next_index(&mut self) -> Option<u64> {
+        if self.adaptive.is_some() {
+            return self.next_adaptive_index();
+        }
         if let Some(&i) = self.returned.iter().next() {
             self.returned.remove(&i);
             return Some(i);
@@ -166,7 +273,11 @@ impl Job {
     }
 
     fn has_work(&self) -> bool {
-        !self.canceled && (!self.returned.is_empty() || self.cursor < self.units_total())
+        let waiting = self
+            .adaptive
+            .as_ref()
+            .is_some_and(|a| !a.waiting.is_empty());
+        !self.canceled && (!self.returned.is_empty() || self.cursor < self.units_total() || waiting)
     }
 }
 
@@ -253,6 +364,7 @@ impl Scheduler {
             done: BTreeSet::new(),
             leased: BTreeMap::new(),
             canceled: false,
+            adaptive: None,
         };
         for i in 0..job.units_total() {
             let u = job.unit(i);
@@ -294,8 +406,59 @@ impl Scheduler {
                 done: BTreeSet::new(),
                 leased: BTreeMap::new(),
                 canceled: false,
+                adaptive: None,
             },
         );
+    }
+
+    /// Adds an adaptive job (issue 4): like [`Scheduler::add_job`], but each tile stops
+    /// being leased once `adaptive`'s policy says it is finished, and the job is complete
+    /// when every tile of every frame is (see the module docs for how units wait for
+    /// decisions). Decision boundaries must fall on unit boundaries, so `min_passes` and
+    /// `interval` are rounded up to multiples of `passes_per_unit`; the settings actually
+    /// used are returned. Fails if the settings do not fit the plan (e.g. an unbiased pilot
+    /// leaving no fresh passes). Adaptive state is not checkpointed by
+    /// [`Scheduler::add_resumed_job`] yet.
+    ///
+    /// The image of an adaptive job is [`Scheduler::adaptive_frame`]'s, not
+    /// [`Scheduler::frame`]'s (which still merges every leased pass of every pixel, and is
+    /// used for validation and duplicate comparison).
+    pub fn add_adaptive_job(
+        &mut self,
+        id: JobId,
+        priority: i32,
+        plan: FramePlan,
+        frames: std::ops::RangeInclusive<u32>,
+        passes_per_unit: u32,
+        adaptive: AdaptiveSettings,
+    ) -> Result<AdaptiveSettings, AdaptiveError> {
+        let ppu = passes_per_unit.max(1);
+        let round_up = |v: u32| v.div_ceil(ppu).saturating_mul(ppu);
+        let settings = AdaptiveSettings {
+            min_passes: round_up(adaptive.min_passes),
+            interval: round_up(adaptive.interval.max(1)),
+            ..adaptive
+        };
+        let states = frames
+            .clone()
+            .map(|f| AdaptiveFrame::new(plan, f, settings))
+            .collect::<Result<Vec<_>, _>>()?;
+        self.add_job(id, priority, plan, frames, ppu);
+        if let Some(job) = self.jobs.get_mut(&id) {
+            job.adaptive = Some(AdaptiveQueue {
+                frames: states,
+                waiting: BTreeSet::new(),
+                skipped: BTreeSet::new(),
+            });
+        }
+        Ok(settings)
+    }
+
+    /// The adaptive state (and image) of one frame of an adaptive job.
+    pub fn adaptive_frame(&self, job_id: JobId, frame: u32) -> Option<&AdaptiveFrame> {
+        let job = self.jobs.get(&job_id)?;
+        let a = job.adaptive.as_ref()?;
+        a.frames.get(frame.checked_sub(job.first_frame)? as usize)
     }
 
     /// Leases up to `max_units` units to `worker`.
@@ -427,7 +590,16 @@ impl Scheduler {
             return Err(SubmitError::UnknownLease(lease_id));
         }
         let frame = (result.unit.frame - job.first_frame) as usize;
+        let copy = job.adaptive.as_ref().map(|_| result.clone());
         let outcome = job.frames[frame].offer(result)?;
+        if let (Some(a), Some(copy)) = (job.adaptive.as_mut(), copy) {
+            if !matches!(outcome, Offer::Duplicate { .. }) {
+                if let Some(f) = a.frames.get_mut(frame) {
+                    // Validated by the offer above; cannot fail.
+                    let _ = f.offer(&copy);
+                }
+            }
+        }
         // The unit is done: drop its lease (if the live lease is another worker's, that
         // worker's copy will be compared when it arrives).
         self.leases.remove(&lease_id);
@@ -488,9 +660,7 @@ impl Scheduler {
 
     /// True once every frame of the job is complete.
     pub fn is_complete(&self, job_id: JobId) -> bool {
-        self.jobs
-            .get(&job_id)
-            .is_some_and(|j| j.frames.iter().all(|f| f.complete()))
+        self.jobs.get(&job_id).is_some_and(Job::is_complete)
     }
 
     /// Whether `lease_id` was issued by an earlier run of the coordinator (at or below the
@@ -775,6 +945,144 @@ mod tests {
                 .zip(&b.variance_of_mean)
                 .all(|(x, y)| x.map(f32::to_bits) == y.map(f32::to_bits)));
         }
+    }
+
+    /// A reproducible noisy pass mean: tile 0 is constant (converges at once), the others
+    /// noisy with occasional fireflies (some pixels converge, some never do).
+    fn noisy_result(plan: &FramePlan, unit: WorkUnit) -> UnitResult {
+        let rect = plan.tile(unit.tile);
+        let mut pass_means = Vec::new();
+        for pass in unit.first_pass..unit.first_pass + unit.pass_count {
+            for i in 0..rect.pixel_count() {
+                let mut rng = crate::test_util::Rng::new(
+                    (u64::from(unit.tile) << 40) ^ (u64::from(pass) << 20) ^ i as u64,
+                );
+                let v = if unit.tile == 0 {
+                    0.5
+                } else {
+                    let firefly = if rng.uniform() < 0.02 * (i % 4) as f64 {
+                        40.0
+                    } else {
+                        0.0
+                    };
+                    0.3 + 0.5 * rng.uniform() + firefly
+                };
+                pass_means.push([v as f32; 3]);
+            }
+        }
+        UnitResult {
+            unit,
+            width: rect.width,
+            height: rect.height,
+            pass_means,
+        }
+    }
+
+    /// Issue 4: adaptive farm jobs. Whatever the number of workers and the interleaving
+    /// (with lost leases re-leased after expiry), no unit is leased beyond an open decision,
+    /// finished tiles stop being leased, and the image equals the local adaptive render of
+    /// the same passes bit for bit.
+    #[test]
+    fn adaptive_jobs_stop_tiles_and_stay_bit_identical() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(24, 16, 8, 1, 48).unwrap(); // 6 tiles
+        for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
+            let settings = AdaptiveSettings {
+                mode,
+                target_error: 0.05,
+                min_passes: 7, // rounded up to 8 (units of 2 passes)
+                interval: 3,   // rounded up to 4
+                ..AdaptiveSettings::default()
+            };
+            // The local render of the same job: the policy fed every planned pass.
+            let used_local = {
+                let mut s = settings;
+                s.min_passes = 8;
+                s.interval = 4;
+                s
+            };
+            let mut local = AdaptiveFrame::new(p, 0, used_local).unwrap();
+            for u in p.units(0, 2) {
+                local.offer(&noisy_result(&p, u)).unwrap();
+            }
+            let reference = local.image();
+            for (workers, seed) in [(1u64, 1u64), (3, 2), (5, 3)] {
+                let mut s = Scheduler::new(100, 0);
+                let used = s.add_adaptive_job(7, 0, p, 0..=0, 2, settings).unwrap();
+                assert_eq!((used.min_passes, used.interval), (8, 4));
+                let (mut now, mut rng) = (0u64, seed);
+                let mut held: Vec<Lease> = Vec::new();
+                let mut leased_units = BTreeSet::new();
+                while !s.is_complete(7) {
+                    now += 10;
+                    assert!(now < 1_000_000, "{mode}: the job stalls");
+                    for w in 0..workers {
+                        let new = s.lease(w, now, 1);
+                        let f = s.adaptive_frame(7, 0).unwrap();
+                        for l in &new {
+                            let t = f.tile(l.unit.tile).unwrap();
+                            assert!(
+                                l.unit.first_pass < t.lease_horizon(),
+                                "{mode}: unit {:?} leased beyond the open decision at {}",
+                                l.unit,
+                                t.lease_horizon()
+                            );
+                        }
+                        leased_units.extend(new.iter().map(|l| l.unit));
+                        held.extend(new);
+                    }
+                    rng = rng
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    if held.is_empty() {
+                        s.expire(now + 1000);
+                        continue;
+                    }
+                    let k = (rng >> 33) as usize % held.len();
+                    let l = held.swap_remove(k);
+                    if rng.is_multiple_of(5) {
+                        continue; // a lost result: re-leased after expiry
+                    }
+                    let _ = s.submit(l.lease_id, 7, noisy_result(&p, l.unit));
+                    if rng.is_multiple_of(3) {
+                        s.expire(now + 1000);
+                    }
+                }
+                let image = s.adaptive_frame(7, 0).unwrap().image();
+                assert_eq!(image, reference, "{mode} with {workers} workers");
+                // Tile 0 (constant) stopped at the first decision (sequential: 4 of its 24
+                // units) or after the pilot and the minimum 4 fresh passes (unbiased: 6).
+                let f = s.adaptive_frame(7, 0).unwrap();
+                assert!(f.tile(0).unwrap().finished());
+                let end0 = if mode == AdaptiveMode::Sequential {
+                    8
+                } else {
+                    12
+                };
+                assert!(leased_units
+                    .iter()
+                    .all(|u| u.tile != 0 || u.first_pass < end0));
+                let total = p.unit_count(2) as usize;
+                assert!(
+                    leased_units.len() < total,
+                    "{mode}: adaptivity saved nothing"
+                );
+                assert!(
+                    s.lease(1, now, 10).is_empty(),
+                    "{mode}: work after completion"
+                );
+            }
+        }
+        // Settings that do not fit the plan are refused.
+        let mut s = Scheduler::new(100, 0);
+        let bad = AdaptiveSettings {
+            mode: AdaptiveMode::Unbiased,
+            target_error: 0.05,
+            min_passes: 48,
+            ..AdaptiveSettings::default()
+        };
+        assert!(s.add_adaptive_job(1, 0, p, 0..=0, 2, bad).is_err());
+        assert!(s.lease(1, 0, 1).is_empty());
     }
 
     #[test]

@@ -12,10 +12,13 @@
 //! | `variance.R`, `variance.G`, `variance.B` | estimated variance of the mean, from the spread of independent passes (0 with fewer than 2 passes) |
 //! | `relerr.Y` | estimated relative standard error of the pixel's luminance |
 //! | `passes.Y` | number of passes merged |
-//! | `samples.Y` | samples per pixel merged |
+//! | `samples.Y` | samples per pixel traced (for adaptive renders, including a discarded unbiased pilot: where the effort went) |
 //!
 //! PNG: the beauty clamped to [0, 1] and encoded with the sRGB transfer function, 8 bits.
 #![deny(missing_docs)]
+
+mod heatmap;
+pub use heatmap::{encode_heat_map_png, heat_colour};
 
 use exr::meta::attribute::{AttributeValue, Text};
 use exr::prelude::{

@@ -4,7 +4,7 @@ use std::fmt;
 
 use tessera_api::{IntegratorChoice, MisChoice, RenderConfig, SamplerChoice, SceneRef};
 use tessera_farm::{FramePlan, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES};
-use tessera_farm::{MAX_TILE_SIZE, MIN_TILE_SIZE};
+use tessera_farm::{MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS, MIN_TILE_SIZE};
 
 use crate::v1;
 
@@ -91,7 +91,7 @@ impl TryFrom<v1::FramePlan> for FramePlan {
             let field = match &e {
                 PlanError::Size { width, .. } if !(1..=MAX_DIMENSION).contains(width) => "width",
                 PlanError::Size { .. } => "height",
-                PlanError::TileSize(_) => "tile_size",
+                PlanError::TileSize(_) | PlanError::WholeFrameTooLarge { .. } => "tile_size",
                 PlanError::SamplesPerPass(_) | PlanError::Spp { .. } => "samples_per_pass",
                 PlanError::Passes(_) | PlanError::TooMuchWork { .. } => "passes",
             };
@@ -217,9 +217,16 @@ impl v1::SubmitResultRequest {
             .map_err(|e: ProtoError| e.within("unit"))?;
         for (field, v) in [("width", self.width), ("height", self.height)] {
             if !(1..=MAX_TILE_SIZE).contains(&v) {
+                // A whole-frame tile (bdpt) may be larger, within its pixel bound.
+                let pixels = u64::from(self.width) * u64::from(self.height);
+                if (1..=MAX_DIMENSION).contains(&v) && pixels <= MAX_WHOLE_FRAME_PIXELS {
+                    continue;
+                }
                 return Err(ProtoError::new(
                     field,
-                    format_args!("must be between 1 and {MAX_TILE_SIZE} (a tile), got {v}"),
+                    format_args!(
+                        "must be between 1 and {MAX_TILE_SIZE} (a tile), or up to {MAX_DIMENSION} for a whole-frame tile of at most {MAX_WHOLE_FRAME_PIXELS} pixels, got {v}"
+                    ),
                 ));
             }
         }

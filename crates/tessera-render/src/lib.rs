@@ -9,7 +9,9 @@
 //! - [`integrator`]: path tracing with NEE and MIS, and direct lighting;
 //! - [`scene::RenderScene`]: a [`tessera_scene::Scene`] prepared for tracing;
 //! - [`render::render_unit`]: renders one `tessera-farm` work unit (tile x pass range), the
-//!   only entry point the farm's workers and the local renderer use.
+//!   only entry point the farm's workers and the local renderer use;
+//! - [`adaptive::render_adaptive`]: round-by-round adaptive rendering with
+//!   `tessera-farm`'s adaptive policy (pixels that stopped are skipped).
 //!
 //! No async and no network code lives here.
 //!
@@ -23,6 +25,7 @@
 //! ```
 #![deny(missing_docs)]
 
+pub mod adaptive;
 pub mod bsdf;
 pub mod camera;
 pub mod geometry;

@@ -52,6 +52,29 @@ pub fn render_unit(
     plan: &FramePlan,
     unit: WorkUnit,
 ) -> UnitResult {
+    render_unit_where(scene, settings, plan, unit, |_, _| true)
+}
+
+/// [`render_unit`] for only the (tile pixel, pass) pairs where `wanted(i, pass)` holds
+/// (`i` row-major within the tile); the others are left black without tracing a ray.
+/// Adaptive rendering (`tessera_farm::AdaptiveTile::wants`) uses it to skip pixels that
+/// stopped: a wanted pixel's value is the same as with [`render_unit`], and the policy
+/// ignores the others, so the image is the same as when whole tiles are rendered.
+///
+/// Bidirectional path tracing renders every pixel: its light-tracing splats land
+/// anywhere in the (whole-frame) tile, so skipping pixels would not save their cost.
+pub fn render_unit_where(
+    scene: &RenderScene,
+    settings: &RenderSettings,
+    plan: &FramePlan,
+    unit: WorkUnit,
+    wanted: impl Fn(usize, u32) -> bool,
+) -> UnitResult {
+    if settings.integrator == IntegratorKind::Bdpt {
+        // Light tracing splats across pixels: see `integrator::bdpt` for how a unit stays
+        // deterministic (and why bdpt plans use one whole-frame tile).
+        return crate::integrator::bdpt::render_unit(scene, settings, plan, unit);
+    }
     let rect = plan.tile(unit.tile);
     let pixels = (rect.width * rect.height) as usize;
     let spp = plan.samples_per_pass;
@@ -67,6 +90,10 @@ pub fn render_unit(
         for y in rect.y0..rect.y0 + rect.height {
             for x in rect.x0..rect.x0 + rect.width {
                 let pixel = y * plan.width + x;
+                if !wanted(((y - rect.y0) * rect.width + (x - rect.x0)) as usize, pass) {
+                    pass_means.push([0.0; 3]);
+                    continue;
+                }
                 let mut sampler =
                     PixelSampler::new(settings.sampler, settings.seed, unit.frame, pixel, pass);
                 let mut sum = [0.0f64; 3];

@@ -2,8 +2,9 @@
 //! renderer and canonical merge, and summarise pixel statistics.
 #![allow(dead_code)]
 
+use rayon::prelude::*;
 use tessera_farm::{FrameAccumulator, FramePlan};
-use tessera_render::render::{render_frame, RenderSettings};
+use tessera_render::render::{render_frame, render_unit, RenderSettings};
 use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
 
@@ -33,4 +34,116 @@ pub fn image_mean(acc: &FrameAccumulator, channel: usize) -> (f64, f64) {
         .sum::<f64>()
         / (n * n);
     (mean, var.sqrt())
+}
+
+/// Luminance of the per-pass means of `block x block` pixel blocks: `[pass][block]`.
+pub fn block_passes(
+    rs: &RenderScene,
+    s: &RenderSettings,
+    plan: &FramePlan,
+    block: u32,
+) -> Vec<Vec<f64>> {
+    let units = plan.units(0, 1);
+    let (bx, by) = (plan.width.div_ceil(block), plan.height.div_ceil(block));
+    let mut per_pass: Vec<(u32, Vec<f64>)> = units
+        .par_iter()
+        .map(|u| {
+            let r = render_unit(rs, s, plan, *u);
+            let rect = plan.tile(u.tile);
+            let mut sums = vec![0.0f64; (bx * by) as usize];
+            let mut counts = vec![0u32; (bx * by) as usize];
+            for y in 0..rect.height {
+                for x in 0..rect.width {
+                    let m = r.pass_means[(y * rect.width + x) as usize];
+                    let (gx, gy) = (rect.x0 + x, rect.y0 + y);
+                    let b = ((gy / block) * bx + gx / block) as usize;
+                    sums[b] += 0.2126 * m[0] as f64 + 0.7152 * m[1] as f64 + 0.0722 * m[2] as f64;
+                    counts[b] += 1;
+                }
+            }
+            (u.first_pass * 1_000_000 + u.tile, {
+                sums.iter()
+                    .zip(&counts)
+                    .map(|(s, &c)| s / c as f64)
+                    .collect()
+            })
+        })
+        .collect();
+    assert_eq!(plan.tile_count(), 1, "block_passes wants one tile per pass");
+    per_pass.sort_by_key(|p| p.0);
+    per_pass.into_iter().map(|p| p.1).collect()
+}
+
+/// Mean and variance of the mean of each block across passes.
+pub fn block_stats(passes: &[Vec<f64>]) -> Vec<(f64, f64)> {
+    let k = passes.len() as f64;
+    (0..passes[0].len())
+        .map(|b| {
+            let mean = passes.iter().map(|p| p[b]).sum::<f64>() / k;
+            let var = passes.iter().map(|p| (p[b] - mean).powi(2)).sum::<f64>() / (k - 1.0);
+            (mean, var / k)
+        })
+        .collect()
+}
+
+/// `1 - Φ(z)` (complementary error function of Numerical Recipes §6.2, relative error
+/// below 1.2e-7).
+pub fn normal_sf(z: f64) -> f64 {
+    let x = z / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.5 * x.abs());
+    let y = t
+        * (-x * x - 1.26551223
+            + t * (1.00002368
+                + t * (0.37409196
+                    + t * (0.09678418
+                        + t * (-0.18628806
+                            + t * (0.27886807
+                                + t * (-1.13520398
+                                    + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
+            .exp();
+    let erfc = if x >= 0.0 { y } else { 2.0 - y };
+    0.5 * erfc
+}
+
+/// Two-sided critical |z| for `tests` comparisons at family-wise level `alpha` (Bonferroni).
+pub fn z_critical(alpha: f64, tests: usize) -> f64 {
+    let target = alpha / (2.0 * tests as f64);
+    let (mut lo, mut hi) = (0.0f64, 40.0f64);
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if normal_sf(mid) > target {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+/// z-tests of two block images; returns the largest |z| after asserting it is below the
+/// Bonferroni threshold. Blocks where both estimates are exactly zero are skipped.
+pub fn assert_blocks_agree(name: &str, a: &[(f64, f64)], b: &[(f64, f64)]) -> f64 {
+    let tested: Vec<usize> = (0..a.len()).filter(|&i| a[i].1 + b[i].1 > 0.0).collect();
+    let crit = z_critical(0.01, tested.len());
+    let mut worst = 0.0f64;
+    let mut sum_z2 = 0.0;
+    for &i in &tested {
+        let z = (a[i].0 - b[i].0) / (a[i].1 + b[i].1).sqrt();
+        sum_z2 += z * z;
+        worst = worst.max(z.abs());
+        assert!(
+            z.abs() < crit,
+            "{name}: block {i}: {:.5} ± {:.5} vs {:.5} ± {:.5}, z = {z:.2} (critical {crit:.2})",
+            a[i].0,
+            a[i].1.sqrt(),
+            b[i].0,
+            b[i].1.sqrt()
+        );
+    }
+    eprintln!(
+        "{name}: {} blocks, max |z| = {worst:.2} (critical {crit:.2}), mean z² = {:.2}",
+        tested.len(),
+        sum_z2 / tested.len().max(1) as f64
+    );
+    worst
 }

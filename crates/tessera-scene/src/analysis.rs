@@ -961,9 +961,7 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
                 .into(),
         );
         reasons.push(
-            "if this build has no bdpt integrator, `tessera render` falls back to path with \
-             the same depth and says so"
-                .into(),
+            "bdpt light-traces onto the film: one whole-frame tile, units split by passes".into(),
         );
         PlannedIntegrator::Bdpt
     } else {

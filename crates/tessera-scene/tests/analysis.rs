@@ -158,7 +158,7 @@ fn caustic_scene_needs_bdpt_for_its_tiny_light() {
     assert!(plan
         .reasons
         .iter()
-        .any(|r| r.contains("falls back to path")));
+        .any(|r| r.contains("one whole-frame tile")));
 }
 
 #[test]

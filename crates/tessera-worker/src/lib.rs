@@ -56,16 +56,16 @@ pub enum WorkerError {
     Unauthenticated(String),
 }
 
-/// The render settings a lease asks for, as the renderer's types. `auto` and `bdpt` resolve
-/// to the path tracer here (the same choice `tessera render` makes), so every worker
-/// renders a unit identically.
+/// The render settings a lease asks for, as the renderer's types. `auto` resolves to the
+/// path tracer here, so every worker renders a unit identically; `bdpt` is the
+/// bidirectional integrator (its jobs are planned with one whole-frame tile, see
+/// `tessera_render::integrator::bdpt`).
 pub fn render_settings(config: &RenderConfig) -> RenderSettings {
     RenderSettings {
         integrator: match config.integrator {
             IntegratorChoice::Direct => IntegratorKind::Direct,
-            IntegratorChoice::Auto | IntegratorChoice::Path | IntegratorChoice::Bdpt => {
-                IntegratorKind::Path
-            }
+            IntegratorChoice::Bdpt => IntegratorKind::Bdpt,
+            IntegratorChoice::Auto | IntegratorChoice::Path => IntegratorKind::Path,
         },
         mis: match config.mis {
             MisChoice::Balance => MisHeuristic::Balance,
@@ -448,5 +448,7 @@ mod tests {
         assert_eq!((s.seed, s.max_depth, s.rr_depth), (9, 5, 2));
         c.integrator = IntegratorChoice::Auto;
         assert_eq!(render_settings(&c).integrator, IntegratorKind::Path);
+        c.integrator = IntegratorChoice::Bdpt;
+        assert_eq!(render_settings(&c).integrator, IntegratorKind::Bdpt);
     }
 }

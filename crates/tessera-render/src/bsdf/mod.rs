@@ -165,6 +165,17 @@ impl Bsdf {
         self.lobes[..self.count].iter().any(|l| !l.is_delta())
     }
 
+    /// The relative index of refraction (inside over outside) of the smooth dielectric lobe,
+    /// if the mixture has one. Light tracing needs it: radiance crossing the interface is
+    /// scaled by `(η_i/η_t)²` in [`Bsdf::sample`], importance (and power) is not (pbrt 3rd
+    /// ed. §16.1.3, non-symmetric scattering due to refraction).
+    pub fn glass_eta(&self) -> Option<f32> {
+        self.lobes[..self.count].iter().find_map(|l| match l {
+            Lobe::Glass(g) => Some(g.eta),
+            _ => None,
+        })
+    }
+
     /// `f(wo, wi) |cos θi|` of the non-delta lobes.
     pub fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         let mut f = Vec3::ZERO;

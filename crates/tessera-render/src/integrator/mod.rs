@@ -4,7 +4,9 @@
 //! |---|---|
 //! | `path` | unidirectional path tracing with next-event estimation, multiple importance sampling and Russian roulette ([`path`]) |
 //! | `direct` | direct lighting only: emission seen by the camera and light arriving at the first surface, one bounce, both techniques combined by MIS |
+//! | `bdpt` | bidirectional path tracing: camera and light subpaths joined by every connection technique, light tracing splatted onto the film, power-heuristic MIS ([`bdpt`]) |
 
+pub mod bdpt;
 pub mod path;
 
 use std::fmt;
@@ -17,6 +19,8 @@ pub enum IntegratorKind {
     Path,
     /// Direct lighting only.
     Direct,
+    /// Bidirectional path tracing (caustics from small and delta lights).
+    Bdpt,
 }
 
 impl FromStr for IntegratorKind {
@@ -25,7 +29,10 @@ impl FromStr for IntegratorKind {
         match s {
             "path" => Ok(Self::Path),
             "direct" => Ok(Self::Direct),
-            _ => Err(format!("unknown integrator {s:?}: expected path or direct")),
+            "bdpt" => Ok(Self::Bdpt),
+            _ => Err(format!(
+                "unknown integrator {s:?}: expected path, direct or bdpt"
+            )),
         }
     }
 }
@@ -35,6 +42,7 @@ impl fmt::Display for IntegratorKind {
         f.write_str(match self {
             Self::Path => "path",
             Self::Direct => "direct",
+            Self::Bdpt => "bdpt",
         })
     }
 }

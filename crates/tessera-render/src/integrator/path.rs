@@ -44,7 +44,8 @@ pub fn radiance(
 ) -> Vec3 {
     let max_depth = match s.kind {
         IntegratorKind::Direct => 1,
-        IntegratorKind::Path => s.max_depth,
+        // bdpt renders through `bdpt::render_unit`; here it means the full path tracer.
+        IntegratorKind::Path | IntegratorKind::Bdpt => s.max_depth,
     };
     let mut l = Vec3::ZERO;
     let mut beta = Vec3::ONE;

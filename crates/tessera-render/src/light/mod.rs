@@ -13,8 +13,10 @@
 //!
 //! Variants, one file each: [`triangle`] (emissive triangles: area lights), [`sphere`]
 //! (spherical lights, sampled by the cone they subtend), [`punctual`] (point, spot,
-//! directional), [`environment`] (uniform environment).
+//! directional), [`environment`] (uniform environment). [`emission`] samples rays leaving
+//! each light, for the light subpaths of bidirectional path tracing.
 
+pub mod emission;
 pub mod environment;
 pub mod punctual;
 pub mod sphere;

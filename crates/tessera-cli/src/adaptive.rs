@@ -1,0 +1,210 @@
+//! `tessera render` with error targets, adaptive stopping and time limits (issue 4):
+//! `--target-error`, `--adaptive off|sequential|unbiased`, `--time-limit`, `--spp-map`.
+//!
+//! The render runs `tessera-farm`'s adaptive policy round by round through
+//! [`tessera_render::adaptive::render_adaptive`]; `--spp` is the upper bound.
+
+use crate::{metadata_json, Prepared, RenderArgs};
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use tessera_farm::{adaptive_plan, AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage};
+use tessera_render::adaptive::{render_adaptive, Limits};
+
+/// The adaptive flags of `tessera render`.
+#[derive(Args, Clone, Debug)]
+pub struct AdaptiveArgs {
+    /// Target relative RMS error, e.g. 0.01. With --adaptive sequential or unbiased each
+    /// pixel stops at it; with --adaptive off the whole image stops once its estimated
+    /// error reaches it. --spp stays the upper bound.
+    #[arg(long)]
+    pub target_error: Option<f64>,
+    /// Adaptive stopping: off, sequential (stop converged pixels at fixed pass boundaries;
+    /// fast, slightly biased) or unbiased (a discarded pilot fixes each pixel's passes).
+    #[arg(long, default_value = "off")]
+    pub adaptive: AdaptiveMode,
+    /// Stop after this many seconds (checked between rounds; the image then depends on
+    /// the machine's speed).
+    #[arg(long)]
+    pub time_limit: Option<f64>,
+    /// Also write the samples traced per pixel as a heat-map PNG (log scale).
+    #[arg(long)]
+    pub spp_map: Option<PathBuf>,
+    /// Passes before the first adaptive decision (sequential) or of the pilot (unbiased).
+    #[arg(long, default_value_t = 8)]
+    pub min_passes: u32,
+}
+
+impl AdaptiveArgs {
+    /// Whether the render needs the adaptive round loop.
+    pub fn active(&self) -> bool {
+        self.adaptive != AdaptiveMode::Off
+            || self.target_error.is_some()
+            || self.time_limit.is_some()
+    }
+
+    fn validate(&self) -> Result<()> {
+        if let Some(e) = self.target_error {
+            if !(e.is_finite() && e > 0.0 && e <= 1.0) {
+                bail!("--target-error {e} must be a relative error in (0, 1], e.g. 0.01");
+            }
+        }
+        if let Some(t) = self.time_limit {
+            if !(t.is_finite() && t > 0.0) {
+                bail!("--time-limit {t} must be a positive number of seconds");
+            }
+        }
+        if self.adaptive != AdaptiveMode::Off && self.target_error.is_none() {
+            bail!(
+                "--adaptive {} needs --target-error (the relative error at which pixels stop)",
+                self.adaptive
+            );
+        }
+        if !(2..=1024).contains(&self.min_passes) {
+            bail!(
+                "--min-passes {} must be between 2 and 1024",
+                self.min_passes
+            );
+        }
+        if let Some(path) = &self.spp_map {
+            check_png("--spp-map", path)?;
+        }
+        Ok(())
+    }
+}
+
+fn check_png(flag: &str, path: &Path) -> Result<()> {
+    let ok = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("png"));
+    if !ok {
+        bail!("{flag} {} must end in .png", path.display());
+    }
+    Ok(())
+}
+
+/// Checks the flags without rendering (called before any work, also for plain renders).
+pub fn check(args: &AdaptiveArgs) -> Result<()> {
+    args.validate()
+}
+
+/// Writes the samples-per-pixel heat map of an image.
+pub fn write_spp_map(path: &Path, img: &FrameImage) -> Result<()> {
+    let png = tessera_image::encode_heat_map_png(img.width, img.height, &img.samples)?;
+    std::fs::write(path, png).with_context(|| format!("writing --spp-map {}", path.display()))
+}
+
+/// The policy settings for the flags (the target only matters for the adaptive modes).
+pub fn settings(args: &AdaptiveArgs) -> AdaptiveSettings {
+    AdaptiveSettings {
+        mode: args.adaptive,
+        target_error: args.target_error.unwrap_or(1.0),
+        min_passes: args.min_passes,
+        ..AdaptiveSettings::default()
+    }
+}
+
+/// Renders with the adaptive round loop and prints the summary.
+pub fn render(p: &mut Prepared, args: &RenderArgs) -> Result<()> {
+    let a = &args.adaptive;
+    let settings = settings(a);
+    if a.adaptive != AdaptiveMode::Off {
+        // Adaptive decisions fall between passes: plan many short ones (at least 32).
+        p.plan = adaptive_plan(
+            p.plan.width,
+            p.plan.height,
+            args.job.spp,
+            args.job.tile_size,
+        )
+        .context("invalid image or sampling settings")?;
+    }
+    let frame = AdaptiveFrame::new(p.plan, 0, settings).with_context(|| {
+        format!(
+            "--adaptive {} with --spp {} ({} passes of {})",
+            a.adaptive, args.job.spp, p.plan.passes, p.plan.samples_per_pass
+        )
+    })?;
+    let Some(render_scene) = p.render_scene.as_ref() else {
+        bail!("internal: no render scene for a non-black render");
+    };
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new_spinner();
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{elapsed_precise} {spinner} {msg}")
+                .expect("static template"),
+        );
+        bar
+    });
+    let limits = Limits {
+        time_limit_seconds: a.time_limit,
+        target_error: a.target_error,
+    };
+    let out = render_adaptive(
+        render_scene,
+        &p.settings,
+        frame,
+        args.job.threads,
+        limits,
+        |f| {
+            if let Some(b) = &bar {
+                let (mean, _, _) = f.samples_per_pixel();
+                let active: usize = f.tiles().iter().map(|t| t.active_pixels()).sum();
+                b.set_message(format!(
+                    "{mean:.1} spp, estimated error {:.4}, {active} pixels active",
+                    f.image_error()
+                ));
+                b.tick();
+            }
+        },
+    );
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    let image = out.frame.image();
+    let meta = metadata_json(p);
+    let meta = format!(
+        "{{\"adaptive\":\"{}\",\"target_error\":{},\"min_passes\":{},\"interval\":{},\"time_limit\":{},\"stopped\":\"{}\",{}",
+        a.adaptive,
+        a.target_error.map_or("null".to_string(), |e| e.to_string()),
+        settings.min_passes,
+        settings.interval,
+        a.time_limit.map_or("null".to_string(), |t| t.to_string()),
+        out.stop.as_str(),
+        meta.strip_prefix('{').unwrap_or(&meta)
+    );
+    tessera_image::write_image(&args.output, &image, Some(&meta))?;
+    if let Some(path) = &a.spp_map {
+        write_spp_map(path, &image)?;
+    }
+    let (mean, lo, hi) = out.frame.samples_per_pixel();
+    println!(
+        "rendered {} ({}x{}, {} integrator, {} sampler, {} MIS, adaptive {}) to {}",
+        p.scene.name,
+        p.plan.width,
+        p.plan.height,
+        p.settings.integrator,
+        p.settings.sampler.as_str(),
+        p.settings.mis,
+        a.adaptive,
+        args.output.display()
+    );
+    println!(
+        "samples per pixel: mean {mean:.1}, min {lo}, max {hi} (budget {} = {} passes of {})",
+        p.plan.spp(),
+        p.plan.passes,
+        p.plan.samples_per_pass
+    );
+    match a.target_error {
+        Some(t) => println!("stopped: {} (target error {t})", out.stop.as_str()),
+        None => println!("stopped: {}", out.stop.as_str()),
+    }
+    println!("seconds: {:.3}", out.seconds);
+    println!("estimated relative error: {:.4}", out.frame.image_error());
+    println!(
+        "paths per second: {:.0}",
+        out.paths as f64 / out.seconds.max(1e-9)
+    );
+    Ok(())
+}

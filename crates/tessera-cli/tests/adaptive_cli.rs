@@ -1,0 +1,178 @@
+//! Issue 4 end to end: `tessera render` with --target-error/--adaptive/--time-limit/
+//! --spp-map, as a user runs it.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn tessera() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_tessera"))
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("tessera-adaptive-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn run(args: &[&str]) -> (bool, String, String) {
+    let o = tessera().args(args).output().unwrap();
+    (
+        o.status.success(),
+        String::from_utf8_lossy(&o.stdout).to_string(),
+        String::from_utf8_lossy(&o.stderr).to_string(),
+    )
+}
+
+/// Adaptive renders are bit-identical with 1 and 2 threads (DESIGN §2), the samples layer
+/// holds the per-pixel effort, and the heat map is written.
+#[test]
+fn adaptive_render_is_deterministic_and_reports_its_effort() {
+    let dir = temp_dir("det");
+    for mode in ["sequential", "unbiased"] {
+        let mut files = Vec::new();
+        for threads in ["1", "2"] {
+            let out = dir.join(format!("{mode}-{threads}.exr"));
+            let map = dir.join(format!("{mode}-{threads}.png"));
+            let (ok, stdout, stderr) = run(&[
+                "render",
+                "builtin:veach-mis",
+                "--width",
+                "32",
+                "--height",
+                "24",
+                "--spp",
+                "512",
+                "--max-depth",
+                "2",
+                "--target-error",
+                "0.1",
+                "--adaptive",
+                mode,
+                "--threads",
+                threads,
+                "-o",
+                out.to_str().unwrap(),
+                "--spp-map",
+                map.to_str().unwrap(),
+            ]);
+            assert!(ok, "{stdout}\n{stderr}");
+            for needle in [
+                "samples per pixel: mean",
+                "min ",
+                "max ",
+                "seconds:",
+                "estimated relative error:",
+                "paths per second:",
+            ] {
+                assert!(stdout.contains(needle), "{needle:?} missing:\n{stdout}");
+            }
+            assert_eq!(&std::fs::read(&map).unwrap()[1..4], b"PNG");
+            files.push(std::fs::read(&out).unwrap());
+        }
+        assert!(
+            files[0] == files[1],
+            "{mode}: EXR differs between 1 and 2 threads"
+        );
+        let exr = tessera_image::read_exr(&files[0]).unwrap();
+        let samples = exr.get("samples.Y").unwrap();
+        let passes = exr.get("passes.Y").unwrap();
+        let (lo, hi) = samples
+            .iter()
+            .fold((f32::MAX, 0f32), |(a, b), &s| (a.min(s), b.max(s)));
+        assert!(lo < hi && hi <= 512.0, "{mode}: samples {lo}..{hi}");
+        // Effort is whole passes of the adaptive plan (512 spp = 32 passes of 16).
+        assert!(samples.iter().all(|s| s % 16.0 == 0.0));
+        if mode == "unbiased" {
+            // The discarded pilot (8 passes) is effort but not part of the estimate.
+            assert!(samples
+                .iter()
+                .zip(passes)
+                .all(|(&s, &p)| s == 16.0 * (p + 8.0)));
+        } else {
+            assert!(samples.iter().zip(passes).all(|(&s, &p)| s == 16.0 * p));
+        }
+        let meta = exr.metadata.unwrap_or_default();
+        assert!(meta.contains(&format!("\"adaptive\":\"{mode}\"")), "{meta}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn adaptive_flags_are_checked() {
+    for (extra, needle) in [
+        (vec!["--adaptive", "sequential"], "--target-error"),
+        (vec!["--adaptive", "sometimes"], "sometimes"),
+        (vec!["--target-error", "0"], "--target-error"),
+        (vec!["--target-error", "nan"], "--target-error"),
+        (vec!["--time-limit", "-1"], "--time-limit"),
+        (vec!["--spp-map", "map.jpg"], "--spp-map"),
+        (
+            vec![
+                "--adaptive",
+                "unbiased",
+                "--target-error",
+                "0.1",
+                "--spp",
+                "4",
+            ],
+            "--spp",
+        ),
+    ] {
+        let mut args = vec!["render", "builtin:cornell-box", "-o", "x.exr"];
+        args.extend(extra.iter().copied());
+        let (ok, _, stderr) = run(&args);
+        assert!(!ok, "{args:?} succeeded");
+        assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
+        assert!(
+            stderr.contains(needle),
+            "{args:?}: {stderr} lacks {needle:?}"
+        );
+    }
+}
+
+/// --time-limit and --target-error with --adaptive off stop the whole image between
+/// rounds; the summary says why.
+#[test]
+fn off_mode_stops_at_a_target_or_time_limit() {
+    let dir = temp_dir("off");
+    let out = dir.join("t.exr");
+    let (ok, stdout, stderr) = run(&[
+        "render",
+        "builtin:cornell-box",
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "4096",
+        "--max-depth",
+        "2",
+        "--target-error",
+        "0.2",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(stdout.contains("stopped: target error reached"), "{stdout}");
+    let exr = tessera_image::read_exr(&std::fs::read(&out).unwrap()).unwrap();
+    let s = exr.get("samples.Y").unwrap();
+    assert!(s.iter().all(|&v| v == s[0]) && s[0] < 4096.0, "{}", s[0]);
+    let (ok, stdout, stderr) = run(&[
+        "render",
+        "builtin:cornell-box",
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "1048576",
+        "--time-limit",
+        "0.2",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(stdout.contains("stopped: time limit reached"), "{stdout}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,745 @@
+//! Adaptive stopping: which pixels of a tile still need passes, and when a tile is done
+//! (DESIGN §3, issue 4). Pure: no I/O, no clock, no threads.
+//!
+//! # Why decisions are made at fixed pass indices
+//!
+//! An [`AdaptiveTile`] consumes a tile's passes strictly in pass order (buffering results
+//! that arrive early, like [`crate::TileAccumulator`]) and takes its decisions only at
+//! *decision boundaries*, pass indices fixed by the [`AdaptiveSettings`] alone. A decision
+//! at boundary `b` reads nothing but the tile's own merged state over passes `0..b`, which
+//! is a pure function of the job (DESIGN §2). Hence an adaptive render is bit-identical with
+//! any number of threads or workers and any arrival order: the same pixels stop at the same
+//! passes, and their statistics hold the same passes pushed in the same order.
+//!
+//! # Modes
+//!
+//! - [`AdaptiveMode::Off`]: every pixel takes every planned pass (the same statistics as
+//!   [`crate::TileAccumulator`], bit for bit).
+//! - [`AdaptiveMode::Sequential`]: at passes `min_passes`, `min_passes + interval`, ... a
+//!   pixel whose relative error `sqrt(Var[mean]) / (lum(mean) + eps)` is below the target
+//!   stops, unless a neighbour within one pixel (in the same tile) is still above it
+//!   (dilation). Stopping on the estimate itself is biased (Kirk & Arvo 1991, seed 000
+//!   §10.3): a pixel whose first passes missed a rare bright path (a caustic, a small light
+//!   in a glossy reflection) looks converged with too little energy. The minimum pass count
+//!   and the dilation make that less likely; the bias test in this module measures what
+//!   remains.
+//! - [`AdaptiveMode::Unbiased`]: Kirk & Arvo's two-stage remedy (seed 000 §10.3: "to
+//!   eliminate bias the pilot sample must be thrown away"). A pilot of `min_passes` passes
+//!   estimates each pixel's per-pass variance `s²`; the pixel is given
+//!   `n = ceil(s² / (target · (lum + eps))²)` fresh passes, clamped to
+//!   `[min_fresh_passes, plan passes - pilot]`, so that `sqrt(s² / n) / (lum + eps)` is about
+//!   the target. The pilot statistics are then discarded and only passes
+//!   `pilot .. pilot + n` form the pixel's mean and error estimate. Because `n` depends only
+//!   on the pilot, which is independent of the fresh passes (passes are independent
+//!   replicates, seed 000 §6.7), the fresh mean is unbiased whatever `n` turned out to be.
+//!
+//! # Rendering only what is wanted
+//!
+//! [`AdaptiveTile::wants`] tells whether a pixel will use a given pass. A local renderer
+//! skips the pixels that do not (their values are ignored when merged); a farm worker that
+//! renders whole tiles produces the same image, since the policy reads only the passes it
+//! wants. [`AdaptiveTile::lease_horizon`] is the first pass that cannot be rendered yet
+//! because a decision before it is still open.
+//!
+//! # Example
+//!
+//! ```
+//! use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FramePlan, UnitResult};
+//!
+//! let plan = FramePlan::new(16, 16, 8, 1, 64)?;
+//! let settings = AdaptiveSettings { mode: AdaptiveMode::Sequential, target_error: 0.05, ..Default::default() };
+//! let mut frame = AdaptiveFrame::new(plan, 0, settings)?;
+//! // A constant image converges at the first decision (8 passes).
+//! loop {
+//!     let units = frame.next_round();
+//!     if units.is_empty() {
+//!         break;
+//!     }
+//!     for unit in units {
+//!         let rect = plan.tile(unit.tile);
+//!         let pass_means = vec![[0.5f32; 3]; rect.pixel_count() * unit.pass_count as usize];
+//!         frame.offer(&UnitResult { unit, width: rect.width, height: rect.height, pass_means })?;
+//!     }
+//! }
+//! assert!(frame.finished());
+//! assert_eq!(frame.image().samples[0], 8);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+
+use crate::merge::{FrameImage, MergeError};
+use crate::plan::{FramePlan, PlanError, TileRect, WorkUnit};
+use crate::result::UnitResult;
+use crate::stats::{PixelStats, REL_EPS};
+
+/// Adaptive stopping mode (DESIGN §3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AdaptiveMode {
+    /// Every pixel takes every planned pass.
+    #[default]
+    Off,
+    /// Stop pixels at fixed boundaries once their own estimate is below the target
+    /// (fast, slightly biased).
+    Sequential,
+    /// Kirk & Arvo two-stage sampling: a discarded pilot fixes each pixel's pass count.
+    Unbiased,
+}
+
+impl AdaptiveMode {
+    /// `"off"`, `"sequential"` or `"unbiased"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Off => "off",
+            Self::Sequential => "sequential",
+            Self::Unbiased => "unbiased",
+        }
+    }
+}
+
+impl FromStr for AdaptiveMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "off" => Ok(Self::Off),
+            "sequential" => Ok(Self::Sequential),
+            "unbiased" => Ok(Self::Unbiased),
+            _ => Err(format!(
+                "unknown adaptive mode {s:?}: expected off, sequential or unbiased"
+            )),
+        }
+    }
+}
+
+impl fmt::Display for AdaptiveMode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// Parameters of the adaptive policy. The plan's pass count is the upper bound.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AdaptiveSettings {
+    /// The mode.
+    pub mode: AdaptiveMode,
+    /// Target relative error per pixel (and hence RMS over the image), e.g. 0.01.
+    pub target_error: f64,
+    /// Sequential: no pixel stops before this many passes (the first decision boundary).
+    /// Unbiased: the length of the discarded pilot. At least 2 (a variance needs two
+    /// replicates); 8 by default, since an estimate from fewer passes is too often lucky.
+    pub min_passes: u32,
+    /// Sequential: passes between decision boundaries after `min_passes`. Also the chunk
+    /// a local render round takes per tile. At least 1; 4 by default.
+    pub interval: u32,
+    /// Unbiased: the fewest fresh passes a pixel is given (at least 2, so it has an error
+    /// estimate); 4 by default.
+    pub min_fresh_passes: u32,
+}
+
+impl Default for AdaptiveSettings {
+    fn default() -> Self {
+        Self {
+            mode: AdaptiveMode::Off,
+            target_error: 0.01,
+            min_passes: 8,
+            interval: 4,
+            min_fresh_passes: 4,
+        }
+    }
+}
+
+/// Why adaptive settings cannot be used with a plan.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum AdaptiveError {
+    /// The target error is not a positive finite number.
+    #[error("target error {0} is invalid: must be a positive, finite relative error such as 0.01")]
+    Target(f64),
+    /// `min_passes < 2`.
+    #[error("minimum pass count {0} is invalid: must be at least 2")]
+    MinPasses(u32),
+    /// `interval == 0`.
+    #[error("decision interval 0 is invalid: must be at least 1 pass")]
+    Interval,
+    /// `min_fresh_passes < 2`.
+    #[error("minimum fresh pass count {0} is invalid: must be at least 2")]
+    MinFresh(u32),
+    /// Unbiased mode needs room for the pilot and the fresh passes.
+    #[error("unbiased adaptive sampling needs at least {needed} passes (a pilot of {pilot} plus {fresh} fresh), the plan has {passes}: raise the sample budget")]
+    TooFewPasses {
+        /// Passes in the plan.
+        passes: u32,
+        /// Pilot length.
+        pilot: u32,
+        /// Minimum fresh passes.
+        fresh: u32,
+        /// `pilot + fresh`.
+        needed: u32,
+    },
+    /// The plan is invalid.
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+}
+
+impl AdaptiveSettings {
+    /// Checks the settings against a plan with `passes` passes.
+    pub fn validate(&self, passes: u32) -> Result<(), AdaptiveError> {
+        if self.mode == AdaptiveMode::Off {
+            return Ok(());
+        }
+        if !(self.target_error.is_finite() && self.target_error > 0.0) {
+            return Err(AdaptiveError::Target(self.target_error));
+        }
+        if self.min_passes < 2 {
+            return Err(AdaptiveError::MinPasses(self.min_passes));
+        }
+        if self.interval == 0 {
+            return Err(AdaptiveError::Interval);
+        }
+        if self.mode == AdaptiveMode::Unbiased {
+            if self.min_fresh_passes < 2 {
+                return Err(AdaptiveError::MinFresh(self.min_fresh_passes));
+            }
+            let needed = self.min_passes.saturating_add(self.min_fresh_passes);
+            if passes < needed {
+                return Err(AdaptiveError::TooFewPasses {
+                    passes,
+                    pilot: self.min_passes,
+                    fresh: self.min_fresh_passes,
+                    needed,
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether a decision is taken once passes `0..passes` are merged.
+    pub fn is_boundary(&self, passes: u32) -> bool {
+        match self.mode {
+            AdaptiveMode::Off => false,
+            AdaptiveMode::Sequential => {
+                passes >= self.min_passes
+                    && (passes - self.min_passes).is_multiple_of(self.interval.max(1))
+            }
+            AdaptiveMode::Unbiased => passes == self.min_passes,
+        }
+    }
+
+    /// The first decision boundary strictly after `passes`, if any.
+    pub fn next_boundary(&self, passes: u32) -> Option<u32> {
+        match self.mode {
+            AdaptiveMode::Off => None,
+            AdaptiveMode::Sequential => {
+                if passes < self.min_passes {
+                    return Some(self.min_passes);
+                }
+                let k = self.interval.max(1);
+                let steps = (passes - self.min_passes) / k + 1;
+                self.min_passes.checked_add(steps.checked_mul(k)?)
+            }
+            AdaptiveMode::Unbiased => (passes < self.min_passes).then_some(self.min_passes),
+        }
+    }
+}
+
+/// A plan for an adaptive render with at most `spp` samples per pixel: like
+/// [`FramePlan::for_spp`] but aiming for at least 32 passes (samples per pass the largest
+/// power of two not above `max(1, spp / 32)`, capped at 16), because adaptive decisions are
+/// taken between passes and the unbiased pilot alone takes 8 of them.
+pub fn adaptive_plan(
+    width: u32,
+    height: u32,
+    spp: u32,
+    tile_size: u32,
+) -> Result<FramePlan, PlanError> {
+    let max = crate::plan::MAX_AUTO_SAMPLES_PER_PASS * crate::plan::MAX_PASSES;
+    if spp == 0 || spp > max {
+        return Err(PlanError::Spp { spp, max });
+    }
+    let target = (spp / 32).max(1);
+    let pow2 = 1u32 << (31 - target.leading_zeros());
+    let s = pow2.min(crate::plan::MAX_AUTO_SAMPLES_PER_PASS);
+    FramePlan::new(width, height, tile_size, s, spp.div_ceil(s))
+}
+
+/// Per-pixel bookkeeping of the policy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+struct PixelState {
+    /// Sequential: the pixel stopped. Unused otherwise.
+    stopped: bool,
+    /// Unbiased: fresh passes fixed by the pilot (0 while the pilot runs).
+    needed: u32,
+    /// Passes the pixel used (including a discarded pilot): its rendering effort.
+    traced: u32,
+}
+
+/// The adaptive state of one tile: per-pixel statistics of the passes each pixel keeps,
+/// and the policy's decisions. Feed it every unit result of the tile (in any order); it
+/// consumes passes in pass order.
+///
+/// Serializable, so a coordinator can checkpoint it with the tile's merged statistics
+/// (the policy state is not recoverable from [`crate::PixelStats`] alone).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct AdaptiveTile {
+    rect: TileRect,
+    settings: AdaptiveSettings,
+    max_passes: u32,
+    /// Passes `0..next_pass` are consumed.
+    next_pass: u32,
+    stats: Vec<PixelStats>,
+    state: Vec<PixelState>,
+    /// Results that arrived before their turn: first pass -> (pass count, pass means).
+    pending: BTreeMap<u32, (u32, Vec<[f32; 3]>)>,
+    /// Scratch for decisions (converged flags), kept to avoid reallocating.
+    scratch: Vec<bool>,
+    /// Unbiased: one past the last pass any pixel needs, once the pilot has decided.
+    end: Option<u32>,
+}
+
+impl AdaptiveTile {
+    /// The state of tile `rect` for a plan with `max_passes` passes. The settings must have
+    /// passed [`AdaptiveSettings::validate`] (as [`AdaptiveFrame::new`] checks).
+    pub fn new(rect: TileRect, settings: AdaptiveSettings, max_passes: u32) -> Self {
+        let n = rect.pixel_count();
+        Self {
+            rect,
+            settings,
+            max_passes,
+            next_pass: 0,
+            stats: vec![PixelStats::default(); n],
+            state: vec![PixelState::default(); n],
+            pending: BTreeMap::new(),
+            scratch: vec![false; n],
+            end: None,
+        }
+    }
+
+    /// The tile.
+    pub fn rect(&self) -> TileRect {
+        self.rect
+    }
+
+    /// Passes consumed so far (every decision up to this pass index has been made).
+    pub fn consumed_passes(&self) -> u32 {
+        self.next_pass
+    }
+
+    /// One past the last pass this tile can still use: the plan's pass count, or for
+    /// unbiased after the pilot the largest `pilot + n` over its pixels.
+    pub fn end_pass(&self) -> u32 {
+        self.end.unwrap_or(self.max_passes).min(self.max_passes)
+    }
+
+    /// Whether the tile needs no more passes.
+    pub fn finished(&self) -> bool {
+        self.next_pass >= self.end_pass() || self.all_stopped()
+    }
+
+    fn all_stopped(&self) -> bool {
+        self.settings.mode == AdaptiveMode::Sequential && self.state.iter().all(|s| s.stopped)
+    }
+
+    /// Passes below this index may be rendered now; later ones wait for a decision (or are
+    /// never needed). Equal to [`AdaptiveTile::consumed_passes`] once the tile is finished.
+    pub fn lease_horizon(&self) -> u32 {
+        if self.finished() {
+            return self.next_pass;
+        }
+        let end = self.end_pass();
+        match self.settings.next_boundary(self.next_pass) {
+            Some(b) => b.min(end),
+            None => end,
+        }
+    }
+
+    /// The next chunk of passes a local render round should render for this tile:
+    /// `[consumed, min(consumed + interval, lease_horizon))`, or `None` if finished.
+    pub fn next_chunk(&self) -> Option<(u32, u32)> {
+        let h = self.lease_horizon();
+        if h <= self.next_pass {
+            return None;
+        }
+        let end = h.min(self.next_pass.saturating_add(self.settings.interval.max(1)));
+        Some((self.next_pass, end - self.next_pass))
+    }
+
+    /// Whether tile pixel `i` (row-major) will use pass `pass`, as far as the decisions
+    /// made so far tell. Passes not consumed yet and beyond the lease horizon may still be
+    /// dropped by a later decision.
+    #[inline]
+    pub fn wants(&self, i: usize, pass: u32) -> bool {
+        let Some(s) = self.state.get(i) else {
+            return false;
+        };
+        if pass >= self.max_passes {
+            return false;
+        }
+        match self.settings.mode {
+            AdaptiveMode::Off => true,
+            AdaptiveMode::Sequential => !s.stopped,
+            AdaptiveMode::Unbiased => {
+                pass < self.settings.min_passes
+                    || s.needed == 0
+                    || pass < self.settings.min_passes.saturating_add(s.needed)
+            }
+        }
+    }
+
+    /// Offers a result for this tile, already validated and accepted by the tile's
+    /// [`crate::TileAccumulator`] (so it is neither malformed nor a duplicate). Passes at or
+    /// beyond the plan's end, or already consumed, are ignored.
+    pub fn offer(&mut self, result: &UnitResult) {
+        let n = self.stats.len();
+        if n == 0 || result.pass_means.len() != n * result.unit.pass_count as usize {
+            return;
+        }
+        let first = result.unit.first_pass;
+        if first > self.next_pass {
+            self.pending
+                .insert(first, (result.unit.pass_count, result.pass_means.clone()));
+            return;
+        }
+        self.consume(first, &result.pass_means);
+        while let Some((count, means)) = self.pending.remove(&self.next_pass) {
+            debug_assert_eq!(means.len(), n * count as usize);
+            let first = self.next_pass;
+            self.consume(first, &means);
+        }
+    }
+
+    /// Consumes passes `first..` (pass-major means), skipping any already consumed.
+    fn consume(&mut self, first: u32, means: &[[f32; 3]]) {
+        let n = self.stats.len();
+        for (k, pass_means) in means.chunks_exact(n).enumerate() {
+            let pass = first.saturating_add(k as u32);
+            if pass < self.next_pass {
+                continue;
+            }
+            if self.finished() {
+                break;
+            }
+            for (i, &rgb) in pass_means.iter().enumerate() {
+                if self.wants(i, pass) {
+                    self.stats[i].push(rgb);
+                    self.state[i].traced += 1;
+                }
+            }
+            self.next_pass = pass + 1;
+            if self.settings.is_boundary(self.next_pass) {
+                self.decide();
+            }
+        }
+    }
+
+    /// The decision at boundary `next_pass`, from this tile's state alone.
+    fn decide(&mut self) {
+        let target = self.settings.target_error;
+        match self.settings.mode {
+            AdaptiveMode::Off => {}
+            AdaptiveMode::Sequential => {
+                // converged: stopped before, or relative error below the target now.
+                for (c, (s, st)) in self
+                    .scratch
+                    .iter_mut()
+                    .zip(self.stats.iter().zip(&self.state))
+                {
+                    *c = st.stopped || s.relative_error() < target;
+                }
+                // Dilation: stop only if the whole 3x3 neighbourhood (within the tile) has
+                // converged, so one lucky pixel next to a noisy one keeps sampling.
+                let (w, h) = (self.rect.width as usize, self.rect.height as usize);
+                for y in 0..h {
+                    for x in 0..w {
+                        let i = y * w + x;
+                        if self.state[i].stopped || !self.scratch[i] {
+                            continue;
+                        }
+                        let mut all = true;
+                        for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                            for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                                all &= self.scratch[yy * w + xx];
+                            }
+                        }
+                        self.state[i].stopped = all;
+                    }
+                }
+            }
+            AdaptiveMode::Unbiased => {
+                let pilot = self.settings.min_passes;
+                let max_fresh = self.max_passes.saturating_sub(pilot);
+                let lo = self.settings.min_fresh_passes.min(max_fresh).max(1);
+                let mut end = pilot;
+                for (s, st) in self.stats.iter_mut().zip(self.state.iter_mut()) {
+                    st.needed = fresh_passes_needed(s, target, lo, max_fresh);
+                    end = end.max(pilot.saturating_add(st.needed));
+                    // Kirk & Arvo: the pilot is thrown away; only fresh passes count.
+                    *s = PixelStats::default();
+                }
+                self.end = Some(end);
+            }
+        }
+    }
+
+    /// Per-pixel statistics of the passes each pixel keeps (row-major).
+    pub fn pixels(&self) -> &[PixelStats] {
+        &self.stats
+    }
+
+    /// Passes each pixel used, including a discarded pilot (row-major), as an iterator.
+    pub fn traced_passes(&self) -> impl Iterator<Item = u32> + '_ {
+        self.state.iter().map(|s| s.traced)
+    }
+
+    /// Unbiased: the fresh passes each pixel was given (0 before the pilot decided).
+    pub fn fresh_passes_needed(&self) -> impl Iterator<Item = u32> + '_ {
+        self.state.iter().map(|s| s.needed)
+    }
+
+    /// Number of pixels still sampling.
+    pub fn active_pixels(&self) -> usize {
+        if self.finished() {
+            return 0;
+        }
+        (0..self.state.len())
+            .filter(|&i| self.wants(i, self.next_pass))
+            .count()
+    }
+}
+
+/// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, seed 000 §10.3):
+/// `ceil(s² / (target (lum + eps))²)` with `s² = m2_lum / (K - 1)` the pilot's per-pass
+/// variance of the luminance, clamped to `[lo, hi]`.
+pub fn fresh_passes_needed(pilot: &PixelStats, target: f64, lo: u32, hi: u32) -> u32 {
+    let hi = hi.max(lo);
+    if pilot.passes < 2 {
+        return hi;
+    }
+    let per_pass_var = pilot.m2_lum.max(0.0) / f64::from(pilot.passes - 1);
+    let scale = target * (pilot.mean_lum.max(0.0) + REL_EPS);
+    let n = (per_pass_var / (scale * scale)).ceil();
+    if n.is_nan() {
+        return hi;
+    }
+    (n.min(f64::from(hi)) as u32).clamp(lo, hi)
+}
+
+/// The adaptive state of a whole frame: one [`AdaptiveTile`] per tile.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct AdaptiveFrame {
+    plan: FramePlan,
+    frame: u32,
+    settings: AdaptiveSettings,
+    tiles: Vec<AdaptiveTile>,
+}
+
+impl AdaptiveFrame {
+    /// An empty adaptive state for `frame` of `plan`; fails on invalid plans or settings.
+    pub fn new(
+        plan: FramePlan,
+        frame: u32,
+        settings: AdaptiveSettings,
+    ) -> Result<Self, AdaptiveError> {
+        plan.validate()?;
+        settings.validate(plan.passes)?;
+        Ok(Self {
+            plan,
+            frame,
+            settings,
+            tiles: plan
+                .tiles()
+                .map(|r| AdaptiveTile::new(r, settings, plan.passes))
+                .collect(),
+        })
+    }
+
+    /// The plan.
+    pub fn plan(&self) -> &FramePlan {
+        &self.plan
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &AdaptiveSettings {
+        &self.settings
+    }
+
+    /// The frame number.
+    pub fn frame(&self) -> u32 {
+        self.frame
+    }
+
+    /// The state of one tile.
+    pub fn tile(&self, index: u32) -> Option<&AdaptiveTile> {
+        self.tiles.get(index as usize)
+    }
+
+    /// All tiles in order.
+    pub fn tiles(&self) -> &[AdaptiveTile] {
+        &self.tiles
+    }
+
+    /// Offers a result. It is validated against the plan here too, so a caller without a
+    /// [`crate::FrameAccumulator`] cannot feed garbage; duplicates of consumed passes are
+    /// ignored (pass them to a `FrameAccumulator` first to have them compared).
+    pub fn offer(&mut self, result: &UnitResult) -> Result<(), MergeError> {
+        if result.unit.frame != self.frame {
+            return Err(MergeError::WrongFrame {
+                frame: result.unit.frame,
+                expected: self.frame,
+            });
+        }
+        result.validate(&self.plan)?;
+        if let Some(t) = self.tiles.get_mut(result.unit.tile as usize) {
+            t.offer(result);
+        }
+        Ok(())
+    }
+
+    /// Whether every tile is finished.
+    pub fn finished(&self) -> bool {
+        self.tiles.iter().all(AdaptiveTile::finished)
+    }
+
+    /// The units of the next local render round: for every unfinished tile (in tile
+    /// order), its [`AdaptiveTile::next_chunk`]. Empty once the frame is finished.
+    pub fn next_round(&self) -> Vec<WorkUnit> {
+        self.tiles
+            .iter()
+            .filter_map(|t| {
+                t.next_chunk().map(|(first_pass, pass_count)| WorkUnit {
+                    frame: self.frame,
+                    tile: t.rect().index,
+                    first_pass,
+                    pass_count,
+                })
+            })
+            .collect()
+    }
+
+    /// The image layers. `passes` counts the passes forming each pixel's estimate;
+    /// `samples` counts the samples traced for it (`samples_per_pass` times the passes it
+    /// used, including a discarded unbiased pilot), so the samples layer shows where the
+    /// effort went.
+    pub fn image(&self) -> FrameImage {
+        let (w, h) = (self.plan.width as usize, self.plan.height as usize);
+        let n = w * h;
+        let mut img = FrameImage {
+            width: self.plan.width,
+            height: self.plan.height,
+            mean: vec![[0.0; 3]; n],
+            variance_of_mean: vec![[0.0; 3]; n],
+            passes: vec![0; n],
+            samples: vec![0; n],
+            relative_error: vec![0.0; n],
+        };
+        let spp = self.plan.samples_per_pass;
+        for tile in &self.tiles {
+            let r = tile.rect();
+            let rw = r.width.max(1) as usize;
+            for (i, (s, traced)) in tile.pixels().iter().zip(tile.traced_passes()).enumerate() {
+                let p = (r.y0 as usize + i / rw) * w + r.x0 as usize + i % rw;
+                img.mean[p] = s.mean.map(|m| m as f32);
+                if s.passes >= 2 {
+                    img.variance_of_mean[p] = s.variance_of_mean().map(|v| v as f32);
+                    img.relative_error[p] = s.relative_error() as f32;
+                }
+                img.passes[p] = s.passes;
+                img.samples[p] = traced.saturating_mul(spp);
+            }
+        }
+        img
+    }
+
+    /// Image relative error estimate: the RMS of [`PixelStats::relative_error`] over the
+    /// pixels with at least 2 passes in their estimate (DESIGN §3); 0 if there are none.
+    pub fn image_error(&self) -> f64 {
+        let mut sum = 0.0f64;
+        let mut count = 0u64;
+        for s in self.tiles.iter().flat_map(|t| t.pixels()) {
+            if s.passes >= 2 {
+                let rel = s.relative_error();
+                sum += rel * rel;
+                count += 1;
+            }
+        }
+        if count == 0 {
+            return 0.0;
+        }
+        let e = (sum / count as f64).sqrt();
+        if e.is_finite() {
+            e
+        } else {
+            0.0
+        }
+    }
+
+    /// Whether every pixel has at least 2 passes in its estimate, i.e. an error estimate.
+    pub fn every_pixel_estimated(&self) -> bool {
+        self.tiles
+            .iter()
+            .flat_map(|t| t.pixels())
+            .all(|s| s.passes >= 2)
+    }
+
+    /// Samples traced per pixel: (mean, min, max) over the frame.
+    pub fn samples_per_pixel(&self) -> (f64, u32, u32) {
+        let spp = self.plan.samples_per_pass;
+        let mut sum = 0u64;
+        let (mut lo, mut hi, mut n) = (u32::MAX, 0u32, 0u64);
+        for t in self.tiles.iter().flat_map(|t| t.traced_passes()) {
+            let s = t.saturating_mul(spp);
+            sum += u64::from(s);
+            lo = lo.min(s);
+            hi = hi.max(s);
+            n += 1;
+        }
+        if n == 0 {
+            return (0.0, 0, 0);
+        }
+        (sum as f64 / n as f64, lo, hi)
+    }
+}
+
+/// One point of a convergence history: what `tessera-api`'s `HistoryPoint` carries.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ConvergencePoint {
+    /// Seconds since the render started.
+    pub elapsed_seconds: f64,
+    /// Samples per pixel traced so far, averaged over pixels.
+    pub spp: f64,
+    /// Image error estimate; `None` before every pixel had two passes.
+    pub error_estimate: Option<f64>,
+}
+
+/// Estimated seconds still needed to reach `target_error`, from the current error
+/// estimate and the time spent so far.
+///
+/// Monte Carlo error falls like one over the square root of the work (the variance of a
+/// mean of `n` independent replicates is `σ²/n`, DESIGN §3), so reaching `target` from
+/// `current` after `t` seconds needs `t · (current / target)²` seconds in total:
+/// `remaining = t · ((current / target)² - 1)`. Returns `Some(0.0)` when the target is
+/// met, and `None` when nothing can be predicted (no time spent, a non-finite or
+/// non-positive error or target). For adaptive renders it is an upper bound: converged
+/// pixels stop, so the remaining work shrinks faster than this model assumes.
+pub fn eta_seconds(current_error: f64, target_error: f64, elapsed_seconds: f64) -> Option<f64> {
+    if !(current_error.is_finite()
+        && target_error.is_finite()
+        && elapsed_seconds.is_finite()
+        && target_error > 0.0
+        && current_error >= 0.0
+        && elapsed_seconds > 0.0)
+    {
+        return None;
+    }
+    if current_error <= target_error {
+        return Some(0.0);
+    }
+    let ratio = current_error / target_error;
+    Some(elapsed_seconds * (ratio * ratio - 1.0))
+}
+
+#[cfg(test)]
+mod tests;

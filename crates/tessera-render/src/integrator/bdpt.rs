@@ -1,0 +1,946 @@
+//! Bidirectional path tracing (Veach & Guibas 1995, seed 002 §4.3; the structure follows
+//! pbrt 3rd ed. ch. 16).
+//!
+//! Every camera sample builds two subpaths: a *camera subpath* `z0 z1 ...` from the lens
+//! (z0 is the camera vertex) and a *light subpath* `y0 y1 ...` from a light chosen in
+//! proportion to its power, started by emission sampling ([`crate::light::emission`]). Each
+//! prefix `y0..y(s-1)` of the light subpath joined to each prefix `z0..z(t-1)` of the camera
+//! subpath is one sample of the path-space integrand from technique `(s, t)` (seed 002 eq. 17
+//! and fig. 8):
+//!
+//! - `s = 0`: the camera subpath hits an emitter (area light, or the environment when it
+//!   escapes);
+//! - `s = 1`: next-event estimation: a light point is sampled *from* `z(t-1)` with the
+//!   light's own `sample_li` (cone sampling for spheres) and connected;
+//! - `t = 1`: light tracing: the lens is sampled from `y(s-1)` and the contribution is
+//!   *splatted* onto the film where the ray lands, weighted by the camera importance `We`
+//!   (seed 000 ch. 7: importance is the adjoint of radiance; [`crate::camera`]);
+//! - otherwise: `y(s-1)` and `z(t-1)` are joined by a shadow ray with the geometry term `G`.
+//!
+//! `(1, 1)` (seeing a light point directly from a sampled lens point) is not used, `(0, 2)`
+//! is the only technique for a directly visible emitter, and `t = 0` is impossible (the
+//! lens is not in the scene). Every technique is weighted with the power heuristic (β = 2;
+//! `MisHeuristic::Balance` selects β = 1) over all techniques that could have produced the
+//! same path, computed from the per-vertex forward and reverse densities in area measure
+//! with the ratio recurrence of Veach's thesis §10.2 (pbrt's `MISWeight`): delta vertices and
+//! delta lights make the techniques that would connect at them impossible, and their
+//! densities are remapped to 1 so the ratios stay defined. Russian roulette ends subpaths
+//! after `rr_depth` bounces; it is left out of the MIS densities, which keeps the estimator
+//! unbiased because the weights of all techniques still sum to one for every path.
+//!
+//! Light subpaths carry importance transport: their BSDF factors are the adjoint
+//! `f*(wo, wi) = f(wi, wo)`, they do not take the `1/η²` radiance scaling of refraction,
+//! and shading normals get Veach's correction `|wo·ns||wi·ng| / (|wo·ng||wi·ns|)`.
+//!
+//! # Splatting and determinism (DESIGN §2)
+//! A light-tracing contribution lands on whichever pixel the connection hits, not on the
+//! pixel whose sample produced it. Splats are kept deterministic this way:
+//!
+//! - the light subpath of sample `i` of pixel `p` in pass `k` is drawn from its own sampler
+//!   stream, `PixelSampler(job seed ^ LIGHT_STREAM, frame, p, k)`, so it is a pure function of
+//!   (scene, settings, seed, frame, pixel, pass, sample index), like the camera subpath;
+//! - for `bdpt` the frame plan has **one tile covering the whole frame**
+//!   (`FramePlan::whole_frame`), so every splat lands in the tile being rendered; work units
+//!   are (frame, pass range) and still run in parallel, across passes, in `render_frame` and
+//!   on farm workers;
+//! - within a unit each pass is rendered single-threaded in a fixed order (pixels row-major,
+//!   samples in index order) into one f64 accumulator per pixel, camera contributions and
+//!   splats interleaved in that order: identical bytes for a unit rendered twice, and the
+//!   same image for any thread count and any split into pass ranges.
+//!
+//! Each camera sample traces one light subpath, so a pass traces `W H S` light paths. With
+//! `We` normalised over the whole image, the pass mean of a pixel is
+//! `(sum of its S camera contributions + sum of the splats landing in it) / S`, an unbiased
+//! estimate of the pixel (pbrt's `1/spp` splat scale), and passes stay independent
+//! replicates (DESIGN §3).
+//!
+//! A plan with smaller tiles still renders correctly: a unit then traces the light subpaths
+//! of *every* pixel of the frame for its passes and keeps the splats that land in its tile
+//! (the subpath of a pixel outside the tile is traced alone), which costs `tile count` times
+//! the light tracing. `tessera` always plans `bdpt` with the whole-frame tile.
+//!
+//! Limits: subpaths have at most [`MAX_BDPT_DEPTH`] bounces (fixed-size vertex arrays on the
+//! stack: nothing is allocated per sample); deeper `max_depth` settings are clamped.
+
+use super::MisHeuristic;
+use crate::bsdf::diffuse::Diffuse;
+use crate::bsdf::{Bsdf, Lobe};
+use crate::geometry::NO_LIGHT;
+use crate::light::emission::WorldDisk;
+use crate::light::Light;
+use crate::math::offset_ray_origin;
+use crate::render::RenderSettings;
+use crate::sampling::warp::Frame;
+use crate::sampling::{PixelSampler, SamplerKind};
+use crate::scene::RenderScene;
+use glam::{Vec2, Vec3};
+use tessera_farm::{FramePlan, UnitResult, WorkUnit};
+
+/// Largest number of bounces of a bidirectional path; `max_depth` is clamped to it.
+pub const MAX_BDPT_DEPTH: u32 = 32;
+/// Vertices of a camera subpath: the camera, then up to `MAX_BDPT_DEPTH + 1` surfaces.
+const MAX_VERTICES: usize = MAX_BDPT_DEPTH as usize + 2;
+/// Mixed into the job seed for the light subpaths' sampler stream.
+const LIGHT_STREAM: u64 = 0x6c69_6768_745f_7061; // "light_pa"
+
+/// Settings of the bidirectional integrator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BdptSettings {
+    /// Weighting heuristic: balance (β = 1), otherwise the power heuristic (β = 2).
+    pub mis: MisHeuristic,
+    /// Maximum number of bounces of a full path (clamped to [`MAX_BDPT_DEPTH`]).
+    pub max_depth: u32,
+    /// Russian roulette ends subpaths after this many bounces.
+    pub rr_depth: u32,
+}
+
+impl BdptSettings {
+    /// The bidirectional settings of render settings.
+    pub fn from_render(s: &RenderSettings) -> Self {
+        Self {
+            mis: s.mis,
+            max_depth: s.max_depth.clamp(1, MAX_BDPT_DEPTH),
+            rr_depth: s.rr_depth,
+        }
+    }
+
+    fn beta_exponent(&self) -> i32 {
+        match self.mis {
+            MisHeuristic::Balance => 1,
+            _ => 2,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Kind {
+    Camera,
+    Light,
+    Surface,
+}
+
+/// One vertex of a subpath. `Copy` and fixed-size: subpaths are arrays on the stack.
+#[derive(Clone, Copy, Debug)]
+struct Vertex {
+    kind: Kind,
+    /// Position (for a light at infinity: unused).
+    p: Vec3,
+    p_error: Vec3,
+    /// Geometric normal; zero for the camera and point-like or distant lights.
+    ng: Vec3,
+    /// Shading normal (surfaces).
+    ns: Vec3,
+    /// Surfaces: unit direction toward the previous vertex of the subpath. Lights at
+    /// infinity: the direction light travels in.
+    wo: Vec3,
+    frame: Frame,
+    bsdf: Bsdf,
+    /// Throughput of the subpath up to this vertex (radiance or importance weight).
+    beta: Vec3,
+    /// Radiance emitted toward the previous vertex (camera subpath on an emitter).
+    le: Vec3,
+    /// Light index: the emitter of a light vertex, or of an emissive surface.
+    light: u32,
+    /// A light at infinity (environment, directional).
+    infinite: bool,
+    /// The subpath scattered here by a delta lobe.
+    delta: bool,
+    /// A delta light (point, spot, directional).
+    delta_light: bool,
+    /// Area density of this vertex as generated by its own subpath.
+    pdf_fwd: f32,
+    /// Area density of this vertex if generated by the other subpath.
+    pdf_rev: f32,
+}
+
+impl Vertex {
+    fn empty() -> Self {
+        Self {
+            kind: Kind::Camera,
+            p: Vec3::ZERO,
+            p_error: Vec3::ZERO,
+            ng: Vec3::ZERO,
+            ns: Vec3::ZERO,
+            wo: Vec3::ZERO,
+            frame: Frame::from_normal(Vec3::Z),
+            bsdf: Bsdf::single(Lobe::Diffuse(Diffuse { albedo: Vec3::ZERO })),
+            beta: Vec3::ZERO,
+            le: Vec3::ZERO,
+            light: NO_LIGHT,
+            infinite: false,
+            delta: false,
+            delta_light: false,
+            pdf_fwd: 0.0,
+            pdf_rev: 0.0,
+        }
+    }
+
+    #[inline]
+    fn on_surface(&self) -> bool {
+        self.ng != Vec3::ZERO
+    }
+
+    #[inline]
+    fn is_light(&self) -> bool {
+        self.kind == Kind::Light || (self.kind == Kind::Surface && self.light != NO_LIGHT)
+    }
+
+    #[inline]
+    fn connectible(&self) -> bool {
+        match self.kind {
+            Kind::Surface => self.bsdf.has_non_delta(),
+            Kind::Camera => true,
+            Kind::Light => !(self.infinite && self.delta_light),
+        }
+    }
+
+    /// Unit direction from this vertex toward `next`, or `None` if they coincide.
+    #[inline]
+    fn dir_to(&self, next: &Vertex) -> Option<Vec3> {
+        if next.infinite {
+            return Some(-next.wo);
+        }
+        (next.p - self.p).try_normalize()
+    }
+}
+
+/// Scene data the vertex densities need.
+struct Ctx<'a> {
+    scene: &'a RenderScene,
+    world: WorldDisk,
+}
+
+impl Ctx<'_> {
+    /// Converts a solid-angle density at `from` toward `next` into area density at `next`
+    /// (seed 002 §4.3: "vertices chosen using a directional distribution can be converted to
+    /// the area measure", `p_A = p_ω |cos θ_next| / d²`).
+    #[inline]
+    fn convert_density(&self, from: &Vertex, pdf: f32, next: &Vertex) -> f32 {
+        if next.infinite {
+            return pdf;
+        }
+        let w = next.p - from.p;
+        let d2 = w.length_squared();
+        if d2 == 0.0 {
+            return 0.0;
+        }
+        let inv = 1.0 / d2;
+        let mut pdf = pdf * inv;
+        if next.on_surface() {
+            pdf *= next.ng.dot(w * inv.sqrt()).abs();
+        }
+        pdf
+    }
+
+    /// Area density at `next` of the vertex after `v` when `v` was reached from `prev`.
+    fn pdf(&self, v: &Vertex, prev: Option<&Vertex>, next: &Vertex) -> f32 {
+        match v.kind {
+            Kind::Light => self.pdf_light(v, next),
+            Kind::Camera => {
+                let Some(wn) = v.dir_to(next) else {
+                    return 0.0;
+                };
+                let pdf = self.scene.camera.pdf_dir(v.p, wn);
+                self.convert_density(v, pdf, next)
+            }
+            Kind::Surface => {
+                let (Some(wn), Some(prev)) = (v.dir_to(next), prev) else {
+                    return 0.0;
+                };
+                let Some(wp) = v.dir_to(prev) else {
+                    return 0.0;
+                };
+                let pdf = v.bsdf.pdf(v.frame.to_local(wp), v.frame.to_local(wn));
+                self.convert_density(v, pdf, next)
+            }
+        }
+    }
+
+    /// Area density at `next` of the first bounce of a light subpath leaving the light
+    /// vertex (or emissive surface) `v` toward it.
+    fn pdf_light(&self, v: &Vertex, next: &Vertex) -> f32 {
+        if v.infinite {
+            // Distant lights emit from the world disk: the density of `next` is the disk's
+            // area density projected onto `next`'s surface.
+            let mut pdf = self.world.pdf_pos();
+            if next.on_surface() {
+                pdf *= next.ng.dot(v.wo).abs();
+            }
+            return pdf;
+        }
+        let w = next.p - v.p;
+        let d2 = w.length_squared();
+        if d2 == 0.0 || v.light == NO_LIGHT {
+            return 0.0;
+        }
+        let w = w / d2.sqrt();
+        let light = &self.scene.lights.lights[v.light as usize];
+        let (_, pdf_dir) = light.pdf_le(v.ng, w, &self.world);
+        let mut pdf = pdf_dir / d2;
+        if next.on_surface() {
+            pdf *= next.ng.dot(w).abs();
+        }
+        pdf
+    }
+
+    /// Density of the light vertex `v` itself as the start of a light subpath (light
+    /// selection times position density; for the environment the direction density).
+    fn pdf_light_origin(&self, v: &Vertex, next: &Vertex) -> f32 {
+        if v.light == NO_LIGHT {
+            return 0.0;
+        }
+        let li = v.light as usize;
+        let pmf = self.scene.lights.pmf(li);
+        let light = &self.scene.lights.lights[li];
+        if v.infinite {
+            return match light {
+                // Direction density of `-w`, toward the environment.
+                Light::Environment(_) => pmf * light.pdf_le(Vec3::ZERO, v.wo, &self.world).1,
+                _ => pmf,
+            };
+        }
+        let Some(w) = v.dir_to(next) else {
+            return 0.0;
+        };
+        pmf * light.pdf_le(v.ng, w, &self.world).0
+    }
+
+    /// The BSDF factor at surface vertex `v` for light arriving from / leaving toward the
+    /// unit direction `wn` (the other end of a connection). Camera subpath (radiance):
+    /// `f(wo = toward camera, wi = wn)`. Light subpath (importance): the adjoint
+    /// `f(wo = wn, wi = toward light)`, times Veach's shading-normal correction.
+    #[inline]
+    fn f(&self, v: &Vertex, wn: Vec3, importance: bool) -> Vec3 {
+        let a = v.frame.to_local(v.wo);
+        let b = v.frame.to_local(wn);
+        // Light leaking through the geometric surface (shading normals) carries nothing.
+        if a.z * v.wo.dot(v.ng) <= 0.0 || b.z * wn.dot(v.ng) <= 0.0 {
+            return Vec3::ZERO;
+        }
+        if importance {
+            // eval includes |cos| of its second argument; divide it out.
+            let f = v.bsdf.eval(b, a) / a.z.abs();
+            let num = v.wo.dot(v.ns).abs() * wn.dot(v.ng).abs();
+            let den = v.wo.dot(v.ng).abs() * wn.dot(v.ns).abs();
+            if den == 0.0 {
+                return Vec3::ZERO;
+            }
+            f * (num / den)
+        } else {
+            v.bsdf.eval(a, b) / b.z.abs()
+        }
+    }
+
+    /// Unoccluded between two points (robust shadow ray with offset end points).
+    fn visible(&self, a: Vec3, a_err: Vec3, a_n: Vec3, b: Vec3, b_err: Vec3, b_n: Vec3) -> bool {
+        let d = b - a;
+        let o = offset_ray_origin(a, a_err, a_n, d);
+        let t = offset_ray_origin(b, b_err, b_n, -d);
+        let d = t - o;
+        let dist = d.length();
+        dist > 0.0
+            && !self
+                .scene
+                .geometry
+                .occluded(o, d / dist, dist * (1.0 - 1e-4))
+    }
+
+    /// `G(a ↔ b)` with shading-normal cosines (pbrt's convention), times visibility.
+    fn g(&self, a: &Vertex, b: &Vertex) -> f32 {
+        let d = a.p - b.p;
+        let d2 = d.length_squared();
+        if d2 == 0.0 {
+            return 0.0;
+        }
+        let w = d / d2.sqrt();
+        let mut g = 1.0 / d2;
+        if a.on_surface() {
+            g *= a.ns.dot(w).abs();
+        }
+        if b.on_surface() {
+            g *= b.ns.dot(w).abs();
+        }
+        if g == 0.0 || !self.visible(a.p, a.p_error, a.ng, b.p, b.p_error, b.ng) {
+            return 0.0;
+        }
+        g
+    }
+}
+
+/// Extends a subpath from `path[start - 1]` along `(origin, dir)` until it has
+/// `max_vertices` vertices, leaves the scene, is absorbed or stopped by Russian roulette.
+/// Returns the number of vertices. `pdf_dir` is the solid-angle density of `dir`.
+#[allow(clippy::too_many_arguments)]
+fn random_walk(
+    ctx: &Ctx,
+    s: &BdptSettings,
+    path: &mut [Vertex; MAX_VERTICES],
+    start: usize,
+    max_vertices: usize,
+    mut origin: Vec3,
+    mut dir: Vec3,
+    mut beta: Vec3,
+    pdf_dir: f32,
+    sampler: &mut PixelSampler,
+    importance: bool,
+) -> usize {
+    let scene = ctx.scene;
+    let beta0 = beta.max_element();
+    let mut pdf_fwd = pdf_dir;
+    let mut n = start;
+    let mut bounces = 0u32;
+    while n < max_vertices {
+        // 1. Intersect; a camera ray that escapes sees the environment (a light vertex).
+        let Some(hit) = scene.geometry.intersect(origin, dir, f32::INFINITY) else {
+            if !importance {
+                if let Some((env, le)) = scene.environment() {
+                    let mut v = Vertex::empty();
+                    v.kind = Kind::Light;
+                    v.infinite = true;
+                    v.wo = -dir;
+                    v.light = env as u32;
+                    v.beta = beta;
+                    v.le = le;
+                    v.pdf_fwd = pdf_fwd; // solid angle: the vertex is a direction
+                    path[n] = v;
+                    n += 1;
+                }
+            }
+            break;
+        };
+        let sp = scene.surface(&hit, origin, dir);
+        let mut v = Vertex::empty();
+        v.kind = Kind::Surface;
+        v.p = sp.p;
+        v.p_error = sp.p_error;
+        v.ng = sp.ng;
+        v.ns = sp.ns;
+        v.wo = -dir;
+        v.frame = Frame::from_normal(sp.ns);
+        v.bsdf = scene.bsdf(&sp);
+        v.beta = beta;
+        v.light = sp.light;
+        if !importance && sp.light != NO_LIGHT {
+            v.le = scene.emitted(&sp, -dir);
+        }
+        v.pdf_fwd = ctx.convert_density(&path[n - 1], pdf_fwd, &v);
+        path[n] = v;
+        n += 1;
+        if n >= max_vertices {
+            break;
+        }
+
+        // 2. Sample the BSDF (fixed dimension order: lobe, direction, roulette).
+        let u1 = sampler.next_1d();
+        let u2 = sampler.next_2d();
+        let u_rr = sampler.next_1d();
+        let wo = v.frame.to_local(-dir);
+        let Some(bs) = v.bsdf.sample(wo, u1, u2) else {
+            break;
+        };
+        let wi = v.frame.to_world(bs.wi);
+        if wi.dot(sp.ng) * bs.wi.z <= 0.0 {
+            break; // crosses the geometric surface on the wrong side
+        }
+        let weight = if !importance {
+            bs.weight
+        } else if bs.delta {
+            // Power is not scaled by 1/η² on refraction: undo the radiance scaling.
+            match v.bsdf.glass_eta() {
+                Some(eta) if bs.wi.z * wo.z < 0.0 => {
+                    let e = if wo.z > 0.0 { eta } else { 1.0 / eta };
+                    bs.weight * (e * e)
+                }
+                _ => bs.weight,
+            }
+        } else if wo.z == 0.0 {
+            Vec3::ZERO
+        } else {
+            // Adjoint BSDF f*(wo, wi) = f(wi, wo), times |cos θi| / pdf.
+            v.bsdf.eval(bs.wi, wo) * (bs.wi.z.abs() / (wo.z.abs() * bs.pdf))
+        };
+        let weight = if importance {
+            let num = wo.z.abs() * wi.dot(sp.ng).abs();
+            let den = (-dir).dot(sp.ng).abs() * bs.wi.z.abs();
+            if den == 0.0 {
+                Vec3::ZERO
+            } else {
+                weight * (num / den)
+            }
+        } else {
+            weight
+        };
+        beta *= weight;
+        let (fwd, rev) = if bs.delta {
+            (0.0, 0.0)
+        } else {
+            (bs.pdf, v.bsdf.pdf(bs.wi, wo))
+        };
+        path[n - 1].delta = bs.delta;
+        let rev_area = ctx.convert_density(&path[n - 1], rev, &path[n - 2]);
+        path[n - 2].pdf_rev = rev_area;
+        pdf_fwd = fwd;
+        if !beta.is_finite() || beta == Vec3::ZERO {
+            break;
+        }
+
+        // 3. Russian roulette on the throughput relative to the subpath's start.
+        bounces += 1;
+        if bounces >= s.rr_depth {
+            let survive = (beta.max_element() / beta0).clamp(0.05, 1.0);
+            if u_rr >= survive {
+                break;
+            }
+            beta /= survive;
+        }
+        origin = offset_ray_origin(sp.p, sp.p_error, sp.ng, wi);
+        dir = wi;
+    }
+    n
+}
+
+/// Builds the camera subpath through film position `film`; returns its vertex count.
+fn camera_subpath(
+    ctx: &Ctx,
+    s: &BdptSettings,
+    film: Vec2,
+    lens_u: Vec2,
+    path: &mut [Vertex; MAX_VERTICES],
+    sampler: &mut PixelSampler,
+) -> usize {
+    let camera = &ctx.scene.camera;
+    let (o, d) = camera.generate_ray(film, lens_u);
+    let mut v = Vertex::empty();
+    v.kind = Kind::Camera;
+    v.p = o;
+    v.beta = Vec3::ONE;
+    path[0] = v;
+    let pdf_dir = camera.pdf_dir(o, d);
+    if pdf_dir.is_nan() || pdf_dir <= 0.0 {
+        return 1;
+    }
+    let max = s.max_depth as usize + 2;
+    random_walk(
+        ctx,
+        s,
+        path,
+        1,
+        max,
+        o,
+        d,
+        Vec3::ONE,
+        pdf_dir,
+        sampler,
+        false,
+    )
+}
+
+/// Builds the light subpath; returns its vertex count (0 without lights).
+fn light_subpath(
+    ctx: &Ctx,
+    s: &BdptSettings,
+    path: &mut [Vertex; MAX_VERTICES],
+    sampler: &mut PixelSampler,
+) -> usize {
+    let scene = ctx.scene;
+    let u_light = sampler.next_1d();
+    let u_pos = sampler.next_2d();
+    let u_dir = sampler.next_2d();
+    let Some((li, pmf)) = scene.lights.select(u_light) else {
+        return 0;
+    };
+    let light = &scene.lights.lights[li];
+    let Some(es) = light.sample_le(u_pos, u_dir, &ctx.world) else {
+        return 0;
+    };
+    let infinite = light.is_infinite();
+    let mut v = Vertex::empty();
+    v.kind = Kind::Light;
+    v.p = es.p;
+    v.p_error = es.p_error;
+    v.ng = es.n;
+    v.ns = es.n;
+    v.light = li as u32;
+    v.infinite = infinite;
+    v.delta_light = light.is_delta();
+    v.beta = es.le;
+    if infinite {
+        v.wo = es.dir;
+        v.pdf_fwd = match light {
+            Light::Environment(_) => pmf * es.pdf_dir,
+            _ => pmf,
+        };
+    } else {
+        v.pdf_fwd = pmf * es.pdf_pos;
+    }
+    path[0] = v;
+    let beta = es.weight() / pmf;
+    let origin = if es.n == Vec3::ZERO {
+        es.p
+    } else {
+        offset_ray_origin(es.p, es.p_error, es.n, es.dir)
+    };
+    let max = s.max_depth as usize + 1;
+    let n = random_walk(
+        ctx, s, path, 1, max, origin, es.dir, beta, es.pdf_dir, sampler, true,
+    );
+    if infinite && n > 1 {
+        // The first surface of a distant light's subpath is found by a point on the world
+        // disk, not by a direction from a point: its density is the disk's, projected.
+        let mut pdf = es.pdf_pos;
+        if path[1].on_surface() {
+            pdf *= path[1].ng.dot(es.dir).abs();
+        }
+        path[1].pdf_fwd = pdf;
+    }
+    n
+}
+
+#[inline]
+fn remap0(f: f32) -> f32 {
+    if f != 0.0 {
+        f
+    } else {
+        1.0
+    }
+}
+
+#[inline]
+fn pow_beta(r: f32, beta: i32) -> f32 {
+    if beta == 1 {
+        r
+    } else {
+        r * r
+    }
+}
+
+/// The MIS weight of technique `(s, t)` for the path `light[..s] + cam[..t]` (reversed),
+/// with `sampled` replacing `light[0]` (s = 1) or `cam[0]` (t = 1). The arrays are edited in
+/// place and restored (pbrt's scoped assignments), so nothing is copied per technique.
+fn mis_weight(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    light: &mut [Vertex; MAX_VERTICES],
+    cam: &mut [Vertex; MAX_VERTICES],
+    sampled: Option<Vertex>,
+    s: usize,
+    t: usize,
+) -> f32 {
+    if s + t == 2 {
+        return 1.0;
+    }
+    let exp = st.beta_exponent();
+    // Save what is edited.
+    let saved_l0 = light[0];
+    let saved_c0 = cam[0];
+    let saved_q = if s > 0 { Some(light[s - 1]) } else { None };
+    let saved_p = cam[t - 1];
+    let saved_qm = if s > 1 { light[s - 2].pdf_rev } else { 0.0 };
+    let saved_pm = if t > 1 { cam[t - 2].pdf_rev } else { 0.0 };
+    if let Some(v) = sampled {
+        if s == 1 {
+            light[0] = v;
+        } else if t == 1 {
+            cam[0] = v;
+        }
+    }
+    // The connection vertices are connected, not scattered by a delta lobe.
+    cam[t - 1].delta = false;
+    if s > 0 {
+        light[s - 1].delta = false;
+    }
+    // Reverse density of pt = cam[t-1].
+    let v = if s > 0 {
+        let prev = if s > 1 { Some(&light[s - 2]) } else { None };
+        ctx.pdf(&light[s - 1], prev, &cam[t - 1])
+    } else {
+        ctx.pdf_light_origin(&cam[t - 1], &cam[t - 2])
+    };
+    cam[t - 1].pdf_rev = v;
+    // Reverse density of cam[t-2].
+    if t > 1 {
+        let v = if s > 0 {
+            ctx.pdf(&cam[t - 1], Some(&light[s - 1]), &cam[t - 2])
+        } else {
+            ctx.pdf_light(&cam[t - 1], &cam[t - 2])
+        };
+        cam[t - 2].pdf_rev = v;
+    }
+    // Reverse densities of qs = light[s-1] and light[s-2].
+    if s > 0 {
+        let prev = if t > 1 { Some(&cam[t - 2]) } else { None };
+        let v = ctx.pdf(&cam[t - 1], prev, &light[s - 1]);
+        light[s - 1].pdf_rev = v;
+    }
+    if s > 1 {
+        let v = ctx.pdf(&light[s - 1], Some(&cam[t - 1]), &light[s - 2]);
+        light[s - 2].pdf_rev = v;
+    }
+
+    // Techniques that would have connected further along the camera subpath...
+    let mut sum = 0.0f32;
+    let mut ri = 1.0f32;
+    for i in (1..t).rev() {
+        ri *= remap0(cam[i].pdf_rev) / remap0(cam[i].pdf_fwd);
+        if !cam[i].delta && !cam[i - 1].delta {
+            sum += pow_beta(ri, exp);
+        }
+    }
+    // ... and further along the light subpath.
+    let mut ri = 1.0f32;
+    for i in (0..s).rev() {
+        ri *= remap0(light[i].pdf_rev) / remap0(light[i].pdf_fwd);
+        let delta_before = if i > 0 {
+            light[i - 1].delta
+        } else {
+            light[0].delta_light
+        };
+        if !light[i].delta && !delta_before {
+            sum += pow_beta(ri, exp);
+        }
+    }
+
+    // Restore.
+    light[0] = saved_l0;
+    cam[0] = saved_c0;
+    if let Some(q) = saved_q {
+        light[s - 1] = q;
+    }
+    if s > 1 {
+        light[s - 2].pdf_rev = saved_qm;
+    }
+    cam[t - 1] = saved_p;
+    if t > 1 {
+        cam[t - 2].pdf_rev = saved_pm;
+    }
+    let w = 1.0 / (1.0 + sum);
+    if w.is_finite() {
+        w
+    } else {
+        0.0
+    }
+}
+
+/// Light tracing, `t = 1`: connects every vertex `light[s-1]` (s >= 2) to a point sampled on
+/// the lens and splats the weighted contribution at its film position. Consumes one 2D
+/// value of the light sampler per vertex.
+fn splat_light_paths(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    light: &mut [Vertex; MAX_VERTICES],
+    cam: &mut [Vertex; MAX_VERTICES],
+    n_light: usize,
+    sampler: &mut PixelSampler,
+    splat: &mut impl FnMut(Vec2, Vec3),
+) {
+    let camera = &ctx.scene.camera;
+    for s in 2..=n_light {
+        let u = sampler.next_2d();
+        if s - 1 > st.max_depth as usize {
+            continue;
+        }
+        let qs = light[s - 1];
+        if !qs.connectible() {
+            continue;
+        }
+        let Some(cs) = camera.sample_wi(qs.p, u) else {
+            continue;
+        };
+        let f = ctx.f(&qs, cs.wi, true);
+        let mut l = qs.beta * f * (cs.we / cs.pdf) * qs.ns.dot(cs.wi).abs();
+        if l == Vec3::ZERO
+            || !ctx.visible(qs.p, qs.p_error, qs.ng, cs.p_lens, Vec3::ZERO, Vec3::ZERO)
+        {
+            continue;
+        }
+        let mut c = Vertex::empty();
+        c.kind = Kind::Camera;
+        c.p = cs.p_lens;
+        c.beta = Vec3::splat(cs.we / cs.pdf);
+        l *= mis_weight(ctx, st, light, cam, Some(c), s, 1);
+        if l.is_finite() && l.min_element() >= 0.0 && l != Vec3::ZERO {
+            splat(cs.raster, l);
+        }
+    }
+}
+
+/// Techniques with `t >= 2`: the camera subpath's own emission (`s = 0`), next-event
+/// estimation (`s = 1`) and connections (`s >= 2`). Returns the radiance for the pixel.
+fn camera_techniques(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    light: &mut [Vertex; MAX_VERTICES],
+    cam: &mut [Vertex; MAX_VERTICES],
+    n_light: usize,
+    n_cam: usize,
+    sampler: &mut PixelSampler,
+) -> Vec3 {
+    let scene = ctx.scene;
+    let max_depth = st.max_depth as usize;
+    let mut total = Vec3::ZERO;
+    for t in 2..=n_cam {
+        // s = 0: the camera subpath found an emitter.
+        let pt = cam[t - 1];
+        if pt.is_light() && pt.le != Vec3::ZERO {
+            let l = pt.le * pt.beta;
+            let w = mis_weight(ctx, st, light, cam, None, 0, t);
+            total += l * w;
+        }
+        if pt.kind == Kind::Light {
+            continue; // an escaped ray connects to nothing
+        }
+        // s = 1: sample a light from pt (next-event estimation).
+        let u_light = sampler.next_1d();
+        let u2 = sampler.next_2d();
+        if t - 1 <= max_depth && pt.connectible() {
+            if let Some((li, pmf)) = scene.lights.select(u_light) {
+                let lt = &scene.lights.lights[li];
+                if let Some(ls) = lt.sample_li(pt.p, u2) {
+                    let f = ctx.f(&pt, ls.wi, false);
+                    let l = pt.beta * f * ls.li * (pt.ns.dot(ls.wi).abs() / (ls.pdf * pmf));
+                    let visible = l != Vec3::ZERO
+                        && if ls.dist.is_finite() {
+                            ctx.visible(pt.p, pt.p_error, pt.ng, ls.p, ls.p_error, ls.n)
+                        } else {
+                            let o = offset_ray_origin(pt.p, pt.p_error, pt.ng, ls.wi);
+                            !scene.geometry.occluded(o, ls.wi, f32::INFINITY)
+                        };
+                    if visible {
+                        let mut v = Vertex::empty();
+                        v.kind = Kind::Light;
+                        v.p = ls.p;
+                        v.p_error = ls.p_error;
+                        v.ng = ls.n;
+                        v.ns = ls.n;
+                        v.light = li as u32;
+                        v.infinite = !ls.dist.is_finite();
+                        v.wo = -ls.wi;
+                        v.delta_light = lt.is_delta();
+                        v.beta = ls.li / (ls.pdf * pmf);
+                        v.pdf_fwd = ctx.pdf_light_origin(&v, &pt);
+                        let w = mis_weight(ctx, st, light, cam, Some(v), 1, t);
+                        total += l * w;
+                    }
+                }
+            }
+        }
+        // s >= 2: connect light[s-1] and cam[t-1].
+        if !pt.connectible() {
+            continue;
+        }
+        for s in 2..=n_light {
+            if s + t - 2 > max_depth {
+                break;
+            }
+            let qs = light[s - 1];
+            if !qs.connectible() {
+                continue;
+            }
+            let Some(d) = pt.dir_to(&qs) else {
+                continue;
+            };
+            let l = qs.beta * ctx.f(&qs, -d, true) * ctx.f(&pt, d, false) * pt.beta;
+            if l == Vec3::ZERO {
+                continue;
+            }
+            let g = ctx.g(&qs, &pt);
+            if g == 0.0 {
+                continue;
+            }
+            let w = mis_weight(ctx, st, light, cam, None, s, t);
+            total += l * (g * w);
+        }
+    }
+    total
+}
+
+/// Per-unit scratch: the two subpaths (reused for every sample, never reallocated).
+struct Scratch {
+    light: [Vertex; MAX_VERTICES],
+    cam: [Vertex; MAX_VERTICES],
+}
+
+/// Renders one work unit with bidirectional path tracing; see the [module
+/// documentation](self) for the splatting and determinism design.
+pub fn render_unit(
+    scene: &RenderScene,
+    settings: &RenderSettings,
+    plan: &FramePlan,
+    unit: WorkUnit,
+) -> UnitResult {
+    let st = BdptSettings::from_render(settings);
+    let ctx = Ctx {
+        scene,
+        world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
+    };
+    let rect = plan.tile(unit.tile);
+    let (tw, th) = (rect.width, rect.height);
+    let pixels = rect.pixel_count();
+    let spp = plan.samples_per_pass;
+    let lens = scene.camera.has_lens();
+    let light_seed = settings.seed ^ LIGHT_STREAM;
+    let empty = Vertex::empty();
+    let mut scratch = Box::new(Scratch {
+        light: [empty; MAX_VERTICES],
+        cam: [empty; MAX_VERTICES],
+    });
+    let Scratch { light, cam } = &mut *scratch;
+    let mut sum = vec![[0.0f64; 3]; pixels];
+    let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
+    let kind: SamplerKind = settings.sampler;
+    for pass in unit.first_pass..unit.first_pass + unit.pass_count {
+        sum.fill([0.0; 3]);
+        let add = |x: u32, y: u32, l: Vec3, sum: &mut [[f64; 3]]| {
+            if x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th {
+                let i = ((y - rect.y0) * tw + (x - rect.x0)) as usize;
+                sum[i][0] += l.x as f64;
+                sum[i][1] += l.y as f64;
+                sum[i][2] += l.z as f64;
+            }
+        };
+        for y in 0..plan.height {
+            for x in 0..plan.width {
+                let pixel = y * plan.width + x;
+                let inside = x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th;
+                let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
+                let mut cs =
+                    inside.then(|| PixelSampler::new(kind, settings.seed, unit.frame, pixel, pass));
+                for i in 0..spp {
+                    ls.start_sample(i);
+                    let n_light = light_subpath(&ctx, &st, light, &mut ls);
+                    let mut camera_l = Vec3::ZERO;
+                    if let Some(cs) = cs.as_mut() {
+                        cs.start_sample(i);
+                        let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
+                        let lens_u = if lens { cs.next_2d() } else { Vec2::ZERO };
+                        let n_cam = camera_subpath(&ctx, &st, film, lens_u, cam, cs);
+                        camera_l = camera_techniques(&ctx, &st, light, cam, n_light, n_cam, cs);
+                    }
+                    // Splats first, then the pixel's own estimate: a fixed order.
+                    splat_light_paths(&ctx, &st, light, cam, n_light, &mut ls, &mut |r, l| {
+                        let px = (r.x as u32).min(plan.width - 1);
+                        let py = (r.y as u32).min(plan.height - 1);
+                        add(px, py, l, &mut sum);
+                    });
+                    if inside && camera_l.is_finite() && camera_l.min_element() >= 0.0 {
+                        add(x, y, camera_l, &mut sum);
+                    }
+                }
+            }
+        }
+        let inv = 1.0 / spp as f64;
+        pass_means.extend(sum.iter().map(|s| {
+            [
+                (s[0] * inv) as f32,
+                (s[1] * inv) as f32,
+                (s[2] * inv) as f32,
+            ]
+        }));
+    }
+    UnitResult {
+        unit,
+        width: tw,
+        height: th,
+        pass_means,
+    }
+}
