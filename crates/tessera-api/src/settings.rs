@@ -743,6 +743,10 @@ impl ValidatedJob {
     pub fn plan(&self, width: u32, height: u32) -> Result<FramePlan, ApiError> {
         let plan = if self.render.integrator == IntegratorChoice::Bdpt {
             FramePlan::whole_frame(width, height, self.spp)
+        } else if self.adaptive != AdaptiveMode::Off {
+            // Adaptive decisions fall between passes: many short ones, as `tessera render
+            // --adaptive` plans them.
+            tessera_farm::adaptive_plan(width, height, self.spp, self.tile_size)
         } else {
             FramePlan::for_spp(width, height, self.spp, self.tile_size)
         };

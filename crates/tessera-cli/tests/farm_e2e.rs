@@ -222,6 +222,37 @@ fn one_and_three_workers_give_the_local_image_byte_for_byte() {
 }
 
 #[test]
+fn adaptive_farm_jobs_are_identical_with_one_and_three_workers() {
+    let dir = temp_dir("adaptive");
+    let mut images = Vec::new();
+    for (mode, target) in [("sequential", 0.08), ("unbiased", 0.08)] {
+        let mut per_mode = Vec::new();
+        for workers in [1, 3] {
+            let data = dir.join(format!("data-{mode}-{workers}"));
+            let c = start_coordinator(&data, "127.0.0.1:0", "127.0.0.1:0", &[]);
+            let _ws: Vec<Proc> = (0..workers)
+                .map(|i| start_worker(&c.grpc, &format!("w{i}"), &[]))
+                .collect();
+            let client = Client::new(&c.http, None);
+            let mut s = job(48, 48, 256);
+            s.adaptive = mode.into();
+            s.target_error = Some(target);
+            let st = client.submit(&s, None).unwrap();
+            let done = wait_done(&client, st.id);
+            // Adaptive stopping spent fewer samples than the budget somewhere.
+            assert!(done.spp_so_far < 256.0, "{mode}: {} spp", done.spp_so_far);
+            per_mode.push(client.image(st.id, "exr").unwrap());
+        }
+        assert!(
+            per_mode[0] == per_mode[1],
+            "{mode}: adaptive EXR differs between 1 and 3 workers"
+        );
+        images.push(per_mode.swap_remove(0));
+    }
+    assert!(images[0] != images[1], "the two modes gave the same image");
+}
+
+#[test]
 fn a_killed_worker_loses_nothing() {
     let dir = temp_dir("kill-worker");
     let s = job(64, 64, 128);

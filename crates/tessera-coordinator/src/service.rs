@@ -266,12 +266,26 @@ impl Coordinator {
             let tile = TileAccumulator::restore(rect, cp.merged_passes, cp.pixels, &units)?;
             acc.restore_tile(tile)?;
         }
-        let tile_error = frames
-            .iter()
-            .map(|f| f.tiles().iter().map(tile_error).collect())
-            .collect();
-        farm.scheduler
-            .add_resumed_job(rec.id, rec.priority, plan, frames, rec.passes_per_unit)?;
+        let tile_error = if adaptive_settings(&job).is_some() {
+            // The adaptive policy's per-pixel state is not checkpointed: an adaptive job
+            // starts again from its first pass after a restart (its result is the same).
+            add_to_scheduler(farm, rec.id, rec.priority, plan, &job, rec.passes_per_unit)
+                .map_err(|e| e.message)?;
+            vec![vec![(0.0, 0); plan.tile_count() as usize]; rec.frames.count() as usize]
+        } else {
+            let te = frames
+                .iter()
+                .map(|f| f.tiles().iter().map(tile_error).collect())
+                .collect();
+            farm.scheduler.add_resumed_job(
+                rec.id,
+                rec.priority,
+                plan,
+                frames,
+                rec.passes_per_unit,
+            )?;
+            te
+        };
         farm.jobs.insert(
             rec.id,
             JobEntry {
@@ -444,6 +458,11 @@ impl Coordinator {
                 .map_err(|e| ApiError::invalid_field("scene", e))?
         };
         let resolved = resolve_job(&job, settings.max_depth, &scene)?;
+        let adaptive = adaptive_settings(&job);
+        if let Some(a) = &adaptive {
+            a.validate(resolved.plan.passes)
+                .map_err(|e| ApiError::invalid_field("adaptive", e))?;
+        }
         let settings_json = serde_json::to_string(&settings).map_err(internal)?;
         let created = now_ms();
         let (id, new) = self
@@ -470,13 +489,14 @@ impl Coordinator {
             let mut farm = self.lock()?;
             let frames = job.frames;
             if !black {
-                farm.scheduler.add_job(
+                add_to_scheduler(
+                    &mut farm,
                     id,
                     job.priority,
                     resolved.plan,
-                    frames.iter(),
+                    &job,
                     self.inner.cfg.passes_per_unit,
-                );
+                )?;
                 farm.jobs.insert(
                     id,
                     JobEntry {
@@ -711,6 +731,15 @@ impl Coordinator {
                 if rt.resolved.black {
                     return Ok(FrameState {
                         acc: None,
+                        adaptive: None,
+                        resolved,
+                        frame: f,
+                    });
+                }
+                if let Some(a) = farm.scheduler.adaptive_frame(id, f) {
+                    return Ok(FrameState {
+                        acc: None,
+                        adaptive: Some(a.clone()),
                         resolved,
                         frame: f,
                     });
@@ -718,6 +747,7 @@ impl Coordinator {
                 if let Some(acc) = farm.scheduler.frame(id, f) {
                     return Ok(FrameState {
                         acc: Some(acc.clone()),
+                        adaptive: None,
                         resolved,
                         frame: f,
                     });
@@ -752,6 +782,7 @@ impl Coordinator {
         if resolved.black {
             return Ok(FrameState {
                 acc: None,
+                adaptive: None,
                 resolved,
                 frame: f,
             });
@@ -779,6 +810,7 @@ impl Coordinator {
         }
         Ok(FrameState {
             acc: Some(acc),
+            adaptive: None,
             resolved,
             frame: f,
         })
@@ -788,9 +820,10 @@ impl Coordinator {
     pub async fn image(&self, id: JobId, q: ImageQuery) -> ApiResult<Vec<u8>> {
         let fs = self.frame_state(id, q.frame).await?;
         tokio::task::spawn_blocking(move || {
-            let image = match &fs.acc {
-                Some(acc) => acc.image(),
-                None => black_image(&fs.resolved.plan),
+            let image = match (&fs.adaptive, &fs.acc) {
+                (Some(a), _) => a.image(),
+                (None, Some(acc)) => acc.image(),
+                (None, None) => black_image(&fs.resolved.plan),
             };
             match q.format {
                 ImageFormat::Png => tessera_image::encode_png(&image),
@@ -811,13 +844,30 @@ impl Coordinator {
         let tiles = plan
             .tiles()
             .map(|rect| {
-                let (passes, error) = match &fs.acc {
-                    Some(acc) => {
+                let (passes, error) = match (&fs.adaptive, &fs.acc) {
+                    (Some(a), _) => {
+                        let t = &a.tiles()[rect.index as usize];
+                        let (mut sum, mut n) = (0.0, 0u64);
+                        for p in t.pixels() {
+                            if p.passes >= 2 {
+                                let r = p.relative_error();
+                                sum += r * r;
+                                n += 1;
+                            }
+                        }
+                        let done = if t.finished() {
+                            plan.passes
+                        } else {
+                            t.consumed_passes()
+                        };
+                        (done, (n > 0).then(|| (sum / n as f64).sqrt()))
+                    }
+                    (None, Some(acc)) => {
                         let t = &acc.tiles()[rect.index as usize];
                         let (s, n) = tile_error(t);
                         (t.merged_passes(), (n > 0).then(|| (s / n as f64).sqrt()))
                     }
-                    None => (plan.passes, Some(0.0)),
+                    (None, None) => (plan.passes, Some(0.0)),
                 };
                 TileInfo {
                     index: rect.index,
@@ -1029,10 +1079,23 @@ impl Coordinator {
                     if let (Some(rt), Some(p)) = (farm.runtime.get_mut(&job), progress) {
                         if complete || now >= rt.last_history_ms + HISTORY_INTERVAL_MS {
                             rt.last_history_ms = now;
+                            let (spp, error_estimate) = match farm
+                                .scheduler
+                                .adaptive_frame(job, rt.job.frames.start)
+                            {
+                                Some(a) => (
+                                    a.samples_per_pixel().0,
+                                    a.every_pixel_estimated().then(|| a.image_error()),
+                                ),
+                                None => (
+                                    spp_so_far(&rt.resolved, p.passes_done, rt.job.frames.count()),
+                                    rt.error_estimate(),
+                                ),
+                            };
                             let point = HistoryPoint {
                                 elapsed_seconds: rt.elapsed_seconds(now),
-                                spp: spp_so_far(&rt.resolved, p.passes_done, rt.job.frames.count()),
-                                error_estimate: rt.error_estimate(),
+                                spp,
+                                error_estimate,
                             };
                             rt.history.push(point);
                             history = Some((job, point));
@@ -1196,8 +1259,45 @@ impl Coordinator {
 
 struct FrameState {
     acc: Option<FrameAccumulator>,
+    /// The adaptive policy's state of an adaptive job in memory (its image is the job's).
+    adaptive: Option<tessera_farm::AdaptiveFrame>,
     resolved: ResolvedJob,
     frame: u32,
+}
+
+/// The adaptive policy settings of a job, if it stops adaptively (DESIGN §3).
+fn adaptive_settings(job: &ValidatedJob) -> Option<tessera_farm::AdaptiveSettings> {
+    let mode = match job.adaptive {
+        tessera_api::AdaptiveMode::Off => return None,
+        tessera_api::AdaptiveMode::Sequential => tessera_farm::AdaptiveMode::Sequential,
+        tessera_api::AdaptiveMode::Unbiased => tessera_farm::AdaptiveMode::Unbiased,
+    };
+    Some(tessera_farm::AdaptiveSettings {
+        mode,
+        target_error: job.target_error.unwrap_or(1.0),
+        ..tessera_farm::AdaptiveSettings::default()
+    })
+}
+
+fn add_to_scheduler(
+    farm: &mut Farm,
+    id: JobId,
+    priority: i32,
+    plan: tessera_farm::FramePlan,
+    job: &ValidatedJob,
+    passes_per_unit: u32,
+) -> ApiResult<()> {
+    match adaptive_settings(job) {
+        Some(a) => {
+            farm.scheduler
+                .add_adaptive_job(id, priority, plan, job.frames.iter(), passes_per_unit, a)
+                .map_err(|e| ApiError::invalid_field("adaptive", e))?;
+        }
+        None => farm
+            .scheduler
+            .add_job(id, priority, plan, job.frames.iter(), passes_per_unit),
+    }
+    Ok(())
 }
 
 fn frame_error(f: u32, job: &ValidatedJob) -> ApiError {
@@ -1237,8 +1337,11 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         (None, false) => (0, 0),
     };
     let elapsed = rt.elapsed_seconds(now);
+    let adaptive_frame = farm.scheduler.adaptive_frame(id, rt.job.frames.start);
     let error = if rt.resolved.black {
         Some(0.0)
+    } else if let Some(a) = adaptive_frame {
+        a.every_pixel_estimated().then(|| a.image_error())
     } else {
         rt.error_estimate()
     };
@@ -1266,7 +1369,10 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         tiles_total,
         passes_planned,
         passes_done,
-        spp_so_far: spp_so_far(&rt.resolved, passes_done, rt.job.frames.count()),
+        spp_so_far: match adaptive_frame {
+            Some(a) => a.samples_per_pixel().0,
+            None => spp_so_far(&rt.resolved, passes_done, rt.job.frames.count()),
+        },
         error_estimate: error,
         target_error: rt.job.target_error,
         elapsed_seconds: elapsed,
