@@ -4,7 +4,6 @@
 
 mod accuracy;
 mod adaptive;
-mod figure5;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
