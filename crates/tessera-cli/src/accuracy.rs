@@ -12,7 +12,7 @@
 //! - `accuracy.md`: per configuration, the time to reach 10%, 3% and 1% relative error,
 //!   interpolated on log-log axes between the runs that bracket it;
 //! - `figure5.csv`, `figure5.svg`: Veach & Guibas 1995 figure 5 in numbers (see
-//!   [`crate::figure5`]), and the check of the paper's claims in `accuracy.md`.
+//!   `tessera_render::figure5`), and the check of the paper's claims in `accuracy.md`.
 //!
 //! Measured errors: with `m` a run's pixel, `r` the reference and `v_r` the reference's
 //! own variance of the mean, `RMSE = sqrt(mean over pixels and channels of (m - r)²)` and
@@ -20,7 +20,7 @@
 //! 0), so that a finite reference's own noise is not charged to the run; the measured
 //! relative error is `sqrt(relMSE)`, comparable with the estimate (DESIGN §3).
 
-use crate::{figure5, prepare, JobArgs};
+use crate::{prepare, JobArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::fmt::Write as _;
@@ -31,6 +31,7 @@ use tessera_farm::{
     LUMINANCE_WEIGHTS, REL_EPS,
 };
 use tessera_render::adaptive::{render_adaptive, Limits};
+use tessera_render::figure5;
 use tessera_render::integrator::{IntegratorKind, MisHeuristic};
 use tessera_render::render::{render_frame, RenderSettings};
 use tessera_render::sampling::SamplerKind;
@@ -440,7 +441,15 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     let start = Instant::now();
     let rows = figure5::run(args.figure5_samples, 1995);
     write(&args.out.join("figure5.csv"), &figure5::csv(&rows))?;
-    write(&args.out.join("figure5.svg"), &figure5::svg(&rows))?;
+    write(
+        &args.out.join("figure5.svg"),
+        &svg_plot(
+            "Veach & Guibas 1995 fig. 5: sigma/mu of one sample vs roughness",
+            "surface roughness r (Phong exponent 1/r - 1)",
+            "sigma / mu",
+            &figure5::series(&rows),
+        ),
+    )?;
     let claims = figure5::Claims::check(&rows);
     let _ = write!(
         md,

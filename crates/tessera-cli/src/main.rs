@@ -5,7 +5,6 @@
 mod accuracy;
 mod adaptive;
 mod bench_plan;
-mod figure5;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};

@@ -105,7 +105,7 @@ fn adaptive_flags_are_checked() {
         (vec!["--adaptive", "sometimes"], "sometimes"),
         (vec!["--target-error", "0"], "--target-error"),
         (vec!["--target-error", "nan"], "--target-error"),
-        (vec!["--time-limit", "-1"], "--time-limit"),
+        (vec!["--time-limit", "0"], "--time-limit"),
         (vec!["--spp-map", "map.jpg"], "--spp-map"),
         (
             vec![

@@ -28,6 +28,7 @@
 pub mod adaptive;
 pub mod bsdf;
 pub mod camera;
+pub mod figure5;
 pub mod geometry;
 pub mod integrator;
 pub mod light;
