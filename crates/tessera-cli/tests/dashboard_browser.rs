@@ -1,13 +1,15 @@
 //! Issue 5: the dashboard in a real browser, end to end.
 //!
-//! Starts `tessera serve` (SQLite store in a temp dir, two local workers, port-0
-//! listeners), opens the dashboard in headless Chromium driven over the W3C WebDriver
-//! protocol (Debian's `chromium` and `chromium-driver`), submits `builtin:cornell-box`
-//! through the form and waits until the job page shows it done. Then it checks that the
-//! preview loaded (the right size and not one flat color), that the convergence plot has
-//! points, that the workers table lists both local workers, and that the page asked no
-//! host but the coordinator (resource timing entries, plus the Content-Security-Policy
-//! the coordinator sends). Screenshots go to `target/dashboard-artifacts/`.
+//! Starts `tessera serve` (SQLite store in a temp dir, two local workers of one thread,
+//! port-0 listeners, no demo job), opens the dashboard in headless Chromium driven over
+//! the W3C WebDriver protocol (Debian's `chromium` and `chromium-driver`), submits
+//! `builtin:cornell-box` through the form and waits until the job page shows it done.
+//! Then it checks that the preview loaded (the right size and not one flat color), that
+//! the convergence plot has points, that the tile heat map draws, that the jobs table
+//! lists the job, that the workers table lists both local workers, and that the page
+//! asked no host but the coordinator (resource timing entries, plus the
+//! Content-Security-Policy the coordinator sends) and logged no error. Screenshots go to
+//! `target/dashboard-artifacts/`.
 //!
 //! Without Chromium and chromedriver the test says so and passes, unless `CI` is set
 //! (`.ci/run` installs them), where it fails.
@@ -499,6 +501,9 @@ fn dashboard_in_headless_chromium() {
         "127.0.0.1:0",
         "--grpc",
         "127.0.0.1:0",
+        // No demo job: the test's job would queue behind it.
+        "--demo",
+        "none",
         "--data",
     ])
     .arg(tmp.path().join("data"));
