@@ -1,13 +1,15 @@
 //! Issue 5: the dashboard in a real browser, end to end.
 //!
-//! Starts `tessera serve` (SQLite store in a temp dir, two local workers, port-0
-//! listeners), opens the dashboard in headless Chromium driven over the W3C WebDriver
-//! protocol (Debian's `chromium` and `chromium-driver`), submits `builtin:cornell-box`
-//! through the form and waits until the job page shows it done. Then it checks that the
-//! preview loaded (the right size and not one flat color), that the convergence plot has
-//! points, that the workers table lists both local workers, and that the page asked no
-//! host but the coordinator (resource timing entries, plus the Content-Security-Policy
-//! the coordinator sends). Screenshots go to `target/dashboard-artifacts/`.
+//! Starts `tessera serve` (SQLite store in a temp dir, two local workers of one thread,
+//! port-0 listeners, no demo job), opens the dashboard in headless Chromium driven over
+//! the W3C WebDriver protocol (Debian's `chromium` and `chromium-driver`), submits
+//! `builtin:cornell-box` through the form and waits until the job page shows it done.
+//! Then it checks that the preview loaded (the right size and not one flat color), that
+//! the convergence plot has points, that the tile heat map draws, that the jobs table
+//! lists the job, that the workers table lists both local workers, and that the page
+//! asked no host but the coordinator (resource timing entries, plus the
+//! Content-Security-Policy the coordinator sends) and logged no error. Screenshots go to
+//! `target/dashboard-artifacts/`.
 //!
 //! Without Chromium and chromedriver the test says so and passes, unless `CI` is set
 //! (`.ci/run` installs them), where it fails.
@@ -38,7 +40,7 @@ const TIMEOUT: Duration = Duration::from_secs(180);
 /// A child process that is stopped when dropped, test failure included: SIGTERM first
 /// (so `tessera serve` stops its local workers), SIGKILL if it has not exited soon.
 struct Guard {
-    name: &'static str,
+    name: String,
     child: Child,
 }
 
@@ -74,7 +76,7 @@ impl Drop for Guard {
 
 /// Spawns `cmd` with stdout piped and stderr to `log`; returns the guard and a channel of
 /// its stdout lines (read on a thread, so the pipe never fills up).
-fn spawn(name: &'static str, mut cmd: Command, log: &Path) -> (Guard, mpsc::Receiver<String>) {
+fn spawn(name: &str, mut cmd: Command, log: &Path) -> (Guard, mpsc::Receiver<String>) {
     let err = std::fs::File::create(log).unwrap();
     let mut child = cmd
         .stdin(Stdio::null())
@@ -84,15 +86,22 @@ fn spawn(name: &'static str, mut cmd: Command, log: &Path) -> (Guard, mpsc::Rece
         .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
     let stdout = child.stdout.take().unwrap();
     let (tx, rx) = mpsc::channel();
+    let tag = name.to_string();
     std::thread::spawn(move || {
         for line in BufReader::new(stdout).lines() {
             let Ok(line) = line else { break };
-            println!("[{name}] {line}");
+            println!("[{tag}] {line}");
             // Once nobody listens, keep draining the pipe.
             let _ = tx.send(line);
         }
     });
-    (Guard { name, child }, rx)
+    (
+        Guard {
+            name: name.to_string(),
+            child,
+        },
+        rx,
+    )
 }
 
 /// Waits for a stdout line containing `marker`; returns the text after it.
@@ -478,6 +487,54 @@ return {width: img.naturalWidth, height: img.naturalHeight, src: img.src, mean,
         caption: document.querySelector('#preview-caption').textContent};
 "#;
 
+/// `tessera serve` with a SQLite store in `tmp`, `workers` local workers of one thread,
+/// port-0 listeners, no demo job (the test's job would queue behind it), and `extra`
+/// arguments. Returns the guard and the dashboard URL it printed.
+fn serve(tag: &str, tmp: &Path, workers: usize, extra: &[&str]) -> (Guard, String) {
+    let log = artifacts_dir().join(format!("{tag}-serve.stderr.log"));
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_tessera"));
+    cmd.args(["serve", "--workers", &workers.to_string()])
+        .args(["--threads-per-worker", "1", "--http", "127.0.0.1:0"])
+        .args(["--grpc", "127.0.0.1:0", "--demo", "none", "--data"])
+        .arg(tmp.join("data"))
+        .args(extra);
+    let (mut guard, out) = spawn(&format!("{tag} serve"), cmd, &log);
+    let url = wait_line(&mut guard, &out, "dashboard:", &log);
+    println!("dashboard at {url}");
+    (guard, url)
+}
+
+/// A browser session and its chromedriver. Fields drop in order: the session is closed
+/// before the driver stops.
+struct Chrome {
+    browser: Browser,
+    _driver: Guard,
+}
+
+fn chrome(tag: &str, tmp: &Path) -> Chrome {
+    let artifacts = artifacts_dir();
+    let driver_log = artifacts.join(format!("{tag}-chromedriver.log"));
+    let mut cmd = Command::new(CHROMEDRIVER);
+    cmd.args(["--port=0", &format!("--log-path={}", driver_log.display())]);
+    let (mut driver, out) = spawn(
+        &format!("{tag} chromedriver"),
+        cmd,
+        &artifacts.join(format!("{tag}-chromedriver.stderr.log")),
+    );
+    let port = wait_line(
+        &mut driver,
+        &out,
+        "was started successfully on port",
+        &driver_log,
+    );
+    let port = port.trim_end_matches('.');
+    let browser = Browser::start(format!("127.0.0.1:{port}"), &tmp.join("chrome"));
+    Chrome {
+        browser,
+        _driver: driver,
+    }
+}
+
 #[test]
 fn dashboard_in_headless_chromium() {
     if !browser_available() {
@@ -486,25 +543,7 @@ fn dashboard_in_headless_chromium() {
     let artifacts = artifacts_dir();
     let tmp = tempfile::tempdir().unwrap();
 
-    // The farm: coordinator + two local workers.
-    let serve_log = artifacts.join("serve.stderr.log");
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_tessera"));
-    cmd.args([
-        "serve",
-        "--workers",
-        "2",
-        "--threads-per-worker",
-        "1",
-        "--http",
-        "127.0.0.1:0",
-        "--grpc",
-        "127.0.0.1:0",
-        "--data",
-    ])
-    .arg(tmp.path().join("data"));
-    let (mut serve, serve_out) = spawn("serve", cmd, &serve_log);
-    let url = wait_line(&mut serve, &serve_out, "dashboard:", &serve_log);
-    println!("dashboard at {url}");
+    let (mut serve, url) = serve("job", tmp.path(), 2, &[]);
     let (addr, origin) = split_url(&url);
 
     // The coordinator sends the page with a policy that forbids other hosts and inline code.
@@ -530,23 +569,8 @@ fn dashboard_in_headless_chromium() {
         "{csp}"
     );
 
-    // The browser.
-    let driver_log = artifacts.join("chromedriver.log");
-    let mut cmd = Command::new(CHROMEDRIVER);
-    cmd.args(["--port=0", &format!("--log-path={}", driver_log.display())]);
-    let (mut driver, driver_out) = spawn(
-        "chromedriver",
-        cmd,
-        &artifacts.join("chromedriver.stderr.log"),
-    );
-    let port = wait_line(
-        &mut driver,
-        &driver_out,
-        "was started successfully on port",
-        &driver_log,
-    );
-    let port = port.trim_end_matches('.');
-    let browser = Browser::start(format!("127.0.0.1:{port}"), &tmp.path().join("chrome"));
+    let chrome = chrome("job", tmp.path());
+    let browser = &chrome.browser;
 
     // Submit builtin:cornell-box through the form.
     browser.goto(&format!("{url}#/submit"));
@@ -765,9 +789,66 @@ fn dashboard_in_headless_chromium() {
         .collect();
     assert!(severe.is_empty(), "console errors: {severe:#?}");
 
-    drop(browser);
-    driver.stop();
+    drop(chrome);
     let status = serve.stop();
     println!("tessera serve stopped: {status:?}");
     println!("artifacts: {}", artifacts.display());
+}
+
+/// With `--api-token`, the page asks for the token on the first 401, keeps it in the tab
+/// and sends it on every request (the workers table fills only with it).
+#[test]
+fn dashboard_asks_for_the_api_token() {
+    if !browser_available() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let token = "dashboard-test-token";
+    let (_serve, url) = serve("token", tmp.path(), 1, &["--api-token", token]);
+    let (addr, _) = split_url(&url);
+    let r = http(&addr, "GET", "/api/v1/workers", None).unwrap();
+    assert_eq!(r.status, 401, "the API is open without the token");
+
+    let chrome = chrome("token", tmp.path());
+    let browser = &chrome.browser;
+    browser.goto(&format!("{url}#/workers"));
+    wait_for("the token dialog", || {
+        let v = browser.exec(
+            "return [document.querySelector('#token-dialog').open, \
+                     document.querySelector('#token-reason').textContent];",
+            json!([]),
+        )?;
+        if v[0] == json!(true) {
+            Ok(())
+        } else {
+            Err(v.to_string())
+        }
+    });
+    browser.type_into("#token-input", token);
+    browser.click("#token-dialog button[value='ok']");
+    let rows = wait_for("the workers table with the token", || {
+        let v = browser.exec(
+            "return document.querySelectorAll('#workers-table tbody tr').length;",
+            json!([]),
+        )?;
+        match v.as_u64() {
+            Some(n) if n >= 1 => Ok(n),
+            _ => Err(v.to_string()),
+        }
+    });
+    assert_eq!(rows, 1);
+    let kept = browser
+        .exec(
+            "return sessionStorage.getItem('tessera.api-token');",
+            json!([]),
+        )
+        .unwrap();
+    assert_eq!(kept, json!(token));
+    let banner = browser
+        .exec(
+            "return document.querySelector('#banner').hidden;",
+            json!([]),
+        )
+        .unwrap();
+    assert_eq!(banner, json!(true), "the error banner is showing");
 }

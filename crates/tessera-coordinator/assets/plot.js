@@ -128,7 +128,7 @@ export function drawConvergence(svg, points, job) {
       s("line", { class: "plot-eta", x1: x(predicted[0]), x2: x(predicted[0]), y1: y0, y2: y1 }),
       s("text", {
         class: "plot-eta-label", x: x(predicted[0]) - 4, y: y1 + 12, "text-anchor": "end",
-      }, `done in ≈ ${duration(eta)}`),
+      }, `done in ≈ ${duration(eta)}${target !== null && predicted[1] > target * 1.05 ? ` at ≈ ${percent(predicted[1])} (sample budget)` : ""}`),
     );
   }
 
