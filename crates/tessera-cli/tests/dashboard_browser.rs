@@ -511,6 +511,11 @@ struct Chrome {
     _driver: Guard,
 }
 
+/// The browser tests run one at a time: chromedriver's `--port=0` does not take an
+/// ephemeral port from the system (two drivers started together collide), and two
+/// Chromiums at once are more than a 2-core CI machine should carry.
+static ONE_BROWSER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 fn chrome(tag: &str, tmp: &Path) -> Chrome {
     let artifacts = artifacts_dir();
     let driver_log = artifacts.join(format!("{tag}-chromedriver.log"));
@@ -540,6 +545,7 @@ fn dashboard_in_headless_chromium() {
     if !browser_available() {
         return;
     }
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|e| e.into_inner());
     let artifacts = artifacts_dir();
     let tmp = tempfile::tempdir().unwrap();
 
@@ -802,6 +808,7 @@ fn dashboard_asks_for_the_api_token() {
     if !browser_available() {
         return;
     }
+    let _one = ONE_BROWSER.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = tempfile::tempdir().unwrap();
     let token = "dashboard-test-token";
     let (_serve, url) = serve("token", tmp.path(), 1, &["--api-token", token]);
