@@ -256,7 +256,11 @@ async fn start_coordinator(args: &CoordinatorArgs) -> Result<Running> {
     tasks.push(tokio::spawn(async move {
         if let Err(e) = tonic::transport::Server::builder()
             .add_service(svc)
-            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(grpc))
+            // TCP_NODELAY: results and leases are small request/response exchanges, and
+            // Nagle's algorithm with delayed ACKs would stall each by tens of milliseconds.
+            .serve_with_incoming(
+                tonic::transport::server::TcpIncoming::from(grpc).with_nodelay(Some(true)),
+            )
             .await
         {
             tracing::error!(error = %e, "gRPC server failed");

@@ -222,7 +222,9 @@ async fn serve(
         let resp = client
             .lease_work(v1::LeaseRequest {
                 worker_id,
-                max_units: (config.threads * 2) as u32,
+                // Four units per thread: a batch long enough that the lease round trip is small
+                // beside it, short enough that coarse-to-fine order stays fine-grained.
+                max_units: (config.threads * 4) as u32,
             })
             .await?
             .into_inner();
