@@ -281,21 +281,6 @@ fn prepare(job: &JobArgs) -> Result<Prepared> {
     })
 }
 
-/// The image of a frame with no light: zero mean and variance with the plan's pass and
-/// sample counts, exactly what merging all-zero passes gives, without tracing a ray.
-fn black_image(plan: &FramePlan) -> FrameImage {
-    let n = plan.width as usize * plan.height as usize;
-    FrameImage {
-        width: plan.width,
-        height: plan.height,
-        mean: vec![[0.0; 3]; n],
-        variance_of_mean: vec![[0.0; 3]; n],
-        passes: vec![plan.passes; n],
-        samples: vec![plan.spp(); n],
-        relative_error: vec![0.0; n],
-    }
-}
-
 fn render(args: RenderArgs) -> Result<()> {
     let ext = args
         .output
@@ -313,7 +298,7 @@ fn render(args: RenderArgs) -> Result<()> {
     }
     if p.black {
         let start = Instant::now();
-        let image = black_image(&p.plan);
+        let image = FrameImage::black(&p.plan);
         tessera_image::write_image(&args.output, &image, Some(&metadata_json(&p)))?;
         let seconds = start.elapsed().as_secs_f64();
         println!(

@@ -408,6 +408,37 @@ impl Coordinator {
         Ok(out)
     }
 
+    /// Builds a job's scene: a built-in one, or an uploaded one from the farm's cache or
+    /// the store (then cached for the workers' FetchScene). Errors name the `scene` field.
+    async fn scene(&self, scene_ref: &SceneRef) -> ApiResult<Scene> {
+        let bytes = match scene_ref {
+            SceneRef::Hash(h) => {
+                let cached = self.lock()?.scenes.get(h).cloned();
+                let b = match cached {
+                    Some(b) => b,
+                    None => {
+                        let stored = self.inner.store.get_scene(h).await.map_err(store_err)?;
+                        let missing = || {
+                            ApiError::invalid_field(
+                                "scene",
+                                format!("no uploaded scene has hash {h}: POST it to /api/v1/scenes first"),
+                            )
+                        };
+                        Arc::new(stored.ok_or_else(missing)?)
+                    }
+                };
+                self.lock()?.scenes.insert(h.clone(), b.clone());
+                Some(b)
+            }
+            SceneRef::Builtin(_) => None,
+        };
+        let scene_ref = scene_ref.clone();
+        tokio::task::spawn_blocking(move || build_scene(&scene_ref, bytes.as_deref()))
+            .await
+            .map_err(internal)?
+            .map_err(|e| ApiError::invalid_field("scene", e))
+    }
+
     // ------------------------------------------------------------------------------------
     // Jobs
 
@@ -427,36 +458,7 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
-        let scene = {
-            let store = self.inner.store.clone();
-            let scene_ref = job.scene.clone();
-            // Loading touches the store for uploaded scenes; builtins are built in memory.
-            let bytes = match &scene_ref {
-                SceneRef::Hash(h) => {
-                    let cached = self.lock()?.scenes.get(h).cloned();
-                    match cached {
-                        Some(b) => Some(b),
-                        None => match store.get_scene(h).await.map_err(store_err)? {
-                            Some(b) => Some(Arc::new(b)),
-                            None => {
-                                return Err(ApiError::invalid_field(
-                                    "scene",
-                                    format!("no uploaded scene has hash {h}: POST it to /api/v1/scenes first"),
-                                ))
-                            }
-                        },
-                    }
-                }
-                SceneRef::Builtin(_) => None,
-            };
-            if let (SceneRef::Hash(h), Some(b)) = (&scene_ref, &bytes) {
-                self.lock()?.scenes.insert(h.clone(), b.clone());
-            }
-            tokio::task::spawn_blocking(move || build_scene(&scene_ref, bytes.as_deref()))
-                .await
-                .map_err(internal)?
-                .map_err(|e| ApiError::invalid_field("scene", e))?
-        };
+        let scene = self.scene(&job.scene).await?;
         let resolved = resolve_job(&job, settings.max_depth, &scene)?;
         let adaptive = adaptive_settings(&job);
         if let Some(a) = &adaptive {
@@ -769,15 +771,7 @@ impl Coordinator {
         if !rec.frames.iter().contains(&f) {
             return Err(frame_error(f, &job));
         }
-        let scene = {
-            let mut farm = self.lock()?.scenes.clone();
-            let store = self.inner.store.clone();
-            let mut tmp = Farm::new(1);
-            std::mem::swap(&mut tmp.scenes, &mut farm);
-            load_scene(&*store, &mut tmp, &job.scene)
-                .await
-                .map_err(internal)?
-        };
+        let scene = self.scene(&job.scene).await?;
         let resolved = resolve_job(&job, settings.max_depth, &scene)?;
         if resolved.black {
             return Ok(FrameState {
@@ -823,7 +817,7 @@ impl Coordinator {
             let image = match (&fs.adaptive, &fs.acc) {
                 (Some(a), _) => a.image(),
                 (None, Some(acc)) => acc.image(),
-                (None, None) => black_image(&fs.resolved.plan),
+                (None, None) => FrameImage::black(&fs.resolved.plan),
             };
             match q.format {
                 ImageFormat::Png => tessera_image::encode_png(&image),
@@ -1414,21 +1408,6 @@ pub fn eta_seconds(
         Some(b) => b.min(remaining_passes),
         None => remaining_passes,
     })
-}
-
-/// The image of a frame with no light: zero mean and variance with the plan's pass and
-/// sample counts, exactly what merging all-zero passes gives (the same as `tessera render`).
-pub fn black_image(plan: &tessera_farm::FramePlan) -> FrameImage {
-    let n = plan.width as usize * plan.height as usize;
-    FrameImage {
-        width: plan.width,
-        height: plan.height,
-        mean: vec![[0.0; 3]; n],
-        variance_of_mean: vec![[0.0; 3]; n],
-        passes: vec![plan.passes; n],
-        samples: vec![plan.spp(); n],
-        relative_error: vec![0.0; n],
-    }
 }
 
 fn build_scene(scene: &SceneRef, bytes: Option<&Vec<u8>>) -> Result<Scene, String> {

@@ -488,6 +488,24 @@ pub struct FrameImage {
     pub relative_error: Vec<f32>,
 }
 
+impl FrameImage {
+    /// The image of a frame with no light: zero mean and variance with the plan's pass and
+    /// sample counts, exactly what merging all-zero passes gives, without tracing a ray
+    /// (the render plan's black shortcut, DESIGN §4; local and farm renders share it).
+    pub fn black(plan: &FramePlan) -> Self {
+        let n = plan.width as usize * plan.height as usize;
+        Self {
+            width: plan.width,
+            height: plan.height,
+            mean: vec![[0.0; 3]; n],
+            variance_of_mean: vec![[0.0; 3]; n],
+            passes: vec![plan.passes; n],
+            samples: vec![plan.spp(); n],
+            relative_error: vec![0.0; n],
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
