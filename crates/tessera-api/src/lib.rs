@@ -1,29 +1,25 @@
 //! Tessera HTTP API v1: the request and response bodies of the coordinator's JSON API
-//! (DESIGN §5), shared by the coordinator, `tessera submit` / `tessera status` and tests.
+//! (ARCHITECTURE.md §5), shared by the coordinator, `tessera submit` / `tessera status` and tests.
 //!
 //! This crate only describes data: it has no HTTP framework dependency and does not link
 //! the renderer (the coordinator never does).
 //!
-//! - Submission is two-stage: [`JobSettings`] is the body of `POST /api/v1/jobs` as sent
-//!   (strings, optional fields, defaults, unknown fields rejected);
-//!   [`JobSettings::validate`] checks every field and yields a [`ValidatedJob`] with
-//!   parsed enumerations ([`IntegratorChoice`], [`MisChoice`], [`SamplerChoice`],
-//!   [`AdaptiveMode`]) or an [`ApiError`] naming the offending field.
+//! - Submission is two-stage, with the job contract of [`tessera_farm::job`] (re-exported
+//!   here): [`JobSettings`] is the body of `POST /api/v1/jobs` as sent (strings, optional
+//!   fields, defaults, unknown fields rejected), parsed by [`FromJson::from_json`];
+//!   [`JobSettings::validate`] checks every field and yields a [`ValidatedJob`] or a
+//!   [`JobError`], which converts into an [`ApiError`] naming the offending field.
 //! - Every failure is an [`ApiError`], serialized as
 //!   `{"error": {"code": "...", "message": "...", "field": "..."}}` with
 //!   [`ApiError::status`] giving the HTTP status.
 //! - Responses: [`JobStatus`], [`JobList`], [`WorkerInfo`], [`WorkerList`],
 //!   [`SceneUploaded`], [`HistoryPoint`].
-//! - [`resolve::resolve_job`] resolves a job against its scene (render plan, `auto`
-//!   integrator, frame plan) the same way for `tessera render` and the farm.
-//! - [`RenderConfig`] is the renderer-independent form of the render settings that
-//!   `tessera-proto` carries to workers.
 //!
 //! ```
-//! use tessera_api::{ApiError, JobSettings};
+//! use tessera_api::{ApiError, FromJson, JobSettings};
 //!
 //! let err = JobSettings::from_json(br#"{"scene": "builtin:cornell-box", "spp": 0}"#)
-//!     .and_then(|s| s.validate())
+//!     .and_then(|s| s.validate().map_err(ApiError::from))
 //!     .unwrap_err();
 //! assert_eq!(err.status(), 400);
 //! assert_eq!(err.field.as_deref(), Some("spp"));
@@ -34,20 +30,21 @@
 #[cfg(feature = "client")]
 pub mod client;
 mod error;
-pub mod resolve;
 mod settings;
 mod status;
 
 pub use error::{ApiError, ErrorCode};
-pub use settings::{
-    resolve_resolution, AdaptiveMode, FrameRange, IntegratorChoice, JobSettings, MisChoice,
-    RenderConfig, SamplerChoice, SceneRef, ValidatedJob, DEFAULT_CUTOFF_ALPHA, DEFAULT_MAX_DEPTH,
-    DEFAULT_RR_DEPTH, DEFAULT_SPP, DEFAULT_TILE_SIZE, MAX_BUILTIN_NAME_CHARS, MAX_DEPTH_LIMIT,
-    MAX_FRAMES, MAX_NAME_CHARS, MAX_SPP,
-};
+pub use settings::FromJson;
 pub use status::{
     FrameQuery, History, HistoryPoint, ImageFormat, ImageQuery, JobList, JobListQuery, JobState,
     JobStatus, SceneUploaded, TileInfo, TileMap, WorkerInfo, WorkerList, WorkerState,
+};
+pub use tessera_farm::job::{
+    resolve_resolution, AdaptiveMode, FrameRange, Integrator, IntegratorChoice, JobError,
+    JobSettings, MisHeuristic, RenderConfig, RenderRequest, ResolvedJob, SamplerKind, SceneRef,
+    ValidatedJob, DEFAULT_CUTOFF_ALPHA, DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES, DEFAULT_RR_DEPTH,
+    DEFAULT_SPP, DEFAULT_TILE_SIZE, MAX_BUILTIN_NAME_CHARS, MAX_DEPTH_LIMIT, MAX_FRAMES,
+    MAX_NAME_CHARS, MAX_SPP,
 };
 
 /// Path prefix of every API v1 route.

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::settings::JobSettings;
+use tessera_farm::job::JobSettings;
 
 /// Life-cycle state of a job; serialized in lowercase.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -96,7 +96,7 @@ pub struct JobStatus {
     pub error: Option<String>,
     /// The render plan (DESIGN §4): the light-transport effects found in the scene with
     /// their evidence, the absent ones, and the integrator configuration chosen for them,
-    /// as `tessera_scene::analysis::RenderPlan::to_json` writes it. `None` until the
+    /// as `tessera_farm::job::RenderPlan::to_json` writes it. `None` until the
     /// scene has been analysed.
     #[serde(default)]
     pub plan: Option<serde_json::Value>,

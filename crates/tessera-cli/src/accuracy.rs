@@ -20,7 +20,7 @@
 //! 0), so that a finite reference's own noise is not charged to the run; the measured
 //! relative error is `sqrt(relMSE)`, comparable with the estimate (DESIGN §3).
 
-use crate::{prepare, JobArgs};
+use crate::render::{prepare, JobArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::fmt::Write as _;
@@ -176,28 +176,22 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating --out {}", args.out.display()))?;
     let job = JobArgs {
-        scene: args.scene.clone(),
-        camera: None,
         spp: args.reference_spp,
         width: Some(args.width),
         height: Some(args.height),
-        integrator: "auto".into(),
-        mis: MisHeuristic::Power,
-        sampler: SamplerKind::Sobol,
-        seed: 0,
         threads: args.threads,
-        max_depth: None,
         tile_size: 16,
+        ..JobArgs::new(&args.scene)
     };
-    let p = prepare(&job)?;
+    let p = prepare(&job, None)?;
     let Some(rs) = p.render_scene.as_ref() else {
         bail!(
             "{}: the render plan found no light: nothing to measure",
             args.scene
         );
     };
-    let base = p.settings;
-    let (w, h) = (p.plan.width, p.plan.height);
+    let base = p.resolved.config;
+    let (w, h) = (p.resolved.plan.width, p.resolved.plan.height);
     println!(
         "bench accuracy {} {w}x{h}: automatic plan {} (max depth {})",
         args.scene, base.integrator, base.max_depth

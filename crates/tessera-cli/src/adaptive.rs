@@ -4,12 +4,12 @@
 //! The render runs `tessera-farm`'s adaptive policy round by round through
 //! [`tessera_render::adaptive::render_adaptive`]; `--spp` is the upper bound.
 
-use crate::{metadata_json, Prepared, RenderArgs};
+use crate::render::{Prepared, RenderArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
-use tessera_farm::{adaptive_plan, AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage};
+use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage};
 use tessera_render::adaptive::{render_adaptive, Limits};
 
 /// The adaptive flags of `tessera render`.
@@ -23,7 +23,7 @@ pub struct AdaptiveArgs {
     /// Adaptive stopping: off, sequential (stop converged pixels at fixed pass boundaries;
     /// fast, slightly biased) or unbiased (a discarded pilot fixes each pixel's passes).
     #[arg(long, default_value = "off")]
-    pub adaptive: AdaptiveMode,
+    pub adaptive: String,
     /// Stop after this many seconds (checked between rounds; the image then depends on
     /// the machine's speed).
     #[arg(long)]
@@ -37,36 +37,9 @@ pub struct AdaptiveArgs {
 }
 
 impl AdaptiveArgs {
-    /// Whether the render needs the adaptive round loop.
-    pub fn active(&self) -> bool {
-        self.adaptive != AdaptiveMode::Off
-            || self.target_error.is_some()
-            || self.time_limit.is_some()
-    }
-
+    /// Checks what only the command line has (the `--spp-map` file); the stopping
+    /// settings are job settings, validated with the rest of the job.
     fn validate(&self) -> Result<()> {
-        if let Some(e) = self.target_error {
-            if !(e.is_finite() && e > 0.0 && e <= 1.0) {
-                bail!("--target-error {e} must be a relative error in (0, 1], e.g. 0.01");
-            }
-        }
-        if let Some(t) = self.time_limit {
-            if !(t.is_finite() && t > 0.0) {
-                bail!("--time-limit {t} must be a positive number of seconds");
-            }
-        }
-        if self.adaptive != AdaptiveMode::Off && self.target_error.is_none() {
-            bail!(
-                "--adaptive {} needs --target-error (the relative error at which pixels stop)",
-                self.adaptive
-            );
-        }
-        if !(2..=1024).contains(&self.min_passes) {
-            bail!(
-                "--min-passes {} must be between 2 and 1024",
-                self.min_passes
-            );
-        }
         if let Some(path) = &self.spp_map {
             check_png("--spp-map", path)?;
         }
@@ -96,34 +69,23 @@ pub fn write_spp_map(path: &Path, img: &FrameImage) -> Result<()> {
     std::fs::write(path, png).with_context(|| format!("writing --spp-map {}", path.display()))
 }
 
-/// The policy settings for the flags (the target only matters for the adaptive modes).
-pub fn settings(args: &AdaptiveArgs) -> AdaptiveSettings {
-    AdaptiveSettings {
-        mode: args.adaptive,
-        target_error: args.target_error.unwrap_or(1.0),
-        min_passes: args.min_passes,
-        ..AdaptiveSettings::default()
-    }
-}
-
 /// Renders with the adaptive round loop and prints the summary.
-pub fn render(p: &mut Prepared, args: &RenderArgs) -> Result<()> {
-    let a = &args.adaptive;
-    let settings = settings(a);
-    if a.adaptive != AdaptiveMode::Off {
-        // Adaptive decisions fall between passes: plan many short ones (at least 32).
-        p.plan = adaptive_plan(
-            p.plan.width,
-            p.plan.height,
-            args.job.spp,
-            args.job.tile_size,
-        )
-        .context("invalid image or sampling settings")?;
-    }
-    let frame = AdaptiveFrame::new(p.plan, 0, settings).with_context(|| {
+pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
+    let job = &p.resolved.job;
+    let plan = p.resolved.plan;
+    // Without an adaptive mode the policy only measures the whole image's error between
+    // rounds, for --target-error and --time-limit.
+    let settings = job.adaptive_settings().unwrap_or(AdaptiveSettings {
+        mode: AdaptiveMode::Off,
+        target_error: job.target_error.unwrap_or(1.0),
+        min_passes: job.min_passes,
+        ..AdaptiveSettings::default()
+    });
+    // Resolution checked the settings against the plan; this cannot fail.
+    let frame = AdaptiveFrame::new(plan, 0, settings).with_context(|| {
         format!(
             "--adaptive {} with --spp {} ({} passes of {})",
-            a.adaptive, args.job.spp, p.plan.passes, p.plan.samples_per_pass
+            job.adaptive, job.spp, plan.passes, plan.samples_per_pass
         )
     })?;
     let Some(render_scene) = p.render_scene.as_ref() else {
@@ -138,12 +100,12 @@ pub fn render(p: &mut Prepared, args: &RenderArgs) -> Result<()> {
         bar
     });
     let limits = Limits {
-        time_limit_seconds: a.time_limit,
-        target_error: a.target_error,
+        time_limit_seconds: job.time_limit_seconds,
+        target_error: job.target_error,
     };
     let out = render_adaptive(
         render_scene,
-        &p.settings,
+        &p.resolved.config,
         frame,
         args.job.threads,
         limits,
@@ -163,40 +125,30 @@ pub fn render(p: &mut Prepared, args: &RenderArgs) -> Result<()> {
         b.finish_and_clear();
     }
     let image = out.frame.image();
-    let meta = metadata_json(p);
-    let meta = format!(
-        "{{\"adaptive\":\"{}\",\"target_error\":{},\"min_passes\":{},\"interval\":{},\"time_limit\":{},\"stopped\":\"{}\",{}",
-        a.adaptive,
-        a.target_error.map_or("null".to_string(), |e| e.to_string()),
-        settings.min_passes,
-        settings.interval,
-        a.time_limit.map_or("null".to_string(), |t| t.to_string()),
-        out.stop.as_str(),
-        meta.strip_prefix('{').unwrap_or(&meta)
-    );
+    let meta = p.resolved.metadata_json(Some(out.stop.as_str()));
     tessera_image::write_image(&args.output, &image, Some(&meta))?;
-    if let Some(path) = &a.spp_map {
+    if let Some(path) = &args.adaptive.spp_map {
         write_spp_map(path, &image)?;
     }
     let (mean, lo, hi) = out.frame.samples_per_pixel();
     println!(
         "rendered {} ({}x{}, {} integrator, {} sampler, {} MIS, adaptive {}) to {}",
         p.scene.name,
-        p.plan.width,
-        p.plan.height,
-        p.settings.integrator,
-        p.settings.sampler.as_str(),
-        p.settings.mis,
-        a.adaptive,
+        plan.width,
+        plan.height,
+        p.resolved.config.integrator,
+        p.resolved.config.sampler,
+        p.resolved.config.mis,
+        job.adaptive,
         args.output.display()
     );
     println!(
         "samples per pixel: mean {mean:.1}, min {lo}, max {hi} (budget {} = {} passes of {})",
-        p.plan.spp(),
-        p.plan.passes,
-        p.plan.samples_per_pass
+        plan.spp(),
+        plan.passes,
+        plan.samples_per_pass
     );
-    match a.target_error {
+    match job.target_error {
         Some(t) => println!("stopped: {} (target error {t})", out.stop.as_str()),
         None => println!("stopped: {}", out.stop.as_str()),
     }

@@ -13,13 +13,11 @@
 //!
 //! Ratios are printed, never asserted (tests do not assert wall time).
 
-use super::{prepare, JobArgs};
+use crate::render::{prepare, JobArgs};
 use anyhow::Result;
 use clap::Args;
 use std::time::Instant;
-use tessera_render::integrator::MisHeuristic;
 use tessera_render::render::render_frame;
-use tessera_render::sampling::SamplerKind;
 
 /// Options of `tessera bench-plan`.
 #[derive(Args)]
@@ -76,24 +74,19 @@ fn measure(
     depth: Option<u32>,
 ) -> Result<Measured> {
     let job = JobArgs {
-        scene: scene.to_string(),
-        camera: None,
         spp: args.spp,
         width: Some(args.width),
         height: Some(args.height),
         integrator: integrator.into(),
-        mis: MisHeuristic::Power,
-        sampler: SamplerKind::Sobol,
-        seed: 0,
         threads: args.threads,
         max_depth: depth,
-        tile_size: 32,
+        ..JobArgs::new(scene)
     };
-    let p = prepare(&job)?;
+    let p = prepare(&job, None)?;
     let label = format!(
         "{scene} {} (max depth {}{})",
-        p.settings.integrator,
-        p.settings.max_depth,
+        p.resolved.config.integrator,
+        p.resolved.config.max_depth,
         if integrator == "auto" {
             ", plan"
         } else {
@@ -110,7 +103,14 @@ fn measure(
         });
     };
     let start = Instant::now();
-    let acc = render_frame(rs, &p.settings, &p.plan, 0, args.threads, |_, _| {});
+    let acc = render_frame(
+        rs,
+        &p.resolved.config,
+        &p.resolved.plan,
+        0,
+        args.threads,
+        |_, _| {},
+    );
     let seconds = start.elapsed().as_secs_f64();
     let error = acc.image_error();
     let to_target = seconds * (error / args.target_error).powi(2);

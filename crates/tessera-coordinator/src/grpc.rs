@@ -11,7 +11,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::pin::Pin;
 use std::sync::{Arc, Mutex};
 use std::time::{SystemTime, UNIX_EPOCH};
-use tessera_api::{RenderConfig, SceneRef};
+use tessera_farm::job::{RenderConfig, SceneRef};
 use tessera_farm::{FramePlan, JobId, Scheduler, SubmitError, Submitted, UnitResult, WorkerId};
 use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
@@ -54,6 +54,8 @@ pub struct WorkerEntry {
 pub struct JobEntry {
     /// The scene.
     pub scene: SceneRef,
+    /// The glTF camera the job renders from, if it names one.
+    pub camera: Option<String>,
     /// Render settings.
     pub settings: RenderConfig,
     /// Frame plan.
@@ -283,6 +285,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
                     deadline_unix_ms: l.deadline_ms,
                     job_id: l.job,
                     scene: job.scene.clone(),
+                    camera: job.camera.clone(),
                     settings: job.settings,
                     plan: job.plan,
                     unit: l.unit,

@@ -17,7 +17,7 @@ use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde::de::DeserializeOwned;
 use tessera_api::{
-    ApiError, ErrorCode, FrameQuery, ImageFormat, ImageQuery, JobListQuery, JobSettings,
+    ApiError, ErrorCode, FrameQuery, FromJson, ImageFormat, ImageQuery, JobListQuery, JobSettings,
     API_PREFIX, IDEMPOTENCY_KEY_HEADER,
 };
 

@@ -1,7 +1,7 @@
 //! The coordinator's job life cycle over the store and the scheduler: submission,
 //! durable checkpoints as passes merge, resume after a restart, status, images, cancel.
 //!
-//! # Durability (DESIGN §6)
+//! # Durability (ARCHITECTURE.md §6)
 //! The store is the truth. A job is inserted before `POST /jobs` answers. A result is
 //! merged in memory and its tile's checkpoint committed *before* the worker is told the
 //! result was accepted, so an accepted pass survives `kill -9`. Checkpoint writes are
@@ -22,15 +22,15 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use tessera_api::resolve::{resolve_job, ResolvedJob};
 use tessera_api::{
     ApiError, ErrorCode, FrameQuery, History, HistoryPoint, ImageFormat, ImageQuery, JobList,
-    JobListQuery, JobSettings, JobState, JobStatus, SceneRef, SceneUploaded, TileInfo, TileMap,
-    ValidatedJob, WorkerInfo, WorkerList, WorkerState,
+    JobListQuery, JobSettings, JobState, JobStatus, ResolvedJob, SceneRef, SceneUploaded, TileInfo,
+    TileMap, ValidatedJob, WorkerInfo, WorkerList, WorkerState,
 };
 use tessera_farm::{
     FrameAccumulator, FrameImage, JobId, Submitted, TileAccumulator, UnitResult, WorkerId,
 };
+use tessera_scene::job::{load_job_scene, resolve_job};
 use tessera_scene::Scene;
 
 use crate::grpc::{now_ms, Farm, JobEntry, WorkerEntry};
@@ -110,6 +110,9 @@ pub struct JobRuntime {
     last_history_ms: u64,
     /// Convergence history (also in the store).
     pub history: Vec<HistoryPoint>,
+    /// Why a done job stopped, as `tessera render` says it ("finished", "time limit
+    /// reached"); recorded in the EXR header of jobs that stop early.
+    pub stopped: Option<&'static str>,
 }
 
 impl JobRuntime {
@@ -235,9 +238,9 @@ impl Coordinator {
     ) -> Result<(), String> {
         let settings: JobSettings = serde_json::from_str(&rec.settings_json)
             .map_err(|e| format!("stored settings are unreadable: {e}"))?;
-        let job = settings.validate().map_err(|e| e.message)?;
-        let scene = load_scene(store, farm, &job.scene).await?;
-        let resolved = resolve_job(&job, settings.max_depth, &scene).map_err(|e| e.message)?;
+        let job = settings.validate().map_err(|e| e.to_string())?;
+        let scene = load_scene(store, farm, &job.scene, job.camera.as_deref()).await?;
+        let resolved = resolve_job(&job, &scene).map_err(|e| e.to_string())?;
         if resolved.plan != rec.plan {
             return Err("the stored frame plan differs from this build's plan".into());
         }
@@ -266,7 +269,7 @@ impl Coordinator {
             let tile = TileAccumulator::restore(rect, cp.merged_passes, cp.pixels, &units)?;
             acc.restore_tile(tile)?;
         }
-        let tile_error = if adaptive_settings(&job).is_some() {
+        let tile_error = if job.adaptive_settings().is_some() {
             // The adaptive policy's per-pixel state is not checkpointed: an adaptive job
             // starts again from its first pass after a restart (its result is the same).
             add_to_scheduler(farm, rec.id, rec.priority, plan, &job, rec.passes_per_unit)
@@ -290,6 +293,7 @@ impl Coordinator {
             rec.id,
             JobEntry {
                 scene: job.scene.clone(),
+                camera: job.camera.clone(),
                 settings: resolved.config,
                 plan,
             },
@@ -317,6 +321,7 @@ impl Coordinator {
                 tile_error,
                 last_history_ms: 0,
                 history,
+                stopped: (rec.state == JobState::Done).then_some("finished"),
             },
         );
         Ok(())
@@ -410,7 +415,7 @@ impl Coordinator {
 
     /// Builds a job's scene: a built-in one, or an uploaded one from the farm's cache or
     /// the store (then cached for the workers' FetchScene). Errors name the `scene` field.
-    async fn scene(&self, scene_ref: &SceneRef) -> ApiResult<Scene> {
+    async fn scene(&self, scene_ref: &SceneRef, camera: Option<&str>) -> ApiResult<Scene> {
         let bytes = match scene_ref {
             SceneRef::Hash(h) => {
                 let cached = self.lock()?.scenes.get(h).cloned();
@@ -432,11 +437,17 @@ impl Coordinator {
             }
             SceneRef::Builtin(_) => None,
         };
-        let scene_ref = scene_ref.clone();
-        tokio::task::spawn_blocking(move || build_scene(&scene_ref, bytes.as_deref()))
-            .await
-            .map_err(internal)?
-            .map_err(|e| ApiError::invalid_field("scene", e))
+        let (scene_ref, camera) = (scene_ref.clone(), camera.map(str::to_owned));
+        tokio::task::spawn_blocking(move || {
+            load_job_scene(
+                &scene_ref,
+                bytes.as_deref().map(|b| b.as_slice()),
+                camera.as_deref(),
+            )
+        })
+        .await
+        .map_err(internal)?
+        .map_err(|e| ApiError::invalid_field("scene", e))
     }
 
     // ------------------------------------------------------------------------------------
@@ -458,9 +469,9 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
-        let scene = self.scene(&job.scene).await?;
-        let resolved = resolve_job(&job, settings.max_depth, &scene)?;
-        let adaptive = adaptive_settings(&job);
+        let scene = self.scene(&job.scene, job.camera.as_deref()).await?;
+        let resolved = resolve_job(&job, &scene)?;
+        let adaptive = job.adaptive_settings();
         if let Some(a) = &adaptive {
             a.validate(resolved.plan.passes)
                 .map_err(|e| ApiError::invalid_field("adaptive", e))?;
@@ -503,6 +514,7 @@ impl Coordinator {
                     id,
                     JobEntry {
                         scene: job.scene.clone(),
+                        camera: job.camera.clone(),
                         settings: resolved.config,
                         plan: resolved.plan,
                     },
@@ -524,11 +536,12 @@ impl Coordinator {
                     faults: 0,
                     last_history_ms: 0,
                     history: Vec::new(),
+                    stopped: None,
                 },
             );
         }
         if black {
-            // Nothing to trace: the plan found no light (DESIGN §4).
+            // Nothing to trace: the plan found no light (ARCHITECTURE.md §4).
             self.set_state(id, JobState::Running, None).await?;
             self.set_state(id, JobState::Done, None).await?;
         }
@@ -547,6 +560,9 @@ impl Coordinator {
             rt.state = state;
             if state == JobState::Running && rt.started_unix_ms.is_none() {
                 rt.started_unix_ms = Some(now);
+            }
+            if state == JobState::Done && rt.stopped.is_none() {
+                rt.stopped = Some("finished");
             }
             if state.is_terminal() {
                 rt.finished_unix_ms = Some(now);
@@ -730,8 +746,10 @@ impl Coordinator {
                     return Err(frame_error(f, &rt.job));
                 }
                 let resolved = rt.resolved.clone();
+                let stopped = rt.stopped;
                 if rt.resolved.black {
                     return Ok(FrameState {
+                        stopped,
                         acc: None,
                         adaptive: None,
                         resolved,
@@ -740,6 +758,7 @@ impl Coordinator {
                 }
                 if let Some(a) = farm.scheduler.adaptive_frame(id, f) {
                     return Ok(FrameState {
+                        stopped,
                         acc: None,
                         adaptive: Some(a.clone()),
                         resolved,
@@ -748,6 +767,7 @@ impl Coordinator {
                 }
                 if let Some(acc) = farm.scheduler.frame(id, f) {
                     return Ok(FrameState {
+                        stopped,
                         acc: Some(acc.clone()),
                         adaptive: None,
                         resolved,
@@ -767,14 +787,16 @@ impl Coordinator {
         let settings: JobSettings = serde_json::from_str(&rec.settings_json)
             .map_err(|e| internal(format!("stored settings of job {id}: {e}")))?;
         let job = settings.validate()?;
+        let stopped = (rec.state == JobState::Done).then_some("finished");
         let f = frame.unwrap_or(rec.frames.start);
         if !rec.frames.iter().contains(&f) {
             return Err(frame_error(f, &job));
         }
-        let scene = self.scene(&job.scene).await?;
-        let resolved = resolve_job(&job, settings.max_depth, &scene)?;
+        let scene = self.scene(&job.scene, job.camera.as_deref()).await?;
+        let resolved = resolve_job(&job, &scene)?;
         if resolved.black {
             return Ok(FrameState {
+                stopped,
                 acc: None,
                 adaptive: None,
                 resolved,
@@ -803,6 +825,7 @@ impl Coordinator {
             acc.restore_tile(tile).map_err(internal)?;
         }
         Ok(FrameState {
+            stopped,
             acc: Some(acc),
             adaptive: None,
             resolved,
@@ -822,7 +845,7 @@ impl Coordinator {
             match q.format {
                 ImageFormat::Png => tessera_image::encode_png(&image),
                 ImageFormat::Exr => {
-                    tessera_image::encode_exr(&image, Some(&fs.resolved.metadata_json()))
+                    tessera_image::encode_exr(&image, Some(&fs.resolved.metadata_json(fs.stopped)))
                 }
             }
         })
@@ -1192,6 +1215,9 @@ impl Coordinator {
             }
             for id in &over_time {
                 farm.scheduler.cancel(*id);
+                if let Some(rt) = farm.runtime.get_mut(id) {
+                    rt.stopped = Some("time limit reached");
+                }
             }
         }
         for id in over_time {
@@ -1252,25 +1278,13 @@ impl Coordinator {
 }
 
 struct FrameState {
+    /// Why the job stopped, once it is done.
+    stopped: Option<&'static str>,
     acc: Option<FrameAccumulator>,
     /// The adaptive policy's state of an adaptive job in memory (its image is the job's).
     adaptive: Option<tessera_farm::AdaptiveFrame>,
     resolved: ResolvedJob,
     frame: u32,
-}
-
-/// The adaptive policy settings of a job, if it stops adaptively (DESIGN §3).
-fn adaptive_settings(job: &ValidatedJob) -> Option<tessera_farm::AdaptiveSettings> {
-    let mode = match job.adaptive {
-        tessera_api::AdaptiveMode::Off => return None,
-        tessera_api::AdaptiveMode::Sequential => tessera_farm::AdaptiveMode::Sequential,
-        tessera_api::AdaptiveMode::Unbiased => tessera_farm::AdaptiveMode::Unbiased,
-    };
-    Some(tessera_farm::AdaptiveSettings {
-        mode,
-        target_error: job.target_error.unwrap_or(1.0),
-        ..tessera_farm::AdaptiveSettings::default()
-    })
 }
 
 fn add_to_scheduler(
@@ -1281,7 +1295,7 @@ fn add_to_scheduler(
     job: &ValidatedJob,
     passes_per_unit: u32,
 ) -> ApiResult<()> {
-    match adaptive_settings(job) {
+    match job.adaptive_settings() {
         Some(a) => {
             farm.scheduler
                 .add_adaptive_job(id, priority, plan, job.frames.iter(), passes_per_unit, a)
@@ -1382,7 +1396,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
 
 /// Estimated seconds until a job is done, from the time spent so far.
 ///
-/// Monte Carlo error falls like `1 / sqrt(work)` (DESIGN §3), so reaching `target` from
+/// Monte Carlo error falls like `1 / sqrt(work)` (ARCHITECTURE.md §3), so reaching `target` from
 /// the current `error` needs `(error / target)^2` times the work done so far; the job also
 /// stops when all planned passes are merged, so the estimate is the smaller of that and
 /// the time for the remaining passes at the current rate. `None` before anything merged.
@@ -1410,22 +1424,14 @@ pub fn eta_seconds(
     })
 }
 
-fn build_scene(scene: &SceneRef, bytes: Option<&Vec<u8>>) -> Result<Scene, String> {
-    match (scene, bytes) {
-        (SceneRef::Builtin(name), _) => {
-            tessera_scene::builtin::load(name).map_err(|e| e.to_string())
-        }
-        (SceneRef::Hash(h), Some(b)) => {
-            tessera_scene::gltf_import::load_slice(b, &format!("scene {h}"), None, None)
-                .map_err(|e| e.to_string())
-        }
-        (SceneRef::Hash(h), None) => Err(format!("scene {h} is not stored")),
-    }
-}
-
 /// Loads a job's scene (from the farm's cache or the store, caching uploaded bytes for the
 /// workers' FetchScene).
-async fn load_scene(store: &dyn Store, farm: &mut Farm, scene: &SceneRef) -> Result<Scene, String> {
+async fn load_scene(
+    store: &dyn Store,
+    farm: &mut Farm,
+    scene: &SceneRef,
+    camera: Option<&str>,
+) -> Result<Scene, String> {
     let bytes = match scene {
         SceneRef::Hash(h) => match farm.scenes.get(h) {
             Some(b) => Some(b.clone()),
@@ -1442,7 +1448,7 @@ async fn load_scene(store: &dyn Store, farm: &mut Farm, scene: &SceneRef) -> Res
         },
         SceneRef::Builtin(_) => None,
     };
-    build_scene(scene, bytes.as_deref())
+    load_job_scene(scene, bytes.as_deref().map(|b| b.as_slice()), camera).map_err(|e| e.to_string())
 }
 
 fn hex(bytes: &[u8]) -> String {

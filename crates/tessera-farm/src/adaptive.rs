@@ -67,60 +67,14 @@
 //! ```
 
 use std::collections::BTreeMap;
-use std::fmt;
-use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
+pub use crate::job::AdaptiveMode;
 use crate::merge::{FrameImage, MergeError};
 use crate::plan::{FramePlan, PlanError, TileRect, WorkUnit};
 use crate::result::UnitResult;
 use crate::stats::{PixelStats, REL_EPS};
-
-/// Adaptive stopping mode (DESIGN §3).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum AdaptiveMode {
-    /// Every pixel takes every planned pass.
-    #[default]
-    Off,
-    /// Stop pixels at fixed boundaries once their own estimate is below the target
-    /// (fast, slightly biased).
-    Sequential,
-    /// Kirk & Arvo two-stage sampling: a discarded pilot fixes each pixel's pass count.
-    Unbiased,
-}
-
-impl AdaptiveMode {
-    /// `"off"`, `"sequential"` or `"unbiased"`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Off => "off",
-            Self::Sequential => "sequential",
-            Self::Unbiased => "unbiased",
-        }
-    }
-}
-
-impl FromStr for AdaptiveMode {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "off" => Ok(Self::Off),
-            "sequential" => Ok(Self::Sequential),
-            "unbiased" => Ok(Self::Unbiased),
-            _ => Err(format!(
-                "unknown adaptive mode {s:?}: expected off, sequential or unbiased"
-            )),
-        }
-    }
-}
-
-impl fmt::Display for AdaptiveMode {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
 
 /// Parameters of the adaptive policy. The plan's pass count is the upper bound.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -66,6 +66,7 @@
 #![deny(missing_docs)]
 
 mod adaptive;
+pub mod job;
 mod merge;
 mod plan;
 mod result;

@@ -2,7 +2,9 @@
 
 use std::fmt;
 
-use tessera_api::{IntegratorChoice, MisChoice, RenderConfig, SamplerChoice, SceneRef};
+use tessera_farm::job::{
+    Integrator, MisHeuristic, RenderConfig, SamplerKind, SceneRef, MAX_CAMERA_CHARS,
+};
 use tessera_farm::{FramePlan, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES};
 use tessera_farm::{MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS, MIN_TILE_SIZE};
 
@@ -293,22 +295,21 @@ impl TryFrom<v1::SubmitResultRequest> for UnitResult {
 // ---------------------------------------------------------------------------------------
 // RenderSettings <-> RenderConfig
 
-impl From<IntegratorChoice> for v1::Integrator {
-    fn from(i: IntegratorChoice) -> Self {
+impl From<Integrator> for v1::Integrator {
+    fn from(i: Integrator) -> Self {
         match i {
-            IntegratorChoice::Auto => Self::Auto,
-            IntegratorChoice::Path => Self::Path,
-            IntegratorChoice::Direct => Self::Direct,
-            IntegratorChoice::Bdpt => Self::Bdpt,
+            Integrator::Path => Self::Path,
+            Integrator::Direct => Self::Direct,
+            Integrator::Bdpt => Self::Bdpt,
         }
     }
 }
 
-impl From<SamplerChoice> for v1::Sampler {
-    fn from(s: SamplerChoice) -> Self {
+impl From<SamplerKind> for v1::Sampler {
+    fn from(s: SamplerKind) -> Self {
         match s {
-            SamplerChoice::Sobol => Self::Sobol,
-            SamplerChoice::Independent => Self::Independent,
+            SamplerKind::Sobol => Self::Sobol,
+            SamplerKind::Independent => Self::Independent,
         }
     }
 }
@@ -316,10 +317,10 @@ impl From<SamplerChoice> for v1::Sampler {
 impl From<&RenderConfig> for v1::RenderSettings {
     fn from(c: &RenderConfig) -> Self {
         let (mis, alpha) = match c.mis {
-            MisChoice::Balance => (v1::MisHeuristic::Balance, 0.0),
-            MisChoice::Power => (v1::MisHeuristic::Power, 0.0),
-            MisChoice::Cutoff(a) => (v1::MisHeuristic::Cutoff, a),
-            MisChoice::Maximum => (v1::MisHeuristic::Maximum, 0.0),
+            MisHeuristic::Balance => (v1::MisHeuristic::Balance, 0.0),
+            MisHeuristic::Power => (v1::MisHeuristic::Power, 0.0),
+            MisHeuristic::Cutoff(a) => (v1::MisHeuristic::Cutoff, a),
+            MisHeuristic::Maximum => (v1::MisHeuristic::Maximum, 0.0),
         };
         Self {
             integrator: v1::Integrator::from(c.integrator).into(),
@@ -364,16 +365,23 @@ impl TryFrom<v1::RenderSettings> for RenderConfig {
     fn try_from(s: v1::RenderSettings) -> Result<Self, ProtoError> {
         let integrator = match enum_field("integrator", s.integrator, v1::Integrator::Unspecified)?
         {
-            v1::Integrator::Auto => IntegratorChoice::Auto,
-            v1::Integrator::Path => IntegratorChoice::Path,
-            v1::Integrator::Direct => IntegratorChoice::Direct,
-            v1::Integrator::Bdpt => IntegratorChoice::Bdpt,
+            // The coordinator resolves `auto` against the scene before leasing: a lease
+            // that still says auto would make every worker guess.
+            v1::Integrator::Auto => {
+                return Err(ProtoError::new(
+                    "integrator",
+                    "auto is resolved by the coordinator and never leased",
+                ))
+            }
+            v1::Integrator::Path => Integrator::Path,
+            v1::Integrator::Direct => Integrator::Direct,
+            v1::Integrator::Bdpt => Integrator::Bdpt,
             v1::Integrator::Unspecified => unreachable!("rejected by enum_field"),
         };
         let mis = match enum_field("mis", s.mis, v1::MisHeuristic::Unspecified)? {
-            v1::MisHeuristic::Balance => MisChoice::Balance,
-            v1::MisHeuristic::Power => MisChoice::Power,
-            v1::MisHeuristic::Maximum => MisChoice::Maximum,
+            v1::MisHeuristic::Balance => MisHeuristic::Balance,
+            v1::MisHeuristic::Power => MisHeuristic::Power,
+            v1::MisHeuristic::Maximum => MisHeuristic::Maximum,
             v1::MisHeuristic::Cutoff => {
                 let a = s.mis_cutoff_alpha;
                 if !(a > 0.0 && a <= 1.0) {
@@ -382,13 +390,13 @@ impl TryFrom<v1::RenderSettings> for RenderConfig {
                         format_args!("must be in (0, 1] with the cutoff heuristic, got {a}"),
                     ));
                 }
-                MisChoice::Cutoff(a)
+                MisHeuristic::Cutoff(a)
             }
             v1::MisHeuristic::Unspecified => unreachable!("rejected by enum_field"),
         };
         let sampler = match enum_field("sampler", s.sampler, v1::Sampler::Unspecified)? {
-            v1::Sampler::Sobol => SamplerChoice::Sobol,
-            v1::Sampler::Independent => SamplerChoice::Independent,
+            v1::Sampler::Sobol => SamplerKind::Sobol,
+            v1::Sampler::Independent => SamplerKind::Independent,
             v1::Sampler::Unspecified => unreachable!("rejected by enum_field"),
         };
         let config = RenderConfig {
@@ -399,15 +407,9 @@ impl TryFrom<v1::RenderSettings> for RenderConfig {
             max_depth: s.max_depth,
             rr_depth: s.rr_depth,
         };
-        config.validate().map_err(|e| {
-            let field = e.field.clone().unwrap_or_default();
-            let reason = e
-                .message
-                .strip_prefix(&format!("{field}: "))
-                .unwrap_or(&e.message)
-                .to_owned();
-            ProtoError::new(field, reason)
-        })?;
+        config
+            .validate()
+            .map_err(|e| ProtoError::new(e.field, e.problem))?;
         Ok(config)
     }
 }
@@ -426,6 +428,8 @@ pub struct LeasedUnit {
     pub job_id: u64,
     /// The scene.
     pub scene: SceneRef,
+    /// The glTF camera the job renders from, if it names one.
+    pub camera: Option<String>,
     /// How samples are computed.
     pub settings: RenderConfig,
     /// The job's frame plan.
@@ -441,6 +445,7 @@ impl From<&LeasedUnit> for v1::Lease {
             deadline_unix_ms: l.deadline_unix_ms,
             job_id: l.job_id,
             scene_hash: l.scene.to_string(),
+            camera: l.camera.clone().unwrap_or_default(),
             settings: Some((&l.settings).into()),
             plan: Some((&l.plan).into()),
             unit: Some((&l.unit).into()),
@@ -464,6 +469,18 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             .scene_hash
             .parse()
             .map_err(|e| ProtoError::new("scene_hash", e))?;
+        let camera = match l.camera.as_str() {
+            "" => None,
+            c if c.chars().count() > MAX_CAMERA_CHARS || c.chars().any(char::is_control) => {
+                return Err(ProtoError::new(
+                    "camera",
+                    format_args!(
+                        "must be at most {MAX_CAMERA_CHARS} characters without control characters"
+                    ),
+                ))
+            }
+            c => Some(c.to_owned()),
+        };
         let settings: RenderConfig = l
             .settings
             .ok_or_else(|| ProtoError::missing("settings"))?
@@ -485,6 +502,7 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             deadline_unix_ms: l.deadline_unix_ms,
             job_id: l.job_id,
             scene,
+            camera,
             settings,
             plan,
             unit,
@@ -718,20 +736,15 @@ mod tests {
 
     fn configs() -> Vec<RenderConfig> {
         let mut out = Vec::new();
-        for integrator in [
-            IntegratorChoice::Auto,
-            IntegratorChoice::Path,
-            IntegratorChoice::Direct,
-            IntegratorChoice::Bdpt,
-        ] {
+        for integrator in [Integrator::Path, Integrator::Direct, Integrator::Bdpt] {
             for mis in [
-                MisChoice::Balance,
-                MisChoice::Power,
-                MisChoice::Cutoff(0.1),
-                MisChoice::Cutoff(1.0),
-                MisChoice::Maximum,
+                MisHeuristic::Balance,
+                MisHeuristic::Power,
+                MisHeuristic::Cutoff(0.1),
+                MisHeuristic::Cutoff(1.0),
+                MisHeuristic::Maximum,
             ] {
-                for sampler in [SamplerChoice::Sobol, SamplerChoice::Independent] {
+                for sampler in [SamplerKind::Sobol, SamplerKind::Independent] {
                     out.push(RenderConfig {
                         integrator,
                         mis,
@@ -808,6 +821,7 @@ mod tests {
             deadline_unix_ms: 1_700_000_000_000,
             job_id: 3,
             scene: SceneRef::Hash(HASH.into()),
+            camera: Some("dolly".into()),
             settings: configs()[7],
             plan: p,
             unit: *p.units(4, 2).last().unwrap(),
@@ -822,6 +836,7 @@ mod tests {
         assert_eq!(LeasedUnit::try_from(w).unwrap(), l);
         let l = LeasedUnit {
             scene: SceneRef::Builtin("cornell-box".into()),
+            camera: None,
             ..leased()
         };
         let w = v1::Lease::from(l.clone());

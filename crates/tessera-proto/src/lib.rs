@@ -1,7 +1,7 @@
 //! The Tessera coordinator <-> worker gRPC protocol: `proto/tessera/v1/worker.proto`,
 //! compiled at build time with [protox](https://docs.rs/protox) (no system `protoc`) into
 //! prost messages and tonic client and server code ([`v1`]), plus checked conversions
-//! between the wire messages and the domain types of `tessera-farm` and `tessera-api`.
+//! between the wire messages and the domain types of `tessera-farm` (its job contract, [`tessera_farm::job`], included).
 //!
 //! Everything arriving over the wire is untrusted: the `TryFrom` conversions validate
 //! every field and return a [`ProtoError`] naming the offending one (which converts into
@@ -13,7 +13,7 @@
 //! | [`v1::FramePlan`] | [`tessera_farm::FramePlan`] |
 //! | [`v1::WorkUnit`] | [`tessera_farm::WorkUnit`] |
 //! | [`v1::SubmitResultRequest`] | [`tessera_farm::UnitResult`] (+ worker, lease, seconds) |
-//! | [`v1::RenderSettings`] | [`tessera_api::RenderConfig`] |
+//! | [`v1::RenderSettings`] | [`tessera_farm::job::RenderConfig`] |
 //! | [`v1::Lease`] | [`LeasedUnit`] |
 //!
 //! Features: `transport` generates `WorkerServiceClient::connect` and enables tonic's

@@ -8,41 +8,15 @@
 //! farm does.
 
 use crate::integrator::path::{radiance, PathSettings};
-use crate::integrator::{IntegratorKind, MisHeuristic};
-use crate::sampling::{PixelSampler, SamplerKind};
+use crate::integrator::IntegratorKind;
+use crate::sampling::PixelSampler;
 use crate::scene::RenderScene;
 use glam::Vec2;
 use tessera_farm::{FrameAccumulator, FramePlan, UnitResult, WorkUnit};
 
-/// Everything that decides the value of a sample, besides the scene and the plan.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RenderSettings {
-    /// The integrator.
-    pub integrator: IntegratorKind,
-    /// MIS heuristic (path and direct).
-    pub mis: MisHeuristic,
-    /// Sample generator.
-    pub sampler: SamplerKind,
-    /// Job seed.
-    pub seed: u64,
-    /// Maximum number of bounces.
-    pub max_depth: u32,
-    /// Bounces before Russian roulette starts.
-    pub rr_depth: u32,
-}
-
-impl Default for RenderSettings {
-    fn default() -> Self {
-        Self {
-            integrator: IntegratorKind::Path,
-            mis: MisHeuristic::Power,
-            sampler: SamplerKind::Sobol,
-            seed: 0,
-            max_depth: 16,
-            rr_depth: 3,
-        }
-    }
-}
+/// Everything that decides the value of a sample, besides the scene and the plan: the job
+/// contract's resolved [`RenderConfig`](tessera_farm::job::RenderConfig).
+pub use tessera_farm::job::RenderConfig as RenderSettings;
 
 /// Renders one work unit. The caller guarantees that `unit` belongs to `plan` and that
 /// `scene` was built for the plan's image size.

@@ -25,6 +25,7 @@
 pub mod analysis;
 pub mod builtin;
 pub mod gltf_import;
+pub mod job;
 
 use glam::{Mat4, Vec2, Vec3};
 use std::path::Path;

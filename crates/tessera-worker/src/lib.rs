@@ -8,7 +8,7 @@
 //! reconnects with exponential backoff and registers again; on shutdown it finishes the
 //! units in hand, submits them, returns anything it has not started, and exits.
 //!
-//! Rendering is deterministic (DESIGN §2): the bytes a worker submits for a unit depend
+//! Rendering is deterministic (docs/ARCHITECTURE.md §2): the bytes a worker submits for a unit depend
 //! only on the scene, the settings and the unit, so the coordinator can compare duplicates.
 #![deny(missing_docs)]
 
@@ -18,13 +18,11 @@ use std::collections::HashMap;
 use std::future::Future;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tessera_api::{IntegratorChoice, MisChoice, RenderConfig, SamplerChoice, SceneRef};
+use tessera_farm::job::SceneRef;
 use tessera_farm::FramePlan;
 use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
-use tessera_render::integrator::{IntegratorKind, MisHeuristic};
-use tessera_render::render::{render_unit, RenderSettings};
-use tessera_render::sampling::SamplerKind;
+use tessera_render::render::render_unit;
 use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
 use tonic::metadata::MetadataValue;
@@ -56,33 +54,6 @@ pub enum WorkerError {
     Unauthenticated(String),
 }
 
-/// The render settings a lease asks for, as the renderer's types. `auto` resolves to the
-/// path tracer here, so every worker renders a unit identically; `bdpt` is the
-/// bidirectional integrator (its jobs are planned with one whole-frame tile, see
-/// `tessera_render::integrator::bdpt`).
-pub fn render_settings(config: &RenderConfig) -> RenderSettings {
-    RenderSettings {
-        integrator: match config.integrator {
-            IntegratorChoice::Direct => IntegratorKind::Direct,
-            IntegratorChoice::Bdpt => IntegratorKind::Bdpt,
-            IntegratorChoice::Auto | IntegratorChoice::Path => IntegratorKind::Path,
-        },
-        mis: match config.mis {
-            MisChoice::Balance => MisHeuristic::Balance,
-            MisChoice::Power => MisHeuristic::Power,
-            MisChoice::Cutoff(a) => MisHeuristic::Cutoff(a),
-            MisChoice::Maximum => MisHeuristic::Maximum,
-        },
-        sampler: match config.sampler {
-            SamplerChoice::Sobol => SamplerKind::Sobol,
-            SamplerChoice::Independent => SamplerKind::Independent,
-        },
-        seed: config.seed,
-        max_depth: config.max_depth,
-        rr_depth: config.rr_depth,
-    }
-}
-
 /// Adds the bearer token to every request.
 #[derive(Clone)]
 struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>);
@@ -98,11 +69,11 @@ impl tonic::service::Interceptor for Auth {
 
 type Client = v1::worker_service_client::WorkerServiceClient<InterceptedService<Channel, Auth>>;
 
-/// Scenes and their built forms, by scene reference.
+/// Scenes and their built forms, by scene reference and camera (`SCENE#CAMERA`).
 #[derive(Default)]
 struct SceneCache {
     scenes: HashMap<String, Arc<Scene>>,
-    /// Built render scenes by (scene, width, height); a handful at most.
+    /// Built render scenes by (scene and camera, width, height); a handful at most.
     built: Vec<(String, u32, u32, Arc<RenderScene>)>,
 }
 
@@ -248,7 +219,7 @@ async fn serve(
         let mut jobs: Vec<(LeasedUnit, Arc<RenderScene>)> = Vec::with_capacity(leases.len());
         let mut unusable = Vec::new();
         for l in leases {
-            match scene_for(&mut client, cache, &l.scene, &l.plan).await {
+            match scene_for(&mut client, cache, &l.scene, l.camera.as_deref(), &l.plan).await {
                 Ok(rs) => jobs.push((l, rs)),
                 Err(e) => {
                     tracing::warn!(scene = %l.scene, error = %e, "cannot load scene; returning lease");
@@ -273,7 +244,7 @@ async fn serve(
                 jobs.par_iter()
                     .map(|(l, rs)| {
                         let t = Instant::now();
-                        let r = render_unit(rs, &render_settings(&l.settings), &l.plan, l.unit);
+                        let r = render_unit(rs, &l.settings, &l.plan, l.unit);
                         let paths = r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass);
                         (l.lease_id, l.job_id, r, t.elapsed().as_secs_f64(), paths)
                     })
@@ -327,9 +298,13 @@ async fn scene_for(
     client: &mut Client,
     cache: &Arc<Mutex<SceneCache>>,
     scene: &SceneRef,
+    camera: Option<&str>,
     plan: &FramePlan,
 ) -> Result<Arc<RenderScene>, String> {
-    let key = scene.to_string();
+    let key = match camera {
+        Some(c) => format!("{scene}#{c}"),
+        None => scene.to_string(),
+    };
     {
         let c = cache
             .lock()
@@ -351,21 +326,18 @@ async fn scene_for(
     let parsed = match cached {
         Some(s) => s,
         None => {
-            let scene = match scene {
-                SceneRef::Builtin(name) => {
-                    tessera_scene::builtin::load(name).map_err(|e| e.to_string())?
-                }
-                SceneRef::Hash(hash) => {
-                    let bytes = fetch_scene(client, hash).await?;
-                    let name = format!("scene {hash}");
-                    tokio::task::spawn_blocking(move || {
-                        tessera_scene::gltf_import::load_slice(&bytes, &name, None, None)
-                    })
-                    .await
-                    .map_err(|e| e.to_string())?
-                    .map_err(|e| e.to_string())?
-                }
+            let bytes = match scene {
+                SceneRef::Builtin(_) => None,
+                SceneRef::Hash(hash) => Some(fetch_scene(client, hash).await?),
             };
+            // The same loader as the coordinator's, so both see the same scene.
+            let (sref, cam) = (scene.clone(), camera.map(str::to_owned));
+            let scene = tokio::task::spawn_blocking(move || {
+                tessera_scene::job::load_job_scene(&sref, bytes.as_deref(), cam.as_deref())
+            })
+            .await
+            .map_err(|e| e.to_string())?
+            .map_err(|e| e.to_string())?;
             let scene = Arc::new(scene);
             cache
                 .lock()
@@ -427,30 +399,4 @@ async fn fetch_scene(client: &mut Client, hash: &str) -> Result<Vec<u8>, String>
         return Err(format!("scene {hash}: received bytes hash to {hex}"));
     }
     Ok(bytes)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn settings_map_every_choice() {
-        let mut c = RenderConfig {
-            integrator: IntegratorChoice::Direct,
-            mis: MisChoice::Cutoff(0.25),
-            sampler: SamplerChoice::Independent,
-            seed: 9,
-            max_depth: 5,
-            rr_depth: 2,
-        };
-        let s = render_settings(&c);
-        assert_eq!(s.integrator, IntegratorKind::Direct);
-        assert_eq!(s.mis, MisHeuristic::Cutoff(0.25));
-        assert_eq!(s.sampler, SamplerKind::Independent);
-        assert_eq!((s.seed, s.max_depth, s.rr_depth), (9, 5, 2));
-        c.integrator = IntegratorChoice::Auto;
-        assert_eq!(render_settings(&c).integrator, IntegratorKind::Path);
-        c.integrator = IntegratorChoice::Bdpt;
-        assert_eq!(render_settings(&c).integrator, IntegratorKind::Bdpt);
-    }
 }

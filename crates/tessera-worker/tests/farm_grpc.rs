@@ -4,12 +4,12 @@
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tessera_api::{RenderConfig, SceneRef};
 use tessera_coordinator::grpc::{Farm, JobEntry, WorkerGrpc};
+use tessera_farm::job::{RenderConfig, SceneRef};
 use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::render::render_frame;
 use tessera_render::scene::RenderScene;
-use tessera_worker::{render_settings, run, WorkerConfig, WorkerError};
+use tessera_worker::{run, WorkerConfig, WorkerError};
 
 fn plan() -> FramePlan {
     FramePlan::for_spp(40, 32, 16, 16).unwrap()
@@ -44,6 +44,7 @@ async fn farm_render(workers: usize) -> FrameImage {
         1,
         JobEntry {
             scene: SceneRef::Builtin("cornell-box".into()),
+            camera: None,
             settings: settings(),
             plan: plan(),
         },
@@ -92,7 +93,7 @@ fn bits(img: &FrameImage) -> Vec<u32> {
 async fn one_and_three_workers_match_the_local_render() {
     let scene = tessera_scene::load("builtin:cornell-box").unwrap();
     let rs = RenderScene::build(&scene, 40, 32).unwrap();
-    let local = render_frame(&rs, &render_settings(&settings()), &plan(), 0, 2, |_, _| {}).image();
+    let local = render_frame(&rs, &settings(), &plan(), 0, 2, |_, _| {}).image();
     let one = farm_render(1).await;
     let three = farm_render(3).await;
     assert!(

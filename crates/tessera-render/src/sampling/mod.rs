@@ -13,59 +13,16 @@
 mod sobol;
 pub mod warp;
 
-use std::fmt;
-use std::str::FromStr;
-
 use glam::Vec2;
 
-/// Which randomized point set a [`PixelSampler`] draws from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum SamplerKind {
-    /// Owen-scrambled Sobol' (Burley 2020): each 2D request is a fresh, independently
-    /// scrambled and shuffled (0,m,2)-net, padded by Latin supercube sampling (seed 000 §6.8).
-    Sobol,
-    /// Independent uniform random numbers from a hash of (pass, sample index, dimension):
-    /// plain Monte Carlo, the reference for unbiasedness and variance comparisons.
-    Independent,
-}
-
-impl SamplerKind {
-    /// The lowercase name accepted by [`FromStr`] and printed by [`fmt::Display`].
-    pub fn as_str(self) -> &'static str {
-        match self {
-            SamplerKind::Sobol => "sobol",
-            SamplerKind::Independent => "independent",
-        }
-    }
-}
-
-impl fmt::Display for SamplerKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-/// Error of parsing a [`SamplerKind`]: the input was neither `sobol` nor `independent`.
-#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("unknown sampler {input:?}: expected one of \"sobol\", \"independent\"")]
-pub struct ParseSamplerKindError {
-    /// The rejected input, verbatim.
-    pub input: String,
-}
-
-impl FromStr for SamplerKind {
-    type Err = ParseSamplerKindError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "sobol" => Ok(SamplerKind::Sobol),
-            "independent" => Ok(SamplerKind::Independent),
-            _ => Err(ParseSamplerKindError {
-                input: s.to_owned(),
-            }),
-        }
-    }
-}
+/// Which randomized point set a [`PixelSampler`] draws from: the job contract's
+/// [`SamplerKind`](tessera_farm::job::SamplerKind). `Sobol` is Owen-scrambled Sobol'
+/// (Burley 2020): each 2D request is a fresh, independently scrambled and shuffled
+/// (0,m,2)-net, padded by Latin supercube sampling (Owen 2001, section 6.8);
+/// `Independent` is independent uniform random numbers from a hash of (pass, sample
+/// index, dimension): plain Monte Carlo, the reference for unbiasedness and variance
+/// comparisons.
+pub use tessera_farm::job::SamplerKind;
 
 /// Number of dimension indices (2D or 1D requests) per sample served by scrambled Sobol'
 /// sets; deeper requests (long paths) are padded with hashed independent random numbers

@@ -1,0 +1,322 @@
+//! `tessera render`: a job rendered on this machine. The flags become a
+//! [`JobSettings`], validated and resolved against the scene exactly as the coordinator
+//! does ([`tessera_scene::job::resolve_job`]), and the EXR header is the resolved job's
+//! [`ResolvedJob::metadata_json`], so a local render and a farm job with the same settings
+//! write byte-identical files (docs/ARCHITECTURE.md §2).
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::Args;
+use sha2::{Digest, Sha256};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tessera_farm::job::{JobError, JobSettings, ResolvedJob, SceneRef, DEFAULT_MIN_PASSES};
+use tessera_farm::FrameImage;
+use tessera_render::render::render_frame;
+use tessera_render::scene::RenderScene;
+use tessera_scene::Scene;
+
+use crate::adaptive;
+
+/// The job flags shared by `tessera render` and the benches: one flag per
+/// [`JobSettings`] field it renders with.
+#[derive(Args, Clone)]
+pub struct JobArgs {
+    /// A .gltf/.glb file or builtin:NAME (cornell-box, veach-mis, furnace, caustic).
+    pub scene: String,
+    /// glTF camera to render from (by camera or node name).
+    #[arg(long)]
+    pub camera: Option<String>,
+    /// Samples per pixel (rounded up to whole passes).
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    /// Image width (default: the scene's).
+    #[arg(long)]
+    pub width: Option<u32>,
+    /// Image height (default: the scene's).
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// auto (follow the scene's render plan), path, direct or bdpt. An explicit integrator
+    /// overrides the plan and renders with the general configuration (max depth 16 unless
+    /// --max-depth is given).
+    #[arg(long, default_value = "auto")]
+    pub integrator: String,
+    /// MIS heuristic: balance, power, cutoff[:ALPHA] or maximum.
+    #[arg(long, default_value = "power")]
+    pub mis: String,
+    /// Sampler: sobol (randomized QMC) or independent.
+    #[arg(long, default_value = "sobol")]
+    pub sampler: String,
+    /// Job seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Worker threads (0 = all cores). The image does not depend on it.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Maximum path depth (number of bounces). Default: the render plan's with
+    /// --integrator auto, 16 otherwise.
+    #[arg(long)]
+    pub max_depth: Option<u32>,
+    /// Tile edge in pixels.
+    #[arg(long, default_value_t = 32)]
+    pub tile_size: u32,
+}
+
+impl JobArgs {
+    /// Flags for `scene` with every other setting at its default.
+    pub fn new(scene: &str) -> Self {
+        Self {
+            scene: scene.to_string(),
+            camera: None,
+            spp: 64,
+            width: None,
+            height: None,
+            integrator: "auto".into(),
+            mis: "power".into(),
+            sampler: "sobol".into(),
+            seed: 0,
+            threads: 0,
+            max_depth: None,
+            tile_size: 32,
+        }
+    }
+}
+
+/// `tessera render`'s arguments.
+#[derive(Args)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// Output file: .exr (multi-layer float) or .png (sRGB).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub adaptive: adaptive::AdaptiveArgs,
+}
+
+/// A resolved job with its scene, ready to render.
+pub struct Prepared {
+    /// The scene as loaded.
+    pub scene: Scene,
+    /// The renderable scene; not built for a black render.
+    pub render_scene: Option<RenderScene>,
+    /// The job resolved against the scene: settings, frame plan, render plan.
+    pub resolved: ResolvedJob,
+}
+
+/// The [`SceneRef`] of a scene argument: `builtin:NAME` as it is; a file by the SHA-256 of
+/// its bytes, the reference the farm gives the same file once uploaded.
+fn scene_ref(arg: &str) -> Result<String> {
+    if arg.starts_with("builtin:") {
+        return Ok(arg.to_string());
+    }
+    let bytes = std::fs::read(arg).with_context(|| format!("reading scene {arg}"))?;
+    let digest = Sha256::digest(&bytes);
+    Ok(digest.iter().map(|b| format!("{b:02x}")).collect())
+}
+
+/// The command-line spelling of a [`JobSettings`] field, for error messages.
+fn flag(field: &str) -> &'static str {
+    match field {
+        "scene" => "SCENE",
+        "camera" => "--camera",
+        "width" => "--width",
+        "height" => "--height",
+        "spp" => "--spp",
+        "integrator" => "--integrator",
+        "mis" => "--mis (MIS heuristic)",
+        "sampler" => "--sampler",
+        "max_depth" => "--max-depth",
+        "target_error" => "--target-error",
+        "adaptive" => "--adaptive",
+        "min_passes" => "--min-passes",
+        "time_limit_seconds" => "--time-limit",
+        "tile_size" => "--tile-size",
+        _ => "setting",
+    }
+}
+
+/// A [`JobError`] in the command line's words: `invalid --spp: must be between ...`.
+fn job_error(e: JobError, settings: &JobSettings) -> anyhow::Error {
+    if e.field == "adaptive" {
+        // The plan has too few passes for the mode: the budget is the remedy.
+        return anyhow!(
+            "invalid --adaptive {} with --spp {}: {}",
+            settings.adaptive,
+            settings.spp,
+            e.problem
+        );
+    }
+    anyhow!("invalid {}: {}", flag(&e.field), e.problem)
+}
+
+/// Validates and resolves `job` (with the stopping flags of `stop`, if any) exactly as the
+/// coordinator does, loads its scene and builds it unless the plan found no light.
+pub fn prepare(job: &JobArgs, stop: Option<&adaptive::AdaptiveArgs>) -> Result<Prepared> {
+    if job.threads > 4096 {
+        bail!(
+            "--threads {} must be at most 4096 (0 = all cores)",
+            job.threads
+        );
+    }
+    let mut settings = JobSettings::new(scene_ref(&job.scene)?);
+    settings.camera = job.camera.clone();
+    settings.width = job.width;
+    settings.height = job.height;
+    settings.spp = job.spp;
+    settings.integrator = job.integrator.clone();
+    settings.mis = job.mis.clone();
+    settings.sampler = job.sampler.clone();
+    settings.seed = job.seed;
+    settings.max_depth = job.max_depth;
+    settings.tile_size = job.tile_size;
+    if let Some(a) = stop {
+        settings.target_error = a.target_error;
+        settings.adaptive = a.adaptive.clone();
+        settings.time_limit_seconds = a.time_limit;
+        settings.min_passes = a.min_passes;
+    } else {
+        settings.min_passes = DEFAULT_MIN_PASSES;
+    }
+    let validated = settings.validate().map_err(|e| job_error(e, &settings))?;
+    let camera = validated.camera.as_deref();
+    let scene = match &validated.scene {
+        // The farm's loader: it refuses a camera name for a built-in scene.
+        SceneRef::Builtin(_) => tessera_scene::job::load_job_scene(&validated.scene, None, camera),
+        // A file may refer to files beside it, which an upload may not.
+        SceneRef::Hash(_) => tessera_scene::load_with_camera(&job.scene, camera),
+    }
+    .with_context(|| format!("loading scene {}", job.scene))?;
+    let resolved =
+        tessera_scene::job::resolve_job(&validated, &scene).map_err(|e| job_error(e, &settings))?;
+    let render_scene = if resolved.black {
+        None
+    } else {
+        Some(RenderScene::build(
+            &scene,
+            resolved.plan.width,
+            resolved.plan.height,
+        )?)
+    };
+    Ok(Prepared {
+        scene,
+        render_scene,
+        resolved,
+    })
+}
+
+fn check_output(path: &Path) -> Result<()> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase());
+    if !matches!(ext.as_deref(), Some("exr") | Some("png")) {
+        bail!("output {} must end in .exr or .png", path.display());
+    }
+    Ok(())
+}
+
+/// `tessera render`.
+pub fn render(args: RenderArgs) -> Result<()> {
+    check_output(&args.output)?;
+    adaptive::check(&args.adaptive)?;
+    let p = prepare(&args.job, Some(&args.adaptive))?;
+    print!("{}", p.resolved.render_plan.summary());
+    if p.resolved.black {
+        return render_black(&p, &args);
+    }
+    if p.resolved.job.stops_early() {
+        return adaptive::render(&p, &args);
+    }
+    let plan = p.resolved.plan;
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new(plan.unit_count(1));
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:40}] {pos}/{len} units, eta {eta}",
+            )
+            .expect("static template")
+            .progress_chars("=> "),
+        );
+        bar
+    });
+    let start = Instant::now();
+    let render_scene = p.render_scene.as_ref().expect("built unless black");
+    let acc = render_frame(
+        render_scene,
+        &p.resolved.config,
+        &plan,
+        0,
+        args.job.threads,
+        |done, _| {
+            if let Some(b) = &bar {
+                b.set_position(done as u64);
+            }
+        },
+    );
+    let seconds = start.elapsed().as_secs_f64();
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    let image = acc.image();
+    tessera_image::write_image(&args.output, &image, Some(&p.resolved.metadata_json(None)))?;
+    let paths = plan.width as f64 * plan.height as f64 * plan.spp() as f64;
+    let c = &p.resolved.config;
+    println!(
+        "rendered {} ({}x{}, {} integrator, {} sampler, {} MIS) to {}",
+        p.scene.name,
+        plan.width,
+        plan.height,
+        c.integrator,
+        c.sampler,
+        c.mis,
+        args.output.display()
+    );
+    println!(
+        "samples per pixel: {} ({} passes of {})",
+        plan.spp(),
+        plan.passes,
+        plan.samples_per_pass
+    );
+    println!("seconds: {seconds:.3}");
+    println!("estimated relative error: {:.4}", acc.image_error());
+    println!("paths per second: {:.0}", paths / seconds);
+    if let Some(map) = &args.adaptive.spp_map {
+        adaptive::write_spp_map(map, &image)?;
+    }
+    Ok(())
+}
+
+/// The render plan found no light: the image is black, and no ray is traced.
+fn render_black(p: &Prepared, args: &RenderArgs) -> Result<()> {
+    let start = Instant::now();
+    let plan = p.resolved.plan;
+    let image = FrameImage::black(&plan);
+    let stopped = p.resolved.job.stops_early().then_some("finished");
+    tessera_image::write_image(
+        &args.output,
+        &image,
+        Some(&p.resolved.metadata_json(stopped)),
+    )?;
+    let seconds = start.elapsed().as_secs_f64();
+    println!(
+        "rendered {} ({}x{}, black: the render plan found no light, no ray traced) to {}",
+        p.scene.name,
+        plan.width,
+        plan.height,
+        args.output.display()
+    );
+    println!(
+        "samples per pixel: {} ({} passes of {})",
+        plan.spp(),
+        plan.passes,
+        plan.samples_per_pass
+    );
+    println!("seconds: {seconds:.3}");
+    println!("estimated relative error: {:.4}", 0.0);
+    println!("paths per second: 0");
+    if let Some(map) = &args.adaptive.spp_map {
+        adaptive::write_spp_map(map, &image)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,162 @@
+//! Resolving a validated job against its scene: the render plan turns `auto` into
+//! concrete settings, and the frame plan follows from the scene's resolution.
+//!
+//! `tessera render` and the coordinator both call [`ValidatedJob::resolve`], so a job
+//! gives the same settings, the same frame plan and the same EXR metadata
+//! ([`ResolvedJob::metadata_json`]) however it is rendered: locally or through the farm
+//! (ARCHITECTURE.md §2).
+
+use super::choice::{Integrator, IntegratorChoice};
+use super::plan::{json_string, PlannedIntegrator, RenderPlan};
+use super::settings::{JobError, RenderConfig, ValidatedJob, DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH};
+use crate::plan::FramePlan;
+
+/// What resolution needs to know of a scene, besides its render plan.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SceneFacts {
+    /// The image size the scene asks for (from its camera), used for missing dimensions.
+    pub default_resolution: (u32, u32),
+}
+
+/// A job resolved against its scene: what every worker renders.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResolvedJob {
+    /// The validated job it came from.
+    pub job: ValidatedJob,
+    /// Concrete render settings.
+    pub config: RenderConfig,
+    /// The frame plan for the resolved resolution.
+    pub plan: FramePlan,
+    /// The scene analysis, with `overridden` set when the job forced other settings.
+    pub render_plan: RenderPlan,
+    /// The plan found no light: the image is black and nothing needs tracing.
+    pub black: bool,
+}
+
+impl ValidatedJob {
+    /// Resolves this job against its scene's facts and render plan
+    /// (`tessera_scene::analysis::analyse`).
+    ///
+    /// With `integrator` auto the render plan decides: black (no light), direct lighting
+    /// with one bounce, path or bdpt with the plan's depth and Russian roulette depth. An
+    /// explicit integrator uses the general configuration (depth [`DEFAULT_MAX_DEPTH`],
+    /// roulette from [`DEFAULT_RR_DEPTH`]) and is recorded as an override, as is a
+    /// `max_depth` other than the one chosen. Adaptive settings are checked against the
+    /// frame plan (an unbiased pilot needs room for fresh passes): errors of `adaptive`.
+    pub fn resolve(
+        &self,
+        scene: SceneFacts,
+        mut render_plan: RenderPlan,
+    ) -> Result<ResolvedJob, JobError> {
+        let (width, height) = self.resolution(scene.default_resolution);
+        let mut forced = Vec::new();
+        let mut black = false;
+        let (integrator, plan_depth, rr_depth) = match self.render.integrator {
+            IntegratorChoice::Auto => match render_plan.integrator {
+                PlannedIntegrator::Black => {
+                    black = true;
+                    // Nothing is traced; these settings only fill the metadata.
+                    (Integrator::Direct, 1, render_plan.rr_depth)
+                }
+                PlannedIntegrator::Direct => (Integrator::Direct, 1, render_plan.rr_depth),
+                PlannedIntegrator::Path => (
+                    Integrator::Path,
+                    render_plan.max_depth,
+                    render_plan.rr_depth,
+                ),
+                PlannedIntegrator::Bdpt => (
+                    Integrator::Bdpt,
+                    render_plan.max_depth,
+                    render_plan.rr_depth,
+                ),
+            },
+            IntegratorChoice::Fixed(i) => {
+                forced.push(format!("--integrator {i}"));
+                (i, DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH)
+            }
+        };
+        if let Some(d) = self.render.max_depth {
+            if d != plan_depth {
+                forced.push(format!("--max-depth {d}"));
+            }
+        }
+        if !forced.is_empty() {
+            render_plan.set_override(&forced.join(" "));
+        }
+        let config = RenderConfig {
+            integrator,
+            mis: self.render.mis,
+            sampler: self.render.sampler,
+            seed: self.render.seed,
+            max_depth: self.render.max_depth.unwrap_or(plan_depth),
+            rr_depth,
+        };
+        config.validate()?;
+        // The frame plan follows the resolved integrator: bdpt, chosen by the plan or
+        // asked for, gets one whole-frame tile.
+        let plan = self.plan_for(integrator.into(), width, height)?;
+        if let Some(a) = self.adaptive_settings() {
+            a.validate(plan.passes)
+                .map_err(|e| JobError::new("adaptive", e))?;
+        }
+        Ok(ResolvedJob {
+            job: self.clone(),
+            config,
+            plan,
+            render_plan,
+            black,
+        })
+    }
+}
+
+impl ResolvedJob {
+    /// The render settings, the stopping settings and the render plan as one JSON object
+    /// for the EXR header, with a stable key order, so that a farm render and a local
+    /// render of the same job write byte-identical files. A black render (no light) has
+    /// integrator `"black"`. Jobs that stop early ([`ValidatedJob::stops_early`]) start
+    /// with `adaptive`, `target_error`, `min_passes`, `interval`, `time_limit` and
+    /// `stopped` (why the render ended, `null` while it runs). The text is ASCII.
+    pub fn metadata_json(&self, stopped: Option<&str>) -> String {
+        let job = &self.job;
+        let c = &self.config;
+        let integrator = if self.black {
+            "black"
+        } else {
+            c.integrator.as_str()
+        };
+        let mut out = String::from("{");
+        if job.stops_early() {
+            let interval = crate::adaptive::AdaptiveSettings::default().interval;
+            out += &format!(
+                "\"adaptive\":\"{}\",\"target_error\":{},\"min_passes\":{},\"interval\":{interval},\"time_limit\":{},\"stopped\":{},",
+                job.adaptive,
+                job.target_error.map_or("null".to_string(), |e| e.to_string()),
+                job.min_passes,
+                job.time_limit_seconds.map_or("null".to_string(), |t| t.to_string()),
+                stopped.map_or("null".to_string(), json_string),
+            );
+        }
+        let p = &self.plan;
+        // Only a named camera is recorded: the default camera adds nothing.
+        let camera = job
+            .camera
+            .as_deref()
+            .map_or(String::new(), |c| format!(",\"camera\":{}", json_string(c)));
+        out += &format!(
+            "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"plan\":{}}}",
+            json_string(&job.scene.to_string()),
+            p.width,
+            p.height,
+            p.spp(),
+            p.samples_per_pass,
+            p.passes,
+            c.mis,
+            c.sampler,
+            c.seed,
+            c.max_depth,
+            c.rr_depth,
+            self.render_plan.to_json()
+        );
+        out
+    }
+}

@@ -1,0 +1,149 @@
+//! Jobs meet scenes: loading a job's scene (with its camera) and resolving the job against
+//! it, the one path both `tessera render` and the coordinator take (ARCHITECTURE.md §2).
+//!
+//! The job contract itself lives in [`tessera_farm::job`]; this module adds the two steps
+//! that need a parsed scene: [`load_job_scene`] and [`resolve_job`] (the render plan of
+//! [`crate::analysis::analyse`] fed to [`ValidatedJob::resolve`]).
+
+use tessera_farm::job::{JobError, ResolvedJob, SceneFacts, SceneRef, ValidatedJob};
+
+use crate::{builtin, gltf_import, Scene, SceneError};
+
+/// The scene of a job: a built-in scene, or an uploaded self-contained glTF/GLB given as
+/// its `bytes`, rendered from the glTF camera named `camera` (default: its first camera).
+///
+/// Built-in scenes have one camera, so naming one is an error rather than silently ignored.
+/// Uploaded scenes are named `scene HASH` (their content hash), as everywhere in the farm.
+pub fn load_job_scene(
+    scene: &SceneRef,
+    bytes: Option<&[u8]>,
+    camera: Option<&str>,
+) -> Result<Scene, SceneError> {
+    match (scene, bytes) {
+        (SceneRef::Builtin(name), _) => {
+            if let Some(c) = camera {
+                return Err(SceneError::Invalid {
+                    scene: format!("builtin:{name}"),
+                    message: format!(
+                        "camera {c:?}: built-in scenes have only their own camera; \
+                         a camera can be chosen in glTF scenes"
+                    ),
+                });
+            }
+            builtin::load(name)
+        }
+        (SceneRef::Hash(h), Some(b)) => {
+            gltf_import::load_slice(b, &format!("scene {h}"), None, camera)
+        }
+        (SceneRef::Hash(h), None) => Err(SceneError::Invalid {
+            scene: format!("scene {h}"),
+            message: "its bytes are not stored".into(),
+        }),
+    }
+}
+
+/// Resolves `job` against `scene`: [`ValidatedJob::resolve`] with the scene's default
+/// resolution and its render plan ([`crate::analysis::analyse`]).
+pub fn resolve_job(job: &ValidatedJob, scene: &Scene) -> Result<ResolvedJob, JobError> {
+    let facts = SceneFacts {
+        default_resolution: scene.default_resolution,
+    };
+    job.resolve(facts, crate::analysis::analyse(scene))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tessera_farm::job::{Integrator, JobSettings, DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH};
+
+    fn resolve(settings: &str) -> ResolvedJob {
+        let raw: JobSettings = serde_json::from_str(settings).unwrap();
+        let job = raw.validate().unwrap();
+        let scene = load_job_scene(&job.scene, None, None).unwrap();
+        resolve_job(&job, &scene).unwrap()
+    }
+
+    #[test]
+    fn auto_follows_the_plan_and_overrides_are_recorded() {
+        let r = resolve(r#"{"scene": "builtin:cornell-box", "width": 16, "height": 16}"#);
+        assert_eq!(r.config.integrator, Integrator::Path);
+        assert_eq!(r.config.max_depth, r.render_plan.max_depth);
+        assert!(r.render_plan.overridden.is_none());
+        assert!(!r.black);
+        let r = resolve(
+            r#"{"scene": "builtin:cornell-box", "width": 16, "height": 16, "integrator": "path"}"#,
+        );
+        assert_eq!(
+            (r.config.max_depth, r.config.rr_depth),
+            (DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH)
+        );
+        assert!(r
+            .render_plan
+            .overridden
+            .as_deref()
+            .unwrap()
+            .starts_with("--integrator path overrides the plan"));
+        let r = resolve(
+            r#"{"scene": "builtin:cornell-box", "width": 16, "height": 16, "max_depth": 3}"#,
+        );
+        assert_eq!(r.config.max_depth, 3);
+        assert!(r.render_plan.overridden.is_some());
+    }
+
+    #[test]
+    fn bdpt_gets_one_whole_frame_tile() {
+        // Chosen by the plan (a caustic lit by a tiny light) ...
+        let r = resolve(r#"{"scene": "builtin:caustic", "width": 320, "height": 240}"#);
+        assert_eq!(r.config.integrator, Integrator::Bdpt);
+        assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 320));
+        // ... or asked for; other integrators keep their tiles.
+        let r = resolve(
+            r#"{"scene": "builtin:cornell-box", "width": 300, "height": 200, "integrator": "bdpt"}"#,
+        );
+        assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 300));
+        let r = resolve(
+            r#"{"scene": "builtin:caustic", "width": 320, "height": 240, "integrator": "path"}"#,
+        );
+        assert_eq!(r.plan.tile_size, 32);
+    }
+
+    /// Regression (redesign issue): bdpt with adaptive stopping kept tiles in
+    /// `tessera render` but one whole-frame tile on the farm; now both resolve here.
+    #[test]
+    fn bdpt_with_adaptive_stopping_keeps_one_whole_frame_tile() {
+        let r = resolve(
+            r#"{"scene": "builtin:caustic", "width": 64, "height": 48, "spp": 256,
+                "adaptive": "sequential", "target_error": 0.05}"#,
+        );
+        assert_eq!(r.config.integrator, Integrator::Bdpt);
+        assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 64));
+    }
+
+    #[test]
+    fn metadata_is_json_with_the_settings() {
+        let r = resolve(r#"{"scene": "builtin:furnace", "width": 8, "height": 4, "spp": 16}"#);
+        let v: serde_json::Value = serde_json::from_str(&r.metadata_json(None)).unwrap();
+        assert_eq!(v["scene"], "builtin:furnace");
+        assert_eq!(v["width"], 8);
+        assert_eq!(v["spp"], 16);
+        assert_eq!(v["mis"], "power");
+        assert!(v["plan"].is_object());
+        assert!(v.get("adaptive").is_none());
+        let r = resolve(
+            r#"{"scene": "builtin:furnace", "width": 8, "height": 4, "spp": 256,
+                "adaptive": "unbiased", "target_error": 0.1}"#,
+        );
+        let v: serde_json::Value =
+            serde_json::from_str(&r.metadata_json(Some("finished"))).unwrap();
+        assert_eq!(v["adaptive"], "unbiased");
+        assert_eq!(v["min_passes"], 8);
+        assert_eq!(v["stopped"], "finished");
+    }
+
+    #[test]
+    fn builtin_scenes_refuse_a_camera_name() {
+        let e = load_job_scene(&SceneRef::Builtin("cornell-box".into()), None, Some("side"))
+            .unwrap_err();
+        assert!(e.to_string().contains("camera \"side\""), "{e}");
+    }
+}
