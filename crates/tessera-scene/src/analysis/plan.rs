@@ -1,0 +1,291 @@
+//! The result of the scene analysis: the light-transport effects a scene contains
+//! ([`EffectKind`], [`Effect`]), the integrator chosen for them ([`PlannedIntegrator`]) and
+//! the whole plan with its reasons ([`RenderPlan`]), with its text and JSON forms.
+//!
+//! Plain data: this file depends on nothing else in the analysis nor on the scene.
+
+use std::fmt;
+
+/// A light-transport effect a scene may contain.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum EffectKind {
+    /// Direct light from emissive triangles.
+    DirectArea,
+    /// Direct light from emissive spheres.
+    DirectSphere,
+    /// Direct light from point lights.
+    DirectPoint,
+    /// Direct light from spot lights.
+    DirectSpot,
+    /// Direct light from directional lights.
+    DirectDirectional,
+    /// Direct light from the environment.
+    DirectEnvironment,
+    /// Diffuse interreflection: light reaching a diffuse surface after another bounce.
+    IndirectDiffuse,
+    /// Glossy (rough, non-delta) reflection.
+    GlossyReflection,
+    /// Specular or near-specular reflection.
+    SpecularReflection,
+    /// Transmission through a dielectric interface.
+    Refraction,
+    /// Total internal reflection inside a denser medium.
+    TotalInternalReflection,
+    /// Light reaching a diffuse surface through at least one specular or near-specular
+    /// bounce.
+    Caustics,
+    /// Caustics lit by delta (point, spot, directional) or tiny lights.
+    DeltaLitCaustics,
+    /// Depth of field from a thin-lens camera.
+    DepthOfField,
+    /// Motion blur from animated transforms within the shutter.
+    Motion,
+    /// Textured materials.
+    Textures,
+}
+
+impl EffectKind {
+    /// Every kind, in the order plans list them.
+    pub const ALL: [EffectKind; 16] = [
+        Self::DirectArea,
+        Self::DirectSphere,
+        Self::DirectPoint,
+        Self::DirectSpot,
+        Self::DirectDirectional,
+        Self::DirectEnvironment,
+        Self::IndirectDiffuse,
+        Self::GlossyReflection,
+        Self::SpecularReflection,
+        Self::Refraction,
+        Self::TotalInternalReflection,
+        Self::Caustics,
+        Self::DeltaLitCaustics,
+        Self::DepthOfField,
+        Self::Motion,
+        Self::Textures,
+    ];
+
+    /// The kebab-case name used in summaries and JSON, e.g. `"direct-area"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::DirectArea => "direct-area",
+            Self::DirectSphere => "direct-sphere",
+            Self::DirectPoint => "direct-point",
+            Self::DirectSpot => "direct-spot",
+            Self::DirectDirectional => "direct-directional",
+            Self::DirectEnvironment => "direct-environment",
+            Self::IndirectDiffuse => "indirect-diffuse",
+            Self::GlossyReflection => "glossy-reflection",
+            Self::SpecularReflection => "specular-reflection",
+            Self::Refraction => "refraction",
+            Self::TotalInternalReflection => "total-internal-reflection",
+            Self::Caustics => "caustics",
+            Self::DeltaLitCaustics => "delta-lit-caustics",
+            Self::DepthOfField => "depth-of-field",
+            Self::Motion => "motion",
+            Self::Textures => "textures",
+        }
+    }
+}
+
+impl fmt::Display for EffectKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// An effect found in the scene, with the evidence for it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Effect {
+    /// What it is.
+    pub kind: EffectKind,
+    /// Why we think so, e.g. "2 emissive triangles in material 3 'light'".
+    pub evidence: String,
+}
+
+/// The integrator a plan chooses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum PlannedIntegrator {
+    /// No light: the image is black; render it immediately without tracing.
+    Black,
+    /// Direct lighting only (one bounce).
+    Direct,
+    /// Unidirectional path tracing with next-event estimation and MIS.
+    Path,
+    /// Bidirectional path tracing (for caustics lit by delta or tiny lights).
+    Bdpt,
+}
+
+impl PlannedIntegrator {
+    /// Lower-case name as the command line spells it (`black` for the empty plan).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Black => "black",
+            Self::Direct => "direct",
+            Self::Path => "path",
+            Self::Bdpt => "bdpt",
+        }
+    }
+}
+
+impl fmt::Display for PlannedIntegrator {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// The result of `analyse`: the effects in a scene and how to render exactly those.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderPlan {
+    /// Effects present, in [`EffectKind::ALL`] order, each with its evidence.
+    pub effects: Vec<Effect>,
+    /// Every effect kind not present, in [`EffectKind::ALL`] order.
+    pub absent: Vec<EffectKind>,
+    /// The integrator chosen.
+    pub integrator: PlannedIntegrator,
+    /// Maximum number of scattering events (0 for [`PlannedIntegrator::Black`]).
+    pub max_depth: u32,
+    /// Bounces before Russian roulette starts.
+    pub rr_depth: u32,
+    /// Whether camera rays sample the lens (thin-lens camera with aperture > 0).
+    pub lens_sampling: bool,
+    /// Why the integrator and its settings were chosen, and what machinery is left out.
+    pub reasons: Vec<String>,
+    /// Set when the user forced something else than the plan (e.g. `--integrator path`),
+    /// saying what and what the plan had chosen.
+    pub overridden: Option<String>,
+}
+
+impl RenderPlan {
+    /// Whether the plan found `kind`.
+    pub fn has(&self, kind: EffectKind) -> bool {
+        self.effects.iter().any(|e| e.kind == kind)
+    }
+
+    /// The evidence for `kind`, if present.
+    pub fn evidence(&self, kind: EffectKind) -> Option<&str> {
+        self.effects
+            .iter()
+            .find(|e| e.kind == kind)
+            .map(|e| e.evidence.as_str())
+    }
+
+    /// Records that the user forced `what` (e.g. "--integrator path") instead of the plan,
+    /// and what the plan had chosen.
+    pub fn set_override(&mut self, what: &str) {
+        self.overridden = Some(format!(
+            "{what} overrides the plan, which chose {}{}",
+            self.integrator,
+            match self.integrator {
+                PlannedIntegrator::Black => String::new(),
+                _ => format!(" with max depth {}", self.max_depth),
+            }
+        ));
+    }
+
+    /// Multi-line human-readable text: the integrator and its settings, the effects with
+    /// their evidence, the absent effects, the reasons, and any override.
+    pub fn summary(&self) -> String {
+        let mut s = String::new();
+        let settings = match self.integrator {
+            PlannedIntegrator::Black => "nothing to trace".to_string(),
+            _ => format!(
+                "max depth {}, Russian roulette from depth {}, {}",
+                self.max_depth,
+                self.rr_depth,
+                if self.lens_sampling {
+                    "lens sampling"
+                } else {
+                    "no lens sampling"
+                }
+            ),
+        };
+        s += &format!("render plan: {} ({settings})\n", self.integrator);
+        s += "effects:\n";
+        if self.effects.is_empty() {
+            s += "  none\n";
+        }
+        for e in &self.effects {
+            s += &format!("  {}: {}\n", e.kind, e.evidence);
+        }
+        s += &format!(
+            "absent: {}\n",
+            if self.absent.is_empty() {
+                "nothing".to_string()
+            } else {
+                self.absent
+                    .iter()
+                    .map(|k| k.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            }
+        );
+        s += "why:\n";
+        for r in &self.reasons {
+            s += &format!("  - {r}\n");
+        }
+        if let Some(o) = &self.overridden {
+            s += &format!("overridden: {o}\n");
+        }
+        s
+    }
+
+    /// The plan as one compact JSON object with a stable key order: `integrator`,
+    /// `max_depth`, `rr_depth`, `lens_sampling`, `effects` (array of `{kind, evidence}`),
+    /// `absent` (array of kinds), `reasons`, `overridden` (string or null). Kinds are the
+    /// [`EffectKind::as_str`] names. The text is pure ASCII (other characters are `\u`
+    /// escaped), so it fits Latin-1 file headers such as EXR attributes.
+    pub fn to_json(&self) -> String {
+        let strings =
+            |v: &mut dyn Iterator<Item = &str>| v.map(json_string).collect::<Vec<_>>().join(",");
+        let effects = self
+            .effects
+            .iter()
+            .map(|e| {
+                format!(
+                    "{{\"kind\":{},\"evidence\":{}}}",
+                    json_string(e.kind.as_str()),
+                    json_string(&e.evidence)
+                )
+            })
+            .collect::<Vec<_>>()
+            .join(",");
+        format!(
+            "{{\"integrator\":{},\"max_depth\":{},\"rr_depth\":{},\"lens_sampling\":{},\
+             \"effects\":[{effects}],\"absent\":[{}],\"reasons\":[{}],\"overridden\":{}}}",
+            json_string(self.integrator.as_str()),
+            self.max_depth,
+            self.rr_depth,
+            self.lens_sampling,
+            strings(&mut self.absent.iter().map(|k| k.as_str())),
+            strings(&mut self.reasons.iter().map(String::as_str)),
+            self.overridden
+                .as_deref()
+                .map_or_else(|| "null".to_string(), json_string)
+        )
+    }
+}
+
+/// A JSON string literal, ASCII only.
+fn json_string(s: &str) -> String {
+    let mut out = String::with_capacity(s.len() + 2);
+    out.push('"');
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            '\t' => out.push_str("\\t"),
+            c if (c as u32) < 0x20 || (c as u32) > 0x7e => {
+                let mut buf = [0u16; 2];
+                for unit in c.encode_utf16(&mut buf) {
+                    out.push_str(&format!("\\u{unit:04x}"));
+                }
+            }
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
