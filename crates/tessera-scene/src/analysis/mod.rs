@@ -92,7 +92,6 @@
 //! assert!(plan.has(EffectKind::IndirectDiffuse));
 //! assert_eq!(plan.integrator, PlannedIntegrator::Path);
 //! ```
-
 //!
 //! # Where each rule lives
 //!

@@ -66,6 +66,7 @@
 //! capped at [`MAX_INPUT_BYTES`] (the file, and separately the sum of its buffers and
 //! images) and the flattened output at four times that. Every error names the file and the
 //! element (node, mesh, primitive, material, accessor, buffer view, buffer, image index)
+//! that is wrong.
 //!
 //! # Where each step lives
 //!
