@@ -129,6 +129,7 @@ pub fn load_slice(
     load_bytes(bytes, name, base, camera, MAX_INPUT_BYTES)
 }
 
+/// [`load_path`] with `limit` in place of [`MAX_INPUT_BYTES`].
 fn load_path_limited(path: &Path, camera: Option<&str>, limit: u64) -> Result<Scene, SceneError> {
     let file = path.display().to_string();
     let bytes = read_capped(path, limit).map_err(|e| match e {
@@ -153,6 +154,7 @@ fn load_path_limited(path: &Path, camera: Option<&str>, limit: u64) -> Result<Sc
     load_bytes(&bytes, &file, Some(base), camera, limit)
 }
 
+/// Imports `bytes` (refused when over `limit`) under the panic guard.
 fn load_bytes(
     bytes: &[u8],
     file: &str,
@@ -209,6 +211,9 @@ fn quietly<T>(f: impl FnOnce() -> T) -> Result<T, String> {
     })
 }
 
+/// One import in progress: the document, where external files are resolved, the limits,
+/// and what has been read and converted so far. Its steps are `impl` blocks in this
+/// module's files.
 struct Importer<'a> {
     file: &'a str,
     root: json::Root,
@@ -228,9 +233,11 @@ struct Importer<'a> {
     primitives: HashMap<(usize, usize), Rc<LocalPrimitive>>,
 }
 
+/// The result of an import step.
 type Res<T> = Result<T, SceneError>;
 
 impl<'a> Importer<'a> {
+    /// An error about this file with `message`.
     fn err<T>(&self, message: impl Into<String>) -> Res<T> {
         Err(SceneError::Gltf {
             file: self.file.to_string(),
@@ -238,6 +245,8 @@ impl<'a> Importer<'a> {
         })
     }
 
+    /// Splits the container, parses the JSON, checks the document, loads the buffers, then
+    /// builds the scene.
     fn run(
         bytes: &[u8],
         file: &'a str,
