@@ -1,0 +1,202 @@
+//! Step 6: the plan decision (the module documentation's "Integrator" and "Depth" rules):
+//! the integrator, its path depth and Russian-roulette depth, and the reasons for them.
+
+use super::lights::Lights;
+use super::transport::Transport;
+use super::{
+    Effect, EffectKind, PlannedIntegrator, RenderPlan, BRIGHT_ALBEDO, CLOSED_FRACTION,
+    CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, REFRACTION_DEPTH, REFRACTION_RR_DEPTH,
+};
+use crate::Camera;
+
+/// Chooses the integrator and its settings for the effects found and assembles the plan.
+pub(super) fn plan(
+    camera: &Camera,
+    lights: &Lights,
+    transport: &Transport,
+    lens_sampling: bool,
+    mut effects: Vec<Effect>,
+) -> RenderPlan {
+    let mut reasons: Vec<String> = Vec::new();
+    let integrator = choose_integrator(lights, transport, &mut reasons);
+    let (max_depth, rr_depth) = depths(integrator, transport, &mut reasons);
+    if integrator != PlannedIntegrator::Black {
+        reasons.push(if lens_sampling {
+            format!(
+                "thin-lens camera (aperture radius {}): lens sampling on",
+                camera.aperture_radius
+            )
+        } else {
+            "pinhole camera: no lens sampling".into()
+        });
+        if transport.surfaces.refraction.is_empty() {
+            reasons.push("nothing transmits: no refraction paths".into());
+        }
+        if !transport.caustics {
+            reasons.push(if transport.surfaces.smooth_specular.is_empty() {
+                "no specular surfaces: no caustic technique".into()
+            } else {
+                "no caustics (no diffuse receiver, or nothing for light to bounce between): no \
+                 caustic technique"
+                    .into()
+            });
+        }
+    }
+    reasons.push("motion: static scene (the scene description has no animation)".into());
+    if integrator == PlannedIntegrator::Black {
+        // An empty plan: no light is transported, so no transport effect, lens or texture
+        // shows. Only the (invisible, unlit-upon) lights found stay as evidence.
+        effects.retain(|e| e.kind <= EffectKind::DirectEnvironment);
+    }
+
+    let present: Vec<EffectKind> = effects.iter().map(|e| e.kind).collect();
+    let absent = EffectKind::ALL
+        .into_iter()
+        .filter(|k| !present.contains(k))
+        .collect();
+    RenderPlan {
+        effects,
+        absent,
+        integrator,
+        max_depth,
+        rr_depth,
+        lens_sampling,
+        reasons,
+        overridden: None,
+    }
+}
+
+/// Black, direct, BDPT or path tracing, with the reason.
+fn choose_integrator(
+    lights: &Lights,
+    transport: &Transport,
+    reasons: &mut Vec<String>,
+) -> PlannedIntegrator {
+    let s = &transport.surfaces;
+    let bouncing = &transport.bouncing;
+    let more_than_direct = transport.indirect_diffuse
+        || !s.glossy.is_empty()
+        || !s.specular.is_empty()
+        || !s.refraction.is_empty();
+    if !lights.any() {
+        reasons.push("no light: the image is black".into());
+        PlannedIntegrator::Black
+    } else if !lights.visible() && s.scattering.is_empty() {
+        reasons.push(
+            "no light reaches the camera: point, spot and directional lights are invisible and \
+             no surface scatters their light; the image is black"
+                .into(),
+        );
+        PlannedIntegrator::Black
+    } else if !more_than_direct {
+        reasons.push(format!(
+            "direct lighting only: {} ({}) and nothing glossy, specular or transmissive, so no \
+             light reaches the camera after a second bounce",
+            bouncing.surfaces,
+            if bouncing.triangles + bouncing.spheres == 0 {
+                "nothing to bounce off"
+            } else {
+                "no two of them exchange light"
+            }
+        ));
+        PlannedIntegrator::Direct
+    } else if transport.delta_lit {
+        reasons.push(
+            "bdpt: caustics lit by delta or tiny lights, which a path tracer with next-event \
+             estimation samples with zero or vanishing probability"
+                .into(),
+        );
+        reasons.push(
+            "bdpt light-traces onto the film: one whole-frame tile, units split by passes".into(),
+        );
+        PlannedIntegrator::Bdpt
+    } else {
+        path_reasons(transport, reasons);
+        PlannedIntegrator::Path
+    }
+}
+
+/// Why path tracing: the effects that need more than one bounce.
+fn path_reasons(transport: &Transport, reasons: &mut Vec<String>) {
+    let s = &transport.surfaces;
+    let mut why: Vec<&str> = Vec::new();
+    if transport.indirect_diffuse {
+        why.push("indirect diffuse");
+    }
+    if !s.glossy.is_empty() {
+        why.push("glossy reflection");
+    }
+    if !s.specular.is_empty() {
+        why.push("specular reflection");
+    }
+    if !s.refraction.is_empty() {
+        why.push("refraction");
+    }
+    reasons.push(format!(
+        "path tracing with next-event estimation and MIS: more than one bounce for {}",
+        why.join(", ")
+    ));
+    if transport.caustics {
+        reasons.push(
+            "the caustics are lit only by finite lights: path tracing finds them by BSDF \
+             sampling, no bidirectional technique needed"
+                .into(),
+        );
+    }
+}
+
+/// `(max_depth, rr_depth)` for `integrator`, with the reasons.
+fn depths(
+    integrator: PlannedIntegrator,
+    transport: &Transport,
+    reasons: &mut Vec<String>,
+) -> (u32, u32) {
+    let (mean_albedo, enclosure) = (transport.mean_albedo, transport.enclosure);
+    match integrator {
+        PlannedIntegrator::Black => (0, 0),
+        PlannedIntegrator::Direct => {
+            reasons.push("max depth 1: one scattering event".into());
+            (1, DEFAULT_RR_DEPTH)
+        }
+        PlannedIntegrator::Path | PlannedIntegrator::Bdpt => {
+            let closed_bright = transport.indirect_diffuse
+                && mean_albedo > BRIGHT_ALBEDO
+                && enclosure >= CLOSED_FRACTION;
+            let mut depth = if closed_bright {
+                reasons.push(format!(
+                    "max depth {CLOSED_ROOM_DEPTH}: a closed bright room (diffuse albedo \
+                     {mean_albedo:.2} > {BRIGHT_ALBEDO}, surfaces cover {:.0}% >= {:.0}% of the \
+                     bounding box) keeps light bouncing",
+                    100.0 * enclosure,
+                    100.0 * CLOSED_FRACTION
+                ));
+                CLOSED_ROOM_DEPTH
+            } else {
+                reasons.push(format!(
+                    "max depth {DEFAULT_DEPTH}: not a closed bright room (diffuse albedo \
+                     {mean_albedo:.2}, surfaces cover {:.0}% of the bounding box)",
+                    100.0 * enclosure
+                ));
+                DEFAULT_DEPTH
+            };
+            let mut rr = DEFAULT_RR_DEPTH;
+            if !transport.surfaces.refraction.is_empty() {
+                if depth < REFRACTION_DEPTH {
+                    reasons.push(format!(
+                        "max depth raised to {REFRACTION_DEPTH}: light needs several \
+                         interfaces to pass through glass"
+                    ));
+                    depth = REFRACTION_DEPTH;
+                }
+                rr = REFRACTION_RR_DEPTH;
+                reasons.push(format!(
+                    "Russian roulette from depth {rr}: paths through glass need their first \
+                     bounces"
+                ));
+            } else {
+                reasons.push(format!("Russian roulette from depth {rr}"));
+            }
+            (depth, rr)
+        }
+    }
+}

@@ -1,0 +1,157 @@
+//! Scene analysis: which light-transport effects a scene contains, and the render plan
+//! that simulates exactly those (DESIGN §4, "simulate only what the scene calls for").
+//!
+//! [`analyse`] looks at the lights, the materials that surfaces actually use, the shape of
+//! the geometry and the camera, and returns a [`RenderPlan`]: the [`Effect`]s present, each
+//! with its evidence, the [`EffectKind`]s that are absent, and the integrator with the path
+//! depth and Russian-roulette settings chosen for exactly those effects, with the reasons.
+//!
+//! # The rules (this is the contract)
+//!
+//! **Lights.** A light counts only if it has positive power:
+//! - area lights: emissive triangles (emission > 0, area > 0), grouped by material
+//!   ([`EffectKind::DirectArea`]);
+//! - sphere lights: spheres with an emissive material ([`EffectKind::DirectSphere`]);
+//! - point, spot and directional lights: [`PunctualLight`]s with positive intensity or
+//!   irradiance (a spot also needs an outer cone angle > 0) ([`EffectKind::DirectPoint`],
+//!   [`EffectKind::DirectSpot`], [`EffectKind::DirectDirectional`]);
+//! - the environment: [`Scene::environment`] with positive radiance
+//!   ([`EffectKind::DirectEnvironment`]).
+//!
+//! With no light the plan is [`PlannedIntegrator::Black`], reason "no light: the image is
+//! black", and the renderer skips tracing. The same holds when the only lights are point,
+//! spot or directional lights (which the camera cannot see) and no surface scatters light.
+//! A black plan is empty: it lists no effect besides the lights found.
+//!
+//! **Surfaces.** Only materials used by a mesh with triangles or by a sphere count. A
+//! material *scatters* unless every layer below is absent (an emitter with zero albedo is
+//! a light and nothing else). The classes of each material:
+//! - `Diffuse`: diffuse (if the albedo is > 0);
+//! - `Phong`: glossy if `ks > 0`, diffuse if `kd > 0`;
+//! - `Conductor`: specular if roughness < [`SPECULAR_ROUGHNESS`], glossy otherwise;
+//! - `Mirror`: specular (if the reflectance is > 0);
+//! - `Dielectric`: refraction (if the tint is > 0; *smooth* refraction if roughness <
+//!   [`SPECULAR_ROUGHNESS`]); with `ior != 1` also a Fresnel reflection (specular or
+//!   glossy by roughness) and total internal reflection;
+//! - `MetallicRoughness` (glTF), by layer weight:
+//!   - the metal (`metallic > 0` and a base colour above 0) is a conductor as above;
+//!   - the dielectric base (weight `(1 - metallic)(1 - transmission)` above 0) is diffuse
+//!     if the base colour is above 0, under a Fresnel coat (if `ior > 1`) that counts as
+//!     specular if roughness < [`SPECULAR_ROUGHNESS`], glossy if roughness <
+//!     [`DIFFUSE_LIKE_ROUGHNESS`], and not at all above that (a roughness-1 dielectric
+//!     coat is basically diffuse, so a plain glTF wall is "diffuse");
+//!   - the transmissive part (weight `(1 - metallic) transmission` above 0) refracts
+//!     (smoothly if roughness < [`SPECULAR_ROUGHNESS`]) under a Fresnel reflection (if
+//!     `ior > 1`, specular or glossy by roughness), with total internal reflection if
+//!     `ior > 1`.
+//!
+//! [`EffectKind::GlossyReflection`], [`EffectKind::SpecularReflection`],
+//! [`EffectKind::Refraction`] and [`EffectKind::TotalInternalReflection`] are present when
+//! some used, scattering material has that class.
+//!
+//! **Light bouncing between surfaces.** The scattering primitives are the spheres and the
+//! triangles whose material scatters. Light can scatter more than once (a *multi-bounce*
+//! scene) unless the scattering geometry is a single plane (all scattering triangles
+//! coplanar and no scattering sphere) or a single sphere seen and lit only from outside.
+//! A non-planar mesh counts as multi-bounce even if it is convex: the analysis errs on the
+//! side of simulating more, never less.
+//! - [`EffectKind::IndirectDiffuse`]: multi-bounce and some material is diffuse.
+//! - [`EffectKind::Caustics`]: multi-bounce, some material is specular or refracts
+//!   smoothly (a mirror, smooth glass, smooth metal: roughness < [`SPECULAR_ROUGHNESS`]),
+//!   some material is diffuse, and there is a light.
+//! - [`EffectKind::DeltaLitCaustics`]: caustics, and at least one point, spot or
+//!   directional light, or a tiny sphere or area light (bounding radius below
+//!   [`TINY_LIGHT_FRACTION`] of the scene's bounding radius): light a path tracer with
+//!   next-event estimation reaches through a specular chain with zero (or almost zero)
+//!   probability.
+//!
+//! **Camera, motion, textures.** [`EffectKind::DepthOfField`] iff the camera aperture
+//! radius is > 0, and then `lens_sampling` is on; [`EffectKind::Motion`] is always absent
+//! (the scene description has no animation data: a static scene);
+//! [`EffectKind::Textures`] iff a used material has a base-colour texture.
+//!
+//! **Integrator.**
+//! - [`PlannedIntegrator::Black`] if there is no light (see above);
+//! - [`PlannedIntegrator::Direct`] if nothing can bounce light to the camera a second
+//!   time: no indirect diffuse and nothing glossy, specular or refractive (e.g. a single
+//!   plane under a light);
+//! - [`PlannedIntegrator::Bdpt`] if there are delta-lit caustics;
+//! - [`PlannedIntegrator::Path`] otherwise.
+//!
+//! **Depth.** `Direct`: `max_depth` 1. `Path`/`Bdpt`: [`CLOSED_ROOM_DEPTH`] for a *closed
+//! bright room* — indirect diffuse, an area-weighted mean diffuse albedo above
+//! [`BRIGHT_ALBEDO`] and scattering surfaces whose area is at least [`CLOSED_FRACTION`] of
+//! the surface of the scene's bounding box — else [`DEFAULT_DEPTH`]; with refraction at
+//! least [`REFRACTION_DEPTH`] (light needs several interfaces to pass through glass).
+//! `rr_depth` is [`DEFAULT_RR_DEPTH`], or [`REFRACTION_RR_DEPTH`] with refraction. `Black`
+//! has depth 0: nothing is traced.
+//!
+//! ```
+//! use tessera_scene::analysis::{analyse, EffectKind, PlannedIntegrator};
+//! let plan = analyse(&tessera_scene::load("builtin:cornell-box").unwrap());
+//! assert!(plan.has(EffectKind::IndirectDiffuse));
+//! assert_eq!(plan.integrator, PlannedIntegrator::Path);
+//! ```
+//!
+//! # Where each rule lives
+//!
+//! [`analyse`] runs the steps in order, each in its own module: `classify` (the classes of
+//! each material), `survey` (used materials, their areas, the scene's extent), `lights`
+//! (the "Lights" rule), `transport` (the "Surfaces" and "Light bouncing between surfaces"
+//! rules), `appearance` (depth of field and textures) and `decide` (the "Integrator" and
+//! "Depth" rules). The result types are the job contract's ([`tessera_farm::job::plan`]),
+//! which depends on none of them.
+
+mod appearance;
+mod classify;
+mod decide;
+mod evidence;
+mod lights;
+mod survey;
+mod transport;
+
+pub use tessera_farm::job::plan::{Effect, EffectKind, PlannedIntegrator, RenderPlan};
+
+#[cfg(doc)]
+use crate::PunctualLight;
+use crate::Scene;
+
+/// Roughness below which a reflection or refraction counts as specular (near-delta).
+pub const SPECULAR_ROUGHNESS: f32 = 0.05;
+/// Roughness from which the Fresnel coat of a glTF dielectric base counts as part of the
+/// diffuse lobe rather than as glossy reflection.
+pub const DIFFUSE_LIKE_ROUGHNESS: f32 = 0.9;
+/// A sphere or area light whose bounding radius is below this fraction of the scene's
+/// bounding radius is "tiny": for caustics it behaves like a point light.
+pub const TINY_LIGHT_FRACTION: f32 = 0.01;
+/// Area-weighted mean diffuse albedo above which a room is "bright".
+pub const BRIGHT_ALBEDO: f32 = 0.5;
+/// Fraction of the bounding box's surface that scattering surfaces must cover for the
+/// scene to count as a closed room.
+pub const CLOSED_FRACTION: f32 = 0.75;
+/// Path depth of a closed bright room.
+pub const CLOSED_ROOM_DEPTH: u32 = 16;
+/// Path depth otherwise.
+pub const DEFAULT_DEPTH: u32 = 8;
+/// Minimum path depth when something refracts.
+pub const REFRACTION_DEPTH: u32 = 12;
+/// Russian roulette start depth by default.
+pub const DEFAULT_RR_DEPTH: u32 = 3;
+/// Russian roulette start depth when something refracts.
+pub const REFRACTION_RR_DEPTH: u32 = 5;
+
+/// Analyses `scene` into a render plan, following the rules in the module documentation.
+pub fn analyse(scene: &Scene) -> RenderPlan {
+    let survey = survey::Survey::new(scene);
+    let mut effects: Vec<Effect> = Vec::new();
+    let lights = lights::find(scene);
+    lights::report(&lights, &survey, &mut effects);
+    let transport = transport::analyse(&survey, &lights, &mut effects);
+    let lens_sampling = appearance::report(&survey, &mut effects);
+    decide::plan(&scene.camera, &lights, &transport, lens_sampling, effects)
+}
+
+/// Records an effect with its evidence.
+fn push(effects: &mut Vec<Effect>, kind: EffectKind, evidence: String) {
+    effects.push(Effect { kind, evidence });
+}

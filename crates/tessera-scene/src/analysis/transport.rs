@@ -1,0 +1,369 @@
+//! Step 4: light bouncing between surfaces (the module documentation's "Surfaces" and
+//! "Light bouncing between surfaces" rules): which used materials scatter and how, whether
+//! light can scatter more than once, indirect diffuse light, glossy and specular
+//! reflection, refraction, total internal reflection and caustics.
+
+use super::classify::Classes;
+use super::evidence::{material_list, plural, verb};
+use super::lights::Lights;
+use super::survey::Survey;
+use super::{push, Effect, EffectKind, CLOSED_FRACTION, SPECULAR_ROUGHNESS, TINY_LIGHT_FRACTION};
+use crate::{PunctualLight, Sphere};
+use glam::Vec3;
+
+/// The used, scattering materials, by class (material indices in order).
+pub(super) struct Surfaces {
+    /// Every used material that scatters.
+    pub(super) scattering: Vec<usize>,
+    /// Those with a diffuse layer.
+    pub(super) diffuse: Vec<usize>,
+    /// Those with a glossy reflection.
+    pub(super) glossy: Vec<usize>,
+    /// Those with a specular reflection.
+    pub(super) specular: Vec<usize>,
+    /// Those that refract.
+    pub(super) refraction: Vec<usize>,
+    /// Those that reflect specularly or refract smoothly.
+    pub(super) smooth_specular: Vec<usize>,
+    /// Those with total internal reflection.
+    pub(super) tir: Vec<usize>,
+}
+
+impl Surfaces {
+    fn of(survey: &Survey) -> Self {
+        let scattering: Vec<usize> = (0..survey.nmat()).filter(|&i| survey.scatters(i)).collect();
+        let with = |f: fn(&Classes) -> bool| -> Vec<usize> {
+            scattering
+                .iter()
+                .copied()
+                .filter(|&i| f(&survey.classes[i]))
+                .collect()
+        };
+        Self {
+            diffuse: with(|c| c.diffuse),
+            glossy: with(|c| c.glossy),
+            specular: with(|c| c.specular),
+            refraction: with(|c| c.refraction),
+            smooth_specular: with(|c| c.specular || c.smooth_refraction),
+            tir: with(|c| c.tir),
+            scattering,
+        }
+    }
+}
+
+/// Whether light can scatter more than once, and the scattering primitives.
+pub(super) struct Bouncing {
+    /// Number of spheres whose material scatters.
+    pub(super) spheres: usize,
+    /// Number of triangles whose material scatters.
+    pub(super) triangles: usize,
+    /// Light can scatter more than once.
+    pub(super) multi_bounce: bool,
+    /// "N scattering surfaces" (meshes and spheres), for evidence and reasons.
+    pub(super) surfaces: String,
+}
+
+/// What the transport step found, for the plan decision.
+pub(super) struct Transport {
+    /// The scattering materials by class.
+    pub(super) surfaces: Surfaces,
+    /// Whether light bounces between surfaces.
+    pub(super) bouncing: Bouncing,
+    /// Area-weighted mean diffuse albedo.
+    pub(super) mean_albedo: f32,
+    /// Scattering area over the bounding box's surface area.
+    pub(super) enclosure: f32,
+    /// [`EffectKind::IndirectDiffuse`] is present.
+    pub(super) indirect_diffuse: bool,
+    /// [`EffectKind::Caustics`] is present.
+    pub(super) caustics: bool,
+    /// [`EffectKind::DeltaLitCaustics`] is present.
+    pub(super) delta_lit: bool,
+}
+
+/// Finds the transport effects, records them with their evidence, and returns what the
+/// plan decision needs.
+pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>) -> Transport {
+    let surfaces = Surfaces::of(survey);
+    let bouncing = bouncing(survey, lights);
+    let (mean_albedo, enclosure) = albedo_and_enclosure(survey, &surfaces);
+    let indirect_diffuse = bouncing.multi_bounce && !surfaces.diffuse.is_empty();
+    if indirect_diffuse {
+        let closed = if enclosure >= CLOSED_FRACTION {
+            "closed"
+        } else {
+            "open"
+        };
+        push(
+            effects,
+            EffectKind::IndirectDiffuse,
+            format!(
+                "diffuse {} among {} that can exchange light; area-weighted diffuse \
+                 albedo {mean_albedo:.2}; scattering surfaces cover {:.0}% of the bounding box \
+                 ({closed})",
+                material_list(survey.scene, &surfaces.diffuse, &survey.classes, false),
+                bouncing.surfaces,
+                100.0 * enclosure
+            ),
+        );
+    }
+    report_reflection(survey, &surfaces, effects);
+    let caustics = lights.any()
+        && bouncing.multi_bounce
+        && !surfaces.smooth_specular.is_empty()
+        && !surfaces.diffuse.is_empty();
+    if caustics {
+        push(
+            effects,
+            EffectKind::Caustics,
+            format!(
+                "light can reach diffuse {} through specular {}",
+                material_list(survey.scene, &surfaces.diffuse, &survey.classes, false),
+                material_list(
+                    survey.scene,
+                    &surfaces.smooth_specular,
+                    &survey.classes,
+                    false
+                )
+            ),
+        );
+    }
+    let delta_lit = caustics && report_delta_lit(survey, lights, effects);
+    Transport {
+        surfaces,
+        bouncing,
+        mean_albedo,
+        enclosure,
+        indirect_diffuse,
+        caustics,
+        delta_lit,
+    }
+}
+
+/// Multi-bounce: is the scattering geometry more than one plane or one convex sphere?
+fn bouncing(survey: &Survey, lights: &Lights) -> Bouncing {
+    let scene = survey.scene;
+    let scattering_spheres: Vec<&Sphere> = scene
+        .spheres
+        .iter()
+        .filter(|s| survey.scatters(s.material as usize))
+        .collect();
+    let (scattering_triangles, coplanar) = scattering_triangles(survey);
+    let scattering_meshes = scene
+        .meshes
+        .iter()
+        .filter(|m| !m.indices.is_empty() && survey.scatters(m.material as usize))
+        .count();
+    let multi_bounce = match (scattering_spheres.len(), scattering_triangles) {
+        (0, _) => !coplanar,
+        (1, 0) => sphere_contains_camera_or_light(survey, lights, scattering_spheres[0]),
+        _ => true,
+    };
+    let surfaces = plural(
+        scattering_meshes + scattering_spheres.len(),
+        "scattering surface",
+        "scattering surfaces",
+    );
+    Bouncing {
+        spheres: scattering_spheres.len(),
+        triangles: scattering_triangles,
+        multi_bounce,
+        surfaces,
+    }
+}
+
+/// The number of triangles whose material scatters, and whether they are all coplanar.
+fn scattering_triangles(survey: &Survey) -> (usize, bool) {
+    let mut scattering_triangles = 0usize;
+    let mut plane: Option<(Vec3, f32)> = None;
+    let mut coplanar = true;
+    let eps = 1e-4 * survey.scene_radius;
+    for mesh in survey
+        .scene
+        .meshes
+        .iter()
+        .filter(|m| survey.scatters(m.material as usize))
+    {
+        for t in &mesh.indices {
+            let p = t.map(|i| mesh.positions[i as usize]);
+            scattering_triangles += 1;
+            if !coplanar {
+                continue;
+            }
+            match plane {
+                None => {
+                    let n = (p[1] - p[0]).cross(p[2] - p[0]);
+                    if n.length() > 0.0 {
+                        let n = n.normalize();
+                        plane = Some((n, n.dot(p[0])));
+                    }
+                }
+                Some((n, d)) => {
+                    if p.iter().any(|v| (n.dot(*v) - d).abs() > eps) {
+                        coplanar = false;
+                    }
+                }
+            }
+        }
+    }
+    (scattering_triangles, coplanar)
+}
+
+/// A sphere is convex: light scatters off it once unless the camera or a light is inside
+/// it.
+fn sphere_contains_camera_or_light(survey: &Survey, lights: &Lights, s: &Sphere) -> bool {
+    let scene = survey.scene;
+    let camera_pos = scene.camera.world_from_camera.w_axis.truncate();
+    let inside = |p: Vec3| (p - s.center).length() < s.radius;
+    inside(camera_pos)
+        || scene.lights.iter().any(|l| match l {
+            PunctualLight::Point { position, .. } | PunctualLight::Spot { position, .. } => {
+                inside(*position)
+            }
+            PunctualLight::Directional { .. } => false,
+        })
+        || lights.spheres.iter().any(|(_, l)| inside(l.center))
+        || lights
+            .area
+            .iter()
+            .any(|a| inside(0.5 * (a.bounds.lo + a.bounds.hi)))
+}
+
+/// Area-weighted diffuse albedo, and the enclosure: the scattering area over the surface
+/// area of the geometry's bounding box.
+fn albedo_and_enclosure(survey: &Survey, surfaces: &Surfaces) -> (f32, f32) {
+    let area_by_material = &survey.area_by_material;
+    let (mut albedo_sum, mut diffuse_area) = (0.0f32, 0.0f32);
+    for &i in &surfaces.diffuse {
+        albedo_sum += survey.classes[i].diffuse_albedo * area_by_material[i];
+        diffuse_area += area_by_material[i];
+    }
+    let mean_albedo = if diffuse_area > 0.0 {
+        albedo_sum / diffuse_area
+    } else {
+        0.0
+    };
+    let scattering_area: f32 = surfaces
+        .scattering
+        .iter()
+        .map(|&i| area_by_material[i])
+        .sum();
+    let box_area = survey.geometry.surface_area();
+    let enclosure = if box_area > 0.0 {
+        scattering_area / box_area
+    } else {
+        0.0
+    };
+    (mean_albedo, enclosure)
+}
+
+/// Records glossy and specular reflection, refraction and total internal reflection.
+fn report_reflection(survey: &Survey, surfaces: &Surfaces, effects: &mut Vec<Effect>) {
+    let list =
+        |indices: &[usize], detail| material_list(survey.scene, indices, &survey.classes, detail);
+    let Surfaces {
+        glossy,
+        specular,
+        refraction,
+        tir,
+        ..
+    } = surfaces;
+    if !glossy.is_empty() {
+        push(
+            effects,
+            EffectKind::GlossyReflection,
+            format!(
+                "{} {} glossily",
+                list(glossy, true),
+                verb("reflect", glossy.len())
+            ),
+        );
+    }
+    if !specular.is_empty() {
+        push(
+            effects,
+            EffectKind::SpecularReflection,
+            format!(
+                "{} {} specularly (roughness < {SPECULAR_ROUGHNESS})",
+                list(specular, true),
+                verb("reflect", specular.len())
+            ),
+        );
+    }
+    if !refraction.is_empty() {
+        push(
+            effects,
+            EffectKind::Refraction,
+            format!(
+                "{} {}",
+                list(refraction, true),
+                verb("transmit", refraction.len())
+            ),
+        );
+    }
+    if !tir.is_empty() {
+        push(
+            effects,
+            EffectKind::TotalInternalReflection,
+            format!(
+                "{} can trap light by total internal reflection (ior != 1)",
+                list(tir, false)
+            ),
+        );
+    }
+}
+
+/// For a scene with caustics: records [`EffectKind::DeltaLitCaustics`] if delta or tiny
+/// lights light them, and returns whether it did.
+fn report_delta_lit(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>) -> bool {
+    let scene_radius = survey.scene_radius;
+    let mut delta_evidence: Vec<String> = Vec::new();
+    if lights.points > 0 {
+        delta_evidence.push(plural(lights.points, "point light", "point lights"));
+    }
+    if lights.spots > 0 {
+        delta_evidence.push(plural(lights.spots, "spot light", "spot lights"));
+    }
+    if lights.directionals > 0 {
+        delta_evidence.push(plural(
+            lights.directionals,
+            "directional light",
+            "directional lights",
+        ));
+    }
+    let tiny = TINY_LIGHT_FRACTION * scene_radius;
+    for (i, s) in &lights.spheres {
+        if s.radius < tiny {
+            delta_evidence.push(format!(
+                "sphere light {i} of radius {} ({:.2}% of the scene radius {:.2})",
+                s.radius,
+                100.0 * s.radius / scene_radius,
+                scene_radius
+            ));
+        }
+    }
+    for a in &lights.area {
+        let r = a.bounds.radius();
+        if r < tiny {
+            delta_evidence.push(format!(
+                "area light of {} of radius {r} ({:.2}% of the scene radius {:.2})",
+                material_list(survey.scene, &[a.material], &survey.classes, false),
+                100.0 * r / scene_radius,
+                scene_radius
+            ));
+        }
+    }
+    let delta_lit = !delta_evidence.is_empty();
+    if delta_lit {
+        push(
+            effects,
+            EffectKind::DeltaLitCaustics,
+            format!(
+                "the caustics are lit by {}: next-event estimation cannot connect through a \
+                 specular chain to them",
+                delta_evidence.join(", ")
+            ),
+        );
+    }
+    delta_lit
+}

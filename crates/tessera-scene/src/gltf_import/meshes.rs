@@ -1,0 +1,205 @@
+//! Step 5, meshes (spec "Meshes"): each `TRIANGLES` primitive read once in its mesh's
+//! local space, then instanced in world space at every node that uses the mesh.
+
+use super::{Importer, Res};
+use crate::Mesh;
+use glam::{DMat3, DMat4, Vec2, Vec3};
+use gltf::json;
+use json::validation::Checked;
+use std::rc::Rc;
+
+/// Mesh data of one primitive in its mesh's local space, shared by every node instancing it.
+pub(super) struct LocalPrimitive {
+    positions: Vec<Vec3>,
+    normals: Option<Vec<Vec3>>,
+    uvs: Option<Vec<Vec2>>,
+    triangles: Vec<[u32; 3]>,
+    material: u32,
+}
+
+impl Importer<'_> {
+    /// Reads primitive `pi` of mesh `mi` in local space (cached across instances).
+    fn local_primitive(&mut self, mi: usize, pi: usize) -> Res<Rc<LocalPrimitive>> {
+        if let Some(p) = self.primitives.get(&(mi, pi)) {
+            return Ok(p.clone());
+        }
+        let mesh = &self.root.meshes[mi];
+        let prim = &mesh.primitives[pi];
+        let what = prim_name(mi, mesh, pi);
+        match prim.mode {
+            Checked::Valid(json::mesh::Mode::Triangles) => {}
+            Checked::Valid(mode) => {
+                return self.err(format!(
+                    "{what}: primitive mode {mode:?} is not supported (only TRIANGLES)"
+                ))
+            }
+            Checked::Invalid => return self.err(format!("{what}: invalid primitive mode")),
+        }
+        let attribute = |s: json::mesh::Semantic| prim.attributes.get(&Checked::Valid(s)).copied();
+        let Some(pos) = attribute(json::mesh::Semantic::Positions) else {
+            return self.err(format!("{what} has no POSITION attribute"));
+        };
+        let material = match prim.material {
+            Some(m) => m.value() as u32,
+            None => {
+                self.default_material_used = true;
+                self.root.materials.len() as u32
+            }
+        };
+        let uv_set = prim
+            .material
+            .and_then(|m| self.material_uv_set.get(m.value()).copied())
+            .unwrap_or(0);
+        let normal_acc = attribute(json::mesh::Semantic::Normals);
+        let uv_acc = attribute(json::mesh::Semantic::TexCoords(uv_set));
+        let index_acc = prim.indices;
+
+        let positions: Vec<Vec3> = self
+            .read_floats::<3>(pos.value(), &format!("{what} POSITION"))?
+            .into_iter()
+            .map(Vec3::from)
+            .collect();
+        let n = positions.len();
+        let normals = match normal_acc {
+            Some(a) => {
+                let v = self.read_floats::<3>(a.value(), &format!("{what} NORMAL"))?;
+                if v.len() != n {
+                    return self.err(format!(
+                        "{what}: NORMAL has {} elements but POSITION has {n}",
+                        v.len()
+                    ));
+                }
+                Some(v.into_iter().map(Vec3::from).collect())
+            }
+            None => None,
+        };
+        let uvs = match uv_acc {
+            Some(a) => {
+                let v = self.read_floats::<2>(a.value(), &format!("{what} TEXCOORD_{uv_set}"))?;
+                if v.len() != n {
+                    return self.err(format!(
+                        "{what}: TEXCOORD_{uv_set} has {} elements but POSITION has {n}",
+                        v.len()
+                    ));
+                }
+                Some(v.into_iter().map(Vec2::from).collect())
+            }
+            None => None,
+        };
+        let triangles = self.read_triangles(index_acc, n, &what)?;
+        let p = Rc::new(LocalPrimitive {
+            positions,
+            normals,
+            uvs,
+            triangles,
+            material,
+        });
+        self.primitives.insert((mi, pi), p.clone());
+        Ok(p)
+    }
+
+    /// The triangles of a primitive with `n` vertices: its index accessor, or `0..n`
+    /// without one (spec "Meshes > Overview"), checked against the vertex count.
+    fn read_triangles(
+        &self,
+        index_acc: Option<json::Index<json::Accessor>>,
+        n: usize,
+        what: &str,
+    ) -> Res<Vec<[u32; 3]>> {
+        let indices: Vec<u32> = match index_acc {
+            Some(a) => {
+                let ai = a.value();
+                let idx = self.read_indices(ai, &format!("{what} indices"))?;
+                if let Some(k) = idx.iter().position(|&i| i as usize >= n) {
+                    return self.err(format!(
+                        "{what}: index accessor {ai} element {k} = {} is past the {n} vertices",
+                        idx[k]
+                    ));
+                }
+                idx
+            }
+            None => {
+                if n > u32::MAX as usize {
+                    return self.err(format!("{what}: too many vertices"));
+                }
+                (0..n as u32).collect()
+            }
+        };
+        if !indices.len().is_multiple_of(3) {
+            return self.err(format!(
+                "{what}: {} indices is not a multiple of 3 (mode TRIANGLES)",
+                indices.len()
+            ));
+        }
+        Ok(indices
+            .chunks_exact(3)
+            .map(|t| [t[0], t[1], t[2]])
+            .collect())
+    }
+
+    /// Appends one world-space [`Mesh`] per primitive of mesh `mi` placed at node `ni`.
+    pub(super) fn instance_mesh(
+        &mut self,
+        ni: usize,
+        mi: usize,
+        world: &DMat4,
+        out: &mut Vec<Mesh>,
+    ) -> Res<()> {
+        let Some(mesh) = self.root.meshes.get(mi) else {
+            return self.err(format!(
+                "node {ni} refers to mesh {mi}, but there are only {}",
+                self.root.meshes.len()
+            ));
+        };
+        let linear = DMat3::from_mat4(*world);
+        let det = linear.determinant();
+        let normal_matrix = linear.inverse().transpose();
+        for pi in 0..mesh.primitives.len() {
+            let name = prim_name(mi, &self.root.meshes[mi], pi);
+            let local = self.local_primitive(mi, pi)?;
+            let bytes = local.positions.len() as u64 * 32 + local.triangles.len() as u64 * 12;
+            self.add_output(bytes, &format!("node {ni} {name}"))?;
+            let positions: Vec<Vec3> = local
+                .positions
+                .iter()
+                .map(|p| world.transform_point3(p.as_dvec3()).as_vec3())
+                .collect();
+            if let Some(v) = positions.iter().position(|p| !p.is_finite()) {
+                return self.err(format!(
+                    "node {ni} {name}: vertex {v} is not finite in world space"
+                ));
+            }
+            let normals = local.normals.as_ref().and_then(|ns| {
+                ns.iter()
+                    .map(|n| {
+                        let w = (normal_matrix * n.as_dvec3()).normalize_or_zero().as_vec3();
+                        (w.is_finite() && w != Vec3::ZERO).then_some(w)
+                    })
+                    .collect::<Option<Vec<Vec3>>>()
+            });
+            // Spec "Meshes > Overview": a negative determinant makes the winding clockwise.
+            let triangles = if det < 0.0 {
+                local.triangles.iter().map(|&[a, b, c]| [a, c, b]).collect()
+            } else {
+                local.triangles.clone()
+            };
+            out.push(Mesh {
+                name,
+                positions,
+                normals,
+                uvs: local.uvs.clone(),
+                indices: triangles,
+                material: local.material,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// `mesh M 'Name' primitive P` (or `mesh M primitive P` when the mesh is unnamed).
+pub(super) fn prim_name(mi: usize, mesh: &json::Mesh, pi: usize) -> String {
+    match &mesh.name {
+        Some(n) => format!("mesh {mi} '{n}' primitive {pi}"),
+        None => format!("mesh {mi} primitive {pi}"),
+    }
+}

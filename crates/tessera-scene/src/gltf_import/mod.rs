@@ -1,0 +1,368 @@
+//! glTF 2.0 import: `.gltf` (external files or `data:` URIs) and `.glb`, flattened into a
+//! world-space [`Scene`].
+//!
+//! References are to the glTF 2.0 specification (Khronos, version 2.0.1) by section title,
+//! and to the Khronos extension specifications.
+//!
+//! # What is imported
+//!
+//! - **Scene graph** (spec "Scenes", "Nodes and Hierarchy", "Transformations"): the default
+//!   scene (`scene`), else scene 0, else every node that is nobody's child. Node transforms
+//!   (`matrix`, or `translation * rotation * scale`) are accumulated from the roots down; the
+//!   hierarchy must be a forest of strict trees, so a node reachable twice (or a cycle) is an
+//!   error. Skins, morph targets and animations are ignored (the rest pose is rendered).
+//! - **Geometry** (spec "Meshes"): every primitive of mode `TRIANGLES` becomes one
+//!   [`Mesh`] named `mesh M 'Name' primitive P`, with positions transformed to world space,
+//!   normals transformed by the inverse transpose and renormalized, texture coordinates
+//!   (`TEXCOORD_0`, or the set the base-colour texture names in `texCoord`) and indices
+//!   (or the implicit `0..n`). When the node's world transform has a negative determinant
+//!   the winding is flipped, so triangles stay counter-clockwise seen from the front (spec
+//!   "Meshes > Overview": the determinant of the global transform defines the winding).
+//!   Other primitive modes are an error. A primitive whose transformed normals degenerate
+//!   (zero length, e.g. from a zero scale) keeps its positions and drops its normals.
+//! - **Camera** (spec "Cameras"): the first node, in depth-first order, carrying a
+//!   perspective camera, or the one whose camera name or node name equals the requested
+//!   name. `world_from_camera` is the node's world transform with scale removed (glTF
+//!   cameras look down their local -Z with +Y up). Without any camera one is synthesized
+//!   that looks down -Z from the +Z side and frames the bounding sphere of the geometry with
+//!   a 45° vertical field of view.
+//! - **Materials** (spec "Materials", "Metallic-Roughness Material", "Default Material"):
+//!   `pbrMetallicRoughness` becomes [`MaterialKind::MetallicRoughness`] with
+//!   `KHR_materials_transmission` (default 0) and `KHR_materials_ior` (default 1.5).
+//!   Emission is `emissiveFactor` x `KHR_materials_emissive_strength` (default 1),
+//!   interpreted as linear-RGB radiance in W/(m² sr). Primitives without a material use the
+//!   default material (base colour 1, metallic 1, roughness 1). Alpha modes, normal,
+//!   occlusion, emissive and metallic-roughness textures are not used.
+//! - **Textures** (spec "Textures", "Samplers", "Images"): base-colour textures are decoded
+//!   (PNG or JPEG, 8 or 16 bits, grey or colour; alpha is dropped) and converted from sRGB to
+//!   linear with the exact sRGB EOTF of IEC 61966-2-1. Row 0 is the top row of the image,
+//!   which is where glTF puts texture coordinate v = 0. A sampler wrapping with `REPEAT` or
+//!   `MIRRORED_REPEAT` in either direction (or no sampler, which defaults to repeat) gives
+//!   a repeating texture; mirroring is approximated by repetition. Only clamping in both
+//!   directions gives a clamped texture.
+//! - **Lights** (`KHR_lights_punctual`): point, spot and directional lights at their nodes'
+//!   world positions, pointing along their nodes' world -Z. The extension gives photometric
+//!   quantities: point and spot intensity in candela (lm/sr), directional illuminance in lux
+//!   (lm/m²). They are converted to radiometric quantities by dividing by
+//!   [`LUMINOUS_EFFICACY`] = 683 lm/W, the luminous efficacy of monochromatic 555 nm light
+//!   that defines the candela (SI brochure, 9th edition, section 2.3.1). So
+//!   `intensity [W/sr] = color * intensity [cd] / 683` and
+//!   `irradiance [W/m²] = color * illuminance [lx] / 683`, per linear-RGB channel (see
+//!   [`photometric_to_radiometric`]). This treats each RGB channel as if it had the
+//!   efficacy of 555 nm light; the Blender glTF importer/exporter uses the same factor
+//!   (`PBR_WATTS_TO_LUMENS = 683`).
+//!   Spot cones default to inner 0 and outer π/4. The light `range` is ignored: lights fall
+//!   off with the physical inverse square law only (the extension allows this; `range` is a
+//!   hint for real-time culling).
+//!
+//! # Robustness
+//!
+//! No input makes the importer panic. The GLB container, buffers, buffer views, accessors,
+//! index values, node transforms and images are checked before they are used, and the
+//! whole import additionally runs under [`std::panic::catch_unwind`], so that a panic in a
+//! dependency (the `gltf` crate panics on some malformed documents) becomes a
+//! [`SceneError::Gltf`]. (This relies on the default `panic = "unwind"`.) While the import
+//! runs, the default panic message is silenced for the importing thread only. Inputs are
+//! capped at [`MAX_INPUT_BYTES`] (the file, and separately the sum of its buffers and
+//! images) and the flattened output at four times that. Every error names the file and the
+//! element (node, mesh, primitive, material, accessor, buffer view, buffer, image index)
+//! that is wrong.
+//!
+//! # Where each step lives
+//!
+//! An `Importer` holds the parsed document and what has been read so far; its steps are
+//! in one file each: `container` (`.gltf`/`.glb` parsing, document checks, buffers, `data:`
+//! URIs and external files), `accessors` (buffer views and accessors), `materials`
+//! (materials and textures), `graph` (the node hierarchy and its transforms), `meshes`,
+//! `lights` and `camera`. This file holds the public entry points, the panic guard and the
+//! order of the steps.
+
+mod accessors;
+mod camera;
+mod container;
+mod graph;
+mod lights;
+mod materials;
+mod meshes;
+
+pub use lights::{photometric_to_radiometric, LUMINOUS_EFFICACY};
+
+#[cfg(doc)]
+use crate::MaterialKind;
+use crate::{Mesh, Scene, SceneError, Texture, MAX_INPUT_BYTES};
+use camera::default_resolution;
+use container::{parse_json, read_capped, split_glb, BaseDir, ReadError};
+use gltf::json;
+use graph::Instances;
+use materials::default_material;
+use meshes::LocalPrimitive;
+use std::cell::Cell;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::rc::Rc;
+
+/// Loads a `.gltf` or `.glb` file, choosing the camera named `camera` if given.
+///
+/// External buffers and images are resolved relative to the file's directory (parent
+/// directories are allowed). Fails with [`SceneError::TooLarge`] when the file or its
+/// buffers exceed [`MAX_INPUT_BYTES`].
+pub fn load_path(path: &Path, camera: Option<&str>) -> Result<Scene, SceneError> {
+    load_path_limited(path, camera, MAX_INPUT_BYTES)
+}
+
+/// Loads a glTF document from memory; `base_dir` resolves external buffer/image URIs.
+///
+/// `bytes` is either glTF JSON or a `.glb`; `name` is used in error messages and as the
+/// scene name. Without `base_dir` only embedded data (`data:` URIs, the GLB binary chunk)
+/// is allowed. With it, external references must stay inside `base_dir` (no absolute
+/// paths, no `..`), so uploads cannot read other files.
+pub fn load_slice(
+    bytes: &[u8],
+    name: &str,
+    base_dir: Option<&Path>,
+    camera: Option<&str>,
+) -> Result<Scene, SceneError> {
+    let base = base_dir.map(|dir| BaseDir {
+        dir: dir.to_path_buf(),
+        allow_parent: false,
+    });
+    load_bytes(bytes, name, base, camera, MAX_INPUT_BYTES)
+}
+
+/// [`load_path`] with `limit` in place of [`MAX_INPUT_BYTES`].
+fn load_path_limited(path: &Path, camera: Option<&str>, limit: u64) -> Result<Scene, SceneError> {
+    let file = path.display().to_string();
+    let bytes = read_capped(path, limit).map_err(|e| match e {
+        ReadError::Io(source) => SceneError::Io {
+            path: file.clone(),
+            source,
+        },
+        ReadError::TooLarge(bytes) => SceneError::TooLarge {
+            path: file.clone(),
+            bytes,
+            limit,
+        },
+    })?;
+    let dir = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let base = BaseDir {
+        dir,
+        allow_parent: true,
+    };
+    load_bytes(&bytes, &file, Some(base), camera, limit)
+}
+
+/// Imports `bytes` (refused when over `limit`) under the panic guard.
+fn load_bytes(
+    bytes: &[u8],
+    file: &str,
+    base: Option<BaseDir>,
+    camera: Option<&str>,
+    limit: u64,
+) -> Result<Scene, SceneError> {
+    if bytes.len() as u64 > limit {
+        return Err(SceneError::TooLarge {
+            path: file.to_string(),
+            bytes: bytes.len() as u64,
+            limit,
+        });
+    }
+    let result = quietly(|| Importer::run(bytes, file, base, camera, limit));
+    match result {
+        Ok(r) => r,
+        Err(panic) => Err(SceneError::Gltf {
+            file: file.to_string(),
+            message: format!("malformed glTF made the reader fail: {panic}"),
+        }),
+    }
+}
+
+thread_local! {
+    /// Nonzero while this thread runs an import whose panics are caught.
+    static QUIET: Cell<u32> = const { Cell::new(0) };
+}
+
+/// Runs `f`, turning a panic into `Err(message)`. The default panic message is not printed
+/// for panics on this thread while `f` runs (a panic hook that defers to the previous hook
+/// otherwise is installed once per process).
+fn quietly<T>(f: impl FnOnce() -> T) -> Result<T, String> {
+    static HOOK: std::sync::Once = std::sync::Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if QUIET.try_with(|q| q.get()).unwrap_or(0) == 0 {
+                previous(info);
+            }
+        }));
+    });
+    QUIET.with(|q| q.set(q.get() + 1));
+    let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
+    QUIET.with(|q| q.set(q.get().saturating_sub(1)));
+    result.map_err(|payload| {
+        if let Some(s) = payload.downcast_ref::<&str>() {
+            (*s).to_string()
+        } else if let Some(s) = payload.downcast_ref::<String>() {
+            s.clone()
+        } else {
+            "panic".to_string()
+        }
+    })
+}
+
+/// One import in progress: the document, where external files are resolved, the limits,
+/// and what has been read and converted so far. Its steps are `impl` blocks in this
+/// module's files.
+struct Importer<'a> {
+    file: &'a str,
+    root: json::Root,
+    base: Option<BaseDir>,
+    limit: u64,
+    /// Bytes of buffers and external images read so far.
+    input_bytes: u64,
+    /// Estimated bytes of flattened output so far.
+    output_bytes: u64,
+    buffers: Vec<Vec<u8>>,
+    textures: Vec<Texture>,
+    /// (image index, repeat) -> index into `textures`.
+    texture_map: HashMap<(usize, bool), u32>,
+    /// Texture-coordinate set each material's base-colour texture reads.
+    material_uv_set: Vec<u32>,
+    default_material_used: bool,
+    primitives: HashMap<(usize, usize), Rc<LocalPrimitive>>,
+}
+
+/// The result of an import step.
+type Res<T> = Result<T, SceneError>;
+
+impl<'a> Importer<'a> {
+    /// An error about this file with `message`.
+    fn err<T>(&self, message: impl Into<String>) -> Res<T> {
+        Err(SceneError::Gltf {
+            file: self.file.to_string(),
+            message: message.into(),
+        })
+    }
+
+    /// Splits the container, parses the JSON, checks the document, loads the buffers, then
+    /// builds the scene.
+    fn run(
+        bytes: &[u8],
+        file: &'a str,
+        base: Option<BaseDir>,
+        camera: Option<&str>,
+        limit: u64,
+    ) -> Res<Scene> {
+        let gerr = |message: String| SceneError::Gltf {
+            file: file.to_string(),
+            message,
+        };
+        let (json_bytes, bin) = if bytes.starts_with(b"glTF") {
+            split_glb(bytes).map_err(gerr)?
+        } else {
+            (bytes, None)
+        };
+        let root = parse_json(json_bytes).map_err(gerr)?;
+        let mut imp = Importer {
+            file,
+            root,
+            base,
+            limit,
+            input_bytes: 0,
+            output_bytes: 0,
+            buffers: Vec::new(),
+            textures: Vec::new(),
+            texture_map: HashMap::new(),
+            material_uv_set: Vec::new(),
+            default_material_used: false,
+            primitives: HashMap::new(),
+        };
+        imp.check_document()?;
+        imp.load_buffers(bin)?;
+        imp.build(camera)
+    }
+
+    /// The steps after the container: materials and textures, the scene graph with its
+    /// meshes, lights and cameras, then the camera; the result is validated.
+    fn build(mut self, camera_name: Option<&str>) -> Res<Scene> {
+        let mut materials = self.convert_materials()?;
+        let roots = self.root_nodes()?;
+        let Instances {
+            meshes,
+            lights,
+            cameras,
+        } = self.walk(&roots)?;
+        if self.default_material_used {
+            materials.push(default_material());
+        }
+
+        let triangles: usize = meshes.iter().map(|m: &Mesh| m.indices.len()).sum();
+        if triangles == 0 && lights.is_empty() {
+            return self.err("no geometry: the scene has no triangles and no lights");
+        }
+
+        let camera = self.choose_camera(camera_name, &cameras, &meshes, &lights)?;
+        let default_resolution = default_resolution(&camera);
+        let scene = Scene {
+            name: self.file.to_string(),
+            camera,
+            meshes,
+            spheres: Vec::new(),
+            materials,
+            textures: std::mem::take(&mut self.textures),
+            lights,
+            environment: None,
+            default_resolution,
+        };
+        scene.validate()?;
+        Ok(scene)
+    }
+
+    /// Counts `bytes` of flattened output against the output budget.
+    fn add_output(&mut self, bytes: u64, what: &str) -> Res<()> {
+        self.output_bytes = self.output_bytes.saturating_add(bytes);
+        let budget = self.limit.saturating_mul(4);
+        if self.output_bytes > budget {
+            return self.err(format!(
+                "{what}: the flattened scene would need more than {budget} bytes \
+                 (too many instances or texels)"
+            ));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn inputs_over_the_limit_are_too_large() {
+        let json = br#"{"asset":{"version":"2.0"}}"#;
+        let r = load_bytes(json, "small", None, None, 10);
+        assert!(
+            matches!(r, Err(SceneError::TooLarge { bytes, limit: 10, .. }) if bytes == json.len() as u64)
+        );
+        // A buffer whose declared length exceeds the limit is refused before decoding.
+        let doc = br#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":5000,"uri":"data:application/octet-stream;base64,AAAA"}]}"#;
+        let r = load_bytes(doc, "buffers", None, None, 1000);
+        assert!(
+            matches!(
+                r,
+                Err(SceneError::TooLarge {
+                    bytes: 5000,
+                    limit: 1000,
+                    ..
+                })
+            ),
+            "{r:?}"
+        );
+    }
+
+    #[test]
+    fn panics_become_errors() {
+        let r: Result<(), String> = quietly(|| panic!("boom"));
+        assert_eq!(r.unwrap_err(), "boom");
+    }
+}
