@@ -13,7 +13,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::integrator::{IntegratorKind, MisHeuristic};
-use tessera_render::render::{render_frame, RenderSettings};
+use tessera_render::render::{render_frame, render_frame_counted, RenderSettings};
 use tessera_render::sampling::SamplerKind;
 use tessera_render::scene::RenderScene;
 use tessera_scene::analysis::{analyse, PlannedIntegrator, RenderPlan};
@@ -340,7 +340,7 @@ fn render(args: RenderArgs) -> Result<()> {
     };
     let start = Instant::now();
     let render_scene = p.render_scene.as_ref().expect("built unless black");
-    let acc = render_frame(
+    let rendered = render_frame_counted(
         render_scene,
         &p.settings,
         &p.plan,
@@ -352,6 +352,7 @@ fn render(args: RenderArgs) -> Result<()> {
             }
         },
     );
+    let acc = rendered.accumulator;
     let seconds = start.elapsed().as_secs_f64();
     if let Some(b) = bar {
         b.finish_and_clear();
@@ -378,10 +379,21 @@ fn render(args: RenderArgs) -> Result<()> {
     println!("seconds: {seconds:.3}");
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
+    print_rejected_samples(rendered.rejected_samples);
     if let Some(map) = &args.adaptive.spp_map {
         adaptive::write_spp_map(map, &image)?;
     }
     Ok(())
+}
+
+/// The summary line for samples the integrator dropped as invalid; nothing when there
+/// were none (a healthy render).
+fn print_rejected_samples(n: u64) {
+    if n > 0 {
+        println!(
+            "rejected samples: {n} (NaN, infinite or negative radiance, counted as black: a renderer bug)"
+        );
+    }
 }
 
 /// The render settings and the render plan as one JSON object for the EXR header (stable
