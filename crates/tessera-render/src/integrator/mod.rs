@@ -451,7 +451,7 @@ mod tests {
             |i, _| i != 0, // tile pixel 0 is skipped: no samples, no rejects
             |_, _, _| {
                 calls += 1;
-                if calls % 3 == 0 {
+                if calls.is_multiple_of(3) {
                     Vec3::NAN
                 } else {
                     Vec3::ONE
