@@ -91,6 +91,11 @@ pub struct JobStatus {
     /// Faulty-worker events on this job: refused results (wrong size, non-finite values)
     /// and duplicate results that differ from the merged copy.
     pub faults: u64,
+    /// Samples the renderers dropped as NaN, infinite or negative radiance, summed over
+    /// the job's accepted units (each counts as black in its pixel). 0 in a healthy
+    /// render; anything else points at a renderer bug. Absent from older servers.
+    #[serde(default)]
+    pub rejected_samples: u64,
     /// Why the job failed, when `state` is `failed`.
     #[serde(default)]
     pub error: Option<String>,
@@ -316,6 +321,7 @@ mod tests {
             created_unix_ms: 1_700_000_000_000,
             priority: 0,
             faults: 1,
+            rejected_samples: 3,
             error: None,
             plan: None,
             adaptive: "off".into(),
@@ -339,6 +345,7 @@ mod tests {
         assert_eq!(v["settings"]["mis"], "power");
         assert_eq!(v["target_error"], serde_json::Value::Null);
         assert_eq!(v["eta_seconds"], 10.0);
+        assert_eq!(v["rejected_samples"], 3);
         let list = JobList {
             jobs: vec![status(), status()],
             next_cursor: Some("41".into()),
@@ -352,8 +359,10 @@ mod tests {
         obj.remove("width");
         obj.remove("height");
         obj.remove("error");
+        obj.remove("rejected_samples");
         let s: JobStatus = serde_json::from_value(v).unwrap();
         assert_eq!((s.width, s.error), (None, None));
+        assert_eq!(s.rejected_samples, 0);
     }
 
     #[test]

@@ -158,5 +158,6 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
         "paths per second: {:.0}",
         out.paths as f64 / out.seconds.max(1e-9)
     );
+    crate::render::print_rejected_samples(out.rejected_samples);
     Ok(())
 }

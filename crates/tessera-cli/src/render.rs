@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_farm::job::{JobError, JobSettings, ResolvedJob, SceneRef, DEFAULT_MIN_PASSES};
 use tessera_farm::FrameImage;
-use tessera_render::render::render_frame;
+use tessera_render::render::render_frame_counted;
 use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
 
@@ -242,7 +242,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     });
     let start = Instant::now();
     let render_scene = p.render_scene.as_ref().expect("built unless black");
-    let acc = render_frame(
+    let rendered = render_frame_counted(
         render_scene,
         &p.resolved.config,
         &plan,
@@ -258,6 +258,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if let Some(b) = bar {
         b.finish_and_clear();
     }
+    let acc = &rendered.accumulator;
     let image = acc.image();
     tessera_image::write_image(&args.output, &image, Some(&p.resolved.metadata_json(None)))?;
     let paths = plan.width as f64 * plan.height as f64 * plan.spp() as f64;
@@ -281,10 +282,21 @@ pub fn render(args: RenderArgs) -> Result<()> {
     println!("seconds: {seconds:.3}");
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
+    print_rejected_samples(rendered.rejected_samples);
     if let Some(map) = &args.adaptive.spp_map {
         adaptive::write_spp_map(map, &image)?;
     }
     Ok(())
+}
+
+/// The summary line for samples the integrator dropped as invalid; nothing when there
+/// were none (a healthy render).
+pub fn print_rejected_samples(n: u64) {
+    if n > 0 {
+        println!(
+            "rejected samples: {n} (NaN, infinite or negative radiance, counted as black: a renderer bug)"
+        );
+    }
 }
 
 /// The render plan found no light: the image is black, and no ray is traced.

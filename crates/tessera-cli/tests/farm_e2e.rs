@@ -499,6 +499,7 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
                     pass_means,
                     render_seconds: 0.1,
                     job_id: l.job_id,
+                    rejected_samples: 0,
                 })
                 .await
                 .unwrap()

@@ -36,7 +36,7 @@ use tessera_scene::Scene;
 use crate::grpc::{now_ms, Farm, JobEntry, WorkerEntry};
 use crate::store::{
     FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, JobRecord, NewJob, SqliteStore, Store,
-    StoreError, TileCheckpointRef, UnitDigest,
+    StoreError, TileCheckpoint, UnitDigest,
 };
 
 /// Lease ids are reserved in blocks of this many (one store write per block).
@@ -107,6 +107,8 @@ pub struct JobRuntime {
     /// Per frame, per tile: (sum of squared relative errors, pixel count) of the tiles with
     /// at least two passes, kept incrementally so the image error costs O(tiles).
     tile_error: Vec<Vec<(f64, u64)>>,
+    /// Per frame, per tile: the samples its renderers rejected as invalid.
+    tile_rejected: Vec<Vec<TileRejected>>,
     last_history_ms: u64,
     /// Convergence history (also in the store).
     pub history: Vec<HistoryPoint>,
@@ -131,11 +133,53 @@ impl JobRuntime {
         (all && n > 0).then(|| (sum / n as f64).sqrt())
     }
 
+    fn rejected_samples(&self) -> u64 {
+        self.tile_rejected
+            .iter()
+            .flatten()
+            .map(TileRejected::total)
+            .sum()
+    }
+
     fn elapsed_seconds(&self, now: u64) -> f64 {
         match self.started_unix_ms {
             Some(s) => (self.finished_unix_ms.unwrap_or(now).saturating_sub(s)) as f64 / 1e3,
             None => 0.0,
         }
+    }
+}
+
+/// The samples a tile's renderers rejected as invalid (`UnitResult::rejected_samples`),
+/// kept so that a restart neither loses nor double-counts them: the count of the merged
+/// passes is checkpointed with the tile; units buffered ahead of a missing earlier pass
+/// are lost on a restart and rendered again, so their counts wait apart until they merge.
+#[derive(Debug, Clone, Default)]
+struct TileRejected {
+    /// In the merged passes (what the checkpoint stores).
+    merged: u64,
+    /// Of accepted units not merged yet: (first pass, count), non-zero counts only.
+    buffered: Vec<(u32, u64)>,
+}
+
+impl TileRejected {
+    /// Records an accepted unit starting at `first_pass` with `count` rejected samples,
+    /// the tile having `merged_passes` merged passes after it.
+    fn accept(&mut self, first_pass: u32, count: u64, merged_passes: u32) {
+        if count > 0 {
+            self.buffered.push((first_pass, count));
+        }
+        let merged = &mut self.merged;
+        self.buffered.retain(|&(pass, n)| {
+            let done = pass < merged_passes;
+            if done {
+                *merged += n;
+            }
+            !done
+        });
+    }
+
+    fn total(&self) -> u64 {
+        self.merged + self.buffered.iter().map(|b| b.1).sum::<u64>()
     }
 }
 
@@ -250,14 +294,20 @@ impl Coordinator {
             .iter()
             .map(|f| FrameAccumulator::for_frame(plan, f))
             .collect();
+        let mut tile_rejected =
+            vec![vec![TileRejected::default(); plan.tile_count() as usize]; frames.len()];
         for cp in store
             .load_tiles(rec.id, None)
             .await
             .map_err(|e| e.to_string())?
         {
-            let Some(acc) = frames.iter_mut().find(|f| f.frame() == cp.frame) else {
+            let Some(fi) = frames.iter().position(|f| f.frame() == cp.frame) else {
                 return Err(format!("checkpoint of frame {} outside the job", cp.frame));
             };
+            let acc = &mut frames[fi];
+            if let Some(r) = tile_rejected[fi].get_mut(cp.tile as usize) {
+                r.merged = cp.rejected_samples;
+            }
             let rect = plan
                 .get_tile(cp.tile)
                 .ok_or_else(|| format!("checkpoint of unknown tile {}", cp.tile))?;
@@ -274,6 +324,10 @@ impl Coordinator {
             // starts again from its first pass after a restart (its result is the same).
             add_to_scheduler(farm, rec.id, rec.priority, plan, &job, rec.passes_per_unit)
                 .map_err(|e| e.message)?;
+            tile_rejected
+                .iter_mut()
+                .flatten()
+                .for_each(|r| *r = TileRejected::default());
             vec![vec![(0.0, 0); plan.tile_count() as usize]; rec.frames.count() as usize]
         } else {
             let te = frames
@@ -319,6 +373,7 @@ impl Coordinator {
                 error: None,
                 faults,
                 tile_error,
+                tile_rejected,
                 last_history_ms: 0,
                 history,
                 stopped: (rec.state == JobState::Done).then_some("finished"),
@@ -527,6 +582,10 @@ impl Coordinator {
                     settings,
                     job,
                     tile_error: vec![vec![(0.0, 0); tiles]; frames.count() as usize],
+                    tile_rejected: vec![
+                        vec![TileRejected::default(); tiles];
+                        frames.count() as usize
+                    ],
                     resolved,
                     state: JobState::Queued,
                     created_unix_ms: created,
@@ -611,6 +670,7 @@ impl Coordinator {
             .map_err(store_err)?;
         let plan = rec.plan;
         let passes_done: u64 = tiles.iter().map(|t| u64::from(t.merged_passes)).sum();
+        let rejected_samples: u64 = tiles.iter().map(|t| t.rejected_samples).sum();
         let frames_total = rec.frames.count() as u32;
         let tiles_total = u64::from(plan.tile_count()) * u64::from(frames_total);
         let passes_planned = tiles_total * u64::from(plan.passes);
@@ -666,6 +726,7 @@ impl Coordinator {
             created_unix_ms: rec.created_unix_ms,
             priority: rec.priority,
             faults,
+            rejected_samples,
             error: rec.error.clone(),
             plan: None,
         })
@@ -1026,6 +1087,7 @@ impl Coordinator {
                 .get(&worker_id)
                 .map(|w| w.name.clone())
                 .unwrap_or_else(|| format!("worker {worker_id}"));
+            let rejected_samples = result.as_ref().map_or(0, |r| r.rejected_samples);
             let outcome = match (result, job) {
                 (Err(e), _) => Err((FaultKind::InvalidResult, e)),
                 (Ok(result), Some(job)) => {
@@ -1066,8 +1128,17 @@ impl Coordinator {
                     let frame = farm.scheduler.frame(job, unit.frame);
                     if let (Some(acc), Some(rt)) = (frame, farm.runtime.get_mut(&job)) {
                         let tile = &acc.tiles()[unit.tile as usize];
+                        let fi = (unit.frame - rt.job.frames.start) as usize;
+                        let rejected = rt
+                            .tile_rejected
+                            .get_mut(fi)
+                            .and_then(|f| f.get_mut(unit.tile as usize))
+                            .map(|r| {
+                                r.accept(unit.first_pass, rejected_samples, tile.merged_passes());
+                                r.merged
+                            })
+                            .unwrap_or(0);
                         if tile.merged_passes() != before {
-                            let fi = (unit.frame - rt.job.frames.start) as usize;
                             if let Some(slot) = rt
                                 .tile_error
                                 .get_mut(fi)
@@ -1075,20 +1146,22 @@ impl Coordinator {
                             {
                                 *slot = tile_error(tile);
                             }
-                            checkpoint = Some((
+                            checkpoint = Some(TileCheckpoint {
                                 job,
-                                unit.frame,
-                                unit.tile,
-                                tile.merged_passes(),
-                                tile.pixels().to_vec(),
-                                tile.merged_units()
+                                frame: unit.frame,
+                                tile: unit.tile,
+                                merged_passes: tile.merged_passes(),
+                                pixels: tile.pixels().to_vec(),
+                                units: tile
+                                    .merged_units()
                                     .map(|(first_pass, pass_count, digest)| UnitDigest {
                                         first_pass,
                                         pass_count,
                                         digest,
                                     })
-                                    .collect::<Vec<_>>(),
-                            ));
+                                    .collect(),
+                                rejected_samples: rejected,
+                            });
                         }
                     }
                     let complete = farm.scheduler.is_complete(job);
@@ -1160,18 +1233,9 @@ impl Coordinator {
             }
         };
         let store = &self.inner.store;
-        if let Some((job, frame, tile, merged_passes, pixels, units)) = &checkpoint {
-            if let Err(e) = store
-                .save_tile(TileCheckpointRef {
-                    job: *job,
-                    frame: *frame,
-                    tile: *tile,
-                    merged_passes: *merged_passes,
-                    pixels,
-                    units,
-                })
-                .await
-            {
+        if let Some(cp) = &checkpoint {
+            if let Err(e) = store.save_tile(cp.as_ref()).await {
+                let (job, frame, tile) = (cp.job, cp.frame, cp.tile);
                 tracing::error!(job, frame, tile, error = %e, "checkpoint failed");
                 return (
                     false,
@@ -1388,6 +1452,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         created_unix_ms: rt.created_unix_ms,
         priority: rt.job.priority,
         faults: rt.faults,
+        rejected_samples: rt.rejected_samples(),
         error: rt.error.clone(),
         plan: serde_json::from_str(&rt.resolved.render_plan.to_json()).ok(),
         adaptive: rt.job.adaptive.to_string(),
@@ -1462,6 +1527,20 @@ fn hex(bytes: &[u8]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rejected_samples_of_buffered_units_wait_until_they_merge() {
+        let mut r = TileRejected::default();
+        // Passes 2..4 arrive first and are buffered (0 passes merged).
+        r.accept(2, 5, 0);
+        assert_eq!((r.merged, r.total()), (0, 5));
+        // Passes 0..2 merge, and with them the buffered unit: 4 passes merged.
+        r.accept(0, 1, 4);
+        assert_eq!((r.merged, r.total()), (6, 6));
+        assert!(r.buffered.is_empty());
+        r.accept(4, 0, 6);
+        assert_eq!((r.merged, r.total()), (6, 6));
+    }
 
     #[test]
     fn eta_follows_inverse_square_root_of_work() {

@@ -76,6 +76,8 @@ fn checkpoint(job: JobId, frame: u32, tile: u32, unit_passes: &[u32]) -> TileChe
         merged_passes: merged,
         pixels: tile_stats(tile, merged),
         units: units(unit_passes),
+        // Any count round-trips; a distinct one per tile catches mixed-up rows.
+        rejected_samples: u64::from(tile) * 1000 + u64::from(merged),
     }
 }
 
@@ -98,6 +100,7 @@ fn assert_same_checkpoint(a: &TileCheckpoint, b: &TileCheckpoint) {
         (b.job, b.frame, b.tile, b.merged_passes)
     );
     assert_eq!(a.units, b.units);
+    assert_eq!(a.rejected_samples, b.rejected_samples);
     assert_eq!(
         bits(&a.pixels),
         bits(&b.pixels),
@@ -114,7 +117,7 @@ async fn jobs_round_trip() {
     let dir = tempfile::tempdir().unwrap();
     let store = open(&dir.path().join("nested/data")).await;
     assert!(store.path().ends_with(DATABASE_FILE));
-    assert_eq!(store.schema_version().await.unwrap(), 1);
+    assert_eq!(store.schema_version().await.unwrap(), 2);
 
     let (a, created) = store.insert_job(new_job(1, None)).await.unwrap();
     assert!(created);
@@ -445,6 +448,7 @@ async fn tile_checkpoints_round_trip_and_upsert() {
         merged_passes: 0,
         pixels: vec![PixelStats::default(); 8 * 16],
         units: vec![],
+        rejected_samples: 0,
     };
     store.save_tile(empty.as_ref()).await.unwrap();
     let loaded = store.load_tiles(job, Some(4)).await.unwrap();
@@ -763,7 +767,7 @@ async fn reopened_store_sees_everything() {
     }
     let check = |store: SqliteStore| async move {
         store.integrity_check().await.unwrap();
-        assert_eq!(store.schema_version().await.unwrap(), 1);
+        assert_eq!(store.schema_version().await.unwrap(), 2);
         let jobs = store.list_jobs(JobQuery::first(10)).await.unwrap();
         assert_eq!(jobs.iter().map(|j| j.id).collect::<Vec<_>>(), [b, a]);
         assert_eq!(
@@ -821,7 +825,7 @@ async fn newer_schema_is_refused() {
             e,
             StoreError::SchemaTooNew {
                 found: 99,
-                supported: 1
+                supported: 2
             }
         ),
         "{e}"

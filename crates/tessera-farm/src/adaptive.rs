@@ -58,7 +58,8 @@
 //!     for unit in units {
 //!         let rect = plan.tile(unit.tile);
 //!         let pass_means = vec![[0.5f32; 3]; rect.pixel_count() * unit.pass_count as usize];
-//!         frame.offer(&UnitResult { unit, width: rect.width, height: rect.height, pass_means })?;
+//!         let r = UnitResult { unit, width: rect.width, height: rect.height, pass_means, rejected_samples: 0 };
+//!         frame.offer(&r)?;
 //!     }
 //! }
 //! assert!(frame.finished());

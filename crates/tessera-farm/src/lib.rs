@@ -50,7 +50,8 @@
 //!         let v = 0.5 + p as f32 / 100.0;
 //!         pass_means.extend(std::iter::repeat([v, v, v]).take(rect.pixel_count()));
 //!     }
-//!     let result = UnitResult { unit, width: rect.width, height: rect.height, pass_means };
+//!     let result =
+//!         UnitResult { unit, width: rect.width, height: rect.height, pass_means, rejected_samples: 0 };
 //!     let again = result.clone();
 //!     frame.offer(result)?;
 //!     // A second copy of the same work is recognised and not merged.

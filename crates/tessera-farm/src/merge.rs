@@ -533,6 +533,7 @@ mod tests {
             width: rect.width,
             height: rect.height,
             pass_means,
+            rejected_samples: 0,
         }
     }
 
@@ -826,6 +827,7 @@ mod tests {
             width: rect.width,
             height: rect.height,
             pass_means: vec![rgb; unit.pass_count as usize * rect.pixel_count()],
+            rejected_samples: 0,
         }
     }
 
@@ -871,6 +873,7 @@ mod tests {
             width: 4,
             height: 1,
             pass_means: px.to_vec(),
+            rejected_samples: 0,
         };
         let z = [0.0; 3];
         acc.offer(result(unit(0, 0), [[1.0, 0.0, 0.0], [2.0; 3], z, z]))
@@ -927,6 +930,7 @@ mod tests {
                 width: rect.width,
                 height: rect.height,
                 pass_means,
+                rejected_samples: 0,
             };
             assert_eq!(acc.offer(r), Ok(Offer::Merged { passes_merged: 1 }));
         }

@@ -21,6 +21,12 @@ pub struct UnitResult {
     pub height: u32,
     /// Pass means, pass-major then row-major (`pass_count * width * height` values).
     pub pass_means: Vec<[f32; 3]>,
+    /// Samples the renderer dropped as NaN, infinite or negative radiance (a renderer bug,
+    /// not light; each counts as black in its pass mean). Diagnostic only: not validated,
+    /// not merged and not part of [`UnitResult::digest`]. Missing in older serialized
+    /// results, where it reads as 0.
+    #[serde(default)]
+    pub rejected_samples: u64,
 }
 
 /// Why a unit result was rejected. Messages name the offending field and value.
@@ -298,6 +304,7 @@ mod tests {
             width: rect.width,
             height: rect.height,
             pass_means: (0..n).map(|i| [i as f32, 0.5, 0.25]).collect(),
+            rejected_samples: 0,
         }
     }
 
@@ -408,5 +415,17 @@ mod tests {
         let zd = z.digest();
         z.pass_means[0][0] = -0.0;
         assert_ne!(zd, z.digest());
+    }
+
+    #[test]
+    fn rejected_samples_are_outside_the_digest_and_validation() {
+        // Stored digests of merged units must keep matching re-rendered duplicates, and the
+        // count is a diagnostic the merge does not judge.
+        let p = plan();
+        let r = result(&p, 4, 2, 3);
+        let mut m = r.clone();
+        m.rejected_samples = 12;
+        assert_eq!(r.digest(), m.digest());
+        m.validate(&p).unwrap();
     }
 }

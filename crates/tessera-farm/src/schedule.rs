@@ -709,6 +709,7 @@ mod tests {
             width: rect.width,
             height: rect.height,
             pass_means,
+            rejected_samples: 0,
         }
     }
 
@@ -975,6 +976,7 @@ mod tests {
             width: rect.width,
             height: rect.height,
             pass_means,
+            rejected_samples: 0,
         }
     }
 

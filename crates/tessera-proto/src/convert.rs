@@ -207,6 +207,7 @@ impl v1::SubmitResultRequest {
             pass_means: result.pass_means.as_flattened().to_vec(),
             render_seconds,
             job_id: 0,
+            rejected_samples: result.rejected_samples,
         }
     }
 
@@ -279,6 +280,7 @@ impl TryFrom<&v1::SubmitResultRequest> for UnitResult {
             width: r.width,
             height: r.height,
             pass_means: unflatten(&r.pass_means),
+            rejected_samples: r.rejected_samples,
         })
     }
 }
@@ -540,6 +542,7 @@ mod tests {
             width: rect.width,
             height: rect.height,
             pass_means,
+            rejected_samples: u64::from(unit.first_pass) * 1000 + 7,
         }
     }
 
@@ -654,6 +657,7 @@ mod tests {
             let req = wire(&req);
             assert_eq!((req.worker_id, req.lease_id), (5, 77));
             assert_eq!(req.render_seconds, 1.5);
+            assert_eq!(req.rejected_samples, r.rejected_samples);
             let back = UnitResult::try_from(&req).unwrap();
             // Bit-exact, and still valid for the plan.
             assert_eq!(back.digest(), r.digest());
@@ -676,6 +680,7 @@ mod tests {
             width: 4,
             height: 4,
             pass_means: vec![[1.0, 2.0, 3.0]; 16],
+            rejected_samples: 0,
         };
         let bytes = v1::SubmitResultRequest::from_result(1, 1, &r, 0.0).encode_to_vec();
         // 48 floats of 4 bytes plus a few bytes of tags and lengths (unpacked would add a
@@ -687,6 +692,14 @@ mod tests {
     fn unit_result_rejections_name_the_field() {
         let r = result(plan().units(0, 2)[0]);
         let good = v1::SubmitResultRequest::from_result(1, 2, &r, 0.5);
+        assert_eq!(good.rejected_samples, r.rejected_samples);
+        // A worker that predates `rejected_samples` sends none (the proto3 default): 0.
+        let old = v1::SubmitResultRequest {
+            rejected_samples: 0,
+            ..good.clone()
+        };
+        let back = UnitResult::try_from(wire(&old)).unwrap();
+        assert_eq!(back.rejected_samples, 0);
         let cases: [Case<v1::SubmitResultRequest>; 12] = [
             ("unit", |q| q.unit = None),
             ("unit.pass_count", |q| {

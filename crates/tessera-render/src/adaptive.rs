@@ -62,6 +62,9 @@ pub struct AdaptiveRender {
     pub stop: StopReason,
     /// Samples (camera paths) traced.
     pub paths: u64,
+    /// Samples dropped as NaN, infinite or negative, summed over the units (see
+    /// [`UnitResult::rejected_samples`]); 0 in a healthy render.
+    pub rejected_samples: u64,
 }
 
 /// Renders `frame` (an empty [`AdaptiveFrame`]) round by round on `threads` threads
@@ -84,6 +87,7 @@ pub fn render_adaptive(
     let plan = *frame.plan();
     let start = Instant::now();
     let mut history = Vec::new();
+    let mut rejected_samples = 0u64;
     let stop = loop {
         let units = frame.next_round();
         if units.is_empty() {
@@ -104,6 +108,7 @@ pub fn render_adaptive(
         };
         // Offered in tile order; each tile consumes its own passes in pass order anyway.
         for r in &results {
+            rejected_samples += r.rejected_samples;
             frame
                 .offer(r)
                 .expect("locally rendered unit is valid for its plan");
@@ -142,5 +147,6 @@ pub fn render_adaptive(
         history,
         stop,
         paths,
+        rejected_samples,
     }
 }

@@ -222,6 +222,8 @@ pub struct TileCheckpointRef<'a> {
     pub pixels: &'a [PixelStats],
     /// The merged units in pass order, tiling `0..merged_passes` exactly.
     pub units: &'a [UnitDigest],
+    /// Samples the renderers dropped as invalid (NaN, infinite, negative) in those units.
+    pub rejected_samples: u64,
 }
 
 /// A stored tile checkpoint (see the [module docs](self) for the format).
@@ -239,6 +241,9 @@ pub struct TileCheckpoint {
     pub pixels: Vec<PixelStats>,
     /// The merged units in pass order, tiling `0..merged_passes` exactly.
     pub units: Vec<UnitDigest>,
+    /// Samples the renderers dropped as invalid (NaN, infinite, negative) in those units;
+    /// 0 for checkpoints stored before schema version 2.
+    pub rejected_samples: u64,
 }
 
 impl TileCheckpoint {
@@ -251,6 +256,7 @@ impl TileCheckpoint {
             merged_passes: self.merged_passes,
             pixels: &self.pixels,
             units: &self.units,
+            rejected_samples: self.rejected_samples,
         }
     }
 }

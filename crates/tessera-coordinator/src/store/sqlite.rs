@@ -23,7 +23,10 @@ pub const DATABASE_FILE: &str = "tessera.sqlite3";
 
 /// Schema migrations: (version, SQL). Applied in order, each in the same transaction as
 /// the bump of `schema_version`. Never edit a released migration; append a new one.
-const MIGRATIONS: &[(i64, &str)] = &[(1, include_str!("migrations/0001_initial.sql"))];
+const MIGRATIONS: &[(i64, &str)] = &[
+    (1, include_str!("migrations/0001_initial.sql")),
+    (2, include_str!("migrations/0002_rejected_samples.sql")),
+];
 
 /// How long a statement waits for a lock held by another connection before failing.
 const BUSY_TIMEOUT: Duration = Duration::from_secs(10);
@@ -538,12 +541,14 @@ impl Store for SqliteStore {
                 ))
             })?;
             sqlx::query(
-                "INSERT INTO tiles (job, frame, tile, merged_passes, stats, units) \
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6) \
+                "INSERT INTO tiles (job, frame, tile, merged_passes, stats, units, \
+                     rejected_samples) \
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7) \
                  ON CONFLICT (job, frame, tile) DO UPDATE SET \
                      merged_passes = excluded.merged_passes, \
                      stats = excluded.stats, \
-                     units = excluded.units",
+                     units = excluded.units, \
+                     rejected_samples = excluded.rejected_samples",
             )
             .bind(to_i64(t.job, "job id")?)
             .bind(i64::from(t.frame))
@@ -551,6 +556,7 @@ impl Store for SqliteStore {
             .bind(i64::from(t.merged_passes))
             .bind(encode_stats(t.pixels))
             .bind(encode_units(t.units))
+            .bind(to_i64(t.rejected_samples, "rejected_samples")?)
             .execute(&mut *tx)
             .await?;
         }
@@ -562,7 +568,7 @@ impl Store for SqliteStore {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let (plan, frames) = Self::job_plan(&self.reader, job).await?;
         let rows = sqlx::query(
-            "SELECT frame, tile, merged_passes, stats, units FROM tiles \
+            "SELECT frame, tile, merged_passes, stats, units, rejected_samples FROM tiles \
              WHERE job = ?1 AND (?2 IS NULL OR frame = ?2) ORDER BY frame, tile",
         )
         .bind(key)
@@ -581,6 +587,7 @@ impl Store for SqliteStore {
                     reason,
                 };
                 let merged_passes: u32 = int_col(row, "merged_passes", &place)?;
+                let rejected_samples: u64 = int_col(row, "rejected_samples", &place)?;
                 let stats: Vec<u8> = row.try_get("stats")?;
                 let units: Vec<u8> = row.try_get("units")?;
                 let pixels = decode_stats(&stats).map_err(corrupt)?;
@@ -594,6 +601,7 @@ impl Store for SqliteStore {
                     merged_passes,
                     pixels,
                     units,
+                    rejected_samples,
                 })
             })
             .collect()

@@ -28,6 +28,7 @@ fn result_from(rect: TileRect, u: WorkUnit, f: &dyn Fn(u32, usize) -> f32) -> Un
         width: rect.width,
         height: rect.height,
         pass_means,
+        rejected_samples: 0,
     }
 }
 
@@ -299,6 +300,7 @@ fn heavy_tailed_tile(settings: AdaptiveSettings, rng: &mut Rng, plan: &FramePlan
             width: rect.width,
             height: rect.height,
             pass_means: std::mem::take(&mut means),
+            rejected_samples: 0,
         };
         t.offer(&r);
         means = r.pass_means;

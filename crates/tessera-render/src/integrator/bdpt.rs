@@ -62,16 +62,15 @@
 //! Limits: subpaths have at most [`MAX_BDPT_DEPTH`] bounces (fixed-size vertex arrays on the
 //! stack: nothing is allocated per sample); deeper `max_depth` settings are clamped.
 
-use super::MisHeuristic;
+use super::{accumulate, MisHeuristic, SampleStream};
 use crate::bsdf::diffuse::Diffuse;
 use crate::bsdf::{Bsdf, Lobe};
 use crate::geometry::NO_LIGHT;
 use crate::light::emission::WorldDisk;
 use crate::light::Light;
 use crate::math::offset_ray_origin;
-use crate::render::RenderSettings;
 use crate::sampling::warp::Frame;
-use crate::sampling::{PixelSampler, SamplerKind};
+use crate::sampling::PixelSampler;
 use crate::scene::RenderScene;
 use glam::{Vec2, Vec3};
 use tessera_farm::{FramePlan, UnitResult, WorkUnit};
@@ -95,12 +94,12 @@ pub struct BdptSettings {
 }
 
 impl BdptSettings {
-    /// The bidirectional settings of render settings.
-    pub fn from_render(s: &RenderSettings) -> Self {
+    /// Settings with `max_depth` clamped to `1..=MAX_BDPT_DEPTH`.
+    pub fn new(mis: MisHeuristic, max_depth: u32, rr_depth: u32) -> Self {
         Self {
-            mis: s.mis,
-            max_depth: s.max_depth.clamp(1, MAX_BDPT_DEPTH),
-            rr_depth: s.rr_depth,
+            mis,
+            max_depth: max_depth.clamp(1, MAX_BDPT_DEPTH),
+            rr_depth,
         }
     }
 
@@ -723,7 +722,9 @@ fn mis_weight(
 
 /// Light tracing, `t = 1`: connects every vertex `light[s-1]` (s >= 2) to a point sampled on
 /// the lens and splats the weighted contribution at its film position. Consumes one 2D
-/// value of the light sampler per vertex.
+/// value of the light sampler per vertex. Every non-zero contribution is passed to `splat`,
+/// invalid ones (NaN, infinite, negative) included: the caller drops and counts those that
+/// land in its tile.
 fn splat_light_paths(
     ctx: &Ctx,
     st: &BdptSettings,
@@ -758,7 +759,7 @@ fn splat_light_paths(
         c.p = cs.p_lens;
         c.beta = Vec3::splat(cs.we / cs.pdf);
         l *= mis_weight(ctx, st, light, cam, Some(c), s, 1);
-        if l.is_finite() && l.min_element() >= 0.0 && l != Vec3::ZERO {
+        if l != Vec3::ZERO {
             splat(cs.raster, l);
         }
     }
@@ -862,13 +863,17 @@ struct Scratch {
 
 /// Renders one work unit with bidirectional path tracing; see the [module
 /// documentation](self) for the splatting and determinism design.
+///
+/// Invalid contributions (NaN, infinite, negative) are dropped and counted in
+/// `rejected_samples`: a camera sample's estimate of a tile pixel, and each light-tracing
+/// splat landing in the tile.
 pub fn render_unit(
     scene: &RenderScene,
-    settings: &RenderSettings,
+    st: &BdptSettings,
+    stream: SampleStream,
     plan: &FramePlan,
     unit: WorkUnit,
 ) -> UnitResult {
-    let st = BdptSettings::from_render(settings);
     let ctx = Ctx {
         scene,
         world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
@@ -878,7 +883,7 @@ pub fn render_unit(
     let pixels = rect.pixel_count();
     let spp = plan.samples_per_pass;
     let lens = scene.camera.has_lens();
-    let light_seed = settings.seed ^ LIGHT_STREAM;
+    let light_seed = stream.seed ^ LIGHT_STREAM;
     let empty = Vertex::empty();
     let mut scratch = Box::new(Scratch {
         light: [empty; MAX_VERTICES],
@@ -887,43 +892,43 @@ pub fn render_unit(
     let Scratch { light, cam } = &mut *scratch;
     let mut sum = vec![[0.0f64; 3]; pixels];
     let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
-    let kind: SamplerKind = settings.sampler;
+    let mut rejected_samples = 0u64;
+    let kind = stream.sampler;
     for pass in unit.first_pass..unit.first_pass + unit.pass_count {
         sum.fill([0.0; 3]);
-        let add = |x: u32, y: u32, l: Vec3, sum: &mut [[f64; 3]]| {
-            if x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th {
-                let i = ((y - rect.y0) * tw + (x - rect.x0)) as usize;
-                sum[i][0] += l.x as f64;
-                sum[i][1] += l.y as f64;
-                sum[i][2] += l.z as f64;
-            }
+        // Index within the tile of pixel (x, y), if it is in the tile.
+        let in_tile = |x: u32, y: u32| {
+            (x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th)
+                .then(|| ((y - rect.y0) * tw + (x - rect.x0)) as usize)
         };
         for y in 0..plan.height {
             for x in 0..plan.width {
                 let pixel = y * plan.width + x;
-                let inside = x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th;
+                let inside = in_tile(x, y);
                 let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
                 let mut cs =
-                    inside.then(|| PixelSampler::new(kind, settings.seed, unit.frame, pixel, pass));
+                    inside.map(|_| PixelSampler::new(kind, stream.seed, unit.frame, pixel, pass));
                 for i in 0..spp {
                     ls.start_sample(i);
-                    let n_light = light_subpath(&ctx, &st, light, &mut ls);
+                    let n_light = light_subpath(&ctx, st, light, &mut ls);
                     let mut camera_l = Vec3::ZERO;
                     if let Some(cs) = cs.as_mut() {
                         cs.start_sample(i);
                         let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
                         let lens_u = if lens { cs.next_2d() } else { Vec2::ZERO };
-                        let n_cam = camera_subpath(&ctx, &st, film, lens_u, cam, cs);
-                        camera_l = camera_techniques(&ctx, &st, light, cam, n_light, n_cam, cs);
+                        let n_cam = camera_subpath(&ctx, st, film, lens_u, cam, cs);
+                        camera_l = camera_techniques(&ctx, st, light, cam, n_light, n_cam, cs);
                     }
                     // Splats first, then the pixel's own estimate: a fixed order.
-                    splat_light_paths(&ctx, &st, light, cam, n_light, &mut ls, &mut |r, l| {
+                    splat_light_paths(&ctx, st, light, cam, n_light, &mut ls, &mut |r, l| {
                         let px = (r.x as u32).min(plan.width - 1);
                         let py = (r.y as u32).min(plan.height - 1);
-                        add(px, py, l, &mut sum);
+                        if let Some(j) = in_tile(px, py) {
+                            accumulate(&mut sum[j], l, &mut rejected_samples);
+                        }
                     });
-                    if inside && camera_l.is_finite() && camera_l.min_element() >= 0.0 {
-                        add(x, y, camera_l, &mut sum);
+                    if let Some(j) = inside {
+                        accumulate(&mut sum[j], camera_l, &mut rejected_samples);
                     }
                 }
             }
@@ -942,5 +947,6 @@ pub fn render_unit(
         width: tw,
         height: th,
         pass_means,
+        rejected_samples,
     }
 }

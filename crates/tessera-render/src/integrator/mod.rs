@@ -1,14 +1,321 @@
-//! Integrators: estimators of the radiance arriving at the camera along a ray.
+//! Integrators: estimators of the radiance arriving at the camera along a ray, and the one
+//! place that decides which of them renders a work unit.
 //!
 //! | name | what it computes |
 //! |---|---|
 //! | `path` | unidirectional path tracing with next-event estimation, multiple importance sampling and Russian roulette ([`path`]) |
-//! | `direct` | direct lighting only: emission seen by the camera and light arriving at the first surface, one bounce, both techniques combined by MIS |
+//! | `direct` | direct lighting only: emission seen by the camera and light arriving at the first surface, one bounce, both techniques combined by MIS ([`path`] with a bounce limit of 1) |
 //! | `bdpt` | bidirectional path tracing: camera and light subpaths joined by every connection technique, light tracing splatted onto the film, power-heuristic MIS ([`bdpt`]) |
+//!
+//! # The interface
+//!
+//! [`RenderSettings`] is everything besides the scene and the frame plan that decides the
+//! value of a sample. [`render_unit_where`] holds the one exhaustive `match` over
+//! [`IntegratorKind`]: each arm turns the render settings into that integrator's own
+//! settings ([`path::PathSettings`], [`bdpt::BdptSettings`]) and renders the unit with it, so
+//! an integrator never sees the others' variants or options. Dispatch is a `match` on a
+//! `Copy` enum, decided once per unit; the per-sample loops inside are monomorphic and do
+//! not allocate.
+//!
+//! Every integrator keeps the same contract, on which the farm's split and merge rely:
+//!
+//! - **Deterministic.** A unit's result is a pure function of (scene, settings, plan,
+//!   unit): every sample draws from `PixelSampler::new(sampler, seed, frame, pixel, pass)`
+//!   (or another stream derived from the seed, as bdpt's light subpaths do) and the samples
+//!   of a pass are summed in a fixed order into one `f64` accumulator per pixel, the pass
+//!   mean being that sum divided by `samples_per_pass` (the indexed sampler of pbrt-v4,
+//!   `Sampler::StartPixelSample`; Pharr, Jakob & Humphreys 2023, section 8.3).
+//! - **Invalid samples are dropped and counted.** A contribution that is NaN, infinite or
+//!   negative is a bug, not light: it would poison the pixel's mean and the pass variance
+//!   the error estimate reads. It is left out of the sum (the pass mean still divides by
+//!   `samples_per_pass`: a dropped sample counts as black) and counted in
+//!   [`UnitResult::rejected_samples`], which the coordinator sums per job.
+//!   [`accumulate`] does both; use it for every contribution.
+//! - **Pixels outside `wanted` may be skipped** (left black), if the integrator's cost is
+//!   per pixel; bdpt renders every pixel (its splats land anywhere).
+//!
+//! # Adding an integrator
+//!
+//! Photon mapping, say, as `pm`:
+//!
+//! 1. A variant `IntegratorKind::PhotonMap` with its name in `FromStr` and `Display` (and
+//!    a row in the table above).
+//! 2. One new file, `integrator/pm.rs`: a `//!` block saying what it estimates (cite the
+//!    paper by author, year and section), its own `PmSettings` built from
+//!    [`RenderSettings`] only in the `match` arm, and a
+//!    `render_unit(scene, &PmSettings, SampleStream, plan, unit) -> UnitResult` that keeps
+//!    the contract above. An integrator that estimates each pixel independently can call
+//!    the shared camera-sample loop instead, as `path` and `direct` do.
+//! 3. The arm in [`render_unit_where`]: the compiler's exhaustive-match error points at it.
+//! 4. Tests beside the file (`#[cfg(test)] mod tests`) and an agreement test against
+//!    `path` in `tests/` (as `tests/bdpt.rs` does); determinism across thread counts and
+//!    unit splits comes from the contract and is checked by `tests/determinism.rs`.
+//!
+//! Outside this crate the integrator name must also be accepted where jobs are parsed
+//! (`tessera-api`'s integrator choice and the gRPC `Integrator` enum) until those share one
+//! type with this one.
 
 pub mod bdpt;
 pub mod path;
 
+use crate::sampling::{PixelSampler, SamplerKind};
+use crate::scene::RenderScene;
+use glam::{Vec2, Vec3};
+use tessera_farm::{FramePlan, UnitResult, WorkUnit};
+
+/// Everything that decides the value of a sample, besides the scene and the plan: the job
+/// contract's resolved [`RenderConfig`](tessera_farm::job::RenderConfig) (for bdpt, `mis`
+/// balance selects β = 1, any other the power heuristic).
+pub use tessera_farm::job::RenderConfig as RenderSettings;
+
 /// The integrators, MIS heuristics and their string forms are the job contract's
 /// ([`tessera_farm::job`]): one type each, here under the renderer's names.
 pub use tessera_farm::job::{Integrator as IntegratorKind, MisHeuristic};
+
+/// Which sample sequence a unit draws from: the point set and the job seed. The same for
+/// every integrator; an integrator needing a second stream derives it from the seed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SampleStream {
+    /// Sample generator.
+    pub sampler: SamplerKind,
+    /// Job seed.
+    pub seed: u64,
+}
+
+impl SampleStream {
+    /// The sample sequence `settings` select.
+    pub fn of(settings: &RenderSettings) -> Self {
+        Self {
+            sampler: settings.sampler,
+            seed: settings.seed,
+        }
+    }
+}
+
+/// Renders one work unit. The caller guarantees that `unit` belongs to `plan` and that
+/// `scene` was built for the plan's image size.
+pub fn render_unit(
+    scene: &RenderScene,
+    settings: &RenderSettings,
+    plan: &FramePlan,
+    unit: WorkUnit,
+) -> UnitResult {
+    render_unit_where(scene, settings, plan, unit, |_, _| true)
+}
+
+/// [`render_unit`] for only the (tile pixel, pass) pairs where `wanted(i, pass)` holds
+/// (`i` row-major within the tile); the others are left black without tracing a ray.
+/// Adaptive rendering (`tessera_farm::AdaptiveTile::wants`) uses it to skip pixels that
+/// stopped: a wanted pixel's value is the same as with [`render_unit`], and the policy
+/// ignores the others, so the image is the same as when whole tiles are rendered.
+///
+/// Bidirectional path tracing renders every pixel: its light-tracing splats land
+/// anywhere in the (whole-frame) tile, so skipping pixels would not save their cost.
+pub fn render_unit_where(
+    scene: &RenderScene,
+    settings: &RenderSettings,
+    plan: &FramePlan,
+    unit: WorkUnit,
+    wanted: impl Fn(usize, u32) -> bool,
+) -> UnitResult {
+    let stream = SampleStream::of(settings);
+    match settings.integrator {
+        IntegratorKind::Path | IntegratorKind::Direct => {
+            let path = path::PathSettings {
+                mis: settings.mis,
+                // Direct lighting is the path tracer stopped after its first scattering
+                // event: emission seen directly, plus NEE and BSDF sampling at one vertex.
+                max_depth: match settings.integrator {
+                    IntegratorKind::Direct => 1,
+                    _ => settings.max_depth,
+                },
+                rr_depth: settings.rr_depth,
+            };
+            render_camera_samples(scene, stream, plan, unit, wanted, |o, d, sampler| {
+                path::radiance(scene, &path, o, d, sampler)
+            })
+        }
+        // Light tracing splats across pixels: see `bdpt` for how a unit stays deterministic
+        // (and why bdpt plans use one whole-frame tile).
+        IntegratorKind::Bdpt => {
+            let bdpt = bdpt::BdptSettings::new(settings.mis, settings.max_depth, settings.rr_depth);
+            bdpt::render_unit(scene, &bdpt, stream, plan, unit)
+        }
+    }
+}
+
+/// Adds the sample `l` to a pixel's sum if it is valid radiance (finite, every channel
+/// `>= 0`, `-0.0` included), otherwise counts it in `rejected` and leaves the sum alone.
+/// Returns whether it was added. The sum is in `f64`, channel by channel, in the order of
+/// the calls: that order is part of the determinism contract.
+#[inline]
+pub(crate) fn accumulate(sum: &mut [f64; 3], l: Vec3, rejected: &mut u64) -> bool {
+    // A non-finite sample would poison the pixel: it is a bug, not light.
+    if l.is_finite() && l.min_element() >= 0.0 {
+        sum[0] += l.x as f64;
+        sum[1] += l.y as f64;
+        sum[2] += l.z as f64;
+        true
+    } else {
+        *rejected += 1;
+        false
+    }
+}
+
+/// The camera-sample loop of integrators that estimate every pixel on its own: for each
+/// pass, each wanted tile pixel (row-major) and each sample index, starts the pixel's
+/// sampler, draws a film point inside the pixel and (with a lens) a lens point, and
+/// accumulates `radiance(origin, dir, sampler)`.
+///
+/// Box reconstruction: the sample stays inside its pixel, so tiles are independent.
+fn render_camera_samples(
+    scene: &RenderScene,
+    stream: SampleStream,
+    plan: &FramePlan,
+    unit: WorkUnit,
+    wanted: impl Fn(usize, u32) -> bool,
+    mut radiance: impl FnMut(Vec3, Vec3, &mut PixelSampler) -> Vec3,
+) -> UnitResult {
+    let rect = plan.tile(unit.tile);
+    let pixels = (rect.width * rect.height) as usize;
+    let spp = plan.samples_per_pass;
+    let lens = scene.camera.has_lens();
+    let mut rejected_samples = 0u64;
+    let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
+    for pass in unit.first_pass..unit.first_pass + unit.pass_count {
+        for y in rect.y0..rect.y0 + rect.height {
+            for x in rect.x0..rect.x0 + rect.width {
+                let pixel = y * plan.width + x;
+                if !wanted(((y - rect.y0) * rect.width + (x - rect.x0)) as usize, pass) {
+                    pass_means.push([0.0; 3]);
+                    continue;
+                }
+                let mut sampler =
+                    PixelSampler::new(stream.sampler, stream.seed, unit.frame, pixel, pass);
+                let mut sum = [0.0f64; 3];
+                for i in 0..spp {
+                    sampler.start_sample(i);
+                    let film = Vec2::new(x as f32, y as f32) + sampler.next_2d();
+                    let lens_u = if lens { sampler.next_2d() } else { Vec2::ZERO };
+                    let (o, d) = scene.camera.generate_ray(film, lens_u);
+                    let l = radiance(o, d, &mut sampler);
+                    accumulate(&mut sum, l, &mut rejected_samples);
+                }
+                let inv = 1.0 / spp as f64;
+                pass_means.push([
+                    (sum[0] * inv) as f32,
+                    (sum[1] * inv) as f32,
+                    (sum[2] * inv) as f32,
+                ]);
+            }
+        }
+    }
+    UnitResult {
+        unit,
+        width: rect.width,
+        height: rect.height,
+        pass_means,
+        rejected_samples,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn accumulate_adds_valid_radiance_and_counts_the_rest() {
+        let mut sum = [0.0f64; 3];
+        let mut rejected = 0;
+        assert!(accumulate(
+            &mut sum,
+            Vec3::new(1.0, 2.0, 0.5),
+            &mut rejected
+        ));
+        // -0.0 is valid (it compares equal to 0).
+        assert!(accumulate(
+            &mut sum,
+            Vec3::new(-0.0, 0.0, 0.0),
+            &mut rejected
+        ));
+        for bad in [
+            Vec3::new(f32::NAN, 0.0, 0.0),
+            Vec3::new(0.0, f32::INFINITY, 0.0),
+            Vec3::new(0.0, 0.0, f32::NEG_INFINITY),
+            Vec3::new(1.0, -1e-9, 1.0),
+        ] {
+            assert!(!accumulate(&mut sum, bad, &mut rejected), "{bad}");
+        }
+        assert_eq!(sum, [1.0, 2.0, 0.5]);
+        assert_eq!(rejected, 4);
+    }
+
+    fn cornell(w: u32, h: u32) -> RenderScene {
+        let scene = tessera_scene::load("builtin:cornell-box").unwrap();
+        RenderScene::build(&scene, w, h).unwrap()
+    }
+
+    #[test]
+    fn a_unit_reports_its_non_finite_samples() {
+        // The camera-sample loop of `path` and `direct`, with an estimator that returns NaN
+        // for every third sample it is asked for.
+        let rs = cornell(8, 8);
+        let plan = FramePlan::new(8, 8, 4, 4, 2).unwrap();
+        let unit = plan.units(0, 2)[1];
+        assert_eq!(unit.pass_count, 2);
+        let mut calls = 0u64;
+        let r = render_camera_samples(
+            &rs,
+            SampleStream::of(&RenderSettings::default()),
+            &plan,
+            unit,
+            |i, _| i != 0, // tile pixel 0 is skipped: no samples, no rejects
+            |_, _, _| {
+                calls += 1;
+                if calls.is_multiple_of(3) {
+                    Vec3::NAN
+                } else {
+                    Vec3::ONE
+                }
+            },
+        );
+        // 15 wanted pixels x 2 passes x 4 samples.
+        assert_eq!(calls, 120);
+        assert_eq!(r.rejected_samples, 40);
+        // A rejected sample counts as black: the means add up to the valid samples.
+        let pixels = 16;
+        let mut valid = 0.0;
+        for (k, m) in r.pass_means.iter().enumerate() {
+            if k % pixels == 0 {
+                assert_eq!(*m, [0.0; 3]);
+            } else {
+                assert!(m[0] == 0.5 || m[0] == 0.75, "{m:?}");
+                assert_eq!(m[0], m[1]);
+                assert_eq!(m[0], m[2]);
+            }
+            valid += m[0] * 4.0;
+        }
+        assert_eq!(valid, 80.0);
+        r.validate(&plan).unwrap();
+    }
+
+    #[test]
+    fn healthy_renders_reject_nothing() {
+        let rs = cornell(8, 8);
+        for integrator in [
+            IntegratorKind::Path,
+            IntegratorKind::Direct,
+            IntegratorKind::Bdpt,
+        ] {
+            let s = RenderSettings {
+                integrator,
+                ..RenderSettings::default()
+            };
+            let plan = FramePlan::whole_frame(8, 8, 8).unwrap();
+            for unit in plan.units(0, 1) {
+                let r = render_unit(&rs, &s, &plan, unit);
+                assert_eq!(r.rejected_samples, 0, "{integrator}");
+            }
+        }
+    }
+}

@@ -13,21 +13,21 @@
 //! Steps, as labelled below: 1 intersect, 2 emission (MIS with NEE of the previous
 //! vertex), 3 direct light by NEE, 4 BSDF sample, 5 Russian roulette.
 
-use super::{IntegratorKind, MisHeuristic};
+use super::MisHeuristic;
 use crate::math::offset_ray_origin;
 use crate::sampling::warp::Frame;
 use crate::sampling::PixelSampler;
 use crate::scene::RenderScene;
 use glam::Vec3;
 
-/// Settings of the path integrator.
+/// Settings of the path integrator. The `direct` integrator is this one with
+/// `max_depth = 1`; the path tracer knows no other integrator.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PathSettings {
-    /// Path or direct lighting.
-    pub kind: IntegratorKind,
     /// MIS weighting.
     pub mis: MisHeuristic,
-    /// Maximum number of scattering events (1 = direct lighting).
+    /// Maximum number of scattering events (1 = direct lighting: emission seen directly
+    /// and light arriving at the first surface).
     pub max_depth: u32,
     /// Russian roulette starts after this many bounces.
     pub rr_depth: u32,
@@ -42,11 +42,7 @@ pub fn radiance(
     mut dir: Vec3,
     sampler: &mut PixelSampler,
 ) -> Vec3 {
-    let max_depth = match s.kind {
-        IntegratorKind::Direct => 1,
-        // bdpt renders through `bdpt::render_unit`; here it means the full path tracer.
-        IntegratorKind::Path | IntegratorKind::Bdpt => s.max_depth,
-    };
+    let max_depth = s.max_depth;
     let mut l = Vec3::ZERO;
     let mut beta = Vec3::ONE;
     // State of the previous scattering vertex for MIS of emission found by BSDF sampling.
