@@ -409,10 +409,8 @@ fn chrome(tag: &str, tmp: &Path) -> Chrome {
     let driver_log = artifacts.join(format!("{tag}-chromedriver.log"));
     let mut driver = Proc::spawn(
         &format!("{tag} chromedriver"),
-        Command::new(CHROMEDRIVER).args([
-            "--port=0",
-            &format!("--log-path={}", driver_log.display()),
-        ]),
+        Command::new(CHROMEDRIVER)
+            .args(["--port=0", &format!("--log-path={}", driver_log.display())]),
         Some(&artifacts.join(format!("{tag}-chromedriver.stderr.log"))),
     )
     .on_drop(OnDrop::Stop)

@@ -8,7 +8,6 @@
 
 #![allow(dead_code)]
 
-use std::ffi::OsStr;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
@@ -25,10 +24,7 @@ pub fn tessera() -> Command {
 
 /// A fresh, empty directory `tessera-SUITE-NAME-PID` in the system temp directory.
 pub fn temp_dir(suite: &str, name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "tessera-{suite}-{name}-{}",
-        std::process::id()
-    ));
+    let dir = std::env::temp_dir().join(format!("tessera-{suite}-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
@@ -45,7 +41,7 @@ pub fn output(cmd: &mut Command) -> (bool, String, String) {
 }
 
 /// Runs `tessera ARGS` to completion: (success, stdout, stderr).
-pub fn run<S: AsRef<OsStr>>(args: impl IntoIterator<Item = S>) -> (bool, String, String) {
+pub fn run(args: &[&str]) -> (bool, String, String) {
     output(tessera().args(args))
 }
 
@@ -77,11 +73,7 @@ pub fn free_port() -> u16 {
 
 /// Polls `f` every 50 ms until it gives `Ok`; fails the test with `what` and the last
 /// observation after `timeout`.
-pub fn wait_for<T>(
-    what: &str,
-    timeout: Duration,
-    mut f: impl FnMut() -> Result<T, String>,
-) -> T {
+pub fn wait_for<T>(what: &str, timeout: Duration, mut f: impl FnMut() -> Result<T, String>) -> T {
     let deadline = Instant::now() + timeout;
     loop {
         let last = match f() {
