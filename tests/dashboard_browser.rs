@@ -18,13 +18,15 @@
 //! directly with `std::net` rather than through a client crate: the test needs eight
 //! commands, and no TLS, async runtime or connection pool.
 
-use std::io::{BufRead, BufReader, Read, Write};
+mod common;
+
+use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
+use common::{tessera, OnDrop, Proc};
 use serde_json::{json, Value};
 
 const CHROMIUM: &str = "/usr/bin/chromium";
@@ -34,127 +36,9 @@ const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
 /// Long enough for a slow CI machine; the waits return as soon as the page is ready.
 const TIMEOUT: Duration = Duration::from_secs(180);
 
-// ---------------------------------------------------------------------------------------
-// Processes
-
-/// A child process that is stopped when dropped, test failure included: SIGTERM first
-/// (so `tessera serve` stops its local workers), SIGKILL if it has not exited soon.
-struct Guard {
-    name: String,
-    child: Child,
-}
-
-impl Guard {
-    fn stop(&mut self) -> Option<std::process::ExitStatus> {
-        if let Ok(Some(status)) = self.child.try_wait() {
-            return Some(status);
-        }
-        let _ = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status();
-        let deadline = Instant::now() + Duration::from_secs(15);
-        while Instant::now() < deadline {
-            if let Ok(Some(status)) = self.child.try_wait() {
-                return Some(status);
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        eprintln!(
-            "{} did not stop on SIGTERM within 15 s: killing it",
-            self.name
-        );
-        let _ = self.child.kill();
-        self.child.wait().ok()
-    }
-}
-
-impl Drop for Guard {
-    fn drop(&mut self) {
-        self.stop();
-    }
-}
-
-/// Spawns `cmd` with stdout piped and stderr to `log`; returns the guard and a channel of
-/// its stdout lines (read on a thread, so the pipe never fills up).
-fn spawn(name: &str, mut cmd: Command, log: &Path) -> (Guard, mpsc::Receiver<String>) {
-    let err = std::fs::File::create(log).unwrap();
-    let mut child = cmd
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::from(err))
-        .spawn()
-        .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
-    let stdout = child.stdout.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    let tag = name.to_string();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines() {
-            let Ok(line) = line else { break };
-            println!("[{tag}] {line}");
-            // Once nobody listens, keep draining the pipe.
-            let _ = tx.send(line);
-        }
-    });
-    (
-        Guard {
-            name: name.to_string(),
-            child,
-        },
-        rx,
-    )
-}
-
-/// Waits for a stdout line containing `marker`; returns the text after it.
-fn wait_line(guard: &mut Guard, rx: &mpsc::Receiver<String>, marker: &str, log: &Path) -> String {
-    let deadline = Instant::now() + Duration::from_secs(120);
-    loop {
-        match rx.recv_timeout(Duration::from_millis(200)) {
-            Ok(line) => {
-                if let Some(i) = line.find(marker) {
-                    return line[i + marker.len()..].trim().to_string();
-                }
-            }
-            Err(mpsc::RecvTimeoutError::Timeout) => {}
-            Err(mpsc::RecvTimeoutError::Disconnected) => {
-                let status = guard.child.wait().ok();
-                panic!(
-                    "{} exited ({status:?}) before printing {marker:?}; stderr:\n{}",
-                    guard.name,
-                    std::fs::read_to_string(log).unwrap_or_default()
-                );
-            }
-        }
-        if let Ok(Some(status)) = guard.child.try_wait() {
-            panic!(
-                "{} exited ({status}) before printing {marker:?}; stderr:\n{}",
-                guard.name,
-                std::fs::read_to_string(log).unwrap_or_default()
-            );
-        }
-        assert!(
-            Instant::now() < deadline,
-            "{} printed no {marker:?} line in time; stderr:\n{}",
-            guard.name,
-            std::fs::read_to_string(log).unwrap_or_default()
-        );
-    }
-}
-
-/// Polls `f` every 100 ms until it gives `Some`; panics with `what` and the last
-/// observation after [`TIMEOUT`].
-fn wait_for<T>(what: &str, mut f: impl FnMut() -> Result<T, String>) -> T {
-    let deadline = Instant::now() + TIMEOUT;
-    loop {
-        let last = match f() {
-            Ok(v) => return v,
-            Err(e) => e,
-        };
-        assert!(
-            Instant::now() < deadline,
-            "timed out waiting for {what}; last: {last}"
-        );
-        std::thread::sleep(Duration::from_millis(100));
-    }
+/// Polls `f` until it gives `Ok`, for at most [`TIMEOUT`] ([`common::wait_for`]).
+fn wait_for<T>(what: &str, f: impl FnMut() -> Result<T, String>) -> T {
+    common::wait_for(what, TIMEOUT, f)
 }
 
 // ---------------------------------------------------------------------------------------
@@ -490,25 +374,29 @@ return {width: img.naturalWidth, height: img.naturalHeight, src: img.src, mean,
 /// `tessera serve` with a SQLite store in `tmp`, `workers` local workers of one thread,
 /// port-0 listeners, no demo job (the test's job would queue behind it), and `extra`
 /// arguments. Returns the guard and the dashboard URL it printed.
-fn serve(tag: &str, tmp: &Path, workers: usize, extra: &[&str]) -> (Guard, String) {
+fn serve(tag: &str, tmp: &Path, workers: usize, extra: &[&str]) -> (Proc, String) {
     let log = artifacts_dir().join(format!("{tag}-serve.stderr.log"));
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_tessera"));
-    cmd.args(["serve", "--workers", &workers.to_string()])
-        .args(["--threads-per-worker", "1", "--http", "127.0.0.1:0"])
-        .args(["--grpc", "127.0.0.1:0", "--demo", "none", "--data"])
-        .arg(tmp.join("data"))
-        .args(extra);
-    let (mut guard, out) = spawn(&format!("{tag} serve"), cmd, &log);
-    let url = wait_line(&mut guard, &out, "dashboard:", &log);
+    let mut serve = Proc::spawn(
+        &format!("{tag} serve"),
+        tessera()
+            .args(["serve", "--workers", &workers.to_string()])
+            .args(["--threads-per-worker", "1", "--http", "127.0.0.1:0"])
+            .args(["--grpc", "127.0.0.1:0", "--demo", "none", "--data"])
+            .arg(tmp.join("data"))
+            .args(extra),
+        Some(&log),
+    )
+    .on_drop(OnDrop::Stop);
+    let url = serve.wait_line("dashboard:");
     println!("dashboard at {url}");
-    (guard, url)
+    (serve, url)
 }
 
 /// A browser session and its chromedriver. Fields drop in order: the session is closed
 /// before the driver stops.
 struct Chrome {
     browser: Browser,
-    _driver: Guard,
+    _driver: Proc,
 }
 
 /// The browser tests run one at a time: chromedriver's `--port=0` does not take an
@@ -519,19 +407,15 @@ static ONE_BROWSER: std::sync::Mutex<()> = std::sync::Mutex::new(());
 fn chrome(tag: &str, tmp: &Path) -> Chrome {
     let artifacts = artifacts_dir();
     let driver_log = artifacts.join(format!("{tag}-chromedriver.log"));
-    let mut cmd = Command::new(CHROMEDRIVER);
-    cmd.args(["--port=0", &format!("--log-path={}", driver_log.display())]);
-    let (mut driver, out) = spawn(
+    let mut driver = Proc::spawn(
         &format!("{tag} chromedriver"),
-        cmd,
-        &artifacts.join(format!("{tag}-chromedriver.stderr.log")),
-    );
-    let port = wait_line(
-        &mut driver,
-        &out,
-        "was started successfully on port",
-        &driver_log,
-    );
+        Command::new(CHROMEDRIVER)
+            .args(["--port=0", &format!("--log-path={}", driver_log.display())]),
+        Some(&artifacts.join(format!("{tag}-chromedriver.stderr.log"))),
+    )
+    .on_drop(OnDrop::Stop)
+    .diagnostics(&driver_log);
+    let port = driver.wait_line("was started successfully on port");
     let port = port.trim_end_matches('.');
     let browser = Browser::start(format!("127.0.0.1:{port}"), &tmp.join("chrome"));
     Chrome {

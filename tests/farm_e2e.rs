@@ -6,83 +6,16 @@
 //! a pure function of (scene, settings, seed, pixel, pass), so the farm's EXR must be
 //! byte-identical to it however the work was distributed or interrupted (DESIGN §2).
 
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+mod common;
 
+use std::path::Path;
+use std::time::Duration;
+
+use common::{free_port, output, output_ok, poll, temp_dir, tessera, Proc};
 use tessera_api::client::{Client, ClientError};
 use tessera_api::{JobSettings, JobState, JobStatus};
 
 const TIMEOUT: Duration = Duration::from_secs(240);
-
-fn tessera() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_tessera"))
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("tessera-e2e-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-/// A child process killed (SIGKILL) when dropped, so a failing test leaves nothing behind.
-struct Proc(Option<Child>);
-
-impl Proc {
-    fn kill9(&mut self) {
-        if let Some(mut c) = self.0.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        self.kill9();
-    }
-}
-
-/// Reads the child's stdout until a line starts with each prefix; returns the rest of
-/// those lines. The remaining output is drained in the background.
-fn read_lines(child: &mut Child, prefixes: &[&str]) -> Vec<String> {
-    let stdout = child.stdout.take().expect("piped stdout");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stdout).lines() {
-            let Ok(line) = line else { break };
-            if tx.send(line).is_err() {
-                // Keep draining so the child never blocks on a full pipe.
-            }
-        }
-    });
-    let mut found = vec![None; prefixes.len()];
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while found.iter().any(Option::is_none) {
-        let left = deadline.saturating_duration_since(Instant::now());
-        let line = rx
-            .recv_timeout(left)
-            .unwrap_or_else(|_| panic!("process did not print {prefixes:?}"));
-        for (i, p) in prefixes.iter().enumerate() {
-            if let Some(rest) = line.strip_prefix(p) {
-                found[i] = Some(rest.trim().to_string());
-            }
-        }
-    }
-    found.into_iter().map(Option::unwrap).collect()
-}
-
-/// A free loopback port (bound and released; used where a restarted coordinator must
-/// come back on the same address its workers reconnect to).
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 struct Coord {
     proc: Proc,
@@ -91,34 +24,36 @@ struct Coord {
 }
 
 fn start_coordinator(data: &Path, http: &str, grpc: &str, extra: &[&str]) -> Coord {
-    let mut child = tessera()
-        .args(["coordinator", "--http", http, "--grpc", grpc, "--data"])
-        .arg(data)
-        .args([
-            "--lease-ms",
-            "1500",
-            "--heartbeat-ms",
-            "250",
-            "--grace-ms",
-            "1000",
-        ])
-        .args(extra)
-        .env_remove("TESSERA_API_TOKEN")
-        .env_remove("TESSERA_WORKER_TOKEN")
-        .stdout(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let v = read_lines(&mut child, &["http: ", "grpc: "]);
+    let mut proc = Proc::spawn(
+        "coordinator",
+        tessera()
+            .args(["coordinator", "--http", http, "--grpc", grpc, "--data"])
+            .arg(data)
+            .args([
+                "--lease-ms",
+                "1500",
+                "--heartbeat-ms",
+                "250",
+                "--grace-ms",
+                "1000",
+            ])
+            .args(extra)
+            .env_remove("TESSERA_API_TOKEN")
+            .env_remove("TESSERA_WORKER_TOKEN"),
+        None,
+    );
+    let v = proc.wait_lines(&["http: ", "grpc: "]);
     let http = v[0].trim_end_matches("/api/v1").to_string();
     Coord {
-        proc: Proc(Some(child)),
+        proc,
         http,
         grpc: v[1].clone(),
     }
 }
 
 fn start_worker(grpc: &str, name: &str, extra: &[&str]) -> Proc {
-    Proc(Some(
+    Proc::spawn(
+        name,
         tessera()
             .args([
                 "worker",
@@ -130,11 +65,9 @@ fn start_worker(grpc: &str, name: &str, extra: &[&str]) -> Proc {
                 name,
             ])
             .args(extra)
-            .env_remove("TESSERA_WORKER_TOKEN")
-            .stdout(Stdio::null())
-            .spawn()
-            .unwrap(),
-    ))
+            .env_remove("TESSERA_WORKER_TOKEN"),
+        None,
+    )
 }
 
 fn job(width: u32, height: u32, spp: u32) -> JobSettings {
@@ -149,20 +82,19 @@ fn job(width: u32, height: u32, spp: u32) -> JobSettings {
 /// `tessera render` of the same job: the reference EXR bytes.
 fn local_render(dir: &Path, s: &JobSettings) -> Vec<u8> {
     let out = dir.join("local.exr");
-    let o = tessera()
-        .args(["render", &s.scene, "--width"])
-        .arg(s.width.unwrap().to_string())
-        .arg("--height")
-        .arg(s.height.unwrap().to_string())
-        .arg("--spp")
-        .arg(s.spp.to_string())
-        .arg("--seed")
-        .arg(s.seed.to_string())
-        .arg("-o")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    output_ok(
+        tessera()
+            .args(["render", &s.scene, "--width"])
+            .arg(s.width.unwrap().to_string())
+            .arg("--height")
+            .arg(s.height.unwrap().to_string())
+            .arg("--spp")
+            .arg(s.spp.to_string())
+            .arg("--seed")
+            .arg(s.seed.to_string())
+            .arg("-o")
+            .arg(&out),
+    );
     std::fs::read(out).unwrap()
 }
 
@@ -180,18 +112,9 @@ fn wait_done(client: &Client, id: u64) -> JobStatus {
     s
 }
 
-/// Polls until `f` holds, panicking with `what` after the timeout.
-fn poll(what: &str, mut f: impl FnMut() -> bool) {
-    let start = Instant::now();
-    while !f() {
-        assert!(start.elapsed() < TIMEOUT, "timed out waiting for {what}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-}
-
 #[test]
 fn one_and_three_workers_give_the_local_image_byte_for_byte() {
-    let dir = temp_dir("workers");
+    let dir = temp_dir("e2e", "workers");
     let s = job(48, 40, 32);
     let reference = local_render(&dir, &s);
     let mut images = Vec::new();
@@ -223,7 +146,7 @@ fn one_and_three_workers_give_the_local_image_byte_for_byte() {
 
 #[test]
 fn adaptive_farm_jobs_are_identical_with_one_and_three_workers() {
-    let dir = temp_dir("adaptive");
+    let dir = temp_dir("e2e", "adaptive");
     let mut images = Vec::new();
     for (mode, target) in [("sequential", 0.08), ("unbiased", 0.08)] {
         let mut per_mode = Vec::new();
@@ -254,7 +177,7 @@ fn adaptive_farm_jobs_are_identical_with_one_and_three_workers() {
 
 #[test]
 fn a_killed_worker_loses_nothing() {
-    let dir = temp_dir("kill-worker");
+    let dir = temp_dir("e2e", "kill-worker");
     let s = job(64, 64, 128);
     let reference = local_render(&dir, &s);
     let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
@@ -262,7 +185,7 @@ fn a_killed_worker_loses_nothing() {
     let client = Client::new(&c.http, None);
     let st = client.submit(&s, None).unwrap();
     // Kill the only worker in the middle of the job, holding leases.
-    poll("a third of the passes", || {
+    poll("a third of the passes", TIMEOUT, || {
         let j = client.job(st.id).unwrap();
         j.passes_done * 3 >= j.passes_planned
     });
@@ -281,7 +204,7 @@ fn a_killed_worker_loses_nothing() {
 
 #[test]
 fn a_killed_coordinator_resumes_and_loses_no_job() {
-    let dir = temp_dir("kill-coordinator");
+    let dir = temp_dir("e2e", "kill-coordinator");
     let data = dir.join("data");
     let s = job(64, 64, 128);
     let reference = local_render(&dir, &s);
@@ -299,7 +222,7 @@ fn a_killed_coordinator_resumes_and_loses_no_job() {
     queued.priority = -1;
     queued.name = Some("queued".into());
     let queued = client.submit(&queued, Some("key-1")).unwrap();
-    poll("a quarter of the passes", || {
+    poll("a quarter of the passes", TIMEOUT, || {
         let j = client.job(running.id).unwrap();
         j.passes_done * 4 >= j.passes_planned
     });
@@ -335,7 +258,7 @@ fn api_error(r: Result<impl std::fmt::Debug, ClientError>) -> (u16, tessera_api:
 
 #[test]
 fn bad_input_gets_json_errors_and_the_coordinator_keeps_serving() {
-    let dir = temp_dir("bad-input");
+    let dir = temp_dir("e2e", "bad-input");
     let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
     let client = Client::new(&c.http, None);
     for (body, field) in [
@@ -398,7 +321,7 @@ fn bad_input_gets_json_errors_and_the_coordinator_keeps_serving() {
 
 #[test]
 fn tokens_are_required_when_configured() {
-    let dir = temp_dir("tokens");
+    let dir = temp_dir("e2e", "tokens");
     let c = start_coordinator(
         &dir.join("data"),
         "127.0.0.1:0",
@@ -420,14 +343,13 @@ fn tokens_are_required_when_configured() {
     // gRPC: a worker without the token is refused and exits with an error; a worker with a
     // wrong token too; the right one renders the job.
     for extra in [&[][..], &["--token", "nope"][..]] {
-        let out = tessera()
-            .args(["worker", "--coordinator", &c.grpc, "--threads", "1"])
-            .args(extra)
-            .env_remove("TESSERA_WORKER_TOKEN")
-            .output()
-            .unwrap();
-        assert!(!out.status.success());
-        let err = String::from_utf8_lossy(&out.stderr);
+        let (ok, _, err) = output(
+            tessera()
+                .args(["worker", "--coordinator", &c.grpc, "--threads", "1"])
+                .args(extra)
+                .env_remove("TESSERA_WORKER_TOKEN"),
+        );
+        assert!(!ok);
         assert!(err.contains("token"), "{err}");
     }
     assert_eq!(client.job(st.id).unwrap().passes_done, 0);
@@ -438,7 +360,7 @@ fn tokens_are_required_when_configured() {
 #[test]
 fn faulty_results_are_rejected_and_the_image_is_unaffected() {
     use tessera_proto::v1;
-    let dir = temp_dir("faulty");
+    let dir = temp_dir("e2e", "faulty");
     let s = job(32, 32, 16);
     let reference = local_render(&dir, &s);
     let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);

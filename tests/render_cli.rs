@@ -1,49 +1,33 @@
 //! End-to-end tests of `tessera render` as a user runs it: real process, real files.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
-fn tessera() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_tessera"))
-}
+use std::path::Path;
 
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("tessera-cli-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+use common::{output, output_ok, temp_dir, tessera};
 
 fn render(out: &Path, extra: &[&str]) -> String {
-    let o = tessera()
-        .args([
-            "render",
-            "builtin:cornell-box",
-            "--width",
-            "64",
-            "--height",
-            "48",
-            "--spp",
-            "16",
-            "-o",
-        ])
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&o.stdout).to_string();
-    assert!(
-        o.status.success(),
-        "render failed: {}\n{}",
-        stdout,
-        String::from_utf8_lossy(&o.stderr)
-    );
-    stdout
+    output_ok(
+        tessera()
+            .args([
+                "render",
+                "builtin:cornell-box",
+                "--width",
+                "64",
+                "--height",
+                "48",
+                "--spp",
+                "16",
+                "-o",
+            ])
+            .arg(out)
+            .args(extra),
+    )
 }
 
 #[test]
 fn exr_is_bit_identical_for_any_thread_count_and_across_runs() {
-    let dir = temp_dir("determinism");
+    let dir = temp_dir("cli", "determinism");
     let mut files = Vec::new();
     for (i, threads) in ["1", "2", "8", "2"].iter().enumerate() {
         let out = dir.join(format!("run{i}.exr"));
@@ -84,7 +68,7 @@ fn exr_is_bit_identical_for_any_thread_count_and_across_runs() {
 
 #[test]
 fn png_output_and_summary() {
-    let dir = temp_dir("png");
+    let dir = temp_dir("cli", "png");
     let out = dir.join("cornell.png");
     let stdout = render(&out, &[]);
     let bytes = std::fs::read(&out).unwrap();
@@ -105,7 +89,7 @@ fn png_output_and_summary() {
 
 #[test]
 fn bad_arguments_are_reported_not_panicked() {
-    let dir = temp_dir("bad");
+    let dir = temp_dir("cli", "bad");
     for (args, needle) in [
         (
             vec!["render", "builtin:nope", "-o", "x.exr"],
@@ -148,9 +132,8 @@ fn bad_arguments_are_reported_not_panicked() {
             "MIS",
         ),
     ] {
-        let o = tessera().current_dir(&dir).args(&args).output().unwrap();
-        let stderr = String::from_utf8_lossy(&o.stderr);
-        assert!(!o.status.success(), "{args:?} succeeded");
+        let (ok, _, stderr) = output(tessera().current_dir(&dir).args(&args));
+        assert!(!ok, "{args:?} succeeded");
         assert!(!stderr.contains("panicked"), "{args:?} panicked: {stderr}");
         assert!(
             stderr.contains(needle),

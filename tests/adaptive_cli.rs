@@ -1,34 +1,15 @@
 //! Issue 4 end to end: `tessera render` with --target-error/--adaptive/--time-limit/
 //! --spp-map, as a user runs it.
 
-use std::path::PathBuf;
-use std::process::Command;
+mod common;
 
-fn tessera() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_tessera"))
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("tessera-adaptive-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
-fn run(args: &[&str]) -> (bool, String, String) {
-    let o = tessera().args(args).output().unwrap();
-    (
-        o.status.success(),
-        String::from_utf8_lossy(&o.stdout).to_string(),
-        String::from_utf8_lossy(&o.stderr).to_string(),
-    )
-}
+use common::{read_exr, run, temp_dir};
 
 /// Adaptive renders are bit-identical with 1 and 2 threads (DESIGN §2), the samples layer
 /// holds the per-pixel effort, and the heat map is written.
 #[test]
 fn adaptive_render_is_deterministic_and_reports_its_effort() {
-    let dir = temp_dir("det");
+    let dir = temp_dir("adaptive", "det");
     for mode in ["sequential", "unbiased"] {
         let mut files = Vec::new();
         for threads in ["1", "2"] {
@@ -135,7 +116,7 @@ fn adaptive_flags_are_checked() {
 /// rounds; the summary says why.
 #[test]
 fn off_mode_stops_at_a_target_or_time_limit() {
-    let dir = temp_dir("off");
+    let dir = temp_dir("adaptive", "off");
     let out = dir.join("t.exr");
     let (ok, stdout, stderr) = run(&[
         "render",
@@ -155,7 +136,7 @@ fn off_mode_stops_at_a_target_or_time_limit() {
     ]);
     assert!(ok, "{stdout}\n{stderr}");
     assert!(stdout.contains("stopped: target error reached"), "{stdout}");
-    let exr = tessera_image::read_exr(&std::fs::read(&out).unwrap()).unwrap();
+    let exr = read_exr(&out);
     let s = exr.get("samples.Y").unwrap();
     assert!(s.iter().all(|&v| v == s[0]) && s[0] < 4096.0, "{}", s[0]);
     let (ok, stdout, stderr) = run(&[

@@ -1,33 +1,22 @@
 //! `tessera render` shows the scene's render plan, follows it with `--integrator auto`,
 //! reports overrides, and renders a scene without light black without tracing.
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+mod common;
 
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("tessera-plan-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+use std::path::Path;
+
+use common::{output_ok, read_exr, temp_dir, tessera};
 
 /// Renders `scene` tiny (16 x 16, 4 spp) to `out` with extra arguments; returns stdout.
 fn render(scene: &str, out: &Path, extra: &[&str]) -> String {
-    let o = Command::new(env!("CARGO_BIN_EXE_tessera"))
-        .args([
-            "render", scene, "--width", "16", "--height", "16", "--spp", "4", "-o",
-        ])
-        .arg(out)
-        .args(extra)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&o.stdout).to_string();
-    assert!(
-        o.status.success(),
-        "render {scene} {extra:?} failed: {stdout}\n{}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    stdout
+    output_ok(
+        tessera()
+            .args([
+                "render", scene, "--width", "16", "--height", "16", "--spp", "4", "-o",
+            ])
+            .arg(out)
+            .args(extra),
+    )
 }
 
 fn assert_contains(text: &str, needles: &[&str]) {
@@ -37,13 +26,12 @@ fn assert_contains(text: &str, needles: &[&str]) {
 }
 
 fn metadata(out: &Path) -> String {
-    let exr = tessera_image::read_exr(&std::fs::read(out).unwrap()).unwrap();
-    exr.metadata.expect("EXR metadata")
+    read_exr(out).metadata.expect("EXR metadata")
 }
 
 #[test]
 fn auto_follows_and_shows_the_plan() {
-    let dir = temp_dir("auto");
+    let dir = temp_dir("plan", "auto");
     let out = dir.join("cornell.exr");
     let stdout = render("builtin:cornell-box", &out, &[]);
     assert_contains(
@@ -82,7 +70,7 @@ fn auto_follows_and_shows_the_plan() {
 
 #[test]
 fn explicit_integrator_and_depth_override_the_plan() {
-    let dir = temp_dir("override");
+    let dir = temp_dir("plan", "override");
     let out = dir.join("direct.exr");
     let stdout = render("builtin:cornell-box", &out, &["--integrator", "direct"]);
     assert_contains(
@@ -122,7 +110,7 @@ fn explicit_integrator_and_depth_override_the_plan() {
 
 #[test]
 fn delta_lit_caustics_plan_bdpt() {
-    let dir = temp_dir("bdpt");
+    let dir = temp_dir("plan", "bdpt");
     let out = dir.join("caustic.exr");
     let stdout = render("builtin:caustic", &out, &[]);
     assert_contains(
@@ -168,7 +156,7 @@ const DARK_GLTF: &str = r#"{
 
 #[test]
 fn a_scene_without_light_renders_black_without_tracing() {
-    let dir = temp_dir("dark");
+    let dir = temp_dir("plan", "dark");
     let scene = dir.join("dark.gltf");
     std::fs::write(&scene, DARK_GLTF).unwrap();
     let out = dir.join("dark.exr");
@@ -184,7 +172,7 @@ fn a_scene_without_light_renders_black_without_tracing() {
             "paths per second: 0",
         ],
     );
-    let exr = tessera_image::read_exr(&std::fs::read(&out).unwrap()).unwrap();
+    let exr = read_exr(&out);
     assert_eq!((exr.width, exr.height), (16, 16));
     for name in [
         "R",
