@@ -5,7 +5,7 @@ mod common;
 
 use common::{read_exr, run, temp_dir};
 
-/// Adaptive renders are bit-identical with 1 and 2 threads (DESIGN §2), the samples layer
+/// Adaptive renders are bit-identical with 1 and 2 threads (ARCHITECTURE.md §2), the samples layer
 /// holds the per-pixel effort, and the heat map is written.
 #[test]
 fn adaptive_render_is_deterministic_and_reports_its_effort() {

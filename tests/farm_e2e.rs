@@ -4,7 +4,7 @@
 //!
 //! The reference for every image is `tessera render` with the same settings: rendering is
 //! a pure function of (scene, settings, seed, pixel, pass), so the farm's EXR must be
-//! byte-identical to it however the work was distributed or interrupted (DESIGN §2).
+//! byte-identical to it however the work was distributed or interrupted (ARCHITECTURE.md §2).
 
 mod common;
 

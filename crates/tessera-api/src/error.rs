@@ -1,4 +1,4 @@
-//! The JSON error body of every failed request (DESIGN §5).
+//! The JSON error body of every failed request (ARCHITECTURE.md §5).
 
 use std::fmt;
 
@@ -71,7 +71,7 @@ impl fmt::Display for ErrorCode {
 
 /// An API error: what every non-2xx response carries.
 ///
-/// Serializes as DESIGN §5 requires, wrapped in an `"error"` object, with `field` present
+/// Serializes as ARCHITECTURE.md §5 requires, wrapped in an `"error"` object, with `field` present
 /// only when one field is to blame:
 ///
 /// ```

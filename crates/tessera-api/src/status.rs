@@ -75,7 +75,7 @@ pub struct JobStatus {
     /// Samples per pixel merged so far, averaged over the pixels of all frames (not an
     /// integer under adaptive stopping).
     pub spp_so_far: f64,
-    /// The current image error estimate (RMS relative error, DESIGN §3); `None` until
+    /// The current image error estimate (RMS relative error, ARCHITECTURE.md §3); `None` until
     /// every pixel has at least two passes.
     pub error_estimate: Option<f64>,
     /// The requested target error, if any.
@@ -99,7 +99,7 @@ pub struct JobStatus {
     /// Why the job failed, when `state` is `failed`.
     #[serde(default)]
     pub error: Option<String>,
-    /// The render plan (DESIGN §4): the light-transport effects found in the scene with
+    /// The render plan (ARCHITECTURE.md §4): the light-transport effects found in the scene with
     /// their evidence, the absent ones, and the integrator configuration chosen for them,
     /// as `tessera_farm::job::RenderPlan::to_json` writes it. `None` until the
     /// scene has been analysed.

@@ -6,7 +6,7 @@
 //!
 //! - `accuracy.csv`: one row per run: configuration, samples per pixel, seconds, estimated
 //!   error, measured RMSE and relative MSE against the reference, and Veach's efficiency
-//!   `1 / (MSE × seconds)` (seed 002 §4: variance times cost, inverted);
+//!   `1 / (MSE × seconds)` (Veach & Guibas 1995, section 4: variance times cost, inverted);
 //! - `accuracy.svg`: measured relative error against time, log-log, one line per
 //!   configuration (error falls like `1/sqrt(time)`: slope -1/2);
 //! - `accuracy.md`: per configuration, the time to reach 10%, 3% and 1% relative error,
@@ -18,7 +18,7 @@
 //! own variance of the mean, `RMSE = sqrt(mean over pixels and channels of (m - r)²)` and
 //! `relMSE = mean over pixels of ((lum m - lum r)² - v_r,lum) / (lum r + eps)²` (clamped at
 //! 0), so that a finite reference's own noise is not charged to the run; the measured
-//! relative error is `sqrt(relMSE)`, comparable with the estimate (DESIGN §3).
+//! relative error is `sqrt(relMSE)`, comparable with the estimate (ARCHITECTURE.md §3).
 
 use crate::render::{prepare, JobArgs};
 use anyhow::{bail, Context, Result};

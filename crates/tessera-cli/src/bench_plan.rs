@@ -1,10 +1,10 @@
 //! `tessera bench-plan`: what the render plan buys, measured side by side in one run
-//! (DESIGN §4, issue 6 "Evidence").
+//! (ARCHITECTURE.md §4, issue 6 "Evidence").
 //!
 //! For each pair of configurations the same scene is rendered at the same size and sample
 //! count; the time to reach a target relative error (default 5%) is predicted from the
 //! measured time and the estimated image error, since error falls like `1/sqrt(work)`
-//! (DESIGN §3, ETA): `t_target = t (error / target)²`. The pairs are
+//! (ARCHITECTURE.md §3, ETA): `t_target = t (error / target)²`. The pairs are
 //!
 //! - `builtin:caustic` with `path` and with `bdpt` (the plan's choice: a caustic lit by a
 //!   small light);

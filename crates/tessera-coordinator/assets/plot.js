@@ -1,5 +1,5 @@
 // The convergence plot: estimated image error against render time on log-log axes,
-// drawn as plain SVG. Monte Carlo error falls like 1/sqrt(time) (DESIGN §3), a straight
+// drawn as plain SVG. Monte Carlo error falls like 1/sqrt(time) (ARCHITECTURE.md §3), a straight
 // line of slope -1/2 here; the prediction continues that line from the latest point to
 // the coordinator's finishing time estimate (eta_seconds).
 

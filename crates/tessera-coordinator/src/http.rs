@@ -1,4 +1,4 @@
-//! The HTTP API v1 (DESIGN §5) and the dashboard, on axum.
+//! The HTTP API v1 (ARCHITECTURE.md §5) and the dashboard, on axum.
 //!
 //! Every `/api/v1` route answers JSON; every failure is an [`ApiError`] serialized as
 //! `{"error": {"code", "message", "field"?}}` with its 4xx/5xx status, including malformed

@@ -1,5 +1,5 @@
 //! The Tessera coordinator: accepts render jobs, leases work units to workers, merges
-//! their results and keeps the durable state of the farm (DESIGN §1, §5, §6).
+//! their results and keeps the durable state of the farm (ARCHITECTURE.md §1, §5, §6).
 //!
 //! - [`store`]: the durable store (jobs, scenes, merged tile checkpoints, lease fencing
 //!   high-water mark, convergence history, worker faults) behind the [`store::Store`]
@@ -7,7 +7,7 @@
 //! - [`grpc`]: the worker-facing gRPC service over the farm's lease scheduler.
 //! - [`service`]: the job life cycle over both: submission, durable checkpoints as passes
 //!   merge, resume after a restart, status, images, cancel.
-//! - [`http`]: the axum HTTP API v1 (DESIGN §5) and the dashboard routes.
+//! - [`http`]: the axum HTTP API v1 (ARCHITECTURE.md §5) and the dashboard routes.
 //! - [`dashboard`]: the browser dashboard's static files, embedded, served at `/`.
 #![deny(missing_docs)]
 

@@ -1,5 +1,5 @@
 //! Adaptive stopping: which pixels of a tile still need passes, and when a tile is done
-//! (DESIGN §3, issue 4). Pure: no I/O, no clock, no threads.
+//! (ARCHITECTURE.md §3, issue 4). Pure: no I/O, no clock, no threads.
 //!
 //! # Why decisions are made at fixed pass indices
 //!
@@ -7,7 +7,7 @@
 //! that arrive early, like [`crate::TileAccumulator`]) and takes its decisions only at
 //! *decision boundaries*, pass indices fixed by the [`AdaptiveSettings`] alone. A decision
 //! at boundary `b` reads nothing but the tile's own merged state over passes `0..b`, which
-//! is a pure function of the job (DESIGN §2). Hence an adaptive render is bit-identical with
+//! is a pure function of the job (ARCHITECTURE.md §2). Hence an adaptive render is bit-identical with
 //! any number of threads or workers and any arrival order: the same pixels stop at the same
 //! passes, and their statistics hold the same passes pushed in the same order.
 //!
@@ -18,12 +18,12 @@
 //! - [`AdaptiveMode::Sequential`]: at passes `min_passes`, `min_passes + interval`, ... a
 //!   pixel whose relative error `sqrt(Var[mean]) / (lum(mean) + eps)` is below the target
 //!   stops, unless a neighbour within one pixel (in the same tile) is still above it
-//!   (dilation). Stopping on the estimate itself is biased (Kirk & Arvo 1991, seed 000
-//!   §10.3): a pixel whose first passes missed a rare bright path (a caustic, a small light
+//!   (dilation). Stopping on the estimate itself is biased (Kirk & Arvo 1991, Jensen 2001,
+//!   section 10.3): a pixel whose first passes missed a rare bright path (a caustic, a small light
 //!   in a glossy reflection) looks converged with too little energy. The minimum pass count
 //!   and the dilation make that less likely; the bias test in this module measures what
 //!   remains.
-//! - [`AdaptiveMode::Unbiased`]: Kirk & Arvo's two-stage remedy (seed 000 §10.3: "to
+//! - [`AdaptiveMode::Unbiased`]: Kirk & Arvo's two-stage remedy (Jensen 2001, section 10.3: "to
 //!   eliminate bias the pilot sample must be thrown away"). A pilot of `min_passes` passes
 //!   estimates each pixel's per-pass variance `s²`; the pixel is given
 //!   `n = ceil(s² / (target · (lum + eps))²)` fresh passes, clamped to
@@ -31,7 +31,7 @@
 //!   the target. The pilot statistics are then discarded and only passes
 //!   `pilot .. pilot + n` form the pixel's mean and error estimate. Because `n` depends only
 //!   on the pilot, which is independent of the fresh passes (passes are independent
-//!   replicates, seed 000 §6.7), the fresh mean is unbiased whatever `n` turned out to be.
+//!   replicates, Owen 2001, section 6.7), the fresh mean is unbiased whatever `n` turned out to be.
 //!
 //! # Rendering only what is wanted
 //!
@@ -465,7 +465,7 @@ impl AdaptiveTile {
     }
 }
 
-/// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, seed 000 §10.3):
+/// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, Jensen 2001, section 10.3):
 /// `ceil(s² / (target (lum + eps))²)` with `s² = m2_lum / (K - 1)` the pilot's per-pass
 /// variance of the luminance, clamped to `[lo, hi]`.
 pub fn fresh_passes_needed(pilot: &PixelStats, target: f64, lo: u32, hi: u32) -> u32 {
@@ -609,7 +609,7 @@ impl AdaptiveFrame {
     }
 
     /// Image relative error estimate: the RMS of [`PixelStats::relative_error`] over the
-    /// pixels with at least 2 passes in their estimate (DESIGN §3); 0 if there are none.
+    /// pixels with at least 2 passes in their estimate (ARCHITECTURE.md §3); 0 if there are none.
     pub fn image_error(&self) -> f64 {
         let mut sum = 0.0f64;
         let mut count = 0u64;
@@ -673,7 +673,7 @@ pub struct ConvergencePoint {
 /// estimate and the time spent so far.
 ///
 /// Monte Carlo error falls like one over the square root of the work (the variance of a
-/// mean of `n` independent replicates is `σ²/n`, DESIGN §3), so reaching `target` from
+/// mean of `n` independent replicates is `σ²/n`, ARCHITECTURE.md §3), so reaching `target` from
 /// `current` after `t` seconds needs `t · (current / target)²` seconds in total:
 /// `remaining = t · ((current / target)² - 1)`. Returns `Some(0.0)` when the target is
 /// met, and `None` when nothing can be predicted (no time spent, a non-finite or

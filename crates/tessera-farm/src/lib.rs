@@ -9,7 +9,7 @@
 //!
 //! - [`FramePlan`] cuts a frame into square **tiles** (row-major, edge tiles smaller) and
 //!   every pixel's samples into **passes** of `samples_per_pass` samples. A pass is an
-//!   independent replicate of the pixel (DESIGN §3), which is what makes the error
+//!   independent replicate of the pixel (ARCHITECTURE.md §3), which is what makes the error
 //!   estimable. [`FramePlan::for_spp`] picks the pass size for a requested spp.
 //! - A [`WorkUnit`] is a contiguous range of passes of one tile. [`FramePlan::units`] lists
 //!   a frame's units coarse to fine: the first passes of every tile before later ones.
@@ -19,7 +19,7 @@
 //! - A [`TileAccumulator`] keeps one [`PixelStats`] (Welford running mean and variance in
 //!   f64) per pixel. Results arriving out of order are buffered and folded strictly in pass
 //!   order, so the statistics are bit-identical regardless of worker count, unit split or
-//!   arrival order (DESIGN §2). Duplicates are detected and compared, never merged twice.
+//!   arrival order (ARCHITECTURE.md §2). Duplicates are detected and compared, never merged twice.
 //! - A [`FrameAccumulator`] holds one tile accumulator per tile and assembles a
 //!   [`FrameImage`] (mean, variance of the mean, passes, samples and relative error layers)
 //!   and the image error estimate, the RMS of per-pixel relative errors.

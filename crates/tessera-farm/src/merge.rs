@@ -74,7 +74,7 @@ struct UnitRecord {
 /// Results may arrive in any order. A result is buffered until it extends the contiguous
 /// prefix of merged passes, then folded pass by pass in pass order, so the statistics are
 /// bit-identical however the passes were split into units and in whatever order they
-/// arrived (DESIGN §2). Every accepted unit's pass range and digest are remembered for
+/// arrived (ARCHITECTURE.md §2). Every accepted unit's pass range and digest are remembered for
 /// duplicate detection.
 #[derive(Debug, Clone)]
 pub struct TileAccumulator {
@@ -228,7 +228,7 @@ impl TileAccumulator {
     ///
     /// The restored accumulator continues bit-identically: merging the remaining passes
     /// gives the same statistics as an uninterrupted merge, because the Welford state is
-    /// restored exactly (DESIGN §2, §6). Refuses a checkpoint whose pixel count does not
+    /// restored exactly (ARCHITECTURE.md §2, §6). Refuses a checkpoint whose pixel count does not
     /// match the tile, whose units do not tile `0..merged_passes` contiguously, or whose
     /// pixels claim more passes than were merged.
     pub fn restore(
@@ -437,7 +437,7 @@ impl FrameAccumulator {
 
     /// Image relative error estimate: the root mean square of
     /// [`PixelStats::relative_error`] over the pixels with at least 2 merged passes
-    /// (DESIGN §3). Pixels with fewer passes have no error estimate and are excluded;
+    /// (ARCHITECTURE.md §3). Pixels with fewer passes have no error estimate and are excluded;
     /// 0 if no pixel has 2 passes. Never NaN.
     pub fn image_error(&self) -> f64 {
         let mut sum = 0.0f64;
@@ -491,7 +491,7 @@ pub struct FrameImage {
 impl FrameImage {
     /// The image of a frame with no light: zero mean and variance with the plan's pass and
     /// sample counts, exactly what merging all-zero passes gives, without tracing a ray
-    /// (the render plan's black shortcut, DESIGN §4; local and farm renders share it).
+    /// (the render plan's black shortcut, ARCHITECTURE.md §4; local and farm renders share it).
     pub fn black(plan: &FramePlan) -> Self {
         let n = plan.width as usize * plan.height as usize;
         Self {

@@ -80,7 +80,7 @@ pub enum PlanError {
 /// How one frame is rendered: the image is cut into square tiles (edge tiles smaller), and
 /// every pixel receives `passes` independent passes of `samples_per_pass` samples each.
 ///
-/// A pass is the unit of statistics (DESIGN §3): the mean of its samples is one replicate of
+/// A pass is the unit of statistics (ARCHITECTURE.md §3): the mean of its samples is one replicate of
 /// the pixel's value. Build plans with [`FramePlan::new`] or [`FramePlan::for_spp`], which
 /// validate; deserialization validates too. Methods never panic on a plan built by hand with
 /// out-of-range fields (a zero tile size is treated as 1), but such a plan is not supported.

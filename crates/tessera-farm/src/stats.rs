@@ -1,4 +1,4 @@
-//! Per-pixel running statistics over passes (DESIGN §3).
+//! Per-pixel running statistics over passes (ARCHITECTURE.md §3).
 
 use serde::{Deserialize, Serialize};
 
@@ -23,7 +23,7 @@ pub fn luminance(rgb: [f64; 3]) -> f64 {
 /// Running statistics of one pixel over its passes: Welford updates in f64 of the pass
 /// means, per RGB channel and for luminance.
 ///
-/// Each pass mean is one independent replicate of the pixel (DESIGN §3), so after `n`
+/// Each pass mean is one independent replicate of the pixel (ARCHITECTURE.md §3), so after `n`
 /// passes the mean of the replicates estimates the pixel and `m2 / (n (n - 1))` estimates
 /// the variance of that mean. Luminance has its own accumulator because its variance
 /// involves the covariances between channels, which per-channel statistics do not keep.
@@ -183,7 +183,7 @@ mod tests {
         }
     }
 
-    /// The variance of the mean is calibrated for iid replicates (DESIGN §3).
+    /// The variance of the mean is calibrated for iid replicates (ARCHITECTURE.md §3).
     ///
     /// 2000 replicates of K = 16 normal passes (mu = 5, sigma = 2). For each, v =
     /// s^2 / K with (K - 1) s^2 / sigma^2 ~ chi^2_{K-1}, so E[v] = sigma^2 / K and

@@ -1,12 +1,12 @@
 //! The perspective camera: pinhole, or thin lens when the aperture is open.
 //!
 //! Film coordinates: pixel (x, y) with y down; the camera looks down its local -Z with +Y
-//! up (glTF). A thin lens samples the aperture with the concentric disk map (seed 000
-//! ch. 4) and focuses on the plane `z = -focus_distance`.
+//! up (glTF). A thin lens samples the aperture with the concentric disk map (Arvo 2001,
+//! chapter 4) and focuses on the plane `z = -focus_distance`.
 //!
 //! # Importance (for light tracing)
 //! Bidirectional path tracing connects light-subpath vertices to the camera, so the camera
-//! is also an emitter of *importance* `We` (the adjoint of radiance, seed 000 ch. 7 "Adjoint
+//! is also an emitter of *importance* `We` (the adjoint of radiance, Hanrahan 2001, chapter 7 "Adjoint
 //! equations and importance sampling"). With the image plane at distance 1 of area
 //! `A = 4 tan(fov_x/2) tan(fov_y/2)` and a lens of area `A_lens` (1 for a pinhole, whose
 //! position is a delta), pbrt 3rd ed. §16.1.1:

@@ -1,6 +1,6 @@
 //! Chi-squared goodness-of-fit harness for sampling routines (test-only).
 //!
-//! Statistical software testing as in seed 001 §2 ("Chi-squared test"): divide the domain into
+//! Statistical software testing as in Marschner, CS 6630 notes, section 2 ("Chi-squared test"): divide the domain into
 //! bins, integrate the claimed pdf over each bin to get expected counts, draw many samples,
 //! count them, and ask whether the differences are plausibly random. The design follows the
 //! `chi2.py` harness of Mitsuba (Jakob et al.):

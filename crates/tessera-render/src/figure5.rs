@@ -1,4 +1,4 @@
-//! Veach & Guibas 1995, figure 5, in numbers (seed 002 §4.1, figs. 4 and 5): the glossy
+//! Veach & Guibas 1995, figure 5, in numbers (Veach & Guibas 1995, section 4.1, figs. 4 and 5): the glossy
 //! highlight of a spherical light on a plate of varying roughness, estimated from one
 //! viewing ray by light (area) sampling, by BSDF (directional) sampling, and by both
 //! combined with the balance, power (β = 2), cutoff (α = 0.1) and maximum heuristics.

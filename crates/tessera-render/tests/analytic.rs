@@ -1,6 +1,6 @@
 //! Renders of scenes with analytic answers: the furnace, and a diffuse plane under a
 //! spherical light (irradiance π L sin² α). z-tests at 3 standard errors with the error
-//! estimated from independent passes (seed 001, statistical testing).
+//! estimated from independent passes (Marschner, CS 6630 notes, statistical testing).
 
 mod common;
 

@@ -1,6 +1,6 @@
 //! Bidirectional path tracing against the path tracer, analytic answers and itself.
 //!
-//! Statistics (seed 001 §2, seed 000 §6.7): passes are independent replicates, so the
+//! Statistics (Marschner, CS 6630 notes, section 2, Owen 2001, section 6.7): passes are independent replicates, so the
 //! spread of a quantity across passes estimates the error of its mean. Light tracing splats
 //! make the pixels of one bdpt pass correlated, so block means are formed *per pass* and
 //! their variance is taken across passes (summing per-pixel variances would ignore the

@@ -1,8 +1,8 @@
 //! Issue 4: the error estimate is calibrated, and adaptive renders meet their target.
 //!
 //! Each scene is rendered at 32x32 against a converged reference rendered here with an
-//! independent seed (DESIGN §3: passes are independent replicates, so the spread between
-//! passes estimates the error of their mean; seed 000 §6.7).
+//! independent seed (ARCHITECTURE.md §3: passes are independent replicates, so the spread between
+//! passes estimates the error of their mean; Owen 2001, section 6.7).
 //!
 //! Statistics of the coverage check: for pixel p with K = 64 passes, mean m, estimated
 //! variance of the mean v, and reference r with its own variance of the mean v_r,
@@ -25,7 +25,7 @@ const H: u32 = 32;
 
 fn settings(scene: &str, seed: u64) -> RenderSettings {
     if scene.ends_with("veach-mis") {
-        // The glossy-highlights experiment (seed 002 §4.1) is direct lighting: light and
+        // The glossy-highlights experiment (Veach & Guibas 1995, section 4.1) is direct lighting: light and
         // BSDF sampling of the four lights, combined by MIS. (With indirect bounces the
         // floor also sees the plates' caustics, rare paths that a 32x32 test at a few
         // hundred spp resolves only as isolated fireflies: see the issue 4 report.)
@@ -185,7 +185,7 @@ fn adaptive_render_meets_its_target_error() {
     }
 }
 
-/// DESIGN §2 for adaptive renders: the decisions depend only on each tile's merged state
+/// ARCHITECTURE.md §2 for adaptive renders: the decisions depend only on each tile's merged state
 /// at fixed pass indices, so 1 and 2 threads give the same bits.
 #[test]
 fn adaptive_render_is_bit_identical_for_any_thread_count() {

@@ -1,4 +1,4 @@
-//! DESIGN §2: a frame's statistics are a pure function of the scene, the settings and the
+//! ARCHITECTURE.md §2: a frame's statistics are a pure function of the scene, the settings and the
 //! seed — independent of thread count, of how passes are cut into work units and of the
 //! order units arrive in.
 

@@ -2,7 +2,7 @@
 //! reduced maximum depth), its image has the same expected value as the general
 //! configuration (`--integrator path`, max depth 16). Both are rendered here at modest
 //! sample counts and compared tile by tile (8 x 8 pixel blocks) with a z-test; the errors
-//! come from the spread of independent passes (DESIGN §3), Bonferroni-corrected over the
+//! come from the spread of independent passes (ARCHITECTURE.md §3), Bonferroni-corrected over the
 //! tiles for a family-wise level of 1% (the critical |z| is about 3.4 for 16 tiles). The
 //! time per sample is the benchmark's business (`tessera bench-plan`), not a test's.
 

@@ -1,6 +1,6 @@
 //! Workers and the coordinator's gRPC service talking real gRPC over loopback: a job
 //! rendered by one worker and by three workers gives the same image, bit for bit, as the
-//! local renderer (DESIGN §2); a worker without the token is refused.
+//! local renderer (ARCHITECTURE.md §2); a worker without the token is refused.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};

@@ -1,4 +1,4 @@
-//! The durable store of the farm: the truth that survives `kill -9` (DESIGN §6).
+//! The durable store of the farm: the truth that survives `kill -9` (ARCHITECTURE.md §6).
 //!
 //! The coordinator keeps its working state in memory (the [`Scheduler`](tessera_farm::Scheduler)
 //! and its accumulators) and writes everything that must survive a crash through the

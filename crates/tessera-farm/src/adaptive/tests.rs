@@ -75,7 +75,7 @@ fn off_matches_the_plain_merge_bit_for_bit() {
 }
 
 /// The adaptive state is a function of the pass data only: any unit split and arrival
-/// order gives the same bits (DESIGN §2).
+/// order gives the same bits (ARCHITECTURE.md §2).
 #[test]
 fn decisions_do_not_depend_on_unit_split_or_order() {
     let plan = FramePlan::new(20, 12, 8, 1, 64).unwrap();
@@ -311,7 +311,7 @@ fn heavy_tailed_tile(settings: AdaptiveSettings, rng: &mut Rng, plan: &FramePlan
     (mean, spp)
 }
 
-/// Bias test (issue 4, seed 000 §10.3): over many independent trials of an 8x8 tile of
+/// Bias test (issue 4, Jensen 2001, section 10.3): over many independent trials of an 8x8 tile of
 /// heavy-tailed pixels, the sequential policy's mean is measurably off the true mean,
 /// while the unbiased two-stage policy matches it within 3 standard errors.
 ///

@@ -5,7 +5,7 @@
 //! | `albedo` | hemispherical reflectance per channel, in [0, 1] |
 //!
 //! Sampled with the cosine-weighted hemisphere (Malley's method via the concentric disk,
-//! seed 000 ch. 4 and seed 003), so `weight = albedo` exactly.
+//! Arvo 2001, chapter 4 and the Princeton COS 526 path tracing slides), so `weight = albedo` exactly.
 
 use crate::sampling::warp::{cosine_hemisphere_pdf, square_to_cosine_hemisphere};
 use glam::{Vec2, Vec3};

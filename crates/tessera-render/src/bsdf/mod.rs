@@ -18,7 +18,7 @@
 //!
 //! A [`Bsdf`] is a weighted mixture of up to three [`Lobe`]s; the weights are both the
 //! mixing weights and the lobe-selection probabilities (one-sample MIS over lobes: the
-//! combined pdf is the weighted sum, seed 002 §3). Opaque lobes scatter on both sides of a
+//! combined pdf is the weighted sum, Veach & Guibas 1995, section 3). Opaque lobes scatter on both sides of a
 //! surface (the frame is mirrored when `wo` is below), glass distinguishes inside from
 //! outside by the sign of `wo.z`.
 //!

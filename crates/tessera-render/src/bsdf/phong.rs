@@ -1,5 +1,5 @@
 //! Veach's energy-conserving modified Phong (Lafortune & Willems 1994; used by Veach &
-//! Guibas 1995 for the glossy plates of figure 2, seed 002):
+//! Guibas 1995 for the glossy plates of figure 2):
 //!
 //! `f(wo, wi) = kd / π + ks (n + 2) / (2π) cos^n α`, where α is the angle between `wi` and
 //! the mirror direction of `wo`.
@@ -11,8 +11,8 @@
 //! | `exponent` | Phong exponent n: larger is smoother |
 //!
 //! Sampling picks the diffuse part with probability `lum(kd) / (lum(kd) + lum(ks))` and
-//! otherwise the Phong lobe `(n + 1)/(2π) cos^n α` around the mirror direction (seed 000
-//! ch. 4, seed 003); samples below the horizon are invalid (the missing mass is exactly the
+//! otherwise the Phong lobe `(n + 1)/(2π) cos^n α` around the mirror direction (Arvo 2001,
+//! chapter 4, the Princeton COS 526 path tracing slides); samples below the horizon are invalid (the missing mass is exactly the
 //! energy the model loses there).
 
 use crate::math::luminance;

@@ -1,6 +1,6 @@
 //! Tests of the BSDFs against the sampling contract of [`super`].
 //!
-//! - **Chi-squared** (seed 001 §2): the directions produced by [`Bsdf::sample`] must be
+//! - **Chi-squared** (Marschner, CS 6630 notes, section 2): the directions produced by [`Bsdf::sample`] must be
 //!   distributed with the density [`Bsdf::pdf`] claims, for every lobe with a density, at
 //!   several incident angles. All cases form one family with a Šidák correction; negative
 //!   controls show that a slightly wrong pdf is rejected at the same threshold. The bins

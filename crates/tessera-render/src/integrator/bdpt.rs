@@ -1,11 +1,11 @@
-//! Bidirectional path tracing (Veach & Guibas 1995, seed 002 §4.3; the structure follows
+//! Bidirectional path tracing (Veach & Guibas 1995, section 4.3; the structure follows
 //! pbrt 3rd ed. ch. 16).
 //!
 //! Every camera sample builds two subpaths: a *camera subpath* `z0 z1 ...` from the lens
 //! (z0 is the camera vertex) and a *light subpath* `y0 y1 ...` from a light chosen in
 //! proportion to its power, started by emission sampling ([`crate::light::emission`]). Each
 //! prefix `y0..y(s-1)` of the light subpath joined to each prefix `z0..z(t-1)` of the camera
-//! subpath is one sample of the path-space integrand from technique `(s, t)` (seed 002 eq. 17
+//! subpath is one sample of the path-space integrand from technique `(s, t)` (Veach & Guibas 1995, eq. 17
 //! and fig. 8):
 //!
 //! - `s = 0`: the camera subpath hits an emitter (area light, or the environment when it
@@ -14,7 +14,7 @@
 //!   light's own `sample_li` (cone sampling for spheres) and connected;
 //! - `t = 1`: light tracing: the lens is sampled from `y(s-1)` and the contribution is
 //!   *splatted* onto the film where the ray lands, weighted by the camera importance `We`
-//!   (seed 000 ch. 7: importance is the adjoint of radiance; [`crate::camera`]);
+//!   (Hanrahan 2001, chapter 7: importance is the adjoint of radiance; [`crate::camera`]);
 //! - otherwise: `y(s-1)` and `z(t-1)` are joined by a shadow ray with the geometry term `G`.
 //!
 //! `(1, 1)` (seeing a light point directly from a sampled lens point) is not used, `(0, 2)`
@@ -32,7 +32,7 @@
 //! `f*(wo, wi) = f(wi, wo)`, they do not take the `1/η²` radiance scaling of refraction,
 //! and shading normals get Veach's correction `|wo·ns||wi·ng| / (|wo·ng||wi·ns|)`.
 //!
-//! # Splatting and determinism (DESIGN §2)
+//! # Splatting and determinism (ARCHITECTURE.md §2)
 //! A light-tracing contribution lands on whichever pixel the connection hits, not on the
 //! pixel whose sample produced it. Splats are kept deterministic this way:
 //!
@@ -52,7 +52,7 @@
 //! `We` normalised over the whole image, the pass mean of a pixel is
 //! `(sum of its S camera contributions + sum of the splats landing in it) / S`, an unbiased
 //! estimate of the pixel (pbrt's `1/spp` splat scale), and passes stay independent
-//! replicates (DESIGN §3).
+//! replicates (ARCHITECTURE.md §3).
 //!
 //! A plan with smaller tiles still renders correctly: a unit then traces the light subpaths
 //! of *every* pixel of the frame for its passes and keeps the splats that land in its tile
@@ -211,7 +211,7 @@ struct Ctx<'a> {
 
 impl Ctx<'_> {
     /// Converts a solid-angle density at `from` toward `next` into area density at `next`
-    /// (seed 002 §4.3: "vertices chosen using a directional distribution can be converted to
+    /// (Veach & Guibas 1995, section 4.3: "vertices chosen using a directional distribution can be converted to
     /// the area measure", `p_A = p_ω |cos θ_next| / d²`).
     #[inline]
     fn convert_density(&self, from: &Vertex, pdf: f32, next: &Vertex) -> f32 {

@@ -1,14 +1,14 @@
 //! Unidirectional path tracing with next-event estimation (NEE), multiple importance
 //! sampling and Russian roulette.
 //!
-//! The estimator follows the path formulation of the rendering equation (seed 000 ch. 7–8,
-//! seed 003). At every non-specular vertex two techniques estimate direct light: sampling
-//! a light (NEE: one light chosen in proportion to power, seed 000 ch. 3) and sampling the
+//! The estimator follows the path formulation of the rendering equation (Hanrahan 2001 and Dutré 2001, chapters 7–8,
+//! the Princeton COS 526 path tracing slides). At every non-specular vertex two techniques estimate direct light: sampling
+//! a light (NEE: one light chosen in proportion to power, Shirley 2001, chapter 3) and sampling the
 //! BSDF and hitting an emitter. Their contributions are combined with the selected MIS
-//! heuristic (Veach & Guibas 1995, seed 002 §3), so glossy highlights of small lights and
+//! heuristic (Veach & Guibas 1995, section 3), so glossy highlights of small lights and
 //! large lights are both rendered with low variance. After `rr_depth` bounces a path
 //! survives with probability `min(1, max throughput)` (at least 5%) and is reweighted by its
-//! inverse: Russian roulette keeps the estimator unbiased (seed 000 ch. 8).
+//! inverse: Russian roulette keeps the estimator unbiased (Dutré 2001, chapter 8).
 //!
 //! Steps, as labelled below: 1 intersect, 2 emission (MIS with NEE of the previous
 //! vertex), 3 direct light by NEE, 4 BSDF sample, 5 Russian roulette.

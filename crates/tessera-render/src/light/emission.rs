@@ -1,5 +1,5 @@
 //! Emission sampling: where light leaves a light source and in which direction, for the
-//! light subpaths of bidirectional path tracing (Veach & Guibas 1995, seed 002 §4.3: "the
+//! light subpaths of bidirectional path tracing (Veach & Guibas 1995, section 4.3: "the
 //! light subpath is constructed by choosing a random point on a light source (area
 //! sampling), followed by casting a random ray (directional sampling)").
 //!
@@ -265,7 +265,7 @@ impl Light {
 mod tests {
     //! Emission sampling against its contract: a chi-squared test of every light's
     //! direction (and, for distant lights, disk position) distribution against the claimed
-    //! density (seed 001 §2), `pdf_le` agreeing with `sample_le`, and the mean ray weight
+    //! density (Marschner, CS 6630 notes, section 2), `pdf_le` agreeing with `sample_le`, and the mean ray weight
     //! equal to the light's emitted power in closed form (a z-test at 3 standard errors).
     use super::*;
     use crate::chi2::{chi2_plane, chi2_sphere, chi2_sphere_cap, Chi2Config, SplitMix64};

@@ -6,10 +6,10 @@
 //! squared distance, or irradiance), the solid-angle pdf with respect to `wi` (1 for delta
 //! lights, flagged `delta`), and the light point with its floating-point error bound for
 //! a robust shadow ray. [`Light::pdf_li`] gives the same density for a direction found by
-//! BSDF sampling, for multiple importance sampling (seed 002).
+//! BSDF sampling, for multiple importance sampling (Veach & Guibas 1995).
 //!
 //! [`LightSet`] chooses one light per sample with probability proportional to its emitted
-//! power (luminance), seed 000 ch. 3 ("many lights").
+//! power (luminance), Shirley 2001, chapter 3 ("many lights").
 //!
 //! Variants, one file each: [`triangle`] (emissive triangles: area lights), [`sphere`]
 //! (spherical lights, sampled by the cone they subtend), [`punctual`] (point, spot,

@@ -1,5 +1,5 @@
-//! Spherical lights, sampled by the cone of directions they subtend (Shirley, seed 000
-//! ch. 3 "spherical luminaires"): from a point outside, the sphere covers a cone of half
+//! Spherical lights, sampled by the cone of directions they subtend (Shirley 2001,
+//! chapter 3 "spherical luminaires"): from a point outside, the sphere covers a cone of half
 //! angle θmax with `sin² θmax = r² / d²`; directions are drawn uniformly in that cone,
 //! `pdf_ω = 1 / (2π (1 - cos θmax))`, so every sample hits the light. From a point inside,
 //! the light is sampled uniformly by area.

@@ -1,6 +1,6 @@
 //! Tests of light sampling against the contract of [`super`].
 //!
-//! - **Chi-squared** (seed 001 §2): from a reference point, [`Light::sample_li`] maps
+//! - **Chi-squared** (Marschner, CS 6630 notes, section 2): from a reference point, [`Light::sample_li`] maps
 //!   uniform numbers to directions; their distribution must be the solid-angle density
 //!   [`Light::pdf_li`] claims. One family with a Šidák correction, and a negative control.
 //! - **Unbiased next-event estimation**: the irradiance `E = ∫ L cos θ dω` estimated as the

@@ -6,8 +6,8 @@
 //! | `radiance` | emitted radiance W/(m² sr), constant over the triangle |
 //! | `two_sided` | emit on both sides; otherwise only along `n` (glTF `doubleSided`) |
 //!
-//! Sampled uniformly by area (seed 000 ch. 4, triangle warp) and converted to solid angle:
-//! `pdf_ω = d² / (|cos θ_l| A)` (seed 000 ch. 3).
+//! Sampled uniformly by area (Arvo 2001, chapter 4, triangle warp) and converted to solid angle:
+//! `pdf_ω = d² / (|cos θ_l| A)` (Shirley 2001, chapter 3).
 
 use super::LightSample;
 use crate::geometry::triangle_point;

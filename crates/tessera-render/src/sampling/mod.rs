@@ -1,14 +1,14 @@
 //! Deterministic per-pixel sample generation and the warps that turn samples into
 //! directions and points.
 //!
-//! Determinism contract (DESIGN §2): every value returned by a [`PixelSampler`] is a pure
+//! Determinism contract (ARCHITECTURE.md §2): every value returned by a [`PixelSampler`] is a pure
 //! function of (job seed, frame, pixel, pass, sample index, dimension), computed with integer
 //! hashing only, so it is bit-identical on every platform, thread count and work order.
 //!
-//! Statistics contract (DESIGN §3): pass `k` of pixel `p` draws its `S` samples from a
+//! Statistics contract (ARCHITECTURE.md §3): pass `k` of pixel `p` draws its `S` samples from a
 //! randomized QMC point set whose randomization is seeded by `hash(job seed, frame, p, k)`.
 //! Each pass is then an independent, identically distributed, unbiased estimate of the pixel,
-//! and the spread between passes estimates the error of their mean (Owen, seed 000 §6.7).
+//! and the spread between passes estimates the error of their mean (Owen 2001, section 6.7).
 
 mod sobol;
 pub mod warp;
@@ -26,7 +26,7 @@ pub use tessera_farm::job::SamplerKind;
 
 /// Number of dimension indices (2D or 1D requests) per sample served by scrambled Sobol'
 /// sets; deeper requests (long paths) are padded with hashed independent random numbers
-/// (seed 000 §6.8: the QMC structure matters for the first, most important dimensions).
+/// (Owen 2001, section 6.8: the QMC structure matters for the first, most important dimensions).
 /// Those are the very numbers [`SamplerKind::Independent`] returns for the same dimension.
 const SOBOL_DIMENSIONS: u32 = 64;
 
@@ -83,10 +83,10 @@ pub fn hash_combine(seed: u64, v: u64) -> u64 {
 /// `d` of the pass: a 2D Sobol' (0,m,2)-net (dimensions 0 and 1 of the sequence; a 1D request
 /// uses dimension 0) with its own Owen scramble and its own Owen-scrambled index shuffle, all
 /// seeded from (pass seed, `d`). Shuffling each set's run order independently is Latin
-/// supercube sampling (seed 000 §6.8): it decorrelates the sets, which would otherwise be
+/// supercube sampling (Owen 2001, section 6.8): it decorrelates the sets, which would otherwise be
 /// copies of one sequence, while each 2D set keeps its stratification. For `S` a power of two
 /// every set is exactly stratified; for other `S` the first `S` points of a `2^m` set are used,
-/// which stays unbiased because each point is uniformly distributed (seed 000 §6.7).
+/// which stays unbiased because each point is uniformly distributed (Owen 2001, section 6.7).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct PixelSampler {
     kind: SamplerKind,
@@ -332,7 +332,7 @@ mod tests {
 
     #[test]
     fn sobol_sets_differ_between_dimensions() {
-        // Padding must not reuse one scramble for every dimension (seed 000 §6.8: k copies of
+        // Padding must not reuse one scramble for every dimension (Owen 2001, section 6.8: k copies of
         // the same randomization would be perfectly correlated).
         let mut s = PixelSampler::new(SamplerKind::Sobol, 5, 0, 0, 0);
         let a = s.next_2d();
@@ -370,7 +370,7 @@ mod tests {
 
     #[test]
     fn passes_are_unbiased_replicates() {
-        // z-test of seed 000 §6.7: the mean of K independent replicates has standard error
+        // z-test of Owen 2001, section 6.7: the mean of K independent replicates has standard error
         // sqrt(var / K), estimated from the pass-to-pass variance. Exact integral: 1/4.
         // Dimension indices 0 (first set), 5 (a padded set) and 70 (hashed padding).
         for kind in KINDS {
@@ -387,7 +387,7 @@ mod tests {
 
     #[test]
     fn sobol_pass_variance_beats_independent() {
-        // For a smooth integrand scrambled nets have variance o(1/n) (seed 000 §6.7), far
+        // For a smooth integrand scrambled nets have variance o(1/n) (Owen 2001, section 6.7), far
         // below the Monte Carlo sigma^2/n; at S = 64 the ratio must be < 0.2.
         let (_, v_sobol) = mean_var(&pass_estimates(SamplerKind::Sobol, 64, 2000, 0));
         let (_, v_indep) = mean_var(&pass_estimates(SamplerKind::Independent, 64, 2000, 0));

@@ -7,15 +7,15 @@
 //!    visited in a random nested order;
 //! 2. the Sobol' point of that index is computed from the generator matrices of
 //!    dimensions 0 and 1;
-//! 3. every coordinate is Owen-scrambled (nested uniform scrambling, seed 000 §6.7) with a
+//! 3. every coordinate is Owen-scrambled (nested uniform scrambling, Owen 2001, section 6.7) with a
 //!    hash-based Laine–Karras permutation applied to the bit-reversed value.
 //!
 //! Only Sobol' dimensions 0 and 1 are ever used: higher dimensions of the integrand get
 //! fresh, independently scrambled and shuffled copies of this 2D set (padding by Latin
-//! supercube sampling, seed 000 §6.8; see `super::PixelSampler`). Dimensions 0 and 1 of
+//! supercube sampling, Owen 2001, section 6.8; see `super::PixelSampler`). Dimensions 0 and 1 of
 //! Sobol' form a (0,2)-sequence in base 2, so every aligned block of `2^m` points is a
 //! (0,m,2)-net, and Owen scrambling preserves the net property with probability one
-//! (seed 000 §6.7).
+//! (Owen 2001, section 6.7).
 
 /// Generator matrix of Sobol' dimension 1 as 32 direction numbers `v_k = m_k / 2^k`, stored
 /// as 0.32 fixed point; index bit `k` toggles `v_{k+1}`.
@@ -131,7 +131,7 @@ fn sobol_dim1_reference(index: u32) -> u32 {
 /// odd constant) changes bit `i` only as a function of bits `<= i`, and flips bit `i` by a
 /// function of the bits strictly below it. On reversed bits "below" means "more significant
 /// digits of the original value", which is exactly Owen's nested uniform scrambling: the
-/// permutation applied to digit `k` depends on the preceding `k - 1` digits (seed 000 §6.7).
+/// permutation applied to digit `k` depends on the preceding `k - 1` digits (Owen 2001, section 6.7).
 #[inline]
 pub(crate) fn laine_karras_permutation(mut x: u32, seed: u32) -> u32 {
     x ^= x.wrapping_mul(0x3d20_adea);
@@ -142,7 +142,7 @@ pub(crate) fn laine_karras_permutation(mut x: u32, seed: u32) -> u32 {
     x
 }
 
-/// Base-2 Owen scrambling (nested uniform scrambling, seed 000 §6.7) of a 0.32 fixed-point
+/// Base-2 Owen scrambling (nested uniform scrambling, Owen 2001, section 6.7) of a 0.32 fixed-point
 /// value, or of an integer index (Burley 2020 §3: the same operation shuffles the index).
 #[inline]
 pub(crate) fn nested_uniform_scramble(x: u32, seed: u32) -> u32 {
@@ -152,7 +152,7 @@ pub(crate) fn nested_uniform_scramble(x: u32, seed: u32) -> u32 {
 /// Seeds of one Owen-scrambled, shuffled 2D Sobol' point set.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Scramble {
-    /// Seed of the index shuffle (the Latin supercube permutation of seed 000 §6.8).
+    /// Seed of the index shuffle (the Latin supercube permutation of Owen 2001, section 6.8).
     pub(crate) shuffle: u32,
     /// Seed of the Owen scramble of coordinate 0.
     pub(crate) x: u32,

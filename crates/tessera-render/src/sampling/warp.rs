@@ -3,9 +3,9 @@
 //! Each warp maps a uniform point `u` of `[0, 1)^2` to a point of a 2-manifold (sphere,
 //! hemisphere, cone, disk, triangle) or to a direction distributed like a lobe; the matching
 //! `*_pdf` function is the density of the result with respect to the stated measure (solid
-//! angle for directions, area for points). Most are derived with Arvo's recipe in seed 000 §4.2:
+//! angle for directions, area for points). Most are derived with Arvo's recipe in Arvo 2001, section 4.2:
 //! take a parametrization, compute its area element (Jacobian), integrate it to a marginal and
-//! a conditional CDF and invert both (seed 000 §4.3). Being smooth, monotone maps of the
+//! a conditional CDF and invert both (Arvo 2001, section 4.3). Being smooth, monotone maps of the
 //! square, they carry the stratification of a QMC point set over to the target domain.
 //!
 //! Conventions: directions are in a local shading frame whose `+z` axis is the surface normal
@@ -48,7 +48,7 @@ pub fn uniform_sphere_pdf() -> f32 {
     INV_4PI
 }
 
-/// Uniform direction on the hemisphere `z >= 0` (seed 000 §4.3.3, eq. 4.26 with `z1 -> 1 - z1`:
+/// Uniform direction on the hemisphere `z >= 0` (Arvo 2001, section 4.3.3, eq. 4.26 with `z1 -> 1 - z1`:
 /// `z = 1 - u.x`, `sin theta = sqrt(u.x (2 - u.x))`); see [`uniform_hemisphere_pdf`].
 pub fn square_to_uniform_hemisphere(u: Vec2) -> Vec3 {
     let z = 1.0 - u.x;
@@ -65,7 +65,7 @@ pub fn uniform_hemisphere_pdf() -> f32 {
 /// Shirley–Chiu concentric map of the square onto the unit disk (Shirley & Chiu 1997, in
 /// Shirley's later branch-reduced form): concentric squares go to concentric circles, so it
 /// is area-preserving with far less distortion than the polar map `sqrt(u.x), 2 pi u.y` of
-/// seed 000 §4.3.2 (eq. 4.23), which keeps strata compact. Density `1 / pi` with respect to
+/// Arvo 2001, section 4.3.2 (eq. 4.23), which keeps strata compact. Density `1 / pi` with respect to
 /// area on the unit disk.
 pub fn square_to_concentric_disk(u: Vec2) -> Vec2 {
     let a = 2.0 * u.x - 1.0;
@@ -100,7 +100,7 @@ pub fn cosine_hemisphere_pdf(cos_theta: f32) -> f32 {
 }
 
 /// Uniform direction in the cone `cos theta >= cos_theta_max` around `+z`
-/// (seed 000 §3, spherical luminaires: `cos theta` uniform in `[cos_theta_max, 1]`);
+/// (Shirley 2001, section 3, spherical luminaires: `cos theta` uniform in `[cos_theta_max, 1]`);
 /// see [`uniform_cone_pdf`].
 ///
 /// For very small cones (e.g. a distant spherical light) prefer
@@ -151,7 +151,7 @@ pub fn cone_one_minus_cos_from_sin2(sin2_theta_max: f32) -> f32 {
 ///
 /// Heitz 2019, "A Low-Distortion Map Between Triangle and Square": the square is split by
 /// its diagonal and each half is sheared onto the triangle `b0, b1 >= 0, b0 + b1 <= 1` by a
-/// linear map of determinant 1/2. Unlike the square-root fold of seed 000 §4.3.1
+/// linear map of determinant 1/2. Unlike the square-root fold of Arvo 2001, section 4.3.1
 /// (eq. 4.20) it is piecewise linear, so it distorts strata far less.
 pub fn square_to_uniform_triangle(u: Vec2) -> (f32, f32) {
     if u.y > u.x {
@@ -164,7 +164,7 @@ pub fn square_to_uniform_triangle(u: Vec2) -> (f32, f32) {
 }
 
 /// Direction distributed like a normalized Phong lobe `(n + 1) / (2 pi) cos^n alpha` around
-/// `+z` (seed 000 §4.3.4, eq. 4.28: `cos alpha = u.x^(1 / (n + 1))`); see [`phong_lobe_pdf`].
+/// `+z` (Arvo 2001, section 4.3.4, eq. 4.28: `cos alpha = u.x^(1 / (n + 1))`); see [`phong_lobe_pdf`].
 ///
 /// `1 - cos alpha = -expm1(ln(u.x) / (n + 1))` is computed directly so that `sin alpha`
 /// stays accurate for large exponents, where `cos alpha` is within a few ulps of 1.
@@ -710,7 +710,7 @@ mod tests {
                 },
                 |m| ggx_d(m, 0.3) * m.z,
             ),
-            // Polar-map disk samples (seed 000 eq. 4.23) with the radius not square-rooted.
+            // Polar-map disk samples (Arvo 2001, eq. 4.23) with the radius not square-rooted.
             chi2_plane(
                 "control disk without sqrt",
                 &Chi2Config {

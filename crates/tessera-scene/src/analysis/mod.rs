@@ -1,5 +1,5 @@
 //! Scene analysis: which light-transport effects a scene contains, and the render plan
-//! that simulates exactly those (DESIGN §4, "simulate only what the scene calls for").
+//! that simulates exactly those (ARCHITECTURE.md §4, "simulate only what the scene calls for").
 //!
 //! [`analyse`] looks at the lights, the materials that surfaces actually use, the shape of
 //! the geometry and the camera, and returns a [`RenderPlan`]: the [`Effect`]s present, each
