@@ -9,66 +9,11 @@
 mod common;
 
 use std::path::Path;
-use std::time::Duration;
 
+use common::farm::{start_coordinator, start_worker, wait_done, TIMEOUT};
 use common::{free_port, output, output_ok, poll, temp_dir, tessera, Proc};
 use tessera_api::client::{Client, ClientError};
-use tessera_api::{JobSettings, JobState, JobStatus};
-
-const TIMEOUT: Duration = Duration::from_secs(240);
-
-struct Coord {
-    proc: Proc,
-    http: String,
-    grpc: String,
-}
-
-fn start_coordinator(data: &Path, http: &str, grpc: &str, extra: &[&str]) -> Coord {
-    let mut proc = Proc::spawn(
-        "coordinator",
-        tessera()
-            .args(["coordinator", "--http", http, "--grpc", grpc, "--data"])
-            .arg(data)
-            .args([
-                "--lease-ms",
-                "1500",
-                "--heartbeat-ms",
-                "250",
-                "--grace-ms",
-                "1000",
-            ])
-            .args(extra)
-            .env_remove("TESSERA_API_TOKEN")
-            .env_remove("TESSERA_WORKER_TOKEN"),
-        None,
-    );
-    let v = proc.wait_lines(&["http: ", "grpc: "]);
-    let http = v[0].trim_end_matches("/api/v1").to_string();
-    Coord {
-        proc,
-        http,
-        grpc: v[1].clone(),
-    }
-}
-
-fn start_worker(grpc: &str, name: &str, extra: &[&str]) -> Proc {
-    Proc::spawn(
-        name,
-        tessera()
-            .args([
-                "worker",
-                "--coordinator",
-                grpc,
-                "--threads",
-                "1",
-                "--name",
-                name,
-            ])
-            .args(extra)
-            .env_remove("TESSERA_WORKER_TOKEN"),
-        None,
-    )
-}
+use tessera_api::JobSettings;
 
 fn job(width: u32, height: u32, spp: u32) -> JobSettings {
     let mut s = JobSettings::new("builtin:cornell-box");
@@ -96,20 +41,6 @@ fn local_render(dir: &Path, s: &JobSettings) -> Vec<u8> {
             .arg(&out),
     );
     std::fs::read(out).unwrap()
-}
-
-fn wait_done(client: &Client, id: u64) -> JobStatus {
-    let s = client
-        .wait(id, Duration::from_millis(100), TIMEOUT, |_| {})
-        .unwrap();
-    assert_eq!(
-        s.state,
-        JobState::Done,
-        "job ended {:?}: {:?}",
-        s.state,
-        s.error
-    );
-    s
 }
 
 #[test]

@@ -1,0 +1,87 @@
+//! A farm of real processes on loopback for the end-to-end suites: a coordinator on port 0
+//! listeners (its addresses read from its output), workers, and waiting for a job.
+
+use std::path::Path;
+use std::time::Duration;
+
+use tessera_api::client::Client;
+use tessera_api::{JobState, JobStatus};
+
+use super::{tessera, Proc};
+
+/// How long a job may take before the test fails.
+pub const TIMEOUT: Duration = Duration::from_secs(240);
+
+/// A running coordinator and its addresses.
+pub struct Coord {
+    /// The process.
+    pub proc: Proc,
+    /// Base URL of the HTTP API, e.g. `http://127.0.0.1:PORT`.
+    pub http: String,
+    /// URL of the gRPC port for workers.
+    pub grpc: String,
+}
+
+/// Starts `tessera coordinator` on `data` with short leases and waits for its addresses.
+pub fn start_coordinator(data: &Path, http: &str, grpc: &str, extra: &[&str]) -> Coord {
+    let mut proc = Proc::spawn(
+        "coordinator",
+        tessera()
+            .args(["coordinator", "--http", http, "--grpc", grpc, "--data"])
+            .arg(data)
+            .args([
+                "--lease-ms",
+                "1500",
+                "--heartbeat-ms",
+                "250",
+                "--grace-ms",
+                "1000",
+            ])
+            .args(extra)
+            .env_remove("TESSERA_API_TOKEN")
+            .env_remove("TESSERA_WORKER_TOKEN"),
+        None,
+    );
+    let v = proc.wait_lines(&["http: ", "grpc: "]);
+    let http = v[0].trim_end_matches("/api/v1").to_string();
+    Coord {
+        proc,
+        http,
+        grpc: v[1].clone(),
+    }
+}
+
+/// Starts `tessera worker` with one thread against the gRPC URL `grpc`.
+pub fn start_worker(grpc: &str, name: &str, extra: &[&str]) -> Proc {
+    Proc::spawn(
+        name,
+        tessera()
+            .args([
+                "worker",
+                "--coordinator",
+                grpc,
+                "--threads",
+                "1",
+                "--name",
+                name,
+            ])
+            .args(extra)
+            .env_remove("TESSERA_WORKER_TOKEN"),
+        None,
+    )
+}
+
+/// Waits until job `id` is done (failing the test if it ends otherwise).
+pub fn wait_done(client: &Client, id: u64) -> JobStatus {
+    let s = client
+        .wait(id, Duration::from_millis(100), TIMEOUT, |_| {})
+        .unwrap();
+    assert_eq!(
+        s.state,
+        JobState::Done,
+        "job ended {:?}: {:?}",
+        s.state,
+        s.error
+    );
+    s
+}
