@@ -20,7 +20,7 @@
 //! 0), so that a finite reference's own noise is not charged to the run; the measured
 //! relative error is `sqrt(relMSE)`, comparable with the estimate (ARCHITECTURE.md §3).
 
-use crate::render::{prepare, JobArgs};
+use crate::render::{prepare, JobArgs, StopArgs};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::fmt::Write as _;
@@ -179,11 +179,10 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
         spp: args.reference_spp,
         width: Some(args.width),
         height: Some(args.height),
-        threads: args.threads,
         tile_size: 16,
         ..JobArgs::new(&args.scene)
     };
-    let p = prepare(&job, None)?;
+    let p = prepare(&job, &StopArgs::default())?;
     let Some(rs) = p.render_scene.as_ref() else {
         bail!(
             "{}: the render plan found no light: nothing to measure",

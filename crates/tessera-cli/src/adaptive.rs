@@ -6,48 +6,13 @@
 
 use crate::render::{Prepared, RenderArgs};
 use anyhow::{bail, Context, Result};
-use clap::Args;
 use std::io::IsTerminal;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage};
 use tessera_render::adaptive::{render_adaptive, Limits};
 
-/// The adaptive flags of `tessera render`.
-#[derive(Args, Clone, Debug)]
-pub struct AdaptiveArgs {
-    /// Target relative RMS error, e.g. 0.01. With --adaptive sequential or unbiased each
-    /// pixel stops at it; with --adaptive off the whole image stops once its estimated
-    /// error reaches it. --spp stays the upper bound.
-    #[arg(long)]
-    pub target_error: Option<f64>,
-    /// Adaptive stopping: off, sequential (stop converged pixels at fixed pass boundaries;
-    /// fast, slightly biased) or unbiased (a discarded pilot fixes each pixel's passes).
-    #[arg(long, default_value = "off")]
-    pub adaptive: String,
-    /// Stop after this many seconds (checked between rounds; the image then depends on
-    /// the machine's speed).
-    #[arg(long)]
-    pub time_limit: Option<f64>,
-    /// Also write the samples traced per pixel as a heat-map PNG (log scale).
-    #[arg(long)]
-    pub spp_map: Option<PathBuf>,
-    /// Passes before the first adaptive decision (sequential) or of the pilot (unbiased).
-    #[arg(long, default_value_t = 8)]
-    pub min_passes: u32,
-}
-
-impl AdaptiveArgs {
-    /// Checks what only the command line has (the `--spp-map` file); the stopping
-    /// settings are job settings, validated with the rest of the job.
-    fn validate(&self) -> Result<()> {
-        if let Some(path) = &self.spp_map {
-            check_png("--spp-map", path)?;
-        }
-        Ok(())
-    }
-}
-
-fn check_png(flag: &str, path: &Path) -> Result<()> {
+/// Checks that `path`, given to `flag`, names a PNG file.
+pub fn check_png(flag: &str, path: &Path) -> Result<()> {
     let ok = path
         .extension()
         .and_then(|e| e.to_str())
@@ -56,11 +21,6 @@ fn check_png(flag: &str, path: &Path) -> Result<()> {
         bail!("{flag} {} must end in .png", path.display());
     }
     Ok(())
-}
-
-/// Checks the flags without rendering (called before any work, also for plain renders).
-pub fn check(args: &AdaptiveArgs) -> Result<()> {
-    args.validate()
 }
 
 /// Writes the samples-per-pixel heat map of an image.
@@ -107,7 +67,7 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
         render_scene,
         &p.resolved.config,
         frame,
-        args.job.threads,
+        args.threads,
         limits,
         |f| {
             if let Some(b) = &bar {
@@ -127,7 +87,7 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
     let image = out.frame.image();
     let meta = p.resolved.metadata_json(Some(out.stop.as_str()));
     tessera_image::write_image(&args.output, &image, Some(&meta))?;
-    if let Some(path) = &args.adaptive.spp_map {
+    if let Some(path) = &args.spp_map {
         write_spp_map(path, &image)?;
     }
     let (mean, lo, hi) = out.frame.samples_per_pixel();

@@ -13,7 +13,7 @@
 //!
 //! Ratios are printed, never asserted (tests do not assert wall time).
 
-use crate::render::{prepare, JobArgs};
+use crate::render::{prepare, JobArgs, StopArgs};
 use anyhow::Result;
 use clap::Args;
 use std::time::Instant;
@@ -78,11 +78,10 @@ fn measure(
         width: Some(args.width),
         height: Some(args.height),
         integrator: integrator.into(),
-        threads: args.threads,
         max_depth: depth,
         ..JobArgs::new(scene)
     };
-    let p = prepare(&job, None)?;
+    let p = prepare(&job, &StopArgs::default())?;
     let label = format!(
         "{scene} {} (max depth {}{})",
         p.resolved.config.integrator,

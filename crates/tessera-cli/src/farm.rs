@@ -11,6 +11,8 @@ use tessera_api::client::{Client, ClientError};
 use tessera_api::{FrameRange, JobSettings, JobState, JobStatus};
 use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
 
+use crate::render::{JobArgs, StopArgs};
+
 /// Options shared by `tessera coordinator` and `tessera serve`.
 #[derive(Args, Clone, Debug)]
 pub struct CoordinatorArgs {
@@ -82,41 +84,19 @@ pub struct ServeArgs {
 /// Job options of `tessera submit` (the same meaning as `tessera render`'s).
 #[derive(Args, Clone, Debug)]
 pub struct SubmitArgs {
-    /// builtin:NAME, or a .gltf/.glb file (uploaded first).
-    pub scene: String,
+    /// The job, with the same flags as `tessera render` (SCENE is builtin:NAME, or a
+    /// .gltf/.glb file, uploaded first).
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// When the job stops before its budget, as with `tessera render`.
+    #[command(flatten)]
+    pub stop: StopArgs,
     /// The coordinator's HTTP URL.
     #[arg(long, default_value = "http://127.0.0.1:8080", env = "TESSERA_SERVER")]
     pub server: String,
     /// API bearer token.
     #[arg(long, env = "TESSERA_API_TOKEN")]
     pub token: Option<String>,
-    /// Samples per pixel (the upper bound with a target error).
-    #[arg(long, default_value_t = 64)]
-    pub spp: u32,
-    /// Image width.
-    #[arg(long)]
-    pub width: Option<u32>,
-    /// Image height.
-    #[arg(long)]
-    pub height: Option<u32>,
-    /// auto, path, direct or bdpt.
-    #[arg(long, default_value = "auto")]
-    pub integrator: String,
-    /// balance, power, cutoff[:ALPHA] or maximum.
-    #[arg(long, default_value = "power")]
-    pub mis: String,
-    /// sobol or independent.
-    #[arg(long, default_value = "sobol")]
-    pub sampler: String,
-    /// Job seed.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Maximum path depth.
-    #[arg(long)]
-    pub max_depth: Option<u32>,
-    /// Tile edge in pixels.
-    #[arg(long, default_value_t = 32)]
-    pub tile_size: u32,
     /// First frame.
     #[arg(long, default_value_t = 0)]
     pub frame_start: u32,
@@ -126,15 +106,6 @@ pub struct SubmitArgs {
     /// Higher runs first.
     #[arg(long, default_value_t = 0)]
     pub priority: i32,
-    /// Target relative RMS error.
-    #[arg(long)]
-    pub target_error: Option<f64>,
-    /// off, sequential or unbiased.
-    #[arg(long, default_value = "off")]
-    pub adaptive: String,
-    /// Stop after this many seconds.
-    #[arg(long)]
-    pub time_limit: Option<f64>,
     /// A name for the job.
     #[arg(long)]
     pub name: Option<String>,
@@ -461,10 +432,10 @@ fn progress_line(s: &JobStatus) -> String {
 /// `tessera submit`.
 pub fn submit(args: SubmitArgs) -> Result<()> {
     let client = Client::new(&args.server, args.token.clone());
-    let scene = if args.scene.starts_with("builtin:") {
-        args.scene.clone()
+    let scene = if args.job.scene.starts_with("builtin:") {
+        args.job.scene.clone()
     } else {
-        let path = PathBuf::from(&args.scene);
+        let path = PathBuf::from(&args.job.scene);
         let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
         let up = client.upload_scene(&bytes).map_err(client_error)?;
         println!(
@@ -476,24 +447,12 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
         );
         up.hash
     };
-    let mut s = JobSettings::new(scene);
-    s.spp = args.spp;
-    s.width = args.width;
-    s.height = args.height;
-    s.integrator = args.integrator.clone();
-    s.mis = args.mis.clone();
-    s.sampler = args.sampler.clone();
-    s.seed = args.seed;
-    s.max_depth = args.max_depth;
-    s.tile_size = args.tile_size;
+    let mut s = args.job.settings(scene, &args.stop);
     s.frames = FrameRange {
         start: args.frame_start,
         end: args.frame_end.unwrap_or(args.frame_start),
     };
     s.priority = args.priority;
-    s.target_error = args.target_error;
-    s.adaptive = args.adaptive.clone();
-    s.time_limit_seconds = args.time_limit;
     s.name = args.name.clone();
     if let Some(out) = &args.output {
         if !args.wait {

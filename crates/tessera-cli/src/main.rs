@@ -13,7 +13,7 @@ use clap::{Args, Parser, Subcommand};
 use std::time::Instant;
 use tessera_render::render::render_frame;
 
-use render::{prepare, JobArgs, RenderArgs};
+use render::{prepare, JobArgs, RenderArgs, StopArgs};
 
 #[derive(Parser)]
 #[command(
@@ -113,11 +113,10 @@ fn bench(args: BenchArgs) -> Result<()> {
         width: Some(args.width),
         height: Some(args.height),
         integrator: "path".into(),
-        threads: args.threads,
         max_depth: Some(args.max_depth),
         ..JobArgs::new(&args.scene)
     };
-    let p = prepare(&job, None)?;
+    let p = prepare(&job, &StopArgs::default())?;
     let plan = p.resolved.plan;
     // An explicit integrator never takes the black shortcut.
     let render_scene = p.render_scene.as_ref().expect("built unless black");

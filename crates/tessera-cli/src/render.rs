@@ -20,7 +20,7 @@ use crate::adaptive;
 
 /// The job flags shared by `tessera render` and the benches: one flag per
 /// [`JobSettings`] field it renders with.
-#[derive(Args, Clone)]
+#[derive(Args, Clone, Debug)]
 pub struct JobArgs {
     /// A .gltf/.glb file or builtin:NAME (cornell-box, veach-mis, furnace, caustic).
     pub scene: String,
@@ -50,9 +50,6 @@ pub struct JobArgs {
     /// Job seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Worker threads (0 = all cores). The image does not depend on it.
-    #[arg(long, default_value_t = 0)]
-    pub threads: usize,
     /// Maximum path depth (number of bounces). Default: the render plan's with
     /// --integrator auto, 16 otherwise.
     #[arg(long)]
@@ -75,9 +72,65 @@ impl JobArgs {
             mis: "power".into(),
             sampler: "sobol".into(),
             seed: 0,
-            threads: 0,
             max_depth: None,
             tile_size: 32,
+        }
+    }
+}
+
+impl JobArgs {
+    /// The job these flags describe, for the scene reference `scene` (`builtin:NAME` or
+    /// the content hash of the file): the one mapping from flags to [`JobSettings`], used
+    /// by `tessera render` and `tessera submit` alike.
+    pub fn settings(&self, scene: String, stop: &StopArgs) -> JobSettings {
+        let mut s = JobSettings::new(scene);
+        s.camera = self.camera.clone();
+        s.width = self.width;
+        s.height = self.height;
+        s.spp = self.spp;
+        s.integrator = self.integrator.clone();
+        s.mis = self.mis.clone();
+        s.sampler = self.sampler.clone();
+        s.seed = self.seed;
+        s.max_depth = self.max_depth;
+        s.tile_size = self.tile_size;
+        s.target_error = stop.target_error;
+        s.adaptive = stop.adaptive.clone();
+        s.time_limit_seconds = stop.time_limit;
+        s.min_passes = stop.min_passes;
+        s
+    }
+}
+
+/// When a job stops before its sample budget: the stopping fields of [`JobSettings`].
+#[derive(Args, Clone, Debug)]
+pub struct StopArgs {
+    /// Target relative RMS error, e.g. 0.01. With --adaptive sequential or unbiased each
+    /// pixel stops at it; with --adaptive off the whole image stops once its estimated
+    /// error reaches it. --spp stays the upper bound.
+    #[arg(long)]
+    pub target_error: Option<f64>,
+    /// Adaptive stopping: off, sequential (stop converged pixels at fixed pass boundaries;
+    /// fast, slightly biased) or unbiased (a discarded pilot fixes each pixel's passes).
+    #[arg(long, default_value = "off")]
+    pub adaptive: String,
+    /// Stop after this many seconds (checked between rounds; the image then depends on
+    /// the machine's speed).
+    #[arg(long)]
+    pub time_limit: Option<f64>,
+    /// Passes before the first adaptive decision (sequential) or of the pilot (unbiased).
+    #[arg(long, default_value_t = DEFAULT_MIN_PASSES)]
+    pub min_passes: u32,
+}
+
+impl Default for StopArgs {
+    /// No stopping before the budget.
+    fn default() -> Self {
+        Self {
+            target_error: None,
+            adaptive: "off".into(),
+            time_limit: None,
+            min_passes: DEFAULT_MIN_PASSES,
         }
     }
 }
@@ -87,11 +140,17 @@ impl JobArgs {
 pub struct RenderArgs {
     #[command(flatten)]
     pub job: JobArgs,
+    #[command(flatten)]
+    pub stop: StopArgs,
+    /// Worker threads (0 = all cores). The image does not depend on it.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
     /// Output file: .exr (multi-layer float) or .png (sRGB).
     #[arg(short, long)]
     pub output: PathBuf,
-    #[command(flatten)]
-    pub adaptive: adaptive::AdaptiveArgs,
+    /// Also write the samples traced per pixel as a heat-map PNG (log scale).
+    #[arg(long)]
+    pub spp_map: Option<PathBuf>,
 }
 
 /// A resolved job with its scene, ready to render.
@@ -150,34 +209,10 @@ fn job_error(e: JobError, settings: &JobSettings) -> anyhow::Error {
     anyhow!("invalid {}: {}", flag(&e.field), e.problem)
 }
 
-/// Validates and resolves `job` (with the stopping flags of `stop`, if any) exactly as the
+/// Validates and resolves `job` with the stopping settings `stop` exactly as the
 /// coordinator does, loads its scene and builds it unless the plan found no light.
-pub fn prepare(job: &JobArgs, stop: Option<&adaptive::AdaptiveArgs>) -> Result<Prepared> {
-    if job.threads > 4096 {
-        bail!(
-            "--threads {} must be at most 4096 (0 = all cores)",
-            job.threads
-        );
-    }
-    let mut settings = JobSettings::new(scene_ref(&job.scene)?);
-    settings.camera = job.camera.clone();
-    settings.width = job.width;
-    settings.height = job.height;
-    settings.spp = job.spp;
-    settings.integrator = job.integrator.clone();
-    settings.mis = job.mis.clone();
-    settings.sampler = job.sampler.clone();
-    settings.seed = job.seed;
-    settings.max_depth = job.max_depth;
-    settings.tile_size = job.tile_size;
-    if let Some(a) = stop {
-        settings.target_error = a.target_error;
-        settings.adaptive = a.adaptive.clone();
-        settings.time_limit_seconds = a.time_limit;
-        settings.min_passes = a.min_passes;
-    } else {
-        settings.min_passes = DEFAULT_MIN_PASSES;
-    }
+pub fn prepare(job: &JobArgs, stop: &StopArgs) -> Result<Prepared> {
+    let settings = job.settings(scene_ref(&job.scene)?, stop);
     let validated = settings.validate().map_err(|e| job_error(e, &settings))?;
     let camera = validated.camera.as_deref();
     let scene = match &validated.scene {
@@ -219,8 +254,16 @@ fn check_output(path: &Path) -> Result<()> {
 /// `tessera render`.
 pub fn render(args: RenderArgs) -> Result<()> {
     check_output(&args.output)?;
-    adaptive::check(&args.adaptive)?;
-    let p = prepare(&args.job, Some(&args.adaptive))?;
+    if args.threads > 4096 {
+        bail!(
+            "--threads {} must be at most 4096 (0 = all cores)",
+            args.threads
+        );
+    }
+    if let Some(path) = &args.spp_map {
+        adaptive::check_png("--spp-map", path)?;
+    }
+    let p = prepare(&args.job, &args.stop)?;
     print!("{}", p.resolved.render_plan.summary());
     if p.resolved.black {
         return render_black(&p, &args);
@@ -247,7 +290,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         &p.resolved.config,
         &plan,
         0,
-        args.job.threads,
+        args.threads,
         |done, _| {
             if let Some(b) = &bar {
                 b.set_position(done as u64);
@@ -283,7 +326,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     println!("estimated relative error: {:.4}", acc.image_error());
     println!("paths per second: {:.0}", paths / seconds);
     print_rejected_samples(rendered.rejected_samples);
-    if let Some(map) = &args.adaptive.spp_map {
+    if let Some(map) = &args.spp_map {
         adaptive::write_spp_map(map, &image)?;
     }
     Ok(())
@@ -327,7 +370,7 @@ fn render_black(p: &Prepared, args: &RenderArgs) -> Result<()> {
     println!("seconds: {seconds:.3}");
     println!("estimated relative error: {:.4}", 0.0);
     println!("paths per second: 0");
-    if let Some(map) = &args.adaptive.spp_map {
+    if let Some(map) = &args.spp_map {
         adaptive::write_spp_map(map, &image)?;
     }
     Ok(())
