@@ -32,8 +32,8 @@ use tessera_farm::{
 };
 use tessera_render::adaptive::{render_adaptive, Limits};
 use tessera_render::figure5;
-use tessera_render::integrator::{IntegratorKind, MisHeuristic};
-use tessera_render::render::{render_frame, RenderSettings};
+use tessera_render::integrator::{Integrator, MisHeuristic};
+use tessera_render::render::{render_frame, RenderConfig};
 use tessera_render::sampling::SamplerKind;
 
 /// Arguments of `tessera bench accuracy`.
@@ -72,7 +72,7 @@ pub struct AccuracyArgs {
 #[derive(Clone, Debug)]
 struct Config {
     name: String,
-    settings: RenderSettings,
+    settings: RenderConfig,
     adaptive: AdaptiveMode,
     /// Index of the reference it is measured against (0: automatic plan, 1: direct).
     reference: usize,
@@ -198,7 +198,7 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
 
     // References: the automatic plan's, and the direct integrator's (a different image).
     let ref_plan = FramePlan::for_spp(w, h, args.reference_spp, 16)?;
-    let render_reference = |settings: RenderSettings, name: &str| -> Result<FrameImage> {
+    let render_reference = |settings: RenderConfig, name: &str| -> Result<FrameImage> {
         let start = Instant::now();
         let acc = render_frame(rs, &settings, &ref_plan, 0, args.threads, |_, _| {});
         let img = acc.image();
@@ -216,23 +216,23 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     let auto_ref = match &args.reference {
         Some(path) => load_reference(path, w, h)?,
         None => render_reference(
-            RenderSettings {
+            RenderConfig {
                 seed: ref_seed,
                 ..base
             },
             "reference.exr",
         )?,
     };
-    let direct = RenderSettings {
-        integrator: IntegratorKind::Direct,
+    let direct = RenderConfig {
+        integrator: Integrator::Direct,
         max_depth: 1,
         ..base
     };
-    let direct_ref = if base.integrator == IntegratorKind::Direct {
+    let direct_ref = if base.integrator == Integrator::Direct {
         auto_ref.clone()
     } else {
         render_reference(
-            RenderSettings {
+            RenderConfig {
                 seed: ref_seed,
                 ..direct
             },
@@ -241,11 +241,11 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     };
     let references = [auto_ref, direct_ref];
 
-    let label = |s: &RenderSettings, a: AdaptiveMode| {
+    let label = |s: &RenderConfig, a: AdaptiveMode| {
         format!("{}/{}/{}/{}", s.integrator, s.sampler.as_str(), s.mis, a)
     };
     let mut configs = Vec::new();
-    let mut add = |settings: RenderSettings, adaptive: AdaptiveMode, reference: usize| {
+    let mut add = |settings: RenderConfig, adaptive: AdaptiveMode, reference: usize| {
         configs.push(Config {
             name: label(&settings, adaptive),
             settings,
@@ -255,7 +255,7 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     };
     add(base, AdaptiveMode::Off, 0);
     add(
-        RenderSettings {
+        RenderConfig {
             sampler: SamplerKind::Independent,
             ..base
         },
@@ -267,9 +267,9 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
         MisHeuristic::Cutoff(0.1),
         MisHeuristic::Maximum,
     ] {
-        add(RenderSettings { mis, ..base }, AdaptiveMode::Off, 0);
+        add(RenderConfig { mis, ..base }, AdaptiveMode::Off, 0);
     }
-    if base.integrator != IntegratorKind::Direct {
+    if base.integrator != Integrator::Direct {
         add(direct, AdaptiveMode::Off, 1);
     }
     add(base, AdaptiveMode::Sequential, 0);
@@ -284,7 +284,7 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     let targets = [0.4, 0.2, 0.1, 0.05, 0.025, 0.0125];
     let mut runs = Vec::new();
     for (k, c) in configs.iter().enumerate() {
-        let settings = RenderSettings {
+        let settings = RenderConfig {
             seed: 1 + k as u64,
             ..c.settings
         };

@@ -10,7 +10,7 @@
 //! limit is the one exception: where it stops depends on the machine's speed (the stop is
 //! still taken between rounds, so the image is a valid adaptive image of fewer passes).
 
-use crate::render::{render_unit_where, RenderSettings};
+use crate::render::{render_unit_where, RenderConfig};
 use crate::scene::RenderScene;
 use std::time::Instant;
 use tessera_farm::{AdaptiveFrame, AdaptiveMode, ConvergencePoint, UnitResult};
@@ -74,7 +74,7 @@ pub struct AdaptiveRender {
 /// If the thread pool cannot be built (the caller bounds `threads`).
 pub fn render_adaptive(
     scene: &RenderScene,
-    settings: &RenderSettings,
+    settings: &RenderConfig,
     mut frame: AdaptiveFrame,
     threads: usize,
     limits: Limits,

@@ -16,11 +16,11 @@
 //! No async and no network code lives here.
 //!
 //! ```no_run
-//! use tessera_render::{render::{render_frame, RenderSettings}, scene::RenderScene};
+//! use tessera_render::{render::{render_frame, RenderConfig}, scene::RenderScene};
 //! let scene = tessera_scene::load("builtin:cornell-box").unwrap();
 //! let rs = RenderScene::build(&scene, 64, 64).unwrap();
 //! let plan = tessera_farm::FramePlan::for_spp(64, 64, 16, 32).unwrap();
-//! let acc = render_frame(&rs, &RenderSettings::default(), &plan, 0, 0, |_, _| {});
+//! let acc = render_frame(&rs, &RenderConfig::default(), &plan, 0, 0, |_, _| {});
 //! println!("relative error {}", acc.image_error());
 //! ```
 #![deny(missing_docs)]

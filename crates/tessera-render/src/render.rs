@@ -14,7 +14,7 @@ use tessera_farm::{FrameAccumulator, FramePlan};
 // The settings and the per-unit dispatch over the integrators live in `integrator`; they
 // are re-exported here, where the farm's workers and the local renderer have always
 // found them.
-pub use crate::integrator::{render_unit, render_unit_where, RenderSettings};
+pub use crate::integrator::{render_unit, render_unit_where, RenderConfig};
 
 /// What [`render_frame_counted`] returns.
 #[derive(Debug)]
@@ -31,7 +31,7 @@ pub struct RenderedFrame {
 /// arrive: the canonical merge makes the statistics independent of arrival order.
 pub fn render_frame(
     scene: &RenderScene,
-    settings: &RenderSettings,
+    settings: &RenderConfig,
     plan: &FramePlan,
     frame: u32,
     threads: usize,
@@ -43,7 +43,7 @@ pub fn render_frame(
 /// [`render_frame`], also reporting how many samples the integrator rejected.
 pub fn render_frame_counted(
     scene: &RenderScene,
-    settings: &RenderSettings,
+    settings: &RenderConfig,
     plan: &FramePlan,
     frame: u32,
     threads: usize,

@@ -6,14 +6,14 @@ mod common;
 
 use common::{image_mean, render};
 use glam::Vec3;
-use tessera_render::integrator::{IntegratorKind, MisHeuristic};
-use tessera_render::render::RenderSettings;
+use tessera_render::integrator::{Integrator, MisHeuristic};
+use tessera_render::render::RenderConfig;
 use tessera_render::sampling::SamplerKind;
 use tessera_scene::builtin::{self, look_at_camera, FURNACE_ALBEDO, FURNACE_EMISSION};
 use tessera_scene::{Material, MaterialKind, Mesh, Scene, Sphere};
 
-fn settings(integrator: IntegratorKind, mis: MisHeuristic, sampler: SamplerKind) -> RenderSettings {
-    RenderSettings {
+fn settings(integrator: Integrator, mis: MisHeuristic, sampler: SamplerKind) -> RenderConfig {
+    RenderConfig {
         integrator,
         mis,
         sampler,
@@ -43,7 +43,7 @@ fn furnace_matches_analytic_radiance_at_every_scale() {
                 16,
                 16,
                 64,
-                &settings(IntegratorKind::Path, mis, SamplerKind::Sobol),
+                &settings(Integrator::Path, mis, SamplerKind::Sobol),
             );
             for c in 0..3 {
                 let (mean, se) = image_mean(&acc, c);
@@ -116,23 +116,19 @@ fn plane_under_spherical_light_matches_pi_l_sin2_alpha() {
         let expected = (albedo * radiance * sin2) as f64;
         let scene = plane_under_sphere(r, h, radiance, albedo);
         for (integrator, mis, sampler) in [
+            (Integrator::Direct, MisHeuristic::Power, SamplerKind::Sobol),
             (
-                IntegratorKind::Direct,
-                MisHeuristic::Power,
-                SamplerKind::Sobol,
-            ),
-            (
-                IntegratorKind::Path,
+                Integrator::Path,
                 MisHeuristic::Balance,
                 SamplerKind::Independent,
             ),
             (
-                IntegratorKind::Direct,
+                Integrator::Direct,
                 MisHeuristic::Maximum,
                 SamplerKind::Sobol,
             ),
             (
-                IntegratorKind::Direct,
+                Integrator::Direct,
                 MisHeuristic::Cutoff(0.1),
                 SamplerKind::Independent,
             ),

@@ -14,19 +14,19 @@ use common::{assert_blocks_agree, block_passes, block_stats, normal_sf, z_critic
 use glam::Vec3;
 use rayon::prelude::*;
 use tessera_farm::{FrameAccumulator, FramePlan};
-use tessera_render::integrator::IntegratorKind;
-use tessera_render::render::{render_frame, render_unit, RenderSettings};
+use tessera_render::integrator::Integrator;
+use tessera_render::render::{render_frame, render_unit, RenderConfig};
 use tessera_render::scene::RenderScene;
 use tessera_scene::builtin::{look_at_camera, FURNACE_ALBEDO, FURNACE_EMISSION};
 use tessera_scene::{Material, MaterialKind, Mesh, PunctualLight, Scene, Sphere};
 
-fn settings(integrator: IntegratorKind, seed: u64, max_depth: u32) -> RenderSettings {
-    RenderSettings {
+fn settings(integrator: Integrator, seed: u64, max_depth: u32) -> RenderConfig {
+    RenderConfig {
         integrator,
         seed,
         max_depth,
         rr_depth: 3,
-        ..RenderSettings::default()
+        ..RenderConfig::default()
     }
 }
 
@@ -46,8 +46,8 @@ fn compare_with_path(scene_name: &str, w: u32, h: u32, spp: u32, passes: u32, bl
     let scene = tessera_scene::load(scene_name).unwrap();
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = whole_frame_plan(w, h, spp, passes);
-    let bd_passes = block_passes(&rs, &settings(IntegratorKind::Bdpt, 1, 16), &plan, block);
-    let pt_passes = block_passes(&rs, &settings(IntegratorKind::Path, 2, 16), &plan, block);
+    let bd_passes = block_passes(&rs, &settings(Integrator::Bdpt, 1, 16), &plan, block);
+    let pt_passes = block_passes(&rs, &settings(Integrator::Path, 2, 16), &plan, block);
     // The whole image as one block too.
     let image = |p: &[Vec<f64>]| -> Vec<Vec<f64>> {
         p.iter()
@@ -72,13 +72,13 @@ fn compare_scene_with_path(name: &str, scene: &Scene, w: u32, h: u32, max_depth:
     let plan = whole_frame_plan(w, h, 4, 32);
     let bd = block_stats(&block_passes(
         &rs,
-        &settings(IntegratorKind::Bdpt, 31, max_depth),
+        &settings(Integrator::Bdpt, 31, max_depth),
         &plan,
         4,
     ));
     let pt = block_stats(&block_passes(
         &rs,
-        &settings(IntegratorKind::Path, 32, max_depth),
+        &settings(Integrator::Path, 32, max_depth),
         &plan,
         4,
     ));
@@ -161,7 +161,7 @@ fn bdpt_furnace_is_uniform_2_5() {
     let (w, h) = (16, 16);
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = whole_frame_plan(w, h, 4, 32);
-    let s = settings(IntegratorKind::Bdpt, 3, 32);
+    let s = settings(Integrator::Bdpt, 3, 32);
     let stats = block_stats(&block_passes(&rs, &s, &plan, 4));
     let expected = (FURNACE_EMISSION / (1.0 - FURNACE_ALBEDO)) as f64;
     let reference = vec![(expected, 0.0); stats.len()];
@@ -233,7 +233,7 @@ fn bdpt_renders_a_point_light_caustic_that_path_tracing_misses() {
     let plan = whole_frame_plan(w, h, 4, 32);
     let bd = block_stats(&block_passes(
         &rs,
-        &settings(IntegratorKind::Bdpt, 11, 8),
+        &settings(Integrator::Bdpt, 11, 8),
         &plan,
         block,
     ));
@@ -241,14 +241,14 @@ fn bdpt_renders_a_point_light_caustic_that_path_tracing_misses() {
     let ref_plan = whole_frame_plan(w, h, 16, 32);
     let reference = block_stats(&block_passes(
         &rs,
-        &settings(IntegratorKind::Bdpt, 12, 8),
+        &settings(Integrator::Bdpt, 12, 8),
         &ref_plan,
         block,
     ));
     assert_blocks_agree("point-light caustic bdpt vs reference", &bd, &reference);
     let pt = block_stats(&block_passes(
         &rs,
-        &settings(IntegratorKind::Path, 13, 8),
+        &settings(Integrator::Path, 13, 8),
         &plan,
         block,
     ));
@@ -289,7 +289,7 @@ fn bdpt_is_deterministic_across_threads_splits_and_reruns() {
     let (w, h) = (24, 20);
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = whole_frame_plan(w, h, 2, 6);
-    let s = settings(IntegratorKind::Bdpt, 42, 8);
+    let s = settings(Integrator::Bdpt, 42, 8);
     let one = render_frame(&rs, &s, &plan, 0, 1, |_, _| {});
     let two = render_frame(&rs, &s, &plan, 0, 2, |_, _| {});
     assert!(bits(&one) == bits(&two), "1 and 2 threads differ");
@@ -308,7 +308,7 @@ fn bdpt_is_deterministic_across_threads_splits_and_reruns() {
     );
     let other = render_frame(
         &rs,
-        &settings(IntegratorKind::Bdpt, 43, 8),
+        &settings(Integrator::Bdpt, 43, 8),
         &plan,
         0,
         2,
@@ -324,7 +324,7 @@ fn bdpt_with_small_tiles_matches_the_whole_frame_tile() {
     let scene = tessera_scene::load("builtin:cornell-box").unwrap();
     let (w, h) = (16, 16);
     let rs = RenderScene::build(&scene, w, h).unwrap();
-    let s = settings(IntegratorKind::Bdpt, 5, 8);
+    let s = settings(Integrator::Bdpt, 5, 8);
     let tiled = FramePlan::new(w, h, 8, 4, 32).unwrap();
     // 8 x 8 blocks (one per tile) per pass, whole frame vs tiles.
     let whole = block_stats(&block_passes(&rs, &s, &whole_frame_plan(w, h, 4, 32), 8));
@@ -335,7 +335,7 @@ fn bdpt_with_small_tiles_matches_the_whole_frame_tile() {
             .map(|u| {
                 (
                     *u,
-                    render_unit(&rs, &settings(IntegratorKind::Bdpt, 6, 8), &tiled, *u),
+                    render_unit(&rs, &settings(Integrator::Bdpt, 6, 8), &tiled, *u),
                 )
             })
             .collect();

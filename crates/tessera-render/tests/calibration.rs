@@ -17,31 +17,31 @@ use std::sync::OnceLock;
 use tessera_farm::{luminance, REL_EPS};
 use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage, FramePlan};
 use tessera_render::adaptive::{render_adaptive, Limits};
-use tessera_render::render::{render_frame, RenderSettings};
+use tessera_render::render::{render_frame, RenderConfig};
 use tessera_render::scene::RenderScene;
 
 const W: u32 = 32;
 const H: u32 = 32;
 
-fn settings(scene: &str, seed: u64) -> RenderSettings {
+fn settings(scene: &str, seed: u64) -> RenderConfig {
     if scene.ends_with("veach-mis") {
         // The glossy-highlights experiment (Veach & Guibas 1995, section 4.1) is direct lighting: light and
         // BSDF sampling of the four lights, combined by MIS. (With indirect bounces the
         // floor also sees the plates' caustics, rare paths that a 32x32 test at a few
         // hundred spp resolves only as isolated fireflies: see the issue 4 report.)
-        return RenderSettings {
+        return RenderConfig {
             seed,
-            integrator: tessera_render::integrator::IntegratorKind::Direct,
+            integrator: tessera_render::integrator::Integrator::Direct,
             max_depth: 1,
-            ..RenderSettings::default()
+            ..RenderConfig::default()
         };
     }
-    RenderSettings {
+    RenderConfig {
         seed,
         // Fewer bounces than the general 16 keep the test fast; the estimate's calibration
         // does not depend on the depth.
         max_depth: 6,
-        ..RenderSettings::default()
+        ..RenderConfig::default()
     }
 }
 

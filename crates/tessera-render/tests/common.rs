@@ -4,7 +4,7 @@
 
 use rayon::prelude::*;
 use tessera_farm::{FrameAccumulator, FramePlan};
-use tessera_render::render::{render_frame, render_unit, RenderSettings};
+use tessera_render::render::{render_frame, render_unit, RenderConfig};
 use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
 
@@ -14,7 +14,7 @@ pub fn render(
     w: u32,
     h: u32,
     spp: u32,
-    settings: &RenderSettings,
+    settings: &RenderConfig,
 ) -> FrameAccumulator {
     let rs = RenderScene::build(scene, w, h).unwrap();
     let plan = FramePlan::for_spp(w, h, spp, 16).unwrap();
@@ -39,7 +39,7 @@ pub fn image_mean(acc: &FrameAccumulator, channel: usize) -> (f64, f64) {
 /// Luminance of the per-pass means of `block x block` pixel blocks: `[pass][block]`.
 pub fn block_passes(
     rs: &RenderScene,
-    s: &RenderSettings,
+    s: &RenderConfig,
     plan: &FramePlan,
     block: u32,
 ) -> Vec<Vec<f64>> {

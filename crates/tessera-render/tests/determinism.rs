@@ -3,7 +3,7 @@
 //! order units arrive in.
 
 use tessera_farm::{FrameAccumulator, FramePlan};
-use tessera_render::render::{render_frame, render_unit, RenderSettings};
+use tessera_render::render::{render_frame, render_unit, RenderConfig};
 use tessera_render::scene::RenderScene;
 
 fn bits(acc: &FrameAccumulator) -> Vec<u32> {
@@ -24,9 +24,9 @@ fn thread_count_and_unit_split_do_not_change_a_bit() {
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = FramePlan::for_spp(w, h, 32, 16).unwrap();
     assert!(plan.passes >= 4);
-    let settings = RenderSettings {
+    let settings = RenderConfig {
         seed: 42,
-        ..RenderSettings::default()
+        ..RenderConfig::default()
     };
     let reference = render_frame(&rs, &settings, &plan, 0, 1, |_, _| {});
     for threads in [2, 8] {
@@ -58,7 +58,7 @@ fn thread_count_and_unit_split_do_not_change_a_bit() {
     // A different seed gives a different image.
     let other = render_frame(
         &rs,
-        &RenderSettings {
+        &RenderConfig {
             seed: 43,
             ..settings
         },

@@ -6,16 +6,16 @@
 mod common;
 
 use common::{image_mean, render};
-use tessera_render::render::RenderSettings;
+use tessera_render::render::RenderConfig;
 
 #[test]
 fn gltf_cornell_box_has_the_builtin_radiance() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/cornell-box.gltf");
     let gltf = tessera_scene::load(path).unwrap();
     let builtin = tessera_scene::load("builtin:cornell-box").unwrap();
-    let settings = RenderSettings {
+    let settings = RenderConfig {
         seed: 1,
-        ..RenderSettings::default()
+        ..RenderConfig::default()
     };
     let a = render(&builtin, 32, 32, 64, &settings);
     let b = render(&gltf, 32, 32, 64, &settings);

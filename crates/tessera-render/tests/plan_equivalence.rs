@@ -11,41 +11,41 @@ mod common;
 use common::{assert_blocks_agree, block_passes, block_stats};
 use glam::Vec3;
 use tessera_farm::FramePlan;
-use tessera_render::integrator::IntegratorKind;
-use tessera_render::render::RenderSettings;
+use tessera_render::integrator::Integrator;
+use tessera_render::render::RenderConfig;
 use tessera_render::scene::RenderScene;
 use tessera_scene::analysis::{analyse, PlannedIntegrator};
 use tessera_scene::builtin::look_at_camera;
 use tessera_scene::{Material, Mesh, PunctualLight, Scene};
 
 /// The plan's render settings, as `tessera render --integrator auto` derives them.
-fn planned(scene: &Scene) -> (RenderSettings, PlannedIntegrator) {
+fn planned(scene: &Scene) -> (RenderConfig, PlannedIntegrator) {
     let plan = analyse(scene);
     let (integrator, max_depth) = match plan.integrator {
-        PlannedIntegrator::Direct => (IntegratorKind::Direct, 1),
-        PlannedIntegrator::Path => (IntegratorKind::Path, plan.max_depth),
-        PlannedIntegrator::Bdpt => (IntegratorKind::Bdpt, plan.max_depth),
-        PlannedIntegrator::Black => (IntegratorKind::Direct, 1),
+        PlannedIntegrator::Direct => (Integrator::Direct, 1),
+        PlannedIntegrator::Path => (Integrator::Path, plan.max_depth),
+        PlannedIntegrator::Bdpt => (Integrator::Bdpt, plan.max_depth),
+        PlannedIntegrator::Black => (Integrator::Direct, 1),
     };
     (
-        RenderSettings {
+        RenderConfig {
             integrator,
             max_depth,
             rr_depth: plan.rr_depth,
             seed: 21,
-            ..RenderSettings::default()
+            ..RenderConfig::default()
         },
         plan.integrator,
     )
 }
 
-fn general() -> RenderSettings {
-    RenderSettings {
-        integrator: IntegratorKind::Path,
+fn general() -> RenderConfig {
+    RenderConfig {
+        integrator: Integrator::Path,
         max_depth: 16,
         rr_depth: 3,
         seed: 22,
-        ..RenderSettings::default()
+        ..RenderConfig::default()
     }
 }
 

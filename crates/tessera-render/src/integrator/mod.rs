@@ -9,9 +9,9 @@
 //!
 //! # The interface
 //!
-//! [`RenderSettings`] is everything besides the scene and the frame plan that decides the
+//! [`RenderConfig`] is everything besides the scene and the frame plan that decides the
 //! value of a sample. [`render_unit_where`] holds the one exhaustive `match` over
-//! [`IntegratorKind`]: each arm turns the render settings into that integrator's own
+//! [`Integrator`]: each arm turns the render settings into that integrator's own
 //! settings ([`path::PathSettings`], [`bdpt::BdptSettings`]) and renders the unit with it, so
 //! an integrator never sees the others' variants or options. Dispatch is a `match` on a
 //! `Copy` enum, decided once per unit; the per-sample loops inside are monomorphic and do
@@ -38,11 +38,11 @@
 //!
 //! Photon mapping, say, as `pm`:
 //!
-//! 1. A variant `IntegratorKind::PhotonMap` with its name in `FromStr` and `Display` (and
+//! 1. A variant `Integrator::PhotonMap` with its name in `FromStr` and `Display` (and
 //!    a row in the table above).
 //! 2. One new file, `integrator/pm.rs`: a `//!` block saying what it estimates (cite the
 //!    paper by author, year and section), its own `PmSettings` built from
-//!    [`RenderSettings`] only in the `match` arm, and a
+//!    [`RenderConfig`] only in the `match` arm, and a
 //!    `render_unit(scene, &PmSettings, SampleStream, plan, unit) -> UnitResult` that keeps
 //!    the contract above. An integrator that estimates each pixel independently can call
 //!    the shared camera-sample loop instead, as `path` and `direct` do.
@@ -66,11 +66,11 @@ use tessera_farm::{FramePlan, UnitResult, WorkUnit};
 /// Everything that decides the value of a sample, besides the scene and the plan: the job
 /// contract's resolved [`RenderConfig`](tessera_farm::job::RenderConfig) (for bdpt, `mis`
 /// balance selects β = 1, any other the power heuristic).
-pub use tessera_farm::job::RenderConfig as RenderSettings;
+pub use tessera_farm::job::RenderConfig;
 
 /// The integrators, MIS heuristics and their string forms are the job contract's
-/// ([`tessera_farm::job`]): one type each, here under the renderer's names.
-pub use tessera_farm::job::{Integrator as IntegratorKind, MisHeuristic};
+/// ([`tessera_farm::job`]): one type each, re-exported where the renderer dispatches on them.
+pub use tessera_farm::job::{Integrator, MisHeuristic};
 
 /// Which sample sequence a unit draws from: the point set and the job seed. The same for
 /// every integrator; an integrator needing a second stream derives it from the seed.
@@ -84,7 +84,7 @@ pub struct SampleStream {
 
 impl SampleStream {
     /// The sample sequence `settings` select.
-    pub fn of(settings: &RenderSettings) -> Self {
+    pub fn of(settings: &RenderConfig) -> Self {
         Self {
             sampler: settings.sampler,
             seed: settings.seed,
@@ -96,7 +96,7 @@ impl SampleStream {
 /// `scene` was built for the plan's image size.
 pub fn render_unit(
     scene: &RenderScene,
-    settings: &RenderSettings,
+    settings: &RenderConfig,
     plan: &FramePlan,
     unit: WorkUnit,
 ) -> UnitResult {
@@ -113,20 +113,20 @@ pub fn render_unit(
 /// anywhere in the (whole-frame) tile, so skipping pixels would not save their cost.
 pub fn render_unit_where(
     scene: &RenderScene,
-    settings: &RenderSettings,
+    settings: &RenderConfig,
     plan: &FramePlan,
     unit: WorkUnit,
     wanted: impl Fn(usize, u32) -> bool,
 ) -> UnitResult {
     let stream = SampleStream::of(settings);
     match settings.integrator {
-        IntegratorKind::Path | IntegratorKind::Direct => {
+        Integrator::Path | Integrator::Direct => {
             let path = path::PathSettings {
                 mis: settings.mis,
                 // Direct lighting is the path tracer stopped after its first scattering
                 // event: emission seen directly, plus NEE and BSDF sampling at one vertex.
                 max_depth: match settings.integrator {
-                    IntegratorKind::Direct => 1,
+                    Integrator::Direct => 1,
                     _ => settings.max_depth,
                 },
                 rr_depth: settings.rr_depth,
@@ -137,7 +137,7 @@ pub fn render_unit_where(
         }
         // Light tracing splats across pixels: see `bdpt` for how a unit stays deterministic
         // (and why bdpt plans use one whole-frame tile).
-        IntegratorKind::Bdpt => {
+        Integrator::Bdpt => {
             let bdpt = bdpt::BdptSettings::new(settings.mis, settings.max_depth, settings.rr_depth);
             bdpt::render_unit(scene, &bdpt, stream, plan, unit)
         }
@@ -266,7 +266,7 @@ mod tests {
         let mut calls = 0u64;
         let r = render_camera_samples(
             &rs,
-            SampleStream::of(&RenderSettings::default()),
+            SampleStream::of(&RenderConfig::default()),
             &plan,
             unit,
             |i, _| i != 0, // tile pixel 0 is skipped: no samples, no rejects
@@ -302,14 +302,10 @@ mod tests {
     #[test]
     fn healthy_renders_reject_nothing() {
         let rs = cornell(8, 8);
-        for integrator in [
-            IntegratorKind::Path,
-            IntegratorKind::Direct,
-            IntegratorKind::Bdpt,
-        ] {
-            let s = RenderSettings {
+        for integrator in [Integrator::Path, Integrator::Direct, Integrator::Bdpt] {
+            let s = RenderConfig {
                 integrator,
-                ..RenderSettings::default()
+                ..RenderConfig::default()
             };
             let plan = FramePlan::whole_frame(8, 8, 8).unwrap();
             for unit in plan.units(0, 1) {
