@@ -11,7 +11,7 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_farm::job::{JobError, JobSettings, ResolvedJob, SceneRef, DEFAULT_MIN_PASSES};
-use tessera_farm::FrameImage;
+use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::render::render_frame_counted;
 use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
@@ -316,6 +316,16 @@ pub fn render(args: RenderArgs) -> Result<()> {
         c.mis,
         args.output.display()
     );
+    print_totals(&plan, seconds, acc.image_error(), paths / seconds);
+    print_rejected_samples(rendered.rejected_samples);
+    if let Some(map) = &args.spp_map {
+        adaptive::write_spp_map(map, &image)?;
+    }
+    Ok(())
+}
+
+/// The summary lines every render without adaptive stopping ends with (scripts read them).
+fn print_totals(plan: &FramePlan, seconds: f64, error: f64, paths_per_second: f64) {
     println!(
         "samples per pixel: {} ({} passes of {})",
         plan.spp(),
@@ -323,13 +333,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         plan.samples_per_pass
     );
     println!("seconds: {seconds:.3}");
-    println!("estimated relative error: {:.4}", acc.image_error());
-    println!("paths per second: {:.0}", paths / seconds);
-    print_rejected_samples(rendered.rejected_samples);
-    if let Some(map) = &args.spp_map {
-        adaptive::write_spp_map(map, &image)?;
-    }
-    Ok(())
+    println!("estimated relative error: {error:.4}");
+    println!("paths per second: {paths_per_second:.0}");
 }
 
 /// The summary line for samples the integrator dropped as invalid; nothing when there
@@ -361,15 +366,7 @@ fn render_black(p: &Prepared, args: &RenderArgs) -> Result<()> {
         plan.height,
         args.output.display()
     );
-    println!(
-        "samples per pixel: {} ({} passes of {})",
-        plan.spp(),
-        plan.passes,
-        plan.samples_per_pass
-    );
-    println!("seconds: {seconds:.3}");
-    println!("estimated relative error: {:.4}", 0.0);
-    println!("paths per second: 0");
+    print_totals(&plan, seconds, 0.0, 0.0);
     if let Some(map) = &args.spp_map {
         adaptive::write_spp_map(map, &image)?;
     }
