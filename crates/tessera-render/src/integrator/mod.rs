@@ -38,8 +38,11 @@
 //!
 //! Photon mapping, say, as `pm`:
 //!
-//! 1. A variant `Integrator::PhotonMap` with its name in `FromStr` and `Display` (and
-//!    a row in the table above).
+//! 1. A variant `Integrator::PhotonMap` in the job contract
+//!    (`tessera-farm/src/job/choice.rs`: its name in `as_str` and `FromStr`, which the
+//!    command line, the HTTP API and the store all parse with), a row in the table above,
+//!    and its value in the gRPC `Integrator` enum (`proto/tessera/v1/worker.proto` and the
+//!    two `match`es in `tessera-proto/src/convert.rs`, which the compiler points at).
 //! 2. One new file, `integrator/pm.rs`: a `//!` block saying what it estimates (cite the
 //!    paper by author, year and section), its own `PmSettings` built from
 //!    [`RenderConfig`] only in the `match` arm, and a
@@ -50,10 +53,6 @@
 //! 4. Tests beside the file (`#[cfg(test)] mod tests`) and an agreement test against
 //!    `path` in `tests/` (as `tests/bdpt.rs` does); determinism across thread counts and
 //!    unit splits comes from the contract and is checked by `tests/determinism.rs`.
-//!
-//! Outside this crate the integrator name must also be accepted where jobs are parsed
-//! (`tessera-api`'s integrator choice and the gRPC `Integrator` enum) until those share one
-//! type with this one.
 
 pub mod bdpt;
 pub mod path;
