@@ -20,7 +20,9 @@ use tessera_api::{
     ApiError, ErrorCode, FrameQuery, FromJson, ImageFormat, ImageQuery, JobListQuery, JobSettings,
     API_PREFIX, IDEMPOTENCY_KEY_HEADER,
 };
+use tracing::Instrument;
 
+use crate::error::CoordError;
 use crate::service::{Coordinator, MAX_SCENE_BYTES};
 
 /// An [`ApiError`] as an HTTP response.
@@ -29,6 +31,13 @@ pub struct HttpError(pub ApiError);
 impl From<ApiError> for HttpError {
     fn from(e: ApiError) -> Self {
         Self(e)
+    }
+}
+
+impl From<CoordError> for HttpError {
+    /// Through the one mapping of coordinator errors to HTTP ([`crate::error`]).
+    fn from(e: CoordError) -> Self {
+        Self(e.into())
     }
 }
 
@@ -43,8 +52,43 @@ impl IntoResponse for HttpError {
                 HeaderValue::from_static("Bearer realm=\"tessera\""),
             );
         }
+        // The request span logs server faults with their message (`trace_request`).
+        if status.is_server_error() {
+            resp.extensions_mut().insert(ServerFault(self.0.message));
+        }
         resp
     }
+}
+
+/// The message of a 5xx answer, handed from the handler to [`trace_request`] in the
+/// response's extensions so that the error is logged once, by the middleware.
+#[derive(Clone)]
+struct ServerFault(String);
+
+/// The request span: method, path (never the query or headers: no tokens in logs) and
+/// status, with a log line per request — `error` for 5xx answers (with the message),
+/// `info` for refused requests, `debug` otherwise.
+async fn trace_request(req: Request, next: Next) -> Response {
+    let span = tracing::info_span!(
+        "http",
+        method = %req.method(),
+        path = %req.uri().path(),
+        status = tracing::field::Empty,
+    );
+    let started = std::time::Instant::now();
+    let resp = next.run(req).instrument(span.clone()).await;
+    let status = resp.status().as_u16();
+    let ms = started.elapsed().as_millis() as u64;
+    span.record("status", status);
+    let _g = span.enter();
+    if let Some(ServerFault(message)) = resp.extensions().get::<ServerFault>() {
+        tracing::error!(status, ms, error = %message, "request failed");
+    } else if resp.status().is_client_error() {
+        tracing::info!(status, ms, "request refused");
+    } else {
+        tracing::debug!(status, ms, "request served");
+    }
+    resp
 }
 
 type HttpResult<T> = Result<T, HttpError>;
@@ -81,6 +125,7 @@ pub fn router(core: Coordinator) -> Router {
         .route("/index.html", get(dashboard_asset))
         .route("/assets/{*path}", get(dashboard_asset))
         .fallback(not_found)
+        .layer(middleware::from_fn(trace_request))
         .with_state(core)
 }
 

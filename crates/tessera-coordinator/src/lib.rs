@@ -1,19 +1,34 @@
 //! The Tessera coordinator: accepts render jobs, leases work units to workers, merges
-//! their results and keeps the durable state of the farm (ARCHITECTURE.md §1, §5, §6).
+//! their results and keeps the durable state of the farm (ARCHITECTURE.md §1, §5, §6, §9).
+//!
+//! Where things live:
 //!
 //! - [`store`]: the durable store (jobs, scenes, merged tile checkpoints, lease fencing
 //!   high-water mark, convergence history, worker faults) behind the [`store::Store`]
 //!   trait, with the SQLite implementation [`store::SqliteStore`].
-//! - [`grpc`]: the worker-facing gRPC service over the farm's lease scheduler.
-//! - [`service`]: the job life cycle over both: submission, durable checkpoints as passes
-//!   merge, resume after a restart, status, images, cancel.
+//! - [`state`]: the working state in memory: the farm's lease scheduler with the jobs'
+//!   accumulators, the workers, the scene cache, and per-job bookkeeping.
+//! - [`service`]: the job life cycle over both, one file per responsibility (scenes,
+//!   jobs, workers and leases, results, resume, images, metrics); the [`Coordinator`]
+//!   is its handle.
+//! - [`error`]: the one error type of the service, with its one mapping to an HTTP
+//!   error and its one mapping to a gRPC status.
+//! - [`grpc`]: the worker-facing gRPC service: authorize, decode, call the service,
+//!   encode.
 //! - [`http`]: the axum HTTP API v1 (ARCHITECTURE.md §5) and the dashboard routes.
 //! - [`dashboard`]: the browser dashboard's static files, embedded, served at `/`.
+//!
+//! Dependencies point one way: `http` and `grpc` call `service`, which owns `state` and
+//! `store`; nothing below `service` knows HTTP or gRPC.
+//!
+//! [`Coordinator`]: service::Coordinator
 #![deny(missing_docs)]
 
 /// The browser dashboard's static files (HTML, CSS, JavaScript modules), embedded.
 pub mod dashboard;
+pub mod error;
 pub mod grpc;
 pub mod http;
 pub mod service;
+pub mod state;
 pub mod store;

@@ -1,11 +1,14 @@
 //! Workers and the coordinator's gRPC service talking real gRPC over loopback: a job
 //! rendered by one worker and by three workers gives the same image, bit for bit, as the
 //! local renderer (ARCHITECTURE.md §2); a worker without the token is refused.
+//!
+//! The service is the production one: a real [`Coordinator`] over a temporary SQLite
+//! store, the job submitted through it as `POST /jobs` would.
 
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tessera_coordinator::grpc::{Farm, JobEntry, WorkerGrpc};
-use tessera_farm::job::{RenderConfig, SceneRef};
+use tessera_coordinator::grpc::WorkerGrpc;
+use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
+use tessera_farm::job::JobSettings;
 use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::render::render_frame;
 use tessera_render::scene::RenderScene;
@@ -15,18 +18,31 @@ fn plan() -> FramePlan {
     FramePlan::for_spp(40, 32, 16, 16).unwrap()
 }
 
-fn settings() -> RenderConfig {
-    RenderConfig {
-        seed: 11,
-        ..RenderConfig::default()
-    }
+/// The job: the plan above (40x32, 16 spp, 16-pixel tiles) with seed 11.
+fn settings() -> JobSettings {
+    let mut s = JobSettings::new("builtin:cornell-box");
+    s.width = Some(40);
+    s.height = Some(32);
+    s.spp = 16;
+    s.tile_size = 16;
+    s.seed = 11;
+    s
 }
 
-/// Starts the service on an ephemeral loopback port; returns its URL.
-async fn start(farm: Arc<Mutex<Farm>>, token: Option<&str>) -> String {
+/// A coordinator over a fresh store in `dir` whose workers need `token`.
+async fn coordinator(dir: &tempfile::TempDir, token: Option<&str>) -> Coordinator {
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    cfg.worker_token = token.map(str::to_string);
+    cfg.heartbeat_ms = 100;
+    cfg.lease_ms = 2000;
+    Coordinator::open(cfg).await.unwrap()
+}
+
+/// Starts the coordinator's gRPC service on an ephemeral loopback port; returns its URL.
+async fn start(core: Coordinator) -> String {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
-    let svc = WorkerGrpc::new(farm, token.map(str::to_string), 100, 2000).into_server();
+    let svc = WorkerGrpc::for_coordinator(core).into_server();
     tokio::spawn(async move {
         tonic::transport::Server::builder()
             .add_service(svc)
@@ -38,19 +54,11 @@ async fn start(farm: Arc<Mutex<Farm>>, token: Option<&str>) -> String {
 }
 
 async fn farm_render(workers: usize) -> FrameImage {
-    let mut farm = Farm::new(2000);
-    farm.scheduler.add_job(1, 0, plan(), 0..=0, 1);
-    farm.jobs.insert(
-        1,
-        JobEntry {
-            scene: SceneRef::Builtin("cornell-box".into()),
-            camera: None,
-            settings: settings(),
-            plan: plan(),
-        },
-    );
-    let farm = Arc::new(Mutex::new(farm));
-    let url = start(farm.clone(), Some("s3cret")).await;
+    let dir = tempfile::tempdir().unwrap();
+    let core = coordinator(&dir, Some("s3cret")).await;
+    let (job, _) = core.submit(settings(), None).await.unwrap();
+    assert_eq!((job.width, job.height), (Some(40), Some(32)));
+    let url = start(core.clone()).await;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let mut handles = Vec::new();
     for i in 0..workers {
@@ -67,18 +75,19 @@ async fn farm_render(workers: usize) -> FrameImage {
     }
     // Wait by polling, with a deadline.
     let deadline = Instant::now() + Duration::from_secs(120);
-    while !farm.lock().unwrap().scheduler.is_complete(1) {
+    while !core.status(job.id).await.unwrap().state.is_terminal() {
         assert!(Instant::now() < deadline, "farm did not finish");
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
+    assert_eq!(core.status(job.id).await.unwrap().state.as_str(), "done");
     stop_tx.send(true).unwrap();
     for h in handles {
         h.await.unwrap().unwrap();
     }
-    let f = farm.lock().unwrap();
-    assert_eq!(f.workers.len(), workers);
-    assert!(f.workers.values().all(|w| w.faults == 0));
-    f.scheduler.frame(1, 0).unwrap().image()
+    let list = core.workers().unwrap().workers;
+    assert_eq!(list.len(), workers);
+    assert!(list.iter().all(|w| w.faults == 0));
+    core.frame_image(job.id, Some(0)).await.unwrap()
 }
 
 fn bits(img: &FrameImage) -> Vec<u32> {
@@ -91,9 +100,14 @@ fn bits(img: &FrameImage) -> Vec<u32> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_and_three_workers_match_the_local_render() {
+    // The local render resolves the job as `tessera render` does (ARCHITECTURE.md §1).
     let scene = tessera_scene::load("builtin:cornell-box").unwrap();
+    let job = settings().validate().unwrap();
+    let resolved = tessera_scene::job::resolve_job(&job, &scene).unwrap();
+    assert_eq!(resolved.plan, plan());
+    assert_eq!(resolved.config.seed, 11);
     let rs = RenderScene::build(&scene, 40, 32).unwrap();
-    let local = render_frame(&rs, &settings(), &plan(), 0, 2, |_, _| {}).image();
+    let local = render_frame(&rs, &resolved.config, &plan(), 0, 2, |_, _| {}).image();
     let one = farm_render(1).await;
     let three = farm_render(3).await;
     assert!(
@@ -108,8 +122,8 @@ async fn one_and_three_workers_match_the_local_render() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_worker_without_the_token_is_refused() {
-    let farm = Arc::new(Mutex::new(Farm::new(2000)));
-    let url = start(farm, Some("s3cret")).await;
+    let dir = tempfile::tempdir().unwrap();
+    let url = start(coordinator(&dir, Some("s3cret")).await).await;
     for token in [None, Some("wrong".to_string())] {
         let cfg = WorkerConfig {
             coordinator: url.clone(),

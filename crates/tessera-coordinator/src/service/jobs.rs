@@ -1,0 +1,373 @@
+//! Jobs: submission (ARCHITECTURE.md §9, steps 2 to 6), status, the job list, cancel and
+//! the convergence history.
+//!
+//! A job in memory (queued, running, or finished in this run) is described from its
+//! [`JobRuntime`] and the scheduler; a job that finished before this coordinator started
+//! is described from the store alone.
+
+use tessera_api::{
+    History, JobList, JobListQuery, JobSettings, JobState, JobStatus, ResolvedJob, ValidatedJob,
+};
+use tessera_farm::{FramePlan, JobId};
+use tessera_scene::job::resolve_job;
+
+use super::{Coordinator, MAX_PAGE};
+use crate::error::{CoordError, CoordResult};
+use crate::state::{now_ms, Farm, JobEntry, JobRuntime};
+use crate::store::{FaultFilter, JobOrder, JobQuery, JobRecord, NewJob};
+
+impl Coordinator {
+    /// Accepts a job: validates it, resolves it against its scene, stores it, queues it.
+    /// With an idempotency key already used, returns the job created then. The flag is
+    /// whether the job is new.
+    pub async fn submit(
+        &self,
+        settings: JobSettings,
+        idempotency_key: Option<String>,
+    ) -> CoordResult<(JobStatus, bool)> {
+        if let Some(k) = &idempotency_key {
+            if k.is_empty() || k.len() > 200 || k.chars().any(char::is_control) {
+                return Err(CoordError::invalid_field(
+                    "idempotency-key",
+                    "must be 1 to 200 printable characters",
+                ));
+            }
+        }
+        let job = settings.validate()?;
+        let scene = self.scene(&job.scene, job.camera.as_deref()).await?;
+        let resolved = resolve_job(&job, &scene)?;
+        if let Some(a) = &job.adaptive_settings() {
+            a.validate(resolved.plan.passes)
+                .map_err(|e| CoordError::invalid_field("adaptive", e))?;
+        }
+        let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;
+        let created = now_ms();
+        let (id, new) = self
+            .inner
+            .store
+            .insert_job(NewJob {
+                settings_json,
+                plan: resolved.plan,
+                frames: job.frames,
+                passes_per_unit: self.inner.cfg.passes_per_unit,
+                priority: job.priority,
+                scene_ref: job.scene.to_string(),
+                name: job.name.clone(),
+                idempotency_key,
+                created_unix_ms: created,
+            })
+            .await?;
+        if !new {
+            return Ok((self.status(id).await?, false));
+        }
+        let black = resolved.black;
+        {
+            let mut farm = self.lock()?;
+            if !black {
+                let ppu = self.inner.cfg.passes_per_unit;
+                add_to_scheduler(&mut farm, id, job.priority, resolved.plan, &job, ppu)?;
+                farm.jobs.insert(id, JobEntry::of(&job, &resolved));
+            }
+            let rt = JobRuntime::new(settings, job, resolved, JobState::Queued, created);
+            farm.runtime.insert(id, rt);
+        }
+        tracing::info!(job = id, black, "job accepted");
+        if black {
+            // Nothing to trace: the plan found no light (ARCHITECTURE.md §4).
+            self.set_state(id, JobState::Running, None).await?;
+            self.set_state(id, JobState::Done, None).await?;
+        }
+        Ok((self.status(id).await?, true))
+    }
+
+    /// The status of a job.
+    pub async fn status(&self, id: JobId) -> CoordResult<JobStatus> {
+        if let Some(s) = self.live_status(id)? {
+            return Ok(s);
+        }
+        let rec = self
+            .inner
+            .store
+            .get_job(id)
+            .await?
+            .ok_or_else(|| CoordError::job_not_found(id))?;
+        self.stored_status(&rec).await
+    }
+
+    fn live_status(&self, id: JobId) -> CoordResult<Option<JobStatus>> {
+        let farm = self.lock()?;
+        Ok(farm.runtime.get(&id).map(|rt| status_of(&farm, id, rt)))
+    }
+
+    /// Status of a job that is no longer in memory (finished before a restart): built from
+    /// the store.
+    async fn stored_status(&self, rec: &JobRecord) -> CoordResult<JobStatus> {
+        let store = &self.inner.store;
+        let settings: JobSettings = serde_json::from_str(&rec.settings_json)
+            .unwrap_or_else(|_| JobSettings::new(rec.scene_ref.clone()));
+        let tiles = store.load_tiles(rec.id, None).await?;
+        let plan = rec.plan;
+        let passes_done: u64 = tiles.iter().map(|t| u64::from(t.merged_passes)).sum();
+        let rejected_samples: u64 = tiles.iter().map(|t| t.rejected_samples).sum();
+        let frames_total = rec.frames.count() as u32;
+        let tiles_total = u64::from(plan.tile_count()) * u64::from(frames_total);
+        let passes_planned = tiles_total * u64::from(plan.passes);
+        let history = store.list_history(rec.id).await?;
+        let faults = store
+            .count_faults(&FaultFilter {
+                job: Some(rec.id),
+                worker: None,
+            })
+            .await?;
+        let pixels = f64::from(plan.width) * f64::from(plan.height) * f64::from(frames_total);
+        let samples: f64 = tiles
+            .iter()
+            .map(|t| t.pixels.len() as f64 * f64::from(t.merged_passes))
+            .sum::<f64>()
+            * f64::from(plan.samples_per_pass);
+        let elapsed = match (rec.started_unix_ms, rec.finished_unix_ms) {
+            (Some(s), Some(f)) => f.saturating_sub(s) as f64 / 1e3,
+            (Some(s), None) => now_ms().saturating_sub(s) as f64 / 1e3,
+            _ => 0.0,
+        };
+        Ok(JobStatus {
+            id: rec.id,
+            name: rec.name.clone(),
+            state: rec.state,
+            scene: rec.scene_ref.clone(),
+            target_error: settings.target_error,
+            adaptive: settings.adaptive.clone(),
+            settings,
+            width: Some(plan.width),
+            height: Some(plan.height),
+            frames_total,
+            frames_done: if rec.state == JobState::Done {
+                frames_total
+            } else {
+                0
+            },
+            tiles_total,
+            passes_planned,
+            passes_done,
+            spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
+            error_estimate: history.last().and_then(|h| h.error_estimate),
+            elapsed_seconds: elapsed,
+            eta_seconds: None,
+            created_unix_ms: rec.created_unix_ms,
+            priority: rec.priority,
+            faults,
+            rejected_samples,
+            error: rec.error.clone(),
+            plan: None,
+        })
+    }
+
+    /// `GET /jobs`: a page of jobs, newest first.
+    pub async fn list(&self, q: JobListQuery) -> CoordResult<JobList> {
+        let cursor = match q.cursor.as_deref() {
+            None | Some("") => None,
+            Some(c) => Some(c.parse::<u64>().map_err(|_| {
+                CoordError::invalid_field("cursor", format!("expected a job id, got {c:?}"))
+            })?),
+        };
+        let limit = q.limit.unwrap_or(50).clamp(1, MAX_PAGE);
+        let recs = self
+            .inner
+            .store
+            .list_jobs(JobQuery {
+                cursor,
+                limit: limit + 1,
+                state: q.state,
+                order: JobOrder::NewestFirst,
+            })
+            .await?;
+        let more = recs.len() > limit as usize;
+        let mut jobs = Vec::with_capacity(limit as usize);
+        for rec in recs.iter().take(limit as usize) {
+            match self.live_status(rec.id)? {
+                Some(s) => jobs.push(s),
+                None => jobs.push(self.stored_status(rec).await?),
+            }
+        }
+        let next_cursor = if more {
+            jobs.last().map(|j| j.id.to_string())
+        } else {
+            None
+        };
+        Ok(JobList { jobs, next_cursor })
+    }
+
+    /// `DELETE /jobs/{id}`: stops leasing the job's units and tells workers to drop them.
+    pub async fn cancel(&self, id: JobId) -> CoordResult<JobStatus> {
+        let status = self.status(id).await?;
+        if status.state.is_terminal() {
+            return Ok(status);
+        }
+        self.lock()?.scheduler.cancel(id);
+        self.set_state(id, JobState::Canceled, None).await?;
+        tracing::info!(job = id, "job canceled");
+        self.status(id).await
+    }
+
+    /// The convergence history of a job.
+    pub async fn history(&self, id: JobId) -> CoordResult<History> {
+        if let Some(points) = self.lock()?.runtime.get(&id).map(|rt| rt.history.clone()) {
+            return Ok(History { points });
+        }
+        self.inner
+            .store
+            .get_job(id)
+            .await?
+            .ok_or_else(|| CoordError::job_not_found(id))?;
+        let points = self.inner.store.list_history(id).await?;
+        Ok(History { points })
+    }
+}
+
+/// Puts a job's units in the scheduler's queue, adaptive or not.
+pub(crate) fn add_to_scheduler(
+    farm: &mut Farm,
+    id: JobId,
+    priority: i32,
+    plan: FramePlan,
+    job: &ValidatedJob,
+    passes_per_unit: u32,
+) -> CoordResult<()> {
+    match job.adaptive_settings() {
+        Some(a) => {
+            farm.scheduler
+                .add_adaptive_job(id, priority, plan, job.frames.iter(), passes_per_unit, a)
+                .map_err(|e| CoordError::invalid_field("adaptive", e))?;
+        }
+        None => farm
+            .scheduler
+            .add_job(id, priority, plan, job.frames.iter(), passes_per_unit),
+    }
+    Ok(())
+}
+
+/// Samples per pixel merged so far.
+pub(crate) fn spp_so_far(r: &ResolvedJob, passes_done: u64, frames: u64) -> f64 {
+    // Tile passes weighted by tile area: with equal passes per pixel this is exact; the
+    // status is informative, so a uniform-tile approximation is enough for partial frames.
+    let tiles = u64::from(r.plan.tile_count()) * frames.max(1);
+    if tiles == 0 {
+        return 0.0;
+    }
+    passes_done as f64 / tiles as f64 * f64::from(r.plan.samples_per_pass)
+}
+
+/// The status of a job in memory.
+fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
+    let now = now_ms();
+    let plan = rt.resolved.plan;
+    let frames_total = rt.job.frames.count() as u32;
+    let tiles_total = u64::from(plan.tile_count()) * u64::from(frames_total);
+    let passes_planned = tiles_total * u64::from(plan.passes);
+    let progress = farm.scheduler.progress(id);
+    let (passes_done, frames_done) = match (progress, rt.resolved.black) {
+        (_, true) => (passes_planned, frames_total),
+        (Some(p), false) => (p.passes_done, p.frames_done),
+        (None, false) => (0, 0),
+    };
+    let elapsed = rt.elapsed_seconds(now);
+    let adaptive_frame = farm.scheduler.adaptive_frame(id, rt.job.frames.start);
+    let error = if rt.resolved.black {
+        Some(0.0)
+    } else if let Some(a) = adaptive_frame {
+        a.every_pixel_estimated().then(|| a.image_error())
+    } else {
+        rt.error_estimate()
+    };
+    let eta = if rt.state.is_terminal() {
+        Some(0.0)
+    } else {
+        eta_seconds(
+            elapsed,
+            passes_done,
+            passes_planned,
+            error,
+            rt.job.target_error,
+        )
+    };
+    JobStatus {
+        id,
+        name: rt.job.name.clone(),
+        state: rt.state,
+        scene: rt.job.scene.to_string(),
+        settings: rt.settings.clone(),
+        width: Some(plan.width),
+        height: Some(plan.height),
+        frames_total,
+        frames_done,
+        tiles_total,
+        passes_planned,
+        passes_done,
+        spp_so_far: match adaptive_frame {
+            Some(a) => a.samples_per_pixel().0,
+            None => spp_so_far(&rt.resolved, passes_done, rt.job.frames.count()),
+        },
+        error_estimate: error,
+        target_error: rt.job.target_error,
+        elapsed_seconds: elapsed,
+        eta_seconds: eta,
+        created_unix_ms: rt.created_unix_ms,
+        priority: rt.job.priority,
+        faults: rt.faults,
+        rejected_samples: rt.rejected_samples(),
+        error: rt.error.clone(),
+        plan: serde_json::from_str(&rt.resolved.render_plan.to_json()).ok(),
+        adaptive: rt.job.adaptive.to_string(),
+    }
+}
+
+/// Estimated seconds until a job is done, from the time spent so far.
+///
+/// Monte Carlo error falls like `1 / sqrt(work)` (ARCHITECTURE.md §3), so reaching `target` from
+/// the current `error` needs `(error / target)^2` times the work done so far; the job also
+/// stops when all planned passes are merged, so the estimate is the smaller of that and
+/// the time for the remaining passes at the current rate. `None` before anything merged.
+pub fn eta_seconds(
+    elapsed: f64,
+    passes_done: u64,
+    passes_planned: u64,
+    error: Option<f64>,
+    target: Option<f64>,
+) -> Option<f64> {
+    if passes_done == 0 || elapsed <= 0.0 {
+        return None;
+    }
+    let remaining_passes =
+        elapsed * (passes_planned.saturating_sub(passes_done)) as f64 / passes_done as f64;
+    let by_error = match (error, target) {
+        (Some(e), Some(t)) if t > 0.0 && e.is_finite() => {
+            Some((elapsed * ((e / t).powi(2) - 1.0)).max(0.0))
+        }
+        _ => None,
+    };
+    Some(match by_error {
+        Some(b) => b.min(remaining_passes),
+        None => remaining_passes,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn eta_follows_inverse_square_root_of_work() {
+        // Error 0.04 after 10 s, target 0.02: four times the work, 30 s more.
+        let eta = eta_seconds(10.0, 100, 10_000, Some(0.04), Some(0.02)).unwrap();
+        assert!((eta - 30.0).abs() < 1e-9);
+        // Bounded by the remaining planned passes: 100 of 200 done in 10 s.
+        let eta = eta_seconds(10.0, 100, 200, Some(0.04), Some(0.001)).unwrap();
+        assert!((eta - 10.0).abs() < 1e-9);
+        // Already below target.
+        assert_eq!(
+            eta_seconds(10.0, 100, 200, Some(0.01), Some(0.02)),
+            Some(0.0)
+        );
+        assert_eq!(eta_seconds(0.0, 0, 200, None, None), None);
+    }
+}

@@ -1,0 +1,242 @@
+//! The coordinator's job life cycle over the store and the in-memory farm state
+//! (ARCHITECTURE.md §9): submission, leases, durable checkpoints as passes merge, resume
+//! after a restart, status, images, cancel. One file per responsibility:
+//!
+//! | file | what it does |
+//! |---|---|
+//! | [`scenes`] | scene upload, and loading a job's scene (cache, store, parse off the runtime) |
+//! | [`jobs`] | submit, status, list, cancel, history |
+//! | [`workers`] | registration, leases, heartbeats, returned leases, `GET /workers` |
+//! | [`results`] | accepting a worker's result: lease check, merge, checkpoint, faults |
+//! | [`resume`] | a stored job resolved again, tile checkpoints restored, the restart |
+//! | [`images`] | a frame's merged state, its image and its tile map |
+//! | [`metrics`] | the Prometheus exposition |
+//!
+//! # Durability (ARCHITECTURE.md §6)
+//! The store is the truth. A job is inserted before `POST /jobs` answers. A result is
+//! merged in memory and its tile's checkpoint committed *before* the worker is told the
+//! result was accepted, so an accepted pass survives `kill -9`. Checkpoint writes are
+//! serialized by one async lock, and each snapshot is taken under that lock, so a newer
+//! snapshot of a tile can never be overwritten by an older one. Lease ids are reserved in
+//! blocks ([`LEASE_ID_BLOCK`]) whose end is committed before any lease of the block is
+//! handed out, so fencing tokens never repeat after a restart.
+//!
+//! # Restart
+//! [`Coordinator::open`] reloads every job that was not finished, rebuilds its
+//! accumulators from the tile checkpoints (bit-exact Welford state) and puts the rest of
+//! its units back in the queue. For a grace period no new lease is handed out, so workers
+//! that were rendering when the coordinator died can reconnect and deliver their results;
+//! those answer leases of the previous run and are adopted (validated, merged once).
+
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use tessera_api::JobState;
+use tessera_farm::JobId;
+
+use crate::error::{CoordError, CoordResult};
+use crate::state::{now_ms, Farm};
+use crate::store::{SqliteStore, Store, StoreError};
+
+pub mod images;
+pub mod jobs;
+pub mod metrics;
+pub mod results;
+pub mod resume;
+pub mod scenes;
+pub mod workers;
+
+pub use jobs::eta_seconds;
+pub use results::{Accepted, Delivery, Rejected};
+pub use workers::{Heartbeat, LeaseGrant};
+
+/// Lease ids are reserved in blocks of this many (one store write per block).
+pub const LEASE_ID_BLOCK: u64 = 4096;
+/// Largest accepted scene upload.
+pub const MAX_SCENE_BYTES: usize = 256 << 20;
+/// Largest page of `GET /jobs`.
+pub const MAX_PAGE: u32 = 200;
+
+/// How to run a coordinator.
+#[derive(Clone, Debug)]
+pub struct CoordinatorConfig {
+    /// Directory of the SQLite store.
+    pub data_dir: PathBuf,
+    /// Bearer token required on the HTTP API, if any.
+    pub api_token: Option<String>,
+    /// Bearer token workers must present, if any.
+    pub worker_token: Option<String>,
+    /// How long a lease lasts without a heartbeat, ms.
+    pub lease_ms: u64,
+    /// How often workers heartbeat, ms.
+    pub heartbeat_ms: u32,
+    /// After a restart: how long to wait for workers to reconnect before leasing again, ms.
+    pub grace_ms: u64,
+    /// Passes per work unit.
+    pub passes_per_unit: u32,
+}
+
+impl CoordinatorConfig {
+    /// Defaults for a data directory: 10 s leases, 1 s heartbeats, 3 s restart grace, one
+    /// pass per unit, no tokens.
+    pub fn new(data_dir: impl Into<PathBuf>) -> Self {
+        Self {
+            data_dir: data_dir.into(),
+            api_token: None,
+            worker_token: None,
+            lease_ms: 10_000,
+            heartbeat_ms: 1_000,
+            grace_ms: 3_000,
+            passes_per_unit: 1,
+        }
+    }
+}
+
+/// The coordinator: shared by the HTTP routes, the gRPC service and the ticker.
+#[derive(Clone)]
+pub struct Coordinator {
+    inner: Arc<Inner>,
+}
+
+struct Inner {
+    farm: Arc<Mutex<Farm>>,
+    store: Arc<dyn Store>,
+    cfg: CoordinatorConfig,
+    /// Serializes store writes of merged state (see the module docs).
+    write: tokio::sync::Mutex<()>,
+    /// Lease ids up to this are reserved in the store.
+    lease_reserved: Mutex<u64>,
+    /// No leases are handed out before this (Unix ms): the restart grace period.
+    lease_blocked_until_ms: u64,
+    /// Set when the coordinator started, for uptime.
+    started: Instant,
+}
+
+impl Coordinator {
+    /// Opens the store in `cfg.data_dir` and resumes every unfinished job in it.
+    pub async fn open(cfg: CoordinatorConfig) -> Result<Self, StoreError> {
+        let store: Arc<dyn Store> = Arc::new(SqliteStore::open(&cfg.data_dir).await?);
+        Self::with_store(cfg, store).await
+    }
+
+    /// Like [`Coordinator::open`] over a given store.
+    pub async fn with_store(
+        cfg: CoordinatorConfig,
+        store: Arc<dyn Store>,
+    ) -> Result<Self, StoreError> {
+        let high_water = store.max_lease_id().await?;
+        let farm = Arc::new(Mutex::new(Farm::with_first_lease(cfg.lease_ms, high_water)));
+        let resumed = resume::resume_all(&*store, &farm).await?;
+        let blocked = if resumed { now_ms() + cfg.grace_ms } else { 0 };
+        // Leases of the previous run may still be held by reconnecting workers.
+        if let Ok(mut f) = farm.lock() {
+            f.scheduler.grace(blocked + cfg.lease_ms);
+        }
+        Ok(Self {
+            inner: Arc::new(Inner {
+                farm,
+                store,
+                cfg,
+                write: tokio::sync::Mutex::new(()),
+                lease_reserved: Mutex::new(high_water),
+                lease_blocked_until_ms: blocked,
+                started: Instant::now(),
+            }),
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &CoordinatorConfig {
+        &self.inner.cfg
+    }
+
+    /// The store.
+    pub fn store(&self) -> Arc<dyn Store> {
+        self.inner.store.clone()
+    }
+
+    /// The farm state, locked. Never held across an `.await`.
+    fn lock(&self) -> CoordResult<MutexGuard<'_, Farm>> {
+        self.inner.farm.lock().map_err(|_| CoordError::poisoned())
+    }
+
+    /// Seconds since this coordinator started.
+    pub fn uptime_seconds(&self) -> f64 {
+        self.inner.started.elapsed().as_secs_f64()
+    }
+
+    /// Moves a job to `state`: in the store first, then in memory (ARCHITECTURE.md §9).
+    async fn set_state(
+        &self,
+        id: JobId,
+        state: JobState,
+        error: Option<String>,
+    ) -> CoordResult<()> {
+        let now = now_ms();
+        self.inner
+            .store
+            .set_job_state(id, state, error.clone(), now)
+            .await?;
+        let mut farm = self.lock()?;
+        if let Some(rt) = farm.runtime.get_mut(&id) {
+            rt.state = state;
+            if state == JobState::Running && rt.started_unix_ms.is_none() {
+                rt.started_unix_ms = Some(now);
+            }
+            if state == JobState::Done && rt.stopped.is_none() {
+                rt.stopped = Some("finished");
+            }
+            if state.is_terminal() {
+                rt.finished_unix_ms = Some(now);
+                if rt.started_unix_ms.is_none() {
+                    rt.started_unix_ms = Some(now);
+                }
+            }
+            rt.error = error;
+        }
+        Ok(())
+    }
+
+    /// Periodic housekeeping: expire lapsed leases, stop jobs past their time limit
+    /// (ARCHITECTURE.md §9, step 11).
+    pub async fn tick(&self) {
+        let now = now_ms();
+        let mut over_time = Vec::new();
+        if let Ok(mut farm) = self.inner.farm.lock() {
+            // During the grace period leases of the previous run are not expired.
+            if !self.leasing_paused() {
+                farm.scheduler.expire(now);
+            }
+            for (&id, rt) in &farm.runtime {
+                if let (Some(limit), JobState::Running) = (rt.job.time_limit_seconds, rt.state) {
+                    if rt.elapsed_seconds(now) >= limit {
+                        over_time.push(id);
+                    }
+                }
+            }
+            for id in &over_time {
+                farm.scheduler.cancel(*id);
+                if let Some(rt) = farm.runtime.get_mut(id) {
+                    rt.stopped = Some("time limit reached");
+                }
+            }
+        }
+        for id in over_time {
+            tracing::info!(job = id, "time limit reached");
+            let _ = self.set_state(id, JobState::Done, None).await;
+        }
+    }
+
+    /// Runs [`Coordinator::tick`] every 200 ms until the returned handle is dropped.
+    pub fn spawn_ticker(&self) -> tokio::task::JoinHandle<()> {
+        let me = self.clone();
+        tokio::spawn(async move {
+            let mut iv = tokio::time::interval(Duration::from_millis(200));
+            loop {
+                iv.tick().await;
+                me.tick().await;
+            }
+        })
+    }
+}

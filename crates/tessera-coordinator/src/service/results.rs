@@ -1,0 +1,341 @@
+//! Accepting a worker's result (ARCHITECTURE.md §9, steps 8 to 10): checked against its
+//! lease, merged in pass order, the tile's checkpoint committed, faults recorded; only
+//! then is the worker told whether it was accepted.
+//!
+//! [`Coordinator::accept_result`] runs these steps, each a function with one job:
+//! [`submit`] (validate against the lease and merge), [`record_merge`] (rejected-sample
+//! counts, tile error, the checkpoint to write), [`history_point`], [`record_fault`], and
+//! [`Coordinator::write_back`] (the store writes, in that order).
+
+use tessera_api::{HistoryPoint, JobState};
+use tessera_farm::{JobId, SubmitError, Submitted, UnitResult, WorkUnit, WorkerId};
+
+use super::jobs::spp_so_far;
+use super::Coordinator;
+use crate::state::{now_ms, tile_error, Farm};
+use crate::store::{FaultEvent, FaultKind, StoreError, TileCheckpoint, UnitDigest};
+
+/// History points are recorded at most this often per job (plus the last one).
+const HISTORY_INTERVAL_MS: u64 = 200;
+
+/// What a worker delivered for a lease, decoded by the gRPC service.
+#[derive(Debug)]
+pub struct Delivery {
+    /// The worker.
+    pub worker: WorkerId,
+    /// The lease (fencing token) the result answers.
+    pub lease_id: u64,
+    /// The job the worker says the lease is of: only trusted for leases of the previous
+    /// run, which this run's scheduler never issued (ARCHITECTURE.md §9, restart).
+    pub job_hint: JobId,
+    /// The result, or why it did not decode.
+    pub result: Result<UnitResult, String>,
+    /// Seconds the worker spent rendering it, as it reports them.
+    pub render_seconds: f64,
+}
+
+/// A result the coordinator took: merged (and checkpointed), or an identical copy of a
+/// unit already merged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Accepted {
+    /// Merged, or buffered until the passes before it arrive; durable.
+    Merged,
+    /// A duplicate of a merged unit, identical to it by digest.
+    Duplicate,
+}
+
+impl Accepted {
+    /// The reason text sent to the worker with `accepted = true`.
+    pub fn reason(self) -> &'static str {
+        match self {
+            Self::Merged => "",
+            Self::Duplicate => "duplicate (identical)",
+        }
+    }
+}
+
+/// Why a result was refused. The text is the reason sent to the worker.
+#[derive(Debug, thiserror::Error)]
+pub enum Rejected {
+    /// The result is malformed: it did not decode, or has the wrong size or non-finite
+    /// or negative values. A fault of the worker.
+    #[error("{0}")]
+    InvalidResult(String),
+    /// The lease is of no job this coordinator knows. A fault of the worker.
+    #[error("lease {0} is unknown")]
+    UnknownLease(u64),
+    /// The scheduler did not issue this lease for exactly this unit. A fault of the
+    /// worker.
+    #[error("{0}")]
+    StaleLease(SubmitError),
+    /// The job was canceled; not the worker's fault.
+    #[error("job {0} was canceled")]
+    Canceled(JobId),
+    /// A duplicate of a merged unit that differs from it. A fault of the worker.
+    #[error("duplicate differs from the merged copy: faulty worker")]
+    Mismatch,
+    /// The checkpoint could not be written; the unit will be leased again.
+    #[error("the coordinator could not store the result: {0}")]
+    Store(StoreError),
+    /// The farm state's lock was poisoned.
+    #[error("farm state poisoned")]
+    Poisoned,
+}
+
+impl Rejected {
+    /// The fault recorded against the worker, if it is one.
+    pub fn fault_kind(&self) -> Option<FaultKind> {
+        match self {
+            Self::InvalidResult(_) => Some(FaultKind::InvalidResult),
+            Self::UnknownLease(_) | Self::StaleLease(_) => Some(FaultKind::LeaseViolation),
+            Self::Mismatch => Some(FaultKind::DuplicateMismatch),
+            Self::Canceled(_) | Self::Store(_) | Self::Poisoned => None,
+        }
+    }
+}
+
+/// What accepting a result leaves to write to the store, taken under the farm lock.
+#[derive(Default)]
+struct Writes {
+    checkpoint: Option<TileCheckpoint>,
+    history: Option<(JobId, HistoryPoint)>,
+    fault: Option<FaultEvent>,
+    finished: Option<JobId>,
+}
+
+/// A result the scheduler took.
+struct Merged {
+    job: JobId,
+    unit: WorkUnit,
+    /// The tile's merged passes before it.
+    before: u32,
+    submitted: Submitted,
+}
+
+impl Coordinator {
+    /// Validates, merges and durably checkpoints a worker's result (ARCHITECTURE.md §9,
+    /// steps 8 to 10).
+    pub async fn accept_result(&self, d: Delivery) -> Result<Accepted, Rejected> {
+        // One writer at a time, and the snapshot taken under this lock: a newer
+        // checkpoint of a tile is never overwritten by an older one (module docs).
+        let write = self.inner.write.lock().await;
+        let (outcome, writes) = {
+            let mut farm = self.inner.farm.lock().map_err(|_| Rejected::Poisoned)?;
+            merge_delivery(&mut farm, d, now_ms())
+        };
+        self.write_back(&writes).await?;
+        drop(write);
+        if let Some(job) = writes.finished {
+            match self.set_state(job, JobState::Done, None).await {
+                Ok(()) => tracing::info!(job, "job done"),
+                Err(e) => tracing::error!(job, error = %e, "cannot mark job done"),
+            }
+        }
+        outcome
+    }
+
+    /// Writes the checkpoint (before the worker hears "accepted"), the history point
+    /// and the fault event. Only a failed checkpoint refuses the result.
+    async fn write_back(&self, w: &Writes) -> Result<(), Rejected> {
+        let store = &self.inner.store;
+        if let Some(cp) = &w.checkpoint {
+            if let Err(e) = store.save_tile(cp.as_ref()).await {
+                let (job, frame, tile) = (cp.job, cp.frame, cp.tile);
+                tracing::error!(job, frame, tile, error = %e, "checkpoint failed");
+                return Err(Rejected::Store(e));
+            }
+        }
+        if let Some((job, point)) = w.history {
+            if let Err(e) = store.append_history(job, point).await {
+                tracing::warn!(job, error = %e, "history point not stored");
+            }
+        }
+        if let Some(f) = &w.fault {
+            if let Err(e) = store.record_fault(f).await {
+                tracing::warn!(error = %e, "fault event not stored");
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Everything done under the farm lock: find the lease's job, merge, and collect what
+/// the store must learn.
+fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, Rejected>, Writes) {
+    let mut writes = Writes::default();
+    // The scheduler knows the job of this run's leases, outstanding or lapsed; a lease of
+    // the previous run is adopted under the job the worker names.
+    let job = farm.scheduler.lease_job(d.lease_id).or_else(|| {
+        (farm.scheduler.is_previous_run_lease(d.lease_id) && d.job_hint != 0).then_some(d.job_hint)
+    });
+    let worker_name = farm
+        .workers
+        .get(&d.worker)
+        .map(|w| w.name.clone())
+        .unwrap_or_else(|| format!("worker {}", d.worker));
+    let rejected_samples = d.result.as_ref().map_or(0, |r| r.rejected_samples);
+    let merged = match submit(farm, d.lease_id, job, d.result) {
+        // Not the worker's fault: the job went away. Nothing is recorded.
+        Err(Rejected::Canceled(j)) => return (Err(Rejected::Canceled(j)), writes),
+        other => other,
+    };
+    let w = farm.workers.entry(d.worker).or_default();
+    w.last_seen_ms = now;
+    let outcome = match merged {
+        Ok(m) => match m.submitted {
+            Submitted::Accepted => {
+                w.units_done += 1;
+                if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
+                    w.render_seconds += d.render_seconds;
+                }
+                writes.checkpoint = record_merge(farm, &m, rejected_samples);
+                let complete = farm.scheduler.is_complete(m.job);
+                writes.history = history_point(farm, m.job, now, complete);
+                writes.finished = complete.then_some(m.job);
+                Ok(Accepted::Merged)
+            }
+            Submitted::Duplicate { identical: true } => Ok(Accepted::Duplicate),
+            Submitted::Duplicate { identical: false } => Err(Rejected::Mismatch),
+        },
+        Err(r) => Err(r),
+    };
+    if let Err(r) = &outcome {
+        writes.fault = record_fault(farm, d.worker, worker_name, job, r, now);
+    }
+    (outcome, writes)
+}
+
+/// Validates a result against its lease and offers it to the scheduler, which checks the
+/// unit, the size and the values and merges it in pass order (ARCHITECTURE.md §2).
+fn submit(
+    farm: &mut Farm,
+    lease_id: u64,
+    job: Option<JobId>,
+    result: Result<UnitResult, String>,
+) -> Result<Merged, Rejected> {
+    let result = result.map_err(Rejected::InvalidResult)?;
+    let job = job.ok_or(Rejected::UnknownLease(lease_id))?;
+    let unit = result.unit;
+    let before = farm
+        .scheduler
+        .frame(job, unit.frame)
+        .and_then(|f| f.tile(unit.tile))
+        .map_or(0, |t| t.merged_passes());
+    match farm.scheduler.submit(lease_id, job, result) {
+        Ok(submitted) => Ok(Merged {
+            job,
+            unit,
+            before,
+            submitted,
+        }),
+        Err(SubmitError::Invalid(e)) => Err(Rejected::InvalidResult(e.to_string())),
+        Err(SubmitError::Canceled(j)) => Err(Rejected::Canceled(j)),
+        Err(e) => Err(Rejected::StaleLease(e)),
+    }
+}
+
+/// After a merge: counts the unit's rejected samples, updates the tile's error, and
+/// returns the tile's checkpoint if its merged pass count changed (a buffered unit
+/// changes nothing durable yet).
+fn record_merge(farm: &mut Farm, m: &Merged, rejected_samples: u64) -> Option<TileCheckpoint> {
+    let (job, unit) = (m.job, m.unit);
+    let acc = farm.scheduler.frame(job, unit.frame)?;
+    let rt = farm.runtime.get_mut(&job)?;
+    let tile = &acc.tiles()[unit.tile as usize];
+    let fi = (unit.frame - rt.job.frames.start) as usize;
+    let rejected = rt
+        .tile_rejected
+        .get_mut(fi)
+        .and_then(|f| f.get_mut(unit.tile as usize))
+        .map(|r| {
+            r.accept(unit.first_pass, rejected_samples, tile.merged_passes());
+            r.merged
+        })
+        .unwrap_or(0);
+    if tile.merged_passes() == m.before {
+        return None;
+    }
+    if let Some(slot) = rt
+        .tile_error
+        .get_mut(fi)
+        .and_then(|f| f.get_mut(unit.tile as usize))
+    {
+        *slot = tile_error(tile);
+    }
+    Some(TileCheckpoint {
+        job,
+        frame: unit.frame,
+        tile: unit.tile,
+        merged_passes: tile.merged_passes(),
+        pixels: tile.pixels().to_vec(),
+        units: tile
+            .merged_units()
+            .map(|(first_pass, pass_count, digest)| UnitDigest {
+                first_pass,
+                pass_count,
+                digest,
+            })
+            .collect(),
+        rejected_samples: rejected,
+    })
+}
+
+/// A convergence-history point (spp, image error, elapsed seconds), at most every
+/// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10).
+fn history_point(
+    farm: &mut Farm,
+    job: JobId,
+    now: u64,
+    complete: bool,
+) -> Option<(JobId, HistoryPoint)> {
+    let p = farm.scheduler.progress(job)?;
+    let rt = farm.runtime.get_mut(&job)?;
+    if !complete && now < rt.last_history_ms + HISTORY_INTERVAL_MS {
+        return None;
+    }
+    rt.last_history_ms = now;
+    let (spp, error_estimate) = match farm.scheduler.adaptive_frame(job, rt.job.frames.start) {
+        Some(a) => (
+            a.samples_per_pixel().0,
+            a.every_pixel_estimated().then(|| a.image_error()),
+        ),
+        None => (
+            spp_so_far(&rt.resolved, p.passes_done, rt.job.frames.count()),
+            rt.error_estimate(),
+        ),
+    };
+    let point = HistoryPoint {
+        elapsed_seconds: rt.elapsed_seconds(now),
+        spp,
+        error_estimate,
+    };
+    rt.history.push(point);
+    Some((job, point))
+}
+
+/// Counts a refused result against the worker and its job, and returns the fault event
+/// to store (none if the refusal is not the worker's fault).
+fn record_fault(
+    farm: &mut Farm,
+    worker: WorkerId,
+    worker_name: String,
+    job: Option<JobId>,
+    r: &Rejected,
+    now: u64,
+) -> Option<FaultEvent> {
+    let kind = r.fault_kind()?;
+    if let Some(w) = farm.workers.get_mut(&worker) {
+        w.faults += 1;
+    }
+    if let Some(rt) = job.and_then(|j| farm.runtime.get_mut(&j)) {
+        rt.faults += 1;
+    }
+    tracing::warn!(worker, kind = kind.as_str(), error = %r, "result refused");
+    Some(FaultEvent {
+        worker: worker_name,
+        job,
+        kind,
+        message: r.to_string(),
+        unix_ms: now,
+    })
+}

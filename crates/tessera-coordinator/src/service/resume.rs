@@ -1,0 +1,223 @@
+//! Restart: jobs in the store brought back into memory (ARCHITECTURE.md §9, "Restart,
+//! resume and the grace period").
+//!
+//! Two rules are written once here and used by both the restart and the images of jobs
+//! that finished before it: [`resolve_stored`] turns a stored job into a resolved one
+//! (parse the stored settings, validate, load the scene, resolve), and
+//! [`restore_frames`] rebuilds frame accumulators from tile checkpoints, bit-exact.
+
+use std::sync::Mutex;
+
+use tessera_api::{JobSettings, JobState, ResolvedJob, ValidatedJob};
+use tessera_farm::job::JobError;
+use tessera_farm::{FrameAccumulator, FramePlan, JobId};
+use tessera_scene::job::resolve_job;
+
+use super::jobs::add_to_scheduler;
+use super::scenes::{load_scene, SceneLoadError};
+use crate::error::CoordError;
+use crate::state::{now_ms, tile_error, Farm, JobEntry, JobRuntime, TileRejected};
+use crate::store::{FaultFilter, JobRecord, Store, StoreError, TileCheckpoint};
+
+/// A stored job as this build understands it.
+pub(crate) struct StoredJob {
+    /// The settings as submitted.
+    pub settings: JobSettings,
+    /// The settings validated again.
+    pub job: ValidatedJob,
+    /// The job resolved again against its scene.
+    pub resolved: ResolvedJob,
+}
+
+/// Why a stored job cannot be resolved again. The text is what a job that cannot be
+/// resumed fails with (`JobStatus.error`, stored); requests see a [`CoordError`].
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum StoredJobError {
+    /// The stored settings are not JSON this build reads.
+    #[error("stored settings are unreadable: {error}")]
+    Unreadable {
+        /// The job.
+        job: JobId,
+        /// The parser's complaint.
+        error: serde_json::Error,
+    },
+    /// The settings no longer validate, or no longer resolve against the scene.
+    #[error("{0}")]
+    Invalid(#[from] JobError),
+    /// The scene is gone or no longer loads.
+    #[error(transparent)]
+    Scene(#[from] SceneLoadError),
+}
+
+impl From<StoredJobError> for CoordError {
+    fn from(e: StoredJobError) -> Self {
+        match e {
+            StoredJobError::Unreadable { job, error } => {
+                CoordError::Internal(format!("stored settings of job {job}: {error}"))
+            }
+            StoredJobError::Invalid(e) => e.into(),
+            StoredJobError::Scene(e) => e.into(),
+        }
+    }
+}
+
+/// The stored job -> resolved job chain: parse the stored settings, validate them, load
+/// the scene, resolve (the same resolution as `POST /jobs` and `tessera render`,
+/// ARCHITECTURE.md §1).
+pub(crate) async fn resolve_stored(
+    store: &dyn Store,
+    farm: &Mutex<Farm>,
+    rec: &JobRecord,
+) -> Result<StoredJob, StoredJobError> {
+    let settings: JobSettings = serde_json::from_str(&rec.settings_json)
+        .map_err(|error| StoredJobError::Unreadable { job: rec.id, error })?;
+    let job = settings.validate()?;
+    let scene = load_scene(store, farm, &job.scene, job.camera.as_deref()).await?;
+    let resolved = resolve_job(&job, &scene)?;
+    Ok(StoredJob {
+        settings,
+        job,
+        resolved,
+    })
+}
+
+/// Frames rebuilt from tile checkpoints.
+pub(crate) struct Restored {
+    /// One accumulator per frame, in the order asked for.
+    pub frames: Vec<FrameAccumulator>,
+    /// Per frame, per tile: the rejected samples of the merged passes.
+    pub rejected: Vec<Vec<u64>>,
+}
+
+/// The checkpoint-restore loop: accumulators of `frames` under `plan` with every
+/// checkpointed tile restored (bit-exact Welford state, ARCHITECTURE.md §6). Refuses a
+/// checkpoint of another frame, of an unknown tile, or one that does not restore.
+pub(crate) fn restore_frames(
+    plan: FramePlan,
+    frames: impl IntoIterator<Item = u32>,
+    checkpoints: Vec<TileCheckpoint>,
+) -> Result<Restored, String> {
+    let mut accs: Vec<FrameAccumulator> = frames
+        .into_iter()
+        .map(|f| FrameAccumulator::for_frame(plan, f))
+        .collect();
+    let mut rejected = vec![vec![0; plan.tile_count() as usize]; accs.len()];
+    for cp in checkpoints {
+        let Some(fi) = accs.iter().position(|f| f.frame() == cp.frame) else {
+            return Err(format!("checkpoint of frame {} outside the job", cp.frame));
+        };
+        if let Some(r) = rejected[fi].get_mut(cp.tile as usize) {
+            *r = cp.rejected_samples;
+        }
+        let rect = plan
+            .get_tile(cp.tile)
+            .ok_or_else(|| format!("checkpoint of unknown tile {}", cp.tile))?;
+        let units: Vec<(u32, u32, u64)> = cp
+            .units
+            .iter()
+            .map(|u| (u.first_pass, u.pass_count, u.digest))
+            .collect();
+        let tile =
+            tessera_farm::TileAccumulator::restore(rect, cp.merged_passes, cp.pixels, &units)?;
+        accs[fi].restore_tile(tile)?;
+    }
+    Ok(Restored {
+        frames: accs,
+        rejected,
+    })
+}
+
+/// Resumes every unfinished job of the store into `farm`; jobs that cannot be resumed
+/// are marked failed with the reason. Returns whether any job was resumed (then leasing
+/// waits for the grace period).
+pub(crate) async fn resume_all(store: &dyn Store, farm: &Mutex<Farm>) -> Result<bool, StoreError> {
+    let resumable = store.jobs_to_resume().await?;
+    let resumed = !resumable.is_empty();
+    let mut failed = Vec::new();
+    for rec in resumable {
+        match resume_job(store, farm, &rec).await {
+            Ok(()) => tracing::info!(job = rec.id, "job resumed"),
+            Err(e) => {
+                tracing::error!(job = rec.id, error = %e, "cannot resume job");
+                failed.push((rec.id, e));
+            }
+        }
+    }
+    for (id, e) in failed {
+        store
+            .set_job_state(id, JobState::Failed, Some(e), now_ms())
+            .await?;
+    }
+    Ok(resumed)
+}
+
+/// Brings one stored job back: resolved again, its plan checked, its tiles restored, its
+/// remaining units queued.
+async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> Result<(), String> {
+    let StoredJob {
+        settings,
+        job,
+        resolved,
+    } = resolve_stored(store, farm, rec)
+        .await
+        .map_err(|e| e.to_string())?;
+    if resolved.plan != rec.plan {
+        return Err("the stored frame plan differs from this build's plan".into());
+    }
+    let plan = rec.plan;
+    let checkpoints = store
+        .load_tiles(rec.id, None)
+        .await
+        .map_err(|e| e.to_string())?;
+    let restored = restore_frames(plan, rec.frames.iter(), checkpoints)?;
+    let history = store.list_history(rec.id).await.unwrap_or_default();
+    let faults = store
+        .count_faults(&FaultFilter {
+            job: Some(rec.id),
+            worker: None,
+        })
+        .await
+        .unwrap_or(0);
+    let mut farm = farm.lock().map_err(|_| "farm state poisoned".to_string())?;
+    let mut rt = JobRuntime::new(settings, job, resolved, rec.state, rec.created_unix_ms);
+    if rt.job.adaptive_settings().is_some() {
+        // The adaptive policy's per-pixel state is not checkpointed: an adaptive job
+        // starts again from its first pass after a restart (its result is the same), so
+        // its tile errors and rejected counts start from zero too.
+        add_to_scheduler(
+            &mut farm,
+            rec.id,
+            rec.priority,
+            plan,
+            &rt.job,
+            rec.passes_per_unit,
+        )
+        .map_err(|e| e.to_string())?;
+    } else {
+        rt.tile_error = restored
+            .frames
+            .iter()
+            .map(|f| f.tiles().iter().map(tile_error).collect())
+            .collect();
+        for (slots, counts) in rt.tile_rejected.iter_mut().zip(&restored.rejected) {
+            for (slot, &merged) in slots.iter_mut().zip(counts) {
+                *slot = TileRejected::with_merged(merged);
+            }
+        }
+        farm.scheduler.add_resumed_job(
+            rec.id,
+            rec.priority,
+            plan,
+            restored.frames,
+            rec.passes_per_unit,
+        )?;
+    }
+    farm.jobs
+        .insert(rec.id, JobEntry::of(&rt.job, &rt.resolved));
+    rt.started_unix_ms = rec.started_unix_ms;
+    rt.faults = faults;
+    rt.history = history;
+    rt.stopped = (rec.state == JobState::Done).then_some("finished");
+    farm.runtime.insert(rec.id, rt);
+    Ok(())
+}

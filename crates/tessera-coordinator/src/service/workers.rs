@@ -1,0 +1,238 @@
+//! Workers: registration, leases (ARCHITECTURE.md §9, step 7), heartbeats that extend
+//! them, leases given back, and the worker list of `GET /workers`.
+//!
+//! The gRPC service decodes a worker's request, calls one of these and encodes the
+//! answer; nothing here knows the wire format beyond the farm's [`LeasedUnit`].
+
+use tessera_api::{JobState, WorkerInfo, WorkerList, WorkerState};
+use tessera_farm::{JobId, WorkerId};
+use tessera_proto::LeasedUnit;
+
+use super::{Coordinator, LEASE_ID_BLOCK};
+use crate::error::{CoordError, CoordResult};
+use crate::state::{now_ms, WorkerEntry};
+
+/// Longest worker name accepted at registration.
+const MAX_WORKER_NAME: usize = 200;
+/// Most units one lease request gets.
+const MAX_UNITS_PER_LEASE: u32 = 256;
+/// How soon a worker asks again during the restart grace period, ms.
+const RETRY_IN_GRACE_MS: u32 = 250;
+/// How soon an idle worker asks again, ms: a new job starts within ~50 ms.
+const RETRY_IDLE_MS: u32 = 50;
+
+/// The answer to a heartbeat.
+#[derive(Debug, Clone, Default)]
+pub struct Heartbeat {
+    /// Leases extended: (lease id, new deadline, Unix ms).
+    pub extended: Vec<(u64, u64)>,
+    /// Leases the worker should drop (lapsed or canceled).
+    pub cancel: Vec<u64>,
+}
+
+/// The answer to a lease request.
+#[derive(Debug, Clone, Default)]
+pub struct LeaseGrant {
+    /// The units leased, each with what the worker needs to render it.
+    pub units: Vec<LeasedUnit>,
+    /// When to ask again if `units` is empty, ms (0: at once).
+    pub retry_after_ms: u32,
+}
+
+impl Coordinator {
+    /// Registers a worker; returns its id. The name is at most 200 characters; the
+    /// version is cut to 64.
+    pub fn register_worker(
+        &self,
+        name: String,
+        threads: u32,
+        version: &str,
+    ) -> CoordResult<WorkerId> {
+        if name.len() > MAX_WORKER_NAME {
+            return Err(CoordError::invalid_field(
+                "name",
+                format!("at most {MAX_WORKER_NAME} characters"),
+            ));
+        }
+        let entry = WorkerEntry {
+            name,
+            threads,
+            last_seen_ms: now_ms(),
+            version: version.chars().take(64).collect(),
+            ..WorkerEntry::default()
+        };
+        let id = self.lock()?.register_worker(entry);
+        tracing::info!(worker = id, threads, "worker registered");
+        Ok(id)
+    }
+
+    /// A worker's heartbeat: records its throughput and extends the leases it holds.
+    pub fn heartbeat(
+        &self,
+        worker: WorkerId,
+        paths_per_second: f64,
+        lease_ids: &[u64],
+    ) -> CoordResult<Heartbeat> {
+        let now = now_ms();
+        let mut farm = self.lock()?;
+        let w = farm
+            .workers
+            .get_mut(&worker)
+            .ok_or_else(CoordError::unknown_worker)?;
+        w.last_seen_ms = now;
+        if paths_per_second.is_finite() && paths_per_second >= 0.0 {
+            w.paths_per_second = paths_per_second;
+        }
+        let extended = farm.scheduler.extend(worker, lease_ids, now);
+        // Leases not extended are lapsed or canceled: tell the worker to drop them. Leases
+        // of a previous run of the coordinator (before a restart) are unknown here but their
+        // results are still adopted, so the worker keeps rendering them (ARCHITECTURE.md §9).
+        let cancel = lease_ids
+            .iter()
+            .copied()
+            .filter(|id| {
+                !extended.iter().any(|(e, _)| e == id) && !farm.scheduler.is_previous_run_lease(*id)
+            })
+            .collect();
+        Ok(Heartbeat { extended, cancel })
+    }
+
+    /// Leases up to `max_units` units (clamped to 1..=256) to a worker, in canonical
+    /// order, after expiring lapsed leases. The lease ids are reserved durably before
+    /// this returns; if that fails, nothing is handed out (the leases lapse).
+    pub async fn lease(&self, worker: WorkerId, max_units: u32) -> CoordResult<LeaseGrant> {
+        let now = now_ms();
+        if self.leasing_paused() {
+            // A restarted coordinator waits for workers to deliver what they were rendering.
+            if !self.lock()?.workers.contains_key(&worker) {
+                return Err(CoordError::unknown_worker());
+            }
+            return Ok(LeaseGrant {
+                units: Vec::new(),
+                retry_after_ms: RETRY_IN_GRACE_MS,
+            });
+        }
+        let units = {
+            let mut farm = self.lock()?;
+            if !farm.workers.contains_key(&worker) {
+                return Err(CoordError::unknown_worker());
+            }
+            farm.scheduler.expire(now);
+            let max = max_units.clamp(1, MAX_UNITS_PER_LEASE) as usize;
+            let leases = farm.scheduler.lease(worker, now, max);
+            let units: Vec<LeasedUnit> = leases
+                .into_iter()
+                .filter_map(|l| {
+                    let job = farm.jobs.get(&l.job)?;
+                    Some(LeasedUnit {
+                        lease_id: l.lease_id,
+                        deadline_unix_ms: l.deadline_ms,
+                        job_id: l.job,
+                        scene: job.scene.clone(),
+                        camera: job.camera.clone(),
+                        settings: job.settings,
+                        plan: job.plan,
+                        unit: l.unit,
+                    })
+                })
+                .collect();
+            if let Some(w) = farm.workers.get_mut(&worker) {
+                w.last_seen_ms = now;
+            }
+            units
+        };
+        let mut jobs: Vec<JobId> = units.iter().map(|l| l.job_id).collect();
+        jobs.dedup();
+        self.after_lease(jobs).await?;
+        let retry_after_ms = if units.is_empty() { RETRY_IDLE_MS } else { 0 };
+        Ok(LeaseGrant {
+            units,
+            retry_after_ms,
+        })
+    }
+
+    /// Leases a worker gives back unrendered (it is shutting down); returns how many
+    /// were outstanding.
+    pub fn return_leases(&self, worker: WorkerId, lease_ids: &[u64]) -> CoordResult<u32> {
+        let mut farm = self.lock()?;
+        let before = farm.scheduler.leases().count();
+        farm.scheduler.give_back(worker, lease_ids);
+        Ok((before - farm.scheduler.leases().count()) as u32)
+    }
+
+    /// Commits the reservation of lease ids before any of them reaches a worker, and
+    /// marks jobs that started running (ARCHITECTURE.md §9, step 7).
+    async fn after_lease(&self, jobs: Vec<JobId>) -> CoordResult<()> {
+        let max = self.lock()?.scheduler.max_issued_lease_id();
+        let need = {
+            let r = self
+                .inner
+                .lease_reserved
+                .lock()
+                .map_err(|_| CoordError::poisoned())?;
+            (max > *r).then_some(max + LEASE_ID_BLOCK)
+        };
+        if let Some(upto) = need {
+            let _w = self.inner.write.lock().await;
+            self.inner.store.record_lease_high_water(upto).await?;
+            let mut r = self
+                .inner
+                .lease_reserved
+                .lock()
+                .map_err(|_| CoordError::poisoned())?;
+            *r = (*r).max(upto);
+        }
+        for id in jobs {
+            let queued = self
+                .lock()?
+                .runtime
+                .get(&id)
+                .is_some_and(|rt| rt.state == JobState::Queued);
+            if queued {
+                self.set_state(id, JobState::Running, None).await?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether leasing is paused (the restart grace period).
+    pub(crate) fn leasing_paused(&self) -> bool {
+        now_ms() < self.inner.lease_blocked_until_ms
+    }
+
+    /// `GET /workers`.
+    pub fn workers(&self) -> CoordResult<WorkerList> {
+        let farm = self.lock()?;
+        let now = now_ms();
+        // Lost after five missed heartbeats and two seconds of slack.
+        let lost_after = u64::from(self.inner.cfg.heartbeat_ms) * 5 + 2_000;
+        let workers = farm
+            .workers
+            .iter()
+            .map(|(&id, w)| {
+                let leases = farm.scheduler.leases().filter(|l| l.worker == id).count();
+                let state = if now.saturating_sub(w.last_seen_ms) > lost_after {
+                    WorkerState::Lost
+                } else if w.draining {
+                    WorkerState::Draining
+                } else if leases > 0 {
+                    WorkerState::Busy
+                } else {
+                    WorkerState::Idle
+                };
+                WorkerInfo {
+                    id,
+                    name: w.name.clone(),
+                    threads: w.threads,
+                    state,
+                    last_heartbeat_unix_ms: w.last_seen_ms,
+                    units_done: w.units_done,
+                    paths_per_second: w.paths_per_second,
+                    faults: w.faults,
+                    version: w.version.clone(),
+                }
+            })
+            .collect();
+        Ok(WorkerList { workers })
+    }
+}

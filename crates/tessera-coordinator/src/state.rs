@@ -1,0 +1,285 @@
+//! The coordinator's working state in memory (ARCHITECTURE.md §9): the farm's lease
+//! [`Scheduler`] with the jobs' accumulators, the registered workers, the scene bytes
+//! workers fetch, and what the life cycle tracks per job ([`JobRuntime`]).
+//!
+//! Everything here is lost on a crash and rebuilt from the store by
+//! [`Coordinator::open`](crate::service::Coordinator::open); the store is the truth
+//! (ARCHITECTURE.md §6). Neither the gRPC service nor the HTTP API touches this state
+//! directly: both go through the [`Coordinator`](crate::service::Coordinator), which holds
+//! it behind one mutex.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use tessera_api::{HistoryPoint, JobSettings, JobState, ResolvedJob, ValidatedJob};
+use tessera_farm::job::{RenderConfig, SceneRef};
+use tessera_farm::{FramePlan, JobId, Scheduler, TileAccumulator, WorkerId};
+
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// What the coordinator knows about a worker.
+#[derive(Clone, Debug, Default)]
+pub struct WorkerEntry {
+    /// Name given at registration.
+    pub name: String,
+    /// Rendering threads.
+    pub threads: u32,
+    /// Last heartbeat or request, Unix ms.
+    pub last_seen_ms: u64,
+    /// Units accepted from it.
+    pub units_done: u64,
+    /// Its last reported throughput.
+    pub paths_per_second: f64,
+    /// Rejected results and mismatching duplicates.
+    pub faults: u64,
+    /// The worker's Tessera version.
+    pub version: String,
+    /// Set when the worker announced it is shutting down.
+    pub draining: bool,
+    /// Seconds spent rendering the units it delivered, as it reported them.
+    pub render_seconds: f64,
+}
+
+/// A job as the gRPC service needs it to hand out leases: what a worker must know to
+/// render any of its units.
+#[derive(Clone, Debug)]
+pub struct JobEntry {
+    /// The scene.
+    pub scene: SceneRef,
+    /// The glTF camera the job renders from, if it names one.
+    pub camera: Option<String>,
+    /// Render settings.
+    pub settings: RenderConfig,
+    /// Frame plan.
+    pub plan: FramePlan,
+}
+
+impl JobEntry {
+    /// The lease data of a job validated as `job` and resolved as `resolved`.
+    pub fn of(job: &ValidatedJob, resolved: &ResolvedJob) -> Self {
+        Self {
+            scene: job.scene.clone(),
+            camera: job.camera.clone(),
+            settings: resolved.config,
+            plan: resolved.plan,
+        }
+    }
+}
+
+/// Shared state of the farm behind the coordinator.
+pub struct Farm {
+    /// Leases and merged frames.
+    pub scheduler: Scheduler,
+    /// Registered workers.
+    pub workers: BTreeMap<WorkerId, WorkerEntry>,
+    /// Jobs by id, as leases describe them.
+    pub jobs: BTreeMap<JobId, JobEntry>,
+    /// Uploaded scene bytes by content hash.
+    pub scenes: HashMap<String, Arc<Vec<u8>>>,
+    /// What the coordinator tracks per job besides the scheduler.
+    pub runtime: BTreeMap<JobId, JobRuntime>,
+    next_worker: WorkerId,
+}
+
+impl Farm {
+    /// An empty farm whose leases last `lease_ms` and whose lease ids start after
+    /// `high_water` (the largest id an earlier run may have issued), so fencing tokens
+    /// never repeat across restarts (ARCHITECTURE.md §9, step 7).
+    pub fn with_first_lease(lease_ms: u64, high_water: u64) -> Self {
+        Self {
+            scheduler: Scheduler::new(lease_ms, high_water),
+            workers: BTreeMap::new(),
+            jobs: BTreeMap::new(),
+            scenes: HashMap::new(),
+            runtime: BTreeMap::new(),
+            next_worker: 1,
+        }
+    }
+
+    /// Registers a worker and returns its new id (ids are never reused in a run).
+    pub fn register_worker(&mut self, entry: WorkerEntry) -> WorkerId {
+        let id = self.next_worker;
+        self.next_worker += 1;
+        self.workers.insert(id, entry);
+        id
+    }
+}
+
+/// What the coordinator keeps about a job besides the scheduler's state.
+#[derive(Debug, Clone)]
+pub struct JobRuntime {
+    /// The settings as submitted (defaults filled in).
+    pub settings: JobSettings,
+    /// The validated settings.
+    pub job: ValidatedJob,
+    /// The job resolved against its scene.
+    pub resolved: ResolvedJob,
+    /// Life-cycle state.
+    pub state: JobState,
+    /// When it was accepted, Unix ms.
+    pub created_unix_ms: u64,
+    /// When it started running, Unix ms.
+    pub started_unix_ms: Option<u64>,
+    /// When it finished, Unix ms.
+    pub finished_unix_ms: Option<u64>,
+    /// Why it failed.
+    pub error: Option<String>,
+    /// Faulty-worker events on it.
+    pub faults: u64,
+    /// Per frame, per tile: (sum of squared relative errors, pixel count) of the tiles with
+    /// at least two passes, kept incrementally so the image error costs O(tiles).
+    pub(crate) tile_error: Vec<Vec<(f64, u64)>>,
+    /// Per frame, per tile: the samples its renderers rejected as invalid.
+    pub(crate) tile_rejected: Vec<Vec<TileRejected>>,
+    /// When the last convergence-history point was recorded, Unix ms.
+    pub(crate) last_history_ms: u64,
+    /// Convergence history (also in the store).
+    pub history: Vec<HistoryPoint>,
+    /// Why a done job stopped, as `tessera render` says it ("finished", "time limit
+    /// reached"); recorded in the EXR header of jobs that stop early.
+    pub stopped: Option<&'static str>,
+}
+
+impl JobRuntime {
+    /// A job with nothing merged yet, in `state`, accepted at `created_unix_ms`.
+    pub fn new(
+        settings: JobSettings,
+        job: ValidatedJob,
+        resolved: ResolvedJob,
+        state: JobState,
+        created_unix_ms: u64,
+    ) -> Self {
+        let tiles = resolved.plan.tile_count() as usize;
+        let frames = job.frames.count() as usize;
+        Self {
+            settings,
+            job,
+            resolved,
+            state,
+            created_unix_ms,
+            started_unix_ms: None,
+            finished_unix_ms: None,
+            error: None,
+            faults: 0,
+            tile_error: vec![vec![(0.0, 0); tiles]; frames],
+            tile_rejected: vec![vec![TileRejected::default(); tiles]; frames],
+            last_history_ms: 0,
+            history: Vec::new(),
+            stopped: None,
+        }
+    }
+
+    /// The RMS relative error over all pixels, once every tile has two passes.
+    pub(crate) fn error_estimate(&self) -> Option<f64> {
+        let (mut sum, mut n) = (0.0, 0u64);
+        let mut all = true;
+        for frame in &self.tile_error {
+            for &(s, c) in frame {
+                if c == 0 {
+                    all = false;
+                }
+                sum += s;
+                n += c;
+            }
+        }
+        (all && n > 0).then(|| (sum / n as f64).sqrt())
+    }
+
+    /// Samples rejected as invalid by the renderers, merged or buffered.
+    pub(crate) fn rejected_samples(&self) -> u64 {
+        self.tile_rejected
+            .iter()
+            .flatten()
+            .map(TileRejected::total)
+            .sum()
+    }
+
+    /// Seconds between the start and the end (or `now`) of the job.
+    pub(crate) fn elapsed_seconds(&self, now: u64) -> f64 {
+        match self.started_unix_ms {
+            Some(s) => (self.finished_unix_ms.unwrap_or(now).saturating_sub(s)) as f64 / 1e3,
+            None => 0.0,
+        }
+    }
+}
+
+/// The samples a tile's renderers rejected as invalid (`UnitResult::rejected_samples`),
+/// kept so that a restart neither loses nor double-counts them: the count of the merged
+/// passes is checkpointed with the tile; units buffered ahead of a missing earlier pass
+/// are lost on a restart and rendered again, so their counts wait apart until they merge.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct TileRejected {
+    /// In the merged passes (what the checkpoint stores).
+    pub(crate) merged: u64,
+    /// Of accepted units not merged yet: (first pass, count), non-zero counts only.
+    buffered: Vec<(u32, u64)>,
+}
+
+impl TileRejected {
+    /// A tile restored from its checkpoint: `merged` rejected samples, nothing buffered.
+    pub(crate) fn with_merged(merged: u64) -> Self {
+        Self {
+            merged,
+            buffered: Vec::new(),
+        }
+    }
+
+    /// Records an accepted unit starting at `first_pass` with `count` rejected samples,
+    /// the tile having `merged_passes` merged passes after it.
+    pub(crate) fn accept(&mut self, first_pass: u32, count: u64, merged_passes: u32) {
+        if count > 0 {
+            self.buffered.push((first_pass, count));
+        }
+        let merged = &mut self.merged;
+        self.buffered.retain(|&(pass, n)| {
+            let done = pass < merged_passes;
+            if done {
+                *merged += n;
+            }
+            !done
+        });
+    }
+
+    fn total(&self) -> u64 {
+        self.merged + self.buffered.iter().map(|b| b.1).sum::<u64>()
+    }
+}
+
+/// A tile's (sum of squared relative errors, pixel count), zero below two passes (a
+/// variance needs two replicates, ARCHITECTURE.md §3).
+pub(crate) fn tile_error(tile: &TileAccumulator) -> (f64, u64) {
+    if tile.merged_passes() < 2 {
+        return (0.0, 0);
+    }
+    let mut sum = 0.0;
+    for p in tile.pixels() {
+        let r = p.relative_error();
+        sum += r * r;
+    }
+    (sum, tile.pixels().len() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rejected_samples_of_buffered_units_wait_until_they_merge() {
+        let mut r = TileRejected::default();
+        // Passes 2..4 arrive first and are buffered (0 passes merged).
+        r.accept(2, 5, 0);
+        assert_eq!((r.merged, r.total()), (0, 5));
+        // Passes 0..2 merge, and with them the buffered unit: 4 passes merged.
+        r.accept(0, 1, 4);
+        assert_eq!((r.merged, r.total()), (6, 6));
+        assert!(r.buffered.is_empty());
+        r.accept(4, 0, 6);
+        assert_eq!((r.merged, r.total()), (6, 6));
+    }
+}
