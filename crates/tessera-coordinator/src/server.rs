@@ -83,6 +83,11 @@ pub enum ServeError {
 
 /// Opens the coordinator described by `config` and serves it on `listeners` until
 /// `shutdown` completes (see the module documentation for the shutdown order).
+///
+/// The compiler cannot prove this future `Send` (the store's open trips rustc's
+/// higher-ranked `Send` check on sqlx futures), so await it on the task that owns it
+/// (`block_on`, `join!`); to spawn the server, open the [`Coordinator`] first and spawn
+/// [`serve_coordinator`], whose future is `Send`.
 pub async fn serve(
     config: CoordinatorConfig,
     listeners: Listeners,

@@ -58,27 +58,28 @@ async fn register(grpc: SocketAddr) -> (WorkerServiceClient<tonic::transport::Ch
 
 type Served = tokio::task::JoinHandle<Result<(), ServeError>>;
 
-async fn stop(shutdown: oneshot::Sender<()>, served: Served) {
-    shutdown.send(()).unwrap();
-    bounded("serve returning after shutdown", served)
-        .await
-        .unwrap()
-        .unwrap();
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serve_answers_http_and_grpc_and_returns_on_shutdown() {
     let dir = tempfile::tempdir().unwrap();
     let (ls, http, grpc) = listeners().await;
     let (tx, rx) = oneshot::channel::<()>();
-    let served: Served = tokio::spawn(serve(CoordinatorConfig::new(dir.path()), ls, async {
+    // `serve`'s future is not `Send` (see its documentation): run it beside the client
+    // rather than spawning it.
+    let server = serve(CoordinatorConfig::new(dir.path()), ls, async {
         let _ = rx.await;
-    }));
-    let health = bounded("GET /healthz", get(http, "/healthz")).await;
-    assert!(health.starts_with("HTTP/1.1 200"), "{health}");
-    let (_client, id) = bounded("Register", register(grpc)).await;
-    assert!(id > 0);
-    stop(tx, served).await;
+    });
+    let client = async {
+        let health = get(http, "/healthz").await;
+        assert!(health.starts_with("HTTP/1.1 200"), "{health}");
+        let (_client, id) = register(grpc).await;
+        assert!(id > 0);
+        tx.send(()).unwrap();
+    };
+    let (served, ()) = bounded("serve, a request, shutdown", async {
+        tokio::join!(server, client)
+    })
+    .await;
+    served.unwrap();
     // Both ports are closed now.
     assert!(tokio::net::TcpStream::connect(http).await.is_err());
     assert!(tokio::net::TcpStream::connect(grpc).await.is_err());
