@@ -185,6 +185,13 @@ async fn serve(
     // Set when a heartbeat says the coordinator is shutting down: finish the units in hand
     // as on our own shutdown.
     let mut told_to_stop = false;
+    // One heartbeat clock for the whole session, so batches shorter than the interval
+    // still heartbeat (a timer restarted per batch would never fire).
+    let mut beat = tokio::time::interval_at(
+        tokio::time::Instant::now() + heartbeat_every,
+        heartbeat_every,
+    );
+    beat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         if told_to_stop || *stop.borrow() {
             // Deliver what is rendered before leaving.
@@ -259,7 +266,7 @@ async fn serve(
         let results = loop {
             tokio::select! {
                 r = &mut render => break r.map_err(|e| Status::internal(format!("render task failed: {e}")))?,
-                _ = tokio::time::sleep(heartbeat_every) => {
+                _ = beat.tick() => {
                     let hb = client
                         .heartbeat(v1::HeartbeatRequest { worker_id, lease_ids: lease_ids.clone(), paths_per_second })
                         .await?
