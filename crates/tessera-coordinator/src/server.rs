@@ -173,8 +173,7 @@ fn spawn_grpc(
     .max_encoding_message_size(64 << 20);
     // TCP_NODELAY: results and leases are small request/response exchanges, and Nagle's
     // algorithm with delayed ACKs would stall each by tens of milliseconds.
-    let incoming =
-        tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     tokio::spawn(async move {
         let graceful = async move {
             let _ = stop.await;

@@ -100,11 +100,17 @@ async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
         let _ = rx.await;
     }));
     let (mut client, worker_id) = bounded("Register", register(grpc)).await;
-    let leases = bounded("LeaseWork", client.lease_work(v1::LeaseRequest { worker_id, max_units: 1 }))
-        .await
-        .unwrap()
-        .into_inner()
-        .leases;
+    let leases = bounded(
+        "LeaseWork",
+        client.lease_work(v1::LeaseRequest {
+            worker_id,
+            max_units: 1,
+        }),
+    )
+    .await
+    .unwrap()
+    .into_inner()
+    .leases;
     let lease_ids: Vec<u64> = leases.iter().map(|l| l.lease_id).collect();
     assert_eq!(lease_ids.len(), 1);
     let beat = v1::HeartbeatRequest {
@@ -113,14 +119,21 @@ async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
         paths_per_second: 0.0,
     };
     let hb = client.heartbeat(beat.clone()).await.unwrap().into_inner();
-    assert!(!hb.shutdown, "shutdown before the coordinator was asked to stop");
+    assert!(
+        !hb.shutdown,
+        "shutdown before the coordinator was asked to stop"
+    );
 
     tx.send(()).unwrap();
     bounded("a heartbeat answering shutdown", async {
         loop {
             let hb = client.heartbeat(beat.clone()).await.unwrap().into_inner();
             if hb.shutdown {
-                assert_eq!(hb.extended.len(), 1, "the lease is still extended while draining");
+                assert_eq!(
+                    hb.extended.len(),
+                    1,
+                    "the lease is still extended while draining"
+                );
                 break;
             }
             tokio::time::sleep(Duration::from_millis(10)).await;
@@ -129,7 +142,10 @@ async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
     .await;
     // The worker holds a lease, so the gRPC port is still open: it gives the lease back.
     let back = client
-        .return_leases(v1::ReturnLeasesRequest { worker_id, lease_ids })
+        .return_leases(v1::ReturnLeasesRequest {
+            worker_id,
+            lease_ids,
+        })
         .await
         .unwrap()
         .into_inner();
