@@ -4,9 +4,15 @@
 
 mod accuracy;
 mod adaptive;
+mod bench_farm;
 mod bench_plan;
-mod farm;
+mod common;
+mod coordinator;
 mod render;
+mod serve;
+mod status;
+mod submit;
+mod worker;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
@@ -36,17 +42,17 @@ enum Command {
     /// the caustic scene): time to reach a target error, side by side.
     BenchPlan(bench_plan::BenchPlanArgs),
     /// The whole farm on this machine: a coordinator and local workers over loopback gRPC.
-    Serve(farm::ServeArgs),
+    Serve(serve::ServeArgs),
     /// Run a coordinator: HTTP API and dashboard, gRPC port for workers, SQLite store.
-    Coordinator(farm::CoordinatorArgs),
+    Coordinator(coordinator::CoordinatorArgs),
     /// Run a worker that leases and renders work units from a coordinator.
-    Worker(farm::WorkerArgs),
+    Worker(worker::WorkerArgs),
     /// Submit a job to a coordinator (optionally wait for it and download the image).
-    Submit(farm::SubmitArgs),
+    Submit(submit::SubmitArgs),
     /// Show jobs of a coordinator.
-    Status(farm::StatusArgs),
+    Status(status::StatusArgs),
     /// Measure the farm's overhead: `tessera serve` against `tessera render`, side by side.
-    BenchFarm(farm::BenchFarmArgs),
+    BenchFarm(bench_farm::BenchFarmArgs),
 }
 
 #[derive(Args)]
@@ -94,12 +100,12 @@ fn main() {
             None => bench(args),
         },
         Command::BenchPlan(args) => bench_plan::bench_plan(args),
-        Command::Serve(args) => farm::serve(args),
-        Command::Coordinator(args) => farm::coordinator(args),
-        Command::Worker(args) => farm::worker(args),
-        Command::Submit(args) => farm::submit(args),
-        Command::Status(args) => farm::status(args),
-        Command::BenchFarm(args) => farm::bench_farm(args),
+        Command::Serve(args) => serve::serve(args),
+        Command::Coordinator(args) => coordinator::coordinator(args),
+        Command::Worker(args) => worker::worker(args),
+        Command::Submit(args) => submit::submit(args),
+        Command::Status(args) => status::status(args),
+        Command::BenchFarm(args) => bench_farm::bench_farm(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -115,7 +115,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
                 })
                 .collect(),
             cancel: hb.cancel,
-            shutdown: false,
+            shutdown: hb.shutdown,
         }))
     }
 

@@ -17,6 +17,8 @@
 //!   encode.
 //! - [`http`]: the axum HTTP API v1 (ARCHITECTURE.md §5) and the dashboard routes.
 //! - [`dashboard`]: the browser dashboard's static files, embedded, served at `/`.
+//! - [`server`]: [`serve`], which runs both servers and the ticker on bound listeners and
+//!   shuts them down gracefully (workers told to stop, requests in flight finished).
 //!
 //! Dependencies point one way: `http` and `grpc` call `service`, which owns `state` and
 //! `store`; nothing below `service` knows HTTP or gRPC.
@@ -29,6 +31,9 @@ pub mod dashboard;
 pub mod error;
 pub mod grpc;
 pub mod http;
+pub mod server;
 pub mod service;
 pub mod state;
 pub mod store;
+
+pub use server::{serve, serve_coordinator, shutdown_signal, Listeners, ServeError};

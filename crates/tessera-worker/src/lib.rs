@@ -5,7 +5,8 @@
 //! its leases alive. Scenes are fetched once by content hash (in chunks, verified against
 //! their SHA-256) and cached together with their built BVH, so a worker pays for a scene
 //! once however many units of it it renders. When the coordinator is away the worker
-//! reconnects with exponential backoff and registers again; on shutdown it finishes the
+//! reconnects with exponential backoff and registers again; on shutdown (its own, or a
+//! heartbeat answering `shutdown` because the coordinator is stopping) it finishes the
 //! units in hand, submits them, returns anything it has not started, and exits.
 //!
 //! Rendering is deterministic (docs/ARCHITECTURE.md §2): the bytes a worker submits for a unit depend
@@ -181,8 +182,18 @@ async fn serve(
     tracing::info!(worker_id, name = %config.name, "registered");
     let mut paths_per_second = 0.0f64;
     let mut in_flight: Option<tokio::task::JoinHandle<Result<(), Status>>> = None;
+    // Set when a heartbeat says the coordinator is shutting down: finish the units in hand
+    // as on our own shutdown.
+    let mut told_to_stop = false;
+    // One heartbeat clock for the whole session, so batches shorter than the interval
+    // still heartbeat (a timer restarted per batch would never fire).
+    let mut beat = tokio::time::interval_at(
+        tokio::time::Instant::now() + heartbeat_every,
+        heartbeat_every,
+    );
+    beat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
-        if *stop.borrow() {
+        if told_to_stop || *stop.borrow() {
             // Deliver what is rendered before leaving.
             if let Some(h) = in_flight.take() {
                 h.await
@@ -255,12 +266,16 @@ async fn serve(
         let results = loop {
             tokio::select! {
                 r = &mut render => break r.map_err(|e| Status::internal(format!("render task failed: {e}")))?,
-                _ = tokio::time::sleep(heartbeat_every) => {
+                _ = beat.tick() => {
                     let hb = client
                         .heartbeat(v1::HeartbeatRequest { worker_id, lease_ids: lease_ids.clone(), paths_per_second })
                         .await?
                         .into_inner();
                     canceled.extend(hb.cancel);
+                    if hb.shutdown && !told_to_stop {
+                        tracing::info!(worker_id, "the coordinator is shutting down; finishing the units in hand");
+                        told_to_stop = true;
+                    }
                 }
             }
         };

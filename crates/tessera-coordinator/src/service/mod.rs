@@ -111,6 +111,9 @@ struct Inner {
     lease_blocked_until_ms: u64,
     /// Set when the coordinator started, for uptime.
     started: Instant,
+    /// Set once a graceful shutdown began: heartbeats tell workers to stop and no new
+    /// units are leased (ARCHITECTURE.md §9).
+    stopping: std::sync::atomic::AtomicBool,
 }
 
 impl Coordinator {
@@ -142,8 +145,24 @@ impl Coordinator {
                 lease_reserved: Mutex::new(high_water),
                 lease_blocked_until_ms: blocked,
                 started: Instant::now(),
+                stopping: std::sync::atomic::AtomicBool::new(false),
             }),
         })
+    }
+
+    /// Begins a graceful shutdown: from now on heartbeats answer `shutdown` (workers
+    /// finish and deliver the units in hand, then stop) and no new units are leased.
+    pub fn begin_shutdown(&self) {
+        self.inner
+            .stopping
+            .store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+
+    /// Whether [`Coordinator::begin_shutdown`] was called.
+    pub fn shutting_down(&self) -> bool {
+        self.inner
+            .stopping
+            .load(std::sync::atomic::Ordering::SeqCst)
     }
 
     /// The configuration.

@@ -28,6 +28,8 @@ pub struct Heartbeat {
     pub extended: Vec<(u64, u64)>,
     /// Leases the worker should drop (lapsed or canceled).
     pub cancel: Vec<u64>,
+    /// The coordinator is shutting down: finish and deliver the units in hand, then stop.
+    pub shutdown: bool,
 }
 
 /// The answer to a lease request.
@@ -94,7 +96,11 @@ impl Coordinator {
                 !extended.iter().any(|(e, _)| e == id) && !farm.scheduler.is_previous_run_lease(*id)
             })
             .collect();
-        Ok(Heartbeat { extended, cancel })
+        Ok(Heartbeat {
+            extended,
+            cancel,
+            shutdown: self.shutting_down(),
+        })
     }
 
     /// Leases up to `max_units` units (clamped to 1..=256) to a worker, in canonical
@@ -102,6 +108,13 @@ impl Coordinator {
     /// this returns; if that fails, nothing is handed out (the leases lapse).
     pub async fn lease(&self, worker: WorkerId, max_units: u32) -> CoordResult<LeaseGrant> {
         let now = now_ms();
+        if self.shutting_down() {
+            // Draining: the units in hand are delivered, none are started.
+            return Ok(LeaseGrant {
+                units: Vec::new(),
+                retry_after_ms: RETRY_IN_GRACE_MS,
+            });
+        }
         if self.leasing_paused() {
             // A restarted coordinator waits for workers to deliver what they were rendering.
             if !self.lock()?.workers.contains_key(&worker) {

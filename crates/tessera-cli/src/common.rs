@@ -1,0 +1,35 @@
+//! What the farm commands share: logging, the async runtime, and the wording of the
+//! coordinator's refusals.
+
+use anyhow::{Context, Result};
+use tessera_api::client::ClientError;
+
+/// Logs to standard error, `warn` and above unless `RUST_LOG` says otherwise.
+pub fn init_tracing() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+/// The async runtime of the coordinator and the worker: two threads are plenty, the
+/// rendering runs on its own pool.
+pub fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+/// A client error as the user reads it.
+pub fn client_error(e: ClientError) -> anyhow::Error {
+    match e {
+        ClientError::Api { status, error } => {
+            anyhow::anyhow!("the coordinator refused the request ({status}): {error}")
+        }
+        ClientError::Transport(m) => anyhow::anyhow!("{m}"),
+    }
+}

@@ -1,0 +1,154 @@
+//! `tessera submit`: uploads the scene if it is a file, submits the job built from
+//! `tessera render`'s flags ([`JobArgs::settings`]), and with `--wait` follows it to the
+//! end and downloads the image.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use tessera_api::client::Client;
+use tessera_api::{FrameRange, JobState, JobStatus};
+
+use crate::common::client_error;
+use crate::render::{JobArgs, StopArgs};
+use crate::status::progress_line;
+
+/// Job options of `tessera submit` (the same meaning as `tessera render`'s).
+#[derive(Args, Clone, Debug)]
+pub struct SubmitArgs {
+    /// The job, with the same flags as `tessera render` (SCENE is builtin:NAME, or a
+    /// .gltf/.glb file, uploaded first).
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// When the job stops before its budget, as with `tessera render`.
+    #[command(flatten)]
+    pub stop: StopArgs,
+    /// The coordinator's HTTP URL.
+    #[arg(long, default_value = "http://127.0.0.1:8080", env = "TESSERA_SERVER")]
+    pub server: String,
+    /// API bearer token.
+    #[arg(long, env = "TESSERA_API_TOKEN")]
+    pub token: Option<String>,
+    /// First frame.
+    #[arg(long, default_value_t = 0)]
+    pub frame_start: u32,
+    /// Last frame (inclusive; default the first).
+    #[arg(long)]
+    pub frame_end: Option<u32>,
+    /// Higher runs first.
+    #[arg(long, default_value_t = 0)]
+    pub priority: i32,
+    /// A name for the job.
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Idempotency key: a retried submission with the same key returns the same job.
+    #[arg(long)]
+    pub idempotency_key: Option<String>,
+    /// Wait until the job is done, showing progress.
+    #[arg(long)]
+    pub wait: bool,
+    /// With --wait: write the final image here (.exr or .png).
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    /// With --wait: give up after this many seconds.
+    #[arg(long, default_value_t = 86_400.0)]
+    pub wait_timeout: f64,
+}
+
+/// `tessera submit`.
+pub fn submit(args: SubmitArgs) -> Result<()> {
+    let client = Client::new(&args.server, args.token.clone());
+    let scene = scene_ref(&client, &args.job.scene)?;
+    let mut s = args.job.settings(scene, &args.stop);
+    s.frames = FrameRange {
+        start: args.frame_start,
+        end: args.frame_end.unwrap_or(args.frame_start),
+    };
+    s.priority = args.priority;
+    s.name = args.name.clone();
+    if let Some(out) = &args.output {
+        if !args.wait {
+            bail!("-o/--output needs --wait");
+        }
+        let ext = out.extension().and_then(|e| e.to_str()).unwrap_or("");
+        if !matches!(ext, "exr" | "png") {
+            bail!("output {} must end in .exr or .png", out.display());
+        }
+    }
+    let job = client
+        .submit(&s, args.idempotency_key.as_deref())
+        .map_err(client_error)?;
+    println!("job {} {}", job.id, job.state.as_str());
+    if !args.wait {
+        return Ok(());
+    }
+    let done = wait(&client, job.id, args.wait_timeout)?;
+    if let Some(out) = &args.output {
+        download(&client, done.id, out)?;
+    }
+    Ok(())
+}
+
+/// The job's scene: a built-in as named, a file uploaded first and named by its hash.
+fn scene_ref(client: &Client, scene: &str) -> Result<String> {
+    if scene.starts_with("builtin:") {
+        return Ok(scene.to_string());
+    }
+    let path = PathBuf::from(scene);
+    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+    let up = client.upload_scene(&bytes).map_err(client_error)?;
+    println!(
+        "uploaded {} ({} bytes, {} triangles): {}",
+        path.display(),
+        up.bytes,
+        up.triangles,
+        up.hash
+    );
+    Ok(up.hash)
+}
+
+/// Follows the job to its end, printing each new progress line to standard error and the
+/// last one to standard output; an end other than `done` is an error.
+fn wait(client: &Client, id: u64, timeout_seconds: f64) -> Result<JobStatus> {
+    let mut last = String::new();
+    let done = client
+        .wait(
+            id,
+            Duration::from_millis(500),
+            Duration::from_secs_f64(timeout_seconds.max(1.0)),
+            |st| {
+                let line = progress_line(st);
+                if line != last {
+                    eprintln!("{line}");
+                    last = line;
+                }
+            },
+        )
+        .map_err(client_error)?;
+    println!("{}", progress_line(&done));
+    if done.state != JobState::Done {
+        bail!(
+            "job {} ended {}{}",
+            done.id,
+            done.state.as_str(),
+            done.error
+                .as_deref()
+                .map(|e| format!(": {e}"))
+                .unwrap_or_default()
+        );
+    }
+    Ok(done)
+}
+
+/// Writes the finished job's image to `out`, EXR or PNG by its extension.
+fn download(client: &Client, id: u64, out: &Path) -> Result<()> {
+    let format = if out.extension().and_then(|e| e.to_str()) == Some("exr") {
+        "exr"
+    } else {
+        "png"
+    };
+    let bytes = client.image(id, format).map_err(client_error)?;
+    std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    println!("wrote {}", out.display());
+    Ok(())
+}

@@ -1,0 +1,75 @@
+//! `tessera worker`: leases work units from a coordinator and renders them on all cores
+//! until Ctrl-C, SIGTERM or the coordinator's shutdown (finishing the units in hand).
+
+use anyhow::Result;
+use clap::Args;
+use std::io::BufRead;
+use tessera_coordinator::shutdown_signal;
+
+use crate::common::{init_tracing, runtime};
+
+/// `tessera worker`.
+#[derive(Args, Clone, Debug)]
+pub struct WorkerArgs {
+    /// The coordinator's gRPC URL.
+    #[arg(long, default_value = "http://127.0.0.1:50051")]
+    pub coordinator: String,
+    /// Rendering threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Name shown in the worker list (default: host name and process id).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Bearer token of the coordinator's worker port.
+    #[arg(long, env = "TESSERA_WORKER_TOKEN")]
+    pub token: Option<String>,
+    /// Exit when standard input closes (used by `tessera serve` for its local workers, so
+    /// they never outlive it).
+    #[arg(long, hide = true)]
+    pub exit_with_stdin: bool,
+}
+
+/// `tessera worker`.
+pub fn worker(args: WorkerArgs) -> Result<()> {
+    init_tracing();
+    let threads = if args.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.threads
+    };
+    let name = args.name.clone().unwrap_or_else(|| {
+        let host = std::fs::read_to_string("/etc/hostname")
+            .map(|h| h.trim().to_string())
+            .unwrap_or_else(|_| "worker".into());
+        format!("{host}-{}", std::process::id())
+    });
+    let config = tessera_worker::WorkerConfig {
+        coordinator: args.coordinator.clone(),
+        threads,
+        name,
+        token: args.token.clone().filter(|t| !t.is_empty()),
+    };
+    let exit_with_stdin = args.exit_with_stdin;
+    runtime()?.block_on(async move {
+        tessera_worker::run(config, stop(exit_with_stdin))
+            .await
+            .map_err(anyhow::Error::from)
+    })
+}
+
+/// Completes on Ctrl-C or SIGTERM, or (with `exit_with_stdin`) when standard input closes.
+async fn stop(exit_with_stdin: bool) {
+    if !exit_with_stdin {
+        return shutdown_signal().await;
+    }
+    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+    std::thread::spawn(move || {
+        let mut sink = Vec::new();
+        let _ = std::io::stdin().lock().read_until(0, &mut sink);
+        let _ = tx.send(());
+    });
+    tokio::select! {
+        _ = shutdown_signal() => {}
+        _ = rx => {}
+    }
+}

@@ -1,0 +1,233 @@
+//! Serving a coordinator: the HTTP API and the workers' gRPC port on listeners the caller
+//! bound, the ticker, and a graceful shutdown (ARCHITECTURE.md §1, §9).
+//!
+//! [`serve`] (or [`serve_coordinator`] for a coordinator already open) runs until its
+//! `shutdown` future completes, then stops in this order:
+//!
+//! 1. The HTTP server stops accepting connections and lets the requests in flight finish
+//!    (axum's graceful shutdown).
+//! 2. Workers are told to stop ([`Coordinator::begin_shutdown`]): from now on every
+//!    heartbeat answers `shutdown = true` and no new unit is leased, so a worker rendering
+//!    units finishes them, delivers the results and exits. The gRPC port
+//!    stays open until no worker holds a lease any more, or for [`WORKER_DRAIN`] at most.
+//! 3. The gRPC server drains (tonic's graceful shutdown: no new connections, the calls in
+//!    flight finish).
+//! 4. The ticker stops and the store is closed.
+//!
+//! Steps 1 and 3 together are bounded by [`SERVER_SHUTDOWN`]; after it the servers are
+//! abandoned and `serve` returns anyway.
+//!
+//! ```no_run
+//! # async fn run() -> Result<(), tessera_coordinator::ServeError> {
+//! use tessera_coordinator::{serve, shutdown_signal, Listeners};
+//! use tessera_coordinator::service::CoordinatorConfig;
+//!
+//! let listeners = Listeners {
+//!     http: tokio::net::TcpListener::bind("127.0.0.1:0").await?,
+//!     grpc: tokio::net::TcpListener::bind("127.0.0.1:0").await?,
+//! };
+//! println!("http: http://{}/api/v1", listeners.http.local_addr()?);
+//! serve(CoordinatorConfig::new("tessera-data"), listeners, shutdown_signal()).await
+//! # }
+//! ```
+
+use std::future::Future;
+use std::time::Duration;
+
+use tessera_api::WorkerState;
+use tokio::net::TcpListener;
+use tokio::sync::{mpsc, oneshot};
+use tokio::task::JoinHandle;
+
+use crate::grpc::WorkerGrpc;
+use crate::service::{Coordinator, CoordinatorConfig};
+use crate::store::StoreError;
+
+/// How long a shutting-down coordinator waits for workers to deliver the units they hold.
+pub const WORKER_DRAIN: Duration = Duration::from_secs(5);
+
+/// How long the HTTP and gRPC servers get to finish their requests in flight once told to
+/// stop.
+pub const SERVER_SHUTDOWN: Duration = Duration::from_secs(5);
+
+/// The two bound listeners a coordinator serves on (bind port 0 to let the system choose,
+/// then read `local_addr`).
+#[derive(Debug)]
+pub struct Listeners {
+    /// The HTTP API v1 and the dashboard.
+    pub http: TcpListener,
+    /// The workers' gRPC port.
+    pub grpc: TcpListener,
+}
+
+/// Why [`serve`] failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The store could not be opened.
+    #[error("opening the store: {0}")]
+    Open(#[from] StoreError),
+    /// A listener's address could not be read.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+    /// The HTTP server stopped with an error before it was asked to stop.
+    #[error("the HTTP server failed: {0}")]
+    Http(std::io::Error),
+    /// The gRPC server stopped with an error before it was asked to stop.
+    #[error("the gRPC server failed: {0}")]
+    Grpc(tonic::transport::Error),
+}
+
+/// Opens the coordinator described by `config` and serves it on `listeners` until
+/// `shutdown` completes (see the module documentation for the shutdown order).
+///
+/// The compiler cannot prove this future `Send` (the store's open trips rustc's
+/// higher-ranked `Send` check on sqlx futures), so await it on the task that owns it
+/// (`block_on`, `join!`); to spawn the server, open the [`Coordinator`] first and spawn
+/// [`serve_coordinator`], whose future is `Send`.
+pub async fn serve(
+    config: CoordinatorConfig,
+    listeners: Listeners,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServeError> {
+    let core = Coordinator::open(config).await?;
+    serve_coordinator(core, listeners, shutdown).await
+}
+
+/// Serves an open coordinator on `listeners` until `shutdown` completes, or until one of
+/// the servers fails (then the other is shut down the same way and the failure returned).
+pub async fn serve_coordinator(
+    core: Coordinator,
+    listeners: Listeners,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServeError> {
+    let (failed_tx, mut failed_rx) = mpsc::channel::<ServeError>(2);
+    let (http_stop, http_stopped) = oneshot::channel::<()>();
+    let (grpc_stop, grpc_stopped) = oneshot::channel::<()>();
+    let ticker = core.spawn_ticker();
+    let http = spawn_http(&core, listeners.http, http_stopped, failed_tx.clone());
+    let grpc = spawn_grpc(&core, listeners.grpc, grpc_stopped, failed_tx);
+    let failure = tokio::select! {
+        _ = shutdown => None,
+        e = failed_rx.recv() => e,
+    };
+    tracing::info!("coordinator shutting down");
+    let _ = http_stop.send(());
+    core.begin_shutdown();
+    drain_workers(&core, WORKER_DRAIN).await;
+    let _ = grpc_stop.send(());
+    join_servers(http, grpc, SERVER_SHUTDOWN).await;
+    ticker.abort();
+    core.store().close().await;
+    tracing::info!("coordinator stopped");
+    match failure.or_else(|| failed_rx.try_recv().ok()) {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
+
+fn spawn_http(
+    core: &Coordinator,
+    listener: TcpListener,
+    stop: oneshot::Receiver<()>,
+    failed: mpsc::Sender<ServeError>,
+) -> JoinHandle<()> {
+    let app = crate::http::router(core.clone());
+    tokio::spawn(async move {
+        let graceful = async move {
+            let _ = stop.await;
+        };
+        if let Err(e) = axum::serve(listener, app)
+            .with_graceful_shutdown(graceful)
+            .await
+        {
+            tracing::error!(error = %e, "HTTP server failed");
+            let _ = failed.send(ServeError::Http(e)).await;
+        }
+    })
+}
+
+fn spawn_grpc(
+    core: &Coordinator,
+    listener: TcpListener,
+    stop: oneshot::Receiver<()>,
+    failed: mpsc::Sender<ServeError>,
+) -> JoinHandle<()> {
+    let svc = WorkerGrpc::for_coordinator(core.clone()).into_server();
+    // TCP_NODELAY: results and leases are small request/response exchanges, and Nagle's
+    // algorithm with delayed ACKs would stall each by tens of milliseconds.
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    tokio::spawn(async move {
+        let graceful = async move {
+            let _ = stop.await;
+        };
+        if let Err(e) = tonic::transport::Server::builder()
+            .add_service(svc)
+            .serve_with_incoming_shutdown(incoming, graceful)
+            .await
+        {
+            tracing::error!(error = %e, "gRPC server failed");
+            let _ = failed.send(ServeError::Grpc(e)).await;
+        }
+    })
+}
+
+/// Waits until no live worker holds a lease, for `timeout` at most.
+async fn drain_workers(core: &Coordinator, timeout: Duration) {
+    let deadline = tokio::time::Instant::now() + timeout;
+    loop {
+        let busy = core.workers().map_or(0, |list| {
+            list.workers
+                .iter()
+                .filter(|w| w.state == WorkerState::Busy)
+                .count()
+        });
+        if busy == 0 {
+            return;
+        }
+        if tokio::time::Instant::now() >= deadline {
+            tracing::warn!(busy, "workers still hold leases; stopping without them");
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Waits for both servers to finish, for `timeout` at most; then abandons them.
+async fn join_servers(http: JoinHandle<()>, grpc: JoinHandle<()>, timeout: Duration) {
+    let (http_abort, grpc_abort) = (http.abort_handle(), grpc.abort_handle());
+    if tokio::time::timeout(timeout, async {
+        let _ = http.await;
+        let _ = grpc.await;
+    })
+    .await
+    .is_err()
+    {
+        tracing::warn!("connections still open after the shutdown timeout; closing them");
+        http_abort.abort();
+        grpc_abort.abort();
+    }
+}
+
+/// Completes on Ctrl-C, or on SIGTERM on Unix: the signals that stop `tessera coordinator`,
+/// `tessera serve` and `tessera worker`.
+pub async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = term.recv() => {}
+                    _ = tokio::signal::ctrl_c() => {}
+                }
+            }
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}

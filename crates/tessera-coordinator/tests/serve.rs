@@ -1,0 +1,157 @@
+//! `tessera_coordinator::serve` on port-0 listeners: it answers HTTP and gRPC, tells busy
+//! workers to stop once shut down, keeps the gRPC port open while they hold leases, and
+//! returns. Every wait is bounded by [`HANG`], used only to fail instead of hanging.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use tessera_api::JobSettings;
+use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
+use tessera_coordinator::{serve, serve_coordinator, Listeners, ServeError};
+use tessera_proto::v1;
+use tessera_proto::v1::worker_service_client::WorkerServiceClient;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::oneshot;
+
+const HANG: Duration = Duration::from_secs(60);
+
+async fn bounded<T>(what: &str, f: impl Future<Output = T>) -> T {
+    tokio::time::timeout(HANG, f)
+        .await
+        .unwrap_or_else(|_| panic!("{what}: no answer within {HANG:?}"))
+}
+
+async fn listeners() -> (Listeners, SocketAddr, SocketAddr) {
+    let http = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let grpc = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let (h, g) = (http.local_addr().unwrap(), grpc.local_addr().unwrap());
+    (Listeners { http, grpc }, h, g)
+}
+
+/// A plain HTTP/1.1 GET; returns the whole response.
+async fn get(addr: SocketAddr, path: &str) -> String {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).await.unwrap();
+    out
+}
+
+async fn register(grpc: SocketAddr) -> (WorkerServiceClient<tonic::transport::Channel>, u64) {
+    let mut client = WorkerServiceClient::connect(format!("http://{grpc}"))
+        .await
+        .unwrap();
+    let reg = client
+        .register(v1::RegisterRequest {
+            name: "test".into(),
+            threads: 1,
+            version: "test".into(),
+            capabilities: vec!["path".into()],
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    (client, reg.worker_id)
+}
+
+type Served = tokio::task::JoinHandle<Result<(), ServeError>>;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_answers_http_and_grpc_and_returns_on_shutdown() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ls, http, grpc) = listeners().await;
+    let (tx, rx) = oneshot::channel::<()>();
+    // `serve`'s future is not `Send` (see its documentation): run it beside the client
+    // rather than spawning it.
+    let server = serve(CoordinatorConfig::new(dir.path()), ls, async {
+        let _ = rx.await;
+    });
+    let client = async {
+        let health = get(http, "/healthz").await;
+        assert!(health.starts_with("HTTP/1.1 200"), "{health}");
+        let (_client, id) = register(grpc).await;
+        assert!(id > 0);
+        tx.send(()).unwrap();
+    };
+    let (served, ()) = bounded("serve, a request, shutdown", async {
+        tokio::join!(server, client)
+    })
+    .await;
+    served.unwrap();
+    // Both ports are closed now.
+    assert!(tokio::net::TcpStream::connect(http).await.is_err());
+    assert!(tokio::net::TcpStream::connect(grpc).await.is_err());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
+    core.submit(job, None).await.unwrap();
+    let (ls, _http, grpc) = listeners().await;
+    let (tx, rx) = oneshot::channel::<()>();
+    let served: Served = tokio::spawn(serve_coordinator(core, ls, async {
+        let _ = rx.await;
+    }));
+    let (mut client, worker_id) = bounded("Register", register(grpc)).await;
+    let leases = bounded(
+        "LeaseWork",
+        client.lease_work(v1::LeaseRequest {
+            worker_id,
+            max_units: 1,
+        }),
+    )
+    .await
+    .unwrap()
+    .into_inner()
+    .leases;
+    let lease_ids: Vec<u64> = leases.iter().map(|l| l.lease_id).collect();
+    assert_eq!(lease_ids.len(), 1);
+    let beat = v1::HeartbeatRequest {
+        worker_id,
+        lease_ids: lease_ids.clone(),
+        paths_per_second: 0.0,
+    };
+    let hb = client.heartbeat(beat.clone()).await.unwrap().into_inner();
+    assert!(
+        !hb.shutdown,
+        "shutdown before the coordinator was asked to stop"
+    );
+
+    tx.send(()).unwrap();
+    bounded("a heartbeat answering shutdown", async {
+        loop {
+            let hb = client.heartbeat(beat.clone()).await.unwrap().into_inner();
+            if hb.shutdown {
+                assert_eq!(
+                    hb.extended.len(),
+                    1,
+                    "the lease is still extended while draining"
+                );
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    // The worker holds a lease, so the gRPC port is still open: it gives the lease back.
+    let back = client
+        .return_leases(v1::ReturnLeasesRequest {
+            worker_id,
+            lease_ids,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(back.returned, 1);
+    bounded("serve returning after the worker drained", served)
+        .await
+        .unwrap()
+        .unwrap();
+}
