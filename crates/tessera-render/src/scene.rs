@@ -294,6 +294,7 @@ impl RenderScene {
                 roughness,
                 transmission,
                 ior,
+                specular,
             } => {
                 let mut base = *base_color;
                 if let Some(t) = base_color_texture {
@@ -308,7 +309,12 @@ impl RenderScene {
                 Bsdf::mixture(&[
                     (Lobe::Conductor(Conductor { f0: base, alpha }), *metallic),
                     (
-                        Lobe::GltfDielectric(GltfDielectric { base, alpha, f0 }),
+                        Lobe::GltfDielectric(GltfDielectric {
+                            base,
+                            alpha,
+                            f0,
+                            specular: *specular,
+                        }),
                         dielectric * (1.0 - transmission),
                     ),
                     (

@@ -187,6 +187,11 @@ pub enum MaterialKind {
         transmission: f32,
         /// Index of refraction (KHR_materials_ior, default 1.5).
         ior: f32,
+        /// KHR_materials_specular `specularFactor` in [0, 1] (default 1): the strength of
+        /// the dielectric layer's Fresnel reflection, `F = specular · F_Schlick(f0)` (the
+        /// extension's `f0 · specular`, `f90 = specular`). 0 leaves a pure Lambertian base,
+        /// which is what Blender writes for a Specular IOR Level of 0.
+        specular: f32,
     },
     /// An ideal mirror.
     Mirror {
@@ -393,6 +398,7 @@ impl Scene {
                     roughness,
                     transmission,
                     ior,
+                    specular,
                 } => {
                     unit(*base_color)
                         && base_color.max_element() <= 1.0
@@ -402,6 +408,7 @@ impl Scene {
                         && (0.0..=1.0).contains(transmission)
                         && *ior >= 1.0
                         && ior.is_finite()
+                        && (0.0..=1.0).contains(specular)
                 }
                 MaterialKind::Mirror { reflectance } => {
                     unit(*reflectance) && reflectance.max_element() <= 1.0

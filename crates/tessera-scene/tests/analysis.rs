@@ -251,6 +251,7 @@ fn metallic_roughness(metallic: f32, roughness: f32, transmission: f32) -> Mater
         roughness,
         transmission,
         ior: 1.5,
+        specular: 1.0,
     }
 }
 
@@ -404,6 +405,7 @@ fn used_textures_are_found_and_unused_ones_ignored() {
             roughness: 1.0,
             transmission: 0.0,
             ior: 1.5,
+            specular: 1.0,
         },
         emission: Vec3::ZERO,
         double_sided: false,
@@ -431,9 +433,31 @@ fn used_textures_are_found_and_unused_ones_ignored() {
 
 #[test]
 fn gltf_material_layers_classify_by_roughness_and_weights() {
-    let cases: [(MaterialKind, &[EffectKind]); 7] = [
+    // KHR_materials_specular 0: a smooth dielectric without its Fresnel coat is diffuse.
+    let uncoated = match metallic_roughness(0.0, 0.01, 0.0) {
+        MaterialKind::MetallicRoughness {
+            base_color,
+            base_color_texture,
+            metallic,
+            roughness,
+            transmission,
+            ior,
+            ..
+        } => MaterialKind::MetallicRoughness {
+            base_color,
+            base_color_texture,
+            metallic,
+            roughness,
+            transmission,
+            ior,
+            specular: 0.0,
+        },
+        _ => unreachable!(),
+    };
+    let cases: [(MaterialKind, &[EffectKind]); 8] = [
         // A plain glTF wall: rough dielectric coat over diffuse is diffuse.
         (metallic_roughness(0.0, 1.0, 0.0), &[]),
+        (uncoated, &[]),
         (metallic_roughness(0.0, 0.5, 0.0), &[GlossyReflection]),
         (metallic_roughness(0.0, 0.01, 0.0), &[SpecularReflection]),
         (metallic_roughness(1.0, 0.6, 0.0), &[GlossyReflection]),

@@ -74,6 +74,7 @@ fn basic_document_loads_in_every_container() {
                 transmission,
                 ior,
                 base_color_texture,
+                specular,
             } => {
                 assert_eq!(*base_color, Vec3::splat(0.5));
                 // glTF defaults (spec "Metallic-Roughness Material").
@@ -81,6 +82,8 @@ fn basic_document_loads_in_every_container() {
                     (*metallic, *roughness, *transmission, *ior),
                     (1.0, 1.0, 0.0, 1.5)
                 );
+                // KHR_materials_specular's default factor.
+                assert_eq!(*specular, 1.0);
                 assert!(base_color_texture.is_none());
             }
             k => panic!("unexpected material {k:?}"),
@@ -340,9 +343,44 @@ fn transmission_and_ior_extensions_are_read() {
             metallic: 0.0,
             roughness: 0.0,
             transmission: 1.0,
-            ior: 1.33
+            ior: 1.33,
+            specular: 1.0,
         }
     );
+}
+
+/// Blender writes `KHR_materials_specular` with `specularFactor: 0` for a Specular IOR
+/// Level of 0 (a pure diffuse surface); the factor is read, 1 without the extension.
+#[test]
+fn specular_extension_factor_is_read() {
+    let mut g = Gen::new();
+    g.uses("KHR_materials_specular");
+    let matte = g.push("materials", json!({"pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 0.5},
+        "extensions": {"KHR_materials_specular": {"specularFactor": 0.0, "specularColorFactor": [1.0, 1.0, 1.0]}}}));
+    let half = g.push(
+        "materials",
+        json!({"pbrMetallicRoughness": {"metallicFactor": 0.0},
+        "extensions": {"KHR_materials_specular": {"specularFactor": 0.5}}}),
+    );
+    let m0 = g.triangle_mesh("a", &TRI, None, Some(matte));
+    let m1 = g.triangle_mesh("b", &TRI, None, Some(half));
+    g.root(json!({"mesh": m0}));
+    g.root(json!({"mesh": m1}));
+    for s in load_both(&g) {
+        for (i, want) in [(0, 0.0), (1, 0.5)] {
+            match s.materials[i].kind {
+                MaterialKind::MetallicRoughness { specular, .. } => assert_eq!(specular, want),
+                ref k => panic!("unexpected material {k:?}"),
+            }
+        }
+    }
+    // A factor outside [0, 1] is refused naming the material.
+    g.push(
+        "materials",
+        json!({"extensions": {"KHR_materials_specular": {"specularFactor": 1.5}}}),
+    );
+    let e = error_of(load(&g.gltf()));
+    assert!(e.contains("material 2"), "{e}");
 }
 
 #[test]

@@ -10,7 +10,7 @@
 //! | lobe | parameters |
 //! |---|---|
 //! | [`Conductor`] | `f0` (reflectance at normal incidence, Schlick's Fresnel), `alpha` = roughness² |
-//! | [`GltfDielectric`] | `base` colour, `alpha`, `f0` from the IOR: glTF 2.0 spec appendix B's dielectric, a GGX specular layer `F(wo·h) D G2 / (4 cos θo cos θi)` over a Lambertian base weighted by `1 - F(wo·h)` (the spec's `fresnel_mix`; it gains a little energy at grazing angles for bright bases), with Schlick's `F = f0 + (1 - f0)(1 - cos)^5` |
+//! | [`GltfDielectric`] | `base` colour, `alpha`, `f0` from the IOR, `specular` (KHR_materials_specular factor, scaling the Fresnel term): glTF 2.0 spec appendix B's dielectric, a GGX specular layer `F(wo·h) D G2 / (4 cos θo cos θi)` over a Lambertian base weighted by `1 - F(wo·h)` (the spec's `fresnel_mix`; it gains a little energy at grazing angles for bright bases), with Schlick's `F = f0 + (1 - f0)(1 - cos)^5` |
 
 use super::fresnel_schlick;
 use crate::math::luminance;
@@ -108,11 +108,25 @@ pub struct GltfDielectric {
     pub alpha: f32,
     /// Fresnel reflectance at normal incidence, `((ior - 1)/(ior + 1))²`.
     pub f0: f32,
+    /// KHR_materials_specular's `specularFactor` in [0, 1]: the Fresnel term is
+    /// `specular · F_Schlick(f0, cos)` (the extension's `f0 · specular` and
+    /// `f90 = specular`), so 0 leaves the Lambertian base alone and 1 is the core model.
+    pub specular: f32,
 }
 
 impl GltfDielectric {
+    /// The layer's Fresnel reflectance for the cosine `cos` (of the half vector, or of
+    /// `wo` for the lobe choice).
+    fn fresnel(&self, cos: f32) -> f32 {
+        self.specular * fresnel_schlick(Vec3::splat(self.f0), cos).x
+    }
+
     fn p_specular(&self, wo: Vec3) -> f32 {
-        let f = fresnel_schlick(Vec3::splat(self.f0), wo.z).x;
+        if self.specular <= 0.0 {
+            // No specular layer: never sample it.
+            return 0.0;
+        }
+        let f = self.fresnel(wo.z);
         let d = (1.0 - f) * luminance(self.base);
         (f / (f + d)).clamp(0.05, 1.0)
     }
@@ -124,8 +138,7 @@ impl GltfDielectric {
         let Some(h) = half_vector(wo, wi) else {
             return Vec3::ZERO;
         };
-        let f0 = Vec3::splat(self.f0);
-        let f = fresnel_schlick(f0, wo.dot(h)).x;
+        let f = self.fresnel(wo.dot(h));
         let spec = f * ggx_d(h, self.alpha) * g2(wo, wi, self.alpha) / (4.0 * wo.z);
         // glTF 2.0 appendix B fresnel_mix: the base gets 1 - F(wo·h). This is the spec's
         // model, kept so glTF scenes match other glTF renderers; it is not exactly energy

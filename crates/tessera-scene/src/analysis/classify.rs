@@ -103,11 +103,15 @@ pub(super) fn classify(m: &Material, textures: &[Texture]) -> Classes {
             roughness,
             transmission,
             ior,
+            specular,
         } => {
             c.describe = format!(
                 "metallic-roughness, metallic {metallic}, roughness {roughness}, \
                  transmission {transmission}, ior {ior}"
             );
+            if *specular != 1.0 {
+                c.describe += &format!(", specular {specular}");
+            }
             let texture = base_color_texture.and_then(|t| textures.get(t.texture as usize));
             let color = *base_color * texture.map_or(Vec3::ONE, texture_mean);
             let coloured = color.max_element() > 0.0;
@@ -124,7 +128,8 @@ pub(super) fn classify(m: &Material, textures: &[Texture]) -> Classes {
                     c.diffuse = true;
                     c.diffuse_albedo = base * mean(color);
                 }
-                if *ior > 1.0 && *roughness < DIFFUSE_LIKE_ROUGHNESS {
+                // KHR_materials_specular 0 removes the Fresnel coat altogether.
+                if *ior > 1.0 && *specular > 0.0 && *roughness < DIFFUSE_LIKE_ROUGHNESS {
                     c.reflect(*roughness);
                 }
             }

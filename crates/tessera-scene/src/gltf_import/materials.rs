@@ -31,6 +31,12 @@ impl Importer<'_> {
                 .and_then(|e| e.transmission.as_ref())
                 .map_or(0.0, |t| t.transmission_factor.0);
             let ior = ext.and_then(|e| e.ior.as_ref()).map_or(1.5, |i| i.ior.0);
+            // KHR_materials_specular: the factor scales the dielectric Fresnel layer. Its
+            // colour factor and textures are not read yet (the factor alone is exact for a
+            // white specular colour, which is what exporters write by default).
+            let specular = ext
+                .and_then(|e| e.specular.as_ref())
+                .map_or(1.0, |s| s.specular_factor.0);
             let strength = ext
                 .and_then(|e| e.emissive_strength.as_ref())
                 .map_or(1.0, |s| s.emissive_strength.0);
@@ -52,6 +58,7 @@ impl Importer<'_> {
                     roughness,
                     transmission,
                     ior,
+                    specular,
                 },
                 emission,
                 double_sided,
@@ -184,6 +191,7 @@ pub(super) fn default_material() -> Material {
             roughness: 1.0,
             transmission: 0.0,
             ior: 1.5,
+            specular: 1.0,
         },
         emission: Vec3::ZERO,
         double_sided: false,

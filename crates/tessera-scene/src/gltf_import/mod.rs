@@ -28,7 +28,9 @@
 //!   a 45° vertical field of view.
 //! - **Materials** (spec "Materials", "Metallic-Roughness Material", "Default Material"):
 //!   `pbrMetallicRoughness` becomes [`MaterialKind::MetallicRoughness`] with
-//!   `KHR_materials_transmission` (default 0) and `KHR_materials_ior` (default 1.5).
+//!   `KHR_materials_transmission` (default 0), `KHR_materials_ior` (default 1.5) and the
+//!   `specularFactor` of `KHR_materials_specular` (default 1; its colour factor and
+//!   textures are not read yet).
 //!   Emission is `emissiveFactor` x `KHR_materials_emissive_strength` (default 1),
 //!   interpreted as linear-RGB radiance in W/(m² sr). Primitives without a material use the
 //!   default material (base colour 1, metallic 1, roughness 1). Alpha modes, normal,
