@@ -6,19 +6,28 @@
 mod common;
 
 use common::{image_mean, render};
+use tessera_farm::FrameAccumulator;
 use tessera_render::render::RenderConfig;
+use tessera_scene::Scene;
 
-#[test]
-fn gltf_cornell_box_has_the_builtin_radiance() {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/cornell-box.gltf");
-    let gltf = tessera_scene::load(path).unwrap();
+const CORNELL_GLTF: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../scenes/cornell-box.gltf");
+
+/// The built-in Cornell box and `gltf`, rendered alike (32x32, 64 spp, seed 1).
+fn render_with_builtin(gltf: &Scene) -> (FrameAccumulator, FrameAccumulator) {
     let builtin = tessera_scene::load("builtin:cornell-box").unwrap();
     let settings = RenderConfig {
         seed: 1,
         ..RenderConfig::default()
     };
-    let a = render(&builtin, 32, 32, 64, &settings);
-    let b = render(&gltf, 32, 32, 64, &settings);
+    (
+        render(&builtin, 32, 32, 64, &settings),
+        render(gltf, 32, 32, 64, &settings),
+    )
+}
+
+#[test]
+fn gltf_cornell_box_has_the_builtin_radiance() {
+    let (a, b) = render_with_builtin(&tessera_scene::load(CORNELL_GLTF).unwrap());
     for c in 0..3 {
         let (ma, sa) = image_mean(&a, c);
         let (mb, sb) = image_mean(&b, c);
@@ -51,13 +60,7 @@ fn gltf_cornell_box_without_specular_is_the_lambertian_box() {
     let gltf =
         tessera_scene::gltf_import::load_slice(&bytes, "cornell-specular-0.gltf", None, None)
             .unwrap();
-    let builtin = tessera_scene::load("builtin:cornell-box").unwrap();
-    let settings = RenderConfig {
-        seed: 1,
-        ..RenderConfig::default()
-    };
-    let a = render(&builtin, 32, 32, 64, &settings);
-    let b = render(&gltf, 32, 32, 64, &settings);
+    let (a, b) = render_with_builtin(&gltf);
     for c in 0..3 {
         let (ma, _) = image_mean(&a, c);
         let (mb, _) = image_mean(&b, c);

@@ -244,6 +244,11 @@ fn point_light() -> PunctualLight {
 }
 
 fn metallic_roughness(metallic: f32, roughness: f32, transmission: f32) -> MaterialKind {
+    with_specular(metallic, roughness, transmission, 1.0)
+}
+
+/// A glTF material with a KHR_materials_specular factor.
+fn with_specular(metallic: f32, roughness: f32, transmission: f32, specular: f32) -> MaterialKind {
     MaterialKind::MetallicRoughness {
         base_color: Vec3::splat(0.8),
         base_color_texture: None,
@@ -251,7 +256,7 @@ fn metallic_roughness(metallic: f32, roughness: f32, transmission: f32) -> Mater
         roughness,
         transmission,
         ior: 1.5,
-        specular: 1.0,
+        specular,
     }
 }
 
@@ -433,31 +438,11 @@ fn used_textures_are_found_and_unused_ones_ignored() {
 
 #[test]
 fn gltf_material_layers_classify_by_roughness_and_weights() {
-    // KHR_materials_specular 0: a smooth dielectric without its Fresnel coat is diffuse.
-    let uncoated = match metallic_roughness(0.0, 0.01, 0.0) {
-        MaterialKind::MetallicRoughness {
-            base_color,
-            base_color_texture,
-            metallic,
-            roughness,
-            transmission,
-            ior,
-            ..
-        } => MaterialKind::MetallicRoughness {
-            base_color,
-            base_color_texture,
-            metallic,
-            roughness,
-            transmission,
-            ior,
-            specular: 0.0,
-        },
-        _ => unreachable!(),
-    };
     let cases: [(MaterialKind, &[EffectKind]); 8] = [
         // A plain glTF wall: rough dielectric coat over diffuse is diffuse.
         (metallic_roughness(0.0, 1.0, 0.0), &[]),
-        (uncoated, &[]),
+        // KHR_materials_specular 0: a smooth dielectric without its Fresnel coat is diffuse.
+        (with_specular(0.0, 0.01, 0.0, 0.0), &[]),
         (metallic_roughness(0.0, 0.5, 0.0), &[GlossyReflection]),
         (metallic_roughness(0.0, 0.01, 0.0), &[SpecularReflection]),
         (metallic_roughness(1.0, 0.6, 0.0), &[GlossyReflection]),
