@@ -62,7 +62,8 @@ pub struct JobEntry {
 
 impl JobEntry {
     /// The lease data of a job validated as `job` and resolved as `resolved`.
-    pub fn of(job: &ValidatedJob, resolved: &ResolvedJob) -> Self {
+    pub fn of(resolved: &ResolvedJob) -> Self {
+        let job = &resolved.job;
         Self {
             scene: job.scene.clone(),
             camera: job.camera.clone(),
@@ -116,9 +117,7 @@ impl Farm {
 pub struct JobRuntime {
     /// The settings as submitted (defaults filled in).
     pub settings: JobSettings,
-    /// The validated settings.
-    pub job: ValidatedJob,
-    /// The job resolved against its scene.
+    /// The job resolved against its scene (its validated settings are `resolved.job`).
     pub resolved: ResolvedJob,
     /// Life-cycle state.
     pub state: JobState,
@@ -150,16 +149,14 @@ impl JobRuntime {
     /// A job with nothing merged yet, in `state`, accepted at `created_unix_ms`.
     pub fn new(
         settings: JobSettings,
-        job: ValidatedJob,
         resolved: ResolvedJob,
         state: JobState,
         created_unix_ms: u64,
     ) -> Self {
         let tiles = resolved.plan.tile_count() as usize;
-        let frames = job.frames.count() as usize;
+        let frames = resolved.job.frames.count() as usize;
         Self {
             settings,
-            job,
             resolved,
             state,
             created_unix_ms,
@@ -173,6 +170,11 @@ impl JobRuntime {
             history: Vec::new(),
             stopped: None,
         }
+    }
+
+    /// The validated settings.
+    pub fn job(&self) -> &ValidatedJob {
+        &self.resolved.job
     }
 
     /// The RMS relative error over all pixels, once every tile has two passes.

@@ -77,9 +77,9 @@ impl Coordinator {
         let Some(rt) = farm.runtime.get(&id) else {
             return Ok(None);
         };
-        let f = frame.unwrap_or(rt.job.frames.start);
-        if !rt.job.frames.iter().contains(&f) {
-            return Err(frame_error(f, rt.job.frames));
+        let f = frame.unwrap_or(rt.job().frames.start);
+        if !rt.job().frames.iter().contains(&f) {
+            return Err(frame_error(f, rt.job().frames));
         }
         let state = |acc, adaptive| FrameState {
             stopped: rt.stopped,

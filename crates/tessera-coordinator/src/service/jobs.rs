@@ -35,11 +35,8 @@ impl Coordinator {
         }
         let job = settings.validate()?;
         let scene = self.scene(&job.scene, job.camera.as_deref()).await?;
+        // Resolution also checks the adaptive settings against the plan (field `adaptive`).
         let resolved = resolve_job(&job, &scene)?;
-        if let Some(a) = &job.adaptive_settings() {
-            a.validate(resolved.plan.passes)
-                .map_err(|e| CoordError::invalid_field("adaptive", e))?;
-        }
         let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;
         let created = now_ms();
         let (id, new) = self
@@ -66,9 +63,9 @@ impl Coordinator {
             if !black {
                 let ppu = self.inner.cfg.passes_per_unit;
                 add_to_scheduler(&mut farm, id, job.priority, resolved.plan, &job, ppu)?;
-                farm.jobs.insert(id, JobEntry::of(&job, &resolved));
+                farm.jobs.insert(id, JobEntry::of(&resolved));
             }
-            let rt = JobRuntime::new(settings, job, resolved, JobState::Queued, created);
+            let rt = JobRuntime::new(settings, resolved, JobState::Queued, created);
             farm.runtime.insert(id, rt);
         }
         tracing::info!(job = id, black, "job accepted");
@@ -261,7 +258,7 @@ pub(crate) fn spp_so_far(r: &ResolvedJob, passes_done: u64, frames: u64) -> f64 
 fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     let now = now_ms();
     let plan = rt.resolved.plan;
-    let frames_total = rt.job.frames.count() as u32;
+    let frames_total = rt.job().frames.count() as u32;
     let tiles_total = u64::from(plan.tile_count()) * u64::from(frames_total);
     let passes_planned = tiles_total * u64::from(plan.passes);
     let progress = farm.scheduler.progress(id);
@@ -271,7 +268,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         (None, false) => (0, 0),
     };
     let elapsed = rt.elapsed_seconds(now);
-    let adaptive_frame = farm.scheduler.adaptive_frame(id, rt.job.frames.start);
+    let adaptive_frame = farm.scheduler.adaptive_frame(id, rt.job().frames.start);
     let error = if rt.resolved.black {
         Some(0.0)
     } else if let Some(a) = adaptive_frame {
@@ -287,14 +284,14 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             passes_done,
             passes_planned,
             error,
-            rt.job.target_error,
+            rt.job().target_error,
         )
     };
     JobStatus {
         id,
-        name: rt.job.name.clone(),
+        name: rt.job().name.clone(),
         state: rt.state,
-        scene: rt.job.scene.to_string(),
+        scene: rt.job().scene.to_string(),
         settings: rt.settings.clone(),
         width: Some(plan.width),
         height: Some(plan.height),
@@ -305,19 +302,19 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         passes_done,
         spp_so_far: match adaptive_frame {
             Some(a) => a.samples_per_pixel().0,
-            None => spp_so_far(&rt.resolved, passes_done, rt.job.frames.count()),
+            None => spp_so_far(&rt.resolved, passes_done, rt.job().frames.count()),
         },
         error_estimate: error,
-        target_error: rt.job.target_error,
+        target_error: rt.job().target_error,
         elapsed_seconds: elapsed,
         eta_seconds: eta,
         created_unix_ms: rt.created_unix_ms,
-        priority: rt.job.priority,
+        priority: rt.job().priority,
         faults: rt.faults,
         rejected_samples: rt.rejected_samples(),
         error: rt.error.clone(),
         plan: serde_json::from_str(&rt.resolved.render_plan.to_json()).ok(),
-        adaptive: rt.job.adaptive.to_string(),
+        adaptive: rt.job().adaptive.to_string(),
     }
 }
 

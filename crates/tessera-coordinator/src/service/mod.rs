@@ -228,7 +228,7 @@ impl Coordinator {
                 farm.scheduler.expire(now);
             }
             for (&id, rt) in &farm.runtime {
-                if let (Some(limit), JobState::Running) = (rt.job.time_limit_seconds, rt.state) {
+                if let (Some(limit), JobState::Running) = (rt.job().time_limit_seconds, rt.state) {
                     if rt.elapsed_seconds(now) >= limit {
                         over_time.push(id);
                     }

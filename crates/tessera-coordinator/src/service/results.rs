@@ -242,7 +242,7 @@ fn record_merge(farm: &mut Farm, m: &Merged, rejected_samples: u64) -> Option<Ti
     let acc = farm.scheduler.frame(job, unit.frame)?;
     let rt = farm.runtime.get_mut(&job)?;
     let tile = &acc.tiles()[unit.tile as usize];
-    let fi = (unit.frame - rt.job.frames.start) as usize;
+    let fi = (unit.frame - rt.job().frames.start) as usize;
     let rejected = rt
         .tile_rejected
         .get_mut(fi)
@@ -294,13 +294,13 @@ fn history_point(
         return None;
     }
     rt.last_history_ms = now;
-    let (spp, error_estimate) = match farm.scheduler.adaptive_frame(job, rt.job.frames.start) {
+    let (spp, error_estimate) = match farm.scheduler.adaptive_frame(job, rt.job().frames.start) {
         Some(a) => (
             a.samples_per_pixel().0,
             a.every_pixel_estimated().then(|| a.image_error()),
         ),
         None => (
-            spp_so_far(&rt.resolved, p.passes_done, rt.job.frames.count()),
+            spp_so_far(&rt.resolved, p.passes_done, rt.job().frames.count()),
             rt.error_estimate(),
         ),
     };

@@ -8,7 +8,7 @@
 
 use std::sync::Mutex;
 
-use tessera_api::{JobSettings, JobState, ResolvedJob, ValidatedJob};
+use tessera_api::{JobSettings, JobState, ResolvedJob};
 use tessera_farm::job::JobError;
 use tessera_farm::{FrameAccumulator, FramePlan, JobId};
 use tessera_scene::job::resolve_job;
@@ -23,9 +23,7 @@ use crate::store::{FaultFilter, JobRecord, Store, StoreError, TileCheckpoint};
 pub(crate) struct StoredJob {
     /// The settings as submitted.
     pub settings: JobSettings,
-    /// The settings validated again.
-    pub job: ValidatedJob,
-    /// The job resolved again against its scene.
+    /// The job validated and resolved again against its scene.
     pub resolved: ResolvedJob,
 }
 
@@ -74,11 +72,7 @@ pub(crate) async fn resolve_stored(
     let job = settings.validate()?;
     let scene = load_scene(store, farm, &job.scene, job.camera.as_deref()).await?;
     let resolved = resolve_job(&job, &scene)?;
-    Ok(StoredJob {
-        settings,
-        job,
-        resolved,
-    })
+    Ok(StoredJob { settings, resolved })
 }
 
 /// Frames rebuilt from tile checkpoints.
@@ -154,11 +148,7 @@ pub(crate) async fn resume_all(store: &dyn Store, farm: &Mutex<Farm>) -> Result<
 /// Brings one stored job back: resolved again, its plan checked, its tiles restored, its
 /// remaining units queued.
 async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> Result<(), String> {
-    let StoredJob {
-        settings,
-        job,
-        resolved,
-    } = resolve_stored(store, farm, rec)
+    let StoredJob { settings, resolved } = resolve_stored(store, farm, rec)
         .await
         .map_err(|e| e.to_string())?;
     if resolved.plan != rec.plan {
@@ -179,8 +169,8 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
         .await
         .unwrap_or(0);
     let mut farm = farm.lock().map_err(|_| "farm state poisoned".to_string())?;
-    let mut rt = JobRuntime::new(settings, job, resolved, rec.state, rec.created_unix_ms);
-    if rt.job.adaptive_settings().is_some() {
+    let mut rt = JobRuntime::new(settings, resolved, rec.state, rec.created_unix_ms);
+    if rt.job().adaptive_settings().is_some() {
         // The adaptive policy's per-pixel state is not checkpointed: an adaptive job
         // starts again from its first pass after a restart (its result is the same), so
         // its tile errors and rejected counts start from zero too.
@@ -189,7 +179,7 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
             rec.id,
             rec.priority,
             plan,
-            &rt.job,
+            rt.job(),
             rec.passes_per_unit,
         )
         .map_err(|e| e.to_string())?;
@@ -212,8 +202,7 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
             rec.passes_per_unit,
         )?;
     }
-    farm.jobs
-        .insert(rec.id, JobEntry::of(&rt.job, &rt.resolved));
+    farm.jobs.insert(rec.id, JobEntry::of(&rt.resolved));
     rt.started_unix_ms = rec.started_unix_ms;
     rt.faults = faults;
     rt.history = history;
