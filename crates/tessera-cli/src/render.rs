@@ -169,9 +169,15 @@ fn scene_ref(arg: &str) -> Result<String> {
     if arg.starts_with("builtin:") {
         return Ok(arg.to_string());
     }
-    let bytes = std::fs::read(arg).with_context(|| format!("reading scene {arg}"))?;
-    let digest = Sha256::digest(&bytes);
-    Ok(digest.iter().map(|b| format!("{b:02x}")).collect())
+    // Streamed: the hash needs no copy of the file in memory (the loader bounds its size).
+    let mut file = std::fs::File::open(arg).with_context(|| format!("reading scene {arg}"))?;
+    let mut hasher = Sha256::new();
+    std::io::copy(&mut file, &mut hasher).with_context(|| format!("reading scene {arg}"))?;
+    Ok(hasher
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect())
 }
 
 /// The command-line spelling of a [`JobSettings`] field, for error messages.
