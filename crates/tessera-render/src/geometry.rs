@@ -30,6 +30,9 @@ pub const TRAVERSAL_SHIFT: f32 = 1e-3;
 /// Sentinel for "not a light".
 pub const NO_LIGHT: u32 = u32::MAX;
 
+/// [`SurfacePoint::mesh`] of a point on a sphere.
+pub const NO_MESH: u32 = u32::MAX;
+
 /// A triangle as stored for intersection, in BVH leaf order.
 #[derive(Clone, Copy, Debug)]
 pub struct TriangleRecord {
@@ -307,7 +310,21 @@ impl Geometry {
 
     /// The nearest hit along `origin + t dir` with `0 < t < t_max`. `dir` need not be
     /// normalised, but the shift trick assumes it has unit length within a few percent.
+    #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
+        self.intersect_where(origin, dir, t_max, |_, _, _, _| true)
+    }
+
+    /// [`Geometry::intersect`] counting only the triangle hits `keep(record, index, b1, b2)`
+    /// accepts (alpha-tested surfaces pass rays through where `keep` says so). Rejected
+    /// hits do not shorten the ray, so the traversal goes on past them.
+    pub fn intersect_where(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_max: f32,
+        keep: impl Fn(&TriangleRecord, u32, f32, f32) -> bool,
+    ) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
         if !self.triangles.is_empty() {
@@ -325,7 +342,7 @@ impl Geometry {
             self.bvh.ray_traverse(ray, &mut hit, |_, id| {
                 let tri = &tris[id];
                 match wt.intersect(&tri.p, best_t) {
-                    Some((t, _b0, b1, b2)) => {
+                    Some((t, _b0, b1, b2)) if keep(tri, id as u32, b1, b2) => {
                         best_t = t;
                         best = Some(Hit {
                             t,
@@ -338,7 +355,7 @@ impl Geometry {
                         // The traversal ray's parameter, rounded up so pruning is conservative.
                         (t + shift) * (1.0 + 1e-5)
                     }
-                    None => f32::INFINITY,
+                    _ => f32::INFINITY,
                 }
             });
         }
@@ -355,7 +372,19 @@ impl Geometry {
     }
 
     /// True if anything blocks `origin + t dir` for `0 < t < t_max`.
+    #[inline]
     pub fn occluded(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
+        self.occluded_where(origin, dir, t_max, |_, _, _, _| true)
+    }
+
+    /// [`Geometry::occluded`] with the triangle filter of [`Geometry::intersect_where`].
+    pub fn occluded_where(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_max: f32,
+        keep: impl Fn(&TriangleRecord, u32, f32, f32) -> bool,
+    ) -> bool {
         for s in &self.spheres {
             if intersect_sphere(s.center, s.radius, origin, dir, t_max).is_some() {
                 return true;
@@ -374,12 +403,13 @@ impl Geometry {
             traversal_max,
         );
         let tris = &self.triangles;
-        !self
-            .bvh
-            .ray_traverse_miss(ray, |_, id| match wt.intersect(&tris[id].p, t_max) {
-                Some(_) => 0.0,
-                None => f32::INFINITY,
-            })
+        !self.bvh.ray_traverse_miss(ray, |_, id| {
+            let tri = &tris[id];
+            match wt.intersect(&tri.p, t_max) {
+                Some((_, _, b1, b2)) if keep(tri, id as u32, b1, b2) => 0.0,
+                _ => f32::INFINITY,
+            }
+        })
     }
 }
 
@@ -402,10 +432,16 @@ pub struct SurfacePoint {
     /// Unit geometric normal (for triangles: `(p1 - p0) x (p2 - p0)` normalised, i.e. the
     /// front side is counter-clockwise; for spheres: outward).
     pub ng: Vec3,
-    /// Unit shading normal, on the same side as `ng`.
+    /// Unit shading normal, on the same side as `ng` (interpolated, then normal-mapped).
     pub ns: Vec3,
-    /// Texture coordinates.
+    /// Texture coordinates of set 0 (`TEXCOORD_0`; spherical coordinates on spheres).
     pub uv: Vec2,
+    /// Mesh of the hit triangle, or [`NO_MESH`] on a sphere.
+    pub mesh: u32,
+    /// Triangle index within its mesh.
+    pub tri: u32,
+    /// Barycentric coordinates `(b1, b2)` of the hit in its triangle.
+    pub bary: Vec2,
     /// Material index.
     pub material: u32,
     /// Light index or [`NO_LIGHT`].

@@ -36,6 +36,7 @@ pub mod math;
 pub mod render;
 pub mod sampling;
 pub mod scene;
+pub mod texture;
 
 #[cfg(test)]
 mod chi2;

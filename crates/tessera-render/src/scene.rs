@@ -12,14 +12,21 @@ use crate::bsdf::{
 use crate::camera::CameraModel;
 use crate::geometry::{
     sphere_point, triangle_point, Geometry, Hit, Primitive, SphereRecord, SurfacePoint,
-    TriangleRecord, NO_LIGHT,
+    TriangleRecord, NO_LIGHT, NO_MESH,
 };
+use crate::light::emission::{EmissionSample, WorldDisk};
+use crate::light::LightSample;
 use crate::light::{
     environment::Environment, punctual::Punctual, sphere::SphereLight, triangle::TriangleLight,
     Light, LightSet,
 };
-use glam::{Vec2, Vec3};
-use tessera_scene::{Material, MaterialKind, PunctualLight, Scene, Texture};
+use crate::sampling::{hash_combine, hash_u64};
+use crate::texture;
+use glam::{Vec2, Vec3, Vec4};
+use tessera_scene::{
+    AlphaMode, GltfMaterial, Image, Material, MaterialKind, PunctualLight, Scene, Texture,
+    TextureRef,
+};
 
 /// Errors building a render scene.
 #[derive(Debug, thiserror::Error)]
@@ -29,11 +36,14 @@ pub enum BuildError {
     ImageSize(u32, u32),
 }
 
-/// Per-mesh shading attributes (normals and texture coordinates by vertex).
+/// Per-mesh shading attributes (normals and texture coordinates by vertex, tangents by
+/// triangle corner).
 struct MeshShading {
     indices: Vec<[u32; 3]>,
     normals: Option<Vec<Vec3>>,
-    uvs: Option<Vec<Vec2>>,
+    uvs: Vec<Vec<Vec2>>,
+    tangents: Option<Vec<[Vec4; 3]>>,
+    material: u32,
 }
 
 /// A scene ready to trace.
@@ -43,6 +53,11 @@ pub struct RenderScene {
     meshes: Vec<MeshShading>,
     materials: Vec<Material>,
     textures: Vec<Texture>,
+    images: Vec<Image>,
+    /// Per material: some ray may pass through it (glTF alpha MASK or BLEND).
+    alpha_tested: Vec<bool>,
+    /// Whether any material is alpha-tested (else intersection skips the filter).
+    any_alpha: bool,
     /// Lights with their selection distribution.
     pub lights: LightSet,
     /// The camera for the image size.
@@ -63,11 +78,19 @@ impl RenderScene {
         let mut triangles = Vec::with_capacity(scene.triangle_count());
         for (mi, mesh) in scene.meshes.iter().enumerate() {
             let mat = &scene.materials[mesh.material as usize];
+            let varies = mat.emissive_texture().is_some() || mat.has_alpha();
             for (ti, idx) in mesh.indices.iter().enumerate() {
                 let p = idx.map(|i| mesh.positions[i as usize]);
                 let mut light = NO_LIGHT;
                 if mat.is_emissive() {
-                    if let Some(l) = TriangleLight::new(p, mat.emission, mat.double_sided) {
+                    if let Some(mut l) = TriangleLight::new(p, mat.emission, mat.double_sided) {
+                        if varies {
+                            // Light selection by power: the texture's mean over the
+                            // triangle (selection only shapes variance; the emitted
+                            // radiance is evaluated exactly where a point is sampled).
+                            l.power_scale = mean_emission_scale(scene, mat, mesh, idx);
+                            l.shading = Some((mi as u32, ti as u32));
+                        }
                         light = lights.len() as u32;
                         lights.push(Light::Triangle(l));
                     }
@@ -146,13 +169,19 @@ impl RenderScene {
                 indices: m.indices.clone(),
                 normals: m.normals.clone(),
                 uvs: m.uvs.clone(),
+                tangents: m.tangents.clone(),
+                material: m.material,
             })
             .collect();
+        let alpha_tested: Vec<bool> = scene.materials.iter().map(Material::has_alpha).collect();
         Ok(Self {
             geometry,
             meshes,
             materials: scene.materials.clone(),
             textures: scene.textures.clone(),
+            images: scene.images.clone(),
+            any_alpha: alpha_tested.iter().any(|&a| a),
+            alpha_tested,
             lights: LightSet::new(lights),
             camera: CameraModel::new(&scene.camera, width, height),
             width,
@@ -170,7 +199,107 @@ impl RenderScene {
         }
     }
 
-    /// Surface data at a hit of the ray `origin + t dir`.
+    /// The nearest surface along `origin + t dir` (`0 < t < t_max`) that the ray does not
+    /// pass through: alpha-tested triangles (glTF MASK and BLEND) let it through where
+    /// their alpha says so (see [`RenderScene::transparent_at`]).
+    #[inline]
+    pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
+        if !self.any_alpha {
+            return self.geometry.intersect(origin, dir, t_max);
+        }
+        let key = ray_key(origin, dir);
+        self.geometry
+            .intersect_where(origin, dir, t_max, |tri, id, b1, b2| {
+                !self.alpha_tested[tri.material as usize]
+                    || !self.transparent_at(tri, id, b1, b2, key)
+            })
+    }
+
+    /// True if an opaque (or, by alpha, not passed-through) surface blocks
+    /// `origin + t dir` for `0 < t < t_max`: shadow rays see alpha like camera rays do.
+    #[inline]
+    pub fn occluded(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
+        if !self.any_alpha {
+            return self.geometry.occluded(origin, dir, t_max);
+        }
+        let key = ray_key(origin, dir);
+        self.geometry
+            .occluded_where(origin, dir, t_max, |tri, id, b1, b2| {
+                !self.alpha_tested[tri.material as usize]
+                    || !self.transparent_at(tri, id, b1, b2, key)
+            })
+    }
+
+    /// Whether the ray with hash `key` passes through the alpha-tested triangle `tri`
+    /// (BVH order index `id`) at barycentrics `(b1, b2)`. MASK: where alpha is below the
+    /// cutoff. BLEND: stochastically, with probability `1 - alpha` (stochastic
+    /// transparency, Enderton et al. 2010), decided by a hash of the ray and the triangle
+    /// rather than the sampler, as pbrt-v4 does for alpha (Pharr, Jakob & Humphreys,
+    /// 4th ed., section 7.1.1): deterministic, and the same for every ray that is the same
+    /// ray, so shadow rays and camera rays agree.
+    fn transparent_at(&self, tri: &TriangleRecord, id: u32, b1: f32, b2: f32, key: u64) -> bool {
+        let Some(g) = self.materials[tri.material as usize].as_gltf() else {
+            return false;
+        };
+        let alpha = self.alpha(g, tri.mesh, tri.index, Vec2::new(b1, b2));
+        match g.alpha_mode {
+            AlphaMode::Opaque => false,
+            AlphaMode::Mask { cutoff } => alpha < cutoff,
+            AlphaMode::Blend => {
+                let u =
+                    (hash_combine(key, u64::from(id)) >> 40) as f32 * (1.0 / (1u64 << 24) as f32);
+                u >= alpha
+            }
+        }
+    }
+
+    /// Base-colour alpha (factor times texture) at a point of a triangle.
+    fn alpha(&self, g: &GltfMaterial, mesh: u32, tri: u32, bary: Vec2) -> f32 {
+        match &g.base_color_texture {
+            Some(t) => {
+                let uv = self.uv(mesh, tri, bary, t.uv_set);
+                g.alpha * self.lookup(t, uv, true).w
+            }
+            None => g.alpha,
+        }
+    }
+
+    /// Texture coordinates of set `set` at barycentrics `bary` of triangle `tri` of
+    /// `mesh` ((0, 0) where the mesh lacks the set).
+    #[inline]
+    fn uv(&self, mesh: u32, tri: u32, bary: Vec2, set: u32) -> Vec2 {
+        let m = &self.meshes[mesh as usize];
+        uv_at(&m.uvs, m.indices[tri as usize], set, bary)
+    }
+
+    /// Texture coordinates a texture reference reads at `sp`.
+    #[inline]
+    fn uv_of(&self, sp: &SurfacePoint, t: &TextureRef) -> Vec2 {
+        if t.uv_set == 0 || sp.mesh == NO_MESH {
+            sp.uv
+        } else {
+            self.uv(sp.mesh, sp.tri, sp.bary, t.uv_set)
+        }
+    }
+
+    /// The texture `t` at `uv` (before its KHR_texture_transform), RGBA, RGB linearised
+    /// when `srgb` (colour slots; data slots are linear).
+    #[inline]
+    fn lookup(&self, t: &TextureRef, uv: Vec2, srgb: bool) -> Vec4 {
+        lookup(&self.textures, &self.images, t, uv, srgb)
+    }
+
+    /// The texture `t` read at `sp`.
+    #[inline]
+    fn tex(&self, sp: &SurfacePoint, t: &Option<TextureRef>, srgb: bool) -> Vec4 {
+        match t {
+            Some(t) => self.lookup(t, self.uv_of(sp, t), srgb),
+            None => Vec4::ONE,
+        }
+    }
+
+    /// Surface data at a hit of the ray `origin + t dir`: position with its error bound,
+    /// normals (interpolated, then perturbed by a glTF normal map), texture coordinates.
     #[inline]
     pub fn surface(&self, hit: &Hit, origin: Vec3, dir: Vec3) -> SurfacePoint {
         match hit.primitive {
@@ -191,23 +320,32 @@ impl RenderScene {
                         ns = if v.dot(ng) < 0.0 { -v } else { v };
                     }
                 }
-                let uv = match &mesh.uvs {
-                    Some(uv) => {
-                        b0 * uv[idx[0] as usize]
-                            + b1 * uv[idx[1] as usize]
-                            + b2 * uv[idx[2] as usize]
-                    }
-                    None => Vec2::new(b1, b2),
-                };
-                SurfacePoint {
+                let bary = Vec2::new(b1, b2);
+                let mut sp = SurfacePoint {
                     p,
                     p_error,
                     ng,
                     ns,
-                    uv,
+                    uv: uv_at(&mesh.uvs, idx, 0, bary),
+                    mesh: tri.mesh,
+                    tri: tri.index,
+                    bary,
                     material: tri.material,
                     light: tri.light,
+                };
+                if let Some(nm) = self.materials[tri.material as usize]
+                    .as_gltf()
+                    .and_then(|g| g.normal_map.as_ref())
+                {
+                    if let Some(t) = &mesh.tangents {
+                        let c = t[tri.index as usize];
+                        let tangent = c[0] * b0 + c[1] * b1 + c[2] * b2;
+                        let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
+                        let texel = self.lookup(&nm.texture, self.uv_of(&sp, &nm.texture), false);
+                        sp.ns = normal_mapped(sp.ns, ng, tangent.truncate(), sign, texel, nm.scale);
+                    }
                 }
+                sp
             }
             Primitive::Sphere { index } => {
                 let s = &self.geometry.spheres[index as usize];
@@ -222,6 +360,9 @@ impl RenderScene {
                     ng: n,
                     ns: n,
                     uv,
+                    mesh: NO_MESH,
+                    tri: 0,
+                    bary: Vec2::ZERO,
                     material: s.material,
                     light: s.light,
                 }
@@ -229,14 +370,21 @@ impl RenderScene {
         }
     }
 
-    /// Radiance emitted by the surface at `sp` toward `w` (unit, pointing away from it).
+    /// Radiance emitted by the surface at `sp` toward `w` (unit, pointing away from it),
+    /// with the material's emissive texture applied.
     #[inline]
     pub fn emitted(&self, sp: &SurfacePoint, w: Vec3) -> Vec3 {
         if sp.light == NO_LIGHT {
             return Vec3::ZERO;
         }
         match &self.lights.lights[sp.light as usize] {
-            Light::Triangle(l) => l.emitted(w),
+            Light::Triangle(l) => {
+                let le = l.emitted(w);
+                match self.materials[sp.material as usize].emissive_texture() {
+                    Some(t) if le != Vec3::ZERO => le * self.tex(sp, &Some(*t), true).truncate(),
+                    _ => le,
+                }
+            }
             Light::Sphere(l) => {
                 if sp.ng.dot(w) > 0.0 {
                     l.radiance
@@ -248,19 +396,71 @@ impl RenderScene {
         }
     }
 
-    fn texture(&self, index: u32, uv: Vec2) -> Vec3 {
-        let t = &self.textures[index as usize];
-        let wrap = |v: f32, n: u32| -> u32 {
-            let v = if t.repeat {
-                v - v.floor()
-            } else {
-                v.clamp(0.0, 1.0)
-            };
-            ((v * n as f32) as u32).min(n - 1)
+    /// How much of a triangle light's factor is emitted at point `p` on it: the emissive
+    /// texture there, times the alpha coverage (the probability that a ray would find the
+    /// surface there, which is what a hit sees on average). 1 for untextured lights.
+    fn emission_scale(&self, l: &TriangleLight, p: Vec3) -> Vec3 {
+        let Some((mesh, tri)) = l.shading else {
+            return Vec3::ONE;
         };
-        let x = wrap(uv.x, t.width);
-        let y = wrap(uv.y, t.height);
-        t.texels[(y * t.width + x) as usize]
+        let m = &self.meshes[mesh as usize];
+        let idx = m.indices[tri as usize];
+        let bary = barycentrics(&l.p, p);
+        let material = &self.materials[m.material as usize];
+        let mut scale = Vec3::ONE;
+        if let Some(t) = material.emissive_texture() {
+            let uv = uv_at(&m.uvs, idx, t.uv_set, bary);
+            scale *= self.lookup(t, uv, true).truncate();
+        }
+        if let Some(g) = material.as_gltf() {
+            let alpha = self.alpha(g, mesh, tri, bary);
+            scale *= match g.alpha_mode {
+                AlphaMode::Opaque => 1.0,
+                AlphaMode::Mask { cutoff } => f32::from(u8::from(alpha >= cutoff)),
+                AlphaMode::Blend => alpha.clamp(0.0, 1.0),
+            };
+        }
+        scale
+    }
+
+    /// Samples light `li` as seen from `p_ref` (see [`Light::sample_li`]), with textured
+    /// emission evaluated at the sampled point.
+    #[inline]
+    pub fn sample_li(&self, li: usize, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
+        let light = &self.lights.lights[li];
+        let mut ls = light.sample_li(p_ref, u)?;
+        if let Light::Triangle(l) = light {
+            if l.shading.is_some() {
+                ls.li *= self.emission_scale(l, ls.p);
+                if ls.li == Vec3::ZERO {
+                    return None;
+                }
+            }
+        }
+        Some(ls)
+    }
+
+    /// Samples a ray leaving light `li` (see [`Light::sample_le`]), with textured emission
+    /// evaluated at its origin.
+    #[inline]
+    pub fn sample_le(
+        &self,
+        li: usize,
+        u_pos: Vec2,
+        u_dir: Vec2,
+        world: &WorldDisk,
+    ) -> Option<EmissionSample> {
+        let light = &self.lights.lights[li];
+        let mut es = light.sample_le(u_pos, u_dir, world)?;
+        if let Light::Triangle(l) = light {
+            if l.shading.is_some() {
+                es.le *= self.emission_scale(l, es.p);
+                if es.le == Vec3::ZERO {
+                    return None;
+                }
+            }
+        }
+        Some(es)
     }
 
     /// The BSDF of the material at `sp`.
@@ -287,45 +487,219 @@ impl RenderScene {
                 eta: *ior,
                 tint: *tint,
             })),
-            MaterialKind::MetallicRoughness {
-                base_color,
-                base_color_texture,
-                metallic,
-                roughness,
-                transmission,
-                ior,
-                specular,
-            } => {
-                let mut base = *base_color;
-                if let Some(t) = base_color_texture {
-                    base *= self.texture(t.texture, sp.uv);
-                }
-                let alpha = (roughness * roughness).max(MIN_ALPHA);
-                let f0 = ((ior - 1.0) / (ior + 1.0)).powi(2);
-                let dielectric = 1.0 - metallic;
-                // glTF 2.0 appendix B: mix(dielectric, metal, metallic); the transmissive share
-                // of the dielectric is a glass interface (KHR_materials_transmission; treated
-                // as solid glass, with its own Fresnel reflection, tinted by the base colour).
-                Bsdf::mixture(&[
-                    (Lobe::Conductor(Conductor { f0: base, alpha }), *metallic),
-                    (
-                        Lobe::GltfDielectric(GltfDielectric {
-                            base,
-                            alpha,
-                            f0,
-                            specular: *specular,
-                        }),
-                        dielectric * (1.0 - transmission),
-                    ),
-                    (
-                        Lobe::Glass(Glass {
-                            eta: *ior,
-                            tint: base,
-                        }),
-                        dielectric * transmission,
-                    ),
-                ])
-            }
+            MaterialKind::Gltf(g) => gltf_bsdf(&self.gltf_params(g, sp)),
         }
     }
+
+    /// The glTF material's parameters at `sp`: every factor times its texture (glTF 2.0
+    /// spec "Metallic-Roughness Material" and the extension specifications for which
+    /// channel each texture carries).
+    fn gltf_params(&self, g: &GltfMaterial, sp: &SurfacePoint) -> GltfParams {
+        if g.unlit {
+            // KHR_materials_unlit: emission only (set up by the importer), no scattering.
+            return GltfParams {
+                base_color: Vec3::ZERO,
+                metallic: 0.0,
+                specular: 0.0,
+                ..GltfParams::default()
+            };
+        }
+        let mr = self.tex(sp, &g.metallic_roughness_texture, false);
+        GltfParams {
+            base_color: g.base_color * self.tex(sp, &g.base_color_texture, true).truncate(),
+            metallic: g.metallic * mr.z,
+            roughness: g.roughness * mr.y,
+            ior: g.ior,
+            specular: g.specular * self.tex(sp, &g.specular_texture, false).w,
+            specular_color: g.specular_color
+                * self.tex(sp, &g.specular_color_texture, true).truncate(),
+            transmission: g.transmission * self.tex(sp, &g.transmission_texture, false).x,
+            clearcoat: g.clearcoat * self.tex(sp, &g.clearcoat_texture, false).x,
+            clearcoat_roughness: g.clearcoat_roughness
+                * self.tex(sp, &g.clearcoat_roughness_texture, false).y,
+            sheen_color: g.sheen_color * self.tex(sp, &g.sheen_color_texture, true).truncate(),
+            sheen_roughness: g.sheen_roughness * self.tex(sp, &g.sheen_roughness_texture, false).w,
+        }
+    }
+}
+
+/// A hash of a ray, for decisions that must be the same for the same ray (alpha).
+#[inline]
+fn ray_key(origin: Vec3, dir: Vec3) -> u64 {
+    let a = (u64::from(origin.x.to_bits()) << 32) | u64::from(origin.y.to_bits());
+    let b = (u64::from(origin.z.to_bits()) << 32) | u64::from(dir.x.to_bits());
+    let c = (u64::from(dir.y.to_bits()) << 32) | u64::from(dir.z.to_bits());
+    hash_combine(hash_combine(hash_u64(a), b), c)
+}
+
+/// Texture coordinates of set `set` at barycentrics `bary` of the triangle `idx`.
+#[inline]
+fn uv_at(uvs: &[Vec<Vec2>], idx: [u32; 3], set: u32, bary: Vec2) -> Vec2 {
+    match uvs.get(set as usize) {
+        Some(uv) if !uv.is_empty() => {
+            (1.0 - bary.x - bary.y) * uv[idx[0] as usize]
+                + bary.x * uv[idx[1] as usize]
+                + bary.y * uv[idx[2] as usize]
+        }
+        // No coordinates: set 0 falls back to the barycentrics (as before textures had
+        // sets), other sets read (0, 0).
+        _ if set == 0 => bary,
+        _ => Vec2::ZERO,
+    }
+}
+
+/// Texture reference `t` at `uv`, after its KHR_texture_transform.
+#[inline]
+fn lookup(textures: &[Texture], images: &[Image], t: &TextureRef, uv: Vec2, srgb: bool) -> Vec4 {
+    let tex = &textures[t.texture as usize];
+    let uv = match &t.transform {
+        Some(m) => m.apply(uv),
+        None => uv,
+    };
+    texture::sample(&images[tex.image as usize], tex, uv, srgb)
+}
+
+/// Barycentric coordinates `(b1, b2)` of a point `p` in (or numerically near) triangle
+/// `t`, from the sub-triangle areas.
+fn barycentrics(t: &[Vec3; 3], p: Vec3) -> Vec2 {
+    let n = (t[1] - t[0]).cross(t[2] - t[0]);
+    let len2 = n.length_squared();
+    if len2 <= 0.0 {
+        return Vec2::ZERO;
+    }
+    let b1 = (t[2] - t[0]).cross(p - t[0]).dot(n) / -len2;
+    let b2 = (t[1] - t[0]).cross(p - t[0]).dot(n) / len2;
+    Vec2::new(b1.clamp(0.0, 1.0), b2.clamp(0.0, 1.0))
+}
+
+/// The shading normal after a tangent-space normal map (glTF 2.0 spec "Materials >
+/// Normal texture"): `n' = normalize(t x + b y + n z)` with `(x, y, z) = (2 rgb - 1)`,
+/// `x` and `y` scaled by `scale`, `t` made orthogonal to `n` (Gram–Schmidt) and
+/// `b = cross(n, t) w`. A degenerate tangent or a result on the wrong side of the
+/// geometric normal leaves `n` unchanged, so no shading normal ever points into the
+/// surface.
+fn normal_mapped(n: Vec3, ng: Vec3, tangent: Vec3, sign: f32, texel: Vec4, scale: f32) -> Vec3 {
+    let t = tangent - n * n.dot(tangent);
+    let Some(t) = t.try_normalize() else {
+        return n;
+    };
+    let b = n.cross(t) * sign;
+    let x = (2.0 * texel.x - 1.0) * scale;
+    let y = (2.0 * texel.y - 1.0) * scale;
+    let z = 2.0 * texel.z - 1.0;
+    match (t * x + b * y + n * z).try_normalize() {
+        Some(m) if m.dot(ng) > 0.0 => m,
+        _ => n,
+    }
+}
+
+/// The mean of a varying triangle light's [`RenderScene::emission_scale`] over the
+/// triangle, from a fixed 8 x 8 stratified set of points (for light selection by power).
+fn mean_emission_scale(
+    scene: &Scene,
+    mat: &Material,
+    mesh: &tessera_scene::Mesh,
+    idx: &[u32; 3],
+) -> Vec3 {
+    let g = mat.as_gltf();
+    let mut sum = Vec3::ZERO;
+    const N: u32 = 8;
+    for i in 0..N {
+        for j in 0..N {
+            let u = Vec2::new((i as f32 + 0.5) / N as f32, (j as f32 + 0.5) / N as f32);
+            let (b0, b1) = crate::sampling::warp::square_to_uniform_triangle(u);
+            let bary = Vec2::new(b1, 1.0 - b0 - b1);
+            let mut scale = Vec3::ONE;
+            if let Some(t) = mat.emissive_texture() {
+                let uv = uv_at(&mesh.uvs, *idx, t.uv_set, bary);
+                scale *= lookup(&scene.textures, &scene.images, t, uv, true).truncate();
+            }
+            if let Some(g) = g {
+                let mut alpha = g.alpha;
+                if let Some(t) = &g.base_color_texture {
+                    let uv = uv_at(&mesh.uvs, *idx, t.uv_set, bary);
+                    alpha *= lookup(&scene.textures, &scene.images, t, uv, true).w;
+                }
+                scale *= match g.alpha_mode {
+                    AlphaMode::Opaque => 1.0,
+                    AlphaMode::Mask { cutoff } => f32::from(u8::from(alpha >= cutoff)),
+                    AlphaMode::Blend => alpha.clamp(0.0, 1.0),
+                };
+            }
+            sum += scale;
+        }
+    }
+    sum / (N * N) as f32
+}
+
+/// glTF material parameters at one surface point (factors times texture values).
+#[derive(Clone, Copy, Debug)]
+pub struct GltfParams {
+    /// Base colour, linear RGB.
+    pub base_color: Vec3,
+    /// Metalness.
+    pub metallic: f32,
+    /// Perceptual roughness.
+    pub roughness: f32,
+    /// Index of refraction.
+    pub ior: f32,
+    /// KHR_materials_specular factor.
+    pub specular: f32,
+    /// KHR_materials_specular colour.
+    pub specular_color: Vec3,
+    /// KHR_materials_transmission factor.
+    pub transmission: f32,
+    /// KHR_materials_clearcoat factor.
+    pub clearcoat: f32,
+    /// KHR_materials_clearcoat roughness.
+    pub clearcoat_roughness: f32,
+    /// KHR_materials_sheen colour.
+    pub sheen_color: Vec3,
+    /// KHR_materials_sheen roughness.
+    pub sheen_roughness: f32,
+}
+
+impl Default for GltfParams {
+    fn default() -> Self {
+        Self {
+            base_color: Vec3::ONE,
+            metallic: 1.0,
+            roughness: 1.0,
+            ior: 1.5,
+            specular: 1.0,
+            specular_color: Vec3::ONE,
+            transmission: 0.0,
+            clearcoat: 0.0,
+            clearcoat_roughness: 0.0,
+            sheen_color: Vec3::ZERO,
+            sheen_roughness: 0.0,
+        }
+    }
+}
+
+/// The glTF BSDF (temporary: the core model without clearcoat and sheen).
+fn gltf_bsdf(p: &GltfParams) -> Bsdf {
+    let base = p.base_color;
+    let alpha = (p.roughness * p.roughness).max(MIN_ALPHA);
+    let f0 = ((p.ior - 1.0) / (p.ior + 1.0)).powi(2);
+    let dielectric = 1.0 - p.metallic;
+    Bsdf::mixture(&[
+        (Lobe::Conductor(Conductor { f0: base, alpha }), p.metallic),
+        (
+            Lobe::GltfDielectric(GltfDielectric {
+                base,
+                alpha,
+                f0,
+                specular: p.specular,
+            }),
+            dielectric * (1.0 - p.transmission),
+        ),
+        (
+            Lobe::Glass(Glass {
+                eta: p.ior,
+                tint: base,
+            }),
+            dielectric * p.transmission,
+        ),
+    ])
 }

@@ -83,7 +83,8 @@ fn plane_under_sphere(r: f32, h: f32, radiance: f32, albedo: f32) -> Scene {
         name: "plane".into(),
         positions: vec![v(-s, 0.0, -s), v(-s, 0.0, s), v(s, 0.0, s), v(s, 0.0, -s)],
         normals: None,
-        uvs: None,
+        uvs: vec![],
+        tangents: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -100,6 +101,8 @@ fn plane_under_sphere(r: f32, h: f32, radiance: f32, albedo: f32) -> Scene {
         }],
         materials,
         textures: vec![],
+        images: vec![],
+        warnings: vec![],
         lights: vec![],
         environment: None,
         default_resolution: (8, 8),

@@ -108,7 +108,8 @@ fn bdpt_agrees_with_path_under_directional_spot_and_environment_light() {
             v(2.0, 0.0, -2.0),
         ],
         normals: None,
-        uvs: None,
+        uvs: vec![],
+        tangents: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -126,6 +127,8 @@ fn bdpt_agrees_with_path_under_directional_spot_and_environment_light() {
             Material::diffuse("ball", Vec3::new(0.8, 0.3, 0.2)),
         ],
         textures: vec![],
+        images: vec![],
+        warnings: vec![],
         lights: vec![
             PunctualLight::Directional {
                 direction: v(0.4, -1.0, -0.3).normalize(),
@@ -200,7 +203,8 @@ fn point_light_caustic() -> Scene {
             v(3.0, 0.0, -3.0),
         ],
         normals: None,
-        uvs: None,
+        uvs: vec![],
+        tangents: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -215,6 +219,8 @@ fn point_light_caustic() -> Scene {
         }],
         materials,
         textures: vec![],
+        images: vec![],
+        warnings: vec![],
         lights: vec![PunctualLight::Point {
             position: v(0.0, 3.0, 0.0),
             intensity: Vec3::splat(10.0),

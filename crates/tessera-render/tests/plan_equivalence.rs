@@ -89,7 +89,8 @@ fn plane_under_point_light() -> Scene {
             v(2.0, 0.0, -2.0),
         ],
         normals: None,
-        uvs: None,
+        uvs: vec![],
+        tangents: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -100,6 +101,8 @@ fn plane_under_point_light() -> Scene {
         spheres: vec![],
         materials: vec![Material::diffuse("floor", Vec3::splat(0.7))],
         textures: vec![],
+        images: vec![],
+        warnings: vec![],
         lights: vec![PunctualLight::Point {
             position: v(0.3, 1.5, 0.2),
             intensity: Vec3::splat(5.0),

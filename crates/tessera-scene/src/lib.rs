@@ -26,8 +26,14 @@ pub mod analysis;
 pub mod builtin;
 pub mod gltf_import;
 pub mod job;
+pub mod material;
 
-use glam::{Mat4, Vec2, Vec3};
+pub use material::{
+    AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture, TextureRef,
+    UvTransform, Volume, Wrap,
+};
+
+use glam::{Mat4, Vec2, Vec3, Vec4};
 use std::path::Path;
 
 /// Largest scene file accepted, in bytes (glTF JSON, .glb, or the sum of its buffers).
@@ -105,8 +111,14 @@ pub struct Mesh {
     pub positions: Vec<Vec3>,
     /// World-space unit shading normals, one per vertex, if the source had them.
     pub normals: Option<Vec<Vec3>>,
-    /// Texture coordinates (TEXCOORD_0), one per vertex, if present.
-    pub uvs: Option<Vec<Vec2>>,
+    /// Texture-coordinate sets by index (`uvs[n]` is `TEXCOORD_n`), each one per vertex
+    /// or empty when the source lacks that set (it then reads as (0, 0)).
+    pub uvs: Vec<Vec<Vec2>>,
+    /// World-space unit tangents with the bitangent sign in `w`, per triangle corner
+    /// (`tangents[t][k]` belongs to vertex `indices[t][k]`): glTF `TANGENT`, or generated
+    /// with MikkTSpace, whose tangents are defined per corner. Present when a normal map
+    /// needs them.
+    pub tangents: Option<Vec<[Vec4; 3]>>,
     /// Triangles as vertex indices, counter-clockwise seen from the front.
     pub indices: Vec<[u32; 3]>,
     /// Index into [`Scene::materials`].
@@ -122,124 +134,6 @@ pub struct Sphere {
     pub radius: f32,
     /// Index into [`Scene::materials`].
     pub material: u32,
-}
-
-/// Reference to a texture with the texture-coordinate set it uses.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct TextureRef {
-    /// Index into [`Scene::textures`].
-    pub texture: u32,
-}
-
-/// An RGB texture in linear space (sRGB-encoded images are decoded on import).
-#[derive(Clone, Debug)]
-pub struct Texture {
-    /// Width in texels.
-    pub width: u32,
-    /// Height in texels.
-    pub height: u32,
-    /// Linear RGB texels, row-major from the top row.
-    pub texels: Vec<Vec3>,
-    /// Wrap (repeat) rather than clamp coordinates outside [0, 1].
-    pub repeat: bool,
-}
-
-/// How a surface scatters light. The variants name the physics; `tessera-render` turns
-/// each into a BSDF.
-#[derive(Clone, Debug, PartialEq)]
-pub enum MaterialKind {
-    /// Lambertian diffuse reflection with the given albedo.
-    Diffuse {
-        /// Reflectance in [0, 1] per channel.
-        albedo: Vec3,
-    },
-    /// Veach's energy-conserving modified Phong (Lafortune & Willems 1994): a diffuse
-    /// part `kd / pi` plus `ks (n + 2) / (2 pi) cos^n(alpha)` around the mirror direction.
-    /// `kd + ks <= 1` per channel keeps it energy conserving.
-    Phong {
-        /// Diffuse reflectance.
-        kd: Vec3,
-        /// Specular reflectance.
-        ks: Vec3,
-        /// Phong exponent n >= 0.
-        exponent: f32,
-    },
-    /// A rough conductor with a GGX (Trowbridge–Reitz) microfacet distribution and
-    /// Schlick's Fresnel from the normal-incidence reflectance `f0`.
-    Conductor {
-        /// Reflectance at normal incidence.
-        f0: Vec3,
-        /// Perceptual roughness in [0, 1] (alpha = roughness²).
-        roughness: f32,
-    },
-    /// glTF 2.0 metallic-roughness: a dielectric base (Fresnel specular layer over a
-    /// diffuse lobe) blended with a metal by `metallic`, plus KHR_materials_transmission.
-    MetallicRoughness {
-        /// Base colour factor (linear RGB).
-        base_color: Vec3,
-        /// Optional base-colour texture, multiplied with `base_color`.
-        base_color_texture: Option<TextureRef>,
-        /// Metalness in [0, 1].
-        metallic: f32,
-        /// Perceptual roughness in [0, 1].
-        roughness: f32,
-        /// KHR_materials_transmission factor in [0, 1].
-        transmission: f32,
-        /// Index of refraction (KHR_materials_ior, default 1.5).
-        ior: f32,
-        /// KHR_materials_specular `specularFactor` in [0, 1] (default 1): the strength of
-        /// the dielectric layer's Fresnel reflection, `F = specular · F_Schlick(f0)` (the
-        /// extension's `f0 · specular`, `f90 = specular`). 0 leaves a pure Lambertian base,
-        /// which is what Blender writes for a Specular IOR Level of 0.
-        specular: f32,
-    },
-    /// An ideal mirror.
-    Mirror {
-        /// Reflectance per channel.
-        reflectance: Vec3,
-    },
-    /// A smooth (roughness 0) or rough (GGX) dielectric interface: glass.
-    Dielectric {
-        /// Index of refraction of the inside relative to the outside.
-        ior: f32,
-        /// Perceptual roughness; 0 is a smooth interface with Fresnel and total internal
-        /// reflection.
-        roughness: f32,
-        /// Transmission tint per channel.
-        tint: Vec3,
-    },
-}
-
-/// A material: the scattering model plus emission.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Material {
-    /// Name, for messages.
-    pub name: String,
-    /// Scattering.
-    pub kind: MaterialKind,
-    /// Emitted radiance in W/(m² sr), linear RGB (glTF: emissiveFactor x
-    /// KHR_materials_emissive_strength).
-    pub emission: Vec3,
-    /// Emission (and, for thin surfaces, scattering) on both sides; otherwise only along
-    /// the geometric normal.
-    pub double_sided: bool,
-}
-
-impl Material {
-    /// A Lambertian material that does not emit.
-    pub fn diffuse(name: &str, albedo: Vec3) -> Self {
-        Self {
-            name: name.to_string(),
-            kind: MaterialKind::Diffuse { albedo },
-            emission: Vec3::ZERO,
-            double_sided: false,
-        }
-    }
-
-    /// True when the material emits light.
-    pub fn is_emissive(&self) -> bool {
-        self.emission.max_element() > 0.0
-    }
 }
 
 /// A punctual or distant light (KHR_lights_punctual), in radiometric units.
@@ -287,8 +181,13 @@ pub struct Scene {
     pub spheres: Vec<Sphere>,
     /// Materials referenced by meshes and spheres.
     pub materials: Vec<Material>,
-    /// Textures referenced by materials.
+    /// Textures (an image with its sampler) referenced by materials.
     pub textures: Vec<Texture>,
+    /// Images referenced by textures.
+    pub images: Vec<Image>,
+    /// What the loader ignored that a user may want to know (e.g. unsupported optional
+    /// glTF extensions); the render plan repeats them.
+    pub warnings: Vec<String>,
     /// Punctual and directional lights.
     pub lights: Vec<PunctualLight>,
     /// Uniform environment radiance seen by rays that leave the scene, W/(m² sr).
@@ -356,12 +255,19 @@ impl Scene {
                     return bad(format!("mesh {i} ({}) has invalid normals", m.name));
                 }
             }
-            if let Some(uv) = &m.uvs {
-                if uv.len() != m.positions.len() || uv.iter().any(|v| !v.is_finite()) {
+            for (set, uv) in m.uvs.iter().enumerate() {
+                if (!uv.is_empty() && uv.len() != m.positions.len())
+                    || uv.iter().any(|v| !v.is_finite())
+                {
                     return bad(format!(
-                        "mesh {i} ({}) has invalid texture coordinates",
+                        "mesh {i} ({}) has invalid texture coordinates TEXCOORD_{set}",
                         m.name
                     ));
+                }
+            }
+            if let Some(t) = &m.tangents {
+                if t.len() != m.indices.len() || t.iter().flatten().any(|v| !v.is_finite()) {
+                    return bad(format!("mesh {i} ({}) has invalid tangents", m.name));
                 }
             }
         }
@@ -391,25 +297,7 @@ impl Scene {
                 MaterialKind::Conductor { f0, roughness } => {
                     unit(*f0) && f0.max_element() <= 1.0 && (0.0..=1.0).contains(roughness)
                 }
-                MaterialKind::MetallicRoughness {
-                    base_color,
-                    base_color_texture,
-                    metallic,
-                    roughness,
-                    transmission,
-                    ior,
-                    specular,
-                } => {
-                    unit(*base_color)
-                        && base_color.max_element() <= 1.0
-                        && base_color_texture.is_none_or(|t| t.texture < ntex)
-                        && (0.0..=1.0).contains(metallic)
-                        && (0.0..=1.0).contains(roughness)
-                        && (0.0..=1.0).contains(transmission)
-                        && *ior >= 1.0
-                        && ior.is_finite()
-                        && (0.0..=1.0).contains(specular)
-                }
+                MaterialKind::Gltf(g) => gltf_in_range(g, ntex),
                 MaterialKind::Mirror { reflectance } => {
                     unit(*reflectance) && reflectance.max_element() <= 1.0
                 }
@@ -432,12 +320,18 @@ impl Scene {
                 ));
             }
         }
+        let nimg = self.images.len() as u32;
         for (i, t) in self.textures.iter().enumerate() {
-            if t.width == 0
-                || t.height == 0
-                || t.texels.len() != (t.width as usize) * (t.height as usize)
+            if t.image >= nimg {
+                return bad(format!("texture {i} uses image {} of {nimg}", t.image));
+            }
+        }
+        for (i, im) in self.images.iter().enumerate() {
+            if im.width == 0
+                || im.height == 0
+                || im.texels.len() != (im.width as usize) * (im.height as usize)
             {
-                return bad(format!("texture {i} has inconsistent size"));
+                return bad(format!("image {i} has inconsistent size"));
             }
         }
         for (i, l) in self.lights.iter().enumerate() {
@@ -487,6 +381,39 @@ impl Scene {
         }
         Ok(())
     }
+}
+
+/// Whether the parameters of a glTF material are in their physical ranges and its texture
+/// references exist.
+fn gltf_in_range(g: &GltfMaterial, ntex: u32) -> bool {
+    let unit = |v: Vec3| v.is_finite() && v.min_element() >= 0.0 && v.max_element() <= 1.0;
+    let frac = |v: f32| (0.0..=1.0).contains(&v);
+    unit(g.base_color)
+        && frac(g.alpha)
+        && frac(g.metallic)
+        && frac(g.roughness)
+        && frac(g.transmission)
+        && g.ior >= 1.0
+        && g.ior.is_finite()
+        && frac(g.specular)
+        && g.specular_color.is_finite()
+        && g.specular_color.min_element() >= 0.0
+        && frac(g.clearcoat)
+        && frac(g.clearcoat_roughness)
+        && unit(g.sheen_color)
+        && frac(g.sheen_roughness)
+        && g.normal_map.is_none_or(|n| n.scale.is_finite())
+        && g.volume
+            .is_none_or(|v| v.sigma_a.is_finite() && v.sigma_a.min_element() >= 0.0)
+        && match g.alpha_mode {
+            AlphaMode::Mask { cutoff } => cutoff.is_finite(),
+            _ => true,
+        }
+        && g.textures().all(|t| {
+            t.texture < ntex
+                && t.transform
+                    .is_none_or(|m| m.0.iter().all(|v| v.is_finite()))
+        })
 }
 
 /// Resolves a scene argument: `builtin:NAME` or a path to a `.gltf`/`.glb` file.

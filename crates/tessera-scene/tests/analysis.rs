@@ -6,7 +6,8 @@ use glam::Vec3;
 use tessera_scene::analysis::{analyse, EffectKind, PlannedIntegrator, RenderPlan};
 use tessera_scene::builtin::look_at_camera;
 use tessera_scene::{
-    Material, MaterialKind, Mesh, PunctualLight, Scene, Sphere, Texture, TextureRef,
+    GltfMaterial, Image, Material, MaterialKind, Mesh, PunctualLight, Scene, Sphere, Texels,
+    Texture, TextureRef, Wrap,
 };
 
 use EffectKind::*;
@@ -191,7 +192,8 @@ fn quad(material: u32, corners: [Vec3; 4]) -> Mesh {
         name: "quad".into(),
         positions: corners.to_vec(),
         normals: None,
-        uvs: None,
+        uvs: vec![],
+        tangents: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material,
     }
@@ -224,6 +226,8 @@ fn base_scene(materials: Vec<Material>, meshes: Vec<Mesh>) -> Scene {
         spheres: vec![],
         materials,
         textures: vec![],
+        images: vec![],
+        warnings: vec![],
         lights: vec![],
         environment: None,
         default_resolution: (64, 48),
@@ -249,15 +253,14 @@ fn metallic_roughness(metallic: f32, roughness: f32, transmission: f32) -> Mater
 
 /// A glTF material with a KHR_materials_specular factor.
 fn with_specular(metallic: f32, roughness: f32, transmission: f32, specular: f32) -> MaterialKind {
-    MaterialKind::MetallicRoughness {
+    MaterialKind::Gltf(Box::new(GltfMaterial {
         base_color: Vec3::splat(0.8),
-        base_color_texture: None,
         metallic,
         roughness,
         transmission,
-        ior: 1.5,
         specular,
-    }
+        ..GltfMaterial::default()
+    }))
 }
 
 #[test]
@@ -403,15 +406,11 @@ fn aperture_means_depth_of_field_and_lens_sampling() {
 fn used_textures_are_found_and_unused_ones_ignored() {
     let textured = Material {
         name: "checker".into(),
-        kind: MaterialKind::MetallicRoughness {
-            base_color: Vec3::ONE,
-            base_color_texture: Some(TextureRef { texture: 0 }),
+        kind: MaterialKind::Gltf(Box::new(GltfMaterial {
+            base_color_texture: Some(TextureRef::new(0)),
             metallic: 0.0,
-            roughness: 1.0,
-            transmission: 0.0,
-            ior: 1.5,
-            specular: 1.0,
-        },
+            ..GltfMaterial::default()
+        })),
         emission: Vec3::ZERO,
         double_sided: false,
     };
@@ -419,11 +418,16 @@ fn used_textures_are_found_and_unused_ones_ignored() {
         vec![textured, Material::diffuse("plain", Vec3::splat(0.5))],
         vec![floor(0)],
     );
-    scene.textures.push(Texture {
+    scene.images.push(Image {
         width: 2,
         height: 1,
-        texels: vec![Vec3::ZERO, Vec3::ONE],
-        repeat: true,
+        texels: Texels::Rgba8(vec![[0, 0, 0, 255], [255, 255, 255, 255]]),
+    });
+    scene.textures.push(Texture {
+        image: 0,
+        wrap_s: Wrap::Repeat,
+        wrap_t: Wrap::Repeat,
+        nearest: false,
     });
     scene.lights.push(point_light());
     scene.validate().unwrap();

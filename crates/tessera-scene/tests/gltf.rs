@@ -9,7 +9,9 @@ use serde_json::json;
 use std::f32::consts::{FRAC_1_SQRT_2, FRAC_PI_4};
 use std::path::{Path, PathBuf};
 use tessera_scene::gltf_import::{load_path, load_slice, photometric_to_radiometric};
-use tessera_scene::{builtin, MaterialKind, PunctualLight, Scene, SceneError, MAX_INPUT_BYTES};
+use tessera_scene::{
+    builtin, GltfMaterial, MaterialKind, PunctualLight, Scene, SceneError, Wrap, MAX_INPUT_BYTES,
+};
 
 const TRI: [[f32; 3]; 3] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
 
@@ -66,28 +68,16 @@ fn basic_document_loads_in_every_container() {
         assert_eq!(s.triangle_count(), 1);
         assert_eq!(s.meshes[0].name, "mesh 0 'tri' primitive 0");
         assert_eq!(s.meshes[0].material, 0);
-        match &s.materials[0].kind {
-            MaterialKind::MetallicRoughness {
-                base_color,
-                metallic,
-                roughness,
-                transmission,
-                ior,
-                base_color_texture,
-                specular,
-            } => {
-                assert_eq!(*base_color, Vec3::splat(0.5));
-                // glTF defaults (spec "Metallic-Roughness Material").
-                assert_eq!(
-                    (*metallic, *roughness, *transmission, *ior),
-                    (1.0, 1.0, 0.0, 1.5)
-                );
-                // KHR_materials_specular's default factor.
-                assert_eq!(*specular, 1.0);
-                assert!(base_color_texture.is_none());
-            }
-            k => panic!("unexpected material {k:?}"),
-        }
+        let g = s.materials[0].as_gltf().expect("a glTF material");
+        assert_eq!(g.base_color, Vec3::splat(0.5));
+        // glTF defaults (spec "Metallic-Roughness Material"), and KHR_materials_specular's
+        // default factor.
+        assert_eq!(
+            (g.metallic, g.roughness, g.transmission, g.ior, g.specular),
+            (1.0, 1.0, 0.0, 1.5, 1.0)
+        );
+        assert!(g.base_color_texture.is_none());
+        assert_eq!(g.alpha_mode, tessera_scene::AlphaMode::Opaque);
     }
     // And from an external .bin next to the .gltf, including a percent-encoded file name.
     let dir = scratch_dir("external");
@@ -138,14 +128,9 @@ fn node_hierarchy_transforms_are_applied() {
             assert_eq!(mesh.indices, vec![[0, 1, 2]]);
             // Primitives without a material get the glTF default material.
             let mat = &scene.materials[mesh.material as usize];
-            assert!(matches!(
-                mat.kind,
-                MaterialKind::MetallicRoughness {
-                    metallic: 1.0,
-                    roughness: 1.0,
-                    ..
-                }
-            ));
+            assert!(mat
+                .as_gltf()
+                .is_some_and(|g| (g.metallic, g.roughness) == (1.0, 1.0)));
             assert_eq!(mat.kind, scene.materials.last().unwrap().kind);
         }
     }
@@ -337,15 +322,13 @@ fn transmission_and_ior_extensions_are_read() {
     let [s, _] = load_both(&g);
     assert_eq!(
         s.materials[0].kind,
-        MaterialKind::MetallicRoughness {
-            base_color: Vec3::ONE,
-            base_color_texture: None,
+        MaterialKind::Gltf(Box::new(GltfMaterial {
             metallic: 0.0,
             roughness: 0.0,
             transmission: 1.0,
             ior: 1.33,
-            specular: 1.0,
-        }
+            ..GltfMaterial::default()
+        }))
     );
 }
 
@@ -368,10 +351,7 @@ fn specular_extension_factor_is_read() {
     g.root(json!({"mesh": m1}));
     for s in load_both(&g) {
         for (i, want) in [(0, 0.0), (1, 0.5)] {
-            match s.materials[i].kind {
-                MaterialKind::MetallicRoughness { specular, .. } => assert_eq!(specular, want),
-                ref k => panic!("unexpected material {k:?}"),
-            }
+            assert_eq!(s.materials[i].as_gltf().unwrap().specular, want);
         }
     }
     // A factor outside [0, 1] is refused naming the material.
@@ -530,42 +510,37 @@ fn base_color_textures_are_decoded_from_srgb() {
     assert!((expected[1].x - 0.215_861).abs() < 1e-5);
     for s in load_both(&g) {
         assert_eq!(s.textures.len(), 3);
-        for (mi, (repeat, texels)) in [(false, &expected), (true, &expected)]
+        // The PNG is decoded once per image; the texture carries the sampler.
+        assert_eq!(s.images.len(), 3);
+        for (mi, (wrap, texels)) in [(Wrap::ClampToEdge, &expected), (Wrap::Repeat, &expected)]
             .into_iter()
             .enumerate()
         {
-            let MaterialKind::MetallicRoughness {
-                base_color_texture: Some(t),
-                ..
-            } = s.materials[mi].kind
-            else {
-                panic!("material {mi} has no texture");
-            };
+            let t = s.materials[mi]
+                .as_gltf()
+                .and_then(|g| g.base_color_texture)
+                .unwrap_or_else(|| panic!("material {mi} has no texture"));
             let tex = &s.textures[t.texture as usize];
-            assert_eq!((tex.width, tex.height, tex.repeat), (2, 2, repeat));
-            for (got, want) in tex.texels.iter().zip(texels.iter()) {
-                assert!(close(*got, *want, 1e-6), "{got} vs {want}");
+            assert_eq!((tex.wrap_s, tex.wrap_t), (wrap, wrap));
+            let im = &s.images[tex.image as usize];
+            assert_eq!((im.width, im.height), (2, 2));
+            for (k, want) in texels.iter().enumerate() {
+                let got = im.texel(k as u32 % 2, k as u32 / 2, true).truncate();
+                assert!(close(got, *want, 1e-6), "{got} vs {want}");
             }
         }
-        let MaterialKind::MetallicRoughness {
-            base_color_texture: Some(t),
-            ..
-        } = s.materials[2].kind
-        else {
-            panic!("no grey texture");
-        };
-        let tex = &s.textures[t.texture as usize];
+        let t = s.materials[2]
+            .as_gltf()
+            .and_then(|g| g.base_color_texture)
+            .expect("no grey texture");
+        let im = &s.images[s.textures[t.texture as usize].image as usize];
+        let got = im.texel(0, 0, true).truncate();
         assert!(
-            close(
-                tex.texels[0],
-                Vec3::splat(srgb_eotf(32768.0 / 65535.0)),
-                1e-6
-            ),
-            "{:?}",
-            tex.texels
+            close(got, Vec3::splat(srgb_eotf(32768.0 / 65535.0)), 1e-6),
+            "{got}"
         );
         let uv: Vec<Vec2> = uvs.iter().map(|&u| Vec2::from(u)).collect();
-        assert_eq!(s.meshes[0].uvs.as_ref(), Some(&uv));
+        assert_eq!(s.meshes[0].uvs, vec![uv]);
     }
 }
 
@@ -1071,14 +1046,9 @@ fn shipped_cornell_box_matches_the_builtin() {
         for m in &s.meshes {
             let albedo = match &s.materials[m.material as usize].kind {
                 MaterialKind::Diffuse { albedo } => *albedo,
-                MaterialKind::MetallicRoughness {
-                    base_color,
-                    metallic,
-                    roughness,
-                    ..
-                } => {
-                    assert_eq!((*metallic, *roughness), (0.0, 1.0));
-                    *base_color
+                MaterialKind::Gltf(g) => {
+                    assert_eq!((g.metallic, g.roughness), (0.0, 1.0));
+                    g.base_color
                 }
                 k => panic!("{k:?}"),
             };
@@ -1143,16 +1113,9 @@ fn shipped_glass_spot_scene_loads() {
         .materials
         .iter()
         .filter(|m| {
-            matches!(
-                m.kind,
-                MaterialKind::MetallicRoughness {
-                    transmission: 1.0,
-                    ior: 1.5,
-                    metallic: 0.0,
-                    roughness: 0.0,
-                    ..
-                }
-            )
+            m.as_gltf().is_some_and(|g| {
+                (g.transmission, g.ior, g.metallic, g.roughness) == (1.0, 1.5, 0.0, 0.0)
+            })
         })
         .count();
     assert_eq!(glass, 1);

@@ -34,6 +34,7 @@
 //!     lens_sampling: false,
 //!     reasons: vec![],
 //!     overridden: None,
+//!     warnings: vec![],
 //! };
 //! let resolved = job.resolve(SceneFacts { default_resolution: (512, 256) }, plan)?;
 //! assert_eq!(resolved.config.integrator, Integrator::Bdpt);

@@ -157,6 +157,8 @@ pub struct RenderPlan {
     /// Set when the user forced something else than the plan (e.g. `--integrator path`),
     /// saying what and what the plan had chosen.
     pub overridden: Option<String>,
+    /// What the scene loader ignored (e.g. unsupported optional glTF extensions).
+    pub warnings: Vec<String>,
 }
 
 impl RenderPlan {
@@ -230,12 +232,19 @@ impl RenderPlan {
         if let Some(o) = &self.overridden {
             s += &format!("overridden: {o}\n");
         }
+        if !self.warnings.is_empty() {
+            s += "warnings:\n";
+            for w in &self.warnings {
+                s += &format!("  - {w}\n");
+            }
+        }
         s
     }
 
     /// The plan as one compact JSON object with a stable key order: `integrator`,
     /// `max_depth`, `rr_depth`, `lens_sampling`, `effects` (array of `{kind, evidence}`),
-    /// `absent` (array of kinds), `reasons`, `overridden` (string or null). Kinds are the
+    /// `absent` (array of kinds), `reasons`, `overridden` (string or null), and `warnings`
+    /// (array of strings) only when there are any. Kinds are the
     /// [`EffectKind::as_str`] names. The text is pure ASCII (other characters are `\u`
     /// escaped), so it fits Latin-1 file headers such as EXR attributes.
     pub fn to_json(&self) -> String {
@@ -253,9 +262,17 @@ impl RenderPlan {
             })
             .collect::<Vec<_>>()
             .join(",");
+        let warnings = if self.warnings.is_empty() {
+            String::new()
+        } else {
+            format!(
+                ",\"warnings\":[{}]",
+                strings(&mut self.warnings.iter().map(String::as_str))
+            )
+        };
         format!(
             "{{\"integrator\":{},\"max_depth\":{},\"rr_depth\":{},\"lens_sampling\":{},\
-             \"effects\":[{effects}],\"absent\":[{}],\"reasons\":[{}],\"overridden\":{}}}",
+             \"effects\":[{effects}],\"absent\":[{}],\"reasons\":[{}],\"overridden\":{}{warnings}}}",
             json_string(self.integrator.as_str()),
             self.max_depth,
             self.rr_depth,

@@ -337,11 +337,7 @@ impl Ctx<'_> {
         let t = offset_ray_origin(b, b_err, b_n, -d);
         let d = t - o;
         let dist = d.length();
-        dist > 0.0
-            && !self
-                .scene
-                .geometry
-                .occluded(o, d / dist, dist * (1.0 - 1e-4))
+        dist > 0.0 && !self.scene.occluded(o, d / dist, dist * (1.0 - 1e-4))
     }
 
     /// `G(a ↔ b)` with shading-normal cosines (pbrt's convention), times visibility.
@@ -390,7 +386,7 @@ fn random_walk(
     let mut bounces = 0u32;
     while n < max_vertices {
         // 1. Intersect; a camera ray that escapes sees the environment (a light vertex).
-        let Some(hit) = scene.geometry.intersect(origin, dir, f32::INFINITY) else {
+        let Some(hit) = scene.intersect(origin, dir, f32::INFINITY) else {
             if !importance {
                 if let Some((env, le)) = scene.environment() {
                     let mut v = Vertex::empty();
@@ -549,7 +545,7 @@ fn light_subpath(
         return 0;
     };
     let light = &scene.lights.lights[li];
-    let Some(es) = light.sample_le(u_pos, u_dir, &ctx.world) else {
+    let Some(es) = scene.sample_le(li, u_pos, u_dir, &ctx.world) else {
         return 0;
     };
     let infinite = light.is_infinite();
@@ -796,7 +792,7 @@ fn camera_techniques(
         if t - 1 <= max_depth && pt.connectible() {
             if let Some((li, pmf)) = scene.lights.select(u_light) {
                 let lt = &scene.lights.lights[li];
-                if let Some(ls) = lt.sample_li(pt.p, u2) {
+                if let Some(ls) = scene.sample_li(li, pt.p, u2) {
                     let f = ctx.f(&pt, ls.wi, false);
                     let l = pt.beta * f * ls.li * (pt.ns.dot(ls.wi).abs() / (ls.pdf * pmf));
                     let visible = l != Vec3::ZERO
@@ -804,7 +800,7 @@ fn camera_techniques(
                             ctx.visible(pt.p, pt.p_error, pt.ng, ls.p, ls.p_error, ls.n)
                         } else {
                             let o = offset_ray_origin(pt.p, pt.p_error, pt.ng, ls.wi);
-                            !scene.geometry.occluded(o, ls.wi, f32::INFINITY)
+                            !scene.occluded(o, ls.wi, f32::INFINITY)
                         };
                     if visible {
                         let mut v = Vertex::empty();

@@ -52,7 +52,7 @@ pub fn radiance(
     let mut depth = 0u32;
     loop {
         // 1. Intersect.
-        let Some(hit) = scene.geometry.intersect(origin, dir, f32::INFINITY) else {
+        let Some(hit) = scene.intersect(origin, dir, f32::INFINITY) else {
             if let Some((env_index, le)) = scene.environment() {
                 let w = if prev_delta {
                     1.0
@@ -101,8 +101,7 @@ pub fn radiance(
         let u_light2 = sampler.next_2d();
         if bsdf.has_non_delta() {
             if let Some((li, pmf)) = scene.lights.select(u_light) {
-                let light = &scene.lights.lights[li];
-                if let Some(ls) = light.sample_li(sp.p, u_light2) {
+                if let Some(ls) = scene.sample_li(li, sp.p, u_light2) {
                     let wi = frame.to_local(ls.wi);
                     // Reject light arriving through the geometric surface (shading-normal leak).
                     let geometric_ok = ls.wi.dot(sp.ng).signum() == wi.z.signum();
@@ -113,9 +112,9 @@ pub fn radiance(
                             let target = offset_ray_origin(ls.p, ls.p_error, ls.n, -ls.wi);
                             let d = target - o;
                             let dist = d.length();
-                            dist > 0.0 && !scene.geometry.occluded(o, d / dist, dist * (1.0 - 1e-4))
+                            dist > 0.0 && !scene.occluded(o, d / dist, dist * (1.0 - 1e-4))
                         } else {
-                            !scene.geometry.occluded(o, ls.wi, f32::INFINITY)
+                            !scene.occluded(o, ls.wi, f32::INFINITY)
                         };
                         if visible {
                             let p_light = pmf * ls.pdf;

@@ -5,6 +5,7 @@
 //! | `p` | vertices; the front is counter-clockwise, `n = normalize((p1-p0) x (p2-p0))` |
 //! | `radiance` | emitted radiance W/(m² sr), constant over the triangle |
 //! | `two_sided` | emit on both sides; otherwise only along `n` (glTF `doubleSided`) |
+//! | `power_scale`, `shading` | a textured emitter: its mean texture value (for selection) and the mesh triangle where [`crate::scene::RenderScene`] evaluates the texture |
 //!
 //! Sampled uniformly by area (Arvo 2001, chapter 4, triangle warp) and converted to solid angle:
 //! `pdf_ω = d² / (|cos θ_l| A)` (Shirley 2001, chapter 3).
@@ -28,6 +29,12 @@ pub struct TriangleLight {
     pub radiance: Vec3,
     /// Emits on both sides.
     pub two_sided: bool,
+    /// Mean of the emission's variation over the triangle (emissive texture, alpha
+    /// coverage), which scales the power used for light selection; 1 when constant.
+    pub power_scale: Vec3,
+    /// `(mesh, triangle)` when the emission varies over the triangle: the render scene
+    /// then evaluates it where a point is sampled.
+    pub shading: Option<(u32, u32)>,
 }
 
 impl TriangleLight {
@@ -44,6 +51,8 @@ impl TriangleLight {
             area: 0.5 * len,
             radiance,
             two_sided,
+            power_scale: Vec3::ONE,
+            shading: None,
         })
     }
 
@@ -58,7 +67,7 @@ impl TriangleLight {
     }
 
     pub(crate) fn power(&self) -> Vec3 {
-        self.radiance * (PI * self.area * if self.two_sided { 2.0 } else { 1.0 })
+        self.radiance * self.power_scale * (PI * self.area * if self.two_sided { 2.0 } else { 1.0 })
     }
 
     pub(crate) fn sample_li(&self, p_ref: Vec3, u: Vec2) -> Option<LightSample> {

@@ -4,7 +4,6 @@
 use super::evidence::{material_list, verb};
 use super::survey::Survey;
 use super::{push, Effect, EffectKind};
-use crate::MaterialKind;
 
 /// Records [`EffectKind::DepthOfField`] and [`EffectKind::Textures`] when present, and
 /// returns whether camera rays sample the lens.
@@ -25,13 +24,9 @@ pub(super) fn report(survey: &Survey, effects: &mut Vec<Effect>) -> bool {
     let textured: Vec<usize> = (0..survey.nmat())
         .filter(|&i| {
             survey.used[i]
-                && matches!(
-                    scene.materials[i].kind,
-                    MaterialKind::MetallicRoughness {
-                        base_color_texture: Some(_),
-                        ..
-                    }
-                )
+                && scene.materials[i]
+                    .as_gltf()
+                    .is_some_and(|g| g.textures().next().is_some())
         })
         .collect();
     if !textured.is_empty() {
@@ -39,7 +34,7 @@ pub(super) fn report(survey: &Survey, effects: &mut Vec<Effect>) -> bool {
             effects,
             EffectKind::Textures,
             format!(
-                "{} {} a base-colour texture",
+                "{} {} textures",
                 material_list(scene, &textured, &survey.classes, false),
                 verb("use", textured.len())
             ),

@@ -63,6 +63,7 @@ pub(super) fn plan(
         lens_sampling,
         reasons,
         overridden: None,
+        warnings: Vec::new(),
     }
 }
 

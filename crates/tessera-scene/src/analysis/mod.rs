@@ -33,7 +33,9 @@
 //! - `Dielectric`: refraction (if the tint is > 0; *smooth* refraction if roughness <
 //!   [`SPECULAR_ROUGHNESS`]); with `ior != 1` also a Fresnel reflection (specular or
 //!   glossy by roughness) and total internal reflection;
-//! - `MetallicRoughness` (glTF), by layer weight:
+//! - `Gltf` (metallic-roughness), by layer weight (factors times their textures' means;
+//!   roughness from the smallest texel, clearcoat reflects by its roughness, sheen is
+//!   glossy, KHR_materials_unlit scatters nothing):
 //!   - the metal (`metallic > 0` and a base colour above 0) is a conductor as above;
 //!   - the dielectric base (weight `(1 - metallic)(1 - transmission)` above 0) is diffuse
 //!     if the base colour is above 0, under a Fresnel coat (if `ior > 1`) that counts as
@@ -148,7 +150,9 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
     lights::report(&lights, &survey, &mut effects);
     let transport = transport::analyse(&survey, &lights, &mut effects);
     let lens_sampling = appearance::report(&survey, &mut effects);
-    decide::plan(&scene.camera, &lights, &transport, lens_sampling, effects)
+    let mut plan = decide::plan(&scene.camera, &lights, &transport, lens_sampling, effects);
+    plan.warnings = scene.warnings.clone();
+    plan
 }
 
 /// Records an effect with its evidence.

@@ -68,11 +68,7 @@ pub(super) struct Survey<'a> {
 impl<'a> Survey<'a> {
     /// Classifies the materials and measures the geometry of `scene`.
     pub(super) fn new(scene: &'a Scene) -> Self {
-        let classes: Vec<Classes> = scene
-            .materials
-            .iter()
-            .map(|m| classify(m, &scene.textures))
-            .collect();
+        let classes: Vec<Classes> = scene.materials.iter().map(|m| classify(m, scene)).collect();
         let nmat = scene.materials.len();
 
         // Which materials are used, and the geometry's extent and areas.

@@ -88,7 +88,22 @@ impl Importer<'_> {
     /// Instances the mesh, perspective camera and light of node `ni` at `world`.
     fn visit_node(&mut self, ni: usize, world: &DMat4, found: &mut Instances) -> Res<()> {
         if let Some(m) = self.root.nodes[ni].mesh {
-            self.instance_mesh(ni, m.value(), world, &mut found.meshes)?;
+            match self.gpu_instances(ni)? {
+                // EXT_mesh_gpu_instancing: the mesh at every instance transform, each
+                // applied before the node's own (the extension's `world * instance`).
+                Some(instances) => {
+                    for inst in instances {
+                        let at = *world * inst;
+                        if !at.is_finite() {
+                            return self.err(format!(
+                                "node {ni}: an EXT_mesh_gpu_instancing transform is not finite"
+                            ));
+                        }
+                        self.instance_mesh(ni, m.value(), &at, &mut found.meshes)?;
+                    }
+                }
+                None => self.instance_mesh(ni, m.value(), world, &mut found.meshes)?,
+            }
         }
         let node = &self.root.nodes[ni];
         if let Some(c) = node.camera {

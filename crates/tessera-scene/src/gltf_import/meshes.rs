@@ -3,7 +3,7 @@
 
 use super::{Importer, Res};
 use crate::Mesh;
-use glam::{DMat3, DMat4, Vec2, Vec3};
+use glam::{DMat3, DMat4, Vec2, Vec3, Vec4};
 use gltf::json;
 use json::validation::Checked;
 use std::rc::Rc;
@@ -12,7 +12,9 @@ use std::rc::Rc;
 pub(super) struct LocalPrimitive {
     positions: Vec<Vec3>,
     normals: Option<Vec<Vec3>>,
-    uvs: Option<Vec<Vec2>>,
+    uvs: Vec<Vec<Vec2>>,
+    /// Per triangle corner, when the material has a normal map.
+    tangents: Option<Vec<[Vec4; 3]>>,
     triangles: Vec<[u32; 3]>,
     material: u32,
 }
@@ -46,12 +48,17 @@ impl Importer<'_> {
                 self.root.materials.len() as u32
             }
         };
-        let uv_set = prim
+        let uv_sets = prim
             .material
-            .and_then(|m| self.material_uv_set.get(m.value()).copied())
+            .and_then(|m| self.material_uv_sets.get(m.value()).copied())
             .unwrap_or(0);
+        let normal_map = prim
+            .material
+            .and_then(|m| self.root.materials.get(m.value()))
+            .and_then(|m| m.normal_texture.as_ref())
+            .map(|n| n.tex_coord);
         let normal_acc = attribute(json::mesh::Semantic::Normals);
-        let uv_acc = attribute(json::mesh::Semantic::TexCoords(uv_set));
+        let tangent_acc = attribute(json::mesh::Semantic::Tangents);
         let index_acc = prim.indices;
 
         let positions: Vec<Vec3> = self
@@ -73,24 +80,53 @@ impl Importer<'_> {
             }
             None => None,
         };
-        let uvs = match uv_acc {
-            Some(a) => {
-                let v = self.read_floats::<2>(a.value(), &format!("{what} TEXCOORD_{uv_set}"))?;
+        // Spec "Meshes > Overview": TEXCOORD_n for every set a texture of the material
+        // reads; a missing set reads as (0, 0).
+        let mut uvs = Vec::with_capacity(uv_sets as usize);
+        for set in 0..uv_sets {
+            let v = match attribute(json::mesh::Semantic::TexCoords(set)) {
+                Some(a) => {
+                    let v = self.read_floats::<2>(a.value(), &format!("{what} TEXCOORD_{set}"))?;
+                    if v.len() != n {
+                        return self.err(format!(
+                            "{what}: TEXCOORD_{set} has {} elements but POSITION has {n}",
+                            v.len()
+                        ));
+                    }
+                    v.into_iter().map(Vec2::from).collect()
+                }
+                None => Vec::new(),
+            };
+            uvs.push(v);
+        }
+        let triangles = self.read_triangles(index_acc, n, &what)?;
+        let tangents = match (normal_map, tangent_acc) {
+            (None, _) => None,
+            (Some(_), Some(a)) => {
+                let v = self.read_floats::<4>(a.value(), &format!("{what} TANGENT"))?;
                 if v.len() != n {
                     return self.err(format!(
-                        "{what}: TEXCOORD_{uv_set} has {} elements but POSITION has {n}",
+                        "{what}: TANGENT has {} elements but POSITION has {n}",
                         v.len()
                     ));
                 }
-                Some(v.into_iter().map(Vec2::from).collect())
+                Some(
+                    triangles
+                        .iter()
+                        .map(|t| t.map(|i| Vec4::from(v[i as usize])))
+                        .collect(),
+                )
             }
-            None => None,
+            (Some(set), None) => {
+                let uv = uvs.get(set as usize).filter(|u| !u.is_empty());
+                uv.map(|uv| mikktspace(&positions, normals.as_deref(), uv, &triangles))
+            }
         };
-        let triangles = self.read_triangles(index_acc, n, &what)?;
         let p = Rc::new(LocalPrimitive {
             positions,
             normals,
             uvs,
+            tangents,
             triangles,
             material,
         });
@@ -183,11 +219,29 @@ impl Importer<'_> {
             } else {
                 local.triangles.clone()
             };
+            // Tangents are surface directions: they transform with the linear part. A
+            // mirroring transform flips the handedness of (t, b, n), hence the sign of w.
+            let sign = if det < 0.0 { -1.0 } else { 1.0 };
+            let tangents = local.tangents.as_ref().map(|ts| {
+                ts.iter()
+                    .map(|c| {
+                        let c = if det < 0.0 { [c[0], c[2], c[1]] } else { *c };
+                        c.map(|t| {
+                            let w = (linear * t.truncate().as_dvec3())
+                                .normalize_or_zero()
+                                .as_vec3();
+                            let w = if w.is_finite() { w } else { Vec3::ZERO };
+                            w.extend(if t.w < 0.0 { -sign } else { sign })
+                        })
+                    })
+                    .collect()
+            });
             out.push(Mesh {
                 name,
                 positions,
                 normals,
                 uvs: local.uvs.clone(),
+                tangents,
                 indices: triangles,
                 material: local.material,
             });
@@ -202,4 +256,80 @@ pub(super) fn prim_name(mi: usize, mesh: &json::Mesh, pi: usize) -> String {
         Some(n) => format!("mesh {mi} '{n}' primitive {pi}"),
         None => format!("mesh {mi} primitive {pi}"),
     }
+}
+
+/// MikkTSpace tangents per triangle corner (Mikkelsen 2008), as the glTF spec asks for
+/// when a normal-mapped primitive has no TANGENT attribute. The texture coordinates are
+/// given to MikkTSpace with v flipped (`1 - v`): glTF's v runs down the image while the
+/// normal map's +Y (green) points up it, the convention MikkTSpace and Blender use, so the
+/// bitangent `cross(n, t) w` points toward the texture's +Y. Without normals the face
+/// normal is used, as the spec prescribes flat shading then.
+fn mikktspace(
+    positions: &[Vec3],
+    normals: Option<&[Vec3]>,
+    uvs: &[Vec2],
+    triangles: &[[u32; 3]],
+) -> Vec<[Vec4; 3]> {
+    struct Geometry<'g> {
+        positions: &'g [Vec3],
+        normals: Option<&'g [Vec3]>,
+        uvs: &'g [Vec2],
+        triangles: &'g [[u32; 3]],
+        out: Vec<[Vec4; 3]>,
+    }
+    impl Geometry<'_> {
+        fn vertex(&self, face: usize, vert: usize) -> usize {
+            self.triangles[face][vert] as usize
+        }
+    }
+    impl bevy_mikktspace::Geometry for Geometry<'_> {
+        fn num_faces(&self) -> usize {
+            self.triangles.len()
+        }
+        fn num_vertices_of_face(&self, _face: usize) -> usize {
+            3
+        }
+        fn position(&self, face: usize, vert: usize) -> [f32; 3] {
+            self.positions[self.vertex(face, vert)].to_array()
+        }
+        fn normal(&self, face: usize, vert: usize) -> [f32; 3] {
+            match self.normals {
+                Some(n) => n[self.vertex(face, vert)].to_array(),
+                None => {
+                    let p = self.triangles[face].map(|i| self.positions[i as usize]);
+                    (p[1] - p[0])
+                        .cross(p[2] - p[0])
+                        .normalize_or_zero()
+                        .to_array()
+                }
+            }
+        }
+        fn tex_coord(&self, face: usize, vert: usize) -> [f32; 2] {
+            let uv = self.uvs[self.vertex(face, vert)];
+            [uv.x, 1.0 - uv.y]
+        }
+        fn set_tangent(
+            &mut self,
+            tangent_space: Option<bevy_mikktspace::TangentSpace>,
+            face: usize,
+            vert: usize,
+        ) {
+            if let Some(ts) = tangent_space {
+                self.out[face][vert] = Vec4::from(ts.tangent_encoded());
+            }
+        }
+    }
+    let mut g = Geometry {
+        positions,
+        normals,
+        uvs,
+        triangles,
+        // Corners MikkTSpace leaves unset (degenerate faces) keep a zero tangent, which
+        // the renderer treats as "no normal map here".
+        out: vec![[Vec4::ZERO; 3]; triangles.len()],
+    };
+    if bevy_mikktspace::generate_tangents(&mut g).is_err() {
+        return vec![[Vec4::ZERO; 3]; triangles.len()];
+    }
+    g.out
 }

@@ -82,16 +82,18 @@
 mod accessors;
 mod camera;
 mod container;
+mod extensions;
 mod graph;
 mod lights;
 mod materials;
 mod meshes;
 
+pub use extensions::SUPPORTED_EXTENSIONS;
 pub use lights::{photometric_to_radiometric, LUMINOUS_EFFICACY};
 
 #[cfg(doc)]
 use crate::MaterialKind;
-use crate::{Mesh, Scene, SceneError, Texture, MAX_INPUT_BYTES};
+use crate::{Image, Mesh, Scene, SceneError, Texture, MAX_INPUT_BYTES};
 use camera::default_resolution;
 use container::{parse_json, read_capped, split_glb, BaseDir, ReadError};
 use gltf::json;
@@ -227,10 +229,15 @@ struct Importer<'a> {
     output_bytes: u64,
     buffers: Vec<Vec<u8>>,
     textures: Vec<Texture>,
-    /// (image index, repeat) -> index into `textures`.
-    texture_map: HashMap<(usize, bool), u32>,
-    /// Texture-coordinate set each material's base-colour texture reads.
-    material_uv_set: Vec<u32>,
+    images: Vec<Image>,
+    /// glTF texture index -> index into `textures`.
+    texture_map: HashMap<usize, u32>,
+    /// glTF image index -> index into `images`.
+    image_map: HashMap<usize, u32>,
+    /// Per material: how many `TEXCOORD_n` sets its textures read (largest n + 1).
+    material_uv_sets: Vec<u32>,
+    /// Unknown optional extensions and other things the render plan should mention.
+    warnings: Vec<String>,
     default_material_used: bool,
     primitives: HashMap<(usize, usize), Rc<LocalPrimitive>>,
 }
@@ -241,10 +248,15 @@ type Res<T> = Result<T, SceneError>;
 impl<'a> Importer<'a> {
     /// An error about this file with `message`.
     fn err<T>(&self, message: impl Into<String>) -> Res<T> {
-        Err(SceneError::Gltf {
+        Err(self.gerr(message))
+    }
+
+    /// The error value of [`Importer::err`].
+    fn gerr(&self, message: impl Into<String>) -> SceneError {
+        SceneError::Gltf {
             file: self.file.to_string(),
             message: message.into(),
-        })
+        }
     }
 
     /// Splits the container, parses the JSON, checks the document, loads the buffers, then
@@ -275,11 +287,15 @@ impl<'a> Importer<'a> {
             output_bytes: 0,
             buffers: Vec::new(),
             textures: Vec::new(),
+            images: Vec::new(),
             texture_map: HashMap::new(),
-            material_uv_set: Vec::new(),
+            image_map: HashMap::new(),
+            material_uv_sets: Vec::new(),
+            warnings: Vec::new(),
             default_material_used: false,
             primitives: HashMap::new(),
         };
+        imp.check_extensions()?;
         imp.check_document()?;
         imp.load_buffers(bin)?;
         imp.build(camera)
@@ -313,6 +329,8 @@ impl<'a> Importer<'a> {
             spheres: Vec::new(),
             materials,
             textures: std::mem::take(&mut self.textures),
+            images: std::mem::take(&mut self.images),
+            warnings: std::mem::take(&mut self.warnings),
             lights,
             environment: None,
             default_resolution,
