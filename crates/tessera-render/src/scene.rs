@@ -370,6 +370,22 @@ impl RenderScene {
         }
     }
 
+    /// Beer–Lambert transmittance `exp(-σ_a t)` of a ray segment of length `t` (unit `dir`)
+    /// that ends at `sp` coming from the inside of a KHR_materials_volume material, i.e.
+    /// arriving at the back of its (outward-facing) surface: the segment ran through the
+    /// absorbing volume. 1 elsewhere. This assumes closed meshes with outward normals, as
+    /// the extension does; a path tracer needs no `thicknessFactor`.
+    #[inline]
+    pub fn transmittance(&self, sp: &SurfacePoint, dir: Vec3, t: f32) -> Vec3 {
+        match self.materials[sp.material as usize]
+            .as_gltf()
+            .and_then(|g| g.volume.as_ref())
+        {
+            Some(v) if dir.dot(sp.ng) > 0.0 => (-v.sigma_a * t).exp(),
+            _ => Vec3::ONE,
+        }
+    }
+
     /// Radiance emitted by the surface at `sp` toward `w` (unit, pointing away from it),
     /// with the material's emissive texture applied.
     #[inline]

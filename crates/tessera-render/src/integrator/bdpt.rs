@@ -404,6 +404,9 @@ fn random_walk(
             break;
         };
         let sp = scene.surface(&hit, origin, dir);
+        // Absorption inside a KHR_materials_volume medium along the segment just traced
+        // (connections between two vertices inside a medium are not attenuated).
+        beta *= scene.transmittance(&sp, dir, hit.t);
         let mut v = Vertex::empty();
         v.kind = Kind::Surface;
         v.p = sp.p;

@@ -72,6 +72,8 @@ pub fn radiance(
         };
         let sp = scene.surface(&hit, origin, dir);
         let wo_world = -dir;
+        // Absorption inside a KHR_materials_volume medium along the segment just traced.
+        beta *= scene.transmittance(&sp, dir, hit.t);
 
         // 2. Emission at the hit, weighted against NEE from the previous vertex.
         if sp.light != crate::geometry::NO_LIGHT {

@@ -274,10 +274,20 @@ pub fn base64(bytes: &[u8]) -> String {
 
 /// Encodes an 8-bit RGB PNG.
 pub fn png_rgb8(width: u32, height: u32, rgb: &[u8]) -> Vec<u8> {
+    png8(width, height, rgb, png::ColorType::Rgb)
+}
+
+/// Encodes an 8-bit RGBA PNG.
+pub fn png_rgba8(width: u32, height: u32, rgba: &[u8]) -> Vec<u8> {
+    png8(width, height, rgba, png::ColorType::Rgba)
+}
+
+/// Encodes an 8-bit PNG of the given colour type.
+fn png8(width: u32, height: u32, rgb: &[u8], color: png::ColorType) -> Vec<u8> {
     let mut out = Vec::new();
     {
         let mut encoder = png::Encoder::new(&mut out, width, height);
-        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_color(color);
         encoder.set_depth(png::BitDepth::Eight);
         let mut writer = encoder.write_header().unwrap();
         writer.write_image_data(rgb).unwrap();
