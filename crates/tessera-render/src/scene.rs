@@ -201,7 +201,7 @@ impl RenderScene {
 
     /// The nearest surface along `origin + t dir` (`0 < t < t_max`) that the ray does not
     /// pass through: alpha-tested triangles (glTF MASK and BLEND) let it through where
-    /// their alpha says so (see [`RenderScene::transparent_at`]).
+    /// their alpha says so (MASK by the cutoff, BLEND with probability `1 - alpha`).
     #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
         if !self.any_alpha {

@@ -14,7 +14,7 @@
 //! - **Geometry** (spec "Meshes"): every primitive of mode `TRIANGLES` becomes one
 //!   [`Mesh`] named `mesh M 'Name' primitive P`, with positions transformed to world space,
 //!   normals transformed by the inverse transpose and renormalized, texture coordinates
-//!   (`TEXCOORD_0`, or the set the base-colour texture names in `texCoord`) and indices
+//!   (every `TEXCOORD_n` the material's textures read) and indices
 //!   (or the implicit `0..n`). When the node's world transform has a negative determinant
 //!   the winding is flipped, so triangles stay counter-clockwise seen from the front (spec
 //!   "Meshes > Overview": the determinant of the global transform defines the winding).
@@ -27,21 +27,44 @@
 //!   that looks down -Z from the +Z side and frames the bounding sphere of the geometry with
 //!   a 45° vertical field of view.
 //! - **Materials** (spec "Materials", "Metallic-Roughness Material", "Default Material"):
-//!   `pbrMetallicRoughness` becomes [`MaterialKind::MetallicRoughness`] with
-//!   `KHR_materials_transmission` (default 0), `KHR_materials_ior` (default 1.5) and the
-//!   `specularFactor` of `KHR_materials_specular` (default 1; its colour factor and
-//!   textures are not read yet).
-//!   Emission is `emissiveFactor` x `KHR_materials_emissive_strength` (default 1),
-//!   interpreted as linear-RGB radiance in W/(m² sr). Primitives without a material use the
-//!   default material (base colour 1, metallic 1, roughness 1). Alpha modes, normal,
-//!   occlusion, emissive and metallic-roughness textures are not used.
-//! - **Textures** (spec "Textures", "Samplers", "Images"): base-colour textures are decoded
-//!   (PNG or JPEG, 8 or 16 bits, grey or colour; alpha is dropped) and converted from sRGB to
-//!   linear with the exact sRGB EOTF of IEC 61966-2-1. Row 0 is the top row of the image,
-//!   which is where glTF puts texture coordinate v = 0. A sampler wrapping with `REPEAT` or
-//!   `MIRRORED_REPEAT` in either direction (or no sampler, which defaults to repeat) gives
-//!   a repeating texture; mirroring is approximated by repetition. Only clamping in both
-//!   directions gives a clamped texture.
+//!   every material becomes a [`GltfMaterial`] ([`MaterialKind::Gltf`]): base colour and
+//!   alpha with `baseColorTexture` (sRGB RGB, linear alpha), `metallicFactor` and
+//!   `roughnessFactor` with `metallicRoughnessTexture` (metalness in B, roughness in G),
+//!   `normalTexture` with its `scale` (tangent space; tangents from `TANGENT`, else
+//!   generated with MikkTSpace as the spec asks, see below), `emissiveTexture` (sRGB)
+//!   multiplying `emissiveFactor` x `KHR_materials_emissive_strength` (emitted radiance
+//!   in W/(m² sr)), and `alphaMode` (`OPAQUE`, `MASK` with `alphaCutoff`, default 0.5,
+//!   or `BLEND`, rendered as stochastic transparency). `occlusionTexture` is read (a broken
+//!   one is an error) and ignored: ambient occlusion approximates, for real-time
+//!   renderers, the shadowing a path tracer computes. Extensions: `KHR_materials_ior`,
+//!   `KHR_materials_specular` (factor, colour, both textures), `KHR_materials_transmission`
+//!   (factor and texture), `KHR_materials_volume` (`attenuationColor` and
+//!   `attenuationDistance` become a Beer–Lambert absorption coefficient
+//!   `σ = -ln(colour) / distance`; `thicknessFactor` and its texture are a real-time
+//!   stand-in for the geometry and are not used), `KHR_materials_clearcoat`,
+//!   `KHR_materials_sheen` (factors and textures), `KHR_materials_emissive_strength` and
+//!   `KHR_materials_unlit` (the base colour, textured, becomes the emission, and the
+//!   surface scatters nothing). Primitives without a material use the default material
+//!   (base colour 1, metallic 1, roughness 1).
+//! - **Textures** (spec "Textures", "Samplers", "Images"): each image is decoded once
+//!   (PNG or JPEG, 8 or 16 bits, grey or colour, with alpha) and kept as the file encodes
+//!   it (8-bit images at 4 bytes a texel); the renderer linearises colour slots with the
+//!   exact sRGB EOTF of IEC 61966-2-1 and reads data slots as linear. Row 0 is the top row
+//!   of the image, which is where glTF puts texture coordinate v = 0. Each texture keeps
+//!   its sampler's `wrapS`/`wrapT` (`REPEAT`, `MIRRORED_REPEAT`, `CLAMP_TO_EDGE`, exactly)
+//!   and `magFilter` (`NEAREST`, else bilinear). Each texture reference keeps its
+//!   `texCoord` and `KHR_texture_transform` (offset, rotation, scale, and its `texCoord`
+//!   override); every `TEXCOORD_n` a material's textures name is imported.
+//! - **Tangents**: `TANGENT` when the primitive has it, else MikkTSpace (Mikkelsen 2008,
+//!   the `bevy_mikktspace` crate, a safe port of the reference code) per triangle corner,
+//!   fed with `(u, 1 - v)` so that, as in Blender, the bitangent `cross(n, t) w` points up
+//!   the image (the normal map's +Y, green). Only primitives with a normal map get them.
+//! - **Extensions** ([`SUPPORTED_EXTENSIONS`]): a file whose `extensionsRequired` names
+//!   anything else is refused with the names; an unknown extension that is only used
+//!   becomes a warning in [`Scene::warnings`], which the render plan repeats.
+//!   `KHR_mesh_quantization` needs nothing more (integer and normalized attributes are
+//!   read as the spec's accessor rules say); `EXT_mesh_gpu_instancing` places the mesh at
+//!   every instance's `T * R * S` under the node.
 //! - **Lights** (`KHR_lights_punctual`): point, spot and directional lights at their nodes'
 //!   world positions, pointing along their nodes' world -Z. The extension gives photometric
 //!   quantities: point and spot intensity in candela (lm/sr), directional illuminance in lux
@@ -92,7 +115,7 @@ pub use extensions::SUPPORTED_EXTENSIONS;
 pub use lights::{photometric_to_radiometric, LUMINOUS_EFFICACY};
 
 #[cfg(doc)]
-use crate::MaterialKind;
+use crate::{GltfMaterial, MaterialKind};
 use crate::{Image, Mesh, Scene, SceneError, Texture, MAX_INPUT_BYTES};
 use camera::default_resolution;
 use container::{parse_json, read_capped, split_glb, BaseDir, ReadError};
