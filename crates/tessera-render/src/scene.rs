@@ -4,7 +4,8 @@
 
 use crate::bsdf::{
     diffuse::Diffuse,
-    microfacet::{Conductor, GltfDielectric, MIN_ALPHA},
+    gltf::{gltf_bsdf, GltfParams},
+    microfacet::{Conductor, MIN_ALPHA},
     phong::Phong,
     specular::{Glass, Mirror},
     Bsdf, Lobe,
@@ -300,31 +301,15 @@ impl RenderScene {
                 if let Some(t) = base_color_texture {
                     base *= self.texture(t.texture, sp.uv);
                 }
-                let alpha = (roughness * roughness).max(MIN_ALPHA);
-                let f0 = ((ior - 1.0) / (ior + 1.0)).powi(2);
-                let dielectric = 1.0 - metallic;
-                // glTF 2.0 appendix B: mix(dielectric, metal, metallic); the transmissive share
-                // of the dielectric is a glass interface (KHR_materials_transmission; treated
-                // as solid glass, with its own Fresnel reflection, tinted by the base colour).
-                Bsdf::mixture(&[
-                    (Lobe::Conductor(Conductor { f0: base, alpha }), *metallic),
-                    (
-                        Lobe::GltfDielectric(GltfDielectric {
-                            base,
-                            alpha,
-                            f0,
-                            specular: *specular,
-                        }),
-                        dielectric * (1.0 - transmission),
-                    ),
-                    (
-                        Lobe::Glass(Glass {
-                            eta: *ior,
-                            tint: base,
-                        }),
-                        dielectric * transmission,
-                    ),
-                ])
+                gltf_bsdf(&GltfParams {
+                    base_color: base,
+                    metallic: *metallic,
+                    roughness: *roughness,
+                    transmission: *transmission,
+                    ior: *ior,
+                    specular: *specular,
+                    ..GltfParams::default()
+                })
             }
         }
     }
