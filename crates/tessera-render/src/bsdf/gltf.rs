@@ -433,9 +433,7 @@ impl GltfLobe {
         }
         let w = self.select(wo);
         // The last component with a weight takes the rounding remainder of the sum.
-        let Some(last) = w.iter().rposition(|&x| x > 0.0) else {
-            return None;
-        };
+        let last = w.iter().rposition(|&x| x > 0.0)?;
         let (mut k, mut lo) = (last, 0.0);
         for (i, &wi) in w.iter().enumerate() {
             if wi > 0.0 && (u1 < lo + wi || i == last) {
