@@ -209,8 +209,14 @@ impl GltfLobe {
         let r0 = ((ior - 1.0) / (ior + 1.0)).powi(2);
         let f0 = (r0 * p.specular_color.max(Vec3::ZERO)).min(Vec3::ONE) * specular;
         let f90 = if ior > 1.0 { specular } else { 0.0 };
-        let (a_avg, b_avg) = ggx_albedo_average(alpha);
-        let one_minus_e_avg = (Vec3::ONE - (f0 * a_avg + Vec3::splat(f90 * b_avg))).max(Vec3::ZERO);
+        let opaque = (1.0 - metal) * (1.0 - transmission);
+        // The tables are only touched when a specular layer lies over a diffuse base.
+        let one_minus_e_avg = if opaque > 0.0 && (f0 != Vec3::ZERO || f90 > 0.0) {
+            let (a_avg, b_avg) = ggx_albedo_average(alpha);
+            (Vec3::ONE - (f0 * a_avg + Vec3::splat(f90 * b_avg))).max(Vec3::ZERO)
+        } else {
+            Vec3::ONE
+        };
         let sheen_color = p.sheen_color.clamp(Vec3::ZERO, Vec3::ONE);
         let sheen = Sheen::new(sheen_color, p.sheen_roughness);
         // The albedo table is looked up at the roughness the lobe uses.
@@ -219,7 +225,7 @@ impl GltfLobe {
             base,
             alpha,
             metal,
-            opaque: (1.0 - metal) * (1.0 - transmission),
+            opaque,
             transmit: (1.0 - metal) * transmission,
             f0,
             f90,

@@ -788,6 +788,37 @@ fn chi2_rejects_mismatched_pdfs() {
         (Vec3::Z, 1.0),
         |wi| claimed.pdf(wo, wi.as_vec3()) as f64,
     ));
+    // Rough glass sampled at η = 1.5 against the density of η = 1.6, on the transmitted
+    // hemisphere (a wrong refraction Jacobian or index looks like this), from outside and
+    // from inside; and the layered glTF lobe against the same lobe with a stronger coat
+    // (its selection probabilities shift).
+    let glass = |eta| Bsdf::single(rough_glass(eta, 0.3));
+    let (sampled, claimed) = (glass(1.5), glass(1.6));
+    for (name, wo) in [
+        ("control rough glass eta 1.5 vs 1.6", wo),
+        ("control rough glass eta 1.5 vs 1.6 inside", dir(20.0, true)),
+    ] {
+        let far = if wo.z > 0.0 { -Vec3::Z } else { Vec3::Z };
+        reject(chi2_bsdf(name, &cfg, &sampled, wo, (far, 1.0), |wi| {
+            claimed.pdf(wo, wi.as_vec3()) as f64
+        }));
+    }
+    let coated = |clearcoat| {
+        Bsdf::single(gltf_lobe(GltfParams {
+            clearcoat,
+            clearcoat_roughness: 0.2,
+            ..dielectric_params(0.5, 0.5)
+        }))
+    };
+    let (sampled, claimed) = (coated(0.6), coated(1.0));
+    reject(chi2_bsdf(
+        "control gltf clearcoat 0.6 vs 1",
+        &cfg,
+        &sampled,
+        wo,
+        (Vec3::Z, 1.0),
+        |wi| claimed.pdf(wo, wi.as_vec3()) as f64,
+    ));
     // Phong 500 sampled against the reference of exponent 550 (the path of the sharpest
     // lobes in the family).
     let sampled = Bsdf::single(phong(0.0, 0.9, 500.0));
