@@ -3,8 +3,10 @@
 //! threads.
 
 use crate::bsdf::{
+    dielectric::RoughDielectric,
     diffuse::Diffuse,
-    microfacet::{Conductor, GltfDielectric, MIN_ALPHA},
+    gltf::{gltf_bsdf, GltfParams},
+    microfacet::{Conductor, MIN_ALPHA},
     phong::Phong,
     specular::{Glass, Mirror},
     Bsdf, Lobe,
@@ -499,10 +501,25 @@ impl RenderScene {
             MaterialKind::Mirror { reflectance } => Bsdf::single(Lobe::Mirror(Mirror {
                 reflectance: *reflectance,
             })),
-            MaterialKind::Dielectric { ior, tint, .. } => Bsdf::single(Lobe::Glass(Glass {
-                eta: *ior,
-                tint: *tint,
-            })),
+            MaterialKind::Dielectric {
+                ior,
+                roughness,
+                tint,
+            } => {
+                let alpha = roughness * roughness;
+                if alpha < MIN_ALPHA {
+                    Bsdf::single(Lobe::Glass(Glass {
+                        eta: *ior,
+                        tint: *tint,
+                    }))
+                } else {
+                    Bsdf::single(Lobe::RoughDielectric(RoughDielectric {
+                        eta: *ior,
+                        alpha,
+                        tint: *tint,
+                    }))
+                }
+            }
             MaterialKind::Gltf(g) => gltf_bsdf(&self.gltf_params(g, sp)),
         }
     }
@@ -534,7 +551,8 @@ impl RenderScene {
             clearcoat_roughness: g.clearcoat_roughness
                 * self.tex(sp, &g.clearcoat_roughness_texture, false).y,
             sheen_color: g.sheen_color * self.tex(sp, &g.sheen_color_texture, true).truncate(),
-            sheen_roughness: g.sheen_roughness * self.tex(sp, &g.sheen_roughness_texture, false).w,
+            sheen_roughness: g.sheen_roughness
+                * self.tex(sp, &g.sheen_roughness_texture, false).w,
         }
     }
 }
@@ -646,76 +664,4 @@ fn mean_emission_scale(
         }
     }
     sum / (N * N) as f32
-}
-
-/// glTF material parameters at one surface point (factors times texture values).
-#[derive(Clone, Copy, Debug)]
-pub struct GltfParams {
-    /// Base colour, linear RGB.
-    pub base_color: Vec3,
-    /// Metalness.
-    pub metallic: f32,
-    /// Perceptual roughness.
-    pub roughness: f32,
-    /// Index of refraction.
-    pub ior: f32,
-    /// KHR_materials_specular factor.
-    pub specular: f32,
-    /// KHR_materials_specular colour.
-    pub specular_color: Vec3,
-    /// KHR_materials_transmission factor.
-    pub transmission: f32,
-    /// KHR_materials_clearcoat factor.
-    pub clearcoat: f32,
-    /// KHR_materials_clearcoat roughness.
-    pub clearcoat_roughness: f32,
-    /// KHR_materials_sheen colour.
-    pub sheen_color: Vec3,
-    /// KHR_materials_sheen roughness.
-    pub sheen_roughness: f32,
-}
-
-impl Default for GltfParams {
-    fn default() -> Self {
-        Self {
-            base_color: Vec3::ONE,
-            metallic: 1.0,
-            roughness: 1.0,
-            ior: 1.5,
-            specular: 1.0,
-            specular_color: Vec3::ONE,
-            transmission: 0.0,
-            clearcoat: 0.0,
-            clearcoat_roughness: 0.0,
-            sheen_color: Vec3::ZERO,
-            sheen_roughness: 0.0,
-        }
-    }
-}
-
-/// The glTF BSDF (temporary: the core model without clearcoat and sheen).
-fn gltf_bsdf(p: &GltfParams) -> Bsdf {
-    let base = p.base_color;
-    let alpha = (p.roughness * p.roughness).max(MIN_ALPHA);
-    let f0 = ((p.ior - 1.0) / (p.ior + 1.0)).powi(2);
-    let dielectric = 1.0 - p.metallic;
-    Bsdf::mixture(&[
-        (Lobe::Conductor(Conductor { f0: base, alpha }), p.metallic),
-        (
-            Lobe::GltfDielectric(GltfDielectric {
-                base,
-                alpha,
-                f0,
-                specular: p.specular,
-            }),
-            dielectric * (1.0 - p.transmission),
-        ),
-        (
-            Lobe::Glass(Glass {
-                eta: p.ior,
-                tint: base,
-            }),
-            dielectric * p.transmission,
-        ),
-    ])
 }

@@ -22,12 +22,18 @@
 //! surface (the frame is mirrored when `wo` is below), glass distinguishes inside from
 //! outside by the sign of `wo.z`.
 //!
-//! One file per lobe: [`diffuse`], [`phong`], [`microfacet`] (GGX conductor and the glTF
-//! dielectric base), [`specular`] (mirror and smooth dielectric).
+//! One file per lobe: [`diffuse`], [`phong`], [`microfacet`] (GGX conductor),
+//! [`dielectric`] (rough glass), [`specular`] (mirror and smooth glass), [`sheen`], and
+//! [`gltf`], the layered glTF material built from them, with its albedo tables in
+//! [`albedo`].
 
+pub mod albedo;
+pub mod dielectric;
 pub mod diffuse;
+pub mod gltf;
 pub mod microfacet;
 pub mod phong;
+pub mod sheen;
 pub mod specular;
 
 use glam::{Vec2, Vec3};
@@ -56,8 +62,11 @@ pub enum Lobe {
     Phong(phong::Phong),
     /// GGX rough conductor with Schlick's Fresnel.
     Conductor(microfacet::Conductor),
-    /// glTF dielectric base: diffuse under a GGX specular layer, mixed by Fresnel.
-    GltfDielectric(microfacet::GltfDielectric),
+    /// GGX rough dielectric interface: reflection and refraction.
+    RoughDielectric(dielectric::RoughDielectric),
+    /// The layered glTF material (metal, specular over diffuse, transmission, clearcoat,
+    /// sheen); may contain a delta transmission component.
+    Gltf(gltf::GltfLobe),
     /// Ideal mirror.
     Mirror(specular::Mirror),
     /// Smooth dielectric interface with Fresnel and total internal reflection.
@@ -68,13 +77,22 @@ impl Lobe {
     /// Lobes that only reflect scatter on both sides of a surface.
     #[inline]
     fn is_opaque(&self) -> bool {
-        !matches!(self, Lobe::Glass(_))
+        match self {
+            Lobe::Glass(_) | Lobe::RoughDielectric(_) => false,
+            Lobe::Gltf(g) => !g.transmits(),
+            _ => true,
+        }
     }
 
-    /// True if the lobe is a Dirac delta distribution.
+    /// True if the lobe is a Dirac delta distribution (a lobe with delta and non-delta
+    /// components, [`Lobe::Gltf`], is not; its delta samples say so themselves).
     #[inline]
     pub fn is_delta(&self) -> bool {
-        matches!(self, Lobe::Mirror(_) | Lobe::Glass(_))
+        match self {
+            Lobe::Mirror(_) | Lobe::Glass(_) => true,
+            Lobe::Gltf(g) => g.is_pure_delta(),
+            _ => false,
+        }
     }
 
     #[inline]
@@ -83,7 +101,8 @@ impl Lobe {
             Lobe::Diffuse(l) => l.eval(wo, wi),
             Lobe::Phong(l) => l.eval(wo, wi),
             Lobe::Conductor(l) => l.eval(wo, wi),
-            Lobe::GltfDielectric(l) => l.eval(wo, wi),
+            Lobe::RoughDielectric(l) => l.eval(wo, wi),
+            Lobe::Gltf(l) => l.eval(wo, wi),
             Lobe::Mirror(_) | Lobe::Glass(_) => Vec3::ZERO,
         }
     }
@@ -94,22 +113,31 @@ impl Lobe {
             Lobe::Diffuse(l) => l.pdf(wo, wi),
             Lobe::Phong(l) => l.pdf(wo, wi),
             Lobe::Conductor(l) => l.pdf(wo, wi),
-            Lobe::GltfDielectric(l) => l.pdf(wo, wi),
+            Lobe::RoughDielectric(l) => l.pdf(wo, wi),
+            Lobe::Gltf(l) => l.pdf(wo, wi),
             Lobe::Mirror(_) | Lobe::Glass(_) => 0.0,
         }
     }
 
-    /// Samples `wi`; returns (wi, weight f|cos|/pdf, pdf).
+    /// Samples `wi`: the direction, weight `f|cos|/pdf`, pdf (a probability for a delta
+    /// sample) and whether the sample is a delta one.
     #[inline]
-    fn sample(&self, wo: Vec3, u1: f32, u2: Vec2) -> Option<(Vec3, Vec3, f32)> {
-        match self {
+    fn sample(&self, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+        let (wi, weight, pdf) = match self {
             Lobe::Diffuse(l) => l.sample(wo, u2),
             Lobe::Phong(l) => l.sample(wo, u1, u2),
             Lobe::Conductor(l) => l.sample(wo, u2),
-            Lobe::GltfDielectric(l) => l.sample(wo, u1, u2),
+            Lobe::RoughDielectric(l) => l.sample(wo, u1, u2),
+            Lobe::Gltf(l) => return l.sample(wo, u1, u2),
             Lobe::Mirror(l) => l.sample(wo),
             Lobe::Glass(l) => l.sample(wo, u1),
-        }
+        }?;
+        Some(BsdfSample {
+            wi,
+            weight,
+            pdf,
+            delta: self.is_delta(),
+        })
     }
 }
 
@@ -165,13 +193,18 @@ impl Bsdf {
         self.lobes[..self.count].iter().any(|l| !l.is_delta())
     }
 
-    /// The relative index of refraction (inside over outside) of the smooth dielectric lobe,
-    /// if the mixture has one. Light tracing needs it: radiance crossing the interface is
-    /// scaled by `(η_i/η_t)²` in [`Bsdf::sample`], importance (and power) is not (pbrt 3rd
-    /// ed. §16.1.3, non-symmetric scattering due to refraction).
+    /// The relative index of refraction (inside over outside) of the smooth dielectric lobe
+    /// (or of a glTF lobe's transmission), if the mixture has one. Light tracing needs it
+    /// for delta refraction samples: radiance crossing the interface is scaled by
+    /// `(η_i/η_t)²` in [`Bsdf::sample`], importance (and power) is not (pbrt 3rd ed.
+    /// §16.1.3, non-symmetric scattering due to refraction). Rough refraction needs nothing:
+    /// its `eval` is the radiance BTDF, whose adjoint `f(wi, wo)` is the importance BTDF
+    /// (see [`dielectric`]).
     pub fn glass_eta(&self) -> Option<f32> {
         self.lobes[..self.count].iter().find_map(|l| match l {
             Lobe::Glass(g) => Some(g.eta),
+            Lobe::RoughDielectric(g) => Some(g.eta),
+            Lobe::Gltf(g) => g.eta(),
             _ => None,
         })
     }
@@ -224,9 +257,14 @@ impl Bsdf {
         let u1 = ((u1 - lo) / w).clamp(0.0, 1.0 - f32::EPSILON);
         let lobe = &self.lobes[idx];
         let flip = lobe.is_opaque() && wo.z < 0.0;
-        let (wi, weight, pdf) = lobe.sample(flip_z(wo, flip), u1, u2)?;
+        let BsdfSample {
+            wi,
+            weight,
+            pdf,
+            delta,
+        } = lobe.sample(flip_z(wo, flip), u1, u2)?;
         let wi = flip_z(wi, flip);
-        if lobe.is_delta() {
+        if delta {
             // f_mix / p_mix = (w f) / (w p): the mixture weight cancels.
             return Some(BsdfSample {
                 wi,

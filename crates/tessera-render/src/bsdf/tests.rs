@@ -13,8 +13,11 @@
 //! - **Delta lobes**: mirror directions, the Fresnel split of glass, Snell's law, total
 //!   internal reflection and the radiance scaling `1/η²` of refraction.
 
+use super::albedo::{ggx_albedo, ggx_albedo_reference, sheen_albedo, sheen_albedo_reference};
+use super::dielectric::RoughDielectric;
 use super::diffuse::Diffuse;
-use super::microfacet::{Conductor, GltfDielectric};
+use super::gltf::{gltf_bsdf, GltfLobe, GltfParams};
+use super::microfacet::Conductor;
 use super::phong::Phong;
 use super::specular::{Glass, Mirror};
 use super::{fresnel_dielectric, fresnel_schlick, Bsdf, Lobe};
@@ -65,18 +68,52 @@ fn conductor(f0: Vec3, alpha: f32) -> Lobe {
     Lobe::Conductor(Conductor { f0, alpha })
 }
 
+/// A glTF dielectric (metallic 0, ior 1.5) of grey `base` and GGX `alpha`.
+fn dielectric_params(base: f32, alpha: f32) -> GltfParams {
+    GltfParams {
+        base_color: Vec3::splat(base),
+        metallic: 0.0,
+        roughness: alpha.sqrt(),
+        ..GltfParams::default()
+    }
+}
+
+/// The layered glTF lobe of `p` (never one of [`gltf_bsdf`]'s built-in shortcuts).
+fn gltf_lobe(p: GltfParams) -> Lobe {
+    Lobe::Gltf(GltfLobe::new(&p))
+}
+
 fn gltf(base: f32, alpha: f32) -> Lobe {
     gltf_specular(base, alpha, 1.0)
 }
 
 /// The glTF dielectric with a KHR_materials_specular factor.
 fn gltf_specular(base: f32, alpha: f32, specular: f32) -> Lobe {
-    Lobe::GltfDielectric(GltfDielectric {
-        base: Vec3::splat(base),
-        alpha,
-        f0: 0.04,
+    gltf_lobe(GltfParams {
         specular,
+        ..dielectric_params(base, alpha)
     })
+}
+
+/// A coloured base, to exercise the channels.
+const TEAL: Vec3 = Vec3::new(0.2, 0.6, 0.5);
+
+/// The rough dielectric interface alone.
+fn rough_glass(eta: f32, alpha: f32) -> Lobe {
+    Lobe::RoughDielectric(RoughDielectric {
+        eta,
+        alpha,
+        tint: Vec3::new(1.0, 0.9, 0.8),
+    })
+}
+
+/// The refracted direction of `w` through the macro-surface of relative index `eta`
+/// (inside over outside), `None` under total internal reflection: the centre of the
+/// transmission lobes.
+fn refracted(w: Vec3, eta: f32) -> Option<Vec3> {
+    let e = if w.z > 0.0 { eta } else { 1.0 / eta };
+    let sin2_t = (1.0 - w.z * w.z) / (e * e);
+    (sin2_t < 1.0).then(|| Vec3::new(-w.x / e, -w.y / e, -(1.0 - sin2_t).sqrt() * w.z.signum()))
 }
 
 /// `cos` of a cone about the mirror direction holding all but ~1e-3 of a Phong lobe of
@@ -100,6 +137,8 @@ struct Case {
     /// For lobes too narrow for hemisphere-wide bins: a cap `(axis, 1 - cos Θ)` about the
     /// mirror direction holding the peak, clipped at the horizon.
     cap: Option<(Vec3, f64)>,
+    /// The same about the refracted direction, for narrow transmission lobes.
+    tcap: Option<(Vec3, f64)>,
 }
 
 impl Case {
@@ -122,7 +161,51 @@ impl Case {
             bsdf,
             wo,
             cap,
+            tcap: None,
         }
+    }
+
+    /// Adds, for a transmission lobe narrower than 70°, a cap about the refracted
+    /// direction (the lobe widens by up to `1/η` when it leaves the denser side).
+    fn with_transmission(mut self, eta: f32, alpha: f32) -> Self {
+        if let Some(axis) = refracted(self.wo, eta) {
+            let e = if self.wo.z > 0.0 { eta } else { 1.0 / eta };
+            let angle = 2.0 * (3.0 * alpha as f64).atan() / (e as f64).min(1.0);
+            if angle < 70f64.to_radians() {
+                let elevation = (axis.z.abs() as f64).asin();
+                self.tcap = Some((axis, 1.0 - angle.min(elevation).cos()));
+            }
+        }
+        self
+    }
+}
+
+/// True if some lobe of `b` transmits (its samples may leave `wo`'s hemisphere).
+fn transmits(b: &Bsdf) -> bool {
+    b.lobes[..b.count].iter().any(|l| !l.is_opaque())
+}
+
+/// True if the f64 reference densities below cover every lobe of `b` (the layered glTF
+/// lobe is tested against its own `pdf` only).
+fn has_reference(b: &Bsdf) -> bool {
+    !b.lobes[..b.count]
+        .iter()
+        .any(|l| matches!(l, Lobe::Gltf(_)))
+}
+
+/// Every glTF extension at once over a partly metallic, partly transmissive base.
+fn everything() -> GltfParams {
+    GltfParams {
+        base_color: TEAL,
+        metallic: 0.3,
+        roughness: 0.2,
+        transmission: 0.5,
+        ior: 1.4,
+        clearcoat: 0.5,
+        clearcoat_roughness: 0.45,
+        sheen_color: Vec3::new(0.5, 0.4, 0.3),
+        sheen_roughness: 0.5,
+        ..GltfParams::default()
     }
 }
 
@@ -173,6 +256,82 @@ fn cases() -> Vec<Case> {
             wo,
             Some(ggx_cap(0.3)),
         ));
+        // Rough dielectric interface (Walter et al. 2007): reflection and refraction.
+        for (eta, alpha) in [(1.5, 0.1), (1.5, 0.4), (1.33, 0.7)] {
+            cases.push(
+                Case::new(
+                    format!("rough glass eta {eta} alpha {alpha} wo {theta}"),
+                    single(rough_glass(eta, alpha)),
+                    wo,
+                    Some(ggx_cap(alpha)),
+                )
+                .with_transmission(eta, alpha),
+            );
+        }
+        // The layered glTF lobe: KHR_materials_transmission, _clearcoat, _sheen,
+        // _specular (colour), and all of them over a partly metallic base.
+        let layered: [(&str, GltfParams, Option<f32>); 6] = [
+            (
+                "gltf transmission alpha 0.2",
+                GltfParams {
+                    base_color: TEAL,
+                    transmission: 1.0,
+                    ..dielectric_params(0.0, 0.2)
+                },
+                Some(ggx_cap(0.2)),
+            ),
+            (
+                "gltf clearcoat over base 0.5 alpha 0.5",
+                GltfParams {
+                    clearcoat: 1.0,
+                    clearcoat_roughness: 0.1,
+                    ..dielectric_params(0.5, 0.5)
+                },
+                Some(ggx_cap(0.01)),
+            ),
+            (
+                "gltf clearcoat over gold alpha 0.3",
+                GltfParams {
+                    base_color: GOLD,
+                    metallic: 1.0,
+                    roughness: 0.3f32.sqrt(),
+                    clearcoat: 0.8,
+                    clearcoat_roughness: 0.3,
+                    ..GltfParams::default()
+                },
+                Some(ggx_cap(0.09)),
+            ),
+            (
+                "gltf sheen 0.3 over teal alpha 0.5",
+                GltfParams {
+                    base_color: TEAL,
+                    sheen_color: Vec3::new(0.9, 0.7, 0.5),
+                    sheen_roughness: 0.3,
+                    ..dielectric_params(0.0, 0.5)
+                },
+                None,
+            ),
+            (
+                "gltf sheen 1 specular colour ior 1.8",
+                GltfParams {
+                    base_color: TEAL,
+                    ior: 1.8,
+                    specular_color: Vec3::new(1.0, 0.5, 0.2),
+                    sheen_color: Vec3::splat(0.8),
+                    sheen_roughness: 1.0,
+                    ..dielectric_params(0.0, 0.3)
+                },
+                Some(ggx_cap(0.3)),
+            ),
+            ("gltf everything", everything(), Some(ggx_cap(0.04))),
+        ];
+        for (name, p, cap) in layered {
+            let mut case = Case::new(format!("{name} wo {theta}"), single(gltf_lobe(p)), wo, cap);
+            if p.transmission > 0.0 {
+                case = case.with_transmission(p.ior, p.roughness * p.roughness);
+            }
+            cases.push(case);
+        }
         // Two and three lobes: the mixture pdf is the weighted sum (one-sample MIS).
         cases.push(Case::new(
             format!("mix conductor+gltf wo {theta}"),
@@ -226,6 +385,50 @@ fn cases() -> Vec<Case> {
         ]),
         below,
         None,
+    ));
+    // Transmission from inside: below and beyond the critical angle 41.8° of η = 1.5
+    // (rough microfacets still let some light out there).
+    for theta in [0.0, 30.0, 60.0] {
+        cases.push(
+            Case::new(
+                format!("rough glass eta 1.5 alpha 0.3 wo below {theta}"),
+                Bsdf::single(rough_glass(1.5, 0.3)),
+                dir(theta, true),
+                Some(ggx_cap(0.3)),
+            )
+            .with_transmission(1.5, 0.3),
+        );
+    }
+    cases.push(
+        Case::new(
+            "rough glass eta 1.33 alpha 0.1 wo below 20".into(),
+            Bsdf::single(rough_glass(1.33, 0.1)),
+            dir(20.0, true),
+            Some(ggx_cap(0.1)),
+        )
+        .with_transmission(1.33, 0.1),
+    );
+    for theta in [30.0, 60.0] {
+        let p = everything();
+        cases.push(
+            Case::new(
+                format!("gltf everything wo below {theta}"),
+                Bsdf::single(gltf_lobe(p)),
+                dir(theta, true),
+                Some(ggx_cap(0.04)),
+            )
+            .with_transmission(p.ior, p.roughness * p.roughness),
+        );
+    }
+    cases.push(Case::new(
+        "gltf clearcoat over base 0.5 alpha 0.5 wo below".into(),
+        Bsdf::single(gltf_lobe(GltfParams {
+            clearcoat: 1.0,
+            clearcoat_roughness: 0.1,
+            ..dielectric_params(0.5, 0.5)
+        })),
+        below,
+        Some(ggx_cap(0.01)),
     ));
     // A mixture with a delta lobe: the mirror samples are not in the density (the harness
     // sees them as invalid), so the pdf integrates to the diffuse weight 0.6.
@@ -360,7 +563,7 @@ impl CapBins {
 
 /// Chi-squared test of sampling `bsdf` at `wo` against `pdf` (a density of world
 /// directions, evaluated in f64) on the cap `(axis, h)`; `h = 1` is the hemisphere of
-/// `axis`, which must then hold every valid sample.
+/// `axis`, which must then hold every valid sample (unless the BSDF transmits).
 ///
 /// On a proper cap, the test is conditioned on it: samples outside count as invalid and
 /// the pdf integrates to the probability of the cap (the harness checks that the fraction of
@@ -374,7 +577,8 @@ fn chi2_bsdf(
     pdf: impl Fn(DVec3) -> f64,
 ) -> Result<Chi2Report, String> {
     let bins = CapBins::new(axis, h);
-    let hemisphere = h >= 1.0;
+    // A transmitting BSDF samples both hemispheres: each is then a conditioned region.
+    let hemisphere = h >= 1.0 && !transmits(bsdf);
     chi2_plane(
         name,
         cfg,
@@ -413,9 +617,23 @@ fn chi2_tests(cases: &[Case]) -> Vec<Chi2Test<'_>> {
             case: c,
             bins: (up, 1.0),
         });
+        if transmits(&c.bsdf) {
+            tests.push(Chi2Test {
+                name: format!("{} (far hemisphere)", c.name),
+                case: c,
+                bins: (-up, 1.0),
+            });
+        }
         if let Some(cap) = c.cap {
             tests.push(Chi2Test {
                 name: format!("{} (cap h {:.4})", c.name, cap.1),
+                case: c,
+                bins: cap,
+            });
+        }
+        if let Some(cap) = c.tcap {
+            tests.push(Chi2Test {
+                name: format!("{} (refraction cap h {:.4})", c.name, cap.1),
                 case: c,
                 bins: cap,
             });
@@ -570,6 +788,37 @@ fn chi2_rejects_mismatched_pdfs() {
         (Vec3::Z, 1.0),
         |wi| claimed.pdf(wo, wi.as_vec3()) as f64,
     ));
+    // Rough glass sampled at η = 1.5 against the density of η = 1.6, on the transmitted
+    // hemisphere (a wrong refraction Jacobian or index looks like this), from outside and
+    // from inside; and the layered glTF lobe against the same lobe with a stronger coat
+    // (its selection probabilities shift).
+    let glass = |eta| Bsdf::single(rough_glass(eta, 0.3));
+    let (sampled, claimed) = (glass(1.5), glass(1.6));
+    for (name, wo) in [
+        ("control rough glass eta 1.5 vs 1.6", wo),
+        ("control rough glass eta 1.5 vs 1.6 inside", dir(20.0, true)),
+    ] {
+        let far = if wo.z > 0.0 { -Vec3::Z } else { Vec3::Z };
+        reject(chi2_bsdf(name, &cfg, &sampled, wo, (far, 1.0), |wi| {
+            claimed.pdf(wo, wi.as_vec3()) as f64
+        }));
+    }
+    let coated = |clearcoat| {
+        Bsdf::single(gltf_lobe(GltfParams {
+            clearcoat,
+            clearcoat_roughness: 0.2,
+            ..dielectric_params(0.5, 0.5)
+        }))
+    };
+    let (sampled, claimed) = (coated(0.6), coated(1.0));
+    reject(chi2_bsdf(
+        "control gltf clearcoat 0.6 vs 1",
+        &cfg,
+        &sampled,
+        wo,
+        (Vec3::Z, 1.0),
+        |wi| claimed.pdf(wo, wi.as_vec3()) as f64,
+    ));
     // Phong 500 sampled against the reference of exponent 550 (the path of the sharpest
     // lobes in the family).
     let sampled = Bsdf::single(phong(0.0, 0.9, 500.0));
@@ -645,20 +894,8 @@ fn reference_lobe_pdf(lobe: &Lobe, wo: DVec3, wi: DVec3) -> f64 {
             pd * ref_cosine(wi) + (1.0 - pd) * spec
         }
         Lobe::Conductor(c) => ref_ggx_reflection(wo, wi, c.alpha as f64),
-        Lobe::GltfDielectric(g) => {
-            // Specular chosen with the Schlick Fresnel weight at cos θo against the
-            // Fresnel-attenuated diffuse albedo, clamped to [0.05, 1].
-            // KHR_materials_specular scales the Fresnel weight; without it the specular
-            // lobe is never chosen.
-            let f0 = g.f0 as f64;
-            let f = g.specular as f64 * (f0 + (1.0 - f0) * (1.0 - wo.z).powi(5));
-            let ps = if g.specular > 0.0 {
-                (f / (f + (1.0 - f) * lum(g.base))).clamp(0.05, 1.0)
-            } else {
-                0.0
-            };
-            ps * ref_ggx_reflection(wo, wi, g.alpha as f64) + (1.0 - ps) * ref_cosine(wi)
-        }
+        // Not reached: these are handled (both sides) or excluded in `reference_pdf`.
+        Lobe::RoughDielectric(_) | Lobe::Gltf(_) => f64::NAN,
         Lobe::Mirror(_) | Lobe::Glass(_) => 0.0,
     }
 }
@@ -666,6 +903,7 @@ fn reference_lobe_pdf(lobe: &Lobe, wo: DVec3, wi: DVec3) -> f64 {
 /// The mixture density: the weighted sum over the lobes; opaque lobes are two-sided (the
 /// frame is mirrored when `wo` is below the surface).
 fn reference_pdf(bsdf: &Bsdf, wo: DVec3, wi: DVec3) -> f64 {
+    let (wo0, wi0) = (wo, wi);
     let flip = |v: DVec3| DVec3::new(v.x, v.y, -v.z);
     let (wo, wi) = if wo.z < 0.0 {
         (flip(wo), flip(wi))
@@ -673,8 +911,59 @@ fn reference_pdf(bsdf: &Bsdf, wo: DVec3, wi: DVec3) -> f64 {
         (wo, wi)
     };
     (0..bsdf.count)
-        .map(|i| bsdf.weights[i] as f64 * reference_lobe_pdf(&bsdf.lobes[i], wo, wi))
+        .map(|i| {
+            let p = match &bsdf.lobes[i] {
+                Lobe::RoughDielectric(d) => ref_rough_dielectric(d, wo0, wi0),
+                lobe => reference_lobe_pdf(lobe, wo, wi),
+            };
+            bsdf.weights[i] as f64 * p
+        })
         .sum()
+}
+
+/// Exact unpolarised Fresnel reflectance, `cos_i > 0` on the side of relative index `eta`
+/// beyond (pbrt 4th ed. eq. 9.6).
+fn ref_fresnel(cos_i: f64, eta: f64) -> f64 {
+    let sin2_t = (1.0 - cos_i * cos_i) / (eta * eta);
+    if sin2_t >= 1.0 {
+        return 1.0;
+    }
+    let cos_t = (1.0 - sin2_t).sqrt();
+    let rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t);
+    let rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t);
+    0.5 * (rs * rs + rp * rp)
+}
+
+/// Density of the rough dielectric (Walter et al. 2007 with visible normals): the VNDF
+/// `D_wo(h) = G1(wo) (wo·h) D(h) / cos θo` times `F / (4 wo·h)` for reflection and
+/// `(1 - F) |wi·h| η² / (wo·h + η wi·h)²` for refraction, `η` seen from `wo`.
+fn ref_rough_dielectric(d: &RoughDielectric, wo: DVec3, wi: DVec3) -> f64 {
+    let flip = |v: DVec3| DVec3::new(v.x, v.y, -v.z);
+    let (wo, wi, eta) = if wo.z < 0.0 {
+        (flip(wo), flip(wi), 1.0 / d.eta as f64)
+    } else {
+        (wo, wi, d.eta as f64)
+    };
+    let a2 = (d.alpha as f64).powi(2);
+    let ggx = |h: DVec3| {
+        let k = h.x * h.x + h.y * h.y + a2 * h.z * h.z;
+        a2 / (PI * k * k)
+    };
+    let tan2 = (wo.x * wo.x + wo.y * wo.y) / (wo.z * wo.z);
+    let g1 = 2.0 / (1.0 + (1.0 + a2 * tan2).sqrt());
+    if wi.z > 0.0 {
+        let h = (wo + wi).normalize();
+        let oh = wo.dot(h);
+        return ref_fresnel(oh, eta) * g1 * ggx(h) / (4.0 * wo.z);
+    }
+    let h = (wo + eta * wi).normalize();
+    let h = if h.z < 0.0 { -h } else { h };
+    let (oh, ih) = (wo.dot(h), wi.dot(h));
+    if oh <= 0.0 || ih >= 0.0 {
+        return 0.0;
+    }
+    let vndf = g1 * oh * ggx(h) / wo.z;
+    (1.0 - ref_fresnel(oh, eta)) * vndf * ih.abs() * eta * eta / (oh + eta * ih).powi(2)
 }
 
 // ---------------------------------------------------------------------------------------
@@ -755,7 +1044,7 @@ fn pdf_matches_reference() {
     // integrates, at sampled directions (where the mass is) and uniform ones (the tails).
     let mut rng = SplitMix64::new(0x9df);
     let mut failures = Vec::new();
-    for c in cases() {
+    for c in cases().into_iter().filter(|c| has_reference(&c.bsdf)) {
         let mut worst = (0.0f64, String::new());
         for i in 0..20_000 {
             let wi = if i % 2 == 0 {
@@ -769,7 +1058,10 @@ fn pdf_matches_reference() {
             };
             let p = c.bsdf.pdf(c.wo, wi) as f64;
             let r = reference_pdf(&c.bsdf, c.wo.as_dvec3(), wi.as_dvec3());
-            let err = (p - r).abs() / (p.abs().max(r.abs()) + 1e-9);
+            // Differences below 1e-6 (far tails, e.g. microfacets seen edge-on, where the
+            // f32 and f64 facing tests decide differently) carry no weight in any bin: a
+            // 16 x 16 bin holds ~0.03 sr, so 1e-6 is 3e-3 of a sample in 100k.
+            let err = (p - r).abs() / (p.abs().max(r.abs()) + 1e-3);
             if err > worst.0 {
                 worst = (err, format!("wi {wi:?}: pdf {p} vs reference {r}"));
             }
@@ -799,18 +1091,47 @@ fn albedo(bsdf: &Bsdf, wo: Vec3, n: usize, rng: &mut SplitMix64) -> (Vec3, Vec3)
     (mean.as_vec3(), (var / n).map(f64::sqrt).as_vec3())
 }
 
-/// `∫ eval(wo, wi) dωi` over the hemisphere of `wo` by the midpoint rule on the square
+/// [`albedo`] of power (importance) rather than radiance: refracted samples have the
+/// radiance scaling `1/η²` undone (as BDPT's light subpaths do), so that the estimate is
+/// the fraction of the incident power scattered, at most one.
+fn power_albedo(bsdf: &Bsdf, wo: Vec3, n: usize, rng: &mut SplitMix64) -> (Vec3, Vec3) {
+    let (mut sum, mut sum2) = (glam::DVec3::ZERO, glam::DVec3::ZERO);
+    let eta = bsdf.glass_eta();
+    for _ in 0..n {
+        let (u1, u2) = uniforms(rng);
+        if let Some(s) = bsdf.sample(wo, u1, u2) {
+            let mut w = s.weight.as_dvec3();
+            if let Some(eta) = eta.filter(|_| s.wi.z * wo.z < 0.0) {
+                let e = if wo.z > 0.0 { eta } else { 1.0 / eta } as f64;
+                w *= e * e;
+            }
+            sum += w;
+            sum2 += w * w;
+        }
+    }
+    let n = n as f64;
+    let mean = sum / n;
+    let var = (sum2 / n - mean * mean).max(glam::DVec3::ZERO);
+    (mean.as_vec3(), (var / n).map(f64::sqrt).as_vec3())
+}
+
+/// `∫ eval(wo, wi) dωi` over the hemisphere of `wo` (both, if the BSDF transmits) by the midpoint rule on the square
 /// map of the chi-squared bins (smooth, so the rule converges like `1/n²`): the directional
 /// albedo computed without any sampling.
 fn albedo_quadrature(bsdf: &Bsdf, wo: Vec3, n: usize) -> Vec3 {
-    let bins = CapBins::new(if wo.z < 0.0 { -Vec3::Z } else { Vec3::Z }, 1.0);
+    let up = if wo.z < 0.0 { -Vec3::Z } else { Vec3::Z };
+    // A transmitting BSDF scatters into both hemispheres.
+    let sides: &[Vec3] = if transmits(bsdf) { &[up, -up] } else { &[up] };
     let mut sum = DVec3::ZERO;
-    for i in 0..n {
-        for j in 0..n {
-            let a = -1.0 + (2 * i + 1) as f64 / n as f64;
-            let b = -1.0 + (2 * j + 1) as f64 / n as f64;
-            let (w, jacobian) = bins.to_world(a, b);
-            sum += bsdf.eval(wo, w.as_vec3()).as_dvec3() * jacobian;
+    for &side in sides {
+        let bins = CapBins::new(side, 1.0);
+        for i in 0..n {
+            for j in 0..n {
+                let a = -1.0 + (2 * i + 1) as f64 / n as f64;
+                let b = -1.0 + (2 * j + 1) as f64 / n as f64;
+                let (w, jacobian) = bins.to_world(a, b);
+                sum += bsdf.eval(wo, w.as_vec3()).as_dvec3() * jacobian;
+            }
         }
     }
     (sum * 4.0 / (n * n) as f64).as_vec3()
@@ -818,17 +1139,12 @@ fn albedo_quadrature(bsdf: &Bsdf, wo: Vec3, n: usize) -> Vec3 {
 
 #[test]
 fn albedo_never_exceeds_one() {
-    // No energy is created: E[weight] <= 1 within 3 standard errors, for every case but the
-    // glTF dielectric (see `gltf_dielectric_energy`).
+    // No energy is created: the scattered fraction of power E[weight] (refraction's radiance
+    // scaling undone) is at most one within 3 standard errors, for every case.
     let mut rng = SplitMix64::new(0xa1bed0);
     let mut failures = Vec::new();
-    let gltf_free = |b: &Bsdf| {
-        !b.lobes[..b.count]
-            .iter()
-            .any(|l| matches!(l, Lobe::GltfDielectric(_)))
-    };
-    for c in cases().into_iter().filter(|c| gltf_free(&c.bsdf)) {
-        let (mean, se) = albedo(&c.bsdf, c.wo, 100_000, &mut rng);
+    for c in cases() {
+        let (mean, se) = power_albedo(&c.bsdf, c.wo, 100_000, &mut rng);
         if (0..3).any(|i| mean[i] > 1.0 + 3.0 * se[i]) {
             failures.push(format!("{}: albedo {mean:?} +- {se:?}", c.name));
         }
@@ -838,23 +1154,26 @@ fn albedo_never_exceeds_one() {
 
 #[test]
 fn gltf_dielectric_energy() {
-    // The glTF 2.0 dielectric `(1 - F(wo·h)) base/π + F(wo·h) spec` (appendix B
-    // fresnel_mix) is what other glTF renderers implement, so we keep it. It attenuates the
-    // diffuse layer by the Fresnel factor of the half vector; at grazing wo, wo·h stays
-    // large, so the diffuse layer keeps most of its albedo while the coating reflects
-    // F(cos θo): the sum can exceed one (1.09 for base 0.9, alpha 0.05 at 75°). Pin down
-    // both facts: no gain up to 40° for bases up to 0.9, and a bounded gain at 75°.
+    // The glTF dielectric's Lambertian base is scaled by what the specular layer does not
+    // reflect (Kulla & Conty 2017), so a white base reflects everything: albedo 1 at every
+    // angle and roughness, up to the interpolation of the albedo table. The spec's
+    // fresnel_mix, which this replaced, reached 1.18 for a white base at 75°. A grey base
+    // reflects less than one.
     let mut rng = SplitMix64::new(0x91f);
     let mut failures = Vec::new();
-    for base in [0.5, 0.9] {
+    for base in [0.5, 0.9, 1.0] {
         for alpha in [0.05, 0.3, 0.8] {
             for theta in ANGLES {
                 let b = Bsdf::single(gltf(base, alpha));
                 let (mean, se) = albedo(&b, dir(theta, false), 100_000, &mut rng);
-                let bound = if theta <= 45.0 { 1.0 } else { 1.12 };
-                if mean.x > bound + 3.0 * se.x {
+                eprintln!(
+                    "gltf base {base} alpha {alpha} wo {theta}: {} +- {}",
+                    mean.x, se.x
+                );
+                let low = if base == 1.0 { 0.99 } else { 0.0 };
+                if mean.x > 1.0 + 3.0 * se.x + 2e-3 || mean.x < low - 3.0 * se.x {
                     failures.push(format!(
-                        "gltf base {base} alpha {alpha} wo {theta}: albedo {} +- {} > {bound}",
+                        "gltf base {base} alpha {alpha} wo {theta}: albedo {} +- {}",
                         mean.x, se.x
                     ));
                 }
@@ -884,7 +1203,7 @@ fn albedo_estimate_matches_quadrature_of_eval() {
         dir(75.0, false),
         None,
     ));
-    for c in cases.iter().filter(|c| c.cap.is_none()) {
+    for c in cases.iter().filter(|c| c.cap.is_none() && c.tcap.is_none()) {
         let (mean, se) = albedo(&c.bsdf, c.wo, 100_000, &mut rng);
         // A mirror lobe adds its mixture weight times its reflectance (not part of eval).
         let b = &c.bsdf;
@@ -994,6 +1313,28 @@ fn reflection_lobes_are_reciprocal() {
         (
             "mixture",
             Bsdf::mixture(&[(conductor(GOLD, 0.2), 0.6), (gltf(0.5, 0.4), 0.4)]),
+        ),
+        // The layered glTF lobe: min(1 - E(μo), 1 - E(μi)) scaling is symmetric.
+        (
+            "gltf clearcoat",
+            Bsdf::single(gltf_lobe(GltfParams {
+                clearcoat: 1.0,
+                clearcoat_roughness: 0.3,
+                ..dielectric_params(0.8, 0.3)
+            })),
+        ),
+        (
+            "gltf sheen",
+            Bsdf::single(gltf_lobe(GltfParams {
+                sheen_color: Vec3::splat(0.9),
+                sheen_roughness: 0.4,
+                ..dielectric_params(0.8, 0.3)
+            })),
+        ),
+        ("gltf everything", Bsdf::single(gltf_lobe(everything()))),
+        (
+            "rough glass reflection",
+            Bsdf::single(rough_glass(1.5, 0.3)),
         ),
     ];
     let mut rng = SplitMix64::new(0x4ec1);
@@ -1214,6 +1555,59 @@ fn fresnel_dielectric_known_values() {
     assert_eq!(fresnel_dielectric(-0.5, eta), 1.0);
 }
 
+#[test]
+fn transmission_is_reciprocal_up_to_eta_squared() {
+    // Radiance BTDFs obey f(wo, wi) η(wi)² = f(wi, wo) η(wo)² (η(w) the index on w's side;
+    // Veach 1997, section 5.2): the adjoint that BDPT's light subpaths evaluate, f(wi, wo),
+    // is then the importance BTDF. For the layered glTF lobe the outside layers scale
+    // both by the same 1 - E(μ_outside).
+    let eta = 1.4;
+    let lobes = [
+        ("rough glass 0.1", Bsdf::single(rough_glass(eta, 0.1))),
+        ("rough glass 0.5", Bsdf::single(rough_glass(eta, 0.5))),
+        ("gltf everything", Bsdf::single(gltf_lobe(everything()))),
+    ];
+    let index = |w: Vec3| if w.z > 0.0 { 1.0 } else { eta };
+    let mut rng = SplitMix64::new(0x7eed);
+    let mut failures = Vec::new();
+    for (name, b) in lobes {
+        let (mut worst, mut nonzero) = ((0.0f32, String::new()), 0);
+        for _ in 0..40_000 {
+            let wo = square_to_uniform_sphere(Vec2::new(rng.next_f32(), rng.next_f32()));
+            let wi = square_to_uniform_sphere(Vec2::new(rng.next_f32(), rng.next_f32()));
+            if wo.z * wi.z >= 0.0 || wo.z.abs() < 0.02 || wi.z.abs() < 0.02 {
+                continue;
+            }
+            let a = b.eval(wo, wi) / wi.z.abs() * index(wi).powi(2);
+            let r = b.eval(wi, wo) / wo.z.abs() * index(wo).powi(2);
+            if a.max_element() > 0.0 {
+                nonzero += 1;
+            }
+            // Values below 1e-4 come from microfacets seen nearly edge-on (`wo·h` or
+            // `wi·h` near 0), whose f32 cosines have few correct digits.
+            if a.max_element().max(r.max_element()) < 1e-4 {
+                continue;
+            }
+            let d = (a - r).abs() / a.abs().max(r.abs());
+            let d = d.max_element();
+            if d > worst.0 {
+                worst = (d, format!("wo {wo:?} wi {wi:?}: {a:?} vs {r:?}"));
+            }
+        }
+        eprintln!(
+            "generalised reciprocity {name}: worst {} ({nonzero} pairs transmit)",
+            worst.0
+        );
+        assert!(nonzero > 1000, "{name}: only {nonzero} transmitting pairs");
+        // f32 rounding of the generalised half vector near edge-on microfacets reaches ~1%;
+        // a missing or misplaced η² would be a factor 1.96.
+        if worst.0 > 2e-2 {
+            failures.push(format!("{name}: {}", worst.1));
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
 /// KHR_materials_specular with `specularFactor` 0 (Blender's Specular IOR Level 0) is the
 /// Lambertian base alone: the same value, density and sample weight as a diffuse lobe of
 /// the base colour, and no Fresnel layer on top (glTF issue report: a 4% coat shifted a
@@ -1221,6 +1615,14 @@ fn fresnel_dielectric_known_values() {
 #[test]
 fn gltf_dielectric_without_specular_is_lambertian() {
     let base = 0.7;
+    // The builder returns the Lambertian lobe itself ...
+    let built = gltf_bsdf(&GltfParams {
+        specular: 0.0,
+        ..dielectric_params(base, 0.3)
+    });
+    assert!(matches!(built.lobes[0], Lobe::Diffuse(d) if d.albedo == Vec3::splat(base)));
+    assert_eq!(built.count, 1);
+    // ... and the layered lobe with the factor 0 is Lambertian too.
     let g = Bsdf::single(gltf_specular(base, 0.3, 0.0));
     let d = Bsdf::single(diffuse(base));
     let mut rng = SplitMix64::new(0x5bec);
@@ -1258,4 +1660,224 @@ fn gltf_dielectric_without_specular_is_lambertian() {
     let coated = Bsdf::single(gltf_specular(base, 0.3, 1.0));
     let (wo, wi) = (dir(80.0, false), mirror(dir(80.0, false)));
     assert!(coated.eval(wo, wi).x > d.eval(wo, wi).x);
+}
+
+// ---------------------------------------------------------------------------------------
+// The glTF material: tables, furnace, builder
+// ---------------------------------------------------------------------------------------
+
+#[test]
+fn albedo_tables_match_quadrature() {
+    // The bilinear tables against the quadrature they were built from, between the nodes
+    // (interpolation error), and the bounds E <= 1 for f0 = f90 = 1.
+    let mut worst = (0.0f32, 0.0f32);
+    for i in 0..40 {
+        let mu = (i as f32 + 0.37) / 40.0;
+        for r in [0.05f32, 0.21, 0.43, 0.66, 0.9] {
+            let alpha = (r * r).max(super::microfacet::MIN_ALPHA);
+            let (a, b) = ggx_albedo(mu, alpha);
+            let (ra, rb) = ggx_albedo_reference(mu, alpha);
+            worst.0 = worst.0.max((a - ra).abs()).max((b - rb).abs());
+            assert!(
+                ra + rb <= 1.0 + 1e-4 && a + b <= 1.0 + 1e-4,
+                "mu {mu} r {r}"
+            );
+            let s = sheen_albedo(mu, r);
+            let rs = sheen_albedo_reference(mu, r);
+            worst.1 = worst.1.max((s - rs).abs());
+        }
+    }
+    eprintln!(
+        "table interpolation error: ggx {}, sheen {}",
+        worst.0, worst.1
+    );
+    assert!(worst.0 < 5e-3, "ggx table error {}", worst.0);
+    assert!(worst.1 < 1e-2, "sheen table error {}", worst.1);
+    // The quadrature itself: a smooth white microsurface reflects nearly everything.
+    let (a, b) = ggx_albedo_reference(0.8, super::microfacet::MIN_ALPHA);
+    assert!((a + b - 1.0).abs() < 2e-3, "{}", a + b);
+}
+
+/// The materials of the white furnace: name, parameters, lowest albedo the model should
+/// keep (0 where single-scattering microfacet loss is expected).
+fn furnace_materials() -> Vec<(String, GltfParams, f32)> {
+    let mut out = Vec::new();
+    let white = |r: f32| GltfParams {
+        metallic: 0.0,
+        roughness: r,
+        ..GltfParams::default()
+    };
+    for r in [0.0, 0.3, 0.6, 1.0] {
+        out.push((format!("dielectric r {r}"), white(r), 0.99));
+        out.push((
+            format!("metal r {r}"),
+            GltfParams {
+                roughness: r,
+                ..GltfParams::default()
+            },
+            0.0,
+        ));
+        out.push((
+            format!("transmission r {r}"),
+            GltfParams {
+                transmission: 1.0,
+                ..white(r)
+            },
+            0.0,
+        ));
+        for cr in [0.0, 0.5] {
+            out.push((
+                format!("clearcoat {cr} over dielectric r {r}"),
+                GltfParams {
+                    clearcoat: 1.0,
+                    clearcoat_roughness: cr,
+                    ..white(r)
+                },
+                0.9,
+            ));
+        }
+        out.push((
+            format!("clearcoat over metal r {r}"),
+            GltfParams {
+                roughness: r,
+                clearcoat: 1.0,
+                clearcoat_roughness: 0.2,
+                ..GltfParams::default()
+            },
+            0.0,
+        ));
+        out.push((
+            format!("clearcoat over transmission r {r}"),
+            GltfParams {
+                transmission: 1.0,
+                clearcoat: 1.0,
+                clearcoat_roughness: 0.2,
+                ..white(r)
+            },
+            0.0,
+        ));
+        for sr in [0.1, 0.5, 1.0] {
+            out.push((
+                format!("sheen {sr} over dielectric r {r}"),
+                GltfParams {
+                    sheen_color: Vec3::ONE,
+                    sheen_roughness: sr,
+                    ..white(r)
+                },
+                0.0,
+            ));
+        }
+    }
+    out
+}
+
+#[test]
+fn gltf_white_furnace() {
+    // White materials under uniform white light: the scattered fraction of power is at
+    // most one (3 standard errors plus the table interpolation error 2e-3) at every
+    // angle from 0° to 89°, and close to one where the model conserves energy (the
+    // dielectric, also under a clearcoat).
+    let mut rng = SplitMix64::new(0xf0_4ace);
+    let mut failures = Vec::new();
+    let angles = [0.0, 20.0, 40.0, 60.0, 75.0, 85.0, 89.0];
+    for (name, p, low) in furnace_materials() {
+        let b = gltf_bsdf(&p);
+        let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
+        // From outside, and from inside for the transmissive ones.
+        let sides: &[bool] = if p.transmission > 0.0 {
+            &[false, true]
+        } else {
+            &[false]
+        };
+        for &below in sides {
+            for theta in angles {
+                let wo = dir(theta, below);
+                let (mean, se) = power_albedo(&b, wo, 60_000, &mut rng);
+                let m = mean.max_element();
+                lo = lo.min(m);
+                hi = hi.max(m);
+                let bound = 1.0 + 3.0 * se.max_element() + 2e-3;
+                let floor = if below {
+                    0.0
+                } else {
+                    low - 3.0 * se.max_element()
+                };
+                if m > bound || m < floor {
+                    failures.push(format!(
+                        "{name} wo {theta} below {below}: albedo {mean:?} +- {se:?}"
+                    ));
+                }
+            }
+        }
+        eprintln!("furnace {name}: albedo in [{lo:.4}, {hi:.4}]");
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+#[test]
+fn gltf_builder_shortcuts_and_delta_transmission() {
+    // Plain metal and plain smooth glass are the built-in lobes.
+    let metal = gltf_bsdf(&GltfParams {
+        base_color: GOLD,
+        roughness: 0.5,
+        ..GltfParams::default()
+    });
+    assert!(matches!(metal.lobes[0], Lobe::Conductor(c) if c.f0 == GOLD && c.alpha == 0.25));
+    let glass = gltf_bsdf(&GltfParams {
+        base_color: TEAL,
+        metallic: 0.0,
+        roughness: 0.0,
+        transmission: 1.0,
+        ..GltfParams::default()
+    });
+    assert!(matches!(glass.lobes[0], Lobe::Glass(g) if g.eta == 1.5 && g.tint == TEAL));
+    assert_eq!(glass.glass_eta(), Some(1.5));
+    // Rough transmission is the layered lobe, non-delta.
+    let rough = gltf_bsdf(&GltfParams {
+        transmission: 1.0,
+        ..dielectric_params(0.5, 0.2)
+    });
+    assert!(matches!(rough.lobes[0], Lobe::Gltf(_)) && rough.has_non_delta());
+    // Smooth glass under a clearcoat: delta samples whose weights are the coat-scaled glass
+    // ones, with pdf the product of the discrete choices.
+    let coated = gltf_bsdf(&GltfParams {
+        base_color: TEAL,
+        metallic: 0.0,
+        roughness: 0.0,
+        transmission: 1.0,
+        clearcoat: 1.0,
+        clearcoat_roughness: 0.3,
+        ..GltfParams::default()
+    });
+    assert_eq!(coated.glass_eta(), Some(1.5));
+    let mut rng = SplitMix64::new(0xde17a);
+    let (mut delta, mut smooth) = (0, 0);
+    for wo in [dir(30.0, false), dir(30.0, true)] {
+        for _ in 0..2_000 {
+            let (u1, u2) = uniforms(&mut rng);
+            let Some(s) = coated.sample(wo, u1, u2) else {
+                continue;
+            };
+            if !s.delta {
+                smooth += 1;
+                continue;
+            }
+            delta += 1;
+            assert!(s.pdf > 0.0 && s.pdf <= 1.0);
+            if s.wi.z * wo.z > 0.0 {
+                assert!((s.wi - mirror(wo)).length() < 1e-5);
+                assert!(s.weight.max_element() <= 1.0 / s.pdf + 1e-4);
+            } else {
+                // Refraction: tint / η² (from outside) scaled by the coat and the choice.
+                let e: f32 = if wo.z > 0.0 { 1.5 } else { 1.0 / 1.5 };
+                let ratio = s.weight / (TEAL / (e * e));
+                assert!(
+                    (ratio.x - ratio.y).abs() < 1e-4 && (ratio.y - ratio.z).abs() < 1e-4,
+                    "{:?}",
+                    s.weight
+                );
+            }
+        }
+    }
+    assert!(delta > 1000 && smooth > 10, "delta {delta} coat {smooth}");
 }

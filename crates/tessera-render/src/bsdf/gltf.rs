@@ -1,0 +1,495 @@
+//! The glTF 2.0 metallic-roughness material with KHR_materials_ior, _specular,
+//! _transmission, _clearcoat and _sheen, as one layered, energy-conserving lobe.
+//!
+//! The caller (the scene) applies textures and fills a [`GltfParams`] per hit;
+//! [`gltf_bsdf`] turns it into a [`Bsdf`]. The structure is the glTF 2.0 spec's appendix B
+//! (`mix(dielectric, metal, metallic)`) with the extensions' layers on top:
+//!
+//! ```text
+//! coat   = clearcoat · f_cc  +  g_cc · sheen_layer                 (KHR_materials_clearcoat)
+//! sheen_layer = f_sheen  +  g_sh · base                            (KHR_materials_sheen)
+//! base   = metallic · metal + (1 - metallic) · dielectric
+//! dielectric = (1 - transmission) · (f_spec + f_diffuse) + transmission · f_glass
+//! ```
+//!
+//! | part | model |
+//! |---|---|
+//! | `metal` | GGX conductor, Schlick `f0 = base_color` ([`super::microfacet::Conductor`]) |
+//! | `f_spec` | GGX reflection with Schlick's Fresnel, `f0 = min(((ior-1)/(ior+1))² specular_color, 1) specular`, `f90 = specular` (KHR_materials_specular; `f90 = 0` for `ior = 1`: no interface) |
+//! | `f_diffuse` | Lambertian `base_color/π`, albedo-scaled by the specular layer in Kulla & Conty 2017's reciprocal form `(1 - E(μo))(1 - E(μi)) / (1 - E_avg)` per channel |
+//! | `f_glass` | the dielectric interface of KHR_materials_transmission (solid, refracting, exact Fresnel, tinted by the base colour): [`super::dielectric::RoughDielectric`], or the delta [`super::specular::Glass`] when `roughness² < MIN_ALPHA` or `ior = 1` |
+//! | `f_sheen` | Charlie sheen ([`super::sheen::Sheen`]), `g_sh = min(1 - max(sheen_color) E_sh(μo), same at μi)` |
+//! | `f_cc` | GGX reflection, `f0 = 0.04` (ior 1.5), `f90 = 1`, own roughness, `g_cc = min(1 - clearcoat E_cc(μo), same at μi)` |
+//!
+//! `E` are the layers' directional albedos ([`super::albedo`]).
+//!
+//! # Energy and reciprocity
+//! The Lambertian base under the specular layer gets exactly the energy the layer does
+//! not reflect (single scattering included): a white dielectric has albedo 1 at every angle
+//! up to table interpolation (`bsdf::tests::gltf_white_furnace`). The spec's `fresnel_mix`
+//! (base weighted by `1 - F(wo·h)`) is not used: it gains energy at grazing angles.
+//!
+//! Clearcoat and sheen scale *everything* below them, whose lobes may be sharp (a metal), so
+//! the exact Lambertian form cannot be used there: `(1 - E(μo))(1 - E(μi)) / (1 - E_avg)`
+//! exceeds `1 - E(μo)` for a mirror base at normal incidence. The extensions' `1 - E(μo)`
+//! conserves energy but is not reciprocal, which BDPT's light subpaths (evaluating the
+//! adjoint `f(wi, wo)`) would notice. `min(1 - E(μo), 1 - E(μi))` is both reciprocal and
+//! bounded by `1 - E(μo)` for any base, hence never creates energy; it is the largest such
+//! symmetric factor, and loses a few percent against `1 - E(μo)` on diffuse bases
+//! (measured in `gltf_white_furnace`). For transmission, only the outside direction meets
+//! the layers: the factor is `1 - E(μ_outside)` (reciprocal in the generalised sense).
+//!
+//! # Sides
+//! Without transmission the material is opaque and two-sided (the mixture mirrors the
+//! frame). With transmission `+z` is the outside: coat and sheen are there only; from the
+//! inside the interface is seen with `1/η` (total internal reflection included) and the
+//! opaque parts (metal, specular, diffuse) are two-sided as before.
+
+use super::albedo::{ggx_albedo, ggx_albedo_average, sheen_albedo};
+use super::dielectric::RoughDielectric;
+use super::diffuse::Diffuse;
+use super::microfacet::{g2, half_vector, vndf_reflection_pdf, Conductor, MIN_ALPHA};
+use super::sheen::Sheen;
+use super::specular::Glass;
+use super::{fresnel_schlick, Bsdf, BsdfSample, Lobe};
+use crate::sampling::warp::{
+    cosine_hemisphere_pdf, ggx_d, sample_ggx_vndf, square_to_cosine_hemisphere,
+};
+use glam::{Vec2, Vec3};
+use std::f32::consts::FRAC_1_PI;
+
+/// glTF material parameters at one surface point (factors times texture values).
+#[derive(Clone, Copy, Debug)]
+pub struct GltfParams {
+    /// Linear RGB base colour, in [0, 1].
+    pub base_color: Vec3,
+    /// Metalness, in [0, 1].
+    pub metallic: f32,
+    /// Perceptual roughness in [0, 1]; the GGX `alpha = roughness²`.
+    pub roughness: f32,
+    /// KHR_materials_ior, default 1.5 (1.0: no specular reflection).
+    pub ior: f32,
+    /// KHR_materials_specular `specularFactor` times the texture's alpha, default 1.
+    pub specular: f32,
+    /// KHR_materials_specular `specularColorFactor` times the texture's rgb, default 1.
+    pub specular_color: Vec3,
+    /// KHR_materials_transmission factor, default 0.
+    pub transmission: f32,
+    /// KHR_materials_clearcoat factor, default 0.
+    pub clearcoat: f32,
+    /// Perceptual clearcoat roughness, default 0.
+    pub clearcoat_roughness: f32,
+    /// KHR_materials_sheen colour, default 0 (no sheen).
+    pub sheen_color: Vec3,
+    /// Perceptual sheen roughness, default 0.
+    pub sheen_roughness: f32,
+}
+
+impl Default for GltfParams {
+    /// The glTF defaults: the spec's default material (white, metallic 1, roughness 1) and
+    /// every extension at its default.
+    fn default() -> Self {
+        GltfParams {
+            base_color: Vec3::ONE,
+            metallic: 1.0,
+            roughness: 1.0,
+            ior: 1.5,
+            specular: 1.0,
+            specular_color: Vec3::ONE,
+            transmission: 0.0,
+            clearcoat: 0.0,
+            clearcoat_roughness: 0.0,
+            sheen_color: Vec3::ZERO,
+            sheen_roughness: 0.0,
+        }
+    }
+}
+
+/// The BSDF of the glTF material `p` (see the module documentation). Materials that reduce
+/// to one built-in lobe get exactly that lobe: a Lambertian base (`specular = 0`, no metal,
+/// transmission, coat or sheen), a plain metal, or plain smooth glass.
+pub fn gltf_bsdf(p: &GltfParams) -> Bsdf {
+    let g = GltfLobe::new(p);
+    let layered = g.clearcoat > 0.0 || g.sheen_max > 0.0;
+    if !layered {
+        let no_spec = g.f0 == Vec3::ZERO && g.f90 == 0.0;
+        if g.metal == 0.0 && g.transmit == 0.0 && no_spec {
+            return Bsdf::single(Lobe::Diffuse(Diffuse { albedo: g.base }));
+        }
+        if g.metal == 1.0 {
+            return Bsdf::single(Lobe::Conductor(g.conductor()));
+        }
+        if g.transmit == 1.0 && g.smooth {
+            return Bsdf::single(Lobe::Glass(g.glass()));
+        }
+    }
+    Bsdf::single(Lobe::Gltf(g))
+}
+
+/// Indices of the components in [`GltfLobe::select`].
+const COAT: usize = 0;
+const SHEEN: usize = 1;
+const METAL: usize = 2;
+const SPEC: usize = 3;
+const DIFFUSE: usize = 4;
+const GLASS: usize = 5;
+
+/// Clearcoat's Fresnel reflectance at normal incidence (ior 1.5).
+const COAT_F0: f32 = 0.04;
+
+/// The layered glTF lobe (see the module documentation); build it with [`gltf_bsdf`].
+#[derive(Clone, Copy, Debug)]
+pub struct GltfLobe {
+    base: Vec3,
+    /// GGX alpha of the metal, specular and transmission, at least [`MIN_ALPHA`].
+    alpha: f32,
+    /// Weights of the metal, the opaque dielectric and the transmissive dielectric.
+    metal: f32,
+    opaque: f32,
+    transmit: f32,
+    /// The specular layer's Schlick `f0` (per channel) and `f90`.
+    f0: Vec3,
+    f90: f32,
+    /// `1 - E_avg` of the specular layer, per channel.
+    one_minus_e_avg: Vec3,
+    /// Relative index of refraction of the transmissive part.
+    eta: f32,
+    /// Transmission through a smooth interface (a delta component).
+    smooth: bool,
+    clearcoat: f32,
+    alpha_cc: f32,
+    sheen: Sheen,
+    sheen_r: f32,
+    /// `max(sheen_color)`, the weight of the sheen's albedo scaling.
+    sheen_max: f32,
+}
+
+#[inline]
+fn flip_z(v: Vec3, flip: bool) -> Vec3 {
+    if flip {
+        Vec3::new(v.x, v.y, -v.z)
+    } else {
+        v
+    }
+}
+
+/// GGX reflection with Schlick's Fresnel `f0 + (f90 - f0)(1 - wo·h)^5`, times `cos θi`.
+#[inline]
+fn ggx_reflection(wo: Vec3, wi: Vec3, alpha: f32, f0: Vec3, f90: f32) -> Vec3 {
+    if wo.z <= 0.0 || wi.z <= 0.0 {
+        return Vec3::ZERO;
+    }
+    let Some(h) = half_vector(wo, wi) else {
+        return Vec3::ZERO;
+    };
+    let m = (1.0 - wo.dot(h).clamp(0.0, 1.0)).powi(5);
+    let f = f0 + (Vec3::splat(f90) - f0) * m;
+    f * (ggx_d(h, alpha) * g2(wo, wi, alpha) / (4.0 * wo.z))
+}
+
+#[inline]
+fn ggx_pdf(wo: Vec3, wi: Vec3, alpha: f32) -> f32 {
+    if wo.z <= 0.0 || wi.z <= 0.0 {
+        return 0.0;
+    }
+    half_vector(wo, wi).map_or(0.0, |h| vndf_reflection_pdf(wo, h, alpha))
+}
+
+impl GltfLobe {
+    /// The lobe of `p`, with the parameters clamped to their ranges.
+    pub fn new(p: &GltfParams) -> Self {
+        let c01 = |x: f32| x.clamp(0.0, 1.0);
+        let base = p.base_color.clamp(Vec3::ZERO, Vec3::ONE);
+        let metal = c01(p.metallic);
+        let transmission = c01(p.transmission);
+        let alpha_raw = c01(p.roughness).powi(2);
+        let alpha = alpha_raw.max(MIN_ALPHA);
+        let ior = p.ior.max(1.0);
+        let specular = c01(p.specular);
+        let r0 = ((ior - 1.0) / (ior + 1.0)).powi(2);
+        let f0 = (r0 * p.specular_color.max(Vec3::ZERO)).min(Vec3::ONE) * specular;
+        let f90 = if ior > 1.0 { specular } else { 0.0 };
+        let opaque = (1.0 - metal) * (1.0 - transmission);
+        // The tables are only touched when a specular layer lies over a diffuse base.
+        let one_minus_e_avg = if opaque > 0.0 && (f0 != Vec3::ZERO || f90 > 0.0) {
+            let (a_avg, b_avg) = ggx_albedo_average(alpha);
+            (Vec3::ONE - (f0 * a_avg + Vec3::splat(f90 * b_avg))).max(Vec3::ZERO)
+        } else {
+            Vec3::ONE
+        };
+        let sheen_color = p.sheen_color.clamp(Vec3::ZERO, Vec3::ONE);
+        let sheen = Sheen::new(sheen_color, p.sheen_roughness);
+        // The albedo table is looked up at the roughness the lobe uses.
+        let sheen_r = sheen.alpha.sqrt();
+        GltfLobe {
+            base,
+            alpha,
+            metal,
+            opaque,
+            transmit: (1.0 - metal) * transmission,
+            f0,
+            f90,
+            one_minus_e_avg,
+            eta: ior,
+            smooth: alpha_raw < MIN_ALPHA || ior - 1.0 < 1e-3,
+            clearcoat: c01(p.clearcoat),
+            alpha_cc: c01(p.clearcoat_roughness).powi(2).max(MIN_ALPHA),
+            sheen,
+            sheen_r,
+            sheen_max: sheen_color.max_element(),
+        }
+    }
+
+    /// True if part of the light is transmitted (the lobe is then not two-sided).
+    #[inline]
+    pub(crate) fn transmits(&self) -> bool {
+        self.transmit > 0.0
+    }
+
+    /// True if every component is a delta distribution.
+    #[inline]
+    pub(crate) fn is_pure_delta(&self) -> bool {
+        self.smooth && self.transmit == 1.0 && self.clearcoat == 0.0 && self.sheen_max == 0.0
+    }
+
+    /// The relative index of refraction of the transmissive part, if any.
+    #[inline]
+    pub(crate) fn eta(&self) -> Option<f32> {
+        self.transmits().then_some(self.eta)
+    }
+
+    fn conductor(&self) -> Conductor {
+        Conductor {
+            f0: self.base,
+            alpha: self.alpha,
+        }
+    }
+
+    fn glass(&self) -> Glass {
+        Glass {
+            eta: self.eta,
+            tint: self.base,
+        }
+    }
+
+    fn rough_glass(&self) -> RoughDielectric {
+        RoughDielectric {
+            eta: self.eta,
+            alpha: self.alpha,
+            tint: self.base,
+        }
+    }
+
+    /// The specular layer's albedo `E(μ)` per channel.
+    #[inline]
+    fn spec_albedo(&self, mu: f32) -> Vec3 {
+        if self.f90 == 0.0 && self.f0 == Vec3::ZERO {
+            return Vec3::ZERO;
+        }
+        let (a, b) = ggx_albedo(mu, self.alpha);
+        self.f0 * a + Vec3::splat(self.f90 * b)
+    }
+
+    /// `1 - clearcoat E_cc(μ)`.
+    #[inline]
+    fn coat_scale(&self, mu: f32) -> f32 {
+        if self.clearcoat == 0.0 {
+            return 1.0;
+        }
+        let (a, b) = ggx_albedo(mu, self.alpha_cc);
+        (1.0 - self.clearcoat * (COAT_F0 * a + b)).max(0.0)
+    }
+
+    /// `1 - max(sheen_color) E_sheen(μ)`.
+    #[inline]
+    fn sheen_scale(&self, mu: f32) -> f32 {
+        if self.sheen_max == 0.0 {
+            return 1.0;
+        }
+        (1.0 - self.sheen_max * sheen_albedo(mu, self.sheen_r).min(1.0)).max(0.0)
+    }
+
+    /// Metal, specular layer and diffuse base, `wo` and `wi` in the upper hemisphere.
+    fn opaque_eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
+        let mut f = Vec3::ZERO;
+        if self.metal > 0.0 {
+            f += self.metal * self.conductor().eval(wo, wi);
+        }
+        if self.opaque > 0.0 {
+            let spec = ggx_reflection(wo, wi, self.alpha, self.f0, self.f90);
+            // Kulla & Conty 2017: the base receives what the layer does not reflect, in
+            // the reciprocal form (1 - E(μo))(1 - E(μi)) / (1 - E_avg).
+            let eo = Vec3::ONE - self.spec_albedo(wo.z);
+            let ei = Vec3::ONE - self.spec_albedo(wi.z);
+            let scale = (eo * ei / self.one_minus_e_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
+            let diffuse = self.base * scale * (FRAC_1_PI * wi.z);
+            f += self.opaque * (spec + diffuse);
+        }
+        f
+    }
+
+    /// Component selection probabilities at `wo` (estimates of their albedos), in the
+    /// order [`COAT`], [`SHEEN`], [`METAL`], [`SPEC`], [`DIFFUSE`], [`GLASS`].
+    fn select(&self, wo: Vec3) -> [f32; 6] {
+        let outside = wo.z > 0.0;
+        let mu = wo.z.abs();
+        let mut w = [0.0f32; 6];
+        let mut under = 1.0;
+        if outside {
+            if self.clearcoat > 0.0 {
+                w[COAT] = 1.0 - self.coat_scale(mu);
+                under = self.coat_scale(mu);
+            }
+            if self.sheen_max > 0.0 {
+                w[SHEEN] = under * self.sheen_max * sheen_albedo(mu, self.sheen_r).min(1.0);
+                under *= self.sheen_scale(mu);
+            }
+        }
+        if self.metal > 0.0 {
+            let f = fresnel_schlick(self.base, mu).max_element();
+            w[METAL] = under * self.metal * f.max(0.05);
+        }
+        if self.opaque > 0.0 {
+            let e = self.spec_albedo(mu);
+            w[SPEC] = under * self.opaque * e.max_element();
+            w[DIFFUSE] = under * self.opaque * (self.base * (Vec3::ONE - e)).max_element();
+        }
+        w[GLASS] = under * self.transmit;
+        let total: f32 = w.iter().sum();
+        if total > 0.0 {
+            for x in &mut w {
+                *x /= total;
+            }
+        }
+        w
+    }
+
+    /// `f(wo, wi) |cos θi|` of the non-delta components.
+    pub(crate) fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
+        if wo.z == 0.0 || wi.z == 0.0 {
+            return Vec3::ZERO;
+        }
+        let glass = |wo, wi| {
+            if self.transmit > 0.0 && !self.smooth {
+                self.transmit * self.rough_glass().eval(wo, wi)
+            } else {
+                Vec3::ZERO
+            }
+        };
+        match (wo.z > 0.0, wi.z > 0.0) {
+            (true, true) => {
+                let (mo, mi) = (wo.z, wi.z);
+                let base = self.opaque_eval(wo, wi) + glass(wo, wi);
+                let mut f = base;
+                if self.sheen_max > 0.0 {
+                    let g_sh = self.sheen_scale(mo).min(self.sheen_scale(mi));
+                    f = self.sheen.eval(wo, wi) + g_sh * f;
+                }
+                if self.clearcoat > 0.0 {
+                    let g_cc = self.coat_scale(mo).min(self.coat_scale(mi));
+                    let coat = ggx_reflection(wo, wi, self.alpha_cc, Vec3::splat(COAT_F0), 1.0);
+                    f = self.clearcoat * coat + g_cc * f;
+                }
+                f
+            }
+            // Inside a transmissive material: the opaque parts are two-sided.
+            (false, false) => {
+                if !self.transmits() {
+                    return Vec3::ZERO;
+                }
+                self.opaque_eval(flip_z(wo, true), flip_z(wi, true)) + glass(wo, wi)
+            }
+            (o, _) => {
+                let out = if o { wo.z } else { wi.z };
+                self.coat_scale(out) * self.sheen_scale(out) * glass(wo, wi)
+            }
+        }
+    }
+
+    /// Solid-angle density of [`GltfLobe::sample`]'s non-delta components.
+    pub(crate) fn pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        if wo.z == 0.0 || wi.z == 0.0 {
+            return 0.0;
+        }
+        let w = self.select(wo);
+        let glass = if self.smooth || w[GLASS] == 0.0 {
+            0.0
+        } else {
+            w[GLASS] * self.rough_glass().pdf(wo, wi)
+        };
+        if wo.z * wi.z < 0.0 {
+            return glass;
+        }
+        let flip = wo.z < 0.0;
+        let (wo, wi) = (flip_z(wo, flip), flip_z(wi, flip));
+        let cos = cosine_hemisphere_pdf(wi.z);
+        let ggx = ggx_pdf(wo, wi, self.alpha);
+        let mut p = glass + (w[METAL] + w[SPEC]) * ggx + (w[DIFFUSE] + w[SHEEN]) * cos;
+        if w[COAT] > 0.0 {
+            p += w[COAT] * ggx_pdf(wo, wi, self.alpha_cc);
+        }
+        p
+    }
+
+    /// Samples a component by `u1` (rescaled and reused by the component), then its
+    /// direction by `u2`.
+    pub(crate) fn sample(&self, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
+        if wo.z == 0.0 {
+            return None;
+        }
+        let w = self.select(wo);
+        // The last component with a weight takes the rounding remainder of the sum.
+        let last = w.iter().rposition(|&x| x > 0.0)?;
+        let (mut k, mut lo) = (last, 0.0);
+        for (i, &wi) in w.iter().enumerate() {
+            if wi > 0.0 && (u1 < lo + wi || i == last) {
+                k = i;
+                break;
+            }
+            lo += wi;
+        }
+        let u1 = ((u1 - lo) / w[k]).clamp(0.0, 1.0 - f32::EPSILON);
+        let flip = wo.z < 0.0;
+        let wo_up = flip_z(wo, flip);
+        let wi = match k {
+            GLASS if self.smooth => {
+                let (wi, weight, p) = self.glass().sample(wo, u1)?;
+                // The layers on the outside scale the interface: reflection at wo's
+                // angle from outside (the mirror direction has the same cosine), and the
+                // outside direction of a refraction.
+                let out = if wo.z > 0.0 {
+                    Some(wo.z)
+                } else if wi.z > 0.0 {
+                    Some(wi.z)
+                } else {
+                    None
+                };
+                let layers = out.map_or(1.0, |mu| self.coat_scale(mu) * self.sheen_scale(mu));
+                return Some(BsdfSample {
+                    wi,
+                    weight: weight * (self.transmit * layers / w[GLASS]),
+                    pdf: w[GLASS] * p,
+                    delta: true,
+                });
+            }
+            GLASS => self.rough_glass().sample(wo, u1, u2)?.0,
+            COAT => crate::math::reflect(wo_up, sample_ggx_vndf(wo_up, self.alpha_cc, u2)),
+            METAL | SPEC => crate::math::reflect(wo_up, sample_ggx_vndf(wo_up, self.alpha, u2)),
+            _ => square_to_cosine_hemisphere(u2),
+        };
+        let wi = if k == GLASS { wi } else { flip_z(wi, flip) };
+        if wi.z == 0.0 || (k != GLASS && wi.z * wo.z <= 0.0) {
+            return None;
+        }
+        let pdf = self.pdf(wo, wi);
+        if pdf <= 0.0 || !pdf.is_finite() {
+            return None;
+        }
+        Some(BsdfSample {
+            wi,
+            weight: self.eval(wo, wi) / pdf,
+            pdf,
+            delta: false,
+        })
+    }
+}
