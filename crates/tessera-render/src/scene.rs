@@ -551,8 +551,7 @@ impl RenderScene {
             clearcoat_roughness: g.clearcoat_roughness
                 * self.tex(sp, &g.clearcoat_roughness_texture, false).y,
             sheen_color: g.sheen_color * self.tex(sp, &g.sheen_color_texture, true).truncate(),
-            sheen_roughness: g.sheen_roughness
-                * self.tex(sp, &g.sheen_roughness_texture, false).w,
+            sheen_roughness: g.sheen_roughness * self.tex(sp, &g.sheen_roughness_texture, false).w,
         }
     }
 }

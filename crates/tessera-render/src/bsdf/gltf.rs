@@ -14,7 +14,7 @@
 //!
 //! | part | model |
 //! |---|---|
-//! | `metal` | GGX conductor, Schlick `f0 = base_color` ([`super::microfacet::Conductor`]) |
+//! | `metal` | GGX conductor, Schlick `f0 = base_color` ([`super::microfacet::Conductor`]), plus Kulla & Conty 2017's multiple-scattering lobe `F_ms (1 - E1(μo))(1 - E1(μi)) / (π (1 - E1_avg))` with `F_ms = F_avg² E1_avg / (1 - F_avg (1 - E1_avg))` and Schlick's `F_avg = f0 + (1 - f0)/21`, so that rough metals keep the energy single-scattering GGX loses (as Cycles' multiscatter GGX does; a white metal has albedo 1) |
 //! | `f_spec` | GGX reflection with Schlick's Fresnel, `f0 = min(((ior-1)/(ior+1))² specular_color, 1) specular`, `f90 = specular` (KHR_materials_specular; `f90 = 0` for `ior = 1`: no interface) |
 //! | `f_diffuse` | Lambertian `base_color/π`, albedo-scaled by the specular layer in Kulla & Conty 2017's reciprocal form `(1 - E(μo))(1 - E(μi)) / (1 - E_avg)` per channel |
 //! | `f_glass` | the dielectric interface of KHR_materials_transmission (solid, refracting, exact Fresnel, tinted by the base colour): [`super::dielectric::RoughDielectric`], or the delta [`super::specular::Glass`] when `roughness² < MIN_ALPHA` or `ior = 1` |
@@ -107,7 +107,8 @@ impl Default for GltfParams {
 
 /// The BSDF of the glTF material `p` (see the module documentation). Materials that reduce
 /// to one built-in lobe get exactly that lobe: a Lambertian base (`specular = 0`, no metal,
-/// transmission, coat or sheen), a plain metal, or plain smooth glass.
+/// transmission, coat or sheen) or plain smooth glass. (A metal is the layered lobe: it
+/// carries the multiple-scattering term the built-in conductor does not.)
 pub fn gltf_bsdf(p: &GltfParams) -> Bsdf {
     let g = GltfLobe::new(p);
     let layered = g.clearcoat > 0.0 || g.sheen_max > 0.0;
@@ -115,9 +116,6 @@ pub fn gltf_bsdf(p: &GltfParams) -> Bsdf {
         let no_spec = g.f0 == Vec3::ZERO && g.f90 == 0.0;
         if g.metal == 0.0 && g.transmit == 0.0 && no_spec {
             return Bsdf::single(Lobe::Diffuse(Diffuse { albedo: g.base }));
-        }
-        if g.metal == 1.0 {
-            return Bsdf::single(Lobe::Conductor(g.conductor()));
         }
         if g.transmit == 1.0 && g.smooth {
             return Bsdf::single(Lobe::Glass(g.glass()));
@@ -152,6 +150,9 @@ pub struct GltfLobe {
     f90: f32,
     /// `1 - E_avg` of the specular layer, per channel.
     one_minus_e_avg: Vec3,
+    /// Kulla–Conty multiple scattering of the metal: `F_ms / (π (1 - E1_avg))` per
+    /// channel (zero without metal).
+    ms_scale: Vec3,
     /// Relative index of refraction of the transmissive part.
     eta: f32,
     /// Transmission through a smooth interface (a delta component).
@@ -217,6 +218,18 @@ impl GltfLobe {
         } else {
             Vec3::ONE
         };
+        // Kulla & Conty 2017: the energy single-scattering GGX loses, E1 being the albedo
+        // with F = 1, returned as a lobe shaped like (1 - E1(μo))(1 - E1(μi)) and coloured
+        // by the average Fresnel's geometric series F_ms.
+        let ms_scale = if metal > 0.0 {
+            let (a_avg, b_avg) = ggx_albedo_average(alpha);
+            let e_avg = (a_avg + b_avg).clamp(0.0, 1.0 - 1e-4);
+            let f_avg = base + (Vec3::ONE - base) / 21.0;
+            let f_ms = f_avg * f_avg * e_avg / (Vec3::ONE - f_avg * (1.0 - e_avg));
+            f_ms * (FRAC_1_PI / (1.0 - e_avg))
+        } else {
+            Vec3::ZERO
+        };
         let sheen_color = p.sheen_color.clamp(Vec3::ZERO, Vec3::ONE);
         let sheen = Sheen::new(sheen_color, p.sheen_roughness);
         // The albedo table is looked up at the roughness the lobe uses.
@@ -230,6 +243,7 @@ impl GltfLobe {
             f0,
             f90,
             one_minus_e_avg,
+            ms_scale,
             eta: ior,
             smooth: alpha_raw < MIN_ALPHA || ior - 1.0 < 1e-3,
             clearcoat: c01(p.clearcoat),
@@ -290,6 +304,13 @@ impl GltfLobe {
         self.f0 * a + Vec3::splat(self.f90 * b)
     }
 
+    /// `1 - E1(μ)`: what single-scattering GGX at the metal's roughness loses at `μ`.
+    #[inline]
+    fn ms_loss(&self, mu: f32) -> f32 {
+        let (a, b) = ggx_albedo(mu, self.alpha);
+        (1.0 - a - b).max(0.0)
+    }
+
     /// `1 - clearcoat E_cc(μ)`.
     #[inline]
     fn coat_scale(&self, mu: f32) -> f32 {
@@ -313,7 +334,8 @@ impl GltfLobe {
     fn opaque_eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         let mut f = Vec3::ZERO;
         if self.metal > 0.0 {
-            f += self.metal * self.conductor().eval(wo, wi);
+            let ms = self.ms_scale * (self.ms_loss(wo.z) * self.ms_loss(wi.z) * wi.z);
+            f += self.metal * (self.conductor().eval(wo, wi) + ms);
         }
         if self.opaque > 0.0 {
             let spec = ggx_reflection(wo, wi, self.alpha, self.f0, self.f90);
@@ -348,11 +370,15 @@ impl GltfLobe {
         if self.metal > 0.0 {
             let f = fresnel_schlick(self.base, mu).max_element();
             w[METAL] = under * self.metal * f.max(0.05);
+            // The multiple-scattering lobe is cosine-like: sampled with the diffuse one.
+            // Its albedo is ms_scale π (1 - E1(μo)) (1 - E1_avg) <= F_ms (1 - E1(μo)).
+            let ms = self.ms_scale.max_element() * std::f32::consts::PI * self.ms_loss(mu);
+            w[DIFFUSE] += under * self.metal * ms;
         }
         if self.opaque > 0.0 {
             let e = self.spec_albedo(mu);
             w[SPEC] = under * self.opaque * e.max_element();
-            w[DIFFUSE] = under * self.opaque * (self.base * (Vec3::ONE - e)).max_element();
+            w[DIFFUSE] += under * self.opaque * (self.base * (Vec3::ONE - e)).max_element();
         }
         w[GLASS] = under * self.transmit;
         let total: f32 = w.iter().sum();
