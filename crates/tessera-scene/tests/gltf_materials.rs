@@ -338,8 +338,12 @@ fn gpu_instancing_places_the_mesh_at_every_instance() {
     g.root(json!({"mesh": m, "translation": [0.0, 0.0, 5.0],
         "extensions": {"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": translations}}}}));
     let s = load(&g.glb()).unwrap();
-    assert_eq!(s.meshes.len(), 3);
-    let origins: Vec<Vec3> = s.meshes.iter().map(|m| m.positions[0]).collect();
+    // Stored once, placed three times.
+    assert!(s.meshes.is_empty());
+    assert_eq!(s.prototypes.len(), 1);
+    assert_eq!(s.instances.len(), 3);
+    assert_eq!(s.triangle_count(), 3 * s.stored_triangle_count());
+    let origins: Vec<Vec3> = s.placed_meshes().map(|m| m.triangle(0)[0]).collect();
     assert_eq!(
         origins,
         [
