@@ -139,11 +139,9 @@ impl Importer<'_> {
 fn synthesize_camera(geometry: &Geometry, lights: &[PunctualLight]) -> Camera {
     let mut lo = Vec3::splat(f32::INFINITY);
     let mut hi = Vec3::splat(f32::NEG_INFINITY);
-    for placed in geometry.placed() {
-        for p in placed.triangles().flatten() {
-            lo = lo.min(p);
-            hi = hi.max(p);
-        }
+    for (lo_p, hi_p) in geometry.bounds() {
+        lo = lo.min(lo_p);
+        hi = hi.max(hi_p);
     }
     if lo.x > hi.x {
         for l in lights {

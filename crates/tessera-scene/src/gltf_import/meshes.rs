@@ -44,6 +44,36 @@ impl Geometry {
         crate::placed(&self.meshes, &self.prototypes, &self.instances)
     }
 
+    /// World-space bounds of each world-space mesh and each instance, empty meshes left
+    /// out. An instance's are its prototype's object bounds transformed corner by corner
+    /// (conservative, and cheap for 10,000 instances).
+    pub(super) fn bounds(&self) -> impl Iterator<Item = (Vec3, Vec3)> + '_ {
+        let local = |m: &Mesh| {
+            let mut lo = Vec3::splat(f32::INFINITY);
+            let mut hi = Vec3::splat(f32::NEG_INFINITY);
+            for &v in m.indices.iter().flatten() {
+                lo = lo.min(m.positions[v as usize]);
+                hi = hi.max(m.positions[v as usize]);
+            }
+            (lo.x <= hi.x).then_some((lo, hi))
+        };
+        let proto: Vec<Option<(Vec3, Vec3)>> = self.prototypes.iter().map(local).collect();
+        let flat = self.meshes.iter().filter_map(local);
+        let inst = self.instances.iter().filter_map(move |i| {
+            let (lo, hi) = proto[i.prototype as usize]?;
+            let mut wlo = Vec3::splat(f32::INFINITY);
+            let mut whi = Vec3::splat(f32::NEG_INFINITY);
+            for k in 0..8 {
+                let c = Vec3::select(glam::BVec3::new(k & 1 != 0, k & 2 != 0, k & 4 != 0), hi, lo);
+                let w = i.world_from_object.transform_point3(c);
+                wlo = wlo.min(w);
+                whi = whi.max(w);
+            }
+            Some((wlo, whi))
+        });
+        flat.chain(inst)
+    }
+
     /// Triangles as rendered (instances counted once each).
     pub(super) fn triangle_count(&self) -> usize {
         self.placed().map(|m| m.mesh.indices.len()).sum()
