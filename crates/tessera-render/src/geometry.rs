@@ -127,6 +127,9 @@ impl Prototype {
 /// One placement of a [`Prototype`], with the transforms intersection and shading need.
 #[derive(Clone, Copy, Debug)]
 pub struct InstanceRecord {
+    /// Position of the instance in the list given to [`Geometry::build_instanced`]
+    /// (`tessera_scene::Scene::instances` order).
+    pub index: u32,
     /// Index into [`Geometry::prototypes`].
     pub prototype: u32,
     /// World-from-object transform.
@@ -344,16 +347,17 @@ impl Geometry {
             .collect();
         // Instances of empty prototypes can never be hit (and an empty box has no centre
         // for the builder): leave them out.
-        let instances: Vec<(u32, Affine3A)> = instances
+        let instances: Vec<(u32, u32, Affine3A)> = instances
             .iter()
-            .copied()
-            .filter(|&(p, _)| !prototypes[p as usize].triangles.is_empty())
+            .enumerate()
+            .filter(|&(_, &(p, _))| !prototypes[p as usize].triangles.is_empty())
+            .map(|(i, &(p, m))| (i as u32, p, m))
             .collect();
         // The top level: each instance's world bounds are its prototype's object bounds
         // transformed corner by corner (conservative for any affine map).
         let world_bounds: Vec<obvhs::aabb::Aabb> = instances
             .iter()
-            .map(|&(proto, m)| {
+            .map(|&(_, proto, m)| {
                 let b = prototypes[proto as usize].bvh.total_aabb;
                 let mut wb = obvhs::aabb::Aabb::empty();
                 for k in 0..8 {
@@ -382,9 +386,10 @@ impl Geometry {
                 .primitive_indices
                 .iter()
                 .map(|&i| {
-                    let (prototype, m) = instances[i as usize];
+                    let (index, prototype, m) = instances[i as usize];
                     let inverse = m.as_daffine3().inverse();
                     InstanceRecord {
+                        index,
                         prototype,
                         world_from_object: m,
                         object_from_world: inverse.as_affine3a(),

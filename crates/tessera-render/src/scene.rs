@@ -394,11 +394,20 @@ impl RenderScene {
         let idx = mesh.indices[tri.index as usize];
         let mut ns = ng;
         if let Some(n) = &mesh.normals {
-            let mut interp =
-                b0 * n[idx[0] as usize] + b1 * n[idx[1] as usize] + b2 * n[idx[2] as usize];
-            if let Some(inst) = inst {
-                interp = (inst.normal_to_world * Vec3A::from(interp)).into();
-            }
+            let [n0, n1, n2] = idx.map(|i| n[i as usize]);
+            let interp = match inst {
+                None => b0 * n0 + b1 * n1 + b2 * n2,
+                // Each vertex normal to world space and renormalised before interpolating,
+                // as the importer does for a flattened copy: under non-uniform scale the
+                // lengths change unequally, and the interpolation must weigh the same
+                // unit normals to give the same shading.
+                Some(inst) => {
+                    let w = |v: Vec3| {
+                        Vec3::from(inst.normal_to_world * Vec3A::from(v)).normalize_or_zero()
+                    };
+                    b0 * w(n0) + b1 * w(n1) + b2 * w(n2)
+                }
+            };
             if let Some(v) = interp.try_normalize() {
                 ns = if v.dot(ng) < 0.0 { -v } else { v };
             }

@@ -431,7 +431,10 @@ fn a_mesh_under_several_nodes_is_stored_once() {
     assert_eq!(s.stored_triangle_count(), 4 * 2);
     // The second instance: rotated 90 degrees about z, then moved to x = 3.
     let corner = s.placed_meshes().nth(4).unwrap().triangle(0)[1];
-    assert!((corner - Vec3::new(3.0, 1.0, 0.0)).length() < 1e-6, "{corner}");
+    assert!(
+        (corner - Vec3::new(3.0, 1.0, 0.0)).length() < 1e-6,
+        "{corner}"
+    );
     // The analysis sees every placement: the shared quad's area counts four times (the
     // degenerate copy has none).
     let plan = tessera_scene::analysis::analyse(&s);
