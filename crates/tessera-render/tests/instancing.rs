@@ -6,7 +6,7 @@
 mod common;
 
 use common::{image_mean, render};
-use glam::{Affine3A, Mat3, Quat, Vec3};
+use glam::{Affine3A, Quat, Vec3};
 use tessera_render::geometry::{Primitive, NO_INSTANCE};
 use tessera_render::integrator::{Integrator, MisHeuristic};
 use tessera_render::math::offset_ray_origin;
@@ -134,39 +134,9 @@ fn instanced() -> Scene {
     }
 }
 
-/// The same scene with every instance copied to world space as the glTF importer does:
-/// positions transformed, normals by the inverse transpose, winding flipped when mirrored.
+/// The same scene flattened (one implementation, in tessera-scene).
 fn flattened(s: &Scene) -> Scene {
-    let mut flat = s.clone();
-    for inst in &s.instances {
-        let proto = &s.prototypes[inst.prototype as usize];
-        let m = inst.world_from_object;
-        let normal = Mat3::from(m.matrix3).inverse().transpose();
-        let mirror = inst.mirrors();
-        flat.meshes.push(Mesh {
-            name: proto.name.clone(),
-            positions: proto
-                .positions
-                .iter()
-                .map(|&p| m.transform_point3(p))
-                .collect(),
-            normals: proto
-                .normals
-                .as_ref()
-                .map(|n| n.iter().map(|&v| (normal * v).normalize()).collect()),
-            uvs: proto.uvs.clone(),
-            tangents: None,
-            indices: proto
-                .indices
-                .iter()
-                .map(|&[a, b, c]| if mirror { [a, c, b] } else { [a, b, c] })
-                .collect(),
-            material: proto.material,
-        });
-    }
-    flat.prototypes.clear();
-    flat.instances.clear();
-    flat
+    s.flattened()
 }
 
 #[test]

@@ -302,6 +302,61 @@ impl Scene {
             .sum()
     }
 
+    /// This scene with every instance copied to world space, as the glTF importer
+    /// flattens a mesh placed once: positions transformed, normals by the inverse
+    /// transpose and renormalised, tangents by the linear part, and for a mirroring
+    /// transform the winding (and tangent corners) reversed and the bitangent sign
+    /// flipped. For comparing instancing with flattening (tests, benchmarks); the flattened
+    /// meshes follow [`Scene::meshes`] in instance order.
+    pub fn flattened(&self) -> Scene {
+        let mut flat = self.clone();
+        flat.prototypes.clear();
+        flat.instances.clear();
+        flat.meshes.reserve(self.instances.len());
+        for inst in &self.instances {
+            let proto = &self.prototypes[inst.prototype as usize];
+            let m = inst.world_from_object;
+            let linear = glam::Mat3::from(m.matrix3);
+            let normal = linear.inverse().transpose();
+            let mirror = inst.mirrors();
+            let sign = if mirror { -1.0 } else { 1.0 };
+            let normals = proto.normals.as_ref().and_then(|n| {
+                n.iter()
+                    .map(|&v| (normal * v).try_normalize())
+                    .collect::<Option<Vec<Vec3>>>()
+            });
+            let tangents = proto.tangents.as_ref().map(|ts| {
+                ts.iter()
+                    .map(|c| {
+                        let c = if mirror { [c[0], c[2], c[1]] } else { *c };
+                        c.map(|t| {
+                            let w = (linear * t.truncate()).normalize_or_zero();
+                            w.extend(if t.w < 0.0 { -sign } else { sign })
+                        })
+                    })
+                    .collect()
+            });
+            flat.meshes.push(Mesh {
+                name: proto.name.clone(),
+                positions: proto
+                    .positions
+                    .iter()
+                    .map(|&p| m.transform_point3(p))
+                    .collect(),
+                normals,
+                uvs: proto.uvs.clone(),
+                tangents,
+                indices: proto
+                    .indices
+                    .iter()
+                    .map(|&[a, b, c]| if mirror { [a, c, b] } else { [a, b, c] })
+                    .collect(),
+                material: proto.material,
+            });
+        }
+        flat
+    }
+
     /// Every mesh as placed in the world: [`Scene::meshes`], then every instance with
     /// its prototype and transform.
     pub fn placed_meshes(&self) -> impl Iterator<Item = PlacedMesh<'_>> + '_ {
