@@ -33,7 +33,7 @@ impl Rng {
 }
 
 /// A tree: a trunk (cylinder, 24 sides) and a lumpy crown (a latitude–longitude sphere of
-/// 48 x 24 quads displaced by a few sines), 2,544 triangles with smooth normals.
+/// 48 x 24 quads displaced by a few sines), 2,352 triangles with smooth normals.
 fn tree() -> Mesh {
     let mut positions = Vec::new();
     let mut indices = Vec::new();
