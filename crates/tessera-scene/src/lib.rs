@@ -151,6 +151,13 @@ impl Instance {
     /// Bytes an instance costs in a scene (for import budgets and memory figures).
     pub const BYTES: u64 = std::mem::size_of::<Instance>() as u64;
 
+    /// Whether `m` can place a prototype: finite, with a finite single-precision inverse
+    /// (the renderer carries rays into object space by it). What [`Scene::validate`]
+    /// checks and the importer decides flattening by.
+    pub fn transform_is_invertible(m: &Affine3A) -> bool {
+        m.is_finite() && m.matrix3.determinant() != 0.0 && m.inverse().is_finite()
+    }
+
     /// Whether the transform mirrors (negative determinant).
     pub fn mirrors(&self) -> bool {
         self.world_from_object.matrix3.determinant() < 0.0
@@ -442,10 +449,7 @@ impl Scene {
                     self.prototypes.len()
                 ));
             };
-            let m = inst.world_from_object;
-            let inverse_ok =
-                m.is_finite() && m.matrix3.determinant() != 0.0 && m.inverse().is_finite();
-            if !inverse_ok {
+            if !Instance::transform_is_invertible(&inst.world_from_object) {
                 return bad(format!(
                     "instance {i} of prototype {} has a transform that is not finite and \
                      invertible",

@@ -102,11 +102,8 @@ impl Importer<'_> {
         for pl in placements {
             let (ni, mi) = (pl.node, pl.mesh);
             let shared = uses[&mi] >= 2;
-            let det = DMat3::from_mat4(pl.world).determinant();
-            let invertible = det.is_finite() && det.abs() > 1e-30 && {
-                let inv = pl.world.inverse();
-                inv.is_finite() && inv.as_mat4().is_finite()
-            };
+            let world_from_object = Affine3A::from_mat4(pl.world.as_mat4());
+            let invertible = Instance::transform_is_invertible(&world_from_object);
             for pi in 0..self.root.meshes[mi].primitives.len() {
                 let local = self.local_primitive(mi, pi)?;
                 let emissive = materials
@@ -127,12 +124,6 @@ impl Importer<'_> {
                         p
                     }
                 };
-                let world_from_object = Affine3A::from_mat4(pl.world.as_mat4());
-                if !world_from_object.is_finite() {
-                    return self.err(format!(
-                        "node {ni} mesh {mi}: instance transform is not finite in single precision"
-                    ));
-                }
                 self.add_output(Instance::BYTES, &format!("node {ni} mesh {mi}"))?;
                 geometry.instances.push(Instance {
                     prototype,
@@ -309,61 +300,59 @@ impl Importer<'_> {
         let linear = DMat3::from_mat4(*world);
         let det = linear.determinant();
         let normal_matrix = linear.inverse().transpose();
-        {
-            let name = prim_name(mi, &self.root.meshes[mi], pi);
-            let local = self.local_primitive(mi, pi)?;
-            self.add_output(primitive_bytes(&local), &format!("node {ni} {name}"))?;
-            let positions: Vec<Vec3> = local
-                .positions
-                .iter()
-                .map(|p| world.transform_point3(p.as_dvec3()).as_vec3())
-                .collect();
-            if let Some(v) = positions.iter().position(|p| !p.is_finite()) {
-                return self.err(format!(
-                    "node {ni} {name}: vertex {v} is not finite in world space"
-                ));
-            }
-            let normals = local.normals.as_ref().and_then(|ns| {
-                ns.iter()
-                    .map(|n| {
-                        let w = (normal_matrix * n.as_dvec3()).normalize_or_zero().as_vec3();
-                        (w.is_finite() && w != Vec3::ZERO).then_some(w)
-                    })
-                    .collect::<Option<Vec<Vec3>>>()
-            });
-            // Spec "Meshes > Overview": a negative determinant makes the winding clockwise.
-            let triangles = if det < 0.0 {
-                local.triangles.iter().map(|&[a, b, c]| [a, c, b]).collect()
-            } else {
-                local.triangles.clone()
-            };
-            // Tangents are surface directions: they transform with the linear part. A
-            // mirroring transform flips the handedness of (t, b, n), hence the sign of w.
-            let sign = if det < 0.0 { -1.0 } else { 1.0 };
-            let tangents = local.tangents.as_ref().map(|ts| {
-                ts.iter()
-                    .map(|c| {
-                        let c = if det < 0.0 { [c[0], c[2], c[1]] } else { *c };
-                        c.map(|t| {
-                            let w = (linear * t.truncate().as_dvec3())
-                                .normalize_or_zero()
-                                .as_vec3();
-                            let w = if w.is_finite() { w } else { Vec3::ZERO };
-                            w.extend(if t.w < 0.0 { -sign } else { sign })
-                        })
-                    })
-                    .collect()
-            });
-            out.push(Mesh {
-                name,
-                positions,
-                normals,
-                uvs: local.uvs.clone(),
-                tangents,
-                indices: triangles,
-                material: local.material,
-            });
+        let name = prim_name(mi, &self.root.meshes[mi], pi);
+        let local = self.local_primitive(mi, pi)?;
+        self.add_output(primitive_bytes(&local), &format!("node {ni} {name}"))?;
+        let positions: Vec<Vec3> = local
+            .positions
+            .iter()
+            .map(|p| world.transform_point3(p.as_dvec3()).as_vec3())
+            .collect();
+        if let Some(v) = positions.iter().position(|p| !p.is_finite()) {
+            return self.err(format!(
+                "node {ni} {name}: vertex {v} is not finite in world space"
+            ));
         }
+        let normals = local.normals.as_ref().and_then(|ns| {
+            ns.iter()
+                .map(|n| {
+                    let w = (normal_matrix * n.as_dvec3()).normalize_or_zero().as_vec3();
+                    (w.is_finite() && w != Vec3::ZERO).then_some(w)
+                })
+                .collect::<Option<Vec<Vec3>>>()
+        });
+        // Spec "Meshes > Overview": a negative determinant makes the winding clockwise.
+        let triangles = if det < 0.0 {
+            local.triangles.iter().map(|&[a, b, c]| [a, c, b]).collect()
+        } else {
+            local.triangles.clone()
+        };
+        // Tangents are surface directions: they transform with the linear part. A
+        // mirroring transform flips the handedness of (t, b, n), hence the sign of w.
+        let sign = if det < 0.0 { -1.0 } else { 1.0 };
+        let tangents = local.tangents.as_ref().map(|ts| {
+            ts.iter()
+                .map(|c| {
+                    let c = if det < 0.0 { [c[0], c[2], c[1]] } else { *c };
+                    c.map(|t| {
+                        let w = (linear * t.truncate().as_dvec3())
+                            .normalize_or_zero()
+                            .as_vec3();
+                        let w = if w.is_finite() { w } else { Vec3::ZERO };
+                        w.extend(if t.w < 0.0 { -sign } else { sign })
+                    })
+                })
+                .collect()
+        });
+        out.push(Mesh {
+            name,
+            positions,
+            normals,
+            uvs: local.uvs.clone(),
+            tangents,
+            indices: triangles,
+            material: local.material,
+        });
         Ok(())
     }
 }

@@ -1,5 +1,5 @@
-//! glTF 2.0 import: `.gltf` (external files or `data:` URIs) and `.glb`, flattened into a
-//! world-space [`Scene`].
+//! glTF 2.0 import: `.gltf` (external files or `data:` URIs) and `.glb`, into a world-space
+//! [`Scene`] (meshes placed more than once kept as prototypes with instances).
 //!
 //! References are to the glTF 2.0 specification (Khronos, version 2.0.1) by section title,
 //! and to the Khronos extension specifications.
@@ -70,9 +70,10 @@
 //! [`SceneError::Gltf`]. (This relies on the default `panic = "unwind"`.) While the import
 //! runs, the default panic message is silenced for the importing thread only. Inputs are
 //! capped at [`MAX_INPUT_BYTES`] (the file, and separately the sum of its buffers and
-//! images) and the output (instances counted as their transforms) at four times that. Every error names the file and the
-//! element (node, mesh, primitive, material, accessor, buffer view, buffer, image index)
-//! that is wrong.
+//! images) and the output at four times that, where a prototype counts once and an
+//! instance as its transform (so 10,000 instances of a large tree load). Every error names
+//! the file and the element (node, mesh, primitive, material, accessor, buffer view,
+//! buffer, image index) that is wrong.
 //!
 //! # Where each step lives
 //!
