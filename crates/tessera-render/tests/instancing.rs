@@ -335,3 +335,36 @@ fn instanced_and_flattened_scenes_render_the_same_image() {
         ii.mean.len()
     );
 }
+
+#[test]
+fn the_triangle_filter_sees_which_instance_was_hit() {
+    // Alpha testing calls the filter with a key naming instance and triangle: rejecting
+    // the nearest instance's triangles lets the ray through to the next one, for camera
+    // and shadow rays alike.
+    let s = instanced();
+    let rs = RenderScene::build(&s, 8, 8).unwrap();
+    let (o, d) = (Vec3::new(-3.0, 1.0, -8.0), Vec3::Z);
+    let near = rs.geometry.intersect(o, d, f32::INFINITY).unwrap();
+    let Primitive::Triangle { instance, .. } = near.primitive else {
+        panic!("expected a triangle")
+    };
+    assert_ne!(instance, NO_INSTANCE);
+    let mine = tessera_render::geometry::triangle_key(instance, 0) >> 32;
+    let next = rs
+        .geometry
+        .intersect_where(o, d, f32::INFINITY, |_, key, _, _| key >> 32 != mine)
+        .unwrap();
+    let Primitive::Triangle { instance: i2, .. } = next.primitive else {
+        panic!("expected a triangle")
+    };
+    assert!(i2 != instance && next.t > near.t, "{next:?} after {near:?}");
+    assert!(rs
+        .geometry
+        .occluded_where(o, d, next.t * 1.01, |_, key, _, _| key >> 32 != mine));
+    assert!(!rs
+        .geometry
+        .occluded_where(o, d, next.t * 0.99, |_, key, _, _| key >> 32 != mine));
+    assert!(!rs
+        .geometry
+        .occluded_where(o, d, f32::INFINITY, |_, key, _, _| key >> 32 == 0));
+}

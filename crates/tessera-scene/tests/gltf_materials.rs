@@ -413,7 +413,8 @@ fn a_mesh_under_several_nodes_is_stored_once() {
     let m = quad(&mut g, grey);
     let lamp = quad(&mut g, glow);
     g.root(json!({"mesh": m, "translation": [0.0, 0.0, 1.0]}));
-    g.root(json!({"mesh": m, "translation": [3.0, 0.0, 0.0], "rotation": [0.0, 0.0, 0.7071068, 0.7071068]}));
+    let h = std::f32::consts::FRAC_1_SQRT_2;
+    g.root(json!({"mesh": m, "translation": [3.0, 0.0, 0.0], "rotation": [0.0, 0.0, h, h]}));
     g.root(json!({"mesh": m, "scale": [-1.0, 2.0, 1.0]}));
     g.root(json!({"mesh": m, "scale": [0.0, 1.0, 1.0]}));
     g.root(json!({"mesh": lamp, "translation": [0.0, 5.0, 0.0]}));
