@@ -1,4 +1,17 @@
-//! Ray–scene intersection: triangles in an `obvhs` compressed wide BVH, analytic spheres.
+//! Ray–scene intersection: triangles in an `obvhs` compressed wide BVH, analytic spheres,
+//! and instances of prototype meshes in two levels.
+//!
+//! **Two levels.** World-space triangles (meshes placed once) live in one BVH. A prototype
+//! (a mesh placed at several places) has its own BVH over its object-space triangles, a
+//! bottom-level structure built once; a top-level BVH over the instances' world bounds
+//! points each leaf at one instance and so at its prototype (pbrt-v4, Pharr, Jakob &
+//! Humphreys, 4th ed., section 7.1 "Object instancing"; the top level is "a BVH of
+//! BVHs", section 7.3). At an instance leaf the ray is carried into object space by the
+//! inverse affine transform, origin and direction, the direction *not* renormalised, so
+//! the ray parameter `t` means the same point in both spaces and the nearest hit over
+//! all instances is the one with the smallest `t`. The watertight test and the shift
+//! trick below then run unchanged in object space. A scene without instances skips the
+//! top level with one branch per ray.
 //!
 //! Two defects of obvhs 0.4.0 are kept out of our images here:
 //!
@@ -19,7 +32,7 @@
 //! leaving it can be offset robustly by [`crate::math::offset_ray_origin`].
 
 use crate::math::gamma;
-use glam::{Vec2, Vec3, Vec3A};
+use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A};
 use obvhs::cwbvh::CwBvh;
 use obvhs::ray::{Ray, RayHit};
 
@@ -33,10 +46,13 @@ pub const NO_LIGHT: u32 = u32::MAX;
 /// [`SurfacePoint::mesh`] of a point on a sphere.
 pub const NO_MESH: u32 = u32::MAX;
 
+/// [`Primitive::Triangle::instance`] of a triangle stored in world space.
+pub const NO_INSTANCE: u32 = u32::MAX;
+
 /// A triangle as stored for intersection, in BVH leaf order.
 #[derive(Clone, Copy, Debug)]
 pub struct TriangleRecord {
-    /// Vertex positions in world space.
+    /// Vertex positions in world space (in object space for a prototype's triangle).
     pub p: [Vec3; 3],
     /// Index of the mesh in the scene.
     pub mesh: u32,
@@ -64,10 +80,14 @@ pub struct SphereRecord {
 /// What a ray hit.
 #[derive(Clone, Copy, Debug)]
 pub enum Primitive {
-    /// A triangle: index into [`Geometry::triangles`] and barycentrics of vertices 1 and 2.
+    /// A triangle: index into [`Geometry::triangles`] (or, for an instance, into its
+    /// prototype's [`Prototype::triangles`]) and barycentrics of vertices 1 and 2.
     Triangle {
         /// Index into the BVH-ordered triangle array.
         index: u32,
+        /// Index into [`Geometry::instances`], or [`NO_INSTANCE`] for a world-space
+        /// triangle.
+        instance: u32,
         /// Barycentric coordinate of vertex 1.
         b1: f32,
         /// Barycentric coordinate of vertex 2.
@@ -89,11 +109,51 @@ pub struct Hit {
     pub primitive: Primitive,
 }
 
+/// A mesh stored once and placed by instances: its object-space triangles in their own
+/// BVH (the bottom level).
+pub struct Prototype {
+    bvh: CwBvh,
+    /// Object-space triangles in the order the BVH leaves refer to them.
+    pub triangles: Vec<TriangleRecord>,
+}
+
+impl Prototype {
+    /// Bytes of the BVH nodes and triangle records.
+    pub fn bytes(&self) -> usize {
+        bvh_bytes(&self.bvh) + std::mem::size_of_val(self.triangles.as_slice())
+    }
+}
+
+/// One placement of a [`Prototype`], with the transforms intersection and shading need.
+#[derive(Clone, Copy, Debug)]
+pub struct InstanceRecord {
+    /// Position of the instance in the list given to [`Geometry::build_instanced`]
+    /// (`tessera_scene::Scene::instances` order).
+    pub index: u32,
+    /// Index into [`Geometry::prototypes`].
+    pub prototype: u32,
+    /// World-from-object transform.
+    pub world_from_object: Affine3A,
+    /// Its inverse (computed in double precision), which carries rays into object space.
+    pub object_from_world: Affine3A,
+    /// The inverse transpose of the linear part: transforms normals to world space, and
+    /// keeps the front side that a flattened copy, re-wound when mirrored, would have.
+    pub normal_to_world: Mat3A,
+    /// 1, or -1 when the transform mirrors (flips the bitangent sign of tangents).
+    pub handedness: f32,
+}
+
 /// Scene geometry with its acceleration structure.
 pub struct Geometry {
     bvh: CwBvh,
     /// Triangles in the order the BVH leaves refer to them.
     pub triangles: Vec<TriangleRecord>,
+    /// Meshes stored once, each with its bottom-level BVH.
+    pub prototypes: Vec<Prototype>,
+    /// The top level: a BVH over the instances' world bounds.
+    tlas: CwBvh,
+    /// Instances in the order the top-level leaves refer to them.
+    pub instances: Vec<InstanceRecord>,
     /// Analytic spheres (tested linearly: scenes have few).
     pub spheres: Vec<SphereRecord>,
     /// Centre and radius of a sphere bounding everything.
@@ -257,31 +317,18 @@ pub fn intersect_sphere(
 impl Geometry {
     /// Builds the BVH over `triangles` (any order) and keeps `spheres`.
     pub fn build(triangles: Vec<TriangleRecord>, spheres: Vec<SphereRecord>) -> Self {
-        let tris: Vec<obvhs::triangle::Triangle> = triangles
-            .iter()
-            .map(|t| obvhs::triangle::Triangle {
-                v0: t.p[0].into(),
-                v1: t.p[1].into(),
-                v2: t.p[2].into(),
-            })
-            .collect();
-        let (bvh, ordered) = if tris.is_empty() {
-            (CwBvh::default(), Vec::new())
-        } else {
-            let mut build_time = std::time::Duration::ZERO;
-            let bvh = obvhs::cwbvh::builder::build_cwbvh_from_tris(
-                &tris,
-                obvhs::BvhBuildParams::medium_build(),
-                &mut build_time,
-            );
-            // Store triangles in leaf order so the hot loop indexes them directly.
-            let ordered = bvh
-                .primitive_indices
-                .iter()
-                .map(|&i| triangles[i as usize])
-                .collect();
-            (bvh, ordered)
-        };
+        Self::build_instanced(triangles, spheres, Vec::new(), &[])
+    }
+
+    /// [`Geometry::build`] with prototypes (object-space triangles, one BVH each) and
+    /// `instances` as `(prototype, world_from_object)`; every transform must be finite and
+    /// invertible (what `tessera_scene::Scene::validate` checks).
+    pub fn build_instanced(
+        triangles: Vec<TriangleRecord>,
+        spheres: Vec<SphereRecord>,
+        prototypes: Vec<Vec<TriangleRecord>>,
+        instances: &[(u32, Affine3A)],
+    ) -> Self {
         let mut lo = Vec3::splat(f32::INFINITY);
         let mut hi = Vec3::splat(f32::NEG_INFINITY);
         for t in &triangles {
@@ -290,6 +337,73 @@ impl Geometry {
                 hi = hi.max(p);
             }
         }
+        let (bvh, ordered) = triangle_bvh(&triangles);
+        let prototypes: Vec<Prototype> = prototypes
+            .iter()
+            .map(|tris| {
+                let (bvh, triangles) = triangle_bvh(tris);
+                Prototype { bvh, triangles }
+            })
+            .collect();
+        // Instances of empty prototypes can never be hit (and an empty box has no centre
+        // for the builder): leave them out.
+        let instances: Vec<(u32, u32, Affine3A)> = instances
+            .iter()
+            .enumerate()
+            .filter(|&(_, &(p, _))| !prototypes[p as usize].triangles.is_empty())
+            .map(|(i, &(p, m))| (i as u32, p, m))
+            .collect();
+        // The top level: each instance's world bounds are its prototype's object bounds
+        // transformed corner by corner (conservative for any affine map).
+        let world_bounds: Vec<obvhs::aabb::Aabb> = instances
+            .iter()
+            .map(|&(_, proto, m)| {
+                let b = prototypes[proto as usize].bvh.total_aabb;
+                let mut wb = obvhs::aabb::Aabb::empty();
+                for k in 0..8 {
+                    let c = Vec3A::new(
+                        if k & 1 == 0 { b.min.x } else { b.max.x },
+                        if k & 2 == 0 { b.min.y } else { b.max.y },
+                        if k & 4 == 0 { b.min.z } else { b.max.z },
+                    );
+                    wb.extend(m.transform_point3a(c));
+                }
+                lo = lo.min(wb.min.into());
+                hi = hi.max(wb.max.into());
+                wb
+            })
+            .collect();
+        let (tlas, instances) = if instances.is_empty() {
+            (CwBvh::default(), Vec::new())
+        } else {
+            let mut build_time = std::time::Duration::ZERO;
+            let tlas = obvhs::cwbvh::builder::build_cwbvh(
+                &world_bounds,
+                obvhs::BvhBuildParams::medium_build(),
+                &mut build_time,
+            );
+            let records = tlas
+                .primitive_indices
+                .iter()
+                .map(|&i| {
+                    let (index, prototype, m) = instances[i as usize];
+                    let inverse = m.as_daffine3().inverse();
+                    InstanceRecord {
+                        index,
+                        prototype,
+                        world_from_object: m,
+                        object_from_world: inverse.as_affine3a(),
+                        normal_to_world: Mat3A::from(inverse.matrix3.transpose().as_mat3()),
+                        handedness: if m.matrix3.determinant() < 0.0 {
+                            -1.0
+                        } else {
+                            1.0
+                        },
+                    }
+                })
+                .collect();
+            (tlas, records)
+        };
         for s in &spheres {
             lo = lo.min(s.center - s.radius);
             hi = hi.max(s.center + s.radius);
@@ -302,10 +416,24 @@ impl Geometry {
         Self {
             bvh,
             triangles: ordered,
+            prototypes,
+            tlas,
+            instances,
             spheres,
             bounds_center,
             bounds_radius,
         }
+    }
+
+    /// Bytes of the acceleration structures and triangle records (BVH nodes, leaf index
+    /// arrays, triangles, instances), from their lengths: what the geometry costs in
+    /// memory, for comparing instancing with flattening.
+    pub fn bytes(&self) -> usize {
+        bvh_bytes(&self.bvh)
+            + std::mem::size_of_val(self.triangles.as_slice())
+            + self.prototypes.iter().map(Prototype::bytes).sum::<usize>()
+            + bvh_bytes(&self.tlas)
+            + std::mem::size_of_val(self.instances.as_slice())
     }
 
     /// The nearest hit along `origin + t dir` with `0 < t < t_max`. `dir` need not be
@@ -315,47 +443,49 @@ impl Geometry {
         self.intersect_where(origin, dir, t_max, |_, _, _, _| true)
     }
 
-    /// [`Geometry::intersect`] counting only the triangle hits `keep(record, index, b1, b2)`
-    /// accepts (alpha-tested surfaces pass rays through where `keep` says so). Rejected
-    /// hits do not shorten the ray, so the traversal goes on past them.
+    /// [`Geometry::intersect`] counting only the triangle hits `keep(record, key, b1, b2)`
+    /// accepts (alpha-tested surfaces pass rays through where `keep` says so); `key`
+    /// identifies the triangle (see [`triangle_key`]). Rejected hits do not shorten the
+    /// ray, so the traversal goes on past them.
     pub fn intersect_where(
         &self,
         origin: Vec3,
         dir: Vec3,
         t_max: f32,
-        keep: impl Fn(&TriangleRecord, u32, f32, f32) -> bool,
+        keep: impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
         if !self.triangles.is_empty() {
-            let wt = WatertightRay::new(origin, dir);
-            let shift = TRAVERSAL_SHIFT;
-            let shifted_origin = Vec3A::from(origin - dir * shift);
-            let traversal_max = if t_max.is_finite() {
-                (t_max + shift) * (1.0 + 1e-5)
-            } else {
-                t_max
+            let level = TriangleLevel {
+                bvh: &self.bvh,
+                triangles: &self.triangles,
+                instance: NO_INSTANCE,
             };
-            let ray = Ray::new(shifted_origin, traversal_dir(dir), 0.0, traversal_max);
+            if let Some(h) = level.nearest(origin, dir, &mut best_t, &keep) {
+                best = Some(h);
+            }
+        }
+        if !self.instances.is_empty() {
+            let ray = traversal_ray(origin, dir, best_t);
             let mut hit = RayHit::none();
-            let tris = &self.triangles;
-            self.bvh.ray_traverse(ray, &mut hit, |_, id| {
-                let tri = &tris[id];
-                match wt.intersect(&tri.p, best_t) {
-                    Some((t, _b0, b1, b2)) if keep(tri, id as u32, b1, b2) => {
-                        best_t = t;
-                        best = Some(Hit {
-                            t,
-                            primitive: Primitive::Triangle {
-                                index: id as u32,
-                                b1,
-                                b2,
-                            },
-                        });
-                        // The traversal ray's parameter, rounded up so pruning is conservative.
-                        (t + shift) * (1.0 + 1e-5)
+            self.tlas.ray_traverse(ray, &mut hit, |_, id| {
+                let inst = &self.instances[id];
+                let proto = &self.prototypes[inst.prototype as usize];
+                let level = TriangleLevel {
+                    bvh: &proto.bvh,
+                    triangles: &proto.triangles,
+                    instance: id as u32,
+                };
+                // Object space, the direction unnormalised: `t` is shared.
+                let o = inst.object_from_world.transform_point3(origin);
+                let d = inst.object_from_world.transform_vector3(dir);
+                match level.nearest(o, d, &mut best_t, &keep) {
+                    Some(h) => {
+                        best = Some(h);
+                        traversal_t(h.t)
                     }
-                    _ => f32::INFINITY,
+                    None => f32::INFINITY,
                 }
             });
         }
@@ -383,34 +513,180 @@ impl Geometry {
         origin: Vec3,
         dir: Vec3,
         t_max: f32,
-        keep: impl Fn(&TriangleRecord, u32, f32, f32) -> bool,
+        keep: impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> bool {
         for s in &self.spheres {
             if intersect_sphere(s.center, s.radius, origin, dir, t_max).is_some() {
                 return true;
             }
         }
-        if self.triangles.is_empty() {
+        if !self.triangles.is_empty() {
+            let level = TriangleLevel {
+                bvh: &self.bvh,
+                triangles: &self.triangles,
+                instance: NO_INSTANCE,
+            };
+            if level.any(origin, dir, t_max, &keep) {
+                return true;
+            }
+        }
+        if self.instances.is_empty() {
             return false;
         }
+        let ray = traversal_ray(origin, dir, t_max);
+        !self.tlas.ray_traverse_miss(ray, |_, id| {
+            let inst = &self.instances[id];
+            let proto = &self.prototypes[inst.prototype as usize];
+            let level = TriangleLevel {
+                bvh: &proto.bvh,
+                triangles: &proto.triangles,
+                instance: id as u32,
+            };
+            let o = inst.object_from_world.transform_point3(origin);
+            let d = inst.object_from_world.transform_vector3(dir);
+            if level.any(o, d, t_max, &keep) {
+                0.0
+            } else {
+                f32::INFINITY
+            }
+        })
+    }
+}
+
+/// Identifies a triangle for the filter of [`Geometry::intersect_where`] (and for hashing
+/// decisions per triangle, such as stochastic alpha): its index for a world-space
+/// triangle, its index and instance otherwise.
+#[inline]
+pub fn triangle_key(instance: u32, index: u32) -> u64 {
+    if instance == NO_INSTANCE {
+        u64::from(index)
+    } else {
+        ((u64::from(instance) + 1) << 32) | u64::from(index)
+    }
+}
+
+/// One BVH of triangles (the world-space one, or a prototype's in object space) with the
+/// instance its hits report.
+struct TriangleLevel<'g> {
+    bvh: &'g CwBvh,
+    triangles: &'g [TriangleRecord],
+    instance: u32,
+}
+
+impl TriangleLevel<'_> {
+    /// The nearest kept hit of `origin + t dir` with `t < *best_t`; lowers `*best_t` to it.
+    #[inline(always)]
+    fn nearest(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        best_t: &mut f32,
+        keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+    ) -> Option<Hit> {
         let wt = WatertightRay::new(origin, dir);
-        let shift = TRAVERSAL_SHIFT;
-        let traversal_max = (t_max + shift) * (1.0 + 1e-5);
-        let ray = Ray::new(
-            Vec3A::from(origin - dir * shift),
-            traversal_dir(dir),
-            0.0,
-            traversal_max,
-        );
-        let tris = &self.triangles;
+        let ray = traversal_ray(origin, dir, *best_t);
+        let mut hit = RayHit::none();
+        let mut best = None;
+        let tris = self.triangles;
+        let instance = self.instance;
+        self.bvh.ray_traverse(ray, &mut hit, |_, id| {
+            let tri = &tris[id];
+            match wt.intersect(&tri.p, *best_t) {
+                Some((t, _b0, b1, b2)) if keep(tri, triangle_key(instance, id as u32), b1, b2) => {
+                    *best_t = t;
+                    best = Some(Hit {
+                        t,
+                        primitive: Primitive::Triangle {
+                            index: id as u32,
+                            instance,
+                            b1,
+                            b2,
+                        },
+                    });
+                    traversal_t(t)
+                }
+                _ => f32::INFINITY,
+            }
+        });
+        best
+    }
+
+    /// Whether any kept hit of `origin + t dir` has `t < t_max`.
+    #[inline(always)]
+    fn any(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_max: f32,
+        keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+    ) -> bool {
+        let wt = WatertightRay::new(origin, dir);
+        let ray = traversal_ray(origin, dir, t_max);
+        let tris = self.triangles;
+        let instance = self.instance;
         !self.bvh.ray_traverse_miss(ray, |_, id| {
             let tri = &tris[id];
             match wt.intersect(&tri.p, t_max) {
-                Some((_, _, b1, b2)) if keep(tri, id as u32, b1, b2) => 0.0,
+                Some((_, _, b1, b2)) if keep(tri, triangle_key(instance, id as u32), b1, b2) => 0.0,
                 _ => f32::INFINITY,
             }
         })
     }
+}
+
+/// The ray handed to obvhs for `origin + t dir`, `t < t_max`: shifted back by
+/// [`TRAVERSAL_SHIFT`] (see the module docs), its end rounded up so pruning is
+/// conservative.
+#[inline(always)]
+fn traversal_ray(origin: Vec3, dir: Vec3, t_max: f32) -> Ray {
+    let shifted_origin = Vec3A::from(origin - dir * TRAVERSAL_SHIFT);
+    let traversal_max = if t_max.is_finite() {
+        traversal_t(t_max)
+    } else {
+        t_max
+    };
+    Ray::new(shifted_origin, traversal_dir(dir), 0.0, traversal_max)
+}
+
+/// The traversal ray's parameter of the real ray's `t`, rounded up so pruning is
+/// conservative.
+#[inline(always)]
+fn traversal_t(t: f32) -> f32 {
+    (t + TRAVERSAL_SHIFT) * (1.0 + 1e-5)
+}
+
+/// A BVH over `triangles` and the triangles in its leaf order (so the hot loop indexes
+/// them directly).
+fn triangle_bvh(triangles: &[TriangleRecord]) -> (CwBvh, Vec<TriangleRecord>) {
+    if triangles.is_empty() {
+        return (CwBvh::default(), Vec::new());
+    }
+    let tris: Vec<obvhs::triangle::Triangle> = triangles
+        .iter()
+        .map(|t| obvhs::triangle::Triangle {
+            v0: t.p[0].into(),
+            v1: t.p[1].into(),
+            v2: t.p[2].into(),
+        })
+        .collect();
+    let mut build_time = std::time::Duration::ZERO;
+    let bvh = obvhs::cwbvh::builder::build_cwbvh_from_tris(
+        &tris,
+        obvhs::BvhBuildParams::medium_build(),
+        &mut build_time,
+    );
+    let ordered = bvh
+        .primitive_indices
+        .iter()
+        .map(|&i| triangles[i as usize])
+        .collect();
+    (bvh, ordered)
+}
+
+/// Bytes of a BVH's nodes and leaf index array.
+fn bvh_bytes(bvh: &CwBvh) -> usize {
+    std::mem::size_of_val(bvh.nodes.as_slice())
+        + std::mem::size_of_val(bvh.primitive_indices.as_slice())
 }
 
 /// The direction handed to obvhs. A third defect of obvhs 0.4.0: `safe_inverse(-0.0)` is

@@ -13,8 +13,8 @@ use crate::bsdf::{
 };
 use crate::camera::CameraModel;
 use crate::geometry::{
-    sphere_point, triangle_point, Geometry, Hit, Primitive, SphereRecord, SurfacePoint,
-    TriangleRecord, NO_LIGHT, NO_MESH,
+    sphere_point, triangle_point, Geometry, Hit, InstanceRecord, Primitive, SphereRecord,
+    SurfacePoint, TriangleRecord, NO_INSTANCE, NO_LIGHT, NO_MESH,
 };
 use crate::light::emission::{EmissionSample, WorldDisk};
 use crate::light::LightSample;
@@ -22,9 +22,10 @@ use crate::light::{
     environment::Environment, punctual::Punctual, sphere::SphereLight, triangle::TriangleLight,
     Light, LightSet,
 };
+use crate::math::gamma;
 use crate::sampling::{hash_combine, hash_u64};
 use crate::texture;
-use glam::{Vec2, Vec3, Vec4};
+use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A, Vec4};
 use tessera_scene::{
     AlphaMode, GltfMaterial, Image, Material, MaterialKind, PunctualLight, Scene, Texture,
     TextureRef,
@@ -125,7 +126,31 @@ impl RenderScene {
                 light,
             });
         }
-        let geometry = Geometry::build(triangles, spheres);
+        // Prototypes: object-space triangles, their shading stored after the meshes'.
+        // They are never emissive (`Scene::validate`), so they carry no lights.
+        let first_prototype = scene.meshes.len() as u32;
+        let prototypes: Vec<Vec<TriangleRecord>> = scene
+            .prototypes
+            .iter()
+            .enumerate()
+            .map(|(pi, mesh)| {
+                (0..mesh.indices.len())
+                    .map(|ti| TriangleRecord {
+                        p: mesh.indices[ti].map(|i| mesh.positions[i as usize]),
+                        mesh: first_prototype + pi as u32,
+                        index: ti as u32,
+                        material: mesh.material,
+                        light: NO_LIGHT,
+                    })
+                    .collect()
+            })
+            .collect();
+        let instances: Vec<(u32, Affine3A)> = scene
+            .instances
+            .iter()
+            .map(|i| (i.prototype, i.world_from_object))
+            .collect();
+        let geometry = Geometry::build_instanced(triangles, spheres, prototypes, &instances);
         for l in &scene.lights {
             lights.push(Light::Punctual(match *l {
                 PunctualLight::Point {
@@ -167,6 +192,7 @@ impl RenderScene {
         let meshes = scene
             .meshes
             .iter()
+            .chain(&scene.prototypes)
             .map(|m| MeshShading {
                 indices: m.indices.clone(),
                 normals: m.normals.clone(),
@@ -233,13 +259,13 @@ impl RenderScene {
     }
 
     /// Whether the ray with hash `key` passes through the alpha-tested triangle `tri`
-    /// (BVH order index `id`) at barycentrics `(b1, b2)`. MASK: where alpha is below the
+    /// (identified by `id`, [`crate::geometry::triangle_key`]) at barycentrics `(b1, b2)`. MASK: where alpha is below the
     /// cutoff. BLEND: stochastically, with probability `1 - alpha` (stochastic
     /// transparency, Enderton et al. 2010), decided by a hash of the ray and the triangle
     /// rather than the sampler, as pbrt-v4 does for alpha (Pharr, Jakob & Humphreys,
     /// 4th ed., section 7.1.1): deterministic, and the same for every ray that is the same
     /// ray, so shadow rays and camera rays agree.
-    fn transparent_at(&self, tri: &TriangleRecord, id: u32, b1: f32, b2: f32, key: u64) -> bool {
+    fn transparent_at(&self, tri: &TriangleRecord, id: u64, b1: f32, b2: f32, key: u64) -> bool {
         let Some(g) = self.materials[tri.material as usize].as_gltf() else {
             return false;
         };
@@ -248,8 +274,7 @@ impl RenderScene {
             AlphaMode::Opaque => false,
             AlphaMode::Mask { cutoff } => alpha < cutoff,
             AlphaMode::Blend => {
-                let u =
-                    (hash_combine(key, u64::from(id)) >> 40) as f32 * (1.0 / (1u64 << 24) as f32);
+                let u = (hash_combine(key, id) >> 40) as f32 * (1.0 / (1u64 << 24) as f32);
                 u >= alpha
             }
         }
@@ -305,49 +330,20 @@ impl RenderScene {
     #[inline]
     pub fn surface(&self, hit: &Hit, origin: Vec3, dir: Vec3) -> SurfacePoint {
         match hit.primitive {
-            Primitive::Triangle { index, b1, b2 } => {
-                let tri = &self.geometry.triangles[index as usize];
-                let b0 = 1.0 - b1 - b2;
-                let (p, p_error) = triangle_point(&tri.p, b0, b1, b2);
-                let ng = (tri.p[1] - tri.p[0])
-                    .cross(tri.p[2] - tri.p[0])
-                    .normalize_or(Vec3::Z);
-                let mesh = &self.meshes[tri.mesh as usize];
-                let idx = mesh.indices[tri.index as usize];
-                let mut ns = ng;
-                if let Some(n) = &mesh.normals {
-                    let interp =
-                        b0 * n[idx[0] as usize] + b1 * n[idx[1] as usize] + b2 * n[idx[2] as usize];
-                    if let Some(v) = interp.try_normalize() {
-                        ns = if v.dot(ng) < 0.0 { -v } else { v };
-                    }
+            Primitive::Triangle {
+                index,
+                instance,
+                b1,
+                b2,
+            } => {
+                if instance == NO_INSTANCE {
+                    let tri = &self.geometry.triangles[index as usize];
+                    self.triangle_surface(tri, b1, b2, None)
+                } else {
+                    let inst = &self.geometry.instances[instance as usize];
+                    let proto = &self.geometry.prototypes[inst.prototype as usize];
+                    self.triangle_surface(&proto.triangles[index as usize], b1, b2, Some(inst))
                 }
-                let bary = Vec2::new(b1, b2);
-                let mut sp = SurfacePoint {
-                    p,
-                    p_error,
-                    ng,
-                    ns,
-                    uv: uv_at(&mesh.uvs, idx, 0, bary),
-                    mesh: tri.mesh,
-                    tri: tri.index,
-                    bary,
-                    material: tri.material,
-                    light: tri.light,
-                };
-                if let Some(nm) = self.materials[tri.material as usize]
-                    .as_gltf()
-                    .and_then(|g| g.normal_map.as_ref())
-                {
-                    if let Some(t) = &mesh.tangents {
-                        let c = t[tri.index as usize];
-                        let tangent = c[0] * b0 + c[1] * b1 + c[2] * b2;
-                        let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
-                        let texel = self.lookup(&nm.texture, self.uv_of(&sp, &nm.texture), false);
-                        sp.ns = normal_mapped(sp.ns, ng, tangent.truncate(), sign, texel, nm.scale);
-                    }
-                }
-                sp
             }
             Primitive::Sphere { index } => {
                 let s = &self.geometry.spheres[index as usize];
@@ -370,6 +366,84 @@ impl RenderScene {
                 }
             }
         }
+    }
+
+    /// Surface data at barycentrics `(b1, b2)` of `tri`, which is in world space, or in
+    /// object space of the instance `inst`. For an instance the position and its error
+    /// bound are carried to world space (see [`transform_point`]), normals by the inverse
+    /// transpose and tangents by the linear part, the bitangent sign flipped when the
+    /// instance mirrors, so the result equals that of a flattened copy up to rounding.
+    #[inline(always)]
+    fn triangle_surface(
+        &self,
+        tri: &TriangleRecord,
+        b1: f32,
+        b2: f32,
+        inst: Option<&InstanceRecord>,
+    ) -> SurfacePoint {
+        let b0 = 1.0 - b1 - b2;
+        let (mut p, mut p_error) = triangle_point(&tri.p, b0, b1, b2);
+        let mut ng = (tri.p[1] - tri.p[0])
+            .cross(tri.p[2] - tri.p[0])
+            .normalize_or(Vec3::Z);
+        if let Some(inst) = inst {
+            (p, p_error) = transform_point(inst, p, p_error);
+            ng = (inst.normal_to_world * Vec3A::from(ng))
+                .normalize_or(Vec3A::Z)
+                .into();
+        }
+        let mesh = &self.meshes[tri.mesh as usize];
+        let idx = mesh.indices[tri.index as usize];
+        let mut ns = ng;
+        if let Some(n) = &mesh.normals {
+            let [n0, n1, n2] = idx.map(|i| n[i as usize]);
+            let interp = match inst {
+                None => b0 * n0 + b1 * n1 + b2 * n2,
+                // Each vertex normal to world space and renormalised before interpolating,
+                // as the importer does for a flattened copy: under non-uniform scale the
+                // lengths change unequally, and the interpolation must weigh the same
+                // unit normals to give the same shading.
+                Some(inst) => {
+                    let w = |v: Vec3| {
+                        Vec3::from(inst.normal_to_world * Vec3A::from(v)).normalize_or_zero()
+                    };
+                    b0 * w(n0) + b1 * w(n1) + b2 * w(n2)
+                }
+            };
+            if let Some(v) = interp.try_normalize() {
+                ns = if v.dot(ng) < 0.0 { -v } else { v };
+            }
+        }
+        let bary = Vec2::new(b1, b2);
+        let mut sp = SurfacePoint {
+            p,
+            p_error,
+            ng,
+            ns,
+            uv: uv_at(&mesh.uvs, idx, 0, bary),
+            mesh: tri.mesh,
+            tri: tri.index,
+            bary,
+            material: tri.material,
+            light: tri.light,
+        };
+        if let Some(nm) = self.materials[tri.material as usize]
+            .as_gltf()
+            .and_then(|g| g.normal_map.as_ref())
+        {
+            if let Some(t) = &mesh.tangents {
+                let c = t[tri.index as usize];
+                let mut tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
+                let mut sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
+                if let Some(inst) = inst {
+                    tangent = inst.world_from_object.transform_vector3(tangent);
+                    sign *= inst.handedness;
+                }
+                let texel = self.lookup(&nm.texture, self.uv_of(&sp, &nm.texture), false);
+                sp.ns = normal_mapped(sp.ns, ng, tangent, sign, texel, nm.scale);
+            }
+        }
+        sp
     }
 
     /// Beer–Lambert transmittance `exp(-σ_a t)` of a ray segment of length `t` (unit `dir`)
@@ -554,6 +628,35 @@ impl RenderScene {
             sheen_roughness: g.sheen_roughness * self.tex(sp, &g.sheen_roughness_texture, false).w,
         }
     }
+}
+
+/// A point of instance `inst` and its absolute error bound carried from object to world
+/// space (pbrt 3rd ed., Pharr, Jakob & Humphreys, section 3.9.4 "Bounding Intersection
+/// Point Error", "Effect of Transformations": the input error through `|M|` grown by
+/// `1 + gamma(3)`, plus `gamma(3) (|M| |p| + |t|)` for the transform's own rounding).
+/// One more such term is added for the spawned ray's origin, which is carried back into
+/// object space by `object_from_world` and rounded again there: the offset along the
+/// normal must cover that too, or a ray could restart behind its own surface.
+#[inline(always)]
+fn transform_point(inst: &InstanceRecord, p: Vec3, err: Vec3) -> (Vec3, Vec3) {
+    let m = &inst.world_from_object;
+    let abs_m = Mat3A::from_cols(
+        m.matrix3.x_axis.abs(),
+        m.matrix3.y_axis.abs(),
+        m.matrix3.z_axis.abs(),
+    );
+    let pw = m.transform_point3(p);
+    let forward = (1.0 + gamma(3)) * (abs_m * Vec3A::from(err))
+        + gamma(3) * (abs_m * Vec3A::from(p.abs()) + m.translation.abs());
+    // The inverse transform's rounding of the world point, expressed in world space.
+    let inv = &inst.object_from_world;
+    let abs_inv = Mat3A::from_cols(
+        inv.matrix3.x_axis.abs(),
+        inv.matrix3.y_axis.abs(),
+        inv.matrix3.z_axis.abs(),
+    );
+    let back = gamma(3) * (abs_m * (abs_inv * Vec3A::from(pw.abs()) + inv.translation.abs()));
+    (pw, (forward + back).into())
 }
 
 /// A hash of a ray, for decisions that must be the same for the same ray (alpha).

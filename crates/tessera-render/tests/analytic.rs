@@ -94,6 +94,8 @@ fn plane_under_sphere(r: f32, h: f32, radiance: f32, albedo: f32) -> Scene {
         name: "plane-under-sphere".into(),
         camera,
         meshes: vec![mesh],
+        prototypes: Vec::new(),
+        instances: Vec::new(),
         spheres: vec![Sphere {
             center: v(0.0, h, 0.0),
             radius: r,

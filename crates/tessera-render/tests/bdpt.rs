@@ -117,6 +117,8 @@ fn bdpt_agrees_with_path_under_directional_spot_and_environment_light() {
         name: "test:distant-lights".into(),
         camera: look_at_camera(v(0.0, 1.5, 3.0), v(0.0, 0.3, 0.0), Vec3::Y, 45.0),
         meshes: vec![floor],
+        prototypes: Vec::new(),
+        instances: Vec::new(),
         spheres: vec![Sphere {
             center: v(0.0, 0.5, 0.0),
             radius: 0.5,
@@ -212,6 +214,8 @@ fn point_light_caustic() -> Scene {
         name: "test:point-light-caustic".into(),
         camera: look_at_camera(v(0.0, 2.5, 2.5), v(0.0, 0.0, 0.0), Vec3::Y, 30.0),
         meshes: vec![floor],
+        prototypes: Vec::new(),
+        instances: Vec::new(),
         spheres: vec![Sphere {
             center: v(0.0, 0.8, 0.0),
             radius: 0.5,

@@ -98,6 +98,8 @@ fn plane_under_point_light() -> Scene {
         name: "test:plane-under-point-light".into(),
         camera: look_at_camera(v(0.0, 2.0, 3.0), v(0.0, 0.0, 0.0), Vec3::Y, 40.0),
         meshes: vec![floor],
+        prototypes: Vec::new(),
+        instances: Vec::new(),
         spheres: vec![],
         materials: vec![Material::diffuse("floor", Vec3::splat(0.7))],
         textures: vec![],

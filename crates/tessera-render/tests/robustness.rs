@@ -49,6 +49,8 @@ fn scene(scale: f32, offset: Vec3) -> Scene {
             Vec3::Y,
             40.0,
         ),
+        prototypes: Vec::new(),
+        instances: Vec::new(),
         meshes: vec![Mesh {
             name: "sheet".into(),
             positions,

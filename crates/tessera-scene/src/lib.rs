@@ -1,9 +1,15 @@
 //! Scene description for Tessera: what is in a scene, where it came from, and whether it
 //! is valid.
 //!
-//! A [`Scene`] is a flat, world-space description: triangle meshes with the node
-//! hierarchy's transforms already applied, analytic spheres, materials, textures,
-//! punctual lights, an optional uniform environment and one camera. It is produced by
+//! A [`Scene`] is a world-space description: triangle meshes with the node hierarchy's
+//! transforms already applied, analytic spheres, materials, textures, punctual lights, an
+//! optional uniform environment and one camera. A mesh placed at several places (several
+//! glTF nodes, or EXT_mesh_gpu_instancing) is stored once instead, in object space, as a
+//! [`Scene::prototypes`] entry with one [`Instance`] per place (object instancing, Pharr,
+//! Jakob & Humphreys, pbrt-v4, 4th ed., section 7.1 "Object instancing"), so a forest of
+//! identical trees costs the memory of one tree. [`Scene::placed_meshes`] walks both
+//! kinds with their transforms, so a reader that needs world-space triangles does not
+//! repeat the transform logic. It is produced by
 //!
 //! - [`gltf_import::load_path`] / [`gltf_import::load_slice`] from glTF 2.0 (`.gltf` with
 //!   external or embedded buffers, or `.glb`), and
@@ -33,7 +39,7 @@ pub use material::{
     UvTransform, Volume, Wrap,
 };
 
-use glam::{Mat4, Vec2, Vec3, Vec4};
+use glam::{Affine3A, Mat4, Vec2, Vec3, Vec4};
 use std::path::Path;
 
 /// Largest scene file accepted, in bytes (glTF JSON, .glb, or the sum of its buffers).
@@ -102,7 +108,8 @@ pub struct Camera {
     pub focus_distance: f32,
 }
 
-/// A triangle mesh in world space.
+/// A triangle mesh, in world space in [`Scene::meshes`] and in object space in
+/// [`Scene::prototypes`] (then every "world-space" below reads "object-space").
 #[derive(Clone, Debug, Default)]
 pub struct Mesh {
     /// Name of the glTF mesh/node, for error messages and statistics.
@@ -123,6 +130,90 @@ pub struct Mesh {
     pub indices: Vec<[u32; 3]>,
     /// Index into [`Scene::materials`].
     pub material: u32,
+}
+
+/// One placement of a prototype mesh ([`Scene::prototypes`]) in the world.
+///
+/// The prototype keeps its object-space winding; a transform with a negative determinant
+/// (a mirror) makes it clockwise in world space, and readers account for that: normals
+/// transform by the inverse transpose (which yields the front side the flattened,
+/// re-wound mesh would have), tangents by the linear part with their bitangent sign
+/// multiplied by the sign of the determinant.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Instance {
+    /// Index into [`Scene::prototypes`].
+    pub prototype: u32,
+    /// World-from-object affine transform (invertible, finite).
+    pub world_from_object: Affine3A,
+}
+
+impl Instance {
+    /// Bytes an instance costs in a scene (for import budgets and memory figures).
+    pub const BYTES: u64 = std::mem::size_of::<Instance>() as u64;
+
+    /// Whether `m` can place a prototype: finite, with a finite single-precision inverse
+    /// (the renderer carries rays into object space by it). What [`Scene::validate`]
+    /// checks and the importer decides flattening by.
+    pub fn transform_is_invertible(m: &Affine3A) -> bool {
+        m.is_finite() && m.matrix3.determinant() != 0.0 && m.inverse().is_finite()
+    }
+
+    /// Whether the transform mirrors (negative determinant).
+    pub fn mirrors(&self) -> bool {
+        self.world_from_object.matrix3.determinant() < 0.0
+    }
+}
+
+/// A mesh as placed in the world: a world-space mesh of [`Scene::meshes`] (no transform),
+/// or a prototype with an instance's transform. See [`Scene::placed_meshes`].
+#[derive(Clone, Copy, Debug)]
+pub struct PlacedMesh<'a> {
+    /// The mesh's data (world space, or object space with `world_from_object`).
+    pub mesh: &'a Mesh,
+    /// The instance transform, `None` for a world-space mesh.
+    pub world_from_object: Option<Affine3A>,
+}
+
+impl PlacedMesh<'_> {
+    /// World-space positions of triangle `t`, in the mesh's vertex order (clockwise seen
+    /// from the front when the instance mirrors; areas and bounds do not care).
+    #[inline]
+    pub fn triangle(&self, t: usize) -> [Vec3; 3] {
+        let p = self.mesh.indices[t].map(|i| self.mesh.positions[i as usize]);
+        match &self.world_from_object {
+            None => p,
+            Some(m) => p.map(|v| m.transform_point3(v)),
+        }
+    }
+
+    /// World-space positions of every triangle (see [`PlacedMesh::triangle`]).
+    pub fn triangles(&self) -> impl Iterator<Item = [Vec3; 3]> + '_ {
+        (0..self.mesh.indices.len()).map(|t| self.triangle(t))
+    }
+
+    /// The mesh's material.
+    pub fn material(&self) -> u32 {
+        self.mesh.material
+    }
+}
+
+/// The meshes of `meshes`, then each instance of `instances` with its prototype from
+/// `prototypes` (the one implementation behind [`Scene::placed_meshes`], also used by the
+/// importer before its [`Scene`] exists).
+pub(crate) fn placed<'a>(
+    meshes: &'a [Mesh],
+    prototypes: &'a [Mesh],
+    instances: &'a [Instance],
+) -> impl Iterator<Item = PlacedMesh<'a>> + 'a {
+    let flat = meshes.iter().map(|mesh| PlacedMesh {
+        mesh,
+        world_from_object: None,
+    });
+    let inst = instances.iter().map(move |i| PlacedMesh {
+        mesh: &prototypes[i.prototype as usize],
+        world_from_object: Some(i.world_from_object),
+    });
+    flat.chain(inst)
 }
 
 /// An analytic sphere (built-in scenes use these for spherical lights and glass balls).
@@ -175,8 +266,14 @@ pub struct Scene {
     pub name: String,
     /// The camera to render from.
     pub camera: Camera,
-    /// World-space triangle meshes.
+    /// World-space triangle meshes, each placed once.
     pub meshes: Vec<Mesh>,
+    /// Object-space meshes placed by [`Scene::instances`] (stored once however often they
+    /// are placed). Not emissive: area lights need world-space triangles, so the importer
+    /// flattens emissive meshes into [`Scene::meshes`] instead.
+    pub prototypes: Vec<Mesh>,
+    /// Placements of [`Scene::prototypes`].
+    pub instances: Vec<Instance>,
     /// Analytic spheres.
     pub spheres: Vec<Sphere>,
     /// Materials referenced by meshes and spheres.
@@ -197,9 +294,80 @@ pub struct Scene {
 }
 
 impl Scene {
-    /// Number of triangles over all meshes.
+    /// Number of triangles as rendered: over all meshes, with each instance's prototype
+    /// counted once per instance.
     pub fn triangle_count(&self) -> usize {
-        self.meshes.iter().map(|m| m.indices.len()).sum()
+        self.placed_meshes().map(|m| m.mesh.indices.len()).sum()
+    }
+
+    /// Number of triangles as stored: over all meshes and prototypes, each once.
+    pub fn stored_triangle_count(&self) -> usize {
+        self.meshes
+            .iter()
+            .chain(&self.prototypes)
+            .map(|m| m.indices.len())
+            .sum()
+    }
+
+    /// This scene with every instance copied to world space, as the glTF importer
+    /// flattens a mesh placed once: positions transformed, normals by the inverse
+    /// transpose and renormalised, tangents by the linear part, and for a mirroring
+    /// transform the winding (and tangent corners) reversed and the bitangent sign
+    /// flipped. For comparing instancing with flattening (tests, benchmarks); the flattened
+    /// meshes follow [`Scene::meshes`] in instance order.
+    pub fn flattened(&self) -> Scene {
+        let mut flat = self.clone();
+        flat.prototypes.clear();
+        flat.instances.clear();
+        flat.meshes.reserve(self.instances.len());
+        for inst in &self.instances {
+            let proto = &self.prototypes[inst.prototype as usize];
+            let m = inst.world_from_object;
+            let linear = glam::Mat3::from(m.matrix3);
+            let normal = linear.inverse().transpose();
+            let mirror = inst.mirrors();
+            let sign = if mirror { -1.0 } else { 1.0 };
+            let normals = proto.normals.as_ref().and_then(|n| {
+                n.iter()
+                    .map(|&v| (normal * v).try_normalize())
+                    .collect::<Option<Vec<Vec3>>>()
+            });
+            let tangents = proto.tangents.as_ref().map(|ts| {
+                ts.iter()
+                    .map(|c| {
+                        let c = if mirror { [c[0], c[2], c[1]] } else { *c };
+                        c.map(|t| {
+                            let w = (linear * t.truncate()).normalize_or_zero();
+                            w.extend(if t.w < 0.0 { -sign } else { sign })
+                        })
+                    })
+                    .collect()
+            });
+            flat.meshes.push(Mesh {
+                name: proto.name.clone(),
+                positions: proto
+                    .positions
+                    .iter()
+                    .map(|&p| m.transform_point3(p))
+                    .collect(),
+                normals,
+                uvs: proto.uvs.clone(),
+                tangents,
+                indices: proto
+                    .indices
+                    .iter()
+                    .map(|&[a, b, c]| if mirror { [a, c, b] } else { [a, b, c] })
+                    .collect(),
+                material: proto.material,
+            });
+        }
+        flat
+    }
+
+    /// Every mesh as placed in the world: [`Scene::meshes`], then every instance with
+    /// its prototype and transform.
+    pub fn placed_meshes(&self) -> impl Iterator<Item = PlacedMesh<'_>> + '_ {
+        placed(&self.meshes, &self.prototypes, &self.instances)
     }
 
     /// Checks every invariant the renderer relies on: finite numbers, in-range indices,
@@ -233,26 +401,28 @@ impl Scene {
             ));
         }
         let nmat = self.materials.len() as u32;
-        for (i, m) in self.meshes.iter().enumerate() {
+        let meshes = self.meshes.iter().enumerate().map(|(i, m)| ("mesh", i, m));
+        let prototypes = self.prototypes.iter().enumerate();
+        for (kind, i, m) in meshes.chain(prototypes.map(|(i, m)| ("prototype", i, m))) {
             if m.material >= nmat {
                 return bad(format!(
-                    "mesh {i} ({}) uses material {} of {nmat}",
+                    "{kind} {i} ({}) uses material {} of {nmat}",
                     m.name, m.material
                 ));
             }
             if let Some(p) = m.positions.iter().position(|p| !p.is_finite()) {
-                return bad(format!("mesh {i} ({}) vertex {p} is not finite", m.name));
+                return bad(format!("{kind} {i} ({}) vertex {p} is not finite", m.name));
             }
             let nv = m.positions.len() as u32;
             if let Some(t) = m.indices.iter().position(|t| t.iter().any(|&v| v >= nv)) {
                 return bad(format!(
-                    "mesh {i} ({}) triangle {t} indexes past its {nv} vertices",
+                    "{kind} {i} ({}) triangle {t} indexes past its {nv} vertices",
                     m.name
                 ));
             }
             if let Some(n) = &m.normals {
                 if n.len() != m.positions.len() || n.iter().any(|v| !v.is_finite()) {
-                    return bad(format!("mesh {i} ({}) has invalid normals", m.name));
+                    return bad(format!("{kind} {i} ({}) has invalid normals", m.name));
                 }
             }
             for (set, uv) in m.uvs.iter().enumerate() {
@@ -260,15 +430,42 @@ impl Scene {
                     || uv.iter().any(|v| !v.is_finite())
                 {
                     return bad(format!(
-                        "mesh {i} ({}) has invalid texture coordinates TEXCOORD_{set}",
+                        "{kind} {i} ({}) has invalid texture coordinates TEXCOORD_{set}",
                         m.name
                     ));
                 }
             }
             if let Some(t) = &m.tangents {
                 if t.len() != m.indices.len() || t.iter().flatten().any(|v| !v.is_finite()) {
-                    return bad(format!("mesh {i} ({}) has invalid tangents", m.name));
+                    return bad(format!("{kind} {i} ({}) has invalid tangents", m.name));
                 }
+            }
+        }
+        for (i, inst) in self.instances.iter().enumerate() {
+            let Some(proto) = self.prototypes.get(inst.prototype as usize) else {
+                return bad(format!(
+                    "instance {i} places prototype {} of {}",
+                    inst.prototype,
+                    self.prototypes.len()
+                ));
+            };
+            if !Instance::transform_is_invertible(&inst.world_from_object) {
+                return bad(format!(
+                    "instance {i} of prototype {} has a transform that is not finite and \
+                     invertible",
+                    inst.prototype
+                ));
+            }
+            if self
+                .materials
+                .get(proto.material as usize)
+                .is_some_and(Material::is_emissive)
+            {
+                return bad(format!(
+                    "instance {i}: prototype {} ({}) is emissive; area lights must be \
+                     world-space meshes",
+                    inst.prototype, proto.name
+                ));
             }
         }
         for (i, s) in self.spheres.iter().enumerate() {

@@ -223,6 +223,8 @@ fn base_scene(materials: Vec<Material>, meshes: Vec<Mesh>) -> Scene {
             40.0,
         ),
         meshes,
+        prototypes: Vec::new(),
+        instances: Vec::new(),
         spheres: vec![],
         materials,
         textures: vec![],

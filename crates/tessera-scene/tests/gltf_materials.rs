@@ -338,8 +338,12 @@ fn gpu_instancing_places_the_mesh_at_every_instance() {
     g.root(json!({"mesh": m, "translation": [0.0, 0.0, 5.0],
         "extensions": {"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": translations}}}}));
     let s = load(&g.glb()).unwrap();
-    assert_eq!(s.meshes.len(), 3);
-    let origins: Vec<Vec3> = s.meshes.iter().map(|m| m.positions[0]).collect();
+    // Stored once, placed three times.
+    assert!(s.meshes.is_empty());
+    assert_eq!(s.prototypes.len(), 1);
+    assert_eq!(s.instances.len(), 3);
+    assert_eq!(s.triangle_count(), 3 * s.stored_triangle_count());
+    let origins: Vec<Vec3> = s.placed_meshes().map(|m| m.triangle(0)[0]).collect();
     assert_eq!(
         origins,
         [
@@ -396,4 +400,85 @@ fn quantized_attributes_are_dequantized() {
     assert_eq!(s.meshes[0].positions[2], Vec3::new(0.0, 3.0, 0.0));
     assert_eq!(s.meshes[0].uvs[0][1], Vec2::new(1.0, 0.0));
     assert_eq!(s.meshes[0].uvs[0][2], Vec2::new(0.0, 1.0));
+}
+
+#[test]
+fn a_mesh_under_several_nodes_is_stored_once() {
+    // One mesh under four nodes (one mirrored, one scaled to nothing) and an emissive mesh
+    // under two: the shared mesh becomes one prototype with an instance per invertible
+    // placement; the degenerate placement and the emitter are flattened.
+    let mut g = Gen::new();
+    let grey = g.push("materials", json!({}));
+    let glow = g.push("materials", json!({"emissiveFactor": [1.0, 1.0, 1.0]}));
+    let m = quad(&mut g, grey);
+    let lamp = quad(&mut g, glow);
+    g.root(json!({"mesh": m, "translation": [0.0, 0.0, 1.0]}));
+    let h = std::f32::consts::FRAC_1_SQRT_2;
+    g.root(json!({"mesh": m, "translation": [3.0, 0.0, 0.0], "rotation": [0.0, 0.0, h, h]}));
+    g.root(json!({"mesh": m, "scale": [-1.0, 2.0, 1.0]}));
+    g.root(json!({"mesh": m, "scale": [0.0, 1.0, 1.0]}));
+    g.root(json!({"mesh": lamp, "translation": [0.0, 5.0, 0.0]}));
+    g.root(json!({"mesh": lamp, "translation": [0.0, 6.0, 0.0]}));
+    let s = load(&g.glb()).unwrap();
+    assert_eq!(s.prototypes.len(), 1);
+    assert_eq!(s.instances.len(), 3);
+    assert_eq!(s.meshes.len(), 3, "degenerate placement and two emitters");
+    assert!(s.instances.iter().all(|i| i.prototype == 0));
+    assert_eq!(
+        s.instances.iter().map(|i| i.mirrors()).collect::<Vec<_>>(),
+        [false, false, true]
+    );
+    assert_eq!(s.triangle_count(), 6 * 2);
+    assert_eq!(s.stored_triangle_count(), 4 * 2);
+    // The second instance: rotated 90 degrees about z, then moved to x = 3.
+    let corner = s.placed_meshes().nth(4).unwrap().triangle(0)[1];
+    assert!(
+        (corner - Vec3::new(3.0, 1.0, 0.0)).length() < 1e-6,
+        "{corner}"
+    );
+    // The analysis sees every placement: the shared quad's area counts four times (the
+    // degenerate copy has none).
+    let plan = tessera_scene::analysis::analyse(&s);
+    assert!(!plan.summary().is_empty());
+}
+
+#[test]
+fn ten_thousand_gpu_instances_load_within_the_budget() {
+    // A 33,282-triangle grid mesh placed 10,000 times by EXT_mesh_gpu_instancing:
+    // flattened, that is 333 M triangles (about 9.4 GB by the importer's estimate, past its
+    // 4 GiB output budget); stored once it loads.
+    let mut g = Gen::new();
+    g.uses("EXT_mesh_gpu_instancing");
+    let material = g.push("materials", json!({}));
+    let n = 130u32;
+    let mut pos = Vec::new();
+    for y in 0..n {
+        for x in 0..n {
+            pos.push([x as f32 / 129.0, y as f32 / 129.0, 0.0]);
+        }
+    }
+    let mut idx = Vec::new();
+    for y in 0..n - 1 {
+        for x in 0..n - 1 {
+            let v = y * n + x;
+            idx.extend([v, v + 1, v + n + 1, v, v + n + 1, v + n]);
+        }
+    }
+    let pos = g.positions(&pos);
+    let idx = g.indices_u32(&idx);
+    let m = g.push(
+        "meshes",
+        json!({"primitives": [{"attributes": {"POSITION": pos}, "indices": idx, "material": material}]}),
+    );
+    let t: Vec<[f32; 3]> = (0..10_000)
+        .map(|i| [(i % 100) as f32 * 2.0, 0.0, (i / 100) as f32 * 2.0])
+        .collect();
+    let t = g.vec3(&t);
+    g.root(json!({"mesh": m,
+        "extensions": {"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": t}}}}));
+    let s = tessera_scene::gltf_import::load_slice(&g.glb(), "forest.glb", None, None).unwrap();
+    assert_eq!(s.prototypes.len(), 1);
+    assert_eq!(s.instances.len(), 10_000);
+    assert_eq!(s.stored_triangle_count(), 33_282);
+    assert_eq!(s.triangle_count(), 33_282 * 10_000);
 }

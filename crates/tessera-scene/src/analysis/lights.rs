@@ -100,9 +100,11 @@ fn area_lights(scene: &Scene) -> Vec<AreaLight> {
             continue;
         }
         let (mut count, mut area, mut bounds) = (0usize, 0.0f32, Bounds::empty());
-        for mesh in scene.meshes.iter().filter(|x| x.material as usize == mi) {
-            for t in &mesh.indices {
-                let p = t.map(|i| mesh.positions[i as usize]);
+        for placed in scene
+            .placed_meshes()
+            .filter(|x| x.material() as usize == mi)
+        {
+            for p in placed.triangles() {
                 let a = triangle_area(p);
                 if a > 0.0 {
                     count += 1;

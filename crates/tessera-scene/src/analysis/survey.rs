@@ -75,14 +75,13 @@ impl<'a> Survey<'a> {
         let mut used = vec![false; nmat];
         let mut area_by_material = vec![0.0f32; nmat];
         let mut geometry = Bounds::empty();
-        for mesh in &scene.meshes {
-            let mi = mesh.material as usize;
-            if mesh.indices.is_empty() || mi >= nmat {
+        for placed in scene.placed_meshes() {
+            let mi = placed.material() as usize;
+            if placed.mesh.indices.is_empty() || mi >= nmat {
                 continue;
             }
             used[mi] = true;
-            for t in &mesh.indices {
-                let p = t.map(|i| mesh.positions[i as usize]);
+            for p in placed.triangles() {
                 area_by_material[mi] += triangle_area(p);
                 for v in p {
                     geometry.add(v);

@@ -150,9 +150,8 @@ fn bouncing(survey: &Survey, lights: &Lights) -> Bouncing {
         .collect();
     let (scattering_triangles, coplanar) = scattering_triangles(survey);
     let scattering_meshes = scene
-        .meshes
-        .iter()
-        .filter(|m| !m.indices.is_empty() && survey.scatters(m.material as usize))
+        .placed_meshes()
+        .filter(|m| !m.mesh.indices.is_empty() && survey.scatters(m.material() as usize))
         .count();
     let multi_bounce = match (scattering_spheres.len(), scattering_triangles) {
         (0, _) => !coplanar,
@@ -178,14 +177,12 @@ fn scattering_triangles(survey: &Survey) -> (usize, bool) {
     let mut plane: Option<(Vec3, f32)> = None;
     let mut coplanar = true;
     let eps = 1e-4 * survey.scene_radius;
-    for mesh in survey
+    for placed in survey
         .scene
-        .meshes
-        .iter()
-        .filter(|m| survey.scatters(m.material as usize))
+        .placed_meshes()
+        .filter(|m| survey.scatters(m.material() as usize))
     {
-        for t in &mesh.indices {
-            let p = t.map(|i| mesh.positions[i as usize]);
+        for p in placed.triangles() {
             scattering_triangles += 1;
             if !coplanar {
                 continue;

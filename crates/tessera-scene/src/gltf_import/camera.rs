@@ -2,8 +2,9 @@
 //! the first one found, else one synthesized to frame the geometry; and the default image
 //! size it implies.
 
+use super::meshes::Geometry;
 use super::{Importer, Res};
-use crate::{Camera, Mesh, PunctualLight};
+use crate::{Camera, PunctualLight};
 use glam::{DMat4, DVec3, Vec3};
 use gltf::json;
 use json::validation::Checked;
@@ -29,7 +30,7 @@ impl Importer<'_> {
         &self,
         wanted: Option<&str>,
         candidates: &[CameraCandidate],
-        meshes: &[Mesh],
+        geometry: &Geometry,
         lights: &[PunctualLight],
     ) -> Res<Camera> {
         let chosen = match wanted {
@@ -38,7 +39,7 @@ impl Importer<'_> {
         };
         match chosen {
             Some(c) => self.convert_camera(c),
-            None => Ok(synthesize_camera(meshes, lights)),
+            None => Ok(synthesize_camera(geometry, lights)),
         }
     }
 
@@ -135,17 +136,12 @@ impl Importer<'_> {
 
 /// A camera looking down -Z from the +Z side at the bounding sphere of the geometry (or of
 /// the lights' positions, or of the unit cube), framed by a 45° vertical field of view.
-fn synthesize_camera(meshes: &[Mesh], lights: &[PunctualLight]) -> Camera {
+fn synthesize_camera(geometry: &Geometry, lights: &[PunctualLight]) -> Camera {
     let mut lo = Vec3::splat(f32::INFINITY);
     let mut hi = Vec3::splat(f32::NEG_INFINITY);
-    for m in meshes {
-        for t in &m.indices {
-            for &v in t {
-                let p = m.positions[v as usize];
-                lo = lo.min(p);
-                hi = hi.max(p);
-            }
-        }
+    for (lo_p, hi_p) in geometry.bounds() {
+        lo = lo.min(lo_p);
+        hi = hi.max(hi_p);
     }
     if lo.x > hi.x {
         for l in lights {

@@ -1,19 +1,30 @@
 //! Step 4, the scene graph (spec "Scenes", "Nodes and Hierarchy", "Transformations"):
 //! the root nodes, and the depth-first walk that accumulates world transforms and
-//! instances meshes, cameras and lights at their nodes.
+//! records where meshes, cameras and lights are placed.
 
 use super::camera::CameraCandidate;
 use super::{Importer, Res};
-use crate::{Mesh, PunctualLight};
+use crate::PunctualLight;
 use glam::{DMat4, DQuat, DVec3};
 use gltf::json;
 use json::validation::Checked;
 
+/// A glTF mesh placed at a node (once per EXT_mesh_gpu_instancing instance).
+pub(super) struct Placement {
+    /// The node placing it.
+    pub(super) node: usize,
+    /// The glTF mesh index (checked to exist).
+    pub(super) mesh: usize,
+    /// World-from-mesh transform.
+    pub(super) world: DMat4,
+}
+
 /// What the walk over the scene graph found, in depth-first order.
 #[derive(Default)]
 pub(super) struct Instances {
-    /// One world-space mesh per instanced primitive.
-    pub(super) meshes: Vec<Mesh>,
+    /// Every placement of a mesh; [`Importer::place_meshes`] decides which are
+    /// flattened and which become instances of a stored-once prototype.
+    pub(super) placements: Vec<Placement>,
     /// Lights at their nodes.
     pub(super) lights: Vec<PunctualLight>,
     /// Nodes carrying a perspective camera.
@@ -85,9 +96,29 @@ impl Importer<'_> {
         Ok(found)
     }
 
-    /// Instances the mesh, perspective camera and light of node `ni` at `world`.
+    /// Records the mesh placements, perspective camera and light of node `ni` at `world`.
     fn visit_node(&mut self, ni: usize, world: &DMat4, found: &mut Instances) -> Res<()> {
         if let Some(m) = self.root.nodes[ni].mesh {
+            let mi = m.value();
+            if mi >= self.root.meshes.len() {
+                return self.err(format!(
+                    "node {ni} refers to mesh {mi}, but there are only {}",
+                    self.root.meshes.len()
+                ));
+            }
+            let mut place = |imp: &mut Self, world: DMat4| -> Res<()> {
+                // A placement costs a transform until it is known to be flattened.
+                imp.add_output(
+                    std::mem::size_of::<Placement>() as u64,
+                    &format!("node {ni}"),
+                )?;
+                found.placements.push(Placement {
+                    node: ni,
+                    mesh: mi,
+                    world,
+                });
+                Ok(())
+            };
             match self.gpu_instances(ni)? {
                 // EXT_mesh_gpu_instancing: the mesh at every instance transform, each
                 // applied before the node's own (the extension's `world * instance`).
@@ -99,10 +130,10 @@ impl Importer<'_> {
                                 "node {ni}: an EXT_mesh_gpu_instancing transform is not finite"
                             ));
                         }
-                        self.instance_mesh(ni, m.value(), &at, &mut found.meshes)?;
+                        place(self, at)?;
                     }
                 }
-                None => self.instance_mesh(ni, m.value(), world, &mut found.meshes)?,
+                None => place(self, *world)?,
             }
         }
         let node = &self.root.nodes[ni];

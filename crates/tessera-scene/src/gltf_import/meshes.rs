@@ -1,11 +1,19 @@
 //! Step 5, meshes (spec "Meshes"): each `TRIANGLES` primitive read once in its mesh's
-//! local space, then instanced in world space at every node that uses the mesh.
+//! local space, then placed: a mesh placed once is transformed to world space; a mesh
+//! placed at two or more places (several nodes, or EXT_mesh_gpu_instancing) is stored
+//! once in object space as a prototype with one instance per place (pbrt-v4, Pharr, Jakob
+//! & Humphreys, 4th ed., section 7.1 "Object instancing"). Two exceptions are flattened
+//! per place even when shared: emissive primitives (area lights are sampled by world-space
+//! triangle) and placements whose transform cannot be inverted (a zero scale), which the
+//! renderer could not carry a ray into.
 
+use super::graph::Placement;
 use super::{Importer, Res};
-use crate::Mesh;
-use glam::{DMat3, DMat4, Vec2, Vec3, Vec4};
+use crate::{Instance, Material, Mesh, PlacedMesh};
+use glam::{Affine3A, DMat3, DMat4, Vec2, Vec3, Vec4};
 use gltf::json;
 use json::validation::Checked;
+use std::collections::HashMap;
 use std::rc::Rc;
 
 /// Mesh data of one primitive in its mesh's local space, shared by every node instancing it.
@@ -19,7 +27,113 @@ pub(super) struct LocalPrimitive {
     material: u32,
 }
 
+/// The placed geometry of a scene: world-space meshes, prototypes and their instances.
+#[derive(Default)]
+pub(super) struct Geometry {
+    /// Meshes placed once (and flattened shared ones), in world space.
+    pub(super) meshes: Vec<Mesh>,
+    /// Shared primitives, in object space.
+    pub(super) prototypes: Vec<Mesh>,
+    /// Placements of the prototypes.
+    pub(super) instances: Vec<Instance>,
+}
+
+impl Geometry {
+    /// Every placed mesh (see [`crate::Scene::placed_meshes`]).
+    pub(super) fn placed(&self) -> impl Iterator<Item = PlacedMesh<'_>> + '_ {
+        crate::placed(&self.meshes, &self.prototypes, &self.instances)
+    }
+
+    /// World-space bounds of each world-space mesh and each instance, empty meshes left
+    /// out. An instance's are its prototype's object bounds transformed corner by corner
+    /// (conservative, and cheap for 10,000 instances).
+    pub(super) fn bounds(&self) -> impl Iterator<Item = (Vec3, Vec3)> + '_ {
+        let local = |m: &Mesh| {
+            let mut lo = Vec3::splat(f32::INFINITY);
+            let mut hi = Vec3::splat(f32::NEG_INFINITY);
+            for &v in m.indices.iter().flatten() {
+                lo = lo.min(m.positions[v as usize]);
+                hi = hi.max(m.positions[v as usize]);
+            }
+            (lo.x <= hi.x).then_some((lo, hi))
+        };
+        let proto: Vec<Option<(Vec3, Vec3)>> = self.prototypes.iter().map(local).collect();
+        let flat = self.meshes.iter().filter_map(local);
+        let inst = self.instances.iter().filter_map(move |i| {
+            let (lo, hi) = proto[i.prototype as usize]?;
+            let mut wlo = Vec3::splat(f32::INFINITY);
+            let mut whi = Vec3::splat(f32::NEG_INFINITY);
+            for k in 0..8 {
+                let c = Vec3::select(glam::BVec3::new(k & 1 != 0, k & 2 != 0, k & 4 != 0), hi, lo);
+                let w = i.world_from_object.transform_point3(c);
+                wlo = wlo.min(w);
+                whi = whi.max(w);
+            }
+            Some((wlo, whi))
+        });
+        flat.chain(inst)
+    }
+
+    /// Triangles as rendered (instances counted once each).
+    pub(super) fn triangle_count(&self) -> usize {
+        self.placed().map(|m| m.mesh.indices.len()).sum()
+    }
+}
+
 impl Importer<'_> {
+    /// Turns the walk's placements into geometry: meshes placed once are flattened to world
+    /// space, meshes placed more often become prototypes with instances (see the module
+    /// docs for the exceptions). `materials` are the converted materials (the default
+    /// material, past their end, is not emissive). The output budget counts a prototype
+    /// once and an instance as [`Instance::BYTES`], so a forest of 10,000 instances of one
+    /// tree costs about one tree.
+    pub(super) fn place_meshes(
+        &mut self,
+        placements: &[Placement],
+        materials: &[Material],
+    ) -> Res<Geometry> {
+        let mut uses: HashMap<usize, usize> = HashMap::new();
+        for pl in placements {
+            *uses.entry(pl.mesh).or_default() += 1;
+        }
+        let mut geometry = Geometry::default();
+        // (mesh, primitive) -> index into `geometry.prototypes`.
+        let mut prototype_of: HashMap<(usize, usize), u32> = HashMap::new();
+        for pl in placements {
+            let (ni, mi) = (pl.node, pl.mesh);
+            let shared = uses[&mi] >= 2;
+            let world_from_object = Affine3A::from_mat4(pl.world.as_mat4());
+            let invertible = Instance::transform_is_invertible(&world_from_object);
+            for pi in 0..self.root.meshes[mi].primitives.len() {
+                let local = self.local_primitive(mi, pi)?;
+                let emissive = materials
+                    .get(local.material as usize)
+                    .is_some_and(Material::is_emissive);
+                if !shared || emissive || !invertible {
+                    self.flatten_primitive(ni, mi, pi, &pl.world, &mut geometry.meshes)?;
+                    continue;
+                }
+                let prototype = match prototype_of.get(&(mi, pi)) {
+                    Some(&p) => p,
+                    None => {
+                        let name = prim_name(mi, &self.root.meshes[mi], pi);
+                        self.add_output(primitive_bytes(&local), &name)?;
+                        let p = geometry.prototypes.len() as u32;
+                        geometry.prototypes.push(object_space_mesh(&local, name));
+                        prototype_of.insert((mi, pi), p);
+                        p
+                    }
+                };
+                self.add_output(Instance::BYTES, &format!("node {ni} mesh {mi}"))?;
+                geometry.instances.push(Instance {
+                    prototype,
+                    world_from_object,
+                });
+            }
+        }
+        Ok(geometry)
+    }
+
     /// Reads primitive `pi` of mesh `mi` in local space (cached across instances).
     fn local_primitive(&mut self, mi: usize, pi: usize) -> Res<Rc<LocalPrimitive>> {
         if let Some(p) = self.primitives.get(&(mi, pi)) {
@@ -173,80 +287,99 @@ impl Importer<'_> {
             .collect())
     }
 
-    /// Appends one world-space [`Mesh`] per primitive of mesh `mi` placed at node `ni`.
-    pub(super) fn instance_mesh(
+    /// Appends primitive `pi` of mesh `mi`, placed at node `ni` by `world`, as a
+    /// world-space [`Mesh`].
+    fn flatten_primitive(
         &mut self,
         ni: usize,
         mi: usize,
+        pi: usize,
         world: &DMat4,
         out: &mut Vec<Mesh>,
     ) -> Res<()> {
-        let Some(mesh) = self.root.meshes.get(mi) else {
-            return self.err(format!(
-                "node {ni} refers to mesh {mi}, but there are only {}",
-                self.root.meshes.len()
-            ));
-        };
         let linear = DMat3::from_mat4(*world);
         let det = linear.determinant();
         let normal_matrix = linear.inverse().transpose();
-        for pi in 0..mesh.primitives.len() {
-            let name = prim_name(mi, &self.root.meshes[mi], pi);
-            let local = self.local_primitive(mi, pi)?;
-            let bytes = local.positions.len() as u64 * 32 + local.triangles.len() as u64 * 12;
-            self.add_output(bytes, &format!("node {ni} {name}"))?;
-            let positions: Vec<Vec3> = local
-                .positions
-                .iter()
-                .map(|p| world.transform_point3(p.as_dvec3()).as_vec3())
-                .collect();
-            if let Some(v) = positions.iter().position(|p| !p.is_finite()) {
-                return self.err(format!(
-                    "node {ni} {name}: vertex {v} is not finite in world space"
-                ));
-            }
-            let normals = local.normals.as_ref().and_then(|ns| {
-                ns.iter()
-                    .map(|n| {
-                        let w = (normal_matrix * n.as_dvec3()).normalize_or_zero().as_vec3();
-                        (w.is_finite() && w != Vec3::ZERO).then_some(w)
-                    })
-                    .collect::<Option<Vec<Vec3>>>()
-            });
-            // Spec "Meshes > Overview": a negative determinant makes the winding clockwise.
-            let triangles = if det < 0.0 {
-                local.triangles.iter().map(|&[a, b, c]| [a, c, b]).collect()
-            } else {
-                local.triangles.clone()
-            };
-            // Tangents are surface directions: they transform with the linear part. A
-            // mirroring transform flips the handedness of (t, b, n), hence the sign of w.
-            let sign = if det < 0.0 { -1.0 } else { 1.0 };
-            let tangents = local.tangents.as_ref().map(|ts| {
-                ts.iter()
-                    .map(|c| {
-                        let c = if det < 0.0 { [c[0], c[2], c[1]] } else { *c };
-                        c.map(|t| {
-                            let w = (linear * t.truncate().as_dvec3())
-                                .normalize_or_zero()
-                                .as_vec3();
-                            let w = if w.is_finite() { w } else { Vec3::ZERO };
-                            w.extend(if t.w < 0.0 { -sign } else { sign })
-                        })
-                    })
-                    .collect()
-            });
-            out.push(Mesh {
-                name,
-                positions,
-                normals,
-                uvs: local.uvs.clone(),
-                tangents,
-                indices: triangles,
-                material: local.material,
-            });
+        let name = prim_name(mi, &self.root.meshes[mi], pi);
+        let local = self.local_primitive(mi, pi)?;
+        self.add_output(primitive_bytes(&local), &format!("node {ni} {name}"))?;
+        let positions: Vec<Vec3> = local
+            .positions
+            .iter()
+            .map(|p| world.transform_point3(p.as_dvec3()).as_vec3())
+            .collect();
+        if let Some(v) = positions.iter().position(|p| !p.is_finite()) {
+            return self.err(format!(
+                "node {ni} {name}: vertex {v} is not finite in world space"
+            ));
         }
+        let normals = local.normals.as_ref().and_then(|ns| {
+            ns.iter()
+                .map(|n| {
+                    let w = (normal_matrix * n.as_dvec3()).normalize_or_zero().as_vec3();
+                    (w.is_finite() && w != Vec3::ZERO).then_some(w)
+                })
+                .collect::<Option<Vec<Vec3>>>()
+        });
+        // Spec "Meshes > Overview": a negative determinant makes the winding clockwise.
+        let triangles = if det < 0.0 {
+            local.triangles.iter().map(|&[a, b, c]| [a, c, b]).collect()
+        } else {
+            local.triangles.clone()
+        };
+        // Tangents are surface directions: they transform with the linear part. A
+        // mirroring transform flips the handedness of (t, b, n), hence the sign of w.
+        let sign = if det < 0.0 { -1.0 } else { 1.0 };
+        let tangents = local.tangents.as_ref().map(|ts| {
+            ts.iter()
+                .map(|c| {
+                    let c = if det < 0.0 { [c[0], c[2], c[1]] } else { *c };
+                    c.map(|t| {
+                        let w = (linear * t.truncate().as_dvec3())
+                            .normalize_or_zero()
+                            .as_vec3();
+                        let w = if w.is_finite() { w } else { Vec3::ZERO };
+                        w.extend(if t.w < 0.0 { -sign } else { sign })
+                    })
+                })
+                .collect()
+        });
+        out.push(Mesh {
+            name,
+            positions,
+            normals,
+            uvs: local.uvs.clone(),
+            tangents,
+            indices: triangles,
+            material: local.material,
+        });
         Ok(())
+    }
+}
+
+/// Estimated output bytes of one copy of a primitive (positions, normals, one uv set and
+/// indices), for the import budget.
+fn primitive_bytes(local: &LocalPrimitive) -> u64 {
+    local.positions.len() as u64 * 32 + local.triangles.len() as u64 * 12
+}
+
+/// The object-space prototype of a primitive placed at several places. Normals are
+/// renormalised as the flattened path does; if one degenerates, the mesh drops its
+/// normals (as a flattened one does).
+fn object_space_mesh(local: &LocalPrimitive, name: String) -> Mesh {
+    let normals = local.normals.as_ref().and_then(|ns| {
+        ns.iter()
+            .map(|n| n.try_normalize())
+            .collect::<Option<Vec<Vec3>>>()
+    });
+    Mesh {
+        name,
+        positions: local.positions.clone(),
+        normals,
+        uvs: local.uvs.clone(),
+        tangents: local.tangents.clone(),
+        indices: local.triangles.clone(),
+        material: local.material,
     }
 }
 

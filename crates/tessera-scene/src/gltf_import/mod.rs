@@ -1,5 +1,5 @@
-//! glTF 2.0 import: `.gltf` (external files or `data:` URIs) and `.glb`, flattened into a
-//! world-space [`Scene`].
+//! glTF 2.0 import: `.gltf` (external files or `data:` URIs) and `.glb`, into a world-space
+//! [`Scene`] (meshes placed more than once kept as prototypes with instances).
 //!
 //! References are to the glTF 2.0 specification (Khronos, version 2.0.1) by section title,
 //! and to the Khronos extension specifications.
@@ -11,8 +11,8 @@
 //!   (`matrix`, or `translation * rotation * scale`) are accumulated from the roots down; the
 //!   hierarchy must be a forest of strict trees, so a node reachable twice (or a cycle) is an
 //!   error. Skins, morph targets and animations are ignored (the rest pose is rendered).
-//! - **Geometry** (spec "Meshes"): every primitive of mode `TRIANGLES` becomes one
-//!   [`Mesh`] named `mesh M 'Name' primitive P`, with positions transformed to world space,
+//! - **Geometry** (spec "Meshes"): every primitive of mode `TRIANGLES` placed once becomes
+//!   one world-space [`crate::Mesh`] named `mesh M 'Name' primitive P`, with positions transformed to world space,
 //!   normals transformed by the inverse transpose and renormalized, texture coordinates
 //!   (every `TEXCOORD_n` the material's textures read) and indices
 //!   (or the implicit `0..n`). When the node's world transform has a negative determinant
@@ -20,6 +20,10 @@
 //!   "Meshes > Overview": the determinant of the global transform defines the winding).
 //!   Other primitive modes are an error. A primitive whose transformed normals degenerate
 //!   (zero length, e.g. from a zero scale) keeps its positions and drops its normals.
+//!   A mesh placed at two or more places (several nodes, or EXT_mesh_gpu_instancing) is
+//!   stored once per primitive in object space in [`Scene::prototypes`] with one
+//!   [`crate::Instance`] per place, except for emissive primitives and non-invertible
+//!   transforms, which are flattened as above (see the `meshes` step).
 //! - **Camera** (spec "Cameras"): the first node, in depth-first order, carrying a
 //!   perspective camera, or the one whose camera name or node name equals the requested
 //!   name. `world_from_camera` is the node's world transform with scale removed (glTF
@@ -89,9 +93,10 @@
 //! [`SceneError::Gltf`]. (This relies on the default `panic = "unwind"`.) While the import
 //! runs, the default panic message is silenced for the importing thread only. Inputs are
 //! capped at [`MAX_INPUT_BYTES`] (the file, and separately the sum of its buffers and
-//! images) and the flattened output at four times that. Every error names the file and the
-//! element (node, mesh, primitive, material, accessor, buffer view, buffer, image index)
-//! that is wrong.
+//! images) and the output at four times that, where a prototype counts once and an
+//! instance as its transform (so 10,000 instances of a large tree load). Every error names
+//! the file and the element (node, mesh, primitive, material, accessor, buffer view,
+//! buffer, image index) that is wrong.
 //!
 //! # Where each step lives
 //!
@@ -116,7 +121,7 @@ pub use lights::{photometric_to_radiometric, LUMINOUS_EFFICACY};
 
 #[cfg(doc)]
 use crate::{GltfMaterial, MaterialKind};
-use crate::{Image, Mesh, Scene, SceneError, Texture, MAX_INPUT_BYTES};
+use crate::{Image, Scene, SceneError, Texture, MAX_INPUT_BYTES};
 use camera::default_resolution;
 use container::{parse_json, read_capped, split_glb, BaseDir, ReadError};
 use gltf::json;
@@ -248,7 +253,8 @@ struct Importer<'a> {
     limit: u64,
     /// Bytes of buffers and external images read so far.
     input_bytes: u64,
-    /// Estimated bytes of flattened output so far.
+    /// Estimated bytes of output so far (a prototype counts once, an instance as its
+    /// transform).
     output_bytes: u64,
     buffers: Vec<Vec<u8>>,
     textures: Vec<Texture>,
@@ -330,25 +336,28 @@ impl<'a> Importer<'a> {
         let mut materials = self.convert_materials()?;
         let roots = self.root_nodes()?;
         let Instances {
-            meshes,
+            placements,
             lights,
             cameras,
         } = self.walk(&roots)?;
+        let geometry = self.place_meshes(&placements, &materials)?;
+        drop(placements);
         if self.default_material_used {
             materials.push(default_material());
         }
 
-        let triangles: usize = meshes.iter().map(|m: &Mesh| m.indices.len()).sum();
-        if triangles == 0 && lights.is_empty() {
+        if geometry.triangle_count() == 0 && lights.is_empty() {
             return self.err("no geometry: the scene has no triangles and no lights");
         }
 
-        let camera = self.choose_camera(camera_name, &cameras, &meshes, &lights)?;
+        let camera = self.choose_camera(camera_name, &cameras, &geometry, &lights)?;
         let default_resolution = default_resolution(&camera);
         let scene = Scene {
             name: self.file.to_string(),
             camera,
-            meshes,
+            meshes: geometry.meshes,
+            prototypes: geometry.prototypes,
+            instances: geometry.instances,
             spheres: Vec::new(),
             materials,
             textures: std::mem::take(&mut self.textures),
@@ -362,13 +371,13 @@ impl<'a> Importer<'a> {
         Ok(scene)
     }
 
-    /// Counts `bytes` of flattened output against the output budget.
+    /// Counts `bytes` of output against the output budget.
     fn add_output(&mut self, bytes: u64, what: &str) -> Res<()> {
         self.output_bytes = self.output_bytes.saturating_add(bytes);
         let budget = self.limit.saturating_mul(4);
         if self.output_bytes > budget {
             return self.err(format!(
-                "{what}: the flattened scene would need more than {budget} bytes \
+                "{what}: the scene would need more than {budget} bytes \
                  (too many instances or texels)"
             ));
         }
