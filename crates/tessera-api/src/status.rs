@@ -221,7 +221,7 @@ pub struct SceneUploaded {
     pub bytes: u64,
     /// Triangles in the scene.
     pub triangles: u64,
-    /// Meshes (glTF mesh primitives).
+    /// Meshes as placed (glTF mesh primitives, instances counted once per place).
     pub meshes: u32,
     /// Materials.
     pub materials: u32,

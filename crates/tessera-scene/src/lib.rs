@@ -42,6 +42,13 @@ pub use material::{
 use glam::{Affine3A, Mat4, Vec2, Vec3, Vec4};
 use std::path::Path;
 
+/// Largest coordinate accepted, in scene units (|x|, |y|, |z| of every vertex in world
+/// space, of sphere bounds and of the camera). The renderer works in f32: its error bounds
+/// and distance computations square coordinates, which overflow near 1.8e19, and its BVH
+/// builder fails on bounds it cannot subdivide. 1e12 m is seven times the Earth–Sun
+/// distance, far beyond any scene, and leaves every product finite.
+pub const MAX_COORDINATE: f32 = 1e12;
+
 /// Largest scene file accepted, in bytes (glTF JSON, .glb, or the sum of its buffers).
 pub const MAX_INPUT_BYTES: u64 = 1 << 30;
 
@@ -383,6 +390,12 @@ impl Scene {
         if !cam.world_from_camera.is_finite() {
             return bad("camera transform is not finite".into());
         }
+        let eye = cam.world_from_camera.w_axis.truncate();
+        if eye.abs().max_element() > MAX_COORDINATE {
+            return bad(format!(
+                "camera position {eye} is beyond ±{MAX_COORDINATE:e} scene units"
+            ));
+        }
         if !(cam.yfov > 0.0 && cam.yfov < std::f32::consts::PI) {
             return bad(format!("camera yfov {} is outside (0, pi)", cam.yfov));
         }
@@ -412,6 +425,16 @@ impl Scene {
             }
             if let Some(p) = m.positions.iter().position(|p| !p.is_finite()) {
                 return bad(format!("{kind} {i} ({}) vertex {p} is not finite", m.name));
+            }
+            if let Some(p) = m
+                .positions
+                .iter()
+                .position(|p| p.abs().max_element() > MAX_COORDINATE)
+            {
+                return bad(format!(
+                    "{kind} {i} ({}) vertex {p} at {} is beyond ±{MAX_COORDINATE:e} scene units",
+                    m.name, m.positions[p]
+                ));
             }
             let nv = m.positions.len() as u32;
             if let Some(t) = m.indices.iter().position(|t| t.iter().any(|&v| v >= nv)) {
@@ -456,6 +479,18 @@ impl Scene {
                     inst.prototype
                 ));
             }
+            let far = proto.positions.iter().find(|&&p| {
+                inst.world_from_object.transform_point3(p).abs().max_element() > MAX_COORDINATE
+            });
+            if let Some(p) = far {
+                return bad(format!(
+                    "instance {i} of prototype {} ({}) places a vertex at {}, beyond \
+                     ±{MAX_COORDINATE:e} scene units",
+                    inst.prototype,
+                    proto.name,
+                    inst.world_from_object.transform_point3(*p)
+                ));
+            }
             if self
                 .materials
                 .get(proto.material as usize)
@@ -469,7 +504,11 @@ impl Scene {
             }
         }
         for (i, s) in self.spheres.iter().enumerate() {
-            if !(s.center.is_finite() && s.radius > 0.0 && s.radius.is_finite()) {
+            if !(s.center.is_finite()
+                && s.radius > 0.0
+                && s.radius.is_finite()
+                && (s.center.abs() + s.radius).max_element() <= MAX_COORDINATE)
+            {
                 return bad(format!("sphere {i} has an invalid centre or radius"));
             }
             if s.material >= nmat {

@@ -722,6 +722,27 @@ fn non_finite_node_transforms_are_errors() {
     assert_mentions(&error_of(load(&g.gltf())), &["node 1"]);
 }
 
+/// A finite but astronomically large scale (the robustness issue's poison scene:
+/// `nodes[0].scale = [1e38, 1e38, 1e38]` made the BVH builder panic inside obvhs) is
+/// refused at import, naming the node; the built-in bound also guards `Scene::validate`.
+#[test]
+fn coordinates_beyond_the_renderable_range_are_errors() {
+    let mut g = basic();
+    g.doc["nodes"][0]["scale"] = json!([1e38, 1e38, 1e38]);
+    let e = error_of(load(&g.glb()));
+    assert_mentions(&e, &["node 0", "beyond", "scale"]);
+    // The same mesh used twice is an instanced prototype: its placements are checked too.
+    let mut g = basic();
+    g.doc["nodes"][0]["scale"] = json!([1e38, 1e38, 1e38]);
+    g.root(json!({"mesh": 0}));
+    let e = error_of(load(&g.glb()));
+    assert!(e.contains("beyond"), "{e}");
+    // Large but sane scenes load.
+    let mut g = basic();
+    g.doc["nodes"][0]["scale"] = json!([1e9, 1e9, 1e9]);
+    assert!(load(&g.glb()).is_ok());
+}
+
 #[test]
 fn missing_external_buffer_names_the_uri() {
     let dir = scratch_dir("missing");

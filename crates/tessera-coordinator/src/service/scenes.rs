@@ -122,7 +122,8 @@ impl Coordinator {
             hash: hash.clone(),
             bytes: bytes.len() as u64,
             triangles: scene.triangle_count() as u64,
-            meshes: scene.meshes.len() as u32,
+            // Meshes as placed: world-space meshes plus instances of stored prototypes.
+            meshes: (scene.meshes.len() + scene.instances.len()) as u32,
             materials: scene.materials.len() as u32,
             lights: light_count(&scene),
         };

@@ -161,9 +161,13 @@ pub struct Bsdf {
 
 impl Bsdf {
     /// A BSDF with a single lobe.
+    #[inline]
     pub fn single(lobe: Lobe) -> Self {
+        // The unused slots hold the smallest variant: writing `[lobe; 3]` would copy the
+        // largest lobe (the layered glTF one, about 100 bytes) three times per hit.
+        const EMPTY: Lobe = Lobe::Diffuse(diffuse::Diffuse { albedo: Vec3::ZERO });
         Self {
-            lobes: [lobe; 3],
+            lobes: [lobe, EMPTY, EMPTY],
             weights: [1.0, 0.0, 0.0],
             count: 1,
         }

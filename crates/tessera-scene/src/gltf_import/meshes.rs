@@ -313,6 +313,17 @@ impl Importer<'_> {
                 "node {ni} {name}: vertex {v} is not finite in world space"
             ));
         }
+        if let Some(v) = positions
+            .iter()
+            .position(|p| p.abs().max_element() > crate::MAX_COORDINATE)
+        {
+            return self.err(format!(
+                "node {ni} {name}: vertex {v} is at {} in world space, beyond ±{:e} scene \
+                 units (check the node's scale and translation)",
+                positions[v],
+                crate::MAX_COORDINATE
+            ));
+        }
         let normals = local.normals.as_ref().and_then(|ns| {
             ns.iter()
                 .map(|n| {
