@@ -480,7 +480,11 @@ impl Scene {
                 ));
             }
             let far = proto.positions.iter().find(|&&p| {
-                inst.world_from_object.transform_point3(p).abs().max_element() > MAX_COORDINATE
+                inst.world_from_object
+                    .transform_point3(p)
+                    .abs()
+                    .max_element()
+                    > MAX_COORDINATE
             });
             if let Some(p) = far {
                 return bad(format!(
