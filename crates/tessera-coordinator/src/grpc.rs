@@ -223,10 +223,14 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
     ) -> Result<Response<v1::ReturnLeasesResponse>, Status> {
         self.authorize(&req)?;
         let r = req.into_inner();
-        let returned = self
-            .core
-            .return_leases(r.worker_id, &r.lease_ids)
-            .map_err(status)?;
+        let returned = if r.unusable.is_empty() {
+            self.core.return_leases(r.worker_id, &r.lease_ids)
+        } else {
+            self.core
+                .return_unusable(r.worker_id, &r.lease_ids, &r.unusable)
+                .await
+        }
+        .map_err(status)?;
         Ok(Response::new(v1::ReturnLeasesResponse { returned }))
     }
 }

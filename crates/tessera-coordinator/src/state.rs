@@ -131,6 +131,9 @@ pub struct JobRuntime {
     pub error: Option<String>,
     /// Faulty-worker events on it.
     pub faults: u64,
+    /// Leases of this job that workers returned because they could not load or build
+    /// its scene.
+    pub unusable_returns: u32,
     /// Per frame, per tile: (sum of squared relative errors, pixel count) of the tiles with
     /// at least two passes, kept incrementally so the image error costs O(tiles).
     pub(crate) tile_error: Vec<Vec<(f64, u64)>>,
@@ -164,6 +167,7 @@ impl JobRuntime {
             finished_unix_ms: None,
             error: None,
             faults: 0,
+            unusable_returns: 0,
             tile_error: vec![vec![(0.0, 0); tiles]; frames],
             tile_rejected: vec![vec![TileRejected::default(); tiles]; frames],
             last_history_ms: 0,

@@ -145,6 +145,7 @@ async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
         .return_leases(v1::ReturnLeasesRequest {
             worker_id,
             lease_ids,
+            unusable: String::new(),
         })
         .await
         .unwrap()
@@ -154,4 +155,91 @@ async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
         .await
         .unwrap()
         .unwrap();
+}
+
+/// A worker that cannot load a job's scene returns its leases saying why; after
+/// `MAX_UNUSABLE_RETURNS` such returns the job fails with the reason instead of being
+/// leased again forever (the robustness issue's poison-scene hot loop), while a plain
+/// return (a draining worker) counts nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scene_no_worker_can_use_fails_its_job() {
+    use tessera_coordinator::service::MAX_UNUSABLE_RETURNS;
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
+    let (job, _) = core.submit(job, None).await.unwrap();
+    let (ls, _http, grpc) = listeners().await;
+    let (_tx, rx) = oneshot::channel::<()>();
+    let _served: Served = tokio::spawn(serve_coordinator(core.clone(), ls, async {
+        let _ = rx.await;
+    }));
+    let (mut client, worker_id) = bounded("Register", register(grpc)).await;
+    let lease = |client: &mut WorkerServiceClient<tonic::transport::Channel>| {
+        let mut c = client.clone();
+        async move {
+            loop {
+                let leases = c
+                    .lease_work(v1::LeaseRequest {
+                        worker_id,
+                        max_units: 1,
+                    })
+                    .await
+                    .unwrap()
+                    .into_inner()
+                    .leases;
+                if !leases.is_empty() {
+                    return leases.iter().map(|l| l.lease_id).collect::<Vec<u64>>();
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        }
+    };
+    // A plain return does not count.
+    let ids = bounded("a lease", lease(&mut client)).await;
+    let back = client
+        .return_leases(v1::ReturnLeasesRequest {
+            worker_id,
+            lease_ids: ids,
+            unusable: String::new(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(back.returned, 1);
+    for i in 0..MAX_UNUSABLE_RETURNS {
+        assert!(!core.status(job.id).await.unwrap().state.is_terminal());
+        let ids = bounded("a lease", lease(&mut client)).await;
+        let back = client
+            .return_leases(v1::ReturnLeasesRequest {
+                worker_id,
+                lease_ids: ids,
+                unusable: format!("scene builtin:cornell-box: out of memory (try {i})"),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(back.returned, 1);
+    }
+    let status = core.status(job.id).await.unwrap();
+    assert_eq!(status.state.as_str(), "failed");
+    let error = status.error.unwrap_or_default();
+    assert!(
+        error.contains("could not load or build the scene"),
+        "{error}"
+    );
+    assert!(error.contains("out of memory"), "{error}");
+    // And nothing is leased any more.
+    let leases = client
+        .lease_work(v1::LeaseRequest {
+            worker_id,
+            max_units: 4,
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .leases;
+    assert!(leases.is_empty());
 }

@@ -229,20 +229,26 @@ async fn serve(
         // Make sure every scene is here and built before the clock starts.
         let mut jobs: Vec<(LeasedUnit, Arc<RenderScene>)> = Vec::with_capacity(leases.len());
         let mut unusable = Vec::new();
+        let mut why = String::new();
         for l in leases {
             match scene_for(&mut client, cache, &l.scene, l.camera.as_deref(), &l.plan).await {
                 Ok(rs) => jobs.push((l, rs)),
                 Err(e) => {
                     tracing::warn!(scene = %l.scene, error = %e, "cannot load scene; returning lease");
                     unusable.push(l.lease_id);
+                    if why.is_empty() {
+                        why = format!("scene {}: {e}", l.scene);
+                    }
                 }
             }
         }
         if !unusable.is_empty() {
+            // Saying why lets the coordinator fail a job whose scene no worker can use.
             client
                 .return_leases(v1::ReturnLeasesRequest {
                     worker_id,
                     lease_ids: unusable,
+                    unusable: why,
                 })
                 .await?;
         }

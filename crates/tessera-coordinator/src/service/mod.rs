@@ -49,7 +49,7 @@ pub mod workers;
 
 pub use jobs::eta_seconds;
 pub use results::{Accepted, Delivery, Rejected};
-pub use workers::{Heartbeat, LeaseGrant};
+pub use workers::{Heartbeat, LeaseGrant, MAX_UNUSABLE_RETURNS};
 
 /// Lease ids are reserved in blocks of this many (one store write per block).
 pub const LEASE_ID_BLOCK: u64 = 4096;

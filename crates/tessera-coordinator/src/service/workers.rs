@@ -20,6 +20,9 @@ const MAX_UNITS_PER_LEASE: u32 = 256;
 const RETRY_IN_GRACE_MS: u32 = 250;
 /// How soon an idle worker asks again, ms: a new job starts within ~50 ms.
 const RETRY_IDLE_MS: u32 = 50;
+/// Returns of a job's leases as unusable (a worker could not load or build its scene)
+/// after which the job fails: more than one worker, or one worker more than once, tried.
+pub const MAX_UNUSABLE_RETURNS: u32 = 3;
 
 /// The answer to a heartbeat.
 #[derive(Debug, Clone, Default)]
@@ -171,6 +174,59 @@ impl Coordinator {
         let before = farm.scheduler.leases().count();
         farm.scheduler.give_back(worker, lease_ids);
         Ok((before - farm.scheduler.leases().count()) as u32)
+    }
+
+    /// Leases a worker gives back because it cannot render them (`reason`: it could not
+    /// load or build their scene). Each job's count of such returns grows; a job that
+    /// reaches [`MAX_UNUSABLE_RETURNS`] fails with the reason, so a scene no worker can
+    /// use ends its job instead of being leased again forever.
+    pub async fn return_unusable(
+        &self,
+        worker: WorkerId,
+        lease_ids: &[u64],
+        reason: &str,
+    ) -> CoordResult<u32> {
+        let reason: String = reason.chars().take(500).collect();
+        let (returned, to_fail) = {
+            let mut farm = self.lock()?;
+            let jobs: Vec<JobId> = lease_ids
+                .iter()
+                .filter(|id| {
+                    farm.scheduler
+                        .leases()
+                        .any(|l| l.lease_id == **id && l.worker == worker)
+                })
+                .filter_map(|id| farm.scheduler.lease_job(*id))
+                .collect();
+            let before = farm.scheduler.leases().count();
+            farm.scheduler.give_back(worker, lease_ids);
+            let returned = (before - farm.scheduler.leases().count()) as u32;
+            let mut to_fail = Vec::new();
+            for job in jobs {
+                if let Some(rt) = farm.runtime.get_mut(&job) {
+                    rt.unusable_returns += 1;
+                    if rt.unusable_returns >= MAX_UNUSABLE_RETURNS
+                        && !rt.state.is_terminal()
+                        && !to_fail.contains(&job)
+                    {
+                        to_fail.push(job);
+                    }
+                }
+            }
+            for &job in &to_fail {
+                farm.scheduler.cancel(job);
+            }
+            (returned, to_fail)
+        };
+        tracing::warn!(worker, returned, reason = %reason, "worker could not use its leases");
+        for job in to_fail {
+            let error = format!(
+                "workers could not load or build the scene {MAX_UNUSABLE_RETURNS} times: {reason}"
+            );
+            tracing::error!(job, error = %error, "job failed");
+            self.set_state(job, JobState::Failed, Some(error)).await?;
+        }
+        Ok(returned)
     }
 
     /// Commits the reservation of lease ids before any of them reaches a worker, and
