@@ -505,12 +505,7 @@ impl RenderScene {
             scale *= self.lookup(t, uv, true).truncate();
         }
         if let Some(g) = material.as_gltf() {
-            let alpha = self.alpha(g, mesh, tri, bary);
-            scale *= match g.alpha_mode {
-                AlphaMode::Opaque => 1.0,
-                AlphaMode::Mask { cutoff } => f32::from(u8::from(alpha >= cutoff)),
-                AlphaMode::Blend => alpha.clamp(0.0, 1.0),
-            };
+            scale *= coverage(g.alpha_mode, self.alpha(g, mesh, tri, bary));
         }
         scale
     }
@@ -659,6 +654,17 @@ fn transform_point(inst: &InstanceRecord, p: Vec3, err: Vec3) -> (Vec3, Vec3) {
     (pw, (forward + back).into())
 }
 
+/// The probability that a ray finds a surface of alpha `alpha` there: 1 when opaque, 0 or
+/// 1 by the cutoff for MASK, `alpha` for BLEND (stochastic transparency's expectation).
+#[inline]
+fn coverage(mode: AlphaMode, alpha: f32) -> f32 {
+    match mode {
+        AlphaMode::Opaque => 1.0,
+        AlphaMode::Mask { cutoff } => f32::from(u8::from(alpha >= cutoff)),
+        AlphaMode::Blend => alpha.clamp(0.0, 1.0),
+    }
+}
+
 /// A hash of a ray, for decisions that must be the same for the same ray (alpha).
 #[inline]
 fn ray_key(origin: Vec3, dir: Vec3) -> u64 {
@@ -756,11 +762,7 @@ fn mean_emission_scale(
                     let uv = uv_at(&mesh.uvs, *idx, t.uv_set, bary);
                     alpha *= lookup(&scene.textures, &scene.images, t, uv, true).w;
                 }
-                scale *= match g.alpha_mode {
-                    AlphaMode::Opaque => 1.0,
-                    AlphaMode::Mask { cutoff } => f32::from(u8::from(alpha >= cutoff)),
-                    AlphaMode::Blend => alpha.clamp(0.0, 1.0),
-                };
+                scale *= coverage(g.alpha_mode, alpha);
             }
             sum += scale;
         }

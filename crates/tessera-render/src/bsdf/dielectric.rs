@@ -26,6 +26,7 @@
 //! `F D_wo(h) / (4 wo·h)` and `(1 - F) D_wo(h) |wi·h| / (wi·h + wo·h/η)²` (the Jacobian of
 //! the refraction `h -> wi`, Walter et al. 2007, eq. 17).
 
+use super::flip_z;
 use super::fresnel_dielectric;
 use crate::sampling::warp::{ggx_d, ggx_g1, ggx_lambda, ggx_vndf_pdf, sample_ggx_vndf};
 use glam::{Vec2, Vec3};
@@ -39,16 +40,6 @@ pub struct RoughDielectric {
     pub alpha: f32,
     /// Transmission tint.
     pub tint: Vec3,
-}
-
-/// `v` with `z` negated when `flip` is set.
-#[inline]
-fn flip_z(v: Vec3, flip: bool) -> Vec3 {
-    if flip {
-        Vec3::new(v.x, v.y, -v.z)
-    } else {
-        v
-    }
 }
 
 /// Refracts `wo` (with `wo·h > 0`) through the microfacet `h` into the medium of relative

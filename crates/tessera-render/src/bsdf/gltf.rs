@@ -51,7 +51,7 @@ use super::diffuse::Diffuse;
 use super::microfacet::{g2, half_vector, vndf_reflection_pdf, Conductor, MIN_ALPHA};
 use super::sheen::Sheen;
 use super::specular::Glass;
-use super::{fresnel_schlick, Bsdf, BsdfSample, Lobe};
+use super::{flip_z, fresnel_schlick, Bsdf, BsdfSample, Lobe};
 use crate::sampling::warp::{
     cosine_hemisphere_pdf, ggx_d, sample_ggx_vndf, square_to_cosine_hemisphere,
 };
@@ -163,15 +163,6 @@ pub struct GltfLobe {
     sheen_r: f32,
     /// `max(sheen_color)`, the weight of the sheen's albedo scaling.
     sheen_max: f32,
-}
-
-#[inline]
-fn flip_z(v: Vec3, flip: bool) -> Vec3 {
-    if flip {
-        Vec3::new(v.x, v.y, -v.z)
-    } else {
-        v
-    }
 }
 
 /// GGX reflection with Schlick's Fresnel `f0 + (f90 - f0)(1 - wo·h)^5`, times `cos θi`.

@@ -143,7 +143,7 @@ impl Lobe {
 
 /// Mirrors `v` to the upper hemisphere when `flip` is set (two-sided opaque lobes).
 #[inline]
-fn flip_z(v: Vec3, flip: bool) -> Vec3 {
+pub(crate) fn flip_z(v: Vec3, flip: bool) -> Vec3 {
     if flip {
         Vec3::new(v.x, v.y, -v.z)
     } else {
