@@ -457,12 +457,7 @@ impl Geometry {
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
         if !self.triangles.is_empty() {
-            let level = TriangleLevel {
-                bvh: &self.bvh,
-                triangles: &self.triangles,
-                instance: NO_INSTANCE,
-            };
-            if let Some(h) = level.nearest(origin, dir, &mut best_t, &keep) {
+            if let Some(h) = self.world_level().nearest(origin, dir, &mut best_t, &keep) {
                 best = Some(h);
             }
         }
@@ -470,16 +465,7 @@ impl Geometry {
             let ray = traversal_ray(origin, dir, best_t);
             let mut hit = RayHit::none();
             self.tlas.ray_traverse(ray, &mut hit, |_, id| {
-                let inst = &self.instances[id];
-                let proto = &self.prototypes[inst.prototype as usize];
-                let level = TriangleLevel {
-                    bvh: &proto.bvh,
-                    triangles: &proto.triangles,
-                    instance: id as u32,
-                };
-                // Object space, the direction unnormalised: `t` is shared.
-                let o = inst.object_from_world.transform_point3(origin);
-                let d = inst.object_from_world.transform_vector3(dir);
+                let (level, o, d) = self.instance_level(id, origin, dir);
                 match level.nearest(o, d, &mut best_t, &keep) {
                     Some(h) => {
                         best = Some(h);
@@ -520,36 +506,54 @@ impl Geometry {
                 return true;
             }
         }
-        if !self.triangles.is_empty() {
-            let level = TriangleLevel {
-                bvh: &self.bvh,
-                triangles: &self.triangles,
-                instance: NO_INSTANCE,
-            };
-            if level.any(origin, dir, t_max, &keep) {
-                return true;
-            }
+        if !self.triangles.is_empty() && self.world_level().any(origin, dir, t_max, &keep) {
+            return true;
         }
         if self.instances.is_empty() {
             return false;
         }
         let ray = traversal_ray(origin, dir, t_max);
         !self.tlas.ray_traverse_miss(ray, |_, id| {
-            let inst = &self.instances[id];
-            let proto = &self.prototypes[inst.prototype as usize];
-            let level = TriangleLevel {
-                bvh: &proto.bvh,
-                triangles: &proto.triangles,
-                instance: id as u32,
-            };
-            let o = inst.object_from_world.transform_point3(origin);
-            let d = inst.object_from_world.transform_vector3(dir);
+            let (level, o, d) = self.instance_level(id, origin, dir);
             if level.any(o, d, t_max, &keep) {
                 0.0
             } else {
                 f32::INFINITY
             }
         })
+    }
+}
+
+impl Geometry {
+    /// The world-space triangles as a traversal level.
+    #[inline(always)]
+    fn world_level(&self) -> TriangleLevel<'_> {
+        TriangleLevel {
+            bvh: &self.bvh,
+            triangles: &self.triangles,
+            instance: NO_INSTANCE,
+        }
+    }
+
+    /// Instance `id`'s prototype as a traversal level, with the ray in its object space
+    /// (the direction unnormalised, so `t` is shared with the world ray).
+    #[inline(always)]
+    fn instance_level(
+        &self,
+        id: usize,
+        origin: Vec3,
+        dir: Vec3,
+    ) -> (TriangleLevel<'_>, Vec3, Vec3) {
+        let inst = &self.instances[id];
+        let proto = &self.prototypes[inst.prototype as usize];
+        let level = TriangleLevel {
+            bvh: &proto.bvh,
+            triangles: &proto.triangles,
+            instance: id as u32,
+        };
+        let o = inst.object_from_world.transform_point3(origin);
+        let d = inst.object_from_world.transform_vector3(dir);
+        (level, o, d)
     }
 }
 

@@ -282,13 +282,15 @@ impl RenderScene {
 
     /// Base-colour alpha (factor times texture) at a point of a triangle.
     fn alpha(&self, g: &GltfMaterial, mesh: u32, tri: u32, bary: Vec2) -> f32 {
-        match &g.base_color_texture {
-            Some(t) => {
-                let uv = self.uv(mesh, tri, bary, t.uv_set);
-                g.alpha * self.lookup(t, uv, true).w
-            }
-            None => g.alpha,
-        }
+        let m = &self.meshes[mesh as usize];
+        alpha_at(
+            &self.textures,
+            &self.images,
+            g,
+            &m.uvs,
+            m.indices[tri as usize],
+            bary,
+        )
     }
 
     /// Texture coordinates of set `set` at barycentrics `bary` of triangle `tri` of
@@ -496,18 +498,10 @@ impl RenderScene {
             return Vec3::ONE;
         };
         let m = &self.meshes[mesh as usize];
+        let material = &self.materials[m.material as usize];
         let idx = m.indices[tri as usize];
         let bary = barycentrics(&l.p, p);
-        let material = &self.materials[m.material as usize];
-        let mut scale = Vec3::ONE;
-        if let Some(t) = material.emissive_texture() {
-            let uv = uv_at(&m.uvs, idx, t.uv_set, bary);
-            scale *= self.lookup(t, uv, true).truncate();
-        }
-        if let Some(g) = material.as_gltf() {
-            scale *= coverage(g.alpha_mode, self.alpha(g, mesh, tri, bary));
-        }
-        scale
+        emission_variation(&self.textures, &self.images, material, &m.uvs, idx, bary)
     }
 
     /// Samples light `li` as seen from `p_ref` (see [`Light::sample_li`]), with textured
@@ -654,6 +648,47 @@ fn transform_point(inst: &InstanceRecord, p: Vec3, err: Vec3) -> (Vec3, Vec3) {
     (pw, (forward + back).into())
 }
 
+/// Base-colour alpha (factor times texture) at barycentrics `bary` of the triangle `idx`
+/// of a mesh with texture coordinates `uvs`.
+#[inline]
+fn alpha_at(
+    textures: &[Texture],
+    images: &[Image],
+    g: &GltfMaterial,
+    uvs: &[Vec<Vec2>],
+    idx: [u32; 3],
+    bary: Vec2,
+) -> f32 {
+    match &g.base_color_texture {
+        Some(t) => {
+            let uv = uv_at(uvs, idx, t.uv_set, bary);
+            g.alpha * lookup(textures, images, t, uv, true).w
+        }
+        None => g.alpha,
+    }
+}
+
+/// How much of a material's emission factor leaves a point of a triangle: its emissive
+/// texture there times its alpha coverage (1 without either).
+fn emission_variation(
+    textures: &[Texture],
+    images: &[Image],
+    material: &Material,
+    uvs: &[Vec<Vec2>],
+    idx: [u32; 3],
+    bary: Vec2,
+) -> Vec3 {
+    let mut scale = Vec3::ONE;
+    if let Some(t) = material.emissive_texture() {
+        let uv = uv_at(uvs, idx, t.uv_set, bary);
+        scale *= lookup(textures, images, t, uv, true).truncate();
+    }
+    if let Some(g) = material.as_gltf() {
+        scale *= coverage(g.alpha_mode, alpha_at(textures, images, g, uvs, idx, bary));
+    }
+    scale
+}
+
 /// The probability that a ray finds a surface of alpha `alpha` there: 1 when opaque, 0 or
 /// 1 by the cutoff for MASK, `alpha` for BLEND (stochastic transparency's expectation).
 #[inline]
@@ -743,7 +778,6 @@ fn mean_emission_scale(
     mesh: &tessera_scene::Mesh,
     idx: &[u32; 3],
 ) -> Vec3 {
-    let g = mat.as_gltf();
     let mut sum = Vec3::ZERO;
     const N: u32 = 8;
     for i in 0..N {
@@ -751,20 +785,7 @@ fn mean_emission_scale(
             let u = Vec2::new((i as f32 + 0.5) / N as f32, (j as f32 + 0.5) / N as f32);
             let (b0, b1) = crate::sampling::warp::square_to_uniform_triangle(u);
             let bary = Vec2::new(b1, 1.0 - b0 - b1);
-            let mut scale = Vec3::ONE;
-            if let Some(t) = mat.emissive_texture() {
-                let uv = uv_at(&mesh.uvs, *idx, t.uv_set, bary);
-                scale *= lookup(&scene.textures, &scene.images, t, uv, true).truncate();
-            }
-            if let Some(g) = g {
-                let mut alpha = g.alpha;
-                if let Some(t) = &g.base_color_texture {
-                    let uv = uv_at(&mesh.uvs, *idx, t.uv_set, bary);
-                    alpha *= lookup(&scene.textures, &scene.images, t, uv, true).w;
-                }
-                scale *= coverage(g.alpha_mode, alpha);
-            }
-            sum += scale;
+            sum += emission_variation(&scene.textures, &scene.images, mat, &mesh.uvs, *idx, bary);
         }
     }
     sum / (N * N) as f32

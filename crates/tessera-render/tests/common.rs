@@ -8,6 +8,31 @@ use tessera_render::render::{render_frame, render_unit, RenderConfig};
 use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
 
+/// A small deterministic generator (a 64-bit LCG with Knuth's MMIX constants) for test
+/// rays and placements: the same stream on every run.
+pub struct Rng(pub u64);
+
+impl Rng {
+    /// The next value in [0, 1), from the top 24 bits. (Not an `Iterator`: the stream is
+    /// endless and callers want a plain `f32`.)
+    #[allow(clippy::should_implement_trait)]
+    pub fn next(&mut self) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 40) as f32) / (1u64 << 24) as f32
+    }
+
+    /// A direction uniform on the unit sphere.
+    pub fn dir(&mut self) -> glam::Vec3 {
+        let z = 2.0 * self.next() - 1.0;
+        let phi = std::f32::consts::TAU * self.next();
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        glam::Vec3::new(r * phi.cos(), r * phi.sin(), z)
+    }
+}
+
 /// Renders `scene` at `w` x `h`, `spp` samples per pixel, on all cores.
 pub fn render(
     scene: &Scene,

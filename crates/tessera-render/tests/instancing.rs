@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{image_mean, render};
+use common::{image_mean, render, Rng};
 use glam::{Affine3A, Quat, Vec3};
 use tessera_render::geometry::{Primitive, NO_INSTANCE};
 use tessera_render::integrator::{Integrator, MisHeuristic};
@@ -15,23 +15,6 @@ use tessera_render::sampling::SamplerKind;
 use tessera_render::scene::RenderScene;
 use tessera_scene::builtin::look_at_camera;
 use tessera_scene::{Instance, Material, Mesh, PunctualLight, Scene};
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f32 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 40) as f32) / (1u64 << 24) as f32
-    }
-    fn dir(&mut self) -> Vec3 {
-        let z = 2.0 * self.next() - 1.0;
-        let phi = std::f32::consts::TAU * self.next();
-        let r = (1.0 - z * z).max(0.0).sqrt();
-        Vec3::new(r * phi.cos(), r * phi.sin(), z)
-    }
-}
 
 /// A closed, convex box (12 triangles, counter-clockwise seen from outside), with smooth
 /// normals so normal transformation is exercised; instances make it irregular.

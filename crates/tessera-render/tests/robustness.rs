@@ -2,23 +2,15 @@
 //! angles, at scene scales from 1e-4 to 1e4 and far from the origin (pbrt 3rd ed. §3.9
 //! error bounds and ray-origin offsets).
 
+mod common;
+
+use common::Rng;
 use glam::Vec3;
 use tessera_render::geometry::Primitive;
 use tessera_render::math::offset_ray_origin;
 use tessera_render::scene::RenderScene;
 use tessera_scene::builtin::look_at_camera;
 use tessera_scene::{Material, Mesh, Scene, Sphere};
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f32 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((self.0 >> 40) as f32) / (1u64 << 24) as f32
-    }
-}
 
 /// A tilted, irregular triangle mesh patch (a gently folded sheet) plus a sphere, scaled by
 /// `scale` and translated by `offset`.

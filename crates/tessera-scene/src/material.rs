@@ -41,14 +41,6 @@ impl Texels {
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
-
-    /// Bytes held, for memory budgets.
-    pub fn bytes(&self) -> usize {
-        match self {
-            Texels::Rgba8(t) => t.len() * 4,
-            Texels::RgbaF32(t) => t.len() * 16,
-        }
-    }
 }
 
 /// A decoded image, row-major from the top row (glTF puts texture coordinate v = 0 at the
