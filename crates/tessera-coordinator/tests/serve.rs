@@ -58,6 +58,17 @@ async fn register(grpc: SocketAddr) -> (WorkerServiceClient<tonic::transport::Ch
 
 type Served = tokio::task::JoinHandle<Result<(), ServeError>>;
 
+/// A coordinator over a fresh store in `dir` with one small job (16x16, 4 spp) queued.
+async fn coordinator_with_a_job(dir: &tempfile::TempDir) -> (Coordinator, tessera_api::JobStatus) {
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
+    let (job, _) = core.submit(job, None).await.unwrap();
+    (core, job)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serve_answers_http_and_grpc_and_returns_on_shutdown() {
     let dir = tempfile::tempdir().unwrap();
@@ -88,12 +99,7 @@ async fn serve_answers_http_and_grpc_and_returns_on_shutdown() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
     let dir = tempfile::tempdir().unwrap();
-    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
-        .await
-        .unwrap();
-    let mut job = JobSettings::new("builtin:cornell-box");
-    (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
-    core.submit(job, None).await.unwrap();
+    let (core, _job) = coordinator_with_a_job(&dir).await;
     let (ls, _http, grpc) = listeners().await;
     let (tx, rx) = oneshot::channel::<()>();
     let served: Served = tokio::spawn(serve_coordinator(core, ls, async {
@@ -165,12 +171,7 @@ async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
 async fn a_scene_no_worker_can_use_fails_its_job() {
     use tessera_coordinator::service::MAX_UNUSABLE_RETURNS;
     let dir = tempfile::tempdir().unwrap();
-    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
-        .await
-        .unwrap();
-    let mut job = JobSettings::new("builtin:cornell-box");
-    (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
-    let (job, _) = core.submit(job, None).await.unwrap();
+    let (core, job) = coordinator_with_a_job(&dir).await;
     let (ls, _http, grpc) = listeners().await;
     let (_tx, rx) = oneshot::channel::<()>();
     let _served: Served = tokio::spawn(serve_coordinator(core.clone(), ls, async {
