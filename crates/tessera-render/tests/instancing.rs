@@ -117,15 +117,10 @@ fn instanced() -> Scene {
     }
 }
 
-/// The same scene flattened (one implementation, in tessera-scene).
-fn flattened(s: &Scene) -> Scene {
-    s.flattened()
-}
-
 #[test]
 fn instanced_rays_hit_the_triangles_a_flattened_copy_does() {
     let inst = instanced();
-    let flat = flattened(&inst);
+    let flat = inst.flattened();
     inst.validate().unwrap();
     flat.validate().unwrap();
     let ri = RenderScene::build(&inst, 8, 8).unwrap();
@@ -220,7 +215,7 @@ fn instanced_rays_hit_the_triangles_a_flattened_copy_does() {
 fn rays_spawned_on_instances_do_not_hit_their_own_surface() {
     let s = instanced();
     let rs = RenderScene::build(&s, 8, 8).unwrap();
-    let rf = RenderScene::build(&flattened(&s), 8, 8).unwrap();
+    let rf = RenderScene::build(&s.flattened(), 8, 8).unwrap();
     let mut rng = Rng(0xabcdef);
     let (mut tested, mut outward_self, mut inward_lost, mut flat_lost_too) = (0, 0, 0, 0);
     for _ in 0..20000 {
@@ -283,7 +278,7 @@ fn rays_spawned_on_instances_do_not_hit_their_own_surface() {
 #[test]
 fn instanced_and_flattened_scenes_render_the_same_image() {
     let inst = instanced();
-    let flat = flattened(&inst);
+    let flat = inst.flattened();
     let settings = RenderConfig {
         integrator: Integrator::Path,
         mis: MisHeuristic::Power,
