@@ -24,10 +24,29 @@ pub struct Coord {
 
 /// Starts `tessera coordinator` on `data` with short leases and waits for its addresses.
 pub fn start_coordinator(data: &Path, http: &str, grpc: &str, extra: &[&str]) -> Coord {
+    spawn_coordinator(tessera(), data, http, grpc, extra)
+}
+
+/// [`start_coordinator`] on loopback port 0 with its address space (`ulimit -v`) limited
+/// to `bytes`, by util-linux's `prlimit`, which execs the coordinator in its own process.
+pub fn start_coordinator_limited(data: &Path, bytes: u64, extra: &[&str]) -> Coord {
+    let mut cmd = std::process::Command::new("prlimit");
+    cmd.arg(format!("--as={bytes}"))
+        .arg("--")
+        .arg(env!("CARGO_BIN_EXE_tessera"));
+    spawn_coordinator(cmd, data, "127.0.0.1:0", "127.0.0.1:0", extra)
+}
+
+fn spawn_coordinator(
+    mut cmd: std::process::Command,
+    data: &Path,
+    http: &str,
+    grpc: &str,
+    extra: &[&str],
+) -> Coord {
     let mut proc = Proc::spawn(
         "coordinator",
-        tessera()
-            .args(["coordinator", "--http", http, "--grpc", grpc, "--data"])
+        cmd.args(["coordinator", "--http", http, "--grpc", grpc, "--data"])
             .arg(data)
             .args([
                 "--lease-ms",

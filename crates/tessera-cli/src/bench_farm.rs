@@ -33,6 +33,15 @@ pub struct BenchFarmArgs {
     /// Alternating repetitions of each (the median is reported).
     #[arg(long, default_value_t = 3)]
     pub repeat: u32,
+    /// Also time the farm while this many dashboard-like pollers watch the job (each,
+    /// once a second: the status, and the PNG, tile map and history when the status
+    /// changed), and report their request latencies.
+    #[arg(long, default_value_t = 0)]
+    pub pollers: usize,
+    /// The `tessera` binary that runs the farm (default: this one), e.g. an older build
+    /// to compare against in the same run.
+    #[arg(long)]
+    pub farm_binary: Option<std::path::PathBuf>,
 }
 
 /// Runs the benchmark: alternately renders the job with `tessera render` and through a
@@ -40,16 +49,42 @@ pub struct BenchFarmArgs {
 /// counted but its scene loading, leasing, gRPC transfers, merging and store commits are),
 /// and prints the throughput ratio.
 pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
-    let exe = std::env::current_exe().context("locating the tessera binary")?;
+    let exe = match &args.farm_binary {
+        Some(p) => p.clone(),
+        None => std::env::current_exe().context("locating the tessera binary")?,
+    };
     let dir = std::env::temp_dir().join(format!("tessera-bench-farm-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
     let mut local = Vec::new();
     let mut farm = Vec::new();
+    let mut polled = Vec::new();
+    let mut latencies = Vec::new();
+    let mut requests = 0usize;
     for rep in 0..args.repeat.max(1) {
         let l = time_local(&exe, &args, &dir.join("local.exr"))?;
         let data = dir.join(format!("data{rep}"));
         let _ = std::fs::remove_dir_all(&data);
-        let f = time_farm(&exe, &args, &data)?;
+        let f = time_farm(&exe, &args, &data, 0)?.0;
+        if args.pollers > 0 {
+            let data = dir.join(format!("polled{rep}"));
+            let _ = std::fs::remove_dir_all(&data);
+            let (p, mut lat) = time_farm(&exe, &args, &data, args.pollers)?;
+            requests += lat.len();
+            let mut sorted = lat.clone();
+            sorted.sort_by(f64::total_cmp);
+            println!(
+                "run {}: farm with {} pollers: {p:.3} s ({:.2}x the farm alone); {} requests ({:.0}/s), p50 {:.1} ms, p99 {:.1} ms",
+                rep + 1,
+                args.pollers,
+                p / f,
+                sorted.len(),
+                sorted.len() as f64 / p,
+                1e3 * quantile(&sorted, 0.5),
+                1e3 * quantile(&sorted, 0.99)
+            );
+            polled.push(p);
+            latencies.append(&mut lat);
+        }
         println!(
             "run {}: tessera render --threads {}: {l:.3} s; tessera serve --workers {} (1 thread each): {f:.3} s; farm/local throughput {:.3}",
             rep + 1,
@@ -75,8 +110,63 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
         100.0 * l / f,
         100.0 * (f / l - 1.0)
     );
+    if args.pollers > 0 {
+        polled.sort_by(f64::total_cmp);
+        latencies.sort_by(f64::total_cmp);
+        let p = polled[polled.len() / 2];
+        println!(
+            "bench-farm pollers: {} pollers, {requests} requests; median farm {f:.3} s alone, {p:.3} s polled (render slowed {:+.1}%); latency p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+            args.pollers,
+            100.0 * (p / f - 1.0),
+            1e3 * quantile(&latencies, 0.5),
+            1e3 * quantile(&latencies, 0.99),
+            1e3 * latencies.last().copied().unwrap_or(0.0)
+        );
+    }
     let _ = std::fs::remove_dir_all(&dir);
     Ok(())
+}
+
+/// The `q` quantile of sorted values (nearest rank); 0 for none.
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
+    sorted[i]
+}
+
+/// One dashboard-like poller of job `id` until `stop`: once a second the status, and
+/// when it changed the PNG, the tile map and the history, as `job.js` does. Returns the
+/// latency of every request, seconds.
+fn poll_like_the_dashboard(url: &str, id: u64, stop: &std::sync::atomic::AtomicBool) -> Vec<f64> {
+    let client = Client::new(url, None);
+    let mut lat = Vec::new();
+    let mut last = None;
+    let mut timed = |f: &mut dyn FnMut() -> bool| {
+        let t = Instant::now();
+        let ok = f();
+        lat.push(t.elapsed().as_secs_f64());
+        ok
+    };
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        let tick = Instant::now();
+        let mut key = None;
+        timed(&mut || {
+            key = client.job(id).ok().map(|s| (s.passes_done, s.state));
+            key.is_some()
+        });
+        if key.is_some() && key != last {
+            timed(&mut || client.image(id, "png").is_ok());
+            timed(&mut || client.tiles(id).is_ok());
+            timed(&mut || client.history(id).is_ok());
+            last = key;
+        }
+        if let Some(rest) = Duration::from_secs(1).checked_sub(tick.elapsed()) {
+            std::thread::sleep(rest);
+        }
+    }
+    lat
 }
 
 /// Seconds `tessera render` takes for the job, writing `out`.
@@ -101,8 +191,14 @@ fn time_local(exe: &Path, args: &BenchFarmArgs, out: &Path) -> Result<f64> {
     Ok(t.elapsed().as_secs_f64())
 }
 
-/// Seconds a fresh `tessera serve` on `data` takes from the job's submission to done.
-fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path) -> Result<f64> {
+/// Seconds a fresh `tessera serve` on `data` takes from the job's submission to done,
+/// with `pollers` dashboard-like pollers watching (and their request latencies).
+fn time_farm(
+    exe: &Path,
+    args: &BenchFarmArgs,
+    data: &Path,
+    pollers: usize,
+) -> Result<(f64, Vec<f64>)> {
     let (mut child, url) = start_farm(exe, args, data)?;
     let client = Client::new(&url, None);
     // Wait until the workers registered, so their start-up is not timed.
@@ -119,6 +215,13 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path) -> Result<f64> {
     s.spp = args.spp;
     let t = Instant::now();
     let job = client.submit(&s, None).map_err(client_error)?;
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let watchers: Vec<_> = (0..pollers)
+        .map(|_| {
+            let (url, stop) = (url.clone(), stop.clone());
+            std::thread::spawn(move || poll_like_the_dashboard(&url, job.id, &stop))
+        })
+        .collect();
     let done = client
         .wait(
             job.id,
@@ -128,12 +231,17 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path) -> Result<f64> {
         )
         .map_err(client_error)?;
     let f = t.elapsed().as_secs_f64();
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let mut latencies = Vec::new();
+    for w in watchers {
+        latencies.extend(w.join().unwrap_or_default());
+    }
     let _ = child.kill();
     let _ = child.wait();
     if done.state != JobState::Done {
         bail!("the farm job ended {}", done.state.as_str());
     }
-    Ok(f)
+    Ok((f, latencies))
 }
 
 /// Starts `tessera serve` with one single-threaded worker per benchmark thread on port-0

@@ -39,6 +39,40 @@ pub struct CoordinatorArgs {
     /// their units are leased again, milliseconds.
     #[arg(long, default_value_t = 3_000)]
     pub grace_ms: u64,
+    /// Memory for the per-pixel merge state of all jobs (72 bytes per pixel of each frame
+    /// in progress), e.g. `4GiB`, `512MiB` or a byte count. A job one frame of which
+    /// needs more is refused; frames beyond it wait for others to complete.
+    #[arg(long, default_value = "4GiB", value_parser = parse_bytes)]
+    pub memory_budget: u64,
+}
+
+/// A byte count with an optional binary or decimal unit: `4GiB`, `512MiB`, `2GB`, `1024`.
+fn parse_bytes(s: &str) -> std::result::Result<u64, String> {
+    let t = s.trim();
+    let split = t.find(|c: char| !c.is_ascii_digit()).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let n: u64 = num
+        .parse()
+        .map_err(|_| format!("{s:?} is not a byte count such as 4GiB or 1073741824"))?;
+    let scale: u64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1,
+        "k" | "kb" => 1_000,
+        "kib" => 1 << 10,
+        "m" | "mb" => 1_000_000,
+        "mib" => 1 << 20,
+        "g" | "gb" => 1_000_000_000,
+        "gib" => 1 << 30,
+        "t" | "tb" => 1_000_000_000_000,
+        "tib" => 1 << 40,
+        other => {
+            return Err(format!(
+                "unknown unit {other:?} in {s:?} (use B, KiB, MiB, GiB, TiB)"
+            ))
+        }
+    };
+    n.checked_mul(scale)
+        .filter(|&b| b > 0)
+        .ok_or_else(|| format!("{s:?} must be between 1 byte and 16 EiB"))
 }
 
 impl CoordinatorArgs {
@@ -59,6 +93,7 @@ impl CoordinatorArgs {
             heartbeat_ms: self.heartbeat_ms,
             grace_ms: self.grace_ms,
             passes_per_unit: 1,
+            memory_budget: self.memory_budget,
         })
     }
 
@@ -97,4 +132,20 @@ pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
         serve_coordinator(core, listeners, shutdown_signal()).await?;
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_bytes;
+
+    #[test]
+    fn byte_counts_parse_with_units() {
+        assert_eq!(parse_bytes("4GiB"), Ok(4 << 30));
+        assert_eq!(parse_bytes("512 MiB"), Ok(512 << 20));
+        assert_eq!(parse_bytes("2gb"), Ok(2_000_000_000));
+        assert_eq!(parse_bytes("1073741824"), Ok(1 << 30));
+        for bad in ["", "GiB", "4 parsecs", "0", "99999999999TiB", "-1"] {
+            assert!(parse_bytes(bad).is_err(), "{bad:?}");
+        }
+    }
 }

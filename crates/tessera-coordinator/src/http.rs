@@ -245,6 +245,16 @@ async fn job_tiles(
     Ok(Json(core.tiles(parse_id(&id)?, q).await?).into_response())
 }
 
+/// An encoded image shared with the coordinator's image cache, as a response body
+/// without a copy.
+struct SharedBytes(std::sync::Arc<Vec<u8>>);
+
+impl AsRef<[u8]> for SharedBytes {
+    fn as_ref(&self) -> &[u8] {
+        &self.0
+    }
+}
+
 async fn job_image(
     State(core): State<Coordinator>,
     Path(id): Path<String>,
@@ -258,7 +268,7 @@ async fn job_image(
             (header::CONTENT_TYPE, q.format.content_type()),
             (header::CACHE_CONTROL, "no-store"),
         ],
-        bytes,
+        axum::body::Bytes::from_owner(SharedBytes(bytes)),
     )
         .into_response();
     if q.format == ImageFormat::Exr {

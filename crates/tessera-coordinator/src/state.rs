@@ -143,6 +143,18 @@ pub struct JobRuntime {
     pub(crate) last_history_ms: u64,
     /// Convergence history (also in the store).
     pub history: Vec<HistoryPoint>,
+    /// The render plan as JSON for the status, made once.
+    pub(crate) plan_json: Option<serde_json::Value>,
+    /// An adaptive job's (mean spp, image error once every pixel has an estimate), as
+    /// last computed with a history point: the status reads it instead of walking every
+    /// pixel per request.
+    pub(crate) adaptive_summary: (f64, Option<f64>),
+    /// Results merged into this job so far in this run: the version of its images
+    /// (the image cache's key, `service::images`).
+    pub(crate) merges: u64,
+    /// A checkpoint of this job failed to write: its frames stay in memory (they hold
+    /// passes the store may not have) instead of being released when complete.
+    pub(crate) unsaved_checkpoints: bool,
     /// Why a done job stopped, as `tessera render` says it ("finished", "time limit
     /// reached"); recorded in the EXR header of jobs that stop early.
     pub stopped: Option<&'static str>,
@@ -158,6 +170,7 @@ impl JobRuntime {
     ) -> Self {
         let tiles = resolved.plan.tile_count() as usize;
         let frames = resolved.job.frames.count() as usize;
+        let plan_json = serde_json::from_str(&resolved.render_plan.to_json()).ok();
         Self {
             settings,
             resolved,
@@ -172,6 +185,10 @@ impl JobRuntime {
             tile_rejected: vec![vec![TileRejected::default(); tiles]; frames],
             last_history_ms: 0,
             history: Vec::new(),
+            plan_json,
+            adaptive_summary: (0.0, None),
+            merges: 0,
+            unsaved_checkpoints: false,
             stopped: None,
         }
     }

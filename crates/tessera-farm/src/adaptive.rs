@@ -492,6 +492,12 @@ pub struct AdaptiveFrame {
 }
 
 impl AdaptiveFrame {
+    /// Bytes of policy state per pixel beside the frame's accumulator (statistics, state
+    /// and decision scratch), for the coordinator's memory budget.
+    pub const BYTES_PER_PIXEL: u64 = (std::mem::size_of::<PixelStats>()
+        + std::mem::size_of::<PixelState>()
+        + std::mem::size_of::<bool>()) as u64;
+
     /// An empty adaptive state for `frame` of `plan`; fails on invalid plans or settings.
     pub fn new(
         plan: FramePlan,

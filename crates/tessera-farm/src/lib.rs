@@ -85,7 +85,10 @@ pub use plan::{
     MIN_TILE_SIZE, TARGET_MIN_PASSES,
 };
 pub use result::{ResultError, UnitResult};
-pub use schedule::{JobId, Lease, Progress, Scheduler, SubmitError, Submitted, WorkerId};
+pub use schedule::{
+    frame_state_bytes, JobId, Lease, Progress, Residency, Resumed, Scheduler, SubmitError,
+    Submitted, WorkerId,
+};
 pub use stats::{luminance, PixelStats, LUMINANCE_WEIGHTS, REL_EPS};
 
 #[cfg(test)]

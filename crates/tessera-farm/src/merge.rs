@@ -295,6 +295,10 @@ pub struct FrameAccumulator {
 }
 
 impl FrameAccumulator {
+    /// Bytes of merge state per pixel (one [`PixelStats`]); what the coordinator's memory
+    /// budget counts.
+    pub const BYTES_PER_PIXEL: u64 = std::mem::size_of::<PixelStats>() as u64;
+
     /// An empty accumulator for frame 0 of a plan; see [`FrameAccumulator::for_frame`].
     ///
     /// # Panics

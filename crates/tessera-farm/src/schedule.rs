@@ -25,6 +25,13 @@
 //! thrown away, and which units exist is a function of the job alone: the image is
 //! bit-identical with any number of workers. The cost is a short pipeline stall per tile at
 //! each boundary (other tiles' units fill it when there are enough tiles).
+//!
+//! Memory (issue 16): a frame's per-pixel merge state is allocated when its first unit is
+//! leased and, for jobs that are not adaptive, released by [`Scheduler::release_frame`]
+//! once the frame is complete and its tiles are checkpointed. Allocations are charged to
+//! one budget for all jobs ([`Scheduler::set_memory_budget`]): a frame that does not fit
+//! waits (its units are not leased) until completed frames free their memory, so the
+//! scheduler's per-pixel state is bounded by the budget plus one frame, whatever the jobs.
 
 use crate::adaptive::{AdaptiveError, AdaptiveFrame, AdaptiveSettings};
 use crate::merge::{FrameAccumulator, MergeError, Offer};
@@ -63,6 +70,9 @@ pub enum Submitted {
         /// The copies are bit-identical.
         identical: bool,
     },
+    /// The unit's frame is complete and released from memory
+    /// ([`Scheduler::release_frame`]): the unit was merged, this copy is not compared.
+    Late,
 }
 
 /// Why a submission was refused.
@@ -74,6 +84,10 @@ pub enum SubmitError {
     /// The job was canceled.
     #[error("job {0} was canceled")]
     Canceled(JobId),
+    /// A previous run's lease for a frame whose merge state is not in memory yet (it
+    /// waits for the memory budget): not the worker's fault; the unit is leased again.
+    #[error("frame {0} is waiting for memory; its units will be leased again")]
+    NotResident(u32),
     /// The result is malformed (wrong size, non-finite values, ...): counted against the
     /// worker.
     #[error("rejected result: {0}")]
@@ -97,13 +111,74 @@ pub struct Progress {
     pub frames_done: u32,
 }
 
+/// What a restart restored of a job for [`Scheduler::add_resumed_job`].
+#[derive(Debug)]
+pub struct Resumed {
+    /// The frames the job renders (inclusive range).
+    pub frames: std::ops::RangeInclusive<u32>,
+    /// The accumulators of frames with checkpoints that are not complete, restored from
+    /// them; frames neither here nor in `complete` have nothing merged.
+    pub restored: Vec<FrameAccumulator>,
+    /// Frames every tile of which has all its passes: not loaded, their images are in the
+    /// store.
+    pub complete: Vec<u32>,
+}
+
+/// Where a frame's merge state is ([`Scheduler::residency`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Residency {
+    /// No unit of the frame was leased yet: nothing merged, nothing allocated.
+    Pending,
+    /// In memory ([`Scheduler::frame`]).
+    Live,
+    /// Complete, checkpointed and dropped from memory: read it from the store.
+    Released,
+}
+
+/// One frame of a job in the scheduler (see [`Residency`]).
+enum FrameSlot {
+    Pending,
+    Live(Box<FrameAccumulator>),
+    Released,
+}
+
+impl FrameSlot {
+    fn live(&self) -> Option<&FrameAccumulator> {
+        match self {
+            Self::Live(f) => Some(f),
+            _ => None,
+        }
+    }
+}
+
+/// The memory budget for per-pixel merge state, shared by all jobs.
+#[derive(Clone, Copy, Debug)]
+struct Memory {
+    budget: u64,
+    resident: u64,
+}
+
+/// Bytes of merge state one frame of `plan` holds in memory: a [`crate::PixelStats`] per
+/// pixel, and the adaptive policy's per-pixel state for adaptive jobs.
+pub fn frame_state_bytes(plan: &FramePlan, adaptive: bool) -> u64 {
+    let per_pixel = FrameAccumulator::BYTES_PER_PIXEL
+        + if adaptive {
+            AdaptiveFrame::BYTES_PER_PIXEL
+        } else {
+            0
+        };
+    u64::from(plan.width) * u64::from(plan.height) * per_pixel
+}
+
 struct Job {
     priority: i32,
     seq: u64,
     plan: FramePlan,
     first_frame: u32,
     passes_per_unit: u32,
-    frames: Vec<FrameAccumulator>,
+    frames: Vec<FrameSlot>,
+    /// Bytes charged to the budget for each live frame ([`frame_state_bytes`]).
+    frame_bytes: u64,
     /// Canonical index of the next never-leased unit.
     cursor: u64,
     /// Units returned to the queue (expired or given back), by canonical index.
@@ -120,7 +195,9 @@ struct Job {
 /// The adaptive part of a job: one policy state per frame, units waiting for a decision
 /// and units a decision made unnecessary (both by canonical index).
 struct AdaptiveQueue {
-    frames: Vec<AdaptiveFrame>,
+    settings: AdaptiveSettings,
+    /// One per frame, allocated with the frame's accumulator.
+    frames: Vec<Option<AdaptiveFrame>>,
     waiting: BTreeSet<u64>,
     skipped: BTreeSet<u64>,
 }
@@ -143,6 +220,7 @@ impl Job {
         let tile = a
             .frames
             .get((u.frame - self.first_frame) as usize)
+            .and_then(Option::as_ref)
             .and_then(|f| f.tile(u.tile));
         match tile {
             None => Gate::Skip,
@@ -154,7 +232,7 @@ impl Job {
 
     /// The next adaptive unit to lease: a returned or waiting unit whose decision is made,
     /// else the next one from the cursor (holding back those that must wait).
-    fn next_adaptive_index(&mut self) -> Option<u64> {
+    fn next_adaptive_index(&mut self, mem: &mut Memory) -> Option<u64> {
         let candidates = self
             .returned
             .iter()
@@ -186,10 +264,15 @@ impl Job {
         }
         while self.cursor < self.units_total() {
             let i = self.cursor;
-            self.cursor += 1;
             if self.done.contains(&i) {
+                self.cursor += 1;
                 continue;
             }
+            // A frame that does not fit the budget yet waits, with the cursor on it.
+            if !self.make_live(self.frame_index(i), mem) {
+                return None;
+            }
+            self.cursor += 1;
             let gate = self.gate(i);
             let a = self.adaptive.as_mut()?;
             match gate {
@@ -203,9 +286,45 @@ impl Job {
 
     fn is_complete(&self) -> bool {
         match &self.adaptive {
-            Some(a) => a.frames.iter().all(AdaptiveFrame::finished),
-            None => self.frames.iter().all(|f| f.complete()),
+            Some(a) => a
+                .frames
+                .iter()
+                .all(|f| f.as_ref().is_some_and(AdaptiveFrame::finished)),
+            None => self.frames.iter().all(|f| match f {
+                FrameSlot::Pending => false,
+                FrameSlot::Live(f) => f.complete(),
+                FrameSlot::Released => true,
+            }),
         }
+    }
+
+    /// Index into `frames` of the frame of canonical unit `i`.
+    fn frame_index(&self, i: u64) -> usize {
+        (i / self.units_per_frame()) as usize
+    }
+
+    /// Allocates frame `k`'s merge state if it is pending and fits the budget; whether
+    /// it is live now.
+    fn make_live(&mut self, k: usize, mem: &mut Memory) -> bool {
+        match self.frames.get(k) {
+            Some(FrameSlot::Live(_)) => return true,
+            Some(FrameSlot::Pending) => {}
+            Some(FrameSlot::Released) | None => return false,
+        }
+        if mem.resident.saturating_add(self.frame_bytes) > mem.budget && mem.resident > 0 {
+            return false;
+        }
+        let frame = self.first_frame + k as u32;
+        if let Some(a) = self.adaptive.as_mut() {
+            // Validated when the job was added; cannot fail.
+            match AdaptiveFrame::new(self.plan, frame, a.settings) {
+                Ok(f) => a.frames[k] = Some(f),
+                Err(_) => return false,
+            }
+        }
+        self.frames[k] = FrameSlot::Live(Box::new(FrameAccumulator::for_frame(self.plan, frame)));
+        mem.resident += self.frame_bytes;
+        true
     }
 
     fn chunks(&self) -> u64 {
@@ -218,6 +337,16 @@ impl Job {
 
     fn units_total(&self) -> u64 {
         self.units_per_frame() * self.frames.len() as u64
+    }
+
+    /// Bytes of this job's live frames.
+    fn resident_bytes(&self) -> u64 {
+        let live = self
+            .frames
+            .iter()
+            .filter(|f| matches!(f, FrameSlot::Live(_)))
+            .count() as u64;
+        live * self.frame_bytes
     }
 
     /// The unit with canonical index `i`: frame-major, then pass chunk, then tile.
@@ -253,10 +382,11 @@ impl Job {
         (i < self.units_total() && self.unit(i) == *u).then_some(i)
     }
 
-    fn next_index(&mut self) -> Option<u64> {
+    fn next_index(&mut self, mem: &mut Memory) -> Option<u64> {
         if self.adaptive.is_some() {
-            return self.next_adaptive_index();
+            return self.next_adaptive_index(mem);
         }
+        // A returned unit was leased before, so its frame is live.
         if let Some(&i) = self.returned.iter().next() {
             self.returned.remove(&i);
             return Some(i);
@@ -264,10 +394,17 @@ impl Job {
         // Units merged before a restart are skipped (a resumed job's `done` set is not a
         // prefix of the canonical order).
         while self.cursor < self.units_total() {
-            self.cursor += 1;
-            if !self.done.contains(&(self.cursor - 1)) {
-                return Some(self.cursor - 1);
+            let i = self.cursor;
+            if self.done.contains(&i) {
+                self.cursor += 1;
+                continue;
             }
+            // A frame that does not fit the budget yet waits, with the cursor on it.
+            if !self.make_live(self.frame_index(i), mem) {
+                return None;
+            }
+            self.cursor += 1;
+            return Some(i);
         }
         None
     }
@@ -289,6 +426,7 @@ pub struct Scheduler {
     /// Leases that lapsed or were given back, with their (job, canonical unit index): a
     /// late result may still answer one of them, and only them.
     lapsed: BTreeMap<u64, (JobId, u64)>,
+    memory: Memory,
     next_lease_id: u64,
     next_seq: u64,
     /// The largest lease id issued by an earlier run of the coordinator (the high-water
@@ -306,37 +444,61 @@ impl Scheduler {
             jobs: BTreeMap::new(),
             leases: BTreeMap::new(),
             lapsed: BTreeMap::new(),
+            memory: Memory {
+                budget: u64::MAX,
+                resident: 0,
+            },
             next_lease_id: first_lease_id + 1,
             next_seq: 0,
             previous_run_max_lease: first_lease_id,
         }
     }
 
-    /// Adds a job resumed after a restart: `frames` are its accumulators restored from the
-    /// store's checkpoints (in frame order, all of `plan`), cut into units of
-    /// `passes_per_unit` passes as before the restart. Units whose passes every checkpoint
-    /// already merged are done; everything else is leased again in canonical order.
+    /// Adds a job resumed after a restart (see [`Resumed`]), cut into units of
+    /// `passes_per_unit` passes as before the restart. Units whose passes
+    /// every checkpoint already merged are done; everything else is leased again in
+    /// canonical order.
     ///
     /// Checkpoints whose merged passes do not end on a unit boundary (impossible with the
     /// same `passes_per_unit`) are refused: their next unit would overlap merged passes.
+    ///
+    /// Memory: complete frames are released at once (their checkpoints are in the store),
+    /// frames with no merged pass are left pending, the rest stay live and are charged to
+    /// the budget even beyond it (what a run merged, the next keeps).
     pub fn add_resumed_job(
         &mut self,
         id: JobId,
         priority: i32,
         plan: FramePlan,
-        frames: Vec<FrameAccumulator>,
+        resumed: Resumed,
         passes_per_unit: u32,
     ) -> Result<(), String> {
+        let Resumed {
+            frames,
+            restored,
+            complete,
+        } = resumed;
         let passes_per_unit = passes_per_unit.max(1);
         if frames.is_empty() {
             return Err(format!("job {id}: no frames to resume"));
         }
-        for (k, f) in frames.iter().enumerate() {
+        let first_frame = *frames.start();
+        let mut slots: Vec<FrameSlot> = frames.clone().map(|_| FrameSlot::Pending).collect();
+        for f in complete {
+            match f
+                .checked_sub(first_frame)
+                .and_then(|k| slots.get_mut(k as usize))
+            {
+                Some(slot) => *slot = FrameSlot::Released,
+                None => return Err(format!("job {id}: frame {f} is outside the job")),
+            }
+        }
+        for f in &restored {
             if *f.plan() != plan {
                 return Err(format!("job {id}: frame {} has another plan", f.frame()));
             }
-            if k > 0 && f.frame() != frames[k - 1].frame() + 1 {
-                return Err(format!("job {id}: resumed frames are not consecutive"));
+            if !frames.contains(&f.frame()) {
+                return Err(format!("job {id}: frame {} is outside the job", f.frame()));
             }
             for t in f.tiles() {
                 let m = t.merged_passes();
@@ -350,15 +512,20 @@ impl Scheduler {
                 }
             }
         }
-        let first_frame = frames[0].frame();
+        for f in restored {
+            let k = (f.frame() - first_frame) as usize;
+            slots[k] = FrameSlot::Live(Box::new(f));
+        }
         self.next_seq += 1;
+        let frame_bytes = frame_state_bytes(&plan, false);
         let mut job = Job {
             priority,
             seq: self.next_seq,
             plan,
             first_frame,
             passes_per_unit,
-            frames,
+            frames: Vec::new(),
+            frame_bytes,
             cursor: 0,
             returned: BTreeSet::new(),
             done: BTreeSet::new(),
@@ -366,13 +533,27 @@ impl Scheduler {
             canceled: false,
             adaptive: None,
         };
+        job.frames = slots;
         for i in 0..job.units_total() {
             let u = job.unit(i);
-            let tile = &job.frames[(u.frame - first_frame) as usize].tiles()[u.tile as usize];
-            if u64::from(tile.merged_passes()) >= u.end_pass() {
+            let merged = match &job.frames[(u.frame - first_frame) as usize] {
+                FrameSlot::Pending => continue,
+                FrameSlot::Live(f) => f.tiles()[u.tile as usize].merged_passes(),
+                FrameSlot::Released => plan.passes,
+            };
+            if u64::from(merged) >= u.end_pass() {
                 job.done.insert(i);
             }
         }
+        for slot in &mut job.frames {
+            let state = slot.live().map(|f| (f.complete(), f.merged_pass_count()));
+            *slot = match state {
+                Some((true, _)) => FrameSlot::Released,
+                Some((false, 0)) => FrameSlot::Pending,
+                _ => std::mem::replace(slot, FrameSlot::Pending),
+            };
+        }
+        self.memory.resident += job.resident_bytes();
         self.jobs.insert(id, job);
         Ok(())
     }
@@ -387,10 +568,9 @@ impl Scheduler {
         frames: std::ops::RangeInclusive<u32>,
         passes_per_unit: u32,
     ) {
-        let frames: Vec<FrameAccumulator> = frames
-            .map(|f| FrameAccumulator::for_frame(plan, f))
-            .collect();
-        let first_frame = frames.first().map_or(0, |f| f.frame());
+        // Nothing is allocated yet: each frame's merge state comes with its first lease.
+        let first_frame = *frames.start();
+        let frames: Vec<FrameSlot> = frames.map(|_| FrameSlot::Pending).collect();
         self.next_seq += 1;
         self.jobs.insert(
             id,
@@ -401,6 +581,7 @@ impl Scheduler {
                 first_frame,
                 passes_per_unit: passes_per_unit.max(1),
                 frames,
+                frame_bytes: frame_state_bytes(&plan, false),
                 cursor: 0,
                 returned: BTreeSet::new(),
                 done: BTreeSet::new(),
@@ -439,14 +620,15 @@ impl Scheduler {
             interval: round_up(adaptive.interval.max(1)),
             ..adaptive
         };
-        let states = frames
-            .clone()
-            .map(|f| AdaptiveFrame::new(plan, f, settings))
-            .collect::<Result<Vec<_>, _>>()?;
+        // Checked once here; each frame's state is allocated with its first lease.
+        AdaptiveFrame::new(plan, *frames.start(), settings)?;
+        let count = frames.clone().count();
         self.add_job(id, priority, plan, frames, ppu);
         if let Some(job) = self.jobs.get_mut(&id) {
+            job.frame_bytes = frame_state_bytes(&plan, true);
             job.adaptive = Some(AdaptiveQueue {
-                frames: states,
+                settings,
+                frames: (0..count).map(|_| None).collect(),
                 waiting: BTreeSet::new(),
                 skipped: BTreeSet::new(),
             });
@@ -458,7 +640,9 @@ impl Scheduler {
     pub fn adaptive_frame(&self, job_id: JobId, frame: u32) -> Option<&AdaptiveFrame> {
         let job = self.jobs.get(&job_id)?;
         let a = job.adaptive.as_ref()?;
-        a.frames.get(frame.checked_sub(job.first_frame)? as usize)
+        a.frames
+            .get(frame.checked_sub(job.first_frame)? as usize)?
+            .as_ref()
     }
 
     /// Leases up to `max_units` units to `worker`.
@@ -474,7 +658,9 @@ impl Scheduler {
         for (_, _, id) in order {
             let job = self.jobs.get_mut(&id).expect("listed job exists");
             while out.len() < max_units {
-                let Some(i) = job.next_index() else { break };
+                let Some(i) = job.next_index(&mut self.memory) else {
+                    break;
+                };
                 let lease = Lease {
                     lease_id: self.next_lease_id,
                     job: id,
@@ -590,11 +776,29 @@ impl Scheduler {
             return Err(SubmitError::UnknownLease(lease_id));
         }
         let frame = (result.unit.frame - job.first_frame) as usize;
+        // A lease of the previous run may be for a frame nothing of which was merged
+        // before the restart (pending again): adopted if it fits the budget.
+        job.make_live(frame, &mut self.memory);
+        let acc = match &mut job.frames[frame] {
+            FrameSlot::Live(acc) => acc,
+            // Complete and checkpointed: the unit is merged; its copy cannot be compared
+            // without reading the checkpoint back.
+            FrameSlot::Released => {
+                self.leases.remove(&lease_id);
+                self.lapsed.remove(&lease_id);
+                if job.leased.get(&i) == Some(&lease_id) {
+                    job.leased.remove(&i);
+                }
+                return Ok(Submitted::Late);
+            }
+            // It does not fit: the unit is leased again once it does.
+            FrameSlot::Pending => return Err(SubmitError::NotResident(result.unit.frame)),
+        };
         let copy = job.adaptive.as_ref().map(|_| result.clone());
-        let outcome = job.frames[frame].offer(result)?;
+        let outcome = acc.offer(result)?;
         if let (Some(a), Some(copy)) = (job.adaptive.as_mut(), copy) {
             if !matches!(outcome, Offer::Duplicate { .. }) {
-                if let Some(f) = a.frames.get_mut(frame) {
+                if let Some(Some(f)) = a.frames.get_mut(frame) {
                     // Validated by the offer above; cannot fail.
                     let _ = f.offer(&copy);
                 }
@@ -631,30 +835,101 @@ impl Scheduler {
         ids.iter().filter_map(|id| self.leases.remove(id)).collect()
     }
 
-    /// Removes a job entirely (after it is done and stored, or canceled).
+    /// Removes a job entirely (after it is done and stored, or canceled), freeing its
+    /// memory.
     pub fn remove_job(&mut self, job_id: JobId) {
         self.cancel(job_id);
-        self.jobs.remove(&job_id);
+        if let Some(job) = self.jobs.remove(&job_id) {
+            self.memory.resident = self.memory.resident.saturating_sub(job.resident_bytes());
+        }
         self.lapsed.retain(|_, (j, _)| *j != job_id);
     }
 
-    /// The merged state of one frame of a job.
+    /// Sets the memory budget for per-pixel merge state of all jobs, in bytes (unbounded
+    /// by default). Frames that do not fit wait for completed frames to be released; one
+    /// frame is always allowed when nothing is resident, so no job waits forever.
+    pub fn set_memory_budget(&mut self, bytes: u64) {
+        self.memory.budget = bytes;
+    }
+
+    /// Bytes of per-pixel merge state in memory, over all jobs.
+    pub fn resident_bytes(&self) -> u64 {
+        self.memory.resident
+    }
+
+    /// Drops a complete frame's merge state from memory, once the caller has made its
+    /// checkpoints durable; later results for it are [`Submitted::Late`] and its image
+    /// comes from the store. Frames of adaptive jobs stay (their policy state is not
+    /// checkpointed). Returns whether the frame was released now.
+    pub fn release_frame(&mut self, job_id: JobId, frame: u32) -> bool {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return false;
+        };
+        let Some(k) = frame.checked_sub(job.first_frame) else {
+            return false;
+        };
+        let complete = job
+            .frames
+            .get(k as usize)
+            .and_then(FrameSlot::live)
+            .is_some_and(FrameAccumulator::complete);
+        if job.adaptive.is_some() || !complete {
+            return false;
+        }
+        job.frames[k as usize] = FrameSlot::Released;
+        self.memory.resident = self.memory.resident.saturating_sub(job.frame_bytes);
+        true
+    }
+
+    /// Where one frame's merge state is; `None` for an unknown job or frame.
+    pub fn residency(&self, job_id: JobId, frame: u32) -> Option<Residency> {
+        let job = self.jobs.get(&job_id)?;
+        Some(
+            match job
+                .frames
+                .get(frame.checked_sub(job.first_frame)? as usize)?
+            {
+                FrameSlot::Pending => Residency::Pending,
+                FrameSlot::Live(_) => Residency::Live,
+                FrameSlot::Released => Residency::Released,
+            },
+        )
+    }
+
+    /// The merged state of one frame of a job, while it is live (see [`Residency`]).
     pub fn frame(&self, job_id: JobId, frame: u32) -> Option<&FrameAccumulator> {
         let job = self.jobs.get(&job_id)?;
-        job.frames.get(frame.checked_sub(job.first_frame)? as usize)
+        job.frames
+            .get(frame.checked_sub(job.first_frame)? as usize)?
+            .live()
     }
 
     /// Progress of a job.
     pub fn progress(&self, job_id: JobId) -> Option<Progress> {
         let job = self.jobs.get(&job_id)?;
         let tiles = job.plan.tile_count() as u64;
+        let full = tiles * u64::from(job.plan.passes);
+        let (mut passes_done, mut frames_done) = (0, 0);
+        for f in &job.frames {
+            match f {
+                FrameSlot::Pending => {}
+                FrameSlot::Live(f) => {
+                    passes_done += f.merged_pass_count();
+                    frames_done += u32::from(f.complete());
+                }
+                FrameSlot::Released => {
+                    passes_done += full;
+                    frames_done += 1;
+                }
+            }
+        }
         Some(Progress {
             units_total: job.units_total(),
             units_done: job.done.len() as u64,
             units_leased: job.leased.len() as u64,
-            passes_done: job.frames.iter().map(|f| f.merged_pass_count()).sum(),
-            passes_planned: tiles * job.plan.passes as u64 * job.frames.len() as u64,
-            frames_done: job.frames.iter().filter(|f| f.complete()).count() as u32,
+            passes_done,
+            passes_planned: full * job.frames.len() as u64,
+            frames_done,
         })
     }
 
@@ -840,9 +1115,8 @@ mod tests {
             }
         }
         // Checkpoint what is merged, as the store would hold it.
-        let frame = s.frame(7, 0).unwrap();
         let mut restored = FrameAccumulator::new(p);
-        for t in frame.tiles() {
+        for t in s.frame(7, 0).map_or(&[][..], FrameAccumulator::tiles) {
             let units: Vec<_> = t.merged_units().collect();
             let tile =
                 TileAccumulator::restore(t.rect(), t.merged_passes(), t.pixels().to_vec(), &units)
@@ -851,7 +1125,12 @@ mod tests {
         }
         let high_water = s.max_issued_lease_id();
         let mut s2 = Scheduler::new(100, high_water);
-        s2.add_resumed_job(7, 0, p, vec![restored], 2).unwrap();
+        let resumed = Resumed {
+            frames: 0..=0,
+            restored: vec![restored],
+            complete: Vec::new(),
+        };
+        s2.add_resumed_job(7, 0, p, resumed, 2).unwrap();
         let mut adopted = 0;
         if let Some(l) = late {
             assert!(s2.is_previous_run_lease(l.lease_id));
@@ -891,7 +1170,12 @@ mod tests {
         f.restore_tile(TileAccumulator::restore(rect, 1, px, &units).unwrap())
             .unwrap();
         let mut s = Scheduler::new(100, 0);
-        assert!(s.add_resumed_job(1, 0, p, vec![f], 2).is_err());
+        let resumed = Resumed {
+            frames: 0..=0,
+            restored: vec![f],
+            complete: Vec::new(),
+        };
+        assert!(s.add_resumed_job(1, 0, p, resumed, 2).is_err());
         // Units that do not tile the merged passes are refused.
         let px = vec![PixelStats::default(); rect.pixel_count()];
         assert!(TileAccumulator::restore(rect, 4, px.clone(), &[(0, 2, 0)]).is_err());
@@ -1100,5 +1384,89 @@ mod tests {
             s.submit(l[0].lease_id, 1, result(&p, l[0].unit, 0.5)),
             Err(SubmitError::Canceled(1))
         );
+    }
+
+    #[test]
+    fn frames_wait_for_the_memory_budget_and_release_it_when_complete() {
+        let p = plan();
+        let frame = frame_state_bytes(&p, false);
+        assert_eq!(frame, 40 * 30 * FrameAccumulator::BYTES_PER_PIXEL);
+        let mut s = Scheduler::new(1000, 0);
+        // Room for one frame and a half: three frames of job 1, then job 2, take turns.
+        s.set_memory_budget(frame + frame / 2);
+        s.add_job(1, 0, p, 0..=2, 2);
+        s.add_job(2, 0, p, 0..=0, 2);
+        assert_eq!(s.resident_bytes(), 0, "nothing is allocated before a lease");
+        assert_eq!(s.residency(1, 1), Some(Residency::Pending));
+        let mut order = Vec::new();
+        loop {
+            let ls = s.lease(1, 0, 100);
+            if ls.is_empty() {
+                break;
+            }
+            assert!(s.resident_bytes() <= frame + frame / 2);
+            // Only one frame is ever live: every lease of a batch is of one frame.
+            assert!(ls
+                .iter()
+                .all(|l| (l.job, l.unit.frame) == (ls[0].job, ls[0].unit.frame)));
+            order.push((ls[0].job, ls[0].unit.frame));
+            for l in &ls {
+                assert_eq!(
+                    s.submit(l.lease_id, l.job, result(&p, l.unit, 0.5)),
+                    Ok(Submitted::Accepted)
+                );
+            }
+            // The frame is complete; until its checkpoints are durable it stays.
+            assert!(
+                s.lease(1, 0, 100).is_empty(),
+                "the next frame waits for memory"
+            );
+            assert!(s.release_frame(ls[0].job, ls[0].unit.frame));
+            assert_eq!(s.resident_bytes(), 0);
+        }
+        assert_eq!(order, vec![(1, 0), (1, 1), (1, 2), (2, 0)]);
+        assert!(s.is_complete(1) && s.is_complete(2));
+        let pr = s.progress(1).unwrap();
+        assert_eq!((pr.frames_done, pr.passes_done), (3, pr.passes_planned));
+        assert_eq!(s.residency(1, 2), Some(Residency::Released));
+        assert!(s.frame(1, 2).is_none());
+    }
+
+    #[test]
+    fn a_late_result_for_a_released_frame_is_late_not_a_fault() {
+        let p = plan();
+        let mut s = Scheduler::new(10, 0);
+        s.add_job(1, 0, p, 0..=0, 6);
+        let first = s.lease(1, 0, 100);
+        // Every lease lapses and the units go to a second worker, which completes them.
+        s.expire(100);
+        let second = s.lease(2, 100, 100);
+        assert_eq!(first.len(), second.len());
+        for l in &second {
+            s.submit(l.lease_id, 1, result(&p, l.unit, 0.5)).unwrap();
+        }
+        assert!(s.release_frame(1, 0));
+        assert!(!s.release_frame(1, 0), "released once");
+        for l in &first {
+            assert_eq!(
+                s.submit(l.lease_id, 1, result(&p, l.unit, 0.5)),
+                Ok(Submitted::Late)
+            );
+        }
+    }
+
+    #[test]
+    fn an_incomplete_frame_is_not_released() {
+        let p = plan();
+        let mut s = Scheduler::new(1000, 0);
+        s.add_job(1, 0, p, 0..=0, 2);
+        let ls = s.lease(1, 0, 1);
+        s.submit(ls[0].lease_id, 1, result(&p, ls[0].unit, 0.5))
+            .unwrap();
+        assert!(!s.release_frame(1, 0));
+        assert_eq!(s.residency(1, 0), Some(Residency::Live));
+        assert_eq!(s.resident_bytes(), frame_state_bytes(&p, false));
+        s.remove_job(1);
+        assert_eq!(s.resident_bytes(), 0);
     }
 }

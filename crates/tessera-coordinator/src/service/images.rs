@@ -1,47 +1,187 @@
-//! Images: a frame's merged state, from memory or rebuilt from the tile checkpoints of a
-//! job that finished before this coordinator started (ARCHITECTURE.md §9, step 11), and
-//! what is served from it: the image (PNG or EXR) and the per-tile progress map.
+//! Images: a frame's merged state, from memory or rebuilt from the tile checkpoints (a
+//! frame released after it completed, or a job that finished before this coordinator
+//! started, ARCHITECTURE.md §9, step 11), and what is served from it: the image (PNG or
+//! EXR) and the per-tile progress map.
+//!
+//! Memory and load (ARCHITECTURE.md §6): nothing here copies a frame's accumulators. The
+//! PNG is made from the pixel means straight into 8-bit rows (3 bytes per pixel), the EXR
+//! layers and the tile map are read under the farm lock; a frame in the store is
+//! restored, used and dropped. Encoded images are cached per frame and merge count, so
+//! pollers of an unchanged frame cost a map lookup, and at most [`HEAVY_REQUESTS`]
+//! requests restore or encode a frame at once, which bounds what image requests hold
+//! however many arrive.
+
+use std::collections::HashMap;
+use std::sync::Arc;
 
 use tessera_api::{
     FrameQuery, FrameRange, ImageFormat, ImageQuery, JobState, ResolvedJob, TileInfo, TileMap,
 };
-use tessera_farm::{AdaptiveFrame, FrameAccumulator, FrameImage, JobId};
+use tessera_farm::{AdaptiveFrame, FrameAccumulator, FrameImage, FramePlan, JobId, Residency};
 
 use super::resume::{resolve_stored, restore_frames};
 use super::Coordinator;
 use crate::error::{CoordError, CoordResult};
 use crate::state::tile_error;
 
-/// One frame of a job as far as it is merged.
-struct FrameState {
-    /// Why the job stopped, once it is done.
-    stopped: Option<&'static str>,
-    /// The merged tiles; `None` for a black job or an adaptive job in memory.
-    acc: Option<FrameAccumulator>,
-    /// The adaptive policy's state of an adaptive job in memory (its image is the job's).
-    adaptive: Option<AdaptiveFrame>,
-    resolved: ResolvedJob,
-    frame: u32,
+/// Image requests that may restore a frame from the store or encode one at the same
+/// time; the rest wait (and then usually find the image cached).
+pub const HEAVY_REQUESTS: usize = 2;
+/// Encoded images kept for pollers, in bytes over all jobs.
+pub const IMAGE_CACHE_BYTES: usize = 64 << 20;
+
+/// The merged state of a frame as a request sees it.
+enum Source<'a> {
+    /// A job the render plan found nothing to trace in: exactly black, all passes done.
+    Black,
+    /// Nothing merged yet (its merge state is not allocated).
+    Empty,
+    /// The adaptive policy's state (the image of an adaptive job).
+    Adaptive(&'a AdaptiveFrame),
+    /// Merged tiles.
+    Merged(&'a FrameAccumulator),
 }
 
-impl FrameState {
-    /// The frame's image: the adaptive policy's, the merged tiles', or black.
-    fn image(&self) -> FrameImage {
-        match (&self.adaptive, &self.acc) {
-            (Some(a), _) => a.image(),
-            (None, Some(acc)) => acc.image(),
-            (None, None) => FrameImage::black(&self.resolved.plan),
+/// What a request needs to know of a job besides the frame's pixels.
+#[derive(Clone)]
+struct FrameMeta {
+    resolved: ResolvedJob,
+    stopped: Option<&'static str>,
+    frame: u32,
+    /// Changes whenever the frame's image may have changed (cache key).
+    version: u64,
+}
+
+/// A frame found in memory, or where to read it from.
+enum Located<T> {
+    /// Computed under the farm lock.
+    Done(T),
+    /// Released after completing: restore it from the store's checkpoints.
+    Store(Box<FrameMeta>),
+}
+
+/// An image cache key: (job, frame, EXR rather than PNG).
+type ImageKey = (JobId, u32, bool);
+
+/// Encoded images by key: (version, bytes).
+#[derive(Default)]
+pub(crate) struct ImageCache {
+    entries: HashMap<ImageKey, (u64, Arc<Vec<u8>>)>,
+    bytes: usize,
+}
+
+impl ImageCache {
+    fn get(&self, key: ImageKey, version: u64) -> Option<Arc<Vec<u8>>> {
+        self.entries
+            .get(&key)
+            .filter(|(v, _)| *v == version)
+            .map(|(_, b)| b.clone())
+    }
+
+    fn put(&mut self, key: ImageKey, version: u64, bytes: Arc<Vec<u8>>) {
+        if bytes.len() > IMAGE_CACHE_BYTES / 4 {
+            return;
         }
+        if let Some((_, old)) = self.entries.remove(&key) {
+            self.bytes -= old.len();
+        }
+        // Evict arbitrary entries until it fits: pollers refill what they use.
+        while self.bytes + bytes.len() > IMAGE_CACHE_BYTES {
+            let Some(&k) = self.entries.keys().next() else {
+                break;
+            };
+            if let Some((_, old)) = self.entries.remove(&k) {
+                self.bytes -= old.len();
+            }
+        }
+        self.bytes += bytes.len();
+        self.entries.insert(key, (version, bytes));
     }
 }
 
 impl Coordinator {
-    /// The merged state of one frame, from memory or rebuilt from the store.
-    async fn frame_state(&self, id: JobId, frame: Option<u32>) -> CoordResult<FrameState> {
-        if let Some(fs) = self.live_frame_state(id, frame)? {
-            return Ok(fs);
+    /// Finds frame `frame` (the job's first by default) of a job in memory and applies
+    /// `f` to it under the lock; `None` if the job is not in memory.
+    fn locate<T>(
+        &self,
+        id: JobId,
+        frame: Option<u32>,
+        f: impl FnOnce(Source<'_>, &FrameMeta) -> T,
+    ) -> CoordResult<Option<Located<T>>> {
+        let farm = self.lock()?;
+        let Some(rt) = farm.runtime.get(&id) else {
+            return Ok(None);
+        };
+        let fr = frame.unwrap_or(rt.job().frames.start);
+        if !rt.job().frames.iter().contains(&fr) {
+            return Err(frame_error(fr, rt.job().frames));
         }
-        // Not in memory: a job finished before this coordinator started.
+        let meta = FrameMeta {
+            resolved: rt.resolved.clone(),
+            stopped: rt.stopped,
+            frame: fr,
+            version: rt.merges.wrapping_mul(2) + u64::from(rt.stopped.is_some()),
+        };
+        if rt.resolved.black {
+            return Ok(Some(Located::Done(f(Source::Black, &meta))));
+        }
+        if let Some(a) = farm.scheduler.adaptive_frame(id, fr) {
+            return Ok(Some(Located::Done(f(Source::Adaptive(a), &meta))));
+        }
+        Ok(Some(match farm.scheduler.residency(id, fr) {
+            Some(Residency::Live) => match farm.scheduler.frame(id, fr) {
+                Some(acc) => Located::Done(f(Source::Merged(acc), &meta)),
+                None => Located::Done(f(Source::Empty, &meta)),
+            },
+            Some(Residency::Released) => Located::Store(Box::new(FrameMeta {
+                // A released frame no longer changes.
+                version: u64::MAX,
+                ..meta
+            })),
+            Some(Residency::Pending) | None => Located::Done(f(Source::Empty, &meta)),
+        }))
+    }
+
+    /// Applies `f` to a frame, from memory or restored from the store (a released frame,
+    /// or a job that finished before this coordinator started). Restoring takes one of
+    /// the [`HEAVY_REQUESTS`] permits unless the caller `holds` one already.
+    async fn with_frame<T: Send + 'static>(
+        &self,
+        id: JobId,
+        frame: Option<u32>,
+        holds: bool,
+        f: impl Fn(Source<'_>, &FrameMeta) -> T + Send + Sync + 'static,
+    ) -> CoordResult<T> {
+        let f = Arc::new(f);
+        let g = f.clone();
+        let meta = match self.locate(id, frame, move |s, m| g(s, m))? {
+            Some(Located::Done(v)) => return Ok(v),
+            Some(Located::Store(meta)) => *meta,
+            None => self.stored_meta(id, frame).await?,
+        };
+        let _permit = if holds {
+            None
+        } else {
+            Some(
+                self.inner
+                    .heavy
+                    .acquire()
+                    .await
+                    .map_err(CoordError::internal)?,
+            )
+        };
+        let acc = self.restore_frame(id, &meta).await?;
+        tokio::task::spawn_blocking(move || match &acc {
+            Some(acc) => f(Source::Merged(acc), &meta),
+            None => f(Source::Black, &meta),
+        })
+        .await
+        .map_err(CoordError::internal)
+    }
+
+    /// The meta of a frame of a job that is not in memory (finished before this
+    /// coordinator started).
+    async fn stored_meta(&self, id: JobId, frame: Option<u32>) -> CoordResult<FrameMeta> {
         let store = &*self.inner.store;
         let rec = store
             .get_job(id)
@@ -52,117 +192,197 @@ impl Coordinator {
             return Err(frame_error(f, rec.frames));
         }
         let stored = resolve_stored(store, &self.inner.farm, &rec).await?;
-        let stopped = (rec.state == JobState::Done).then_some("finished");
-        let acc = if stored.resolved.black {
-            None
-        } else {
-            let checkpoints = store.load_tiles(id, Some(f)).await?;
-            let mut restored =
-                restore_frames(rec.plan, [f], checkpoints).map_err(CoordError::Internal)?;
-            restored.frames.pop()
-        };
-        Ok(FrameState {
-            stopped,
-            acc,
-            adaptive: None,
+        Ok(FrameMeta {
             resolved: stored.resolved,
+            stopped: (rec.state == JobState::Done).then_some("finished"),
             frame: f,
+            // Jobs of an earlier run no longer change.
+            version: u64::MAX,
         })
     }
 
-    /// The merged state of one frame of a job in memory; `None` if the job is not (or
-    /// its frame has no accumulator).
-    fn live_frame_state(&self, id: JobId, frame: Option<u32>) -> CoordResult<Option<FrameState>> {
-        let farm = self.lock()?;
-        let Some(rt) = farm.runtime.get(&id) else {
+    /// A frame's accumulator rebuilt from its checkpoints; `None` for a black job.
+    async fn restore_frame(
+        &self,
+        id: JobId,
+        meta: &FrameMeta,
+    ) -> CoordResult<Option<FrameAccumulator>> {
+        if meta.resolved.black {
             return Ok(None);
-        };
-        let f = frame.unwrap_or(rt.job().frames.start);
-        if !rt.job().frames.iter().contains(&f) {
-            return Err(frame_error(f, rt.job().frames));
         }
-        let state = |acc, adaptive| FrameState {
-            stopped: rt.stopped,
-            acc,
-            adaptive,
-            resolved: rt.resolved.clone(),
-            frame: f,
-        };
-        if rt.resolved.black {
-            return Ok(Some(state(None, None)));
-        }
-        if let Some(a) = farm.scheduler.adaptive_frame(id, f) {
-            return Ok(Some(state(None, Some(a.clone()))));
-        }
-        Ok(farm
-            .scheduler
-            .frame(id, f)
-            .map(|acc| state(Some(acc.clone()), None)))
+        let checkpoints = self.inner.store.load_tiles(id, Some(meta.frame)).await?;
+        let mut restored = restore_frames(meta.resolved.plan, [meta.frame], checkpoints)
+            .map_err(CoordError::Internal)?;
+        Ok(restored.frames.pop())
     }
 
-    /// `GET /jobs/{id}/image`: the current merged image as PNG or EXR.
-    pub async fn image(&self, id: JobId, q: ImageQuery) -> CoordResult<Vec<u8>> {
-        let fs = self.frame_state(id, q.frame).await?;
-        // Merging and encoding a large frame is CPU work: off the async runtime.
-        tokio::task::spawn_blocking(move || {
-            let image = fs.image();
-            match q.format {
-                ImageFormat::Png => tessera_image::encode_png(&image),
-                ImageFormat::Exr => {
-                    tessera_image::encode_exr(&image, Some(&fs.resolved.metadata_json(fs.stopped)))
-                }
+    /// `GET /jobs/{id}/image`: the current merged image as PNG or EXR, from the cache
+    /// while the frame is unchanged.
+    pub async fn image(&self, id: JobId, q: ImageQuery) -> CoordResult<Arc<Vec<u8>>> {
+        let exr = q.format == ImageFormat::Exr;
+        let key = |m: &FrameMeta| (id, m.frame, exr);
+        // The cheap question first: which version is current, and is it cached?
+        let version = self.locate(id, q.frame, |_, m| (m.frame, m.version))?;
+        let probe = match &version {
+            Some(Located::Done((frame, v))) => Some((*frame, *v)),
+            Some(Located::Store(m)) => Some((m.frame, m.version)),
+            None => None,
+        };
+        if let Some((frame, v)) = probe {
+            if let Some(hit) = self.cached(id, frame, exr, v) {
+                return Ok(hit);
             }
+        }
+        // A bounded number of encodes at a time; a request that waited for one of them
+        // usually finds its image cached.
+        let _permit = self
+            .inner
+            .heavy
+            .acquire()
+            .await
+            .map_err(CoordError::internal)?;
+        if let Some((frame, v)) = probe {
+            if let Some(hit) = self.cached(id, frame, exr, v) {
+                return Ok(hit);
+            }
+        }
+        let (meta, raw) = self
+            .with_frame(id, q.frame, true, move |src, m| {
+                let raw = if exr {
+                    Raw::Exr(frame_image(&src, &m.resolved.plan))
+                } else {
+                    Raw::Png(preview_rgb8(&src, &m.resolved.plan))
+                };
+                (m.clone(), raw)
+            })
+            .await?;
+        let plan = meta.resolved.plan;
+        let metadata = meta.resolved.metadata_json(meta.stopped);
+        let bytes = tokio::task::spawn_blocking(move || match raw {
+            Raw::Png(rgb) => tessera_image::encode_png_rgb8(plan.width, plan.height, &rgb),
+            Raw::Exr(img) => tessera_image::encode_exr(&img, Some(&metadata)),
         })
         .await
         .map_err(CoordError::internal)?
-        .map_err(CoordError::internal)
+        .map_err(CoordError::internal)?;
+        let bytes = Arc::new(bytes);
+        if let Ok(mut c) = self.inner.images.lock() {
+            c.put(key(&meta), meta.version, bytes.clone());
+        }
+        Ok(bytes)
+    }
+
+    fn cached(&self, id: JobId, frame: u32, exr: bool, version: u64) -> Option<Arc<Vec<u8>>> {
+        self.inner
+            .images
+            .lock()
+            .ok()
+            .and_then(|c| c.get((id, frame, exr), version))
     }
 
     /// The current merged image of a frame (the job's first frame by default), as the
     /// EXR of `GET /jobs/{id}/image` encodes it.
     pub async fn frame_image(&self, id: JobId, frame: Option<u32>) -> CoordResult<FrameImage> {
-        let fs = self.frame_state(id, frame).await?;
-        tokio::task::spawn_blocking(move || fs.image())
-            .await
-            .map_err(CoordError::internal)
+        self.with_frame(id, frame, false, |src, m| {
+            frame_image(&src, &m.resolved.plan)
+        })
+        .await
     }
 
     /// `GET /jobs/{id}/tiles`: per-tile progress of a frame.
     pub async fn tiles(&self, id: JobId, q: FrameQuery) -> CoordResult<TileMap> {
-        let fs = self.frame_state(id, q.frame).await?;
-        let plan = fs.resolved.plan;
-        let tiles = plan
-            .tiles()
-            .map(|rect| {
-                let (passes, error) = tile_progress(&fs, rect.index as usize);
-                TileInfo {
-                    index: rect.index,
-                    x: rect.x0,
-                    y: rect.y0,
-                    width: rect.width,
-                    height: rect.height,
-                    passes,
-                    spp: f64::from(passes) * f64::from(plan.samples_per_pass),
-                    error,
-                    done: passes >= plan.passes,
-                }
-            })
-            .collect();
-        Ok(TileMap {
-            frame: fs.frame,
-            width: plan.width,
-            height: plan.height,
-            passes_planned: plan.passes,
-            tiles,
-        })
+        self.with_frame(id, q.frame, false, |src, m| tile_map(&src, m))
+            .await
     }
 }
 
-/// A tile's (passes done, RMS relative error) in a frame state.
-fn tile_progress(fs: &FrameState, index: usize) -> (u32, Option<f64>) {
-    let plan = fs.resolved.plan;
-    match (&fs.adaptive, &fs.acc) {
-        (Some(a), _) => {
+/// What an image request takes out of the lock to encode.
+enum Raw {
+    Png(Vec<u8>),
+    Exr(FrameImage),
+}
+
+/// The frame's image layers.
+fn frame_image(src: &Source<'_>, plan: &FramePlan) -> FrameImage {
+    match src {
+        Source::Adaptive(a) => a.image(),
+        Source::Merged(acc) => acc.image(),
+        Source::Black => FrameImage::black(plan),
+        Source::Empty => FrameImage {
+            passes: vec![0; plan.width as usize * plan.height as usize],
+            samples: vec![0; plan.width as usize * plan.height as usize],
+            ..FrameImage::black(plan)
+        },
+    }
+}
+
+/// The beauty as 8-bit sRGB rows, straight from the pixel statistics: the bytes
+/// `tessera_image::encode_png` makes of [`frame_image`]'s mean, without the other layers.
+fn preview_rgb8(src: &Source<'_>, plan: &FramePlan) -> Vec<u8> {
+    let w = plan.width as usize;
+    let mut rgb = vec![0u8; w * plan.height as usize * 3];
+    let mut put = |x0: u32, y0: u32, width: u32, i: usize, mean: [f64; 3]| {
+        let rw = width.max(1) as usize;
+        let p = ((y0 as usize + i / rw) * w + x0 as usize + i % rw) * 3;
+        for (c, m) in mean.iter().enumerate() {
+            rgb[p + c] = (tessera_image::srgb_encode(*m as f32) * 255.0 + 0.5) as u8;
+        }
+    };
+    match src {
+        Source::Adaptive(a) => {
+            for t in a.tiles() {
+                let r = t.rect();
+                for (i, s) in t.pixels().iter().enumerate() {
+                    put(r.x0, r.y0, r.width, i, s.mean);
+                }
+            }
+        }
+        Source::Merged(acc) => {
+            for t in acc.tiles() {
+                let r = t.rect();
+                for (i, s) in t.pixels().iter().enumerate() {
+                    put(r.x0, r.y0, r.width, i, s.mean);
+                }
+            }
+        }
+        Source::Black | Source::Empty => {}
+    }
+    rgb
+}
+
+/// The tile map of a frame.
+fn tile_map(src: &Source<'_>, m: &FrameMeta) -> TileMap {
+    let plan = m.resolved.plan;
+    let tiles = plan
+        .tiles()
+        .map(|rect| {
+            let (passes, error) = tile_progress(src, &plan, rect.index as usize);
+            TileInfo {
+                index: rect.index,
+                x: rect.x0,
+                y: rect.y0,
+                width: rect.width,
+                height: rect.height,
+                passes,
+                spp: f64::from(passes) * f64::from(plan.samples_per_pass),
+                error,
+                done: passes >= plan.passes,
+            }
+        })
+        .collect();
+    TileMap {
+        frame: m.frame,
+        width: plan.width,
+        height: plan.height,
+        passes_planned: plan.passes,
+        tiles,
+    }
+}
+
+/// A tile's (passes done, RMS relative error).
+fn tile_progress(src: &Source<'_>, plan: &FramePlan, index: usize) -> (u32, Option<f64>) {
+    match src {
+        Source::Adaptive(a) => {
             let t = &a.tiles()[index];
             let (mut sum, mut n) = (0.0, 0u64);
             // Pixels with one pass have no variance estimate yet (ARCHITECTURE.md §3).
@@ -180,12 +400,13 @@ fn tile_progress(fs: &FrameState, index: usize) -> (u32, Option<f64>) {
             };
             (done, (n > 0).then(|| (sum / n as f64).sqrt()))
         }
-        (None, Some(acc)) => {
+        Source::Merged(acc) => {
             let t = &acc.tiles()[index];
             let (s, n) = tile_error(t);
             (t.merged_passes(), (n > 0).then(|| (s / n as f64).sqrt()))
         }
-        (None, None) => (plan.passes, Some(0.0)),
+        Source::Black => (plan.passes, Some(0.0)),
+        Source::Empty => (0, None),
     }
 }
 

@@ -8,13 +8,13 @@
 use tessera_api::{
     History, JobList, JobListQuery, JobSettings, JobState, JobStatus, ResolvedJob, ValidatedJob,
 };
-use tessera_farm::{FramePlan, JobId};
+use tessera_farm::{frame_state_bytes, FramePlan, JobId};
 use tessera_scene::job::resolve_job;
 
 use super::{Coordinator, MAX_PAGE};
 use crate::error::{CoordError, CoordResult};
 use crate::state::{now_ms, Farm, JobEntry, JobRuntime};
-use crate::store::{FaultFilter, JobOrder, JobQuery, JobRecord, NewJob};
+use crate::store::{FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, TileSummary};
 
 impl Coordinator {
     /// Accepts a job: validates it, resolves it against its scene, stores it, queues it.
@@ -37,6 +37,7 @@ impl Coordinator {
         let scene = self.scene(&job.scene, job.camera.as_deref()).await?;
         // Resolution also checks the adaptive settings against the plan (field `adaptive`).
         let resolved = resolve_job(&job, &scene)?;
+        self.check_memory(&job, &resolved)?;
         let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;
         let created = now_ms();
         let (id, new) = self
@@ -77,6 +78,35 @@ impl Coordinator {
         Ok((self.status(id).await?, true))
     }
 
+    /// Refuses a job whose merge state cannot fit the memory budget: one frame (frames
+    /// of a job that is not adaptive are released as they complete) or, for adaptive jobs,
+    /// all frames (their policy state is not checkpointed, so it stays until the job ends).
+    fn check_memory(&self, job: &ValidatedJob, resolved: &ResolvedJob) -> CoordResult<()> {
+        if resolved.black {
+            return Ok(());
+        }
+        let adaptive = job.adaptive_settings().is_some();
+        let per_frame = frame_state_bytes(&resolved.plan, adaptive);
+        let frames = if adaptive { job.frames.count() } else { 1 };
+        let needed = per_frame.saturating_mul(frames);
+        let budget = self.inner.cfg.memory_budget;
+        if needed <= budget {
+            return Ok(());
+        }
+        let plan = &resolved.plan;
+        let what = if adaptive && frames > 1 {
+            format!("{frames} adaptive frames of {}x{}", plan.width, plan.height)
+        } else {
+            format!("a {}x{} frame", plan.width, plan.height)
+        };
+        Err(CoordError::TooLarge(format!(
+            "{what} needs {} of merge state in the coordinator, above its memory budget of {} \
+             (--memory-budget); render fewer or smaller frames, or raise the budget",
+            bytes(needed),
+            bytes(budget)
+        )))
+    }
+
     /// The status of a job.
     pub async fn status(&self, id: JobId) -> CoordResult<JobStatus> {
         if let Some(s) = self.live_status(id)? {
@@ -102,7 +132,7 @@ impl Coordinator {
         let store = &self.inner.store;
         let settings: JobSettings = serde_json::from_str(&rec.settings_json)
             .unwrap_or_else(|_| JobSettings::new(rec.scene_ref.clone()));
-        let tiles = store.load_tiles(rec.id, None).await?;
+        let tiles = store.tile_summaries(rec.id).await?;
         let plan = rec.plan;
         let passes_done: u64 = tiles.iter().map(|t| u64::from(t.merged_passes)).sum();
         let rejected_samples: u64 = tiles.iter().map(|t| t.rejected_samples).sum();
@@ -117,9 +147,10 @@ impl Coordinator {
             })
             .await?;
         let pixels = f64::from(plan.width) * f64::from(plan.height) * f64::from(frames_total);
+        let pixels_of = |t: &TileSummary| plan.get_tile(t.tile).map_or(0, |r| r.pixel_count());
         let samples: f64 = tiles
             .iter()
-            .map(|t| t.pixels.len() as f64 * f64::from(t.merged_passes))
+            .map(|t| pixels_of(t) as f64 * f64::from(t.merged_passes))
             .sum::<f64>()
             * f64::from(plan.samples_per_pass);
         let elapsed = match (rec.started_unix_ms, rec.finished_unix_ms) {
@@ -268,11 +299,15 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         (None, false) => (0, 0),
     };
     let elapsed = rt.elapsed_seconds(now);
-    let adaptive_frame = farm.scheduler.adaptive_frame(id, rt.job().frames.start);
+    // An adaptive job's figures as of its last history point (a walk over every pixel).
+    let adaptive = farm
+        .scheduler
+        .adaptive_frame(id, rt.job().frames.start)
+        .map(|_| rt.adaptive_summary);
     let error = if rt.resolved.black {
         Some(0.0)
-    } else if let Some(a) = adaptive_frame {
-        a.every_pixel_estimated().then(|| a.image_error())
+    } else if let Some((_, e)) = adaptive {
+        e
     } else {
         rt.error_estimate()
     };
@@ -300,8 +335,8 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         tiles_total,
         passes_planned,
         passes_done,
-        spp_so_far: match adaptive_frame {
-            Some(a) => a.samples_per_pixel().0,
+        spp_so_far: match adaptive {
+            Some((spp, _)) => spp,
             None => spp_so_far(&rt.resolved, passes_done, rt.job().frames.count()),
         },
         error_estimate: error,
@@ -313,7 +348,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         faults: rt.faults,
         rejected_samples: rt.rejected_samples(),
         error: rt.error.clone(),
-        plan: serde_json::from_str(&rt.resolved.render_plan.to_json()).ok(),
+        plan: rt.plan_json.clone(),
         adaptive: rt.job().adaptive.to_string(),
     }
 }
@@ -348,9 +383,32 @@ pub fn eta_seconds(
     })
 }
 
+/// A byte count for people, in binary units: "64.0 MiB", "18.0 GiB".
+pub(crate) fn bytes(n: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut v = n as f64;
+    let mut u = 0;
+    while v >= 1024.0 && u + 1 < UNITS.len() {
+        v /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{n} B")
+    } else {
+        format!("{v:.1} {}", UNITS[u])
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn byte_counts_read_in_binary_units() {
+        assert_eq!(bytes(512), "512 B");
+        assert_eq!(bytes(64 << 20), "64.0 MiB");
+        assert_eq!(bytes(16384 * 16384 * 72), "18.0 GiB");
+    }
 
     #[test]
     fn eta_follows_inverse_square_root_of_work() {

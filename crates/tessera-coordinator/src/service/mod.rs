@@ -75,11 +75,19 @@ pub struct CoordinatorConfig {
     pub grace_ms: u64,
     /// Passes per work unit.
     pub passes_per_unit: u32,
+    /// Bytes of per-pixel merge state the coordinator holds in memory for all jobs
+    /// together (ARCHITECTURE.md §6, memory): frames beyond it wait for completed ones to be
+    /// released, and a job one frame of which does not fit is refused at submission.
+    pub memory_budget: u64,
 }
+
+/// The default [`CoordinatorConfig::memory_budget`]: 4 GiB, the merge state of a
+/// 7680 x 7680 frame (72 bytes per pixel).
+pub const DEFAULT_MEMORY_BUDGET: u64 = 4 << 30;
 
 impl CoordinatorConfig {
     /// Defaults for a data directory: 10 s leases, 1 s heartbeats, 3 s restart grace, one
-    /// pass per unit, no tokens.
+    /// pass per unit, no tokens, a [`DEFAULT_MEMORY_BUDGET`].
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
             data_dir: data_dir.into(),
@@ -89,6 +97,7 @@ impl CoordinatorConfig {
             heartbeat_ms: 1_000,
             grace_ms: 3_000,
             passes_per_unit: 1,
+            memory_budget: DEFAULT_MEMORY_BUDGET,
         }
     }
 }
@@ -111,6 +120,11 @@ struct Inner {
     lease_blocked_until_ms: u64,
     /// Set when the coordinator started, for uptime.
     started: Instant,
+    /// Permits for image requests that restore or encode a frame
+    /// ([`images::HEAVY_REQUESTS`]).
+    heavy: tokio::sync::Semaphore,
+    /// Encoded images for pollers.
+    images: Mutex<images::ImageCache>,
     /// Set once a graceful shutdown began: heartbeats tell workers to stop and no new
     /// units are leased (ARCHITECTURE.md §9).
     stopping: std::sync::atomic::AtomicBool,
@@ -129,7 +143,9 @@ impl Coordinator {
         store: Arc<dyn Store>,
     ) -> Result<Self, StoreError> {
         let high_water = store.max_lease_id().await?;
-        let farm = Arc::new(Mutex::new(Farm::with_first_lease(cfg.lease_ms, high_water)));
+        let mut state = Farm::with_first_lease(cfg.lease_ms, high_water);
+        state.scheduler.set_memory_budget(cfg.memory_budget);
+        let farm = Arc::new(Mutex::new(state));
         let resumed = resume::resume_all(&*store, &farm).await?;
         let blocked = if resumed { now_ms() + cfg.grace_ms } else { 0 };
         // Leases of the previous run may still be held by reconnecting workers.
@@ -145,6 +161,8 @@ impl Coordinator {
                 lease_reserved: Mutex::new(high_water),
                 lease_blocked_until_ms: blocked,
                 started: Instant::now(),
+                heavy: tokio::sync::Semaphore::new(images::HEAVY_REQUESTS),
+                images: Mutex::new(images::ImageCache::default()),
                 stopping: std::sync::atomic::AtomicBool::new(false),
             }),
         })

@@ -42,6 +42,9 @@ pub enum Accepted {
     Merged,
     /// A duplicate of a merged unit, identical to it by digest.
     Duplicate,
+    /// A copy of a unit of a frame that is complete and released from memory: the unit
+    /// is merged; this copy is not compared.
+    Late,
 }
 
 impl Accepted {
@@ -50,6 +53,7 @@ impl Accepted {
         match self {
             Self::Merged => "",
             Self::Duplicate => "duplicate (identical)",
+            Self::Late => "late: the frame is complete",
         }
     }
 }
@@ -71,6 +75,10 @@ pub enum Rejected {
     /// The job was canceled; not the worker's fault.
     #[error("job {0} was canceled")]
     Canceled(JobId),
+    /// A previous run's lease for a frame waiting for the memory budget; not the
+    /// worker's fault, the unit is leased again.
+    #[error("{0}")]
+    Deferred(SubmitError),
     /// A duplicate of a merged unit that differs from it. A fault of the worker.
     #[error("duplicate differs from the merged copy: faulty worker")]
     Mismatch,
@@ -89,7 +97,7 @@ impl Rejected {
             Self::InvalidResult(_) => Some(FaultKind::InvalidResult),
             Self::UnknownLease(_) | Self::StaleLease(_) => Some(FaultKind::LeaseViolation),
             Self::Mismatch => Some(FaultKind::DuplicateMismatch),
-            Self::Canceled(_) | Self::Store(_) | Self::Poisoned => None,
+            Self::Canceled(_) | Self::Deferred(_) | Self::Store(_) | Self::Poisoned => None,
         }
     }
 }
@@ -123,7 +131,31 @@ impl Coordinator {
             let mut farm = self.inner.farm.lock().map_err(|_| Rejected::Poisoned)?;
             merge_delivery(&mut farm, d, now_ms())
         };
-        self.write_back(&writes).await?;
+        if let Err(e) = self.write_back(&writes).await {
+            if let (Some(cp), Ok(mut farm)) = (&writes.checkpoint, self.inner.farm.lock()) {
+                if let Some(rt) = farm.runtime.get_mut(&cp.job) {
+                    rt.unsaved_checkpoints = true;
+                }
+            }
+            return Err(e);
+        }
+        // A complete frame's checkpoints are durable now: its memory goes back to the
+        // budget, its image is read from the store (ARCHITECTURE.md §6, memory). Not after
+        // a failed checkpoint of the job: memory then holds passes the store does not.
+        if let Some(cp) = &writes.checkpoint {
+            let mut farm = self.inner.farm.lock().map_err(|_| Rejected::Poisoned)?;
+            let saved = farm
+                .runtime
+                .get(&cp.job)
+                .is_some_and(|rt| !rt.unsaved_checkpoints);
+            if saved && farm.scheduler.release_frame(cp.job, cp.frame) {
+                tracing::debug!(
+                    job = cp.job,
+                    frame = cp.frame,
+                    "frame complete and released"
+                );
+            }
+        }
         drop(write);
         if let Some(job) = writes.finished {
             match self.set_state(job, JobState::Done, None).await {
@@ -189,6 +221,9 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
                     w.render_seconds += d.render_seconds;
                 }
                 writes.checkpoint = record_merge(farm, &m, rejected_samples);
+                if let Some(rt) = farm.runtime.get_mut(&m.job) {
+                    rt.merges += 1;
+                }
                 let complete = farm.scheduler.is_complete(m.job);
                 writes.history = history_point(farm, m.job, now, complete);
                 writes.finished = complete.then_some(m.job);
@@ -196,6 +231,14 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
             }
             Submitted::Duplicate { identical: true } => Ok(Accepted::Duplicate),
             Submitted::Duplicate { identical: false } => Err(Rejected::Mismatch),
+            Submitted::Late => {
+                tracing::info!(
+                    worker = d.worker,
+                    lease = d.lease_id,
+                    "late result for a complete frame"
+                );
+                Ok(Accepted::Late)
+            }
         },
         Err(r) => Err(r),
     };
@@ -230,6 +273,7 @@ fn submit(
         }),
         Err(SubmitError::Invalid(e)) => Err(Rejected::InvalidResult(e.to_string())),
         Err(SubmitError::Canceled(j)) => Err(Rejected::Canceled(j)),
+        Err(e @ SubmitError::NotResident(_)) => Err(Rejected::Deferred(e)),
         Err(e) => Err(Rejected::StaleLease(e)),
     }
 }
@@ -295,10 +339,14 @@ fn history_point(
     }
     rt.last_history_ms = now;
     let (spp, error_estimate) = match farm.scheduler.adaptive_frame(job, rt.job().frames.start) {
-        Some(a) => (
-            a.samples_per_pixel().0,
-            a.every_pixel_estimated().then(|| a.image_error()),
-        ),
+        Some(a) => {
+            let summary = (
+                a.samples_per_pixel().0,
+                a.every_pixel_estimated().then(|| a.image_error()),
+            );
+            rt.adaptive_summary = summary;
+            summary
+        }
         None => (
             spp_so_far(&rt.resolved, p.passes_done, rt.job().frames.count()),
             rt.error_estimate(),

@@ -10,7 +10,7 @@ use std::sync::Mutex;
 
 use tessera_api::{JobSettings, JobState, ResolvedJob};
 use tessera_farm::job::JobError;
-use tessera_farm::{FrameAccumulator, FramePlan, JobId};
+use tessera_farm::{FrameAccumulator, FramePlan, JobId, Resumed};
 use tessera_scene::job::resolve_job;
 
 use super::jobs::add_to_scheduler;
@@ -79,8 +79,69 @@ pub(crate) async fn resolve_stored(
 pub(crate) struct Restored {
     /// One accumulator per frame, in the order asked for.
     pub frames: Vec<FrameAccumulator>,
-    /// Per frame, per tile: the rejected samples of the merged passes.
-    pub rejected: Vec<Vec<u64>>,
+    /// Per frame (number, per tile): the rejected samples of the merged passes.
+    pub rejected: Vec<(u32, Vec<u64>)>,
+}
+
+/// What a restart keeps of a complete frame: per tile, its rejected samples and its
+/// (sum of squared relative errors, pixel count) for the job's error estimate.
+struct CompleteFrame {
+    frame: u32,
+    rejected: Vec<u64>,
+    errors: Vec<(f64, u64)>,
+}
+
+/// A job's frames that have checkpoints but are not complete, restored, and the
+/// complete ones summarized; one frame at a time, so a restart holds the merge state of
+/// the frames in progress only, whatever the job's length (ARCHITECTURE.md §6, memory).
+async fn restore_incomplete(
+    store: &dyn Store,
+    rec: &JobRecord,
+) -> Result<(Restored, Vec<CompleteFrame>), String> {
+    let plan = rec.plan;
+    let summaries = store
+        .tile_summaries(rec.id)
+        .await
+        .map_err(|e| e.to_string())?;
+    let tiles = plan.tile_count() as usize;
+    // frame -> per tile (merged passes, rejected samples)
+    let mut frames: std::collections::BTreeMap<u32, Vec<(u32, u64)>> = Default::default();
+    for s in &summaries {
+        let slots = frames.entry(s.frame).or_insert_with(|| vec![(0, 0); tiles]);
+        if let Some(slot) = slots.get_mut(s.tile as usize) {
+            *slot = (s.merged_passes, s.rejected_samples);
+        }
+    }
+    let mut restored = Restored {
+        frames: Vec::new(),
+        rejected: Vec::new(),
+    };
+    let mut complete = Vec::new();
+    for (f, slots) in frames {
+        let checkpoints = store
+            .load_tiles(rec.id, Some(f))
+            .await
+            .map_err(|e| e.to_string())?;
+        let mut one = restore_frames(plan, [f], checkpoints)?;
+        if slots.iter().all(|&(m, _)| m >= plan.passes) {
+            // Summarized and dropped: its image is read from the store when asked for.
+            let (frame, rejected) = one.rejected.pop().unwrap_or((f, Vec::new()));
+            let errors = one
+                .frames
+                .iter()
+                .flat_map(|a| a.tiles().iter().map(tile_error))
+                .collect();
+            complete.push(CompleteFrame {
+                frame,
+                rejected,
+                errors,
+            });
+            continue;
+        }
+        restored.frames.append(&mut one.frames);
+        restored.rejected.append(&mut one.rejected);
+    }
+    Ok((restored, complete))
 }
 
 /// The checkpoint-restore loop: accumulators of `frames` under `plan` with every
@@ -95,12 +156,15 @@ pub(crate) fn restore_frames(
         .into_iter()
         .map(|f| FrameAccumulator::for_frame(plan, f))
         .collect();
-    let mut rejected = vec![vec![0; plan.tile_count() as usize]; accs.len()];
+    let mut rejected: Vec<(u32, Vec<u64>)> = accs
+        .iter()
+        .map(|a| (a.frame(), vec![0; plan.tile_count() as usize]))
+        .collect();
     for cp in checkpoints {
         let Some(fi) = accs.iter().position(|f| f.frame() == cp.frame) else {
             return Err(format!("checkpoint of frame {} outside the job", cp.frame));
         };
-        if let Some(r) = rejected[fi].get_mut(cp.tile as usize) {
+        if let Some(r) = rejected[fi].1.get_mut(cp.tile as usize) {
             *r = cp.rejected_samples;
         }
         let rect = plan
@@ -155,11 +219,7 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
         return Err("the stored frame plan differs from this build's plan".into());
     }
     let plan = rec.plan;
-    let checkpoints = store
-        .load_tiles(rec.id, None)
-        .await
-        .map_err(|e| e.to_string())?;
-    let restored = restore_frames(plan, rec.frames.iter(), checkpoints)?;
+    let (restored, complete) = restore_incomplete(store, rec).await?;
     let history = store.list_history(rec.id).await.unwrap_or_default();
     let faults = store
         .count_faults(&FaultFilter {
@@ -184,23 +244,32 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
         )
         .map_err(|e| e.to_string())?;
     } else {
-        rt.tile_error = restored
-            .frames
-            .iter()
-            .map(|f| f.tiles().iter().map(tile_error).collect())
-            .collect();
-        for (slots, counts) in rt.tile_rejected.iter_mut().zip(&restored.rejected) {
-            for (slot, &merged) in slots.iter_mut().zip(counts) {
-                *slot = TileRejected::with_merged(merged);
+        let first = rec.frames.start;
+        for f in &restored.frames {
+            if let Some(slot) = rt.tile_error.get_mut((f.frame() - first) as usize) {
+                *slot = f.tiles().iter().map(tile_error).collect();
             }
         }
-        farm.scheduler.add_resumed_job(
-            rec.id,
-            rec.priority,
-            plan,
-            restored.frames,
-            rec.passes_per_unit,
-        )?;
+        for c in &complete {
+            if let Some(slot) = rt.tile_error.get_mut((c.frame - first) as usize) {
+                slot.clone_from(&c.errors);
+            }
+        }
+        let counts = complete.iter().map(|c| (c.frame, &c.rejected));
+        for (f, counts) in counts.chain(restored.rejected.iter().map(|(f, r)| (*f, r))) {
+            if let Some(slots) = rt.tile_rejected.get_mut((f - first) as usize) {
+                for (slot, &merged) in slots.iter_mut().zip(counts) {
+                    *slot = TileRejected::with_merged(merged);
+                }
+            }
+        }
+        let resumed = Resumed {
+            frames: rec.frames.start..=rec.frames.end,
+            restored: restored.frames,
+            complete: complete.iter().map(|c| c.frame).collect(),
+        };
+        farm.scheduler
+            .add_resumed_job(rec.id, rec.priority, plan, resumed, rec.passes_per_unit)?;
     }
     farm.jobs.insert(rec.id, JobEntry::of(&rt.resolved));
     rt.started_unix_ms = rec.started_unix_ms;

@@ -226,6 +226,19 @@ pub struct TileCheckpointRef<'a> {
     pub rejected_samples: u64,
 }
 
+/// What a status needs of a tile checkpoint, without its pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TileSummary {
+    /// The frame.
+    pub frame: u32,
+    /// The tile index.
+    pub tile: u32,
+    /// Passes merged.
+    pub merged_passes: u32,
+    /// Samples rejected as invalid in the merged passes.
+    pub rejected_samples: u64,
+}
+
 /// A stored tile checkpoint (see the [module docs](self) for the format).
 #[derive(Debug, Clone, PartialEq)]
 pub struct TileCheckpoint {
@@ -406,6 +419,10 @@ pub trait Store: Send + Sync {
     /// [`StoreError::CorruptTile`] if a checkpoint cannot be decoded or does not fit the
     /// plan.
     async fn load_tiles(&self, job: JobId, frame: Option<u32>) -> StoreResult<Vec<TileCheckpoint>>;
+
+    /// The merged pass and rejected sample counts of every checkpointed tile of a job,
+    /// ordered by frame then tile: what a status needs, without reading pixels.
+    async fn tile_summaries(&self, job: JobId) -> StoreResult<Vec<TileSummary>>;
 
     /// The lease-id high-water mark: the largest value ever passed to
     /// [`Store::record_lease_high_water`], 0 initially.

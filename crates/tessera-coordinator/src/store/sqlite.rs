@@ -15,7 +15,7 @@ use tessera_farm::{FramePlan, JobId};
 use super::codec::{check_checkpoint, decode_stats, decode_units, encode_stats, encode_units};
 use super::{
     FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, JobRecord, NewJob, Store, StoreError,
-    StoreResult, TileCheckpoint, TileCheckpointRef,
+    StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
 /// Name of the database file inside the data directory.
@@ -602,6 +602,28 @@ impl Store for SqliteStore {
                     pixels,
                     units,
                     rejected_samples,
+                })
+            })
+            .collect()
+    }
+
+    async fn tile_summaries(&self, job: JobId) -> StoreResult<Vec<TileSummary>> {
+        let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
+        let rows = sqlx::query(
+            "SELECT frame, tile, merged_passes, rejected_samples FROM tiles \
+             WHERE job = ?1 ORDER BY frame, tile",
+        )
+        .bind(key)
+        .fetch_all(&self.reader)
+        .await?;
+        let place = || format!("tiles of job {job}");
+        rows.iter()
+            .map(|row| {
+                Ok(TileSummary {
+                    frame: int_col(row, "frame", &place)?,
+                    tile: int_col(row, "tile", &place)?,
+                    merged_passes: int_col(row, "merged_passes", &place)?,
+                    rejected_samples: int_col(row, "rejected_samples", &place)?,
                 })
             })
             .collect()
