@@ -188,6 +188,9 @@ struct Job {
     /// Outstanding leases by canonical unit index.
     leased: BTreeMap<u64, u64>,
     canceled: bool,
+    /// A finished adaptive job whose state was dropped to make room
+    /// ([`Scheduler::lease`]): complete, with every frame released.
+    evicted: bool,
     /// Adaptive jobs only: the policy state and the units it holds back.
     adaptive: Option<AdaptiveQueue>,
 }
@@ -285,6 +288,9 @@ impl Job {
     }
 
     fn is_complete(&self) -> bool {
+        if self.evicted {
+            return true;
+        }
         match &self.adaptive {
             Some(a) => a
                 .frames
@@ -531,6 +537,7 @@ impl Scheduler {
             done: BTreeSet::new(),
             leased: BTreeMap::new(),
             canceled: false,
+            evicted: false,
             adaptive: None,
         };
         job.frames = slots;
@@ -587,6 +594,7 @@ impl Scheduler {
                 done: BTreeSet::new(),
                 leased: BTreeMap::new(),
                 canceled: false,
+                evicted: false,
                 adaptive: None,
             },
         );
@@ -646,7 +654,13 @@ impl Scheduler {
     }
 
     /// Leases up to `max_units` units to `worker`.
+    ///
+    /// Under memory pressure (more than half the budget resident while a job has work),
+    /// finished adaptive jobs, oldest first, give their frames back first: their policy
+    /// state is not checkpointed (so they are not released as their frames complete),
+    /// and their images then come from the store's checkpoints, as after a restart.
     pub fn lease(&mut self, worker: WorkerId, now_ms: u64, max_units: usize) -> Vec<Lease> {
+        self.evict_finished_adaptive();
         let mut order: Vec<(i32, u64, JobId)> = self
             .jobs
             .iter()
@@ -678,6 +692,34 @@ impl Scheduler {
             }
         }
         out
+    }
+
+    fn evict_finished_adaptive(&mut self) {
+        let pressure = |m: &Memory| m.resident > m.budget / 2;
+        if !pressure(&self.memory) || !self.jobs.values().any(Job::has_work) {
+            return;
+        }
+        let mut finished: Vec<(u64, JobId)> = self
+            .jobs
+            .iter()
+            .filter(|(_, j)| j.adaptive.is_some() && !j.evicted && j.is_complete())
+            .map(|(&id, j)| (j.seq, id))
+            .collect();
+        finished.sort_unstable();
+        for (_, id) in finished {
+            if !pressure(&self.memory) {
+                break;
+            }
+            let Some(job) = self.jobs.get_mut(&id) else {
+                continue;
+            };
+            self.memory.resident = self.memory.resident.saturating_sub(job.resident_bytes());
+            job.frames.iter_mut().for_each(|f| *f = FrameSlot::Released);
+            if let Some(a) = job.adaptive.as_mut() {
+                a.frames.iter_mut().for_each(|f| *f = None);
+            }
+            job.evicted = true;
+        }
     }
 
     /// Extends the given leases held by `worker`; returns the ones extended with their new
@@ -1468,5 +1510,35 @@ mod tests {
         assert_eq!(s.resident_bytes(), frame_state_bytes(&p, false));
         s.remove_job(1);
         assert_eq!(s.resident_bytes(), 0);
+    }
+
+    #[test]
+    fn finished_adaptive_jobs_make_room_for_waiting_ones() {
+        let p = plan();
+        let adaptive = AdaptiveSettings {
+            target_error: 1.0,
+            ..AdaptiveSettings::default()
+        };
+        let mut s = Scheduler::new(1000, 0);
+        s.set_memory_budget(frame_state_bytes(&p, true));
+        s.add_adaptive_job(1, 0, p, 0..=0, 1, adaptive).unwrap();
+        while !s.is_complete(1) {
+            let ls = s.lease(1, 0, 100);
+            assert!(!ls.is_empty(), "the adaptive job stalled");
+            for l in ls {
+                s.submit(l.lease_id, 1, result(&p, l.unit, 0.5)).unwrap();
+            }
+        }
+        assert!(
+            s.adaptive_frame(1, 0).is_some(),
+            "kept while nobody needs room"
+        );
+        s.add_job(2, 0, p, 0..=0, 2);
+        let ls = s.lease(1, 0, 100);
+        assert!(!ls.is_empty(), "job 2 waits forever");
+        assert!(ls.iter().all(|l| l.job == 2));
+        assert!(s.is_complete(1));
+        assert_eq!(s.residency(1, 0), Some(Residency::Released));
+        assert!(s.adaptive_frame(1, 0).is_none());
     }
 }

@@ -38,8 +38,9 @@ enum Source<'a> {
     Empty,
     /// The adaptive policy's state (the image of an adaptive job).
     Adaptive(&'a AdaptiveFrame),
-    /// Merged tiles.
-    Merged(&'a FrameAccumulator),
+    /// Merged tiles, with their (sum of squared relative errors, pixels) when the job
+    /// keeps them up to date (a live frame), so a tile map does not walk every pixel.
+    Merged(&'a FrameAccumulator, Option<&'a [(f64, u64)]>),
 }
 
 /// What a request needs to know of a job besides the frame's pixels.
@@ -130,7 +131,13 @@ impl Coordinator {
         }
         Ok(Some(match farm.scheduler.residency(id, fr) {
             Some(Residency::Live) => match farm.scheduler.frame(id, fr) {
-                Some(acc) => Located::Done(f(Source::Merged(acc), &meta)),
+                Some(acc) => {
+                    let errors = rt
+                        .tile_error
+                        .get((fr - rt.job().frames.start) as usize)
+                        .map(Vec::as_slice);
+                    Located::Done(f(Source::Merged(acc, errors), &meta))
+                }
                 None => Located::Done(f(Source::Empty, &meta)),
             },
             Some(Residency::Released) => Located::Store(Box::new(FrameMeta {
@@ -172,7 +179,7 @@ impl Coordinator {
         };
         let acc = self.restore_frame(id, &meta).await?;
         tokio::task::spawn_blocking(move || match &acc {
-            Some(acc) => f(Source::Merged(acc), &meta),
+            Some(acc) => f(Source::Merged(acc, None), &meta),
             None => f(Source::Black, &meta),
         })
         .await
@@ -306,7 +313,7 @@ enum Raw {
 fn frame_image(src: &Source<'_>, plan: &FramePlan) -> FrameImage {
     match src {
         Source::Adaptive(a) => a.image(),
-        Source::Merged(acc) => acc.image(),
+        Source::Merged(acc, _) => acc.image(),
         Source::Black => FrameImage::black(plan),
         Source::Empty => FrameImage {
             passes: vec![0; plan.width as usize * plan.height as usize],
@@ -337,7 +344,7 @@ fn preview_rgb8(src: &Source<'_>, plan: &FramePlan) -> Vec<u8> {
                 }
             }
         }
-        Source::Merged(acc) => {
+        Source::Merged(acc, _) => {
             for t in acc.tiles() {
                 let r = t.rect();
                 for (i, s) in t.pixels().iter().enumerate() {
@@ -400,9 +407,12 @@ fn tile_progress(src: &Source<'_>, plan: &FramePlan, index: usize) -> (u32, Opti
             };
             (done, (n > 0).then(|| (sum / n as f64).sqrt()))
         }
-        Source::Merged(acc) => {
+        Source::Merged(acc, errors) => {
             let t = &acc.tiles()[index];
-            let (s, n) = tile_error(t);
+            let (s, n) = match errors.and_then(|e| e.get(index)) {
+                Some(&cached) => cached,
+                None => tile_error(t),
+            };
             (t.merged_passes(), (n > 0).then(|| (s / n as f64).sqrt()))
         }
         Source::Black => (plan.passes, Some(0.0)),

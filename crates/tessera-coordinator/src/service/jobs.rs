@@ -299,11 +299,13 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         (None, false) => (0, 0),
     };
     let elapsed = rt.elapsed_seconds(now);
-    // An adaptive job's figures as of its last history point (a walk over every pixel).
-    let adaptive = farm
-        .scheduler
-        .adaptive_frame(id, rt.job().frames.start)
-        .map(|_| rt.adaptive_summary);
+    // An adaptive job's figures as of its last history point (a walk over every pixel),
+    // kept when a finished job's state is evicted from memory.
+    let adaptive = rt
+        .job()
+        .adaptive_settings()
+        .map(|_| rt.adaptive_summary)
+        .filter(|_| !rt.resolved.black);
     let error = if rt.resolved.black {
         Some(0.0)
     } else if let Some((_, e)) = adaptive {
