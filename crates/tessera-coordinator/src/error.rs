@@ -104,6 +104,9 @@ impl From<CoordError> for ApiError {
             CoordError::InvalidRequest(_) => ErrorCode::InvalidRequest,
             CoordError::InvalidScene(_) => ErrorCode::InvalidScene,
             CoordError::TooLarge(_) => ErrorCode::TooLarge,
+            // The store takes no writes (full disk, I/O error, read-only file): the
+            // coordinator stops accepting work until restarted (docs/store.md).
+            CoordError::Store(s) if s.is_write_failure() => ErrorCode::Unavailable,
             CoordError::Store(_) | CoordError::Internal(_) => ErrorCode::Internal,
         };
         ApiError::new(code, e.to_string())
@@ -146,6 +149,15 @@ mod tests {
             (e.status(), e.message.as_str()),
             (500, "internal error: boom")
         );
+        let e: ApiError =
+            CoordError::Store(StoreError::Failing("storing a job: disk full".into())).into();
+        assert_eq!(e.status(), 503);
+        assert!(
+            e.message.contains("storing a job: disk full"),
+            "{}",
+            e.message
+        );
+        assert!(e.message.contains("accepts no new work"), "{}", e.message);
         let s: Status = CoordError::unknown_worker().into();
         assert_eq!(s.code(), tonic::Code::NotFound);
         assert_eq!(s.message(), "unknown worker: register again");
