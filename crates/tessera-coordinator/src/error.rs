@@ -36,12 +36,26 @@ pub enum CoordError {
     /// The request is larger than the coordinator accepts.
     #[error("{0}")]
     TooLarge(String),
-    /// The durable store failed; the request may be retried.
-    #[error("internal error: {0}")]
+    /// The durable store failed; the request may be retried. A write failure
+    /// ([`StoreError::is_write_failure`]) says that the coordinator stopped accepting work.
+    #[error("{}", store_message(.0))]
     Store(#[from] StoreError),
     /// Anything else that is the coordinator's fault.
     #[error("internal error: {0}")]
     Internal(String),
+}
+
+/// The text of [`CoordError::Store`].
+fn store_message(e: &StoreError) -> String {
+    match e {
+        // Already says that no new work is accepted.
+        StoreError::Failing(_) => e.to_string(),
+        e if e.is_write_failure() => format!(
+            "the store failed to write ({e}); this coordinator accepts no new work until it \
+             is restarted (docs/store.md)"
+        ),
+        e => format!("internal error: {e}"),
+    }
 }
 
 /// A coordinator operation's result.

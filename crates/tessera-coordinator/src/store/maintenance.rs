@@ -41,18 +41,23 @@ pub struct CheckReport {
 impl CheckReport {
     /// Whether a coordinator would start on this store (exit status 0 of `store check`).
     pub fn healthy(&self) -> bool {
-        let behind = match (&self.database, &self.marker) {
-            (Some(db), Ok(Some(m))) => db.is_behind(m),
-            (None, Ok(Some(_))) => true,
-            _ => false,
-        };
         self.exists
             && self.integrity.is_ok()
             && self
                 .schema_version
                 .is_some_and(|v| v <= self.supported_version)
             && self.marker.is_ok()
-            && !behind
+            && !self.behind()
+    }
+
+    /// Whether the database is behind its marker (one without a generation is behind
+    /// any marker).
+    pub fn behind(&self) -> bool {
+        match (&self.database, &self.marker) {
+            (Some(db), Ok(Some(m))) => db.is_behind(m),
+            (None, Ok(Some(_))) => true,
+            _ => false,
+        }
     }
 }
 
@@ -91,13 +96,11 @@ impl std::fmt::Display for CheckReport {
             Ok(None) => writeln!(f, "commit marker: none")?,
             Err(e) => writeln!(f, "commit marker: UNREADABLE: {e}")?,
         }
-        if let (Some(db), Ok(Some(m))) = (&self.database, &self.marker) {
-            if db.is_behind(m) {
-                writeln!(
-                    f,
-                    "commit marker: the database is BEHIND its marker: acknowledged commits are missing"
-                )?;
-            }
+        if self.behind() {
+            writeln!(
+                f,
+                "commit marker: the database is BEHIND its marker: acknowledged commits are missing"
+            )?;
         }
         if !self.jobs.is_empty() {
             let jobs: Vec<String> = self.jobs.iter().map(|(s, n)| format!("{n} {s}")).collect();
