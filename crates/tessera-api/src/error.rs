@@ -28,6 +28,9 @@ pub enum ErrorCode {
     TooLarge,
     /// The server failed; the request may be retried. 500.
     Internal,
+    /// The server cannot take this request now (its store takes no writes: a full disk,
+    /// an I/O error, a read-only file); reads still work. 503.
+    Unavailable,
     /// A code this version does not know (sent by a newer server). Deserialization only;
     /// treated as 500.
     #[serde(other)]
@@ -44,6 +47,7 @@ impl ErrorCode {
             Self::Conflict => 409,
             Self::TooLarge => 413,
             Self::Internal | Self::Unknown => 500,
+            Self::Unavailable => 503,
         }
     }
 
@@ -58,6 +62,7 @@ impl ErrorCode {
             Self::Conflict => "conflict",
             Self::TooLarge => "too_large",
             Self::Internal => "internal",
+            Self::Unavailable => "unavailable",
             Self::Unknown => "unknown",
         }
     }
@@ -262,6 +267,7 @@ mod tests {
             (ErrorCode::Conflict, 409),
             (ErrorCode::TooLarge, 413),
             (ErrorCode::Internal, 500),
+            (ErrorCode::Unavailable, 503),
         ];
         for (code, status) in cases {
             assert_eq!(ApiError::new(code, "x").status(), status, "{code}");

@@ -11,6 +11,7 @@ mod coordinator;
 mod render;
 mod serve;
 mod status;
+mod store;
 mod submit;
 mod worker;
 
@@ -51,6 +52,8 @@ enum Command {
     Submit(submit::SubmitArgs),
     /// Show jobs of a coordinator.
     Status(status::StatusArgs),
+    /// Check, back up and restore a coordinator's store (docs/store.md).
+    Store(store::StoreArgs),
     /// Measure the farm's overhead: `tessera serve` against `tessera render`, side by side.
     BenchFarm(bench_farm::BenchFarmArgs),
 }
@@ -105,6 +108,7 @@ fn main() {
         Command::Worker(args) => worker::worker(args),
         Command::Submit(args) => submit::submit(args),
         Command::Status(args) => status::status(args),
+        Command::Store(args) => store::store(args),
         Command::BenchFarm(args) => bench_farm::bench_farm(args),
     };
     if let Err(e) = result {

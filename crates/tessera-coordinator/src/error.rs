@@ -36,12 +36,26 @@ pub enum CoordError {
     /// The request is larger than the coordinator accepts.
     #[error("{0}")]
     TooLarge(String),
-    /// The durable store failed; the request may be retried.
-    #[error("internal error: {0}")]
+    /// The durable store failed; the request may be retried. A write failure
+    /// ([`StoreError::is_write_failure`]) says that the coordinator stopped accepting work.
+    #[error("{}", store_message(.0))]
     Store(#[from] StoreError),
     /// Anything else that is the coordinator's fault.
     #[error("internal error: {0}")]
     Internal(String),
+}
+
+/// The text of [`CoordError::Store`].
+fn store_message(e: &StoreError) -> String {
+    match e {
+        // Already says that no new work is accepted.
+        StoreError::Failing(_) => e.to_string(),
+        e if e.is_write_failure() => format!(
+            "the store failed to write ({e}); this coordinator accepts no new work until it \
+             is restarted (docs/store.md)"
+        ),
+        e => format!("internal error: {e}"),
+    }
 }
 
 /// A coordinator operation's result.
@@ -104,6 +118,9 @@ impl From<CoordError> for ApiError {
             CoordError::InvalidRequest(_) => ErrorCode::InvalidRequest,
             CoordError::InvalidScene(_) => ErrorCode::InvalidScene,
             CoordError::TooLarge(_) => ErrorCode::TooLarge,
+            // The store takes no writes (full disk, I/O error, read-only file): the
+            // coordinator stops accepting work until restarted (docs/store.md).
+            CoordError::Store(s) if s.is_write_failure() => ErrorCode::Unavailable,
             CoordError::Store(_) | CoordError::Internal(_) => ErrorCode::Internal,
         };
         ApiError::new(code, e.to_string())
@@ -146,6 +163,15 @@ mod tests {
             (e.status(), e.message.as_str()),
             (500, "internal error: boom")
         );
+        let e: ApiError =
+            CoordError::Store(StoreError::Failing("storing a job: disk full".into())).into();
+        assert_eq!(e.status(), 503);
+        assert!(
+            e.message.contains("storing a job: disk full"),
+            "{}",
+            e.message
+        );
+        assert!(e.message.contains("accepts no new work"), "{}", e.message);
         let s: Status = CoordError::unknown_worker().into();
         assert_eq!(s.code(), tonic::Code::NotFound);
         assert_eq!(s.message(), "unknown worker: register again");

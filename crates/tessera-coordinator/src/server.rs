@@ -12,7 +12,8 @@
 //!    stays open until no worker holds a lease any more, or for [`WORKER_DRAIN`] at most.
 //! 3. The gRPC server drains (tonic's graceful shutdown: no new connections, the calls in
 //!    flight finish).
-//! 4. The ticker stops and the store is closed.
+//! 4. The ticker stops, the graceful end is recorded in the store (so the next start
+//!    does not count it as a crash, docs/store.md) and the store is closed.
 //!
 //! Steps 1 and 3 together are bounded by [`SERVER_SHUTDOWN`]; after it the servers are
 //! abandoned and `serve` returns anyway.
@@ -117,6 +118,11 @@ pub async fn serve_coordinator(
     let _ = grpc_stop.send(());
     join_servers(http, grpc, SERVER_SHUTDOWN).await;
     ticker.abort();
+    // A graceful end: the next start does not count it as a crash of the jobs in hand
+    // (docs/store.md, "No crash loop").
+    if let Err(e) = core.store().end_run().await {
+        tracing::warn!(error = %e, "cannot record the graceful shutdown in the store");
+    }
     core.store().close().await;
     tracing::info!("coordinator stopped");
     match failure.or_else(|| failed_rx.try_recv().ok()) {

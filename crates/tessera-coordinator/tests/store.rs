@@ -117,7 +117,10 @@ async fn jobs_round_trip() {
     let dir = tempfile::tempdir().unwrap();
     let store = open(&dir.path().join("nested/data")).await;
     assert!(store.path().ends_with(DATABASE_FILE));
-    assert_eq!(store.schema_version().await.unwrap(), 2);
+    assert_eq!(
+        store.schema_version().await.unwrap(),
+        SqliteStore::SUPPORTED_SCHEMA
+    );
 
     let (a, created) = store.insert_job(new_job(1, None)).await.unwrap();
     assert!(created);
@@ -767,7 +770,10 @@ async fn reopened_store_sees_everything() {
     }
     let check = |store: SqliteStore| async move {
         store.integrity_check().await.unwrap();
-        assert_eq!(store.schema_version().await.unwrap(), 2);
+        assert_eq!(
+            store.schema_version().await.unwrap(),
+            SqliteStore::SUPPORTED_SCHEMA
+        );
         let jobs = store.list_jobs(JobQuery::first(10)).await.unwrap();
         assert_eq!(jobs.iter().map(|j| j.id).collect::<Vec<_>>(), [b, a]);
         assert_eq!(
@@ -825,7 +831,7 @@ async fn newer_schema_is_refused() {
             e,
             StoreError::SchemaTooNew {
                 found: 99,
-                supported: 2
+                supported: 3
             }
         ),
         "{e}"

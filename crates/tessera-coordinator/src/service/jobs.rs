@@ -25,6 +25,7 @@ impl Coordinator {
         settings: JobSettings,
         idempotency_key: Option<String>,
     ) -> CoordResult<(JobStatus, bool)> {
+        self.accepting_work()?;
         if let Some(k) = &idempotency_key {
             if k.is_empty() || k.len() > 200 || k.chars().any(char::is_control) {
                 return Err(CoordError::invalid_field(

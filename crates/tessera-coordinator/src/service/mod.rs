@@ -37,7 +37,7 @@ use tessera_farm::JobId;
 
 use crate::error::{CoordError, CoordResult};
 use crate::state::{now_ms, Farm};
-use crate::store::{SqliteStore, Store, StoreError};
+use crate::store::{SqliteStore, Store, StoreError, WatchedStore};
 
 pub mod images;
 pub mod jobs;
@@ -110,7 +110,11 @@ pub struct Coordinator {
 
 struct Inner {
     farm: Arc<Mutex<Farm>>,
+    /// The store: `watch`, as the trait object every service file uses.
     store: Arc<dyn Store>,
+    /// The store, watched: after a failed write the coordinator stops accepting work
+    /// (docs/store.md).
+    watch: Arc<WatchedStore>,
     cfg: CoordinatorConfig,
     /// Serializes store writes of merged state (see the module docs).
     write: tokio::sync::Mutex<()>,
@@ -142,11 +146,16 @@ impl Coordinator {
         cfg: CoordinatorConfig,
         store: Arc<dyn Store>,
     ) -> Result<Self, StoreError> {
+        let watch = Arc::new(WatchedStore::new(store));
+        let store: Arc<dyn Store> = watch.clone();
         let high_water = store.max_lease_id().await?;
         let mut state = Farm::with_first_lease(cfg.lease_ms, high_water);
         state.scheduler.set_memory_budget(cfg.memory_budget);
         let farm = Arc::new(Mutex::new(state));
         let resumed = resume::resume_all(&*store, &farm).await?;
+        if let Some(f) = watch.fault() {
+            return Err(StoreError::Failing(f));
+        }
         let blocked = if resumed { now_ms() + cfg.grace_ms } else { 0 };
         // Leases of the previous run may still be held by reconnecting workers.
         if let Ok(mut f) = farm.lock() {
@@ -156,6 +165,7 @@ impl Coordinator {
             inner: Arc::new(Inner {
                 farm,
                 store,
+                watch,
                 cfg,
                 write: tokio::sync::Mutex::new(()),
                 lease_reserved: Mutex::new(high_water),
@@ -191,6 +201,15 @@ impl Coordinator {
     /// The store.
     pub fn store(&self) -> Arc<dyn Store> {
         self.inner.store.clone()
+    }
+
+    /// Refuses new work once a store write failed ([`WatchedStore`]): the error names
+    /// the failed write, and maps to 503 (HTTP) and `UNAVAILABLE` (gRPC).
+    pub fn accepting_work(&self) -> CoordResult<()> {
+        match self.inner.watch.fault() {
+            Some(f) => Err(CoordError::Store(StoreError::Failing(f))),
+            None => Ok(()),
+        }
     }
 
     /// The farm state, locked. Never held across an `.await`.

@@ -17,7 +17,9 @@ use super::jobs::add_to_scheduler;
 use super::scenes::{load_scene, SceneLoadError};
 use crate::error::CoordError;
 use crate::state::{now_ms, tile_error, Farm, JobEntry, JobRuntime, TileRejected};
-use crate::store::{FaultFilter, JobRecord, Store, StoreError, TileCheckpoint};
+use crate::store::{
+    FaultFilter, JobRecord, Store, StoreError, TileCheckpoint, MAX_RESUMES_WITHOUT_PROGRESS,
+};
 
 /// A stored job as this build understands it.
 pub(crate) struct StoredJob {
@@ -186,26 +188,53 @@ pub(crate) fn restore_frames(
 }
 
 /// Resumes every unfinished job of the store into `farm`; jobs that cannot be resumed
-/// are marked failed with the reason. Returns whether any job was resumed (then leasing
-/// waits for the grace period).
+/// are marked failed with the reason, and so is a job in a crash loop (below). Returns
+/// whether any job was resumed (then leasing waits for the grace period). Only a store
+/// that cannot be written stops the start.
+///
+/// # No crash loop (docs/store.md)
+/// A job that crashes the coordinator while it handles it (at submission, at resume or
+/// while running) would crash every restart. So every start after a crash counts, per
+/// job and durably before the job is touched, the restarts that found it without a new
+/// merged pass ([`Store::record_resume`]); a job past [`MAX_RESUMES_WITHOUT_PROGRESS`] is
+/// failed instead of resumed. A crash during a start is blamed on the job that start was
+/// resuming alone; a crash after it on every job then unfinished (a job that made
+/// progress starts counting again). A graceful shutdown counts nothing.
 pub(crate) async fn resume_all(store: &dyn Store, farm: &Mutex<Farm>) -> Result<bool, StoreError> {
-    let resumable = store.jobs_to_resume().await?;
-    let resumed = !resumable.is_empty();
-    let mut failed = Vec::new();
-    for rec in resumable {
-        match resume_job(store, farm, &rec).await {
-            Ok(()) => tracing::info!(job = rec.id, "job resumed"),
+    let previous = store.begin_run().await?;
+    let mut resumed = false;
+    for id in store.job_ids_to_resume().await? {
+        let count = !previous.clean && previous.resuming.is_none_or(|j| j == id);
+        let outcome = match store.record_resume(id, count).await {
+            Ok(n) if n > MAX_RESUMES_WITHOUT_PROGRESS => Err(format!(
+                "the coordinator restarted {n} times after a crash while running this job \
+                 without progress (no new merged pass; the limit is \
+                 {MAX_RESUMES_WITHOUT_PROGRESS}): failed to end a crash loop, see the \
+                 coordinator's log of those runs"
+            )),
+            Ok(_) => match store.get_job(id).await {
+                Ok(Some(rec)) => resume_job(store, farm, &rec).await,
+                Ok(None) => continue,
+                Err(e) if e.is_write_failure() => return Err(e),
+                Err(e) => Err(format!("the stored job cannot be read: {e}")),
+            },
+            Err(e) if e.is_write_failure() => return Err(e),
+            Err(e) => Err(format!("the stored job cannot be read: {e}")),
+        };
+        match outcome {
+            Ok(()) => {
+                resumed = true;
+                tracing::info!(job = id, "job resumed");
+            }
             Err(e) => {
-                tracing::error!(job = rec.id, error = %e, "cannot resume job");
-                failed.push((rec.id, e));
+                tracing::error!(job = id, error = %e, "cannot resume job; it is failed");
+                store
+                    .set_job_state(id, JobState::Failed, Some(e), now_ms())
+                    .await?;
             }
         }
     }
-    for (id, e) in failed {
-        store
-            .set_job_state(id, JobState::Failed, Some(e), now_ms())
-            .await?;
-    }
+    store.resumes_done().await?;
     Ok(resumed)
 }
 

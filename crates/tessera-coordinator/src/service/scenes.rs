@@ -96,6 +96,7 @@ impl Coordinator {
     /// Stores an uploaded scene (a .glb or a self-contained .gltf) after checking that it
     /// loads; returns its content hash and statistics.
     pub async fn upload_scene(&self, bytes: Vec<u8>) -> CoordResult<SceneUploaded> {
+        self.accepting_work()?;
         if bytes.is_empty() {
             return Err(CoordError::InvalidRequest(
                 "the scene upload is empty: send the bytes of a .glb or .gltf file".into(),

@@ -111,8 +111,9 @@ impl Coordinator {
     /// this returns; if that fails, nothing is handed out (the leases lapse).
     pub async fn lease(&self, worker: WorkerId, max_units: u32) -> CoordResult<LeaseGrant> {
         let now = now_ms();
-        if self.shutting_down() {
-            // Draining: the units in hand are delivered, none are started.
+        if self.shutting_down() || self.accepting_work().is_err() {
+            // Draining, or the store takes no writes (no checkpoint could be saved): the
+            // units in hand are delivered, none are started.
             return Ok(LeaseGrant {
                 units: Vec::new(),
                 retry_after_ms: RETRY_IN_GRACE_MS,

@@ -43,9 +43,14 @@
 //! [`StoreError::CorruptTile`] naming the job, frame and tile.
 
 mod codec;
+pub mod maintenance;
+pub mod marker;
 mod sqlite;
+mod watch;
 
-pub use sqlite::{SqliteStore, DATABASE_FILE};
+pub use marker::{CommitMark, MARKER_FILE};
+pub use sqlite::{SqliteStore, DATABASE_FILE, MAX_RESUMES_WITHOUT_PROGRESS};
+pub use watch::WatchedStore;
 
 use async_trait::async_trait;
 use tessera_api::{FrameRange, HistoryPoint, JobState};
@@ -97,6 +102,108 @@ pub enum StoreError {
         /// Newest version this build can migrate to.
         supported: i64,
     },
+    /// The database file is damaged (SQLite's check failed, or it is not a database).
+    /// The coordinator refuses to start on it.
+    #[error(
+        "the store {path} is damaged: {detail}. The coordinator will not start on it. \
+         Recover (docs/store.md): with the coordinator stopped, either restore a backup \
+         with `tessera store restore --data {dir} BACKUP_FILE`, or move the database and \
+         its -wal and -shm files out of the data directory (keep them for inspection) and \
+         run `tessera store accept-loss --data {dir}` to start with an empty store that \
+         never issues a job id again",
+        dir = dir_of(path)
+    )]
+    Damaged {
+        /// The database file.
+        path: std::path::PathBuf,
+        /// What the check found.
+        detail: String,
+    },
+    /// The database is behind its commit marker ([`marker`]): acknowledged commits are
+    /// missing (a deleted or damaged `-wal` file, a database replaced by an older copy).
+    #[error(
+        "the store {path} is behind its commit marker {marker_path}: the database has \
+         {database}, the marker recorded {marker} when the last acknowledged commit \
+         returned. Jobs that were accepted are missing (was the {path}-wal file deleted \
+         or damaged, or the database replaced by an older copy?). The coordinator will \
+         not start on it. Recover (docs/store.md): with the coordinator stopped, restore \
+         a backup with `tessera store restore --data {dir} BACKUP_FILE`, or accept the \
+         loss with `tessera store accept-loss --data {dir}` (the missing commits stay \
+         lost; job ids are never issued again)",
+        dir = dir_of(path)
+    )]
+    BehindMarker {
+        /// The database file.
+        path: std::path::PathBuf,
+        /// The marker file.
+        marker_path: std::path::PathBuf,
+        /// What the database holds.
+        database: CommitMark,
+        /// What the marker recorded.
+        marker: CommitMark,
+    },
+    /// The marker file exists but cannot be read.
+    #[error(
+        "the commit marker of the store cannot be read: {0}. Recover (docs/store.md): \
+         check the store with `tessera store check --data DIR`, then restore a backup or \
+         run `tessera store accept-loss --data DIR`"
+    )]
+    BadMarker(String),
+    /// A write failed earlier while the coordinator ran ([`WatchedStore`]): it accepts no
+    /// new work until it is restarted.
+    #[error(
+        "the store stopped taking writes ({0}); this coordinator accepts no new work until \
+         it is restarted (free space or fix permissions first; docs/store.md)"
+    )]
+    Failing(String),
+    /// A write failed at open (the probe) or the commit marker could not be written: the
+    /// store cannot take writes (read-only file, directory or filesystem; full disk).
+    #[error(
+        "the store {path} is not writable: {detail}. Check that the data directory and \
+         the files in it are writable by this user, that the filesystem is mounted \
+         read-write and that it has free space"
+    )]
+    NotWritable {
+        /// The database or marker file.
+        path: std::path::PathBuf,
+        /// The underlying error.
+        detail: String,
+    },
+}
+
+/// The data directory of a database path, for the recovery commands in messages.
+fn dir_of(path: &std::path::Path) -> std::path::Display<'_> {
+    path.parent().unwrap_or(std::path::Path::new(".")).display()
+}
+
+impl StoreError {
+    /// Whether this error means the store cannot take writes any more (a full disk, an
+    /// I/O error, a read-only or damaged file), as opposed to a bad input, a missing row
+    /// or a transient lock: the coordinator then stops accepting work (docs/store.md).
+    pub fn is_write_failure(&self) -> bool {
+        // SQLite primary result codes (the low byte of the extended code).
+        const PERM: i64 = 3;
+        const READONLY: i64 = 8;
+        const IOERR: i64 = 10;
+        const CORRUPT: i64 = 11;
+        const FULL: i64 = 13;
+        const CANTOPEN: i64 = 14;
+        const NOTADB: i64 = 26;
+        match self {
+            Self::Database(sqlx::Error::Io(_)) => true,
+            Self::Database(sqlx::Error::Database(e)) => e
+                .code()
+                .and_then(|c| c.parse::<i64>().ok())
+                .is_some_and(|c| {
+                    matches!(
+                        c & 0xff,
+                        PERM | READONLY | IOERR | CORRUPT | FULL | CANTOPEN | NOTADB
+                    )
+                }),
+            Self::NotWritable { .. } | Self::Damaged { .. } | Self::Failing(_) => true,
+            _ => false,
+        }
+    }
 }
 
 /// Shorthand for results of store operations.
@@ -332,6 +439,15 @@ pub struct FaultFilter {
     pub worker: Option<String>,
 }
 
+/// How the previous coordinator run on a store ended ([`Store::begin_run`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
+pub struct PreviousRun {
+    /// It shut down gracefully ([`Store::end_run`]), or there was none.
+    pub clean: bool,
+    /// It died while resuming this job at its start.
+    pub resuming: Option<JobId>,
+}
+
 /// The durable state of the farm.
 ///
 /// Contract shared by every implementation:
@@ -348,6 +464,11 @@ pub struct FaultFilter {
 ///   caller must not race them (the last committed save wins).
 /// - **Ids**: job ids are assigned by the store, increase with insertion order and are
 ///   never reused, even after a restart.
+/// - **Commit marker** ([`SqliteStore`]): a new job, a job's state change and a newly
+///   stored scene are also recorded in the commit marker ([`marker`]) before the method
+///   returns. If that write fails the method returns [`StoreError::NotWritable`] although
+///   the transaction committed (the store is failing; the coordinator stops accepting
+///   work).
 ///
 /// The trait is object safe; hold it as `Arc<dyn Store>`.
 #[async_trait]
@@ -452,6 +573,29 @@ pub trait Store: Send + Sync {
 
     /// The newest `limit` fault events matching the filter, newest first.
     async fn list_faults(&self, filter: &FaultFilter, limit: u32) -> StoreResult<Vec<FaultEvent>>;
+
+    /// Ids of the jobs to resume (every queued or running job), oldest first. Unlike
+    /// [`Store::jobs_to_resume`] a row that cannot be decoded does not fail the call:
+    /// [`Store::get_job`] then fails for that id alone, and that job alone can be failed.
+    async fn job_ids_to_resume(&self) -> StoreResult<Vec<JobId>>;
+
+    /// Starts a coordinator run: returns how the previous run ended and records that a
+    /// run is in progress, so the next start can tell whether this one crashed.
+    async fn begin_run(&self) -> StoreResult<PreviousRun>;
+
+    /// Records that the run ended gracefully (called once the coordinator stopped).
+    async fn end_run(&self) -> StoreResult<()>;
+
+    /// Called by a starting coordinator just before it resumes `job`: records that it is
+    /// resuming it (see [`PreviousRun::resuming`]) and returns the job's count of
+    /// consecutive resumes without progress. The count restarts from 0 when the job's
+    /// merged passes changed since its previous resume, then goes up by one if `count`
+    /// (the previous run crashed while this job was in hand).
+    /// [`StoreError::JobNotFound`] if the job does not exist.
+    async fn record_resume(&self, job: JobId, count: bool) -> StoreResult<u32>;
+
+    /// Records that the start finished resuming jobs (clears [`PreviousRun::resuming`]).
+    async fn resumes_done(&self) -> StoreResult<()>;
 
     /// Checks that the store answers (for `/healthz`).
     async fn ping(&self) -> StoreResult<()>;

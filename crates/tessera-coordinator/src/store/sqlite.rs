@@ -13,9 +13,10 @@ use tessera_api::{FrameRange, HistoryPoint, JobState};
 use tessera_farm::{FramePlan, JobId};
 
 use super::codec::{check_checkpoint, decode_stats, decode_units, encode_stats, encode_units};
+use super::marker::{self, CommitMark};
 use super::{
-    FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, JobRecord, NewJob, Store, StoreError,
-    StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
+    FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, Store,
+    StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
 /// Name of the database file inside the data directory.
@@ -26,7 +27,12 @@ pub const DATABASE_FILE: &str = "tessera.sqlite3";
 const MIGRATIONS: &[(i64, &str)] = &[
     (1, include_str!("migrations/0001_initial.sql")),
     (2, include_str!("migrations/0002_rejected_samples.sql")),
+    (3, include_str!("migrations/0003_integrity.sql")),
 ];
+
+/// A job resumed this many times in a row after a crash without a new merged pass is
+/// failed instead of resumed again (docs/store.md, "No crash loop").
+pub const MAX_RESUMES_WITHOUT_PROGRESS: u32 = 5;
 
 /// How long a statement waits for a lock held by another connection before failing.
 const BUSY_TIMEOUT: Duration = Duration::from_secs(10);
@@ -59,39 +65,124 @@ pub struct SqliteStore {
     writer: SqlitePool,
     reader: SqlitePool,
     path: PathBuf,
+    dir: PathBuf,
 }
 
 impl SqliteStore {
-    /// Opens (creating if needed) the store in `dir`: creates the directory, opens
-    /// `dir/tessera.sqlite3` and brings its schema up to date.
+    /// The newest schema version this build knows (and migrates every store to).
+    pub const SUPPORTED_SCHEMA: i64 = MIGRATIONS[MIGRATIONS.len() - 1].0;
+
+    /// Opens (creating if needed) the store in `dir`, refusing a store the coordinator
+    /// must not run on (docs/store.md, "What is checked at start"):
     ///
-    /// Fails with [`StoreError::SchemaTooNew`] if a newer build wrote the database.
+    /// 1. creates the directory and opens (or creates) `dir/tessera.sqlite3`;
+    /// 2. runs SQLite's `PRAGMA quick_check` ([`StoreError::Damaged`] if it finds
+    ///    anything, or if the file is not a database);
+    /// 3. brings the schema up to date ([`StoreError::SchemaTooNew`] if a newer build
+    ///    wrote it);
+    /// 4. compares the database with its commit marker ([`marker`]):
+    ///    [`StoreError::BehindMarker`] if acknowledged commits are missing;
+    /// 5. probes a write: one committed transaction and a marker write
+    ///    ([`StoreError::NotWritable`] for a read-only file, directory or filesystem, or a
+    ///    full disk), so such a store fails here rather than at the first request.
     pub async fn open(dir: &Path) -> StoreResult<Self> {
-        std::fs::create_dir_all(dir).map_err(|source| StoreError::DataDir {
-            path: dir.to_path_buf(),
-            source,
-        })?;
-        let path = dir.join(DATABASE_FILE);
-        let options = SqliteConnectOptions::new()
-            .filename(&path)
-            .journal_mode(SqliteJournalMode::Wal)
-            .synchronous(SqliteSynchronous::Full)
-            .foreign_keys(true)
-            .busy_timeout(BUSY_TIMEOUT);
-        let writer = SqlitePoolOptions::new()
-            .max_connections(1)
-            .connect_with(options.clone().create_if_missing(true))
-            .await?;
-        migrate(&writer).await?;
+        let (writer, path) = connect_writer(dir, true).await?;
+        quick_check(&writer, &path).await?;
+        // Compared before migrating: a database that lost everything (even its schema)
+        // is refused as it is, not first filled with an empty schema.
+        if let Some(m) = marker::read_marker(dir).map_err(StoreError::BadMarker)? {
+            // A database without the generation (empty, or older than schema 3 while a
+            // marker exists) is behind any marker.
+            let db = match commit_mark(&writer).await {
+                Ok(db) => db,
+                Err(StoreError::Database(sqlx::Error::Database(e)))
+                    if e.message().contains("no such table") =>
+                {
+                    CommitMark::default()
+                }
+                Err(StoreError::Corrupt(_)) => CommitMark::default(),
+                Err(e) => return Err(classify(&path, e)),
+            };
+            if db.is_behind(&m) {
+                return Err(StoreError::BehindMarker {
+                    path,
+                    marker_path: marker::marker_path(dir),
+                    database: db,
+                    marker: m,
+                });
+            }
+        }
+        migrate(&writer).await.map_err(|e| classify(&path, e))?;
+        let store = Self::from_writer(writer, path, dir).await?;
+        // The write probe: a generation bump, committed, then recorded in the marker.
+        let mut conn = store.writer.acquire().await?;
+        let mut tx = conn
+            .begin_with("BEGIN IMMEDIATE")
+            .await
+            .map_err(|e| store.probe_error(e))?;
+        let mark = bump_generation(&mut tx)
+            .await
+            .map_err(|e| store.probe_error(e))?;
+        tx.commit().await.map_err(|e| store.probe_error(e))?;
+        store.publish(mark).await?;
+        drop(conn);
+        Ok(store)
+    }
+
+    /// The store over an open writer pool, without any check (for the maintenance
+    /// commands, which check what they need themselves).
+    pub(super) async fn from_writer(
+        writer: SqlitePool,
+        path: PathBuf,
+        dir: &Path,
+    ) -> StoreResult<Self> {
         let reader = SqlitePoolOptions::new()
             .max_connections(READ_CONNECTIONS)
-            .connect_with(options.pragma("query_only", "ON"))
-            .await?;
+            .connect_with(connect_options(&path).pragma("query_only", "ON"))
+            .await
+            .map_err(|e| open_error(&path, e))?;
         Ok(Self {
             writer,
             reader,
             path,
+            dir: dir.to_path_buf(),
         })
+    }
+
+    /// The write probe's failure: a write failure makes the store not writable.
+    fn probe_error(&self, e: impl Into<StoreError>) -> StoreError {
+        let e = e.into();
+        if e.is_write_failure() {
+            StoreError::NotWritable {
+                path: self.path.clone(),
+                detail: e.to_string(),
+            }
+        } else {
+            e
+        }
+    }
+
+    /// Records `mark` in the commit marker (off the async runtime: it fsyncs).
+    pub(super) async fn publish(&self, mark: CommitMark) -> StoreResult<()> {
+        let dir = self.dir.clone();
+        let not_writable = |detail: String| StoreError::NotWritable {
+            path: marker::marker_path(&self.dir),
+            detail,
+        };
+        tokio::task::spawn_blocking(move || marker::write_marker(&dir, mark))
+            .await
+            .map_err(|e| not_writable(e.to_string()))?
+            .map_err(|e| not_writable(e.to_string()))
+    }
+
+    /// The database's commit generation and highest job id ever issued.
+    pub async fn commit_mark(&self) -> StoreResult<CommitMark> {
+        commit_mark(&self.reader).await
+    }
+
+    /// The writer pool (for the maintenance commands).
+    pub(super) fn writer(&self) -> &SqlitePool {
+        &self.writer
     }
 
     /// Path of the database file.
@@ -107,19 +198,10 @@ impl SqliteStore {
         Ok(v.unwrap_or(0))
     }
 
-    /// Runs SQLite's `PRAGMA integrity_check`; [`StoreError::Corrupt`] lists the problems.
+    /// Runs SQLite's full `PRAGMA integrity_check` (the start runs the cheaper
+    /// `quick_check`); [`StoreError::Damaged`] lists the problems.
     pub async fn integrity_check(&self) -> StoreResult<()> {
-        let rows: Vec<String> = sqlx::query_scalar("PRAGMA integrity_check")
-            .fetch_all(&self.reader)
-            .await?;
-        if rows.len() == 1 && rows[0] == "ok" {
-            Ok(())
-        } else {
-            Err(StoreError::Corrupt(format!(
-                "integrity check failed: {}",
-                rows.join("; ")
-            )))
-        }
+        run_check(&self.reader, &self.path, "integrity_check").await
     }
 
     /// The plan and frame range of a job, read through `executor`.
@@ -136,10 +218,157 @@ impl SqliteStore {
     }
 }
 
+/// The connection options of every connection to `path`.
+fn connect_options(path: &Path) -> SqliteConnectOptions {
+    SqliteConnectOptions::new()
+        .filename(path)
+        .journal_mode(SqliteJournalMode::Wal)
+        .synchronous(SqliteSynchronous::Full)
+        .foreign_keys(true)
+        .busy_timeout(BUSY_TIMEOUT)
+}
+
+/// Creates `dir` if needed and opens the one write connection to its database (creating
+/// the file if `create`). Returns it with the database's path.
+pub(super) async fn connect_writer(dir: &Path, create: bool) -> StoreResult<(SqlitePool, PathBuf)> {
+    std::fs::create_dir_all(dir).map_err(|source| StoreError::DataDir {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let path = dir.join(DATABASE_FILE);
+    let writer = SqlitePoolOptions::new()
+        .max_connections(1)
+        .connect_with(connect_options(&path).create_if_missing(create))
+        .await
+        .map_err(|e| open_error(&path, e))?;
+    Ok((writer, path))
+}
+
+/// [`open_error`] of a store error that is a database error; others pass through.
+pub(super) fn classify(path: &Path, e: StoreError) -> StoreError {
+    match e {
+        StoreError::Database(e) => open_error(path, e),
+        e => e,
+    }
+}
+
+/// An error while opening `path`: a damaged file and an unwritable one get their own
+/// variants (with the recovery steps); anything else stays a database error.
+pub(super) fn open_error(path: &Path, e: sqlx::Error) -> StoreError {
+    const CORRUPT: i64 = 11;
+    const NOTADB: i64 = 26;
+    let code = match &e {
+        sqlx::Error::Database(d) => d.code().and_then(|c| c.parse::<i64>().ok()),
+        _ => None,
+    };
+    let e = StoreError::Database(e);
+    match code.map(|c| c & 0xff) {
+        Some(CORRUPT | NOTADB) => StoreError::Damaged {
+            path: path.to_path_buf(),
+            detail: e.to_string(),
+        },
+        _ if e.is_write_failure() => StoreError::NotWritable {
+            path: path.to_path_buf(),
+            detail: e.to_string(),
+        },
+        _ => e,
+    }
+}
+
+/// Runs `PRAGMA quick_check` (every page and record well-formed; not the index
+/// cross-check of `integrity_check`, measured in docs/store.md).
+pub(super) async fn quick_check(pool: &SqlitePool, path: &Path) -> StoreResult<()> {
+    run_check(pool, path, "quick_check").await
+}
+
+/// Runs `PRAGMA {pragma}` (`quick_check` or `integrity_check`); [`StoreError::Damaged`]
+/// lists the first problems it reports.
+async fn run_check(pool: &SqlitePool, path: &Path, pragma: &str) -> StoreResult<()> {
+    let rows: Vec<String> = sqlx::query_scalar(&format!("PRAGMA {pragma}(20)"))
+        .fetch_all(pool)
+        .await
+        .map_err(|e| open_error(path, e))?;
+    if rows.len() == 1 && rows[0] == "ok" {
+        Ok(())
+    } else {
+        Err(StoreError::Damaged {
+            path: path.to_path_buf(),
+            detail: format!("SQLite's {pragma} reports: {}", rows.join("; ")),
+        })
+    }
+}
+
+/// The commit generation and the highest job id ever issued (the larger of the
+/// AUTOINCREMENT sequence and the largest id present), read through `executor`.
+pub(super) async fn commit_mark<'e, E>(executor: E) -> StoreResult<CommitMark>
+where
+    E: sqlx::Executor<'e, Database = sqlx::Sqlite>,
+{
+    let row = sqlx::query(
+        "SELECT (SELECT value FROM counters WHERE name = 'commit_generation') AS generation, \
+             MAX(COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'jobs'), 0), \
+                 COALESCE((SELECT MAX(id) FROM jobs), 0)) AS max_job_id",
+    )
+    .fetch_one(executor)
+    .await?;
+    let place = || "counters".to_string();
+    let generation: Option<i64> = row.try_get("generation")?;
+    let generation = generation.ok_or_else(|| {
+        StoreError::Corrupt("counters: the commit_generation row is missing".into())
+    })?;
+    Ok(CommitMark {
+        generation: u64::try_from(generation).map_err(|_| {
+            StoreError::Corrupt(format!("counters: commit_generation = {generation}"))
+        })?,
+        max_job_id: int_col(&row, "max_job_id", &place)?,
+    })
+}
+
+/// Increments the commit generation inside a write transaction; returns the mark to
+/// publish once the transaction committed.
+pub(super) async fn bump_generation(tx: &mut sqlx::SqliteConnection) -> StoreResult<CommitMark> {
+    let n = sqlx::query("UPDATE counters SET value = value + 1 WHERE name = 'commit_generation'")
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+    if n != 1 {
+        return Err(StoreError::Corrupt(
+            "counters: the commit_generation row is missing".into(),
+        ));
+    }
+    commit_mark(&mut *tx).await
+}
+
+/// Reads a row of `counters` (through a write transaction).
+async fn counter(tx: &mut sqlx::SqliteConnection, name: &str) -> StoreResult<i64> {
+    sqlx::query_scalar("SELECT value FROM counters WHERE name = ?1")
+        .bind(name)
+        .fetch_optional(&mut *tx)
+        .await?
+        .ok_or_else(|| StoreError::Corrupt(format!("counters: the {name} row is missing")))
+}
+
+/// Sets a row of `counters` (through a write transaction).
+async fn set_counter(tx: &mut sqlx::SqliteConnection, name: &str, value: i64) -> StoreResult<()> {
+    let n = sqlx::query("UPDATE counters SET value = ?2 WHERE name = ?1")
+        .bind(name)
+        .bind(value)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+    if n == 1 {
+        Ok(())
+    } else {
+        Err(StoreError::Corrupt(format!(
+            "counters: the {name} row is missing"
+        )))
+    }
+}
+
 /// Creates `schema_version` if needed and applies the missing migrations, all in one
 /// `BEGIN IMMEDIATE` transaction (two processes opening the same new directory cannot
 /// both migrate).
-async fn migrate(pool: &SqlitePool) -> StoreResult<()> {
+pub(super) async fn migrate(pool: &SqlitePool) -> StoreResult<()> {
     let supported = MIGRATIONS.last().map_or(0, |m| m.0);
     let mut conn = pool.acquire().await?;
     let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
@@ -372,7 +601,16 @@ impl Store for SqliteStore {
                 (id, false)
             }
         };
+        let mark = if created {
+            Some(bump_generation(&mut tx).await?)
+        } else {
+            None
+        };
         tx.commit().await?;
+        if let Some(mark) = mark {
+            self.publish(mark).await?;
+        }
+        drop(conn);
         let id = JobId::try_from(id)
             .map_err(|_| StoreError::Corrupt(format!("jobs: negative id {id}")))?;
         Ok((id, created))
@@ -452,7 +690,16 @@ impl Store for SqliteStore {
                 .fetch_one(&mut *tx)
                 .await?
                 != 0;
+        let mark = if changed > 0 {
+            Some(bump_generation(&mut tx).await?)
+        } else {
+            None
+        };
         tx.commit().await?;
+        if let Some(mark) = mark {
+            self.publish(mark).await?;
+        }
+        drop(conn);
         if exists {
             Ok(changed > 0)
         } else {
@@ -487,7 +734,16 @@ impl Store for SqliteStore {
         .execute(&mut *tx)
         .await?
         .rows_affected();
+        let mark = if stored > 0 {
+            Some(bump_generation(&mut tx).await?)
+        } else {
+            None
+        };
         tx.commit().await?;
+        if let Some(mark) = mark {
+            self.publish(mark).await?;
+        }
+        drop(conn);
         Ok(stored > 0)
     }
 
@@ -761,6 +1017,81 @@ impl Store for SqliteStore {
                 })
             })
             .collect()
+    }
+
+    async fn job_ids_to_resume(&self) -> StoreResult<Vec<JobId>> {
+        let ids: Vec<i64> = sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE state IN ('queued', 'running') ORDER BY id",
+        )
+        .fetch_all(&self.reader)
+        .await?;
+        ids.into_iter()
+            .map(|id| {
+                JobId::try_from(id).map_err(|_| StoreError::Corrupt(format!("jobs: id {id}")))
+            })
+            .collect()
+    }
+
+    async fn begin_run(&self) -> StoreResult<PreviousRun> {
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let clean = counter(&mut tx, "clean_shutdown").await? != 0;
+        let resuming = counter(&mut tx, "resuming_job").await?;
+        set_counter(&mut tx, "clean_shutdown", 0).await?;
+        tx.commit().await?;
+        Ok(PreviousRun {
+            clean,
+            resuming: u64::try_from(resuming).ok().filter(|&j| j > 0),
+        })
+    }
+
+    async fn end_run(&self) -> StoreResult<()> {
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        set_counter(&mut tx, "clean_shutdown", 1).await?;
+        set_counter(&mut tx, "resuming_job", 0).await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    async fn record_resume(&self, job: JobId, count: bool) -> StoreResult<u32> {
+        let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let row = sqlx::query(
+            "SELECT resumes, resume_passes, \
+                 (SELECT COALESCE(SUM(merged_passes), 0) FROM tiles WHERE job = ?1) AS merged \
+             FROM jobs WHERE id = ?1",
+        )
+        .bind(key)
+        .fetch_optional(&mut *tx)
+        .await?
+        .ok_or(StoreError::JobNotFound(job))?;
+        let place = || format!("jobs row {job}");
+        let resumes: u32 = int_col(&row, "resumes", &place)?;
+        let before: i64 = row.try_get("resume_passes")?;
+        let merged: i64 = row.try_get("merged")?;
+        // Any change of the merged passes is progress (an adaptive job starts again from
+        // its first pass after a restart, so its total can also go down).
+        let resumes = if merged != before { 0 } else { resumes };
+        let resumes = resumes.saturating_add(u32::from(count));
+        sqlx::query("UPDATE jobs SET resumes = ?2, resume_passes = ?3 WHERE id = ?1")
+            .bind(key)
+            .bind(i64::from(resumes))
+            .bind(merged)
+            .execute(&mut *tx)
+            .await?;
+        set_counter(&mut tx, "resuming_job", key).await?;
+        tx.commit().await?;
+        Ok(resumes)
+    }
+
+    async fn resumes_done(&self) -> StoreResult<()> {
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        set_counter(&mut tx, "resuming_job", 0).await?;
+        tx.commit().await?;
+        Ok(())
     }
 
     async fn ping(&self) -> StoreResult<()> {

@@ -1,0 +1,108 @@
+//! `tessera store check|backup|restore|accept-loss`: the operator's tools for the
+//! coordinator's SQLite store (docs/store.md). The work is done by
+//! [`tessera_coordinator::store::maintenance`]; this module parses, prints and sets the
+//! exit status.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use tessera_coordinator::store::maintenance;
+
+use crate::common::runtime;
+
+/// `tessera store ...`.
+#[derive(Args, Debug)]
+pub struct StoreArgs {
+    #[command(subcommand)]
+    command: StoreCommand,
+}
+
+#[derive(Subcommand, Debug)]
+enum StoreCommand {
+    /// Check a store without changing it (safe while a coordinator runs on it): SQLite's
+    /// integrity check, the schema version, the commit marker. Exit status 0 when a
+    /// coordinator would start on it, 1 otherwise.
+    Check(DataArg),
+    /// Write a consistent backup of a store to a new file, while a coordinator may run on
+    /// it (SQLite's VACUUM INTO), then check the copy.
+    Backup {
+        #[command(flatten)]
+        data: DataArg,
+        /// The backup file to create (must not exist).
+        out: PathBuf,
+    },
+    /// Replace a stopped coordinator's store with a checked backup. The replaced files
+    /// are kept in DATA/replaced-UNIX_MS/; job ids issued after the backup are never
+    /// issued again.
+    Restore {
+        #[command(flatten)]
+        data: DataArg,
+        /// The backup file (from `tessera store backup`).
+        backup: PathBuf,
+    },
+    /// Accept a stopped coordinator's store as it is after lost commits (or start an
+    /// empty one after the damaged files were moved away): the commit marker is rewritten
+    /// and job ids already issued are never issued again.
+    AcceptLoss(DataArg),
+}
+
+#[derive(Args, Debug)]
+struct DataArg {
+    /// Data directory of the store (the coordinator's --data).
+    #[arg(long, default_value = "tessera-data")]
+    data: PathBuf,
+}
+
+/// `tessera store`.
+pub fn store(args: StoreArgs) -> Result<()> {
+    runtime()?.block_on(async {
+        match args.command {
+            StoreCommand::Check(d) => {
+                let report = maintenance::check(&d.data).await;
+                println!("{report}");
+                if !report.healthy() {
+                    bail!("the store in {} is not usable", d.data.display());
+                }
+            }
+            StoreCommand::Backup { data, out } => {
+                let report = maintenance::backup(&data.data, &out)
+                    .await
+                    .with_context(|| format!("backing up the store in {}", data.data.display()))?;
+                println!("{report}");
+                if !report.healthy() {
+                    bail!("the backup {} does not check", out.display());
+                }
+                println!("backup: {}", out.display());
+            }
+            StoreCommand::Restore { data, backup } => {
+                let r = maintenance::restore(&data.data, &backup)
+                    .await
+                    .with_context(|| {
+                        format!(
+                            "restoring {} into {}",
+                            backup.display(),
+                            data.data.display()
+                        )
+                    })?;
+                if let Some(aside) = &r.moved_to {
+                    println!("replaced files moved to: {}", aside.display());
+                }
+                println!(
+                    "restored: {} into {}",
+                    backup.display(),
+                    data.data.display()
+                );
+                println!("commit marker: {}", r.mark);
+            }
+            StoreCommand::AcceptLoss(d) => {
+                let r = maintenance::accept_loss(&d.data)
+                    .await
+                    .with_context(|| format!("accepting the store in {}", d.data.display()))?;
+                println!("accepted: {}", d.data.display());
+                println!("commit marker: {}", r.mark);
+            }
+        }
+        Ok(())
+    })
+}
