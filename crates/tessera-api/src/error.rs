@@ -26,6 +26,9 @@ pub enum ErrorCode {
     Conflict,
     /// The request body is larger than the server accepts. 413.
     TooLarge,
+    /// The request body did not arrive within the server's body timeout; the connection
+    /// is closed. 408.
+    RequestTimeout,
     /// The server failed; the request may be retried. 500.
     Internal,
     /// A code this version does not know (sent by a newer server). Deserialization only;
@@ -43,6 +46,7 @@ impl ErrorCode {
             Self::NotFound => 404,
             Self::Conflict => 409,
             Self::TooLarge => 413,
+            Self::RequestTimeout => 408,
             Self::Internal | Self::Unknown => 500,
         }
     }
@@ -57,6 +61,7 @@ impl ErrorCode {
             Self::NotFound => "not_found",
             Self::Conflict => "conflict",
             Self::TooLarge => "too_large",
+            Self::RequestTimeout => "request_timeout",
             Self::Internal => "internal",
             Self::Unknown => "unknown",
         }
