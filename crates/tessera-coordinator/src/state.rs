@@ -261,14 +261,16 @@ impl TileRejected {
         self.buffered.retain(|&(pass, n)| {
             let done = pass < merged_passes;
             if done {
-                *merged += n;
+                *merged = merged.saturating_add(n);
             }
             !done
         });
     }
 
     fn total(&self) -> u64 {
-        self.merged + self.buffered.iter().map(|b| b.1).sum::<u64>()
+        self.buffered
+            .iter()
+            .fold(self.merged, |acc, b| acc.saturating_add(b.1))
     }
 }
 

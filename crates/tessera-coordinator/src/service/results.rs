@@ -184,7 +184,16 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
             "result from an unknown or forgotten worker"
         );
     }
-    let rejected_samples = d.result.as_ref().map_or(0, |r| r.rejected_samples);
+    // A diagnostic the worker reports, not validated by the farm: a unit cannot drop
+    // more samples than it traced, and an absurd count must neither overflow the sums nor
+    // fail the checkpoint after the merge (found by tests/fuzz_grpc.rs).
+    let per_pass = job
+        .and_then(|j| farm.jobs.get(&j))
+        .map_or(1, |e| u64::from(e.plan.samples_per_pass));
+    let rejected_samples = d.result.as_ref().map_or(0, |r| {
+        r.rejected_samples
+            .min((r.pass_means.len() as u64).saturating_mul(per_pass))
+    });
     let merged = match submit(farm, lease_id, job, d.result) {
         // Not the worker's fault: the job went away. Nothing is recorded.
         Err(Rejected::Canceled(j)) => {
