@@ -26,6 +26,9 @@ pub enum ErrorCode {
     Conflict,
     /// The request body is larger than the server accepts. 413.
     TooLarge,
+    /// The request body did not arrive within the server's body timeout; the connection
+    /// is closed. 408.
+    RequestTimeout,
     /// The server failed; the request may be retried. 500.
     Internal,
     /// The server cannot take this request now (its store takes no writes: a full disk,
@@ -46,6 +49,7 @@ impl ErrorCode {
             Self::NotFound => 404,
             Self::Conflict => 409,
             Self::TooLarge => 413,
+            Self::RequestTimeout => 408,
             Self::Internal | Self::Unknown => 500,
             Self::Unavailable => 503,
         }
@@ -61,6 +65,7 @@ impl ErrorCode {
             Self::NotFound => "not_found",
             Self::Conflict => "conflict",
             Self::TooLarge => "too_large",
+            Self::RequestTimeout => "request_timeout",
             Self::Internal => "internal",
             Self::Unavailable => "unavailable",
             Self::Unknown => "unknown",

@@ -6,8 +6,9 @@ use clap::Args;
 use std::io::Write;
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
-use tessera_coordinator::{serve_coordinator, shutdown_signal, Listeners};
+use tessera_coordinator::{serve_coordinator, shutdown_signal, HttpLimits, Listeners};
 
 use crate::common::{init_tracing, runtime};
 
@@ -39,6 +40,27 @@ pub struct CoordinatorArgs {
     /// their units are leased again, milliseconds.
     #[arg(long, default_value_t = 3_000)]
     pub grace_ms: u64,
+    /// HTTP: seconds a client has to send a request's head (from connecting, or from the
+    /// request's first byte on a kept-alive connection).
+    #[arg(long, default_value_t = 10, value_name = "SECS")]
+    pub http_header_timeout: u64,
+    /// HTTP: seconds a client has to send a request body, plus one second per
+    /// --http-body-min-rate bytes received.
+    #[arg(long, default_value_t = 30, value_name = "SECS")]
+    pub http_body_timeout: u64,
+    /// HTTP: bytes of request body that earn one more second of body timeout (0: none).
+    #[arg(long, default_value_t = 65_536, value_name = "BYTES_PER_SEC")]
+    pub http_body_min_rate: u64,
+    /// HTTP: seconds a kept-alive connection may stay idle before it is closed.
+    #[arg(long, default_value_t = 60, value_name = "SECS")]
+    pub http_idle_timeout: u64,
+    /// HTTP: most connections open at once; more are answered 503 and closed.
+    #[arg(long, default_value_t = 1024, value_name = "N")]
+    pub http_max_connections: usize,
+    /// HTTP: most connections open at once from one IP address; more are answered 503
+    /// and closed.
+    #[arg(long, default_value_t = 64, value_name = "N")]
+    pub http_max_connections_per_address: usize,
     /// Memory for the per-pixel merge state of all jobs (72 bytes per pixel of each frame
     /// in progress), e.g. `4GiB`, `512MiB` or a byte count. A job one frame of which
     /// needs more is refused; frames beyond it wait for others to complete.
@@ -85,16 +107,36 @@ impl CoordinatorArgs {
                 self.heartbeat_ms
             );
         }
-        Ok(CoordinatorConfig {
-            data_dir: self.data.clone(),
-            api_token: self.api_token.clone().filter(|t| !t.is_empty()),
-            worker_token: self.worker_token.clone().filter(|t| !t.is_empty()),
-            lease_ms: self.lease_ms,
-            heartbeat_ms: self.heartbeat_ms,
-            grace_ms: self.grace_ms,
-            passes_per_unit: 1,
-            memory_budget: self.memory_budget,
-        })
+        for (flag, secs) in [
+            ("--http-header-timeout", self.http_header_timeout),
+            ("--http-body-timeout", self.http_body_timeout),
+            ("--http-idle-timeout", self.http_idle_timeout),
+        ] {
+            if !(1..=86_400).contains(&secs) {
+                bail!("{flag} {secs} must be between 1 and 86400 seconds");
+            }
+        }
+        if self.http_max_connections == 0 || self.http_max_connections_per_address == 0 {
+            bail!(
+                "--http-max-connections and --http-max-connections-per-address must be at least 1"
+            );
+        }
+        let mut cfg = CoordinatorConfig::new(self.data.clone());
+        cfg.api_token = self.api_token.clone().filter(|t| !t.is_empty());
+        cfg.worker_token = self.worker_token.clone().filter(|t| !t.is_empty());
+        cfg.lease_ms = self.lease_ms;
+        cfg.heartbeat_ms = self.heartbeat_ms;
+        cfg.grace_ms = self.grace_ms;
+        cfg.memory_budget = self.memory_budget;
+        cfg.http_limits = HttpLimits {
+            header_timeout: Duration::from_secs(self.http_header_timeout),
+            body_timeout: Duration::from_secs(self.http_body_timeout),
+            body_min_rate: self.http_body_min_rate,
+            idle_timeout: Duration::from_secs(self.http_idle_timeout),
+            max_connections: self.http_max_connections,
+            max_connections_per_address: self.http_max_connections_per_address,
+        };
+        Ok(cfg)
     }
 
     /// Opens the store, then binds both ports (so their real addresses are known before

@@ -36,6 +36,15 @@ pub enum CoordError {
     /// The request is larger than the coordinator accepts.
     #[error("{0}")]
     TooLarge(String),
+    /// The request conflicts with what exists, e.g. an idempotency key reused with other
+    /// settings; `field` names the input (the key's header).
+    #[error("{field}: {message}")]
+    Conflict {
+        /// The input in conflict, e.g. `"idempotency-key"`.
+        field: String,
+        /// What it conflicts with.
+        message: String,
+    },
     /// The durable store failed; the request may be retried. A write failure
     /// ([`StoreError::is_write_failure`]) says that the coordinator stopped accepting work.
     #[error("{}", store_message(.0))]
@@ -121,6 +130,13 @@ impl From<CoordError> for ApiError {
             // The store takes no writes (full disk, I/O error, read-only file): the
             // coordinator stops accepting work until restarted (docs/store.md).
             CoordError::Store(s) if s.is_write_failure() => ErrorCode::Unavailable,
+            CoordError::Conflict { field, .. } => {
+                return ApiError {
+                    code: ErrorCode::Conflict,
+                    message: e.to_string(),
+                    field: Some(field.clone()),
+                };
+            }
             CoordError::Store(_) | CoordError::Internal(_) => ErrorCode::Internal,
         };
         ApiError::new(code, e.to_string())
@@ -138,6 +154,7 @@ impl From<CoordError> for Status {
             CoordError::InvalidRequest(m) => Status::invalid_argument(m),
             e @ CoordError::InvalidScene(_) => Status::invalid_argument(e.to_string()),
             CoordError::TooLarge(m) => Status::resource_exhausted(m),
+            e @ CoordError::Conflict { .. } => Status::already_exists(e.to_string()),
             CoordError::Store(e) => Status::unavailable(format!("coordinator store: {e}")),
             CoordError::Internal(m) => Status::internal(m),
         }

@@ -53,9 +53,10 @@ impl WorkerGrpc {
             .metadata()
             .get("authorization")
             .and_then(|v| v.to_str().ok());
-        match given.and_then(|g| g.strip_prefix("Bearer ")) {
-            Some(g) if constant_time_eq(g.as_bytes(), token.as_bytes()) => Ok(()),
-            _ => Err(Status::unauthenticated("a valid worker token is required")),
+        if crate::auth::bearer_matches(given, token) {
+            Ok(())
+        } else {
+            Err(Status::unauthenticated("a valid worker token is required"))
         }
     }
 }
@@ -66,11 +67,6 @@ fn status(e: CoordError) -> Status {
         tracing::error!(error = %e, "worker request failed");
     }
     e.into()
-}
-
-/// Compares secrets without an early exit.
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 type SceneStream = Pin<Box<dyn tokio_stream::Stream<Item = Result<v1::SceneChunk, Status>> + Send>>;

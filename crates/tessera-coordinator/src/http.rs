@@ -3,9 +3,16 @@
 //! Every `/api/v1` route answers JSON; every failure is an [`ApiError`] serialized as
 //! `{"error": {"code", "message", "field"?}}` with its 4xx/5xx status, including malformed
 //! query strings, bodies and unknown routes (no framework-default plain-text errors).
-//! With an API token configured, `/api/v1` requires `Authorization: Bearer TOKEN` (401
-//! otherwise); `/healthz`, `/metrics` and the dashboard files are open, the dashboard
-//! asking its user for the token.
+//! With an API token configured, `/api/v1` and `/metrics` (it names workers and jobs)
+//! require `Authorization: Bearer TOKEN`, the scheme in any letter case ([`crate::auth`];
+//! 401 otherwise); `/healthz` and the dashboard files are open, the dashboard asking its
+//! user for the token.
+//!
+//! Job ids in paths are canonical decimal (`/jobs/7`; `/jobs/07`, `/jobs/+7` name no job,
+//! 404), so one job has one URL. A request body that does not arrive within the body
+//! timeout ([`crate::connections`]) is answered `408` and its connection closed.
+
+use std::sync::Arc;
 
 use axum::body::Bytes;
 use axum::extract::rejection::BytesRejection;
@@ -14,7 +21,7 @@ use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use axum::{Json, Router};
+use axum::{Extension, Json, Router};
 use serde::de::DeserializeOwned;
 use tessera_api::{
     ApiError, ErrorCode, FrameQuery, FromJson, ImageFormat, ImageQuery, JobListQuery, JobSettings,
@@ -22,6 +29,7 @@ use tessera_api::{
 };
 use tracing::Instrument;
 
+use crate::connections::ConnectionStats;
 use crate::error::CoordError;
 use crate::service::{Coordinator, MAX_SCENE_BYTES};
 
@@ -46,6 +54,11 @@ impl IntoResponse for HttpError {
         let status =
             StatusCode::from_u16(self.0.status()).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
         let mut resp = (status, Json(&self.0)).into_response();
+        if status == StatusCode::REQUEST_TIMEOUT {
+            // The rest of a trickled body is not worth reading.
+            resp.headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+        }
         if status == StatusCode::UNAUTHORIZED {
             resp.headers_mut().insert(
                 header::WWW_AUTHENTICATE,
@@ -120,7 +133,10 @@ pub fn router(core: Coordinator) -> Router {
     Router::new()
         .nest(API_PREFIX, api)
         .route("/healthz", get(healthz))
-        .route("/metrics", get(metrics))
+        .route(
+            "/metrics",
+            get(metrics).layer(middleware::from_fn_with_state(core.clone(), require_token)),
+        )
         .route("/", get(dashboard_asset))
         .route("/index.html", get(dashboard_asset))
         .route("/assets/{*path}", get(dashboard_asset))
@@ -134,16 +150,8 @@ async fn require_token(State(core): State<Coordinator>, req: Request, next: Next
         let given = req
             .headers()
             .get(header::AUTHORIZATION)
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.strip_prefix("Bearer "));
-        let ok = given.is_some_and(|g| {
-            g.len() == token.len()
-                && g.bytes()
-                    .zip(token.bytes())
-                    .fold(0u8, |acc, (a, b)| acc | (a ^ b))
-                    == 0
-        });
-        if !ok {
+            .and_then(|v| v.to_str().ok());
+        if !crate::auth::bearer_matches(given, token) {
             return HttpError(ApiError::new(
                 ErrorCode::Unauthorized,
                 "this API requires a bearer token: send Authorization: Bearer TOKEN",
@@ -154,25 +162,47 @@ async fn require_token(State(core): State<Coordinator>, req: Request, next: Next
     next.run(req).await
 }
 
+/// Parses a query string; a bad value is a 400 naming its parameter (`field`).
 fn parse_query<T: DeserializeOwned + Default>(q: Option<String>) -> Result<T, ApiError> {
-    match q.as_deref() {
-        None | Some("") => Ok(T::default()),
-        Some(q) => serde_urlencoded::from_str(q).map_err(|e| {
-            ApiError::new(
+    let q = match q.as_deref() {
+        None | Some("") => return Ok(T::default()),
+        Some(q) => q,
+    };
+    serde_urlencoded::from_str(q).map_err(|e| {
+        // Find the parameter to blame: the first that does not parse on its own (every
+        // parameter of the API's queries is optional, so one alone must parse).
+        let pairs: Vec<(String, String)> = serde_urlencoded::from_str(q).unwrap_or_default();
+        let culprit = pairs.iter().find(|pair| {
+            serde_urlencoded::to_string([pair])
+                .map(|one| serde_urlencoded::from_str::<T>(&one).is_err())
+                .unwrap_or(false)
+        });
+        match culprit {
+            Some((key, _)) => {
+                let key: String = key.chars().take(64).collect();
+                ApiError::invalid_field(key, format!("invalid query parameter: {e}"))
+            }
+            None => ApiError::new(
                 ErrorCode::InvalidRequest,
                 format!("invalid query string: {e}"),
-            )
-        }),
-    }
+            ),
+        }
+    })
 }
 
+/// A job id from a path: canonical decimal only (no sign, no leading zero), so that
+/// `/jobs/01` and `/jobs/+1` do not alias `/jobs/1`.
 fn parse_id(id: &str) -> Result<u64, ApiError> {
-    id.parse::<u64>().map_err(|_| {
-        ApiError::new(
+    let canonical = !id.is_empty()
+        && id.bytes().all(|b| b.is_ascii_digit())
+        && (id == "0" || !id.starts_with('0'));
+    match id.parse::<u64>() {
+        Ok(n) if canonical => Ok(n),
+        _ => Err(ApiError::new(
             ErrorCode::NotFound,
-            format!("job {id:?} does not exist: job ids are positive integers"),
-        )
-    })
+            format!("job {id:?} does not exist: job ids are positive integers in decimal"),
+        )),
+    }
 }
 
 async fn submit_job(
@@ -280,7 +310,12 @@ async fn job_image(
 }
 
 fn body_error(e: BytesRejection) -> ApiError {
-    if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+    if crate::connections::is_body_timeout(&e) {
+        ApiError::new(
+            ErrorCode::RequestTimeout,
+            "the request body did not arrive in time (the body timeout); the connection is closed",
+        )
+    } else if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
         ApiError::new(
             ErrorCode::TooLarge,
             format!("the request body is too large: {}", e.body_text()),
@@ -359,12 +394,16 @@ async fn healthz(State(core): State<Coordinator>) -> Response {
     }
 }
 
-async fn metrics(State(core): State<Coordinator>) -> HttpResult<Response> {
-    Ok((
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
-        core.metrics()?,
-    )
-        .into_response())
+async fn metrics(
+    State(core): State<Coordinator>,
+    connections: Option<Extension<Arc<ConnectionStats>>>,
+) -> HttpResult<Response> {
+    let mut text = core.metrics().await?;
+    // The connection counters exist when the router runs under `serve`'s accept loop.
+    if let Some(Extension(c)) = connections {
+        text.push_str(&c.prometheus());
+    }
+    Ok(([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response())
 }
 
 async fn dashboard_asset(req: Request) -> Response {

@@ -17,6 +17,9 @@
 //!   encode.
 //! - [`http`]: the axum HTTP API v1 (ARCHITECTURE.md §5) and the dashboard routes.
 //! - [`dashboard`]: the browser dashboard's static files, embedded, served at `/`.
+//! - [`auth`]: the bearer-token rule both ports share.
+//! - [`connections`]: the HTTP port's accept loop with its connection limits and read,
+//!   body and idle timeouts ([`HttpLimits`]).
 //! - [`server`]: [`serve`], which runs both servers and the ticker on bound listeners and
 //!   shuts them down gracefully (workers told to stop, requests in flight finished).
 //!
@@ -27,6 +30,8 @@
 #![deny(missing_docs)]
 
 /// The browser dashboard's static files (HTML, CSS, JavaScript modules), embedded.
+pub mod auth;
+pub mod connections;
 pub mod dashboard;
 pub mod error;
 pub mod grpc;
@@ -36,4 +41,5 @@ pub mod service;
 pub mod state;
 pub mod store;
 
+pub use connections::HttpLimits;
 pub use server::{serve, serve_coordinator, shutdown_signal, Listeners, ServeError};

@@ -5,7 +5,8 @@
 //! `shutdown` future completes, then stops in this order:
 //!
 //! 1. The HTTP server stops accepting connections and lets the requests in flight finish
-//!    (axum's graceful shutdown).
+//!    (hyper's graceful shutdown; the connection loop with its limits and timeouts is in
+//!    [`crate::connections`]).
 //! 2. Workers are told to stop ([`Coordinator::begin_shutdown`]): from now on every
 //!    heartbeat answers `shutdown = true` and no new unit is leased, so a worker rendering
 //!    units finishes them, delivers the results and exits. The gRPC port
@@ -33,6 +34,7 @@
 //! ```
 
 use std::future::Future;
+use std::sync::Arc;
 use std::time::Duration;
 
 use tessera_api::WorkerState;
@@ -40,6 +42,7 @@ use tokio::net::TcpListener;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;
 
+use crate::connections::{serve_http, ConnectionStats};
 use crate::grpc::WorkerGrpc;
 use crate::service::{Coordinator, CoordinatorConfig};
 use crate::store::StoreError;
@@ -70,9 +73,6 @@ pub enum ServeError {
     /// A listener's address could not be read.
     #[error("{0}")]
     Io(#[from] std::io::Error),
-    /// The HTTP server stopped with an error before it was asked to stop.
-    #[error("the HTTP server failed: {0}")]
-    Http(std::io::Error),
     /// The gRPC server stopped with an error before it was asked to stop.
     #[error("the gRPC server failed: {0}")]
     Grpc(tonic::transport::Error),
@@ -105,7 +105,7 @@ pub async fn serve_coordinator(
     let (http_stop, http_stopped) = oneshot::channel::<()>();
     let (grpc_stop, grpc_stopped) = oneshot::channel::<()>();
     let ticker = core.spawn_ticker();
-    let http = spawn_http(&core, listeners.http, http_stopped, failed_tx.clone());
+    let http = spawn_http(&core, listeners.http, http_stopped);
     let grpc = spawn_grpc(&core, listeners.grpc, grpc_stopped, failed_tx);
     let failure = tokio::select! {
         _ = shutdown => None,
@@ -135,20 +135,15 @@ fn spawn_http(
     core: &Coordinator,
     listener: TcpListener,
     stop: oneshot::Receiver<()>,
-    failed: mpsc::Sender<ServeError>,
 ) -> JoinHandle<()> {
-    let app = crate::http::router(core.clone());
+    let stats = Arc::new(ConnectionStats::default());
+    let app = crate::http::router(core.clone()).layer(axum::Extension(stats.clone()));
+    let limits = core.config().http_limits;
     tokio::spawn(async move {
         let graceful = async move {
             let _ = stop.await;
         };
-        if let Err(e) = axum::serve(listener, app)
-            .with_graceful_shutdown(graceful)
-            .await
-        {
-            tracing::error!(error = %e, "HTTP server failed");
-            let _ = failed.send(ServeError::Http(e)).await;
-        }
+        serve_http(listener, app, limits, stats, graceful).await;
     })
 }
 

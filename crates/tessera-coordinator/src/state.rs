@@ -85,7 +85,21 @@ pub struct Farm {
     pub scenes: HashMap<String, Arc<Vec<u8>>>,
     /// What the coordinator tracks per job besides the scheduler.
     pub runtime: BTreeMap<JobId, JobRuntime>,
+    /// What workers removed from `workers` had done, so that `/metrics` counters stay
+    /// monotonic when lost workers are forgotten.
+    pub forgotten: ForgottenWorkers,
     next_worker: WorkerId,
+}
+
+/// Totals of the workers forgotten after being lost (`Coordinator::tick`).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ForgottenWorkers {
+    /// Workers removed from the listing.
+    pub workers: u64,
+    /// Units they had delivered.
+    pub units_done: u64,
+    /// Faults they had been counted.
+    pub faults: u64,
 }
 
 impl Farm {
@@ -99,6 +113,7 @@ impl Farm {
             jobs: BTreeMap::new(),
             scenes: HashMap::new(),
             runtime: BTreeMap::new(),
+            forgotten: ForgottenWorkers::default(),
             next_worker: 1,
         }
     }
@@ -263,14 +278,16 @@ impl TileRejected {
         self.buffered.retain(|&(pass, n)| {
             let done = pass < merged_passes;
             if done {
-                *merged += n;
+                *merged = merged.saturating_add(n);
             }
             !done
         });
     }
 
     fn total(&self) -> u64 {
-        self.merged + self.buffered.iter().map(|b| b.1).sum::<u64>()
+        self.buffered
+            .iter()
+            .fold(self.merged, |acc, b| acc.saturating_add(b.1))
     }
 }
 

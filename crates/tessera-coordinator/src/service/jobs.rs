@@ -18,8 +18,10 @@ use crate::store::{FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, TileSumma
 
 impl Coordinator {
     /// Accepts a job: validates it, resolves it against its scene, stores it, queues it.
-    /// With an idempotency key already used, returns the job created then. The flag is
-    /// whether the job is new.
+    /// With an idempotency key already used, returns the job created then if the
+    /// settings are the same (after defaults are filled in), and refuses with
+    /// [`CoordError::Conflict`] naming the key otherwise. The flag is whether the job is
+    /// new.
     pub async fn submit(
         &self,
         settings: JobSettings,
@@ -45,18 +47,36 @@ impl Coordinator {
             .inner
             .store
             .insert_job(NewJob {
-                settings_json,
+                settings_json: settings_json.clone(),
                 plan: resolved.plan,
                 frames: job.frames,
                 passes_per_unit: self.inner.cfg.passes_per_unit,
                 priority: job.priority,
                 scene_ref: job.scene.to_string(),
                 name: job.name.clone(),
-                idempotency_key,
+                idempotency_key: idempotency_key.clone(),
                 created_unix_ms: created,
             })
             .await?;
         if !new {
+            // The same key with other settings is a different request: refuse it rather
+            // than answer with a job the client did not ask for.
+            let same = self
+                .inner
+                .store
+                .get_job(id)
+                .await?
+                .is_some_and(|rec| rec.settings_json == settings_json);
+            if !same {
+                let key = idempotency_key.as_deref().unwrap_or_default();
+                return Err(CoordError::Conflict {
+                    field: "idempotency-key".into(),
+                    message: format!(
+                        "the key {key:?} was used for job {id} with other settings; \
+                         use a new key for a new job"
+                    ),
+                });
+            }
             return Ok((self.status(id).await?, false));
         }
         let black = resolved.black;
@@ -199,7 +219,13 @@ impl Coordinator {
                 CoordError::invalid_field("cursor", format!("expected a job id, got {c:?}"))
             })?),
         };
-        let limit = q.limit.unwrap_or(50).clamp(1, MAX_PAGE);
+        let limit = q.limit.unwrap_or(50);
+        if !(1..=MAX_PAGE).contains(&limit) {
+            return Err(CoordError::invalid_field(
+                "limit",
+                format!("must be between 1 and {MAX_PAGE}, got {limit}"),
+            ));
+        }
         let recs = self
             .inner
             .store

@@ -6,19 +6,27 @@ use std::fmt::Write;
 
 use super::Coordinator;
 use crate::error::CoordResult;
+use crate::state::now_ms;
 
 impl Coordinator {
-    /// Prometheus text exposition of the farm's counters and gauges.
-    pub fn metrics(&self) -> CoordResult<String> {
+    /// Prometheus text exposition of the farm's counters and gauges. The job counts are
+    /// the store's (every job, also those finished before a restart).
+    pub async fn metrics(&self) -> CoordResult<String> {
+        let by_state: BTreeMap<&str, u64> = self
+            .inner
+            .store
+            .count_jobs_by_state()
+            .await?
+            .into_iter()
+            .map(|(st, n)| (st.as_str(), n))
+            .collect();
+        let now = now_ms();
+        let lost_after = self.lost_after_ms();
         let farm = self.lock()?;
-        let mut by_state: BTreeMap<&str, u64> = BTreeMap::new();
-        for rt in farm.runtime.values() {
-            *by_state.entry(rt.state.as_str()).or_default() += 1;
-        }
         let mut s = String::new();
         let _ = writeln!(
             s,
-            "# HELP tessera_jobs Jobs known to this coordinator run, by state.\n# TYPE tessera_jobs gauge"
+            "# HELP tessera_jobs Jobs in the store, by state.\n# TYPE tessera_jobs gauge"
         );
         for st in ["queued", "running", "done", "failed", "canceled"] {
             let _ = writeln!(
@@ -27,9 +35,18 @@ impl Coordinator {
                 by_state.get(st).unwrap_or(&0)
             );
         }
-        let _ = writeln!(s, "# HELP tessera_workers Registered workers.\n# TYPE tessera_workers gauge\ntessera_workers {}", farm.workers.len());
-        let units: u64 = farm.workers.values().map(|w| w.units_done).sum();
-        let faults: u64 = farm.workers.values().map(|w| w.faults).sum();
+        let lost = farm
+            .workers
+            .values()
+            .filter(|w| now.saturating_sub(w.last_seen_ms) > lost_after)
+            .count();
+        let forgotten = farm.forgotten;
+        let _ = writeln!(s, "# HELP tessera_workers Listed workers (lost ones included).\n# TYPE tessera_workers gauge\ntessera_workers {}", farm.workers.len());
+        let _ = writeln!(s, "# HELP tessera_workers_lost Listed workers that stopped heartbeating.\n# TYPE tessera_workers_lost gauge\ntessera_workers_lost {lost}");
+        let _ = writeln!(s, "# HELP tessera_workers_forgotten_total Lost workers removed from the listing.\n# TYPE tessera_workers_forgotten_total counter\ntessera_workers_forgotten_total {}", forgotten.workers);
+        let units: u64 =
+            farm.workers.values().map(|w| w.units_done).sum::<u64>() + forgotten.units_done;
+        let faults: u64 = farm.workers.values().map(|w| w.faults).sum::<u64>() + forgotten.faults;
         let _ = writeln!(s, "# HELP tessera_units_merged_total Units accepted from workers.\n# TYPE tessera_units_merged_total counter\ntessera_units_merged_total {units}");
         let _ = writeln!(s, "# HELP tessera_worker_faults_total Refused results and mismatching duplicates.\n# TYPE tessera_worker_faults_total counter\ntessera_worker_faults_total {faults}");
         let _ = writeln!(s, "# HELP tessera_leases_outstanding Leases currently held by workers.\n# TYPE tessera_leases_outstanding gauge\ntessera_leases_outstanding {}", farm.scheduler.leases().count());

@@ -35,6 +35,7 @@ use std::time::{Duration, Instant};
 use tessera_api::JobState;
 use tessera_farm::JobId;
 
+use crate::connections::HttpLimits;
 use crate::error::{CoordError, CoordResult};
 use crate::state::{now_ms, Farm};
 use crate::store::{SqliteStore, Store, StoreError, WatchedStore};
@@ -55,11 +56,13 @@ pub use workers::{Heartbeat, LeaseGrant, MAX_UNUSABLE_RETURNS};
 pub const LEASE_ID_BLOCK: u64 = 4096;
 /// Largest accepted scene upload.
 pub const MAX_SCENE_BYTES: usize = 256 << 20;
+/// Default of [`CoordinatorConfig::forget_lost_ms`]: ten minutes.
+pub const FORGET_LOST_MS: u64 = 10 * 60 * 1000;
 /// Largest page of `GET /jobs`.
 pub const MAX_PAGE: u32 = 200;
 
-/// How to run a coordinator.
-#[derive(Clone, Debug)]
+/// How to run a coordinator. Its `Debug` form hides the tokens.
+#[derive(Clone)]
 pub struct CoordinatorConfig {
     /// Directory of the SQLite store.
     pub data_dir: PathBuf,
@@ -79,6 +82,29 @@ pub struct CoordinatorConfig {
     /// together (ARCHITECTURE.md §6, memory): frames beyond it wait for completed ones to be
     /// released, and a job one frame of which does not fit is refused at submission.
     pub memory_budget: u64,
+    /// The HTTP port's connection limits and timeouts.
+    pub http_limits: HttpLimits,
+    /// How long a worker stays listed (as `lost`) after it was marked lost, ms; then it is
+    /// forgotten and counted in `tessera_workers_forgotten_total`.
+    pub forget_lost_ms: u64,
+}
+
+impl std::fmt::Debug for CoordinatorConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let hidden = |t: &Option<String>| t.as_ref().map(|_| "<hidden>");
+        f.debug_struct("CoordinatorConfig")
+            .field("data_dir", &self.data_dir)
+            .field("api_token", &hidden(&self.api_token))
+            .field("worker_token", &hidden(&self.worker_token))
+            .field("lease_ms", &self.lease_ms)
+            .field("heartbeat_ms", &self.heartbeat_ms)
+            .field("grace_ms", &self.grace_ms)
+            .field("passes_per_unit", &self.passes_per_unit)
+            .field("memory_budget", &self.memory_budget)
+            .field("http_limits", &self.http_limits)
+            .field("forget_lost_ms", &self.forget_lost_ms)
+            .finish()
+    }
 }
 
 /// The default [`CoordinatorConfig::memory_budget`]: 4 GiB, the merge state of a
@@ -87,7 +113,8 @@ pub const DEFAULT_MEMORY_BUDGET: u64 = 4 << 30;
 
 impl CoordinatorConfig {
     /// Defaults for a data directory: 10 s leases, 1 s heartbeats, 3 s restart grace, one
-    /// pass per unit, no tokens, a [`DEFAULT_MEMORY_BUDGET`].
+    /// pass per unit, no tokens, the default HTTP limits ([`HttpLimits::default`]), lost
+    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`].
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
             data_dir: data_dir.into(),
@@ -98,6 +125,8 @@ impl CoordinatorConfig {
             grace_ms: 3_000,
             passes_per_unit: 1,
             memory_budget: DEFAULT_MEMORY_BUDGET,
+            http_limits: HttpLimits::default(),
+            forget_lost_ms: FORGET_LOST_MS,
         }
     }
 }
@@ -277,6 +306,7 @@ impl Coordinator {
                     rt.stopped = Some("time limit reached");
                 }
             }
+            self.forget_lost_workers(&mut farm, now);
         }
         for id in over_time {
             tracing::info!(job = id, "time limit reached");

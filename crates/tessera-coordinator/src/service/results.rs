@@ -200,25 +200,58 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
     let job = farm.scheduler.lease_job(d.lease_id).or_else(|| {
         (farm.scheduler.is_previous_run_lease(d.lease_id) && d.job_hint != 0).then_some(d.job_hint)
     });
+    let (worker, lease_id) = (d.worker, d.lease_id);
+    let known = farm.workers.contains_key(&worker);
     let worker_name = farm
         .workers
-        .get(&d.worker)
+        .get(&worker)
         .map(|w| w.name.clone())
-        .unwrap_or_else(|| format!("worker {}", d.worker));
-    let rejected_samples = d.result.as_ref().map_or(0, |r| r.rejected_samples);
-    let merged = match submit(farm, d.lease_id, job, d.result) {
+        .unwrap_or_else(|| format!("worker {worker}"));
+    if !known {
+        // A worker forgotten after it was lost, or one of a previous run: its result is
+        // still checked and merged like any other, and said so.
+        tracing::warn!(
+            worker,
+            lease_id,
+            "result from an unknown or forgotten worker"
+        );
+    }
+    // A diagnostic the worker reports, not validated by the farm: a unit cannot drop
+    // more samples than it traced, and an absurd count must neither overflow the sums nor
+    // fail the checkpoint after the merge (found by tests/fuzz_grpc.rs).
+    let per_pass = job
+        .and_then(|j| farm.jobs.get(&j))
+        .map_or(1, |e| u64::from(e.plan.samples_per_pass));
+    let rejected_samples = d.result.as_ref().map_or(0, |r| {
+        r.rejected_samples
+            .min((r.pass_means.len() as u64).saturating_mul(per_pass))
+    });
+    let merged = match submit(farm, lease_id, job, d.result) {
         // Not the worker's fault: the job went away. Nothing is recorded.
-        Err(Rejected::Canceled(j)) => return (Err(Rejected::Canceled(j)), writes),
+        Err(Rejected::Canceled(j)) => {
+            tracing::info!(
+                worker,
+                lease_id,
+                job = j,
+                "late result for a canceled job dropped"
+            );
+            return (Err(Rejected::Canceled(j)), writes);
+        }
         other => other,
     };
-    let w = farm.workers.entry(d.worker).or_default();
-    w.last_seen_ms = now;
+    // Only a registered worker is credited; an unknown id must not create a listing.
+    let mut w = farm.workers.get_mut(&worker);
+    if let Some(w) = w.as_deref_mut() {
+        w.last_seen_ms = now;
+    }
     let outcome = match merged {
         Ok(m) => match m.submitted {
             Submitted::Accepted => {
-                w.units_done += 1;
-                if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
-                    w.render_seconds += d.render_seconds;
+                if let Some(w) = w {
+                    w.units_done += 1;
+                    if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
+                        w.render_seconds += d.render_seconds;
+                    }
                 }
                 writes.checkpoint = record_merge(farm, &m, rejected_samples);
                 if let Some(rt) = farm.runtime.get_mut(&m.job) {
@@ -229,7 +262,17 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
                 writes.finished = complete.then_some(m.job);
                 Ok(Accepted::Merged)
             }
-            Submitted::Duplicate { identical: true } => Ok(Accepted::Duplicate),
+            Submitted::Duplicate { identical: true } => {
+                // Typically a worker that stalled past its lease while another rendered
+                // the unit: harmless, but visible.
+                tracing::warn!(
+                    worker,
+                    lease_id,
+                    job = m.job,
+                    "late result: the unit was already merged (identical copy dropped)"
+                );
+                Ok(Accepted::Duplicate)
+            }
             Submitted::Duplicate { identical: false } => Err(Rejected::Mismatch),
             Submitted::Late => {
                 tracing::info!(
@@ -243,7 +286,7 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
         Err(r) => Err(r),
     };
     if let Err(r) = &outcome {
-        writes.fault = record_fault(farm, d.worker, worker_name, job, r, now);
+        writes.fault = record_fault(farm, (worker, lease_id), worker_name, job, r, now);
     }
     (outcome, writes)
 }
@@ -365,7 +408,7 @@ fn history_point(
 /// to store (none if the refusal is not the worker's fault).
 fn record_fault(
     farm: &mut Farm,
-    worker: WorkerId,
+    (worker, lease_id): (WorkerId, u64),
     worker_name: String,
     job: Option<JobId>,
     r: &Rejected,
@@ -378,7 +421,7 @@ fn record_fault(
     if let Some(rt) = job.and_then(|j| farm.runtime.get_mut(&j)) {
         rt.faults += 1;
     }
-    tracing::warn!(worker, kind = kind.as_str(), error = %r, "result refused");
+    tracing::warn!(worker, lease_id, kind = kind.as_str(), error = %r, "result refused");
     Some(FaultEvent {
         worker: worker_name,
         job,

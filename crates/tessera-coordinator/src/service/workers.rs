@@ -10,7 +10,7 @@ use tessera_proto::LeasedUnit;
 
 use super::{Coordinator, LEASE_ID_BLOCK};
 use crate::error::{CoordError, CoordResult};
-use crate::state::{now_ms, WorkerEntry};
+use crate::state::{now_ms, Farm, WorkerEntry};
 
 /// Longest worker name accepted at registration.
 const MAX_WORKER_NAME: usize = 200;
@@ -270,12 +270,44 @@ impl Coordinator {
         now_ms() < self.inner.lease_blocked_until_ms
     }
 
+    /// A worker silent for longer than this is `lost`, ms: five missed heartbeats and two
+    /// seconds of slack.
+    pub(crate) fn lost_after_ms(&self) -> u64 {
+        u64::from(self.inner.cfg.heartbeat_ms) * 5 + 2_000
+    }
+
+    /// Removes workers that have been lost for [`CoordinatorConfig::forget_lost_ms`] and
+    /// hold no lease, keeping their totals in [`Farm::forgotten`] (called by `tick`).
+    ///
+    /// [`CoordinatorConfig::forget_lost_ms`]: super::CoordinatorConfig::forget_lost_ms
+    pub(crate) fn forget_lost_workers(&self, farm: &mut Farm, now: u64) {
+        let silent = self
+            .lost_after_ms()
+            .saturating_add(self.inner.cfg.forget_lost_ms);
+        let gone: Vec<WorkerId> = farm
+            .workers
+            .iter()
+            .filter(|(&id, w)| {
+                now.saturating_sub(w.last_seen_ms) > silent
+                    && !farm.scheduler.leases().any(|l| l.worker == id)
+            })
+            .map(|(&id, _)| id)
+            .collect();
+        for id in gone {
+            if let Some(w) = farm.workers.remove(&id) {
+                farm.forgotten.workers += 1;
+                farm.forgotten.units_done += w.units_done;
+                farm.forgotten.faults += w.faults;
+                tracing::info!(worker = id, name = %w.name, "lost worker forgotten");
+            }
+        }
+    }
+
     /// `GET /workers`.
     pub fn workers(&self) -> CoordResult<WorkerList> {
         let farm = self.lock()?;
         let now = now_ms();
-        // Lost after five missed heartbeats and two seconds of slack.
-        let lost_after = u64::from(self.inner.cfg.heartbeat_ms) * 5 + 2_000;
+        let lost_after = self.lost_after_ms();
         let workers = farm
             .workers
             .iter()

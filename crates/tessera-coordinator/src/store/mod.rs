@@ -504,6 +504,10 @@ pub trait Store: Send + Sync {
         now_unix_ms: u64,
     ) -> StoreResult<bool>;
 
+    /// How many jobs the store holds in each state (states without jobs omitted): the
+    /// job counts of `/metrics`, right after a restart too.
+    async fn count_jobs_by_state(&self) -> StoreResult<Vec<(JobState, u64)>>;
+
     /// The jobs to resume after a restart: every queued or running job, oldest first (the
     /// order to add them to the scheduler so first-come-first-served is kept).
     async fn jobs_to_resume(&self) -> StoreResult<Vec<JobRecord>>;

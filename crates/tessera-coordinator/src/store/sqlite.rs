@@ -707,6 +707,21 @@ impl Store for SqliteStore {
         }
     }
 
+    async fn count_jobs_by_state(&self) -> StoreResult<Vec<(JobState, u64)>> {
+        let rows = sqlx::query("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state")
+            .fetch_all(&self.reader)
+            .await?;
+        rows.iter()
+            .map(|row| {
+                let state: String = row.try_get("state")?;
+                let n: i64 = row.try_get("n")?;
+                let state = parse_state(&state)
+                    .ok_or_else(|| StoreError::Corrupt(format!("jobs: unknown state {state:?}")))?;
+                Ok((state, n.max(0) as u64))
+            })
+            .collect()
+    }
+
     async fn jobs_to_resume(&self) -> StoreResult<Vec<JobRecord>> {
         let rows = sqlx::query(&format!(
             "SELECT {JOB_COLUMNS} FROM jobs WHERE state IN ('queued', 'running') ORDER BY id"

@@ -116,6 +116,10 @@ impl Store for WatchedStore {
         self.inner.load_tiles(job, frame).await
     }
 
+    async fn count_jobs_by_state(&self) -> StoreResult<Vec<(JobState, u64)>> {
+        self.inner.count_jobs_by_state().await
+    }
+
     async fn tile_summaries(&self, job: JobId) -> StoreResult<Vec<TileSummary>> {
         self.inner.tile_summaries(job).await
     }

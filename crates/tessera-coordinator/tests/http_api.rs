@@ -1,0 +1,264 @@
+//! The HTTP API's smaller promises (robustness issue, item 8), over a real port: the
+//! token guards `/metrics`, the `Bearer` scheme in any case, idempotency conflicts, the
+//! `limit` range, canonical job ids, job counts after a restart, lost workers forgotten,
+//! results from unknown workers not listed. Every wait is bounded by [`HANG`].
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use tessera_api::JobSettings;
+use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
+use tessera_coordinator::{serve_coordinator, Listeners};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::oneshot;
+
+const HANG: Duration = Duration::from_secs(30);
+
+async fn bounded<T>(what: &str, f: impl Future<Output = T>) -> T {
+    tokio::time::timeout(HANG, f)
+        .await
+        .unwrap_or_else(|_| panic!("{what}: nothing happened within {HANG:?}"))
+}
+
+async fn start(
+    cfg: CoordinatorConfig,
+) -> (SocketAddr, SocketAddr, Coordinator, oneshot::Sender<()>) {
+    let core = Coordinator::open(cfg).await.unwrap();
+    let http = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let grpc = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let (h, g) = (http.local_addr().unwrap(), grpc.local_addr().unwrap());
+    let (tx, rx) = oneshot::channel::<()>();
+    tokio::spawn(serve_coordinator(
+        core.clone(),
+        Listeners { http, grpc },
+        async {
+            let _ = rx.await;
+        },
+    ));
+    (h, g, core, tx)
+}
+
+/// The answer to one request: status, lower-cased head, body.
+struct Answer {
+    status: u16,
+    body: String,
+}
+
+impl Answer {
+    fn json(&self) -> serde_json::Value {
+        serde_json::from_str(&self.body).unwrap_or_else(|e| panic!("{e}: {}", self.body))
+    }
+}
+
+/// One HTTP/1.1 request (`headers` are whole lines without CRLF).
+async fn request(
+    addr: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[&str],
+    body: &str,
+) -> Answer {
+    bounded("an HTTP request", async {
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        let mut req = format!(
+            "{method} {path} HTTP/1.1\r\nHost: t\r\nConnection: close\r\nContent-Length: {}\r\n",
+            body.len()
+        );
+        for h in headers {
+            req.push_str(h);
+            req.push_str("\r\n");
+        }
+        req.push_str("\r\n");
+        req.push_str(body);
+        s.write_all(req.as_bytes()).await.unwrap();
+        let mut out = Vec::new();
+        s.read_to_end(&mut out).await.unwrap();
+        let text = String::from_utf8_lossy(&out).into_owned();
+        let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+        let status = head
+            .split(' ')
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or_else(|| panic!("no status in {head:?}"));
+        Answer {
+            status,
+            body: body.to_string(),
+        }
+    })
+    .await
+}
+
+const JOB: &str = r#"{"scene":"builtin:cornell-box","width":16,"height":16,"spp":4}"#;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_api_token_guards_metrics_and_any_case_of_bearer_is_accepted() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    cfg.api_token = Some("s3cret".into());
+    let (http, _, _core, _stop) = start(cfg).await;
+    assert_eq!(request(http, "GET", "/metrics", &[], "").await.status, 401);
+    let wrong = ["Authorization: Bearer nope"];
+    assert_eq!(
+        request(http, "GET", "/metrics", &wrong, "").await.status,
+        401
+    );
+    assert_eq!(request(http, "GET", "/healthz", &[], "").await.status, 200);
+    for scheme in ["Bearer", "bearer", "BEARER"] {
+        let auth = format!("Authorization: {scheme} s3cret");
+        let m = request(http, "GET", "/metrics", &[&auth], "").await;
+        assert_eq!(m.status, 200, "{scheme}: {}", m.body);
+        assert!(
+            m.body.contains("tessera_jobs{state=\"queued\"}"),
+            "{}",
+            m.body
+        );
+        assert!(
+            m.body.contains("tessera_http_connections_open"),
+            "{}",
+            m.body
+        );
+        let jobs = request(http, "GET", "/api/v1/jobs", &[&auth], "").await;
+        assert_eq!(jobs.status, 200, "{scheme}: {}", jobs.body);
+    }
+    assert_eq!(
+        request(http, "GET", "/api/v1/jobs", &[], "").await.status,
+        401
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_idempotency_key_reused_with_other_settings_is_a_conflict() {
+    let dir = tempfile::tempdir().unwrap();
+    let (http, _, _core, _stop) = start(CoordinatorConfig::new(dir.path())).await;
+    let key = [
+        "Content-Type: application/json",
+        "idempotency-key: render-42",
+    ];
+    let first = request(http, "POST", "/api/v1/jobs", &key, JOB).await;
+    assert_eq!(first.status, 201, "{}", first.body);
+    let id = first.json()["id"].as_u64().unwrap();
+    // The same settings (even written differently) are the same request.
+    let same = r#"{"spp":4,"height":16,"width":16,"scene":"builtin:cornell-box"}"#;
+    let again = request(http, "POST", "/api/v1/jobs", &key, same).await;
+    assert_eq!(again.status, 200, "{}", again.body);
+    assert_eq!(again.json()["id"].as_u64(), Some(id));
+    let other = r#"{"scene":"builtin:cornell-box","width":16,"height":16,"spp":8}"#;
+    let conflict = request(http, "POST", "/api/v1/jobs", &key, other).await;
+    assert_eq!(conflict.status, 409, "{}", conflict.body);
+    let e = conflict.json();
+    assert_eq!(e["error"]["code"], "conflict");
+    assert_eq!(e["error"]["field"], "idempotency-key");
+    assert!(
+        e["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("render-42"),
+        "{e}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn limit_outside_its_range_and_non_canonical_ids_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let (http, _, _core, _stop) = start(CoordinatorConfig::new(dir.path())).await;
+    let json = ["Content-Type: application/json"];
+    assert_eq!(
+        request(http, "POST", "/api/v1/jobs", &json, JOB)
+            .await
+            .status,
+        201
+    );
+    for bad in ["0", "201", "-1", "abc", "99999999999"] {
+        let a = request(http, "GET", &format!("/api/v1/jobs?limit={bad}"), &[], "").await;
+        assert_eq!(a.status, 400, "limit={bad}: {}", a.body);
+        assert_eq!(
+            a.json()["error"]["field"],
+            "limit",
+            "limit={bad}: {}",
+            a.body
+        );
+    }
+    for good in ["1", "200"] {
+        let a = request(http, "GET", &format!("/api/v1/jobs?limit={good}"), &[], "").await;
+        assert_eq!(a.status, 200, "limit={good}: {}", a.body);
+    }
+    let unknown = request(http, "GET", "/api/v1/jobs?colour=red", &[], "").await;
+    assert_eq!(unknown.status, 400);
+    assert_eq!(unknown.json()["error"]["field"], "colour");
+    assert_eq!(
+        request(http, "GET", "/api/v1/jobs/1", &[], "").await.status,
+        200
+    );
+    for alias in ["+1", "01", "1.0", "%2B1", " 1"] {
+        let path = format!("/api/v1/jobs/{}", alias.replace(' ', "%20"));
+        for p in [
+            path.clone(),
+            format!("{path}/history"),
+            format!("{path}/tiles"),
+        ] {
+            let a = request(http, "GET", &p, &[], "").await;
+            assert_eq!(a.status, 404, "{p}: {}", a.body);
+        }
+        let a = request(http, "DELETE", &path, &[], "").await;
+        assert_eq!(a.status, 404, "DELETE {path}: {}", a.body);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn job_counts_in_metrics_survive_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
+    let (a, _) = core.submit(job.clone(), None).await.unwrap();
+    let _ = core.submit(job, None).await.unwrap();
+    core.cancel(a.id).await.unwrap();
+    let before = core.metrics().await.unwrap();
+    core.store().close().await;
+    drop(core);
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let after = core.metrics().await.unwrap();
+    for line in [
+        "tessera_jobs{state=\"queued\"} 1",
+        "tessera_jobs{state=\"canceled\"} 1",
+    ] {
+        assert!(before.contains(line), "{before}");
+        assert!(after.contains(line), "{after}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lost_workers_are_forgotten_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    (cfg.heartbeat_ms, cfg.forget_lost_ms) = (10, 100);
+    let core = Coordinator::open(cfg).await.unwrap();
+    let stays = core.register_worker("stays".into(), 1, "t").unwrap();
+    let _lost = core.register_worker("goes".into(), 1, "t").unwrap();
+    bounded("the lost worker forgotten", async {
+        loop {
+            core.heartbeat(stays, 0.0, &[]).unwrap();
+            core.tick().await;
+            let names: Vec<String> = core
+                .workers()
+                .unwrap()
+                .workers
+                .into_iter()
+                .map(|w| w.name)
+                .collect();
+            if names == ["stays"] {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    let m = core.metrics().await.unwrap();
+    assert!(m.contains("tessera_workers_forgotten_total 1"), "{m}");
+    assert!(m.contains("tessera_workers 1\n"), "{m}");
+}
