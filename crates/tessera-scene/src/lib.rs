@@ -59,6 +59,20 @@ pub const MAX_INPUT_BYTES: u64 = 1 << 30;
 /// limit takes 256 MiB as stored (RGBA8), a 16-bit one 1 GiB (RGBA f32).
 pub const MAX_IMAGE_TEXELS: u64 = 8192 * 8192;
 
+/// Most nodes a glTF document may have: 1 Mi (1,048,576), three times the 300,000
+/// instancing nodes of the robustness issue's scene (which imports, analyses and builds
+/// in about 2 s). The same bound applies to every other top-level array of the document
+/// (meshes, accessors, materials, ...), counted before the document is parsed: a parsed
+/// node takes a few hundred bytes, so a file of empty nodes would otherwise need a hundred
+/// times its size.
+pub const MAX_NODES: u64 = 1 << 20;
+
+/// Most triangles a scene may store: 32 Mi (33,554,432), counting each world-space mesh
+/// and each instanced prototype once (instances of a prototype add none; they are bounded
+/// by [`MAX_NODES`] and the import's memory budget). The renderer needs about 150 bytes
+/// a stored triangle with its BVH, so the limit is about 5 GB.
+pub const MAX_TRIANGLES: u64 = 1 << 25;
+
 /// Largest total of decoded texels over every image of a scene: 256 Mi, four images at
 /// [`MAX_IMAGE_TEXELS`] (1 GiB as 8-bit RGBA). Checked from each header before decoding.
 pub const MAX_SCENE_TEXELS: u64 = 4 * MAX_IMAGE_TEXELS;

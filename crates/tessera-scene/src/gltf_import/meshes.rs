@@ -112,6 +112,7 @@ impl Importer<'_> {
                     None => {
                         let name = prim_name(mi, &self.root.meshes[mi], pi);
                         self.add_output(primitive_bytes(&local), &name)?;
+                        self.add_triangles(local.triangles.len(), &name)?;
                         let p = geometry.prototypes.len() as u32;
                         let mesh = object_space_mesh(&local, name);
                         prototype_bounds.push(crate::mesh_bounds(&mesh));
@@ -314,6 +315,7 @@ impl Importer<'_> {
         let name = prim_name(mi, &self.root.meshes[mi], pi);
         let local = self.local_primitive(mi, pi)?;
         self.add_output(primitive_bytes(&local), &format!("node {ni} {name}"))?;
+        self.add_triangles(local.triangles.len(), &format!("node {ni} {name}"))?;
         let positions: Vec<Vec3> = local
             .positions
             .iter()

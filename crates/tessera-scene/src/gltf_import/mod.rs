@@ -172,6 +172,10 @@ struct Limits {
     image_texels: u64,
     /// [`crate::MAX_SCENE_TEXELS`].
     scene_texels: u64,
+    /// [`crate::MAX_NODES`], for every top-level array.
+    elements: u64,
+    /// [`crate::MAX_TRIANGLES`], stored.
+    triangles: u64,
 }
 
 impl Limits {
@@ -180,6 +184,8 @@ impl Limits {
         bytes: MAX_INPUT_BYTES,
         image_texels: crate::MAX_IMAGE_TEXELS,
         scene_texels: crate::MAX_SCENE_TEXELS,
+        elements: crate::MAX_NODES,
+        triangles: crate::MAX_TRIANGLES,
     };
 }
 
@@ -283,6 +289,9 @@ struct Importer<'a> {
     limits: Limits,
     /// Bytes of buffers and external images read so far.
     input_bytes: u64,
+    /// Triangles stored so far (world-space meshes and prototypes), against
+    /// [`crate::MAX_TRIANGLES`].
+    stored_triangles: u64,
     /// Decoded texels of the images so far, against [`crate::MAX_SCENE_TEXELS`].
     texels: u64,
     /// Estimated bytes of output so far (a prototype counts once, an instance as its
@@ -338,7 +347,7 @@ impl<'a> Importer<'a> {
         } else {
             (bytes, None)
         };
-        let root = parse_json(json_bytes).map_err(gerr)?;
+        let root = parse_json(json_bytes, limits.elements).map_err(gerr)?;
         let mut imp = Importer {
             file,
             root,
@@ -347,6 +356,7 @@ impl<'a> Importer<'a> {
             limits,
             input_bytes: 0,
             texels: 0,
+            stored_triangles: 0,
             output_bytes: 0,
             buffers: Vec::new(),
             textures: Vec::new(),
@@ -403,6 +413,19 @@ impl<'a> Importer<'a> {
         };
         scene.validate()?;
         Ok(scene)
+    }
+
+    /// Counts `n` more stored triangles (for `what`) against [`crate::MAX_TRIANGLES`].
+    fn add_triangles(&mut self, n: usize, what: &str) -> Res<()> {
+        self.stored_triangles = self.stored_triangles.saturating_add(n as u64);
+        let limit = self.limits.triangles;
+        if self.stored_triangles > limit {
+            return self.err(format!(
+                "{what}: the scene would store more than {limit} triangles (MAX_TRIANGLES; \
+                 a mesh placed at several nodes is stored once)"
+            ));
+        }
+        Ok(())
     }
 
     /// Counts `bytes` of output against the output budget.
@@ -528,6 +551,38 @@ mod tests {
         let e = load(&[(8, 8), (6, 6), (1, 1)]).unwrap_err().to_string();
         assert!(e.contains("image 2") && e.contains("101 texels"), "{e}");
         assert!(e.contains("limit of 100 texels per scene"), "{e}");
+    }
+
+    /// Node and triangle caps, with small limits: an overlong top-level array is refused
+    /// before the document is parsed, naming the array and the limit; stored triangles
+    /// are counted as meshes are placed, naming the node and primitive.
+    #[test]
+    fn documents_over_the_node_and_triangle_caps_are_refused() {
+        let glb = glb_with_images(&[]);
+        let with = |elements, triangles| Limits {
+            elements,
+            triangles,
+            ..Limits::DEFAULT
+        };
+        assert!(load_bytes(&glb, "t.glb", None, None, with(1, 1)).is_ok());
+        let e = load_bytes(&glb, "t.glb", None, None, with(1, 0))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("node 0 mesh 0 primitive 0"), "{e}");
+        assert!(e.contains("more than 0 triangles (MAX_TRIANGLES"), "{e}");
+        let nodes = br#"{"asset":{"version":"2.0"},"nodes":[{},{},{},{}]}"#;
+        let e = load_bytes(nodes, "n.gltf", None, None, with(3, 1))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("\"nodes\" array has more than 3 elements (MAX_NODES)"),
+            "{e}"
+        );
+        // Malformed JSON still gets the parser's own message.
+        let e = load_bytes(b"{\"nodes\":[", "m.gltf", None, None, with(3, 1))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("invalid glTF JSON"), "{e}");
     }
 
     #[test]
