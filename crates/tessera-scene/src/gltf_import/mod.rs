@@ -95,7 +95,9 @@
 //! capped at [`MAX_INPUT_BYTES`] (the file, and separately the sum of its buffers and
 //! images), images at [`crate::MAX_IMAGE_TEXELS`] each and [`crate::MAX_SCENE_TEXELS`]
 //! together (read from each image's header before it is decoded, so a decompression bomb
-//! costs nothing), and the output at four times the input limit, where a prototype counts once and an
+//! costs nothing), every top-level array of the document at [`crate::MAX_NODES`] elements
+//! (counted before the JSON is parsed), stored triangles at [`crate::MAX_TRIANGLES`], and
+//! the output at four times the input limit, where a prototype counts once and an
 //! instance as its transform (so 10,000 instances of a large tree load). Every error names
 //! the file and the element (node, mesh, primitive, material, accessor, buffer view,
 //! buffer, image index) that is wrong.
