@@ -97,7 +97,7 @@ enum BenchCommand {
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Render(args) => render::render(args),
+        Command::Render(args) => contained("rendering", || render::render(args)),
         Command::Bench(mut args) => match args.what.take() {
             Some(BenchCommand::Accuracy(a)) => accuracy::bench_accuracy(a),
             None => bench(args),
@@ -114,6 +114,26 @@ fn main() {
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
+    }
+}
+
+/// Runs `f`, turning a panic into an error, so that no scene file makes `tessera render`
+/// exit with a panic (code 101): scene import and validation return errors, and a panic
+/// past them (building the BVH, tracing) is a bug reported as one, with exit code 1. The
+/// default panic hook has already printed the location by then.
+fn contained(what: &str, f: impl FnOnce() -> Result<()>) -> Result<()> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(payload) => {
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "a panic without a message".into());
+            Err(anyhow::anyhow!(
+                "{what} panicked: {message} (a bug in Tessera: please report it with the scene)"
+            ))
+        }
     }
 }
 

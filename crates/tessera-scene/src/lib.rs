@@ -52,6 +52,31 @@ pub const MAX_COORDINATE: f32 = 1e12;
 /// Largest scene file accepted, in bytes (glTF JSON, .glb, or the sum of its buffers).
 pub const MAX_INPUT_BYTES: u64 = 1 << 30;
 
+/// Largest image accepted, in decoded texels (width x height): 8192 x 8192 = 64 Mi, or
+/// any other shape of that area. Checked from the image's header before anything is
+/// decoded, so a small compressed file that would decode to gigabytes (a decompression
+/// bomb: a 0.26 MB PNG of 16384 x 16384 zeros) is refused at once. An 8-bit image at the
+/// limit takes 256 MiB as stored (RGBA8), a 16-bit one 1 GiB (RGBA f32).
+pub const MAX_IMAGE_TEXELS: u64 = 8192 * 8192;
+
+/// Most nodes a glTF document may have: 1 Mi (1,048,576), three times the 300,000
+/// instancing nodes of the robustness issue's scene (which imports, analyses and builds
+/// in about 2 s). The same bound applies to every other top-level array of the document
+/// (meshes, accessors, materials, ...), counted before the document is parsed: a parsed
+/// node takes a few hundred bytes, so a file of empty nodes would otherwise need a hundred
+/// times its size.
+pub const MAX_NODES: u64 = 1 << 20;
+
+/// Most triangles a scene may store: 32 Mi (33,554,432), counting each world-space mesh
+/// and each instanced prototype once (instances of a prototype add none; they are bounded
+/// by [`MAX_NODES`] and the import's memory budget). The renderer needs about 150 bytes
+/// a stored triangle with its BVH, so the limit is about 5 GB.
+pub const MAX_TRIANGLES: u64 = 1 << 25;
+
+/// Largest total of decoded texels over every image of a scene: 256 Mi, four images at
+/// [`MAX_IMAGE_TEXELS`] (1 GiB as 8-bit RGBA). Checked from each header before decoding.
+pub const MAX_SCENE_TEXELS: u64 = 4 * MAX_IMAGE_TEXELS;
+
 /// An error while loading or validating a scene. The message names the file and the
 /// element (node, mesh, material, accessor index) that is wrong.
 #[derive(Debug, thiserror::Error)]
@@ -169,6 +194,45 @@ impl Instance {
     pub fn mirrors(&self) -> bool {
         self.world_from_object.matrix3.determinant() < 0.0
     }
+}
+
+/// The object-space bounds (min, max) of the vertices `mesh`'s triangles use, `None` for
+/// a mesh without triangles.
+pub(crate) fn mesh_bounds(mesh: &Mesh) -> Option<(Vec3, Vec3)> {
+    let mut lo = Vec3::splat(f32::INFINITY);
+    let mut hi = Vec3::splat(f32::NEG_INFINITY);
+    for &v in mesh.indices.iter().flatten() {
+        let p = *mesh.positions.get(v as usize)?;
+        lo = lo.min(p);
+        hi = hi.max(p);
+    }
+    (lo.x <= hi.x).then_some((lo, hi))
+}
+
+/// A vertex of `mesh` that `world_from_object` places at a non-finite point or beyond
+/// [`MAX_COORDINATE`], with where it lands; `bounds` are the mesh's [`mesh_bounds`]. The
+/// eight corners of the bounds are checked first, so a placement well inside the range
+/// (every placement of a sane scene) costs eight transforms however large the mesh; only
+/// when a corner is out are the vertices themselves checked, so the answer is exact.
+pub(crate) fn far_vertex(
+    mesh: &Mesh,
+    bounds: Option<(Vec3, Vec3)>,
+    world_from_object: &Affine3A,
+) -> Option<(usize, Vec3)> {
+    let out = |p: Vec3| !p.is_finite() || p.abs().max_element() > MAX_COORDINATE;
+    let (lo, hi) = bounds?;
+    let corner_out = (0..8).any(|k| {
+        let c = Vec3::select(glam::BVec3::new(k & 1 != 0, k & 2 != 0, k & 4 != 0), hi, lo);
+        out(world_from_object.transform_point3(c))
+    });
+    if !corner_out {
+        return None;
+    }
+    mesh.positions
+        .iter()
+        .map(|&p| world_from_object.transform_point3(p))
+        .enumerate()
+        .find(|&(_, w)| out(w))
 }
 
 /// A mesh as placed in the world: a world-space mesh of [`Scene::meshes`] (no transform),
@@ -464,6 +528,8 @@ impl Scene {
                 }
             }
         }
+        let proto_bounds: Vec<Option<(Vec3, Vec3)>> =
+            self.prototypes.iter().map(mesh_bounds).collect();
         for (i, inst) in self.instances.iter().enumerate() {
             let Some(proto) = self.prototypes.get(inst.prototype as usize) else {
                 return bad(format!(
@@ -479,20 +545,12 @@ impl Scene {
                     inst.prototype
                 ));
             }
-            let far = proto.positions.iter().find(|&&p| {
-                inst.world_from_object
-                    .transform_point3(p)
-                    .abs()
-                    .max_element()
-                    > MAX_COORDINATE
-            });
-            if let Some(p) = far {
+            let bounds = proto_bounds[inst.prototype as usize];
+            if let Some((v, at)) = far_vertex(proto, bounds, &inst.world_from_object) {
                 return bad(format!(
-                    "instance {i} of prototype {} ({}) places a vertex at {}, beyond \
+                    "instance {i} of prototype {} ({}) places vertex {v} at {at}, beyond \
                      ±{MAX_COORDINATE:e} scene units",
-                    inst.prototype,
-                    proto.name,
-                    inst.world_from_object.transform_point3(*p)
+                    inst.prototype, proto.name,
                 ));
             }
             if self

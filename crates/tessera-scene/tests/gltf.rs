@@ -4,13 +4,14 @@
 mod gltf_gen;
 
 use glam::{Vec2, Vec3};
-use gltf_gen::{base64, png_grey16, png_rgb8, scratch_dir, Gen};
+use gltf_gen::{base64, png_grey16, png_rgb8, png_zeros, scratch_dir, Gen};
 use serde_json::json;
 use std::f32::consts::{FRAC_1_SQRT_2, FRAC_PI_4};
 use std::path::{Path, PathBuf};
 use tessera_scene::gltf_import::{load_path, load_slice, photometric_to_radiometric};
 use tessera_scene::{
-    builtin, GltfMaterial, MaterialKind, PunctualLight, Scene, SceneError, Wrap, MAX_INPUT_BYTES,
+    builtin, GltfMaterial, MaterialKind, PunctualLight, Scene, SceneError, Wrap, MAX_IMAGE_TEXELS,
+    MAX_INPUT_BYTES,
 };
 
 const TRI: [[f32; 3]; 3] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
@@ -731,12 +732,40 @@ fn coordinates_beyond_the_renderable_range_are_errors() {
     g.doc["nodes"][0]["scale"] = json!([1e38, 1e38, 1e38]);
     let e = error_of(load(&g.glb()));
     assert_mentions(&e, &["node 0", "beyond", "scale"]);
-    // The same mesh used twice is an instanced prototype: its placements are checked too.
+    // The same mesh used twice is an instanced prototype: its placements are checked too,
+    // and the error names the node that places it.
     let mut g = basic();
-    g.doc["nodes"][0]["scale"] = json!([1e38, 1e38, 1e38]);
     g.root(json!({"mesh": 0}));
+    let s = load(&g.glb()).unwrap();
+    assert_eq!((s.meshes.len(), s.instances.len()), (0, 2));
+    g.doc["nodes"][1]["scale"] = json!([1e38, 1e38, 1e38]);
     let e = error_of(load(&g.glb()));
-    assert!(e.contains("beyond"), "{e}");
+    assert_mentions(&e, &["node 1", "beyond", "scale"]);
+    // Finite transforms whose product overflows f32 in world space name the node too.
+    let mut g = basic();
+    g.root(json!({"mesh": 0, "translation": [3e38, 0.0, 0.0], "scale": [1e3, 1.0, 1.0]}));
+    assert_mentions(&error_of(load(&g.glb())), &["node 1"]);
+    // EXT_mesh_gpu_instancing: the error names the node and the instance.
+    let mut g = basic();
+    g.uses("EXT_mesh_gpu_instancing");
+    let t = g.vec3(&[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 5e12, 0.0]]);
+    g.doc["nodes"][0]["extensions"] =
+        json!({"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": t}}});
+    let e = error_of(load(&g.glb()));
+    assert_mentions(&e, &["node 0 EXT_mesh_gpu_instancing instance 2", "beyond"]);
+    // A NaN in a node matrix of an instancing node is refused before placement.
+    let text = String::from_utf8(g.gltf()).unwrap().replace(
+        "\"name\": \"root\"",
+        "\"name\": \"root\", \"matrix\": [1,0,0,0, 0,1,0,0, 0,0,1,0, NaN,0,0,1]",
+    );
+    assert!(text.contains("NaN"));
+    assert!(load(text.as_bytes()).is_err());
+    let mut g = basic();
+    g.root(
+        json!({"mesh": 0, "matrix": [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0,
+        1.0, 0.0, 0.0, 1e39, 0.0, 1.0]}),
+    );
+    assert_mentions(&error_of(load(&g.glb())), &["node 1", "matrix"]);
     // Large but sane scenes load.
     let mut g = basic();
     g.doc["nodes"][0]["scale"] = json!([1e9, 1e9, 1e9]);
@@ -805,6 +834,41 @@ fn textured(image: serde_json::Value) -> Gen {
     let t = g.push("textures", json!({"source": i}));
     g.doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] = json!({"index": t});
     g
+}
+
+/// The robustness issue's decompression bombs: .glb files under 1 MB whose embedded PNG
+/// decodes to 16384 x 16384 or 32768 x 8192 (256 Mi texels, 1 GiB as RGBA) are refused
+/// from the PNG header, naming the image and the limit, before anything is decoded.
+#[test]
+fn decompression_bombs_are_refused_from_the_header() {
+    for (w, h) in [(16384, 16384), (32768, 8192)] {
+        let png = png_zeros(w, h);
+        let mut g = basic();
+        let v = g.view(&png);
+        let mut g = {
+            let i = g.push(
+                "images",
+                json!({"name": "bomb", "bufferView": v, "mimeType": "image/png"}),
+            );
+            let t = g.push("textures", json!({"source": i}));
+            g.doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] = json!({"index": t});
+            g
+        };
+        let glb = g.glb();
+        assert!(glb.len() < 1 << 20, "{w}x{h}: {} bytes", glb.len());
+        let e = error_of(load(&glb));
+        assert_mentions(
+            &e,
+            &[
+                "image 0 'bomb'",
+                &format!("{w}x{h}"),
+                &format!("limit of {MAX_IMAGE_TEXELS} texels per image"),
+            ],
+        );
+        // Without a name, the error names the index.
+        g.doc["images"][0].as_object_mut().unwrap().remove("name");
+        assert_mentions(&error_of(load(&g.glb())), &["image 0:"]);
+    }
 }
 
 #[test]

@@ -261,8 +261,10 @@ async fn serve(
                 jobs.par_iter()
                     .map(|(l, rs)| {
                         let t = Instant::now();
-                        let r = render_unit(rs, &l.settings, &l.plan, l.unit);
-                        let paths = r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass);
+                        let r = render_contained(rs, l);
+                        let paths = r.as_ref().map_or(0.0, |r| {
+                            r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass)
+                        });
                         (l.lease_id, l.job_id, r, t.elapsed().as_secs_f64(), paths)
                     })
                     .collect::<Vec<_>>()
@@ -288,6 +290,36 @@ async fn serve(
         let seconds = started.elapsed().as_secs_f64().max(1e-9);
         let paths: f64 = results.iter().map(|r| r.4).sum();
         paths_per_second = paths / seconds;
+        // A unit whose rendering panicked is a fault of its scene, not of this worker:
+        // give its lease back as unusable, so the coordinator fails the job after a few
+        // such returns instead of leasing the unit forever (docs/ARCHITECTURE.md §6).
+        let mut rendered = Vec::with_capacity(results.len());
+        let mut panicked = Vec::new();
+        let mut why = String::new();
+        for (lease_id, job_id, result, secs, paths) in results {
+            match result {
+                Ok(r) => rendered.push((lease_id, job_id, r, secs, paths)),
+                Err(message) => {
+                    tracing::error!(lease_id, job_id, error = %message, "rendering panicked; returning lease");
+                    if !canceled.contains(&lease_id) {
+                        panicked.push(lease_id);
+                    }
+                    if why.is_empty() {
+                        why = format!("rendering panicked: {message}");
+                    }
+                }
+            }
+        }
+        if !panicked.is_empty() {
+            client
+                .return_leases(v1::ReturnLeasesRequest {
+                    worker_id,
+                    lease_ids: panicked,
+                    unusable: why,
+                })
+                .await?;
+        }
+        let results = rendered;
         // Submit in the background while the next units render: the coordinator commits
         // each result to its store before acknowledging it, and the worker's threads should
         // not wait for that. One batch is in flight at a time; its errors end the session.
@@ -311,6 +343,36 @@ async fn serve(
             }
             Ok(())
         }));
+    }
+}
+
+/// Set to a job seed, makes rendering every unit of jobs with that seed panic. For tests
+/// of the panic containment only (no input is known to make the renderer panic); never set
+/// it in production.
+pub const TEST_PANIC_SEED_VAR: &str = "TESSERA_WORKER_TEST_PANIC_SEED";
+
+/// Renders one leased unit, turning a panic of the renderer into `Err(message)`, so one
+/// unit cannot end the worker's session (a panic would otherwise unwind through the rayon
+/// pool into the blocking task and break the connection, and the unit would be leased
+/// again forever).
+fn render_contained(rs: &RenderScene, l: &LeasedUnit) -> Result<tessera_farm::UnitResult, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        if std::env::var(TEST_PANIC_SEED_VAR).is_ok_and(|v| v == l.settings.seed.to_string()) {
+            panic!("{TEST_PANIC_SEED_VAR} is {}", l.settings.seed);
+        }
+        render_unit(rs, &l.settings, &l.plan, l.unit)
+    }))
+    .map_err(|payload| panic_message(payload.as_ref()))
+}
+
+/// The message of a panic payload (`panic!` with a literal or a formatted string).
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
+        (*s).to_string()
+    } else if let Some(s) = payload.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "a panic without a message".to_string()
     }
 }
 

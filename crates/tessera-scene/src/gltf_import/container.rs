@@ -293,14 +293,107 @@ pub(super) fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), String> 
     }
 }
 
-/// Parses glTF JSON, tolerating a UTF-8 byte-order mark and trailing NUL padding.
-pub(super) fn parse_json(bytes: &[u8]) -> Result<json::Root, String> {
+/// Parses glTF JSON, tolerating a UTF-8 byte-order mark and trailing NUL padding. Every
+/// top-level array (`nodes`, `meshes`, `accessors`, ...) is first counted without being
+/// built, and one longer than `max_elements` is refused: a parsed element takes up to a
+/// few hundred bytes, so `[{},{},...]` would otherwise amplify a file a hundredfold.
+pub(super) fn parse_json(bytes: &[u8], max_elements: u64) -> Result<json::Root, String> {
     let bytes = bytes.strip_prefix(b"\xef\xbb\xbf").unwrap_or(bytes);
     let end = bytes
         .iter()
         .rposition(|&b| b != 0 && !b.is_ascii_whitespace())
         .map_or(0, |p| p + 1);
-    json::deserialize::from_slice(&bytes[..end]).map_err(|e| format!("invalid glTF JSON: {e}"))
+    let bytes = &bytes[..end];
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    if let Err(e) = serde::Deserializer::deserialize_any(&mut de, TopLevel(max_elements)) {
+        // Malformed JSON is reported by the real parse below, with its own message.
+        let message = e.to_string();
+        if message.starts_with(TOO_MANY) {
+            return Err(message.split(" at line").next().unwrap_or("").to_string());
+        }
+    }
+    json::deserialize::from_slice(bytes).map_err(|e| format!("invalid glTF JSON: {e}"))
+}
+
+/// The start of the counting pass's error for an overlong array.
+const TOO_MANY: &str = "the document's";
+
+/// Counts the elements of every top-level array of a glTF document, building nothing.
+struct TopLevel(u64);
+
+impl<'de> serde::de::Visitor<'de> for TopLevel {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("a glTF JSON object")
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        while let Some(key) = map.next_key::<std::borrow::Cow<'de, str>>()? {
+            map.next_value_seed(Counted {
+                key: &key,
+                max: self.0,
+            })?;
+        }
+        Ok(())
+    }
+}
+
+/// One top-level value: an array is counted element by element (each skipped), anything
+/// else skipped.
+struct Counted<'k> {
+    key: &'k str,
+    max: u64,
+}
+
+impl<'de> serde::de::DeserializeSeed<'de> for Counted<'_> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_any(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for Counted<'_> {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("any JSON value")
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        let mut n = 0u64;
+        while seq.next_element::<serde::de::IgnoredAny>()?.is_some() {
+            n += 1;
+            if n > self.max {
+                return Err(serde::de::Error::custom(format!(
+                    "{TOO_MANY} {:?} array has more than {} elements (MAX_NODES)",
+                    self.key, self.max
+                )));
+            }
+        }
+        Ok(())
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        while map
+            .next_entry::<serde::de::IgnoredAny, serde::de::IgnoredAny>()?
+            .is_some()
+        {}
+        Ok(())
+    }
+    fn visit_bool<E>(self, _: bool) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_i64<E>(self, _: i64) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_u64<E>(self, _: u64) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_f64<E>(self, _: f64) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_str<E>(self, _: &str) -> Result<(), E> {
+        Ok(())
+    }
+    fn visit_unit<E>(self) -> Result<(), E> {
+        Ok(())
+    }
 }
 
 /// True when a URI starts with a scheme (`scheme:`, RFC 3986 section 3.1).

@@ -13,6 +13,8 @@ use json::validation::Checked;
 pub(super) struct Placement {
     /// The node placing it.
     pub(super) node: usize,
+    /// Which EXT_mesh_gpu_instancing instance of the node this is, if any (for messages).
+    pub(super) gpu_instance: Option<usize>,
     /// The glTF mesh index (checked to exist).
     pub(super) mesh: usize,
     /// World-from-mesh transform.
@@ -106,7 +108,7 @@ impl Importer<'_> {
                     self.root.meshes.len()
                 ));
             }
-            let mut place = |imp: &mut Self, world: DMat4| -> Res<()> {
+            let mut place = |imp: &mut Self, world: DMat4, gpu_instance| -> Res<()> {
                 // A placement costs a transform until it is known to be flattened.
                 imp.add_output(
                     std::mem::size_of::<Placement>() as u64,
@@ -114,6 +116,7 @@ impl Importer<'_> {
                 )?;
                 found.placements.push(Placement {
                     node: ni,
+                    gpu_instance,
                     mesh: mi,
                     world,
                 });
@@ -123,17 +126,18 @@ impl Importer<'_> {
                 // EXT_mesh_gpu_instancing: the mesh at every instance transform, each
                 // applied before the node's own (the extension's `world * instance`).
                 Some(instances) => {
-                    for inst in instances {
+                    for (k, inst) in instances.into_iter().enumerate() {
                         let at = *world * inst;
                         if !at.is_finite() {
                             return self.err(format!(
-                                "node {ni}: an EXT_mesh_gpu_instancing transform is not finite"
+                                "node {ni}: EXT_mesh_gpu_instancing instance {k}: its world \
+                                 transform is not finite"
                             ));
                         }
-                        place(self, at)?;
+                        place(self, at, Some(k))?;
                     }
                 }
-                None => place(self, *world)?,
+                None => place(self, *world, None)?,
             }
         }
         let node = &self.root.nodes[ni];

@@ -7,6 +7,7 @@ use crate::material::{
     AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture, TextureRef,
     UvTransform, Volume, Wrap,
 };
+use crate::{MAX_IMAGE_TEXELS, MAX_SCENE_TEXELS};
 use glam::{Vec2, Vec3};
 use gltf::json;
 use json::validation::Checked;
@@ -247,6 +248,10 @@ impl Importer<'_> {
                 self.root.images.len()
             ));
         };
+        let named = match &image.name {
+            Some(n) => format!("image {ii} '{}'", truncate(n)),
+            None => format!("image {ii}"),
+        };
         let what = format!("image {ii} ({what})");
         let (declared, bytes) = if let Some(vi) = image.buffer_view {
             // Spec "Images": mimeType must be defined when bufferView is defined.
@@ -273,6 +278,28 @@ impl Importer<'_> {
                 "{what} is not a PNG or JPEG image (declared media type {declared:?})"
             ));
         };
+        // The size from the header, before anything is decoded: a compressed image can
+        // decode to a thousand times its bytes.
+        let (w, h) = image::ImageReader::with_format(std::io::Cursor::new(&bytes), format)
+            .into_dimensions()
+            .or_else(|e| self.err(format!("{what}: cannot read the {format:?} header: {e}")))?;
+        let texels = u64::from(w) * u64::from(h);
+        let (per_image, per_scene) = (self.limits.image_texels, self.limits.scene_texels);
+        if texels > per_image {
+            return self.err(format!(
+                "{named}: {w}x{h} is {texels} texels, more than the limit of {per_image} \
+                 texels per image (MAX_IMAGE_TEXELS; {MAX_IMAGE_TEXELS} is 8192x8192)"
+            ));
+        }
+        let total = self.texels.saturating_add(texels);
+        if total > per_scene {
+            return self.err(format!(
+                "{named}: {w}x{h} brings the scene's images to {total} texels, more than the \
+                 limit of {per_scene} texels per scene (MAX_SCENE_TEXELS; {MAX_SCENE_TEXELS} \
+                 is four 8192x8192 images)"
+            ));
+        }
+        self.texels = total;
         let mut reader = image::ImageReader::with_format(std::io::Cursor::new(&bytes), format);
         let mut limits = image::Limits::default();
         limits.max_image_width = Some(MAX_TEXTURE_SIDE);
@@ -285,6 +312,11 @@ impl Importer<'_> {
         };
         let (width, height) = (decoded.width(), decoded.height());
         let count = width as u64 * height as u64;
+        if (width, height) != (w, h) {
+            return self.err(format!(
+                "{what}: decoded to {width}x{height}, but its header says {w}x{h}"
+            ));
+        }
         if count == 0 {
             return self.err(format!("{what} is empty"));
         }
@@ -302,6 +334,14 @@ impl Importer<'_> {
             height,
             texels,
         })
+    }
+}
+
+/// At most 60 characters of a name from the file, for messages.
+fn truncate(name: &str) -> String {
+    match name.char_indices().nth(60) {
+        Some((i, _)) => format!("{}...", &name[..i]),
+        None => name.to_string(),
     }
 }
 

@@ -48,17 +48,9 @@ impl Geometry {
     /// out. An instance's are its prototype's object bounds transformed corner by corner
     /// (conservative, and cheap for 10,000 instances).
     pub(super) fn bounds(&self) -> impl Iterator<Item = (Vec3, Vec3)> + '_ {
-        let local = |m: &Mesh| {
-            let mut lo = Vec3::splat(f32::INFINITY);
-            let mut hi = Vec3::splat(f32::NEG_INFINITY);
-            for &v in m.indices.iter().flatten() {
-                lo = lo.min(m.positions[v as usize]);
-                hi = hi.max(m.positions[v as usize]);
-            }
-            (lo.x <= hi.x).then_some((lo, hi))
-        };
-        let proto: Vec<Option<(Vec3, Vec3)>> = self.prototypes.iter().map(local).collect();
-        let flat = self.meshes.iter().filter_map(local);
+        let proto: Vec<Option<(Vec3, Vec3)>> =
+            self.prototypes.iter().map(crate::mesh_bounds).collect();
+        let flat = self.meshes.iter().filter_map(crate::mesh_bounds);
         let inst = self.instances.iter().filter_map(move |i| {
             let (lo, hi) = proto[i.prototype as usize]?;
             let mut wlo = Vec3::splat(f32::INFINITY);
@@ -99,6 +91,8 @@ impl Importer<'_> {
         let mut geometry = Geometry::default();
         // (mesh, primitive) -> index into `geometry.prototypes`.
         let mut prototype_of: HashMap<(usize, usize), u32> = HashMap::new();
+        // Per prototype: its object-space bounds, for the world-space range check.
+        let mut prototype_bounds: Vec<Option<(Vec3, Vec3)>> = Vec::new();
         for pl in placements {
             let (ni, mi) = (pl.node, pl.mesh);
             let shared = uses[&mi] >= 2;
@@ -118,12 +112,30 @@ impl Importer<'_> {
                     None => {
                         let name = prim_name(mi, &self.root.meshes[mi], pi);
                         self.add_output(primitive_bytes(&local), &name)?;
+                        self.add_triangles(local.triangles.len(), &name)?;
                         let p = geometry.prototypes.len() as u32;
-                        geometry.prototypes.push(object_space_mesh(&local, name));
+                        let mesh = object_space_mesh(&local, name);
+                        prototype_bounds.push(crate::mesh_bounds(&mesh));
+                        geometry.prototypes.push(mesh);
                         prototype_of.insert((mi, pi), p);
                         p
                     }
                 };
+                // The same rule as a flattened placement's, naming the node: an instance
+                // may not put a vertex where the renderer's f32 arithmetic breaks down.
+                let proto = &geometry.prototypes[prototype as usize];
+                let bounds = prototype_bounds[prototype as usize];
+                if let Some((v, at)) = crate::far_vertex(proto, bounds, &world_from_object) {
+                    return self.err(format!(
+                        "node {ni}{} {}: vertex {v} is at {at} in world space, beyond \
+                         ±{:e} scene units (check the node's scale and translation)",
+                        pl.gpu_instance
+                            .map(|k| format!(" EXT_mesh_gpu_instancing instance {k}"))
+                            .unwrap_or_default(),
+                        proto.name,
+                        crate::MAX_COORDINATE
+                    ));
+                }
                 self.add_output(Instance::BYTES, &format!("node {ni} mesh {mi}"))?;
                 geometry.instances.push(Instance {
                     prototype,
@@ -303,6 +315,7 @@ impl Importer<'_> {
         let name = prim_name(mi, &self.root.meshes[mi], pi);
         let local = self.local_primitive(mi, pi)?;
         self.add_output(primitive_bytes(&local), &format!("node {ni} {name}"))?;
+        self.add_triangles(local.triangles.len(), &format!("node {ni} {name}"))?;
         let positions: Vec<Vec3> = local
             .positions
             .iter()

@@ -93,7 +93,11 @@
 //! [`SceneError::Gltf`]. (This relies on the default `panic = "unwind"`.) While the import
 //! runs, the default panic message is silenced for the importing thread only. Inputs are
 //! capped at [`MAX_INPUT_BYTES`] (the file, and separately the sum of its buffers and
-//! images) and the output at four times that, where a prototype counts once and an
+//! images), images at [`crate::MAX_IMAGE_TEXELS`] each and [`crate::MAX_SCENE_TEXELS`]
+//! together (read from each image's header before it is decoded, so a decompression bomb
+//! costs nothing), every top-level array of the document at [`crate::MAX_NODES`] elements
+//! (counted before the JSON is parsed), stored triangles at [`crate::MAX_TRIANGLES`], and
+//! the output at four times the input limit, where a prototype counts once and an
 //! instance as its transform (so 10,000 instances of a large tree load). Every error names
 //! the file and the element (node, mesh, primitive, material, accessor, buffer view,
 //! buffer, image index) that is wrong.
@@ -139,7 +143,7 @@ use std::rc::Rc;
 /// directories are allowed). Fails with [`SceneError::TooLarge`] when the file or its
 /// buffers exceed [`MAX_INPUT_BYTES`].
 pub fn load_path(path: &Path, camera: Option<&str>) -> Result<Scene, SceneError> {
-    load_path_limited(path, camera, MAX_INPUT_BYTES)
+    load_path_limited(path, camera, Limits::DEFAULT)
 }
 
 /// Loads a glTF document from memory; `base_dir` resolves external buffer/image URIs.
@@ -158,11 +162,42 @@ pub fn load_slice(
         dir: dir.to_path_buf(),
         allow_parent: false,
     });
-    load_bytes(bytes, name, base, camera, MAX_INPUT_BYTES)
+    load_bytes(bytes, name, base, camera, Limits::DEFAULT)
 }
 
-/// [`load_path`] with `limit` in place of [`MAX_INPUT_BYTES`].
-fn load_path_limited(path: &Path, camera: Option<&str>, limit: u64) -> Result<Scene, SceneError> {
+/// The caps an import runs under: the crate's constants, smaller ones in unit tests.
+#[derive(Clone, Copy, Debug)]
+struct Limits {
+    /// [`MAX_INPUT_BYTES`]: the file, and the sum of its buffers and external images.
+    bytes: u64,
+    /// [`crate::MAX_IMAGE_TEXELS`].
+    image_texels: u64,
+    /// [`crate::MAX_SCENE_TEXELS`].
+    scene_texels: u64,
+    /// [`crate::MAX_NODES`], for every top-level array.
+    elements: u64,
+    /// [`crate::MAX_TRIANGLES`], stored.
+    triangles: u64,
+}
+
+impl Limits {
+    /// The documented limits.
+    const DEFAULT: Limits = Limits {
+        bytes: MAX_INPUT_BYTES,
+        image_texels: crate::MAX_IMAGE_TEXELS,
+        scene_texels: crate::MAX_SCENE_TEXELS,
+        elements: crate::MAX_NODES,
+        triangles: crate::MAX_TRIANGLES,
+    };
+}
+
+/// [`load_path`] under `limits`.
+fn load_path_limited(
+    path: &Path,
+    camera: Option<&str>,
+    limits: Limits,
+) -> Result<Scene, SceneError> {
+    let limit = limits.bytes;
     let file = path.display().to_string();
     let bytes = read_capped(path, limit).map_err(|e| match e {
         ReadError::Io(source) => SceneError::Io {
@@ -183,17 +218,18 @@ fn load_path_limited(path: &Path, camera: Option<&str>, limit: u64) -> Result<Sc
         dir,
         allow_parent: true,
     };
-    load_bytes(&bytes, &file, Some(base), camera, limit)
+    load_bytes(&bytes, &file, Some(base), camera, limits)
 }
 
-/// Imports `bytes` (refused when over `limit`) under the panic guard.
+/// Imports `bytes` (refused when over `limits.bytes`) under the panic guard.
 fn load_bytes(
     bytes: &[u8],
     file: &str,
     base: Option<BaseDir>,
     camera: Option<&str>,
-    limit: u64,
+    limits: Limits,
 ) -> Result<Scene, SceneError> {
+    let limit = limits.bytes;
     if bytes.len() as u64 > limit {
         return Err(SceneError::TooLarge {
             path: file.to_string(),
@@ -201,7 +237,7 @@ fn load_bytes(
             limit,
         });
     }
-    let result = quietly(|| Importer::run(bytes, file, base, camera, limit));
+    let result = quietly(|| Importer::run(bytes, file, base, camera, limits));
     match result {
         Ok(r) => r,
         Err(panic) => Err(SceneError::Gltf {
@@ -250,9 +286,16 @@ struct Importer<'a> {
     file: &'a str,
     root: json::Root,
     base: Option<BaseDir>,
+    /// `limits.bytes`, the input limit most steps check against.
     limit: u64,
+    limits: Limits,
     /// Bytes of buffers and external images read so far.
     input_bytes: u64,
+    /// Triangles stored so far (world-space meshes and prototypes), against
+    /// [`crate::MAX_TRIANGLES`].
+    stored_triangles: u64,
+    /// Decoded texels of the images so far, against [`crate::MAX_SCENE_TEXELS`].
+    texels: u64,
     /// Estimated bytes of output so far (a prototype counts once, an instance as its
     /// transform).
     output_bytes: u64,
@@ -295,7 +338,7 @@ impl<'a> Importer<'a> {
         file: &'a str,
         base: Option<BaseDir>,
         camera: Option<&str>,
-        limit: u64,
+        limits: Limits,
     ) -> Res<Scene> {
         let gerr = |message: String| SceneError::Gltf {
             file: file.to_string(),
@@ -306,13 +349,16 @@ impl<'a> Importer<'a> {
         } else {
             (bytes, None)
         };
-        let root = parse_json(json_bytes).map_err(gerr)?;
+        let root = parse_json(json_bytes, limits.elements).map_err(gerr)?;
         let mut imp = Importer {
             file,
             root,
             base,
-            limit,
+            limit: limits.bytes,
+            limits,
             input_bytes: 0,
+            texels: 0,
+            stored_triangles: 0,
             output_bytes: 0,
             buffers: Vec::new(),
             textures: Vec::new(),
@@ -371,6 +417,19 @@ impl<'a> Importer<'a> {
         Ok(scene)
     }
 
+    /// Counts `n` more stored triangles (for `what`) against [`crate::MAX_TRIANGLES`].
+    fn add_triangles(&mut self, n: usize, what: &str) -> Res<()> {
+        self.stored_triangles = self.stored_triangles.saturating_add(n as u64);
+        let limit = self.limits.triangles;
+        if self.stored_triangles > limit {
+            return self.err(format!(
+                "{what}: the scene would store more than {limit} triangles (MAX_TRIANGLES; \
+                 a mesh placed at several nodes is stored once)"
+            ));
+        }
+        Ok(())
+    }
+
     /// Counts `bytes` of output against the output budget.
     fn add_output(&mut self, bytes: u64, what: &str) -> Res<()> {
         self.output_bytes = self.output_bytes.saturating_add(bytes);
@@ -389,16 +448,24 @@ impl<'a> Importer<'a> {
 mod tests {
     use super::*;
 
+    /// The default limits with `n` input bytes.
+    fn bytes(n: u64) -> Limits {
+        Limits {
+            bytes: n,
+            ..Limits::DEFAULT
+        }
+    }
+
     #[test]
     fn inputs_over_the_limit_are_too_large() {
         let json = br#"{"asset":{"version":"2.0"}}"#;
-        let r = load_bytes(json, "small", None, None, 10);
+        let r = load_bytes(json, "small", None, None, bytes(10));
         assert!(
             matches!(r, Err(SceneError::TooLarge { bytes, limit: 10, .. }) if bytes == json.len() as u64)
         );
         // A buffer whose declared length exceeds the limit is refused before decoding.
         let doc = br#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":5000,"uri":"data:application/octet-stream;base64,AAAA"}]}"#;
-        let r = load_bytes(doc, "buffers", None, None, 1000);
+        let r = load_bytes(doc, "buffers", None, None, bytes(1000));
         assert!(
             matches!(
                 r,
@@ -410,6 +477,114 @@ mod tests {
             ),
             "{r:?}"
         );
+    }
+
+    /// A .glb with one triangle and one material per image, each a `w` x `h` PNG.
+    fn glb_with_images(sizes: &[(u32, u32)]) -> Vec<u8> {
+        let mut bin: Vec<u8> = [0.0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let mut views = vec![serde_json::json!({"buffer": 0, "byteLength": 36})];
+        let (mut images, mut textures, mut materials) = (vec![], vec![], vec![]);
+        for (i, &(w, h)) in sizes.iter().enumerate() {
+            let mut png = Vec::new();
+            image::DynamicImage::new_luma8(w, h)
+                .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                .unwrap();
+            while !bin.len().is_multiple_of(4) {
+                bin.push(0);
+            }
+            views.push(
+                serde_json::json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": png.len()}),
+            );
+            bin.extend_from_slice(&png);
+            images.push(serde_json::json!({"bufferView": i + 1, "mimeType": "image/png"}));
+            textures.push(serde_json::json!({"source": i}));
+            materials.push(
+                serde_json::json!({"pbrMetallicRoughness": {"baseColorTexture": {"index": i}}}),
+            );
+        }
+        let doc = serde_json::json!({
+            "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+            "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                "min": [0, 0, 0], "max": [1, 1, 0]}],
+            "bufferViews": views, "images": images, "textures": textures, "materials": materials,
+            "buffers": [{"byteLength": bin.len()}],
+        });
+        let mut json = serde_json::to_vec(&doc).unwrap();
+        while !json.len().is_multiple_of(4) {
+            json.push(b' ');
+        }
+        while !bin.len().is_multiple_of(4) {
+            bin.push(0);
+        }
+        let total = 12 + 8 + json.len() + 8 + bin.len();
+        let mut out = b"glTF".to_vec();
+        for v in [2, total as u32, json.len() as u32] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(b"JSON");
+        out.extend_from_slice(&json);
+        out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+        out.extend_from_slice(b"BIN\0");
+        out.extend_from_slice(&bin);
+        out
+    }
+
+    /// The texel budgets, per image and per scene, with small limits: each image is
+    /// checked from its header, and the error names the image and the limit.
+    #[test]
+    fn images_over_the_texel_budgets_are_refused() {
+        let limits = Limits {
+            image_texels: 64,
+            scene_texels: 100,
+            ..Limits::DEFAULT
+        };
+        let load =
+            |sizes: &[(u32, u32)]| load_bytes(&glb_with_images(sizes), "t.glb", None, None, limits);
+        let s = load(&[(8, 8), (6, 6)]).unwrap();
+        assert_eq!(s.images.len(), 2);
+        let e = load(&[(8, 8), (16, 5)]).unwrap_err().to_string();
+        assert!(e.contains("image 1") && e.contains("16x5"), "{e}");
+        assert!(e.contains("limit of 64 texels per image"), "{e}");
+        let e = load(&[(8, 8), (6, 6), (1, 1)]).unwrap_err().to_string();
+        assert!(e.contains("image 2") && e.contains("101 texels"), "{e}");
+        assert!(e.contains("limit of 100 texels per scene"), "{e}");
+    }
+
+    /// Node and triangle caps, with small limits: an overlong top-level array is refused
+    /// before the document is parsed, naming the array and the limit; stored triangles
+    /// are counted as meshes are placed, naming the node and primitive.
+    #[test]
+    fn documents_over_the_node_and_triangle_caps_are_refused() {
+        let glb = glb_with_images(&[]);
+        let with = |elements, triangles| Limits {
+            elements,
+            triangles,
+            ..Limits::DEFAULT
+        };
+        assert!(load_bytes(&glb, "t.glb", None, None, with(1, 1)).is_ok());
+        let e = load_bytes(&glb, "t.glb", None, None, with(1, 0))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("node 0 mesh 0 primitive 0"), "{e}");
+        assert!(e.contains("more than 0 triangles (MAX_TRIANGLES"), "{e}");
+        let nodes = br#"{"asset":{"version":"2.0"},"nodes":[{},{},{},{}]}"#;
+        let e = load_bytes(nodes, "n.gltf", None, None, with(3, 1))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("\"nodes\" array has more than 3 elements (MAX_NODES)"),
+            "{e}"
+        );
+        // Malformed JSON still gets the parser's own message.
+        let e = load_bytes(b"{\"nodes\":[", "m.gltf", None, None, with(3, 1))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("invalid glTF JSON"), "{e}");
     }
 
     #[test]

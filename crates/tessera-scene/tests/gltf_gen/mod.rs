@@ -296,6 +296,27 @@ fn png8(width: u32, height: u32, rgb: &[u8], color: png::ColorType) -> Vec<u8> {
     out
 }
 
+/// An 8-bit greyscale PNG of `width` x `height` zeros, streamed row by row at high
+/// compression: a decompression bomb (16384 x 16384 is 256 MiB of texels in about
+/// 0.26 MB), built without holding the decoded image.
+pub fn png_zeros(width: u32, height: u32) -> Vec<u8> {
+    let mut out = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut out, width, height);
+        encoder.set_color(png::ColorType::Grayscale);
+        encoder.set_depth(png::BitDepth::Eight);
+        encoder.set_compression(png::Compression::High);
+        let mut writer = encoder.write_header().unwrap();
+        let mut stream = writer.stream_writer().unwrap();
+        let row = vec![0u8; width as usize];
+        for _ in 0..height {
+            std::io::Write::write_all(&mut stream, &row).unwrap();
+        }
+        stream.finish().unwrap();
+    }
+    out
+}
+
 /// Encodes a 16-bit greyscale PNG (samples are big-endian in PNG).
 pub fn png_grey16(width: u32, height: u32, grey: &[u16]) -> Vec<u8> {
     let mut out = Vec::new();
