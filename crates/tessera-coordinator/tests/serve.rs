@@ -227,10 +227,7 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
     let status = core.status(job.id).await.unwrap();
     assert_eq!(status.state.as_str(), "failed");
     let error = status.error.unwrap_or_default();
-    assert!(
-        error.contains("could not load or build the scene"),
-        "{error}"
-    );
+    assert!(error.contains("could not use the scene"), "{error}");
     assert!(error.contains("out of memory"), "{error}");
     // And nothing is leased any more.
     let leases = client

@@ -222,7 +222,7 @@ impl Coordinator {
         tracing::warn!(worker, returned, reason = %reason, "worker could not use its leases");
         for job in to_fail {
             let error = format!(
-                "workers could not load or build the scene {MAX_UNUSABLE_RETURNS} times: {reason}"
+                "workers could not use the scene (load, build or render it) {MAX_UNUSABLE_RETURNS} times: {reason}"
             );
             tracing::error!(job, error = %error, "job failed");
             self.set_state(job, JobState::Failed, Some(error)).await?;
