@@ -1115,7 +1115,16 @@ impl Store for SqliteStore {
     }
 
     async fn close(&self) {
-        self.writer.close().await;
+        // Fold the WAL into the database file now rather than relying on the last
+        // connection's close to do it: a stopped coordinator leaves one self-contained
+        // file (what `tessera store backup` and an operator copying the file expect).
+        if let Err(e) = sqlx::query("PRAGMA wal_checkpoint(TRUNCATE)")
+            .execute(&self.writer)
+            .await
+        {
+            tracing::warn!(error = %e, "WAL checkpoint at close failed");
+        }
         self.reader.close().await;
+        self.writer.close().await;
     }
 }
