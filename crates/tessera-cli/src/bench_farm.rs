@@ -42,6 +42,11 @@ pub struct BenchFarmArgs {
     /// to compare against in the same run.
     #[arg(long)]
     pub farm_binary: Option<std::path::PathBuf>,
+    /// An extra argument for the farm's `tessera serve` (repeatable), e.g.
+    /// `--serve-arg=--http-max-connections-per-address=1024` so that many pollers from
+    /// this one address are not refused.
+    #[arg(long, allow_hyphen_values = true)]
+    pub serve_arg: Vec<String>,
 }
 
 /// Runs the benchmark: alternately renders the job with `tessera render` and through a
@@ -261,6 +266,7 @@ fn start_farm(exe: &Path, args: &BenchFarmArgs, data: &Path) -> Result<(Child, S
         ])
         .arg("--data")
         .arg(data)
+        .args(&args.serve_arg)
         .stdout(Stdio::piped())
         .spawn()?;
     let stdout = child.stdout.take().context("serve stdout")?;
