@@ -262,3 +262,55 @@ async fn lost_workers_are_forgotten_and_counted() {
     assert!(m.contains("tessera_workers_forgotten_total 1"), "{m}");
     assert!(m.contains("tessera_workers 1\n"), "{m}");
 }
+
+/// The value of an unlabelled gauge in a `/metrics` text.
+fn gauge(metrics: &str, name: &str) -> u64 {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in {metrics}"))
+}
+
+/// The queue depth the worker autoscaler reads (docs/deploy.md): units waiting to be
+/// leased and units leased, against a job's own units; a canceled job counts nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn queued_and_leased_units_in_metrics_follow_the_jobs_units() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let m = core.metrics().await.unwrap();
+    assert_eq!(
+        (
+            gauge(&m, "tessera_units_queued"),
+            gauge(&m, "tessera_units_leased")
+        ),
+        (0, 0)
+    );
+    // 64 x 64 in 32-pixel tiles: 4 tiles; a unit is one tile and one pass (the default).
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(64), Some(64), 4);
+    let (status, _) = core.submit(job.clone(), None).await.unwrap();
+    assert_eq!(status.tiles_total, 4);
+    let units = status.passes_planned;
+    assert!(units >= 4, "{status:?}");
+    let m = core.metrics().await.unwrap();
+    assert_eq!(gauge(&m, "tessera_units_queued"), units, "{m}");
+    assert_eq!(gauge(&m, "tessera_units_leased"), 0, "{m}");
+
+    let worker = core.register_worker("w".into(), 1, "t").unwrap();
+    let grant = core.lease(worker, 3).await.unwrap();
+    assert_eq!(grant.units.len(), 3);
+    let m = core.metrics().await.unwrap();
+    assert_eq!(gauge(&m, "tessera_units_queued"), units - 3, "{m}");
+    assert_eq!(gauge(&m, "tessera_units_leased"), 3, "{m}");
+
+    // A second job adds its units; canceling it takes them away again.
+    let (other, _) = core.submit(job, None).await.unwrap();
+    let m = core.metrics().await.unwrap();
+    assert_eq!(gauge(&m, "tessera_units_queued"), 2 * units - 3, "{m}");
+    core.cancel(other.id).await.unwrap();
+    let m = core.metrics().await.unwrap();
+    assert_eq!(gauge(&m, "tessera_units_queued"), units - 3, "{m}");
+    assert_eq!(gauge(&m, "tessera_leases_outstanding"), 3, "{m}");
+}

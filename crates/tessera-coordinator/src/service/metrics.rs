@@ -6,7 +6,7 @@ use std::fmt::Write;
 
 use super::Coordinator;
 use crate::error::CoordResult;
-use crate::state::now_ms;
+use crate::state::{now_ms, Farm};
 
 impl Coordinator {
     /// Prometheus text exposition of the farm's counters and gauges. The job counts are
@@ -50,6 +50,9 @@ impl Coordinator {
         let _ = writeln!(s, "# HELP tessera_units_merged_total Units accepted from workers.\n# TYPE tessera_units_merged_total counter\ntessera_units_merged_total {units}");
         let _ = writeln!(s, "# HELP tessera_worker_faults_total Refused results and mismatching duplicates.\n# TYPE tessera_worker_faults_total counter\ntessera_worker_faults_total {faults}");
         let _ = writeln!(s, "# HELP tessera_leases_outstanding Leases currently held by workers.\n# TYPE tessera_leases_outstanding gauge\ntessera_leases_outstanding {}", farm.scheduler.leases().count());
+        let (queued, leased) = units_waiting_and_leased(&farm);
+        let _ = writeln!(s, "# HELP tessera_units_queued Units of queued and running jobs waiting to be leased (the queue depth workers autoscale on; for adaptive jobs an upper bound).\n# TYPE tessera_units_queued gauge\ntessera_units_queued {queued}");
+        let _ = writeln!(s, "# HELP tessera_units_leased Units of queued and running jobs leased to workers now.\n# TYPE tessera_units_leased gauge\ntessera_units_leased {leased}");
         let _ = writeln!(s, "# HELP tessera_worker_paths_per_second Last reported throughput per worker.\n# TYPE tessera_worker_paths_per_second gauge");
         for w in farm.workers.values() {
             let _ = writeln!(
@@ -61,4 +64,20 @@ impl Coordinator {
         let _ = writeln!(s, "# HELP tessera_uptime_seconds Seconds since the coordinator started.\n# TYPE tessera_uptime_seconds gauge\ntessera_uptime_seconds {:.3}", self.uptime_seconds());
         Ok(s)
     }
+}
+
+/// Units of the jobs still to finish (queued or running) that wait to be leased, and
+/// those leased now: from the scheduler's [`Progress`](tessera_farm::Progress) of each
+/// unfinished job (one walk over its frames per scrape). A canceled, failed or done job
+/// counts nothing. An adaptive job
+/// may stop before its planned units, so its waiting count is an upper bound.
+fn units_waiting_and_leased(farm: &Farm) -> (u64, u64) {
+    farm.runtime
+        .iter()
+        .filter(|(_, rt)| !rt.state.is_terminal())
+        .filter_map(|(&id, _)| farm.scheduler.progress(id))
+        .fold((0, 0), |(queued, leased), p| {
+            let waiting = p.units_total.saturating_sub(p.units_done + p.units_leased);
+            (queued + waiting, leased + p.units_leased)
+        })
 }
