@@ -27,6 +27,16 @@ pub enum ClientError {
     Transport(String),
 }
 
+/// The agent every client uses: API errors are answers, not transport errors.
+fn agent(tls: ureq::tls::TlsConfig) -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .timeout_global(Some(Duration::from_secs(300)))
+        .tls_config(tls)
+        .build()
+        .into()
+}
+
 /// A client of one coordinator.
 #[derive(Clone)]
 pub struct Client {
@@ -39,16 +49,34 @@ impl Client {
     /// A client of the coordinator at `base` (e.g. `http://127.0.0.1:8080`), sending
     /// `token` as a bearer token if given.
     pub fn new(base: &str, token: Option<String>) -> Self {
-        let agent: ureq::Agent = ureq::Agent::config_builder()
-            .http_status_as_error(false)
-            .timeout_global(Some(Duration::from_secs(300)))
-            .build()
-            .into();
         Self {
             base: base.trim_end_matches('/').to_string(),
             token,
-            agent,
+            agent: agent(ureq::tls::TlsConfig::default()),
         }
+    }
+
+    /// The same client, trusting only the CA certificates in `ca_pem` (PEM) for an
+    /// `https://` server (`--tls-ca`); without it, `https://` trusts the public web roots.
+    pub fn with_tls_ca(mut self, ca_pem: &[u8]) -> Result<Self, ClientError> {
+        let mut roots = Vec::new();
+        for item in ureq::tls::parse_pem(ca_pem) {
+            match item {
+                Ok(ureq::tls::PemItem::Certificate(c)) => roots.push(c),
+                Ok(_) => {}
+                Err(e) => return Err(ClientError::Transport(format!("the CA file: {e}"))),
+            }
+        }
+        if roots.is_empty() {
+            return Err(ClientError::Transport(
+                "the CA file holds no PEM certificate".into(),
+            ));
+        }
+        let tls = ureq::tls::TlsConfig::builder()
+            .root_certs(ureq::tls::RootCerts::from(roots))
+            .build();
+        self.agent = agent(tls);
+        Ok(self)
     }
 
     fn url(&self, path: &str) -> String {

@@ -203,6 +203,10 @@ pub struct WorkerInfo {
     /// The worker's Tessera version.
     #[serde(default)]
     pub version: String,
+    /// Under mutual TLS, the common name of the certificate the worker connected with
+    /// (its identity); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identity: Option<String>,
 }
 
 /// `GET /api/v1/workers`.
@@ -393,6 +397,7 @@ mod tests {
             paths_per_second: 1.5e6,
             faults: 0,
             version: "0.1.0".into(),
+            identity: Some("render-3.farm".into()),
         };
         let v = round_trip(&WorkerList {
             workers: vec![w.clone()],

@@ -33,3 +33,26 @@ pub fn client_error(e: ClientError) -> anyhow::Error {
         ClientError::Transport(m) => anyhow::anyhow!("{m}"),
     }
 }
+
+/// The API client of `tessera submit` and `tessera status`: with `--tls-ca`, an
+/// `https://` server's certificate must be issued by that CA.
+pub fn api_client(
+    server: &str,
+    token: Option<String>,
+    tls_ca: Option<&std::path::Path>,
+) -> Result<tessera_api::client::Client> {
+    let client = tessera_api::client::Client::new(server, token);
+    let Some(ca) = tls_ca else {
+        return Ok(client);
+    };
+    if !server.starts_with("https://") {
+        anyhow::bail!(
+            "--tls-ca {} needs an https:// --server, not {server}",
+            ca.display()
+        );
+    }
+    let pem = std::fs::read(ca).with_context(|| format!("reading --tls-ca {}", ca.display()))?;
+    client
+        .with_tls_ca(&pem)
+        .map_err(|e| anyhow::anyhow!("--tls-ca {}: {}", ca.display(), client_error(e)))
+}

@@ -8,7 +8,9 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
-use tessera_coordinator::{serve_coordinator, shutdown_signal, HttpLimits, Listeners};
+use tessera_coordinator::{
+    serve_coordinator, shutdown_signal, HttpLimits, Listeners, ServerTls, TlsFiles,
+};
 
 use crate::common::{init_tracing, runtime};
 
@@ -66,6 +68,16 @@ pub struct CoordinatorArgs {
     /// needs more is refused; frames beyond it wait for others to complete.
     #[arg(long, default_value = "4GiB", value_parser = parse_bytes)]
     pub memory_budget: u64,
+    /// TLS on both ports: the server's certificate chain (PEM), reloaded on SIGHUP.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert, reloaded on SIGHUP.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Mutual TLS for workers: the gRPC port refuses workers without a certificate issued
+    /// by this CA (PEM); the certificate's common name is the worker's identity.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_client_ca: Option<PathBuf>,
 }
 
 /// A byte count with an optional binary or decimal unit: `4GiB`, `512MiB`, `2GB`, `1024`.
@@ -136,7 +148,26 @@ impl CoordinatorArgs {
             max_connections: self.http_max_connections,
             max_connections_per_address: self.http_max_connections_per_address,
         };
+        if let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) {
+            let files = TlsFiles {
+                cert: cert.clone(),
+                key: key.clone(),
+                client_ca: self.tls_client_ca.clone(),
+            };
+            // Checked now, so that a bad file stops the start before anything is bound.
+            ServerTls::load(files.clone()).context("loading the TLS files")?;
+            cfg.tls = Some(files);
+        }
         Ok(cfg)
+    }
+
+    /// The URL scheme of both ports: `https` with TLS.
+    pub fn scheme(&self) -> &'static str {
+        if self.tls_cert.is_some() {
+            "https"
+        } else {
+            "http"
+        }
     }
 
     /// Opens the store, then binds both ports (so their real addresses are known before
@@ -156,11 +187,11 @@ impl CoordinatorArgs {
 }
 
 /// Prints the addresses scripts and tests read: `http: `, `grpc: ` and `dashboard: `.
-pub fn print_addresses(listeners: &Listeners) -> Result<()> {
+pub fn print_addresses(listeners: &Listeners, scheme: &str) -> Result<()> {
     let (http, grpc) = (listeners.http.local_addr()?, listeners.grpc.local_addr()?);
-    println!("http: http://{http}/api/v1");
-    println!("grpc: http://{grpc}");
-    println!("dashboard: http://{http}/");
+    println!("http: {scheme}://{http}/api/v1");
+    println!("grpc: {scheme}://{grpc}");
+    println!("dashboard: {scheme}://{http}/");
     let _ = std::io::stdout().flush();
     Ok(())
 }
@@ -170,7 +201,7 @@ pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
     init_tracing();
     runtime()?.block_on(async {
         let (core, listeners) = args.open().await?;
-        print_addresses(&listeners)?;
+        print_addresses(&listeners, args.scheme())?;
         serve_coordinator(core, listeners, shutdown_signal()).await?;
         Ok(())
     })

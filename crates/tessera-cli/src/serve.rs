@@ -6,6 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use std::io::Write;
 use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use tessera_api::JobSettings;
@@ -33,6 +34,35 @@ pub struct ServeArgs {
     /// show ("none" to disable).
     #[arg(long, default_value = "builtin:cornell-box")]
     pub demo: String,
+    /// With --tls-cert: the CA certificate(s) (PEM) the local workers trust for the
+    /// coordinator's certificate.
+    #[arg(long, value_name = "FILE")]
+    pub tls_ca: Option<PathBuf>,
+    /// With --tls-client-ca: the certificate chain (PEM) the local workers present.
+    #[arg(long, value_name = "FILE", requires = "worker_tls_key")]
+    pub worker_tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --worker-tls-cert.
+    #[arg(long, value_name = "FILE", requires = "worker_tls_cert")]
+    pub worker_tls_key: Option<PathBuf>,
+}
+
+impl ServeArgs {
+    /// Checks that the local workers can connect to a TLS (or mutual TLS) gRPC port.
+    fn check_tls(&self) -> Result<()> {
+        if self.workers == 0 {
+            return Ok(());
+        }
+        let c = &self.coordinator;
+        if c.tls_cert.is_some() && self.tls_ca.is_none() {
+            bail!("with --tls-cert, give --tls-ca: the CA the local workers trust");
+        }
+        if c.tls_client_ca.is_some() && self.worker_tls_cert.is_none() {
+            bail!(
+                "with --tls-client-ca, give --worker-tls-cert and --worker-tls-key for the local workers"
+            );
+        }
+        Ok(())
+    }
 }
 
 /// `tessera serve`: a coordinator and local worker processes over loopback gRPC.
@@ -41,6 +71,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     if args.workers > 256 {
         bail!("--workers {} must be at most 256", args.workers);
     }
+    args.check_tls()?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let threads = if args.threads_per_worker == 0 {
         (cores / args.workers.max(1)).max(1)
@@ -53,7 +84,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         if args.demo != "none" {
             submit_demo(&core, &args.demo).await;
         }
-        print_addresses(&listeners)?;
+        print_addresses(&listeners, args.coordinator.scheme())?;
         println!(
             "{} local worker(s) with {threads} thread(s) each; Ctrl-C stops the farm",
             args.workers
@@ -77,13 +108,21 @@ fn spawn_workers(args: &ServeArgs, grpc: SocketAddr, threads: usize) -> Result<V
         let mut cmd = Command::new(&exe);
         cmd.arg("worker")
             .arg("--coordinator")
-            .arg(format!("http://{grpc}"))
+            .arg(format!("{}://{grpc}", args.coordinator.scheme()))
             .arg("--threads")
             .arg(threads.to_string())
             .arg("--name")
             .arg(format!("local-{}", i + 1))
             .arg("--exit-with-stdin")
             .stdin(Stdio::piped());
+        if args.coordinator.tls_cert.is_some() {
+            if let Some(ca) = &args.tls_ca {
+                cmd.arg("--tls-ca").arg(ca);
+            }
+            if let (Some(cert), Some(key)) = (&args.worker_tls_cert, &args.worker_tls_key) {
+                cmd.arg("--tls-cert").arg(cert).arg("--tls-key").arg(key);
+            }
+        }
         if let Some(t) = &args.coordinator.worker_token {
             cmd.env("TESSERA_WORKER_TOKEN", t);
         } else {

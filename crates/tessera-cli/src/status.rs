@@ -2,7 +2,7 @@
 
 use anyhow::Result;
 use clap::Args;
-use tessera_api::client::Client;
+use std::path::PathBuf;
 use tessera_api::JobStatus;
 
 use crate::common::client_error;
@@ -18,6 +18,9 @@ pub struct StatusArgs {
     /// API bearer token.
     #[arg(long, env = "TESSERA_API_TOKEN")]
     pub token: Option<String>,
+    /// CA certificate(s) (PEM) an `https://` server's certificate must be issued by.
+    #[arg(long, value_name = "FILE")]
+    pub tls_ca: Option<PathBuf>,
     /// Print the JSON the API returned.
     #[arg(long)]
     pub json: bool,
@@ -47,7 +50,8 @@ pub fn progress_line(s: &JobStatus) -> String {
 
 /// `tessera status`.
 pub fn status(args: StatusArgs) -> Result<()> {
-    let client = Client::new(&args.server, args.token.clone());
+    let client =
+        crate::common::api_client(&args.server, args.token.clone(), args.tls_ca.as_deref())?;
     match args.job {
         Some(id) => {
             let s = client.job(id).map_err(client_error)?;

@@ -29,6 +29,9 @@ pub struct SubmitArgs {
     /// API bearer token.
     #[arg(long, env = "TESSERA_API_TOKEN")]
     pub token: Option<String>,
+    /// CA certificate(s) (PEM) an `https://` server's certificate must be issued by.
+    #[arg(long, value_name = "FILE")]
+    pub tls_ca: Option<PathBuf>,
     /// First frame.
     #[arg(long, default_value_t = 0)]
     pub frame_start: u32,
@@ -57,7 +60,8 @@ pub struct SubmitArgs {
 
 /// `tessera submit`.
 pub fn submit(args: SubmitArgs) -> Result<()> {
-    let client = Client::new(&args.server, args.token.clone());
+    let client =
+        crate::common::api_client(&args.server, args.token.clone(), args.tls_ca.as_deref())?;
     let scene = scene_ref(&client, &args.job.scene)?;
     let mut s = args.job.settings(scene, &args.stop);
     s.frames = FrameRange {

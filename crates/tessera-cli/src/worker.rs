@@ -4,6 +4,7 @@
 use anyhow::Result;
 use clap::Args;
 use std::io::BufRead;
+use std::path::PathBuf;
 use tessera_coordinator::shutdown_signal;
 
 use crate::common::{init_tracing, runtime};
@@ -23,6 +24,16 @@ pub struct WorkerArgs {
     /// Bearer token of the coordinator's worker port.
     #[arg(long, env = "TESSERA_WORKER_TOKEN")]
     pub token: Option<String>,
+    /// CA certificate(s) (PEM) the coordinator's certificate must be issued by; needed
+    /// for an `https://` --coordinator.
+    #[arg(long, value_name = "FILE")]
+    pub tls_ca: Option<PathBuf>,
+    /// The worker's certificate chain (PEM), for a coordinator with --tls-client-ca.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
     /// Exit when standard input closes (used by `tessera serve` for its local workers, so
     /// they never outlive it).
     #[arg(long, hide = true)]
@@ -43,11 +54,18 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
             .unwrap_or_else(|_| "worker".into());
         format!("{host}-{}", std::process::id())
     });
+    let identity = args.tls_cert.as_deref().zip(args.tls_key.as_deref());
+    let tls = match &args.tls_ca {
+        Some(ca) => Some(tessera_worker::WorkerTls::from_files(ca, identity)?),
+        None if identity.is_some() => anyhow::bail!("--tls-cert and --tls-key need --tls-ca"),
+        None => None,
+    };
     let config = tessera_worker::WorkerConfig {
         coordinator: args.coordinator.clone(),
         threads,
         name,
         token: args.token.clone().filter(|t| !t.is_empty()),
+        tls,
     };
     let exit_with_stdin = args.exit_with_stdin;
     runtime()?.block_on(async move {

@@ -127,11 +127,16 @@ impl ConnectionStats {
 
 /// Serves `router` on `listener` under `limits` until `stop` completes, then lets every
 /// connection finish its request in flight and returns once all are closed.
+///
+/// With `tls`, every connection first completes a TLS handshake within the header timeout
+/// (counted as a header timeout when it does not), with the certificate in force when it
+/// was accepted (`crate::tls`); a refused connection is then closed without an answer.
 pub async fn serve_http(
     listener: TcpListener,
     router: Router,
     limits: HttpLimits,
     stats: Arc<ConnectionStats>,
+    tls: Option<Arc<crate::tls::ServerTls>>,
     stop: impl Future<Output = ()>,
 ) {
     let admission = Arc::new(Admission::new(limits));
@@ -162,7 +167,9 @@ pub async fn serve_http(
                 };
                 counter.fetch_add(1, Ordering::Relaxed);
                 tracing::debug!(peer = %peer, limit = limit.as_str(), "HTTP connection refused");
-                refuse(&stream, limit);
+                if tls.is_none() {
+                    refuse(&stream, limit);
+                }
                 continue;
             }
         };
@@ -175,8 +182,24 @@ pub async fn serve_http(
             peer,
         };
         let stop_rx = stop_rx.clone();
+        let acceptor = tls.as_ref().map(|t| t.http_acceptor());
         tokio::spawn(async move {
-            conn.serve(stream, stop_rx).await;
+            match acceptor {
+                None => conn.serve(stream, stop_rx).await,
+                Some(acceptor) => {
+                    match tokio::time::timeout(limits.header_timeout, acceptor.accept(stream)).await
+                    {
+                        Ok(Ok(stream)) => conn.serve(stream, stop_rx).await,
+                        Ok(Err(e)) => {
+                            tracing::debug!(peer = %peer, error = %e, "HTTP TLS handshake refused")
+                        }
+                        Err(_) => {
+                            conn.stats.header_timeouts.fetch_add(1, Ordering::Relaxed);
+                            tracing::debug!(peer = %peer, "HTTP TLS handshake timed out");
+                        }
+                    }
+                }
+            }
             drop(ticket);
         });
     }
@@ -281,7 +304,10 @@ struct Connection {
 }
 
 impl Connection {
-    async fn serve(self, stream: TcpStream, mut stop: watch::Receiver<bool>) {
+    async fn serve<S>(self, stream: S, mut stop: watch::Receiver<bool>)
+    where
+        S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    {
         let stats = self.stats.clone();
         stats.open.fetch_add(1, Ordering::Relaxed);
         let clock = Arc::new(Clock::new());
@@ -457,13 +483,14 @@ impl Drop for InFlight {
     }
 }
 
-/// The TCP stream, recording its traffic on the connection's [`Clock`].
-struct Watched {
-    inner: TcpStream,
+/// The connection's stream (TCP, or TLS over TCP), recording its traffic on the
+/// connection's [`Clock`].
+struct Watched<S> {
+    inner: S,
     clock: Arc<Clock>,
 }
 
-impl AsyncRead for Watched {
+impl<S: AsyncRead + Unpin> AsyncRead for Watched<S> {
     fn poll_read(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
@@ -478,7 +505,7 @@ impl AsyncRead for Watched {
     }
 }
 
-impl AsyncWrite for Watched {
+impl<S: AsyncWrite + Unpin> AsyncWrite for Watched<S> {
     fn poll_write(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,

@@ -78,10 +78,15 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         req: Request<v1::RegisterRequest>,
     ) -> Result<Response<v1::RegisterResponse>, Status> {
         self.authorize(&req)?;
+        // Under mutual TLS, the certificate's common name (`crate::tls`).
+        let identity = req
+            .extensions()
+            .get::<crate::tls::PeerInfo>()
+            .and_then(|p| p.identity.clone());
         let r = req.into_inner();
         let id = self
             .core
-            .register_worker(r.name, r.threads, &r.version)
+            .register_worker_as(r.name, r.threads, &r.version, identity)
             .map_err(status)?;
         let cfg = self.core.config();
         Ok(Response::new(v1::RegisterResponse {

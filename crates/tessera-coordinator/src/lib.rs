@@ -40,6 +40,8 @@ pub mod server;
 pub mod service;
 pub mod state;
 pub mod store;
+pub mod tls;
 
 pub use connections::HttpLimits;
 pub use server::{serve, serve_coordinator, shutdown_signal, Listeners, ServeError};
+pub use tls::{ServerTls, TlsError, TlsFiles};

@@ -46,6 +46,7 @@ use crate::connections::{serve_http, ConnectionStats};
 use crate::grpc::WorkerGrpc;
 use crate::service::{Coordinator, CoordinatorConfig};
 use crate::store::StoreError;
+use crate::tls::{ServerTls, TlsError};
 
 /// How long a shutting-down coordinator waits for workers to deliver the units they hold.
 pub const WORKER_DRAIN: Duration = Duration::from_secs(5);
@@ -76,6 +77,9 @@ pub enum ServeError {
     /// The gRPC server stopped with an error before it was asked to stop.
     #[error("the gRPC server failed: {0}")]
     Grpc(tonic::transport::Error),
+    /// The TLS files could not be loaded.
+    #[error("TLS: {0}")]
+    Tls(#[from] TlsError),
 }
 
 /// Opens the coordinator described by `config` and serves it on `listeners` until
@@ -101,12 +105,17 @@ pub async fn serve_coordinator(
     listeners: Listeners,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), ServeError> {
+    let tls = match &core.config().tls {
+        Some(files) => Some(Arc::new(ServerTls::load(files.clone())?)),
+        None => None,
+    };
+    let reloader = tls.clone().map(ServerTls::reload_on_sighup);
     let (failed_tx, mut failed_rx) = mpsc::channel::<ServeError>(2);
     let (http_stop, http_stopped) = oneshot::channel::<()>();
     let (grpc_stop, grpc_stopped) = oneshot::channel::<()>();
     let ticker = core.spawn_ticker();
-    let http = spawn_http(&core, listeners.http, http_stopped);
-    let grpc = spawn_grpc(&core, listeners.grpc, grpc_stopped, failed_tx);
+    let http = spawn_http(&core, listeners.http, tls.clone(), http_stopped);
+    let grpc = spawn_grpc(&core, listeners.grpc, tls, grpc_stopped, failed_tx);
     let failure = tokio::select! {
         _ = shutdown => None,
         e = failed_rx.recv() => e,
@@ -118,6 +127,9 @@ pub async fn serve_coordinator(
     let _ = grpc_stop.send(());
     join_servers(http, grpc, SERVER_SHUTDOWN).await;
     ticker.abort();
+    if let Some(r) = reloader {
+        r.abort();
+    }
     // A graceful end: the next start does not count it as a crash of the jobs in hand
     // (docs/store.md, "No crash loop").
     if let Err(e) = core.store().end_run().await {
@@ -134,6 +146,7 @@ pub async fn serve_coordinator(
 fn spawn_http(
     core: &Coordinator,
     listener: TcpListener,
+    tls: Option<Arc<ServerTls>>,
     stop: oneshot::Receiver<()>,
 ) -> JoinHandle<()> {
     let stats = Arc::new(ConnectionStats::default());
@@ -143,29 +156,41 @@ fn spawn_http(
         let graceful = async move {
             let _ = stop.await;
         };
-        serve_http(listener, app, limits, stats, graceful).await;
+        serve_http(listener, app, limits, stats, tls, graceful).await;
     })
 }
 
 fn spawn_grpc(
     core: &Coordinator,
     listener: TcpListener,
+    tls: Option<Arc<ServerTls>>,
     stop: oneshot::Receiver<()>,
     failed: mpsc::Sender<ServeError>,
 ) -> JoinHandle<()> {
     let svc = WorkerGrpc::for_coordinator(core.clone()).into_server();
-    // TCP_NODELAY: results and leases are small request/response exchanges, and Nagle's
-    // algorithm with delayed ACKs would stall each by tens of milliseconds.
-    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     tokio::spawn(async move {
         let graceful = async move {
             let _ = stop.await;
         };
-        if let Err(e) = tonic::transport::Server::builder()
-            .add_service(svc)
-            .serve_with_incoming_shutdown(incoming, graceful)
-            .await
-        {
+        let server = tonic::transport::Server::builder().add_service(svc);
+        let served = match tls {
+            // TCP_NODELAY: results and leases are small request/response exchanges, and
+            // Nagle's algorithm with delayed ACKs would stall each by tens of milliseconds.
+            None => {
+                let incoming =
+                    tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+                server
+                    .serve_with_incoming_shutdown(incoming, graceful)
+                    .await
+            }
+            Some(tls) => {
+                let incoming = crate::tls::grpc_incoming(listener, tls);
+                server
+                    .serve_with_incoming_shutdown(incoming, graceful)
+                    .await
+            }
+        };
+        if let Err(e) = served {
             tracing::error!(error = %e, "gRPC server failed");
             let _ = failed.send(ServeError::Grpc(e)).await;
         }

@@ -44,6 +44,8 @@ pub struct WorkerEntry {
     pub draining: bool,
     /// Seconds spent rendering the units it delivered, as it reported them.
     pub render_seconds: f64,
+    /// The common name of its TLS client certificate, under mutual TLS.
+    pub identity: Option<String>,
 }
 
 /// A job as the gRPC service needs it to hand out leases: what a worker must know to

@@ -28,7 +28,7 @@ use tessera_render::scene::RenderScene;
 use tessera_scene::Scene;
 use tonic::metadata::MetadataValue;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 use tonic::{Request, Status};
 
 /// How to run a worker.
@@ -42,6 +42,84 @@ pub struct WorkerConfig {
     pub name: String,
     /// Bearer token for the coordinator's worker port, if it requires one.
     pub token: Option<String>,
+    /// TLS for an `https://` coordinator URL: the CA to trust and, for mutual TLS, the
+    /// worker's certificate and key. `None` for `http://`.
+    pub tls: Option<WorkerTls>,
+}
+
+/// A worker's TLS settings, read from PEM files by [`WorkerTls::from_files`].
+#[derive(Clone)]
+pub struct WorkerTls {
+    /// The CA certificates (PEM) the coordinator's certificate must be issued by.
+    pub ca_pem: Vec<u8>,
+    /// The worker's certificate chain and private key (PEM), for mutual TLS.
+    pub identity: Option<(Vec<u8>, Vec<u8>)>,
+}
+
+impl std::fmt::Debug for WorkerTls {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WorkerTls")
+            .field("ca_pem_bytes", &self.ca_pem.len())
+            .field("client_certificate", &self.identity.is_some())
+            .finish()
+    }
+}
+
+impl WorkerTls {
+    /// Reads the CA file and, for mutual TLS, the certificate and key files, checking
+    /// that each holds what it should (errors name the file).
+    pub fn from_files(
+        ca: &std::path::Path,
+        cert_and_key: Option<(&std::path::Path, &std::path::Path)>,
+    ) -> Result<Self, WorkerError> {
+        use rustls::pki_types::pem::PemObject;
+        use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+        let read = |p: &std::path::Path| {
+            std::fs::read(p)
+                .map_err(|e| WorkerError::Config(format!("cannot read {}: {e}", p.display())))
+        };
+        let certs = |p: &std::path::Path, bytes: &[u8]| {
+            let n = CertificateDer::pem_slice_iter(bytes)
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(|e| {
+                    WorkerError::Config(format!("{}: malformed PEM certificate: {e}", p.display()))
+                })?
+                .len();
+            if n == 0 {
+                return Err(WorkerError::Config(format!(
+                    "{}: no PEM certificate in the file",
+                    p.display()
+                )));
+            }
+            Ok(())
+        };
+        let ca_pem = read(ca)?;
+        certs(ca, &ca_pem)?;
+        let identity = match cert_and_key {
+            None => None,
+            Some((cert, key)) => {
+                let cert_pem = read(cert)?;
+                certs(cert, &cert_pem)?;
+                let key_pem = read(key)?;
+                PrivateKeyDer::from_pem_slice(&key_pem).map_err(|e| {
+                    WorkerError::Config(format!(
+                        "{}: no usable PEM private key: {e}",
+                        key.display()
+                    ))
+                })?;
+                Some((cert_pem, key_pem))
+            }
+        };
+        Ok(Self { ca_pem, identity })
+    }
+
+    fn client_config(&self) -> ClientTlsConfig {
+        let mut cfg = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(&self.ca_pem));
+        if let Some((cert, key)) = &self.identity {
+            cfg = cfg.identity(Identity::from_pem(cert, key));
+        }
+        cfg
+    }
 }
 
 /// Errors that end a worker.
@@ -70,6 +148,18 @@ impl tonic::service::Interceptor for Auth {
 
 type Client = v1::worker_service_client::WorkerServiceClient<InterceptedService<Channel, Auth>>;
 
+/// An error and its causes, `: `-separated (tonic's transport errors hide the cause).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut out = e.to_string();
+    let mut cur = e.source();
+    while let Some(c) = cur {
+        out.push_str(": ");
+        out.push_str(&c.to_string());
+        cur = c.source();
+    }
+    out
+}
+
 /// Scenes and their built forms, by scene reference and camera (`SCENE#CAMERA`).
 #[derive(Default)]
 struct SceneCache {
@@ -92,10 +182,31 @@ pub async fn run(
             config.threads
         )));
     }
-    let endpoint = Endpoint::from_shared(config.coordinator.clone())
+    let mut endpoint = Endpoint::from_shared(config.coordinator.clone())
         .map_err(|e| WorkerError::Config(format!("coordinator URL {:?}: {e}", config.coordinator)))?
         .connect_timeout(Duration::from_secs(5))
         .tcp_nodelay(true);
+    let https = config.coordinator.starts_with("https://");
+    match (&config.tls, https) {
+        (Some(tls), true) => {
+            endpoint = endpoint
+                .tls_config(tls.client_config())
+                .map_err(|e| WorkerError::Config(format!("TLS: {e}")))?;
+        }
+        (Some(_), false) => {
+            return Err(WorkerError::Config(format!(
+                "TLS files were given but the coordinator URL {:?} is not https://",
+                config.coordinator
+            )))
+        }
+        (None, true) => {
+            return Err(WorkerError::Config(format!(
+                "the coordinator URL {:?} is https://: give the CA to trust (--tls-ca)",
+                config.coordinator
+            )))
+        }
+        (None, false) => {}
+    }
     let auth = match &config.token {
         Some(t) => Some(
             format!("Bearer {t}")
@@ -136,7 +247,17 @@ pub async fn run(
                         }
                     }
                 }
-                Err(e) => tracing::debug!(error = %e, "coordinator not reachable"),
+                Err(e) => {
+                    // A refused TLS handshake (a wrong CA, a missing client certificate)
+                    // looks like this too: say it at the longest backoff, not only in
+                    // debug logs.
+                    let cause = error_chain(&e);
+                    if backoff >= Duration::from_secs(5) {
+                        tracing::warn!(error = %cause, "coordinator not reachable");
+                    } else {
+                        tracing::debug!(error = %cause, "coordinator not reachable");
+                    }
+                }
             }
             let mut stop = stop_rx.clone();
             tokio::select! {

@@ -67,6 +67,7 @@ async fn farm_render(workers: usize) -> FrameImage {
             threads: 1,
             name: format!("w{i}"),
             token: Some("s3cret".into()),
+            tls: None,
         };
         let mut rx = stop_rx.clone();
         handles.push(tokio::spawn(run(cfg, async move {
@@ -130,6 +131,7 @@ async fn a_worker_without_the_token_is_refused() {
             threads: 1,
             name: "intruder".into(),
             token,
+            tls: None,
         };
         let r = tokio::time::timeout(Duration::from_secs(30), run(cfg, std::future::pending()))
             .await

@@ -76,6 +76,7 @@ async fn scenario() {
             threads: 1,
             name: "w".into(),
             token: None,
+            tls: None,
         },
         async move {
             let _ = stop_rx.changed().await;

@@ -87,6 +87,9 @@ pub struct CoordinatorConfig {
     /// How long a worker stays listed (as `lost`) after it was marked lost, ms; then it is
     /// forgotten and counted in `tessera_workers_forgotten_total`.
     pub forget_lost_ms: u64,
+    /// TLS on both ports, and mutual TLS for workers with a client CA (`crate::tls`);
+    /// `None` serves plain text.
+    pub tls: Option<crate::tls::TlsFiles>,
 }
 
 impl std::fmt::Debug for CoordinatorConfig {
@@ -103,6 +106,7 @@ impl std::fmt::Debug for CoordinatorConfig {
             .field("memory_budget", &self.memory_budget)
             .field("http_limits", &self.http_limits)
             .field("forget_lost_ms", &self.forget_lost_ms)
+            .field("tls", &self.tls)
             .finish()
     }
 }
@@ -127,6 +131,7 @@ impl CoordinatorConfig {
             memory_budget: DEFAULT_MEMORY_BUDGET,
             http_limits: HttpLimits::default(),
             forget_lost_ms: FORGET_LOST_MS,
+            tls: None,
         }
     }
 }

@@ -53,6 +53,18 @@ impl Coordinator {
         threads: u32,
         version: &str,
     ) -> CoordResult<WorkerId> {
+        self.register_worker_as(name, threads, version, None)
+    }
+
+    /// Registers a worker whose TLS client certificate named it `identity` (its common
+    /// name, under mutual TLS), recorded in the worker list.
+    pub fn register_worker_as(
+        &self,
+        name: String,
+        threads: u32,
+        version: &str,
+        identity: Option<String>,
+    ) -> CoordResult<WorkerId> {
         if name.len() > MAX_WORKER_NAME {
             return Err(CoordError::invalid_field(
                 "name",
@@ -64,10 +76,17 @@ impl Coordinator {
             threads,
             last_seen_ms: now_ms(),
             version: version.chars().take(64).collect(),
+            identity: identity.map(|i| i.chars().take(MAX_WORKER_NAME).collect()),
             ..WorkerEntry::default()
         };
+        let identity = entry.identity.clone();
         let id = self.lock()?.register_worker(entry);
-        tracing::info!(worker = id, threads, "worker registered");
+        tracing::info!(
+            worker = id,
+            threads,
+            identity = identity.as_deref(),
+            "worker registered"
+        );
         Ok(id)
     }
 
@@ -332,6 +351,7 @@ impl Coordinator {
                     paths_per_second: w.paths_per_second,
                     faults: w.faults,
                     version: w.version.clone(),
+                    identity: w.identity.clone(),
                 }
             })
             .collect();

@@ -1,0 +1,281 @@
+//! TLS end to end with real processes on loopback (docs/tls.md): a CA and certificates
+//! made here by rcgen; `tessera coordinator --tls-cert --tls-key --tls-client-ca`, a
+//! `tessera worker` with `--tls-ca` and its client certificate, `tessera submit` and
+//! `tessera status` with `--tls-ca` on `https://`. The farm's EXR must be byte-identical
+//! to `tessera render` (ARCHITECTURE.md §2), and SIGHUP must put new certificate files in
+//! force for new connections, keeping the old ones when the new ones are bad. Every wait
+//! polls with a timeout.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use common::farm::{start_coordinator, start_worker};
+use common::{output, output_ok, poll, temp_dir, tessera, Proc};
+use rcgen::{
+    BasicConstraints, CertificateParams, CertifiedIssuer, DnType, ExtendedKeyUsagePurpose, IsCa,
+    KeyPair,
+};
+
+/// A test CA.
+struct Ca {
+    issuer: CertifiedIssuer<'static, KeyPair>,
+}
+
+impl Ca {
+    fn new(name: &str) -> Self {
+        let mut p = CertificateParams::new(Vec::<String>::new()).unwrap();
+        p.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+        p.distinguished_name.push(DnType::CommonName, name);
+        Self {
+            issuer: CertifiedIssuer::self_signed(p, KeyPair::generate().unwrap()).unwrap(),
+        }
+    }
+
+    /// Writes the CA certificate to `dir/NAME`.
+    fn write(&self, dir: &Path, name: &str) -> PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, self.issuer.pem()).unwrap();
+        p
+    }
+
+    /// Writes a certificate issued by this CA and its key to `dir/NAME.pem` and
+    /// `dir/NAME.key`: a server certificate for 127.0.0.1, or a client one named `cn`.
+    fn issue(&self, dir: &Path, name: &str, cn: &str, server: bool) -> (PathBuf, PathBuf) {
+        let names = if server {
+            vec!["127.0.0.1".to_string(), "localhost".to_string()]
+        } else {
+            vec![]
+        };
+        let mut p = CertificateParams::new(names).unwrap();
+        p.distinguished_name.push(DnType::CommonName, cn);
+        p.extended_key_usages = vec![if server {
+            ExtendedKeyUsagePurpose::ServerAuth
+        } else {
+            ExtendedKeyUsagePurpose::ClientAuth
+        }];
+        let key = KeyPair::generate().unwrap();
+        let cert = p.signed_by(&key, &self.issuer).unwrap();
+        let (c, k) = (
+            dir.join(format!("{name}.pem")),
+            dir.join(format!("{name}.key")),
+        );
+        // Written whole to a temporary file, then renamed: a reload never sees half a file.
+        for (path, text) in [(&c, cert.pem()), (&k, key.serialize_pem())] {
+            let tmp = path.with_extension("tmp");
+            std::fs::write(&tmp, text).unwrap();
+            std::fs::rename(&tmp, path).unwrap();
+        }
+        (c, k)
+    }
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// `tessera status --server SERVER --tls-ca CA --json`: whether it succeeded, and its
+/// stderr.
+fn status(server: &str, ca: &Path) -> (bool, String) {
+    let (ok, _, err) =
+        output(tessera().args(["status", "--server", server, "--tls-ca", s(ca), "--json"]));
+    (ok, err)
+}
+
+#[test]
+fn a_mutual_tls_farm_renders_the_local_image_byte_for_byte() {
+    let dir = temp_dir("tls", "farm");
+    let (ca, worker_ca, other) = (
+        Ca::new("farm CA"),
+        Ca::new("worker CA"),
+        Ca::new("other CA"),
+    );
+    let ca_pem = ca.write(&dir, "ca.pem");
+    let worker_ca_pem = worker_ca.write(&dir, "worker-ca.pem");
+    let other_pem = other.write(&dir, "other.pem");
+    let (cert, key) = ca.issue(&dir, "server", "coordinator", true);
+    let (wcert, wkey) = worker_ca.issue(&dir, "worker", "render-node-1", false);
+
+    let local = dir.join("local.exr");
+    output_ok(tessera().args([
+        "render",
+        "builtin:cornell-box",
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "4",
+        "--seed",
+        "5",
+        "-o",
+        s(&local),
+    ]));
+
+    let c = start_coordinator(
+        &dir.join("data"),
+        "127.0.0.1:0",
+        "127.0.0.1:0",
+        &[
+            "--tls-cert",
+            s(&cert),
+            "--tls-key",
+            s(&key),
+            "--tls-client-ca",
+            s(&worker_ca_pem),
+        ],
+    );
+    assert!(c.http.starts_with("https://"), "{}", c.http);
+    assert!(c.grpc.starts_with("https://"), "{}", c.grpc);
+
+    // The HTTP clients: the right CA answers; another CA and plain text do not.
+    assert!(status(&c.http, &ca_pem).0);
+    let (ok, err) = status(&c.http, &other_pem);
+    assert!(!ok && err.to_lowercase().contains("certificate"), "{err}");
+    let plain = c.http.replacen("https://", "http://", 1);
+    let (ok, _, _) = output(tessera().args(["status", "--server", &plain]));
+    assert!(!ok, "plain text was answered on the TLS port");
+
+    let _w = start_worker(
+        &c.grpc,
+        "w1",
+        &[
+            "--tls-ca",
+            s(&ca_pem),
+            "--tls-cert",
+            s(&wcert),
+            "--tls-key",
+            s(&wkey),
+        ],
+    );
+    let farm = dir.join("farm.exr");
+    output_ok(tessera().args([
+        "submit",
+        "builtin:cornell-box",
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "4",
+        "--seed",
+        "5",
+        "--server",
+        &c.http,
+        "--tls-ca",
+        s(&ca_pem),
+        "--wait",
+        "--wait-timeout",
+        "120",
+        "-o",
+        s(&farm),
+    ]));
+    assert!(
+        std::fs::read(&farm).unwrap() == std::fs::read(&local).unwrap(),
+        "the farm's EXR over mutual TLS differs from tessera render"
+    );
+
+    // The worker registered under its certificate's common name.
+    let client = tessera_api::client::Client::new(&c.http, None)
+        .with_tls_ca(&std::fs::read(&ca_pem).unwrap())
+        .unwrap();
+    let workers = client.workers().unwrap().workers;
+    assert_eq!(workers.len(), 1);
+    assert_eq!(workers[0].identity.as_deref(), Some("render-node-1"));
+}
+
+#[test]
+fn sighup_puts_new_certificate_files_in_force_and_keeps_the_old_ones_if_bad() {
+    let dir = temp_dir("tls", "sighup");
+    let (old_ca, new_ca) = (Ca::new("old CA"), Ca::new("new CA"));
+    let (old_pem, new_pem) = (old_ca.write(&dir, "old.pem"), new_ca.write(&dir, "new.pem"));
+    let (cert, key) = old_ca.issue(&dir, "server", "coordinator", true);
+    let log = dir.join("coordinator.log");
+    let mut proc = Proc::spawn(
+        "coordinator",
+        tessera()
+            .args([
+                "coordinator",
+                "--http",
+                "127.0.0.1:0",
+                "--grpc",
+                "127.0.0.1:0",
+            ])
+            .arg("--data")
+            .arg(dir.join("data"))
+            .args(["--tls-cert", s(&cert), "--tls-key", s(&key)])
+            .env("RUST_LOG", "info")
+            .env_remove("TESSERA_API_TOKEN"),
+        Some(&log),
+    );
+    let http = proc
+        .wait_line("http: ")
+        .trim_end_matches("/api/v1")
+        .to_string();
+    let pid = proc.pid().unwrap().to_string();
+    assert!(status(&http, &old_pem).0);
+    assert!(!status(&http, &new_pem).0);
+
+    // New files, SIGHUP: new connections see the new certificate.
+    new_ca.issue(&dir, "server", "coordinator", true);
+    output_ok(std::process::Command::new("kill").args(["-HUP", &pid]));
+    poll(
+        "the new certificate in force",
+        Duration::from_secs(20),
+        || status(&http, &new_pem).0,
+    );
+    assert!(
+        !status(&http, &old_pem).0,
+        "the old certificate is still served"
+    );
+
+    // A bad key, SIGHUP: an error is logged and the certificate in force stays.
+    std::fs::write(&key, "not a key\n").unwrap();
+    output_ok(std::process::Command::new("kill").args(["-HUP", &pid]));
+    poll("the failed reload logged", Duration::from_secs(20), || {
+        std::fs::read_to_string(&log)
+            .unwrap_or_default()
+            .contains("TLS reload failed")
+    });
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(
+        text.contains("server.key"),
+        "the error names the file: {text}"
+    );
+    assert!(
+        status(&http, &new_pem).0,
+        "a failed reload dropped the certificate"
+    );
+    proc.stop();
+}
+
+#[test]
+fn bad_tls_flags_are_clear_errors_at_start() {
+    let dir = temp_dir("tls", "flags");
+    let missing = dir.join("missing.pem");
+    let (ok, _, err) = output(tessera().args([
+        "coordinator",
+        "--http",
+        "127.0.0.1:0",
+        "--grpc",
+        "127.0.0.1:0",
+        "--data",
+        s(&dir.join("data")),
+        "--tls-cert",
+        s(&missing),
+        "--tls-key",
+        s(&missing),
+    ]));
+    assert!(!ok && err.contains("missing.pem"), "{err}");
+    let (ok, _, err) = output(tessera().args([
+        "worker",
+        "--coordinator",
+        "https://127.0.0.1:1",
+        "--tls-ca",
+        s(&missing),
+    ]));
+    assert!(!ok && err.contains("missing.pem"), "{err}");
+    let (ok, _, err) = output(tessera().args(["worker", "--coordinator", "https://127.0.0.1:1"]));
+    assert!(!ok && err.contains("--tls-ca"), "{err}");
+}
