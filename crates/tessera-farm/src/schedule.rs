@@ -265,17 +265,7 @@ impl Job {
             }
             a.skipped.insert(i);
         }
-        while self.cursor < self.units_total() {
-            let i = self.cursor;
-            if self.done.contains(&i) {
-                self.cursor += 1;
-                continue;
-            }
-            // A frame that does not fit the budget yet waits, with the cursor on it.
-            if !self.make_live(self.frame_index(i), mem) {
-                return None;
-            }
-            self.cursor += 1;
+        while let Some(i) = self.next_from_cursor(mem) {
             let gate = self.gate(i);
             let a = self.adaptive.as_mut()?;
             match gate {
@@ -397,15 +387,19 @@ impl Job {
             self.returned.remove(&i);
             return Some(i);
         }
-        // Units merged before a restart are skipped (a resumed job's `done` set is not a
-        // prefix of the canonical order).
+        self.next_from_cursor(mem)
+    }
+
+    /// The never-leased unit at the cursor, advancing it: units merged before a restart
+    /// are skipped (a resumed job's `done` set is not a prefix of the canonical order); a
+    /// unit whose frame does not fit the budget yet waits, with the cursor on it (`None`).
+    fn next_from_cursor(&mut self, mem: &mut Memory) -> Option<u64> {
         while self.cursor < self.units_total() {
             let i = self.cursor;
             if self.done.contains(&i) {
                 self.cursor += 1;
                 continue;
             }
-            // A frame that does not fit the budget yet waits, with the cursor on it.
             if !self.make_live(self.frame_index(i), mem) {
                 return None;
             }
