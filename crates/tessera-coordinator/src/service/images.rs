@@ -29,6 +29,11 @@ use crate::state::tile_error;
 pub const HEAVY_REQUESTS: usize = 2;
 /// Encoded images kept for pollers, in bytes over all jobs.
 pub const IMAGE_CACHE_BYTES: usize = 64 << 20;
+/// How old a cached PNG of a running job may be and still be served although results
+/// merged since: the dashboard polls once a second, and re-encoding on every merge would
+/// put one encode per poller on the render's cores. Final images (a stopped job, a
+/// released frame) and EXR downloads are always current.
+pub const PREVIEW_MAX_AGE: std::time::Duration = std::time::Duration::from_millis(1000);
 
 /// The merged state of a frame as a request sees it.
 enum Source<'a> {
@@ -49,7 +54,9 @@ struct FrameMeta {
     resolved: ResolvedJob,
     stopped: Option<&'static str>,
     frame: u32,
-    /// Changes whenever the frame's image may have changed (cache key).
+    /// Changes whenever the frame's image may have changed (cache key): twice the job's
+    /// merge count while it runs, plus one once it stopped; `u64::MAX` for a frame that no
+    /// longer changes (released, or of a job of an earlier run).
     version: u64,
 }
 
@@ -61,42 +68,55 @@ enum Located<T> {
     Store(Box<FrameMeta>),
 }
 
+/// One encoded image.
+struct Cached {
+    version: u64,
+    bytes: Arc<Vec<u8>>,
+    /// When it was encoded.
+    at: std::time::Instant,
+}
+
 /// An image cache key: (job, frame, EXR rather than PNG).
 type ImageKey = (JobId, u32, bool);
 
 /// Encoded images by key: (version, bytes).
 #[derive(Default)]
 pub(crate) struct ImageCache {
-    entries: HashMap<ImageKey, (u64, Arc<Vec<u8>>)>,
+    entries: HashMap<ImageKey, Cached>,
     bytes: usize,
 }
 
 impl ImageCache {
+    /// The cached image of `key` if it is of `version`, or (a PNG of a running job,
+    /// whose versions are even, see [`FrameMeta::version`]) younger than
+    /// [`PREVIEW_MAX_AGE`].
     fn get(&self, key: ImageKey, version: u64) -> Option<Arc<Vec<u8>>> {
-        self.entries
-            .get(&key)
-            .filter(|(v, _)| *v == version)
-            .map(|(_, b)| b.clone())
+        let c = self.entries.get(&key)?;
+        let running = version.is_multiple_of(2) && version != u64::MAX;
+        let fresh_enough =
+            !key.2 && running && c.version.is_multiple_of(2) && c.at.elapsed() < PREVIEW_MAX_AGE;
+        (c.version == version || fresh_enough).then(|| c.bytes.clone())
     }
 
     fn put(&mut self, key: ImageKey, version: u64, bytes: Arc<Vec<u8>>) {
         if bytes.len() > IMAGE_CACHE_BYTES / 4 {
             return;
         }
-        if let Some((_, old)) = self.entries.remove(&key) {
-            self.bytes -= old.len();
+        if let Some(old) = self.entries.remove(&key) {
+            self.bytes -= old.bytes.len();
         }
         // Evict arbitrary entries until it fits: pollers refill what they use.
         while self.bytes + bytes.len() > IMAGE_CACHE_BYTES {
             let Some(&k) = self.entries.keys().next() else {
                 break;
             };
-            if let Some((_, old)) = self.entries.remove(&k) {
-                self.bytes -= old.len();
+            if let Some(old) = self.entries.remove(&k) {
+                self.bytes -= old.bytes.len();
             }
         }
         self.bytes += bytes.len();
-        self.entries.insert(key, (version, bytes));
+        let at = std::time::Instant::now();
+        self.entries.insert(key, Cached { version, bytes, at });
     }
 }
 
@@ -429,4 +449,30 @@ fn frame_error(f: u32, frames: FrameRange) -> CoordError {
             frames.start, frames.end
         ),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn running_previews_may_be_a_second_old_final_images_never() {
+        let mut c = ImageCache::default();
+        let png = (1, 0, false);
+        let exr = (1, 0, true);
+        c.put(png, 10, Arc::new(vec![1]));
+        c.put(exr, 10, Arc::new(vec![2]));
+        // Newer merges: the fresh PNG is served, the EXR is not.
+        assert_eq!(c.get(png, 12).as_deref(), Some(&vec![1]));
+        assert!(c.get(exr, 12).is_none());
+        // The job stopped (odd version) or the frame was released: only an exact match.
+        assert!(c.get(png, 13).is_none());
+        assert!(c.get(png, u64::MAX).is_none());
+        // Too old for a running job.
+        if let Some(e) = c.entries.get_mut(&png) {
+            e.at = e.at.checked_sub(PREVIEW_MAX_AGE).unwrap_or(e.at);
+        }
+        assert!(c.get(png, 12).is_none());
+        assert_eq!(c.get(png, 10).as_deref(), Some(&vec![1]));
+    }
 }
