@@ -65,15 +65,23 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
     let mut polled = Vec::new();
     let mut latencies = Vec::new();
     let mut requests = 0usize;
+    // CPU seconds of the coordinator (alone, polled) and of the pollers themselves: the
+    // pollers run in this process on the farm's cores, which a real dashboard does not.
+    let mut cpu = [0.0f64; 3];
     for rep in 0..args.repeat.max(1) {
         let l = time_local(&exe, &args, &dir.join("local.exr"))?;
         let data = dir.join(format!("data{rep}"));
         let _ = std::fs::remove_dir_all(&data);
-        let f = time_farm(&exe, &args, &data, 0)?.0;
+        let alone = time_farm(&exe, &args, &data, 0)?;
+        let f = alone.seconds;
+        cpu[0] += alone.coordinator_cpu;
         if args.pollers > 0 {
             let data = dir.join(format!("polled{rep}"));
             let _ = std::fs::remove_dir_all(&data);
-            let (p, mut lat) = time_farm(&exe, &args, &data, args.pollers)?;
+            let polled_run = time_farm(&exe, &args, &data, args.pollers)?;
+            let (p, mut lat) = (polled_run.seconds, polled_run.latencies);
+            cpu[1] += polled_run.coordinator_cpu;
+            cpu[2] += polled_run.pollers_cpu;
             requests += lat.len();
             let mut sorted = lat.clone();
             sorted.sort_by(f64::total_cmp);
@@ -126,6 +134,14 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
             1e3 * quantile(&latencies, 0.5),
             1e3 * quantile(&latencies, 0.99),
             1e3 * latencies.last().copied().unwrap_or(0.0)
+        );
+        let n = f64::from(args.repeat.max(1));
+        println!(
+            "bench-farm pollers CPU (per run): coordinator {:.2} s alone, {:.2} s polled ({:.0} us per request); the pollers themselves {:.2} s",
+            cpu[0] / n,
+            cpu[1] / n,
+            1e6 * (cpu[1] - cpu[0]) / requests.max(1) as f64,
+            cpu[2] / n
         );
     }
     let _ = std::fs::remove_dir_all(&dir);
@@ -196,14 +212,38 @@ fn time_local(exe: &Path, args: &BenchFarmArgs, out: &Path) -> Result<f64> {
     Ok(t.elapsed().as_secs_f64())
 }
 
-/// Seconds a fresh `tessera serve` on `data` takes from the job's submission to done,
-/// with `pollers` dashboard-like pollers watching (and their request latencies).
-fn time_farm(
-    exe: &Path,
-    args: &BenchFarmArgs,
-    data: &Path,
-    pollers: usize,
-) -> Result<(f64, Vec<f64>)> {
+/// One timed farm run.
+struct FarmRun {
+    /// From the job's submission to done.
+    seconds: f64,
+    /// Every poller request's latency, seconds.
+    latencies: Vec<f64>,
+    /// CPU seconds (user + system) the coordinator process used, start-up included (its
+    /// workers are separate processes and not counted).
+    coordinator_cpu: f64,
+    /// CPU seconds this process used while the job ran: the pollers' own cost.
+    pollers_cpu: f64,
+}
+
+/// CPU seconds (user + system) of process `pid` so far, from `/proc/PID/stat` (fields 14
+/// and 15, in the kernel's USER_HZ ticks, 100 per second on Linux); 0 where unavailable.
+fn cpu_seconds(pid: &str) -> f64 {
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return 0.0;
+    };
+    // The command name (field 2) may contain spaces; the fields after it do not.
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
+        return 0.0;
+    };
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    // `rest` starts at field 3 (state), so fields 14 and 15 are at 11 and 12.
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+/// A fresh `tessera serve` on `data` from the job's submission to done, with `pollers`
+/// dashboard-like pollers watching.
+fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> Result<FarmRun> {
     let (mut child, url) = start_farm(exe, args, data)?;
     let client = Client::new(&url, None);
     // Wait until the workers registered, so their start-up is not timed.
@@ -218,6 +258,7 @@ fn time_farm(
     s.width = Some(args.width);
     s.height = Some(args.height);
     s.spp = args.spp;
+    let self_cpu = cpu_seconds("self");
     let t = Instant::now();
     let job = client.submit(&s, None).map_err(client_error)?;
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -241,12 +282,19 @@ fn time_farm(
     for w in watchers {
         latencies.extend(w.join().unwrap_or_default());
     }
+    let pollers_cpu = cpu_seconds("self") - self_cpu;
+    let coordinator_cpu = cpu_seconds(&child.id().to_string());
     let _ = child.kill();
     let _ = child.wait();
     if done.state != JobState::Done {
         bail!("the farm job ended {}", done.state.as_str());
     }
-    Ok((f, latencies))
+    Ok(FarmRun {
+        seconds: f,
+        latencies,
+        coordinator_cpu,
+        pollers_cpu,
+    })
 }
 
 /// Starts `tessera serve` with one single-threaded worker per benchmark thread on port-0
