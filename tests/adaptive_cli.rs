@@ -157,3 +157,68 @@ fn off_mode_stops_at_a_target_or_time_limit() {
     assert!(stdout.contains("stopped: time limit reached"), "{stdout}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Issue 15: an adaptive render whose pixels run out of passes above the target says it
+/// finished without reaching the target, in its summary and in its EXR header, instead of
+/// "finished (target error 0.001)".
+#[test]
+fn a_target_the_budget_does_not_reach_is_not_claimed() {
+    let dir = temp_dir("adaptive", "unreached");
+    let out = dir.join("u.exr");
+    let (ok, stdout, stderr) = run(&[
+        "render",
+        "builtin:cornell-box",
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "64",
+        "--adaptive",
+        "unbiased",
+        "--target-error",
+        "0.001",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(stdout.contains("stopped: finished\n"), "{stdout}");
+    assert!(
+        stdout.contains("target: target error 0.001 not reached: the estimate is 0.")
+            && stdout.contains("when the sample budget (64 spp) ran out"),
+        "{stdout}"
+    );
+    let meta = read_exr(&out).metadata.expect("EXR metadata");
+    assert!(
+        meta.contains(r#""stopped":"finished","target_reached":false,"error_reached":0."#),
+        "{meta}"
+    );
+    // The same job with a target it reaches says so.
+    let (ok, stdout, stderr) = run(&[
+        "render",
+        "builtin:cornell-box",
+        "--width",
+        "16",
+        "--height",
+        "16",
+        "--spp",
+        "4096",
+        "--max-depth",
+        "2",
+        "--target-error",
+        "0.2",
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("target: target error 0.2 reached (the estimate is 0."),
+        "{stdout}"
+    );
+    let meta = read_exr(&out).metadata.expect("EXR metadata");
+    assert!(
+        meta.contains(r#""stopped":"target error reached","target_reached":true,"#),
+        "{meta}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

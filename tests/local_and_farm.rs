@@ -74,6 +74,13 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
                 // bdpt, chosen by the plan or asked for, renders one whole-frame tile.
                 let bdpt = integrator == "bdpt" || (integrator == "auto" && plan_is_bdpt);
                 assert_eq!(done.tiles_total == 1, bdpt, "{case}: tiles");
+                // Issue 15: a done job with a target says whether it reached it.
+                assert_eq!(
+                    done.target_reached.is_some(),
+                    s.target_error.is_some(),
+                    "{case}: {done:?}"
+                );
+                assert_eq!(done.stop_reason.is_some(), adaptive != "off", "{case}");
                 let farm = client.image(st.id, "exr").unwrap();
                 let out = dir.join(format!("{compared}.exr"));
                 let local = local_render(&path, &s, &out);

@@ -80,6 +80,18 @@ pub struct JobStatus {
     pub error_estimate: Option<f64>,
     /// The requested target error, if any.
     pub target_error: Option<f64>,
+    /// Once a job with a target error is done: whether its error estimate is at or below
+    /// the target. `None` while it runs, and without a target. A job can finish without
+    /// reaching its target (its pixels ran out of passes, or its time limit came first);
+    /// [`JobStatus::stop_reason`] then says why.
+    #[serde(default)]
+    pub target_reached: Option<bool>,
+    /// Once a job that may stop early (adaptive, a target error or a time limit) is done:
+    /// why it stopped, and for a target whether and why not it was reached, e.g.
+    /// "target error 0.03 not reached: the estimate is 0.0362 when the sample budget
+    /// (4096 spp) ran out".
+    #[serde(default)]
+    pub stop_reason: Option<String>,
     /// Seconds since the job started running (0 while queued).
     pub elapsed_seconds: f64,
     /// Estimated seconds until done; `None` when not yet predictable.
@@ -320,6 +332,8 @@ mod tests {
             spp_so_far: 12.5,
             error_estimate: Some(0.031),
             target_error: None,
+            target_reached: None,
+            stop_reason: None,
             elapsed_seconds: 3.25,
             eta_seconds: Some(10.0),
             created_unix_ms: 1_700_000_000_000,

@@ -8,8 +8,9 @@ use crate::render::{Prepared, RenderArgs};
 use anyhow::{bail, Context, Result};
 use std::io::IsTerminal;
 use std::path::Path;
+use tessera_farm::job::StopVerdict;
 use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage};
-use tessera_render::adaptive::{render_adaptive, Limits};
+use tessera_render::adaptive::{render_adaptive, Limits, StopReason};
 
 /// Checks that `path`, given to `flag`, names a PNG file.
 pub fn check_png(flag: &str, path: &Path) -> Result<()> {
@@ -85,7 +86,8 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
         b.finish_and_clear();
     }
     let image = out.frame.image();
-    let meta = p.resolved.metadata_json(Some(out.stop.as_str()));
+    let verdict = StopVerdict::of_image(&p.resolved, &image, out.stop == StopReason::TimeLimit);
+    let meta = p.resolved.metadata_json(Some(&verdict));
     tessera_image::write_image(&args.output, &image, Some(&meta))?;
     if let Some(path) = &args.spp_map {
         write_spp_map(path, &image)?;
@@ -108,9 +110,10 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
         plan.passes,
         plan.samples_per_pass
     );
-    match job.target_error {
-        Some(t) => println!("stopped: {} (target error {t})", out.stop.as_str()),
-        None => println!("stopped: {}", out.stop.as_str()),
+    // From the written image's own estimate: never a target it did not reach.
+    println!("stopped: {}", verdict.stopped());
+    if let Some(target) = verdict.describe() {
+        println!("target: {target}");
     }
     println!("seconds: {:.3}", out.seconds);
     println!("estimated relative error: {:.4}", out.frame.image_error());

@@ -10,7 +10,9 @@ use sha2::{Digest, Sha256};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use tessera_farm::job::{JobError, JobSettings, ResolvedJob, SceneRef, DEFAULT_MIN_PASSES};
+use tessera_farm::job::{
+    JobError, JobSettings, ResolvedJob, SceneRef, StopVerdict, DEFAULT_MIN_PASSES,
+};
 use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::render::render_frame_counted;
 use tessera_render::scene::RenderScene;
@@ -358,11 +360,12 @@ fn render_black(p: &Prepared, args: &RenderArgs) -> Result<()> {
     let start = Instant::now();
     let plan = p.resolved.plan;
     let image = FrameImage::black(&plan);
-    let stopped = p.resolved.job.stops_early().then_some("finished");
+    let stopped =
+        (p.resolved.job.stops_early()).then(|| StopVerdict::of_image(&p.resolved, &image, false));
     tessera_image::write_image(
         &args.output,
         &image,
-        Some(&p.resolved.metadata_json(stopped)),
+        Some(&p.resolved.metadata_json(stopped.as_ref())),
     )?;
     let seconds = start.elapsed().as_secs_f64();
     println!(

@@ -62,6 +62,9 @@ pub fn status(args: StatusArgs) -> Result<()> {
                 if let Some(e) = &s.error {
                     println!("error: {e}");
                 }
+                if let Some(r) = &s.stop_reason {
+                    println!("stopped: {r}");
+                }
             }
         }
         None => {

@@ -130,6 +130,9 @@ fn wait(client: &Client, id: u64, timeout_seconds: f64) -> Result<JobStatus> {
         )
         .map_err(client_error)?;
     println!("{}", progress_line(&done));
+    if let Some(r) = &done.stop_reason {
+        println!("stopped: {r}");
+    }
     if done.state != JobState::Done {
         bail!(
             "job {} ended {}{}",

@@ -166,7 +166,9 @@ export function jobView(id, poke) {
     setText(barText, ` ${int(j.passes_done)} of ${int(j.passes_planned)} passes${early}`);
     setText(f.spp, `${num(j.spp_so_far)} of ${int(j.settings?.spp)} planned`);
     const target = j.target_error ? percent(j.target_error) : "none";
-    setText(f.error, `${percent(j.error_estimate)} / ${target}`);
+    // Once done, the server's verdict: a finished job need not have reached its target.
+    const verdict = j.stop_reason ? ` (${j.stop_reason})` : "";
+    setText(f.error, `${percent(j.error_estimate)} / ${target}${verdict}`);
     setText(f.elapsed, duration(j.elapsed_seconds));
     setText(f.eta, terminal(j.state) ? "—" : j.eta_seconds === null ? "not yet predictable" : `≈ ${duration(j.eta_seconds)}`);
     const w = j.width ?? j.settings?.width;

@@ -54,7 +54,10 @@ function progressCell(td, job) {
 function errorCell(td, job) {
   const target = job.target_error ? ` / ${percent(job.target_error)}` : "";
   setText(td, `${percent(job.error_estimate)}${target}`);
-  td.classList.toggle("met", job.target_error > 0 && job.error_estimate > 0 && job.error_estimate <= job.target_error);
+  const met = job.target_reached ?? (job.target_error > 0 && job.error_estimate > 0 && job.error_estimate <= job.target_error);
+  td.classList.toggle("met", met);
+  td.classList.toggle("missed", job.target_reached === false);
+  td.title = job.stop_reason ?? "";
 }
 
 function text(f) {

@@ -172,9 +172,18 @@ pub struct JobRuntime {
     /// A checkpoint of this job failed to write: its frames stay in memory (they hold
     /// passes the store may not have) instead of being released when complete.
     pub(crate) unsaved_checkpoints: bool,
-    /// Why a done job stopped, as `tessera render` says it ("finished", "time limit
-    /// reached"); recorded in the EXR header of jobs that stop early.
-    pub stopped: Option<&'static str>,
+    /// Why a done job stopped; with the image's error estimate it gives the
+    /// [`tessera_farm::job::StopVerdict`] of the status and of the EXR header.
+    pub stopped: Option<Stop>,
+}
+
+/// Why a job stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stop {
+    /// Every planned pass merged, or every tile finished under adaptive stopping.
+    Finished,
+    /// Its time limit.
+    TimeLimit,
 }
 
 impl JobRuntime {

@@ -508,6 +508,24 @@ impl FrameImage {
             relative_error: vec![0.0; n],
         }
     }
+
+    /// The image's relative error estimate from its own layers: the RMS of
+    /// [`FrameImage::relative_error`] over all pixels (ARCHITECTURE.md §3), or `None` while
+    /// a pixel has fewer than 2 passes (it has no estimate, so no claim about the image
+    /// can be made). Computed from the written layers, so every renderer of the same
+    /// image (local or farm, live or restored from checkpoints) gets the same number.
+    pub fn error_estimate(&self) -> Option<f64> {
+        if self.passes.is_empty() || self.passes.iter().any(|&p| p < 2) {
+            return None;
+        }
+        let sum: f64 = self
+            .relative_error
+            .iter()
+            .map(|&e| f64::from(e) * f64::from(e))
+            .sum();
+        let e = (sum / self.relative_error.len() as f64).sqrt();
+        e.is_finite().then_some(e)
+    }
 }
 
 #[cfg(test)]

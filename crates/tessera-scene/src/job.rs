@@ -54,7 +54,9 @@ pub fn resolve_job(job: &ValidatedJob, scene: &Scene) -> Result<ResolvedJob, Job
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tessera_farm::job::{Integrator, JobSettings, DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH};
+    use tessera_farm::job::{
+        Integrator, JobSettings, StopVerdict, DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH,
+    };
 
     fn resolve(settings: &str) -> ResolvedJob {
         let raw: JobSettings = serde_json::from_str(settings).unwrap();
@@ -133,11 +135,44 @@ mod tests {
             r#"{"scene": "builtin:furnace", "width": 8, "height": 4, "spp": 256,
                 "adaptive": "unbiased", "target_error": 0.1}"#,
         );
-        let v: serde_json::Value =
-            serde_json::from_str(&r.metadata_json(Some("finished"))).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&r.metadata_json(None)).unwrap();
+        assert_eq!(v["stopped"], serde_json::Value::Null);
+        assert_eq!(v["target_reached"], serde_json::Value::Null);
+        // Issue 15: a render whose pixels ran out of passes above the target says so.
+        let short = StopVerdict {
+            time_limit: false,
+            target: Some(0.1),
+            estimate: Some(0.125),
+            spp: 256,
+        };
+        let v: serde_json::Value = serde_json::from_str(&r.metadata_json(Some(&short))).unwrap();
         assert_eq!(v["adaptive"], "unbiased");
         assert_eq!(v["min_passes"], 8);
         assert_eq!(v["stopped"], "finished");
+        assert_eq!(v["target_reached"], false);
+        assert_eq!(v["error_reached"], 0.125);
+        assert_eq!(
+            short.summary(),
+            "target error 0.1 not reached: the estimate is 0.1250 when the sample budget (256 spp) ran out"
+        );
+        let met = StopVerdict {
+            estimate: Some(0.0625),
+            ..short
+        };
+        let v: serde_json::Value = serde_json::from_str(&r.metadata_json(Some(&met))).unwrap();
+        assert_eq!(v["stopped"], "target error reached");
+        assert_eq!(v["target_reached"], true);
+        let timed = StopVerdict {
+            time_limit: true,
+            estimate: None,
+            ..short
+        };
+        assert_eq!(timed.stopped(), "time limit reached");
+        assert_eq!(
+            timed.summary(),
+            "target error 0.1 not reached: no estimate yet when the time limit ran out"
+        );
+        assert_eq!(timed.target_reached(), Some(false));
     }
 
     #[test]

@@ -22,7 +22,8 @@ use tessera_farm::{AdaptiveFrame, FrameAccumulator, FrameImage, FramePlan, JobId
 use super::resume::{resolve_stored, restore_frames};
 use super::Coordinator;
 use crate::error::{CoordError, CoordResult};
-use crate::state::tile_error;
+use crate::state::{tile_error, Stop};
+use tessera_farm::job::StopVerdict;
 
 /// Image requests that may restore a frame from the store or encode one at the same
 /// time; the rest wait (and then usually find the image cached).
@@ -52,7 +53,7 @@ enum Source<'a> {
 #[derive(Clone)]
 struct FrameMeta {
     resolved: ResolvedJob,
-    stopped: Option<&'static str>,
+    stopped: Option<Stop>,
     frame: u32,
     /// Changes whenever the frame's image may have changed (cache key): twice the job's
     /// merge count while it runs, plus one once it stopped; `u64::MAX` for a frame that no
@@ -221,7 +222,7 @@ impl Coordinator {
         let stored = resolve_stored(store, &self.inner.farm, &rec).await?;
         Ok(FrameMeta {
             resolved: stored.resolved,
-            stopped: (rec.state == JobState::Done).then_some("finished"),
+            stopped: (rec.state == JobState::Done).then_some(Stop::Finished),
             frame: f,
             // Jobs of an earlier run no longer change.
             version: u64::MAX,
@@ -284,10 +285,16 @@ impl Coordinator {
             })
             .await?;
         let plan = meta.resolved.plan;
-        let metadata = meta.resolved.metadata_json(meta.stopped);
+        let (stopped, resolved) = (meta.stopped, meta.resolved.clone());
         let bytes = tokio::task::spawn_blocking(move || match raw {
             Raw::Png(rgb) => tessera_image::encode_png_rgb8(plan.width, plan.height, &rgb),
-            Raw::Exr(img) => tessera_image::encode_exr(&img, Some(&metadata)),
+            Raw::Exr(img) => {
+                // The verdict of this frame's own image, as `tessera render` writes it.
+                let verdict =
+                    stopped.map(|s| StopVerdict::of_image(&resolved, &img, s == Stop::TimeLimit));
+                let metadata = resolved.metadata_json(verdict.as_ref());
+                tessera_image::encode_exr(&img, Some(&metadata))
+            }
         })
         .await
         .map_err(CoordError::internal)?

@@ -8,12 +8,13 @@
 use tessera_api::{
     History, JobList, JobListQuery, JobSettings, JobState, JobStatus, ResolvedJob, ValidatedJob,
 };
+use tessera_farm::job::StopVerdict;
 use tessera_farm::{frame_state_bytes, FramePlan, JobId};
 use tessera_scene::job::resolve_job;
 
 use super::{Coordinator, MAX_PAGE};
 use crate::error::{CoordError, CoordResult};
-use crate::state::{now_ms, Farm, JobEntry, JobRuntime};
+use crate::state::{now_ms, Farm, JobEntry, JobRuntime, Stop};
 use crate::store::{FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, TileSummary};
 
 impl Coordinator {
@@ -179,6 +180,16 @@ impl Coordinator {
             (Some(s), None) => now_ms().saturating_sub(s) as f64 / 1e3,
             _ => 0.0,
         };
+        // The store does not keep whether a time limit stopped it.
+        let stops_early = settings.adaptive != "off"
+            || settings.target_error.is_some()
+            || settings.time_limit_seconds.is_some();
+        let verdict = (rec.state == JobState::Done && stops_early).then(|| StopVerdict {
+            time_limit: false,
+            target: settings.target_error,
+            estimate: history.last().and_then(|h| h.error_estimate),
+            spp: plan.spp(),
+        });
         Ok(JobStatus {
             id: rec.id,
             name: rec.name.clone(),
@@ -200,6 +211,8 @@ impl Coordinator {
             passes_done,
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
             error_estimate: history.last().and_then(|h| h.error_estimate),
+            target_reached: verdict.and_then(|v| v.target_reached()),
+            stop_reason: verdict.map(|v| v.summary()),
             elapsed_seconds: elapsed,
             eta_seconds: None,
             created_unix_ms: rec.created_unix_ms,
@@ -351,6 +364,15 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             rt.job().target_error,
         )
     };
+    let verdict = match rt.stopped {
+        Some(stop) if rt.state == JobState::Done && rt.job().stops_early() => Some(StopVerdict {
+            time_limit: stop == Stop::TimeLimit,
+            target: rt.job().target_error,
+            estimate: error,
+            spp: plan.spp(),
+        }),
+        _ => None,
+    };
     JobStatus {
         id,
         name: rt.job().name.clone(),
@@ -370,6 +392,8 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         },
         error_estimate: error,
         target_error: rt.job().target_error,
+        target_reached: verdict.and_then(|v| v.target_reached()),
+        stop_reason: verdict.map(|v| v.summary()),
         elapsed_seconds: elapsed,
         eta_seconds: eta,
         created_unix_ms: rt.created_unix_ms,

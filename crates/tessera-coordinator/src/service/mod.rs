@@ -37,7 +37,7 @@ use tessera_farm::JobId;
 
 use crate::connections::HttpLimits;
 use crate::error::{CoordError, CoordResult};
-use crate::state::{now_ms, Farm};
+use crate::state::{now_ms, Farm, Stop};
 use crate::store::{SqliteStore, Store, StoreError, WatchedStore};
 
 pub mod images;
@@ -275,7 +275,7 @@ impl Coordinator {
                 rt.started_unix_ms = Some(now);
             }
             if state == JobState::Done && rt.stopped.is_none() {
-                rt.stopped = Some("finished");
+                rt.stopped = Some(Stop::Finished);
             }
             if state.is_terminal() {
                 rt.finished_unix_ms = Some(now);
@@ -308,7 +308,7 @@ impl Coordinator {
             for id in &over_time {
                 farm.scheduler.cancel(*id);
                 if let Some(rt) = farm.runtime.get_mut(id) {
-                    rt.stopped = Some("time limit reached");
+                    rt.stopped = Some(Stop::TimeLimit);
                 }
             }
             self.forget_lost_workers(&mut farm, now);

@@ -16,7 +16,7 @@ use tessera_scene::job::resolve_job;
 use super::jobs::add_to_scheduler;
 use super::scenes::{load_scene, SceneLoadError};
 use crate::error::CoordError;
-use crate::state::{now_ms, tile_error, Farm, JobEntry, JobRuntime, TileRejected};
+use crate::state::{now_ms, tile_error, Farm, JobEntry, JobRuntime, Stop, TileRejected};
 use crate::store::{
     FaultFilter, JobRecord, Store, StoreError, TileCheckpoint, MAX_RESUMES_WITHOUT_PROGRESS,
 };
@@ -304,7 +304,7 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
     rt.started_unix_ms = rec.started_unix_ms;
     rt.faults = faults;
     rt.history = history;
-    rt.stopped = (rec.state == JobState::Done).then_some("finished");
+    rt.stopped = (rec.state == JobState::Done).then_some(Stop::Finished);
     farm.runtime.insert(rec.id, rt);
     Ok(())
 }

@@ -54,7 +54,7 @@ pub use choice::{
     DEFAULT_CUTOFF_ALPHA, MAX_BUILTIN_NAME_CHARS,
 };
 pub use plan::{Effect, EffectKind, PlannedIntegrator, RenderPlan};
-pub use resolve::{ResolvedJob, SceneFacts};
+pub use resolve::{ResolvedJob, SceneFacts, StopVerdict};
 pub use settings::{
     resolve_resolution, FrameRange, JobError, JobSettings, RenderConfig, RenderRequest,
     ValidatedJob, DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES, DEFAULT_RR_DEPTH, DEFAULT_SPP,

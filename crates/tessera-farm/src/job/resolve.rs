@@ -9,6 +9,7 @@
 use super::choice::{Integrator, IntegratorChoice};
 use super::plan::{json_string, PlannedIntegrator, RenderPlan};
 use super::settings::{JobError, RenderConfig, ValidatedJob, DEFAULT_MAX_DEPTH, DEFAULT_RR_DEPTH};
+use crate::merge::FrameImage;
 use crate::plan::FramePlan;
 
 /// What resolution needs to know of a scene, besides its render plan.
@@ -109,14 +110,92 @@ impl ValidatedJob {
     }
 }
 
+/// How a render that may stop early ended: why it stopped and whether it reached its
+/// target error. A summary, status or EXR header never claims a target the image did not
+/// reach: the verdict is read from the image's own error estimate, not from the fact that
+/// the adaptive policy finished (its pixels may have run out of passes first).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StopVerdict {
+    /// The job's time limit stopped it.
+    pub time_limit: bool,
+    /// The job's target error, if it has one.
+    pub target: Option<f64>,
+    /// The image's error estimate when it stopped ([`FrameImage::error_estimate`]; for a
+    /// job of several frames, over all of them); `None` while a pixel has fewer than 2
+    /// passes.
+    pub estimate: Option<f64>,
+    /// The job's sample budget per pixel (`spp`), named when it ran out first.
+    pub spp: u32,
+}
+
+impl StopVerdict {
+    /// The verdict on `image` of `job`, stopped by its time limit or not.
+    pub fn of_image(job: &ResolvedJob, image: &FrameImage, time_limit: bool) -> Self {
+        Self {
+            time_limit,
+            target: job.job.target_error,
+            estimate: image.error_estimate(),
+            spp: job.plan.spp(),
+        }
+    }
+
+    /// Whether the estimate is at or below the target; `None` without a target.
+    pub fn target_reached(&self) -> Option<bool> {
+        self.target.map(|t| self.estimate.is_some_and(|e| e <= t))
+    }
+
+    /// Why the render ended, in the words `tessera render` prints after `stopped:`:
+    /// `"time limit reached"`, `"target error reached"` or `"finished"` (every pass done,
+    /// or every pixel converged or out of passes, without the image reaching a target).
+    pub fn stopped(&self) -> &'static str {
+        if self.time_limit {
+            "time limit reached"
+        } else if self.target_reached() == Some(true) {
+            "target error reached"
+        } else {
+            "finished"
+        }
+    }
+
+    /// Why it stopped and, with a target, whether it was reached: [`StopVerdict::describe`]
+    /// when there is a target, [`StopVerdict::stopped`] otherwise.
+    pub fn summary(&self) -> String {
+        self.describe()
+            .unwrap_or_else(|| self.stopped().to_string())
+    }
+
+    /// One line on the target for summaries and statuses, e.g. "target error 0.03 not
+    /// reached: the estimate is 0.0362 when the sample budget (4096 spp) ran out"; `None`
+    /// without a target.
+    pub fn describe(&self) -> Option<String> {
+        let t = self.target?;
+        let estimate = self.estimate.map_or("no estimate yet".to_string(), |e| {
+            format!("the estimate is {e:.4}")
+        });
+        Some(match self.target_reached() {
+            Some(true) => format!("target error {t} reached ({estimate})"),
+            _ if self.time_limit => {
+                format!("target error {t} not reached: {estimate} when the time limit ran out")
+            }
+            _ => format!(
+                "target error {t} not reached: {estimate} when the sample budget ({} spp) ran out",
+                self.spp
+            ),
+        })
+    }
+}
+
 impl ResolvedJob {
     /// The render settings, the stopping settings and the render plan as one JSON object
     /// for the EXR header, with a stable key order, so that a farm render and a local
     /// render of the same job write byte-identical files. A black render (no light) has
     /// integrator `"black"`. Jobs that stop early ([`ValidatedJob::stops_early`]) start
-    /// with `adaptive`, `target_error`, `min_passes`, `interval`, `time_limit` and
-    /// `stopped` (why the render ended, `null` while it runs). The text is ASCII.
-    pub fn metadata_json(&self, stopped: Option<&str>) -> String {
+    /// with `adaptive`, `target_error`, `min_passes`, `interval`, `time_limit`, `stopped`
+    /// (why the render ended, [`StopVerdict::stopped`]), `target_reached` (whether the
+    /// image's estimate is at or below `target_error`; `null` without a target) and
+    /// `error_reached` (the image's estimate, [`FrameImage::error_estimate`]); the last
+    /// three are `null` while it runs. The text is ASCII.
+    pub fn metadata_json(&self, stopped: Option<&StopVerdict>) -> String {
         let job = &self.job;
         let c = &self.config;
         let integrator = if self.black {
@@ -128,12 +207,18 @@ impl ResolvedJob {
         if job.stops_early() {
             let interval = crate::adaptive::AdaptiveSettings::default().interval;
             out += &format!(
-                "\"adaptive\":\"{}\",\"target_error\":{},\"min_passes\":{},\"interval\":{interval},\"time_limit\":{},\"stopped\":{},",
+                "\"adaptive\":\"{}\",\"target_error\":{},\"min_passes\":{},\"interval\":{interval},\"time_limit\":{},\"stopped\":{},\"target_reached\":{},\"error_reached\":{},",
                 job.adaptive,
                 job.target_error.map_or("null".to_string(), |e| e.to_string()),
                 job.min_passes,
                 job.time_limit_seconds.map_or("null".to_string(), |t| t.to_string()),
-                stopped.map_or("null".to_string(), json_string),
+                stopped.map_or("null".to_string(), |v| json_string(v.stopped())),
+                stopped
+                    .and_then(StopVerdict::target_reached)
+                    .map_or("null".to_string(), |r| r.to_string()),
+                stopped
+                    .and_then(|v| v.estimate)
+                    .map_or("null".to_string(), |e| e.to_string()),
             );
         }
         let p = &self.plan;
