@@ -227,7 +227,7 @@ struct FarmRun {
 
 /// CPU seconds (user + system) of process `pid` so far, from `/proc/PID/stat` (fields 14
 /// and 15, in the kernel's USER_HZ ticks, 100 per second on Linux); 0 where unavailable.
-fn cpu_seconds(pid: &str) -> f64 {
+pub(crate) fn cpu_seconds(pid: &str) -> f64 {
     let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
         return 0.0;
     };

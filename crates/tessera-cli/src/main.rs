@@ -5,6 +5,7 @@
 mod accuracy;
 mod adaptive;
 mod bench_farm;
+mod bench_fleet;
 mod bench_plan;
 mod common;
 mod coordinator;
@@ -56,6 +57,9 @@ enum Command {
     Store(store::StoreArgs),
     /// Measure the farm's overhead: `tessera serve` against `tessera render`, side by side.
     BenchFarm(bench_farm::BenchFarmArgs),
+    /// Drive a real coordinator with many simulated workers over gRPC: merged units per
+    /// second, lease latency, coordinator CPU and memory per fleet size.
+    BenchFleet(bench_fleet::BenchFleetArgs),
 }
 
 #[derive(Args)]
@@ -110,6 +114,7 @@ fn main() {
         Command::Status(args) => status::status(args),
         Command::Store(args) => store::store(args),
         Command::BenchFarm(args) => bench_farm::bench_farm(args),
+        Command::BenchFleet(args) => bench_fleet::bench_fleet(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -172,6 +172,9 @@ pub struct JobRuntime {
     /// A checkpoint of this job failed to write: its frames stay in memory (they hold
     /// passes the store may not have) instead of being released when complete.
     pub(crate) unsaved_checkpoints: bool,
+    /// A lease is recording that this queued job started running (the others that lease
+    /// meanwhile do not write it again).
+    pub(crate) starting: bool,
     /// Why a done job stopped; with the image's error estimate it gives the
     /// [`tessera_farm::job::StopVerdict`] of the status and of the EXR header.
     pub stopped: Option<Stop>,
@@ -216,6 +219,7 @@ impl JobRuntime {
             merges: 0,
             unsaved_checkpoints: false,
             stopped: None,
+            starting: false,
         }
     }
 

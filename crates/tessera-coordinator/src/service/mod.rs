@@ -15,11 +15,14 @@
 //! # Durability (ARCHITECTURE.md §6)
 //! The store is the truth. A job is inserted before `POST /jobs` answers. A result is
 //! merged in memory and its tile's checkpoint committed *before* the worker is told the
-//! result was accepted, so an accepted pass survives `kill -9`. Checkpoint writes are
-//! serialized by one async lock, and each snapshot is taken under that lock, so a newer
-//! snapshot of a tile can never be overwritten by an older one. Lease ids are reserved in
-//! blocks ([`LEASE_ID_BLOCK`]) whose end is committed before any lease of the block is
-//! handed out, so fencing tokens never repeat after a restart.
+//! result was accepted, so an accepted pass survives `kill -9`. Each snapshot is taken
+//! under the farm lock and queued in merge order; checkpoints are group-committed (one
+//! transaction for every checkpoint queued, the newest of each tile) by whoever next holds
+//! the one async write lock with its own still queued, so a newer snapshot of a tile can
+//! never be overwritten by an older one and a fleet pays one commit per batch, not per
+//! result. Lease ids are reserved in blocks ([`LEASE_ID_BLOCK`]) whose end is committed
+//! before any lease of the block is handed out (the next block once half of one is
+//! used), so fencing tokens never repeat after a restart.
 //!
 //! # Restart
 //! [`Coordinator::open`] reloads every job that was not finished, rebuilds its
@@ -152,6 +155,9 @@ struct Inner {
     cfg: CoordinatorConfig,
     /// Serializes store writes of merged state (see the module docs).
     write: tokio::sync::Mutex<()>,
+    /// Checkpoints merged and not yet committed, in merge order (group commit,
+    /// [`Coordinator::accept_result`]).
+    pending: Mutex<Vec<results::PendingCheckpoint>>,
     /// Lease ids up to this are reserved in the store.
     lease_reserved: Mutex<u64>,
     /// No leases are handed out before this (Unix ms): the restart grace period.
@@ -202,6 +208,7 @@ impl Coordinator {
                 watch,
                 cfg,
                 write: tokio::sync::Mutex::new(()),
+                pending: Mutex::new(Vec::new()),
                 lease_reserved: Mutex::new(high_water),
                 lease_blocked_until_ms: blocked,
                 started: Instant::now(),

@@ -7,6 +7,8 @@
 //! counts, tile error, the checkpoint to write), [`history_point`], [`record_fault`], and
 //! [`Coordinator::write_back`] (the store writes, in that order).
 
+use std::sync::{Arc, OnceLock};
+
 use tessera_api::{HistoryPoint, JobState};
 use tessera_farm::{JobId, SubmitError, Submitted, UnitResult, WorkUnit, WorkerId};
 
@@ -123,39 +125,69 @@ struct Merged {
 impl Coordinator {
     /// Validates, merges and durably checkpoints a worker's result (ARCHITECTURE.md §9,
     /// steps 8 to 10).
+    ///
+    /// Checkpoints are group-committed: the merge queues the tile's checkpoint (under the
+    /// farm lock, so the queue is in merge order), and whoever next holds the store's
+    /// write lock with its own checkpoint still queued writes every queued checkpoint in
+    /// one transaction (the newest of each tile only) and tells each waiter how it went.
+    /// So a fleet's results cost one commit per batch, not one per result, and no worker
+    /// hears "accepted" before its result is durable.
     pub async fn accept_result(&self, d: Delivery) -> Result<Accepted, Rejected> {
-        // One writer at a time, and the snapshot taken under this lock: a newer
-        // checkpoint of a tile is never overwritten by an older one (module docs).
-        let write = self.inner.write.lock().await;
-        let (outcome, writes) = {
+        let (outcome, writes, queued) = {
             let mut farm = self.inner.farm.lock().map_err(|_| Rejected::Poisoned)?;
-            merge_delivery(&mut farm, d, now_ms())
-        };
-        if let Err(e) = self.write_back(&writes).await {
-            if let (Some(cp), Ok(mut farm)) = (&writes.checkpoint, self.inner.farm.lock()) {
-                if let Some(rt) = farm.runtime.get_mut(&cp.job) {
-                    rt.unsaved_checkpoints = true;
+            let (outcome, mut writes) = merge_delivery(&mut farm, d, now_ms());
+            let queued = match writes.checkpoint.take() {
+                Some(checkpoint) => {
+                    let key = (checkpoint.job, checkpoint.frame);
+                    let slot = Arc::new(OnceLock::new());
+                    self.inner
+                        .pending
+                        .lock()
+                        .map_err(|_| Rejected::Poisoned)?
+                        .push(PendingCheckpoint {
+                            checkpoint,
+                            outcome: slot.clone(),
+                        });
+                    Some((key, slot))
                 }
+                None => None,
+            };
+            (outcome, writes, queued)
+        };
+        // One writer at a time, taking the queue in merge order: a newer checkpoint of a
+        // tile is never overwritten by an older one.
+        let write = self.inner.write.lock().await;
+        if let Some(((job, frame), slot)) = &queued {
+            if slot.get().is_none() {
+                self.commit_pending().await?;
             }
-            return Err(e);
-        }
-        // A complete frame's checkpoints are durable now: its memory goes back to the
-        // budget, its image is read from the store (ARCHITECTURE.md §6, memory). Not after
-        // a failed checkpoint of the job: memory then holds passes the store does not.
-        if let Some(cp) = &writes.checkpoint {
+            let failure = match slot.get() {
+                Some(Ok(())) => None,
+                Some(Err(e)) => Some(e.clone()),
+                None => Some("the checkpoint was not written".to_string()),
+            };
+            if let Some(e) = failure {
+                if let Ok(mut farm) = self.inner.farm.lock() {
+                    if let Some(rt) = farm.runtime.get_mut(job) {
+                        rt.unsaved_checkpoints = true;
+                    }
+                }
+                return Err(Rejected::Store(StoreError::Failing(e)));
+            }
+            // A complete frame's checkpoints are durable now: its memory goes back to
+            // the budget, its image is read from the store (ARCHITECTURE.md §6, memory).
+            // Not after a failed checkpoint of the job: memory then holds passes the
+            // store does not.
             let mut farm = self.inner.farm.lock().map_err(|_| Rejected::Poisoned)?;
             let saved = farm
                 .runtime
-                .get(&cp.job)
+                .get(job)
                 .is_some_and(|rt| !rt.unsaved_checkpoints);
-            if saved && farm.scheduler.release_frame(cp.job, cp.frame) {
-                tracing::debug!(
-                    job = cp.job,
-                    frame = cp.frame,
-                    "frame complete and released"
-                );
+            if saved && farm.scheduler.release_frame(*job, *frame) {
+                tracing::debug!(job, frame, "frame complete and released");
             }
         }
+        self.write_back(&writes).await;
         drop(write);
         if let Some(job) = writes.finished {
             match self.set_state(job, JobState::Done, None).await {
@@ -166,17 +198,34 @@ impl Coordinator {
         outcome
     }
 
-    /// Writes the checkpoint (before the worker hears "accepted"), the history point
-    /// and the fault event. Only a failed checkpoint refuses the result.
-    async fn write_back(&self, w: &Writes) -> Result<(), Rejected> {
-        let store = &self.inner.store;
-        if let Some(cp) = &w.checkpoint {
-            if let Err(e) = store.save_tile(cp.as_ref()).await {
-                let (job, frame, tile) = (cp.job, cp.frame, cp.tile);
-                tracing::error!(job, frame, tile, error = %e, "checkpoint failed");
-                return Err(Rejected::Store(e));
-            }
+    /// Writes every queued checkpoint in one transaction, the newest of each tile only,
+    /// and sets each one's outcome. The caller holds the write lock.
+    async fn commit_pending(&self) -> Result<(), Rejected> {
+        let batch =
+            std::mem::take(&mut *self.inner.pending.lock().map_err(|_| Rejected::Poisoned)?);
+        // Later in the queue is newer (merge order): keep the last of each tile.
+        let mut seen = std::collections::HashSet::new();
+        let mut newest: Vec<&PendingCheckpoint> = batch
+            .iter()
+            .rev()
+            .filter(|p| seen.insert((p.checkpoint.job, p.checkpoint.frame, p.checkpoint.tile)))
+            .collect();
+        newest.reverse();
+        let refs: Vec<_> = newest.iter().map(|p| p.checkpoint.as_ref()).collect();
+        let result = self.inner.store.save_tiles(&refs).await;
+        if let Err(e) = &result {
+            tracing::error!(checkpoints = refs.len(), error = %e, "checkpoint failed");
         }
+        let shared = result.map_err(|e| e.to_string());
+        for p in &batch {
+            let _ = p.outcome.set(shared.clone());
+        }
+        Ok(())
+    }
+
+    /// Writes the history point and the fault event; neither refuses the result.
+    async fn write_back(&self, w: &Writes) {
+        let store = &self.inner.store;
         if let Some((job, point)) = w.history {
             if let Err(e) = store.append_history(job, point).await {
                 tracing::warn!(job, error = %e, "history point not stored");
@@ -187,8 +236,14 @@ impl Coordinator {
                 tracing::warn!(error = %e, "fault event not stored");
             }
         }
-        Ok(())
     }
+}
+
+/// A merged tile's checkpoint waiting for the next group commit
+/// ([`Coordinator::accept_result`]), and where its outcome goes.
+pub(crate) struct PendingCheckpoint {
+    checkpoint: TileCheckpoint,
+    outcome: Arc<OnceLock<Result<(), String>>>,
 }
 
 /// Everything done under the farm lock: find the lease's job, merge, and collect what

@@ -253,32 +253,44 @@ impl Coordinator {
     /// marks jobs that started running (ARCHITECTURE.md §9, step 7).
     async fn after_lease(&self, jobs: Vec<JobId>) -> CoordResult<()> {
         let max = self.lock()?.scheduler.max_issued_lease_id();
-        let need = {
-            let r = self
+        // The next block is reserved when half of this one is used, so that under a
+        // fleet's load one lease waits for the commit instead of every lease that
+        // crosses the block's end; and checked again under the write lock, so that the
+        // callers that queued for it meanwhile do not commit it once each.
+        let reserved = || -> CoordResult<u64> {
+            Ok(*self
                 .inner
                 .lease_reserved
                 .lock()
-                .map_err(|_| CoordError::poisoned())?;
-            (max > *r).then_some(max + LEASE_ID_BLOCK)
+                .map_err(|_| CoordError::poisoned())?)
         };
-        if let Some(upto) = need {
+        if max + LEASE_ID_BLOCK / 2 > reserved()? {
             let _w = self.inner.write.lock().await;
-            self.inner.store.record_lease_high_water(upto).await?;
-            let mut r = self
-                .inner
-                .lease_reserved
-                .lock()
-                .map_err(|_| CoordError::poisoned())?;
-            *r = (*r).max(upto);
+            if max + LEASE_ID_BLOCK / 2 > reserved()? {
+                let upto = max + LEASE_ID_BLOCK;
+                self.inner.store.record_lease_high_water(upto).await?;
+                let mut r = self
+                    .inner
+                    .lease_reserved
+                    .lock()
+                    .map_err(|_| CoordError::poisoned())?;
+                *r = (*r).max(upto);
+            }
         }
         for id in jobs {
-            let queued = self
-                .lock()?
-                .runtime
-                .get(&id)
-                .is_some_and(|rt| rt.state == JobState::Queued);
-            if queued {
-                self.set_state(id, JobState::Running, None).await?;
+            // One caller records the start: a fleet's first leases all find the job
+            // queued, and would otherwise queue a store write each.
+            let first = self.lock()?.runtime.get_mut(&id).is_some_and(|rt| {
+                let first = rt.state == JobState::Queued && !rt.starting;
+                rt.starting |= first;
+                first
+            });
+            if first {
+                let r = self.set_state(id, JobState::Running, None).await;
+                if let Some(rt) = self.lock()?.runtime.get_mut(&id) {
+                    rt.starting = false;
+                }
+                r?;
             }
         }
         Ok(())
