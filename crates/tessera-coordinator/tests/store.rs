@@ -1217,7 +1217,8 @@ fn bad_store_urls_are_refused_naming_them() {
     }
 }
 
-/// Nothing listens on port 1 of loopback: the open fails at once with an error that
+/// Nothing listens on port 1 of loopback: the open fails (after the pool's 10 s of
+/// connection retries) with an error that
 /// names the server (without the password), no panic, no hang.
 #[tokio::test]
 async fn an_unreachable_postgres_server_is_an_error_naming_it() {
