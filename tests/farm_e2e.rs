@@ -8,40 +8,12 @@
 
 mod common;
 
-use std::path::Path;
-
-use common::farm::{start_coordinator, start_worker, wait_done, TIMEOUT};
-use common::{free_port, output, output_ok, poll, temp_dir, tessera, Proc};
+use common::farm::{
+    cornell_job as job, local_render, start_coordinator, start_worker, wait_done, TIMEOUT,
+};
+use common::{free_port, output, poll, temp_dir, tessera, Proc};
 use tessera_api::client::{Client, ClientError};
 use tessera_api::JobSettings;
-
-fn job(width: u32, height: u32, spp: u32) -> JobSettings {
-    let mut s = JobSettings::new("builtin:cornell-box");
-    s.width = Some(width);
-    s.height = Some(height);
-    s.spp = spp;
-    s.seed = 5;
-    s
-}
-
-/// `tessera render` of the same job: the reference EXR bytes.
-fn local_render(dir: &Path, s: &JobSettings) -> Vec<u8> {
-    let out = dir.join("local.exr");
-    output_ok(
-        tessera()
-            .args(["render", &s.scene, "--width"])
-            .arg(s.width.unwrap().to_string())
-            .arg("--height")
-            .arg(s.height.unwrap().to_string())
-            .arg("--spp")
-            .arg(s.spp.to_string())
-            .arg("--seed")
-            .arg(s.seed.to_string())
-            .arg("-o")
-            .arg(&out),
-    );
-    std::fs::read(out).unwrap()
-}
 
 #[test]
 fn one_and_three_workers_give_the_local_image_byte_for_byte() {

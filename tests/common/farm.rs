@@ -5,9 +5,9 @@ use std::path::Path;
 use std::time::Duration;
 
 use tessera_api::client::Client;
-use tessera_api::{JobState, JobStatus};
+use tessera_api::{JobSettings, JobState, JobStatus};
 
-use super::{tessera, Proc};
+use super::{output_ok, tessera, Proc};
 
 /// How long a job may take before the test fails.
 pub const TIMEOUT: Duration = Duration::from_secs(240);
@@ -103,4 +103,33 @@ pub fn wait_done(client: &Client, id: u64) -> JobStatus {
         s.error
     );
     s
+}
+
+/// A Cornell box job of `width` x `height` pixels at `spp` samples per pixel, seed 5.
+pub fn cornell_job(width: u32, height: u32, spp: u32) -> JobSettings {
+    let mut s = JobSettings::new("builtin:cornell-box");
+    s.width = Some(width);
+    s.height = Some(height);
+    s.spp = spp;
+    s.seed = 5;
+    s
+}
+
+/// `tessera render` of the same job into `dir/local.exr`: the reference EXR bytes.
+pub fn local_render(dir: &Path, s: &JobSettings) -> Vec<u8> {
+    let out = dir.join("local.exr");
+    output_ok(
+        tessera()
+            .args(["render", &s.scene, "--width"])
+            .arg(s.width.unwrap().to_string())
+            .arg("--height")
+            .arg(s.height.unwrap().to_string())
+            .arg("--spp")
+            .arg(s.spp.to_string())
+            .arg("--seed")
+            .arg(s.seed.to_string())
+            .arg("-o")
+            .arg(&out),
+    );
+    std::fs::read(out).unwrap()
 }

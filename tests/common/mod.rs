@@ -9,6 +9,7 @@
 #![allow(dead_code)]
 
 pub mod farm;
+pub mod postgres;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};

@@ -1,5 +1,5 @@
-//! `tessera coordinator`: the HTTP API and dashboard, the workers' gRPC port and the SQLite
-//! store, served by [`tessera_coordinator::serve`] until Ctrl-C or SIGTERM.
+//! `tessera coordinator`: the HTTP API and dashboard, the workers' gRPC port and the store
+//! (SQLite by default, or PostgreSQL with `--store`), served by [`tessera_coordinator::serve`] until Ctrl-C or SIGTERM.
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -8,6 +8,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
+use tessera_coordinator::store::StoreUrl;
 use tessera_coordinator::{
     serve_coordinator, shutdown_signal, HttpLimits, Listeners, ServerTls, TlsFiles,
 };
@@ -23,9 +24,13 @@ pub struct CoordinatorArgs {
     /// Address of the gRPC port for workers.
     #[arg(long, default_value = "127.0.0.1:50051")]
     pub grpc: SocketAddr,
-    /// Directory of the SQLite store (created if missing).
+    /// Directory of the SQLite store (created if missing), unless --store names another.
     #[arg(long, default_value = "tessera-data")]
     pub data: PathBuf,
+    /// The store: `sqlite:DIR` or `postgres://USER@HOST:PORT/DB` (also `postgresql://`;
+    /// docs/store.md). Default: the SQLite store in --data.
+    #[arg(long, value_name = "URL", value_parser = parse_store_url)]
+    pub store: Option<StoreUrl>,
     /// Bearer token required on the HTTP API.
     #[arg(long, env = "TESSERA_API_TOKEN")]
     pub api_token: Option<String>,
@@ -134,6 +139,7 @@ impl CoordinatorArgs {
             );
         }
         let mut cfg = CoordinatorConfig::new(self.data.clone());
+        cfg.store = self.store.clone();
         cfg.api_token = self.api_token.clone().filter(|t| !t.is_empty());
         cfg.worker_token = self.worker_token.clone().filter(|t| !t.is_empty());
         cfg.lease_ms = self.lease_ms;
@@ -173,9 +179,11 @@ impl CoordinatorArgs {
     /// Opens the store, then binds both ports (so their real addresses are known before
     /// anything is printed).
     pub async fn open(&self) -> Result<(Coordinator, Listeners)> {
-        let core = Coordinator::open(self.config()?)
+        let cfg = self.config()?;
+        let url = cfg.store_url();
+        let core = Coordinator::open(cfg)
             .await
-            .with_context(|| format!("opening the store in {}", self.data.display()))?;
+            .with_context(|| format!("opening the store {url}"))?;
         let http = tokio::net::TcpListener::bind(self.http)
             .await
             .with_context(|| format!("binding the HTTP port {}", self.http))?;
@@ -184,6 +192,11 @@ impl CoordinatorArgs {
             .with_context(|| format!("binding the gRPC port {}", self.grpc))?;
         Ok((core, Listeners { http, grpc }))
     }
+}
+
+/// `--store`'s parser: [`StoreUrl::parse`], its error naming the URL.
+pub(crate) fn parse_store_url(s: &str) -> Result<StoreUrl, String> {
+    StoreUrl::parse(s).map_err(|e| e.to_string())
 }
 
 /// Prints the addresses scripts and tests read: `http: `, `grpc: ` and `dashboard: `.

@@ -7,9 +7,10 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
-use tessera_coordinator::store::maintenance;
+use tessera_coordinator::store::{maintenance, StoreUrl};
 
 use crate::common::runtime;
+use crate::coordinator::parse_store_url;
 
 /// `tessera store ...`.
 #[derive(Args, Debug)]
@@ -52,13 +53,43 @@ struct DataArg {
     /// Data directory of the store (the coordinator's --data).
     #[arg(long, default_value = "tessera-data")]
     data: PathBuf,
+    /// The coordinator's --store instead of --data: `sqlite:DIR`. A PostgreSQL URL is
+    /// refused with what to use instead (pg_dump, pg_restore; docs/store.md).
+    #[arg(long, value_name = "URL", value_parser = parse_store_url)]
+    store: Option<StoreUrl>,
 }
+
+impl DataArg {
+    /// Resolves `--store` into the data directory these commands work on.
+    fn resolve(mut self, command: &str) -> Result<Self> {
+        match self.store.take() {
+            None => Ok(self),
+            Some(StoreUrl::Sqlite(dir)) => Ok(Self {
+                data: dir,
+                store: None,
+            }),
+            Some(url @ StoreUrl::Postgres(_)) => bail!(
+                "`tessera store {command}` works on the SQLite store only; {url} is a \
+                 PostgreSQL store: {}",
+                POSTGRES_TOOLS
+            ),
+        }
+    }
+}
+
+/// What to do instead of `tessera store` on a PostgreSQL store.
+const POSTGRES_TOOLS: &str = "back it up with `pg_dump --format=custom --file=FILE URL` \
+     (while the coordinator runs), restore it with `pg_restore --dbname=URL FILE` into an \
+     empty database (with the coordinator stopped), check it with `pg_amcheck`; \
+     PostgreSQL's own WAL keeps commits, so there is no commit marker to accept a loss of \
+     (docs/store.md, \"PostgreSQL\")";
 
 /// `tessera store`.
 pub fn store(args: StoreArgs) -> Result<()> {
     runtime()?.block_on(async {
         match args.command {
             StoreCommand::Check(d) => {
+                let d = d.resolve("check")?;
                 let report = maintenance::check(&d.data).await;
                 println!("{report}");
                 if !report.healthy() {
@@ -66,6 +97,7 @@ pub fn store(args: StoreArgs) -> Result<()> {
                 }
             }
             StoreCommand::Backup { data, out } => {
+                let data = data.resolve("backup")?;
                 let report = maintenance::backup(&data.data, &out)
                     .await
                     .with_context(|| format!("backing up the store in {}", data.data.display()))?;
@@ -76,6 +108,7 @@ pub fn store(args: StoreArgs) -> Result<()> {
                 println!("backup: {}", out.display());
             }
             StoreCommand::Restore { data, backup } => {
+                let data = data.resolve("restore")?;
                 let r = maintenance::restore(&data.data, &backup)
                     .await
                     .with_context(|| {
@@ -96,6 +129,7 @@ pub fn store(args: StoreArgs) -> Result<()> {
                 println!("commit marker: {}", r.mark);
             }
             StoreCommand::AcceptLoss(d) => {
+                let d = d.resolve("accept-loss")?;
                 let r = maintenance::accept_loss(&d.data)
                     .await
                     .with_context(|| format!("accepting the store in {}", d.data.display()))?;

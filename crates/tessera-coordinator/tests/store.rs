@@ -1,14 +1,184 @@
-//! The SQLite store against real database files in temporary directories.
+//! The store suite: every test body is a function of a [`Fixture`] (a fresh, empty store
+//! and the means to reopen it and to reach its tables directly), run once against SQLite
+//! files in temporary directories and once against a real PostgreSQL server
+//! (`TESSERA_TEST_POSTGRES`, a fresh schema per test; skipped when unset unless
+//! `TESSERA_REQUIRE_POSTGRES=1`, see tests/common/postgres.rs). The test `NAME::sqlite`
+//! and `NAME::postgres` run the body `NAME`.
 
 use std::path::Path;
 use std::sync::Arc;
 
+use sqlx::Connection;
 use tessera_api::{FrameRange, HistoryPoint, JobState};
 use tessera_coordinator::store::{
-    FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, NewJob, SqliteStore, Store, StoreError,
-    TileCheckpoint, UnitDigest, DATABASE_FILE,
+    self, FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, NewJob, PostgresStore,
+    SqliteStore, Store, StoreError, StoreUrl, TileCheckpoint, UnitDigest, DATABASE_FILE,
 };
 use tessera_farm::{FramePlan, JobId, PixelStats};
+
+#[path = "../../../tests/common/postgres.rs"]
+mod postgres;
+
+/// A fresh, empty store of one backend.
+enum Fixture {
+    /// A data directory.
+    Sqlite(tempfile::TempDir),
+    /// The URL of a fresh schema.
+    Postgres(String),
+}
+
+impl Fixture {
+    async fn sqlite() -> Self {
+        Self::Sqlite(tempfile::tempdir().unwrap())
+    }
+
+    /// `None` when PostgreSQL tests are skipped.
+    async fn postgres(test: &str) -> Option<Self> {
+        postgres::fresh_database(test).await.map(Self::Postgres)
+    }
+
+    fn url(&self) -> StoreUrl {
+        match self {
+            Self::Sqlite(dir) => StoreUrl::Sqlite(dir.path().to_path_buf()),
+            Self::Postgres(url) => StoreUrl::Postgres(url.clone()),
+        }
+    }
+
+    /// Opens (or reopens) the store.
+    async fn open(&self) -> Arc<dyn Store> {
+        store::open(&self.url()).await.unwrap()
+    }
+
+    async fn try_open(&self) -> Result<Arc<dyn Store>, StoreError> {
+        store::open(&self.url()).await
+    }
+
+    /// The newest schema version this build migrates the backend to.
+    fn supported_schema(&self) -> i64 {
+        match self {
+            Self::Sqlite(_) => SqliteStore::SUPPORTED_SCHEMA,
+            Self::Postgres(_) => PostgresStore::SUPPORTED_SCHEMA,
+        }
+    }
+
+    /// Runs SQL statements (no parameters) on a connection of its own, behind the store.
+    async fn exec(&self, sql: &str) {
+        match self {
+            Self::Sqlite(dir) => {
+                let mut c = sqlite_conn(dir.path()).await;
+                sqlx::raw_sql(sql).execute(&mut c).await.unwrap();
+            }
+            Self::Postgres(url) => {
+                let mut c = sqlx::PgConnection::connect(url).await.unwrap();
+                sqlx::raw_sql(sql).execute(&mut c).await.unwrap();
+            }
+        }
+    }
+
+    /// The single value of `SELECT {col} FROM {table}` as bytes (a blob column).
+    async fn blob(&self, table: &str, col: &str) -> Vec<u8> {
+        let sql = format!("SELECT {col} FROM {table}");
+        match self {
+            Self::Sqlite(dir) => {
+                let mut c = sqlite_conn(dir.path()).await;
+                sqlx::query_scalar(&sql).fetch_one(&mut c).await.unwrap()
+            }
+            Self::Postgres(url) => {
+                let mut c = sqlx::PgConnection::connect(url).await.unwrap();
+                sqlx::query_scalar(&sql).fetch_one(&mut c).await.unwrap()
+            }
+        }
+    }
+
+    /// `UPDATE {table} SET {col} = blob` (every row).
+    async fn set_blob(&self, table: &str, col: &str, blob: Vec<u8>) {
+        match self {
+            Self::Sqlite(dir) => {
+                let mut c = sqlite_conn(dir.path()).await;
+                sqlx::query(&format!("UPDATE {table} SET {col} = ?1"))
+                    .bind(blob)
+                    .execute(&mut c)
+                    .await
+                    .unwrap();
+            }
+            Self::Postgres(url) => {
+                let mut c = sqlx::PgConnection::connect(url).await.unwrap();
+                sqlx::query(&format!("UPDATE {table} SET {col} = $1"))
+                    .bind(blob)
+                    .execute(&mut c)
+                    .await
+                    .unwrap();
+            }
+        }
+    }
+
+    /// The schema version recorded in the database.
+    async fn schema_version(&self) -> i64 {
+        let sql = "SELECT MAX(version) FROM schema_version";
+        let v: Option<i64> = match self {
+            Self::Sqlite(dir) => {
+                let mut c = sqlite_conn(dir.path()).await;
+                sqlx::query_scalar(sql).fetch_one(&mut c).await.unwrap()
+            }
+            Self::Postgres(url) => {
+                let mut c = sqlx::PgConnection::connect(url).await.unwrap();
+                sqlx::query_scalar(sql).fetch_one(&mut c).await.unwrap()
+            }
+        };
+        v.unwrap_or(0)
+    }
+
+    /// SQLite's full integrity check of the file; PostgreSQL checks its own pages.
+    async fn integrity_check(&self) {
+        if let Self::Sqlite(dir) = self {
+            let mut c = sqlite_conn(dir.path()).await;
+            let r: Vec<String> = sqlx::query_scalar("PRAGMA integrity_check")
+                .fetch_all(&mut c)
+                .await
+                .unwrap();
+            assert_eq!(r, ["ok"]);
+        }
+    }
+}
+
+/// Runs each named test body `NAME(&Fixture)` as the tests `NAME::sqlite` and
+/// `NAME::postgres`.
+macro_rules! both_backends {
+    ($($name:ident),* $(,)?) => {
+        $(
+            mod $name {
+                #[tokio::test]
+                async fn sqlite() {
+                    super::$name(&super::Fixture::sqlite().await).await;
+                }
+
+                #[tokio::test]
+                async fn postgres() {
+                    if let Some(f) = super::Fixture::postgres(stringify!($name)).await {
+                        super::$name(&f).await;
+                    }
+                }
+            }
+        )*
+    };
+}
+
+both_backends!(
+    jobs_round_trip,
+    invalid_jobs_are_refused,
+    idempotency_key_returns_the_existing_job,
+    concurrent_idempotent_inserts,
+    pagination,
+    job_states_and_resume,
+    scenes_by_content_hash,
+    tile_checkpoints_round_trip_and_upsert,
+    invalid_checkpoints_are_refused_atomically,
+    corrupt_blobs_are_errors_naming_the_tile,
+    lease_high_water_history_and_faults,
+    runs_and_resume_counts,
+    reopened_store_sees_everything,
+    newer_schema_is_refused,
+);
 
 /// 40x30 pixels in 16-pixel tiles: 3 x 2 tiles (16x16, 16x16, 8x16, 16x14, 16x14, 8x14),
 /// 8 passes of 4 samples.
@@ -108,19 +278,29 @@ fn assert_same_checkpoint(a: &TileCheckpoint, b: &TileCheckpoint) {
     );
 }
 
-async fn open(dir: &Path) -> SqliteStore {
-    SqliteStore::open(dir).await.unwrap()
+/// A raw connection to the SQLite database in `dir`, behind the store.
+async fn sqlite_conn(dir: &Path) -> sqlx::SqliteConnection {
+    sqlx::SqliteConnection::connect(&format!("sqlite://{}", dir.join(DATABASE_FILE).display()))
+        .await
+        .unwrap()
 }
 
 #[tokio::test]
-async fn jobs_round_trip() {
+async fn sqlite_store_creates_its_data_dir() {
     let dir = tempfile::tempdir().unwrap();
-    let store = open(&dir.path().join("nested/data")).await;
+    let store = SqliteStore::open(&dir.path().join("nested/data"))
+        .await
+        .unwrap();
     assert!(store.path().ends_with(DATABASE_FILE));
     assert_eq!(
         store.schema_version().await.unwrap(),
         SqliteStore::SUPPORTED_SCHEMA
     );
+}
+
+async fn jobs_round_trip(f: &Fixture) {
+    let store = f.open().await;
+    assert_eq!(f.schema_version().await, f.supported_schema());
 
     let (a, created) = store.insert_job(new_job(1, None)).await.unwrap();
     assert!(created);
@@ -153,10 +333,8 @@ async fn jobs_round_trip() {
     assert_eq!(store.get_job(c).await.unwrap().unwrap().name, None);
 }
 
-#[tokio::test]
-async fn invalid_jobs_are_refused() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn invalid_jobs_are_refused(f: &Fixture) {
+    let store = f.open().await;
     let mut j = new_job(1, None);
     j.plan.tile_size = 1;
     let e = store.insert_job(j).await.unwrap_err();
@@ -188,10 +366,8 @@ async fn invalid_jobs_are_refused() {
         .is_empty());
 }
 
-#[tokio::test]
-async fn idempotency_key_returns_the_existing_job() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn idempotency_key_returns_the_existing_job(f: &Fixture) {
+    let store = f.open().await;
     let (a, created) = store.insert_job(new_job(1, Some("retry-1"))).await.unwrap();
     assert!(created);
     // A retry, even with other fields, returns the first job and writes nothing.
@@ -215,10 +391,8 @@ async fn idempotency_key_returns_the_existing_job() {
 
 /// Many concurrent submissions with one key through `Arc<dyn Store>`: exactly one creates
 /// the job, all get its id.
-#[tokio::test]
-async fn concurrent_idempotent_inserts() {
-    let dir = tempfile::tempdir().unwrap();
-    let store: Arc<dyn Store> = Arc::new(open(dir.path()).await);
+async fn concurrent_idempotent_inserts(f: &Fixture) {
+    let store = f.open().await;
     let tasks: Vec<_> = (0..16)
         .map(|i| {
             let store = Arc::clone(&store);
@@ -244,10 +418,8 @@ async fn concurrent_idempotent_inserts() {
     assert_eq!(ids.len(), 9);
 }
 
-#[tokio::test]
-async fn pagination() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn pagination(f: &Fixture) {
+    let store = f.open().await;
     let mut ids = Vec::new();
     for n in 0..7 {
         ids.push(store.insert_job(new_job(n, None)).await.unwrap().0);
@@ -317,10 +489,8 @@ async fn pagination() {
     );
 }
 
-#[tokio::test]
-async fn job_states_and_resume() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn job_states_and_resume(f: &Fixture) {
+    let store = f.open().await;
     let mut ids = Vec::new();
     for n in 0..5 {
         ids.push(store.insert_job(new_job(n, None)).await.unwrap().0);
@@ -392,10 +562,8 @@ async fn job_states_and_resume() {
     ));
 }
 
-#[tokio::test]
-async fn scenes_by_content_hash() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn scenes_by_content_hash(f: &Fixture) {
+    let store = f.open().await;
     let bytes: Vec<u8> = (0..100_000u32).map(|i| (i * 31 % 251) as u8).collect();
     let hash = "ab".repeat(32);
     assert!(!store.scene_exists(&hash).await.unwrap());
@@ -412,10 +580,8 @@ async fn scenes_by_content_hash() {
     ));
 }
 
-#[tokio::test]
-async fn tile_checkpoints_round_trip_and_upsert() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn tile_checkpoints_round_trip_and_upsert(f: &Fixture) {
+    let store = f.open().await;
     let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
     let (other, _) = store.insert_job(new_job(2, None)).await.unwrap();
     assert!(store.load_tiles(job, None).await.unwrap().is_empty());
@@ -466,10 +632,8 @@ async fn tile_checkpoints_round_trip_and_upsert() {
     ));
 }
 
-#[tokio::test]
-async fn invalid_checkpoints_are_refused_atomically() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn invalid_checkpoints_are_refused_atomically(f: &Fixture) {
+    let store = f.open().await;
     let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
     let good = checkpoint(job, 2, 1, &[2]);
 
@@ -534,14 +698,7 @@ async fn invalid_checkpoints_are_refused_atomically() {
     assert_eq!(store.load_tiles(job, None).await.unwrap().len(), 1);
 }
 
-async fn raw(dir: &Path) -> sqlx::SqliteConnection {
-    use sqlx::Connection;
-    sqlx::SqliteConnection::connect(&format!("sqlite://{}", dir.join(DATABASE_FILE).display()))
-        .await
-        .unwrap()
-}
-
-async fn expect_corrupt_tile(store: &SqliteStore, job: JobId, needle: &str) {
+async fn expect_corrupt_tile(store: &dyn Store, job: JobId, needle: &str) {
     let e = store.load_tiles(job, None).await.unwrap_err();
     match &e {
         StoreError::CorruptTile {
@@ -562,15 +719,12 @@ async fn expect_corrupt_tile(store: &SqliteStore, job: JobId, needle: &str) {
     );
 }
 
-#[tokio::test]
-async fn corrupt_blobs_are_errors_naming_the_tile() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn corrupt_blobs_are_errors_naming_the_tile(f: &Fixture) {
+    let store = f.open().await;
     let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
     let t = checkpoint(job, 3, 4, &[2, 1]);
     store.save_tile(t.as_ref()).await.unwrap();
 
-    let mut conn = raw(dir.path()).await;
     type Damage = Box<dyn Fn(&mut Vec<u8>)>;
     let corruptions: Vec<(&str, Damage, &str)> = vec![
         // Truncated in the middle of a pixel record.
@@ -599,43 +753,28 @@ async fn corrupt_blobs_are_errors_naming_the_tile() {
             "units cover passes 0..2",
         ),
     ];
-    for (col, f, needle) in &corruptions {
+    for (col, damage, needle) in &corruptions {
         // Restore the good row, then damage it.
         store.save_tile(t.as_ref()).await.unwrap();
-        let mut blob: Vec<u8> = sqlx::query_scalar(&format!("SELECT {col} FROM tiles"))
-            .fetch_one(&mut conn)
-            .await
-            .unwrap();
-        f(&mut blob);
-        sqlx::query(&format!("UPDATE tiles SET {col} = ?1"))
-            .bind(blob)
-            .execute(&mut conn)
-            .await
-            .unwrap();
-        expect_corrupt_tile(&store, job, needle).await;
+        let mut blob = f.blob("tiles", col).await;
+        damage(&mut blob);
+        f.set_blob("tiles", col, blob).await;
+        expect_corrupt_tile(&*store, job, needle).await;
     }
     store.save_tile(t.as_ref()).await.unwrap();
-    sqlx::query("UPDATE tiles SET merged_passes = 2")
-        .execute(&mut conn)
-        .await
-        .unwrap();
-    expect_corrupt_tile(&store, job, "more than the tile's merged_passes 2").await;
+    f.exec("UPDATE tiles SET merged_passes = 2").await;
+    expect_corrupt_tile(&*store, job, "more than the tile's merged_passes 2").await;
 
     // A job row with a broken plan is reported, not a panic.
-    sqlx::query("UPDATE jobs SET plan_tile_size = 0")
-        .execute(&mut conn)
-        .await
-        .unwrap();
+    f.exec("UPDATE jobs SET plan_tile_size = 0").await;
     assert!(matches!(
         store.get_job(job).await,
         Err(StoreError::Corrupt(_))
     ));
 }
 
-#[tokio::test]
-async fn lease_high_water_history_and_faults() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = open(dir.path()).await;
+async fn lease_high_water_history_and_faults(f: &Fixture) {
+    let store = f.open().await;
     assert_eq!(store.max_lease_id().await.unwrap(), 0);
     store.record_lease_high_water(1000).await.unwrap();
     store.record_lease_high_water(400).await.unwrap();
@@ -727,14 +866,59 @@ async fn lease_high_water_history_and_faults() {
     store.ping().await.unwrap();
 }
 
+/// The run bookkeeping of the crash-loop guard: clean and unclean previous runs, the job
+/// being resumed, and resume counts that restart when a job made progress.
+async fn runs_and_resume_counts(f: &Fixture) {
+    let store = f.open().await;
+    // A new store counts as shut down cleanly.
+    assert_eq!(
+        store.begin_run().await.unwrap(),
+        store::PreviousRun {
+            clean: true,
+            resuming: None
+        }
+    );
+    let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
+    assert_eq!(store.record_resume(job, false).await.unwrap(), 0);
+    // The run "crashed" while resuming the job: the next start sees both.
+    drop(store);
+    let store = f.open().await;
+    assert_eq!(
+        store.begin_run().await.unwrap(),
+        store::PreviousRun {
+            clean: false,
+            resuming: Some(job)
+        }
+    );
+    assert_eq!(store.record_resume(job, true).await.unwrap(), 1);
+    assert_eq!(store.record_resume(job, true).await.unwrap(), 2);
+    // Progress (a merged pass) restarts the count.
+    store
+        .save_tile(checkpoint(job, 2, 0, &[2]).as_ref())
+        .await
+        .unwrap();
+    assert_eq!(store.record_resume(job, true).await.unwrap(), 1);
+    store.resumes_done().await.unwrap();
+    store.end_run().await.unwrap();
+    assert_eq!(
+        store.begin_run().await.unwrap(),
+        store::PreviousRun {
+            clean: true,
+            resuming: None
+        }
+    );
+    assert!(matches!(
+        store.record_resume(4242, true).await,
+        Err(StoreError::JobNotFound(4242))
+    ));
+}
+
 /// Everything written is there after the store is closed (or just dropped) and reopened.
-#[tokio::test]
-async fn reopened_store_sees_everything() {
-    let dir = tempfile::tempdir().unwrap();
+async fn reopened_store_sees_everything(f: &Fixture) {
     let t;
     let (a, b);
     {
-        let store = open(dir.path()).await;
+        let store = f.open().await;
         a = store.insert_job(new_job(1, Some("key"))).await.unwrap().0;
         b = store.insert_job(new_job(2, None)).await.unwrap().0;
         store
@@ -768,12 +952,9 @@ async fn reopened_store_sees_everything() {
             .unwrap();
         store.close().await;
     }
-    let check = |store: SqliteStore| async move {
-        store.integrity_check().await.unwrap();
-        assert_eq!(
-            store.schema_version().await.unwrap(),
-            SqliteStore::SUPPORTED_SCHEMA
-        );
+    let check = |store: Arc<dyn Store>| async move {
+        f.integrity_check().await;
+        assert_eq!(f.schema_version().await, f.supported_schema());
         let jobs = store.list_jobs(JobQuery::first(10)).await.unwrap();
         assert_eq!(jobs.iter().map(|j| j.id).collect::<Vec<_>>(), [b, a]);
         assert_eq!(
@@ -809,31 +990,21 @@ async fn reopened_store_sees_everything() {
         assert!(c > b);
         store
     };
-    let store = check(open(dir.path()).await).await;
+    let store = check(f.open().await).await;
     // Dropped without close: still all there (plus job c).
     drop(store);
-    let store = open(dir.path()).await;
+    let store = f.open().await;
     assert_eq!(store.list_jobs(JobQuery::first(10)).await.unwrap().len(), 3);
 }
 
-#[tokio::test]
-async fn newer_schema_is_refused() {
-    let dir = tempfile::tempdir().unwrap();
-    open(dir.path()).await.close().await;
-    let mut conn = raw(dir.path()).await;
-    sqlx::query("INSERT INTO schema_version (version, applied_unix_ms) VALUES (99, 0)")
-        .execute(&mut conn)
-        .await
-        .unwrap();
-    let e = SqliteStore::open(dir.path()).await.unwrap_err();
+async fn newer_schema_is_refused(f: &Fixture) {
+    f.open().await.close().await;
+    f.exec("INSERT INTO schema_version (version, applied_unix_ms) VALUES (99, 0)")
+        .await;
+    let e = f.try_open().await.err().expect("a newer schema is refused");
+    let supported = f.supported_schema();
     assert!(
-        matches!(
-            e,
-            StoreError::SchemaTooNew {
-                found: 99,
-                supported: 3
-            }
-        ),
+        matches!(e, StoreError::SchemaTooNew { found: 99, supported: s } if s == supported),
         "{e}"
     );
 }
@@ -849,7 +1020,16 @@ async fn unusable_data_dir_is_an_error() {
 
 // ---- kill -9 durability ---------------------------------------------------------------
 
-/// Environment variable that turns [`kill9_child_entry`] into the writer process.
+/// The URL as the child parses it again (with the password, unlike `Display`).
+fn store_url_arg(url: &StoreUrl) -> String {
+    match url {
+        StoreUrl::Sqlite(dir) => format!("sqlite:{}", dir.display()),
+        StoreUrl::Postgres(url) => url.clone(),
+    }
+}
+
+/// Environment variable that turns [`kill9_child_entry`] into the writer process: the
+/// store URL (`sqlite:DIR` or `postgres://...`) it writes to.
 const CHILD_ENV: &str = "TESSERA_STORE_TEST_CHILD_DIR";
 
 /// The child side of [`committed_writes_survive_sigkill`]: does nothing in a normal test
@@ -858,16 +1038,17 @@ const CHILD_ENV: &str = "TESSERA_STORE_TEST_CHILD_DIR";
 /// `HISTORY <i>` after each commit, until it is killed (or 30 s pass).
 #[test]
 fn kill9_child_entry() {
-    let Some(dir) = std::env::var_os(CHILD_ENV) else {
+    let Ok(url) = std::env::var(CHILD_ENV) else {
         return;
     };
+    let url = StoreUrl::parse(&url).unwrap();
     use std::io::Write;
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .unwrap();
     rt.block_on(async {
-        let store = open(Path::new(&dir)).await;
+        let store = store::open(&url).await.unwrap();
         let (job, _) = store.insert_job(new_job(1, Some("child"))).await.unwrap();
         store
             .set_job_state(job, JobState::Running, None, 42)
@@ -900,14 +1081,35 @@ fn kill9_child_entry() {
 }
 
 #[cfg(unix)]
-#[test]
-fn committed_writes_survive_sigkill() {
+mod committed_writes_survive_sigkill {
+    #[test]
+    fn sqlite() {
+        let f = super::Fixture::Sqlite(tempfile::tempdir().unwrap());
+        super::committed_writes_survive_sigkill(&f);
+    }
+
+    #[test]
+    fn postgres() {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        let name = "committed_writes_survive_sigkill";
+        if let Some(f) = rt.block_on(super::Fixture::postgres(name)) {
+            super::committed_writes_survive_sigkill(&f);
+        }
+    }
+}
+
+/// A child process writes to the store and is killed with SIGKILL mid-write: everything
+/// it reported committed is there, intact, when the store is reopened.
+#[cfg(unix)]
+fn committed_writes_survive_sigkill(f: &Fixture) {
     use std::io::{BufRead, BufReader};
     use std::os::unix::process::ExitStatusExt;
     use std::process::{Command, Stdio};
     use std::time::{Duration, Instant};
 
-    let dir = tempfile::tempdir().unwrap();
     let mut child = Command::new(std::env::current_exe().unwrap())
         .args([
             "kill9_child_entry",
@@ -915,7 +1117,7 @@ fn committed_writes_survive_sigkill() {
             "--nocapture",
             "--test-threads=1",
         ])
-        .env(CHILD_ENV, dir.path())
+        .env(CHILD_ENV, store_url_arg(&f.url()))
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -960,8 +1162,8 @@ fn committed_writes_survive_sigkill() {
         .build()
         .unwrap();
     rt.block_on(async {
-        let store = open(dir.path()).await;
-        store.integrity_check().await.unwrap();
+        let store = f.open().await;
+        f.integrity_check().await;
         let j = store.get_job(job).await.unwrap().expect("the job survived");
         assert_eq!(j.state, JobState::Running);
         assert_eq!(j.idempotency_key.as_deref(), Some("child"));
@@ -984,4 +1186,64 @@ fn committed_writes_survive_sigkill() {
             assert_eq!(p.elapsed_seconds, i as f64);
         }
     });
+}
+
+// ---- PostgreSQL: bad URLs and servers that do not answer ------------------------------
+
+#[test]
+fn bad_store_urls_are_refused_naming_them() {
+    for (url, needle) in [
+        ("mysql://h/db", "expected sqlite:PATH"),
+        ("tessera-data", "expected sqlite:PATH"),
+        ("sqlite:", "needs a data directory"),
+        ("postgres://u@h:notaport/db", "postgres://u@h:notaport/db"),
+    ] {
+        let e = StoreUrl::parse(url).unwrap_err();
+        let msg = e.to_string();
+        assert!(matches!(e, StoreError::BadUrl { .. }), "{msg}");
+        assert!(msg.contains(needle), "{msg} should mention {needle}");
+    }
+    let e = StoreUrl::parse("postgres://u:hunter2@h:x/db").unwrap_err();
+    assert!(!e.to_string().contains("hunter2"), "{e}");
+    assert_eq!(
+        StoreUrl::parse("sqlite:some/dir").unwrap(),
+        StoreUrl::Sqlite("some/dir".into())
+    );
+    for url in ["postgres://u@h:5432/db", "postgresql://u@h/db"] {
+        assert_eq!(
+            StoreUrl::parse(url).unwrap(),
+            StoreUrl::Postgres(url.into())
+        );
+    }
+}
+
+/// Nothing listens on port 1 of loopback: the open fails (after the pool's 10 s of
+/// connection retries) with an error that
+/// names the server (without the password), no panic, no hang.
+#[tokio::test]
+async fn an_unreachable_postgres_server_is_an_error_naming_it() {
+    let e = PostgresStore::open("postgres://tessera:hunter2@127.0.0.1:1/tessera")
+        .await
+        .unwrap_err();
+    let msg = e.to_string();
+    assert!(matches!(e, StoreError::Unreachable { .. }), "{msg}");
+    assert!(msg.contains("127.0.0.1:1"), "{msg}");
+    assert!(!msg.contains("hunter2"), "{msg}");
+    assert!(!e.is_write_failure());
+}
+
+/// A database that does not exist on a real server: an error naming the server.
+#[tokio::test]
+async fn a_missing_postgres_database_is_an_error_naming_it() {
+    let Some(url) = postgres::fresh_database("missing_database").await else {
+        return;
+    };
+    // The same server and user, another database name.
+    let (base, _) = url.split_once('?').unwrap();
+    let (server, _) = base.rsplit_once('/').unwrap();
+    let missing = format!("{server}/no_such_tessera_db");
+    let e = PostgresStore::open(&missing).await.unwrap_err();
+    let msg = e.to_string();
+    assert!(matches!(e, StoreError::Unreachable { .. }), "{msg}");
+    assert!(msg.contains("no_such_tessera_db"), "{msg}");
 }

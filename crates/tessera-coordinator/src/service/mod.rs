@@ -41,7 +41,7 @@ use tessera_farm::JobId;
 use crate::connections::HttpLimits;
 use crate::error::{CoordError, CoordResult};
 use crate::state::{now_ms, Farm, Stop};
-use crate::store::{SqliteStore, Store, StoreError, WatchedStore};
+use crate::store::{Store, StoreError, StoreUrl, WatchedStore};
 
 pub mod images;
 pub mod jobs;
@@ -67,8 +67,11 @@ pub const MAX_PAGE: u32 = 200;
 /// How to run a coordinator. Its `Debug` form hides the tokens.
 #[derive(Clone)]
 pub struct CoordinatorConfig {
-    /// Directory of the SQLite store.
+    /// Directory of the SQLite store (when [`CoordinatorConfig::store`] is `None`).
     pub data_dir: PathBuf,
+    /// Where the store is (`--store`); `None` is the SQLite store in
+    /// [`CoordinatorConfig::data_dir`].
+    pub store: Option<StoreUrl>,
     /// Bearer token required on the HTTP API, if any.
     pub api_token: Option<String>,
     /// Bearer token workers must present, if any.
@@ -100,6 +103,7 @@ impl std::fmt::Debug for CoordinatorConfig {
         let hidden = |t: &Option<String>| t.as_ref().map(|_| "<hidden>");
         f.debug_struct("CoordinatorConfig")
             .field("data_dir", &self.data_dir)
+            .field("store", &self.store.as_ref().map(ToString::to_string))
             .field("api_token", &hidden(&self.api_token))
             .field("worker_token", &hidden(&self.worker_token))
             .field("lease_ms", &self.lease_ms)
@@ -125,6 +129,7 @@ impl CoordinatorConfig {
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
             data_dir: data_dir.into(),
+            store: None,
             api_token: None,
             worker_token: None,
             lease_ms: 10_000,
@@ -136,6 +141,16 @@ impl CoordinatorConfig {
             forget_lost_ms: FORGET_LOST_MS,
             tls: None,
         }
+    }
+}
+
+impl CoordinatorConfig {
+    /// The store to open: [`CoordinatorConfig::store`], or the SQLite store in
+    /// [`CoordinatorConfig::data_dir`].
+    pub fn store_url(&self) -> StoreUrl {
+        self.store
+            .clone()
+            .unwrap_or_else(|| StoreUrl::Sqlite(self.data_dir.clone()))
     }
 }
 
@@ -175,9 +190,10 @@ struct Inner {
 }
 
 impl Coordinator {
-    /// Opens the store in `cfg.data_dir` and resumes every unfinished job in it.
+    /// Opens the store ([`CoordinatorConfig::store_url`]) and resumes every unfinished job
+    /// in it.
     pub async fn open(cfg: CoordinatorConfig) -> Result<Self, StoreError> {
-        let store: Arc<dyn Store> = Arc::new(SqliteStore::open(&cfg.data_dir).await?);
+        let store = crate::store::open(&cfg.store_url()).await?;
         Self::with_store(cfg, store).await
     }
 

@@ -15,8 +15,11 @@
 //! - **convergence history** points per job ([`HistoryPoint`]);
 //! - **worker fault events** ([`FaultEvent`]).
 //!
-//! [`SqliteStore`] implements it on one SQLite file (WAL, `synchronous=FULL`); the trait is
-//! object safe (`Arc<dyn Store>`) so a PostgreSQL store can follow.
+//! Two implementations share one contract and one test suite (`tests/store.rs`):
+//! [`SqliteStore`], the embedded default, on one SQLite file (WAL, `synchronous=FULL`), and
+//! [`PostgresStore`] on a PostgreSQL database (docs/store.md, "PostgreSQL"). [`StoreUrl`]
+//! is the coordinator's `--store` choice between them and [`open`] opens either as
+//! `Arc<dyn Store>`.
 //!
 //! # Tile checkpoint format (version 1)
 //!
@@ -45,10 +48,13 @@
 mod codec;
 pub mod maintenance;
 pub mod marker;
+mod postgres;
+mod rows;
 mod sqlite;
 mod watch;
 
 pub use marker::{CommitMark, MARKER_FILE};
+pub use postgres::PostgresStore;
 pub use sqlite::{SqliteStore, DATABASE_FILE, MAX_RESUMES_WITHOUT_PROGRESS};
 pub use watch::WatchedStore;
 
@@ -65,6 +71,23 @@ pub enum StoreError {
     /// The database reported an error (I/O, locking, constraint, ...).
     #[error("database error: {0}")]
     Database(#[from] sqlx::Error),
+    /// A `--store` URL that cannot be used (the message names it and says why).
+    #[error("invalid store URL {url:?}: {reason}")]
+    BadUrl {
+        /// The URL as given (without a password).
+        url: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// The database server cannot be reached, refused the login, or the connection was
+    /// lost (PostgreSQL). Transient: not a [`StoreError::is_write_failure`].
+    #[error("cannot reach the PostgreSQL store {url}: {detail}")]
+    Unreachable {
+        /// The server's URL (without a password).
+        url: String,
+        /// The underlying error.
+        detail: String,
+    },
     /// The data directory could not be created.
     #[error("cannot create data directory {path}: {source}")]
     DataDir {
@@ -191,6 +214,15 @@ impl StoreError {
         const NOTADB: i64 = 26;
         match self {
             Self::Database(sqlx::Error::Io(_)) => true,
+            Self::Database(sqlx::Error::Database(e))
+                if e.try_downcast_ref::<sqlx::postgres::PgDatabaseError>()
+                    .is_some() =>
+            {
+                // PostgreSQL SQLSTATEs: disk full, I/O error, data or index corrupted, a
+                // read-only transaction (the server is a hot standby).
+                e.code()
+                    .is_some_and(|c| matches!(&*c, "53100" | "58030" | "XX001" | "XX002" | "25006"))
+            }
             Self::Database(sqlx::Error::Database(e)) => e
                 .code()
                 .and_then(|c| c.parse::<i64>().ok())
@@ -204,6 +236,70 @@ impl StoreError {
             _ => false,
         }
     }
+}
+
+/// Where the coordinator keeps its store: the value of `--store`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum StoreUrl {
+    /// `sqlite:DIR`: a [`SqliteStore`] in the data directory `DIR` (the database file is
+    /// `DIR/tessera.sqlite3`, beside its commit marker).
+    Sqlite(std::path::PathBuf),
+    /// `postgres://...` or `postgresql://...`: a [`PostgresStore`] (the URL verbatim).
+    Postgres(String),
+}
+
+impl StoreUrl {
+    /// Parses `sqlite:PATH`, `postgres://...` or `postgresql://...`.
+    /// [`StoreError::BadUrl`] names the URL and what is wrong.
+    pub fn parse(s: &str) -> StoreResult<Self> {
+        let bad = |reason: &str| StoreError::BadUrl {
+            url: postgres::redact(s),
+            reason: reason.to_string(),
+        };
+        if let Some(path) = s.strip_prefix("sqlite:") {
+            // `sqlite://PATH` is accepted too (sqlx's spelling).
+            let path = path.strip_prefix("//").unwrap_or(path);
+            if path.is_empty() {
+                return Err(bad(
+                    "sqlite: needs a data directory, e.g. sqlite:tessera-data",
+                ));
+            }
+            Ok(Self::Sqlite(path.into()))
+        } else if s.starts_with("postgres://") || s.starts_with("postgresql://") {
+            use std::str::FromStr;
+            sqlx::postgres::PgConnectOptions::from_str(s).map_err(|e| bad(&e.to_string()))?;
+            Ok(Self::Postgres(s.to_string()))
+        } else {
+            Err(bad(
+                "expected sqlite:PATH, postgres://USER@HOST:PORT/DB or postgresql://...",
+            ))
+        }
+    }
+}
+
+impl std::fmt::Display for StoreUrl {
+    /// The URL as `--store` takes it, without a password.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Sqlite(dir) => write!(f, "sqlite:{}", dir.display()),
+            Self::Postgres(url) => f.write_str(&postgres::redact(url)),
+        }
+    }
+}
+
+impl std::str::FromStr for StoreUrl {
+    type Err = StoreError;
+    fn from_str(s: &str) -> StoreResult<Self> {
+        Self::parse(s)
+    }
+}
+
+/// Opens the store at `url` ([`SqliteStore::open`] or [`PostgresStore::open`]).
+pub async fn open(url: &StoreUrl) -> StoreResult<std::sync::Arc<dyn Store>> {
+    Ok(match url {
+        StoreUrl::Sqlite(dir) => std::sync::Arc::new(SqliteStore::open(dir).await?),
+        StoreUrl::Postgres(url) => std::sync::Arc::new(PostgresStore::open(url).await?),
+    })
 }
 
 /// Shorthand for results of store operations.
@@ -452,7 +548,8 @@ pub struct PreviousRun {
 ///
 /// Contract shared by every implementation:
 /// - **Durability**: when a method that writes returns `Ok`, the write is committed and
-///   survives a crash of the process (and, for [`SqliteStore`], of the machine). A method
+///   survives a crash of the process (and, for [`SqliteStore`], of the machine; for
+///   [`PostgresStore`], of the database server, with its default `synchronous_commit`). A method
 ///   that returns `Err` wrote nothing. Multi-row writes ([`Store::save_tiles`]) are atomic.
 /// - **Validation**: inputs the store could not read back are refused with
 ///   [`StoreError::InvalidInput`] (invalid plans, tile checkpoints that do not fit their

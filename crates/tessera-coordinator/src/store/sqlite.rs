@@ -1,22 +1,26 @@
 //! The SQLite implementation of [`Store`].
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use async_trait::async_trait;
 use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
-    SqliteSynchronous,
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
 };
 use sqlx::{Connection, Row};
 use tessera_api::{FrameRange, HistoryPoint, JobState};
 use tessera_farm::{FramePlan, JobId};
 
-use super::codec::{check_checkpoint, decode_stats, decode_units, encode_stats, encode_units};
+use super::codec::{encode_stats, encode_units};
 use super::marker::{self, CommitMark};
+use super::rows::{
+    check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, int_col,
+    job_from_row, now_unix_ms, parse_state, plan_from_row, summary_from_row, tile_from_parts,
+    to_i64, JOB_COLUMNS, PLAN_COLUMNS,
+};
 use super::{
-    FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, Store,
-    StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
+    FaultEvent, FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, Store, StoreError,
+    StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
 /// Name of the database file inside the data directory.
@@ -39,16 +43,6 @@ const BUSY_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Read connections. SQLite serializes writers, so there is exactly one write connection.
 const READ_CONNECTIONS: u32 = 4;
-
-/// Columns of `jobs` read by [`job_from_row`], in its order.
-const JOB_COLUMNS: &str = "id, idempotency_key, name, scene_ref, settings_json, \
-     plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
-     first_frame, last_frame, passes_per_unit, priority, state, error, \
-     created_unix_ms, started_unix_ms, finished_unix_ms";
-
-/// Columns of `jobs` read by [`plan_from_row`].
-const PLAN_COLUMNS: &str = "plan_width, plan_height, plan_tile_size, plan_samples_per_pass, \
-     plan_passes, first_frame, last_frame";
 
 /// The farm's state in one SQLite file, `DIR/tessera.sqlite3`.
 ///
@@ -400,170 +394,10 @@ pub(super) async fn migrate(pool: &SqlitePool) -> StoreResult<()> {
     Ok(())
 }
 
-fn now_unix_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
-}
-
-/// A u64 to bind as INTEGER, refused above `i64::MAX`.
-fn to_i64(v: u64, what: &str) -> StoreResult<i64> {
-    i64::try_from(v).map_err(|_| StoreError::InvalidInput(format!("{what} {v} exceeds 2^63 - 1")))
-}
-
-/// Reads an integer column and converts it, reporting a stored value out of range as
-/// corrupt (`place` names the row).
-fn int_col<T: TryFrom<i64>>(
-    row: &SqliteRow,
-    col: &str,
-    place: &dyn Fn() -> String,
-) -> StoreResult<T> {
-    let v: i64 = row.try_get(col)?;
-    T::try_from(v)
-        .map_err(|_| StoreError::Corrupt(format!("{}: {col} = {v} is out of range", place())))
-}
-
-fn opt_int_col<T: TryFrom<i64>>(
-    row: &SqliteRow,
-    col: &str,
-    place: &dyn Fn() -> String,
-) -> StoreResult<Option<T>> {
-    let v: Option<i64> = row.try_get(col)?;
-    v.map(|v| {
-        T::try_from(v)
-            .map_err(|_| StoreError::Corrupt(format!("{}: {col} = {v} is out of range", place())))
-    })
-    .transpose()
-}
-
-fn plan_from_row(row: &SqliteRow, job: JobId) -> StoreResult<(FramePlan, FrameRange)> {
-    let place = || format!("jobs row {job}");
-    let plan = FramePlan::new(
-        int_col(row, "plan_width", &place)?,
-        int_col(row, "plan_height", &place)?,
-        int_col(row, "plan_tile_size", &place)?,
-        int_col(row, "plan_samples_per_pass", &place)?,
-        int_col(row, "plan_passes", &place)?,
-    )
-    .map_err(|e| StoreError::Corrupt(format!("{}: invalid plan: {e}", place())))?;
-    let frames = FrameRange {
-        start: int_col(row, "first_frame", &place)?,
-        end: int_col(row, "last_frame", &place)?,
-    };
-    if frames.start > frames.end {
-        return Err(StoreError::Corrupt(format!(
-            "{}: first_frame {} > last_frame {}",
-            place(),
-            frames.start,
-            frames.end
-        )));
-    }
-    Ok((plan, frames))
-}
-
-fn parse_state(s: &str) -> Option<JobState> {
-    [
-        JobState::Queued,
-        JobState::Running,
-        JobState::Done,
-        JobState::Failed,
-        JobState::Canceled,
-    ]
-    .into_iter()
-    .find(|st| st.as_str() == s)
-}
-
-fn job_from_row(row: &SqliteRow) -> StoreResult<JobRecord> {
-    let id: JobId = int_col(row, "id", &|| "jobs row".to_string())?;
-    let place = || format!("jobs row {id}");
-    let (plan, frames) = plan_from_row(row, id)?;
-    let state: String = row.try_get("state")?;
-    let state = parse_state(&state)
-        .ok_or_else(|| StoreError::Corrupt(format!("{}: unknown state {state:?}", place())))?;
-    let passes_per_unit: u32 = int_col(row, "passes_per_unit", &place)?;
-    if passes_per_unit == 0 {
-        return Err(StoreError::Corrupt(format!(
-            "{}: passes_per_unit is 0",
-            place()
-        )));
-    }
-    Ok(JobRecord {
-        id,
-        settings_json: row.try_get("settings_json")?,
-        plan,
-        frames,
-        passes_per_unit,
-        priority: int_col(row, "priority", &place)?,
-        scene_ref: row.try_get("scene_ref")?,
-        name: row.try_get("name")?,
-        idempotency_key: row.try_get("idempotency_key")?,
-        state,
-        error: row.try_get("error")?,
-        created_unix_ms: int_col(row, "created_unix_ms", &place)?,
-        started_unix_ms: opt_int_col(row, "started_unix_ms", &place)?,
-        finished_unix_ms: opt_int_col(row, "finished_unix_ms", &place)?,
-    })
-}
-
-fn check_finite(v: f64, what: &str) -> StoreResult<f64> {
-    if v.is_finite() {
-        Ok(v)
-    } else {
-        Err(StoreError::InvalidInput(format!(
-            "{what} must be finite, got {v}"
-        )))
-    }
-}
-
-/// The `WHERE` clause of a fault filter (binds added by [`bind_fault_filter`]).
-fn fault_where(filter: &FaultFilter) -> String {
-    let mut clauses = Vec::new();
-    if filter.job.is_some() {
-        clauses.push("job = ?");
-    }
-    if filter.worker.is_some() {
-        clauses.push("worker = ?");
-    }
-    if clauses.is_empty() {
-        String::new()
-    } else {
-        format!("WHERE {}", clauses.join(" AND "))
-    }
-}
-
-type SqliteQuery<'q> = sqlx::query::Query<'q, sqlx::Sqlite, sqlx::sqlite::SqliteArguments<'q>>;
-
-fn bind_fault_filter<'q>(
-    mut q: SqliteQuery<'q>,
-    filter: &'q FaultFilter,
-) -> StoreResult<SqliteQuery<'q>> {
-    if let Some(job) = filter.job {
-        q = q.bind(to_i64(job, "job id")?);
-    }
-    if let Some(worker) = &filter.worker {
-        q = q.bind(worker.as_str());
-    }
-    Ok(q)
-}
-
 #[async_trait]
 impl Store for SqliteStore {
     async fn insert_job(&self, job: NewJob) -> StoreResult<(JobId, bool)> {
-        job.plan
-            .validate()
-            .map_err(|e| StoreError::InvalidInput(format!("job plan: {e}")))?;
-        if job.frames.start > job.frames.end {
-            return Err(StoreError::InvalidInput(format!(
-                "job frames: start {} > end {}",
-                job.frames.start, job.frames.end
-            )));
-        }
-        if job.passes_per_unit == 0 {
-            return Err(StoreError::InvalidInput(
-                "job passes_per_unit must be at least 1".into(),
-            ));
-        }
-        let created = to_i64(job.created_unix_ms, "created_unix_ms")?;
+        let created = check_new_job(&job)?;
         let mut conn = self.writer.acquire().await?;
         let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
         let inserted: Option<i64> = sqlx::query_scalar(
@@ -796,21 +630,7 @@ impl Store for SqliteStore {
                     (plan, frames)
                 }
             };
-            check_checkpoint(
-                &plan,
-                frames,
-                t.frame,
-                t.tile,
-                t.merged_passes,
-                t.pixels,
-                t.units,
-            )
-            .map_err(|reason| {
-                StoreError::InvalidInput(format!(
-                    "checkpoint of job {}, frame {}, tile {}: {reason}",
-                    t.job, t.frame, t.tile
-                ))
-            })?;
+            check_tile_to_save(&plan, frames, t)?;
             sqlx::query(
                 "INSERT INTO tiles (job, frame, tile, merged_passes, stats, units, \
                      rejected_samples) \
@@ -846,34 +666,11 @@ impl Store for SqliteStore {
         .bind(frame.map(i64::from))
         .fetch_all(&self.reader)
         .await?;
-        let place = || format!("tiles of job {job}");
         rows.iter()
             .map(|row| {
-                let frame: u32 = int_col(row, "frame", &place)?;
-                let tile: u32 = int_col(row, "tile", &place)?;
-                let corrupt = |reason: String| StoreError::CorruptTile {
-                    job,
-                    frame,
-                    tile,
-                    reason,
-                };
-                let merged_passes: u32 = int_col(row, "merged_passes", &place)?;
-                let rejected_samples: u64 = int_col(row, "rejected_samples", &place)?;
                 let stats: Vec<u8> = row.try_get("stats")?;
                 let units: Vec<u8> = row.try_get("units")?;
-                let pixels = decode_stats(&stats).map_err(corrupt)?;
-                let units = decode_units(&units).map_err(corrupt)?;
-                check_checkpoint(&plan, frames, frame, tile, merged_passes, &pixels, &units)
-                    .map_err(corrupt)?;
-                Ok(TileCheckpoint {
-                    job,
-                    frame,
-                    tile,
-                    merged_passes,
-                    pixels,
-                    units,
-                    rejected_samples,
-                })
+                tile_from_parts(&plan, frames, job, row, &stats, &units)
             })
             .collect()
     }
@@ -887,17 +684,7 @@ impl Store for SqliteStore {
         .bind(key)
         .fetch_all(&self.reader)
         .await?;
-        let place = || format!("tiles of job {job}");
-        rows.iter()
-            .map(|row| {
-                Ok(TileSummary {
-                    frame: int_col(row, "frame", &place)?,
-                    tile: int_col(row, "tile", &place)?,
-                    merged_passes: int_col(row, "merged_passes", &place)?,
-                    rejected_samples: int_col(row, "rejected_samples", &place)?,
-                })
-            })
-            .collect()
+        rows.iter().map(|row| summary_from_row(row, job)).collect()
     }
 
     async fn max_lease_id(&self) -> StoreResult<u64> {
@@ -1001,37 +788,35 @@ impl Store for SqliteStore {
     }
 
     async fn count_faults(&self, filter: &FaultFilter) -> StoreResult<u64> {
-        let sql = format!("SELECT COUNT(*) AS n FROM faults {}", fault_where(filter));
-        let row = bind_fault_filter(sqlx::query(&sql), filter)?
-            .fetch_one(&self.reader)
-            .await?;
+        let (clause, job) = fault_where(filter, |i| format!("?{i}"))?;
+        let sql = format!("SELECT COUNT(*) AS n FROM faults {clause}");
+        let mut q = sqlx::query(&sql);
+        if let Some(job) = job {
+            q = q.bind(job);
+        }
+        if let Some(worker) = &filter.worker {
+            q = q.bind(worker.as_str());
+        }
+        let row = q.fetch_one(&self.reader).await?;
         int_col(&row, "n", &|| "faults".to_string())
     }
 
     async fn list_faults(&self, filter: &FaultFilter, limit: u32) -> StoreResult<Vec<FaultEvent>> {
+        let (clause, job) = fault_where(filter, |i| format!("?{i}"))?;
         let sql = format!(
-            "SELECT worker, job, kind, message, unix_ms FROM faults {} ORDER BY id DESC LIMIT ?",
-            fault_where(filter)
+            "SELECT worker, job, kind, message, unix_ms FROM faults {clause} \
+             ORDER BY id DESC LIMIT {}",
+            limit
         );
-        let rows = bind_fault_filter(sqlx::query(&sql), filter)?
-            .bind(i64::from(limit))
-            .fetch_all(&self.reader)
-            .await?;
-        rows.iter()
-            .map(|r| {
-                let place = || "faults row".to_string();
-                let kind: String = r.try_get("kind")?;
-                Ok(FaultEvent {
-                    worker: r.try_get("worker")?,
-                    job: opt_int_col(r, "job", &place)?,
-                    kind: FaultKind::parse(&kind).ok_or_else(|| {
-                        StoreError::Corrupt(format!("faults row: unknown kind {kind:?}"))
-                    })?,
-                    message: r.try_get("message")?,
-                    unix_ms: int_col(r, "unix_ms", &place)?,
-                })
-            })
-            .collect()
+        let mut q = sqlx::query(&sql);
+        if let Some(job) = job {
+            q = q.bind(job);
+        }
+        if let Some(worker) = &filter.worker {
+            q = q.bind(worker.as_str());
+        }
+        let rows = q.fetch_all(&self.reader).await?;
+        rows.iter().map(fault_from_row).collect()
     }
 
     async fn job_ids_to_resume(&self) -> StoreResult<Vec<JobId>> {
