@@ -2,11 +2,16 @@
 //! with its glTF exporter (`tests/fixtures/animation/make_animation.py`): a keyframed
 //! cube's position in each interpolation mode against values computed by hand from the
 //! file's keyframes, and a skinned cylinder and a morph target against the world-space
-//! vertices Blender itself evaluated at three frames (in the fixtures' JSON).
+//! vertices Blender itself evaluated at three frames (in the fixtures' JSON); and bad
+//! animation, skin and morph-target input, generated, refused with errors naming the field.
+
+mod gltf_gen;
 
 use glam::Vec3;
+use gltf_gen::Gen;
+use serde_json::json;
 use std::path::PathBuf;
-use tessera_scene::gltf_import::{load_path_at, SceneTime};
+use tessera_scene::gltf_import::{load_path_at, load_slice_at, SceneTime};
 use tessera_scene::Scene;
 
 /// Frames per second of the fixtures (Blender's default, 24).
@@ -245,6 +250,162 @@ fn a_named_animation_plays_alone_and_an_unknown_one_is_an_error() {
         .to_string();
     assert!(
         e.contains("animation \"walk\"") && e.contains("\"stepAction\""),
+        "{e}"
+    );
+}
+
+/// A triangle at node 0 (in the scene) with an accessor of `times` and one of `values`
+/// for animations to use; returns the generator and the two accessor indices.
+fn animated_triangle(times: &[f32], values: &[[f32; 3]]) -> (Gen, usize, usize) {
+    let mut g = Gen::new();
+    let mesh = g.triangle_mesh(
+        "tri",
+        &[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
+        None,
+        None,
+    );
+    g.root(json!({"mesh": mesh}));
+    let view = g.view(
+        &times
+            .iter()
+            .flat_map(|t| t.to_le_bytes())
+            .collect::<Vec<u8>>(),
+    );
+    let input = g.push(
+        "accessors",
+        json!({"bufferView": view, "componentType": 5126, "count": times.len(), "type": "SCALAR"}),
+    );
+    let output = g.vec3(values);
+    (g, input, output)
+}
+
+/// The error of loading `g` at `seconds`.
+fn error_at(g: &Gen, seconds: f64) -> String {
+    let time = SceneTime {
+        seconds,
+        animation: None,
+    };
+    match load_slice_at(&g.gltf(), "bad.gltf", None, None, &time) {
+        Ok(_) => panic!("expected an error"),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn bad_animation_input_is_an_error_naming_the_field() {
+    let translate = |g: &mut Gen, input, output, interpolation: &str| {
+        g.push(
+            "animations",
+            json!({"channels": [{"sampler": 0, "target": {"node": 0, "path": "translation"}}],
+                   "samplers": [{"input": input, "output": output, "interpolation": interpolation}]}),
+        );
+    };
+    // A working one first: LINEAR halfway.
+    let (mut g, i, o) = animated_triangle(&[0.0, 1.0], &[[0.0; 3], [2.0, 0.0, 0.0]]);
+    translate(&mut g, i, o, "LINEAR");
+    let time = SceneTime {
+        seconds: 0.5,
+        animation: None,
+    };
+    let s = load_slice_at(&g.gltf(), "ok.gltf", None, None, &time).unwrap();
+    assert!(s.animated);
+    assert_eq!(s.meshes[0].positions[0], Vec3::new(1.0, 0.0, 0.0));
+    // Times not increasing.
+    let (mut g, i, o) = animated_triangle(&[0.0, 0.0], &[[0.0; 3], [2.0, 0.0, 0.0]]);
+    translate(&mut g, i, o, "LINEAR");
+    let e = error_at(&g, 0.5);
+    assert!(
+        e.contains("animation 0 channel 0") && e.contains("not strictly increasing"),
+        "{e}"
+    );
+    // CUBICSPLINE needs three outputs per key.
+    let (mut g, i, o) = animated_triangle(&[0.0, 1.0], &[[0.0; 3], [2.0, 0.0, 0.0]]);
+    translate(&mut g, i, o, "CUBICSPLINE");
+    let e = error_at(&g, 0.5);
+    assert!(
+        e.contains("sampler 0 output") && e.contains("has 2 elements") && e.contains("need 6"),
+        "{e}"
+    );
+    // A matrix on an animated node.
+    let (mut g, i, o) = animated_triangle(&[0.0, 1.0], &[[0.0; 3], [2.0, 0.0, 0.0]]);
+    translate(&mut g, i, o, "LINEAR");
+    g.doc["nodes"][0]["matrix"] = json!([1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]);
+    let e = error_at(&g, 0.5);
+    assert!(e.contains("node 0 is animated but has a matrix"), "{e}");
+    // Weights on a node whose mesh has no morph targets.
+    let (mut g, i, _) = animated_triangle(&[0.0, 1.0], &[[0.0; 3], [2.0, 0.0, 0.0]]);
+    g.push(
+        "animations",
+        json!({"channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+               "samplers": [{"input": i, "output": i}]}),
+    );
+    let e = error_at(&g, 0.5);
+    assert!(e.contains("whose mesh has no morph targets"), "{e}");
+}
+
+#[test]
+fn bad_skins_and_morph_targets_are_errors_naming_the_field() {
+    // A skinned triangle whose vertex 2 names joint 3 of a one-joint skin.
+    let skinned = |joints: [u8; 12], weights: [[f32; 4]; 3]| {
+        let (mut g, _, _) = animated_triangle(&[0.0], &[[0.0; 3]]);
+        let jv = g.view(&joints);
+        let ja = g.push(
+            "accessors",
+            json!({"bufferView": jv, "componentType": 5121, "count": 3, "type": "VEC4"}),
+        );
+        let wb: Vec<u8> = weights
+            .iter()
+            .flatten()
+            .flat_map(|w| w.to_le_bytes())
+            .collect();
+        let wv = g.view(&wb);
+        let wa = g.push(
+            "accessors",
+            json!({"bufferView": wv, "componentType": 5126, "count": 3, "type": "VEC4"}),
+        );
+        g.doc["meshes"][0]["primitives"][0]["attributes"]["JOINTS_0"] = json!(ja);
+        g.doc["meshes"][0]["primitives"][0]["attributes"]["WEIGHTS_0"] = json!(wa);
+        let joint = g.root(json!({"translation": [0.0, 0.0, 1.0]}));
+        g.push("skins", json!({"joints": [joint]}));
+        g.doc["nodes"][0]["skin"] = json!(0);
+        g
+    };
+    let one = [1.0, 0.0, 0.0, 0.0];
+    // Good: every vertex on joint 0, moved by its translation.
+    let g = skinned([0; 12], [one, one, one]);
+    let s = load_slice_at(&g.gltf(), "skin.gltf", None, None, &SceneTime::default()).unwrap();
+    assert_eq!(s.meshes[0].positions[1], Vec3::new(1.0, 0.0, 1.0));
+    // Weights are normalized: (2, 0, 0, 0) is joint 0 at full weight.
+    let g = skinned([0; 12], [[2.0, 0.0, 0.0, 0.0], one, one]);
+    let s = load_slice_at(&g.gltf(), "skin.gltf", None, None, &SceneTime::default()).unwrap();
+    assert_eq!(s.meshes[0].positions[0], Vec3::new(0.0, 0.0, 1.0));
+    let mut joints = [0u8; 12];
+    joints[8] = 3;
+    let e = error_at(&skinned(joints, [one, one, one]), 0.0);
+    assert!(
+        e.contains("JOINTS_0 vertex 2 names joint 3 of skin 0, which has 1 joints"),
+        "{e}"
+    );
+    let e = error_at(&skinned([0; 12], [one, [0.0; 4], one]), 0.0);
+    assert!(e.contains("vertex 1: its skin weights sum to 0"), "{e}");
+    let e = error_at(&skinned([0; 12], [one, [-1.0, 0.0, 0.0, 0.0], one]), 0.0);
+    assert!(
+        e.contains("WEIGHTS_0 vertex 1 has a negative weight"),
+        "{e}"
+    );
+    // A morph target whose POSITION has too few elements, and weights of the wrong count.
+    let (mut g, _, deltas) = animated_triangle(&[0.0], &[[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]);
+    g.doc["meshes"][0]["primitives"][0]["targets"] = json!([{"POSITION": deltas}]);
+    g.doc["meshes"][0]["weights"] = json!([1.0]);
+    let e = error_at(&g, 0.0);
+    assert!(
+        e.contains("target 0 POSITION has 2 elements but POSITION has 3"),
+        "{e}"
+    );
+    g.doc["meshes"][0]["weights"] = json!([1.0, 0.5]);
+    let e = error_at(&g, 0.0);
+    assert!(
+        e.contains("mesh weights has 2 values but the primitive has 1 morph targets"),
         "{e}"
     );
 }
