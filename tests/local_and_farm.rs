@@ -2,25 +2,27 @@
 //! — every integrator (auto, path, direct, bdpt) times every adaptive mode, on a tiled
 //! glTF scene and on a glTF scene whose plan is bdpt (a spot light through glass), each
 //! rendered from a named camera — `tessera render` and a farm job give byte-identical
-//! EXRs, headers included (ARCHITECTURE.md §2).
+//! EXRs, headers included (ARCHITECTURE.md §2). And every frame of an animated multi-frame
+//! job is byte-identical to `tessera render --frame F` (issue 12).
 
 mod common;
 
 use std::path::Path;
 
 use common::farm::{start_coordinator, start_worker, wait_done};
-use common::{output_ok, temp_dir, tessera, Proc};
+use common::{output_ok, read_exr, temp_dir, tessera, Proc};
 use tessera_api::client::Client;
 use tessera_api::JobSettings;
 
 /// `tessera render FILE` with the flags that give the settings `s` (whose scene is the
-/// file's uploaded hash).
-fn local_render(file: &Path, s: &JobSettings, out: &Path) -> Vec<u8> {
+/// file's uploaded hash), plus `extra` flags.
+fn local_render(file: &Path, s: &JobSettings, out: &Path, extra: &[&str]) -> Vec<u8> {
     let mut cmd = tessera();
-    cmd.arg("render")
-        .arg(file)
-        .args(["--camera", s.camera.as_deref().unwrap()])
-        .args(["--width", &s.width.unwrap().to_string()])
+    cmd.arg("render").arg(file).args(extra);
+    if let Some(c) = s.camera.as_deref() {
+        cmd.args(["--camera", c]);
+    }
+    cmd.args(["--width", &s.width.unwrap().to_string()])
         .args(["--height", &s.height.unwrap().to_string()])
         .args(["--spp", &s.spp.to_string()])
         .args(["--seed", &s.seed.to_string()])
@@ -83,7 +85,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
                 assert_eq!(done.stop_reason.is_some(), adaptive != "off", "{case}");
                 let farm = client.image(st.id, "exr").unwrap();
                 let out = dir.join(format!("{compared}.exr"));
-                let local = local_render(&path, &s, &out);
+                let local = local_render(&path, &s, &out, &[]);
                 assert!(
                     farm == local,
                     "{case}: the farm's EXR differs from tessera render's"
@@ -93,5 +95,61 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
         }
     }
     assert_eq!(compared, 24);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Issue 12: a multi-frame job of an animated scene (Blender's keyframed cubes) on two
+/// workers, at 2.4 frames per second so that frames 0, 1 and 2 are the scene at t = 0,
+/// 5/12 and 5/6 s: each frame's EXR is byte-identical to `tessera render --frame F
+/// --fps 2.4`, and the frames differ, since the cubes move.
+#[test]
+fn every_frame_of_an_animated_farm_job_equals_tessera_render_frame() {
+    let dir = temp_dir("e2e", "animated-frames");
+    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
+    let _ws: Vec<Proc> = (0..2)
+        .map(|i| start_worker(&c.grpc, &format!("w{i}"), &[]))
+        .collect();
+    let client = Client::new(&c.http, None);
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/animation/anim_cube.glb");
+    let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
+    let mut s = JobSettings::new(uploaded.hash.clone());
+    s.width = Some(24);
+    s.height = Some(16);
+    s.spp = 16;
+    s.seed = 5;
+    s.tile_size = 8;
+    s.fps = 2.4;
+    s.frames = tessera_api::FrameRange { start: 0, end: 2 };
+    let st = client.submit(&s, None).unwrap();
+    wait_done(&client, st.id);
+    let mut frames = Vec::new();
+    for f in 0..=2u32 {
+        let farm = client
+            .get_raw(&format!(
+                "/api/v1/jobs/{}/image?format=exr&frame={f}",
+                st.id
+            ))
+            .unwrap();
+        let out = dir.join(format!("frame{f}.exr"));
+        let frame = f.to_string();
+        let local = local_render(&path, &s, &out, &["--frame", &frame, "--fps", "2.4"]);
+        assert!(
+            farm == local,
+            "frame {f}: the farm's EXR differs from tessera render --frame {f}"
+        );
+        frames.push(out);
+    }
+    // The frames differ because the cubes move, not only because each frame has its own
+    // seeds: frame 2 at t = 5/6 s against frame 2 of the same job at 1e6 fps (t = 2e-6 s,
+    // clamped to the first keyframe, which is the pose of frame 0).
+    let still = dir.join("still.exr");
+    local_render(&path, &s, &still, &["--frame", "2", "--fps", "1000000"]);
+    let (moving, still) = (read_exr(&frames[2]), read_exr(&still));
+    assert_ne!(
+        moving.get("R").unwrap(),
+        still.get("R").unwrap(),
+        "the cubes did not move"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -182,7 +182,7 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
         tile_size: 16,
         ..JobArgs::new(&args.scene)
     };
-    let p = prepare(&job, &StopArgs::default())?;
+    let p = prepare(&job, &StopArgs::default(), 0)?;
     let Some(rs) = p.render_scene.as_ref() else {
         bail!(
             "{}: the render plan found no light: nothing to measure",

@@ -43,7 +43,7 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
         ..AdaptiveSettings::default()
     });
     // Resolution checked the settings against the plan; this cannot fail.
-    let frame = AdaptiveFrame::new(plan, 0, settings).with_context(|| {
+    let frame = AdaptiveFrame::new(plan, p.frame, settings).with_context(|| {
         format!(
             "--adaptive {} with --spp {} ({} passes of {})",
             job.adaptive, job.spp, plan.passes, plan.samples_per_pass

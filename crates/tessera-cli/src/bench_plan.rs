@@ -81,7 +81,7 @@ fn measure(
         max_depth: depth,
         ..JobArgs::new(scene)
     };
-    let p = prepare(&job, &StopArgs::default())?;
+    let p = prepare(&job, &StopArgs::default(), 0)?;
     let label = format!(
         "{scene} {} (max depth {}{})",
         p.resolved.config.integrator,

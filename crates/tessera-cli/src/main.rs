@@ -151,7 +151,7 @@ fn bench(args: BenchArgs) -> Result<()> {
         max_depth: Some(args.max_depth),
         ..JobArgs::new(&args.scene)
     };
-    let p = prepare(&job, &StopArgs::default())?;
+    let p = prepare(&job, &StopArgs::default(), 0)?;
     let plan = p.resolved.plan;
     // An explicit integrator never takes the black shortcut.
     let render_scene = p.render_scene.as_ref().expect("built unless black");

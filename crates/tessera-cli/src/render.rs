@@ -11,12 +11,13 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_farm::job::{
-    JobError, JobSettings, ResolvedJob, SceneRef, StopVerdict, DEFAULT_MIN_PASSES,
+    FrameRange, JobError, JobSettings, ResolvedJob, SceneRef, StopVerdict, DEFAULT_FPS,
+    DEFAULT_MIN_PASSES,
 };
 use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::render::render_frame_counted;
 use tessera_render::scene::RenderScene;
-use tessera_scene::Scene;
+use tessera_scene::{Scene, SceneTime};
 
 use crate::adaptive;
 
@@ -59,6 +60,13 @@ pub struct JobArgs {
     /// Tile edge in pixels.
     #[arg(long, default_value_t = 32)]
     pub tile_size: u32,
+    /// Frames per second: frame F shows the scene at t = F / fps seconds (glTF
+    /// animations; Blender's exporter writes frame 1 at t = 1/24).
+    #[arg(long, default_value_t = DEFAULT_FPS)]
+    pub fps: f64,
+    /// The glTF animation that plays, by name or index (default: every animation).
+    #[arg(long)]
+    pub animation: Option<String>,
 }
 
 impl JobArgs {
@@ -76,6 +84,8 @@ impl JobArgs {
             seed: 0,
             max_depth: None,
             tile_size: 32,
+            fps: DEFAULT_FPS,
+            animation: None,
         }
     }
 }
@@ -96,6 +106,8 @@ impl JobArgs {
         s.seed = self.seed;
         s.max_depth = self.max_depth;
         s.tile_size = self.tile_size;
+        s.fps = self.fps;
+        s.animation = self.animation.clone();
         s.target_error = stop.target_error;
         s.adaptive = stop.adaptive.clone();
         s.time_limit_seconds = stop.time_limit;
@@ -150,6 +162,10 @@ pub struct RenderArgs {
     /// Output file: .exr (multi-layer float) or .png (sRGB).
     #[arg(short, long)]
     pub output: PathBuf,
+    /// The frame to render: the scene at t = frame / fps seconds (times before the first
+    /// keyframe clamp to it), with the frame's own sample seeds, as frame F of a farm job.
+    #[arg(long, default_value_t = 0)]
+    pub frame: u32,
     /// Also write the samples traced per pixel as a heat-map PNG (log scale).
     #[arg(long)]
     pub spp_map: Option<PathBuf>,
@@ -157,7 +173,9 @@ pub struct RenderArgs {
 
 /// A resolved job with its scene, ready to render.
 pub struct Prepared {
-    /// The scene as loaded.
+    /// The frame rendered.
+    pub frame: u32,
+    /// The scene as loaded, at the frame's time.
     pub scene: Scene,
     /// The renderable scene; not built for a black render.
     pub render_scene: Option<RenderScene>,
@@ -199,6 +217,8 @@ fn flag(field: &str) -> &'static str {
         "min_passes" => "--min-passes",
         "time_limit_seconds" => "--time-limit",
         "tile_size" => "--tile-size",
+        "fps" => "--fps",
+        "animation" => "--animation",
         _ => "setting",
     }
 }
@@ -218,20 +238,45 @@ fn job_error(e: JobError, settings: &JobSettings) -> anyhow::Error {
 }
 
 /// Validates and resolves `job` with the stopping settings `stop` exactly as the
-/// coordinator does, loads its scene and builds it unless the plan found no light.
-pub fn prepare(job: &JobArgs, stop: &StopArgs) -> Result<Prepared> {
-    let settings = job.settings(scene_ref(&job.scene)?, stop);
+/// coordinator does, loads its scene at the time of `frame` and builds it unless the plan
+/// found no light.
+///
+/// The job is resolved against the scene at t = 0, as the coordinator resolves every job
+/// (its render plan and resolution do not depend on the frame, so frame F of a farm job
+/// and `tessera render --frame F` write the same header); the frame is then rendered from
+/// the scene at `frame / fps`.
+pub fn prepare(job: &JobArgs, stop: &StopArgs, frame: u32) -> Result<Prepared> {
+    let mut settings = job.settings(scene_ref(&job.scene)?, stop);
+    settings.frames = FrameRange {
+        start: frame,
+        end: frame,
+    };
     let validated = settings.validate().map_err(|e| job_error(e, &settings))?;
     let camera = validated.camera.as_deref();
-    let scene = match &validated.scene {
-        // The farm's loader: it refuses a camera name for a built-in scene.
-        SceneRef::Builtin(_) => tessera_scene::job::load_job_scene(&validated.scene, None, camera),
-        // A file may refer to files beside it, which an upload may not.
-        SceneRef::Hash(_) => tessera_scene::load_with_camera(&job.scene, camera),
-    }
-    .with_context(|| format!("loading scene {}", job.scene))?;
+    let load = |time: &SceneTime| {
+        match &validated.scene {
+            // The farm's loader: it refuses a camera name for a built-in scene.
+            SceneRef::Builtin(_) => {
+                tessera_scene::job::load_job_scene_at(&validated.scene, None, camera, time)
+            }
+            // A file may refer to files beside it, which an upload may not.
+            SceneRef::Hash(_) => tessera_scene::load_at(&job.scene, camera, time),
+        }
+        .with_context(|| format!("loading scene {}", job.scene))
+    };
+    let at_zero = SceneTime {
+        seconds: 0.0,
+        animation: validated.animation.clone(),
+    };
+    let first = load(&at_zero)?;
     let resolved =
-        tessera_scene::job::resolve_job(&validated, &scene).map_err(|e| job_error(e, &settings))?;
+        tessera_scene::job::resolve_job(&validated, &first).map_err(|e| job_error(e, &settings))?;
+    let time = tessera_scene::job::frame_time(&validated, frame);
+    let scene = if first.animated && time != at_zero {
+        load(&time)?
+    } else {
+        first
+    };
     let render_scene = if resolved.black {
         None
     } else {
@@ -242,6 +287,7 @@ pub fn prepare(job: &JobArgs, stop: &StopArgs) -> Result<Prepared> {
         )?)
     };
     Ok(Prepared {
+        frame,
         scene,
         render_scene,
         resolved,
@@ -271,7 +317,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if let Some(path) = &args.spp_map {
         adaptive::check_png("--spp-map", path)?;
     }
-    let p = prepare(&args.job, &args.stop)?;
+    let p = prepare(&args.job, &args.stop, args.frame)?;
     print!("{}", p.resolved.render_plan.summary());
     if p.resolved.black {
         return render_black(&p, &args);
@@ -297,7 +343,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         render_scene,
         &p.resolved.config,
         &plan,
-        0,
+        p.frame,
         args.threads,
         |done, _| {
             if let Some(b) = &bar {

@@ -56,6 +56,10 @@ pub struct JobEntry {
     pub scene: SceneRef,
     /// The glTF camera the job renders from, if it names one.
     pub camera: Option<String>,
+    /// Frames per second (a frame's time is `frame / fps`).
+    pub fps: f64,
+    /// The glTF animation that plays, if the job names one.
+    pub animation: Option<String>,
     /// Render settings.
     pub settings: RenderConfig,
     /// Frame plan.
@@ -69,6 +73,8 @@ impl JobEntry {
         Self {
             scene: job.scene.clone(),
             camera: job.camera.clone(),
+            fps: job.fps,
+            animation: job.animation.clone(),
             settings: resolved.config,
             plan: resolved.plan,
         }

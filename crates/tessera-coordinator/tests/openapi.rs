@@ -23,6 +23,8 @@ fn openapi_documents_exactly_the_job_settings_fields() {
     s.height = Some(48);
     s.max_depth = Some(8);
     s.frames = FrameRange { start: 1, end: 2 };
+    s.fps = 30.0;
+    s.animation = Some("walk".into());
     s.target_error = Some(0.05);
     s.adaptive = "sequential".into();
     s.min_passes = 12;

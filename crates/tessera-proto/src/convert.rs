@@ -3,7 +3,8 @@
 use std::fmt;
 
 use tessera_farm::job::{
-    Integrator, MisHeuristic, RenderConfig, SamplerKind, SceneRef, MAX_CAMERA_CHARS,
+    Integrator, MisHeuristic, RenderConfig, SamplerKind, SceneRef, DEFAULT_FPS,
+    MAX_ANIMATION_CHARS, MAX_CAMERA_CHARS, MAX_FPS,
 };
 use tessera_farm::{FramePlan, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES};
 use tessera_farm::{MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS, MIN_TILE_SIZE};
@@ -432,6 +433,10 @@ pub struct LeasedUnit {
     pub scene: SceneRef,
     /// The glTF camera the job renders from, if it names one.
     pub camera: Option<String>,
+    /// Frames per second of the job's time (`t = frame / fps`), in (0, `MAX_FPS`].
+    pub fps: f64,
+    /// The glTF animation that plays, if the job names one.
+    pub animation: Option<String>,
     /// How samples are computed.
     pub settings: RenderConfig,
     /// The job's frame plan.
@@ -448,6 +453,8 @@ impl From<&LeasedUnit> for v1::Lease {
             job_id: l.job_id,
             scene_hash: l.scene.to_string(),
             camera: l.camera.clone().unwrap_or_default(),
+            fps: l.fps,
+            animation: l.animation.clone().unwrap_or_default(),
             settings: Some((&l.settings).into()),
             plan: Some((&l.plan).into()),
             unit: Some((&l.unit).into()),
@@ -483,6 +490,28 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             }
             c => Some(c.to_owned()),
         };
+        let fps = match l.fps {
+            0.0 => DEFAULT_FPS,
+            f if f > 0.0 && f <= MAX_FPS => f,
+            f => {
+                return Err(ProtoError::new(
+                    "fps",
+                    format_args!("must be in (0, {MAX_FPS}], got {f}"),
+                ))
+            }
+        };
+        let animation = match l.animation.as_str() {
+            "" => None,
+            a if a.chars().count() > MAX_ANIMATION_CHARS || a.chars().any(char::is_control) => {
+                return Err(ProtoError::new(
+                    "animation",
+                    format_args!(
+                        "must be at most {MAX_ANIMATION_CHARS} characters without control characters"
+                    ),
+                ))
+            }
+            a => Some(a.to_owned()),
+        };
         let settings: RenderConfig = l
             .settings
             .ok_or_else(|| ProtoError::missing("settings"))?
@@ -505,6 +534,8 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             job_id: l.job_id,
             scene,
             camera,
+            fps,
+            animation,
             settings,
             plan,
             unit,
@@ -835,6 +866,8 @@ mod tests {
             job_id: 3,
             scene: SceneRef::Hash(HASH.into()),
             camera: Some("dolly".into()),
+            fps: 30.0,
+            animation: Some("walk".into()),
             settings: configs()[7],
             plan: p,
             unit: *p.units(4, 2).last().unwrap(),

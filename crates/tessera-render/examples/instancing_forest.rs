@@ -158,6 +158,7 @@ fn forest(trees: usize) -> Scene {
         }],
         environment: Some(Vec3::splat(0.3)),
         default_resolution: (64, 64),
+        animated: false,
     }
 }
 

@@ -51,7 +51,7 @@ pub fn render_frame_counted(
 ) -> RenderedFrame {
     let units = plan.units(frame, 1);
     let total = units.len();
-    let mut acc = FrameAccumulator::new(*plan);
+    let mut acc = FrameAccumulator::for_frame(*plan, frame);
     let mut rejected_samples = 0u64;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)

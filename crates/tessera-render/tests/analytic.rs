@@ -108,6 +108,7 @@ fn plane_under_sphere(r: f32, h: f32, radiance: f32, albedo: f32) -> Scene {
         lights: vec![],
         environment: None,
         default_resolution: (8, 8),
+        animated: false,
     }
 }
 

@@ -146,6 +146,7 @@ fn bdpt_agrees_with_path_under_directional_spot_and_environment_light() {
         ],
         environment: Some(Vec3::splat(0.3)),
         default_resolution: (24, 24),
+        animated: false,
     };
     compare_scene_with_path("distant lights", &scene, 24, 24, 8);
 }
@@ -231,6 +232,7 @@ fn point_light_caustic() -> Scene {
         }],
         environment: None,
         default_resolution: (32, 32),
+        animated: false,
     }
 }
 

@@ -114,6 +114,7 @@ fn instanced() -> Scene {
         }],
         environment: Some(Vec3::splat(0.2)),
         default_resolution: (32, 32),
+        animated: false,
     }
 }
 

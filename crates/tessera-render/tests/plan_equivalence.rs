@@ -111,6 +111,7 @@ fn plane_under_point_light() -> Scene {
         }],
         environment: Some(Vec3::splat(0.1)),
         default_resolution: (32, 32),
+        animated: false,
     }
 }
 

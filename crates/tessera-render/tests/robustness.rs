@@ -64,6 +64,7 @@ fn scene(scale: f32, offset: Vec3) -> Scene {
         lights: vec![],
         environment: None,
         default_resolution: (8, 8),
+        animated: false,
     }
 }
 

@@ -226,6 +226,7 @@ pub fn cornell_box() -> Scene {
         lights: vec![],
         environment: None,
         default_resolution: (512, 512),
+        animated: false,
     }
 }
 
@@ -329,6 +330,7 @@ pub fn veach_mis() -> Scene {
         lights: vec![],
         environment: None,
         default_resolution: (768, 512),
+        animated: false,
     }
 }
 
@@ -387,6 +389,7 @@ pub fn furnace() -> Scene {
         lights: vec![],
         environment: None,
         default_resolution: (128, 128),
+        animated: false,
     }
 }
 
@@ -451,6 +454,7 @@ pub fn caustic() -> Scene {
         lights: vec![],
         environment: Some(Vec3::splat(0.02)),
         default_resolution: (640, 480),
+        animated: false,
     }
 }
 

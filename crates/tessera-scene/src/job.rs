@@ -7,17 +7,29 @@
 
 use tessera_farm::job::{JobError, ResolvedJob, SceneFacts, SceneRef, ValidatedJob};
 
-use crate::{builtin, gltf_import, Scene, SceneError};
+use crate::{builtin, gltf_import, Scene, SceneError, SceneTime};
 
 /// The scene of a job: a built-in scene, or an uploaded self-contained glTF/GLB given as
 /// its `bytes`, rendered from the glTF camera named `camera` (default: its first camera).
 ///
 /// Built-in scenes have one camera, so naming one is an error rather than silently ignored.
 /// Uploaded scenes are named `scene HASH` (their content hash), as everywhere in the farm.
+/// The scene is evaluated at t = 0 ([`load_job_scene_at`] for a frame's time).
 pub fn load_job_scene(
     scene: &SceneRef,
     bytes: Option<&[u8]>,
     camera: Option<&str>,
+) -> Result<Scene, SceneError> {
+    load_job_scene_at(scene, bytes, camera, &SceneTime::default())
+}
+
+/// [`load_job_scene`] evaluated at `time` (a frame of the job: [`frame_time`]); built-in
+/// scenes are static.
+pub fn load_job_scene_at(
+    scene: &SceneRef,
+    bytes: Option<&[u8]>,
+    camera: Option<&str>,
+    time: &SceneTime,
 ) -> Result<Scene, SceneError> {
     match (scene, bytes) {
         (SceneRef::Builtin(name), _) => {
@@ -33,12 +45,22 @@ pub fn load_job_scene(
             builtin::load(name)
         }
         (SceneRef::Hash(h), Some(b)) => {
-            gltf_import::load_slice(b, &format!("scene {h}"), None, camera)
+            gltf_import::load_slice_at(b, &format!("scene {h}"), None, camera, time)
         }
         (SceneRef::Hash(h), None) => Err(SceneError::Invalid {
             scene: format!("scene {h}"),
             message: "its bytes are not stored".into(),
         }),
+    }
+}
+
+/// The time of `frame` of `job`: `frame / fps` seconds with the job's animation
+/// (ARCHITECTURE.md §8, "Time"). Every renderer of a frame (`tessera render --frame`, the
+/// coordinator, the workers) loads the scene at this time.
+pub fn frame_time(job: &ValidatedJob, frame: u32) -> SceneTime {
+    SceneTime {
+        seconds: job.frame_seconds(frame),
+        animation: job.animation.clone(),
     }
 }
 

@@ -12,7 +12,8 @@
 //! repeat the transform logic. It is produced by
 //!
 //! - [`gltf_import::load_path`] / [`gltf_import::load_slice`] from glTF 2.0 (`.gltf` with
-//!   external or embedded buffers, or `.glb`), and
+//!   external or embedded buffers, or `.glb`), evaluated at a [`SceneTime`] with the
+//!   `_at` variants (animations, skins and morph targets; t = 0 otherwise), and
 //! - [`builtin::load`] for the built-in scenes addressed as `builtin:NAME`.
 //!
 //! Use [`load`] to resolve a scene argument as the command line gives it.
@@ -34,6 +35,7 @@ pub mod gltf_import;
 pub mod job;
 pub mod material;
 
+pub use gltf_import::SceneTime;
 pub use material::{
     AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture, TextureRef,
     UvTransform, Volume, Wrap,
@@ -362,6 +364,10 @@ pub struct Scene {
     pub environment: Option<Vec3>,
     /// Default image size for this scene (width, height).
     pub default_resolution: (u32, u32),
+    /// Whether the scene changes with time: it was loaded from a glTF file whose playing
+    /// animations have channels, so another time may give another scene (see
+    /// [`gltf_import`], "Time"). Built-in scenes are static.
+    pub animated: bool,
 }
 
 impl Scene {
@@ -721,6 +727,12 @@ pub fn load(arg: &str) -> Result<Scene, SceneError> {
 
 /// Like [`load`], choosing the glTF camera with the given name (glTF files only).
 pub fn load_with_camera(arg: &str, camera: Option<&str>) -> Result<Scene, SceneError> {
+    load_at(arg, camera, &SceneTime::default())
+}
+
+/// Like [`load_with_camera`], with a glTF scene evaluated at `time` (built-in scenes are
+/// static).
+pub fn load_at(arg: &str, camera: Option<&str>, time: &SceneTime) -> Result<Scene, SceneError> {
     if let Some(name) = arg.strip_prefix("builtin:") {
         return builtin::load(name);
     }
@@ -730,7 +742,7 @@ pub fn load_with_camera(arg: &str, camera: Option<&str>) -> Result<Scene, SceneE
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase())
     {
-        Some(ext) if ext == "gltf" || ext == "glb" => gltf_import::load_path(path, camera),
+        Some(ext) if ext == "gltf" || ext == "glb" => gltf_import::load_path_at(path, camera, time),
         _ => Err(SceneError::Unknown(
             arg.to_string(),
             builtin::NAMES.join(", "),

@@ -233,6 +233,7 @@ fn base_scene(materials: Vec<Material>, meshes: Vec<Mesh>) -> Scene {
         lights: vec![],
         environment: None,
         default_resolution: (64, 48),
+        animated: false,
     }
 }
 

@@ -20,12 +20,11 @@ use std::future::Future;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tessera_farm::job::SceneRef;
-use tessera_farm::FramePlan;
 use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
 use tessera_render::render::render_unit;
 use tessera_render::scene::RenderScene;
-use tessera_scene::Scene;
+use tessera_scene::{Scene, SceneTime};
 use tonic::metadata::MetadataValue;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
@@ -163,7 +162,10 @@ fn error_chain(e: &dyn std::error::Error) -> String {
 /// Scenes and their built forms, by scene reference and camera (`SCENE#CAMERA`).
 #[derive(Default)]
 struct SceneCache {
+    /// Static scenes, parsed.
     scenes: HashMap<String, Arc<Scene>>,
+    /// Animated scenes: their bytes (none for built-ins), parsed at each frame's time.
+    animated: HashMap<String, Option<Arc<Vec<u8>>>>,
     /// Built render scenes by (scene and camera, width, height); a handful at most.
     built: Vec<(String, u32, u32, Arc<RenderScene>)>,
 }
@@ -352,7 +354,7 @@ async fn serve(
         let mut unusable = Vec::new();
         let mut why = String::new();
         for l in leases {
-            match scene_for(&mut client, cache, &l.scene, l.camera.as_deref(), &l.plan).await {
+            match scene_for(&mut client, cache, &l).await {
                 Ok(rs) => jobs.push((l, rs)),
                 Err(e) => {
                     tracing::warn!(scene = %l.scene, error = %e, "cannot load scene; returning lease");
@@ -498,57 +500,83 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
 }
 
 /// The built scene for a lease, from the cache or fetched and built now.
+///
+/// A static scene is parsed once and built once per image size, whatever the frame. An
+/// animated one (glTF animations, [`Scene::animated`]) is parsed and built at each
+/// frame's time (`frame / fps`, [`tessera_scene::job::frame_time`]'s rule), from its bytes
+/// kept in the cache; the built scenes of the last few times are kept.
 async fn scene_for(
     client: &mut Client,
     cache: &Arc<Mutex<SceneCache>>,
-    scene: &SceneRef,
-    camera: Option<&str>,
-    plan: &FramePlan,
+    l: &LeasedUnit,
 ) -> Result<Arc<RenderScene>, String> {
-    let key = match camera {
+    let (scene, plan) = (&l.scene, &l.plan);
+    let key = match l.camera.as_deref() {
         Some(c) => format!("{scene}#{c}"),
         None => scene.to_string(),
     };
-    {
-        let c = cache
-            .lock()
-            .map_err(|_| "scene cache poisoned".to_string())?;
+    let time = SceneTime {
+        seconds: f64::from(l.unit.frame) / l.fps,
+        animation: l.animation.clone(),
+    };
+    // The key of the built scene: the scene and camera, and the time for animated scenes.
+    let timed_key = format!(
+        "{key}@{}#{}",
+        time.seconds,
+        time.animation.as_deref().unwrap_or("")
+    );
+    let lock = || cache.lock().map_err(|_| "scene cache poisoned".to_string());
+    let built_key = {
+        let c = lock()?;
+        let built_key = if c.animated.contains_key(&key) {
+            timed_key.clone()
+        } else {
+            key.clone()
+        };
         if let Some((_, _, _, rs)) = c
             .built
             .iter()
-            .find(|(k, w, h, _)| *k == key && *w == plan.width && *h == plan.height)
+            .find(|(k, w, h, _)| *k == built_key && *w == plan.width && *h == plan.height)
         {
             return Ok(rs.clone());
         }
-    }
-    let cached = cache
-        .lock()
-        .map_err(|_| "scene cache poisoned".to_string())?
-        .scenes
-        .get(&key)
-        .cloned();
-    let parsed = match cached {
-        Some(s) => s,
+        built_key
+    };
+    let (cached, raw) = {
+        let c = lock()?;
+        (c.scenes.get(&key).cloned(), c.animated.get(&key).cloned())
+    };
+    let (parsed, built_key) = match cached {
+        Some(s) => (s, built_key),
         None => {
-            let bytes = match scene {
-                SceneRef::Builtin(_) => None,
-                SceneRef::Hash(hash) => Some(fetch_scene(client, hash).await?),
+            let bytes = match (scene, raw) {
+                (SceneRef::Builtin(_), _) => None,
+                (_, Some(b)) => b,
+                (SceneRef::Hash(hash), None) => Some(Arc::new(fetch_scene(client, hash).await?)),
             };
             // The same loader as the coordinator's, so both see the same scene.
-            let (sref, cam) = (scene.clone(), camera.map(str::to_owned));
-            let scene = tokio::task::spawn_blocking(move || {
-                tessera_scene::job::load_job_scene(&sref, bytes.as_deref(), cam.as_deref())
+            let (sref, cam, b2, t) = (scene.clone(), l.camera.clone(), bytes.clone(), time.clone());
+            let parsed = tokio::task::spawn_blocking(move || {
+                tessera_scene::job::load_job_scene_at(
+                    &sref,
+                    b2.as_deref().map(Vec::as_slice),
+                    cam.as_deref(),
+                    &t,
+                )
             })
             .await
             .map_err(|e| e.to_string())?
             .map_err(|e| e.to_string())?;
-            let scene = Arc::new(scene);
-            cache
-                .lock()
-                .map_err(|_| "scene cache poisoned".to_string())?
-                .scenes
-                .insert(key.clone(), scene.clone());
-            scene
+            let parsed = Arc::new(parsed);
+            let mut c = lock()?;
+            if parsed.animated {
+                // Parsed again for every time: keep the bytes, not the scene.
+                c.animated.insert(key.clone(), bytes);
+                (parsed, timed_key)
+            } else {
+                c.scenes.insert(key.clone(), parsed.clone());
+                (parsed, key.clone())
+            }
         }
     };
     let (w, h) = (plan.width, plan.height);
@@ -557,10 +585,8 @@ async fn scene_for(
         .map_err(|e| e.to_string())?
         .map_err(|e| e.to_string())?;
     let built = Arc::new(built);
-    let mut c = cache
-        .lock()
-        .map_err(|_| "scene cache poisoned".to_string())?;
-    c.built.push((key, w, h, built.clone()));
+    let mut c = lock()?;
+    c.built.push((built_key, w, h, built.clone()));
     if c.built.len() > BUILT_CACHE {
         c.built.remove(0);
     }

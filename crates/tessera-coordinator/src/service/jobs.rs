@@ -38,7 +38,9 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
-        let scene = self.scene(&job.scene, job.camera.as_deref()).await?;
+        let scene = self
+            .scene(&job.scene, job.camera.as_deref(), job.animation.as_deref())
+            .await?;
         // Resolution also checks the adaptive settings against the plan (field `adaptive`).
         let resolved = resolve_job(&job, &scene)?;
         self.check_memory(&job, &resolved)?;

@@ -72,7 +72,14 @@ pub(crate) async fn resolve_stored(
     let settings: JobSettings = serde_json::from_str(&rec.settings_json)
         .map_err(|error| StoredJobError::Unreadable { job: rec.id, error })?;
     let job = settings.validate()?;
-    let scene = load_scene(store, farm, &job.scene, job.camera.as_deref()).await?;
+    let scene = load_scene(
+        store,
+        farm,
+        &job.scene,
+        job.camera.as_deref(),
+        job.animation.as_deref(),
+    )
+    .await?;
     let resolved = resolve_job(&job, &scene)?;
     Ok(StoredJob { settings, resolved })
 }

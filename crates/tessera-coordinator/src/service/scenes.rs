@@ -9,8 +9,9 @@ use std::sync::{Arc, Mutex};
 
 use sha2::{Digest, Sha256};
 use tessera_api::{SceneRef, SceneUploaded};
-use tessera_scene::job::load_job_scene;
+use tessera_scene::job::load_job_scene_at;
 use tessera_scene::Scene;
+use tessera_scene::SceneTime;
 
 use super::{Coordinator, MAX_SCENE_BYTES};
 use crate::error::{CoordError, CoordResult};
@@ -51,12 +52,16 @@ impl From<SceneLoadError> for CoordError {
 
 /// Builds a job's scene: a built-in one, or an uploaded one from the farm's cache or the
 /// store (then cached for the workers' FetchScene). The one scene loader of the
-/// coordinator: submission, resume and images all call it.
+/// coordinator: submission, resume and images all call it. The scene is loaded at t = 0
+/// with the job's `animation` (an unknown one is an error of the scene): jobs are
+/// resolved against their scene at t = 0, as `tessera render` resolves them; workers
+/// evaluate each frame at its own time.
 pub(crate) async fn load_scene(
     store: &dyn Store,
     farm: &Mutex<Farm>,
     scene_ref: &SceneRef,
     camera: Option<&str>,
+    animation: Option<&str>,
 ) -> Result<Scene, SceneLoadError> {
     let poisoned = || SceneLoadError::Internal("farm state poisoned".into());
     let bytes = match scene_ref {
@@ -80,11 +85,16 @@ pub(crate) async fn load_scene(
         SceneRef::Builtin(_) => None,
     };
     let (scene_ref, camera) = (scene_ref.clone(), camera.map(str::to_owned));
+    let time = SceneTime {
+        seconds: 0.0,
+        animation: animation.map(str::to_owned),
+    };
     tokio::task::spawn_blocking(move || {
-        load_job_scene(
+        load_job_scene_at(
             &scene_ref,
             bytes.as_deref().map(|b| b.as_slice()),
             camera.as_deref(),
+            &time,
         )
     })
     .await
@@ -138,8 +148,16 @@ impl Coordinator {
         &self,
         scene_ref: &SceneRef,
         camera: Option<&str>,
+        animation: Option<&str>,
     ) -> CoordResult<Scene> {
-        Ok(load_scene(&*self.inner.store, &self.inner.farm, scene_ref, camera).await?)
+        Ok(load_scene(
+            &*self.inner.store,
+            &self.inner.farm,
+            scene_ref,
+            camera,
+            animation,
+        )
+        .await?)
     }
 
     /// The bytes of an uploaded scene, for a worker's FetchScene.

@@ -166,6 +166,8 @@ impl Coordinator {
                         job_id: l.job,
                         scene: job.scene.clone(),
                         camera: job.camera.clone(),
+                        fps: job.fps,
+                        animation: job.animation.clone(),
                         settings: job.settings,
                         plan: job.plan,
                         unit: l.unit,

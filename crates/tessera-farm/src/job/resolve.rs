@@ -227,6 +227,15 @@ impl ResolvedJob {
             .camera
             .as_deref()
             .map_or(String::new(), |c| format!(",\"camera\":{}", json_string(c)));
+        // Time settings only when they differ from the default (every animation at 24
+        // frames per second), so static jobs keep the header they always had.
+        let mut camera = camera;
+        if job.fps != super::settings::DEFAULT_FPS {
+            camera += &format!(",\"fps\":{}", job.fps);
+        }
+        if let Some(a) = &job.animation {
+            camera += &format!(",\"animation\":{}", json_string(a));
+        }
         out += &format!(
             "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"plan\":{}}}",
             json_string(&job.scene.to_string()),

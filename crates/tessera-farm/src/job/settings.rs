@@ -27,6 +27,13 @@ pub const MAX_FRAMES: u64 = 100_000;
 pub const MAX_NAME_CHARS: usize = 200;
 /// Longest accepted camera name, in characters.
 pub const MAX_CAMERA_CHARS: usize = 200;
+/// Longest accepted animation name, in characters.
+pub const MAX_ANIMATION_CHARS: usize = 200;
+/// Default frames per second: frame `F` is the scene at `t = F / 24` s (Blender's glTF
+/// exporter writes frame 1 at t = 1/24).
+pub const DEFAULT_FPS: f64 = 24.0;
+/// Largest accepted frames per second.
+pub const MAX_FPS: f64 = 1_000_000.0;
 
 /// Default samples per pixel.
 pub const DEFAULT_SPP: u32 = 64;
@@ -194,6 +201,12 @@ fn default_adaptive() -> String {
 fn is_default_min_passes(v: &u32) -> bool {
     *v == DEFAULT_MIN_PASSES
 }
+fn default_fps() -> f64 {
+    DEFAULT_FPS
+}
+fn is_default_fps(v: &f64) -> bool {
+    *v == DEFAULT_FPS
+}
 
 /// A job as submitted: the body of `POST /api/v1/jobs`, and what `tessera render` builds
 /// from its flags. The first stage of the two-stage configuration: nothing here has been
@@ -247,6 +260,14 @@ pub struct JobSettings {
     /// Frames to render, inclusive, at most 100000. Default frame 0 only.
     #[serde(default)]
     pub frames: FrameRange,
+    /// Frames per second: frame `F` shows the scene at `t = F / fps` seconds
+    /// (ARCHITECTURE.md §8, "Time"), in (0, 1000000]. Default 24.
+    #[serde(default = "default_fps", skip_serializing_if = "is_default_fps")]
+    pub fps: f64,
+    /// The glTF animation that plays, by name (or else by index); default: every
+    /// animation of the file plays.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub animation: Option<String>,
     /// Higher runs first; equal priorities run first come, first served. Default 0.
     #[serde(default)]
     pub priority: i32,
@@ -289,6 +310,8 @@ impl JobSettings {
             seed: 0,
             max_depth: None,
             frames: FrameRange::default(),
+            fps: DEFAULT_FPS,
+            animation: None,
             priority: 0,
             target_error: None,
             adaptive: default_adaptive(),
@@ -338,6 +361,18 @@ impl JobSettings {
             }
         }
         self.check_frames()?;
+        if !(self.fps > 0.0 && self.fps <= MAX_FPS) {
+            return Err(JobError::new(
+                "fps",
+                format_args!("must be in (0, {MAX_FPS}], got {}", self.fps),
+            ));
+        }
+        if let Some(a) = &self.animation {
+            check_label("animation", a, MAX_ANIMATION_CHARS)?;
+            if a.is_empty() {
+                return Err(JobError::new("animation", "must not be empty"));
+            }
+        }
         if let Some(e) = self.target_error {
             if !(e > 0.0 && e <= 1.0) {
                 return Err(JobError::new(
@@ -391,6 +426,8 @@ impl JobSettings {
             spp: self.spp,
             render,
             frames: self.frames,
+            fps: self.fps,
+            animation: self.animation.clone(),
             priority: self.priority,
             target_error: self.target_error,
             adaptive,
@@ -475,6 +512,10 @@ pub struct ValidatedJob {
     pub render: RenderRequest,
     /// Frames to render, `start <= end`, at most [`MAX_FRAMES`].
     pub frames: FrameRange,
+    /// Frames per second, in (0, [`MAX_FPS`]]: frame `F` is the scene at `F / fps` s.
+    pub fps: f64,
+    /// The animation that plays (name, or else index); `None`: all of them.
+    pub animation: Option<String>,
     /// Scheduling priority (higher first).
     pub priority: i32,
     /// Target image error in (0, 1].
@@ -546,6 +587,11 @@ impl ValidatedJob {
         })
     }
 
+    /// The time of `frame` in seconds: `frame / fps` (ARCHITECTURE.md §8, "Time").
+    pub fn frame_seconds(&self, frame: u32) -> f64 {
+        f64::from(frame) / self.fps
+    }
+
     /// Whether the job stops early at all: adaptive stopping, a target error or a time
     /// limit. Such jobs record their stopping settings in the EXR header.
     pub fn stops_early(&self) -> bool {
@@ -570,6 +616,8 @@ impl ValidatedJob {
             seed: self.render.seed,
             max_depth: self.render.max_depth,
             frames: self.frames,
+            fps: self.fps,
+            animation: self.animation.clone(),
             priority: self.priority,
             target_error: self.target_error,
             adaptive: self.adaptive.to_string(),

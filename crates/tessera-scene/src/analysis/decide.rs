@@ -12,6 +12,7 @@ use crate::Camera;
 /// Chooses the integrator and its settings for the effects found and assembles the plan.
 pub(super) fn plan(
     camera: &Camera,
+    animated: bool,
     lights: &Lights,
     transport: &Transport,
     lens_sampling: bool,
@@ -42,7 +43,13 @@ pub(super) fn plan(
             });
         }
     }
-    reasons.push("motion: static scene (the scene description has no animation)".into());
+    reasons.push(if animated {
+        "motion: animated scene, each frame evaluated at its own time t = frame / fps; no \
+         motion blur within a frame"
+            .into()
+    } else {
+        "motion: static scene (the scene description has no animation)".into()
+    });
     if integrator == PlannedIntegrator::Black {
         // An empty plan: no light is transported, so no transport effect, lens or texture
         // shows. Only the (invisible, unlit-upon) lights found stay as evidence.

@@ -69,7 +69,8 @@
 //!
 //! **Camera, motion, textures.** [`EffectKind::DepthOfField`] iff the camera aperture
 //! radius is > 0, and then `lens_sampling` is on; [`EffectKind::Motion`] is always absent
-//! (the scene description has no animation data: a static scene);
+//! (there is no motion blur: each frame of an animated scene is the scene at one time,
+//! and the plan's reasons say whether the scene is animated);
 //! [`EffectKind::Textures`] iff a used material has a base-colour texture.
 //!
 //! **Integrator.**
@@ -150,7 +151,14 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
     lights::report(&lights, &survey, &mut effects);
     let transport = transport::analyse(&survey, &lights, &mut effects);
     let lens_sampling = appearance::report(&survey, &mut effects);
-    let mut plan = decide::plan(&scene.camera, &lights, &transport, lens_sampling, effects);
+    let mut plan = decide::plan(
+        &scene.camera,
+        scene.animated,
+        &lights,
+        &transport,
+        lens_sampling,
+        effects,
+    );
     plan.warnings = scene.warnings.clone();
     plan
 }

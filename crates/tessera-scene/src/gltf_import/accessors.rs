@@ -57,6 +57,8 @@ impl Importer<'_> {
             Type::Vec2 => 2,
             Type::Vec3 => 3,
             Type::Vec4 => 4,
+            // Inverse bind matrices (spec "Skins"); float columns need no padding.
+            Type::Mat4 if ct == ComponentType::F32 => 16,
             _ => return self.err(format!("{what}: matrix accessors are not supported here")),
         };
         let elem = ncomp * ct.size();

@@ -68,6 +68,7 @@ impl Importer<'_> {
     pub(super) fn walk(&mut self, roots: &[usize]) -> Res<Instances> {
         let mut found = Instances::default();
         let mut visited = vec![false; self.root.nodes.len()];
+        self.node_world = vec![None; self.root.nodes.len()];
         // Depth-first, pre-order, children in order (explicit stack: no recursion limit).
         let mut stack: Vec<(usize, DMat4)> =
             roots.iter().rev().map(|&n| (n, DMat4::IDENTITY)).collect();
@@ -88,6 +89,7 @@ impl Importer<'_> {
             if !world.is_finite() {
                 return self.err(format!("node {ni}: world transform is not finite"));
             }
+            self.node_world[ni] = Some(world);
             self.visit_node(ni, &world, &mut found)?;
             if let Some(children) = &self.root.nodes[ni].children {
                 for c in children.iter().rev() {
@@ -165,9 +167,12 @@ impl Importer<'_> {
     }
 
     /// The local transform of node `ni` (spec "Transformations": a column-major `matrix`,
-    /// or `T * R * S`). Non-finite values are an error naming the node.
+    /// or `T * R * S`), with the animated parts of the pose at the scene's time in place
+    /// of the node's own (spec "Animations"; the `animation` step refused a matrix on an
+    /// animated node). Non-finite values are an error naming the node.
     fn local_transform(&self, ni: usize) -> Res<DMat4> {
         let node = &self.root.nodes[ni];
+        let animated = self.pose.trs.get(&ni).copied().unwrap_or_default();
         if let Some(m) = node.matrix {
             if m.iter().any(|v| !v.is_finite()) {
                 return self.err(format!("node {ni}: matrix contains NaN or infinity: {m:?}"));
@@ -190,10 +195,13 @@ impl Importer<'_> {
                 "node {ni}: rotation quaternion {r:?} has zero length"
             ));
         }
-        Ok(DMat4::from_scale_rotation_translation(
-            DVec3::from(s.map(f64::from)),
-            q / len,
-            DVec3::from(t.map(f64::from)),
-        ))
+        let (s, q, t) = (
+            animated.scale.unwrap_or(DVec3::from(s.map(f64::from))),
+            animated.rotation.unwrap_or(q / len),
+            animated
+                .translation
+                .unwrap_or(DVec3::from(t.map(f64::from))),
+        );
+        Ok(DMat4::from_scale_rotation_translation(s, q, t))
     }
 }

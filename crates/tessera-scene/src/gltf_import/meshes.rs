@@ -16,14 +16,16 @@ use json::validation::Checked;
 use std::collections::HashMap;
 use std::rc::Rc;
 
-/// Mesh data of one primitive in its mesh's local space, shared by every node instancing it.
+/// Mesh data of one primitive in its mesh's local space, shared by every node instancing it
+/// (a deformed copy per node for skins and morph targets, see the `deform` step).
+#[derive(Clone)]
 pub(super) struct LocalPrimitive {
-    positions: Vec<Vec3>,
-    normals: Option<Vec<Vec3>>,
+    pub(super) positions: Vec<Vec3>,
+    pub(super) normals: Option<Vec<Vec3>>,
     uvs: Vec<Vec<Vec2>>,
     /// Per triangle corner, when the material has a normal map.
-    tangents: Option<Vec<[Vec4; 3]>>,
-    triangles: Vec<[u32; 3]>,
+    pub(super) tangents: Option<Vec<[Vec4; 3]>>,
+    pub(super) triangles: Vec<[u32; 3]>,
     material: u32,
 }
 
@@ -103,8 +105,14 @@ impl Importer<'_> {
                 let emissive = materials
                     .get(local.material as usize)
                     .is_some_and(Material::is_emissive);
+                if self.deforms(ni, mi, pi) {
+                    // Skins and morph targets: evaluated for this node, then flattened.
+                    let (deformed, world) = self.deform(ni, mi, pi, &local, &pl.world)?;
+                    self.flatten_primitive(ni, mi, pi, &world, &deformed, &mut geometry.meshes)?;
+                    continue;
+                }
                 if !shared || emissive || !invertible {
-                    self.flatten_primitive(ni, mi, pi, &pl.world, &mut geometry.meshes)?;
+                    self.flatten_primitive(ni, mi, pi, &pl.world, &local, &mut geometry.meshes)?;
                     continue;
                 }
                 let prototype = match prototype_of.get(&(mi, pi)) {
@@ -299,7 +307,7 @@ impl Importer<'_> {
             .collect())
     }
 
-    /// Appends primitive `pi` of mesh `mi`, placed at node `ni` by `world`, as a
+    /// Appends `local`, primitive `pi` of mesh `mi`, placed at node `ni` by `world`, as a
     /// world-space [`Mesh`].
     fn flatten_primitive(
         &mut self,
@@ -307,14 +315,14 @@ impl Importer<'_> {
         mi: usize,
         pi: usize,
         world: &DMat4,
+        local: &LocalPrimitive,
         out: &mut Vec<Mesh>,
     ) -> Res<()> {
         let linear = DMat3::from_mat4(*world);
         let det = linear.determinant();
         let normal_matrix = linear.inverse().transpose();
         let name = prim_name(mi, &self.root.meshes[mi], pi);
-        let local = self.local_primitive(mi, pi)?;
-        self.add_output(primitive_bytes(&local), &format!("node {ni} {name}"))?;
+        self.add_output(primitive_bytes(local), &format!("node {ni} {name}"))?;
         self.add_triangles(local.triangles.len(), &format!("node {ni} {name}"))?;
         let positions: Vec<Vec3> = local
             .positions

@@ -10,7 +10,16 @@
 //!   scene (`scene`), else scene 0, else every node that is nobody's child. Node transforms
 //!   (`matrix`, or `translation * rotation * scale`) are accumulated from the roots down; the
 //!   hierarchy must be a forest of strict trees, so a node reachable twice (or a cycle) is an
-//!   error. Skins, morph targets and animations are ignored (the rest pose is rendered).
+//!   error.
+//! - **Time** (spec "Animations", "Skins", "Meshes > Morph Targets", Appendix C): the
+//!   scene is evaluated at one [`SceneTime`] ([`load_path_at`], [`load_slice_at`];
+//!   [`load_path`] and [`load_slice`] use t = 0). Every animation plays unless one is named;
+//!   node translation, rotation and scale channels (`STEP`, `LINEAR` with quaternion slerp,
+//!   `CUBICSPLINE`) replace the nodes' own values, so meshes, lights and the camera move;
+//!   times outside the keyframes clamp. Morph targets (with animated `weights`) and skins
+//!   (linear blend skinning) are evaluated into world-space vertices, once per scene
+//!   build. The rules are in the `animation` and `deform` steps. A file without
+//!   animations, skins or morph targets imports exactly as before.
 //! - **Geometry** (spec "Meshes"): every primitive of mode `TRIANGLES` placed once becomes
 //!   one world-space [`crate::Mesh`] named `mesh M 'Name' primitive P`, with positions transformed to world space,
 //!   normals transformed by the inverse transpose and renormalized, texture coordinates
@@ -107,25 +116,30 @@
 //! An `Importer` holds the parsed document and what has been read so far; its steps are
 //! in one file each: `container` (`.gltf`/`.glb` parsing, document checks, buffers, `data:`
 //! URIs and external files), `accessors` (buffer views and accessors), `materials`
-//! (materials and textures), `graph` (the node hierarchy and its transforms), `meshes`,
-//! `lights` and `camera`. This file holds the public entry points, the panic guard and the
+//! (materials and textures), `animation` (the pose at the scene's time), `graph` (the node
+//! hierarchy and its transforms), `deform` (skins and morph targets), `meshes`, `lights` and
+//! `camera`. This file holds the public entry points, the panic guard and the
 //! order of the steps.
 
 mod accessors;
+mod animation;
 mod camera;
 mod container;
+mod deform;
 mod extensions;
 mod graph;
 mod lights;
 mod materials;
 mod meshes;
 
+pub use animation::SceneTime;
 pub use extensions::SUPPORTED_EXTENSIONS;
 pub use lights::{photometric_to_radiometric, LUMINOUS_EFFICACY};
 
 #[cfg(doc)]
 use crate::{GltfMaterial, MaterialKind};
 use crate::{Image, Scene, SceneError, Texture, MAX_INPUT_BYTES};
+use animation::Pose;
 use camera::default_resolution;
 use container::{parse_json, read_capped, split_glb, BaseDir, ReadError};
 use gltf::json;
@@ -143,7 +157,17 @@ use std::rc::Rc;
 /// directories are allowed). Fails with [`SceneError::TooLarge`] when the file or its
 /// buffers exceed [`MAX_INPUT_BYTES`].
 pub fn load_path(path: &Path, camera: Option<&str>) -> Result<Scene, SceneError> {
-    load_path_limited(path, camera, Limits::DEFAULT)
+    load_path_at(path, camera, &SceneTime::default())
+}
+
+/// [`load_path`] with the scene evaluated at `time` (animations, skins and morph targets;
+/// see the `animation` and `deform` steps). [`load_path`] is this at t = 0.
+pub fn load_path_at(
+    path: &Path,
+    camera: Option<&str>,
+    time: &SceneTime,
+) -> Result<Scene, SceneError> {
+    load_path_limited(path, camera, time, Limits::DEFAULT)
 }
 
 /// Loads a glTF document from memory; `base_dir` resolves external buffer/image URIs.
@@ -158,11 +182,22 @@ pub fn load_slice(
     base_dir: Option<&Path>,
     camera: Option<&str>,
 ) -> Result<Scene, SceneError> {
+    load_slice_at(bytes, name, base_dir, camera, &SceneTime::default())
+}
+
+/// [`load_slice`] with the scene evaluated at `time`. [`load_slice`] is this at t = 0.
+pub fn load_slice_at(
+    bytes: &[u8],
+    name: &str,
+    base_dir: Option<&Path>,
+    camera: Option<&str>,
+    time: &SceneTime,
+) -> Result<Scene, SceneError> {
     let base = base_dir.map(|dir| BaseDir {
         dir: dir.to_path_buf(),
         allow_parent: false,
     });
-    load_bytes(bytes, name, base, camera, Limits::DEFAULT)
+    load_bytes(bytes, name, base, camera, time, Limits::DEFAULT)
 }
 
 /// The caps an import runs under: the crate's constants, smaller ones in unit tests.
@@ -195,6 +230,7 @@ impl Limits {
 fn load_path_limited(
     path: &Path,
     camera: Option<&str>,
+    time: &SceneTime,
     limits: Limits,
 ) -> Result<Scene, SceneError> {
     let limit = limits.bytes;
@@ -218,7 +254,7 @@ fn load_path_limited(
         dir,
         allow_parent: true,
     };
-    load_bytes(&bytes, &file, Some(base), camera, limits)
+    load_bytes(&bytes, &file, Some(base), camera, time, limits)
 }
 
 /// Imports `bytes` (refused when over `limits.bytes`) under the panic guard.
@@ -227,6 +263,7 @@ fn load_bytes(
     file: &str,
     base: Option<BaseDir>,
     camera: Option<&str>,
+    time: &SceneTime,
     limits: Limits,
 ) -> Result<Scene, SceneError> {
     let limit = limits.bytes;
@@ -237,7 +274,7 @@ fn load_bytes(
             limit,
         });
     }
-    let result = quietly(|| Importer::run(bytes, file, base, camera, limits));
+    let result = quietly(|| Importer::run(bytes, file, base, camera, time, limits));
     match result {
         Ok(r) => r,
         Err(panic) => Err(SceneError::Gltf {
@@ -312,6 +349,11 @@ struct Importer<'a> {
     warnings: Vec<String>,
     default_material_used: bool,
     primitives: HashMap<(usize, usize), Rc<LocalPrimitive>>,
+    /// The animated node properties at the scene's time (empty without animations).
+    pose: Pose,
+    /// Per node: its world transform, once the walk has reached it (skins read their
+    /// joints' from here).
+    node_world: Vec<Option<glam::DMat4>>,
 }
 
 /// The result of an import step.
@@ -338,6 +380,7 @@ impl<'a> Importer<'a> {
         file: &'a str,
         base: Option<BaseDir>,
         camera: Option<&str>,
+        time: &SceneTime,
         limits: Limits,
     ) -> Res<Scene> {
         let gerr = |message: String| SceneError::Gltf {
@@ -369,10 +412,13 @@ impl<'a> Importer<'a> {
             warnings: Vec::new(),
             default_material_used: false,
             primitives: HashMap::new(),
+            pose: Pose::default(),
+            node_world: Vec::new(),
         };
         imp.check_extensions()?;
         imp.check_document()?;
         imp.load_buffers(bin)?;
+        imp.pose = imp.evaluate_animations(time)?;
         imp.build(camera)
     }
 
@@ -412,6 +458,7 @@ impl<'a> Importer<'a> {
             lights,
             environment: None,
             default_resolution,
+            animated: !(self.pose.trs.is_empty() && self.pose.weights.is_empty()),
         };
         scene.validate()?;
         Ok(scene)
@@ -459,13 +506,20 @@ mod tests {
     #[test]
     fn inputs_over_the_limit_are_too_large() {
         let json = br#"{"asset":{"version":"2.0"}}"#;
-        let r = load_bytes(json, "small", None, None, bytes(10));
+        let r = load_bytes(json, "small", None, None, &SceneTime::default(), bytes(10));
         assert!(
             matches!(r, Err(SceneError::TooLarge { bytes, limit: 10, .. }) if bytes == json.len() as u64)
         );
         // A buffer whose declared length exceeds the limit is refused before decoding.
         let doc = br#"{"asset":{"version":"2.0"},"buffers":[{"byteLength":5000,"uri":"data:application/octet-stream;base64,AAAA"}]}"#;
-        let r = load_bytes(doc, "buffers", None, None, bytes(1000));
+        let r = load_bytes(
+            doc,
+            "buffers",
+            None,
+            None,
+            &SceneTime::default(),
+            bytes(1000),
+        );
         assert!(
             matches!(
                 r,
@@ -543,8 +597,16 @@ mod tests {
             scene_texels: 100,
             ..Limits::DEFAULT
         };
-        let load =
-            |sizes: &[(u32, u32)]| load_bytes(&glb_with_images(sizes), "t.glb", None, None, limits);
+        let load = |sizes: &[(u32, u32)]| {
+            load_bytes(
+                &glb_with_images(sizes),
+                "t.glb",
+                None,
+                None,
+                &SceneTime::default(),
+                limits,
+            )
+        };
         let s = load(&[(8, 8), (6, 6)]).unwrap();
         assert_eq!(s.images.len(), 2);
         let e = load(&[(8, 8), (16, 5)]).unwrap_err().to_string();
@@ -561,19 +623,20 @@ mod tests {
     #[test]
     fn documents_over_the_node_and_triangle_caps_are_refused() {
         let glb = glb_with_images(&[]);
+        let t0 = SceneTime::default();
         let with = |elements, triangles| Limits {
             elements,
             triangles,
             ..Limits::DEFAULT
         };
-        assert!(load_bytes(&glb, "t.glb", None, None, with(1, 1)).is_ok());
-        let e = load_bytes(&glb, "t.glb", None, None, with(1, 0))
+        assert!(load_bytes(&glb, "t.glb", None, None, &t0, with(1, 1)).is_ok());
+        let e = load_bytes(&glb, "t.glb", None, None, &t0, with(1, 0))
             .unwrap_err()
             .to_string();
         assert!(e.contains("node 0 mesh 0 primitive 0"), "{e}");
         assert!(e.contains("more than 0 triangles (MAX_TRIANGLES"), "{e}");
         let nodes = br#"{"asset":{"version":"2.0"},"nodes":[{},{},{},{}]}"#;
-        let e = load_bytes(nodes, "n.gltf", None, None, with(3, 1))
+        let e = load_bytes(nodes, "n.gltf", None, None, &t0, with(3, 1))
             .unwrap_err()
             .to_string();
         assert!(
@@ -581,7 +644,7 @@ mod tests {
             "{e}"
         );
         // Malformed JSON still gets the parser's own message.
-        let e = load_bytes(b"{\"nodes\":[", "m.gltf", None, None, with(3, 1))
+        let e = load_bytes(b"{\"nodes\":[", "m.gltf", None, None, &t0, with(3, 1))
             .unwrap_err()
             .to_string();
         assert!(e.contains("invalid glTF JSON"), "{e}");
