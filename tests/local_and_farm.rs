@@ -140,6 +140,40 @@ fn every_frame_of_an_animated_farm_job_equals_tessera_render_frame() {
         );
         frames.push(out);
     }
+    // `tessera submit --wait -o seq_##.exr` writes the sequence, one file per frame,
+    // the same bytes.
+    let pattern = dir.join("seq_##.exr");
+    output_ok(tessera().args([
+        "submit",
+        path.to_str().unwrap(),
+        "--server",
+        &c.http,
+        "--width",
+        "24",
+        "--height",
+        "16",
+        "--spp",
+        "16",
+        "--seed",
+        "5",
+        "--tile-size",
+        "8",
+        "--fps",
+        "2.4",
+        "--frame-end",
+        "2",
+        "--wait",
+        "-o",
+        pattern.to_str().unwrap(),
+    ]));
+    for (f, local) in frames.iter().enumerate() {
+        let seq = dir.join(format!("seq_{f:02}.exr"));
+        assert!(
+            std::fs::read(&seq).unwrap() == std::fs::read(local).unwrap(),
+            "{}: differs from tessera render --frame {f}",
+            seq.display()
+        );
+    }
     // The frames differ because the cubes move, not only because each frame has its own
     // seeds: frame 2 at t = 5/6 s against frame 2 of the same job at 1e6 fps (t = 2e-6 s,
     // clamped to the first keyframe, which is the pose of frame 0).

@@ -190,6 +190,11 @@ impl Client {
         self.get_bytes(&format!("/jobs/{id}/image?format={format}"))
     }
 
+    /// `GET /jobs/{id}/image?format=FORMAT&frame=FRAME`: one frame of a job of several.
+    pub fn frame_image(&self, id: u64, format: &str, frame: u32) -> Result<Vec<u8>, ClientError> {
+        self.get_bytes(&format!("/jobs/{id}/image?format={format}&frame={frame}"))
+    }
+
     /// `DELETE /jobs/{id}`.
     pub fn cancel(&self, id: u64) -> Result<JobStatus, ClientError> {
         let mut req = self.agent.delete(self.url(&format!("/jobs/{id}")));

@@ -50,7 +50,9 @@ pub struct SubmitArgs {
     /// Wait until the job is done, showing progress.
     #[arg(long)]
     pub wait: bool,
-    /// With --wait: write the final image here (.exr or .png).
+    /// With --wait: write the final image here (.exr or .png). A job of several frames
+    /// needs a run of `#` in the file name, replaced by each frame's number zero-padded
+    /// to its length: `-o out_####.exr` writes out_0000.exr, out_0001.exr, ...
     #[arg(short, long)]
     pub output: Option<PathBuf>,
     /// With --wait: give up after this many seconds.
@@ -78,6 +80,13 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
         if !matches!(ext, "exr" | "png") {
             bail!("output {} must end in .exr or .png", out.display());
         }
+        if s.frames.count() > 1 && frame_pattern(out).is_none() {
+            bail!(
+                "a job of {} frames writes one file per frame: give -o a run of # for the \
+                 frame number, e.g. out_####.exr",
+                s.frames.count()
+            );
+        }
     }
     let job = client
         .submit(&s, args.idempotency_key.as_deref())
@@ -88,9 +97,35 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
     }
     let done = wait(&client, job.id, args.wait_timeout)?;
     if let Some(out) = &args.output {
-        download(&client, done.id, out)?;
+        if frame_pattern(out).is_some() {
+            for frame in s.frames.iter() {
+                download(&client, done.id, Some(frame), &frame_path(out, frame))?;
+            }
+        } else {
+            download(&client, done.id, None, out)?;
+        }
     }
     Ok(())
+}
+
+/// The byte range of the last run of `#` in the file name of `out`, if any.
+fn frame_pattern(out: &Path) -> Option<std::ops::Range<usize>> {
+    let name = out.file_name()?.to_str()?;
+    let end = name.rfind('#')? + 1;
+    let start = name[..end].trim_end_matches('#').len();
+    Some(start..end)
+}
+
+/// `out` with its run of `#` replaced by `frame`, zero-padded to the run's length
+/// (`out_####.exr`, frame 7: `out_0007.exr`; longer numbers are not cut).
+fn frame_path(out: &Path, frame: u32) -> PathBuf {
+    let Some(r) = frame_pattern(out) else {
+        return out.to_path_buf();
+    };
+    let name = out.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+    let width = r.len();
+    let file = format!("{}{frame:0width$}{}", &name[..r.start], &name[r.end..]);
+    out.with_file_name(file)
 }
 
 /// The job's scene: a built-in as named, a file uploaded first and named by its hash.
@@ -147,15 +182,39 @@ fn wait(client: &Client, id: u64, timeout_seconds: f64) -> Result<JobStatus> {
     Ok(done)
 }
 
-/// Writes the finished job's image to `out`, EXR or PNG by its extension.
-fn download(client: &Client, id: u64, out: &Path) -> Result<()> {
+/// Writes the finished job's image (of `frame`, for a job of several) to `out`, EXR or
+/// PNG by its extension.
+fn download(client: &Client, id: u64, frame: Option<u32>, out: &Path) -> Result<()> {
     let format = if out.extension().and_then(|e| e.to_str()) == Some("exr") {
         "exr"
     } else {
         "png"
     };
-    let bytes = client.image(id, format).map_err(client_error)?;
+    let bytes = match frame {
+        Some(f) => client.frame_image(id, format, f),
+        None => client.image(id, format),
+    }
+    .map_err(client_error)?;
     std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
     println!("wrote {}", out.display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_patterns_are_replaced_by_zero_padded_frame_numbers() {
+        let p = Path::new("/tmp/shots/out_####.exr");
+        assert_eq!(frame_path(p, 7), Path::new("/tmp/shots/out_0007.exr"));
+        assert_eq!(
+            frame_path(p, 123_456),
+            Path::new("/tmp/shots/out_123456.exr")
+        );
+        // The last run of the file name only; a directory's # is not a pattern.
+        let p = Path::new("/tmp/a#b/v#1_##.png");
+        assert_eq!(frame_path(p, 3), Path::new("/tmp/a#b/v#1_03.png"));
+        assert_eq!(frame_pattern(Path::new("/tmp/a#b/plain.exr")), None);
+    }
 }
