@@ -30,6 +30,10 @@ export function submitView() {
     h("option", { value: "unbiased" }, "unbiased: pilot passes fix each pixel's budget"));
   const priority = num("f-priority", { step: 1, value: 0 });
   const timeLimit = h("input", { type: "number", id: "f-time", name: "time_limit_seconds", min: 0, step: "any", placeholder: "none", inputmode: "decimal" });
+  const frameStart = num("f-frame-start", { min: 0, step: 1, placeholder: "0" });
+  const frameEnd = num("f-frame-end", { min: 0, step: 1, placeholder: "first" });
+  const fps = h("input", { type: "number", id: "f-fps", name: "fps", min: 0, step: "any", placeholder: "24", inputmode: "decimal" });
+  const animation = h("input", { type: "text", id: "f-animation", name: "animation", maxlength: 200, autocomplete: "off", placeholder: "all" });
   const name = h("input", { type: "text", id: "f-name", name: "name", maxlength: 200, autocomplete: "off", placeholder: "optional label" });
   const submit = h("button", { type: "submit", id: "f-submit", class: "primary" }, "Submit job");
   const status = h("div", { id: "submit-status", class: "form-status", role: "alert", "aria-live": "assertive" });
@@ -40,7 +44,7 @@ export function submitView() {
 
   const fields = {
     scene: builtin, width, height, spp, target_error: target, adaptive, priority,
-    time_limit_seconds: timeLimit, name,
+    time_limit_seconds: timeLimit, name, frames: frameEnd, fps, animation,
   };
 
   const form = h("form", { id: "submit-form", class: "submit-form", novalidate: true },
@@ -55,6 +59,10 @@ export function submitView() {
       row("Target error", target, "RMS relative error at which to stop, e.g. 0.02 for 2 %. Empty: render every sample."),
       row("Adaptive stopping", adaptive),
       row("Time limit (s)", timeLimit)),
+    h("fieldset", {}, h("legend", {}, "Frames and animation"),
+      h("div", { class: "form-pair" }, row("First frame", frameStart), row("Last frame", frameEnd)),
+      row("Frames per second", fps, "Frame F shows the scene's glTF animations at F / fps seconds."),
+      row("Animation", animation, "Name or index of one animation; empty: all of them play.")),
     h("fieldset", {}, h("legend", {}, "Scheduling"),
       row("Priority", priority, "Higher runs first."),
       row("Name", name)),
@@ -73,7 +81,7 @@ export function submitView() {
   }
 
   function clearErrors() {
-    for (const input of [...Object.values(fields), file]) input.removeAttribute("aria-invalid");
+    for (const input of [...Object.values(fields), file, frameStart]) input.removeAttribute("aria-invalid");
     status.replaceChildren();
     status.className = "form-status";
   }
@@ -123,7 +131,12 @@ export function submitView() {
         priority: intOrNull(priority, "priority") ?? 0,
         time_limit_seconds: floatOrNull(timeLimit, "time_limit_seconds"),
         name: name.value.trim() || null,
+        fps: floatOrNull(fps, "fps"),
+        animation: animation.value.trim() || null,
       };
+      const first = intOrNull(frameStart, "frames.start");
+      const last = intOrNull(frameEnd, "frames.end");
+      if (first !== null || last !== null) settings.frames = { start: first ?? 0, end: last ?? first ?? 0 };
       if (settings.spp === null) throw Object.assign(new Error("spp: required"), { field: "spp" });
     } catch (e) {
       showError(e.message, e.field);
