@@ -24,20 +24,19 @@ const SEED: u64 = 0x7e55_e7a0_0016;
 /// Mutated copies sent per unit before the correct one.
 const MUTANTS_PER_UNIT: usize = 6;
 
-/// splitmix64: a small deterministic generator (no dependency for the harness).
-struct Rng(u64);
+#[path = "../../../tests/common/splitmix.rs"]
+mod splitmix;
+use splitmix::SplitMix64 as Rng;
 
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n.max(1)
-    }
+/// The values this harness draws besides plain numbers.
+trait Draw {
+    /// A u32 that is often an edge case.
+    fn edge_u32(&mut self) -> u32;
+    /// A value a pass mean must not have.
+    fn bad_f32(&mut self) -> f32;
+}
+
+impl Draw for Rng {
     fn edge_u32(&mut self) -> u32 {
         const EDGES: [u32; 6] = [0, 1, 2, 7, u32::MAX, u32::MAX - 1];
         if self.below(2) == 0 {

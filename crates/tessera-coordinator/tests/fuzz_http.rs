@@ -25,24 +25,9 @@ const SCENE_UPLOADS: usize = 200;
 /// Largest frame area times frame count a sent job may ask for.
 const MAX_PIXELS: u64 = 1 << 18;
 
-/// splitmix64, as in fuzz_grpc.rs.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n.max(1)
-    }
-    fn pick<'a, T>(&mut self, xs: &'a [T]) -> &'a T {
-        &xs[self.below(xs.len() as u64) as usize]
-    }
-}
+#[path = "../../../tests/common/splitmix.rs"]
+mod splitmix;
+use splitmix::SplitMix64 as Rng;
 
 const KEYS: &[&str] = &[
     "scene",

@@ -19,22 +19,9 @@ use tessera_scene::{Scene, MAX_IMAGE_TEXELS, MAX_NODES, MAX_SCENE_TEXELS, MAX_TR
 const ITERATIONS: u64 = 400_000;
 const SEED: u64 = 0x7e55_e4a0_f022_0016;
 
-/// SplitMix64 (Steele, Lea & Flood 2014): a small, seedable generator, so a failing
-/// iteration can be replayed from the seed alone.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n.max(1) as u64) as usize
-    }
-}
+#[path = "../../../tests/common/splitmix.rs"]
+mod splitmix;
+use splitmix::SplitMix64 as Rng;
 
 fn corpus() -> Vec<(String, Vec<u8>)> {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/fuzz/corpus/gltf");
@@ -141,37 +128,37 @@ fn mutate_json(rng: &mut Rng, json: &mut Vec<u8>) {
     if json.is_empty() {
         json.extend_from_slice(b"{}");
     }
-    match rng.below(6) {
+    match rng.index(6) {
         0 | 1 => {
             // Replace the number starting at or after a random position.
-            let from = rng.below(json.len());
+            let from = rng.index(json.len());
             let digit = |b: &u8| b.is_ascii_digit() || b"-+.eE".contains(b);
             if let Some(start) = json[from..].iter().position(digit).map(|p| p + from) {
                 let len = json[start..].iter().take_while(|b| digit(b)).count();
-                let with = NUMBERS[rng.below(NUMBERS.len())].as_bytes();
+                let with = NUMBERS[rng.index(NUMBERS.len())].as_bytes();
                 json.splice(start..start + len, with.iter().copied());
             }
         }
         2 => {
-            let at = rng.below(json.len());
-            let t = TOKENS[rng.below(TOKENS.len())].as_bytes();
+            let at = rng.index(json.len());
+            let t = TOKENS[rng.index(TOKENS.len())].as_bytes();
             json.splice(at..at, t.iter().copied());
         }
         3 => {
-            let at = rng.below(json.len());
-            let len = rng.below(16).min(json.len() - at);
+            let at = rng.index(json.len());
+            let len = rng.index(16).min(json.len() - at);
             json.drain(at..at + len);
         }
         4 => {
-            let at = rng.below(json.len());
-            let len = rng.below(64).min(json.len() - at);
+            let at = rng.index(json.len());
+            let len = rng.index(64).min(json.len() - at);
             let copy: Vec<u8> = json[at..at + len].to_vec();
-            let to = rng.below(json.len());
+            let to = rng.index(json.len());
             json.splice(to..to, copy);
         }
         _ => {
-            let at = rng.below(json.len());
-            json[at] = b"{}[],:\"0123456789-.e \\"[rng.below(22)];
+            let at = rng.index(json.len());
+            json[at] = b"{}[],:\"0123456789-.e \\"[rng.index(22)];
         }
     }
 }
@@ -182,13 +169,13 @@ fn mutate_bytes(rng: &mut Rng, bytes: &mut Vec<u8>) {
     if bytes.is_empty() {
         bytes.push(0);
     }
-    for _ in 0..=rng.below(4) {
-        let at = rng.below(bytes.len());
-        match rng.below(4) {
-            0 => bytes[at] ^= 1 << rng.below(8),
-            1 => bytes[at] = [0, 1, 0x7f, 0x80, 0xff][rng.below(5)],
+    for _ in 0..=rng.index(4) {
+        let at = rng.index(bytes.len());
+        match rng.index(4) {
+            0 => bytes[at] ^= 1 << rng.index(8),
+            1 => bytes[at] = [0, 1, 0x7f, 0x80, 0xff][rng.index(5)],
             2 => {
-                let v = [0u32, 1, 0x7fff_ffff, 0xffff_ffff, 0x4000_0000][rng.below(5)];
+                let v = [0u32, 1, 0x7fff_ffff, 0xffff_ffff, 0x4000_0000][rng.index(5)];
                 let end = (at + 4).min(bytes.len());
                 bytes[at..end].copy_from_slice(&v.to_le_bytes()[..end - at]);
             }
@@ -200,9 +187,9 @@ fn mutate_bytes(rng: &mut Rng, bytes: &mut Vec<u8>) {
 /// One mutated input from `base`.
 fn mutant(rng: &mut Rng, base: &[u8]) -> Vec<u8> {
     match split_glb(base) {
-        Some((mut json, mut bin)) => match rng.below(4) {
+        Some((mut json, mut bin)) => match rng.index(4) {
             0 | 1 => {
-                for _ in 0..=rng.below(3) {
+                for _ in 0..=rng.index(3) {
                     mutate_json(rng, &mut json);
                 }
                 join_glb(&json, &bin)
@@ -219,10 +206,10 @@ fn mutant(rng: &mut Rng, base: &[u8]) -> Vec<u8> {
         },
         None => {
             let mut b = base.to_vec();
-            if rng.below(4) == 0 {
+            if rng.index(4) == 0 {
                 mutate_bytes(rng, &mut b);
             } else {
-                for _ in 0..=rng.below(3) {
+                for _ in 0..=rng.index(3) {
                     mutate_json(rng, &mut b);
                 }
             }
@@ -303,7 +290,7 @@ fn mutated_gltf_and_glb_files_import_without_panicking_and_within_the_caps() {
     let mut rng = Rng(seed);
     let start = std::time::Instant::now();
     for i in 0..iterations {
-        let (name, base) = &corpus[rng.below(corpus.len())];
+        let (name, base) = &corpus[rng.index(corpus.len())];
         let input = mutant(&mut rng, base);
         match import(&input, name) {
             Ok(Outcome::Loaded) => loaded += 1,
