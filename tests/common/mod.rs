@@ -10,6 +10,7 @@
 
 pub mod farm;
 pub mod postgres;
+pub mod test_ca;
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};

@@ -11,10 +11,6 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
-use rcgen::{
-    BasicConstraints, CertificateParams, CertifiedIssuer, DnType, ExtendedKeyUsagePurpose, IsCa,
-    KeyPair,
-};
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, ServerName};
 use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
@@ -32,44 +28,9 @@ async fn bounded<T>(what: &str, f: impl Future<Output = T>) -> T {
         .unwrap_or_else(|_| panic!("{what}: no answer within {HANG:?}"))
 }
 
-/// A test CA.
-struct Ca {
-    issuer: CertifiedIssuer<'static, KeyPair>,
-}
-
-impl Ca {
-    fn new(name: &str) -> Self {
-        let mut p = CertificateParams::new(Vec::<String>::new()).unwrap();
-        p.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
-        p.distinguished_name.push(DnType::CommonName, name);
-        Self {
-            issuer: CertifiedIssuer::self_signed(p, KeyPair::generate().unwrap()).unwrap(),
-        }
-    }
-
-    fn pem(&self) -> String {
-        self.issuer.pem()
-    }
-
-    /// A certificate and key (PEM) issued by this CA.
-    fn issue(&self, cn: &str, server: bool) -> (String, String) {
-        let names = if server {
-            vec!["127.0.0.1".to_string(), "localhost".to_string()]
-        } else {
-            vec![]
-        };
-        let mut p = CertificateParams::new(names).unwrap();
-        p.distinguished_name.push(DnType::CommonName, cn);
-        p.extended_key_usages = vec![if server {
-            ExtendedKeyUsagePurpose::ServerAuth
-        } else {
-            ExtendedKeyUsagePurpose::ClientAuth
-        }];
-        let key = KeyPair::generate().unwrap();
-        let cert = p.signed_by(&key, &self.issuer).unwrap();
-        (cert.pem(), key.serialize_pem())
-    }
-}
+#[path = "../../../tests/common/test_ca.rs"]
+mod test_ca;
+use test_ca::TestCa as Ca;
 
 fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
     let p = dir.join(name);
@@ -90,7 +51,7 @@ impl Farm {
     /// A coordinator with TLS from `ca` (and mutual TLS with `client_ca`).
     async fn start(ca: &Ca, client_ca: Option<&Ca>) -> Self {
         let dir = tempfile::tempdir().unwrap();
-        let (cert, key) = ca.issue("coordinator", true);
+        let (cert, key) = ca.issue_pem("coordinator", true);
         let mut cfg = CoordinatorConfig::new(dir.path().join("data"));
         cfg.tls = Some(TlsFiles {
             cert: write(dir.path(), "cert.pem", &cert),
@@ -276,7 +237,7 @@ async fn mutual_tls_refuses_workers_without_a_certificate_from_the_client_ca() {
     .await
     .unwrap_err();
     assert!(!e.is_empty());
-    let rogue_id = rogue.issue("intruder", false);
+    let rogue_id = rogue.issue_pem("intruder", false);
     let e = bounded(
         "register with a certificate of another CA",
         register_tls(farm.grpc, &ca.pem(), Some(&rogue_id)),
@@ -285,7 +246,7 @@ async fn mutual_tls_refuses_workers_without_a_certificate_from_the_client_ca() {
     .unwrap_err();
     assert!(!e.is_empty());
 
-    let good = workers.issue("render-node-7", false);
+    let good = workers.issue_pem("render-node-7", false);
     let id = bounded(
         "register with a good certificate",
         register_tls(farm.grpc, &ca.pem(), Some(&good)),
