@@ -149,7 +149,7 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
 }
 
 /// The `q` quantile of sorted values (nearest rank); 0 for none.
-fn quantile(sorted: &[f64], q: f64) -> f64 {
+pub(crate) fn quantile(sorted: &[f64], q: f64) -> f64 {
     if sorted.is_empty() {
         return 0.0;
     }

@@ -23,6 +23,7 @@ use tessera_farm::FramePlan;
 use tessera_proto::v1;
 use tessera_proto::v1::worker_service_client::WorkerServiceClient;
 
+use crate::bench_farm::{cpu_seconds, quantile};
 use crate::common::client_error;
 
 /// `tessera bench-fleet`.
@@ -106,15 +107,6 @@ pub fn bench_fleet(args: BenchFleetArgs) -> Result<()> {
     Ok(())
 }
 
-/// The `q` quantile of sorted values (nearest rank); 0 for none.
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
-    }
-    let i = ((q * sorted.len() as f64).ceil() as usize).clamp(1, sorted.len()) - 1;
-    sorted[i]
-}
-
 /// One fresh coordinator on `data`, one job, `n` simulated workers until it is done.
 fn run_fleet(exe: &Path, args: &BenchFleetArgs, data: &Path, n: usize) -> Result<FleetRun> {
     let (mut child, http, grpc) = start_coordinator(exe, data)?;
@@ -138,7 +130,7 @@ fn run_fleet(exe: &Path, args: &BenchFleetArgs, data: &Path, n: usize) -> Result
         // Connect and register the whole fleet before the job exists, so start-up is not
         // timed.
         let fleet = rt.block_on(connect_fleet(&grpc, n))?;
-        let bench_cpu0 = crate::bench_farm::cpu_seconds("self");
+        let bench_cpu0 = cpu_seconds("self");
         let t = Instant::now();
         let job = client.submit(&s, None).map_err(client_error)?;
         let tasks: Vec<_> = fleet
@@ -159,7 +151,7 @@ fn run_fleet(exe: &Path, args: &BenchFleetArgs, data: &Path, n: usize) -> Result
         for task in tasks {
             lease_latency.extend(rt.block_on(task)??);
         }
-        let bench_cpu = crate::bench_farm::cpu_seconds("self") - bench_cpu0;
+        let bench_cpu = cpu_seconds("self") - bench_cpu0;
         if done.state != JobState::Done {
             bail!("the job ended {}", done.state.as_str());
         }
@@ -169,7 +161,7 @@ fn run_fleet(exe: &Path, args: &BenchFleetArgs, data: &Path, n: usize) -> Result
             units: merged.load(Ordering::Relaxed),
             seconds,
             lease_latency,
-            coordinator_cpu: crate::bench_farm::cpu_seconds(&pid),
+            coordinator_cpu: cpu_seconds(&pid),
             coordinator_peak_rss: peak_rss(&pid),
             bench_cpu,
         })

@@ -139,6 +139,15 @@ pub(super) fn parse_state(s: &str) -> Option<JobState> {
 }
 
 /// A job row ([`JOB_COLUMNS`]), checked.
+/// One row of `SELECT state, COUNT(*) AS n FROM jobs GROUP BY state`.
+pub(super) fn state_count_from_row(row: &impl Columns) -> StoreResult<(JobState, u64)> {
+    let state = row.text("state")?;
+    let n = row.i64_col("n")?;
+    let state = parse_state(&state)
+        .ok_or_else(|| StoreError::Corrupt(format!("jobs: unknown state {state:?}")))?;
+    Ok((state, n.max(0) as u64))
+}
+
 pub(super) fn job_from_row(row: &impl Columns) -> StoreResult<JobRecord> {
     let id: JobId = int_col(row, "id", &|| "jobs row".to_string())?;
     let place = || format!("jobs row {id}");

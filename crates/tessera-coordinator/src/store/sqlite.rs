@@ -15,8 +15,8 @@ use super::codec::{encode_stats, encode_units};
 use super::marker::{self, CommitMark};
 use super::rows::{
     check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, int_col,
-    job_from_row, now_unix_ms, parse_state, plan_from_row, summary_from_row, tile_from_parts,
-    to_i64, JOB_COLUMNS, PLAN_COLUMNS,
+    job_from_row, now_unix_ms, plan_from_row, state_count_from_row, summary_from_row,
+    tile_from_parts, to_i64, JOB_COLUMNS, PLAN_COLUMNS,
 };
 use super::{
     FaultEvent, FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, Store, StoreError,
@@ -545,15 +545,7 @@ impl Store for SqliteStore {
         let rows = sqlx::query("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state")
             .fetch_all(&self.reader)
             .await?;
-        rows.iter()
-            .map(|row| {
-                let state: String = row.try_get("state")?;
-                let n: i64 = row.try_get("n")?;
-                let state = parse_state(&state)
-                    .ok_or_else(|| StoreError::Corrupt(format!("jobs: unknown state {state:?}")))?;
-                Ok((state, n.max(0) as u64))
-            })
-            .collect()
+        rows.iter().map(state_count_from_row).collect()
     }
 
     async fn jobs_to_resume(&self) -> StoreResult<Vec<JobRecord>> {
