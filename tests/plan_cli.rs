@@ -37,7 +37,7 @@ fn auto_follows_and_shows_the_plan() {
     assert_contains(
         &stdout,
         &[
-            "render plan: path (max depth 16, Russian roulette from depth 3, no lens sampling)",
+            "render plan: path (max depth 16, Russian roulette from depth 5, no lens sampling)",
             "direct-area: 2 emissive triangles in material 3 'light'",
             "indirect-diffuse: ",
             "absent: direct-sphere",
@@ -61,7 +61,7 @@ fn auto_follows_and_shows_the_plan() {
         &[
             "\"integrator\":\"path\"",
             "\"max_depth\":16",
-            "\"plan\":{\"integrator\":\"path\",\"max_depth\":16,\"rr_depth\":3",
+            "\"plan\":{\"integrator\":\"path\",\"max_depth\":16,\"rr_depth\":5",
             "\"overridden\":null",
         ],
     );

@@ -88,7 +88,7 @@ fn cornell_box_is_a_closed_bright_diffuse_room() {
         );
         assert!(evidence(&plan, IndirectDiffuse).contains("(closed)"));
         assert_eq!(plan.integrator, PlannedIntegrator::Path, "{arg}");
-        assert_eq!((plan.max_depth, plan.rr_depth), (16, 3), "{arg}");
+        assert_eq!((plan.max_depth, plan.rr_depth), (16, 5), "{arg}");
         assert!(!plan.lens_sampling);
         let text = plan.summary();
         for needle in [
@@ -118,7 +118,7 @@ fn veach_mis_has_four_sphere_lights_and_glossy_plates() {
     assert!(!glossy.contains("light"), "{glossy}");
     assert_eq!(plan.integrator, PlannedIntegrator::Path);
     // Dark and open: no need for a deep path.
-    assert_eq!((plan.max_depth, plan.rr_depth), (8, 3));
+    assert_eq!((plan.max_depth, plan.rr_depth), (8, 5));
 }
 
 #[test]
@@ -506,7 +506,7 @@ fn gltf_material_layers_classify_by_roughness_and_weights() {
         assert_eq!(plan.integrator, PlannedIntegrator::Path, "{kind:?}");
         let refracts = classes.contains(&Refraction);
         assert_eq!(plan.max_depth, if refracts { 12 } else { 8 }, "{kind:?}");
-        assert_eq!(plan.rr_depth, if refracts { 5 } else { 3 }, "{kind:?}");
+        assert_eq!(plan.rr_depth, 5, "{kind:?}");
     }
 }
 
@@ -565,7 +565,7 @@ fn caustics_need_a_smooth_specular_surface_and_bdpt_needs_a_small_light() {
         ],
     );
     assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
-    assert_eq!((plan.max_depth, plan.rr_depth), (8, 3));
+    assert_eq!((plan.max_depth, plan.rr_depth), (8, 5));
 }
 
 #[test]

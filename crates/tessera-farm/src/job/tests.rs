@@ -393,7 +393,7 @@ fn choices_parse_their_display() {
     let json = serde_json::to_string(&c).unwrap();
     assert_eq!(
         json,
-        r#"{"integrator":"path","mis":"power","sampler":"sobol","seed":0,"max_depth":16,"rr_depth":3}"#
+        r#"{"integrator":"path","mis":"power","sampler":"sobol","seed":0,"max_depth":16,"rr_depth":5}"#
     );
     assert_eq!(serde_json::from_str::<RenderConfig>(&json).unwrap(), c);
     assert!(serde_json::from_str::<SceneRef>(r#""builtin:""#).is_err());

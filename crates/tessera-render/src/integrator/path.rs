@@ -7,8 +7,13 @@
 //! BSDF and hitting an emitter. Their contributions are combined with the selected MIS
 //! heuristic (Veach & Guibas 1995, section 3), so glossy highlights of small lights and
 //! large lights are both rendered with low variance. After `rr_depth` bounces a path
-//! survives with probability `min(1, max throughput)` (at least 5%) and is reweighted by its
-//! inverse: Russian roulette keeps the estimator unbiased (Dutré 2001, chapter 8).
+//! survives with probability `min(0.95, max throughput x eta scale)` and is reweighted by
+//! its inverse: Russian roulette keeps the estimator unbiased (Dutré 2001, chapter 8). The
+//! survival follows the throughput, so dim paths (which carry little) end early, and is
+//! capped below one so that bright paths in closed rooms still end; the eta scale undoes
+//! the `1/η²` that radiance picks up entering glass (pbrt-v4, Pharr, Jakob & Humphreys,
+//! 4th ed., section 13.1.6: the throughput seen by roulette should not depend on which
+//! medium the path is in), as Mitsuba 3's path tracer does.
 //!
 //! Steps, as labelled below: 1 intersect, 2 emission (MIS with NEE of the previous
 //! vertex), 3 direct light by NEE, 4 BSDF sample, 5 Russian roulette.
@@ -19,6 +24,11 @@ use crate::sampling::warp::Frame;
 use crate::sampling::PixelSampler;
 use crate::scene::RenderScene;
 use glam::Vec3;
+
+/// Largest survival probability of Russian roulette: even a path that carries all of its
+/// energy ends with probability 5% per bounce once roulette has started (Mitsuba 3's
+/// path tracer uses the same cap).
+pub const RR_MAX_SURVIVAL: f32 = 0.95;
 
 /// Settings of the path integrator. The `direct` integrator is this one with
 /// `max_depth = 1`; the path tracer knows no other integrator.
@@ -50,6 +60,9 @@ pub fn radiance(
     let mut prev_pdf = 0.0f32;
     let mut prev_p = origin;
     let mut depth = 0u32;
+    // Product of η² over the refractions so far (radiance is scaled by 1/η² entering a
+    // denser medium): roulette decides on `beta * eta_scale`.
+    let mut eta_scale = 1.0f32;
     loop {
         // 1. Intersect.
         let Some(hit) = scene.intersect(origin, dir, f32::INFINITY) else {
@@ -146,6 +159,16 @@ pub fn radiance(
         if !beta.is_finite() || beta == Vec3::ZERO {
             break;
         }
+        if bs.wi.z * wo.z < 0.0 {
+            if let Some(eta) = bsdf.glass_eta() {
+                // Entering (wo outside, +z) radiance was scaled by 1/η², leaving by η².
+                eta_scale *= if wo.z > 0.0 {
+                    eta * eta
+                } else {
+                    1.0 / (eta * eta)
+                };
+            }
+        }
         prev_delta = bs.delta;
         prev_pdf = bs.pdf;
         prev_p = sp.p;
@@ -156,7 +179,7 @@ pub fn radiance(
         // 5. Russian roulette.
         let u_rr = sampler.next_1d();
         if depth >= s.rr_depth {
-            let survive = beta.max_element().clamp(0.05, 1.0);
+            let survive = (beta.max_element() * eta_scale).min(RR_MAX_SURVIVAL);
             if u_rr >= survive {
                 break;
             }

@@ -5,7 +5,7 @@ use super::lights::Lights;
 use super::transport::Transport;
 use super::{
     Effect, EffectKind, PlannedIntegrator, RenderPlan, BRIGHT_ALBEDO, CLOSED_FRACTION,
-    CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, REFRACTION_DEPTH, REFRACTION_RR_DEPTH,
+    CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, REFRACTION_DEPTH,
 };
 use crate::Camera;
 
@@ -187,24 +187,18 @@ fn depths(
                 ));
                 DEFAULT_DEPTH
             };
-            let mut rr = DEFAULT_RR_DEPTH;
-            if !transport.surfaces.refraction.is_empty() {
-                if depth < REFRACTION_DEPTH {
-                    reasons.push(format!(
-                        "max depth raised to {REFRACTION_DEPTH}: light needs several \
-                         interfaces to pass through glass"
-                    ));
-                    depth = REFRACTION_DEPTH;
-                }
-                rr = REFRACTION_RR_DEPTH;
+            if !transport.surfaces.refraction.is_empty() && depth < REFRACTION_DEPTH {
                 reasons.push(format!(
-                    "Russian roulette from depth {rr}: paths through glass need their first \
-                     bounces"
+                    "max depth raised to {REFRACTION_DEPTH}: light needs several interfaces \
+                     to pass through glass"
                 ));
-            } else {
-                reasons.push(format!("Russian roulette from depth {rr}"));
+                depth = REFRACTION_DEPTH;
             }
-            (depth, rr)
+            reasons.push(format!(
+                "Russian roulette from depth {DEFAULT_RR_DEPTH}, survival from the throughput \
+                 (at most 95%)"
+            ));
+            (depth, DEFAULT_RR_DEPTH)
         }
     }
 }

@@ -86,7 +86,8 @@
 //! [`BRIGHT_ALBEDO`] and scattering surfaces whose area is at least [`CLOSED_FRACTION`] of
 //! the surface of the scene's bounding box — else [`DEFAULT_DEPTH`]; with refraction at
 //! least [`REFRACTION_DEPTH`] (light needs several interfaces to pass through glass).
-//! `rr_depth` is [`DEFAULT_RR_DEPTH`], or [`REFRACTION_RR_DEPTH`] with refraction. `Black`
+//! `rr_depth` is [`DEFAULT_RR_DEPTH`] (survival from the throughput, so paths through glass
+//! are not cut short: the path integrator undoes the `1/η²` of refraction). `Black`
 //! has depth 0: nothing is traced.
 //!
 //! ```
@@ -138,10 +139,9 @@ pub const CLOSED_ROOM_DEPTH: u32 = 16;
 pub const DEFAULT_DEPTH: u32 = 8;
 /// Minimum path depth when something refracts.
 pub const REFRACTION_DEPTH: u32 = 12;
-/// Russian roulette start depth by default.
-pub const DEFAULT_RR_DEPTH: u32 = 3;
-/// Russian roulette start depth when something refracts.
-pub const REFRACTION_RR_DEPTH: u32 = 5;
+/// Russian roulette start depth of every plan: the job contract's
+/// [`tessera_farm::job::DEFAULT_RR_DEPTH`].
+pub const DEFAULT_RR_DEPTH: u32 = tessera_farm::job::DEFAULT_RR_DEPTH;
 
 /// Analyses `scene` into a render plan, following the rules in the module documentation.
 pub fn analyse(scene: &Scene) -> RenderPlan {

@@ -1,0 +1,169 @@
+#!/usr/bin/env python3
+"""Time to a given error, side by side: Tessera, Mitsuba 3 and Cycles on the same glTF files.
+
+    python3 bench/compare/compare.py [--tessera BIN] [--scenes a.gltf,b.gltf] [--width 256]
+        [--height 256] [--spp 64] [--threads 2] [--seeds 1,2] [--renderers ...] [--out DIR]
+
+For every scene and seed the renderers run one after another (interleaved, so a change in
+the machine's load hits all of them alike), each with 2 threads, writing an EXR. Then, per
+renderer and scene:
+
+- noise: the per-pixel variance of one render, estimated from the difference of the two
+  seeds' images, `mean_p mean_c (a - b)^2 / 2`, so that bias does not enter; pixels that
+  see an emitter directly (any of 4x4 camera rays per pixel, cast by Mitsuba) are left out.
+  Each renderer's images are first scaled so that their mean over the kept pixels equals
+  Tessera's (the anchors' unit conventions differ by a few percent; the scale is printed),
+  so the noise is compared at equal brightness.
+- efficiency = 1 / (noise x seconds), Veach's definition (Veach 1997, section 2.4: the
+  inverse of variance times time), with seconds the mean render time of the two seeds
+  (scene loading excluded, as each renderer reports it);
+- region means: the mean of each of 4x4 image regions against Mitsuba's (ratio), to check
+  that the images agree.
+
+Prints a Markdown table per scene. Needs `pip install mitsuba==3.9.1 bpy==5.0.1` and a
+release build of Tessera (`cargo build --release -p tessera-cli`). Not run by CI.
+"""
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.abspath(os.path.join(HERE, "..", ".."))
+DEFAULT_SCENES = ["cornell-box.gltf", "veach-mis.gltf", "glass-area.gltf"]
+
+
+def read_exr(path):
+    import mitsuba as mi
+    mi.set_variant("scalar_rgb")
+    return np.array(mi.Bitmap(path), dtype=np.float64)[:, :, :3]
+
+
+def run_json(cmd):
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def tessera(a, binary, scene, seed, out, extra):
+    cmd = [binary, "render", scene, "--width", str(a.width), "--height", str(a.height),
+           "--spp", str(a.spp), "--threads", str(a.threads), "--seed", str(seed), "-o", out] + extra
+    text = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    seconds = float(re.search(r"^seconds: ([0-9.]+)", text, re.M).group(1))
+    return {"seconds": seconds, "plan": re.search(r"^rendered .*\((.*)\)", text, re.M).group(1)}
+
+
+def mitsuba(a, scene, seed, out, sampler, mask=None):
+    cmd = [sys.executable, os.path.join(HERE, "mitsuba_render.py"), scene, "--width", str(a.width),
+           "--height", str(a.height), "--spp", str(a.spp), "--seed", str(seed), "--threads", str(a.threads),
+           "--sampler", sampler, "--max-depth", str(a.max_depth + 1), "--out", out]
+    if mask:
+        cmd += ["--mask", mask]
+    return run_json(cmd)
+
+
+def cycles(a, scene, seed, out):
+    cmd = [sys.executable, os.path.join(HERE, "cycles_render.py"), scene, "--width", str(a.width),
+           "--height", str(a.height), "--spp", str(a.spp), "--seed", str(seed), "--threads", str(a.threads),
+           "--max-depth", str(a.max_depth), "--out", out]
+    return run_json(cmd)
+
+
+def region_means(img, keep, n=4):
+    h, w = keep.shape
+    out = []
+    for j in range(n):
+        for i in range(n):
+            sl = (slice(j * h // n, (j + 1) * h // n), slice(i * w // n, (i + 1) * w // n))
+            k = keep[sl]
+            out.append(img[sl][k].mean() if k.any() else np.nan)
+    return np.array(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--tessera", default=os.path.join(ROOT, "target", "release", "tessera"))
+    ap.add_argument("--scenes", default=",".join(os.path.join(HERE, "scenes", s) for s in DEFAULT_SCENES))
+    ap.add_argument("--width", type=int, default=256)
+    ap.add_argument("--height", type=int, default=256)
+    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--max-depth", type=int, default=16,
+                    help="bounces for every renderer (Tessera --max-depth; Mitsuba max_depth + 1)")
+    ap.add_argument("--seeds", default="1,2")
+    ap.add_argument("--renderers", default="tessera,mitsuba-multijitter,mitsuba-independent,cycles")
+    ap.add_argument("--tessera-old", help="a second Tessera binary, renderer name tessera-old")
+    ap.add_argument("--tessera-args", default="", help="extra arguments for tessera render")
+    ap.add_argument("--out", default="/tmp/tessera-compare")
+    a = ap.parse_args()
+    if not os.path.exists(os.path.join(HERE, "scenes", "veach-mis.gltf")):
+        subprocess.run([sys.executable, os.path.join(HERE, "make_scenes.py")], check=True)
+    os.makedirs(a.out, exist_ok=True)
+    seeds = [int(s) for s in a.seeds.split(",")]
+    renderers = a.renderers.split(",")
+    extra = ["--max-depth", str(a.max_depth)] + a.tessera_args.split()
+    print("# bench/compare, %s, %s, %d cores; %dx%d, %d spp, %d threads, max depth %d, seeds %s\n"
+          % (datetime.date.today(), platform.node(), os.cpu_count(), a.width, a.height, a.spp,
+             a.threads, a.max_depth, a.seeds))
+    for scene in a.scenes.split(","):
+        name = os.path.splitext(os.path.basename(scene))[0]
+        mask_file = os.path.join(a.out, name + ".mask.npy")
+        times = {r: [] for r in renderers}
+        plan = ""
+        for seed in seeds:
+            for r in renderers:
+                out = os.path.join(a.out, "%s.%s.%d.exr" % (name, r, seed))
+                if r == "tessera":
+                    res = tessera(a, a.tessera, scene, seed, out, extra)
+                    plan = res["plan"]
+                elif r == "tessera-old":
+                    res = tessera(a, a.tessera_old, scene, seed, out, extra)
+                elif r.startswith("mitsuba-"):
+                    res = mitsuba(a, scene, seed, out, r.split("-", 1)[1],
+                                  mask_file if not os.path.exists(mask_file) else None)
+                elif r == "cycles":
+                    res = cycles(a, scene, seed, out)
+                else:
+                    raise SystemExit("unknown renderer " + r)
+                times[r].append(res["seconds"])
+        if not os.path.exists(mask_file):
+            mitsuba(a, scene, seeds[0], os.path.join(a.out, "mask.exr"), "independent", mask_file)
+        keep = ~np.load(mask_file)
+        imgs = {r: [read_exr(os.path.join(a.out, "%s.%s.%d.exr" % (name, r, s))) for s in seeds[:2]] for r in renderers}
+        base = renderers[0]
+        base_mean = np.mean([im[keep].mean() for im in imgs[base]])
+        rows = {}
+        for r in renderers:
+            scale = base_mean / np.mean([im[keep].mean() for im in imgs[r]])
+            x, y = (im * scale for im in imgs[r])
+            noise = (((x - y) ** 2) / 2.0)[keep].mean()
+            seconds = float(np.mean(times[r]))
+            rows[r] = {"scale": scale, "noise": noise, "seconds": seconds, "eff": 1.0 / (noise * seconds),
+                       "mean": (imgs[r][0] + imgs[r][1]) / 2.0}
+        ref = next((r for r in renderers if r.startswith("mitsuba")), base)
+        ref_regions = region_means(rows[ref]["mean"], keep)
+        cyc = rows.get("cycles", rows[base])["eff"]
+        best_anchor = max((rows[r]["eff"] for r in renderers if not r.startswith("tessera")),
+                          default=rows[base]["eff"])
+        paths = a.width * a.height * a.spp
+        print("## %s (Tessera plan: %s)\n" % (name, plan))
+        print("| renderer | seconds | M paths/s | noise variance | efficiency vs Cycles | vs best anchor | brightness scale | region means / %s (min..max) |" % ref)
+        print("|---|---|---|---|---|---|---|---|")
+        for r in renderers:
+            q = rows[r]
+            ratio = region_means(q["mean"], keep) / ref_regions
+            print("| %s | %.2f | %.3f | %.4g | %.2fx | %.2fx | %.4f | %.3f..%.3f |" % (
+                r, q["seconds"], paths / q["seconds"] / 1e6, q["noise"], q["eff"] / cyc,
+                q["eff"] / best_anchor, q["scale"], np.nanmin(ratio), np.nanmax(ratio)))
+        print()
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,186 @@
+#!/usr/bin/env python3
+"""Writes the comparison scenes that are not in scenes/ into bench/compare/scenes/
+(generated, not committed: the Veach scene's sphere meshes make a 2 MB file).
+
+- veach-mis.gltf: Veach & Guibas 1995, section 4.1 (figure 5), as glTF 2.0: four glossy
+  metallic plates (roughness 0.443, 0.285, 0.178, 0.107: the GGX equivalents of the
+  builtin's Phong exponents 50, 300, 2000, 15000, alpha = sqrt(2 / (n + 2)) and
+  roughness = sqrt(alpha)), a dark diffuse floor and back wall, and four emissive UV
+  spheres (radii 0.9, 0.3, 0.1, 0.0333, radiance 1 / r^2, 96 x 48 each: 36,480 emissive
+  triangles), the geometry of `builtin:veach-mis`.
+- glass-area.gltf: a smooth glass ball (ior 1.5) on a diffuse floor under a small square
+  area light (0.2 m, 1.5 m above the ball, radiance 250): a caustic seen through glass.
+
+- cornell-box.gltf: scenes/cornell-box.gltf with Lambertian walls (see `cornell_lambert`).
+
+Run: python3 bench/compare/make_scenes.py (standard library only).
+"""
+
+import json
+import math
+import os
+import sys
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.dont_write_bytecode = True
+sys.path.insert(0, os.path.join(HERE, "..", "..", "scenes"))
+from gltf_writer import Gltf, look_at_rotation  # noqa: E402
+from make_glass_spot_gltf import uv_sphere  # noqa: E402
+
+
+def diffuse(g, name, albedo):
+    """A Lambertian material: a dielectric with KHR_materials_specular's factor 0 has no
+    specular layer (every renderer here reads that as pure diffuse)."""
+    g.uses("KHR_materials_specular")
+    return g.material(
+        {
+            "name": name,
+            "pbrMetallicRoughness": {
+                "baseColorFactor": [albedo, albedo, albedo, 1.0],
+                "metallicFactor": 0.0,
+                "roughnessFactor": 1.0,
+            },
+            "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}},
+        }
+    )
+
+
+def emissive(g, name, radiance):
+    g.uses("KHR_materials_emissive_strength")
+    return g.material(
+        {
+            "name": name,
+            "pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0.0},
+            "emissiveFactor": [1.0, 1.0, 1.0],
+            "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": radiance}},
+        }
+    )
+
+
+def quad(g, name, material, a, b, c, d, normal):
+    mesh = g.mesh(name, [a, b, c, d], [0, 1, 2, 0, 2, 3], material, normals=[normal] * 4)
+    # Wind counter-clockwise about the normal.
+    e1 = [b[i] - a[i] for i in range(3)]
+    e2 = [c[i] - a[i] for i in range(3)]
+    n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
+    if sum(n[i] * normal[i] for i in range(3)) < 0:
+        g.doc["meshes"][mesh]["primitives"][0]["indices"] = g.index_accessor([0, 2, 1, 0, 3, 2])
+    g.node({"name": name, "mesh": mesh})
+
+
+def camera(g, eye, target, yfov_degrees, aspect):
+    cam = g.camera(
+        {
+            "name": "main",
+            "type": "perspective",
+            "perspective": {"yfov": math.radians(yfov_degrees), "aspectRatio": aspect, "znear": 0.01},
+        }
+    )
+    g.node(
+        {
+            "name": "main",
+            "camera": cam,
+            "translation": eye,
+            "rotation": look_at_rotation(eye, target, [0.0, 1.0, 0.0]),
+        }
+    )
+
+
+def normalize(v):
+    n = math.sqrt(sum(c * c for c in v))
+    return [c / n for c in v]
+
+
+def veach(path):
+    g = Gltf("bench/compare/make_scenes.py")
+    eye = [0.0, 2.0, 15.0]
+    floor = diffuse(g, "floor", 0.1)
+    for i, (r, x) in enumerate(zip([0.9, 0.3, 0.1, 0.0333], [-3.75, -1.25, 1.25, 3.75])):
+        m = emissive(g, "light%d" % i, 1.0 / (r * r))
+        positions, normals, indices = uv_sphere(r, 96, 48)
+        mesh = g.mesh("light%d" % i, positions, indices, m, normals=normals)
+        g.node({"name": "light%d" % i, "mesh": mesh, "translation": [x, 0.0, 0.0]})
+    centers = [[0.0, -1.10, 1.0], [0.0, -1.91, 2.2], [0.0, -2.57, 3.4], [0.0, -3.07, 4.6]]
+    for k, (c, n) in enumerate(zip(centers, [50.0, 300.0, 2000.0, 15000.0])):
+        roughness = math.sqrt(math.sqrt(2.0 / (n + 2.0)))
+        m = g.material(
+            {
+                "name": "plate%d" % k,
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": [0.75, 0.75, 0.75, 1.0],
+                    "metallicFactor": 1.0,
+                    "roughnessFactor": roughness,
+                },
+            }
+        )
+        to_eye = normalize([eye[i] - c[i] for i in range(3)])
+        to_row = normalize([-c[i] for i in range(3)])
+        normal = normalize([to_eye[i] + to_row[i] for i in range(3)])
+        along = [1.0, 0.0, 0.0]
+        across = normalize([normal[1] * along[2] - normal[2] * along[1],
+                            normal[2] * along[0] - normal[0] * along[2],
+                            normal[0] * along[1] - normal[1] * along[0]])
+        across = [0.75 * a for a in across]
+        pts = [[c[i] + sa * 4.0 * along[i] + sb * across[i] for i in range(3)]
+               for sa, sb in [(-1, -1), (1, -1), (1, 1), (-1, 1)]]
+        quad(g, "plate%d" % k, m, *pts, normal)
+    quad(g, "floor", floor, [-10, -4, -4], [-10, -4, 12], [10, -4, 12], [10, -4, -4], [0, 1, 0])
+    quad(g, "back", floor, [-10, -4, -4], [10, -4, -4], [10, 8, -4], [-10, 8, -4], [0, 0, 1])
+    camera(g, eye, [0.0, -2.0, 2.5], 28.0, 1.5)
+    g.write(path)
+
+
+def glass_area(path):
+    g = Gltf("bench/compare/make_scenes.py")
+    g.uses("KHR_materials_transmission")
+    g.uses("KHR_materials_ior")
+    floor = diffuse(g, "floor", 0.8)
+    glass = g.material(
+        {
+            "name": "glass",
+            "pbrMetallicRoughness": {
+                "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                "metallicFactor": 0.0,
+                "roughnessFactor": 0.0,
+            },
+            "extensions": {
+                "KHR_materials_transmission": {"transmissionFactor": 1.0},
+                "KHR_materials_ior": {"ior": 1.5},
+            },
+        }
+    )
+    quad(g, "floor", floor, [-5, 0, -5], [-5, 0, 5], [5, 0, 5], [5, 0, -5], [0, 1, 0])
+    positions, normals, indices = uv_sphere(0.5, 64, 32)
+    ball = g.mesh("glass-ball", positions, indices, glass, normals=normals)
+    g.node({"name": "glass-ball", "mesh": ball, "translation": [0.0, 0.5, 0.0]})
+    light = emissive(g, "light", 250.0)
+    h, y = 0.1, 2.5
+    quad(g, "light", light, [-h, y, -h], [h, y, -h], [h, y, h], [-h, y, h], [0, -1, 0])
+    camera(g, [0.0, 1.6, 4.0], [0.0, 0.4, 0.0], 40.0, 4.0 / 3.0)
+    g.write(path)
+
+
+def cornell_lambert(path):
+    """scenes/cornell-box.gltf with Lambertian walls and blocks (the builtin's materials):
+    KHR_materials_specular with factor 0 on every non-emissive material."""
+    with open(os.path.join(HERE, "..", "..", "scenes", "cornell-box.gltf"), encoding="utf-8") as f:
+        doc = json.load(f)
+    doc.setdefault("extensionsUsed", []).append("KHR_materials_specular")
+    for m in doc["materials"]:
+        if not any(m.get("emissiveFactor", [0, 0, 0])):
+            m.setdefault("extensions", {})["KHR_materials_specular"] = {"specularFactor": 0.0}
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(doc, f)
+
+
+def main():
+    out = os.path.join(HERE, "scenes")
+    os.makedirs(out, exist_ok=True)
+    cornell_lambert(os.path.join(out, "cornell-box.gltf"))
+    veach(os.path.join(out, "veach-mis.gltf"))
+    glass_area(os.path.join(out, "glass-area.gltf"))
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
