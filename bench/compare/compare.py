@@ -14,9 +14,11 @@ renderer and scene:
   Each renderer's images are first scaled so that their mean over the kept pixels equals
   Tessera's (the anchors' unit conventions differ by a few percent; the scale is printed),
   so the noise is compared at equal brightness.
-- efficiency = 1 / (noise x seconds), Veach's definition (Veach 1997, section 2.4: the
-  inverse of variance times time), with seconds the mean render time of the two seeds
-  (scene loading excluded, as each renderer reports it);
+- efficiency = 1 / (noise x CPU seconds), Veach's definition (Veach 1997, section 2.4: the
+  inverse of variance times time), with the CPU seconds of the render threads (mean of
+  the two seeds; scene loading excluded, as each renderer reports it). CPU time rather
+  than wall time so that other load on the machine does not enter; with 2 threads on 2
+  idle cores the two agree up to the factor 2 (wall seconds are printed as well);
 - region means: the mean of each of 4x4 image regions against Mitsuba's (ratio), to check
   that the images agree.
 
@@ -30,6 +32,7 @@ import json
 import os
 import platform
 import re
+import resource
 import subprocess
 import sys
 
@@ -54,9 +57,16 @@ def run_json(cmd):
 def tessera(a, binary, scene, seed, out, extra):
     cmd = [binary, "render", scene, "--width", str(a.width), "--height", str(a.height),
            "--spp", str(a.spp), "--threads", str(a.threads), "--seed", str(seed), "-o", out] + extra
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     text = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     seconds = float(re.search(r"^seconds: ([0-9.]+)", text, re.M).group(1))
-    return {"seconds": seconds, "plan": re.search(r"^rendered .*\((.*)\)", text, re.M).group(1)}
+    line = re.search(r"^cpu seconds: ([0-9.]+)", text, re.M)
+    # Builds before the "cpu seconds" line: the whole process's CPU time (loading included).
+    cpu = float(line.group(1)) if line else (after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
+    scene_line = re.search(r"^scene: (.*)$", text, re.M)
+    return {"seconds": seconds, "cpu_seconds": cpu, "plan": re.search(r"^rendered .*\((.*)\)", text, re.M).group(1),
+            "scene": scene_line.group(1) if scene_line else ""}
 
 
 def mitsuba(a, scene, seed, out, sampler, mask=None):
@@ -115,13 +125,14 @@ def main():
         name = os.path.splitext(os.path.basename(scene))[0]
         mask_file = os.path.join(a.out, name + ".mask.npy")
         times = {r: [] for r in renderers}
+        cpu = {r: [] for r in renderers}
         plan = ""
         for seed in seeds:
             for r in renderers:
                 out = os.path.join(a.out, "%s.%s.%d.exr" % (name, r, seed))
                 if r == "tessera":
                     res = tessera(a, a.tessera, scene, seed, out, extra)
-                    plan = res["plan"]
+                    plan = res["plan"] + ("; scene: " + res["scene"] if res["scene"] else "")
                 elif r == "tessera-old":
                     res = tessera(a, a.tessera_old, scene, seed, out, extra)
                 elif r.startswith("mitsuba-"):
@@ -132,6 +143,7 @@ def main():
                 else:
                     raise SystemExit("unknown renderer " + r)
                 times[r].append(res["seconds"])
+                cpu[r].append(res["cpu_seconds"])
         if not os.path.exists(mask_file):
             mitsuba(a, scene, seeds[0], os.path.join(a.out, "mask.exr"), "independent", mask_file)
         keep = ~np.load(mask_file)
@@ -144,7 +156,9 @@ def main():
             x, y = (im * scale for im in imgs[r])
             noise = (((x - y) ** 2) / 2.0)[keep].mean()
             seconds = float(np.mean(times[r]))
-            rows[r] = {"scale": scale, "noise": noise, "seconds": seconds, "eff": 1.0 / (noise * seconds),
+            cpu_seconds = float(np.mean(cpu[r]))
+            rows[r] = {"scale": scale, "noise": noise, "seconds": seconds, "cpu": cpu_seconds,
+                       "eff": 1.0 / (noise * cpu_seconds),
                        "mean": (imgs[r][0] + imgs[r][1]) / 2.0}
         ref = next((r for r in renderers if r.startswith("mitsuba")), base)
         ref_regions = region_means(rows[ref]["mean"], keep)
@@ -153,13 +167,13 @@ def main():
                           default=rows[base]["eff"])
         paths = a.width * a.height * a.spp
         print("## %s (Tessera plan: %s)\n" % (name, plan))
-        print("| renderer | seconds | M paths/s | noise variance | efficiency vs Cycles | vs best anchor | brightness scale | region means / %s (min..max) |" % ref)
-        print("|---|---|---|---|---|---|---|---|")
+        print("| renderer | seconds | CPU seconds | M paths per CPU-s | noise variance | efficiency vs Cycles | vs best anchor | brightness scale | region means / %s (min..max) |" % ref)
+        print("|---|---|---|---|---|---|---|---|---|")
         for r in renderers:
             q = rows[r]
             ratio = region_means(q["mean"], keep) / ref_regions
-            print("| %s | %.2f | %.3f | %.4g | %.2fx | %.2fx | %.4f | %.3f..%.3f |" % (
-                r, q["seconds"], paths / q["seconds"] / 1e6, q["noise"], q["eff"] / cyc,
+            print("| %s | %.2f | %.2f | %.3f | %.4g | %.2fx | %.2fx | %.4f | %.3f..%.3f |" % (
+                r, q["seconds"], q["cpu"], paths / q["cpu"] / 1e6, q["noise"], q["eff"] / cyc,
                 q["eff"] / best_anchor, q["scale"], np.nanmin(ratio), np.nanmax(ratio)))
         print()
         sys.stdout.flush()

@@ -103,10 +103,11 @@ def main():
     s.render.image_settings.color_depth = "32"
     s.render.image_settings.color_mode = "RGB"
     s.render.filepath = a.out
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     bpy.ops.render.render(write_still=True)
+    cpu = time.process_time() - c0
     seconds = time.perf_counter() - t0
-    print(json.dumps({"renderer": "cycles", "seconds": seconds, "paths": a.width * a.height * a.spp}))
+    print(json.dumps({"renderer": "cycles", "seconds": seconds, "cpu_seconds": cpu, "paths": a.width * a.height * a.spp}))
 
 
 if __name__ == "__main__":

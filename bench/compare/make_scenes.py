@@ -11,6 +11,8 @@
 - glass-area.gltf: a smooth glass ball (ior 1.5) on a diffuse floor under a small square
   area light (0.2 m, 1.5 m above the ball, radiance 250): a caustic seen through glass.
 
+- large.glb: 2,000,000 triangles of displaced terrain under a square area light (item 6 of
+  issue 13: build time, memory and speed on a large mesh).
 - cornell-box.gltf: scenes/cornell-box.gltf with Lambertian walls (see `cornell_lambert`).
 
 Run: python3 bench/compare/make_scenes.py (standard library only).
@@ -19,6 +21,7 @@ Run: python3 bench/compare/make_scenes.py (standard library only).
 import json
 import math
 import os
+import struct
 import sys
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -173,12 +176,79 @@ def cornell_lambert(path):
         json.dump(doc, f)
 
 
+def large(path, n=1000):
+    """A displaced terrain of n x n quads (2 n^2 triangles: 2,000,000 for n = 1000) under a
+    square area light, as a binary .glb (numpy; 48 MB), Lambertian (specular factor 0)."""
+    import numpy as np
+
+    size = 10.0
+    x, z = np.meshgrid(np.linspace(-size / 2, size / 2, n + 1), np.linspace(-size / 2, size / 2, n + 1))
+    y = 0.3 * np.sin(3.1 * x) * np.cos(2.3 * z) + 0.1 * np.sin(17.0 * x + 5.0 * z)
+    positions = np.stack([x, y, z], axis=-1).reshape(-1, 3).astype("<f4")
+    i = np.arange(n)
+    a = (i[:, None] * (n + 1) + i[None, :]).ravel()
+    b, c, d = a + 1, a + n + 1, a + n + 2
+    # Counter-clockwise seen from above (+y).
+    indices = np.stack([a, c, b, b, c, d], axis=-1).reshape(-1).astype("<u4")
+    light_p = np.array([[-0.5, 4.0, -0.5], [0.5, 4.0, -0.5], [0.5, 4.0, 0.5], [-0.5, 4.0, 0.5]], "<f4")
+    light_i = np.array([0, 1, 2, 0, 2, 3], "<u4")
+    blobs, views, accessors = [], [], []
+
+    def view(data, target):
+        offset = sum(len(x) for x in blobs)
+        blobs.append(data.tobytes() + b"\0" * ((-len(data.tobytes())) % 4))
+        views.append({"buffer": 0, "byteOffset": offset, "byteLength": data.nbytes, "target": target})
+        return len(views) - 1
+
+    def acc(data, kind, component, target, bounds=False):
+        a = {"bufferView": view(data, target), "componentType": component, "count": len(data), "type": kind}
+        if bounds:
+            a["min"] = data.min(axis=0).tolist()
+            a["max"] = data.max(axis=0).tolist()
+        accessors.append(a)
+        return len(accessors) - 1
+
+    terrain = {"attributes": {"POSITION": acc(positions, "VEC3", 5126, 34962, True)},
+               "indices": acc(indices, "SCALAR", 5125, 34963), "material": 0}
+    lamp = {"attributes": {"POSITION": acc(light_p, "VEC3", 5126, 34962, True)},
+            "indices": acc(light_i, "SCALAR", 5125, 34963), "material": 1}
+    eye, target = [0.0, 3.0, 6.0], [0.0, 0.0, 0.0]
+    doc = {
+        "asset": {"version": "2.0", "generator": "bench/compare/make_scenes.py"},
+        "extensionsUsed": ["KHR_materials_specular", "KHR_materials_emissive_strength"],
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1, 2]}],
+        "nodes": [{"name": "terrain", "mesh": 0}, {"name": "light", "mesh": 1},
+                  {"name": "main", "camera": 0, "translation": eye,
+                   "rotation": look_at_rotation(eye, target, [0.0, 1.0, 0.0])}],
+        "meshes": [{"name": "terrain", "primitives": [terrain]}, {"name": "light", "primitives": [lamp]}],
+        "materials": [
+            {"name": "ground", "pbrMetallicRoughness": {"baseColorFactor": [0.6, 0.6, 0.6, 1], "metallicFactor": 0.0, "roughnessFactor": 1.0},
+             "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}}},
+            {"name": "light", "pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0.0},
+             "emissiveFactor": [1.0, 1.0, 1.0], "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 60.0}}},
+        ],
+        "cameras": [{"type": "perspective", "perspective": {"yfov": math.radians(45.0), "aspectRatio": 1.0, "znear": 0.01}}],
+        "accessors": accessors,
+        "bufferViews": views,
+    }
+    binary = b"".join(blobs)
+    doc["buffers"] = [{"byteLength": len(binary)}]
+    text = json.dumps(doc).encode("utf-8")
+    text += b" " * ((-len(text)) % 4)
+    with open(path, "wb") as f:
+        f.write(b"glTF" + struct.pack("<II", 2, 12 + 8 + len(text) + 8 + len(binary)))
+        f.write(struct.pack("<I", len(text)) + b"JSON" + text)
+        f.write(struct.pack("<I", len(binary)) + b"BIN\0" + binary)
+
+
 def main():
     out = os.path.join(HERE, "scenes")
     os.makedirs(out, exist_ok=True)
     cornell_lambert(os.path.join(out, "cornell-box.gltf"))
     veach(os.path.join(out, "veach-mis.gltf"))
     glass_area(os.path.join(out, "glass-area.gltf"))
+    large(os.path.join(out, "large.glb"))
     print("wrote", out)
 
 

@@ -148,13 +148,14 @@ def main():
     with tempfile.TemporaryDirectory(prefix="tessera-compare-") as tmp:
         scene = mi.load_dict(scene_dict(a.scene, a.width, a.height, a.spp, a.seed, a.sampler,
                                         a.max_depth, a.rr_depth, tmp))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         image = mi.render(scene, spp=a.spp, seed=a.seed)
+        cpu = time.process_time() - c0
         seconds = time.perf_counter() - t0
         mi.Bitmap(image).write(a.out)
         if a.mask:
             np.save(a.mask, emitter_mask(scene, a.width, a.height))
-    print(json.dumps({"renderer": "mitsuba-" + a.sampler, "seconds": seconds, "paths": a.width * a.height * a.spp}))
+    print(json.dumps({"renderer": "mitsuba-" + a.sampler, "seconds": seconds, "cpu_seconds": cpu, "paths": a.width * a.height * a.spp}))
 
 
 if __name__ == "__main__":

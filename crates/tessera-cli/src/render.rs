@@ -181,6 +181,8 @@ pub struct Prepared {
     pub render_scene: Option<RenderScene>,
     /// The job resolved against the scene: settings, frame plan, render plan.
     pub resolved: ResolvedJob,
+    /// Seconds spent building `render_scene` (acceleration structures, light tables).
+    pub build_seconds: f64,
 }
 
 /// The [`SceneRef`] of a scene argument: `builtin:NAME` as it is; a file by the SHA-256 of
@@ -277,6 +279,7 @@ pub fn prepare(job: &JobArgs, stop: &StopArgs, frame: u32) -> Result<Prepared> {
     } else {
         first
     };
+    let start = Instant::now();
     let render_scene = if resolved.black {
         None
     } else {
@@ -291,6 +294,7 @@ pub fn prepare(job: &JobArgs, stop: &StopArgs, frame: u32) -> Result<Prepared> {
         scene,
         render_scene,
         resolved,
+        build_seconds: start.elapsed().as_secs_f64(),
     })
 }
 
@@ -319,6 +323,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     }
     let p = prepare(&args.job, &args.stop, args.frame)?;
     print!("{}", p.resolved.render_plan.summary());
+    print_scene_line(&p);
     if p.resolved.black {
         return render_black(&p, &args);
     }
@@ -338,6 +343,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         bar
     });
     let start = Instant::now();
+    let cpu_start = crate::bench_farm::cpu_seconds("self");
     let render_scene = p.render_scene.as_ref().expect("built unless black");
     let rendered = render_frame_counted(
         render_scene,
@@ -352,6 +358,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         },
     );
     let seconds = start.elapsed().as_secs_f64();
+    let cpu_seconds = crate::bench_farm::cpu_seconds("self") - cpu_start;
     if let Some(b) = bar {
         b.finish_and_clear();
     }
@@ -371,11 +378,30 @@ pub fn render(args: RenderArgs) -> Result<()> {
         args.output.display()
     );
     print_totals(&plan, seconds, acc.image_error(), paths / seconds);
+    // CPU time of all render threads: what a comparison on a loaded machine can trust
+    // (bench/compare divides noise by it), at the 10 ms resolution of /proc.
+    println!("cpu seconds: {cpu_seconds:.2}");
     print_rejected_samples(rendered.rejected_samples);
     if let Some(map) = &args.spp_map {
         adaptive::write_spp_map(map, &image)?;
     }
     Ok(())
+}
+
+/// `scene: T triangles, built in S s, B MiB of geometry (b bytes per triangle)`: what a
+/// large scene costs before the first ray (issue 13's large-scene figures come from it).
+fn print_scene_line(p: &Prepared) {
+    let Some(rs) = &p.render_scene else {
+        return;
+    };
+    let triangles = p.scene.triangle_count();
+    let bytes = rs.geometry.bytes();
+    println!(
+        "scene: {triangles} triangles, built in {:.3} s, {:.1} MiB of geometry ({:.0} bytes per stored triangle)",
+        p.build_seconds,
+        bytes as f64 / (1024.0 * 1024.0),
+        bytes as f64 / p.scene.stored_triangle_count().max(1) as f64
+    );
 }
 
 /// The summary lines every render without adaptive stopping ends with (scripts read them).
