@@ -5,7 +5,9 @@
 //! Noise variance: the scene is rendered twice with seeds 1 and 2; per pixel and channel,
 //! `Var = (a - b)^2 / 2` estimates the variance of one render's pixel value. It is averaged
 //! over the pixels and channels, leaving out pixels that see an emitter directly (their
-//! variance is that of emission, not of light sampling). Efficiency is `1 / (Var x seconds)`.
+//! variance is that of emission, not of light sampling). Efficiency is `1 / (Var x seconds)`
+//! with the process CPU seconds of the render (one render thread), which other processes
+//! on a shared machine disturb less than the wall clock.
 //!
 //! Run with `cargo test -p tessera-render --test light_bench -- --ignored --nocapture`.
 
@@ -19,6 +21,17 @@ const W: u32 = 256;
 const H: u32 = 256;
 const SPP: u32 = 64;
 const THREADS: usize = 1;
+
+/// CPU seconds (user + system) this process has used, from `/proc/self/stat` (Linux; in
+/// clock ticks of 1/100 s).
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").expect("/proc/self/stat");
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15.
+    let rest = &stat[stat.rfind(')').expect("comm") + 2..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: f64 = f[11].parse::<f64>().unwrap() + f[12].parse::<f64>().unwrap();
+    ticks / 100.0
+}
 
 /// Pixels whose primary rays (centre and four inner points) hit an emitter.
 fn emitter_pixels(rs: &RenderScene) -> Vec<bool> {
@@ -49,14 +62,17 @@ fn light_sampling_efficiency() {
         let plan = FramePlan::for_spp(W, H, SPP, 16).unwrap();
         let mut images = Vec::new();
         let mut seconds = 0.0;
+        let mut cpu = 0.0;
         for seed in [1u64, 2] {
             let cfg = RenderConfig {
                 seed,
                 ..RenderConfig::default()
             };
             let t = Instant::now();
+            let c = cpu_seconds();
             let acc = render_frame(&rs, &cfg, &plan, 0, THREADS, |_, _| {});
             seconds += t.elapsed().as_secs_f64();
+            cpu += cpu_seconds() - c;
             images.push(acc.image().mean);
         }
         let (mut sum, mut n) = (0.0f64, 0usize);
@@ -71,11 +87,11 @@ fn light_sampling_efficiency() {
             }
         }
         let var = sum / n as f64;
-        let secs = seconds / 2.0;
+        let (wall, cpu) = (seconds / 2.0, cpu / 2.0);
         println!(
-            "{name}: {W}x{H} {SPP} spp, {THREADS} thread(s): variance {var:.6e} over {} pixels, {secs:.2} s per render, efficiency 1/(var s) {:.4e}",
+            "{name}: {W}x{H} {SPP} spp, {THREADS} thread(s): variance {var:.6e} over {} pixels, {cpu:.2} CPU s ({wall:.2} s wall) per render, efficiency 1/(var CPU s) {:.4e}",
             n / 3,
-            1.0 / (var * secs)
+            1.0 / (var * cpu)
         );
     }
 }

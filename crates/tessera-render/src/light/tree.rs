@@ -272,6 +272,12 @@ struct Node {
     /// Interior: the index of the second child. Leaf: the light's index.
     index: u32,
     leaf: bool,
+    /// Interior nodes whose children have the same bounds but for their power (the two
+    /// triangles of a quad share a box and a normal): the probability of the first
+    /// child, `φ0 / (φ0 + φ1)` at every point, so that no importance is evaluated there.
+    /// (Where both would be zero, a light that cannot contribute is chosen instead of
+    /// none: a wasted shadow ray, not a bias, since the pmf is the same.)
+    fixed_p0: Option<f64>,
 }
 
 /// The light hierarchy over the finite lights of a [`super::LightSet`], and the infinite
@@ -339,6 +345,7 @@ impl LightTree {
                 bounds: it.bounds,
                 index: it.light,
                 leaf: true,
+                fixed_p0: None,
             });
             self.trails[it.light as usize] = trail;
             return it.bounds;
@@ -349,16 +356,19 @@ impl LightTree {
             bounds: items[0].bounds,
             index: 0,
             leaf: false,
+            fixed_p0: None,
         });
         let (left, right) = items.split_at_mut(mid);
         let b0 = self.build_node(left, depth + 1, trail);
         let second = self.nodes.len() as u32;
         let b1 = self.build_node(right, depth + 1, trail | (1u64 << depth));
         let bounds = b0.union(&b1);
+        let same = LightBounds { phi: b1.phi, ..b0 } == b1;
         self.nodes[at] = Node {
             bounds,
             index: second,
             leaf: false,
+            fixed_p0: same.then(|| b0.phi as f64 / (b0.phi as f64 + b1.phi as f64)),
         };
         bounds
     }
@@ -372,6 +382,9 @@ impl LightTree {
     /// neither can light the point.
     #[inline]
     fn child_probability(&self, node: usize, p: Vec3, n: Vec3) -> Option<f64> {
+        if let Some(p0) = self.nodes[node].fixed_p0 {
+            return Some(p0);
+        }
         let i0 = self.nodes[node + 1].bounds.importance(p, n) as f64;
         let i1 = self.nodes[self.nodes[node].index as usize]
             .bounds

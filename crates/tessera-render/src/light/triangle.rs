@@ -11,15 +11,17 @@
 //! triangle subtends from the reference point (as pbrt-v4's `TriangleLight`, Pharr, Jakob &
 //! Humphreys 2023, section 6.5.4):
 //!
-//! - `MIN_SPHERICAL_SOLID_ANGLE <= Ω <= MAX_SPHERICAL_SOLID_ANGLE`: uniformly by solid
+//! - `MIN_SPHERICAL_SOLID_ANGLE <= Ω <= MAX_SPHERICAL_SOLID_ANGLE` (0.1 and 6.22 sr):
+//!   uniformly by solid
 //!   angle, with Arvo's area-preserving parametrization of the spherical triangle (Arvo
 //!   1995, "Stratified Sampling of Spherical Triangles"; Arvo 2001, section 4.3.5, figure
 //!   4.7): `pdf_ω = 1 / Ω`. Near a large emitter this removes the `d² / cos θ_l` factor of
 //!   area sampling, whose variance grows without bound as the point approaches the light.
 //! - otherwise uniformly by area (Arvo 2001, section 4.3.1, triangle warp), converted to
-//!   solid angle: `pdf_ω = d² / (|cos θ_l| A)` (Shirley 2001, chapter 3). Tiny solid angles
-//!   would lose the spherical warp's precision (its angles sum to `π + Ω`), and a triangle
-//!   covering nearly a hemisphere (the point almost on it) makes the warp ill-conditioned.
+//!   solid angle: `pdf_ω = d² / (|cos θ_l| A)` (Shirley 2001, chapter 3). For small solid
+//!   angles it is as good and cheaper (and the warp would lose precision: its angles sum
+//!   to `π + Ω`); a triangle covering nearly a hemisphere (the point almost on it) makes the
+//!   warp ill-conditioned.
 //!
 //! [`TriangleLight::pdf_li`] applies the same rule, so it returns exactly the density
 //! [`TriangleLight::sample_li`] used. The spherical warp runs in f64: it is a handful of
@@ -33,9 +35,13 @@ use crate::sampling::warp::square_to_uniform_triangle;
 use glam::{DVec3, Vec2, Vec3};
 use std::f32::consts::PI;
 
-/// Smallest solid angle (sr) sampled by the spherical-triangle warp (pbrt-v4's threshold):
-/// below it, `α + β + γ - π` suffers cancellation and area sampling is as good.
-pub const MIN_SPHERICAL_SOLID_ANGLE: f64 = 3e-4;
+/// Smallest solid angle (sr) sampled by the spherical-triangle warp. pbrt-v4 uses 3e-4,
+/// where the warp's `α + β + γ - π` starts to cancel; here the warp (~150 ns in f64) is
+/// kept for triangles that subtend enough for the `d² / cos θ_l` variation of area
+/// sampling to matter: on the Cornell box (a 0.02 sr light seen from most points) the warp
+/// with pbrt's threshold cut the noise variance by 3% for 40% more CPU time
+/// (docs/benchmarks.md).
+pub const MIN_SPHERICAL_SOLID_ANGLE: f64 = 0.1;
 /// Largest solid angle (sr) sampled by the spherical-triangle warp (pbrt-v4's threshold,
 /// just under 2π): beyond it the point is almost on the triangle and the warp is
 /// ill-conditioned.
@@ -101,6 +107,25 @@ impl TriangleLight {
     /// directions `a, b, c`; `atan2` keeps the quadrant for `Ω > π`.
     #[inline]
     pub fn spherical_solid_angle(&self, p_ref: Vec3) -> Option<f64> {
+        self.spherical(p_ref).map(|(omega, _)| omega)
+    }
+
+    /// [`TriangleLight::spherical_solid_angle`] with the unit vertex directions.
+    #[inline]
+    fn spherical(&self, p_ref: Vec3) -> Option<(f64, [DVec3; 3])> {
+        // A cheap upper bound first: the triangle lies in the sphere about its centroid
+        // through its farthest vertex, which subtends `2π (1 - cos θ) <= 2π r² / d²`.
+        // Only when even twice that is below the threshold is the exact angle skipped, so
+        // the rule is the exact one.
+        let c = (self.p[0] + self.p[1] + self.p[2]) / 3.0;
+        let r2 = (self.p[0] - c)
+            .length_squared()
+            .max((self.p[1] - c).length_squared())
+            .max((self.p[2] - c).length_squared());
+        let d2 = (c - p_ref).length_squared();
+        if d2 > r2 && 4.0 * PI * r2 < MIN_SPHERICAL_SOLID_ANGLE as f32 * d2 {
+            return None;
+        }
         let o = p_ref.as_dvec3();
         let [a, b, c] = self.p.map(|v| (v.as_dvec3() - o).normalize_or_zero());
         let num = a.dot(b.cross(c)).abs();
@@ -108,12 +133,12 @@ impl TriangleLight {
         let omega = 2.0 * num.atan2(den);
         (omega.is_finite()
             && (MIN_SPHERICAL_SOLID_ANGLE..=MAX_SPHERICAL_SOLID_ANGLE).contains(&omega))
-        .then_some(omega)
+        .then_some((omega, [a, b, c]))
     }
 
     pub(crate) fn sample_li(&self, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
-        match self.spherical_solid_angle(p_ref) {
-            Some(omega) => self.sample_spherical(p_ref, u, omega),
+        match self.spherical(p_ref) {
+            Some((omega, dirs)) => self.sample_spherical(p_ref, u, omega, dirs),
             None => self.sample_area(p_ref, u),
         }
     }
@@ -155,9 +180,14 @@ impl TriangleLight {
     /// `u.x` picks the area `Â = u.x 𝒜` of the sub-triangle `A B Ĉ` (which fixes `Ĉ` on the
     /// arc `AC`), `u.y` a point on the arc `B Ĉ` with `1 - cos` uniform. The direction is
     /// then intersected with the triangle's plane for the light point.
-    fn sample_spherical(&self, p_ref: Vec3, u: Vec2, omega: f64) -> Option<LightSample> {
+    fn sample_spherical(
+        &self,
+        p_ref: Vec3,
+        u: Vec2,
+        omega: f64,
+        [a, b, c]: [DVec3; 3],
+    ) -> Option<LightSample> {
         let o = p_ref.as_dvec3();
-        let [a, b, c] = self.p.map(|v| (v.as_dvec3() - o).normalize());
         // Normals of the great circles through the edges; the internal angle at a vertex is
         // the dihedral angle between the planes of its two edges.
         let n_ab = a.cross(b).normalize_or_zero();
