@@ -16,6 +16,12 @@
 //! Estevez & Kulla 2018); the path tracer's next-event estimation uses it, and weighs
 //! emission found by BSDF sampling against [`LightSet::pmf_at`] of the previous vertex.
 //!
+//! Bidirectional path tracing's light-sampling connections (`s = 1`) draw their points with
+//! [`Light::sample_li`], which for large triangles samples by solid angle, and divide by
+//! that density; their MIS weights use the light-origin area density for every technique
+//! alike, as pbrt-v4 does, so the weights still sum to one and the estimate stays unbiased
+//! (`tests/bdpt.rs` compares bdpt with the path tracer).
+//!
 //! Variants, one file each: [`triangle`] (emissive triangles: area lights), [`sphere`]
 //! (spherical lights, sampled by the cone they subtend), [`punctual`] (point, spot,
 //! directional), [`environment`] (uniform environment). [`emission`] samples rays leaving
