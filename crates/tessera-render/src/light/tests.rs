@@ -1272,3 +1272,43 @@ fn light_tree_zero_pmf_only_for_lights_that_cannot_contribute() {
     let total: f32 = (0..16).map(|i| set.pmf_at(front, Vec3::Z, i)).sum();
     assert!((total - 1.0).abs() < 1e-5);
 }
+
+#[test]
+fn light_tree_quads_share_bounds_and_stay_consistent() {
+    // Quad lights: the two triangles of each share their box and normal, so the tree
+    // stores their split (by power: one triangle is twice as bright). select_at and pmf_at
+    // must still agree bit for bit and sum to one where every quad faces the point.
+    let mut lights = Vec::new();
+    for k in 0..8 {
+        let x = 2.0 * k as f32;
+        let [a, b, c, d] = [
+            Vec3::new(x, 0.0, 3.0),
+            Vec3::new(x + 1.0, 0.0, 3.0),
+            Vec3::new(x + 1.0, 1.0, 3.0),
+            Vec3::new(x, 1.0, 3.0),
+        ];
+        // Clockwise seen from above: both emit downward.
+        for (tri, scale) in [([a, c, b], 1.0), ([a, d, c], 2.0)] {
+            let l = TriangleLight::new(tri, RADIANCE * scale, false).expect("triangle");
+            lights.push(Light::Triangle(l));
+        }
+    }
+    let set = LightSet::new(lights);
+    for p in [Vec3::new(3.0, 0.5, 0.0), Vec3::new(-5.0, 2.0, 1.0)] {
+        let pmf: Vec<f32> = (0..set.lights.len())
+            .map(|i| set.pmf_at(p, Vec3::Z, i))
+            .collect();
+        let total: f64 = pmf.iter().map(|&q| q as f64).sum();
+        assert!((total - 1.0).abs() < 1e-5, "{p}: Σ pmf = {total}");
+        // The brighter triangle of each quad has twice the probability of the other.
+        for q in pmf.chunks(2) {
+            assert!((q[1] / q[0] - 2.0).abs() < 1e-5, "{q:?}");
+        }
+        let m = 1 << 12;
+        for k in 0..m {
+            let u = (k as f32 + 0.5) / m as f32;
+            let (i, q) = set.select_at(u, p, Vec3::Z).expect("the quads face p");
+            assert_eq!(q, pmf[i]);
+        }
+    }
+}
