@@ -192,6 +192,12 @@ impl Bsdf {
         out
     }
 
+    /// True if some lobe transmits light through the surface (it scatters into both
+    /// hemispheres, so light selection must not favour one side).
+    pub fn has_transmission(&self) -> bool {
+        self.lobes[..self.count].iter().any(|l| !l.is_opaque())
+    }
+
     /// True if some lobe is not a delta distribution (so light sampling can help).
     pub fn has_non_delta(&self) -> bool {
         self.lobes[..self.count].iter().any(|l| !l.is_delta())

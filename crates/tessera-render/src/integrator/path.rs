@@ -3,7 +3,8 @@
 //!
 //! The estimator follows the path formulation of the rendering equation (Hanrahan 2001 and Dutré 2001, chapters 7–8,
 //! the Princeton COS 526 path tracing slides). At every non-specular vertex two techniques estimate direct light: sampling
-//! a light (NEE: one light chosen in proportion to power, Shirley 2001, chapter 3) and sampling the
+//! a light (NEE: one light chosen by the light hierarchy in proportion to its estimated
+//! contribution, Conty Estevez & Kulla 2018; Shirley 2001, chapter 3) and sampling the
 //! BSDF and hitting an emitter. Their contributions are combined with the selected MIS
 //! heuristic (Veach & Guibas 1995, section 3), so glossy highlights of small lights and
 //! large lights are both rendered with low variance. After `rr_depth` bounces a path
@@ -59,6 +60,8 @@ pub fn radiance(
     let mut prev_delta = true;
     let mut prev_pdf = 0.0f32;
     let mut prev_p = origin;
+    // The normal light selection used at the previous vertex (zero: none).
+    let mut prev_n = Vec3::ZERO;
     let mut depth = 0u32;
     // Product of η² over the refractions so far (radiance is scaled by 1/η² entering a
     // denser medium): roulette decides on `beta * eta_scale`.
@@ -70,7 +73,7 @@ pub fn radiance(
                 let w = if prev_delta {
                     1.0
                 } else {
-                    let pl = scene.lights.pmf(env_index)
+                    let pl = scene.lights.pmf_at(prev_p, prev_n, env_index)
                         * scene.lights.lights[env_index].pdf_li(
                             prev_p,
                             dir,
@@ -96,7 +99,7 @@ pub fn radiance(
                     1.0
                 } else {
                     let li = sp.light as usize;
-                    let pl = scene.lights.pmf(li)
+                    let pl = scene.lights.pmf_at(prev_p, prev_n, li)
                         * scene.lights.lights[li].pdf_li(prev_p, dir, sp.p, sp.ng);
                     s.mis.weight(prev_pdf, pl)
                 };
@@ -111,11 +114,17 @@ pub fn radiance(
         let frame = Frame::from_normal(sp.ns);
         let wo = frame.to_local(wo_world);
 
-        // 3. Next-event estimation.
+        // 3. Next-event estimation: a light chosen by the light hierarchy for this point.
+        // Transmissive surfaces pass no normal, so that lights behind them count.
+        let n_select = if bsdf.has_transmission() {
+            Vec3::ZERO
+        } else {
+            sp.ns
+        };
         let u_light = sampler.next_1d();
         let u_light2 = sampler.next_2d();
         if bsdf.has_non_delta() {
-            if let Some((li, pmf)) = scene.lights.select(u_light) {
+            if let Some((li, pmf)) = scene.lights.select_at(u_light, sp.p, n_select) {
                 if let Some(ls) = scene.sample_li(li, sp.p, u_light2) {
                     let wi = frame.to_local(ls.wi);
                     // Reject light arriving through the geometric surface (shading-normal leak).
@@ -172,6 +181,7 @@ pub fn radiance(
         prev_delta = bs.delta;
         prev_pdf = bs.pdf;
         prev_p = sp.p;
+        prev_n = n_select;
         origin = offset_ray_origin(sp.p, sp.p_error, sp.ng, wi_world);
         dir = wi_world;
         depth += 1;

@@ -8,8 +8,19 @@
 //! a robust shadow ray. [`Light::pdf_li`] gives the same density for a direction found by
 //! BSDF sampling, for multiple importance sampling (Veach & Guibas 1995).
 //!
-//! [`LightSet`] chooses one light per sample with probability proportional to its emitted
-//! power (luminance), Shirley 2001, chapter 3 ("many lights").
+//! [`LightSet`] chooses one light per sample in two ways. [`LightSet::select`]: with
+//! probability proportional to its emitted power (luminance), Shirley 2001, chapter 3
+//! ("many lights"); bidirectional path tracing starts light subpaths with it, which have no
+//! reference point. [`LightSet::select_at`]: by the light hierarchy of [`tree`], in
+//! proportion to an estimate of each light's contribution to a reference point (Conty
+//! Estevez & Kulla 2018); the path tracer's next-event estimation uses it, and weighs
+//! emission found by BSDF sampling against [`LightSet::pmf_at`] of the previous vertex.
+//!
+//! Bidirectional path tracing's light-sampling connections (`s = 1`) draw their points with
+//! [`Light::sample_li`], which for large triangles samples by solid angle, and divide by
+//! that density; their MIS weights use the light-origin area density for every technique
+//! alike, as pbrt-v4 does, so the weights still sum to one and the estimate stays unbiased
+//! (`tests/bdpt.rs` compares bdpt with the path tracer).
 //!
 //! Variants, one file each: [`triangle`] (emissive triangles: area lights), [`sphere`]
 //! (spherical lights, sampled by the cone they subtend), [`punctual`] (point, spot,
@@ -20,6 +31,7 @@ pub mod emission;
 pub mod environment;
 pub mod punctual;
 pub mod sphere;
+pub mod tree;
 pub mod triangle;
 
 use crate::math::luminance;
@@ -100,7 +112,8 @@ impl Light {
     }
 }
 
-/// All lights of a scene with a power-proportional selection distribution.
+/// All lights of a scene with a power-proportional selection distribution and a light
+/// hierarchy for selection from a reference point.
 #[derive(Clone, Debug, Default)]
 pub struct LightSet {
     /// The lights.
@@ -109,11 +122,23 @@ pub struct LightSet {
     pmf: Vec<f32>,
     /// Index of the environment light, if any.
     pub environment: Option<u32>,
+    /// The light hierarchy; `None` selects by power from every reference point.
+    tree: Option<tree::LightTree>,
 }
 
 impl LightSet {
-    /// Builds the selection distribution. Lights with zero power are never selected.
+    /// Builds the selection distributions: by power, and the light hierarchy. Lights with
+    /// zero power are never selected.
     pub fn new(lights: Vec<Light>) -> Self {
+        let mut set = Self::with_power_selection(lights);
+        set.tree = Some(tree::LightTree::build(&set.lights, &set.pmf));
+        set
+    }
+
+    /// A set without the light hierarchy: [`LightSet::select_at`] and
+    /// [`LightSet::pmf_at`] are [`LightSet::select`] and [`LightSet::pmf`] at every
+    /// reference point. For comparisons (the tree must not change the expected image).
+    pub fn with_power_selection(lights: Vec<Light>) -> Self {
         let powers: Vec<f64> = lights.iter().map(|l| l.power().max(0.0) as f64).collect();
         let total: f64 = powers.iter().sum();
         let mut cdf = Vec::with_capacity(lights.len());
@@ -137,6 +162,7 @@ impl LightSet {
             cdf,
             pmf,
             environment,
+            tree: None,
         }
     }
 
@@ -166,6 +192,27 @@ impl LightSet {
     #[inline]
     pub fn pmf(&self, index: usize) -> f32 {
         self.pmf.get(index).copied().unwrap_or(0.0)
+    }
+
+    /// Picks a light for the reference point `p` with normal `n` (`Vec3::ZERO` when the
+    /// surface transmits, so that lights on both sides count): (index, probability), by the
+    /// light hierarchy. `None` when no light can contribute there.
+    #[inline]
+    pub fn select_at(&self, u: f32, p: Vec3, n: Vec3) -> Option<(usize, f32)> {
+        match &self.tree {
+            Some(t) => t.select(u, p, n),
+            None => self.select(u),
+        }
+    }
+
+    /// The probability with which [`LightSet::select_at`] picks light `index` from `(p, n)`:
+    /// exactly the probability it reports, `O(depth)`.
+    #[inline]
+    pub fn pmf_at(&self, p: Vec3, n: Vec3, index: usize) -> f32 {
+        match &self.tree {
+            Some(t) => t.pmf(p, n, index),
+            None => self.pmf(index),
+        }
     }
 }
 

@@ -52,7 +52,7 @@ struct TrianglePoint {
     two_sided: bool,
 }
 
-fn triangle_points() -> [TrianglePoint; 3] {
+fn triangle_points() -> [TrianglePoint; 5] {
     [
         // 0.7 below the triangle: it subtends a large solid angle.
         TrianglePoint {
@@ -75,6 +75,20 @@ fn triangle_points() -> [TrianglePoint; 3] {
             p: Vec3::new(0.2, 0.1, 1.8),
             n: Vec3::new(0.1, 0.0, -1.0).normalize(),
             two_sided: true,
+        },
+        // 0.15 below the triangle: ~4.5 sr, close to the spherical warp's upper limit.
+        TrianglePoint {
+            name: "very near",
+            p: Vec3::new(0.1, 0.0, 0.85),
+            n: Vec3::new(0.0, 0.0, 1.0),
+            two_sided: false,
+        },
+        // 88 below: ~2.6e-4 sr, far under the spherical warp's lower limit: area sampling.
+        TrianglePoint {
+            name: "far",
+            p: Vec3::new(0.1, 0.0, -88.0),
+            n: Vec3::new(0.0, 0.0, 1.0),
+            two_sided: false,
         },
     ]
 }
@@ -361,24 +375,25 @@ fn chi2_rejects_mismatched_light_pdfs() {
         1.0 - 2.0 * h,
         |w| sphere_cone_pdf(&sphere, p_ref, w, h, 0.1),
     ));
-    // Triangle area samples against the pdf of uniform *solid angle* sampling (constant
-    // over the triangle's solid angle): the d² / cos factor matters.
+    // Triangle samples by solid angle (the near point is inside the spherical warp's
+    // range) against the density of *area* sampling: the d² / cos factor matters.
     let tp = &triangle_points()[0];
     let light = triangle(false);
-    let omega = triangle_solid_angle(tp.p.as_dvec3(), &light.p);
+    assert!(light.spherical_solid_angle(tp.p).is_some());
     reject(chi2_light(
-        "control triangle uniform solid angle",
+        "control triangle area density",
         &cfg,
         &Light::Triangle(light),
         tp.p,
         Vec3::Z,
         -1.0,
-        |w| {
-            if triangle_pdf(&light, tp.p, w) > 0.0 {
-                (1.0 / omega) as f32
-            } else {
-                0.0
+        |w| match hit_triangle(tp.p.as_dvec3(), w.as_dvec3().normalize(), &light.p) {
+            Some(hit) => {
+                let d = hit - tp.p.as_dvec3();
+                let cos = light.n.as_dvec3().dot(d.normalize()).abs();
+                (d.length_squared() / (cos * light.area as f64)) as f32
             }
+            None => 0.0,
         },
     ));
 }
@@ -857,6 +872,443 @@ fn spot_falloff_is_the_gltf_ramp() {
                 assert!(s.delta && s.pdf == 1.0);
             }
             None => assert_eq!(fall, 0.0, "{deg}°"),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Spherical triangle sampling (Arvo 1995)
+// ---------------------------------------------------------------------------------------
+
+/// Barycentric coordinates (b1, b2) of `x` in the triangle, in f64, and its distance to the
+/// triangle's plane.
+fn barycentric(x: DVec3, p: &[Vec3; 3]) -> (f64, f64, f64) {
+    let [p0, p1, p2] = p.map(|v| v.as_dvec3());
+    let (e1, e2) = (p1 - p0, p2 - p0);
+    let n = e1.cross(e2);
+    let d = x - p0;
+    let plane = d.dot(n) / n.length();
+    let b1 = d.cross(e2).dot(n) / n.length_squared();
+    let b2 = e1.cross(d).dot(n) / n.length_squared();
+    (b1, b2, plane)
+}
+
+#[test]
+fn spherical_triangle_rule_is_shared_by_sample_and_pdf() {
+    // Inside [0.1, 6.22] sr the density is 1 / Ω, Ω by the f64 solid angle of the test;
+    // outside it is the area density. pdf_li must follow the same rule as sample_li.
+    let light = triangle(false);
+    let l = Light::Triangle(light);
+    let mut rng = SplitMix64::new(0x5a7);
+    for (p, spherical) in [
+        (Vec3::new(0.1, 0.0, 0.3), true),
+        // 0.012 sr: below the threshold (pbrt-v4's 3e-4 would sample it spherically).
+        (Vec3::new(4.0, 0.5, 0.6), false),
+        // About 0.2 sr, just above it.
+        (Vec3::new(0.1, 0.0, -2.2), true),
+        (Vec3::new(0.1, 0.0, 0.85), true),
+        (Vec3::new(0.1, 0.0, -88.0), false),
+        // Almost on the triangle: more than 6.22 sr.
+        (Vec3::new(0.1, 0.0, 0.999), false),
+    ] {
+        let omega = triangle_solid_angle(p.as_dvec3(), &light.p);
+        assert_eq!(
+            light.spherical_solid_angle(p).is_some(),
+            spherical,
+            "{p}: Ω {omega}"
+        );
+        for _ in 0..1000 {
+            let u = Vec2::new(rng.next_f32(), rng.next_f32());
+            let Some(s) = l.sample_li(p, u) else {
+                continue;
+            };
+            let pdf = l.pdf_li(p, s.wi, s.p, s.n);
+            assert!(s.pdf.is_finite() && s.pdf > 0.0);
+            if spherical {
+                // Exactly: the same rule and the same solid angle.
+                assert_eq!(s.pdf, pdf, "{p}");
+                assert!(
+                    ((s.pdf as f64) * omega - 1.0).abs() < 1e-5,
+                    "{p}: {}",
+                    s.pdf
+                );
+            } else {
+                let d = (s.p - p).as_dvec3();
+                let cos = light.n.as_dvec3().dot(d.normalize()).abs();
+                let area_pdf = d.length_squared() / (cos * light.area as f64);
+                assert!(((s.pdf as f64) / area_pdf - 1.0).abs() < 1e-3, "{p}");
+                // pdf_li recomputes d² / cos from the point: equal to rounding.
+                assert!((s.pdf - pdf).abs() <= 1e-4 * pdf, "{p}: {} vs {pdf}", s.pdf);
+            }
+        }
+    }
+    // Degenerate configurations never give NaN: on the triangle's plane (Ω = 0), at a
+    // vertex, at its centroid.
+    let c = (light.p[0] + light.p[1] + light.p[2]) / 3.0;
+    let in_plane = light.p[0] + 2.0 * (light.p[1] - light.p[0]);
+    for p in [in_plane, light.p[0], c] {
+        assert!(light.spherical_solid_angle(p).is_none(), "{p}");
+        for k in 0..100 {
+            let u = Vec2::new((k as f32 + 0.5) / 100.0, 0.37);
+            if let Some(s) = l.sample_li(p, u) {
+                assert!(s.pdf.is_finite() && s.wi.is_finite() && s.p.is_finite());
+            }
+        }
+    }
+}
+
+#[test]
+fn spherical_triangle_samples_lie_on_the_triangle() {
+    let mut rng = SplitMix64::new(0x0a7e);
+    for tp in triangle_points() {
+        let light = triangle(tp.two_sided);
+        if light.spherical_solid_angle(tp.p).is_none() {
+            continue;
+        }
+        let l = Light::Triangle(light);
+        let scale = tp.p.distance(light.p[0]) as f64;
+        for _ in 0..20_000 {
+            let u = Vec2::new(rng.next_f32(), rng.next_f32());
+            let s = l.sample_li(tp.p, u).expect("the front is seen");
+            let (b1, b2, plane) = barycentric(s.p.as_dvec3(), &light.p);
+            assert!(
+                plane.abs() < 1e-5 * scale.max(1.0),
+                "{}: off the plane by {plane}",
+                tp.name
+            );
+            assert!(
+                b1 >= -1e-5 && b2 >= -1e-5 && b1 + b2 <= 1.0 + 1e-5,
+                "{}: outside ({b1}, {b2})",
+                tp.name
+            );
+            let along = (s.p - tp.p).normalize();
+            assert!((along - s.wi).length() < 1e-5);
+        }
+        // The samples cover the triangle: all three corner regions are reached.
+        let mut corners = [0usize; 3];
+        for _ in 0..20_000 {
+            let u = Vec2::new(rng.next_f32(), rng.next_f32());
+            let s = l.sample_li(tp.p, u).expect("the front is seen");
+            let (b1, b2, _) = barycentric(s.p.as_dvec3(), &light.p);
+            let b = [1.0 - b1 - b2, b1, b2];
+            for (k, &bk) in b.iter().enumerate() {
+                if bk > 0.8 {
+                    corners[k] += 1;
+                }
+            }
+        }
+        assert!(corners.iter().all(|&c| c > 0), "{}: {corners:?}", tp.name);
+    }
+}
+
+#[test]
+fn spherical_triangle_pdf_integrates_to_one() {
+    // Midpoint quadrature of pdf_li over a cap about the direction to the centroid that
+    // holds the triangle, in (cos θ, φ) cells of equal solid angle: ∫ pdf dω = 1.
+    for tp in triangle_points() {
+        let light = triangle(tp.two_sided);
+        if light.spherical_solid_angle(tp.p).is_none() {
+            continue;
+        }
+        let c = (light.p[0] + light.p[1] + light.p[2]) / 3.0;
+        let axis = (c - tp.p).normalize();
+        let frame = Frame::from_normal(axis);
+        let min_cos = light
+            .p
+            .iter()
+            .map(|v| axis.dot((*v - tp.p).normalize()) as f64)
+            .fold(1.0, f64::min);
+        // A cap a little wider than the vertices (a cap over 90° is the whole sphere).
+        let z0 = if min_cos > 0.05 {
+            1.0 - 1.2 * (1.0 - min_cos)
+        } else {
+            -1.0
+        };
+        let (nz, nphi) = (2000usize, 2000usize);
+        let cell = (1.0 - z0) * 2.0 * PI / (nz * nphi) as f64;
+        let mut integral = 0.0f64;
+        for i in 0..nz {
+            let z = z0 + (1.0 - z0) * (i as f64 + 0.5) / nz as f64;
+            let r = (1.0 - z * z).sqrt();
+            for j in 0..nphi {
+                let phi = 2.0 * PI * (j as f64 + 0.5) / nphi as f64;
+                let local = DVec3::new(r * phi.cos(), r * phi.sin(), z);
+                let w = frame.to_world(local.as_vec3());
+                integral += triangle_pdf(&light, tp.p, w) as f64 * cell;
+            }
+        }
+        eprintln!("triangle {}: ∫ pdf_li dω = {integral:.5}", tp.name);
+        assert!((integral - 1.0).abs() < 3e-3, "{}: {integral}", tp.name);
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Light hierarchy
+// ---------------------------------------------------------------------------------------
+
+/// Many lights: 300 small triangles scattered in a 10 m box with random orientations
+/// (a third two-sided, a few black), three spheres, a point and a spot light and an
+/// environment. Returned with the reference points (position, normal) to test from.
+fn many_lights() -> (Vec<Light>, Vec<(Vec3, Vec3)>) {
+    let mut rng = SplitMix64::new(0x11a7_7ee5);
+    let mut r = || rng.next_f32();
+    let mut lights = Vec::new();
+    for k in 0..300 {
+        let c = Vec3::new(10.0 * r() - 5.0, 10.0 * r() - 5.0, 10.0 * r() - 5.0);
+        let size = 0.05 + 0.4 * r();
+        let p = [0, 1, 2].map(|_| c + size * Vec3::new(r() - 0.5, r() - 0.5, r() - 0.5));
+        let radiance = if k % 37 == 5 {
+            Vec3::ZERO
+        } else {
+            Vec3::new(r(), r(), r()) * 5.0
+        };
+        if let Some(t) = TriangleLight::new(p, radiance, k % 3 == 0) {
+            lights.push(Light::Triangle(t));
+        }
+    }
+    lights.push(Light::Sphere(SphereLight {
+        center: Vec3::new(1.0, 2.0, 3.0),
+        radius: 0.5,
+        radiance: Vec3::splat(3.0),
+    }));
+    lights.push(Light::Sphere(SphereLight {
+        center: Vec3::new(-4.0, 0.0, 1.0),
+        radius: 0.1,
+        radiance: Vec3::splat(40.0),
+    }));
+    lights.push(Light::Sphere(SphereLight {
+        center: Vec3::new(0.0, -3.0, -3.0),
+        radius: 1.0,
+        radiance: Vec3::ZERO,
+    }));
+    lights.push(Light::Punctual(Punctual::Point {
+        position: Vec3::new(2.0, -2.0, 0.0),
+        intensity: Vec3::splat(2.0),
+    }));
+    lights.push(Light::Punctual(Punctual::Spot {
+        position: Vec3::new(-2.0, 3.0, 0.0),
+        axis: Vec3::new(0.0, -1.0, 0.0),
+        intensity: Vec3::splat(5.0),
+        cos_inner: 0.9,
+        cos_outer: 0.8,
+    }));
+    lights.push(Light::Environment(Environment {
+        radiance: Vec3::splat(0.02),
+        scene_radius: 9.0,
+    }));
+    let points = vec![
+        (Vec3::ZERO, Vec3::Z),
+        (
+            Vec3::new(4.0, -4.0, 4.5),
+            Vec3::new(-1.0, 1.0, -1.0).normalize(),
+        ),
+        // No normal (a transmissive surface): lights on both sides count.
+        (Vec3::new(-1.0, 2.0, -0.5), Vec3::ZERO),
+        // Far outside the lights.
+        (Vec3::new(30.0, 0.0, 0.0), Vec3::X),
+        // On a light's plane, inside the cloud.
+        (Vec3::new(0.5, 0.5, 0.0), Vec3::new(0.0, 1.0, 0.0)),
+    ];
+    (lights, points)
+}
+
+#[test]
+fn light_tree_pmf_matches_select_and_sums_to_one() {
+    let (lights, points) = many_lights();
+    let set = LightSet::new(lights.clone());
+    // The tree is a pure function of the lights.
+    let again = LightSet::new(lights);
+    for &(p, n) in &points {
+        let pmf: Vec<f32> = (0..set.lights.len()).map(|i| set.pmf_at(p, n, i)).collect();
+        let again_pmf: Vec<f32> = (0..set.lights.len())
+            .map(|i| again.pmf_at(p, n, i))
+            .collect();
+        assert_eq!(pmf, again_pmf);
+        for (i, &q) in pmf.iter().enumerate() {
+            assert!(q >= 0.0 && q.is_finite());
+            if set.lights[i].power() <= 0.0 {
+                assert_eq!(q, 0.0, "dark light {i}");
+            }
+        }
+        // Every u on a grid: the reported probability is pmf_at's, bit for bit.
+        let m = 1 << 14;
+        let mut none = 0usize;
+        for k in 0..m {
+            let u = (k as f32 + 0.5) / m as f32;
+            match set.select_at(u, p, n) {
+                Some((i, q)) => {
+                    assert_eq!(q, pmf[i], "{p}: light {i} at u = {u}");
+                    assert!(q > 0.0);
+                }
+                None => none += 1,
+            }
+        }
+        // The pmfs sum to one minus the probability of no sample: the traversal reaching
+        // a node whose children both have zero importance (the node's merged cone is wider
+        // than its children's). That loss must be small.
+        let total: f64 = pmf.iter().map(|&q| q as f64).sum();
+        let sampled = 1.0 - none as f64 / m as f64;
+        assert!(
+            (total - sampled).abs() <= 2.0 / m as f64 + 1e-5,
+            "{p}: Σ pmf = {total}, sampled fraction {sampled}"
+        );
+        assert!(total > 0.99 && total <= 1.0 + 1e-5, "{p}: Σ pmf = {total}");
+        eprintln!("light tree from {p}: Σ pmf = {total:.6}");
+        for u in [0.0, 1.0 - f32::EPSILON / 2.0] {
+            if let Some((i, q)) = set.select_at(u, p, n) {
+                assert_eq!(q, pmf[i]);
+            }
+        }
+    }
+    // Infinite lights keep their global probability; out-of-range indices have none.
+    let env = set.environment.expect("environment") as usize;
+    assert_eq!(set.pmf_at(Vec3::ZERO, Vec3::Z, env), set.pmf(env));
+    assert_eq!(set.pmf_at(Vec3::ZERO, Vec3::Z, 10_000), 0.0);
+}
+
+#[test]
+fn light_tree_selection_matches_pmf_chi2() {
+    // Pearson's chi-squared of selection counts against pmf_at per reference point, cells
+    // with fewer than 5 expected pooled, Šidák-corrected over the points at 1%.
+    let (lights, points) = many_lights();
+    let set = LightSet::new(lights);
+    let cfg = Chi2Config::new(points.len());
+    let threshold = cfg.single_test_significance();
+    let n = 400_000usize;
+    for (k, &(p, nrm)) in points.iter().enumerate() {
+        let mut rng = SplitMix64::new(0x7ee_c412 + k as u64);
+        let mut counts = vec![0u64; set.lights.len()];
+        for _ in 0..n {
+            if let Some((i, _)) = set.select_at(rng.next_f32(), p, nrm) {
+                counts[i] += 1;
+            }
+        }
+        let (mut stat, mut cells) = (0.0, 0usize);
+        let (mut pooled_e, mut pooled_o) = (0.0, 0.0);
+        for (i, &c) in counts.iter().enumerate() {
+            let e = set.pmf_at(p, nrm, i) as f64 * n as f64;
+            if e == 0.0 {
+                assert_eq!(c, 0, "light {i} of zero pmf picked from {p}");
+            } else if e < 5.0 {
+                pooled_e += e;
+                pooled_o += c as f64;
+            } else {
+                stat += (c as f64 - e).powi(2) / e;
+                cells += 1;
+            }
+        }
+        if pooled_e > 0.0 {
+            stat += (pooled_o - pooled_e).powi(2) / pooled_e;
+            cells += 1;
+        }
+        let p_value = chi2_survival(stat, cells - 1);
+        eprintln!(
+            "light tree from {p}: chi2 {stat:.1}, dof {}, p {p_value:.3}",
+            cells - 1
+        );
+        assert!(
+            p_value > threshold,
+            "from {p}: p = {p_value} (threshold {threshold})"
+        );
+    }
+}
+
+#[test]
+fn light_tree_zero_pmf_only_for_lights_that_cannot_contribute() {
+    // A light the tree never picks from (p, n) must give no light there: every sample of
+    // it is invalid or arrives at grazing/back-facing angles of the receiver... or is from
+    // a light that faces away. Checked by sampling each such light.
+    let (lights, points) = many_lights();
+    let set = LightSet::new(lights);
+    let mut rng = SplitMix64::new(0x2e10);
+    let mut zero = 0;
+    for &(p, n) in &points {
+        for (i, l) in set.lights.iter().enumerate() {
+            if set.pmf_at(p, n, i) > 0.0 || l.power() <= 0.0 {
+                continue;
+            }
+            zero += 1;
+            for _ in 0..64 {
+                let u = Vec2::new(rng.next_f32(), rng.next_f32());
+                if let Some(s) = l.sample_li(p, u) {
+                    let cos = if n == Vec3::ZERO {
+                        1.0
+                    } else {
+                        n.dot(s.wi).abs()
+                    };
+                    assert!(
+                        s.li == Vec3::ZERO || cos <= 1e-6,
+                        "light {i} has pmf 0 at {p} but gives {:?}",
+                        s.li
+                    );
+                }
+            }
+        }
+    }
+    assert!(zero > 0, "the scene must have back-facing lights");
+    // Behind every one-sided light of a wall facing +z: no sample at all.
+    let wall: Vec<Light> = (0..16)
+        .map(|k| {
+            let x = k as f32;
+            Light::Triangle(
+                TriangleLight::new(
+                    [
+                        Vec3::new(x, 0.0, 0.0),
+                        Vec3::new(x + 1.0, 0.0, 0.0),
+                        Vec3::new(x, 1.0, 0.0),
+                    ],
+                    RADIANCE,
+                    false,
+                )
+                .expect("triangle"),
+            )
+        })
+        .collect();
+    let set = LightSet::new(wall);
+    let behind = Vec3::new(8.0, 0.5, -2.0);
+    assert!(set.select_at(0.3, behind, Vec3::Z).is_none());
+    assert!((0..16).all(|i| set.pmf_at(behind, Vec3::Z, i) == 0.0));
+    let front = Vec3::new(8.0, 0.5, 2.0);
+    let total: f32 = (0..16).map(|i| set.pmf_at(front, Vec3::Z, i)).sum();
+    assert!((total - 1.0).abs() < 1e-5);
+}
+
+#[test]
+fn light_tree_quads_share_bounds_and_stay_consistent() {
+    // Quad lights: the two triangles of each share their box and normal, so the tree
+    // stores their split (by power: one triangle is twice as bright). select_at and pmf_at
+    // must still agree bit for bit and sum to one where every quad faces the point.
+    let mut lights = Vec::new();
+    for k in 0..8 {
+        let x = 2.0 * k as f32;
+        let [a, b, c, d] = [
+            Vec3::new(x, 0.0, 3.0),
+            Vec3::new(x + 1.0, 0.0, 3.0),
+            Vec3::new(x + 1.0, 1.0, 3.0),
+            Vec3::new(x, 1.0, 3.0),
+        ];
+        // Clockwise seen from above: both emit downward.
+        for (tri, scale) in [([a, c, b], 1.0), ([a, d, c], 2.0)] {
+            let l = TriangleLight::new(tri, RADIANCE * scale, false).expect("triangle");
+            lights.push(Light::Triangle(l));
+        }
+    }
+    let set = LightSet::new(lights);
+    for p in [Vec3::new(3.0, 0.5, 0.0), Vec3::new(-5.0, 2.0, 1.0)] {
+        let pmf: Vec<f32> = (0..set.lights.len())
+            .map(|i| set.pmf_at(p, Vec3::Z, i))
+            .collect();
+        let total: f64 = pmf.iter().map(|&q| q as f64).sum();
+        assert!((total - 1.0).abs() < 1e-5, "{p}: Σ pmf = {total}");
+        // The brighter triangle of each quad has twice the probability of the other.
+        for q in pmf.chunks(2) {
+            assert!((q[1] / q[0] - 2.0).abs() < 1e-5, "{q:?}");
+        }
+        let m = 1 << 12;
+        for k in 0..m {
+            let u = (k as f32 + 0.5) / m as f32;
+            let (i, q) = set.select_at(u, p, Vec3::Z).expect("the quads face p");
+            assert_eq!(q, pmf[i]);
         }
     }
 }
