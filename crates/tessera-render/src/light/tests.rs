@@ -895,17 +895,18 @@ fn barycentric(x: DVec3, p: &[Vec3; 3]) -> (f64, f64, f64) {
 
 #[test]
 fn spherical_triangle_rule_is_shared_by_sample_and_pdf() {
-    // Inside [0.1, 6.22] sr the density is 1 / Ω, Ω by the f64 solid angle of the test;
-    // outside it is the area density. pdf_li must follow the same rule as sample_li.
+    // Inside [MIN, MAX] = [2, 6.22] sr the density is 1 / Ω, Ω by the f64 solid angle of
+    // the test; outside it is the area density. pdf_li must follow the same rule as
+    // sample_li.
     let light = triangle(false);
     let l = Light::Triangle(light);
     let mut rng = SplitMix64::new(0x5a7);
     for (p, spherical) in [
         (Vec3::new(0.1, 0.0, 0.3), true),
-        // 0.012 sr: below the threshold (pbrt-v4's 3e-4 would sample it spherically).
+        // 0.012 sr: far below the threshold (pbrt-v4's 3e-4 would sample it spherically).
         (Vec3::new(4.0, 0.5, 0.6), false),
-        // About 0.2 sr, just above it.
-        (Vec3::new(0.1, 0.0, -2.2), true),
+        // About 0.2 sr: area sampling.
+        (Vec3::new(0.1, 0.0, -2.2), false),
         (Vec3::new(0.1, 0.0, 0.85), true),
         (Vec3::new(0.1, 0.0, -88.0), false),
         // Almost on the triangle: more than 6.22 sr.

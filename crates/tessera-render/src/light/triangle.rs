@@ -11,7 +11,7 @@
 //! triangle subtends from the reference point (as pbrt-v4's `TriangleLight`, Pharr, Jakob &
 //! Humphreys 2023, section 6.5.4):
 //!
-//! - `MIN_SPHERICAL_SOLID_ANGLE <= Ω <= MAX_SPHERICAL_SOLID_ANGLE` (0.1 and 6.22 sr):
+//! - `MIN_SPHERICAL_SOLID_ANGLE <= Ω <= MAX_SPHERICAL_SOLID_ANGLE` (2 and 6.22 sr):
 //!   uniformly by solid
 //!   angle, with Arvo's area-preserving parametrization of the spherical triangle (Arvo
 //!   1995, "Stratified Sampling of Spherical Triangles"; Arvo 2001, section 4.3.5, figure
@@ -38,10 +38,13 @@ use std::f32::consts::PI;
 /// Smallest solid angle (sr) sampled by the spherical-triangle warp. pbrt-v4 uses 3e-4,
 /// where the warp's `α + β + γ - π` starts to cancel; here the warp (~150 ns in f64) is
 /// kept for triangles that subtend enough for the `d² / cos θ_l` variation of area
-/// sampling to matter: on the Cornell box (a 0.02 sr light seen from most points) the warp
-/// with pbrt's threshold cut the noise variance by 3% for 40% more CPU time
-/// (docs/benchmarks.md).
-pub const MIN_SPHERICAL_SOLID_ANGLE: f64 = 0.1;
+/// sampling to matter. Measured on the Cornell box (a 0.02 sr light seen from most
+/// points; docs/benchmarks.md): pbrt's threshold cut the noise variance by 3% for 40% more
+/// CPU time; 0.1 sr by 0.8% for 6.5% more instructions; from 0.5 sr up the noise equals
+/// area sampling's, and at 2 sr the warp costs 0.5% more instructions than none. So it is
+/// left to the points very close to a large emitter, where area sampling's variance grows
+/// without bound.
+pub const MIN_SPHERICAL_SOLID_ANGLE: f64 = 2.0;
 /// Largest solid angle (sr) sampled by the spherical-triangle warp (pbrt-v4's threshold,
 /// just under 2π): beyond it the point is almost on the triangle and the warp is
 /// ill-conditioned.
