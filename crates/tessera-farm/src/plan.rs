@@ -193,7 +193,7 @@ impl FramePlan {
     ///
     /// The samples per pass `S` is the largest power of two not above `max(1, N / 4)`
     /// (integer division), capped at 64; the pass count is `K = ceil(N / S)`. So:
-    /// - for `N >= 4` there are at least 4 passes (between 4 and 7 until the cap is reached,
+    /// - for `N >= 4` there are at least 4 passes (between 4 and 8 until the cap is reached,
     ///   at `N = 256`; more beyond it): the variance of the mean is estimated from the spread
     ///   between passes and needs at least 2 of them;
     /// - for `N < 4` every pass is a single sample (`S = 1`, `K = N`);
@@ -509,6 +509,25 @@ mod tests {
             );
             if n >= TARGET_MIN_PASSES {
                 assert!(p.passes >= TARGET_MIN_PASSES, "N = {n}");
+            }
+        }
+        // The rule's bounds for every N up to well past the cap: S a power of two, at most
+        // 64; 4 to 8 passes until S reaches the cap; overshoot below one pass.
+        for n in 1..=5000 {
+            let p = FramePlan::for_spp(32, 32, n, 16).unwrap();
+            let (s, k) = (p.samples_per_pass, p.passes);
+            assert!(
+                s.is_power_of_two() && s <= MAX_AUTO_SAMPLES_PER_PASS,
+                "N = {n}"
+            );
+            assert!(p.spp() >= n && p.spp() - n < s, "N = {n}");
+            if n >= TARGET_MIN_PASSES {
+                assert!(k >= TARGET_MIN_PASSES, "N = {n}");
+            } else {
+                assert_eq!((s, k), (1, n), "N = {n}");
+            }
+            if s < MAX_AUTO_SAMPLES_PER_PASS {
+                assert!(k <= 2 * TARGET_MIN_PASSES, "N = {n}: {k} passes");
             }
         }
         assert!(matches!(
