@@ -33,7 +33,7 @@ fn one_and_three_workers_give_the_local_image_byte_for_byte() {
         assert_eq!(done.passes_done, done.passes_planned);
         let exr = client.image(st.id, "exr").unwrap();
         images.push(exr);
-        // Every worker took part when there are three (the plan has 2 x 2 tiles x 8 passes).
+        // Every worker took part when there are three (the plan has 2 x 2 tiles x 4 passes).
         let w = client.workers().unwrap();
         assert_eq!(w.workers.len(), workers);
     }

@@ -201,23 +201,30 @@ impl AdaptiveSettings {
     }
 }
 
+/// Cap on the samples per pass of [`adaptive_plan`]. Smaller than
+/// [`MAX_AUTO_SAMPLES_PER_PASS`](crate::plan::MAX_AUTO_SAMPLES_PER_PASS): adaptive
+/// decisions need many short passes more than each pass needs a large net (the trade-off
+/// is in `docs/benchmarks.md`, "Sampling structure"; adaptive plans were not changed).
+pub const ADAPTIVE_MAX_SAMPLES_PER_PASS: u32 = 16;
+
 /// A plan for an adaptive render with at most `spp` samples per pixel: like
 /// [`FramePlan::for_spp`] but aiming for at least 32 passes (samples per pass the largest
-/// power of two not above `max(1, spp / 32)`, capped at 16), because adaptive decisions are
-/// taken between passes and the unbiased pilot alone takes 8 of them.
+/// power of two not above `max(1, spp / 32)`, capped at [`ADAPTIVE_MAX_SAMPLES_PER_PASS`]),
+/// because adaptive decisions are taken between passes and the unbiased pilot alone takes
+/// 8 of them.
 pub fn adaptive_plan(
     width: u32,
     height: u32,
     spp: u32,
     tile_size: u32,
 ) -> Result<FramePlan, PlanError> {
-    let max = crate::plan::MAX_AUTO_SAMPLES_PER_PASS * crate::plan::MAX_PASSES;
+    let max = ADAPTIVE_MAX_SAMPLES_PER_PASS * crate::plan::MAX_PASSES;
     if spp == 0 || spp > max {
         return Err(PlanError::Spp { spp, max });
     }
     let target = (spp / 32).max(1);
     let pow2 = 1u32 << (31 - target.leading_zeros());
-    let s = pow2.min(crate::plan::MAX_AUTO_SAMPLES_PER_PASS);
+    let s = pow2.min(ADAPTIVE_MAX_SAMPLES_PER_PASS);
     FramePlan::new(width, height, tile_size, s, spp.div_ceil(s))
 }
 

@@ -34,9 +34,9 @@
 //! ```
 //! use tessera_farm::{FrameAccumulator, FramePlan, Offer, UnitResult};
 //!
-//! // 40x30 pixels, 16-pixel tiles, 64 spp: 8 passes of 8 samples.
+//! // 40x30 pixels, 16-pixel tiles, 64 spp: 4 passes of 16 samples.
 //! let plan = FramePlan::for_spp(40, 30, 64, 16)?;
-//! assert_eq!((plan.samples_per_pass, plan.passes, plan.tile_count()), (8, 8, 6));
+//! assert_eq!((plan.samples_per_pass, plan.passes, plan.tile_count()), (16, 4, 6));
 //!
 //! let mut frame = FrameAccumulator::new(plan);
 //! // Two passes per unit; results may arrive in any order.
@@ -60,7 +60,8 @@
 //! assert!(frame.complete());
 //! let image = frame.image();
 //! assert_eq!(image.samples[0], 64);
-//! assert!((image.mean[0][0] - 0.535).abs() < 1e-6);
+//! // The mean of passes 0..4: 0.5 + (0 + 1 + 2 + 3) / 400.
+//! assert!((image.mean[0][0] - 0.515).abs() < 1e-6);
 //! assert!(frame.image_error() > 0.0);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
@@ -76,13 +77,13 @@ mod stats;
 
 pub use adaptive::{
     adaptive_plan, eta_seconds, fresh_passes_needed, AdaptiveError, AdaptiveFrame, AdaptiveMode,
-    AdaptiveSettings, AdaptiveTile, ConvergencePoint,
+    AdaptiveSettings, AdaptiveTile, ConvergencePoint, ADAPTIVE_MAX_SAMPLES_PER_PASS,
 };
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
 pub use plan::{
     FramePlan, PlanError, TileRect, WorkUnit, MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION,
     MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS, MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS,
-    MIN_TILE_SIZE, TARGET_MIN_PASSES,
+    MIN_TILE_SIZE, TARGET_MIN_PASSES, WHOLE_FRAME_MAX_SAMPLES_PER_PASS,
 };
 pub use result::{ResultError, UnitResult};
 pub use schedule::{

@@ -19,9 +19,24 @@ pub const MAX_PASSES: u32 = 65536;
 /// Bound on the total work of a frame: `width * height * spp` must not exceed it (2^40).
 pub const MAX_FRAME_SAMPLES: u64 = 1 << 40;
 /// Cap on the samples per pass chosen by [`FramePlan::for_spp`].
-pub const MAX_AUTO_SAMPLES_PER_PASS: u32 = 16;
-/// Minimum number of passes [`FramePlan::for_spp`] aims for when the requested spp allows it.
-pub const TARGET_MIN_PASSES: u32 = 8;
+///
+/// A pass is one Owen-scrambled `(0, m, 2)`-net per pair of dimensions, and a net of 64
+/// points stratifies far better than eight independent nets of 8 (Owen 2001, section 6.7:
+/// the variance of a scrambled net falls faster than `1/n` within one net, only like `1/K`
+/// across independent replicates); measured in `docs/benchmarks.md`, "Sampling
+/// structure". The cap keeps one pass of a large frame short enough for progress and for
+/// the farm's (tile, pass range) units.
+pub const MAX_AUTO_SAMPLES_PER_PASS: u32 = 64;
+/// Cap on the samples per pass of [`FramePlan::whole_frame`] (bdpt). A whole-frame plan's
+/// unit is the whole frame, so its duration grows with the pass size: this cap keeps a
+/// 1024 x 1024 bdpt unit at 16.8 M paths, within a worker's stop grace period
+/// (`docs/deploy.md`): whole-frame units are no longer than before the larger
+/// [`MAX_AUTO_SAMPLES_PER_PASS`].
+pub const WHOLE_FRAME_MAX_SAMPLES_PER_PASS: u32 = 16;
+/// Minimum number of passes [`FramePlan::for_spp`] aims for when the requested spp allows it:
+/// 4 replicates, so 3 degrees of freedom for each pixel's variance and an unbiased image
+/// error estimate (ARCHITECTURE.md §3).
+pub const TARGET_MIN_PASSES: u32 = 4;
 
 /// Why a frame plan was rejected.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -176,38 +191,49 @@ impl FramePlan {
 
     /// Plans a frame for a requested number of samples per pixel `N`.
     ///
-    /// The samples per pass `S` is the largest power of two not above `max(1, N / 8)`
-    /// (integer division), capped at 16; the pass count is `K = ceil(N / S)`. So:
-    /// - for `N >= 8` there are at least 8 passes (between 8 and 15 until the cap is reached,
-    ///   more beyond it): the variance of the mean is estimated from the spread between
-    ///   passes and needs at least 2 of them, and 8 give a usable estimate;
-    /// - for `N < 8` every pass is a single sample (`S = 1`, `K = N`);
-    /// - `S <= 16` keeps passes short, so progress and adaptive decisions stay fine-grained.
+    /// The samples per pass `S` is the largest power of two not above `max(1, N / 4)`
+    /// (integer division), capped at 64; the pass count is `K = ceil(N / S)`. So:
+    /// - for `N >= 4` there are at least 4 passes (between 4 and 8 until the cap is reached,
+    ///   at `N = 256`; more beyond it): the variance of the mean is estimated from the spread
+    ///   between passes and needs at least 2 of them;
+    /// - for `N < 4` every pass is a single sample (`S = 1`, `K = N`);
+    /// - few, large passes keep the stratification of the scrambled nets: at 64 spp, 4
+    ///   passes of 16 have less variance than 8 of 8, and at 1024 spp 16 passes of 64
+    ///   far less than 64 of 16 (Owen 2001, section 6.7; measured in `docs/benchmarks.md`,
+    ///   "Sampling structure"). The price is fewer degrees of freedom per pixel: a pixel's
+    ///   `mean +- 2 sqrt(variance)` covers its true value with Student's t probability for
+    ///   `K - 1` degrees of freedom (86% at `K = 4`, 94% at `K = 16`), while the image
+    ///   error estimate, an average over pixels, stays calibrated (ARCHITECTURE.md §3);
+    /// - `S <= 64` keeps one pass of a large frame short, so progress and the farm's units
+    ///   stay fine-grained.
     ///
     /// The planned spp `S * K` may exceed `N` by less than `S` (e.g. `N = 100` gives
-    /// `S = 8`, `K = 13`, 104 spp). `N` may be at most `16 * 65536`.
+    /// `S = 16`, `K = 7`, 112 spp). `N` may be at most `64 * 65536`.
     ///
     /// | N    | S  | K  | spp  |
     /// |------|----|----|------|
     /// | 1    | 1  | 1  | 1    |
     /// | 4    | 1  | 4  | 4    |
-    /// | 8    | 1  | 8  | 8    |
-    /// | 64   | 8  | 8  | 64   |
-    /// | 100  | 8  | 13 | 104  |
-    /// | 1000 | 16 | 63 | 1008 |
+    /// | 8    | 2  | 4  | 8    |
+    /// | 64   | 16 | 4  | 64   |
+    /// | 100  | 16 | 7  | 112  |
+    /// | 256  | 64 | 4  | 256  |
+    /// | 1000 | 64 | 16 | 1024 |
     pub fn for_spp(width: u32, height: u32, spp: u32, tile_size: u32) -> Result<Self, PlanError> {
-        let (samples_per_pass, passes) = Self::split_spp(spp)?;
+        let (samples_per_pass, passes) = Self::split_spp(spp, MAX_AUTO_SAMPLES_PER_PASS)?;
         Self::new(width, height, tile_size, samples_per_pass, passes)
     }
 
     /// Plans a frame as **one tile covering the whole frame**, with the passes of
-    /// [`FramePlan::for_spp`]. Bidirectional path tracing needs it: its light tracing
+    /// [`FramePlan::for_spp`] but at most [`WHOLE_FRAME_MAX_SAMPLES_PER_PASS`] samples per
+    /// pass (64 spp: 4 passes of 16; 1024 spp: 64 of 16), because a unit is then the whole
+    /// frame. Bidirectional path tracing needs it: its light tracing
     /// splats onto any pixel, and with one tile every splat lands in the unit being
     /// rendered, so units are (frame, pass range) and the merge stays canonical. The tile
     /// edge is `max(width, height)` (at least [`MIN_TILE_SIZE`]); frames above
     /// [`MAX_WHOLE_FRAME_PIXELS`] are refused with [`PlanError::WholeFrameTooLarge`].
     pub fn whole_frame(width: u32, height: u32, spp: u32) -> Result<Self, PlanError> {
-        let (samples_per_pass, passes) = Self::split_spp(spp)?;
+        let (samples_per_pass, passes) = Self::split_spp(spp, WHOLE_FRAME_MAX_SAMPLES_PER_PASS)?;
         let tile = width.max(height).max(MIN_TILE_SIZE);
         Self::new(width, height, tile, samples_per_pass, passes)
     }
@@ -217,16 +243,17 @@ impl FramePlan {
         self.tile_size >= self.width && self.tile_size >= self.height
     }
 
-    /// `(samples_per_pass, passes)` for a requested spp; see [`FramePlan::for_spp`].
-    fn split_spp(spp: u32) -> Result<(u32, u32), PlanError> {
-        let max = MAX_AUTO_SAMPLES_PER_PASS * MAX_PASSES;
+    /// `(samples_per_pass, passes)` for a requested spp with at most `cap` (a power of
+    /// two) samples per pass; see [`FramePlan::for_spp`].
+    fn split_spp(spp: u32, cap: u32) -> Result<(u32, u32), PlanError> {
+        let max = cap * MAX_PASSES;
         if spp == 0 || spp > max {
             return Err(PlanError::Spp { spp, max });
         }
         let target = (spp / TARGET_MIN_PASSES).max(1);
         // Largest power of two <= target (target >= 1).
         let pow2 = 1u32 << (31 - target.leading_zeros());
-        let samples_per_pass = pow2.min(MAX_AUTO_SAMPLES_PER_PASS);
+        let samples_per_pass = pow2.min(cap);
         let passes = spp.div_ceil(samples_per_pass);
         Ok((samples_per_pass, passes))
     }
@@ -458,30 +485,58 @@ mod tests {
     fn for_spp_choices() {
         let cases = [
             (1, 1, 1),
+            (3, 1, 3),
             (4, 1, 4),
-            (8, 1, 8),
-            (15, 1, 15),
-            (16, 2, 8),
-            (64, 8, 8),
-            (100, 8, 13),
-            (128, 16, 8),
-            (1000, 16, 63),
+            (7, 1, 7),
+            (8, 2, 4),
+            (15, 2, 8),
+            (16, 4, 4),
+            (64, 16, 4),
+            (100, 16, 7),
+            (128, 32, 4),
+            (256, 64, 4),
+            (1000, 64, 16),
+            (1024, 64, 16),
+            (4096, 64, 64),
         ];
         for (n, s, k) in cases {
             let p = FramePlan::for_spp(32, 32, n, 16).unwrap();
             assert_eq!((p.samples_per_pass, p.passes), (s, k), "N = {n}");
             assert!(p.spp() >= n && p.spp() - n < s, "N = {n}");
-            if n >= 8 {
-                assert!(p.passes >= 8, "N = {n}");
+            assert!(
+                s.is_power_of_two() && s <= MAX_AUTO_SAMPLES_PER_PASS,
+                "N = {n}"
+            );
+            if n >= TARGET_MIN_PASSES {
+                assert!(p.passes >= TARGET_MIN_PASSES, "N = {n}");
+            }
+        }
+        // The rule's bounds for every N up to well past the cap: S a power of two, at most
+        // 64; 4 to 8 passes until S reaches the cap; overshoot below one pass.
+        for n in 1..=5000 {
+            let p = FramePlan::for_spp(32, 32, n, 16).unwrap();
+            let (s, k) = (p.samples_per_pass, p.passes);
+            assert!(
+                s.is_power_of_two() && s <= MAX_AUTO_SAMPLES_PER_PASS,
+                "N = {n}"
+            );
+            assert!(p.spp() >= n && p.spp() - n < s, "N = {n}");
+            if n >= TARGET_MIN_PASSES {
+                assert!(k >= TARGET_MIN_PASSES, "N = {n}");
+            } else {
+                assert_eq!((s, k), (1, n), "N = {n}");
+            }
+            if s < MAX_AUTO_SAMPLES_PER_PASS {
+                assert!(k <= 2 * TARGET_MIN_PASSES, "N = {n}: {k} passes");
             }
         }
         assert!(matches!(
             FramePlan::for_spp(32, 32, 0, 16),
             Err(PlanError::Spp { .. })
         ));
-        assert!(FramePlan::for_spp(32, 32, 16 * 65536, 16).is_ok());
+        assert!(FramePlan::for_spp(1, 1, 64 * 65536, 4).is_ok());
         assert!(matches!(
-            FramePlan::for_spp(32, 32, 16 * 65536 + 1, 16),
+            FramePlan::for_spp(32, 32, 64 * 65536 + 1, 16),
             Err(PlanError::Spp { .. })
         ));
         assert!(matches!(
@@ -639,8 +694,16 @@ mod tests {
         // Above the tile cap: one tile of edge max(width, height).
         let p = FramePlan::whole_frame(640, 480, 64).unwrap();
         assert_eq!((p.tile_size, p.tile_count()), (640, 1));
-        assert_eq!((p.samples_per_pass, p.passes), (8, 8));
+        assert_eq!((p.samples_per_pass, p.passes), (16, 4));
         assert!(p.is_whole_frame());
+        // The pass size is capped lower than for tiled plans: a unit is the whole frame.
+        let p = FramePlan::whole_frame(640, 480, 1024).unwrap();
+        assert_eq!((p.samples_per_pass, p.passes), (16, 64));
+        assert!(FramePlan::whole_frame(4, 4, 16 * 65536).is_ok());
+        assert!(matches!(
+            FramePlan::whole_frame(4, 4, 16 * 65536 + 1),
+            Err(PlanError::Spp { .. })
+        ));
         assert_eq!(
             p.tile(0),
             TileRect {
@@ -684,8 +747,8 @@ mod tests {
             ("width", 640u32),
             ("height", 480),
             ("tile_size", 640),
-            ("samples_per_pass", 8),
-            ("passes", 8),
+            ("samples_per_pass", 16),
+            ("passes", 4),
         ];
         let de = FramePlan::deserialize(MapDeserializer::<_, Error>::new(fields.into_iter()));
         assert_eq!(de.unwrap(), FramePlan::whole_frame(640, 480, 64).unwrap());

@@ -16,9 +16,13 @@ use crate::plan::{
     MIN_TILE_SIZE,
 };
 
-/// Largest accepted samples per pixel (what [`FramePlan::for_spp`] can plan).
+/// Largest accepted samples per pixel: what [`FramePlan::for_spp`],
+/// [`FramePlan::whole_frame`] and [`adaptive_plan`] can all plan (the shorter passes of the
+/// last two are the limit).
 pub const MAX_SPP: u32 = 1_048_576;
-const _: () = assert!(MAX_SPP == MAX_AUTO_SAMPLES_PER_PASS * MAX_PASSES);
+const _: () = assert!(MAX_SPP <= MAX_AUTO_SAMPLES_PER_PASS * MAX_PASSES);
+const _: () = assert!(MAX_SPP == crate::plan::WHOLE_FRAME_MAX_SAMPLES_PER_PASS * MAX_PASSES);
+const _: () = assert!(MAX_SPP == crate::adaptive::ADAPTIVE_MAX_SAMPLES_PER_PASS * MAX_PASSES);
 /// Largest accepted `max_depth`.
 pub const MAX_DEPTH_LIMIT: u32 = 1024;
 /// Most frames one job may render.
