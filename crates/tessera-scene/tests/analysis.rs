@@ -118,7 +118,7 @@ fn veach_mis_has_four_sphere_lights_and_glossy_plates() {
     assert!(!glossy.contains("light"), "{glossy}");
     assert_eq!(plan.integrator, PlannedIntegrator::Path);
     // Dark and open: no need for a deep path.
-    assert_eq!((plan.max_depth, plan.rr_depth), (8, 5));
+    assert_eq!((plan.max_depth, plan.rr_depth), (8, 3));
 }
 
 #[test]
@@ -506,7 +506,7 @@ fn gltf_material_layers_classify_by_roughness_and_weights() {
         assert_eq!(plan.integrator, PlannedIntegrator::Path, "{kind:?}");
         let refracts = classes.contains(&Refraction);
         assert_eq!(plan.max_depth, if refracts { 12 } else { 8 }, "{kind:?}");
-        assert_eq!(plan.rr_depth, 5, "{kind:?}");
+        assert_eq!(plan.rr_depth, if refracts { 5 } else { 3 }, "{kind:?}");
     }
 }
 
@@ -565,7 +565,7 @@ fn caustics_need_a_smooth_specular_surface_and_bdpt_needs_a_small_light() {
         ],
     );
     assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
-    assert_eq!((plan.max_depth, plan.rr_depth), (8, 5));
+    assert_eq!((plan.max_depth, plan.rr_depth), (8, 3));
 }
 
 #[test]

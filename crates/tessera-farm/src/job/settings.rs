@@ -46,11 +46,13 @@ pub const DEFAULT_TILE_SIZE: u32 = 32;
 /// Maximum path depth of the general configuration: an explicit integrator without
 /// `max_depth`.
 pub const DEFAULT_MAX_DEPTH: u32 = 16;
-/// Bounces before Russian roulette starts, in the general configuration and in every
-/// render plan. From there a path survives each bounce with probability
-/// `min(0.95, max throughput)` (tessera_render's path integrator), Mitsuba 3's policy.
-/// Starting at 5 rather than 3 measured 24% less noise for 6.6% more instructions on the
-/// Cornell box, 1.24x the efficiency (docs/benchmarks.md).
+/// Bounces before Russian roulette starts in the general configuration (an explicit
+/// integrator) and in render plans where later bounces matter (closed bright rooms,
+/// refraction; open scenes start at 3, see tessera_scene's analysis). From there a path
+/// survives each bounce with probability `min(0.95, max throughput)` (tessera_render's path
+/// integrator), Mitsuba 3's policy. On the Cornell box, starting at 5 rather than 3 measured
+/// 24% less noise for about 27% more render instructions (docs/benchmarks.md, "Russian
+/// roulette").
 pub const DEFAULT_RR_DEPTH: u32 = 5;
 /// Default passes before the first adaptive decision (sequential) or of the pilot
 /// (unbiased).

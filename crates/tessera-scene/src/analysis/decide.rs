@@ -5,7 +5,7 @@ use super::lights::Lights;
 use super::transport::Transport;
 use super::{
     Effect, EffectKind, PlannedIntegrator, RenderPlan, BRIGHT_ALBEDO, CLOSED_FRACTION,
-    CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, REFRACTION_DEPTH,
+    CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, OPEN_SCENE_RR_DEPTH, REFRACTION_DEPTH,
 };
 use crate::Camera;
 
@@ -187,18 +187,34 @@ fn depths(
                 ));
                 DEFAULT_DEPTH
             };
-            if !transport.surfaces.refraction.is_empty() && depth < REFRACTION_DEPTH {
+            let refraction = !transport.surfaces.refraction.is_empty();
+            if refraction && depth < REFRACTION_DEPTH {
                 reasons.push(format!(
                     "max depth raised to {REFRACTION_DEPTH}: light needs several interfaces \
                      to pass through glass"
                 ));
                 depth = REFRACTION_DEPTH;
             }
-            reasons.push(format!(
-                "Russian roulette from depth {DEFAULT_RR_DEPTH}, survival from the throughput \
-                 (at most 95%)"
-            ));
-            (depth, DEFAULT_RR_DEPTH)
+            let rr = if closed_bright || refraction {
+                reasons.push(format!(
+                    "Russian roulette from depth {DEFAULT_RR_DEPTH} ({}), survival from the \
+                     throughput (at most 95%)",
+                    if closed_bright {
+                        "later bounces of a closed bright room still carry light"
+                    } else {
+                        "paths through glass need their first bounces"
+                    }
+                ));
+                DEFAULT_RR_DEPTH
+            } else {
+                reasons.push(format!(
+                    "Russian roulette from depth {OPEN_SCENE_RR_DEPTH} (an open scene: paths \
+                     carry little after a few bounces), survival from the throughput (at most \
+                     95%)"
+                ));
+                OPEN_SCENE_RR_DEPTH
+            };
+            (depth, rr)
         }
     }
 }

@@ -86,8 +86,9 @@
 //! [`BRIGHT_ALBEDO`] and scattering surfaces whose area is at least [`CLOSED_FRACTION`] of
 //! the surface of the scene's bounding box — else [`DEFAULT_DEPTH`]; with refraction at
 //! least [`REFRACTION_DEPTH`] (light needs several interfaces to pass through glass).
-//! `rr_depth` is [`DEFAULT_RR_DEPTH`] (survival from the throughput, so paths through glass
-//! are not cut short: the path integrator undoes the `1/η²` of refraction). `Black`
+//! `rr_depth` is [`DEFAULT_RR_DEPTH`] for a closed bright room or with refraction (light
+//! keeps bouncing, or needs several interfaces), else [`OPEN_SCENE_RR_DEPTH`]; survival
+//! follows the throughput either way. `Black`
 //! has depth 0: nothing is traced.
 //!
 //! ```
@@ -139,9 +140,15 @@ pub const CLOSED_ROOM_DEPTH: u32 = 16;
 pub const DEFAULT_DEPTH: u32 = 8;
 /// Minimum path depth when something refracts.
 pub const REFRACTION_DEPTH: u32 = 12;
-/// Russian roulette start depth of every plan: the job contract's
-/// [`tessera_farm::job::DEFAULT_RR_DEPTH`].
+/// Russian roulette start depth of a plan for a closed bright room or a scene with
+/// refraction: the job contract's [`tessera_farm::job::DEFAULT_RR_DEPTH`] (5, Mitsuba 3's).
 pub const DEFAULT_RR_DEPTH: u32 = tessera_farm::job::DEFAULT_RR_DEPTH;
+/// Russian roulette start depth of an open scene without refraction: its paths carry
+/// little after a few bounces, so roulette may cut them early. Measured (docs/benchmarks.md,
+/// "Russian roulette"): starting at 5 instead of 3 costs the Veach scene 12% more
+/// instructions for the same noise, and buys the closed Cornell box 24% less noise for 27%
+/// more instructions.
+pub const OPEN_SCENE_RR_DEPTH: u32 = 3;
 
 /// Analyses `scene` into a render plan, following the rules in the module documentation.
 pub fn analyse(scene: &Scene) -> RenderPlan {
