@@ -23,8 +23,8 @@ use tessera_farm::FramePlan;
 use tessera_proto::v1;
 use tessera_proto::v1::worker_service_client::WorkerServiceClient;
 
-use crate::bench_farm::{cpu_seconds, quantile};
-use crate::common::client_error;
+use crate::bench_farm::quantile;
+use crate::common::{client_error, cpu_seconds};
 
 /// `tessera bench-fleet`.
 #[derive(Args, Clone, Debug)]

@@ -56,3 +56,19 @@ pub fn api_client(
         .with_tls_ca(&pem)
         .map_err(|e| anyhow::anyhow!("--tls-ca {}: {}", ca.display(), client_error(e)))
 }
+
+/// CPU seconds (user + system) of process `pid` so far, from `/proc/PID/stat` (fields 14
+/// and 15, in the kernel's USER_HZ ticks, 100 per second on Linux); 0 where unavailable.
+pub(crate) fn cpu_seconds(pid: &str) -> f64 {
+    let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+        return 0.0;
+    };
+    // The command name (field 2) may contain spaces; the fields after it do not.
+    let Some(rest) = stat.rsplit_once(')').map(|(_, r)| r) else {
+        return 0.0;
+    };
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    // `rest` starts at field 3 (state), so fields 14 and 15 are at 11 and 12.
+    (ticks(11) + ticks(12)) / 100.0
+}

@@ -343,7 +343,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         bar
     });
     let start = Instant::now();
-    let cpu_start = crate::bench_farm::cpu_seconds("self");
+    let cpu_start = crate::common::cpu_seconds("self");
     let render_scene = p.render_scene.as_ref().expect("built unless black");
     let rendered = render_frame_counted(
         render_scene,
@@ -358,7 +358,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         },
     );
     let seconds = start.elapsed().as_secs_f64();
-    let cpu_seconds = crate::bench_farm::cpu_seconds("self") - cpu_start;
+    let cpu_seconds = crate::common::cpu_seconds("self") - cpu_start;
     if let Some(b) = bar {
         b.finish_and_clear();
     }
