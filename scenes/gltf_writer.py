@@ -95,6 +95,26 @@ class Gltf:
         }
         return self._push("meshes", {"name": name, "primitives": [primitive]})
 
+    def smooth_glass(self, name="glass", ior=1.5):
+        """A smooth clear dielectric: white base colour, metallic 0, roughness 0,
+        KHR_materials_transmission 1 and KHR_materials_ior `ior`."""
+        self.uses("KHR_materials_transmission")
+        self.uses("KHR_materials_ior")
+        return self.material(
+            {
+                "name": name,
+                "pbrMetallicRoughness": {
+                    "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
+                    "metallicFactor": 0.0,
+                    "roughnessFactor": 0.0,
+                },
+                "extensions": {
+                    "KHR_materials_transmission": {"transmissionFactor": 1.0},
+                    "KHR_materials_ior": {"ior": ior},
+                },
+            }
+        )
+
     def camera(self, camera):
         return self._push("cameras", camera)
 

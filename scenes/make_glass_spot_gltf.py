@@ -59,8 +59,6 @@ def uv_sphere(radius, segments, rings):
 
 def main():
     g = Gltf("scenes/make_glass_spot_gltf.py")
-    g.uses("KHR_materials_transmission")
-    g.uses("KHR_materials_ior")
     floor = g.material(
         {
             "name": "floor",
@@ -71,20 +69,7 @@ def main():
             },
         }
     )
-    glass = g.material(
-        {
-            "name": "glass",
-            "pbrMetallicRoughness": {
-                "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
-                "metallicFactor": 0.0,
-                "roughnessFactor": 0.0,
-            },
-            "extensions": {
-                "KHR_materials_transmission": {"transmissionFactor": 1.0},
-                "KHR_materials_ior": {"ior": 1.5},
-            },
-        }
-    )
+    glass = g.smooth_glass()
     floor_mesh = g.mesh(
         "floor",
         [(-5.0, 0.0, -5.0), (-5.0, 0.0, 5.0), (5.0, 0.0, 5.0), (5.0, 0.0, -5.0)],

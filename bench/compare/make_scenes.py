@@ -135,23 +135,8 @@ def veach(path):
 
 def glass_area(path):
     g = Gltf("bench/compare/make_scenes.py")
-    g.uses("KHR_materials_transmission")
-    g.uses("KHR_materials_ior")
     floor = diffuse(g, "floor", 0.8)
-    glass = g.material(
-        {
-            "name": "glass",
-            "pbrMetallicRoughness": {
-                "baseColorFactor": [1.0, 1.0, 1.0, 1.0],
-                "metallicFactor": 0.0,
-                "roughnessFactor": 0.0,
-            },
-            "extensions": {
-                "KHR_materials_transmission": {"transmissionFactor": 1.0},
-                "KHR_materials_ior": {"ior": 1.5},
-            },
-        }
-    )
+    glass = g.smooth_glass()
     quad(g, "floor", floor, [-5, 0, -5], [-5, 0, 5], [5, 0, 5], [5, 0, -5], [0, 1, 0])
     positions, normals, indices = uv_sphere(0.5, 64, 32)
     ball = g.mesh("glass-ball", positions, indices, glass, normals=normals)
