@@ -11,7 +11,7 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_farm::job::{
-    FrameRange, JobError, JobSettings, ResolvedJob, SceneRef, StopVerdict, DEFAULT_FPS,
+    FrameRange, JobError, JobSettings, ResolvedJob, SceneRef, Shutter, StopVerdict, DEFAULT_FPS,
     DEFAULT_MIN_PASSES,
 };
 use tessera_farm::{FrameImage, FramePlan};
@@ -67,6 +67,27 @@ pub struct JobArgs {
     /// The glTF animation that plays, by name or index (default: every animation).
     #[arg(long)]
     pub animation: Option<String>,
+    /// Motion blur: the shutter's opening and closing in frames relative to the frame,
+    /// e.g. --shutter=-0.25,0.25 (default: none). Time is sampled only where the scene
+    /// moves within it.
+    #[arg(long, value_name = "OPEN,CLOSE", value_parser = parse_shutter, allow_hyphen_values = true)]
+    pub shutter: Option<Shutter>,
+}
+
+/// `OPEN,CLOSE` in frames, for `--shutter` (the range is checked with the job).
+fn parse_shutter(s: &str) -> Result<Shutter, String> {
+    let (open, close) = s
+        .split_once(',')
+        .ok_or_else(|| format!("expected OPEN,CLOSE in frames, e.g. -0.25,0.25, got {s:?}"))?;
+    let num = |v: &str| {
+        v.trim()
+            .parse::<f64>()
+            .map_err(|_| format!("{v:?} is not a number of frames"))
+    };
+    Ok(Shutter {
+        open: num(open)?,
+        close: num(close)?,
+    })
 }
 
 impl JobArgs {
@@ -86,6 +107,7 @@ impl JobArgs {
             tile_size: 32,
             fps: DEFAULT_FPS,
             animation: None,
+            shutter: None,
         }
     }
 }
@@ -108,6 +130,7 @@ impl JobArgs {
         s.tile_size = self.tile_size;
         s.fps = self.fps;
         s.animation = self.animation.clone();
+        s.shutter = self.shutter;
         s.target_error = stop.target_error;
         s.adaptive = stop.adaptive.clone();
         s.time_limit_seconds = stop.time_limit;
@@ -221,6 +244,7 @@ fn flag(field: &str) -> &'static str {
         "tile_size" => "--tile-size",
         "fps" => "--fps",
         "animation" => "--animation",
+        "shutter" => "--shutter",
         _ => "setting",
     }
 }
@@ -279,12 +303,14 @@ pub fn prepare(job: &JobArgs, stop: &StopArgs, frame: u32) -> Result<Prepared> {
     } else {
         first
     };
+    let keys = tessera_scene::job::shutter_scenes(&validated, frame, &scene, load)?;
     let start = Instant::now();
     let render_scene = if resolved.black {
         None
     } else {
-        Some(RenderScene::build(
+        Some(RenderScene::build_in_motion(
             &scene,
+            &keys,
             resolved.plan.width,
             resolved.plan.height,
         )?)
@@ -402,6 +428,17 @@ fn print_scene_line(p: &Prepared) {
         bytes as f64 / (1024.0 * 1024.0),
         bytes as f64 / p.scene.stored_triangle_count().max(1) as f64
     );
+    if let Some(s) = p.resolved.job.shutter {
+        println!(
+            "motion blur: shutter [{}, {}] frames: {}",
+            s.open,
+            s.close,
+            rs.motion_summary()
+        );
+        for w in &rs.motion_warnings {
+            println!("warning: {w}");
+        }
+    }
 }
 
 /// The summary lines every render without adaptive stopping ends with (scripts read them).

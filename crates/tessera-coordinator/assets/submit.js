@@ -34,6 +34,8 @@ export function submitView() {
   const frameEnd = num("f-frame-end", { min: 0, step: 1, placeholder: "first" });
   const fps = h("input", { type: "number", id: "f-fps", name: "fps", min: 0, step: "any", placeholder: "24", inputmode: "decimal" });
   const animation = h("input", { type: "text", id: "f-animation", name: "animation", maxlength: 200, autocomplete: "off", placeholder: "all" });
+  const shutterOpen = h("input", { type: "number", id: "f-shutter-open", name: "shutter", min: -1, max: 1, step: "any", placeholder: "none", inputmode: "decimal" });
+  const shutterClose = h("input", { type: "number", id: "f-shutter-close", name: "shutter-close", min: -1, max: 1, step: "any", placeholder: "none", inputmode: "decimal" });
   const name = h("input", { type: "text", id: "f-name", name: "name", maxlength: 200, autocomplete: "off", placeholder: "optional label" });
   const submit = h("button", { type: "submit", id: "f-submit", class: "primary" }, "Submit job");
   const status = h("div", { id: "submit-status", class: "form-status", role: "alert", "aria-live": "assertive" });
@@ -44,7 +46,7 @@ export function submitView() {
 
   const fields = {
     scene: builtin, width, height, spp, target_error: target, adaptive, priority,
-    time_limit_seconds: timeLimit, name, frames: frameEnd, fps, animation,
+    time_limit_seconds: timeLimit, name, frames: frameEnd, fps, animation, shutter: shutterOpen,
   };
 
   const form = h("form", { id: "submit-form", class: "submit-form", novalidate: true },
@@ -62,7 +64,9 @@ export function submitView() {
     h("fieldset", {}, h("legend", {}, "Frames and animation"),
       h("div", { class: "form-pair" }, row("First frame", frameStart), row("Last frame", frameEnd)),
       row("Frames per second", fps, "Frame F shows the scene's glTF animations at F / fps seconds."),
-      row("Animation", animation, "Name or index of one animation; empty: all of them play.")),
+      row("Animation", animation, "Name or index of one animation; empty: all of them play."),
+      h("div", { class: "form-pair" }, row("Shutter opens (frames)", shutterOpen), row("Shutter closes (frames)", shutterClose)),
+      h("p", { class: "hint" }, "Motion blur: when the shutter opens and closes relative to each frame, e.g. -0.25 and 0.25. Empty: no blur.")),
     h("fieldset", {}, h("legend", {}, "Scheduling"),
       row("Priority", priority, "Higher runs first."),
       row("Name", name)),
@@ -81,7 +85,7 @@ export function submitView() {
   }
 
   function clearErrors() {
-    for (const input of [...Object.values(fields), file, frameStart]) input.removeAttribute("aria-invalid");
+    for (const input of [...Object.values(fields), file, frameStart, shutterClose]) input.removeAttribute("aria-invalid");
     status.replaceChildren();
     status.className = "form-status";
   }
@@ -137,6 +141,10 @@ export function submitView() {
       const first = intOrNull(frameStart, "frames.start");
       const last = intOrNull(frameEnd, "frames.end");
       if (first !== null || last !== null) settings.frames = { start: first ?? 0, end: last ?? first ?? 0 };
+      const open = floatOrNull(shutterOpen, "shutter");
+      const close = floatOrNull(shutterClose, "shutter");
+      if ((open === null) !== (close === null)) throw Object.assign(new Error("shutter: give both when it opens and when it closes, or neither"), { field: "shutter" });
+      if (open !== null) settings.shutter = [open, close];
       if (settings.spp === null) throw Object.assign(new Error("spp: required"), { field: "spp" });
     } catch (e) {
       showError(e.message, e.field);

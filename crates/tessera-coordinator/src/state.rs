@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use tessera_api::{HistoryPoint, JobSettings, JobState, ResolvedJob, ValidatedJob};
-use tessera_farm::job::{RenderConfig, SceneRef};
+use tessera_farm::job::{RenderConfig, SceneRef, Shutter};
 use tessera_farm::{FramePlan, JobId, Scheduler, TileAccumulator, WorkerId};
 
 /// Milliseconds since the Unix epoch.
@@ -60,6 +60,8 @@ pub struct JobEntry {
     pub fps: f64,
     /// The glTF animation that plays, if the job names one.
     pub animation: Option<String>,
+    /// The shutter for motion blur, if the job has one.
+    pub shutter: Option<Shutter>,
     /// Render settings.
     pub settings: RenderConfig,
     /// Frame plan.
@@ -75,6 +77,7 @@ impl JobEntry {
             camera: job.camera.clone(),
             fps: job.fps,
             animation: job.animation.clone(),
+            shutter: job.shutter,
             settings: resolved.config,
             plan: resolved.plan,
         }

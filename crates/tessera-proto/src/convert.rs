@@ -3,7 +3,7 @@
 use std::fmt;
 
 use tessera_farm::job::{
-    Integrator, MisHeuristic, RenderConfig, SamplerKind, SceneRef, DEFAULT_FPS,
+    Integrator, MisHeuristic, RenderConfig, SamplerKind, SceneRef, Shutter, DEFAULT_FPS,
     MAX_ANIMATION_CHARS, MAX_CAMERA_CHARS, MAX_FPS,
 };
 use tessera_farm::{FramePlan, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES};
@@ -437,6 +437,8 @@ pub struct LeasedUnit {
     pub fps: f64,
     /// The glTF animation that plays, if the job names one.
     pub animation: Option<String>,
+    /// The shutter for motion blur, if the job has one.
+    pub shutter: Option<Shutter>,
     /// How samples are computed.
     pub settings: RenderConfig,
     /// The job's frame plan.
@@ -455,6 +457,10 @@ impl From<&LeasedUnit> for v1::Lease {
             camera: l.camera.clone().unwrap_or_default(),
             fps: l.fps,
             animation: l.animation.clone().unwrap_or_default(),
+            shutter: l.shutter.map(|s| v1::Shutter {
+                open: s.open,
+                close: s.close,
+            }),
             settings: Some((&l.settings).into()),
             plan: Some((&l.plan).into()),
             unit: Some((&l.unit).into()),
@@ -512,6 +518,18 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             }
             a => Some(a.to_owned()),
         };
+        let shutter = match l.shutter {
+            None => None,
+            Some(s) => {
+                let s = Shutter {
+                    open: s.open,
+                    close: s.close,
+                };
+                s.check()
+                    .map_err(|e| ProtoError::new("shutter", e.problem))?;
+                Some(s)
+            }
+        };
         let settings: RenderConfig = l
             .settings
             .ok_or_else(|| ProtoError::missing("settings"))?
@@ -536,6 +554,7 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             camera,
             fps,
             animation,
+            shutter,
             settings,
             plan,
             unit,
@@ -868,6 +887,10 @@ mod tests {
             camera: Some("dolly".into()),
             fps: 30.0,
             animation: Some("walk".into()),
+            shutter: Some(Shutter {
+                open: -0.25,
+                close: 0.5,
+            }),
             settings: configs()[7],
             plan: p,
             unit: *p.units(4, 2).last().unwrap(),
@@ -906,6 +929,24 @@ mod tests {
             (
                 "scene_hash",
                 Box::new(|l| l.scene_hash = "../../etc/passwd".into()),
+            ),
+            (
+                "shutter",
+                Box::new(|l| {
+                    l.shutter = Some(v1::Shutter {
+                        open: 0.5,
+                        close: 0.5,
+                    })
+                }),
+            ),
+            (
+                "shutter",
+                Box::new(|l| {
+                    l.shutter = Some(v1::Shutter {
+                        open: f64::NAN,
+                        close: 0.5,
+                    })
+                }),
             ),
             ("settings", Box::new(|l| l.settings = None)),
             (

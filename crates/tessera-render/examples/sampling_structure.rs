@@ -97,7 +97,7 @@ fn render(rs: &RenderScene, size: u32, seed: u64, layout: Layout) -> Vec<Vec<[f6
                         sampler.start_sample(first + i);
                         let film = glam::Vec2::new(x as f32, y as f32) + sampler.next_2d();
                         let (o, dir) = rs.camera.generate_ray(film, glam::Vec2::ZERO);
-                        let l = radiance(rs, &path, o, dir, &mut sampler);
+                        let l = radiance(rs, &path, o, dir, 0.0, &mut sampler);
                         if l.is_finite() && l.min_element() >= 0.0 {
                             sum[0] += f64::from(l.x);
                             sum[1] += f64::from(l.y);

@@ -33,6 +33,7 @@ pub mod geometry;
 pub mod integrator;
 pub mod light;
 pub mod math;
+pub mod motion;
 pub mod render;
 pub mod sampling;
 pub mod scene;

@@ -23,6 +23,7 @@ use crate::light::{
     Light, LightSet,
 };
 use crate::math::gamma;
+use crate::motion::{CameraKeys, MotionShading, MotionSplit};
 use crate::sampling::{hash_combine, hash_u64};
 use crate::texture;
 use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A, Vec4};
@@ -69,17 +70,40 @@ pub struct RenderScene {
     pub width: u32,
     /// Image height.
     pub height: u32,
+    /// Shading of the moving triangles ([`Geometry::motion`]).
+    motion_shading: Option<MotionShading>,
+    /// The camera at the shutter's key times, when it moves.
+    camera_keys: Option<CameraKeys>,
+    /// What does not blur within the shutter (see [`crate::motion`]).
+    pub motion_warnings: Vec<String>,
 }
 
 impl RenderScene {
     /// Builds the BVH, the light list and the camera for a `width` x `height` image.
     pub fn build(scene: &Scene, width: u32, height: u32) -> Result<Self, BuildError> {
+        Self::build_in_motion(scene, &[], width, height)
+    }
+
+    /// [`RenderScene::build`] with motion blur: `scene` at the frame's time, and `keys`,
+    /// the scene at `K + 1` times spread evenly over the shutter (empty for no shutter).
+    /// What moves between the keys is traced at each ray's time ([`crate::motion`]);
+    /// when nothing moves the result is the same as [`RenderScene::build`]'s.
+    pub fn build_in_motion(
+        scene: &Scene,
+        keys: &[Scene],
+        width: u32,
+        height: u32,
+    ) -> Result<Self, BuildError> {
         if width == 0 || height == 0 {
             return Err(BuildError::ImageSize(width, height));
         }
+        let split = MotionSplit::new(scene, keys, width, height);
         let mut lights: Vec<Light> = Vec::new();
         let mut triangles = Vec::with_capacity(scene.triangle_count());
         for (mi, mesh) in scene.meshes.iter().enumerate() {
+            if split.moving_meshes[mi] {
+                continue;
+            }
             let mat = &scene.materials[mesh.material as usize];
             let varies = mat.emissive_texture().is_some() || mat.has_alpha();
             for (ti, idx) in mesh.indices.iter().enumerate() {
@@ -148,9 +172,24 @@ impl RenderScene {
         let instances: Vec<(u32, Affine3A)> = scene
             .instances
             .iter()
-            .map(|i| (i.prototype, i.world_from_object))
+            .zip(&split.moving_instances)
+            .filter(|(_, &moving)| !moving)
+            .map(|(i, _)| (i.prototype, i.world_from_object))
             .collect();
-        let geometry = Geometry::build_instanced(triangles, spheres, prototypes, &instances);
+        let mut geometry = Geometry::build_instanced(triangles, spheres, prototypes, &instances);
+        let MotionSplit {
+            triangles: moving,
+            camera: camera_keys,
+            warnings: motion_warnings,
+            ..
+        } = split;
+        let motion_shading = match moving {
+            Some((tris, shading)) => {
+                geometry = geometry.with_motion(tris);
+                Some(shading)
+            }
+            None => None,
+        };
         for l in &scene.lights {
             lights.push(Light::Punctual(match *l {
                 PunctualLight::Point {
@@ -214,7 +253,55 @@ impl RenderScene {
             camera: CameraModel::new(&scene.camera, width, height),
             width,
             height,
+            motion_shading,
+            camera_keys,
+            motion_warnings,
         })
+    }
+
+    /// Whether anything moves within the shutter: camera samples then draw a time, and
+    /// rays see the scene at it. False without a shutter, and when nothing moves.
+    #[inline]
+    pub fn has_motion(&self) -> bool {
+        self.geometry.motion.is_some() || self.camera_keys.is_some()
+    }
+
+    /// Whether the camera moves within the shutter.
+    pub fn camera_moves(&self) -> bool {
+        self.camera_keys.is_some()
+    }
+
+    /// A line for the log: what moves within the shutter, and whether time is sampled.
+    pub fn motion_summary(&self) -> String {
+        if !self.has_motion() {
+            return "nothing moves within it: no time sampled, the same samples as without a \
+                    shutter"
+                .into();
+        }
+        let segments = self.geometry.motion.as_ref().map_or(0, |m| m.segments());
+        format!(
+            "{} triangles move ({segments} linear segments), the camera {}; time sampled",
+            self.moving_triangles(),
+            if self.camera_moves() {
+                "moves"
+            } else {
+                "is still"
+            }
+        )
+    }
+
+    /// Number of triangles that move within the shutter.
+    pub fn moving_triangles(&self) -> usize {
+        self.geometry.motion.as_ref().map_or(0, |m| m.records.len())
+    }
+
+    /// The camera at shutter fraction `time` (the frame's camera when it does not move).
+    #[inline]
+    pub fn camera_at(&self, time: f32) -> CameraModel {
+        match &self.camera_keys {
+            Some(k) => k.at(time),
+            None => self.camera,
+        }
     }
 
     /// The environment radiance, if the scene has one.
@@ -232,12 +319,20 @@ impl RenderScene {
     /// their alpha says so (MASK by the cutoff, BLEND with probability `1 - alpha`).
     #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
+        self.intersect_at(origin, dir, t_max, 0.0)
+    }
+
+    /// [`RenderScene::intersect`] at shutter fraction `time` (motion blur).
+    #[inline]
+    pub fn intersect_at(&self, origin: Vec3, dir: Vec3, t_max: f32, time: f32) -> Option<Hit> {
         if !self.any_alpha {
-            return self.geometry.intersect(origin, dir, t_max);
+            return self
+                .geometry
+                .intersect_where(origin, dir, t_max, time, |_, _, _, _| true);
         }
         let key = ray_key(origin, dir);
         self.geometry
-            .intersect_where(origin, dir, t_max, |tri, id, b1, b2| {
+            .intersect_where(origin, dir, t_max, time, |tri, id, b1, b2| {
                 !self.alpha_tested[tri.material as usize]
                     || !self.transparent_at(tri, id, b1, b2, key)
             })
@@ -247,12 +342,20 @@ impl RenderScene {
     /// `origin + t dir` for `0 < t < t_max`: shadow rays see alpha like camera rays do.
     #[inline]
     pub fn occluded(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
+        self.occluded_at(origin, dir, t_max, 0.0)
+    }
+
+    /// [`RenderScene::occluded`] at shutter fraction `time` (motion blur).
+    #[inline]
+    pub fn occluded_at(&self, origin: Vec3, dir: Vec3, t_max: f32, time: f32) -> bool {
         if !self.any_alpha {
-            return self.geometry.occluded(origin, dir, t_max);
+            return self
+                .geometry
+                .occluded_where(origin, dir, t_max, time, |_, _, _, _| true);
         }
         let key = ray_key(origin, dir);
         self.geometry
-            .occluded_where(origin, dir, t_max, |tri, id, b1, b2| {
+            .occluded_where(origin, dir, t_max, time, |tri, id, b1, b2| {
                 !self.alpha_tested[tri.material as usize]
                     || !self.transparent_at(tri, id, b1, b2, key)
             })
@@ -347,6 +450,12 @@ impl RenderScene {
                     self.triangle_surface(&proto.triangles[index as usize], b1, b2, Some(inst))
                 }
             }
+            Primitive::Moving {
+                index,
+                b1,
+                b2,
+                time,
+            } => self.moving_surface(index as usize, b1, b2, time),
             Primitive::Sphere { index } => {
                 let s = &self.geometry.spheres[index as usize];
                 let (p, p_error, n) = sphere_point(s.center, s.radius, origin + dir * hit.t);
@@ -429,21 +538,79 @@ impl RenderScene {
             material: tri.material,
             light: tri.light,
         };
-        if let Some(nm) = self.materials[tri.material as usize]
+        if let Some(t) = &mesh.tangents {
+            let c = t[tri.index as usize];
+            let mut tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
+            let mut sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
+            if let Some(inst) = inst {
+                tangent = inst.world_from_object.transform_vector3(tangent);
+                sign *= inst.handedness;
+            }
+            self.apply_normal_map(&mut sp, tangent, sign);
+        }
+        sp
+    }
+
+    /// Perturbs `sp.ns` by its material's normal map, if it has one, in the tangent
+    /// frame of `tangent` and bitangent sign `sign`.
+    #[inline(always)]
+    fn apply_normal_map(&self, sp: &mut SurfacePoint, tangent: Vec3, sign: f32) {
+        if let Some(nm) = self.materials[sp.material as usize]
             .as_gltf()
             .and_then(|g| g.normal_map.as_ref())
         {
-            if let Some(t) = &mesh.tangents {
-                let c = t[tri.index as usize];
-                let mut tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
-                let mut sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
-                if let Some(inst) = inst {
-                    tangent = inst.world_from_object.transform_vector3(tangent);
-                    sign *= inst.handedness;
-                }
-                let texel = self.lookup(&nm.texture, self.uv_of(&sp, &nm.texture), false);
-                sp.ns = normal_mapped(sp.ns, ng, tangent, sign, texel, nm.scale);
+            let texel = self.lookup(&nm.texture, self.uv_of(sp, &nm.texture), false);
+            sp.ns = normal_mapped(sp.ns, sp.ng, tangent, sign, texel, nm.scale);
+        }
+    }
+
+    /// Surface data at barycentrics `(b1, b2)` of moving triangle `r` as it stands at
+    /// shutter fraction `time`: positions, normals and tangents interpolated between the
+    /// key times exactly as the intersection interpolated the positions.
+    fn moving_surface(&self, r: usize, b1: f32, b2: f32, time: f32) -> SurfacePoint {
+        let motion = self
+            .geometry
+            .motion
+            .as_ref()
+            .expect("a moving hit comes from the motion triangles");
+        let shading = self
+            .motion_shading
+            .as_ref()
+            .expect("moving triangles have their shading");
+        let tri = &motion.records[r];
+        let p3 = motion.positions_at(r, time);
+        let (s, u) = motion.segment_of(time);
+        let b0 = 1.0 - b1 - b2;
+        let (p, p_error) = triangle_point(&p3, b0, b1, b2);
+        let mut ng = (p3[1] - p3[0]).cross(p3[2] - p3[0]).normalize_or(Vec3::Z);
+        if shading.flipped(r) {
+            ng = -ng;
+        }
+        let mesh = &self.meshes[tri.mesh as usize];
+        let idx = mesh.indices[tri.index as usize];
+        let mut ns = ng;
+        if let Some([n0, n1, n2]) = shading.normals_at(r, s, u) {
+            if let Some(v) = (b0 * n0 + b1 * n1 + b2 * n2).try_normalize() {
+                ns = if v.dot(ng) < 0.0 { -v } else { v };
             }
+        }
+        let bary = Vec2::new(b1, b2);
+        let mut sp = SurfacePoint {
+            p,
+            p_error,
+            ng,
+            ns,
+            uv: uv_at(&mesh.uvs, idx, 0, bary),
+            mesh: tri.mesh,
+            tri: tri.index,
+            bary,
+            material: tri.material,
+            light: tri.light,
+        };
+        if let Some(c) = shading.tangents_at(r, s, u) {
+            let tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
+            let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
+            self.apply_normal_map(&mut sp, tangent, sign);
         }
         sp
     }

@@ -9,7 +9,7 @@
 
 mod common;
 
-use common::render;
+use common::{regions, render};
 use tessera_render::integrator::Integrator;
 use tessera_render::render::RenderConfig;
 
@@ -111,40 +111,6 @@ const FIXTURES: &[(&str, u32, Judge)] = &[
         ),
     ),
 ];
-
-/// Per-region means (4x4 grid, then the whole image) of `value(x, y) = (mean, variance
-/// of the mean)` over the pixels whose mean is not NaN (masked out), with the standard
-/// error of the region mean; a region without pixels is NaN.
-fn regions(w: usize, h: usize, value: impl Fn(usize, usize) -> (f64, f64)) -> Vec<(f64, f64)> {
-    let mut out = Vec::new();
-    let grid = |k: usize, n: usize, i: usize| (i * n / k, (i + 1) * n / k);
-    for gy in 0..=4 {
-        for gx in 0..4 {
-            let ((x0, x1), (y0, y1)) = if gy == 4 {
-                if gx > 0 {
-                    continue;
-                }
-                ((0, w), (0, h))
-            } else {
-                (grid(4, w, gx), grid(4, h, gy))
-            };
-            let (mut sum, mut var, mut n) = (0.0, 0.0, 0usize);
-            for y in y0..y1 {
-                for x in x0..x1 {
-                    let (m, v) = value(x, y);
-                    if !m.is_nan() {
-                        sum += m;
-                        var += v;
-                        n += 1;
-                    }
-                }
-            }
-            let n = n as f64;
-            out.push((sum / n, var.sqrt() / n));
-        }
-    }
-    out
-}
 
 #[test]
 fn blender_fixtures_match_their_cycles_references() {

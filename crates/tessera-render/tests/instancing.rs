@@ -331,7 +331,7 @@ fn the_triangle_filter_sees_which_instance_was_hit() {
     let mine = tessera_render::geometry::triangle_key(instance, 0) >> 32;
     let next = rs
         .geometry
-        .intersect_where(o, d, f32::INFINITY, |_, key, _, _| key >> 32 != mine)
+        .intersect_where(o, d, f32::INFINITY, 0.0, |_, key, _, _| key >> 32 != mine)
         .unwrap();
     let Primitive::Triangle { instance: i2, .. } = next.primitive else {
         panic!("expected a triangle")
@@ -339,11 +339,11 @@ fn the_triangle_filter_sees_which_instance_was_hit() {
     assert!(i2 != instance && next.t > near.t, "{next:?} after {near:?}");
     assert!(rs
         .geometry
-        .occluded_where(o, d, next.t * 1.01, |_, key, _, _| key >> 32 != mine));
+        .occluded_where(o, d, next.t * 1.01, 0.0, |_, key, _, _| key >> 32 != mine));
     assert!(!rs
         .geometry
-        .occluded_where(o, d, next.t * 0.99, |_, key, _, _| key >> 32 != mine));
+        .occluded_where(o, d, next.t * 0.99, 0.0, |_, key, _, _| key >> 32 != mine));
     assert!(!rs
         .geometry
-        .occluded_where(o, d, f32::INFINITY, |_, key, _, _| key >> 32 == 0));
+        .occluded_where(o, d, f32::INFINITY, 0.0, |_, key, _, _| key >> 32 == 0));
 }

@@ -5,7 +5,7 @@
 //! that need a parsed scene: [`load_job_scene`] and [`resolve_job`] (the render plan of
 //! [`crate::analysis::analyse`] fed to [`ValidatedJob::resolve`]).
 
-use tessera_farm::job::{JobError, ResolvedJob, SceneFacts, SceneRef, ValidatedJob};
+use tessera_farm::job::{JobError, ResolvedJob, SceneFacts, SceneRef, Shutter, ValidatedJob};
 
 use crate::{builtin, gltf_import, Scene, SceneError, SceneTime};
 
@@ -62,6 +62,55 @@ pub fn frame_time(job: &ValidatedJob, frame: u32) -> SceneTime {
         seconds: job.frame_seconds(frame),
         animation: job.animation.clone(),
     }
+}
+
+/// The shutter's key times of `frame` ([`tessera_farm::job::Shutter::key_frames`] over
+/// the job's fps, with the job's animation), at which motion blur evaluates the scene;
+/// empty when the job has no shutter.
+pub fn shutter_times(job: &ValidatedJob, frame: u32) -> Vec<SceneTime> {
+    shutter_times_of(job.shutter, job.fps, job.animation.as_deref(), frame)
+}
+
+/// [`shutter_times`] from a lease's fields: the shutter, fps and animation of its job.
+pub fn shutter_times_of(
+    shutter: Option<Shutter>,
+    fps: f64,
+    animation: Option<&str>,
+    frame: u32,
+) -> Vec<SceneTime> {
+    shutter.map_or_else(Vec::new, |s| {
+        s.key_frames(frame)
+            .into_iter()
+            .map(|f| SceneTime {
+                seconds: f / fps,
+                animation: animation.map(str::to_owned),
+            })
+            .collect()
+    })
+}
+
+/// The scene at the shutter's key times of `frame` ([`shutter_times`]), loaded by `load`;
+/// empty when the job has no shutter or `scene` (the frame's scene) is not animated, so a
+/// static scene never pays for them.
+pub fn shutter_scenes<E>(
+    job: &ValidatedJob,
+    frame: u32,
+    scene: &Scene,
+    load: impl FnMut(&SceneTime) -> Result<Scene, E>,
+) -> Result<Vec<Scene>, E> {
+    shutter_scenes_of(&shutter_times(job, frame), scene, load)
+}
+
+/// [`shutter_scenes`] at the key times `times` ([`shutter_times_of`]).
+pub fn shutter_scenes_of<E>(
+    times: &[SceneTime],
+    scene: &Scene,
+    load: impl FnMut(&SceneTime) -> Result<Scene, E>,
+) -> Result<Vec<Scene>, E> {
+    if !scene.animated {
+        return Ok(Vec::new());
+    }
+    times.iter().map(load).collect()
 }
 
 /// Resolves `job` against `scene`: [`ValidatedJob::resolve`] with the scene's default

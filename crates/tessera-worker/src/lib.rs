@@ -519,11 +519,13 @@ async fn scene_for(
         seconds: f64::from(l.unit.frame) / l.fps,
         animation: l.animation.clone(),
     };
-    // The key of the built scene: the scene and camera, and the time for animated scenes.
+    // The key of the built scene: the scene and camera, and the time (with the shutter)
+    // for animated scenes.
     let timed_key = format!(
-        "{key}@{}#{}",
+        "{key}@{}#{}#{:?}",
         time.seconds,
-        time.animation.as_deref().unwrap_or("")
+        time.animation.as_deref().unwrap_or(""),
+        l.shutter.map(<[f64; 2]>::from)
     );
     let lock = || cache.lock().map_err(|_| "scene cache poisoned".to_string());
     let built_key = {
@@ -580,10 +582,34 @@ async fn scene_for(
         }
     };
     let (w, h) = (plan.width, plan.height);
-    let built = tokio::task::spawn_blocking(move || RenderScene::build(&parsed, w, h))
-        .await
-        .map_err(|e| e.to_string())?
+    // Motion blur: an animated scene with a shutter is also loaded at the shutter's key
+    // times (from the bytes kept for it), as `tessera render` does.
+    let raw = if parsed.animated && l.shutter.is_some() {
+        lock()?.animated.get(&key).cloned().flatten()
+    } else {
+        None
+    };
+    let times = tessera_scene::job::shutter_times_of(
+        l.shutter,
+        l.fps,
+        l.animation.as_deref(),
+        l.unit.frame,
+    );
+    let (sref, cam) = (scene.clone(), l.camera.clone());
+    let built = tokio::task::spawn_blocking(move || {
+        let keys = tessera_scene::job::shutter_scenes_of(&times, &parsed, |t| {
+            tessera_scene::job::load_job_scene_at(
+                &sref,
+                raw.as_deref().map(Vec::as_slice),
+                cam.as_deref(),
+                t,
+            )
+        })
         .map_err(|e| e.to_string())?;
+        RenderScene::build_in_motion(&parsed, &keys, w, h).map_err(|e| e.to_string())
+    })
+    .await
+    .map_err(|e| e.to_string())??;
     let built = Arc::new(built);
     let mut c = lock()?;
     c.built.push((built_key, w, h, built.clone()));

@@ -168,6 +168,7 @@ impl Coordinator {
                         camera: job.camera.clone(),
                         fps: job.fps,
                         animation: job.animation.clone(),
+                        shutter: job.shutter,
                         settings: job.settings,
                         plan: job.plan,
                         unit: l.unit,

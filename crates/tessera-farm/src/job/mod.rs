@@ -56,10 +56,11 @@ pub use choice::{
 pub use plan::{Effect, EffectKind, PlannedIntegrator, RenderPlan};
 pub use resolve::{ResolvedJob, SceneFacts, StopVerdict};
 pub use settings::{
-    resolve_resolution, FrameRange, JobError, JobSettings, RenderConfig, RenderRequest,
+    resolve_resolution, FrameRange, JobError, JobSettings, RenderConfig, RenderRequest, Shutter,
     ValidatedJob, DEFAULT_FPS, DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES, DEFAULT_RR_DEPTH,
     DEFAULT_SPP, DEFAULT_TILE_SIZE, MAX_ANIMATION_CHARS, MAX_CAMERA_CHARS, MAX_DEPTH_LIMIT,
-    MAX_FPS, MAX_FRAMES, MAX_MIN_PASSES, MAX_NAME_CHARS, MAX_SPP,
+    MAX_FPS, MAX_FRAMES, MAX_MIN_PASSES, MAX_NAME_CHARS, MAX_SHUTTER_FRAMES, MAX_SPP,
+    SHUTTER_SEGMENTS,
 };
 
 #[cfg(test)]

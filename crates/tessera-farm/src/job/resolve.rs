@@ -236,6 +236,9 @@ impl ResolvedJob {
         if let Some(a) = &job.animation {
             camera += &format!(",\"animation\":{}", json_string(a));
         }
+        if let Some(s) = &job.shutter {
+            camera += &format!(",\"shutter\":[{},{}]", s.open, s.close);
+        }
         out += &format!(
             "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"plan\":{}}}",
             json_string(&job.scene.to_string()),

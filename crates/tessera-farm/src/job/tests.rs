@@ -270,6 +270,44 @@ fn target_error() {
 }
 
 #[test]
+fn shutter() {
+    for (open, close) in [
+        (0.25, 0.25),
+        (0.5, -0.5),
+        (-1.5, 0.0),
+        (0.0, 1.01),
+        (f64::NAN, 0.5),
+        (0.0, f64::INFINITY),
+    ] {
+        rejects("shutter", |s| s.shutter = Some(Shutter { open, close }));
+    }
+    let j = accepts(|s| {
+        s.shutter = Some(Shutter {
+            open: -0.25,
+            close: 0.25,
+        })
+    });
+    // The key times: SHUTTER_SEGMENTS + 1, evenly from the opening to the closing.
+    let keys = j.shutter.unwrap().key_frames(12);
+    assert_eq!(keys.len(), SHUTTER_SEGMENTS as usize + 1);
+    assert_eq!((keys[0], *keys.last().unwrap()), (11.75, 12.25));
+    // The JSON form is a pair.
+    let raw: JobSettings =
+        serde_json::from_str(r#"{"scene": "builtin:cornell-box", "shutter": [-1, 1]}"#).unwrap();
+    assert_eq!(
+        raw.shutter,
+        Some(Shutter {
+            open: -1.0,
+            close: 1.0
+        })
+    );
+    assert!(serde_json::from_str::<JobSettings>(
+        r#"{"scene": "builtin:cornell-box", "shutter": [0.5]}"#
+    )
+    .is_err());
+}
+
+#[test]
 fn time_limit() {
     for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
         rejects("time_limit_seconds", |s| s.time_limit_seconds = Some(bad));

@@ -65,6 +65,7 @@
 use super::{accumulate, MisHeuristic, SampleStream};
 use crate::bsdf::diffuse::Diffuse;
 use crate::bsdf::{Bsdf, Lobe};
+use crate::camera::CameraModel;
 use crate::geometry::NO_LIGHT;
 use crate::light::emission::WorldDisk;
 use crate::light::Light;
@@ -207,6 +208,11 @@ impl Vertex {
 struct Ctx<'a> {
     scene: &'a RenderScene,
     world: WorldDisk,
+    /// The sample's shutter fraction (motion blur): both subpaths and every connection
+    /// see the scene at this one time.
+    time: f32,
+    /// The camera at `time`.
+    camera: CameraModel,
 }
 
 impl Ctx<'_> {
@@ -239,7 +245,7 @@ impl Ctx<'_> {
                 let Some(wn) = v.dir_to(next) else {
                     return 0.0;
                 };
-                let pdf = self.scene.camera.pdf_dir(v.p, wn);
+                let pdf = self.camera.pdf_dir(v.p, wn);
                 self.convert_density(v, pdf, next)
             }
             Kind::Surface => {
@@ -337,7 +343,10 @@ impl Ctx<'_> {
         let t = offset_ray_origin(b, b_err, b_n, -d);
         let d = t - o;
         let dist = d.length();
-        dist > 0.0 && !self.scene.occluded(o, d / dist, dist * (1.0 - 1e-4))
+        dist > 0.0
+            && !self
+                .scene
+                .occluded_at(o, d / dist, dist * (1.0 - 1e-4), self.time)
     }
 
     /// `G(a ↔ b)` with shading-normal cosines (pbrt's convention), times visibility.
@@ -386,7 +395,7 @@ fn random_walk(
     let mut bounces = 0u32;
     while n < max_vertices {
         // 1. Intersect; a camera ray that escapes sees the environment (a light vertex).
-        let Some(hit) = scene.intersect(origin, dir, f32::INFINITY) else {
+        let Some(hit) = scene.intersect_at(origin, dir, f32::INFINITY, ctx.time) else {
             if !importance {
                 if let Some((env, le)) = scene.environment() {
                     let mut v = Vertex::empty();
@@ -506,7 +515,7 @@ fn camera_subpath(
     path: &mut [Vertex; MAX_VERTICES],
     sampler: &mut PixelSampler,
 ) -> usize {
-    let camera = &ctx.scene.camera;
+    let camera = &ctx.camera;
     let (o, d) = camera.generate_ray(film, lens_u);
     let mut v = Vertex::empty();
     v.kind = Kind::Camera;
@@ -733,7 +742,7 @@ fn splat_light_paths(
     sampler: &mut PixelSampler,
     splat: &mut impl FnMut(Vec2, Vec3),
 ) {
-    let camera = &ctx.scene.camera;
+    let camera = &ctx.camera;
     for s in 2..=n_light {
         let u = sampler.next_2d();
         if s - 1 > st.max_depth as usize {
@@ -803,7 +812,7 @@ fn camera_techniques(
                             ctx.visible(pt.p, pt.p_error, pt.ng, ls.p, ls.p_error, ls.n)
                         } else {
                             let o = offset_ray_origin(pt.p, pt.p_error, pt.ng, ls.wi);
-                            !scene.occluded(o, ls.wi, f32::INFINITY)
+                            !scene.occluded_at(o, ls.wi, f32::INFINITY, ctx.time)
                         };
                     if visible {
                         let mut v = Vertex::empty();
@@ -873,10 +882,13 @@ pub fn render_unit(
     plan: &FramePlan,
     unit: WorkUnit,
 ) -> UnitResult {
-    let ctx = Ctx {
+    let mut ctx = Ctx {
         scene,
         world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
+        time: 0.0,
+        camera: scene.camera,
     };
+    let motion = scene.has_motion();
     let rect = plan.tile(unit.tile);
     let (tw, th) = (rect.width, rect.height);
     let pixels = rect.pixel_count();
@@ -909,6 +921,12 @@ pub fn render_unit(
                     inside.map(|_| PixelSampler::new(kind, stream.seed, unit.frame, pixel, pass));
                 for i in 0..spp {
                     ls.start_sample(i);
+                    if motion {
+                        // The sample's time, from the light stream's first dimension: every
+                        // pixel draws it, inside the tile or not, so the splats agree.
+                        ctx.time = ls.next_1d();
+                        ctx.camera = scene.camera_at(ctx.time);
+                    }
                     let n_light = light_subpath(&ctx, st, light, &mut ls);
                     let mut camera_l = Vec3::ZERO;
                     if let Some(cs) = cs.as_mut() {

@@ -130,8 +130,8 @@ pub fn render_unit_where(
                 },
                 rr_depth: settings.rr_depth,
             };
-            render_camera_samples(scene, stream, plan, unit, wanted, |o, d, sampler| {
-                path::radiance(scene, &path, o, d, sampler)
+            render_camera_samples(scene, stream, plan, unit, wanted, |o, d, time, sampler| {
+                path::radiance(scene, &path, o, d, time, sampler)
             })
         }
         // Light tracing splats across pixels: see `bdpt` for how a unit stays deterministic
@@ -163,8 +163,10 @@ pub(crate) fn accumulate(sum: &mut [f64; 3], l: Vec3, rejected: &mut u64) -> boo
 
 /// The camera-sample loop of integrators that estimate every pixel on its own: for each
 /// pass, each wanted tile pixel (row-major) and each sample index, starts the pixel's
-/// sampler, draws a film point inside the pixel and (with a lens) a lens point, and
-/// accumulates `radiance(origin, dir, sampler)`.
+/// sampler, draws a film point inside the pixel, (with a lens) a lens point and (when the
+/// scene moves within the shutter) a time, and accumulates
+/// `radiance(origin, dir, time, sampler)`. A scene without motion draws no time, so its
+/// samples are those it has without a shutter.
 ///
 /// Box reconstruction: the sample stays inside its pixel, so tiles are independent.
 fn render_camera_samples(
@@ -173,12 +175,13 @@ fn render_camera_samples(
     plan: &FramePlan,
     unit: WorkUnit,
     wanted: impl Fn(usize, u32) -> bool,
-    mut radiance: impl FnMut(Vec3, Vec3, &mut PixelSampler) -> Vec3,
+    mut radiance: impl FnMut(Vec3, Vec3, f32, &mut PixelSampler) -> Vec3,
 ) -> UnitResult {
     let rect = plan.tile(unit.tile);
     let pixels = (rect.width * rect.height) as usize;
     let spp = plan.samples_per_pass;
     let lens = scene.camera.has_lens();
+    let motion = scene.has_motion();
     let mut rejected_samples = 0u64;
     let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
     for pass in unit.first_pass..unit.first_pass + unit.pass_count {
@@ -196,8 +199,16 @@ fn render_camera_samples(
                     sampler.start_sample(i);
                     let film = Vec2::new(x as f32, y as f32) + sampler.next_2d();
                     let lens_u = if lens { sampler.next_2d() } else { Vec2::ZERO };
-                    let (o, d) = scene.camera.generate_ray(film, lens_u);
-                    let l = radiance(o, d, &mut sampler);
+                    let (o, d, time) = if motion {
+                        // The shutter is a box: the time is uniform over it.
+                        let time = sampler.next_1d();
+                        let (o, d) = scene.camera_at(time).generate_ray(film, lens_u);
+                        (o, d, time)
+                    } else {
+                        let (o, d) = scene.camera.generate_ray(film, lens_u);
+                        (o, d, 0.0)
+                    };
+                    let l = radiance(o, d, time, &mut sampler);
                     accumulate(&mut sum, l, &mut rejected_samples);
                 }
                 let inv = 1.0 / spp as f64;
@@ -269,7 +280,7 @@ mod tests {
             &plan,
             unit,
             |i, _| i != 0, // tile pixel 0 is skipped: no samples, no rejects
-            |_, _, _| {
+            |_, _, _, _| {
                 calls += 1;
                 if calls.is_multiple_of(3) {
                     Vec3::NAN

@@ -44,13 +44,15 @@ pub struct PathSettings {
     pub rr_depth: u32,
 }
 
-/// Radiance along the ray `(origin, dir)`. Consumes dimensions from `sampler` in a fixed
+/// Radiance along the ray `(origin, dir)` at shutter fraction `time` (which only moving
+/// geometry reads; see [`crate::motion`]). Consumes dimensions from `sampler` in a fixed
 /// order so that the result is a pure function of the sampler state.
 pub fn radiance(
     scene: &RenderScene,
     s: &PathSettings,
     mut origin: Vec3,
     mut dir: Vec3,
+    time: f32,
     sampler: &mut PixelSampler,
 ) -> Vec3 {
     let max_depth = s.max_depth;
@@ -68,7 +70,7 @@ pub fn radiance(
     let mut eta_scale = 1.0f32;
     loop {
         // 1. Intersect.
-        let Some(hit) = scene.intersect(origin, dir, f32::INFINITY) else {
+        let Some(hit) = scene.intersect_at(origin, dir, f32::INFINITY, time) else {
             if let Some((env_index, le)) = scene.environment() {
                 let w = if prev_delta {
                     1.0
@@ -136,9 +138,9 @@ pub fn radiance(
                             let target = offset_ray_origin(ls.p, ls.p_error, ls.n, -ls.wi);
                             let d = target - o;
                             let dist = d.length();
-                            dist > 0.0 && !scene.occluded(o, d / dist, dist * (1.0 - 1e-4))
+                            dist > 0.0 && !scene.occluded_at(o, d / dist, dist * (1.0 - 1e-4), time)
                         } else {
-                            !scene.occluded(o, ls.wi, f32::INFINITY)
+                            !scene.occluded_at(o, ls.wi, f32::INFINITY, time)
                         };
                         if visible {
                             let p_light = pmf * ls.pdf;
