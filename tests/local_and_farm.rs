@@ -10,7 +10,7 @@ mod common;
 use std::path::Path;
 
 use common::farm::{start_coordinator, start_worker, wait_done};
-use common::{output_ok, read_exr, temp_dir, tessera, Proc};
+use common::{output_ok, read_exr, run, temp_dir, tessera, Proc};
 use tessera_api::client::Client;
 use tessera_api::JobSettings;
 
@@ -184,6 +184,95 @@ fn every_frame_of_an_animated_farm_job_equals_tessera_render_frame() {
         moving.get("R").unwrap(),
         still.get("R").unwrap(),
         "the cubes did not move"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Issue 12, motion blur: a two-frame job of Blender's moving sphere and turning cube
+/// with a shutter of one frame, on two workers, with the path tracer and with bdpt: each
+/// frame's EXR is byte-identical to `tessera render --frame F --shutter=-0.5,0.5`, and the
+/// blurred frame differs from the same frame without a shutter.
+#[test]
+fn a_motion_blurred_farm_job_equals_tessera_render_with_the_shutter() {
+    let dir = temp_dir("e2e", "motion-blur");
+    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
+    let _ws: Vec<Proc> = (0..2)
+        .map(|i| start_worker(&c.grpc, &format!("w{i}"), &[]))
+        .collect();
+    let client = Client::new(&c.http, None);
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/motion/motion_ball.glb");
+    let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
+    for integrator in ["auto", "bdpt"] {
+        let mut s = JobSettings::new(uploaded.hash.clone());
+        s.width = Some(24);
+        s.height = Some(16);
+        s.spp = 8;
+        s.seed = 3;
+        s.tile_size = 8;
+        s.integrator = integrator.into();
+        s.shutter = Some(tessera_api::Shutter {
+            open: -0.5,
+            close: 0.5,
+        });
+        s.frames = tessera_api::FrameRange { start: 11, end: 12 };
+        let st = client.submit(&s, None).unwrap();
+        wait_done(&client, st.id);
+        for f in 11..=12u32 {
+            let farm = client
+                .get_raw(&format!(
+                    "/api/v1/jobs/{}/image?format=exr&frame={f}",
+                    st.id
+                ))
+                .unwrap();
+            let out = dir.join(format!("{integrator}-{f}.exr"));
+            let frame = f.to_string();
+            let local = local_render(&path, &s, &out, &["--frame", &frame, "--shutter=-0.5,0.5"]);
+            assert!(
+                farm == local,
+                "{integrator} frame {f}: the farm's EXR differs from tessera render --frame {f} \
+                 --shutter=-0.5,0.5"
+            );
+        }
+        let sharp = dir.join(format!("{integrator}-sharp.exr"));
+        local_render(&path, &s, &sharp, &["--frame", "12"]);
+        let blurred = read_exr(dir.join(format!("{integrator}-12.exr")));
+        assert_ne!(
+            blurred.get("R").unwrap(),
+            read_exr(&sharp).get("R").unwrap(),
+            "{integrator}: the shutter changed nothing"
+        );
+    }
+    // What `tessera render` says about the shutter.
+    let said = output_ok(tessera().args([
+        "render",
+        path.to_str().unwrap(),
+        "--frame",
+        "12",
+        "--shutter=-0.5,0.5",
+        "--width",
+        "8",
+        "--height",
+        "8",
+        "--spp",
+        "1",
+        "-o",
+        dir.join("said.exr").to_str().unwrap(),
+    ]));
+    assert!(
+        said.contains("motion blur: shutter [-0.5, 0.5] frames: 2220 triangles move (8 linear segments), the camera is still; time sampled"),
+        "{said}"
+    );
+    let (ok, _, err) = run(&[
+        "render",
+        path.to_str().unwrap(),
+        "--shutter=0.5,-0.5",
+        "-o",
+        dir.join("bad.exr").to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("invalid --shutter: must open before it closes"),
+        "{err}"
     );
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -42,9 +42,9 @@ pub use status::{
 pub use tessera_farm::job::{
     resolve_resolution, AdaptiveMode, FrameRange, Integrator, IntegratorChoice, JobError,
     JobSettings, MisHeuristic, RenderConfig, RenderRequest, ResolvedJob, SamplerKind, SceneRef,
-    ValidatedJob, DEFAULT_CUTOFF_ALPHA, DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES, DEFAULT_RR_DEPTH,
-    DEFAULT_SPP, DEFAULT_TILE_SIZE, MAX_BUILTIN_NAME_CHARS, MAX_DEPTH_LIMIT, MAX_FRAMES,
-    MAX_NAME_CHARS, MAX_SPP,
+    Shutter, ValidatedJob, DEFAULT_CUTOFF_ALPHA, DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES,
+    DEFAULT_RR_DEPTH, DEFAULT_SPP, DEFAULT_TILE_SIZE, MAX_BUILTIN_NAME_CHARS, MAX_DEPTH_LIMIT,
+    MAX_FRAMES, MAX_NAME_CHARS, MAX_SPP,
 };
 
 /// Path prefix of every API v1 route.
