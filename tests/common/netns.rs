@@ -288,28 +288,23 @@ impl Hosts {
     /// (both ends), and tbf's drops and overlimits; for netem, tc's drop counts. Shown so
     /// a reader can see the link really was degraded.
     pub fn degradation_stats(&self, i: usize) -> String {
+        // A command's stdout on one line ("" if it fails: nft has no table under netem).
+        let one_line = |ns: &str, program: &str, args: &[&str]| {
+            Self::exec(ns, program)
+                .args(args)
+                .output()
+                .map(|o| {
+                    String::from_utf8_lossy(&o.stdout)
+                        .split_whitespace()
+                        .collect::<Vec<_>>()
+                        .join(" ")
+                })
+                .unwrap_or_default()
+        };
         let mut out = Vec::new();
         for (ns, dev) in self.ends(i) {
-            let tc = Self::exec(&ns, "tc")
-                .args(["-s", "qdisc", "show", "dev", &dev])
-                .output()
-                .map(|o| {
-                    String::from_utf8_lossy(&o.stdout)
-                        .split_whitespace()
-                        .collect::<Vec<_>>()
-                        .join(" ")
-                })
-                .unwrap_or_default();
-            let nft = Self::exec(&ns, "nft")
-                .args(["list", "table", "netdev", "tessera_loss"])
-                .output()
-                .map(|o| {
-                    String::from_utf8_lossy(&o.stdout)
-                        .split_whitespace()
-                        .collect::<Vec<_>>()
-                        .join(" ")
-                })
-                .unwrap_or_default();
+            let tc = one_line(&ns, "tc", &["-s", "qdisc", "show", "dev", &dev]);
+            let nft = one_line(&ns, "nft", &["list", "table", "netdev", "tessera_loss"]);
             out.push(format!("{ns}/{dev}: tc [{tc}] nft [{nft}]"));
         }
         out.join("\n")
