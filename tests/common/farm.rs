@@ -24,7 +24,7 @@ pub struct Coord {
 
 /// Starts `tessera coordinator` on `data` with short leases and waits for its addresses.
 pub fn start_coordinator(data: &Path, http: &str, grpc: &str, extra: &[&str]) -> Coord {
-    spawn_coordinator(tessera(), data, http, grpc, extra)
+    spawn_coordinator(tessera(), data, http, grpc, extra, None)
 }
 
 /// [`start_coordinator`] on loopback port 0 with its address space (`ulimit -v`) limited
@@ -34,15 +34,18 @@ pub fn start_coordinator_limited(data: &Path, bytes: u64, extra: &[&str]) -> Coo
     cmd.arg(format!("--as={bytes}"))
         .arg("--")
         .arg(env!("CARGO_BIN_EXE_tessera"));
-    spawn_coordinator(cmd, data, "127.0.0.1:0", "127.0.0.1:0", extra)
+    spawn_coordinator(cmd, data, "127.0.0.1:0", "127.0.0.1:0", extra, None)
 }
 
-fn spawn_coordinator(
+/// [`start_coordinator`] through `cmd`, a program that runs `tessera` with the arguments
+/// appended (`prlimit`, `ip netns exec`), with its stderr in `stderr_log` if given.
+pub fn spawn_coordinator(
     mut cmd: std::process::Command,
     data: &Path,
     http: &str,
     grpc: &str,
     extra: &[&str],
+    stderr_log: Option<&Path>,
 ) -> Coord {
     let mut proc = Proc::spawn(
         "coordinator",
@@ -59,7 +62,7 @@ fn spawn_coordinator(
             .args(extra)
             .env_remove("TESSERA_API_TOKEN")
             .env_remove("TESSERA_WORKER_TOKEN"),
-        None,
+        stderr_log,
     );
     let v = proc.wait_lines(&["http: ", "grpc: "]);
     let http = v[0].trim_end_matches("/api/v1").to_string();
@@ -72,20 +75,30 @@ fn spawn_coordinator(
 
 /// Starts `tessera worker` with one thread against the gRPC URL `grpc`.
 pub fn start_worker(grpc: &str, name: &str, extra: &[&str]) -> Proc {
+    spawn_worker(tessera(), grpc, name, extra)
+}
+
+/// [`start_worker`] through `cmd`, a program that runs `tessera` with the arguments
+/// appended (`ip netns exec`).
+pub fn spawn_worker(
+    mut cmd: std::process::Command,
+    grpc: &str,
+    name: &str,
+    extra: &[&str],
+) -> Proc {
     Proc::spawn(
         name,
-        tessera()
-            .args([
-                "worker",
-                "--coordinator",
-                grpc,
-                "--threads",
-                "1",
-                "--name",
-                name,
-            ])
-            .args(extra)
-            .env_remove("TESSERA_WORKER_TOKEN"),
+        cmd.args([
+            "worker",
+            "--coordinator",
+            grpc,
+            "--threads",
+            "1",
+            "--name",
+            name,
+        ])
+        .args(extra)
+        .env_remove("TESSERA_WORKER_TOKEN"),
         None,
     )
 }

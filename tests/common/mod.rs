@@ -9,6 +9,7 @@
 #![allow(dead_code)]
 
 pub mod farm;
+pub mod netns;
 pub mod postgres;
 pub mod test_ca;
 

@@ -99,6 +99,9 @@ pub struct Farm {
     /// What workers removed from `workers` had done, so that `/metrics` counters stay
     /// monotonic when lost workers are forgotten.
     pub forgotten: ForgottenWorkers,
+    /// Leases that lapsed without a result and whose units went back to the queue
+    /// (`tessera_leases_expired_total`): workers that died, stalled or lost their network.
+    pub leases_expired: u64,
     next_worker: WorkerId,
 }
 
@@ -125,8 +128,27 @@ impl Farm {
             scenes: HashMap::new(),
             runtime: BTreeMap::new(),
             forgotten: ForgottenWorkers::default(),
+            leases_expired: 0,
             next_worker: 1,
         }
+    }
+
+    /// Returns the units of every lapsed lease to the queue ([`Scheduler::expire`]),
+    /// counting and logging them: a re-lease is the farm's only sign of a worker cut off
+    /// mid-unit, so operators should see it.
+    pub fn expire_leases(&mut self, now_ms: u64) {
+        let expired = self.scheduler.expire(now_ms);
+        if expired.is_empty() {
+            return;
+        }
+        self.leases_expired += expired.len() as u64;
+        let workers: std::collections::BTreeSet<WorkerId> =
+            expired.iter().map(|l| l.worker).collect();
+        tracing::warn!(
+            leases = expired.len(),
+            ?workers,
+            "leases expired without a result; their units are leased again"
+        );
     }
 
     /// Registers a worker and returns its new id (ids are never reused in a run).

@@ -263,6 +263,56 @@ async fn lost_workers_are_forgotten_and_counted() {
     assert!(m.contains("tessera_workers 1\n"), "{m}");
 }
 
+/// A heartbeat never tells a worker to drop a lapsed lease of a job that goes on
+/// (worker.proto: the worker may finish it; its result is merged once or compared), so a
+/// worker cut off past its lease still delivers (tests/netns_partition.rs). It cancels
+/// leases of a canceled job and unknown ones. Lapsed leases are counted in /metrics.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heartbeats_keep_lapsed_leases_deliverable_and_cancel_only_canceled_or_unknown_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    (cfg.lease_ms, cfg.heartbeat_ms) = (200, 50);
+    let core = Coordinator::open(cfg).await.unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(64), Some(64), 4);
+    let (status, _) = core.submit(job, None).await.unwrap();
+    let w = core.register_worker("w".into(), 1, "t").unwrap();
+    let held: Vec<u64> = core
+        .lease(w, 2)
+        .await
+        .unwrap()
+        .units
+        .iter()
+        .map(|u| u.lease_id)
+        .collect();
+    assert_eq!(held.len(), 2);
+    // No heartbeat: past the deadline the housekeeping tick returns both units.
+    bounded("the leases to lapse", async {
+        loop {
+            core.tick().await;
+            let m = core.metrics().await.unwrap();
+            if gauge(&m, "tessera_leases_expired_total") == 2 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let hb = core.heartbeat(w, 0.0, &held).unwrap();
+    assert!(hb.extended.is_empty(), "a lapsed lease was extended");
+    assert!(
+        hb.cancel.is_empty(),
+        "lapsed leases of a live job were cancelled: {:?}",
+        hb.cancel
+    );
+    assert_eq!(
+        core.heartbeat(w, 0.0, &[987_654]).unwrap().cancel,
+        [987_654]
+    );
+    core.cancel(status.id).await.unwrap();
+    assert_eq!(core.heartbeat(w, 0.0, &held).unwrap().cancel, held);
+}
+
 /// The value of an unlabelled gauge in a `/metrics` text.
 fn gauge(metrics: &str, name: &str) -> u64 {
     metrics

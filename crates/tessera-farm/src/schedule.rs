@@ -974,6 +974,16 @@ impl Scheduler {
         self.jobs.get(&job_id).is_some_and(Job::is_complete)
     }
 
+    /// Whether `lease_id` lapsed (or was given back) while its job goes on: its unit was
+    /// returned to the queue, but a result for it is still wanted, merged if the unit is
+    /// not merged yet and compared with the merged copy otherwise ([`Scheduler::submit`]).
+    /// False for leases of canceled jobs, which nobody wants a result for.
+    pub fn is_lapsed_and_wanted(&self, lease_id: u64) -> bool {
+        self.lapsed
+            .get(&lease_id)
+            .is_some_and(|(job, _)| self.jobs.get(job).is_some_and(|j| !j.canceled))
+    }
+
     /// Whether `lease_id` was issued by an earlier run of the coordinator (at or below the
     /// high-water mark this scheduler was created with).
     pub fn is_previous_run_lease(&self, lease_id: u64) -> bool {
@@ -1086,6 +1096,37 @@ mod tests {
             s.submit(a[2].lease_id, 1, result(&p, a[2].unit, 0.25)),
             Ok(Submitted::Duplicate { identical: false })
         );
+    }
+
+    #[test]
+    fn a_lapsed_lease_is_wanted_until_its_result_arrives_or_its_job_is_canceled() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=0, 3);
+        s.add_job(2, 0, p, 0..=0, 3);
+        let a = s.lease(1, 0, 2);
+        let b: Vec<Lease> = s
+            .lease(1, 0, 100)
+            .into_iter()
+            .filter(|l| l.job == 2)
+            .take(1)
+            .collect();
+        // Live leases are not lapsed.
+        assert!(!s.is_lapsed_and_wanted(a[0].lease_id));
+        s.expire(200);
+        assert!(s.is_lapsed_and_wanted(a[0].lease_id));
+        assert!(s.is_lapsed_and_wanted(b[0].lease_id));
+        // Delivered: nothing more is wanted for it.
+        assert_eq!(
+            s.submit(a[0].lease_id, 1, result(&p, a[0].unit, 0.5)),
+            Ok(Submitted::Accepted)
+        );
+        assert!(!s.is_lapsed_and_wanted(a[0].lease_id));
+        assert!(s.is_lapsed_and_wanted(a[1].lease_id));
+        // A canceled job wants no result; an id never issued is not lapsed.
+        s.cancel(2);
+        assert!(!s.is_lapsed_and_wanted(b[0].lease_id));
+        assert!(!s.is_lapsed_and_wanted(999_999));
     }
 
     #[test]

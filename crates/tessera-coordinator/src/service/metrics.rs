@@ -49,6 +49,7 @@ impl Coordinator {
         let faults: u64 = farm.workers.values().map(|w| w.faults).sum::<u64>() + forgotten.faults;
         let _ = writeln!(s, "# HELP tessera_units_merged_total Units accepted from workers.\n# TYPE tessera_units_merged_total counter\ntessera_units_merged_total {units}");
         let _ = writeln!(s, "# HELP tessera_worker_faults_total Refused results and mismatching duplicates.\n# TYPE tessera_worker_faults_total counter\ntessera_worker_faults_total {faults}");
+        let _ = writeln!(s, "# HELP tessera_leases_expired_total Leases that lapsed without a result; their units were leased again.\n# TYPE tessera_leases_expired_total counter\ntessera_leases_expired_total {}", farm.leases_expired);
         let _ = writeln!(s, "# HELP tessera_leases_outstanding Leases currently held by workers.\n# TYPE tessera_leases_outstanding gauge\ntessera_leases_outstanding {}", farm.scheduler.leases().count());
         let (queued, leased) = units_waiting_and_leased(&farm);
         let _ = writeln!(s, "# HELP tessera_units_queued Units of queued and running jobs waiting to be leased (the queue depth workers autoscale on; for adaptive jobs an upper bound).\n# TYPE tessera_units_queued gauge\ntessera_units_queued {queued}");

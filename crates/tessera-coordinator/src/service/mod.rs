@@ -319,7 +319,7 @@ impl Coordinator {
         if let Ok(mut farm) = self.inner.farm.lock() {
             // During the grace period leases of the previous run are not expired.
             if !self.leasing_paused() {
-                farm.scheduler.expire(now);
+                farm.expire_leases(now);
             }
             for (&id, rt) in &farm.runtime {
                 if let (Some(limit), JobState::Running) = (rt.job().time_limit_seconds, rt.state) {

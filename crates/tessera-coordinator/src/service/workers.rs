@@ -29,7 +29,8 @@ pub const MAX_UNUSABLE_RETURNS: u32 = 3;
 pub struct Heartbeat {
     /// Leases extended: (lease id, new deadline, Unix ms).
     pub extended: Vec<(u64, u64)>,
-    /// Leases the worker should drop (lapsed or canceled).
+    /// Leases the worker should drop without submitting: of a canceled job, or unknown.
+    /// A lapsed lease of a live job is in neither list (the worker may still deliver it).
     pub cancel: Vec<u64>,
     /// The coordinator is shutting down: finish and deliver the units in hand, then stop.
     pub shutdown: bool,
@@ -108,14 +109,20 @@ impl Coordinator {
             w.paths_per_second = paths_per_second;
         }
         let extended = farm.scheduler.extend(worker, lease_ids, now);
-        // Leases not extended are lapsed or canceled: tell the worker to drop them. Leases
-        // of a previous run of the coordinator (before a restart) are unknown here but their
+        // Leases not extended are lapsed, canceled or unknown. Only the last two are
+        // cancelled (worker.proto: "drop without submitting"): a lapsed lease of a live job
+        // is left out of both lists, so the worker still delivers what it rendered, and
+        // the result is merged once or compared with the copy of the worker the unit went
+        // to (a worker cut off past its lease, tests/netns_partition.rs). Leases of a
+        // previous run of the coordinator (before a restart) are unknown here but their
         // results are still adopted, so the worker keeps rendering them (ARCHITECTURE.md §9).
         let cancel = lease_ids
             .iter()
             .copied()
             .filter(|id| {
-                !extended.iter().any(|(e, _)| e == id) && !farm.scheduler.is_previous_run_lease(*id)
+                !extended.iter().any(|(e, _)| e == id)
+                    && !farm.scheduler.is_previous_run_lease(*id)
+                    && !farm.scheduler.is_lapsed_and_wanted(*id)
             })
             .collect();
         Ok(Heartbeat {
@@ -153,7 +160,7 @@ impl Coordinator {
             if !farm.workers.contains_key(&worker) {
                 return Err(CoordError::unknown_worker());
             }
-            farm.scheduler.expire(now);
+            farm.expire_leases(now);
             let max = max_units.clamp(1, MAX_UNITS_PER_LEASE) as usize;
             let leases = farm.scheduler.lease(worker, now, max);
             let units: Vec<LeasedUnit> = leases
