@@ -379,6 +379,15 @@ fn bad_skins_and_morph_targets_are_errors_naming_the_field() {
     let g = skinned([0; 12], [[2.0, 0.0, 0.0, 0.0], one, one]);
     let s = load_slice_at(&g.gltf(), "skin.gltf", None, None, &SceneTime::default()).unwrap();
     assert_eq!(s.meshes[0].positions[0], Vec3::new(0.0, 0.0, 1.0));
+    // A mirroring joint (scale -1 along x) mirrors the triangle: it is re-wound, so its
+    // geometric normal agrees with its normals (moved by the inverse transpose).
+    let mut g = skinned([0; 12], [one, one, one]);
+    g.doc["nodes"][1]["scale"] = json!([-1.0, 1.0, 1.0]);
+    let s = load_slice_at(&g.gltf(), "skin.gltf", None, None, &SceneTime::default()).unwrap();
+    let m = &s.meshes[0];
+    let [a, b, c] = m.indices[0].map(|i| m.positions[i as usize]);
+    assert_eq!(m.positions[1], Vec3::new(-1.0, 0.0, 1.0));
+    assert!((b - a).cross(c - a).z > 0.0, "winding {:?}", m.indices[0]);
     let mut joints = [0u8; 12];
     joints[8] = 3;
     let e = error_at(&skinned(joints, [one, one, one]), 0.0);

@@ -44,8 +44,8 @@ pub(super) fn plan(
         }
     }
     reasons.push(if animated {
-        "motion: animated scene, each frame evaluated at its own time t = frame / fps; no \
-         motion blur within a frame"
+        "motion: animated scene, each frame evaluated at its own time t = frame / fps; a \
+         job's shutter blurs what moves within it (time sampled only then)"
             .into()
     } else {
         "motion: static scene (the scene description has no animation)".into()

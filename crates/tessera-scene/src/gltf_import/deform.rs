@@ -17,6 +17,10 @@
 //!   applied; it is the brief's `inverse(meshGlobal) * jointGlobal * inverseBindMatrix`
 //!   followed by the mesh node's global transform, which cancel). Normals move with the
 //!   inverse transpose of the blended matrix, tangents with the blended matrix.
+//!   A blended matrix with a negative determinant mirrors: as for a mirroring node
+//!   transform (spec "Meshes > Overview"), a triangle most of whose vertices are
+//!   mirrored is re-wound (its corners' tangents with it, their bitangent signs
+//!   flipped), so triangles stay counter-clockwise seen from the front.
 //!
 //! Bad input is an error naming the node, mesh, primitive and field: a skin index or
 //! joint node past the end or not in the scene, an inverse-bind-matrix accessor with fewer
@@ -293,6 +297,21 @@ impl Importer<'_> {
                 for (t, &v) in corners.iter_mut().zip(tri) {
                     let d = (linear[v as usize] * t.truncate().as_dvec3()).normalize_or_zero();
                     *t = d.as_vec3().extend(t.w);
+                }
+            }
+        }
+        // Mirrored triangles: re-wound, with their tangent corners (whose handedness the
+        // mirror flips).
+        for (ti, tri) in out.triangles.iter_mut().enumerate() {
+            let mirrored = tri
+                .iter()
+                .filter(|&&v| linear[v as usize].determinant() < 0.0)
+                .count();
+            if mirrored >= 2 {
+                *tri = [tri[0], tri[2], tri[1]];
+                if let Some(tangents) = out.tangents.as_mut() {
+                    let c = tangents[ti];
+                    tangents[ti] = [c[0], c[2], c[1]].map(|t| t.truncate().extend(-t.w));
                 }
             }
         }
