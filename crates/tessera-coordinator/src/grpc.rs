@@ -202,6 +202,11 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
             .accept_result(delivery)
             .instrument(span.clone())
             .await;
+        if outcome.is_err() {
+            // Deposed while it was being accepted (`crate::ha`): UNAVAILABLE, so the worker
+            // keeps the result and delivers it to the active coordinator.
+            self.core.active().map_err(status)?;
+        }
         let (accepted, reason) = match outcome {
             Ok(a) => {
                 span.in_scope(|| tracing::debug!(reason = a.reason(), "result accepted"));

@@ -599,13 +599,17 @@ async fn session(
             return Err(s);
         }
         if !panicked.is_empty() {
-            client
+            let returned = client
                 .return_leases(v1::ReturnLeasesRequest {
                     worker_id,
                     lease_ids: panicked,
                     unusable: why,
                 })
-                .await?;
+                .await;
+            if let Err(s) = returned {
+                carry.results.extend(rendered);
+                return Err(s);
+            }
         }
         // Submit in the background while the next units render: the coordinator commits
         // each result to its store before acknowledging it, and the worker's threads should
