@@ -61,9 +61,10 @@ fn farm(h: &Hosts, dir: &Path, lease: &[&str]) -> (Coord, Vec<Proc>) {
             let url = format!("http://{}:{GRPC_PORT}", Hosts::coordinator_addr(i));
             spawn_worker(
                 Hosts::exec(ns, env!("CARGO_BIN_EXE_tessera")),
-                &url,
+                &[&url],
                 &format!("w{i}"),
                 &[],
+                None,
             )
         })
         .collect();

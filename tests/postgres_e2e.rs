@@ -36,6 +36,7 @@ fn a_farm_on_postgres_renders_the_local_image_and_resumes_after_kill9() {
     );
     let store = ["--store", url.as_str()];
     let mut c = start_coordinator(&data, &http, &grpc, &store);
+    c.wait_active();
     let _w1 = start_worker(&c.grpc, "w1", &[]);
     let _w2 = start_worker(&c.grpc, "w2", &[]);
     let client = Client::new(&c.http, None);
@@ -51,6 +52,8 @@ fn a_farm_on_postgres_renders_the_local_image_and_resumes_after_kill9() {
 
     // Restart on the same database and addresses; the workers reconnect by themselves.
     let c2 = start_coordinator(&data, &http, &grpc, &store);
+    // A standby until the killed coordinator's lock session is gone (docs/store.md).
+    c2.wait_active();
     let client = Client::new(&c2.http, None);
     let after = client.job(running.id).unwrap();
     assert!(
@@ -104,7 +107,11 @@ fn serve_on_postgres_renders_the_local_image() {
         None,
     );
     let http = serve.wait_line("http: ");
-    let client = Client::new(http.trim_end_matches("/api/v1"), None);
+    let http = http.trim_end_matches("/api/v1");
+    poll("tessera serve to be active", TIMEOUT, || {
+        common::http_get(http, "/readyz").0 == 200
+    });
+    let client = Client::new(http, None);
     let st = client.submit(&s, None).unwrap();
     wait_done(&client, st.id);
     assert!(client.image(st.id, "exr").unwrap() == reference);

@@ -22,6 +22,22 @@ pub struct Coord {
     pub grpc: String,
 }
 
+impl Coord {
+    /// Waits until the coordinator is the active one (`/readyz` 200): at once on SQLite;
+    /// on PostgreSQL once it holds the store's leadership (docs/store.md, "High
+    /// availability"), which a start after `kill -9` of the previous coordinator waits for.
+    pub fn wait_active(&self) {
+        super::wait_for(
+            "the coordinator to be active",
+            Duration::from_secs(30),
+            || match super::http_get(&self.http, "/readyz") {
+                (200, _) => Ok(()),
+                (status, body) => Err(format!("{status} {body}")),
+            },
+        );
+    }
+}
+
 /// Starts `tessera coordinator` on `data` with short leases and waits for its addresses.
 pub fn start_coordinator(data: &Path, http: &str, grpc: &str, extra: &[&str]) -> Coord {
     spawn_coordinator(tessera(), data, http, grpc, extra, None)
@@ -75,31 +91,39 @@ pub fn spawn_coordinator(
 
 /// Starts `tessera worker` with one thread against the gRPC URL `grpc`.
 pub fn start_worker(grpc: &str, name: &str, extra: &[&str]) -> Proc {
-    spawn_worker(tessera(), grpc, name, extra)
+    spawn_worker(tessera(), &[grpc], name, extra, None)
 }
 
-/// [`start_worker`] through `cmd`, a program that runs `tessera` with the arguments
+/// Starts `tessera worker` with one thread that knows the coordinators `grpc` (one
+/// `--coordinator` each, for failover), its standard error into `stderr_log` if given.
+pub fn start_worker_of(
+    grpc: &[&str],
+    name: &str,
+    extra: &[&str],
+    stderr_log: Option<&Path>,
+) -> Proc {
+    spawn_worker(tessera(), grpc, name, extra, stderr_log)
+}
+
+/// [`start_worker_of`] through `cmd`, a program that runs `tessera` with the arguments
 /// appended (`ip netns exec`).
 pub fn spawn_worker(
     mut cmd: std::process::Command,
-    grpc: &str,
+    grpc: &[&str],
     name: &str,
     extra: &[&str],
+    stderr_log: Option<&Path>,
 ) -> Proc {
+    cmd.arg("worker");
+    for url in grpc {
+        cmd.args(["--coordinator", url]);
+    }
     Proc::spawn(
         name,
-        cmd.args([
-            "worker",
-            "--coordinator",
-            grpc,
-            "--threads",
-            "1",
-            "--name",
-            name,
-        ])
-        .args(extra)
-        .env_remove("TESSERA_WORKER_TOKEN"),
-        None,
+        cmd.args(["--threads", "1", "--name", name])
+            .args(extra)
+            .env_remove("TESSERA_WORKER_TOKEN"),
+        stderr_log,
     )
 }
 

@@ -76,6 +76,38 @@ pub fn free_port() -> u16 {
         .port()
 }
 
+/// `GET path` on the HTTP server at `base` (`http://HOST:PORT`, an `/api/v1` suffix is
+/// ignored) without a client library: (status, body); (0, error) when it cannot connect.
+pub fn http_get(base: &str, path: &str) -> (u16, String) {
+    use std::io::{Read, Write};
+    let addr = base
+        .trim_start_matches("http://")
+        .trim_end_matches("/api/v1")
+        .trim_end_matches('/');
+    let mut s = match std::net::TcpStream::connect(addr) {
+        Ok(s) => s,
+        Err(e) => return (0, e.to_string()),
+    };
+    let _ = s.set_read_timeout(Some(Duration::from_secs(10)));
+    if let Err(e) = write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    ) {
+        return (0, e.to_string());
+    }
+    let mut out = String::new();
+    if let Err(e) = s.read_to_string(&mut out) {
+        return (0, e.to_string());
+    }
+    let status = out
+        .split(' ')
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let body = out.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    (status, body.to_string())
+}
+
 /// Polls `f` every 50 ms until it gives `Ok`; fails the test with `what` and the last
 /// observation after `timeout`.
 pub fn wait_for<T>(what: &str, timeout: Duration, mut f: impl FnMut() -> Result<T, String>) -> T {

@@ -8,9 +8,9 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
-use tessera_coordinator::store::StoreUrl;
+use tessera_coordinator::store::{PostgresStore, StoreUrl};
 use tessera_coordinator::{
-    serve_coordinator, shutdown_signal, HttpLimits, Listeners, ServerTls, TlsFiles,
+    serve_coordinator, serve_ha, shutdown_signal, HttpLimits, Listeners, ServerTls, TlsFiles,
 };
 
 use crate::common::{init_tracing, runtime};
@@ -177,20 +177,75 @@ impl CoordinatorArgs {
     }
 
     /// Opens the store, then binds both ports (so their real addresses are known before
-    /// anything is printed).
-    pub async fn open(&self) -> Result<(Coordinator, Listeners)> {
+    /// anything is printed). On a PostgreSQL store the coordinator is not opened yet: it
+    /// runs as a standby until it holds the store's leadership ([`Opened::Standby`],
+    /// docs/store.md "High availability").
+    pub async fn open(&self) -> Result<(Opened, Listeners)> {
         let cfg = self.config()?;
         let url = cfg.store_url();
-        let core = Coordinator::open(cfg)
-            .await
-            .with_context(|| format!("opening the store {url}"))?;
+        let opened = match &url {
+            StoreUrl::Postgres(raw) => {
+                // Opened (connected, migrated) now, so that a bad URL or an unreachable
+                // server stops the start as on SQLite.
+                let store = PostgresStore::open(raw)
+                    .await
+                    .with_context(|| format!("opening the store {url}"))?;
+                Opened::Standby {
+                    config: Box::new(cfg),
+                    store,
+                    url: raw.clone(),
+                }
+            }
+            StoreUrl::Sqlite(_) => Opened::Single(
+                Coordinator::open(cfg)
+                    .await
+                    .with_context(|| format!("opening the store {url}"))?,
+            ),
+        };
+        Ok((opened, self.bind().await?))
+    }
+
+    /// Binds both ports.
+    async fn bind(&self) -> Result<Listeners> {
         let http = tokio::net::TcpListener::bind(self.http)
             .await
             .with_context(|| format!("binding the HTTP port {}", self.http))?;
         let grpc = tokio::net::TcpListener::bind(self.grpc)
             .await
             .with_context(|| format!("binding the gRPC port {}", self.grpc))?;
-        Ok((core, Listeners { http, grpc }))
+        Ok(Listeners { http, grpc })
+    }
+}
+
+/// A coordinator ready to serve ([`CoordinatorArgs::open`]).
+pub enum Opened {
+    /// On SQLite: the one coordinator of its store, open and resumed.
+    Single(Coordinator),
+    /// On PostgreSQL: a standby, until it takes the leadership ([`serve_ha`]).
+    Standby {
+        /// The validated configuration.
+        config: Box<CoordinatorConfig>,
+        /// The store, open.
+        store: PostgresStore,
+        /// The store's URL as given.
+        url: String,
+    },
+}
+
+impl Opened {
+    /// Serves until `shutdown` completes: [`serve_coordinator`] or [`serve_ha`].
+    pub async fn serve(
+        self,
+        listeners: Listeners,
+        shutdown: impl std::future::Future<Output = ()>,
+    ) -> Result<()> {
+        match self {
+            Self::Single(core) => serve_coordinator(core, listeners, shutdown).await?,
+            Self::Standby { config, store, url } => {
+                serve_ha(*config, store, &url, listeners, shutdown).await?
+            }
+        }
+        Ok(())
     }
 }
 
@@ -213,10 +268,9 @@ pub fn print_addresses(listeners: &Listeners, scheme: &str) -> Result<()> {
 pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
     init_tracing();
     runtime()?.block_on(async {
-        let (core, listeners) = args.open().await?;
+        let (opened, listeners) = args.open().await?;
         print_addresses(&listeners, args.scheme())?;
-        serve_coordinator(core, listeners, shutdown_signal()).await?;
-        Ok(())
+        opened.serve(listeners, shutdown_signal()).await
     })
 }
 

@@ -11,10 +11,10 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 use tessera_api::JobSettings;
 use tessera_coordinator::service::Coordinator;
-use tessera_coordinator::{serve_coordinator, shutdown_signal};
+use tessera_coordinator::shutdown_signal;
 
 use crate::common::{init_tracing, runtime};
-use crate::coordinator::{print_addresses, CoordinatorArgs};
+use crate::coordinator::{print_addresses, CoordinatorArgs, Opened};
 
 /// How long local workers get to finish their units before they are killed.
 const WORKER_STOP: Duration = Duration::from_secs(10);
@@ -79,10 +79,12 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         args.threads_per_worker
     };
     runtime()?.block_on(async move {
-        let (core, listeners) = args.coordinator.open().await?;
+        let (opened, listeners) = args.coordinator.open().await?;
         let children = spawn_workers(&args, listeners.grpc.local_addr()?, threads)?;
-        if args.demo != "none" {
-            submit_demo(&core, &args.demo).await;
+        match &opened {
+            Opened::Single(core) if args.demo != "none" => submit_demo(core, &args.demo).await,
+            // A standby cannot submit: the demo job is for the SQLite farm of a first try.
+            _ => {}
         }
         print_addresses(&listeners, args.coordinator.scheme())?;
         println!(
@@ -94,8 +96,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             shutdown_signal().await;
             stop_workers(children).await;
         };
-        serve_coordinator(core, listeners, shutdown).await?;
-        Ok(())
+        opened.serve(listeners, shutdown).await
     })
 }
 

@@ -12,9 +12,16 @@ use crate::common::{init_tracing, runtime};
 /// `tessera worker`.
 #[derive(Args, Clone, Debug)]
 pub struct WorkerArgs {
-    /// The coordinator's gRPC URL.
-    #[arg(long, default_value = "http://127.0.0.1:50051")]
-    pub coordinator: String,
+    /// The coordinator's gRPC URL. Give it several times (or comma-separated) for
+    /// failover between an active coordinator and its standbys: on a lost connection or
+    /// an answer "not the active coordinator" the worker tries the next one.
+    #[arg(
+        long = "coordinator",
+        value_name = "URL",
+        default_value = "http://127.0.0.1:50051",
+        value_delimiter = ','
+    )]
+    pub coordinators: Vec<String>,
     /// Rendering threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
@@ -61,7 +68,7 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
         None => None,
     };
     let config = tessera_worker::WorkerConfig {
-        coordinator: args.coordinator.clone(),
+        coordinators: args.coordinators.clone(),
         threads,
         name,
         token: args.token.clone().filter(|t| !t.is_empty()),

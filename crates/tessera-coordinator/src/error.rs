@@ -49,6 +49,11 @@ pub enum CoordError {
     /// ([`StoreError::is_write_failure`]) says that the coordinator stopped accepting work.
     #[error("{}", store_message(.0))]
     Store(#[from] StoreError),
+    /// This coordinator is not the active one (a standby, or one that lost the
+    /// leadership; `crate::ha`): workers and clients go to the active one. The text
+    /// names the state.
+    #[error("{0}")]
+    NotActive(String),
     /// Anything else that is the coordinator's fault.
     #[error("internal error: {0}")]
     Internal(String),
@@ -130,6 +135,7 @@ impl From<CoordError> for ApiError {
             // The store takes no writes (full disk, I/O error, read-only file): the
             // coordinator stops accepting work until restarted (docs/store.md).
             CoordError::Store(s) if s.is_write_failure() => ErrorCode::Unavailable,
+            CoordError::NotActive(_) => ErrorCode::Unavailable,
             CoordError::Conflict { field, .. } => {
                 return ApiError {
                     code: ErrorCode::Conflict,
@@ -156,6 +162,8 @@ impl From<CoordError> for Status {
             CoordError::TooLarge(m) => Status::resource_exhausted(m),
             e @ CoordError::Conflict { .. } => Status::already_exists(e.to_string()),
             CoordError::Store(e) => Status::unavailable(format!("coordinator store: {e}")),
+            // UNAVAILABLE: the worker tries the next coordinator it knows.
+            CoordError::NotActive(m) => Status::unavailable(m),
             CoordError::Internal(m) => Status::internal(m),
         }
     }

@@ -45,7 +45,15 @@ impl WorkerGrpc {
             .max_encoding_message_size(MAX_MESSAGE)
     }
 
+    /// Checks the worker token, then that this coordinator is still the active one: a
+    /// deposed coordinator (`crate::ha`) answers every worker request `UNAVAILABLE`, so
+    /// the worker keeps its results and takes them to the active one.
     fn authorize<T>(&self, req: &Request<T>) -> Result<(), Status> {
+        self.check_token(req)?;
+        self.core.active().map_err(status)
+    }
+
+    fn check_token<T>(&self, req: &Request<T>) -> Result<(), Status> {
         let Some(token) = &self.core.config().worker_token else {
             return Ok(());
         };
@@ -194,6 +202,11 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
             .accept_result(delivery)
             .instrument(span.clone())
             .await;
+        if outcome.is_err() {
+            // Deposed while it was being accepted (`crate::ha`): UNAVAILABLE, so the worker
+            // keeps the result and delivers it to the active coordinator.
+            self.core.active().map_err(status)?;
+        }
         let (accepted, reason) = match outcome {
             Ok(a) => {
                 span.in_scope(|| tracing::debug!(reason = a.reason(), "result accepted"));
@@ -233,6 +246,78 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         }
         .map_err(status)?;
         Ok(Response::new(v1::ReturnLeasesResponse { returned }))
+    }
+}
+
+/// The gRPC service of a standby coordinator (`crate::ha`): every request is answered
+/// `UNAVAILABLE` with a message naming the state, so a worker moves on to the next
+/// coordinator it knows. No token is checked: nothing is served.
+#[derive(Clone)]
+pub struct StandbyGrpc {
+    message: &'static str,
+}
+
+impl StandbyGrpc {
+    /// A standby service answering `message`.
+    pub fn new(message: &'static str) -> Self {
+        Self { message }
+    }
+
+    /// The tonic server wrapper of this service.
+    pub fn into_server(self) -> v1::worker_service_server::WorkerServiceServer<Self> {
+        v1::worker_service_server::WorkerServiceServer::new(self)
+            .max_decoding_message_size(MAX_MESSAGE)
+    }
+
+    fn refuse<T>(&self) -> Result<Response<T>, Status> {
+        Err(Status::unavailable(self.message))
+    }
+}
+
+#[tonic::async_trait]
+impl v1::worker_service_server::WorkerService for StandbyGrpc {
+    async fn register(
+        &self,
+        _: Request<v1::RegisterRequest>,
+    ) -> Result<Response<v1::RegisterResponse>, Status> {
+        self.refuse()
+    }
+
+    async fn heartbeat(
+        &self,
+        _: Request<v1::HeartbeatRequest>,
+    ) -> Result<Response<v1::HeartbeatResponse>, Status> {
+        self.refuse()
+    }
+
+    async fn lease_work(
+        &self,
+        _: Request<v1::LeaseRequest>,
+    ) -> Result<Response<v1::LeaseResponse>, Status> {
+        self.refuse()
+    }
+
+    async fn submit_result(
+        &self,
+        _: Request<v1::SubmitResultRequest>,
+    ) -> Result<Response<v1::SubmitResultResponse>, Status> {
+        self.refuse()
+    }
+
+    type FetchSceneStream = SceneStream;
+
+    async fn fetch_scene(
+        &self,
+        _: Request<v1::FetchSceneRequest>,
+    ) -> Result<Response<SceneStream>, Status> {
+        self.refuse()
+    }
+
+    async fn return_leases(
+        &self,
+        _: Request<v1::ReturnLeasesRequest>,
+    ) -> Result<Response<v1::ReturnLeasesResponse>, Status> {
+        self.refuse()
     }
 }
 

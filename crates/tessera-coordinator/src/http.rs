@@ -133,6 +133,7 @@ pub fn router(core: Coordinator) -> Router {
     Router::new()
         .nest(API_PREFIX, api)
         .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
         .route(
             "/metrics",
             get(metrics).layer(middleware::from_fn_with_state(core.clone(), require_token)),
@@ -143,6 +144,24 @@ pub fn router(core: Coordinator) -> Router {
         .fallback(not_found)
         .layer(middleware::from_fn(trace_request))
         .with_state(core)
+}
+
+/// The router of a standby coordinator's HTTP port (`crate::ha`): `/healthz` 200 (the
+/// process is alive and doing its job, waiting), `/readyz` 503 (route to the active
+/// one), everything else 503 `unavailable`; each answer says `message`.
+pub fn standby_router(message: &'static str) -> Router {
+    Router::new()
+        .route(
+            "/healthz",
+            get(move || async move { (StatusCode::OK, format!("{message}\n")) }),
+        )
+        .route(
+            "/readyz",
+            get(move || async move { (StatusCode::SERVICE_UNAVAILABLE, format!("{message}\n")) }),
+        )
+        // Not traced as the active router is: every answer is a 503 by design, and
+        // logging each as a failed request would bury the log in probes.
+        .fallback(move || async move { HttpError(ApiError::new(ErrorCode::Unavailable, message)) })
 }
 
 async fn require_token(State(core): State<Coordinator>, req: Request, next: Next) -> Response {
@@ -383,7 +402,12 @@ async fn not_found(req: Request) -> HttpError {
     ))
 }
 
+/// Liveness and the container health check: 200 while the store answers and takes
+/// writes; 503 otherwise, and once this coordinator lost the leadership (`crate::ha`).
 async fn healthz(State(core): State<Coordinator>) -> Response {
+    if let Err(e) = core.active() {
+        return (StatusCode::SERVICE_UNAVAILABLE, format!("{e}\n")).into_response();
+    }
     match core.store().ping().await {
         Ok(()) => (StatusCode::OK, "ok\n").into_response(),
         Err(e) => (
@@ -391,6 +415,16 @@ async fn healthz(State(core): State<Coordinator>) -> Response {
             format!("store unavailable: {e}\n"),
         )
             .into_response(),
+    }
+}
+
+/// Readiness, for a load balancer or a Kubernetes readiness probe: 200 `active` on the
+/// coordinator that serves the farm, 503 otherwise. A standby answers 503 `standby: ...`
+/// from its own router (`crate::ha`), where `/healthz` is 200.
+async fn readyz(State(core): State<Coordinator>) -> Response {
+    match healthz(State(core)).await {
+        r if r.status() == StatusCode::OK => (StatusCode::OK, "active\n").into_response(),
+        r => r,
     }
 }
 

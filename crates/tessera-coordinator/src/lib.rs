@@ -22,6 +22,8 @@
 //!   body and idle timeouts ([`HttpLimits`]).
 //! - [`server`]: [`serve`], which runs both servers and the ticker on bound listeners and
 //!   shuts them down gracefully (workers told to stop, requests in flight finished).
+//! - [`ha`]: high availability on PostgreSQL: [`ha::serve_ha`] runs a coordinator as a
+//!   standby until it holds the store's leadership lock, then as the active one.
 //!
 //! Dependencies point one way: `http` and `grpc` call `service`, which owns `state` and
 //! `store`; nothing below `service` knows HTTP or gRPC.
@@ -35,6 +37,7 @@ pub mod connections;
 pub mod dashboard;
 pub mod error;
 pub mod grpc;
+pub mod ha;
 pub mod http;
 pub mod server;
 pub mod service;
@@ -43,5 +46,6 @@ pub mod store;
 pub mod tls;
 
 pub use connections::HttpLimits;
+pub use ha::serve_ha;
 pub use server::{serve, serve_coordinator, shutdown_signal, Listeners, ServeError};
 pub use tls::{ServerTls, TlsError, TlsFiles};

@@ -47,6 +47,7 @@ use crate::grpc::WorkerGrpc;
 use crate::service::{Coordinator, CoordinatorConfig};
 use crate::store::StoreError;
 use crate::tls::{ServerTls, TlsError};
+use tessera_proto::v1;
 
 /// How long a shutting-down coordinator waits for workers to deliver the units they hold.
 pub const WORKER_DRAIN: Duration = Duration::from_secs(5);
@@ -83,7 +84,9 @@ pub enum ServeError {
 }
 
 /// Opens the coordinator described by `config` and serves it on `listeners` until
-/// `shutdown` completes (see the module documentation for the shutdown order).
+/// `shutdown` completes (see the module documentation for the shutdown order). On a
+/// PostgreSQL store it is [`crate::ha::serve_ha`]: a standby until it holds the store's
+/// leadership.
 ///
 /// The compiler cannot prove this future `Send` (the store's open trips rustc's
 /// higher-ranked `Send` check on sqlx futures), so await it on the task that owns it
@@ -94,6 +97,10 @@ pub async fn serve(
     listeners: Listeners,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), ServeError> {
+    if let crate::store::StoreUrl::Postgres(url) = config.store_url() {
+        let store = crate::store::PostgresStore::open(&url).await?;
+        return crate::ha::serve_ha(config, store, &url, listeners, shutdown).await;
+    }
     let core = Coordinator::open(config).await?;
     serve_coordinator(core, listeners, shutdown).await
 }
@@ -110,36 +117,125 @@ pub async fn serve_coordinator(
         None => None,
     };
     let reloader = tls.clone().map(ServerTls::reload_on_sighup);
+    let store = core.store();
+    let ended = serve_phase(core, listeners, tls, async {
+        shutdown.await;
+        Ended::Shutdown
+    })
+    .await;
+    if let Some(r) = reloader {
+        r.abort();
+    }
+    store.close().await;
+    ended.map(|_| ())
+}
+
+/// How a coordinator's serving ended ([`serve_phase`]).
+#[derive(Debug)]
+pub(crate) enum Ended {
+    /// Asked to stop: the graceful shutdown of the module documentation.
+    Shutdown,
+    /// It lost the leadership of its store (`crate::ha`), for this reason.
+    Deposed(String),
+}
+
+/// Serves `core` on `listeners` until `end` completes or a server fails, then stops
+/// both servers and the ticker; the store stays open (the caller closes it).
+///
+/// [`Ended::Shutdown`] is the graceful shutdown of the module documentation, ending with
+/// the clean end recorded in the store. [`Ended::Deposed`] stops at once: the
+/// coordinator is deposed first (nothing granted or taken from then on), workers are not
+/// waited for (they deliver to the new active coordinator) and no clean end is recorded
+/// (the store is the new leader's).
+pub(crate) async fn serve_phase(
+    core: Coordinator,
+    listeners: Listeners,
+    tls: Option<Arc<ServerTls>>,
+    end: impl Future<Output = Ended>,
+) -> Result<Ended, ServeError> {
     let (failed_tx, mut failed_rx) = mpsc::channel::<ServeError>(2);
     let (http_stop, http_stopped) = oneshot::channel::<()>();
     let (grpc_stop, grpc_stopped) = oneshot::channel::<()>();
     let ticker = core.spawn_ticker();
     let http = spawn_http(&core, listeners.http, tls.clone(), http_stopped);
     let grpc = spawn_grpc(&core, listeners.grpc, tls, grpc_stopped, failed_tx);
-    let failure = tokio::select! {
-        _ = shutdown => None,
-        e = failed_rx.recv() => e,
+    let (ended, failure) = tokio::select! {
+        e = end => (e, None),
+        e = failed_rx.recv() => (Ended::Shutdown, e),
     };
-    tracing::info!("coordinator shutting down");
-    let _ = http_stop.send(());
-    core.begin_shutdown();
-    drain_workers(&core, WORKER_DRAIN).await;
-    let _ = grpc_stop.send(());
-    join_servers(http, grpc, SERVER_SHUTDOWN).await;
-    ticker.abort();
-    if let Some(r) = reloader {
-        r.abort();
+    match &ended {
+        Ended::Shutdown => {
+            tracing::info!("coordinator shutting down");
+            let _ = http_stop.send(());
+            core.begin_shutdown();
+            drain_workers(&core, WORKER_DRAIN).await;
+            let _ = grpc_stop.send(());
+            join_servers(http, grpc, SERVER_SHUTDOWN).await;
+            ticker.abort();
+            // A graceful end: the next start does not count it as a crash of the jobs in
+            // hand (docs/store.md, "No crash loop").
+            if let Err(e) = core.store().end_run().await {
+                tracing::warn!(error = %e, "cannot record the graceful shutdown in the store");
+            }
+            tracing::info!("coordinator stopped");
+        }
+        Ended::Deposed(reason) => {
+            core.depose(reason.clone());
+            ticker.abort();
+            let _ = http_stop.send(());
+            let _ = grpc_stop.send(());
+            join_servers(http, grpc, SERVER_SHUTDOWN).await;
+        }
     }
-    // A graceful end: the next start does not count it as a crash of the jobs in hand
-    // (docs/store.md, "No crash loop").
-    if let Err(e) = core.store().end_run().await {
-        tracing::warn!(error = %e, "cannot record the graceful shutdown in the store");
-    }
-    core.store().close().await;
-    tracing::info!("coordinator stopped");
     match failure.or_else(|| failed_rx.try_recv().ok()) {
         Some(e) => Err(e),
-        None => Ok(()),
+        None => Ok(ended),
+    }
+}
+
+/// The stand-in servers of a standby coordinator (`crate::ha`): gRPC answers every
+/// worker request `UNAVAILABLE`, HTTP serves the probes and answers the rest 503.
+pub(crate) struct Standby {
+    stop: Vec<oneshot::Sender<()>>,
+    http: JoinHandle<()>,
+    grpc: JoinHandle<()>,
+}
+
+impl Standby {
+    /// Stops both servers (the requests in flight finish; [`SERVER_SHUTDOWN`] at most).
+    pub(crate) async fn stop(self) {
+        for s in self.stop {
+            let _ = s.send(());
+        }
+        join_servers(self.http, self.grpc, SERVER_SHUTDOWN).await;
+    }
+}
+
+/// Starts the stand-in servers of a standby on `listeners`.
+pub(crate) fn spawn_standby(
+    config: &CoordinatorConfig,
+    listeners: Listeners,
+    tls: Option<Arc<ServerTls>>,
+) -> Standby {
+    let (http_stop, http_stopped) = oneshot::channel::<()>();
+    let (grpc_stop, grpc_stopped) = oneshot::channel::<()>();
+    let stats = Arc::new(ConnectionStats::default());
+    let app = crate::http::standby_router(crate::ha::STANDBY_MESSAGE);
+    let limits = config.http_limits;
+    let http_tls = tls.clone();
+    let http = tokio::spawn(async move {
+        let graceful = async move {
+            let _ = http_stopped.await;
+        };
+        serve_http(listeners.http, app, limits, stats, http_tls, graceful).await;
+    });
+    let svc = crate::grpc::StandbyGrpc::new(crate::ha::STANDBY_MESSAGE).into_server();
+    let (failed, _) = mpsc::channel::<ServeError>(1);
+    let grpc = tokio::spawn(run_grpc(svc, listeners.grpc, tls, grpc_stopped, failed));
+    Standby {
+        stop: vec![http_stop, grpc_stop],
+        http,
+        grpc,
     }
 }
 
@@ -168,7 +264,21 @@ fn spawn_grpc(
     failed: mpsc::Sender<ServeError>,
 ) -> JoinHandle<()> {
     let svc = WorkerGrpc::for_coordinator(core.clone()).into_server();
-    tokio::spawn(async move {
+    tokio::spawn(run_grpc(svc, listener, tls, stop, failed))
+}
+
+/// Serves the worker service `svc` (the coordinator's, or a standby's) on `listener`
+/// until `stop`; a failure before it is sent to `failed`.
+async fn run_grpc<S>(
+    svc: v1::worker_service_server::WorkerServiceServer<S>,
+    listener: TcpListener,
+    tls: Option<Arc<ServerTls>>,
+    stop: oneshot::Receiver<()>,
+    failed: mpsc::Sender<ServeError>,
+) where
+    S: v1::worker_service_server::WorkerService,
+{
+    {
         let graceful = async move {
             let _ = stop.await;
         };
@@ -194,7 +304,7 @@ fn spawn_grpc(
             tracing::error!(error = %e, "gRPC server failed");
             let _ = failed.send(ServeError::Grpc(e)).await;
         }
-    })
+    }
 }
 
 /// Waits until no live worker holds a lease, for `timeout` at most.

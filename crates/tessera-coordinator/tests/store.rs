@@ -1247,3 +1247,59 @@ async fn a_missing_postgres_database_is_an_error_naming_it() {
     assert!(matches!(e, StoreError::Unreachable { .. }), "{msg}");
     assert!(msg.contains("no_such_tessera_db"), "{msg}");
 }
+
+/// High availability (docs/store.md, "High availability"): once a second coordinator
+/// took the leadership of the store, every state-changing write of the first one is
+/// refused as [`StoreError::NotLeader`] (a write failure), and the lease high-water mark
+/// the new leader reads is above every id the old one reserved.
+#[tokio::test]
+async fn a_deposed_leaders_writes_are_fenced() {
+    let Some(url) = postgres::fresh_database("fencing").await else {
+        return;
+    };
+    let old = PostgresStore::open(&url).await.unwrap();
+    let new = PostgresStore::open(&url).await.unwrap();
+    let e1 = old.take_leadership().await.unwrap();
+    let (job, _) = old.insert_job(new_job(1, None)).await.unwrap();
+    old.record_lease_high_water(4096).await.unwrap();
+    let e2 = new.take_leadership().await.unwrap();
+    assert!(e2 > e1, "epochs {e1} then {e2}");
+    assert_eq!(new.max_lease_id().await.unwrap(), 4096);
+
+    let refused = |r: Result<(), StoreError>, what: &str| {
+        let e = r.expect_err(what);
+        assert!(
+            matches!(e, StoreError::NotLeader { ours, current } if ours == e1 && current == e2),
+            "{what}: {e}"
+        );
+        assert!(e.is_write_failure(), "{what}: {e}");
+        assert!(e.to_string().contains("no longer the active one"), "{e}");
+    };
+    refused(
+        old.record_lease_high_water(8192).await,
+        "a lease reservation",
+    );
+    refused(
+        old.insert_job(new_job(2, None)).await.map(|_| ()),
+        "a job insert",
+    );
+    refused(
+        old.set_job_state(job, JobState::Running, None, 1)
+            .await
+            .map(|_| ()),
+        "a state change",
+    );
+    refused(
+        old.save_tiles(&[checkpoint(job, 2, 0, &[2]).as_ref()])
+            .await,
+        "a checkpoint",
+    );
+    refused(old.end_run().await, "the clean end");
+    assert_eq!(new.max_lease_id().await.unwrap(), 4096);
+    // The new leader writes.
+    new.record_lease_high_water(8192).await.unwrap();
+    new.save_tiles(&[checkpoint(job, 2, 0, &[2]).as_ref()])
+        .await
+        .unwrap();
+    assert_eq!(new.max_lease_id().await.unwrap(), 8192);
+}

@@ -9,6 +9,16 @@
 //! heartbeat answering `shutdown` because the coordinator is stopping) it finishes the
 //! units in hand, submits them, returns anything it has not started, and exits.
 //!
+//! # Failover (docs/deploy.md, "High availability")
+//! A worker may know several coordinators ([`WorkerConfig::coordinators`]): the active
+//! one and standbys on one PostgreSQL store. On a connection failure, or an answer
+//! `UNAVAILABLE` (a standby, or a coordinator that lost the leadership), it tries the next
+//! one at once, and backs off exponentially only after every one failed in a row, forever
+//! until it is stopped. Results rendered for a coordinator that went away are kept and
+//! submitted first to whichever coordinator it registers with next: a new active
+//! coordinator adopts results of its predecessor's leases (they are below its lease
+//! high-water mark) and merges each once, or compares it with the merged copy.
+//!
 //! Rendering is deterministic (docs/ARCHITECTURE.md §2): the bytes a worker submits for a unit depend
 //! only on the scene, the settings and the unit, so the coordinator can compare duplicates.
 #![deny(missing_docs)]
@@ -33,8 +43,9 @@ use tonic::{Request, Status};
 /// How to run a worker.
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
-    /// The coordinator's gRPC URL, e.g. `http://127.0.0.1:50051`.
-    pub coordinator: String,
+    /// The coordinators' gRPC URLs, e.g. `http://127.0.0.1:50051`, tried in this order
+    /// (at least one; several for failover between an active coordinator and standbys).
+    pub coordinators: Vec<String>,
     /// Rendering threads.
     pub threads: usize,
     /// A name shown in the coordinator's worker list.
@@ -184,31 +195,16 @@ pub async fn run(
             config.threads
         )));
     }
-    let mut endpoint = Endpoint::from_shared(config.coordinator.clone())
-        .map_err(|e| WorkerError::Config(format!("coordinator URL {:?}: {e}", config.coordinator)))?
-        .connect_timeout(Duration::from_secs(5))
-        .tcp_nodelay(true);
-    let https = config.coordinator.starts_with("https://");
-    match (&config.tls, https) {
-        (Some(tls), true) => {
-            endpoint = endpoint
-                .tls_config(tls.client_config())
-                .map_err(|e| WorkerError::Config(format!("TLS: {e}")))?;
-        }
-        (Some(_), false) => {
-            return Err(WorkerError::Config(format!(
-                "TLS files were given but the coordinator URL {:?} is not https://",
-                config.coordinator
-            )))
-        }
-        (None, true) => {
-            return Err(WorkerError::Config(format!(
-                "the coordinator URL {:?} is https://: give the CA to trust (--tls-ca)",
-                config.coordinator
-            )))
-        }
-        (None, false) => {}
+    if config.coordinators.is_empty() {
+        return Err(WorkerError::Config(
+            "no coordinator URL: give at least one (--coordinator)".into(),
+        ));
     }
+    let endpoints = config
+        .coordinators
+        .iter()
+        .map(|url| endpoint(url, config.tls.as_ref()))
+        .collect::<Result<Vec<_>, _>>()?;
     let auth = match &config.token {
         Some(t) => Some(
             format!("Bearer {t}")
@@ -227,25 +223,45 @@ pub async fn run(
     let cache = Arc::new(Mutex::new(SceneCache::default()));
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let session = async {
+        let n = endpoints.len();
+        let mut carry = Carry::default();
         let mut backoff = Duration::from_millis(100);
+        // Which coordinator to try next, and how many failed in a row.
+        let (mut next, mut failed) = (0usize, 0usize);
+        // Attempts made since the stop was asked for, to deliver results still in hand.
+        let mut after_stop = 0usize;
         loop {
             if *stop_rx.borrow() {
-                return Ok(());
+                if carry.results.is_empty() || after_stop >= n {
+                    if !carry.results.is_empty() {
+                        tracing::warn!(
+                            results = carry.results.len(),
+                            "stopping with results no coordinator took; they are rendered again"
+                        );
+                    }
+                    return Ok(());
+                }
+                after_stop += 1;
             }
-            match endpoint.connect().await {
+            let url = &config.coordinators[next];
+            carry.registered = false;
+            match endpoints[next].connect().await {
                 Ok(channel) => {
                     let client = v1::worker_service_client::WorkerServiceClient::with_interceptor(
                         channel,
                         Auth(auth.clone()),
                     );
-                    match serve(&config, client, &pool, &cache, stop_rx.clone()).await {
+                    match serve(&config, client, &pool, &cache, stop_rx.clone(), &mut carry).await {
                         Ok(()) => return Ok(()),
                         Err(s) if s.code() == tonic::Code::Unauthenticated => {
                             return Err(WorkerError::Unauthenticated(s.message().to_string()))
                         }
+                        Err(s) if s.code() == tonic::Code::Unavailable && !carry.registered => {
+                            // A standby, or a coordinator that lost the leadership.
+                            tracing::debug!(coordinator = %url, error = %s.message(), "coordinator not active");
+                        }
                         Err(s) => {
-                            tracing::warn!(error = %s, "coordinator connection lost");
-                            backoff = Duration::from_millis(100);
+                            tracing::warn!(coordinator = %url, error = %s, "coordinator connection lost");
                         }
                     }
                 }
@@ -255,12 +271,24 @@ pub async fn run(
                     // debug logs.
                     let cause = error_chain(&e);
                     if backoff >= Duration::from_secs(5) {
-                        tracing::warn!(error = %cause, "coordinator not reachable");
+                        tracing::warn!(coordinator = %url, error = %cause, "coordinator not reachable");
                     } else {
-                        tracing::debug!(error = %cause, "coordinator not reachable");
+                        tracing::debug!(coordinator = %url, error = %cause, "coordinator not reachable");
                     }
                 }
             }
+            if carry.registered {
+                // It served for a while: start over with short waits.
+                failed = 0;
+                backoff = Duration::from_millis(100);
+            }
+            failed += 1;
+            next = (next + 1) % n;
+            if failed < n {
+                // Another coordinator may be the active one: try it at once.
+                continue;
+            }
+            failed = 0;
             let mut stop = stop_rx.clone();
             tokio::select! {
                 _ = tokio::time::sleep(backoff) => {}
@@ -281,14 +309,114 @@ pub async fn run(
     }
 }
 
-/// One registered session with the coordinator. Returns `Ok` when asked to stop, or the
-/// status that broke the connection.
+/// The endpoint of one coordinator URL, with TLS for `https://` (and only then).
+fn endpoint(url: &str, tls: Option<&WorkerTls>) -> Result<Endpoint, WorkerError> {
+    let mut endpoint = Endpoint::from_shared(url.to_string())
+        .map_err(|e| WorkerError::Config(format!("coordinator URL {url:?}: {e}")))?
+        .connect_timeout(Duration::from_secs(5))
+        .tcp_nodelay(true);
+    let https = url.starts_with("https://");
+    match (tls, https) {
+        (Some(tls), true) => {
+            endpoint = endpoint
+                .tls_config(tls.client_config())
+                .map_err(|e| WorkerError::Config(format!("TLS: {e}")))?;
+        }
+        (Some(_), false) => {
+            return Err(WorkerError::Config(format!(
+                "TLS files were given but the coordinator URL {url:?} is not https://"
+            )))
+        }
+        (None, true) => {
+            return Err(WorkerError::Config(format!(
+                "the coordinator URL {url:?} is https://: give the CA to trust (--tls-ca)"
+            )))
+        }
+        (None, false) => {}
+    }
+    Ok(endpoint)
+}
+
+/// A rendered unit waiting to be submitted.
+struct Rendered {
+    lease_id: u64,
+    job_id: u64,
+    result: tessera_farm::UnitResult,
+    seconds: f64,
+}
+
+/// What outlives one session with a coordinator.
+#[derive(Default)]
+struct Carry {
+    /// Results rendered and not yet answered by a coordinator: submitted first in the
+    /// next session, whichever coordinator it is with.
+    results: Vec<Rendered>,
+    /// Whether the last session got as far as registering (then the coordinator was the
+    /// active one).
+    registered: bool,
+}
+
+/// Submits `results` in order; on a failure returns the status with the results not yet
+/// answered (the failed one first), for the next session.
+async fn submit_all(
+    client: &mut Client,
+    worker_id: u64,
+    results: Vec<Rendered>,
+) -> Result<(), (Status, Vec<Rendered>)> {
+    let mut rest = results.into_iter();
+    while let Some(r) = rest.next() {
+        let mut req =
+            v1::SubmitResultRequest::from_result(worker_id, r.lease_id, &r.result, r.seconds);
+        req.job_id = r.job_id;
+        match client.submit_result(req).await {
+            Ok(resp) => {
+                let resp = resp.into_inner();
+                if !resp.accepted {
+                    tracing::warn!(lease_id = r.lease_id, reason = %resp.reason, "result not accepted");
+                }
+            }
+            Err(s) => {
+                let mut left = vec![r];
+                left.extend(rest);
+                return Err((s, left));
+            }
+        }
+    }
+    Ok(())
+}
+
+type Submitting = tokio::task::JoinHandle<Result<(), (Status, Vec<Rendered>)>>;
+
+/// One registered session with a coordinator. Returns `Ok` when asked to stop, or the
+/// status that broke the connection; results it could not deliver are left in `carry`.
 async fn serve(
+    config: &WorkerConfig,
+    client: Client,
+    pool: &Arc<rayon::ThreadPool>,
+    cache: &Arc<Mutex<SceneCache>>,
+    stop: tokio::sync::watch::Receiver<bool>,
+    carry: &mut Carry,
+) -> Result<(), Status> {
+    let mut in_flight: Option<Submitting> = None;
+    let r = session(config, client, pool, cache, stop, carry, &mut in_flight).await;
+    // A batch still being submitted when the session broke: keep what it did not deliver.
+    if let Some(h) = in_flight.take() {
+        if let Ok(Err((_, left))) = h.await {
+            carry.results.extend(left);
+        }
+    }
+    r
+}
+
+/// [`serve`]'s loop; `in_flight` is the batch being submitted in the background.
+async fn session(
     config: &WorkerConfig,
     mut client: Client,
     pool: &Arc<rayon::ThreadPool>,
     cache: &Arc<Mutex<SceneCache>>,
     stop: tokio::sync::watch::Receiver<bool>,
+    carry: &mut Carry,
+    in_flight: &mut Option<Submitting>,
 ) -> Result<(), Status> {
     let reg = client
         .register(v1::RegisterRequest {
@@ -303,8 +431,21 @@ async fn serve(
     let heartbeat_every =
         Duration::from_millis(u64::from(reg.heartbeat_interval_ms.clamp(50, 60_000)));
     tracing::info!(worker_id, name = %config.name, "registered");
+    carry.registered = true;
+    if !carry.results.is_empty() {
+        // Rendered for a coordinator that went away (or this one before it restarted).
+        let results = std::mem::take(&mut carry.results);
+        tracing::warn!(
+            worker_id,
+            results = results.len(),
+            "submitting results rendered before the reconnection"
+        );
+        if let Err((s, left)) = submit_all(&mut client, worker_id, results).await {
+            carry.results = left;
+            return Err(s);
+        }
+    }
     let mut paths_per_second = 0.0f64;
-    let mut in_flight: Option<tokio::task::JoinHandle<Result<(), Status>>> = None;
     // Set when a heartbeat says the coordinator is shutting down: finish the units in hand
     // as on our own shutdown.
     let mut told_to_stop = false;
@@ -319,8 +460,7 @@ async fn serve(
         if told_to_stop || *stop.borrow() {
             // Deliver what is rendered before leaving.
             if let Some(h) = in_flight.take() {
-                h.await
-                    .map_err(|e| Status::internal(format!("submit task failed: {e}")))??;
+                finish(h, carry).await?;
             }
             return Ok(());
         }
@@ -394,18 +534,29 @@ async fn serve(
             })
         });
         let mut canceled: Vec<u64> = Vec::new();
+        // A heartbeat that failed: the units in hand are finished anyway and kept for the
+        // next coordinator, then the session ends with this status.
+        let mut broken: Option<Status> = None;
         let results = loop {
             tokio::select! {
                 r = &mut render => break r.map_err(|e| Status::internal(format!("render task failed: {e}")))?,
-                _ = beat.tick() => {
-                    let hb = client
+                _ = beat.tick(), if broken.is_none() => {
+                    match client
                         .heartbeat(v1::HeartbeatRequest { worker_id, lease_ids: lease_ids.clone(), paths_per_second })
-                        .await?
-                        .into_inner();
-                    canceled.extend(hb.cancel);
-                    if hb.shutdown && !told_to_stop {
-                        tracing::info!(worker_id, "the coordinator is shutting down; finishing the units in hand");
-                        told_to_stop = true;
+                        .await
+                    {
+                        Ok(hb) => {
+                            let hb = hb.into_inner();
+                            canceled.extend(hb.cancel);
+                            if hb.shutdown && !told_to_stop {
+                                tracing::info!(worker_id, "the coordinator is shutting down; finishing the units in hand");
+                                told_to_stop = true;
+                            }
+                        }
+                        Err(s) => {
+                            tracing::warn!(worker_id, error = %s, "heartbeat failed; finishing the units in hand to deliver them elsewhere");
+                            broken = Some(s);
+                        }
                     }
                 }
             }
@@ -433,39 +584,59 @@ async fn serve(
                 }
             }
         }
+        let rendered: Vec<Rendered> = rendered
+            .into_iter()
+            .filter(|r| !canceled.contains(&r.0))
+            .map(|(lease_id, job_id, result, seconds, _)| Rendered {
+                lease_id,
+                job_id,
+                result,
+                seconds,
+            })
+            .collect();
+        if let Some(s) = broken {
+            carry.results.extend(rendered);
+            return Err(s);
+        }
         if !panicked.is_empty() {
-            client
+            let returned = client
                 .return_leases(v1::ReturnLeasesRequest {
                     worker_id,
                     lease_ids: panicked,
                     unusable: why,
                 })
-                .await?;
+                .await;
+            if let Err(s) = returned {
+                carry.results.extend(rendered);
+                return Err(s);
+            }
         }
-        let results = rendered;
         // Submit in the background while the next units render: the coordinator commits
         // each result to its store before acknowledging it, and the worker's threads should
-        // not wait for that. One batch is in flight at a time; its errors end the session.
+        // not wait for that. One batch is in flight at a time; its errors end the session
+        // (what it did not deliver goes to the next one).
         if let Some(h) = in_flight.take() {
-            h.await
-                .map_err(|e| Status::internal(format!("submit task failed: {e}")))??;
+            if let Err(s) = finish(h, carry).await {
+                carry.results.extend(rendered);
+                return Err(s);
+            }
         }
         let mut c2 = client.clone();
-        in_flight = Some(tokio::spawn(async move {
-            for (lease_id, job_id, result, secs, _) in results {
-                if canceled.contains(&lease_id) {
-                    continue;
-                }
-                let mut req =
-                    v1::SubmitResultRequest::from_result(worker_id, lease_id, &result, secs);
-                req.job_id = job_id;
-                let resp = c2.submit_result(req).await?.into_inner();
-                if !resp.accepted {
-                    tracing::warn!(lease_id, reason = %resp.reason, "result not accepted");
-                }
-            }
-            Ok(())
+        *in_flight = Some(tokio::spawn(async move {
+            submit_all(&mut c2, worker_id, rendered).await
         }));
+    }
+}
+
+/// Waits for a background submission; what it did not deliver goes into `carry`.
+async fn finish(h: Submitting, carry: &mut Carry) -> Result<(), Status> {
+    match h.await {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err((s, left))) => {
+            carry.results.extend(left);
+            Err(s)
+        }
+        Err(e) => Err(Status::internal(format!("submit task failed: {e}"))),
     }
 }
 

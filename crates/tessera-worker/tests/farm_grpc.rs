@@ -63,7 +63,7 @@ async fn farm_render(workers: usize) -> FrameImage {
     let mut handles = Vec::new();
     for i in 0..workers {
         let cfg = WorkerConfig {
-            coordinator: url.clone(),
+            coordinators: vec![url.clone()],
             threads: 1,
             name: format!("w{i}"),
             token: Some("s3cret".into()),
@@ -127,7 +127,7 @@ async fn a_worker_without_the_token_is_refused() {
     let url = start(coordinator(&dir, Some("s3cret")).await).await;
     for token in [None, Some("wrong".to_string())] {
         let cfg = WorkerConfig {
-            coordinator: url.clone(),
+            coordinators: vec![url.clone()],
             threads: 1,
             name: "intruder".into(),
             token,

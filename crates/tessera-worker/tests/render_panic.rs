@@ -72,7 +72,7 @@ async fn scenario() {
     let (stop_tx, mut stop_rx) = tokio::sync::watch::channel(false);
     let worker = tokio::spawn(run(
         WorkerConfig {
-            coordinator: url,
+            coordinators: vec![url],
             threads: 1,
             name: "w".into(),
             token: None,

@@ -32,7 +32,7 @@
 //! those answer leases of the previous run and are adopted (validated, merged once).
 
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 use std::time::{Duration, Instant};
 
 use tessera_api::JobState;
@@ -187,6 +187,9 @@ struct Inner {
     /// Set once a graceful shutdown began: heartbeats tell workers to stop and no new
     /// units are leased (ARCHITECTURE.md §9).
     stopping: std::sync::atomic::AtomicBool,
+    /// Set, with the reason, when this coordinator lost the leadership of its
+    /// PostgreSQL store (`crate::ha`): from then on it grants nothing and takes nothing.
+    deposed: OnceLock<String>,
 }
 
 impl Coordinator {
@@ -231,6 +234,7 @@ impl Coordinator {
                 heavy: tokio::sync::Semaphore::new(images::HEAVY_REQUESTS),
                 images: Mutex::new(images::ImageCache::default()),
                 stopping: std::sync::atomic::AtomicBool::new(false),
+                deposed: OnceLock::new(),
             }),
         })
     }
@@ -260,9 +264,30 @@ impl Coordinator {
         self.inner.store.clone()
     }
 
-    /// Refuses new work once a store write failed ([`WatchedStore`]): the error names
-    /// the failed write, and maps to 503 (HTTP) and `UNAVAILABLE` (gRPC).
+    /// Marks this coordinator as no longer the active one (it lost the leadership lock,
+    /// `crate::ha`): every worker request and every request for new work is refused from
+    /// now on with [`CoordError::NotActive`] naming `reason`, so no lease is granted and
+    /// no result taken after the loss. The first reason is kept.
+    pub fn depose(&self, reason: String) {
+        let _ = self.inner.deposed.set(reason);
+    }
+
+    /// `Ok` while this coordinator is the active one; [`CoordError::NotActive`] once it
+    /// was deposed ([`Coordinator::depose`]).
+    pub fn active(&self) -> CoordResult<()> {
+        match self.inner.deposed.get() {
+            Some(reason) => Err(CoordError::NotActive(format!(
+                "not the active coordinator: {reason}"
+            ))),
+            None => Ok(()),
+        }
+    }
+
+    /// Refuses new work once a store write failed ([`WatchedStore`]) or the coordinator
+    /// was deposed ([`Coordinator::active`]): the error names the failed write or the
+    /// state, and maps to 503 (HTTP) and `UNAVAILABLE` (gRPC).
     pub fn accepting_work(&self) -> CoordResult<()> {
+        self.active()?;
         match self.inner.watch.fault() {
             Some(f) => Err(CoordError::Store(StoreError::Failing(f))),
             None => Ok(()),

@@ -215,6 +215,12 @@ impl Coordinator {
         let result = self.inner.store.save_tiles(&refs).await;
         if let Err(e) = &result {
             tracing::error!(checkpoints = refs.len(), error = %e, "checkpoint failed");
+            // Another coordinator took the store over (`crate::ha`): stop at once rather
+            // than when the lock check notices, so that these results' workers are told
+            // to take them to the new one instead of "not accepted".
+            if matches!(e, StoreError::NotLeader { .. }) {
+                self.depose(e.to_string());
+            }
         }
         let shared = result.map_err(|e| e.to_string());
         for p in &batch {

@@ -172,6 +172,20 @@ pub enum StoreError {
          run `tessera store accept-loss --data DIR`"
     )]
     BadMarker(String),
+    /// A write of a coordinator that is no longer the active one (high availability on
+    /// PostgreSQL: another coordinator took the leadership and raised the fencing epoch,
+    /// docs/store.md). Refused so that a deposed coordinator never overwrites the new
+    /// one's state.
+    #[error(
+        "this coordinator is no longer the active one (fencing epoch {ours}, the store's \
+         is {current}): another coordinator took over; the write was refused"
+    )]
+    NotLeader {
+        /// The epoch this coordinator took.
+        ours: i64,
+        /// The store's epoch now.
+        current: i64,
+    },
     /// A write failed earlier while the coordinator ran ([`WatchedStore`]): it accepts no
     /// new work until it is restarted.
     #[error(
@@ -232,7 +246,11 @@ impl StoreError {
                         PERM | READONLY | IOERR | CORRUPT | FULL | CANTOPEN | NOTADB
                     )
                 }),
-            Self::NotWritable { .. } | Self::Damaged { .. } | Self::Failing(_) => true,
+            // A deposed coordinator must stop accepting work as if its store had failed.
+            Self::NotWritable { .. }
+            | Self::Damaged { .. }
+            | Self::Failing(_)
+            | Self::NotLeader { .. } => true,
             _ => false,
         }
     }

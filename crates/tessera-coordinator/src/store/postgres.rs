@@ -15,6 +15,8 @@
 //!   may succeed, where a failing SQLite file stays failed.
 
 use std::str::FromStr;
+use std::sync::atomic::{AtomicI64, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
@@ -37,7 +39,10 @@ use super::{
 /// Schema migrations of the PostgreSQL store: (version, SQL), applied in order in one
 /// transaction. Its versions are its own (version 1 has the tables of SQLite's version 3).
 /// Never edit a released migration; append a new one.
-const MIGRATIONS: &[(i64, &str)] = &[(1, include_str!("migrations/postgres/0001_initial.sql"))];
+const MIGRATIONS: &[(i64, &str)] = &[
+    (1, include_str!("migrations/postgres/0001_initial.sql")),
+    (2, include_str!("migrations/postgres/0002_leader_epoch.sql")),
+];
 
 /// Connections in the pool: the coordinator's concurrent requests, merges and the ticker.
 const MAX_CONNECTIONS: u32 = 8;
@@ -52,12 +57,15 @@ const MIGRATION_LOCK: i64 = 0x7465_7373_6572_6131; // "tessera1"
 
 /// The farm's state in a PostgreSQL database (`postgres://user@host:port/db`).
 ///
-/// Cloning is cheap and shares the pool.
+/// Cloning is cheap and shares the pool and the fencing epoch.
 #[derive(Debug, Clone)]
 pub struct PostgresStore {
     pool: PgPool,
     /// The URL without its password, for messages.
     url: String,
+    /// The fencing epoch this store's coordinator took as the active one
+    /// ([`PostgresStore::take_leadership`]); 0 before, when writes are not fenced.
+    epoch: Arc<AtomicI64>,
 }
 
 impl PostgresStore {
@@ -84,9 +92,61 @@ impl PostgresStore {
             .connect_with(options)
             .await
             .map_err(|e| unreachable(&shown, e))?;
-        let store = Self { pool, url: shown };
+        let store = Self {
+            pool,
+            url: shown,
+            epoch: Arc::new(AtomicI64::new(0)),
+        };
         store.lift(migrate(&store.pool).await)?;
         Ok(store)
+    }
+
+    /// Makes this store's coordinator the writer of the database: raises the store's
+    /// fencing epoch by one and returns it. From then on every state-changing write of
+    /// this store (and its clones) first checks, in its own transaction, that the epoch
+    /// is still this one, and fails with [`StoreError::NotLeader`] once another
+    /// coordinator took the leadership after it (docs/store.md, "High availability").
+    ///
+    /// The check reads the epoch `FOR SHARE` and this `UPDATE` locks it, so the raise
+    /// waits for every write of the previous leader that passed its check to commit:
+    /// when this returns, nothing the previous leader writes can land any more, and the
+    /// new leader reads its state after everything the old one committed.
+    ///
+    /// Call it while holding the leadership lock (`crate::ha`), before reading the
+    /// state to resume.
+    pub async fn take_leadership(&self) -> StoreResult<i64> {
+        let epoch: Option<i64> = sqlx::query_scalar(
+            "UPDATE counters SET value = value + 1 WHERE name = 'leader_epoch' RETURNING value",
+        )
+        .fetch_optional(&self.pool)
+        .await
+        .map_err(|e| self.error(e))?;
+        let epoch = epoch.ok_or_else(|| {
+            StoreError::Corrupt("counters: the leader_epoch row is missing".into())
+        })?;
+        self.epoch.store(epoch, Ordering::SeqCst);
+        Ok(epoch)
+    }
+
+    /// The fencing check of a write transaction: fails with [`StoreError::NotLeader`]
+    /// when another coordinator took the leadership after this one
+    /// ([`PostgresStore::take_leadership`]); nothing to check before this store took it.
+    async fn fence(&self, tx: &mut sqlx::PgConnection) -> StoreResult<()> {
+        let ours = self.epoch.load(Ordering::SeqCst);
+        if ours == 0 {
+            return Ok(());
+        }
+        let current: Option<i64> =
+            sqlx::query_scalar("SELECT value FROM counters WHERE name = 'leader_epoch' FOR SHARE")
+                .fetch_optional(&mut *tx)
+                .await?;
+        match current {
+            Some(current) if current == ours => Ok(()),
+            Some(current) => Err(StoreError::NotLeader { ours, current }),
+            None => Err(StoreError::Corrupt(
+                "counters: the leader_epoch row is missing".into(),
+            )),
+        }
     }
 
     /// The URL of the database, without its password.
@@ -248,6 +308,7 @@ impl PostgresStore {
     async fn insert_job_(&self, job: NewJob) -> StoreResult<(JobId, bool)> {
         let created = check_new_job(&job)?;
         let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         let inserted: Option<i64> = sqlx::query_scalar(
             "INSERT INTO jobs (idempotency_key, name, scene_ref, settings_json, \
                  plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
@@ -342,6 +403,7 @@ impl PostgresStore {
         let key = i64::try_from(id).map_err(|_| StoreError::JobNotFound(id))?;
         let now = to_i64(now_unix_ms, "now_unix_ms")?;
         let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         let changed = sqlx::query(
             "UPDATE jobs SET state = $2::TEXT, error = $3, \
                  started_unix_ms = CASE WHEN $2::TEXT = 'running' AND started_unix_ms IS NULL \
@@ -410,6 +472,7 @@ impl PostgresStore {
             return Ok(());
         }
         let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         let mut plans: Vec<(JobId, FramePlan, FrameRange)> = Vec::new();
         for t in tiles {
             let (plan, frames) = match plans.iter().find(|p| p.0 == t.job) {
@@ -495,14 +558,19 @@ impl PostgresStore {
 
     async fn record_lease_high_water_(&self, lease_id: u64) -> StoreResult<()> {
         let v = to_i64(lease_id, "lease id")?;
+        let mut tx = self.pool.begin().await?;
+        // A deposed coordinator reserves no more lease ids: the new one's ids start
+        // above everything this one could have granted.
+        self.fence(&mut tx).await?;
         // One statement: the row lock makes concurrent raises keep the largest value.
         let n = sqlx::query(
             "UPDATE counters SET value = GREATEST(value, $1) WHERE name = 'lease_high_water'",
         )
         .bind(v)
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await?
         .rows_affected();
+        tx.commit().await?;
         if n != 1 {
             return Err(StoreError::Corrupt(
                 "counters: the lease_high_water row is missing".into(),
@@ -619,6 +687,7 @@ impl PostgresStore {
 
     async fn begin_run_(&self) -> StoreResult<PreviousRun> {
         let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         let clean = counter(&mut tx, "clean_shutdown").await? != 0;
         let resuming = counter(&mut tx, "resuming_job").await?;
         set_counter(&mut tx, "clean_shutdown", 0).await?;
@@ -631,6 +700,7 @@ impl PostgresStore {
 
     async fn end_run_(&self) -> StoreResult<()> {
         let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         set_counter(&mut tx, "clean_shutdown", 1).await?;
         set_counter(&mut tx, "resuming_job", 0).await?;
         tx.commit().await?;
@@ -640,6 +710,7 @@ impl PostgresStore {
     async fn record_resume_(&self, job: JobId, count: bool) -> StoreResult<u32> {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         let row = sqlx::query(
             "SELECT resumes, resume_passes, \
                  (SELECT COALESCE(SUM(merged_passes), 0)::BIGINT FROM tiles WHERE job = $1) \
@@ -671,6 +742,7 @@ impl PostgresStore {
 
     async fn resumes_done_(&self) -> StoreResult<()> {
         let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         set_counter(&mut tx, "resuming_job", 0).await?;
         tx.commit().await?;
         Ok(())
