@@ -314,6 +314,12 @@ fn endpoint(url: &str, tls: Option<&WorkerTls>) -> Result<Endpoint, WorkerError>
     let mut endpoint = Endpoint::from_shared(url.to_string())
         .map_err(|e| WorkerError::Config(format!("coordinator URL {url:?}: {e}")))?
         .connect_timeout(Duration::from_secs(5))
+        // HTTP/2 pings find a connection whose peer vanished without closing it (a cut
+        // link, a frozen host): without them a call waits on TCP retransmission for many
+        // minutes instead of failing over to the next coordinator.
+        .http2_keep_alive_interval(Duration::from_secs(10))
+        .keep_alive_timeout(Duration::from_secs(10))
+        .keep_alive_while_idle(true)
         .tcp_nodelay(true);
     let https = url.starts_with("https://");
     match (tls, https) {
