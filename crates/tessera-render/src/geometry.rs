@@ -841,8 +841,31 @@ impl MotionTriangles {
     #[inline(always)]
     pub fn positions_at(&self, r: usize, time: f32) -> [Vec3; 3] {
         let (s, u) = self.segment_of(time);
+        self.positions_in(r, s, u)
+    }
+
+    /// Record `r`'s vertex positions at fraction `u` of segment `s`.
+    #[inline(always)]
+    fn positions_in(&self, r: usize, s: usize, u: f32) -> [Vec3; 3] {
         let n = self.segments as usize + 1;
         lerp_corners(&self.keys[r * n + s], &self.keys[r * n + s + 1], u)
+    }
+
+    /// Whether `keep` accepts the hit at barycentrics `(b1, b2)` of record `r`.
+    #[inline(always)]
+    fn kept(
+        &self,
+        keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+        r: usize,
+        b1: f32,
+        b2: f32,
+    ) -> bool {
+        keep(
+            &self.records[r],
+            triangle_key(MOTION_KEY_INSTANCE, r as u32),
+            b1,
+            b2,
+        )
     }
 
     /// Bytes of the BVHs, leaf orders, records and key positions.
@@ -864,7 +887,6 @@ impl MotionTriangles {
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> Option<Hit> {
         let (s, u) = self.segment_of(time);
-        let n = self.segments as usize + 1;
         let wt = WatertightRay::new(origin, dir);
         let ray = traversal_ray(origin, dir, *best_t);
         let mut hit = RayHit::none();
@@ -872,16 +894,9 @@ impl MotionTriangles {
         let order = &self.orders[s];
         self.bvhs[s].ray_traverse(ray, &mut hit, |_, id| {
             let r = order[id] as usize;
-            let p = lerp_corners(&self.keys[r * n + s], &self.keys[r * n + s + 1], u);
+            let p = self.positions_in(r, s, u);
             match wt.intersect(&p, *best_t) {
-                Some((t, _b0, b1, b2))
-                    if keep(
-                        &self.records[r],
-                        triangle_key(MOTION_KEY_INSTANCE, r as u32),
-                        b1,
-                        b2,
-                    ) =>
-                {
+                Some((t, _b0, b1, b2)) if self.kept(keep, r, b1, b2) => {
                     *best_t = t;
                     best = Some(Hit {
                         t,
@@ -911,24 +926,14 @@ impl MotionTriangles {
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> bool {
         let (s, u) = self.segment_of(time);
-        let n = self.segments as usize + 1;
         let wt = WatertightRay::new(origin, dir);
         let ray = traversal_ray(origin, dir, t_max);
         let order = &self.orders[s];
         !self.bvhs[s].ray_traverse_miss(ray, |_, id| {
             let r = order[id] as usize;
-            let p = lerp_corners(&self.keys[r * n + s], &self.keys[r * n + s + 1], u);
+            let p = self.positions_in(r, s, u);
             match wt.intersect(&p, t_max) {
-                Some((_, _, b1, b2))
-                    if keep(
-                        &self.records[r],
-                        triangle_key(MOTION_KEY_INSTANCE, r as u32),
-                        b1,
-                        b2,
-                    ) =>
-                {
-                    0.0
-                }
+                Some((_, _, b1, b2)) if self.kept(keep, r, b1, b2) => 0.0,
                 _ => f32::INFINITY,
             }
         })

@@ -505,39 +505,19 @@ impl RenderScene {
         }
         let mesh = &self.meshes[tri.mesh as usize];
         let idx = mesh.indices[tri.index as usize];
-        let mut ns = ng;
-        if let Some(n) = &mesh.normals {
-            let [n0, n1, n2] = idx.map(|i| n[i as usize]);
-            let interp = match inst {
-                None => b0 * n0 + b1 * n1 + b2 * n2,
+        let normals = mesh.normals.as_ref().map(|n| {
+            let corners = idx.map(|i| n[i as usize]);
+            match inst {
+                None => corners,
                 // Each vertex normal to world space and renormalised before interpolating,
                 // as the importer does for a flattened copy: under non-uniform scale the
                 // lengths change unequally, and the interpolation must weigh the same
                 // unit normals to give the same shading.
-                Some(inst) => {
-                    let w = |v: Vec3| {
-                        Vec3::from(inst.normal_to_world * Vec3A::from(v)).normalize_or_zero()
-                    };
-                    b0 * w(n0) + b1 * w(n1) + b2 * w(n2)
-                }
-            };
-            if let Some(v) = interp.try_normalize() {
-                ns = if v.dot(ng) < 0.0 { -v } else { v };
+                Some(inst) => corners
+                    .map(|v| Vec3::from(inst.normal_to_world * Vec3A::from(v)).normalize_or_zero()),
             }
-        }
-        let bary = Vec2::new(b1, b2);
-        let mut sp = SurfacePoint {
-            p,
-            p_error,
-            ng,
-            ns,
-            uv: uv_at(&mesh.uvs, idx, 0, bary),
-            mesh: tri.mesh,
-            tri: tri.index,
-            bary,
-            material: tri.material,
-            light: tri.light,
-        };
+        });
+        let mut sp = self.shaded_point(tri, p, p_error, ng, normals, b1, b2);
         if let Some(t) = &mesh.tangents {
             let c = t[tri.index as usize];
             let mut tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
@@ -549,6 +529,46 @@ impl RenderScene {
             self.apply_normal_map(&mut sp, tangent, sign);
         }
         sp
+    }
+
+    /// The surface point at barycentrics `(b1, b2)` of `tri` at world position `p` (error
+    /// bound `p_error`) with geometric normal `ng`: the shading normal interpolated from
+    /// the world-space vertex `normals` (if any) onto `ng`'s side, texture coordinates
+    /// from the mesh.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn shaded_point(
+        &self,
+        tri: &TriangleRecord,
+        p: Vec3,
+        p_error: Vec3,
+        ng: Vec3,
+        normals: Option<[Vec3; 3]>,
+        b1: f32,
+        b2: f32,
+    ) -> SurfacePoint {
+        let b0 = 1.0 - b1 - b2;
+        let mesh = &self.meshes[tri.mesh as usize];
+        let idx = mesh.indices[tri.index as usize];
+        let mut ns = ng;
+        if let Some([n0, n1, n2]) = normals {
+            if let Some(v) = (b0 * n0 + b1 * n1 + b2 * n2).try_normalize() {
+                ns = if v.dot(ng) < 0.0 { -v } else { v };
+            }
+        }
+        let bary = Vec2::new(b1, b2);
+        SurfacePoint {
+            p,
+            p_error,
+            ng,
+            ns,
+            uv: uv_at(&mesh.uvs, idx, 0, bary),
+            mesh: tri.mesh,
+            tri: tri.index,
+            bary,
+            material: tri.material,
+            light: tri.light,
+        }
     }
 
     /// Perturbs `sp.ns` by its material's normal map, if it has one, in the tangent
@@ -586,27 +606,7 @@ impl RenderScene {
         if shading.flipped(r) {
             ng = -ng;
         }
-        let mesh = &self.meshes[tri.mesh as usize];
-        let idx = mesh.indices[tri.index as usize];
-        let mut ns = ng;
-        if let Some([n0, n1, n2]) = shading.normals_at(r, s, u) {
-            if let Some(v) = (b0 * n0 + b1 * n1 + b2 * n2).try_normalize() {
-                ns = if v.dot(ng) < 0.0 { -v } else { v };
-            }
-        }
-        let bary = Vec2::new(b1, b2);
-        let mut sp = SurfacePoint {
-            p,
-            p_error,
-            ng,
-            ns,
-            uv: uv_at(&mesh.uvs, idx, 0, bary),
-            mesh: tri.mesh,
-            tri: tri.index,
-            bary,
-            material: tri.material,
-            light: tri.light,
-        };
+        let mut sp = self.shaded_point(tri, p, p_error, ng, shading.normals_at(r, s, u), b1, b2);
         if let Some(c) = shading.tangents_at(r, s, u) {
             let tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
             let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };

@@ -9,9 +9,7 @@
 
 mod common;
 
-use common::{regions, render};
-use tessera_render::integrator::Integrator;
-use tessera_render::render::RenderConfig;
+use common::{reference_config, regions, render};
 
 const DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/fixtures/blender");
 
@@ -114,13 +112,7 @@ const FIXTURES: &[(&str, u32, Judge)] = &[
 
 #[test]
 fn blender_fixtures_match_their_cycles_references() {
-    let config = RenderConfig {
-        integrator: Integrator::Path,
-        seed: 11,
-        max_depth: 64,
-        rr_depth: 5,
-        ..RenderConfig::default()
-    };
+    let config = reference_config();
     let mut failures = Vec::new();
     for &(name, spp, judge) in FIXTURES {
         let reference = std::fs::read(format!("{DIR}/{name}.cycles.exr"))

@@ -206,3 +206,15 @@ pub fn regions(w: usize, h: usize, value: impl Fn(usize, usize) -> (f64, f64)) -
     }
     out
 }
+
+/// The path tracer as the Blender-reference tests run it: seed 11, 64 bounces, Russian
+/// roulette from depth 5 (Cycles' references use 64 bounces and unbiased roulette).
+pub fn reference_config() -> RenderConfig {
+    RenderConfig {
+        integrator: tessera_render::integrator::Integrator::Path,
+        seed: 11,
+        max_depth: 64,
+        rr_depth: 5,
+        ..RenderConfig::default()
+    }
+}

@@ -16,11 +16,10 @@
 
 mod common;
 
-use common::regions;
+use common::{reference_config, regions};
 use tessera_farm::job::Shutter;
 use tessera_farm::{FrameImage, FramePlan};
-use tessera_render::integrator::Integrator;
-use tessera_render::render::{render_frame, RenderConfig};
+use tessera_render::render::render_frame;
 use tessera_render::scene::RenderScene;
 use tessera_scene::{Scene, SceneTime};
 
@@ -47,13 +46,7 @@ fn keys(file: &str, frame: u32, shutter: Shutter) -> Vec<Scene> {
 }
 
 fn render(rs: &RenderScene) -> FrameImage {
-    let config = RenderConfig {
-        integrator: Integrator::Path,
-        seed: 11,
-        max_depth: 64,
-        rr_depth: 5,
-        ..RenderConfig::default()
-    };
+    let config = reference_config();
     let plan = FramePlan::for_spp(rs.width, rs.height, SPP, 16).unwrap();
     render_frame(rs, &config, &plan, 0, 0, |_, _| {}).image()
 }
