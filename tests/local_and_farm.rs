@@ -188,10 +188,11 @@ fn every_frame_of_an_animated_farm_job_equals_tessera_render_frame() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 12, motion blur: a two-frame job of Blender's moving sphere and turning cube
-/// with a shutter of one frame, on two workers, with the path tracer and with bdpt: each
-/// frame's EXR is byte-identical to `tessera render --frame F --shutter=-0.5,0.5`, and the
-/// blurred frame differs from the same frame without a shutter.
+/// Issue 12, motion blur: Blender's moving sphere and turning cube with a shutter of one
+/// frame on two workers, all 24 frames with the path tracer and frames 11 and 12 with
+/// bdpt: each frame's EXR is byte-identical to `tessera render --frame F
+/// --shutter=-0.5,0.5`, frames differ where the scene moves, and the blurred frame
+/// differs from the same frame without a shutter.
 #[test]
 fn a_motion_blurred_farm_job_equals_tessera_render_with_the_shutter() {
     let dir = temp_dir("e2e", "motion-blur");
@@ -203,7 +204,7 @@ fn a_motion_blurred_farm_job_equals_tessera_render_with_the_shutter() {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/motion/motion_ball.glb");
     let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
-    for integrator in ["auto", "bdpt"] {
+    for (integrator, first, last) in [("auto", 1, 24), ("bdpt", 11, 12)] {
         let mut s = JobSettings::new(uploaded.hash.clone());
         s.width = Some(24);
         s.height = Some(16);
@@ -215,10 +216,13 @@ fn a_motion_blurred_farm_job_equals_tessera_render_with_the_shutter() {
             open: -0.5,
             close: 0.5,
         });
-        s.frames = tessera_api::FrameRange { start: 11, end: 12 };
+        s.frames = tessera_api::FrameRange {
+            start: first,
+            end: last,
+        };
         let st = client.submit(&s, None).unwrap();
         wait_done(&client, st.id);
-        for f in 11..=12u32 {
+        for f in first..=last {
             let farm = client
                 .get_raw(&format!(
                     "/api/v1/jobs/{}/image?format=exr&frame={f}",
@@ -234,6 +238,26 @@ fn a_motion_blurred_farm_job_equals_tessera_render_with_the_shutter() {
                  --shutter=-0.5,0.5"
             );
         }
+        // The white sphere moves from left to right over frames 1..24: the left half's
+        // share of the light falls from the first frame to the last (not only noise: each
+        // frame has its own seeds, so a plain inequality would prove nothing).
+        let left_share = |f: u32| {
+            let img = read_exr(dir.join(format!("{integrator}-{f}.exr")));
+            let (w, r) = (img.width, img.get("R").unwrap());
+            let left: f32 = r
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| i % w < w / 2)
+                .map(|(_, v)| v)
+                .sum();
+            left / r.iter().sum::<f32>()
+        };
+        let (a, b) = (left_share(first), left_share(last));
+        assert!(
+            integrator == "bdpt" || a > b + 0.02,
+            "{integrator}: the left half's share of the light is {a:.3} at frame {first} and \
+             {b:.3} at frame {last}: the sphere did not move"
+        );
         let sharp = dir.join(format!("{integrator}-sharp.exr"));
         local_render(&path, &s, &sharp, &["--frame", "12"]);
         let blurred = read_exr(dir.join(format!("{integrator}-12.exr")));

@@ -4,7 +4,7 @@
 
 use std::collections::BTreeSet;
 
-use tessera_api::{FrameRange, JobSettings};
+use tessera_api::{FrameRange, JobSettings, Shutter};
 use tessera_coordinator::http::OPENAPI_JSON;
 
 #[test]
@@ -25,6 +25,10 @@ fn openapi_documents_exactly_the_job_settings_fields() {
     s.frames = FrameRange { start: 1, end: 2 };
     s.fps = 30.0;
     s.animation = Some("walk".into());
+    s.shutter = Some(Shutter {
+        open: -0.25,
+        close: 0.25,
+    });
     s.target_error = Some(0.05);
     s.adaptive = "sequential".into();
     s.min_passes = 12;
