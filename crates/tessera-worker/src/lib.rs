@@ -179,9 +179,30 @@ struct SceneCache {
     animated: HashMap<String, Option<Arc<Vec<u8>>>>,
     /// Built render scenes by (scene and camera, width, height); a handful at most.
     built: Vec<(String, u32, u32, Arc<RenderScene>)>,
+    /// Keys of `scenes` and `animated`, oldest first: a worker that serves job after job
+    /// keeps the last [`SCENE_CACHE`] of them, not every scene it ever saw.
+    order: std::collections::VecDeque<String>,
 }
 
 const BUILT_CACHE: usize = 4;
+/// Parsed static scenes and animated scenes' bytes kept, together.
+const SCENE_CACHE: usize = 8;
+
+impl SceneCache {
+    /// Records that `key` was just added to `scenes` or `animated`, and forgets the
+    /// oldest entries beyond [`SCENE_CACHE`] (a lease still rendering one keeps its own
+    /// `Arc`; a later lease fetches it again).
+    fn added(&mut self, key: &str) {
+        self.order.retain(|k| k != key);
+        self.order.push_back(key.to_string());
+        while self.order.len() > SCENE_CACHE {
+            if let Some(old) = self.order.pop_front() {
+                self.scenes.remove(&old);
+                self.animated.remove(&old);
+            }
+        }
+    }
+}
 
 /// Runs a worker until `shutdown` completes. Transport failures are retried with backoff;
 /// only a configuration error or a refused token ends it early.
@@ -751,9 +772,11 @@ async fn scene_for(
             if parsed.animated {
                 // Parsed again for every time: keep the bytes, not the scene.
                 c.animated.insert(key.clone(), bytes);
+                c.added(&key);
                 (parsed, timed_key)
             } else {
                 c.scenes.insert(key.clone(), parsed.clone());
+                c.added(&key);
                 (parsed, key.clone())
             }
         }
@@ -832,4 +855,36 @@ async fn fetch_scene(client: &mut Client, hash: &str) -> Result<Vec<u8>, String>
         return Err(format!("scene {hash}: received bytes hash to {hex}"));
     }
     Ok(bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_scene_cache_keeps_the_newest_scenes() {
+        let mut c = SceneCache::default();
+        let scene = Arc::new(tessera_scene::load("builtin:furnace").unwrap());
+        for i in 0..SCENE_CACHE + 3 {
+            let key = format!("s{i}");
+            if i % 2 == 0 {
+                c.scenes.insert(key.clone(), scene.clone());
+            } else {
+                c.animated.insert(key.clone(), None);
+            }
+            c.added(&key);
+        }
+        assert_eq!(c.scenes.len() + c.animated.len(), SCENE_CACHE);
+        // The oldest three are gone, the newest are kept.
+        for i in 0..3 {
+            let key = format!("s{i}");
+            assert!(!c.scenes.contains_key(&key) && !c.animated.contains_key(&key));
+        }
+        let newest = format!("s{}", SCENE_CACHE + 2);
+        assert!(c.scenes.contains_key(&newest) || c.animated.contains_key(&newest));
+        // Adding a key again moves it to the back instead of counting it twice.
+        c.added("s3");
+        assert_eq!(c.order.len(), SCENE_CACHE);
+        assert_eq!(c.order.back().map(String::as_str), Some("s3"));
+    }
 }
