@@ -9,7 +9,7 @@ mod common;
 
 use std::path::Path;
 
-use common::farm::{start_coordinator, start_worker, wait_done};
+use common::farm::{start_coordinator, start_worker, wait_done, Coord};
 use common::{output_ok, read_exr, run, temp_dir, tessera, Proc};
 use tessera_api::client::Client;
 use tessera_api::JobSettings;
@@ -38,14 +38,21 @@ fn local_render(file: &Path, s: &JobSettings, out: &Path, extra: &[&str]) -> Vec
     std::fs::read(out).unwrap()
 }
 
-#[test]
-fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
-    let dir = temp_dir("e2e", "local-and-farm");
+/// A coordinator on loopback with its store under `dir` and two one-thread workers, and
+/// a client of its HTTP API (keep the first two alive while the test runs).
+fn two_worker_farm(dir: &Path) -> (Coord, Vec<Proc>, Client) {
     let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
-    let _ws: Vec<Proc> = (0..2)
+    let ws = (0..2)
         .map(|i| start_worker(&c.grpc, &format!("w{i}"), &[]))
         .collect();
     let client = Client::new(&c.http, None);
+    (c, ws, client)
+}
+
+#[test]
+fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
+    let dir = temp_dir("e2e", "local-and-farm");
+    let (_c, _ws, client) = two_worker_farm(&dir);
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes");
     // (file, camera, whether the render plan chooses bdpt)
     let scenes = [
@@ -105,11 +112,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
 #[test]
 fn every_frame_of_an_animated_farm_job_equals_tessera_render_frame() {
     let dir = temp_dir("e2e", "animated-frames");
-    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
-    let _ws: Vec<Proc> = (0..2)
-        .map(|i| start_worker(&c.grpc, &format!("w{i}"), &[]))
-        .collect();
-    let client = Client::new(&c.http, None);
+    let (c, _ws, client) = two_worker_farm(&dir);
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/animation/anim_cube.glb");
     let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
@@ -196,11 +199,7 @@ fn every_frame_of_an_animated_farm_job_equals_tessera_render_frame() {
 #[test]
 fn a_motion_blurred_farm_job_equals_tessera_render_with_the_shutter() {
     let dir = temp_dir("e2e", "motion-blur");
-    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
-    let _ws: Vec<Proc> = (0..2)
-        .map(|i| start_worker(&c.grpc, &format!("w{i}"), &[]))
-        .collect();
-    let client = Client::new(&c.http, None);
+    let (_c, _ws, client) = two_worker_farm(&dir);
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/motion/motion_ball.glb");
     let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();

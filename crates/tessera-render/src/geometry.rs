@@ -831,9 +831,7 @@ impl MotionTriangles {
     /// The segment holding shutter fraction `time` and the fraction within it.
     #[inline(always)]
     pub fn segment_of(&self, time: f32) -> (usize, f32) {
-        let x = time.clamp(0.0, 1.0) * self.segments as f32;
-        let s = (x as u32).min(self.segments - 1);
-        (s as usize, x - s as f32)
+        shutter_segment(time, self.segments)
     }
 
     /// Record `r`'s vertex positions at shutter fraction `time`: the same arithmetic for
@@ -938,6 +936,15 @@ impl MotionTriangles {
             }
         })
     }
+}
+
+/// Which of `segments` equal segments of the shutter holds shutter fraction `time`
+/// (clamped to `[0, 1]`; 1 falls in the last), and the fraction within it.
+#[inline(always)]
+pub fn shutter_segment(time: f32, segments: u32) -> (usize, f32) {
+    let x = time.clamp(0.0, 1.0) * segments as f32;
+    let s = (x as u32).min(segments - 1);
+    (s as usize, x - s as f32)
 }
 
 /// The corners `a + (b - a) u`, vertex by vertex.

@@ -24,7 +24,7 @@
 //! "Distributed Ray Tracing", section "Motion blur").
 
 use crate::camera::CameraModel;
-use crate::geometry::{MotionTriangles, TriangleRecord, NO_LIGHT};
+use crate::geometry::{shutter_segment, MotionTriangles, TriangleRecord, NO_LIGHT};
 use glam::{Affine3A, Mat3A, Mat4, Quat, Vec3, Vec3A, Vec4};
 use tessera_scene::{Camera, Scene};
 
@@ -93,20 +93,32 @@ impl MotionShading {
 /// orientation by quaternion slerp, field of view and lens linearly.
 pub struct CameraKeys {
     keys: Vec<Camera>,
+    /// Each key's `world_from_camera` as (scale, rotation, translation), decomposed once.
+    poses: Vec<(Vec3, Quat, Vec3)>,
     width: u32,
     height: u32,
 }
 
 impl CameraKeys {
+    /// The cameras `keys` (at least 2) of a `width` x `height` image.
+    fn new(keys: Vec<Camera>, width: u32, height: u32) -> Self {
+        let poses = keys
+            .iter()
+            .map(|k| k.world_from_camera.to_scale_rotation_translation())
+            .collect();
+        Self {
+            keys,
+            poses,
+            width,
+            height,
+        }
+    }
+
     /// The camera model at shutter fraction `time`.
     pub fn at(&self, time: f32) -> CameraModel {
-        let k = self.keys.len() - 1;
-        let x = time.clamp(0.0, 1.0) * k as f32;
-        let s = (x as usize).min(k - 1);
-        let u = x - s as f32;
+        let (s, u) = shutter_segment(time, self.keys.len() as u32 - 1);
         let (a, b) = (&self.keys[s], &self.keys[s + 1]);
-        let (sa, ra, ta) = a.world_from_camera.to_scale_rotation_translation();
-        let (sb, rb, tb) = b.world_from_camera.to_scale_rotation_translation();
+        let ((sa, ra, ta), (sb, rb, tb)) = (self.poses[s], self.poses[s + 1]);
         let lerp = |x: f32, y: f32| x + (y - x) * u;
         let cam = Camera {
             name: None,
@@ -227,10 +239,12 @@ impl MotionSplit {
             moving_meshes,
             moving_instances,
             triangles,
-            camera: camera_moves.then(|| CameraKeys {
-                keys: keys.iter().map(|k| k.camera.clone()).collect(),
-                width,
-                height,
+            camera: camera_moves.then(|| {
+                CameraKeys::new(
+                    keys.iter().map(|k| k.camera.clone()).collect(),
+                    width,
+                    height,
+                )
             }),
             warnings,
         }
@@ -329,6 +343,11 @@ fn moving_triangles(
         let pi = inst.prototype as usize;
         let proto = &base.prototypes[pi];
         let mirrored = inst.world_from_object.matrix3.determinant() < 0.0;
+        // Per key: the instance's normal transform, inverted once, not once per triangle.
+        let normal_to_world: Vec<Mat3A> = keys
+            .iter()
+            .map(|k| normal_matrix(&k.instances[ii].world_from_object))
+            .collect();
         for (ti, idx) in proto.indices.iter().enumerate() {
             records.push(TriangleRecord {
                 p: [Vec3::ZERO; 3],
@@ -337,14 +356,13 @@ fn moving_triangles(
                 material: proto.material,
                 light: NO_LIGHT,
             });
-            for k in keys {
+            for (k, normal_to_world) in keys.iter().zip(&normal_to_world) {
                 let m = k.instances[ii].world_from_object;
                 let p = &k.prototypes[pi];
                 positions.push(idx.map(|i| m.transform_point3(p.positions[i as usize])));
-                let normal_to_world = normal_matrix(&m);
                 shading.normals.push(match &p.normals {
                     Some(nr) => idx.map(|i| {
-                        Vec3::from(normal_to_world * Vec3A::from(nr[i as usize]))
+                        Vec3::from(*normal_to_world * Vec3A::from(nr[i as usize]))
                             .normalize_or_zero()
                     }),
                     None => [Vec3::ZERO; 3],
@@ -382,4 +400,56 @@ fn moving_triangles(
 fn normal_matrix(m: &Affine3A) -> Mat3A {
     let inverse = m.as_daffine3().inverse();
     Mat3A::from(inverse.matrix3.transpose().as_mat3())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_moving_camera_is_interpolated_between_its_keys() {
+        // Three keys: at the origin looking down -Z, then 2 units along +X turned 90°
+        // about +Y, then 4 units along +X turned 180°.
+        let key = |x: f32, turn: f32| Camera {
+            name: None,
+            world_from_camera: Mat4::from_rotation_translation(
+                Quat::from_rotation_y(turn),
+                Vec3::new(x, 0.0, 0.0),
+            ),
+            yfov: 0.8,
+            aspect_ratio: None,
+            aperture_radius: 0.0,
+            focus_distance: 1.0,
+        };
+        let keys = CameraKeys::new(
+            vec![
+                key(0.0, 0.0),
+                key(2.0, std::f32::consts::FRAC_PI_2),
+                key(4.0, std::f32::consts::PI),
+            ],
+            8,
+            8,
+        );
+        // The ray through the image centre: from the interpolated position, along the
+        // slerped optical axis (-Z turned by the interpolated angle about +Y).
+        for (time, x, turn) in [
+            (0.0f32, 0.0f32, 0.0f32),
+            (0.25, 1.0, std::f32::consts::FRAC_PI_4),
+            (0.5, 2.0, std::f32::consts::FRAC_PI_2),
+            (1.0, 4.0, std::f32::consts::PI),
+        ] {
+            let (o, d) = keys
+                .at(time)
+                .generate_ray(glam::Vec2::new(4.0, 4.0), glam::Vec2::ZERO);
+            let want = Quat::from_rotation_y(turn) * Vec3::NEG_Z;
+            assert!(
+                (o - Vec3::new(x, 0.0, 0.0)).length() < 1e-5,
+                "origin {o} at {time}"
+            );
+            assert!(
+                (d - want).length() < 1e-5,
+                "direction {d} at {time}, want {want}"
+            );
+        }
+    }
 }

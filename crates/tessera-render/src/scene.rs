@@ -28,8 +28,8 @@ use crate::sampling::{hash_combine, hash_u64};
 use crate::texture;
 use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A, Vec4};
 use tessera_scene::{
-    AlphaMode, GltfMaterial, Image, Material, MaterialKind, PunctualLight, Scene, Texture,
-    TextureRef,
+    AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, PunctualLight, Scene,
+    Texture, TextureRef,
 };
 
 /// Errors building a render scene.
@@ -518,7 +518,7 @@ impl RenderScene {
             }
         });
         let mut sp = self.shaded_point(tri, p, p_error, ng, normals, b1, b2);
-        if let Some(t) = &mesh.tangents {
+        if let (Some(nm), Some(t)) = (self.normal_map(tri.material), &mesh.tangents) {
             let c = t[tri.index as usize];
             let mut tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
             let mut sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
@@ -526,7 +526,7 @@ impl RenderScene {
                 tangent = inst.world_from_object.transform_vector3(tangent);
                 sign *= inst.handedness;
             }
-            self.apply_normal_map(&mut sp, tangent, sign);
+            self.apply_normal_map(&mut sp, nm, tangent, sign);
         }
         sp
     }
@@ -571,17 +571,20 @@ impl RenderScene {
         }
     }
 
-    /// Perturbs `sp.ns` by its material's normal map, if it has one, in the tangent
-    /// frame of `tangent` and bitangent sign `sign`.
+    /// The normal map of `material`, if it has one (tangents are interpolated only then).
     #[inline(always)]
-    fn apply_normal_map(&self, sp: &mut SurfacePoint, tangent: Vec3, sign: f32) {
-        if let Some(nm) = self.materials[sp.material as usize]
+    fn normal_map(&self, material: u32) -> Option<&NormalMap> {
+        self.materials[material as usize]
             .as_gltf()
             .and_then(|g| g.normal_map.as_ref())
-        {
-            let texel = self.lookup(&nm.texture, self.uv_of(sp, &nm.texture), false);
-            sp.ns = normal_mapped(sp.ns, sp.ng, tangent, sign, texel, nm.scale);
-        }
+    }
+
+    /// Perturbs `sp.ns` by the normal map `nm` in the tangent frame of `tangent` and
+    /// bitangent sign `sign`.
+    #[inline(always)]
+    fn apply_normal_map(&self, sp: &mut SurfacePoint, nm: &NormalMap, tangent: Vec3, sign: f32) {
+        let texel = self.lookup(&nm.texture, self.uv_of(sp, &nm.texture), false);
+        sp.ns = normal_mapped(sp.ns, sp.ng, tangent, sign, texel, nm.scale);
     }
 
     /// Surface data at barycentrics `(b1, b2)` of moving triangle `r` as it stands at
@@ -607,10 +610,12 @@ impl RenderScene {
             ng = -ng;
         }
         let mut sp = self.shaded_point(tri, p, p_error, ng, shading.normals_at(r, s, u), b1, b2);
-        if let Some(c) = shading.tangents_at(r, s, u) {
-            let tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
-            let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
-            self.apply_normal_map(&mut sp, tangent, sign);
+        if let Some(nm) = self.normal_map(tri.material) {
+            if let Some(c) = shading.tangents_at(r, s, u) {
+                let tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
+                let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
+                self.apply_normal_map(&mut sp, nm, tangent, sign);
+            }
         }
         sp
     }
