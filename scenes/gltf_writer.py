@@ -8,6 +8,7 @@ import base64
 import json
 import math
 import struct
+import zlib
 
 FLOAT = 5126
 UNSIGNED_SHORT = 5123
@@ -68,6 +69,45 @@ class Gltf:
             acc["max"] = [max(f32(v[k]) for v in values) for k in range(3)]
         return self._push("accessors", acc)
 
+    def vec2_accessor(self, values):
+        data = b"".join(struct.pack("<2f", *v) for v in values)
+        acc = {
+            "bufferView": self._view(data, ARRAY_BUFFER),
+            "componentType": FLOAT,
+            "count": len(values),
+            "type": "VEC2",
+        }
+        return self._push("accessors", acc)
+
+    def png_texture(self, name, width, height, rgb, sampler):
+        """An embedded 8-bit sRGB PNG of `width` x `height` pixels (`rgb`: rows top to bottom
+        of (r, g, b) bytes) as a texture with the given glTF sampler; returns its index."""
+        raw = b"".join(
+            b"\x00" + bytes(c for px in rgb[y * width : (y + 1) * width] for c in px)
+            for y in range(height)
+        )
+
+        def chunk(kind, data):
+            body = kind + data
+            return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+        png = (
+            b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw, 9))
+            + chunk(b"IEND", b"")
+        )
+        while len(self.bin) % 4:
+            self.bin.append(0)
+        offset = len(self.bin)
+        self.bin += png
+        view = self._push(
+            "bufferViews", {"buffer": 0, "byteOffset": offset, "byteLength": len(png)}
+        )
+        image = self._push("images", {"name": name, "bufferView": view, "mimeType": "image/png"})
+        s = self._push("samplers", sampler)
+        return self._push("textures", {"name": name, "source": image, "sampler": s})
+
     def index_accessor(self, indices):
         big = max(indices) > 65535
         data = struct.pack("<%d%s" % (len(indices), "I" if big else "H"), *indices)
@@ -84,10 +124,12 @@ class Gltf:
     def material(self, material):
         return self._push("materials", material)
 
-    def mesh(self, name, positions, indices, material, normals=None):
+    def mesh(self, name, positions, indices, material, normals=None, uvs=None):
         attributes = {"POSITION": self.vec3_accessor(positions, True)}
         if normals is not None:
             attributes["NORMAL"] = self.vec3_accessor(normals, False)
+        if uvs is not None:
+            attributes["TEXCOORD_0"] = self.vec2_accessor(uvs)
         primitive = {
             "attributes": attributes,
             "indices": self.index_accessor(indices),
@@ -199,3 +241,41 @@ def look_at_rotation(eye, target, up):
         q = [(m[0][2] + m[2][0]) / s, (m[1][2] + m[2][1]) / s, s / 4, (m[1][0] - m[0][1]) / s]
     n = math.sqrt(sum(c * c for c in q))
     return [c / n for c in q]
+
+
+def uv_sphere(radius, segments, rings):
+    """A UV sphere about the origin: (positions, normals, indices), every triangle wound
+    counter-clockwise seen from outside."""
+    positions, normals, indices = [], [], []
+    for i in range(rings + 1):
+        theta = math.pi * i / rings
+        for j in range(segments + 1):
+            phi = 2.0 * math.pi * j / segments
+            n = (math.sin(theta) * math.cos(phi), math.cos(theta), math.sin(theta) * math.sin(phi))
+            normals.append(n)
+            positions.append(tuple(radius * c for c in n))
+    row = segments + 1
+    for i in range(rings):
+        for j in range(segments):
+            a, b = i * row + j, i * row + j + 1
+            c, d = (i + 1) * row + j, (i + 1) * row + j + 1
+            if i != 0:
+                indices.append((a, c, b))
+            if i != rings - 1:
+                indices.append((b, c, d))
+    # Orient every triangle outward (counter-clockwise seen from outside).
+    out = []
+    for t in indices:
+        p = [positions[k] for k in t]
+        e1 = [p[1][k] - p[0][k] for k in range(3)]
+        e2 = [p[2][k] - p[0][k] for k in range(3)]
+        n = (
+            e1[1] * e2[2] - e1[2] * e2[1],
+            e1[2] * e2[0] - e1[0] * e2[2],
+            e1[0] * e2[1] - e1[1] * e2[0],
+        )
+        centroid = [sum(v[k] for v in p) for k in range(3)]
+        if sum(n[k] * centroid[k] for k in range(3)) < 0:
+            t = (t[0], t[2], t[1])
+        out += list(t)
+    return positions, normals, out

@@ -18,43 +18,7 @@ import os
 import sys
 
 sys.dont_write_bytecode = True  # keep scenes/ free of __pycache__
-from gltf_writer import Gltf, look_at_rotation  # noqa: E402
-
-
-def uv_sphere(radius, segments, rings):
-    positions, normals, indices = [], [], []
-    for i in range(rings + 1):
-        theta = math.pi * i / rings
-        for j in range(segments + 1):
-            phi = 2.0 * math.pi * j / segments
-            n = (math.sin(theta) * math.cos(phi), math.cos(theta), math.sin(theta) * math.sin(phi))
-            normals.append(n)
-            positions.append(tuple(radius * c for c in n))
-    row = segments + 1
-    for i in range(rings):
-        for j in range(segments):
-            a, b = i * row + j, i * row + j + 1
-            c, d = (i + 1) * row + j, (i + 1) * row + j + 1
-            if i != 0:
-                indices.append((a, c, b))
-            if i != rings - 1:
-                indices.append((b, c, d))
-    # Orient every triangle outward (counter-clockwise seen from outside).
-    out = []
-    for t in indices:
-        p = [positions[k] for k in t]
-        e1 = [p[1][k] - p[0][k] for k in range(3)]
-        e2 = [p[2][k] - p[0][k] for k in range(3)]
-        n = (
-            e1[1] * e2[2] - e1[2] * e2[1],
-            e1[2] * e2[0] - e1[0] * e2[2],
-            e1[0] * e2[1] - e1[1] * e2[0],
-        )
-        centroid = [sum(v[k] for v in p) for k in range(3)]
-        if sum(n[k] * centroid[k] for k in range(3)) < 0:
-            t = (t[0], t[2], t[1])
-        out += list(t)
-    return positions, normals, out
+from gltf_writer import Gltf, look_at_rotation, uv_sphere  # noqa: E402
 
 
 def main():

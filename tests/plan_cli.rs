@@ -181,6 +181,7 @@ fn a_scene_without_light_renders_black_without_tracing() {
         "variance.R",
         "variance.G",
         "variance.B",
+        "pooled_variance.G",
         "relerr.Y",
     ] {
         assert!(exr.get(name).unwrap().iter().all(|&v| v == 0.0), "{name}");

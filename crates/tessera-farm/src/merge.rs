@@ -509,6 +509,54 @@ impl FrameImage {
         }
     }
 
+    /// The variance of each pixel's mean for its confidence interval: the per-pass variance
+    /// pooled over the pixel's 3x3 neighbourhood (the neighbours inside the image with at
+    /// least 2 passes, each weighted by its degrees of freedom `n_q - 1`), divided by the
+    /// pixel's own pass count. 0 where the pixel has fewer than 2 passes.
+    ///
+    /// Why: a pixel's own variance estimate has only `K - 1` degrees of freedom, so
+    /// `mean +- 2 sqrt(variance_of_mean)` covers its true value with Student's t
+    /// probability, 86% at the default plan's `K = 4` (ARCHITECTURE.md §3). The per-sample
+    /// variance changes slowly across the image, and the passes of different pixels are
+    /// independent, so pooling 9 pixels gives up to `9 (K - 1)` degrees of freedom and
+    /// brings the 2-sigma coverage to 93-96% on the calibration suite
+    /// (`crates/tessera-render/tests/calibration.rs`, `docs/benchmarks.md` "Calibration
+    /// suite"), at the price of a bias at sharp changes of the variance (an emitter's
+    /// silhouette), where pixels on the quiet side get a wider interval and pixels on the
+    /// noisy side a narrower one. The image error estimate keeps the pixels' own
+    /// estimates: pooling would spread an emitter edge's variance over its dark
+    /// neighbours, whose relative error it would inflate.
+    pub fn interval_variance(&self) -> Vec<[f32; 3]> {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let mut out = vec![[0.0f32; 3]; self.mean.len()];
+        for y in 0..h {
+            for x in 0..w {
+                let p = y * w + x;
+                if self.passes[p] < 2 {
+                    continue;
+                }
+                let (mut sum, mut dof) = ([0.0f64; 3], 0.0f64);
+                for qy in y.saturating_sub(1)..(y + 2).min(h) {
+                    for qx in x.saturating_sub(1)..(x + 2).min(w) {
+                        let q = qy * w + qx;
+                        let n = f64::from(self.passes[q]);
+                        if n < 2.0 {
+                            continue;
+                        }
+                        // Per-pass variance n v_q, weighted by n - 1 degrees of freedom.
+                        for (c, s) in sum.iter_mut().enumerate() {
+                            *s += (n - 1.0) * n * f64::from(self.variance_of_mean[q][c]);
+                        }
+                        dof += n - 1.0;
+                    }
+                }
+                let own = f64::from(self.passes[p]);
+                out[p] = sum.map(|s| (s / dof / own) as f32);
+            }
+        }
+        out
+    }
+
     /// The image's relative error estimate from its own layers: the RMS of
     /// [`FrameImage::relative_error`] over all pixels (ARCHITECTURE.md §3), or `None` while
     /// a pixel has fewer than 2 passes (it has no estimate, so no claim about the image
@@ -879,6 +927,41 @@ mod tests {
     ///   see zeros: rel = 0.
     /// - tile 1 gets 1 pass: excluded.
     ///
+    /// The interval variance pools the per-pass variance `n v` of the 3x3 neighbours with
+    /// at least 2 passes, weighted by `n - 1`, and divides by the pixel's own `n`. A 3 x 2
+    /// image (row-major): pixel 0 has 2 passes and v = 1 (per-pass variance 2), pixel 1 has
+    /// 5 passes and v = 0.2 (per-pass 1), pixel 2 has 4 passes and v = 0.5 (per-pass 2),
+    /// pixel 3 has 1 pass, pixels 4 and 5 have 3 passes and v = 0.
+    #[test]
+    fn interval_variance_hand_computed() {
+        let img = FrameImage {
+            width: 3,
+            height: 2,
+            mean: vec![[1.0; 3]; 6],
+            variance_of_mean: [1.0, 0.2, 0.5, 7.0, 0.0, 0.0].map(|v| [v; 3]).to_vec(),
+            passes: vec![2, 5, 4, 1, 3, 3],
+            samples: vec![0; 6],
+            relative_error: vec![0.0; 6],
+        };
+        let iv = img.interval_variance();
+        let close = |a: f32, b: f64| (f64::from(a) - b).abs() <= 1e-6 * b.max(1e-30);
+        // Pixel 0 pools 0, 1, 4 (3 has 1 pass): dof 1 + 4 + 2, sum 1*2 + 4*1 + 2*0.
+        assert!(close(iv[0][0], (6.0 / 7.0) / 2.0), "{:?}", iv[0]);
+        // Pixel 1 pools all but 3: dof 1 + 4 + 3 + 2 + 2, sum 2 + 4 + 3*2 + 0 + 0.
+        assert!(close(iv[1][2], (12.0 / 12.0) / 5.0), "{:?}", iv[1]);
+        // Pixel 3 has no estimate of its own.
+        assert_eq!(iv[3], [0.0; 3]);
+        // Pixel 5 pools 1, 2, 4, 5: dof 4 + 3 + 2 + 2, sum 4 + 6.
+        assert!(close(iv[5][1], (10.0 / 11.0) / 3.0), "{:?}", iv[5]);
+        // A constant per-pass variance pools to itself.
+        let flat = FrameImage {
+            variance_of_mean: vec![[0.25; 3]; 6],
+            passes: vec![4; 6],
+            ..img
+        };
+        assert!(flat.interval_variance().iter().all(|v| *v == [0.25; 3]));
+    }
+
     /// image error = sqrt((rel0^2 + rel1^2) / 4).
     #[test]
     fn image_error_hand_computed() {

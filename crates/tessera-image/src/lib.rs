@@ -10,6 +10,7 @@
 //! |---|---|
 //! | `R`, `G`, `B` | the beauty: mean radiance per pixel, W/(m² sr), linear Rec. 709 |
 //! | `variance.R`, `variance.G`, `variance.B` | estimated variance of the mean, from the spread of independent passes (0 with fewer than 2 passes) |
+//! | `pooled_variance.R`, `.G`, `.B` | the variance of the mean for the pixel's confidence interval: per-pass variance pooled over its 3x3 neighbourhood ([`tessera_farm::FrameImage::interval_variance`]; `mean +- 2 sqrt(pooled_variance)` covers 93-96% on the calibration suite, against 86% for `variance.*` at 4 passes) |
 //! | `relerr.Y` | estimated relative standard error of the pixel's luminance |
 //! | `passes.Y` | number of passes merged |
 //! | `samples.Y` | samples per pixel traced (for adaptive renders, including a discarded unbiased pilot: where the effort went) |
@@ -62,6 +63,7 @@ pub const METADATA_ATTRIBUTE: &str = "tessera";
 /// than one would make the bytes vary between runs.
 pub fn encode_exr(img: &FrameImage, metadata: Option<&str>) -> Result<Vec<u8>, ImageError> {
     let n = (img.width as usize) * (img.height as usize);
+    let pooled = img.interval_variance();
     let chan = |name: &str, f: &dyn Fn(usize) -> f32| -> AnyChannel<FlatSamples> {
         AnyChannel::new(name, FlatSamples::F32((0..n).map(f).collect()))
     };
@@ -72,6 +74,9 @@ pub fn encode_exr(img: &FrameImage, metadata: Option<&str>) -> Result<Vec<u8>, I
         chan("variance.R", &|i| img.variance_of_mean[i][0]),
         chan("variance.G", &|i| img.variance_of_mean[i][1]),
         chan("variance.B", &|i| img.variance_of_mean[i][2]),
+        chan("pooled_variance.R", &|i| pooled[i][0]),
+        chan("pooled_variance.G", &|i| pooled[i][1]),
+        chan("pooled_variance.B", &|i| pooled[i][2]),
         chan("relerr.Y", &|i| img.relative_error[i]),
         chan("passes.Y", &|i| img.passes[i] as f32),
         chan("samples.Y", &|i| img.samples[i] as f32),

@@ -1,17 +1,34 @@
-//! Issue 4: the error estimate is calibrated, and adaptive renders meet their target.
+//! Issues 4 and 15: the error estimate is calibrated, and adaptive renders meet their
+//! target.
 //!
-//! Each scene is rendered at 32x32 against a converged reference rendered here with an
-//! independent seed (ARCHITECTURE.md §3: passes are independent replicates, so the spread between
-//! passes estimates the error of their mean; Owen 2001, section 6.7).
+//! Each scene is rendered at 32x32 against a converged reference rendered with an
+//! independent seed (ARCHITECTURE.md §3: passes are independent replicates, so the spread
+//! between passes estimates the error of their mean; Owen 2001, section 6.7). The
+//! references are committed (tests/fixtures/calibration/, 256 passes of 64 = 16,384 spp,
+//! seed 1000, written by the ignored `write_calibration_references`), so the suite only
+//! renders its test budgets; a change to what the renderer converges to shows up here as
+//! a coverage failure, and the references are then rewritten on purpose.
 //!
-//! Statistics of the coverage check: for pixel p with K = 64 passes, mean m, estimated
+//! Statistics of the coverage check: for pixel p with K passes, mean m, estimated
 //! variance of the mean v, and reference r with its own variance of the mean v_r,
-//! `z = (m - r) / sqrt(v + v_r)` is approximately Student-t with K - 1 = 63 degrees of
-//! freedom, so P(|z| <= 2) is about 0.95. Pixels whose passes are all identical in both
-//! renders (v = v_r = 0, e.g. a directly seen light) carry no information and are left out.
-//! The measured image error subtracts the reference's own variance so that it estimates
-//! the test render's error alone:
+//! `z = (m - r) / sqrt(v + v_r)` is approximately Student-t with K - 1 degrees of
+//! freedom, so P(|z| <= 2) is 0.861 at K = 4 and 0.936 at K = 16 (the default plan at 64
+//! and 1024 spp). With the 3x3-pooled variance (`FrameImage::interval_variance`) the
+//! degrees of freedom are up to 9 (K - 1), and P(|z| <= 2) approaches 0.954. Pixels whose
+//! passes are all identical in both renders (v = v_r = 0, e.g. a directly seen light)
+//! carry no information and are left out. The measured image error subtracts the
+//! reference's own variance so that it estimates the test render's error alone:
 //! `measured² = mean_p ((lum m - lum r)² - v_r,lum) / (lum r + eps)²`.
+//!
+//! The suite (issue 15) is six path-traced scenes at 64, 256 and 1024 spp. On three of
+//! them (veach-mis with its glossy caustics, the glass caustic, a small light in a glossy
+//! floor) the image estimate is optimistic, 0.1-0.85 of the measured error
+//! (docs/benchmarks.md, "Calibration suite"): the measured error there is carried by a
+//! few pixels, either where one pass caught a rare bright path (the pixel's own estimate
+//! `sqrt(v) / mean` cannot exceed 1 however far the mean is from the truth, since the
+//! same path raised the mean) or where no pass caught the caustic at all (no sample
+//! carries evidence of it). Those scenes are held to their pooled coverage and to not
+//! overstating the error; the others to the estimate within 0.8-1.25 of the measured.
 
 use std::sync::OnceLock;
 use tessera_farm::{luminance, REL_EPS};
@@ -23,12 +40,11 @@ use tessera_render::scene::RenderScene;
 const W: u32 = 32;
 const H: u32 = 32;
 
+/// The suite's settings, except for veach-mis in the adaptive bit-identity test: the
+/// glossy-highlights experiment (Veach & Guibas 1995, section 4.1) is direct lighting, light
+/// and BSDF sampling of the four lights combined by MIS.
 fn settings(scene: &str, seed: u64) -> RenderConfig {
     if scene.ends_with("veach-mis") {
-        // The glossy-highlights experiment (Veach & Guibas 1995, section 4.1) is direct lighting: light and
-        // BSDF sampling of the four lights, combined by MIS. (With indirect bounces the
-        // floor also sees the plates' caustics, rare paths that a 32x32 test at a few
-        // hundred spp resolves only as isolated fireflies: see the issue 4 report.)
         return RenderConfig {
             seed,
             integrator: tessera_render::integrator::Integrator::Direct,
@@ -36,13 +52,7 @@ fn settings(scene: &str, seed: u64) -> RenderConfig {
             ..RenderConfig::default()
         };
     }
-    RenderConfig {
-        seed,
-        // Fewer bounces than the general 16 keep the test fast; the estimate's calibration
-        // does not depend on the depth.
-        max_depth: 6,
-        ..RenderConfig::default()
-    }
+    suite_settings(seed)
 }
 
 fn render_scene(scene: &str) -> RenderScene {
@@ -50,20 +60,11 @@ fn render_scene(scene: &str) -> RenderScene {
     RenderScene::build(&s, W, H).unwrap()
 }
 
-/// The converged reference: 8192 spp (512 passes of 16), seed 1000.
-fn reference(scene: &'static str) -> &'static FrameImage {
+/// The Cornell box's committed reference (the suite's).
+fn reference(scene: &str) -> &'static FrameImage {
+    assert_eq!(scene, "builtin:cornell-box");
     static CORNELL: OnceLock<FrameImage> = OnceLock::new();
-    static VEACH: OnceLock<FrameImage> = OnceLock::new();
-    let cell = if scene.ends_with("cornell-box") {
-        &CORNELL
-    } else {
-        &VEACH
-    };
-    cell.get_or_init(|| {
-        let rs = render_scene(scene);
-        let plan = FramePlan::new(W, H, 8, 16, 512).unwrap();
-        render_frame(&rs, &settings(scene, 1000), &plan, 0, 0, |_, _| {}).image()
-    })
+    CORNELL.get_or_init(|| suite_reference("cornell-box"))
 }
 
 fn lum(rgb: [f32; 3]) -> f64 {
@@ -93,7 +94,7 @@ fn measured_error(img: &FrameImage, r: &FrameImage) -> f64 {
 /// Renders `scene` with `plan` and `seed` and returns the fraction of pixel channels within
 /// 2 estimated standard errors of the reference and the estimated over the measured image
 /// error.
-fn coverage_and_error_ratio(scene: &'static str, plan: FramePlan, seed: u64) -> (f64, f64) {
+fn coverage_and_error_ratio(scene: &str, plan: FramePlan, seed: u64) -> (f64, f64) {
     let r = reference(scene);
     let rs = render_scene(scene);
     let acc = render_frame(&rs, &settings(scene, seed), &plan, 0, 0, |_, _| {});
@@ -125,29 +126,6 @@ fn coverage_and_error_ratio(scene: &'static str, plan: FramePlan, seed: u64) -> 
     (fraction, estimated / measured)
 }
 
-fn calibration(scene: &'static str) {
-    // 1024 spp as 64 passes of 16: 63 degrees of freedom for each pixel's variance, and
-    // passes long enough that their means are close to normal (with 4 samples per pass
-    // the skew of rare bright paths pulls the coverage to ~92.5%: a pixel whose passes
-    // missed them has both a low mean and a low variance).
-    let plan = FramePlan::new(W, H, 8, 16, 64).unwrap();
-    // The test seed is 8. With seed 7 and the light hierarchy (issue 13), veach-mis covers
-    // 91.65% (93.14% with power selection, already at the edge); seeds 8 and 9 give 94.50%
-    // and 94.29% (power selection: 94.41%, 94.40%). The pixels outside 2 sigma are mostly
-    // the low-variance back wall, with z of both signs under either sampler: the spread of
-    // one fixed-seed draw of the coverage (about 0.7% with three correlated channels per
-    // pixel), not bias, which tests/light_tree.rs rules out by comparing the two samplers.
-    let (fraction, ratio) = coverage_and_error_ratio(scene, plan, 8);
-    assert!(
-        (0.93..=0.97).contains(&fraction),
-        "{scene}: {fraction} of pixel channels within 2 sigma"
-    );
-    assert!(
-        (ratio - 1.0).abs() <= 0.25,
-        "{scene}: estimated / measured image error {ratio}"
-    );
-}
-
 /// Issue 13: the default plan at 64 spp (`FramePlan::for_spp`: 4 passes of 16, so 3
 /// degrees of freedom per pixel) keeps a calibrated error estimate. The image error, an
 /// average of unbiased per-pixel variance estimates, is within 25% of the measured one as
@@ -172,16 +150,6 @@ fn default_plan_at_64_spp_keeps_the_estimate_calibrated() {
         (ratio - 1.0).abs() <= 0.25,
         "estimated / measured image error {ratio}"
     );
-}
-
-#[test]
-fn error_estimate_is_calibrated_on_cornell_box() {
-    calibration("builtin:cornell-box");
-}
-
-#[test]
-fn error_estimate_is_calibrated_on_veach_mis() {
-    calibration("builtin:veach-mis");
 }
 
 fn adaptive(scene: &str, mode: AdaptiveMode, target: f64, threads: usize) -> FrameImage {
@@ -247,4 +215,354 @@ fn adaptive_render_is_bit_identical_for_any_thread_count() {
             "{mode}: not adaptive"
         );
     }
+}
+
+// ---------------------------------------------------------------------------------------
+// Issue 15: the calibration suite. Six path-traced scenes, each at 64, 256 and 1024 spp
+// with the default plan (`FramePlan::for_spp`), against committed converged references.
+// ---------------------------------------------------------------------------------------
+
+/// The suite: (short name, scene). See scenes/make_calibration_gltf.py for the glTF three.
+const SUITE: [(&str, &str); 6] = [
+    ("cornell-box", "builtin:cornell-box"),
+    ("veach-mis", "builtin:veach-mis"),
+    ("caustic", "builtin:caustic"),
+    ("textured-room", "scenes/textured-room.gltf"),
+    ("glossy-highlight", "scenes/glossy-highlight.gltf"),
+    ("indirect-room", "scenes/indirect-room.gltf"),
+];
+
+/// Budgets of the suite, each planned by `FramePlan::for_spp` (4 x 16, 4 x 64, 16 x 64).
+const BUDGETS: [u32; 3] = [64, 256, 1024];
+
+/// Reference spp: 256 passes of 64 with seed 1000 (`write_calibration_references`).
+const REFERENCE_PASSES: u32 = 256;
+
+fn suite_path(scene: &str) -> String {
+    if scene.starts_with("builtin:") {
+        scene.to_string()
+    } else {
+        format!("{}/../../{scene}", env!("CARGO_MANIFEST_DIR"))
+    }
+}
+
+/// Path tracing (the plan's default integrator) to depth 8 with the default roulette: the
+/// estimate's calibration does not depend on the depth, and 8 keeps the suite fast.
+fn suite_settings(seed: u64) -> RenderConfig {
+    RenderConfig {
+        seed,
+        max_depth: 8,
+        ..RenderConfig::default()
+    }
+}
+
+fn suite_scene(scene: &str) -> RenderScene {
+    let s = tessera_scene::load(&suite_path(scene)).unwrap();
+    RenderScene::build(&s, W, H).unwrap()
+}
+
+fn reference_file(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/fixtures/calibration")
+        .join(format!("{name}.exr"))
+}
+
+/// The committed reference of `name`: its mean and variance-of-mean layers.
+fn suite_reference(name: &str) -> FrameImage {
+    let path = reference_file(name);
+    let bytes = std::fs::read(&path).unwrap_or_else(|e| {
+        panic!(
+            "{}: {e}; regenerate with `cargo test --release -p tessera-render --test calibration \
+             -- --ignored write_calibration_references`",
+            path.display()
+        )
+    });
+    let exr = tessera_image::read_exr(&bytes).unwrap();
+    assert_eq!((exr.width, exr.height), (W as usize, H as usize));
+    let layer = |c: &str| exr.get(c).unwrap().to_vec();
+    let (r, g, b) = (layer("R"), layer("G"), layer("B"));
+    let (vr, vg, vb) = (
+        layer("variance.R"),
+        layer("variance.G"),
+        layer("variance.B"),
+    );
+    let n = (W * H) as usize;
+    let mut img = FrameImage::black(&FramePlan::new(W, H, 8, 64, REFERENCE_PASSES).unwrap());
+    for p in 0..n {
+        img.mean[p] = [r[p], g[p], b[p]];
+        img.variance_of_mean[p] = [vr[p], vg[p], vb[p]];
+    }
+    img
+}
+
+/// Writes the suite's references (run by hand after a change to the renderer's expected
+/// values; about 10 minutes on 2 cores).
+#[test]
+#[ignore = "writes tests/fixtures/calibration/*.exr"]
+fn write_calibration_references() {
+    std::fs::create_dir_all(reference_file("x").parent().unwrap()).unwrap();
+    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
+    for (name, scene) in SUITE {
+        if !only.is_empty() && !only.split(',').any(|s| s == name) {
+            continue;
+        }
+        let rs = suite_scene(scene);
+        let plan = FramePlan::new(W, H, 8, 64, REFERENCE_PASSES).unwrap();
+        let img = render_frame(&rs, &suite_settings(1000), &plan, 0, 0, |_, _| {}).image();
+        let meta = format!(
+            "{{\"calibration_reference\":\"{scene}\",\"passes\":{REFERENCE_PASSES},\"samples_per_pass\":64,\"seed\":1000,\"max_depth\":8}}"
+        );
+        let bytes = tessera_image::encode_exr(&img, Some(&meta)).unwrap();
+        std::fs::write(reference_file(name), bytes).unwrap();
+        eprintln!(
+            "{name}: reference written, estimated error {:.4}",
+            img.error_estimate().unwrap()
+        );
+    }
+}
+
+/// One render of the suite against its reference.
+struct Calibration {
+    /// Fraction of pixel channels within 2 standard errors of the reference, with the
+    /// pixel's own `variance_of_mean`.
+    coverage: f64,
+    /// The same with [`FrameImage::interval_variance`] (3x3 pooled).
+    coverage_pooled: f64,
+    /// Estimated over measured image error.
+    ratio: f64,
+    estimated: f64,
+    measured: f64,
+    /// Degrees of freedom of a pixel's own estimate, `K - 1`.
+    dof: u32,
+}
+
+fn calibrate(name: &str, scene: &str, spp: u32, seed: u64) -> Calibration {
+    let r = suite_reference(name);
+    let rs = suite_scene(scene);
+    let plan = FramePlan::for_spp(W, H, spp, 8).unwrap();
+    let img = render_frame(&rs, &suite_settings(seed), &plan, 0, 0, |_, _| {}).image();
+    let pooled = img.interval_variance();
+    let (mut inside, mut inside_pooled, mut counted) = (0usize, 0usize, 0usize);
+    for (p, pooled) in pooled.iter().enumerate() {
+        for (c, &pooled) in pooled.iter().enumerate() {
+            let vr = f64::from(r.variance_of_mean[p][c]);
+            let v = f64::from(img.variance_of_mean[p][c]);
+            if v + vr == 0.0 {
+                continue;
+            }
+            let d = (f64::from(img.mean[p][c]) - f64::from(r.mean[p][c])).abs();
+            counted += 1;
+            inside += usize::from(d <= 2.0 * (v + vr).sqrt());
+            inside_pooled += usize::from(d <= 2.0 * (f64::from(pooled) + vr).sqrt());
+        }
+    }
+    let estimated = img.error_estimate().unwrap();
+    let measured = measured_error(&img, &r);
+    Calibration {
+        coverage: inside as f64 / counted as f64,
+        coverage_pooled: inside_pooled as f64 / counted as f64,
+        ratio: estimated / measured,
+        estimated,
+        measured,
+        dof: plan.passes - 1,
+    }
+}
+
+/// Student's t probability `P(|T| <= 2)` for `dof` degrees of freedom (the coverage a
+/// pixel's own 2-sigma interval should have), by Simpson's rule on the density.
+fn t_coverage(dof: u32) -> f64 {
+    let v = f64::from(dof);
+    let ln_gamma_ratio = ln_gamma((v + 1.0) / 2.0) - ln_gamma(v / 2.0);
+    let density = |t: f64| {
+        (ln_gamma_ratio - 0.5 * (v * std::f64::consts::PI).ln()).exp()
+            * (1.0 + t * t / v).powf(-(v + 1.0) / 2.0)
+    };
+    let n = 2000;
+    let h = 2.0 / f64::from(n);
+    let mut sum = density(0.0) + density(2.0);
+    for i in 1..n {
+        sum += density(f64::from(i) * h) * if i % 2 == 1 { 4.0 } else { 2.0 };
+    }
+    2.0 * sum * h / 3.0
+}
+
+/// Lanczos approximation of `ln Γ(x)` for `x > 0` (g = 7, 9 terms; about 15 digits).
+fn ln_gamma(x: f64) -> f64 {
+    const C: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    let x = x - 1.0;
+    let t = x + 7.5;
+    let a = C[0] + (1..9).map(|i| C[i] / (x + i as f64)).sum::<f64>();
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+/// What a scene of the suite is held to.
+struct Expect {
+    /// The least 3x3-pooled coverage.
+    min_pooled: f64,
+    /// The range of estimated over measured image error, or `None` for the heavy-tailed
+    /// scenes, where the estimate is known to be optimistic (see the module docs of the
+    /// suite) and is only held to not overstating the error.
+    ratio: Option<(f64, f64)>,
+}
+
+/// The suite's check of one scene at the three budgets (seed 8): the 3x3-pooled interval
+/// covers within `min_pooled..=0.97`; a pixel's own interval covers at most what Student's t
+/// for `K - 1` degrees of freedom predicts (plus 0.03), and at most 0.15 less (short passes
+/// are skewed: a pixel whose passes missed rare bright paths has both a low mean and a low
+/// variance, 74% against t's 86% at 64 spp on the caustic and the indirect room); and the
+/// image estimate is within its range of the measured error.
+fn suite_check(name: &str, expect: Expect) {
+    let scene = SUITE.iter().find(|s| s.0 == name).unwrap().1;
+    for spp in BUDGETS {
+        let c = calibrate(name, scene, spp, 8);
+        let t = t_coverage(c.dof);
+        eprintln!(
+            "calibration {name} {spp} spp: own {:.2}% (t_{} {:.2}%), pooled 3x3 {:.2}%, \
+             estimated {:.4} / measured {:.4} = {:.3}",
+            100.0 * c.coverage,
+            c.dof,
+            100.0 * t,
+            100.0 * c.coverage_pooled,
+            c.estimated,
+            c.measured,
+            c.ratio
+        );
+        assert!(
+            (expect.min_pooled..=0.97).contains(&c.coverage_pooled),
+            "{name} {spp} spp: pooled coverage {}",
+            c.coverage_pooled
+        );
+        assert!(
+            (t - 0.15..=t + 0.03).contains(&c.coverage),
+            "{name} {spp} spp: own coverage {} against t {t}",
+            c.coverage
+        );
+        match expect.ratio {
+            Some((lo, hi)) => assert!(
+                (lo..=hi).contains(&c.ratio),
+                "{name} {spp} spp: estimated / measured {}",
+                c.ratio
+            ),
+            None => assert!(c.ratio <= 1.25, "{name} {spp} spp: overstated {}", c.ratio),
+        }
+    }
+}
+
+#[test]
+fn calibration_suite_cornell_box() {
+    suite_check(
+        "cornell-box",
+        Expect {
+            min_pooled: 0.93,
+            ratio: Some((0.8, 1.25)),
+        },
+    );
+}
+
+#[test]
+fn calibration_suite_textured_room() {
+    suite_check(
+        "textured-room",
+        Expect {
+            min_pooled: 0.93,
+            ratio: Some((0.8, 1.25)),
+        },
+    );
+}
+
+/// Lit mostly indirectly: at 64 spp (4 passes) the estimate is 0.78 of the measured error
+/// (the skew of short passes), within 0.8-1.25 from 256 spp on.
+#[test]
+fn calibration_suite_indirect_room() {
+    suite_check(
+        "indirect-room",
+        Expect {
+            min_pooled: 0.93,
+            ratio: Some((0.75, 1.25)),
+        },
+    );
+}
+
+/// Path-traced (issue 15: not direct lighting), so the floor sees the plates' glossy
+/// caustics: heavy-tailed.
+#[test]
+fn calibration_suite_veach_mis() {
+    suite_check(
+        "veach-mis",
+        Expect {
+            min_pooled: 0.93,
+            ratio: None,
+        },
+    );
+}
+
+#[test]
+fn calibration_suite_caustic() {
+    suite_check(
+        "caustic",
+        Expect {
+            min_pooled: 0.93,
+            ratio: None,
+        },
+    );
+}
+
+/// The glossy floor's caustic of the small light puts rare bright paths on the wall:
+/// the pooled coverage is 92-94%.
+#[test]
+fn calibration_suite_glossy_highlight() {
+    suite_check(
+        "glossy-highlight",
+        Expect {
+            min_pooled: 0.915,
+            ratio: None,
+        },
+    );
+}
+
+/// The suite's table for docs/benchmarks.md, two seeds per cell.
+#[test]
+#[ignore = "prints the calibration table (about 5 minutes)"]
+fn calibration_suite_table() {
+    eprintln!("| scene | spp (passes) | own 2-sigma coverage (t predicts) | pooled 3x3 coverage | estimated / measured image error | estimated | measured |");
+    eprintln!("|---|---|---|---|---|---|---|");
+    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
+    for (name, scene) in SUITE {
+        if !only.is_empty() && !only.split(',').any(|s| s == name) {
+            continue;
+        }
+        for spp in BUDGETS {
+            for seed in [8, 9] {
+                let c = calibrate(name, scene, spp, seed);
+                eprintln!(
+                    "| {name} (seed {seed}) | {spp} ({}) | {:.2}% ({:.2}%) | {:.2}% | {:.3} | {:.4} | {:.4} |",
+                    c.dof + 1,
+                    100.0 * c.coverage,
+                    100.0 * t_coverage(c.dof),
+                    100.0 * c.coverage_pooled,
+                    c.ratio,
+                    c.estimated,
+                    c.measured
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn t_coverage_matches_tables() {
+    // P(|T| <= 2): 3 dof 0.8607, 15 dof 0.9361, large dof -> 0.9545.
+    assert!((t_coverage(3) - 0.8607).abs() < 1e-3, "{}", t_coverage(3));
+    assert!((t_coverage(15) - 0.9361).abs() < 1e-3, "{}", t_coverage(15));
+    assert!((t_coverage(10_000) - 0.9545).abs() < 1e-3);
 }
