@@ -450,7 +450,10 @@ fn print_totals(plan: &FramePlan, seconds: f64, error: f64, paths_per_second: f6
         plan.samples_per_pass
     );
     println!("seconds: {seconds:.3}");
-    println!("estimated relative error: {error:.4}");
+    println!(
+        "estimated relative error: {error:.4} (estimator: {})",
+        tessera_farm::ERROR_ESTIMATOR
+    );
     println!("paths per second: {paths_per_second:.0}");
 }
 

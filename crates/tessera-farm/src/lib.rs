@@ -90,7 +90,7 @@ pub use schedule::{
     frame_state_bytes, JobId, Lease, Progress, Residency, Resumed, Scheduler, SubmitError,
     Submitted, WorkerId,
 };
-pub use stats::{luminance, PixelStats, LUMINANCE_WEIGHTS, REL_EPS};
+pub use stats::{luminance, PixelStats, ERROR_ESTIMATOR, LUMINANCE_WEIGHTS, REL_EPS};
 
 #[cfg(test)]
 mod test_util {

@@ -12,6 +12,14 @@ use serde::{Deserialize, Serialize};
 /// error.
 pub const REL_EPS: f64 = 1e-2;
 
+/// The error estimator in use, as the EXR header (`error_estimator`) and `tessera render`
+/// name it (ARCHITECTURE.md §3): the image error is the RMS of the pixels' relative errors
+/// from the spread of their independent passes, and a pixel's interval uses the variance
+/// pooled over its 3x3 neighbourhood ([`crate::FrameImage::interval_variance`]). Known to be
+/// optimistic where rare bright paths carry the error (caustics, small lights in glossy
+/// reflections): `docs/benchmarks.md`, "Calibration suite".
+pub const ERROR_ESTIMATOR: &str = "pass-spread; pixel intervals pooled 3x3";
+
 /// Luminance weights of linear Rec. 709 / sRGB primaries.
 pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
 

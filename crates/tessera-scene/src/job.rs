@@ -200,6 +200,7 @@ mod tests {
         assert_eq!(v["width"], 8);
         assert_eq!(v["spp"], 16);
         assert_eq!(v["mis"], "power");
+        assert_eq!(v["error_estimator"], tessera_farm::ERROR_ESTIMATOR);
         assert!(v["plan"].is_object());
         assert!(v.get("adaptive").is_none());
         let r = resolve(

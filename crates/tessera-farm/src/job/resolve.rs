@@ -194,7 +194,9 @@ impl ResolvedJob {
     /// (why the render ended, [`StopVerdict::stopped`]), `target_reached` (whether the
     /// image's estimate is at or below `target_error`; `null` without a target) and
     /// `error_reached` (the image's estimate, [`FrameImage::error_estimate`]); the last
-    /// three are `null` while it runs. The text is ASCII.
+    /// three are `null` while it runs. Every header names the error estimator of its
+    /// variance layers and estimate (`error_estimator`, [`crate::ERROR_ESTIMATOR`]). The
+    /// text is ASCII.
     pub fn metadata_json(&self, stopped: Option<&StopVerdict>) -> String {
         let job = &self.job;
         let c = &self.config;
@@ -240,7 +242,7 @@ impl ResolvedJob {
             camera += &format!(",\"shutter\":[{},{}]", s.open, s.close);
         }
         out += &format!(
-            "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"plan\":{}}}",
+            "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"error_estimator\":{},\"plan\":{}}}",
             json_string(&job.scene.to_string()),
             p.width,
             p.height,
@@ -252,6 +254,7 @@ impl ResolvedJob {
             c.seed,
             c.max_depth,
             c.rr_depth,
+            json_string(crate::ERROR_ESTIMATOR),
             self.render_plan.to_json()
         );
         out
