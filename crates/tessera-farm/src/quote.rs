@@ -429,7 +429,8 @@ pub fn pilot_tiles(tile_count: u32, pixels_per_tile: u64) -> Vec<u32> {
 /// A running job's progress, what [`job_eta_seconds`] predicts from.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct JobProgress {
-    /// Seconds since the job started running.
+    /// Seconds spent rendering so far (the rate's denominator; the coordinator counts
+    /// from when its first merged unit began rendering, not the set-up before it).
     pub elapsed_seconds: f64,
     /// Passes merged, over all tiles and frames.
     pub passes_done: u64,
@@ -441,8 +442,8 @@ pub struct JobProgress {
     /// job without adaptive stopping on the farm runs its planned passes whatever its
     /// target, so its target does not shorten its ETA.
     pub stopping_target: Option<f64>,
-    /// The job's time limit in seconds, if any.
-    pub time_limit_seconds: Option<f64>,
+    /// Seconds left of the job's time limit, if it has one.
+    pub time_limit_left_seconds: Option<f64>,
 }
 
 /// Estimated seconds until a running job is done, from its measured progress: the
@@ -468,8 +469,8 @@ pub fn job_eta_seconds(p: &JobProgress) -> Option<f64> {
             eta = eta.min(t * ((e / target).powi(2) - 1.0));
         }
     }
-    if let Some(limit) = p.time_limit_seconds {
-        eta = eta.min(limit - t);
+    if let Some(left) = p.time_limit_left_seconds {
+        eta = eta.min(left);
     }
     Some(eta.max(0.0))
 }
@@ -641,7 +642,7 @@ mod tests {
             passes_planned: 10_000,
             error: Some(0.04),
             stopping_target: Some(0.02),
-            time_limit_seconds: None,
+            time_limit_left_seconds: None,
         };
         // Error 0.04 after 10 s, target 0.02: four times the work, 30 s more.
         assert_eq!(job_eta_seconds(&p), Some(30.0));
@@ -660,7 +661,7 @@ mod tests {
         assert_eq!(job_eta_seconds(&near), Some(10.0));
         // And by a time limit; and never negative.
         let limited = JobProgress {
-            time_limit_seconds: Some(12.0),
+            time_limit_left_seconds: Some(2.0),
             ..no_stop
         };
         assert_eq!(job_eta_seconds(&limited), Some(2.0));

@@ -360,13 +360,14 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         Some(0.0)
     } else {
         job_eta_seconds(&JobProgress {
-            elapsed_seconds: elapsed,
+            // The rate of rendering, not of the set-up before it.
+            elapsed_seconds: rt.rendering_seconds(now),
             passes_done,
             passes_planned,
             error,
             // On the farm only adaptive jobs stop at their target (ARCHITECTURE.md §3).
             stopping_target: adaptive.and(rt.job().target_error),
-            time_limit_seconds: rt.job().time_limit_seconds,
+            time_limit_left_seconds: rt.job().time_limit_seconds.map(|l| l - elapsed),
         })
     };
     let verdict = match rt.stopped {
