@@ -84,8 +84,11 @@ def main():
             while True:
                 st = get(f"{base}/jobs/{job['id']}")
                 frac = st["passes_done"] / max(1, st["passes_planned"])
+                # A mark first seen once the job is done says nothing (the ETA is 0 then):
+                # it is left out ("-").
+                done = st["state"] in ("done", "failed", "canceled")
                 for m in (0.10, 0.25, 0.50):
-                    if m not in marks and frac >= m and st["eta_seconds"] is not None:
+                    if m not in marks and frac >= m and st["eta_seconds"] is not None and not done:
                         marks[m] = (frac, st["elapsed_seconds"], st["eta_seconds"])
                 if st["state"] in ("done", "failed", "canceled"):
                     seen = st

@@ -5,7 +5,9 @@
 //! tiles ([`pilot_tiles`]) with the job's own pass size on this machine, timing every unit.
 //! The prediction is [`tessera_farm::quote::quote`], the one copy of the maths: the
 //! 1/sqrt(passes) law from the pilot's image error, the measured cost per pixel-pass, and
-//! the intervals from their spreads.
+//! the intervals from their spreads. Units are timed by the wall clock and scaled by the
+//! pilot's share of CPU time, so a machine loaded by other work quotes what it would take
+//! alone.
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -62,6 +64,7 @@ struct EstimateOutput<'a> {
     threads: usize,
     pilot_tiles: usize,
     pilot_seconds: f64,
+    pilot_cpu_seconds: f64,
     setup_seconds: f64,
     black: bool,
     quote: Option<&'a Quote>,
@@ -83,6 +86,7 @@ impl EstimateOutput<'_> {
             "threads": self.threads,
             "pilot_tiles": self.pilot_tiles,
             "pilot_seconds": self.pilot_seconds,
+            "pilot_cpu_seconds": self.pilot_cpu_seconds,
             "setup_seconds": self.setup_seconds,
             "black": self.black,
             "quote": self.quote,
@@ -174,6 +178,7 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         threads,
         pilot_tiles: 0,
         pilot_seconds: 0.0,
+        pilot_cpu_seconds: 0.0,
         setup_seconds: p.build_seconds,
         black: p.resolved.black,
         quote: None,
@@ -210,6 +215,7 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         })
         .collect();
     let start = Instant::now();
+    let cpu_start = crate::common::cpu_seconds("self");
     let rendered = render_pilot(
         render_scene,
         &p.resolved.config,
@@ -217,6 +223,18 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         &units,
         threads,
     );
+    let cpu = crate::common::cpu_seconds("self") - cpu_start;
+    // On a machine shared with other work a unit's wall time includes waiting for a core;
+    // the pilot's CPU time (all threads, from /proc at 10 ms resolution) over the units'
+    // summed wall time is the share it got, and scales every unit to what a dedicated
+    // worker would take. Without a usable CPU figure (no /proc, a pilot under 10 ms), 1.
+    let thread_seconds: f64 = rendered.iter().map(|(_, t)| t).sum();
+    let share = if cpu > 0.0 && thread_seconds > 0.0 {
+        (cpu / thread_seconds).min(1.0)
+    } else {
+        1.0
+    };
+    out.pilot_cpu_seconds = cpu;
     out.pilot_seconds = start.elapsed().as_secs_f64();
     out.pilot_tiles = tiles.len();
     let mut acc = FrameAccumulator::for_frame(pilot_plan, frames.start);
@@ -227,7 +245,7 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
             pixel_passes: pixels,
             // A worker renders on all its threads at once: a unit's thread-seconds are
             // 1/threads of a worker-second.
-            worker_seconds: seconds / threads as f64,
+            worker_seconds: seconds * share / threads as f64,
         });
         acc.offer(result).context("merging the pilot")?;
     }
@@ -311,8 +329,14 @@ fn print_quote(o: &EstimateOutput, q: &Quote) {
         o.scene, o.width, o.height, o.spp, o.passes, o.samples_per_pass, o.integrator, o.workers
     );
     println!(
-        "pilot: {} tiles ({} pixels), {} passes, {:.2} s on {} threads; image error {:.4}",
-        o.pilot_tiles, q.pilot_pixels, q.pilot_passes, o.pilot_seconds, o.threads, q.pilot_error
+        "pilot: {} tiles ({} pixels), {} passes, {:.2} s ({:.2} CPU s) on {} threads; image error {:.4}",
+        o.pilot_tiles,
+        q.pilot_pixels,
+        q.pilot_passes,
+        o.pilot_seconds,
+        o.pilot_cpu_seconds,
+        o.threads,
+        q.pilot_error
     );
     let row = |label: &str, c: &tessera_farm::quote::Cost| {
         println!("{label}");
