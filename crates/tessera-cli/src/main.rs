@@ -9,6 +9,7 @@ mod bench_fleet;
 mod bench_plan;
 mod common;
 mod coordinator;
+mod estimate;
 mod render;
 mod serve;
 mod status;
@@ -38,6 +39,9 @@ struct Cli {
 enum Command {
     /// Render a scene on this machine to an EXR or PNG file.
     Render(RenderArgs),
+    /// Quote a job before rendering it: a short pilot on this machine predicts the seconds
+    /// and worker-seconds to reach 10%, 5%, 2% and 1% error (or --target-error).
+    Estimate(estimate::EstimateArgs),
     /// Measure rendering throughput (paths per second).
     Bench(BenchArgs),
     /// Compare the render plan's configuration with the general one (and bdpt with path on
@@ -106,6 +110,7 @@ fn main() {
             Some(BenchCommand::Accuracy(a)) => accuracy::bench_accuracy(a),
             None => bench(args),
         },
+        Command::Estimate(args) => contained("estimating", || estimate::estimate(args)),
         Command::BenchPlan(args) => bench_plan::bench_plan(args),
         Command::Serve(args) => serve::serve(args),
         Command::Coordinator(args) => coordinator::coordinator(args),

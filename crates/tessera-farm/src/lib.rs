@@ -71,6 +71,7 @@ mod adaptive;
 pub mod job;
 mod merge;
 mod plan;
+pub mod quote;
 mod result;
 mod schedule;
 mod stats;

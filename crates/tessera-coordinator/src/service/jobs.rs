@@ -9,6 +9,7 @@ use tessera_api::{
     History, JobList, JobListQuery, JobSettings, JobState, JobStatus, ResolvedJob, ValidatedJob,
 };
 use tessera_farm::job::StopVerdict;
+use tessera_farm::quote::{job_eta_seconds, JobProgress};
 use tessera_farm::{frame_state_bytes, FramePlan, JobId};
 use tessera_scene::job::resolve_job;
 
@@ -358,13 +359,16 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     let eta = if rt.state.is_terminal() {
         Some(0.0)
     } else {
-        eta_seconds(
-            elapsed,
+        job_eta_seconds(&JobProgress {
+            // The rate of rendering, not of the set-up before it.
+            elapsed_seconds: rt.rendering_seconds(now),
             passes_done,
             passes_planned,
             error,
-            rt.job().target_error,
-        )
+            // On the farm only adaptive jobs stop at their target (ARCHITECTURE.md §3).
+            stopping_target: adaptive.and(rt.job().target_error),
+            time_limit_left_seconds: rt.job().time_limit_seconds.map(|l| l - elapsed),
+        })
     };
     let verdict = match rt.stopped {
         Some(stop) if rt.state == JobState::Done && rt.job().stops_early() => Some(StopVerdict {
@@ -408,36 +412,6 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     }
 }
 
-/// Estimated seconds until a job is done, from the time spent so far.
-///
-/// Monte Carlo error falls like `1 / sqrt(work)` (ARCHITECTURE.md §3), so reaching `target` from
-/// the current `error` needs `(error / target)^2` times the work done so far; the job also
-/// stops when all planned passes are merged, so the estimate is the smaller of that and
-/// the time for the remaining passes at the current rate. `None` before anything merged.
-pub fn eta_seconds(
-    elapsed: f64,
-    passes_done: u64,
-    passes_planned: u64,
-    error: Option<f64>,
-    target: Option<f64>,
-) -> Option<f64> {
-    if passes_done == 0 || elapsed <= 0.0 {
-        return None;
-    }
-    let remaining_passes =
-        elapsed * (passes_planned.saturating_sub(passes_done)) as f64 / passes_done as f64;
-    let by_error = match (error, target) {
-        (Some(e), Some(t)) if t > 0.0 && e.is_finite() => {
-            Some((elapsed * ((e / t).powi(2) - 1.0)).max(0.0))
-        }
-        _ => None,
-    };
-    Some(match by_error {
-        Some(b) => b.min(remaining_passes),
-        None => remaining_passes,
-    })
-}
-
 /// A byte count for people, in binary units: "64.0 MiB", "18.0 GiB".
 pub(crate) fn bytes(n: u64) -> String {
     const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
@@ -463,21 +437,5 @@ mod tests {
         assert_eq!(bytes(512), "512 B");
         assert_eq!(bytes(64 << 20), "64.0 MiB");
         assert_eq!(bytes(16384 * 16384 * 72), "18.0 GiB");
-    }
-
-    #[test]
-    fn eta_follows_inverse_square_root_of_work() {
-        // Error 0.04 after 10 s, target 0.02: four times the work, 30 s more.
-        let eta = eta_seconds(10.0, 100, 10_000, Some(0.04), Some(0.02)).unwrap();
-        assert!((eta - 30.0).abs() < 1e-9);
-        // Bounded by the remaining planned passes: 100 of 200 done in 10 s.
-        let eta = eta_seconds(10.0, 100, 200, Some(0.04), Some(0.001)).unwrap();
-        assert!((eta - 10.0).abs() < 1e-9);
-        // Already below target.
-        assert_eq!(
-            eta_seconds(10.0, 100, 200, Some(0.01), Some(0.02)),
-            Some(0.0)
-        );
-        assert_eq!(eta_seconds(0.0, 0, 200, None, None), None);
     }
 }

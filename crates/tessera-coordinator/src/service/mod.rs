@@ -51,8 +51,8 @@ pub mod resume;
 pub mod scenes;
 pub mod workers;
 
-pub use jobs::eta_seconds;
 pub use results::{Accepted, Delivery, Rejected};
+pub use tessera_farm::quote::job_eta_seconds;
 pub use workers::{Heartbeat, LeaseGrant, MAX_UNUSABLE_RETURNS};
 
 /// Lease ids are reserved in blocks of this many (one store write per block).

@@ -1,0 +1,368 @@
+//! `tessera estimate`: what accuracy costs, before rendering (issue 15).
+//!
+//! The job is resolved exactly as `tessera render` resolves it ([`crate::render::prepare`]),
+//! then a pilot renders [`PILOT_PASSES`] passes of a deterministic subset of the job's own
+//! tiles ([`pilot_tiles`]) with the job's own pass size on this machine, timing every unit.
+//! The prediction is [`tessera_farm::quote::quote`], the one copy of the maths: the
+//! 1/sqrt(passes) law from the pilot's image error, the measured cost per pixel-pass, and
+//! the intervals from their spreads. Units are timed by the wall clock and scaled by the
+//! pilot's share of CPU time, so a machine loaded by other work quotes what it would take
+//! alone.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use std::time::Instant;
+use tessera_farm::job::FrameRange;
+use tessera_farm::quote::{
+    pilot_tiles, quote, Interval, PilotGroup, PilotMeasurement, PilotUnit, Quote, QuoteJob,
+    DEFAULT_TARGETS, PILOT_PASSES,
+};
+use tessera_farm::{FrameAccumulator, FramePlan, WorkUnit};
+use tessera_render::render::render_unit;
+
+use crate::render::{prepare, JobArgs, StopArgs};
+
+/// `tessera estimate`'s arguments: the job flags of `tessera render` and `tessera submit`.
+#[derive(Args)]
+pub struct EstimateArgs {
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// --target-error E quotes that error alone; without it, 10%, 5%, 2% and 1%.
+    #[command(flatten)]
+    pub stop: StopArgs,
+    /// First frame (the pilot renders this one).
+    #[arg(long, default_value_t = 0)]
+    pub frame_start: u32,
+    /// Last frame (inclusive; default the first).
+    #[arg(long)]
+    pub frame_end: Option<u32>,
+    /// Workers the job will run on, each as fast as this machine with --threads: wall
+    /// seconds are worker-seconds over workers.
+    #[arg(long, default_value_t = 1)]
+    pub workers: u32,
+    /// Threads of the pilot (0 = all cores): a worker-second is a second of this machine
+    /// with that many threads.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Print the quote as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What a quote is for, and the quote: printed as one JSON object with `--json`.
+struct EstimateOutput<'a> {
+    scene: &'a str,
+    width: u32,
+    height: u32,
+    frames: u64,
+    spp: u32,
+    passes: u32,
+    samples_per_pass: u32,
+    integrator: String,
+    adaptive: String,
+    workers: u32,
+    threads: usize,
+    pilot_tiles: usize,
+    pilot_seconds: f64,
+    pilot_cpu_seconds: f64,
+    setup_seconds: f64,
+    black: bool,
+    quote: Option<&'a Quote>,
+}
+
+impl EstimateOutput<'_> {
+    fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "scene": self.scene,
+            "width": self.width,
+            "height": self.height,
+            "frames": self.frames,
+            "spp": self.spp,
+            "passes": self.passes,
+            "samples_per_pass": self.samples_per_pass,
+            "integrator": self.integrator,
+            "adaptive": self.adaptive,
+            "workers": self.workers,
+            "threads": self.threads,
+            "pilot_tiles": self.pilot_tiles,
+            "pilot_seconds": self.pilot_seconds,
+            "pilot_cpu_seconds": self.pilot_cpu_seconds,
+            "setup_seconds": self.setup_seconds,
+            "black": self.black,
+            "quote": self.quote,
+        })
+    }
+}
+
+/// Renders the pilot's units on `threads` threads (each takes the next unit), timing each
+/// unit on the thread that renders it.
+fn render_pilot(
+    scene: &tessera_render::scene::RenderScene,
+    config: &tessera_render::render::RenderConfig,
+    plan: &FramePlan,
+    units: &[WorkUnit],
+    threads: usize,
+) -> Vec<(tessera_farm::UnitResult, f64)> {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let mut out: Vec<_> = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..threads.min(units.len()).max(1))
+            .map(|_| {
+                s.spawn(|| {
+                    let mut mine = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(&unit) = units.get(i) else { break };
+                        let t = Instant::now();
+                        let r = render_unit(scene, config, plan, unit);
+                        mine.push((i, r, t.elapsed().as_secs_f64()));
+                    }
+                    mine
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .flat_map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+            .collect()
+    });
+    // Merged in unit order, so the pilot's image does not depend on the threads.
+    out.sort_by_key(|(i, _, _)| *i);
+    out.into_iter().map(|(_, r, t)| (r, t)).collect()
+}
+
+/// `tessera estimate`.
+pub fn estimate(args: EstimateArgs) -> Result<()> {
+    if args.workers == 0 {
+        bail!("--workers must be at least 1");
+    }
+    if args.threads > 4096 {
+        bail!(
+            "--threads {} must be at most 4096 (0 = all cores)",
+            args.threads
+        );
+    }
+    let frames = FrameRange {
+        start: args.frame_start,
+        end: args.frame_end.unwrap_or(args.frame_start),
+    };
+    if frames.end < frames.start {
+        bail!(
+            "--frame-end {} is before --frame-start {}",
+            frames.end,
+            frames.start
+        );
+    }
+    let targets: Vec<f64> = match args.stop.target_error {
+        Some(t) => vec![t],
+        None => DEFAULT_TARGETS.to_vec(),
+    };
+    // Validates every job flag (naming it) and resolves the job as `tessera render` does.
+    let p = prepare(&args.job, &args.stop, frames.start)?;
+    let plan = p.resolved.plan;
+    let threads = if args.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.threads
+    };
+    let mut out = EstimateOutput {
+        scene: &args.job.scene,
+        width: plan.width,
+        height: plan.height,
+        frames: frames.count(),
+        spp: plan.spp(),
+        passes: plan.passes,
+        samples_per_pass: plan.samples_per_pass,
+        integrator: p.resolved.config.integrator.to_string(),
+        adaptive: args.stop.adaptive.clone(),
+        workers: args.workers,
+        threads,
+        pilot_tiles: 0,
+        pilot_seconds: 0.0,
+        pilot_cpu_seconds: 0.0,
+        setup_seconds: p.build_seconds,
+        black: p.resolved.black,
+        quote: None,
+    };
+    if p.resolved.black {
+        // The plan found no light: nothing is traced, every target is met at once.
+        if args.json {
+            println!("{}", serde_json::to_string_pretty(&out.to_json())?);
+        } else {
+            println!("the image is black (no light reaches the camera): nothing to render");
+        }
+        return Ok(());
+    }
+    let render_scene = p.render_scene.as_ref().expect("built unless black");
+    // The job's tiles and pass size, with the pilot's passes.
+    let pilot_plan = FramePlan::new(
+        plan.width,
+        plan.height,
+        plan.tile_size,
+        plan.samples_per_pass,
+        PILOT_PASSES,
+    )
+    .context("pilot plan")?;
+    let tiles = pilot_tiles(plan.tile_count(), plan.tile(0).pixel_count() as u64);
+    let units: Vec<WorkUnit> = tiles
+        .iter()
+        .flat_map(|&tile| {
+            (0..PILOT_PASSES).map(move |pass| WorkUnit {
+                frame: frames.start,
+                tile,
+                first_pass: pass,
+                pass_count: 1,
+            })
+        })
+        .collect();
+    let start = Instant::now();
+    let cpu_start = crate::common::cpu_seconds("self");
+    let rendered = render_pilot(
+        render_scene,
+        &p.resolved.config,
+        &pilot_plan,
+        &units,
+        threads,
+    );
+    let cpu = crate::common::cpu_seconds("self") - cpu_start;
+    // On a machine shared with other work a unit's wall time includes waiting for a core;
+    // the pilot's CPU time (all threads, from /proc at 10 ms resolution) over the units'
+    // summed wall time is the share it got, and scales every unit to what a dedicated
+    // worker would take. Without a usable CPU figure (no /proc, a pilot under 10 ms), 1.
+    let thread_seconds: f64 = rendered.iter().map(|(_, t)| t).sum();
+    let share = if cpu > 0.0 && thread_seconds > 0.0 {
+        (cpu / thread_seconds).min(1.0)
+    } else {
+        1.0
+    };
+    out.pilot_cpu_seconds = cpu;
+    out.pilot_seconds = start.elapsed().as_secs_f64();
+    out.pilot_tiles = tiles.len();
+    let mut acc = FrameAccumulator::for_frame(pilot_plan, frames.start);
+    let mut pilot_units = Vec::with_capacity(rendered.len());
+    for (result, seconds) in rendered {
+        let pixels = plan.tile(result.unit.tile).pixel_count() as u64;
+        pilot_units.push(PilotUnit {
+            pixel_passes: pixels,
+            // A worker renders on all its threads at once: a unit's thread-seconds are
+            // 1/threads of a worker-second.
+            worker_seconds: seconds * share / threads as f64,
+        });
+        acc.offer(result).context("merging the pilot")?;
+    }
+    let groups = pilot_groups(&acc, &tiles);
+    let pilot = PilotMeasurement {
+        passes: PILOT_PASSES,
+        groups,
+        units: pilot_units,
+    };
+    let job = QuoteJob {
+        pixels_per_frame: u64::from(plan.width) * u64::from(plan.height),
+        frames: frames.count(),
+        planned_passes: plan.passes,
+        samples_per_pass: plan.samples_per_pass,
+        workers: args.workers,
+        setup_seconds: p.build_seconds,
+    };
+    let q = quote(&pilot, &job, &targets).map_err(|e| match e {
+        tessera_farm::quote::QuoteError::Field("target_error", m) => {
+            anyhow::anyhow!("--target-error: {m}")
+        }
+        e => anyhow::anyhow!(e),
+    })?;
+    out.quote = Some(&q);
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&out.to_json())?);
+    } else {
+        print_quote(&out, &q);
+    }
+    Ok(())
+}
+
+/// The pilot's pixels in groups for the spread of the error: each pilot tile, or bands of
+/// 16 rows of a whole-frame tile (bdpt), whose single group would have no spread.
+fn pilot_groups(acc: &FrameAccumulator, tiles: &[u32]) -> Vec<PilotGroup> {
+    let mut groups = Vec::new();
+    for &t in tiles {
+        let Some(tile) = acc.tile(t) else { continue };
+        let band = if tiles.len() == 1 {
+            tile.rect().width.max(1) as usize * 16
+        } else {
+            tile.pixels().len().max(1)
+        };
+        for chunk in tile.pixels().chunks(band) {
+            groups.push(PilotGroup {
+                pixels: chunk.len() as u64,
+                sum_sq_rel: chunk.iter().map(|s| s.relative_error().powi(2)).sum(),
+            });
+        }
+    }
+    groups
+}
+
+fn secs(i: &Interval) -> String {
+    format!(
+        "{} [{}, {}]",
+        human(i.estimate),
+        human(i.low),
+        human(i.high)
+    )
+}
+
+fn human(s: f64) -> String {
+    if s < 100.0 {
+        format!("{s:.2} s")
+    } else if s < 7200.0 {
+        format!("{:.1} min", s / 60.0)
+    } else {
+        format!("{:.1} h", s / 3600.0)
+    }
+}
+
+fn print_quote(o: &EstimateOutput, q: &Quote) {
+    let frames = if o.frames == 1 {
+        "1 frame".to_string()
+    } else {
+        format!("{} frames", o.frames)
+    };
+    println!(
+        "quote for {}: {}x{}, {frames}, {} spp planned ({} passes of {}), {} integrator, {} worker(s)",
+        o.scene, o.width, o.height, o.spp, o.passes, o.samples_per_pass, o.integrator, o.workers
+    );
+    println!(
+        "pilot: {} tiles ({} pixels), {} passes, {:.2} s ({:.2} CPU s) on {} threads; image error {:.4}",
+        o.pilot_tiles,
+        q.pilot_pixels,
+        q.pilot_passes,
+        o.pilot_seconds,
+        o.pilot_cpu_seconds,
+        o.threads,
+        q.pilot_error
+    );
+    let row = |label: &str, c: &tessera_farm::quote::Cost| {
+        println!("{label}");
+        println!(
+            "  error {:.4} [{:.4}, {:.4}], {} spp [{}, {}]",
+            c.error.estimate, c.error.low, c.error.high, c.spp.estimate, c.spp.low, c.spp.high
+        );
+        println!(
+            "  per frame: {} worker-seconds, {} wall",
+            secs(&c.worker_seconds_per_frame),
+            secs(&c.seconds_per_frame)
+        );
+        println!(
+            "  whole job: {} worker-seconds, {} wall",
+            secs(&c.worker_seconds),
+            secs(&c.seconds)
+        );
+    };
+    row(&format!("as planned ({} spp):", o.spp), &q.planned);
+    for t in &q.targets {
+        let note = if t.within_plan {
+            ""
+        } else {
+            " (beyond the planned spp: raise --spp)"
+        };
+        row(&format!("to reach error {}{note}:", t.target), &t.cost);
+    }
+    println!("intervals are 95%; assumes {}", q.assumes);
+}

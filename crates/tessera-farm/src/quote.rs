@@ -1,0 +1,694 @@
+//! Quotes: what an accuracy costs, predicted from a short pilot render (issue 15).
+//!
+//! A pilot renders a few passes of a deterministic subset of a job's tiles with the job's
+//! own settings and pass size, so a pilot pass costs and scatters like a pass of the job.
+//! From it, [`quote`] predicts the image error the job reaches and the worker-seconds and
+//! wall seconds it needs to reach given errors, with an interval for each.
+//!
+//! # The model
+//!
+//! Passes are independent replicates (ARCHITECTURE.md §3), so a pixel's variance of the
+//! mean after `n` passes is `σ²/n`, and its relative error falls like `1/sqrt(n)`: the
+//! image error (the RMS of the per-pixel relative error, `FrameImage::error_estimate`)
+//! after `n` passes is
+//!
+//! ```text
+//! E(n) = sqrt(M · P / n),   M = mean over pilot pixels of rel², P = pilot passes
+//! ```
+//!
+//! and reaching a target `t` takes `n(t) = ceil(M · P / t²)` passes (at least 2, the fewest
+//! with an error estimate). The cost of a pass is measured per pixel: `C` worker-seconds per
+//! pixel-pass, the pilot's worker-seconds over its pixel-passes, so a frame of `W · H`
+//! pixels costs `n · C · W · H` worker-seconds and the job `frames` times that.
+//!
+//! # The interval
+//!
+//! `M` and `C` are means over a sample of the frame, and each carries a standard error:
+//!
+//! - `M` from the spread of the pilot's groups of pixels (its tiles, or bands of a
+//!   whole-frame tile): a cluster-sample ratio estimate. The spread includes both the
+//!   true variation over the frame and the noise of each group's variance estimate
+//!   (with `K` replicates a variance estimate has relative standard error about
+//!   `sqrt(2 / (K - 1))`, so an error estimate about `1 / sqrt(2 (K - 1))`; Owen 2001,
+//!   section 6.7, on replicate-based error estimates). With a single group there is no
+//!   spread, and the quote falls back on that per-replicate figure, which is conservative.
+//! - `C` from the spread of the pilot's per-unit costs per pixel-pass, the same way.
+//!
+//! Seconds are proportional to `M · C`, so their relative standard error is
+//! `r = sqrt((se(M)/M)² + (se(C)/C)²)`, and the quote gives the 95% interval
+//! `[s · exp(-1.96 r), s · exp(1.96 r)]` (log-normal, so it stays positive). An error's
+//! interval uses `se(M)/(2M)` alike.
+//!
+//! What the interval does not cover: paths so rare that no pilot pass found them (a
+//! caustic the pilot missed makes every prediction optimistic; Jensen 2001, section 10.3,
+//! on what a pilot can miss), a machine whose load changes between the pilot and the job,
+//! and per-frame scene loading on workers beyond the measured `setup_seconds`. Adaptive
+//! stopping is not modelled: the quote assumes every pixel takes every pass (adaptive
+//! `off`); stopping converged pixels can only need fewer passes for the same image error.
+//!
+//! ```
+//! use tessera_farm::quote::{quote, PilotGroup, PilotMeasurement, PilotUnit, QuoteJob};
+//! // A pilot of 4 passes over two tiles of 1024 pixels, RMS relative error 0.2.
+//! let pilot = PilotMeasurement {
+//!     passes: 4,
+//!     groups: vec![
+//!         PilotGroup { pixels: 1024, sum_sq_rel: 1024.0 * 0.04 },
+//!         PilotGroup { pixels: 1024, sum_sq_rel: 1024.0 * 0.04 },
+//!     ],
+//!     units: vec![PilotUnit { pixel_passes: 1024, worker_seconds: 0.01 }; 8],
+//! };
+//! let job = QuoteJob {
+//!     pixels_per_frame: 65536,
+//!     frames: 1,
+//!     planned_passes: 16,
+//!     samples_per_pass: 16,
+//!     workers: 2,
+//!     setup_seconds: 0.0,
+//! };
+//! let q = quote(&pilot, &job, &[0.05]).unwrap();
+//! // 0.2 after 4 passes: 0.1 after 16, 0.05 after 64.
+//! assert!((q.planned.error.estimate - 0.1).abs() < 1e-12);
+//! assert_eq!(q.targets[0].passes.estimate, 64.0);
+//! assert!(!q.targets[0].within_plan);
+//! ```
+
+use serde::{Deserialize, Serialize};
+
+/// The errors a quote is given when the job names none: 10%, 5%, 2% and 1%.
+pub const DEFAULT_TARGETS: [f64; 4] = [0.10, 0.05, 0.02, 0.01];
+
+/// Passes a pilot renders: the fewest that give each pixel a variance estimate with 3
+/// degrees of freedom (an error estimate's relative standard error `1/sqrt(2·3)`, 41%, per
+/// pixel; averaged over the pilot's pixels much less).
+pub const PILOT_PASSES: u32 = 4;
+
+/// At most this many pixels take part in a pilot (whole tiles, chosen evenly over the
+/// frame), and at least [`PILOT_MIN_TILES`] tiles when the frame has them: a pilot of 4
+/// passes over 8192 pixels costs a 64 spp job's passes over 1/32 of a 512 x 512 frame.
+pub const PILOT_PIXELS: u64 = 8192;
+
+/// The fewest tiles a pilot samples (all of them in a smaller frame), so the spread over
+/// groups is measured.
+pub const PILOT_MIN_TILES: u32 = 8;
+
+/// The z value of a two-sided 95% interval.
+const Z95: f64 = 1.96;
+
+/// A group of pilot pixels whose error is summed: a tile, or a band of a whole-frame tile.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PilotGroup {
+    /// Pixels in the group, each with the pilot's passes.
+    pub pixels: u64,
+    /// Sum over the group's pixels of the squared relative error after the pilot's passes
+    /// (`PixelStats::relative_error`).
+    pub sum_sq_rel: f64,
+}
+
+/// One rendered unit of the pilot and what it cost.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PilotUnit {
+    /// Pixels times passes the unit rendered.
+    pub pixel_passes: u64,
+    /// Worker-seconds it took: seconds of one worker using all its threads (a unit's
+    /// thread-seconds divided by the worker's threads).
+    pub worker_seconds: f64,
+}
+
+/// What a pilot render measured.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PilotMeasurement {
+    /// Passes every pilot pixel took (at least 2).
+    pub passes: u32,
+    /// The pilot's pixels in groups, for the error and its spread.
+    pub groups: Vec<PilotGroup>,
+    /// The pilot's units, for the cost per pixel-pass and its spread.
+    pub units: Vec<PilotUnit>,
+}
+
+/// The job a quote is for.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct QuoteJob {
+    /// Pixels of one frame (`width * height`).
+    pub pixels_per_frame: u64,
+    /// Frames in the job.
+    pub frames: u64,
+    /// Passes the job plans per pixel.
+    pub planned_passes: u32,
+    /// Samples per pass (the pilot's and the job's).
+    pub samples_per_pass: u32,
+    /// Workers the work is spread over (at least 1).
+    pub workers: u32,
+    /// Seconds of set-up before the first unit (loading the scene, building its BVH),
+    /// added once to the wall time.
+    pub setup_seconds: f64,
+}
+
+/// A predicted quantity and its 95% interval.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Interval {
+    /// The prediction.
+    pub estimate: f64,
+    /// Lower end of the 95% interval.
+    pub low: f64,
+    /// Upper end of the 95% interval.
+    pub high: f64,
+}
+
+impl Interval {
+    /// `estimate` with the log-normal interval of relative standard error `rel_se`.
+    fn lognormal(estimate: f64, rel_se: f64) -> Self {
+        Self {
+            estimate,
+            low: estimate * (-Z95 * rel_se).exp(),
+            high: estimate * (Z95 * rel_se).exp(),
+        }
+    }
+
+    fn map(self, f: impl Fn(f64) -> f64) -> Self {
+        Self {
+            estimate: f(self.estimate),
+            low: f(self.low),
+            high: f(self.high),
+        }
+    }
+
+    /// Whether `x` lies in `[low, high]`.
+    pub fn contains(&self, x: f64) -> bool {
+        self.low <= x && x <= self.high
+    }
+}
+
+/// What a number of passes costs.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Cost {
+    /// Passes per pixel (whole passes; the interval from the error's interval).
+    pub passes: Interval,
+    /// Samples per pixel, `passes * samples_per_pass`.
+    pub spp: Interval,
+    /// The image error predicted at those passes.
+    pub error: Interval,
+    /// Worker-seconds per frame.
+    pub worker_seconds_per_frame: Interval,
+    /// Worker-seconds for the whole job.
+    pub worker_seconds: Interval,
+    /// Wall seconds per frame with the job's workers: worker-seconds over workers.
+    pub seconds_per_frame: Interval,
+    /// Wall seconds for the whole job: set-up plus worker-seconds over workers.
+    pub seconds: Interval,
+}
+
+/// The cost of reaching one target error.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TargetQuote {
+    /// The target image error (RMS relative error).
+    pub target: f64,
+    /// Whether the job's planned passes suffice (by the estimate). When not, the job as
+    /// planned stops at its sample budget above the target; ask for more spp.
+    pub within_plan: bool,
+    /// Passes per pixel needed (the interval from the pilot error's interval).
+    pub passes: Interval,
+    /// What they cost.
+    pub cost: Cost,
+}
+
+/// A quote: the planned job's predicted error and cost, and the cost of each target.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Quote {
+    /// The pilot's image error after its passes.
+    pub pilot_error: f64,
+    /// The pilot's passes.
+    pub pilot_passes: u32,
+    /// Pixels in the pilot.
+    pub pilot_pixels: u64,
+    /// Worker-seconds the pilot took.
+    pub pilot_worker_seconds: f64,
+    /// Measured worker-seconds per pixel-pass.
+    pub worker_seconds_per_pixel_pass: f64,
+    /// Relative standard error of the predicted seconds (from the error's and the cost's).
+    pub relative_standard_error: f64,
+    /// The job as planned: its error and cost.
+    pub planned: Cost,
+    /// One entry per target, in the order given.
+    pub targets: Vec<TargetQuote>,
+    /// What the prediction assumes, for people.
+    pub assumes: String,
+}
+
+/// Why no quote can be made.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum QuoteError {
+    /// The pilot is unusable (named problem).
+    #[error("pilot: {0}")]
+    Pilot(String),
+    /// A field of the job or a target is out of range (field, problem).
+    #[error("{0}: {1}")]
+    Field(&'static str, String),
+}
+
+/// A pixel-weighted mean over clusters and its standard error (a ratio estimator:
+/// `sum y / sum x`, with the cluster-sampling variance `T/(T-1) sum (w (y/x - R))²`,
+/// `w = x / sum x`). `None` for the error when fewer than 2 clusters.
+fn ratio_mean(pairs: impl Iterator<Item = (f64, f64)> + Clone) -> (f64, Option<f64>) {
+    let (sx, sy, t) = pairs
+        .clone()
+        .fold((0.0, 0.0, 0usize), |(sx, sy, t), (x, y)| {
+            (sx + x, sy + y, t + 1)
+        });
+    let r = sy / sx;
+    if t < 2 {
+        return (r, None);
+    }
+    let ss: f64 = pairs.map(|(x, y)| ((y - r * x) / sx).powi(2)).sum();
+    (r, Some((ss * t as f64 / (t - 1) as f64).sqrt()))
+}
+
+/// Predicts the planned job's error and cost, and what each target costs (see the module
+/// documentation for the model and the interval).
+pub fn quote(
+    pilot: &PilotMeasurement,
+    job: &QuoteJob,
+    targets: &[f64],
+) -> Result<Quote, QuoteError> {
+    if pilot.passes < 2 {
+        return Err(QuoteError::Pilot(format!(
+            "{} passes give no error estimate; at least 2 are needed",
+            pilot.passes
+        )));
+    }
+    let pixels: u64 = pilot.groups.iter().map(|g| g.pixels).sum();
+    let pixel_passes: u64 = pilot.units.iter().map(|u| u.pixel_passes).sum();
+    if pixels == 0 || pixel_passes == 0 {
+        return Err(QuoteError::Pilot("no pixel was rendered".into()));
+    }
+    let bad = |x: f64| !x.is_finite() || x < 0.0;
+    if pilot.groups.iter().any(|g| bad(g.sum_sq_rel)) {
+        return Err(QuoteError::Pilot(
+            "an error sum is negative or not finite".into(),
+        ));
+    }
+    if pilot.units.iter().any(|u| bad(u.worker_seconds)) {
+        return Err(QuoteError::Pilot(
+            "a unit's seconds are negative or not finite".into(),
+        ));
+    }
+    if job.pixels_per_frame == 0 || job.frames == 0 || job.planned_passes == 0 {
+        return Err(QuoteError::Field(
+            "job",
+            "no pixel, frame or pass to render".into(),
+        ));
+    }
+    if job.workers == 0 {
+        return Err(QuoteError::Field("workers", "must be at least 1".into()));
+    }
+    if bad(job.setup_seconds) {
+        return Err(QuoteError::Field(
+            "setup_seconds",
+            "must be finite and >= 0".into(),
+        ));
+    }
+    if let Some(t) = targets.iter().find(|t| !(t.is_finite() && **t > 0.0)) {
+        return Err(QuoteError::Field(
+            "target_error",
+            format!("must be > 0, got {t}"),
+        ));
+    }
+
+    let (m, se_m) = ratio_mean(pilot.groups.iter().map(|g| (g.pixels as f64, g.sum_sq_rel)));
+    let (c, se_c) = ratio_mean(
+        pilot
+            .units
+            .iter()
+            .map(|u| (u.pixel_passes as f64, u.worker_seconds)),
+    );
+    // Without a spread over groups, the per-pixel figure for K replicates (Owen 2001,
+    // section 6.7): the error estimate's relative s.e. 1/sqrt(2 (K - 1)), that of M twice it.
+    let rel_m = match se_m {
+        Some(se) if m > 0.0 => se / m,
+        _ => 2.0 / (2.0 * f64::from(pilot.passes - 1)).sqrt(),
+    };
+    let rel_c = match se_c {
+        Some(se) if c > 0.0 => se / c,
+        _ => 0.0,
+    };
+    let rel_seconds = rel_m.hypot(rel_c);
+    let p = f64::from(pilot.passes);
+    let error_after = |n: f64| (m * p / n).sqrt();
+    let frame_px = job.pixels_per_frame as f64;
+    let frames = job.frames as f64;
+    let workers = f64::from(job.workers);
+
+    // The cost of `passes` (an interval of whole passes), the cost's own spread added.
+    let cost_of = |passes: Interval, error: Interval| {
+        let per_frame = Interval::lognormal(passes.estimate * c * frame_px, rel_c);
+        let per_frame = Interval {
+            low: per_frame.low * passes.low / passes.estimate,
+            high: per_frame.high * passes.high / passes.estimate,
+            ..per_frame
+        };
+        let whole = per_frame.map(|s| s * frames);
+        Cost {
+            passes,
+            spp: passes.map(|n| n * f64::from(job.samples_per_pass)),
+            error,
+            worker_seconds_per_frame: per_frame,
+            worker_seconds: whole,
+            seconds_per_frame: per_frame.map(|s| s / workers),
+            seconds: whole.map(|s| job.setup_seconds + s / workers),
+        }
+    };
+
+    let planned_n = f64::from(job.planned_passes);
+    let planned_error = Interval::lognormal(error_after(planned_n), rel_m / 2.0);
+    let planned = cost_of(
+        Interval {
+            estimate: planned_n,
+            low: planned_n,
+            high: planned_n,
+        },
+        planned_error,
+    );
+    let targets = targets
+        .iter()
+        .map(|&t| {
+            let m_interval = Interval::lognormal(m, rel_m);
+            let passes = m_interval.map(|m| (m * p / (t * t)).ceil().max(2.0));
+            let error = Interval::lognormal(error_after(passes.estimate), rel_m / 2.0);
+            TargetQuote {
+                target: t,
+                within_plan: passes.estimate <= planned_n,
+                passes,
+                cost: cost_of(passes, error),
+            }
+        })
+        .collect();
+    Ok(Quote {
+        pilot_error: m.sqrt(),
+        pilot_passes: pilot.passes,
+        pilot_pixels: pixels,
+        pilot_worker_seconds: pilot.units.iter().map(|u| u.worker_seconds).sum(),
+        worker_seconds_per_pixel_pass: c,
+        relative_standard_error: rel_seconds,
+        planned,
+        targets,
+        assumes: "every pixel takes every pass (adaptive off; adaptive stopping is expected \
+                  to need no more for the same image error); frames cost like the pilot's \
+                  frame; the error falls like 1/sqrt(passes); workers as fast as the pilot's"
+            .into(),
+    })
+}
+
+/// The tiles a pilot renders: about [`PILOT_PIXELS`] pixels of whole tiles, at least
+/// [`PILOT_MIN_TILES`] (or every tile), in increasing index order. Deterministic.
+///
+/// Tile `i` of the pilot is `i · g mod T` for `g` the integer nearest `0.618 T` coprime with
+/// `T` (a rank-1 lattice, the golden-ratio rule): the tiles are distinct and spread over
+/// both rows and columns of the frame, where evenly spaced indices (`i · T / n`) would
+/// fall in the same column whenever `n` divides the tiles per row.
+pub fn pilot_tiles(tile_count: u32, pixels_per_tile: u64) -> Vec<u32> {
+    if tile_count == 0 {
+        return Vec::new();
+    }
+    let t = u64::from(tile_count);
+    let by_pixels = (PILOT_PIXELS / pixels_per_tile.max(1)).max(1);
+    let n = by_pixels.max(u64::from(PILOT_MIN_TILES)).min(t);
+    let gcd = |mut a: u64, mut b: u64| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    };
+    let mut g = ((t as f64 * 0.618_033_988_7).round() as u64).max(1);
+    while gcd(g, t) != 1 {
+        g += 1;
+    }
+    let mut tiles: Vec<u32> = (0..n).map(|i| (i * g % t) as u32).collect();
+    tiles.sort_unstable();
+    tiles
+}
+
+/// A running job's progress, what [`job_eta_seconds`] predicts from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JobProgress {
+    /// Seconds spent rendering so far (the rate's denominator; the coordinator counts
+    /// from when its first merged unit began rendering, not the set-up before it).
+    pub elapsed_seconds: f64,
+    /// Passes merged, over all tiles and frames.
+    pub passes_done: u64,
+    /// Passes planned, over all tiles and frames.
+    pub passes_planned: u64,
+    /// The current image error estimate, if there is one.
+    pub error: Option<f64>,
+    /// The target error, if the job stops when its image reaches it (adaptive jobs). A
+    /// job without adaptive stopping on the farm runs its planned passes whatever its
+    /// target, so its target does not shorten its ETA.
+    pub stopping_target: Option<f64>,
+    /// Seconds left of the job's time limit, if it has one.
+    pub time_limit_left_seconds: Option<f64>,
+}
+
+/// Estimated seconds until a running job is done, from its measured progress: the
+/// smallest of
+///
+/// - the remaining passes at the rate so far, `t (planned - done) / done` (passes of a job
+///   cost alike: the same samples per pass over tiles of the same size, leased coarse to
+///   fine so every stretch of the job mixes the frame's tiles);
+/// - for a job that stops at a target, the 1/sqrt(work) law (ARCHITECTURE.md §3): from
+///   the current error `e`, reaching the target `E` takes `(e / E)²` times the work done,
+///   `t ((e / E)² - 1)` more seconds;
+/// - what is left of a time limit.
+///
+/// `None` before any pass is merged. Never negative.
+pub fn job_eta_seconds(p: &JobProgress) -> Option<f64> {
+    if p.passes_done == 0 || p.elapsed_seconds.is_nan() || p.elapsed_seconds <= 0.0 {
+        return None;
+    }
+    let t = p.elapsed_seconds;
+    let mut eta = t * p.passes_planned.saturating_sub(p.passes_done) as f64 / p.passes_done as f64;
+    if let (Some(e), Some(target)) = (p.error, p.stopping_target) {
+        if target > 0.0 && e.is_finite() && e >= 0.0 {
+            eta = eta.min(t * ((e / target).powi(2) - 1.0));
+        }
+    }
+    if let Some(left) = p.time_limit_left_seconds {
+        eta = eta.min(left);
+    }
+    Some(eta.max(0.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_util::Rng;
+
+    fn job(planned_passes: u32) -> QuoteJob {
+        QuoteJob {
+            pixels_per_frame: 256 * 256,
+            frames: 3,
+            planned_passes,
+            samples_per_pass: 16,
+            workers: 4,
+            setup_seconds: 0.5,
+        }
+    }
+
+    /// A synthetic pilot whose pixels have a known relative error `sigma / sqrt(passes)`:
+    /// each pixel's squared relative error is `sigma² / passes` times a chi-squared
+    /// variable with `passes - 1` degrees of freedom over `passes - 1` (what a variance
+    /// estimate from `passes` Gaussian replicates is), and each unit's cost per
+    /// pixel-pass is `cost` times a noisy factor.
+    fn synthetic(
+        rng: &mut Rng,
+        sigma: f64,
+        cost: f64,
+        passes: u32,
+        tiles: u32,
+    ) -> PilotMeasurement {
+        let px = 256u64;
+        let dof = passes - 1;
+        let groups = (0..tiles)
+            .map(|t| {
+                // Tiles differ: some are twice as noisy as others.
+                let tile_sigma = sigma * if t % 2 == 0 { 0.8 } else { 1.166 };
+                let sum_sq_rel = (0..px)
+                    .map(|_| {
+                        let chi2: f64 = (0..dof).map(|_| rng.normal().powi(2)).sum();
+                        tile_sigma * tile_sigma / f64::from(passes) * chi2 / f64::from(dof)
+                    })
+                    .sum();
+                PilotGroup {
+                    pixels: px,
+                    sum_sq_rel,
+                }
+            })
+            .collect();
+        let units = (0..tiles * passes)
+            .map(|_| PilotUnit {
+                pixel_passes: px,
+                worker_seconds: cost * px as f64 * (1.0 + 0.2 * rng.normal()).max(0.1),
+            })
+            .collect();
+        PilotMeasurement {
+            passes,
+            groups,
+            units,
+        }
+    }
+
+    #[test]
+    fn error_follows_the_inverse_square_root_of_passes() {
+        let pilot = PilotMeasurement {
+            passes: 4,
+            groups: vec![PilotGroup {
+                pixels: 100,
+                sum_sq_rel: 100.0 * 0.16,
+            }],
+            units: vec![PilotUnit {
+                pixel_passes: 400,
+                worker_seconds: 4.0,
+            }],
+        };
+        let q = quote(&pilot, &job(16), &[0.1, 0.4, 0.01]).unwrap();
+        assert!((q.pilot_error - 0.4).abs() < 1e-12);
+        // 0.4 after 4 passes -> 0.2 after 16.
+        assert!((q.planned.error.estimate - 0.2).abs() < 1e-12);
+        // 0.1 needs 64 passes, 16 times the pilot's; 0.4 the floor of 2 (4 by the law,
+        // which is the pilot itself); 0.01 needs 6400.
+        let t = &q.targets;
+        assert_eq!(t[0].passes.estimate, 64.0);
+        assert!(!t[0].within_plan);
+        assert_eq!(t[1].passes.estimate, 4.0);
+        assert!(t[1].within_plan);
+        assert_eq!(t[2].passes.estimate, 6400.0);
+        // 0.01 worker-seconds per pixel-pass: 64 passes of 65536 pixels, 3 frames.
+        let c = &t[0].cost;
+        assert!((c.worker_seconds_per_frame.estimate - 64.0 * 0.01 * 65536.0).abs() < 1e-6);
+        assert!((c.worker_seconds.estimate - 3.0 * 64.0 * 0.01 * 65536.0).abs() < 1e-6);
+        assert!(
+            (c.seconds.estimate - (0.5 + c.worker_seconds.estimate / 4.0)).abs() < 1e-6,
+            "wall = set-up + worker-seconds / workers"
+        );
+        assert_eq!(c.spp.estimate, 64.0 * 16.0);
+        // One group: the interval falls back on 1/sqrt(2 (K - 1)) and is wide.
+        assert!(t[0].passes.low < 64.0 && t[0].passes.high > 64.0);
+    }
+
+    /// Against a known law with noise, the 95% intervals of the passes needed and of the
+    /// planned error cover the truth in most of 200 seeded pilots, and are not so wide as
+    /// to be useless.
+    #[test]
+    fn intervals_cover_a_known_law() {
+        let mut rng = Rng::new(0x5eed_0015);
+        let (sigma, cost) = (0.8, 2e-6);
+        // The tiles' mean squared per-pass error: half at 0.8², half at 1.166².
+        let true_m1 = (0.8f64.powi(2) + 1.166f64.powi(2)) / 2.0 * sigma * sigma;
+        let target = 0.02;
+        let true_passes = true_m1 / (target * target);
+        let planned = 64;
+        let true_planned_error = (true_m1 / f64::from(planned)).sqrt();
+        let true_ws = true_passes * cost * 65536.0;
+        let (mut cover_n, mut cover_e, mut cover_s, mut width) = (0, 0, 0, 0.0);
+        let trials = 200;
+        for _ in 0..trials {
+            let pilot = synthetic(&mut rng, sigma, cost, 4, 16);
+            let q = quote(&pilot, &job(planned), &[target]).unwrap();
+            let t = &q.targets[0];
+            // Whole passes round up: compare with the truth rounded up too.
+            cover_n += usize::from(t.passes.contains(true_passes.ceil()));
+            cover_e += usize::from(q.planned.error.contains(true_planned_error));
+            let ws = &t.cost.worker_seconds_per_frame;
+            cover_s += usize::from(ws.low <= true_ws * 1.001 && true_ws <= ws.high * 1.001);
+            width += t.passes.high / t.passes.low;
+        }
+        let frac = |n: usize| n as f64 / f64::from(trials);
+        assert!(frac(cover_n) >= 0.88, "passes covered {}", frac(cover_n));
+        assert!(frac(cover_e) >= 0.88, "error covered {}", frac(cover_e));
+        assert!(frac(cover_s) >= 0.88, "seconds covered {}", frac(cover_s));
+        let width = width / f64::from(trials);
+        assert!(width < 2.0, "mean high/low {width}");
+    }
+
+    #[test]
+    fn bad_input_names_the_problem() {
+        let pilot = synthetic(&mut Rng::new(1), 0.5, 1e-6, 4, 4);
+        let e = quote(&pilot, &job(16), &[0.0]).unwrap_err();
+        assert!(e.to_string().starts_with("target_error"), "{e}");
+        let e = quote(
+            &pilot,
+            &QuoteJob {
+                workers: 0,
+                ..job(16)
+            },
+            &[0.1],
+        )
+        .unwrap_err();
+        assert!(e.to_string().starts_with("workers"), "{e}");
+        let one = PilotMeasurement {
+            passes: 1,
+            ..pilot.clone()
+        };
+        assert!(quote(&one, &job(16), &[0.1]).is_err());
+        let empty = PilotMeasurement {
+            groups: vec![],
+            ..pilot
+        };
+        assert!(quote(&empty, &job(16), &[0.1]).is_err());
+    }
+
+    #[test]
+    fn eta_follows_progress_and_the_inverse_square_root_of_work() {
+        let p = JobProgress {
+            elapsed_seconds: 10.0,
+            passes_done: 100,
+            passes_planned: 10_000,
+            error: Some(0.04),
+            stopping_target: Some(0.02),
+            time_limit_left_seconds: None,
+        };
+        // Error 0.04 after 10 s, target 0.02: four times the work, 30 s more.
+        assert_eq!(job_eta_seconds(&p), Some(30.0));
+        // A job that does not stop at its target runs its passes: 99 times the work done.
+        let no_stop = JobProgress {
+            stopping_target: None,
+            ..p
+        };
+        assert_eq!(job_eta_seconds(&no_stop), Some(990.0));
+        // Bounded by the remaining planned passes: 100 of 200 done in 10 s.
+        let near = JobProgress {
+            passes_planned: 200,
+            stopping_target: Some(0.001),
+            ..p
+        };
+        assert_eq!(job_eta_seconds(&near), Some(10.0));
+        // And by a time limit; and never negative.
+        let limited = JobProgress {
+            time_limit_left_seconds: Some(2.0),
+            ..no_stop
+        };
+        assert_eq!(job_eta_seconds(&limited), Some(2.0));
+        let reached = JobProgress {
+            error: Some(0.01),
+            ..p
+        };
+        assert_eq!(job_eta_seconds(&reached), Some(0.0));
+        let nothing = JobProgress {
+            passes_done: 0,
+            ..p
+        };
+        assert_eq!(job_eta_seconds(&nothing), None);
+    }
+
+    #[test]
+    fn pilot_tiles_are_spread_and_bounded() {
+        // 256 tiles (16 x 16) of 1024 pixels: 8 distinct tiles in 8 rows and 8 columns.
+        let t = pilot_tiles(256, 1024);
+        assert_eq!(t.len(), 8);
+        let rows: std::collections::BTreeSet<u32> = t.iter().map(|i| i / 16).collect();
+        let cols: std::collections::BTreeSet<u32> = t.iter().map(|i| i % 16).collect();
+        assert_eq!((rows.len(), cols.len()), (8, 8), "{t:?}");
+        // A small frame: every tile.
+        assert_eq!(pilot_tiles(4, 1024), vec![0, 1, 2, 3]);
+        // Tiles larger than the budget: still the minimum count.
+        assert_eq!(pilot_tiles(100, 65536).len(), 8);
+        assert!(pilot_tiles(0, 1).is_empty());
+    }
+}
