@@ -87,8 +87,8 @@ pub use plan::{
 };
 pub use result::{ResultError, UnitResult};
 pub use schedule::{
-    frame_state_bytes, JobId, Lease, Progress, Residency, Resumed, Scheduler, SubmitError,
-    Submitted, WorkerId,
+    frame_state_bytes, tail_share, JobId, Lease, Progress, Residency, Resumed, Scheduler,
+    SubmitError, Submitted, WorkerId,
 };
 pub use stats::{luminance, PixelStats, LUMINANCE_WEIGHTS, REL_EPS};
 
