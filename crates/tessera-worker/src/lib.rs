@@ -1,8 +1,10 @@
 //! The Tessera worker: a gRPC client loop around [`tessera_render::render::render_unit`].
 //!
 //! A worker registers with the coordinator, then repeatedly leases work units, renders
-//! them on all its threads and submits the per-pass results, while a heartbeat task keeps
-//! its leases alive. Scenes are fetched once by content hash (in chunks, verified against
+//! them on all its threads and submits the per-pass results, while heartbeats keep its
+//! leases alive. It leases the next batch while one renders and submits results in the
+//! background, so its threads do not wait on the network; batches are sized from the
+//! measured time of a unit (docs/ARCHITECTURE.md §9, "The worker's pipeline"). Scenes are fetched once by content hash (in chunks, verified against
 //! their SHA-256) and cached together with their built BVH, so a worker pays for a scene
 //! once however many units of it it renders. When the coordinator is away the worker
 //! reconnects with exponential backoff and registers again; on shutdown (its own, or a
