@@ -440,7 +440,8 @@ impl Job {
 /// queue drains, batches halve round by round, so the work still held when the queue
 /// runs dry is a few units per worker and every worker finishes at about the same time.
 /// Half rather than the whole share because workers are not equally fast and a worker
-/// that prefetches holds two batches.
+/// that prefetches holds two batches. A worker alone (its threads are all the threads)
+/// has no one to wait for and gets what it asked for.
 ///
 /// ```
 /// use tessera_farm::tail_share;
@@ -448,10 +449,14 @@ impl Job {
 /// assert_eq!(tail_share(40, 1, 2, 32), 10); // the tail: a quarter each of two workers
 /// assert_eq!(tail_share(40, 3, 4, 32), 15); // a worker with 3 of the 4 threads
 /// assert_eq!(tail_share(3, 1, 2, 32), 1); // the last units one at a time
+/// assert_eq!(tail_share(3, 4, 4, 32), 32); // a worker alone
 /// assert_eq!(tail_share(0, 0, 0, 0), 1); // never zero
 /// ```
 pub fn tail_share(queued: u64, threads: u64, total_threads: u64, max_units: usize) -> usize {
-    let total = total_threads.max(threads).max(1);
+    if threads >= total_threads {
+        return max_units.max(1);
+    }
+    let total = total_threads.max(1);
     let share = (u128::from(queued) * u128::from(threads.max(1)))
         .div_ceil(2 * u128::from(total))
         .max(1);
@@ -1384,11 +1389,16 @@ mod tests {
         assert_eq!(tail_share(1, 1, 2, 64), 1);
         // A worker's share grows with its threads (2 of 6 threads: a third, halved).
         assert_eq!(tail_share(60, 2, 6, 64), 10);
-        // Inconsistent counts (a worker not counted among the sharing ones) stay sane.
-        assert_eq!(tail_share(60, 4, 2, 64), 30);
+        // A worker alone gets what it asks for, also with inconsistent counts (a worker
+        // not counted among the sharing ones).
+        assert_eq!(tail_share(3, 2, 2, 64), 64);
+        assert_eq!(tail_share(60, 4, 2, 64), 64);
         // No overflow at the extremes: half of everything.
-        let half = (u64::MAX / 2 + 1) as usize;
-        assert_eq!(tail_share(u64::MAX, u64::MAX, u64::MAX, usize::MAX), half);
+        let half = (u64::MAX / 2) as usize;
+        assert_eq!(
+            tail_share(u64::MAX, u64::MAX - 1, u64::MAX, usize::MAX),
+            half
+        );
         // Non-increasing as the queue drains.
         let mut last = usize::MAX;
         for q in (0..500).rev() {
