@@ -42,6 +42,11 @@ pub struct BenchFarmArgs {
     /// to compare against in the same run.
     #[arg(long)]
     pub farm_binary: Option<std::path::PathBuf>,
+    /// A second `tessera` binary whose farm is also timed in every round, right after the
+    /// first one's (e.g. the build before a change), so both are compared with the same
+    /// local runs on the same machine load.
+    #[arg(long)]
+    pub compare_binary: Option<std::path::PathBuf>,
     /// An extra argument for the farm's `tessera serve` (repeatable), e.g.
     /// `--serve-arg=--http-max-connections-per-address=1024` so that many pollers from
     /// this one address are not refused.
@@ -62,6 +67,11 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
     std::fs::create_dir_all(&dir)?;
     let mut local = Vec::new();
     let mut farm = Vec::new();
+    // Of the farm runs: the fraction of the workers' thread time spent rendering.
+    let mut busy = Vec::new();
+    // The compared binary's farm: seconds and busy fractions.
+    let mut compared = Vec::new();
+    let mut compared_busy = Vec::new();
     let mut polled = Vec::new();
     let mut latencies = Vec::new();
     let mut requests = 0usize;
@@ -75,6 +85,7 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
         let alone = time_farm(&exe, &args, &data, 0)?;
         let f = alone.seconds;
         cpu[0] += alone.coordinator_cpu;
+        busy.push(alone.busy);
         if args.pollers > 0 {
             let data = dir.join(format!("polled{rep}"));
             let _ = std::fs::remove_dir_all(&data);
@@ -99,14 +110,33 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
             latencies.append(&mut lat);
         }
         println!(
-            "run {}: tessera render --threads {}: {l:.3} s; tessera serve --workers {} (1 thread each): {f:.3} s; farm/local throughput {:.3}",
+            "run {}: tessera render --threads {}: {l:.3} s; tessera serve --workers {} (1 thread each): {f:.3} s; farm/local throughput {:.3}; workers rendering {:.1}% of the time",
             rep + 1,
             args.threads,
             args.threads,
-            l / f
+            l / f,
+            100.0 * alone.busy
         );
+        if let Some(other) = &args.compare_binary {
+            let data = dir.join(format!("compared{rep}"));
+            let _ = std::fs::remove_dir_all(&data);
+            let c = time_farm(other, &args, &data, 0)?;
+            println!(
+                "run {}: compared farm ({}): {:.3} s; farm/local throughput {:.3}; workers rendering {}",
+                rep + 1,
+                other.display(),
+                c.seconds,
+                l / c.seconds,
+                busy_text(c.busy)
+            );
+            compared.push(c.seconds);
+            compared_busy.push(c.busy);
+        }
         local.push(l);
         farm.push(f);
+    }
+    for v in [&mut busy, &mut compared, &mut compared_busy] {
+        v.sort_by(f64::total_cmp);
     }
     local.sort_by(f64::total_cmp);
     farm.sort_by(f64::total_cmp);
@@ -123,6 +153,21 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
         100.0 * l / f,
         100.0 * (f / l - 1.0)
     );
+    println!(
+        "bench-farm workers: rendering {:.1}% of the farm's wall time (median; the rest is waiting on leases, scenes and the start and end of the job)",
+        100.0 * busy[busy.len() / 2]
+    );
+    if let Some(other) = &args.compare_binary {
+        let c = compared[compared.len() / 2];
+        println!(
+            "bench-farm compared: median farm {c:.3} s ({:.0} paths/s) with {}; farm throughput {:.1}% of local (this binary {:.1}%); workers rendering {}",
+            paths / c,
+            other.display(),
+            100.0 * l / c,
+            100.0 * l / f,
+            busy_text(compared_busy[compared_busy.len() / 2])
+        );
+    }
     if args.pollers > 0 {
         polled.sort_by(f64::total_cmp);
         latencies.sort_by(f64::total_cmp);
@@ -223,6 +268,9 @@ struct FarmRun {
     coordinator_cpu: f64,
     /// CPU seconds this process used while the job ran: the pollers' own cost.
     pollers_cpu: f64,
+    /// The workers' reported render seconds over their threads' wall time from
+    /// submission to done (`tessera_worker_render_seconds_total` in `/metrics`).
+    busy: f64,
 }
 
 /// A fresh `tessera serve` on `data` from the job's submission to done, with `pollers`
@@ -268,6 +316,17 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> R
     }
     let pollers_cpu = cpu_seconds("self") - self_cpu;
     let coordinator_cpu = cpu_seconds(&child.id().to_string());
+    // An older binary without the counter reports 0.
+    let render_seconds = client
+        .get_raw("/metrics")
+        .ok()
+        .and_then(|m| {
+            metric(
+                &String::from_utf8_lossy(&m),
+                "tessera_worker_render_seconds_total",
+            )
+        })
+        .unwrap_or(0.0);
     let _ = child.kill();
     let _ = child.wait();
     if done.state != JobState::Done {
@@ -278,7 +337,24 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> R
         latencies,
         coordinator_cpu,
         pollers_cpu,
+        busy: render_seconds / (f * args.threads.max(1) as f64),
     })
+}
+
+/// A busy fraction as printed: "not reported" by a coordinator without the counter.
+fn busy_text(busy: f64) -> String {
+    if busy > 0.0 {
+        format!("{:.1}% of the time", 100.0 * busy)
+    } else {
+        "not reported (no tessera_worker_render_seconds_total)".to_string()
+    }
+}
+
+/// The value of an unlabelled sample `name` in a Prometheus text exposition.
+fn metric(text: &str, name: &str) -> Option<f64> {
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
 }
 
 /// Starts `tessera serve` with one single-threaded worker per benchmark thread on port-0

@@ -114,6 +114,8 @@ pub struct ForgottenWorkers {
     pub units_done: u64,
     /// Faults they had been counted.
     pub faults: u64,
+    /// Seconds they had spent rendering the units they delivered.
+    pub render_seconds: f64,
 }
 
 impl Farm {

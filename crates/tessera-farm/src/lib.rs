@@ -88,8 +88,8 @@ pub use plan::{
 };
 pub use result::{ResultError, UnitResult};
 pub use schedule::{
-    frame_state_bytes, JobId, Lease, Progress, Residency, Resumed, Scheduler, SubmitError,
-    Submitted, WorkerId,
+    frame_state_bytes, tail_share, JobId, Lease, Progress, Residency, Resumed, Scheduler,
+    SubmitError, Submitted, WorkerId,
 };
 pub use stats::{luminance, PixelStats, ERROR_ESTIMATOR, LUMINANCE_WEIGHTS, REL_EPS};
 

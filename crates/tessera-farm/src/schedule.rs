@@ -409,6 +409,19 @@ impl Job {
         None
     }
 
+    /// Units that wait to be leased: returned ones, the never-leased ones from the cursor
+    /// on (less those merged before a restart) and, for adaptive jobs, those waiting for a
+    /// decision (an upper bound: a decision may make some unnecessary).
+    fn queued(&self) -> u64 {
+        if self.canceled {
+            return 0;
+        }
+        let ahead = self.units_total().saturating_sub(self.cursor);
+        let merged_ahead = self.done.range(self.cursor..).count() as u64;
+        let waiting = self.adaptive.as_ref().map_or(0, |a| a.waiting.len() as u64);
+        self.returned.len() as u64 + ahead.saturating_sub(merged_ahead) + waiting
+    }
+
     fn has_work(&self) -> bool {
         let waiting = self
             .adaptive
@@ -416,6 +429,40 @@ impl Job {
             .is_some_and(|a| !a.waiting.is_empty());
         !self.canceled && (!self.returned.is_empty() || self.cursor < self.units_total() || waiting)
     }
+}
+
+/// How many of `queued` waiting units a worker with `threads` of the farm's
+/// `total_threads` render threads may lease at once, when it asks for `max_units`: half
+/// its share of the queue, `ceil(queued * threads / (2 * total_threads))`, and at least one
+/// unit ("factoring", Hummel, Schonberg and Flynn 1992).
+///
+/// Early in a job the share is large and a worker gets the batch it asked for; as the
+/// queue drains, batches halve round by round, so the work still held when the queue
+/// runs dry is a few units per worker and every worker finishes at about the same time.
+/// Half rather than the whole share because workers are not equally fast and a worker
+/// that prefetches holds two batches. A worker alone (its threads are all the threads)
+/// has no one to wait for and gets what it asked for.
+///
+/// ```
+/// use tessera_farm::tail_share;
+/// assert_eq!(tail_share(1000, 1, 2, 32), 32); // early: what was asked
+/// assert_eq!(tail_share(40, 1, 2, 32), 10); // the tail: a quarter each of two workers
+/// assert_eq!(tail_share(40, 3, 4, 32), 15); // a worker with 3 of the 4 threads
+/// assert_eq!(tail_share(3, 1, 2, 32), 1); // the last units one at a time
+/// assert_eq!(tail_share(3, 4, 4, 32), 32); // a worker alone
+/// assert_eq!(tail_share(0, 0, 0, 0), 1); // never zero
+/// ```
+pub fn tail_share(queued: u64, threads: u64, total_threads: u64, max_units: usize) -> usize {
+    if threads >= total_threads {
+        return max_units.max(1);
+    }
+    let total = total_threads.max(1);
+    let share = (u128::from(queued) * u128::from(threads.max(1)))
+        .div_ceil(2 * u128::from(total))
+        .max(1);
+    usize::try_from(share)
+        .unwrap_or(usize::MAX)
+        .min(max_units.max(1))
 }
 
 /// The lease table and work queues of all jobs.
@@ -686,6 +733,30 @@ impl Scheduler {
             }
         }
         out
+    }
+
+    /// [`Scheduler::lease`] for a worker with `threads` of the `total_threads` render
+    /// threads of the workers sharing the queue: at most [`tail_share`] of the units
+    /// waiting, so that near the end of the work leases shrink to single units and no
+    /// worker is left rendering a large batch alone while the others wait (issue 14).
+    /// Only who renders which unit depends on it, never what a unit is, so the image is
+    /// the same.
+    pub fn lease_among(
+        &mut self,
+        worker: WorkerId,
+        now_ms: u64,
+        max_units: usize,
+        threads: u64,
+        total_threads: u64,
+    ) -> Vec<Lease> {
+        let queued = self
+            .jobs
+            .values()
+            .filter(|j| j.has_work())
+            .map(Job::queued)
+            .sum();
+        let max = tail_share(queued, threads, total_threads, max_units);
+        self.lease(worker, now_ms, max)
     }
 
     fn evict_finished_adaptive(&mut self) {
@@ -1306,6 +1377,105 @@ mod tests {
                 .iter()
                 .zip(&b.variance_of_mean)
                 .all(|(x, y)| x.map(f32::to_bits) == y.map(f32::to_bits)));
+        }
+    }
+
+    #[test]
+    fn the_tail_share_halves_the_even_share_and_never_exceeds_the_request() {
+        // Early: what was asked; then half the worker's share, at least one unit.
+        assert_eq!(tail_share(10_000, 1, 2, 64), 64);
+        assert_eq!(tail_share(100, 1, 2, 64), 25);
+        assert_eq!(tail_share(7, 1, 2, 64), 2);
+        assert_eq!(tail_share(1, 1, 2, 64), 1);
+        // A worker's share grows with its threads (2 of 6 threads: a third, halved).
+        assert_eq!(tail_share(60, 2, 6, 64), 10);
+        // A worker alone gets what it asks for, also with inconsistent counts (a worker
+        // not counted among the sharing ones).
+        assert_eq!(tail_share(3, 2, 2, 64), 64);
+        assert_eq!(tail_share(60, 4, 2, 64), 64);
+        // No overflow at the extremes: half of everything.
+        let half = (u64::MAX / 2) as usize;
+        assert_eq!(
+            tail_share(u64::MAX, u64::MAX - 1, u64::MAX, usize::MAX),
+            half
+        );
+        // Non-increasing as the queue drains.
+        let mut last = usize::MAX;
+        for q in (0..500).rev() {
+            let n = tail_share(q, 1, 3, 16);
+            assert!(n <= last && (1..=16).contains(&n));
+            last = n;
+        }
+    }
+
+    #[test]
+    fn leases_shrink_to_single_units_at_the_end_of_the_queue() {
+        let p = plan(); // 6 tiles x 6 passes: 36 units
+        let mut s = Scheduler::new(1000, 0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        let mut sizes = Vec::new();
+        let mut leased = BTreeSet::new();
+        // Two one-thread workers take turns asking for 8 units each.
+        for w in (0..2).cycle() {
+            let got = s.lease_among(w, 0, 8, 1, 2);
+            if got.is_empty() {
+                break;
+            }
+            sizes.push(got.len());
+            for l in got {
+                assert!(
+                    leased.insert((l.unit.tile, l.unit.first_pass)),
+                    "leased twice"
+                );
+            }
+        }
+        assert_eq!(leased.len(), 36);
+        // 36 waiting: ceil(36 / 4) = 9, capped to the 8 asked for; then 28 -> 7, ...
+        assert_eq!(sizes, [8, 7, 6, 4, 3, 2, 2, 1, 1, 1, 1]);
+        // Units returned to the queue count as waiting; merged ones do not.
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        let all = s.lease(5, 0, 100);
+        for l in &all[..20] {
+            s.submit(l.lease_id, 1, result(&p, l.unit, 0.5)).unwrap();
+        }
+        s.expire(1000);
+        // 16 returned, shared by 2 one-thread workers: 4 each.
+        assert_eq!(s.lease_among(5, 1000, 64, 1, 2).len(), 4);
+    }
+
+    #[test]
+    fn batches_cut_by_the_tail_rule_give_the_same_image() {
+        let p = plan();
+        let run = |batch: usize, workers: u64| {
+            let mut s = Scheduler::new(100, 0);
+            s.add_job(7, 0, p, 0..=0, 1);
+            let mut held: Vec<Lease> = Vec::new();
+            let mut round = 0u64;
+            while !s.is_complete(7) {
+                round += 1;
+                for w in 0..workers {
+                    held.extend(s.lease_among(w, round, batch, 1, workers));
+                }
+                // The newest leases are delivered first: an order unlike the canonical one.
+                while let Some(l) = held.pop() {
+                    let r = result(&p, l.unit, 0.5 + l.unit.tile as f32);
+                    s.submit(l.lease_id, 7, r).unwrap();
+                }
+            }
+            s.frame(7, 0).unwrap().image()
+        };
+        let a = run(1, 1);
+        for (batch, workers) in [(4, 2), (16, 3), (64, 2)] {
+            let b = run(batch, workers);
+            let bits = |img: &FrameImage| {
+                img.mean
+                    .iter()
+                    .chain(&img.variance_of_mean)
+                    .flat_map(|p| p.map(f32::to_bits))
+                    .collect::<Vec<u32>>()
+            };
+            assert_eq!(bits(&a), bits(&b), "batch {batch}, {workers} workers");
         }
     }
 

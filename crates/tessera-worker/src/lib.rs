@@ -1,8 +1,10 @@
 //! The Tessera worker: a gRPC client loop around [`tessera_render::render::render_unit`].
 //!
 //! A worker registers with the coordinator, then repeatedly leases work units, renders
-//! them on all its threads and submits the per-pass results, while a heartbeat task keeps
-//! its leases alive. Scenes are fetched once by content hash (in chunks, verified against
+//! them on all its threads and submits the per-pass results, while heartbeats keep its
+//! leases alive. It leases the next batch while one renders and submits results in the
+//! background, so its threads do not wait on the network; batches are sized from the
+//! measured time of a unit (docs/ARCHITECTURE.md §9, "The worker's pipeline"). Scenes are fetched once by content hash (in chunks, verified against
 //! their SHA-256) and cached together with their built BVH, so a worker pays for a scene
 //! once however many units of it it renders. When the coordinator is away the worker
 //! reconnects with exponential backoff and registers again; on shutdown (its own, or a
@@ -25,7 +27,7 @@
 
 use rayon::prelude::*;
 use sha2::{Digest, Sha256};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::future::Future;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -483,187 +485,425 @@ async fn session(
         heartbeat_every,
     );
     beat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        if told_to_stop || *stop.borrow() {
-            // Deliver what is rendered before leaving.
-            if let Some(h) = in_flight.take() {
-                finish(h, carry).await?;
+    // The pipeline (issue 14): one batch renders while the next one is leased and its
+    // scenes loaded (`fetching`, then `next`), and the results of the one before are
+    // submitted (`in_flight`, then `to_submit` while a submission is under way), so the
+    // render threads wait on the network only when the coordinator has no work.
+    let mut rendering: Option<Rendering> = None;
+    let mut next: Option<Batch> = None;
+    let mut fetching: Option<tokio::task::JoinHandle<Result<Fetched, Status>>> = None;
+    // When to ask again after a lease request brought no unit.
+    let mut retry_at: Option<tokio::time::Instant> = None;
+    let mut to_submit: Vec<Rendered> = Vec::new();
+    // The leases of the submission in flight: heartbeated until it ends, so a result
+    // queued behind a slow submission does not lapse on the way.
+    let mut submitting: Vec<u64> = Vec::new();
+    // Leases the coordinator told us to drop (their job was canceled).
+    let mut canceled: HashSet<u64> = HashSet::new();
+    // Seconds one unit takes on one thread, measured (a moving average): sizes the batches.
+    let mut unit_seconds: Option<f64> = None;
+    // Whatever broke the session: the units in hand are finished anyway and kept for the
+    // next coordinator, then the session ends with this status.
+    let mut broken: Option<Status> = None;
+    let mut stop = stop;
+    let outcome = loop {
+        let stopping = told_to_stop || *stop.borrow();
+        // The pool is free: start the prefetched batch, or give it back when stopping.
+        if rendering.is_none() && broken.is_none() {
+            if let Some(mut b) = next.take() {
+                b.units.retain(|(l, _)| !canceled.remove(&l.lease_id));
+                if stopping {
+                    if !b.units.is_empty() {
+                        give_back(&mut client, worker_id, b).await;
+                    }
+                } else if !b.units.is_empty() {
+                    rendering = Some(Rendering::start(pool, b));
+                }
             }
-            return Ok(());
         }
-        let resp = client
-            .lease_work(v1::LeaseRequest {
+        // Lease the next batch while this one renders.
+        let may_lease = retry_at.is_none_or(|t| t <= tokio::time::Instant::now());
+        if !stopping && broken.is_none() && next.is_none() && fetching.is_none() && may_lease {
+            retry_at = None;
+            let max_units = units_to_ask(config.threads, unit_seconds);
+            fetching = Some(tokio::spawn(fetch_batch(
+                client.clone(),
+                cache.clone(),
                 worker_id,
-                // Four units per thread: a batch long enough that the lease round trip is small
-                // beside it, short enough that coarse-to-fine order stays fine-grained.
-                max_units: (config.threads * 4) as u32,
-            })
-            .await?
-            .into_inner();
-        if resp.leases.is_empty() {
-            let wait = Duration::from_millis(u64::from(resp.retry_after_ms.clamp(20, 2000)));
-            let mut stop = stop.clone();
-            tokio::select! {
-                _ = tokio::time::sleep(wait) => {}
-                _ = stop.changed() => {}
-            }
-            continue;
+                max_units,
+            )));
         }
-        let mut leases = Vec::with_capacity(resp.leases.len());
-        for l in resp.leases {
-            match LeasedUnit::try_from(l) {
-                Ok(l) => leases.push(l),
-                Err(e) => tracing::warn!(error = %e, "coordinator sent an invalid lease"),
+        // Submit in the background: the coordinator commits each result to its store
+        // before acknowledging it, and the worker's threads should not wait for that. One
+        // submission is in flight at a time; its errors end the session (what it did not
+        // deliver goes to the next one).
+        if in_flight.is_none() && !to_submit.is_empty() && broken.is_none() {
+            let (mut c2, batch) = (client.clone(), std::mem::take(&mut to_submit));
+            submitting = batch.iter().map(|r| r.lease_id).collect();
+            *in_flight = Some(tokio::spawn(async move {
+                submit_all(&mut c2, worker_id, batch).await
+            }));
+        }
+        if rendering.is_none() && fetching.is_none() && in_flight.is_none() {
+            if let Some(s) = broken.take() {
+                // The prefetched batch, not started, is dropped: its leases lapse.
+                carry.results.append(&mut to_submit);
+                break Err(s);
+            }
+            if stopping && next.is_none() && to_submit.is_empty() {
+                break Ok(());
             }
         }
-        // Make sure every scene is here and built before the clock starts.
-        let mut jobs: Vec<(LeasedUnit, Arc<RenderScene>)> = Vec::with_capacity(leases.len());
-        let mut unusable = Vec::new();
-        let mut why = String::new();
-        for l in leases {
-            match scene_for(&mut client, cache, &l).await {
-                Ok(rs) => jobs.push((l, rs)),
-                Err(e) => {
-                    tracing::warn!(scene = %l.scene, error = %e, "cannot load scene; returning lease");
-                    unusable.push(l.lease_id);
-                    if why.is_empty() {
-                        why = format!("scene {}: {e}", l.scene);
+        tokio::select! {
+            r = join(rendering.as_mut().map(|r| &mut r.task)), if rendering.is_some() => {
+                let done = rendering.take().map(|r| r.started.elapsed());
+                let results = match r {
+                    Ok(results) => results,
+                    Err(e) => {
+                        broken = Some(Status::internal(format!("render task failed: {e}")));
+                        continue;
+                    }
+                };
+                let seconds = done.unwrap_or_default().as_secs_f64().max(1e-9);
+                let paths: f64 = results.iter().map(|r| r.paths).sum();
+                paths_per_second = paths / seconds;
+                unit_seconds = measured_unit_seconds(unit_seconds, &results);
+                let (rendered, panicked, why) = sort_results(results, &mut canceled);
+                if !panicked.is_empty() && broken.is_none() {
+                    // A unit whose rendering panicked is a fault of its scene, not of this
+                    // worker: give its lease back as unusable, so the coordinator fails the
+                    // job after a few such returns instead of leasing the unit forever
+                    // (docs/ARCHITECTURE.md §6).
+                    let returned = client
+                        .return_leases(v1::ReturnLeasesRequest {
+                            worker_id,
+                            lease_ids: panicked,
+                            unusable: why,
+                        })
+                        .await;
+                    if let Err(s) = returned {
+                        broken = Some(s);
+                    }
+                }
+                match &broken {
+                    Some(_) => carry.results.extend(rendered),
+                    None => to_submit.extend(rendered),
+                }
+            }
+            f = join(fetching.as_mut()), if fetching.is_some() => {
+                fetching = None;
+                match f {
+                    Ok(Ok(Fetched::Batch(b))) if broken.is_some() => drop(b),
+                    Ok(Ok(Fetched::Batch(b))) => next = Some(b),
+                    Ok(Ok(Fetched::Empty(wait))) => {
+                        retry_at = Some(tokio::time::Instant::now() + wait);
+                    }
+                    Ok(Err(s)) => {
+                        broken.get_or_insert(s);
+                    }
+                    Err(e) => {
+                        broken.get_or_insert(Status::internal(format!("lease task failed: {e}")));
                     }
                 }
             }
-        }
-        if !unusable.is_empty() {
-            // Saying why lets the coordinator fail a job whose scene no worker can use.
-            client
-                .return_leases(v1::ReturnLeasesRequest {
-                    worker_id,
-                    lease_ids: unusable,
-                    unusable: why,
-                })
-                .await?;
-        }
-        // Render on the pool while heartbeats keep the leases alive.
-        let lease_ids: Vec<u64> = jobs.iter().map(|(l, _)| l.lease_id).collect();
-        let pool2 = pool.clone();
-        let started = Instant::now();
-        let mut render = tokio::task::spawn_blocking(move || {
-            pool2.install(|| {
-                jobs.par_iter()
-                    .map(|(l, rs)| {
-                        let t = Instant::now();
-                        let r = render_contained(rs, l);
-                        let paths = r.as_ref().map_or(0.0, |r| {
-                            r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass)
-                        });
-                        (l.lease_id, l.job_id, r, t.elapsed().as_secs_f64(), paths)
-                    })
-                    .collect::<Vec<_>>()
-            })
-        });
-        let mut canceled: Vec<u64> = Vec::new();
-        // A heartbeat that failed: the units in hand are finished anyway and kept for the
-        // next coordinator, then the session ends with this status.
-        let mut broken: Option<Status> = None;
-        let results = loop {
-            tokio::select! {
-                r = &mut render => break r.map_err(|e| Status::internal(format!("render task failed: {e}")))?,
-                _ = beat.tick(), if broken.is_none() => {
-                    match client
-                        .heartbeat(v1::HeartbeatRequest { worker_id, lease_ids: lease_ids.clone(), paths_per_second })
-                        .await
-                    {
-                        Ok(hb) => {
-                            let hb = hb.into_inner();
-                            canceled.extend(hb.cancel);
-                            if hb.shutdown && !told_to_stop {
-                                tracing::info!(worker_id, "the coordinator is shutting down; finishing the units in hand");
-                                told_to_stop = true;
-                            }
+            s = join(in_flight.as_mut()), if in_flight.is_some() => {
+                *in_flight = None;
+                submitting.clear();
+                match s {
+                    Ok(Ok(())) => {}
+                    Ok(Err((s, left))) => {
+                        carry.results.extend(left);
+                        broken.get_or_insert(s);
+                    }
+                    Err(e) => {
+                        broken.get_or_insert(Status::internal(format!("submit task failed: {e}")));
+                    }
+                }
+            }
+            _ = beat.tick(), if broken.is_none() => {
+                let lease_ids: Vec<u64> = rendering
+                    .iter()
+                    .flat_map(|r| r.lease_ids.iter().copied())
+                    .chain(next.iter().flat_map(Batch::lease_ids))
+                    .chain(to_submit.iter().map(|r| r.lease_id))
+                    .chain(submitting.iter().copied())
+                    .collect();
+                match client
+                    .heartbeat(v1::HeartbeatRequest { worker_id, lease_ids, paths_per_second })
+                    .await
+                {
+                    Ok(hb) => {
+                        let hb = hb.into_inner();
+                        canceled.extend(hb.cancel);
+                        if hb.shutdown && !told_to_stop {
+                            tracing::info!(worker_id, "the coordinator is shutting down; finishing the units in hand");
+                            told_to_stop = true;
                         }
-                        Err(s) => {
-                            tracing::warn!(worker_id, error = %s, "heartbeat failed; finishing the units in hand to deliver them elsewhere");
-                            broken = Some(s);
-                        }
+                    }
+                    Err(s) => {
+                        tracing::warn!(worker_id, error = %s, "heartbeat failed; finishing the units in hand to deliver them elsewhere");
+                        broken = Some(s);
                     }
                 }
             }
-        };
-        let seconds = started.elapsed().as_secs_f64().max(1e-9);
-        let paths: f64 = results.iter().map(|r| r.4).sum();
-        paths_per_second = paths / seconds;
-        // A unit whose rendering panicked is a fault of its scene, not of this worker:
-        // give its lease back as unusable, so the coordinator fails the job after a few
-        // such returns instead of leasing the unit forever (docs/ARCHITECTURE.md §6).
-        let mut rendered = Vec::with_capacity(results.len());
-        let mut panicked = Vec::new();
-        let mut why = String::new();
-        for (lease_id, job_id, result, secs, paths) in results {
-            match result {
-                Ok(r) => rendered.push((lease_id, job_id, r, secs, paths)),
-                Err(message) => {
-                    tracing::error!(lease_id, job_id, error = %message, "rendering panicked; returning lease");
-                    if !canceled.contains(&lease_id) {
-                        panicked.push(lease_id);
-                    }
-                    if why.is_empty() {
-                        why = format!("rendering panicked: {message}");
-                    }
-                }
+            _ = sleep_until(retry_at), if retry_at.is_some() && !stopping => {}
+            _ = stop.changed(), if !*stop.borrow() => {}
+        }
+        if broken.is_some() {
+            // Nothing new is started; a lease request under way is abandoned (the units it
+            // may bring lapse and are leased again).
+            if let Some(f) = fetching.take() {
+                f.abort();
             }
+            next = None;
         }
-        let rendered: Vec<Rendered> = rendered
-            .into_iter()
-            .filter(|r| !canceled.contains(&r.0))
-            .map(|(lease_id, job_id, result, seconds, _)| Rendered {
-                lease_id,
-                job_id,
-                result,
-                seconds,
-            })
-            .collect();
-        if let Some(s) = broken {
-            carry.results.extend(rendered);
-            return Err(s);
-        }
-        if !panicked.is_empty() {
-            let returned = client
-                .return_leases(v1::ReturnLeasesRequest {
-                    worker_id,
-                    lease_ids: panicked,
-                    unusable: why,
-                })
-                .await;
-            if let Err(s) = returned {
-                carry.results.extend(rendered);
-                return Err(s);
-            }
-        }
-        // Submit in the background while the next units render: the coordinator commits
-        // each result to its store before acknowledging it, and the worker's threads should
-        // not wait for that. One batch is in flight at a time; its errors end the session
-        // (what it did not deliver goes to the next one).
-        if let Some(h) = in_flight.take() {
-            if let Err(s) = finish(h, carry).await {
-                carry.results.extend(rendered);
-                return Err(s);
-            }
-        }
-        let mut c2 = client.clone();
-        *in_flight = Some(tokio::spawn(async move {
-            submit_all(&mut c2, worker_id, rendered).await
-        }));
+    };
+    outcome
+}
+
+/// Awaits the task `h`; never completes for `None` (the `select!` branches check).
+async fn join<T>(h: Option<&mut tokio::task::JoinHandle<T>>) -> Result<T, tokio::task::JoinError> {
+    match h {
+        Some(h) => h.await,
+        None => std::future::pending().await,
     }
 }
 
-/// Waits for a background submission; what it did not deliver goes into `carry`.
-async fn finish(h: Submitting, carry: &mut Carry) -> Result<(), Status> {
-    match h.await {
-        Ok(Ok(())) => Ok(()),
-        Ok(Err((s, left))) => {
-            carry.results.extend(left);
-            Err(s)
+/// Sleeps until `at`, forever if `None`.
+async fn sleep_until(at: Option<tokio::time::Instant>) {
+    match at {
+        Some(at) => tokio::time::sleep_until(at).await,
+        None => std::future::pending().await,
+    }
+}
+
+/// Seconds of rendering one lease request aims to bring each thread (issue 14): long
+/// enough that the coordinator's work per lease request is small beside it, short enough
+/// that the scheduler's tail rule (`tessera_farm::tail_share`) has small batches to hand
+/// out. The lease's round trip itself is hidden by prefetching.
+const BATCH_SECONDS: f64 = 0.5;
+/// Units per thread asked for before any unit was measured.
+const FIRST_UNITS_PER_THREAD: u32 = 4;
+/// Most units per thread asked for at once, however short they are.
+const MAX_UNITS_PER_THREAD: u32 = 64;
+
+/// How many units to ask for: about [`BATCH_SECONDS`] of rendering per thread at the
+/// measured seconds per unit, [`FIRST_UNITS_PER_THREAD`] per thread before a measure.
+///
+/// Only the number of units leased at once depends on the clock, never what a unit is:
+/// units are fixed when the job is planned (a tile and a pass range, checkpointed and
+/// resumed by index), so the image does not depend on this.
+fn units_to_ask(threads: usize, unit_seconds: Option<f64>) -> u32 {
+    let per_thread = match unit_seconds {
+        Some(s) if s.is_finite() && s > 0.0 => (BATCH_SECONDS / s)
+            .round()
+            .clamp(1.0, f64::from(MAX_UNITS_PER_THREAD))
+            as u32,
+        _ => FIRST_UNITS_PER_THREAD,
+    };
+    (threads as u32).saturating_mul(per_thread)
+}
+
+/// The moving average of seconds per unit after a batch: the batch's mean, weighted by
+/// half against what was measured before (so a change of scene shows within a few
+/// batches). Units that panicked are not counted.
+fn measured_unit_seconds(before: Option<f64>, results: &[Outcome]) -> Option<f64> {
+    let times: Vec<f64> = results
+        .iter()
+        .filter(|r| r.result.is_ok())
+        .map(|r| r.seconds)
+        .collect();
+    if times.is_empty() {
+        return before;
+    }
+    let mean = times.iter().sum::<f64>() / times.len() as f64;
+    Some(match before {
+        Some(b) => 0.5 * b + 0.5 * mean,
+        None => mean,
+    })
+}
+
+/// Splits a batch's outcomes into the results to submit (without those of canceled
+/// leases, whose ids leave `canceled`) and the leases whose rendering panicked, with the
+/// first panic's message.
+fn sort_results(
+    results: Vec<Outcome>,
+    canceled: &mut HashSet<u64>,
+) -> (Vec<Rendered>, Vec<u64>, String) {
+    let mut rendered = Vec::with_capacity(results.len());
+    let mut panicked = Vec::new();
+    let mut why = String::new();
+    for o in results {
+        let dropped = canceled.remove(&o.lease_id);
+        match o.result {
+            Ok(result) if !dropped => rendered.push(Rendered {
+                lease_id: o.lease_id,
+                job_id: o.job_id,
+                result,
+                seconds: o.seconds,
+            }),
+            Ok(_) => {}
+            Err(message) => {
+                tracing::error!(lease_id = o.lease_id, job_id = o.job_id, error = %message, "rendering panicked; returning lease");
+                if !dropped {
+                    panicked.push(o.lease_id);
+                }
+                if why.is_empty() {
+                    why = format!("rendering panicked: {message}");
+                }
+            }
         }
-        Err(e) => Err(Status::internal(format!("submit task failed: {e}"))),
+    }
+    (rendered, panicked, why)
+}
+
+/// Leased units whose scenes are loaded and built, ready to render.
+struct Batch {
+    units: Vec<(LeasedUnit, Arc<RenderScene>)>,
+}
+
+impl Batch {
+    fn lease_ids(&self) -> impl Iterator<Item = u64> + '_ {
+        self.units.iter().map(|(l, _)| l.lease_id)
+    }
+}
+
+/// What one lease request brought.
+enum Fetched {
+    /// Units to render.
+    Batch(Batch),
+    /// No unit (none usable): ask again after this long.
+    Empty(Duration),
+}
+
+/// Leases up to `max_units` units and makes sure every scene is here and built before
+/// the clock starts; the leases of units whose scene cannot be used are returned as
+/// unusable, saying why, so that the coordinator fails a job whose scene no worker can
+/// use.
+async fn fetch_batch(
+    mut client: Client,
+    cache: Arc<Mutex<SceneCache>>,
+    worker_id: u64,
+    max_units: u32,
+) -> Result<Fetched, Status> {
+    let resp = client
+        .lease_work(v1::LeaseRequest {
+            worker_id,
+            max_units,
+        })
+        .await?
+        .into_inner();
+    let wait = Duration::from_millis(u64::from(resp.retry_after_ms.clamp(20, 2000)));
+    let mut units = Vec::with_capacity(resp.leases.len());
+    let mut unusable = Vec::new();
+    let mut why = String::new();
+    for l in resp.leases {
+        let l = match LeasedUnit::try_from(l) {
+            Ok(l) => l,
+            Err(e) => {
+                tracing::warn!(error = %e, "coordinator sent an invalid lease");
+                continue;
+            }
+        };
+        match scene_for(&mut client, &cache, &l).await {
+            Ok(rs) => units.push((l, rs)),
+            Err(e) => {
+                tracing::warn!(scene = %l.scene, error = %e, "cannot load scene; returning lease");
+                unusable.push(l.lease_id);
+                if why.is_empty() {
+                    why = format!("scene {}: {e}", l.scene);
+                }
+            }
+        }
+    }
+    if !unusable.is_empty() {
+        client
+            .return_leases(v1::ReturnLeasesRequest {
+                worker_id,
+                lease_ids: unusable,
+                unusable: why,
+            })
+            .await?;
+    }
+    Ok(if units.is_empty() {
+        Fetched::Empty(wait)
+    } else {
+        Fetched::Batch(Batch { units })
+    })
+}
+
+/// Gives a batch that was never started back to the coordinator (a worker stopping):
+/// its units are leased again at once instead of when their leases lapse.
+async fn give_back(client: &mut Client, worker_id: u64, batch: Batch) {
+    let lease_ids: Vec<u64> = batch.lease_ids().collect();
+    let n = lease_ids.len();
+    match client
+        .return_leases(v1::ReturnLeasesRequest {
+            worker_id,
+            lease_ids,
+            unusable: String::new(),
+        })
+        .await
+    {
+        Ok(_) => tracing::info!(worker_id, leases = n, "returned the units not started"),
+        Err(s) => {
+            tracing::warn!(worker_id, leases = n, error = %s, "could not return the units not started; they lapse")
+        }
+    }
+}
+
+/// One unit's outcome on the pool.
+struct Outcome {
+    lease_id: u64,
+    job_id: u64,
+    /// The result, or the message of the renderer's panic.
+    result: Result<tessera_farm::UnitResult, String>,
+    /// Seconds it took on its thread.
+    seconds: f64,
+    /// Camera paths traced (0 if it panicked).
+    paths: f64,
+}
+
+/// A batch rendering on the pool.
+struct Rendering {
+    task: tokio::task::JoinHandle<Vec<Outcome>>,
+    lease_ids: Vec<u64>,
+    started: Instant,
+}
+
+impl Rendering {
+    /// Renders every unit of `batch` on the pool, on a blocking thread (never on the
+    /// async runtime).
+    fn start(pool: &Arc<rayon::ThreadPool>, batch: Batch) -> Self {
+        let lease_ids = batch.lease_ids().collect();
+        let pool = pool.clone();
+        let task = tokio::task::spawn_blocking(move || {
+            pool.install(|| {
+                batch
+                    .units
+                    .par_iter()
+                    .map(|(l, rs)| {
+                        let t = Instant::now();
+                        let result = render_contained(rs, l);
+                        let paths = result.as_ref().map_or(0.0, |r| {
+                            r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass)
+                        });
+                        Outcome {
+                            lease_id: l.lease_id,
+                            job_id: l.job_id,
+                            result,
+                            seconds: t.elapsed().as_secs_f64(),
+                            paths,
+                        }
+                    })
+                    .collect()
+            })
+        });
+        Self {
+            task,
+            lease_ids,
+            started: Instant::now(),
+        }
     }
 }
 

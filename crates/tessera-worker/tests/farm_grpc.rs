@@ -1,6 +1,8 @@
 //! Workers and the coordinator's gRPC service talking real gRPC over loopback: a job
 //! rendered by one worker and by three workers gives the same image, bit for bit, as the
-//! local renderer (ARCHITECTURE.md §2); a worker without the token is refused.
+//! local renderer (ARCHITECTURE.md §2); a worker without the token is refused; a worker
+//! stopped mid-job delivers what it rendered and gives back the units it prefetched, and
+//! heartbeats keep prefetched leases alive (issue 14).
 //!
 //! The service is the production one: a real [`Coordinator`] over a temporary SQLite
 //! store, the job submitted through it as `POST /jobs` would.
@@ -31,10 +33,20 @@ fn settings() -> JobSettings {
 
 /// A coordinator over a fresh store in `dir` whose workers need `token`.
 async fn coordinator(dir: &tempfile::TempDir, token: Option<&str>) -> Coordinator {
+    coordinator_with(dir, token, 100, 2000).await
+}
+
+/// [`coordinator`] with the given heartbeat interval and lease length.
+async fn coordinator_with(
+    dir: &tempfile::TempDir,
+    token: Option<&str>,
+    heartbeat_ms: u32,
+    lease_ms: u64,
+) -> Coordinator {
     let mut cfg = CoordinatorConfig::new(dir.path());
     cfg.worker_token = token.map(str::to_string);
-    cfg.heartbeat_ms = 100;
-    cfg.lease_ms = 2000;
+    cfg.heartbeat_ms = heartbeat_ms;
+    cfg.lease_ms = lease_ms;
     Coordinator::open(cfg).await.unwrap()
 }
 
@@ -138,4 +150,126 @@ async fn a_worker_without_the_token_is_refused() {
             .unwrap();
         assert!(matches!(r, Err(WorkerError::Unauthenticated(_))), "{r:?}");
     }
+}
+
+/// A longer job than [`settings`]: 128x128 at 64 spp in 16-pixel tiles, 256 units.
+fn long_settings() -> JobSettings {
+    let mut s = settings();
+    s.width = Some(128);
+    s.height = Some(128);
+    s.spp = 64;
+    s
+}
+
+/// `tessera render`'s image of `s` (resolved as the coordinator resolves it).
+fn local_image(s: &JobSettings) -> FrameImage {
+    let scene = tessera_scene::load("builtin:cornell-box").unwrap();
+    let resolved = tessera_scene::job::resolve_job(&s.clone().validate().unwrap(), &scene).unwrap();
+    let rs = RenderScene::build(&scene, resolved.plan.width, resolved.plan.height).unwrap();
+    render_frame(&rs, &resolved.config, &resolved.plan, 0, 2, |_, _| {}).image()
+}
+
+/// A running worker of `url` with `threads` threads, stopped by sending on the returned
+/// channel.
+fn spawn_worker(
+    url: &str,
+    name: &str,
+    threads: usize,
+) -> (
+    tokio::sync::watch::Sender<bool>,
+    tokio::task::JoinHandle<Result<(), WorkerError>>,
+) {
+    let (tx, mut rx) = tokio::sync::watch::channel(false);
+    let cfg = WorkerConfig {
+        coordinators: vec![url.to_string()],
+        threads,
+        name: name.into(),
+        token: None,
+        tls: None,
+    };
+    let h = tokio::spawn(run(cfg, async move {
+        let _ = rx.changed().await;
+    }));
+    (tx, h)
+}
+
+/// The value of the unlabelled sample `name` in the coordinator's `/metrics`.
+async fn metric(core: &Coordinator, name: &str) -> f64 {
+    let text = core.metrics().await.unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in /metrics:\n{text}"))
+}
+
+async fn wait_done(core: &Coordinator, job: u64) {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while !core.status(job).await.unwrap().state.is_terminal() {
+        assert!(Instant::now() < deadline, "farm did not finish");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(core.status(job).await.unwrap().state.as_str(), "done");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stopped_worker_delivers_its_results_and_gives_back_its_prefetched_units() {
+    let dir = tempfile::tempdir().unwrap();
+    // No ticker runs here and leases last a minute: only the worker can clear its leases,
+    // by delivering their results or giving them back.
+    let core = coordinator_with(&dir, None, 100, 60_000).await;
+    let (job, _) = core.submit(long_settings(), None).await.unwrap();
+    let url = start(core.clone()).await;
+    let (stop, first) = spawn_worker(&url, "first", 1);
+    // Stop it once a batch is merged: it is then rendering one batch and holds the next.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while core.status(job.id).await.unwrap().passes_done == 0 {
+        assert!(Instant::now() < deadline, "no unit was merged");
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    stop.send(true).unwrap();
+    first.await.unwrap().unwrap();
+    let status = core.status(job.id).await.unwrap();
+    assert_eq!(
+        status.state.as_str(),
+        "running",
+        "the job ended with the first worker"
+    );
+    assert_eq!(
+        metric(&core, "tessera_leases_outstanding").await,
+        0.0,
+        "the stopped worker kept leases"
+    );
+    // Every unit it leased is merged or back in the queue: a second worker finishes the
+    // job, with nothing lapsed and nothing merged twice.
+    let (stop2, second) = spawn_worker(&url, "second", 2);
+    wait_done(&core, job.id).await;
+    stop2.send(true).unwrap();
+    second.await.unwrap().unwrap();
+    assert_eq!(metric(&core, "tessera_leases_expired_total").await, 0.0);
+    assert_eq!(metric(&core, "tessera_worker_faults_total").await, 0.0);
+    let image = core.frame_image(job.id, Some(0)).await.unwrap();
+    assert!(
+        bits(&image) == bits(&local_image(&long_settings())),
+        "the farm image differs from tessera render"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heartbeats_keep_prefetched_leases_alive() {
+    let dir = tempfile::tempdir().unwrap();
+    // Leases shorter than a batch takes to render: a prefetched batch waits about that
+    // long before it starts, so only heartbeats can keep it.
+    let core = coordinator_with(&dir, None, 50, 250).await;
+    let (job, _) = core.submit(long_settings(), None).await.unwrap();
+    let url = start(core.clone()).await;
+    let workers: Vec<_> = (0..2)
+        .map(|i| spawn_worker(&url, &format!("w{i}"), 1))
+        .collect();
+    wait_done(&core, job.id).await;
+    for (stop, h) in workers {
+        stop.send(true).unwrap();
+        h.await.unwrap().unwrap();
+    }
+    assert_eq!(metric(&core, "tessera_leases_expired_total").await, 0.0);
+    let image = core.frame_image(job.id, Some(0)).await.unwrap();
+    assert!(bits(&image) == bits(&local_image(&long_settings())));
 }

@@ -48,6 +48,9 @@ impl Coordinator {
             farm.workers.values().map(|w| w.units_done).sum::<u64>() + forgotten.units_done;
         let faults: u64 = farm.workers.values().map(|w| w.faults).sum::<u64>() + forgotten.faults;
         let _ = writeln!(s, "# HELP tessera_units_merged_total Units accepted from workers.\n# TYPE tessera_units_merged_total counter\ntessera_units_merged_total {units}");
+        let render_seconds: f64 =
+            farm.workers.values().map(|w| w.render_seconds).sum::<f64>() + forgotten.render_seconds;
+        let _ = writeln!(s, "# HELP tessera_worker_render_seconds_total Seconds workers spent rendering the units they delivered, as they reported them (summed over their threads' units; `tessera bench-farm` compares it with the wall time).\n# TYPE tessera_worker_render_seconds_total counter\ntessera_worker_render_seconds_total {render_seconds:.3}");
         let _ = writeln!(s, "# HELP tessera_worker_faults_total Refused results and mismatching duplicates.\n# TYPE tessera_worker_faults_total counter\ntessera_worker_faults_total {faults}");
         let _ = writeln!(s, "# HELP tessera_leases_expired_total Leases that lapsed without a result; their units were leased again.\n# TYPE tessera_leases_expired_total counter\ntessera_leases_expired_total {}", farm.leases_expired);
         let _ = writeln!(s, "# HELP tessera_leases_outstanding Leases currently held by workers.\n# TYPE tessera_leases_outstanding gauge\ntessera_leases_outstanding {}", farm.scheduler.leases().count());

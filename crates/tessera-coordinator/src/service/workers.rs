@@ -162,7 +162,23 @@ impl Coordinator {
             }
             farm.expire_leases(now);
             let max = max_units.clamp(1, MAX_UNITS_PER_LEASE) as usize;
-            let leases = farm.scheduler.lease(worker, now, max);
+            // The threads of the workers that share the queue (live and not draining),
+            // for the scheduler's tail rule.
+            let lost_after = self.lost_after_ms();
+            let sharing = |w: &&crate::state::WorkerEntry| {
+                !w.draining && now.saturating_sub(w.last_seen_ms) <= lost_after
+            };
+            let total: u64 = farm
+                .workers
+                .values()
+                .filter(sharing)
+                .map(|w| u64::from(w.threads.max(1)))
+                .sum();
+            let threads = farm
+                .workers
+                .get(&worker)
+                .map_or(1, |w| u64::from(w.threads.max(1)));
+            let leases = farm.scheduler.lease_among(worker, now, max, threads, total);
             let units: Vec<LeasedUnit> = leases
                 .into_iter()
                 .filter_map(|l| {
@@ -339,6 +355,7 @@ impl Coordinator {
                 farm.forgotten.workers += 1;
                 farm.forgotten.units_done += w.units_done;
                 farm.forgotten.faults += w.faults;
+                farm.forgotten.render_seconds += w.render_seconds;
                 tracing::info!(worker = id, name = %w.name, "lost worker forgotten");
             }
         }
