@@ -465,8 +465,8 @@ pub fn job_eta_seconds(p: &JobProgress) -> Option<f64> {
     let t = p.elapsed_seconds;
     let mut eta = t * p.passes_planned.saturating_sub(p.passes_done) as f64 / p.passes_done as f64;
     if let (Some(e), Some(target)) = (p.error, p.stopping_target) {
-        if target > 0.0 && e.is_finite() && e >= 0.0 {
-            eta = eta.min(t * ((e / target).powi(2) - 1.0));
+        if let Some(to_target) = crate::adaptive::eta_seconds(e, target, t) {
+            eta = eta.min(to_target);
         }
     }
     if let Some(left) = p.time_limit_left_seconds {
