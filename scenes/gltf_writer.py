@@ -160,6 +160,42 @@ class Gltf:
     def camera(self, camera):
         return self._push("cameras", camera)
 
+    def look_at_camera(self, eye, target, yfov_degrees, aspect):
+        """A perspective camera "main" at `eye` looking at `target` (+Y up), as a camera and
+        the node that places it."""
+        cam = self.camera(
+            {
+                "name": "main",
+                "type": "perspective",
+                "perspective": {
+                    "yfov": math.radians(yfov_degrees),
+                    "aspectRatio": aspect,
+                    "znear": 0.01,
+                },
+            }
+        )
+        return self.node(
+            {
+                "name": "main",
+                "camera": cam,
+                "translation": eye,
+                "rotation": look_at_rotation(eye, target, [0.0, 1.0, 0.0]),
+            }
+        )
+
+    def emissive(self, name, strength):
+        """A black, one-sided emitter of radiance `strength` (emissiveFactor 1 times
+        KHR_materials_emissive_strength)."""
+        self.uses("KHR_materials_emissive_strength")
+        return self.material(
+            {
+                "name": name,
+                "pbrMetallicRoughness": {"baseColorFactor": [0.0, 0.0, 0.0, 1.0], "metallicFactor": 0.0},
+                "emissiveFactor": [1.0, 1.0, 1.0],
+                "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": strength}},
+            }
+        )
+
     def light(self, light):
         self.uses("KHR_lights_punctual")
         lights = self.doc.setdefault("extensions", {}).setdefault(

@@ -28,7 +28,7 @@ import os
 import sys
 
 sys.dont_write_bytecode = True  # keep scenes/ free of __pycache__
-from gltf_writer import Gltf, look_at_rotation, uv_sphere  # noqa: E402
+from gltf_writer import Gltf, uv_sphere  # noqa: E402
 
 NEAREST, LINEAR, LINEAR_MIPMAP_LINEAR, REPEAT = 9728, 9729, 9987, 10497
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -57,36 +57,6 @@ def rough(g, name, rgb, texture=None):
     return g.material({"name": name, "pbrMetallicRoughness": pbr})
 
 
-def emitter(g, name, strength):
-    g.uses("KHR_materials_emissive_strength")
-    return g.material(
-        {
-            "name": name,
-            "pbrMetallicRoughness": {"baseColorFactor": [0.0, 0.0, 0.0, 1.0], "metallicFactor": 0.0},
-            "emissiveFactor": [1.0, 1.0, 1.0],
-            "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": strength}},
-        }
-    )
-
-
-def camera(g, eye, target, yfov_degrees):
-    cam = g.camera(
-        {
-            "name": "main",
-            "type": "perspective",
-            "perspective": {"yfov": math.radians(yfov_degrees), "aspectRatio": 1.0, "znear": 0.01},
-        }
-    )
-    g.node(
-        {
-            "name": "main",
-            "camera": cam,
-            "translation": eye,
-            "rotation": look_at_rotation(eye, target, [0.0, 1.0, 0.0]),
-        }
-    )
-
-
 def glossy_highlight():
     g = Gltf("scenes/make_calibration_gltf.py")
     glossy = g.material(
@@ -103,9 +73,9 @@ def glossy_highlight():
     quad_mesh(g, "floor", glossy, (-3.0, 0.0, 3.0), (3.0, 0.0, 3.0), (3.0, 0.0, -3.0), (-3.0, 0.0, -3.0))
     quad_mesh(g, "wall", wall, (-3.0, 0.0, -1.5), (3.0, 0.0, -1.5), (3.0, 3.0, -1.5), (-3.0, 3.0, -1.5))
     positions, normals, indices = uv_sphere(0.04, 24, 12)
-    light = g.mesh("light", positions, indices, emitter(g, "light", 100.0), normals=normals)
+    light = g.mesh("light", positions, indices, g.emissive("light", 100.0), normals=normals)
     g.node({"name": "light", "mesh": light, "translation": [0.0, 0.5, -0.8]})
-    camera(g, [0.0, 0.35, 2.0], [0.0, 0.1, -0.6], 40.0)
+    g.look_at_camera([0.0, 0.35, 2.0], [0.0, 0.1, -0.6], 40.0, 1.0)
     g.write(os.path.join(HERE, "glossy-highlight.gltf"))
 
 
@@ -148,10 +118,10 @@ def room(name, light_up, textured):
     quad_mesh(g, "box-right", box, (a1, 0.0, b1), (a1, 0.0, b0), (a1, 2 * h, b0), (a1, 2 * h, b1))
     l = 0.4
     if light_up:
-        quad_mesh(g, "light", emitter(g, "light", 10.0), (-l, 2.2, l), (l, 2.2, l), (l, 2.2, -l), (-l, 2.2, -l))
+        quad_mesh(g, "light", g.emissive("light", 10.0), (-l, 2.2, l), (l, 2.2, l), (l, 2.2, -l), (-l, 2.2, -l))
     else:
-        quad_mesh(g, "light", emitter(g, "light", 6.0), (-l, 2.45, -l), (l, 2.45, -l), (l, 2.45, l), (-l, 2.45, l))
-    camera(g, [0.0, 1.0, 1.9], [0.0, 0.7, -2.0], 60.0)
+        quad_mesh(g, "light", g.emissive("light", 6.0), (-l, 2.45, -l), (l, 2.45, -l), (l, 2.45, l), (-l, 2.45, l))
+    g.look_at_camera([0.0, 1.0, 1.9], [0.0, 0.7, -2.0], 60.0, 1.0)
     g.write(os.path.join(HERE, name))
 
 

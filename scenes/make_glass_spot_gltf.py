@@ -18,7 +18,7 @@ import os
 import sys
 
 sys.dont_write_bytecode = True  # keep scenes/ free of __pycache__
-from gltf_writer import Gltf, look_at_rotation, uv_sphere  # noqa: E402
+from gltf_writer import Gltf, uv_sphere  # noqa: E402
 
 
 def main():
@@ -65,22 +65,7 @@ def main():
         }
     )
 
-    camera = g.camera(
-        {
-            "name": "main",
-            "type": "perspective",
-            "perspective": {"yfov": math.radians(40.0), "aspectRatio": 4.0 / 3.0, "znear": 0.01},
-        }
-    )
-    eye, target = [0.0, 1.6, 4.0], [0.0, 0.4, 0.0]
-    g.node(
-        {
-            "name": "main",
-            "camera": camera,
-            "translation": eye,
-            "rotation": look_at_rotation(eye, target, [0.0, 1.0, 0.0]),
-        }
-    )
+    g.look_at_camera([0.0, 1.6, 4.0], [0.0, 0.4, 0.0], 40.0, 4.0 / 3.0)
     g.write(os.path.join(os.path.dirname(os.path.abspath(__file__)), "glass-spot.gltf"))
 
 

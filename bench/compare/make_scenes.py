@@ -27,8 +27,7 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.dont_write_bytecode = True
 sys.path.insert(0, os.path.join(HERE, "..", "..", "scenes"))
-from gltf_writer import Gltf, look_at_rotation  # noqa: E402
-from make_glass_spot_gltf import uv_sphere  # noqa: E402
+from gltf_writer import Gltf, look_at_rotation, uv_sphere  # noqa: E402
 
 
 def diffuse(g, name, albedo):
@@ -48,18 +47,6 @@ def diffuse(g, name, albedo):
     )
 
 
-def emissive(g, name, radiance):
-    g.uses("KHR_materials_emissive_strength")
-    return g.material(
-        {
-            "name": name,
-            "pbrMetallicRoughness": {"baseColorFactor": [0, 0, 0, 1], "metallicFactor": 0.0},
-            "emissiveFactor": [1.0, 1.0, 1.0],
-            "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": radiance}},
-        }
-    )
-
-
 def quad(g, name, material, a, b, c, d, normal):
     mesh = g.mesh(name, [a, b, c, d], [0, 1, 2, 0, 2, 3], material, normals=[normal] * 4)
     # Wind counter-clockwise about the normal.
@@ -69,24 +56,6 @@ def quad(g, name, material, a, b, c, d, normal):
     if sum(n[i] * normal[i] for i in range(3)) < 0:
         g.doc["meshes"][mesh]["primitives"][0]["indices"] = g.index_accessor([0, 2, 1, 0, 3, 2])
     g.node({"name": name, "mesh": mesh})
-
-
-def camera(g, eye, target, yfov_degrees, aspect):
-    cam = g.camera(
-        {
-            "name": "main",
-            "type": "perspective",
-            "perspective": {"yfov": math.radians(yfov_degrees), "aspectRatio": aspect, "znear": 0.01},
-        }
-    )
-    g.node(
-        {
-            "name": "main",
-            "camera": cam,
-            "translation": eye,
-            "rotation": look_at_rotation(eye, target, [0.0, 1.0, 0.0]),
-        }
-    )
 
 
 def normalize(v):
@@ -99,7 +68,7 @@ def veach(path):
     eye = [0.0, 2.0, 15.0]
     floor = diffuse(g, "floor", 0.1)
     for i, (r, x) in enumerate(zip([0.9, 0.3, 0.1, 0.0333], [-3.75, -1.25, 1.25, 3.75])):
-        m = emissive(g, "light%d" % i, 1.0 / (r * r))
+        m = g.emissive("light%d" % i, 1.0 / (r * r))
         positions, normals, indices = uv_sphere(r, 96, 48)
         mesh = g.mesh("light%d" % i, positions, indices, m, normals=normals)
         g.node({"name": "light%d" % i, "mesh": mesh, "translation": [x, 0.0, 0.0]})
@@ -129,7 +98,7 @@ def veach(path):
         quad(g, "plate%d" % k, m, *pts, normal)
     quad(g, "floor", floor, [-10, -4, -4], [-10, -4, 12], [10, -4, 12], [10, -4, -4], [0, 1, 0])
     quad(g, "back", floor, [-10, -4, -4], [10, -4, -4], [10, 8, -4], [-10, 8, -4], [0, 0, 1])
-    camera(g, eye, [0.0, -2.0, 2.5], 28.0, 1.5)
+    g.look_at_camera(eye, [0.0, -2.0, 2.5], 28.0, 1.5)
     g.write(path)
 
 
@@ -141,10 +110,10 @@ def glass_area(path):
     positions, normals, indices = uv_sphere(0.5, 64, 32)
     ball = g.mesh("glass-ball", positions, indices, glass, normals=normals)
     g.node({"name": "glass-ball", "mesh": ball, "translation": [0.0, 0.5, 0.0]})
-    light = emissive(g, "light", 250.0)
+    light = g.emissive("light", 250.0)
     h, y = 0.1, 2.5
     quad(g, "light", light, [-h, y, -h], [h, y, -h], [h, y, h], [-h, y, h], [0, -1, 0])
-    camera(g, [0.0, 1.6, 4.0], [0.0, 0.4, 0.0], 40.0, 4.0 / 3.0)
+    g.look_at_camera([0.0, 1.6, 4.0], [0.0, 0.4, 0.0], 40.0, 4.0 / 3.0)
     g.write(path)
 
 
