@@ -9,9 +9,10 @@
 mod common;
 
 use common::farm::{
-    cornell_job as job, local_render, start_coordinator, start_worker, wait_done, TIMEOUT,
+    cornell_job as job, local_render, local_render_adaptive, start_coordinator, start_worker,
+    wait_done, TIMEOUT,
 };
-use common::{free_port, output, poll, temp_dir, tessera, Proc};
+use common::{free_port, http_get, output, poll, read_exr, temp_dir, tessera, Proc};
 use tessera_api::client::{Client, ClientError};
 use tessera_api::JobSettings;
 
@@ -53,6 +54,10 @@ fn adaptive_farm_jobs_are_identical_with_one_and_three_workers() {
     let mut images = Vec::new();
     for (mode, target) in [("sequential", 0.08), ("unbiased", 0.08)] {
         let mut per_mode = Vec::new();
+        let mut local = job(48, 48, 256);
+        local.adaptive = mode.into();
+        local.target_error = Some(target);
+        let reference = local_render_adaptive(&dir, &format!("local-{mode}.exr"), &local);
         for workers in [1, 3] {
             let data = dir.join(format!("data-{mode}-{workers}"));
             let c = start_coordinator(&data, "127.0.0.1:0", "127.0.0.1:0", &[]);
@@ -73,9 +78,79 @@ fn adaptive_farm_jobs_are_identical_with_one_and_three_workers() {
             per_mode[0] == per_mode[1],
             "{mode}: adaptive EXR differs between 1 and 3 workers"
         );
+        // Leases name only the pixels still wanted (issue 15) and the image is still the
+        // local render's, byte for byte.
+        assert!(
+            per_mode[0] == reference,
+            "{mode}: adaptive farm EXR differs from tessera render"
+        );
         images.push(per_mode.swap_remove(0));
     }
     assert!(images[0] != images[1], "the two modes gave the same image");
+}
+
+/// The value of the Prometheus sample `name` in a `/metrics` body.
+fn metric(body: &str, name: &str) -> Option<f64> {
+    body.lines()
+        .filter(|l| !l.starts_with('#'))
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+}
+
+/// Issue 15: a stopped pixel costs nothing on the farm. The workers report the
+/// pixel-passes they traced (`tessera_worker_pixel_passes_total`): for an adaptive job
+/// whose pixels mostly stop early it equals the pixel-passes `tessera render` used for
+/// the same image (its `samples.Y` layer over the samples per pass), and is far below
+/// whole tiles' worth, while the EXR stays byte-identical to the local one.
+#[test]
+fn adaptive_farm_traces_only_the_pixels_still_wanted() {
+    let dir = temp_dir("e2e", "adaptive-traced");
+    for mode in ["unbiased", "sequential"] {
+        let mut s = job(48, 48, 512);
+        s.adaptive = mode.into();
+        s.target_error = Some(0.1);
+        let reference = local_render_adaptive(&dir, &format!("local-{mode}.exr"), &s);
+        let local = read_exr(dir.join(format!("local-{mode}.exr")));
+        // adaptive plan for 512 spp: 32 passes of 16 samples.
+        let (samples_per_pass, passes) = (16.0, 32.0);
+        let local_pixel_passes: f64 = local
+            .get("samples.Y")
+            .unwrap()
+            .iter()
+            .map(|&v| f64::from(v) / samples_per_pass)
+            .sum();
+        let full = 48.0 * 48.0 * passes;
+        let c = start_coordinator(
+            &dir.join(format!("data-{mode}")),
+            "127.0.0.1:0",
+            "127.0.0.1:0",
+            // Counted for merged units only, so a unit rendered twice counts once.
+            &[],
+        );
+        let _w = start_worker(&c.grpc, "w0", &[]);
+        let client = Client::new(&c.http, None);
+        let st = client.submit(&s, None).unwrap();
+        wait_done(&client, st.id);
+        let exr = client.image(st.id, "exr").unwrap();
+        assert!(
+            exr == reference,
+            "{mode}: farm EXR differs from tessera render"
+        );
+        let (status, body) = http_get(&c.http, "/metrics");
+        assert_eq!(status, 200, "{body}");
+        let traced = metric(&body, "tessera_worker_pixel_passes_total").expect("the metric");
+        println!(
+            "{mode}: pixel-passes traced on the farm {traced}, used by tessera render \
+             {local_pixel_passes}, whole tiles {full}"
+        );
+        assert_eq!(
+            traced, local_pixel_passes,
+            "{mode}: the farm traced other pixels than the local render used"
+        );
+        assert!(
+            traced < 0.6 * full,
+            "{mode}: {traced} of {full} pixel-passes traced: too few pixels stopped early"
+        );
+    }
 }
 
 #[test]
@@ -325,6 +400,7 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
                     render_seconds: 0.1,
                     job_id: l.job_id,
                     rejected_samples: 0,
+                    traced_pixel_passes: 0,
                 })
                 .await
                 .unwrap()

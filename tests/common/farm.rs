@@ -154,7 +154,23 @@ pub fn cornell_job(width: u32, height: u32, spp: u32) -> JobSettings {
 
 /// `tessera render` of the same job into `dir/local.exr`: the reference EXR bytes.
 pub fn local_render(dir: &Path, s: &JobSettings) -> Vec<u8> {
-    let out = dir.join("local.exr");
+    local_render_with(dir, "local.exr", s, &[])
+}
+
+/// `tessera render` of the same job with the adaptive settings of `s` (`adaptive`,
+/// `target_error`) into `dir/NAME`: the reference EXR bytes of an adaptive job.
+pub fn local_render_adaptive(dir: &Path, name: &str, s: &JobSettings) -> Vec<u8> {
+    let target = s.target_error.map(|t| t.to_string());
+    let mut extra = vec!["--adaptive", s.adaptive.as_str()];
+    if let Some(t) = &target {
+        extra.extend(["--target-error", t]);
+    }
+    local_render_with(dir, name, s, &extra)
+}
+
+/// [`local_render`] into `dir/NAME` with `extra` arguments.
+pub fn local_render_with(dir: &Path, name: &str, s: &JobSettings, extra: &[&str]) -> Vec<u8> {
+    let out = dir.join(name);
     output_ok(
         tessera()
             .args(["render", &s.scene, "--width"])
@@ -165,6 +181,7 @@ pub fn local_render(dir: &Path, s: &JobSettings) -> Vec<u8> {
             .arg(s.spp.to_string())
             .arg("--seed")
             .arg(s.seed.to_string())
+            .args(extra)
             .arg("-o")
             .arg(&out),
     );

@@ -266,6 +266,7 @@ async fn simulate(
                     render_seconds: 0.0,
                     job_id: lease.job_id,
                     rejected_samples: 0,
+                    traced_pixel_passes: 0,
                 })
                 .await?
                 .into_inner();

@@ -178,8 +178,13 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
             lease_id = r.lease_id,
             worker = r.worker_id,
         );
-        let (worker, lease_id, job_hint, render_seconds) =
-            (r.worker_id, r.lease_id, r.job_id, r.render_seconds);
+        let (worker, lease_id, job_hint, render_seconds, traced_pixel_passes) = (
+            r.worker_id,
+            r.lease_id,
+            r.job_id,
+            r.render_seconds,
+            r.traced_pixel_passes,
+        );
         let result = UnitResult::try_from(r).map_err(|e| e.to_string());
         if let Ok(res) = &result {
             let u = res.unit;
@@ -196,6 +201,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
             job_hint,
             result,
             render_seconds,
+            traced_pixel_passes,
         };
         let outcome = self
             .core

@@ -44,6 +44,9 @@ pub struct WorkerEntry {
     pub draining: bool,
     /// Seconds spent rendering the units it delivered, as it reported them.
     pub render_seconds: f64,
+    /// Pixel-passes it traced for the units merged from it, as it reported them (issue 15:
+    /// an adaptive lease's stopped pixels are not traced).
+    pub pixel_passes: u64,
     /// The common name of its TLS client certificate, under mutual TLS.
     pub identity: Option<String>,
 }
@@ -116,6 +119,8 @@ pub struct ForgottenWorkers {
     pub faults: u64,
     /// Seconds they had spent rendering the units they delivered.
     pub render_seconds: f64,
+    /// Pixel-passes they had traced for the units merged from them.
+    pub pixel_passes: u64,
 }
 
 impl Farm {

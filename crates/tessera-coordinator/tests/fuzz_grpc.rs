@@ -199,6 +199,7 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
                 render_seconds: 0.01,
                 job_id: lease.job_id,
                 rejected_samples: 0,
+                traced_pixel_passes: 0,
             };
             let mut delivered = false;
             for _ in 0..MUTANTS_PER_UNIT {

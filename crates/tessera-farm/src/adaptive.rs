@@ -36,10 +36,15 @@
 //! # Rendering only what is wanted
 //!
 //! [`AdaptiveTile::wants`] tells whether a pixel will use a given pass. A local renderer
-//! skips the pixels that do not (their values are ignored when merged); a farm worker that
-//! renders whole tiles produces the same image, since the policy reads only the passes it
-//! wants. [`AdaptiveTile::lease_horizon`] is the first pass that cannot be rendered yet
-//! because a decision before it is still open.
+//! skips the pixels that do not (their values are ignored when merged). On the farm a lease
+//! carries the same set, [`AdaptiveTile::wanted_pixels`] as a run-length list
+//! ([`crate::PixelRuns`], issue 15), and the worker traces only those pixels and reports
+//! the others as black; the policy reads only the passes it wants, so the image is the same
+//! as the local one, and a worker that renders whole tiles (one that predates the field)
+//! gives the same image too. [`AdaptiveTile::lease_horizon`] is the first pass that cannot
+//! be rendered yet because a decision before it is still open; below it every decision
+//! [`AdaptiveTile::wants`] reads is final, which makes the leased set a pure function of
+//! the job.
 //!
 //! # Example
 //!
@@ -72,6 +77,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 
 pub use crate::job::AdaptiveMode;
+use crate::mask::PixelRuns;
 use crate::merge::{FrameImage, MergeError};
 use crate::plan::{FramePlan, PlanError, TileRect, WorkUnit};
 use crate::result::UnitResult;
@@ -231,8 +237,11 @@ pub fn adaptive_plan(
 /// Per-pixel bookkeeping of the policy.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 struct PixelState {
-    /// Sequential: the pixel stopped. Unused otherwise.
-    stopped: bool,
+    /// Sequential: the decision boundary at which the pixel stopped (it takes the passes
+    /// below it and none from it on); `None` while it samples. Unused otherwise. The pass,
+    /// not a flag, so that [`AdaptiveTile::wants`] answers for a past pass as it did then:
+    /// a copy of an old unit leased again gets the pixel set the first copy got.
+    stopped_at: Option<std::num::NonZeroU32>,
     /// Unbiased: fresh passes fixed by the pilot (0 while the pilot runs).
     needed: u32,
     /// Passes the pixel used (including a discarded pilot): its rendering effort.
@@ -302,7 +311,8 @@ impl AdaptiveTile {
     }
 
     fn all_stopped(&self) -> bool {
-        self.settings.mode == AdaptiveMode::Sequential && self.state.iter().all(|s| s.stopped)
+        self.settings.mode == AdaptiveMode::Sequential
+            && self.state.iter().all(|s| s.stopped_at.is_some())
     }
 
     /// Passes below this index may be rendered now; later ones wait for a decision (or are
@@ -331,7 +341,9 @@ impl AdaptiveTile {
 
     /// Whether tile pixel `i` (row-major) will use pass `pass`, as far as the decisions
     /// made so far tell. Passes not consumed yet and beyond the lease horizon may still be
-    /// dropped by a later decision.
+    /// dropped by a later decision; for a pass below the horizon the answer is final: it
+    /// reads only the decisions at boundaries up to `pass`, which later decisions do not
+    /// change. It never turns from false back to true as `pass` grows.
     #[inline]
     pub fn wants(&self, i: usize, pass: u32) -> bool {
         let Some(s) = self.state.get(i) else {
@@ -342,13 +354,31 @@ impl AdaptiveTile {
         }
         match self.settings.mode {
             AdaptiveMode::Off => true,
-            AdaptiveMode::Sequential => !s.stopped,
+            AdaptiveMode::Sequential => s.stopped_at.is_none_or(|b| pass < b.get()),
             AdaptiveMode::Unbiased => {
                 pass < self.settings.min_passes
                     || s.needed == 0
                     || pass < self.settings.min_passes.saturating_add(s.needed)
             }
         }
+    }
+
+    /// The pixels a unit of this tile with passes `first_pass .. first_pass + pass_count`
+    /// must trace: those the policy wants for any of its passes ([`AdaptiveTile::wants`]).
+    /// `None` when that is every pixel (the lease then names no set).
+    ///
+    /// Call it only for a unit below the [`AdaptiveTile::lease_horizon`] (or one already
+    /// consumed): then every decision it reads is taken and final, so the set is a pure
+    /// function of the job, the same whenever it is asked and for every copy of the unit
+    /// (ARCHITECTURE.md §2, issue 15).
+    pub fn wanted_pixels(&self, first_pass: u32, pass_count: u32) -> Option<PixelRuns> {
+        let end = first_pass.saturating_add(pass_count.max(1));
+        let runs = PixelRuns::from_fn(self.state.len(), |i| {
+            (first_pass..end).any(|p| self.wants(i, p))
+        });
+        // An empty set cannot be said on the wire (empty means every pixel) and is never
+        // leased (the tile would be finished); tracing everything is then merely wasteful.
+        (!runs.covers(self.state.len()) && !runs.is_empty()).then_some(runs)
     }
 
     /// Offers a result for this tile, already validated and accepted by the tile's
@@ -409,7 +439,7 @@ impl AdaptiveTile {
                     .iter_mut()
                     .zip(self.stats.iter().zip(&self.state))
                 {
-                    *c = st.stopped || s.relative_error() < target;
+                    *c = st.stopped_at.is_some() || s.relative_error() < target;
                 }
                 // Dilation: stop only if the whole 3x3 neighbourhood (within the tile) has
                 // converged, so one lucky pixel next to a noisy one keeps sampling.
@@ -417,7 +447,7 @@ impl AdaptiveTile {
                 for y in 0..h {
                     for x in 0..w {
                         let i = y * w + x;
-                        if self.state[i].stopped || !self.scratch[i] {
+                        if self.state[i].stopped_at.is_some() || !self.scratch[i] {
                             continue;
                         }
                         let mut all = true;
@@ -426,7 +456,10 @@ impl AdaptiveTile {
                                 all &= self.scratch[yy * w + xx];
                             }
                         }
-                        self.state[i].stopped = all;
+                        if all {
+                            // Boundaries are at least `min_passes >= 2`, never 0.
+                            self.state[i].stopped_at = std::num::NonZeroU32::new(self.next_pass);
+                        }
                     }
                 }
             }

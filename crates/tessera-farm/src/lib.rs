@@ -69,6 +69,7 @@
 
 mod adaptive;
 pub mod job;
+mod mask;
 mod merge;
 mod plan;
 pub mod quote;
@@ -80,6 +81,7 @@ pub use adaptive::{
     adaptive_plan, eta_seconds, fresh_passes_needed, AdaptiveError, AdaptiveFrame, AdaptiveMode,
     AdaptiveSettings, AdaptiveTile, ConvergencePoint, ADAPTIVE_MAX_SAMPLES_PER_PASS,
 };
+pub use mask::{MaskError, PixelRuns};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
 pub use plan::{
     FramePlan, PlanError, TileRect, WorkUnit, MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION,

@@ -694,6 +694,21 @@ impl Scheduler {
             .as_ref()
     }
 
+    /// The pixels a leased unit of an adaptive job must trace (issue 15): those its tile's
+    /// policy wants for any of the unit's passes ([`crate::AdaptiveTile::wanted_pixels`]).
+    /// `None` means every pixel: a job without adaptive stopping, a tile all of whose
+    /// pixels are still wanted, or a frame whose policy state is gone.
+    ///
+    /// A unit is leased only below its tile's lease horizon, where every decision the set
+    /// reads is final; so the set is a pure function of the job, the same for every copy
+    /// of the unit whenever it is asked (a re-lease after expiry, a duplicate), and the
+    /// copies stay byte-identical.
+    pub fn wanted_pixels(&self, job_id: JobId, unit: &WorkUnit) -> Option<crate::PixelRuns> {
+        self.adaptive_frame(job_id, unit.frame)?
+            .tile(unit.tile)?
+            .wanted_pixels(unit.first_pass, unit.pass_count)
+    }
+
     /// Leases up to `max_units` units to `worker`.
     ///
     /// Under memory pressure (more than half the budget resident while a job has work),
@@ -1616,6 +1631,124 @@ mod tests {
         };
         assert!(s.add_adaptive_job(1, 0, p, 0..=0, 2, bad).is_err());
         assert!(s.lease(1, 0, 1).is_empty());
+    }
+
+    /// Issue 15: leases of adaptive jobs name the pixels still wanted. Workers that trace
+    /// only those (the rest black) give the local image bit for bit; the set of every unit
+    /// is the same whatever the workers and the interleaving (expiry, re-leases, copies
+    /// compared), and the same when asked again after the job finished, so it is a pure
+    /// function of the merged state; and the pixel-passes traced are those the local
+    /// render used (one pass per unit), far fewer than whole tiles.
+    #[test]
+    fn leased_pixel_sets_are_deterministic_and_save_the_stopped_pixels() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(24, 16, 8, 1, 48).unwrap(); // 6 tiles of 64 pixels
+        let masked = |unit: WorkUnit, wanted: &Option<crate::PixelRuns>| {
+            let mut r = noisy_result(&p, unit);
+            let n = p.tile(unit.tile).pixel_count();
+            for (k, m) in r.pass_means.iter_mut().enumerate() {
+                if wanted.as_ref().is_some_and(|w| !w.contains(k % n)) {
+                    *m = [0.0; 3];
+                }
+            }
+            r
+        };
+        for (mode, ppu) in [
+            (AdaptiveMode::Sequential, 1),
+            (AdaptiveMode::Unbiased, 1),
+            (AdaptiveMode::Sequential, 2),
+            (AdaptiveMode::Unbiased, 2),
+        ] {
+            let settings = AdaptiveSettings {
+                mode,
+                target_error: 0.05,
+                min_passes: 8,
+                interval: 4,
+                ..AdaptiveSettings::default()
+            };
+            let mut local = AdaptiveFrame::new(p, 0, settings).unwrap();
+            for u in p.units(0, ppu) {
+                local.offer(&noisy_result(&p, u)).unwrap();
+            }
+            let reference = local.image();
+            let local_traced: u64 = local
+                .tiles()
+                .iter()
+                .flat_map(|t| t.traced_passes())
+                .map(u64::from)
+                .sum();
+            let mut sets: Option<BTreeMap<WorkUnit, Option<crate::PixelRuns>>> = None;
+            for (workers, seed) in [(1u64, 1u64), (3, 2), (4, 9)] {
+                let mut s = Scheduler::new(100, 0);
+                s.add_adaptive_job(7, 0, p, 0..=0, ppu, settings).unwrap();
+                let (mut now, mut rng) = (0u64, seed);
+                let mut held: Vec<(Lease, Option<crate::PixelRuns>)> = Vec::new();
+                let mut seen: BTreeMap<WorkUnit, Option<crate::PixelRuns>> = BTreeMap::new();
+                let mut traced = 0u64;
+                while !s.is_complete(7) {
+                    now += 10;
+                    assert!(now < 1_000_000, "{mode}: the job stalls");
+                    for w in 0..workers {
+                        for l in s.lease(w, now, 1) {
+                            let set = s.wanted_pixels(7, &l.unit);
+                            // Every copy of a unit gets the same set.
+                            let first = seen.entry(l.unit).or_insert_with(|| set.clone());
+                            assert_eq!(*first, set, "{mode}: unit {:?} changed its set", l.unit);
+                            held.push((l, set));
+                        }
+                    }
+                    rng = rng
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    if held.is_empty() {
+                        s.expire(now + 1000);
+                        continue;
+                    }
+                    let k = (rng >> 33) as usize % held.len();
+                    let (l, set) = held.swap_remove(k);
+                    if rng.is_multiple_of(5) {
+                        continue; // a lost result: re-leased after expiry
+                    }
+                    let n = p.tile(l.unit.tile).pixel_count() as u64;
+                    let outcome = s.submit(l.lease_id, 7, masked(l.unit, &set)).unwrap();
+                    match outcome {
+                        Submitted::Accepted => {
+                            traced += set.as_ref().map_or(n, crate::PixelRuns::count)
+                                * u64::from(l.unit.pass_count);
+                        }
+                        // Masked pixels are deterministic zeros: copies agree.
+                        other => assert_eq!(other, Submitted::Duplicate { identical: true }),
+                    }
+                    if rng.is_multiple_of(3) {
+                        s.expire(now + 1000);
+                    }
+                }
+                let f = s.adaptive_frame(7, 0).unwrap();
+                assert_eq!(f.image(), reference, "{mode}/{ppu} with {workers} workers");
+                // Asked again now that every decision is taken, each set is unchanged.
+                for (u, set) in &seen {
+                    assert_eq!(s.wanted_pixels(7, u), *set, "{mode}: {u:?} after the end");
+                }
+                match &sets {
+                    None => sets = Some(seen),
+                    Some(first) => assert_eq!(*first, seen, "{mode}: sets differ by workers"),
+                }
+                let full = u64::from(p.width * p.height * p.passes);
+                if ppu == 1 {
+                    assert_eq!(traced, local_traced, "{mode}: traced vs the local render");
+                } else {
+                    // A pixel wanted for one pass of a unit is traced for both.
+                    assert!(traced >= local_traced, "{mode}/{ppu}");
+                }
+                // Tile 0 (constant) stops at the first decision; the noisy ones later.
+                assert!(traced < full, "{mode}/{ppu}: traced {traced} of {full}");
+            }
+            let sets = sets.unwrap();
+            assert!(
+                sets.values().any(Option::is_some),
+                "{mode}: no lease named a pixel set"
+            );
+        }
     }
 
     #[test]

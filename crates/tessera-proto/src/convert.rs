@@ -6,7 +6,9 @@ use tessera_farm::job::{
     Integrator, MisHeuristic, RenderConfig, SamplerKind, SceneRef, Shutter, DEFAULT_FPS,
     MAX_ANIMATION_CHARS, MAX_CAMERA_CHARS, MAX_FPS,
 };
-use tessera_farm::{FramePlan, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES};
+use tessera_farm::{
+    FramePlan, PixelRuns, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES,
+};
 use tessera_farm::{MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS, MIN_TILE_SIZE};
 
 use crate::v1;
@@ -209,6 +211,7 @@ impl v1::SubmitResultRequest {
             render_seconds,
             job_id: 0,
             rejected_samples: result.rejected_samples,
+            traced_pixel_passes: 0,
         }
     }
 
@@ -249,6 +252,16 @@ impl v1::SubmitResultRequest {
                 format_args!(
                     "has {len} values, expected 3 x {} passes x {} x {} pixels = {expected}",
                     unit.pass_count, self.width, self.height
+                ),
+            ));
+        }
+        let cells = u64::from(unit.pass_count) * u64::from(self.width) * u64::from(self.height);
+        if self.traced_pixel_passes > cells {
+            return Err(ProtoError::new(
+                "traced_pixel_passes",
+                format_args!(
+                    "is {}, more than the unit's {cells} pixel-passes",
+                    self.traced_pixel_passes
                 ),
             ));
         }
@@ -445,6 +458,9 @@ pub struct LeasedUnit {
     pub plan: FramePlan,
     /// The unit to render; a unit of `plan`.
     pub unit: WorkUnit,
+    /// The pixels of the unit's tile to trace (adaptive jobs, issue 15); `None`: every
+    /// pixel. Checked against the tile: canonical runs inside it.
+    pub wanted: Option<PixelRuns>,
 }
 
 impl From<&LeasedUnit> for v1::Lease {
@@ -464,6 +480,7 @@ impl From<&LeasedUnit> for v1::Lease {
             settings: Some((&l.settings).into()),
             plan: Some((&l.plan).into()),
             unit: Some((&l.unit).into()),
+            wanted: l.wanted.as_ref().map(|w| v1::PixelRuns { runs: w.flat() }),
         }
     }
 }
@@ -546,6 +563,14 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             .try_into()
             .map_err(|e: ProtoError| e.within("unit"))?;
         check_unit_in_plan(&unit, &plan).map_err(|e| e.within("unit"))?;
+        // An empty list means every pixel, like an absent one (the field's contract).
+        let wanted = match l.wanted {
+            Some(w) if !w.runs.is_empty() => Some(
+                PixelRuns::from_flat(&w.runs, plan.tile(unit.tile).pixel_count())
+                    .map_err(|e| ProtoError::new("wanted.runs", e))?,
+            ),
+            _ => None,
+        };
         Ok(Self {
             lease_id: l.lease_id,
             deadline_unix_ms: l.deadline_unix_ms,
@@ -558,6 +583,7 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             settings,
             plan,
             unit,
+            wanted,
         })
     }
 }
@@ -750,7 +776,14 @@ mod tests {
         };
         let back = UnitResult::try_from(wire(&old)).unwrap();
         assert_eq!(back.rejected_samples, 0);
-        let cases: [Case<v1::SubmitResultRequest>; 12] = [
+        // Up to every pixel-pass of the unit may be reported traced.
+        let all = 2 * u64::from(good.width) * u64::from(good.height);
+        let counted = v1::SubmitResultRequest {
+            traced_pixel_passes: all,
+            ..good.clone()
+        };
+        assert!(UnitResult::try_from(wire(&counted)).is_ok());
+        let cases: [Case<v1::SubmitResultRequest>; 13] = [
             ("unit", |q| q.unit = None),
             ("unit.pass_count", |q| {
                 q.unit.as_mut().unwrap().pass_count = 0
@@ -769,6 +802,9 @@ mod tests {
             ("pass_means", |q| q.pass_means.extend([0.0; 3])),
             ("render_seconds", |q| q.render_seconds = f64::NAN),
             ("render_seconds", |q| q.render_seconds = -1.0),
+            ("traced_pixel_passes", |q| {
+                q.traced_pixel_passes = 2 * u64::from(q.width) * u64::from(q.height) + 1
+            }),
         ];
         for (field, f) in cases {
             let mut q = good.clone();
@@ -879,6 +915,8 @@ mod tests {
 
     fn leased() -> LeasedUnit {
         let p = plan();
+        let unit = *p.units(4, 2).last().unwrap();
+        let n = p.tile(unit.tile).pixel_count();
         LeasedUnit {
             lease_id: 12,
             deadline_unix_ms: 1_700_000_000_000,
@@ -893,7 +931,9 @@ mod tests {
             }),
             settings: configs()[7],
             plan: p,
-            unit: *p.units(4, 2).last().unwrap(),
+            unit,
+            // Pixels in blobs: the set an adaptive lease carries.
+            wanted: Some(PixelRuns::from_fn(n, |i| (i / 7) % 3 != 1)),
         }
     }
 
@@ -906,6 +946,7 @@ mod tests {
         let l = LeasedUnit {
             scene: SceneRef::Builtin("cornell-box".into()),
             camera: None,
+            wanted: None,
             ..leased()
         };
         let w = v1::Lease::from(l.clone());
@@ -917,6 +958,15 @@ mod tests {
             retry_after_ms: 0,
         };
         assert_eq!(wire(&resp), resp);
+        // A present but empty pixel list means every pixel, like an absent one.
+        let mut w = v1::Lease::from(&leased());
+        w.wanted = Some(v1::PixelRuns { runs: Vec::new() });
+        assert_eq!(LeasedUnit::try_from(wire(&w)).unwrap().wanted, None);
+        // The runs survive the wire exactly.
+        let l = leased();
+        let back = LeasedUnit::try_from(wire(&v1::Lease::from(&l))).unwrap();
+        assert_eq!(back.wanted, l.wanted);
+        assert!(back.wanted.as_ref().unwrap().runs().len() > 3);
     }
 
     #[test]
@@ -973,6 +1023,36 @@ mod tests {
                     let u = l.unit.as_mut().unwrap();
                     u.first_pass = passes - 1;
                     u.pass_count = 2;
+                }),
+            ),
+            // Malformed pixel sets (issue 15): refused naming the field, never a panic.
+            (
+                "wanted.runs",
+                Box::new(|l| l.wanted.as_mut().unwrap().runs.push(3)),
+            ),
+            (
+                "wanted.runs",
+                Box::new(|l| l.wanted = Some(v1::PixelRuns { runs: vec![5, 0] })),
+            ),
+            (
+                "wanted.runs",
+                Box::new(|l| {
+                    l.wanted = Some(v1::PixelRuns {
+                        runs: vec![9, 2, 3, 1],
+                    })
+                }),
+            ),
+            (
+                "wanted.runs",
+                // The edge tile has 6 x 18 = 108 pixels.
+                Box::new(|l| l.wanted = Some(v1::PixelRuns { runs: vec![100, 9] })),
+            ),
+            (
+                "wanted.runs",
+                Box::new(|l| {
+                    l.wanted = Some(v1::PixelRuns {
+                        runs: vec![u32::MAX, u32::MAX],
+                    })
                 }),
             ),
         ];

@@ -34,7 +34,8 @@ use std::time::{Duration, Instant};
 use tessera_farm::job::SceneRef;
 use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
-use tessera_render::render::render_unit;
+use tessera_render::integrator::Integrator;
+use tessera_render::render::{render_unit, render_unit_where};
 use tessera_render::scene::RenderScene;
 use tessera_scene::{Scene, SceneTime};
 use tonic::metadata::MetadataValue;
@@ -372,6 +373,8 @@ struct Rendered {
     job_id: u64,
     result: tessera_farm::UnitResult,
     seconds: f64,
+    /// Pixel-passes traced (reported with the result).
+    pixel_passes: u64,
 }
 
 /// What outlives one session with a coordinator.
@@ -397,6 +400,7 @@ async fn submit_all(
         let mut req =
             v1::SubmitResultRequest::from_result(worker_id, r.lease_id, &r.result, r.seconds);
         req.job_id = r.job_id;
+        req.traced_pixel_passes = r.pixel_passes;
         match client.submit_result(req).await {
             Ok(resp) => {
                 let resp = resp.into_inner();
@@ -741,6 +745,7 @@ fn sort_results(
                 job_id: o.job_id,
                 result,
                 seconds: o.seconds,
+                pixel_passes: o.pixel_passes,
             }),
             Ok(_) => {}
             Err(message) => {
@@ -862,6 +867,8 @@ struct Outcome {
     seconds: f64,
     /// Camera paths traced (0 if it panicked).
     paths: f64,
+    /// Pixel-passes traced (0 if it panicked).
+    pixel_passes: u64,
 }
 
 /// A batch rendering on the pool.
@@ -884,16 +891,18 @@ impl Rendering {
                     .par_iter()
                     .map(|(l, rs)| {
                         let t = Instant::now();
-                        let result = render_contained(rs, l);
-                        let paths = result.as_ref().map_or(0.0, |r| {
-                            r.pass_means.len() as f64 * f64::from(l.plan.samples_per_pass)
-                        });
+                        let (result, pixel_passes) = match render_contained(rs, l) {
+                            Ok((r, n)) => (Ok(r), n),
+                            Err(e) => (Err(e), 0),
+                        };
                         Outcome {
                             lease_id: l.lease_id,
                             job_id: l.job_id,
                             result,
                             seconds: t.elapsed().as_secs_f64(),
-                            paths,
+                            // Only the pixels traced count towards the throughput.
+                            paths: pixel_passes as f64 * f64::from(l.plan.samples_per_pass),
+                            pixel_passes,
                         }
                     })
                     .collect()
@@ -915,13 +924,39 @@ pub const TEST_PANIC_SEED_VAR: &str = "TESSERA_WORKER_TEST_PANIC_SEED";
 /// Renders one leased unit, turning a panic of the renderer into `Err(message)`, so one
 /// unit cannot end the worker's session (a panic would otherwise unwind through the rayon
 /// pool into the blocking task and break the connection, and the unit would be leased
-/// again forever).
-fn render_contained(rs: &RenderScene, l: &LeasedUnit) -> Result<tessera_farm::UnitResult, String> {
+/// again forever). Also returns the pixel-passes traced.
+///
+/// Only the lease's wanted pixels are traced (issue 15); the others are left black, which
+/// keeps the result's size, and the coordinator's adaptive policy never reads them. The
+/// set was validated against the tile when the lease was decoded.
+fn render_contained(
+    rs: &RenderScene,
+    l: &LeasedUnit,
+) -> Result<(tessera_farm::UnitResult, u64), String> {
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         if std::env::var(TEST_PANIC_SEED_VAR).is_ok_and(|v| v == l.settings.seed.to_string()) {
             panic!("{TEST_PANIC_SEED_VAR} is {}", l.settings.seed);
         }
-        render_unit(rs, &l.settings, &l.plan, l.unit)
+        let pixels = l.plan.tile(l.unit.tile).pixel_count() as u64;
+        let all = pixels * u64::from(l.unit.pass_count);
+        let Some(wanted) = &l.wanted else {
+            return (render_unit(rs, &l.settings, &l.plan, l.unit), all);
+        };
+        // Counted where the renderer asks, so the figure is what was traced. The per-pixel
+        // test is a binary search over the runs: nothing is allocated per pixel.
+        let traced = std::cell::Cell::new(0u64);
+        let result = render_unit_where(rs, &l.settings, &l.plan, l.unit, |i, _| {
+            let yes = wanted.contains(i);
+            traced.set(traced.get() + u64::from(yes));
+            yes
+        });
+        // bdpt renders every pixel of its whole-frame tile (its light paths splat anywhere)
+        // without asking.
+        let traced = match l.settings.integrator {
+            Integrator::Bdpt => all,
+            Integrator::Path | Integrator::Direct => traced.get(),
+        };
+        (result, traced)
     }))
     .map_err(|payload| panic_message(payload.as_ref()))
 }

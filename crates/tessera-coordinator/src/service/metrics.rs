@@ -51,6 +51,9 @@ impl Coordinator {
         let render_seconds: f64 =
             farm.workers.values().map(|w| w.render_seconds).sum::<f64>() + forgotten.render_seconds;
         let _ = writeln!(s, "# HELP tessera_worker_render_seconds_total Seconds workers spent rendering the units they delivered, as they reported them (summed over their threads' units; `tessera bench-farm` compares it with the wall time).\n# TYPE tessera_worker_render_seconds_total counter\ntessera_worker_render_seconds_total {render_seconds:.3}");
+        let pixel_passes: u64 =
+            farm.workers.values().map(|w| w.pixel_passes).sum::<u64>() + forgotten.pixel_passes;
+        let _ = writeln!(s, "# HELP tessera_worker_pixel_passes_total Pixel-passes workers traced for the units merged from them, as they reported them (pixels traced times passes: an adaptive lease names the pixels still wanted and the rest are not traced; 0 from workers that do not report it).\n# TYPE tessera_worker_pixel_passes_total counter\ntessera_worker_pixel_passes_total {pixel_passes}");
         let _ = writeln!(s, "# HELP tessera_worker_faults_total Refused results and mismatching duplicates.\n# TYPE tessera_worker_faults_total counter\ntessera_worker_faults_total {faults}");
         let _ = writeln!(s, "# HELP tessera_leases_expired_total Leases that lapsed without a result; their units were leased again.\n# TYPE tessera_leases_expired_total counter\ntessera_leases_expired_total {}", farm.leases_expired);
         let _ = writeln!(s, "# HELP tessera_leases_outstanding Leases currently held by workers.\n# TYPE tessera_leases_outstanding gauge\ntessera_leases_outstanding {}", farm.scheduler.leases().count());

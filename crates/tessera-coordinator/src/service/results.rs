@@ -34,6 +34,8 @@ pub struct Delivery {
     pub result: Result<UnitResult, String>,
     /// Seconds the worker spent rendering it, as it reports them.
     pub render_seconds: f64,
+    /// Pixel-passes the worker says it traced for it (0: not reported), for `/metrics`.
+    pub traced_pixel_passes: u64,
 }
 
 /// A result the coordinator took: merged (and checkpointed), or an identical copy of a
@@ -313,6 +315,8 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
                     if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
                         w.render_seconds += d.render_seconds;
                     }
+                    // Bounded by the unit's size when decoded.
+                    w.pixel_passes = w.pixel_passes.saturating_add(d.traced_pixel_passes);
                 }
                 writes.checkpoint = record_merge(farm, &m, rejected_samples);
                 if let Some(rt) = farm.runtime.get_mut(&m.job) {

@@ -195,6 +195,8 @@ impl Coordinator {
                         settings: job.settings,
                         plan: job.plan,
                         unit: l.unit,
+                        // Adaptive jobs: only the pixels still wanted (issue 15).
+                        wanted: farm.scheduler.wanted_pixels(l.job, &l.unit),
                     })
                 })
                 .collect();
@@ -356,6 +358,7 @@ impl Coordinator {
                 farm.forgotten.units_done += w.units_done;
                 farm.forgotten.faults += w.faults;
                 farm.forgotten.render_seconds += w.render_seconds;
+                farm.forgotten.pixel_passes += w.pixel_passes;
                 tracing::info!(worker = id, name = %w.name, "lost worker forgotten");
             }
         }
