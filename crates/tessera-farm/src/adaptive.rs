@@ -505,6 +505,136 @@ impl AdaptiveTile {
     }
 }
 
+/// One pixel of an [`AdaptiveTileCheckpoint`].
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct AdaptivePixel {
+    /// Statistics of the passes the pixel keeps (for unbiased after the pilot: the fresh
+    /// ones only).
+    pub stats: PixelStats,
+    /// Sequential: the boundary at which the pixel stopped, 0 while it samples.
+    pub stopped_at: u32,
+    /// Unbiased: fresh passes fixed by the pilot, 0 while the pilot runs.
+    pub needed: u32,
+    /// Passes the pixel used, a discarded pilot included.
+    pub traced: u32,
+}
+
+/// The policy state of one tile as plain data, to be stored with the tile's merged passes
+/// (issue 15, part 2: a coordinator restart resumes an adaptive job from its merged
+/// passes). Results buffered ahead of their turn are not part of it (they are not part of
+/// the tile's merge checkpoint either: their units are leased again).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AdaptiveTileCheckpoint {
+    /// Passes consumed: every decision up to this pass index is taken.
+    pub consumed_passes: u32,
+    /// Per pixel, row-major within the tile.
+    pub pixels: Vec<AdaptivePixel>,
+}
+
+/// Why an [`AdaptiveTileCheckpoint`] cannot be restored (a damaged or foreign store row).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("adaptive checkpoint of tile {tile}: {reason}")]
+pub struct AdaptiveRestoreError {
+    /// The tile index.
+    pub tile: u32,
+    /// What is inconsistent.
+    pub reason: String,
+}
+
+impl AdaptiveTile {
+    /// The policy state to checkpoint with the tile (see [`AdaptiveTileCheckpoint`]).
+    pub fn checkpoint(&self) -> AdaptiveTileCheckpoint {
+        AdaptiveTileCheckpoint {
+            consumed_passes: self.next_pass,
+            pixels: self
+                .stats
+                .iter()
+                .zip(&self.state)
+                .map(|(s, st)| AdaptivePixel {
+                    stats: *s,
+                    stopped_at: st.stopped_at.map_or(0, std::num::NonZeroU32::get),
+                    needed: st.needed,
+                    traced: st.traced,
+                })
+                .collect(),
+        }
+    }
+
+    /// The tile `rect` restored from `cp` for a plan of `max_passes` passes with
+    /// `settings` (those the job ran with). Everything is checked against the settings, so
+    /// a checkpoint that no run of the policy could have produced is refused rather than
+    /// trusted: the pixel count, the consumed passes, every stop at a decision boundary
+    /// already passed, the unbiased fresh counts present exactly once the pilot is over
+    /// and within the plan, traced counts within the consumed passes, finite statistics.
+    pub fn restore(
+        rect: TileRect,
+        settings: AdaptiveSettings,
+        max_passes: u32,
+        cp: &AdaptiveTileCheckpoint,
+    ) -> Result<Self, AdaptiveRestoreError> {
+        let err = |reason: String| AdaptiveRestoreError {
+            tile: rect.index,
+            reason,
+        };
+        let mut tile = Self::new(rect, settings, max_passes);
+        if cp.pixels.len() != tile.state.len() {
+            return Err(err(format!(
+                "{} pixels, the tile has {}",
+                cp.pixels.len(),
+                tile.state.len()
+            )));
+        }
+        let consumed = cp.consumed_passes;
+        if consumed > max_passes {
+            return Err(err(format!(
+                "consumed {consumed} passes of a plan of {max_passes}"
+            )));
+        }
+        let pilot = settings.min_passes;
+        let decided = settings.mode == AdaptiveMode::Unbiased && consumed >= pilot;
+        let max_fresh = max_passes.saturating_sub(pilot);
+        let mut end = pilot;
+        for (i, p) in cp.pixels.iter().enumerate() {
+            let s = &p.stats;
+            let finite = s.mean.iter().chain(&s.m2).all(|v| v.is_finite())
+                && s.mean_lum.is_finite()
+                && s.m2_lum.is_finite();
+            if !finite || s.passes > p.traced || p.traced > consumed {
+                return Err(err(format!(
+                    "pixel {i}: {} passes kept, {} traced, {consumed} consumed, finite: {finite}",
+                    s.passes, p.traced
+                )));
+            }
+            let stop_ok = p.stopped_at == 0
+                || (settings.mode == AdaptiveMode::Sequential
+                    && p.stopped_at <= consumed
+                    && settings.is_boundary(p.stopped_at));
+            if !stop_ok {
+                return Err(err(format!(
+                    "pixel {i} stopped at pass {}, not a decision boundary up to {consumed}",
+                    p.stopped_at
+                )));
+            }
+            if (p.needed > 0) != decided || p.needed > max_fresh {
+                return Err(err(format!(
+                    "pixel {i} has {} fresh passes with {consumed} passes consumed",
+                    p.needed
+                )));
+            }
+            end = end.max(pilot.saturating_add(p.needed));
+            tile.stats[i] = *s;
+            tile.state[i] = PixelState {
+                stopped_at: std::num::NonZeroU32::new(p.stopped_at),
+                needed: p.needed,
+                traced: p.traced,
+            };
+        }
+        tile.next_pass = consumed;
+        tile.end = decided.then_some(end);
+        Ok(tile)
+    }
+}
+
 /// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, Jensen 2001, section 10.3):
 /// `ceil(s² / (target (lum + eps))²)` with `s² = m2_lum / (K - 1)` the pilot's per-pass
 /// variance of the luminance, clamped to `[lo, hi]`.
@@ -555,6 +685,37 @@ impl AdaptiveFrame {
                 .map(|r| AdaptiveTile::new(r, settings, plan.passes))
                 .collect(),
         })
+    }
+
+    /// A frame restored from its tiles' checkpoints, one per tile in tile order (`None`:
+    /// nothing consumed yet); fails on invalid settings, a wrong tile count or a
+    /// checkpoint [`AdaptiveTile::restore`] refuses.
+    pub fn restore(
+        plan: FramePlan,
+        frame: u32,
+        settings: AdaptiveSettings,
+        checkpoints: &[Option<AdaptiveTileCheckpoint>],
+    ) -> Result<Self, AdaptiveRestoreError> {
+        let mut f = Self::new(plan, frame, settings).map_err(|e| AdaptiveRestoreError {
+            tile: 0,
+            reason: e.to_string(),
+        })?;
+        if checkpoints.len() != f.tiles.len() {
+            return Err(AdaptiveRestoreError {
+                tile: 0,
+                reason: format!(
+                    "{} tile checkpoints for a plan of {} tiles",
+                    checkpoints.len(),
+                    f.tiles.len()
+                ),
+            });
+        }
+        for (t, cp) in f.tiles.iter_mut().zip(checkpoints) {
+            if let Some(cp) = cp {
+                *t = AdaptiveTile::restore(t.rect(), settings, plan.passes, cp)?;
+            }
+        }
+        Ok(f)
     }
 
     /// The plan.

@@ -79,7 +79,8 @@ mod stats;
 
 pub use adaptive::{
     adaptive_plan, eta_seconds, fresh_passes_needed, AdaptiveError, AdaptiveFrame, AdaptiveMode,
-    AdaptiveSettings, AdaptiveTile, ConvergencePoint, ADAPTIVE_MAX_SAMPLES_PER_PASS,
+    AdaptivePixel, AdaptiveRestoreError, AdaptiveSettings, AdaptiveTile, AdaptiveTileCheckpoint,
+    ConvergencePoint, ADAPTIVE_MAX_SAMPLES_PER_PASS,
 };
 pub use mask::{MaskError, PixelRuns};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};

@@ -359,3 +359,64 @@ fn sequential_is_biased_and_unbiased_is_not() {
     );
     assert!(z_unb.abs() < 3.0, "unbiased mode is biased: z = {z_unb}");
 }
+
+/// Issue 15, part 2 (the building block): the policy state checkpointed at any point and
+/// restored continues exactly as the uninterrupted state, bit for bit, with the same
+/// leased pixel sets; a checkpoint no run could have produced is refused.
+#[test]
+fn checkpointed_policy_state_resumes_bit_identically() {
+    let plan = FramePlan::new(20, 12, 8, 1, 64).unwrap();
+    for settings in [seq(0.15), unb(0.15)] {
+        let units = plan.units(0, 1);
+        let feed = |f: &mut AdaptiveFrame, us: &[WorkUnit]| {
+            for &u in us {
+                let rect = plan.tile(u.tile);
+                f.offer(&result_from(rect, u, &|p, i| noisy(u.tile, p, i)))
+                    .unwrap();
+            }
+        };
+        let mut whole = AdaptiveFrame::new(plan, 0, settings).unwrap();
+        feed(&mut whole, &units);
+        let reference = whole.image();
+        for cut in [0, 1, units.len() / 5, units.len() / 2, units.len() - 1] {
+            let mut first = AdaptiveFrame::new(plan, 0, settings).unwrap();
+            feed(&mut first, &units[..cut]);
+            let cps: Vec<Option<AdaptiveTileCheckpoint>> =
+                first.tiles().iter().map(|t| Some(t.checkpoint())).collect();
+            let mut resumed = AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap();
+            for (a, b) in first.tiles().iter().zip(resumed.tiles()) {
+                assert_eq!(a.consumed_passes(), b.consumed_passes());
+                assert_eq!(a.lease_horizon(), b.lease_horizon());
+                let (p, n) = (a.consumed_passes(), 1);
+                assert_eq!(a.wanted_pixels(p, n), b.wanted_pixels(p, n), "{settings:?}");
+            }
+            feed(&mut resumed, &units[cut..]);
+            assert!(resumed.finished());
+            assert_eq!(resumed.image(), reference, "{settings:?} cut at {cut}");
+        }
+        // Damaged checkpoints are refused with the tile named, never trusted.
+        let cp = whole.tile(1).unwrap().checkpoint();
+        let rect = plan.tile(1);
+        let mut bad = cp.clone();
+        bad.pixels.pop();
+        assert!(AdaptiveTile::restore(rect, settings, plan.passes, &bad).is_err());
+        let mut bad = cp.clone();
+        bad.consumed_passes = plan.passes + 1;
+        assert!(AdaptiveTile::restore(rect, settings, plan.passes, &bad).is_err());
+        let mut bad = cp.clone();
+        bad.pixels[0].stats.mean[1] = f64::NAN;
+        assert!(AdaptiveTile::restore(rect, settings, plan.passes, &bad).is_err());
+        let mut bad = cp.clone();
+        bad.pixels[0].traced = cp.consumed_passes + 1;
+        assert!(AdaptiveTile::restore(rect, settings, plan.passes, &bad).is_err());
+        let mut bad = cp.clone();
+        if settings.mode == AdaptiveMode::Sequential {
+            bad.pixels[0].stopped_at = settings.min_passes + 1; // not a boundary
+        } else {
+            bad.pixels[0].needed = 0; // the pilot decided for every pixel
+        }
+        let e = AdaptiveTile::restore(rect, settings, plan.passes, &bad).unwrap_err();
+        assert_eq!(e.tile, 1);
+        assert!(AdaptiveFrame::restore(plan, 0, settings, &[None]).is_err());
+    }
+}
