@@ -465,6 +465,33 @@ pub fn tail_share(queued: u64, threads: u64, total_threads: u64, max_units: usiz
         .min(max_units.max(1))
 }
 
+/// `result` with the pixels outside the set its lease named set to 0, after checking it
+/// whole (a worker is still faulted for a NaN in a pixel it did not have to trace).
+///
+/// Why: a worker that traces only the named pixels reports 0 for the others, but one
+/// that predates `Lease.wanted`, or an integrator that cannot skip pixels (bdpt), reports
+/// real values there. The policy reads neither, yet the digests that compare copies of a
+/// unit would differ; zeroing here makes every valid copy of a unit the same bytes.
+fn canonical_masked(
+    mut result: UnitResult,
+    wanted: Option<&crate::PixelRuns>,
+    plan: &FramePlan,
+) -> Result<UnitResult, SubmitError> {
+    let Some(wanted) = wanted else {
+        return Ok(result);
+    };
+    result
+        .validate(plan)
+        .map_err(|e| SubmitError::Invalid(e.into()))?;
+    let n = plan.tile(result.unit.tile).pixel_count().max(1);
+    for (k, m) in result.pass_means.iter_mut().enumerate() {
+        if !wanted.contains(k % n) {
+            *m = [0.0; 3];
+        }
+    }
+    Ok(result)
+}
+
 /// The lease table and work queues of all jobs.
 pub struct Scheduler {
     lease_ms: u64,
@@ -901,6 +928,12 @@ impl Scheduler {
         // A lease of the previous run may be for a frame nothing of which was merged
         // before the restart (pending again): adopted if it fits the budget.
         job.make_live(frame, &mut self.memory);
+        // The pixels the unit's lease named (issue 15), to make every copy canonical.
+        let wanted = job
+            .adaptive
+            .as_ref()
+            .and_then(|a| a.frames.get(frame)?.as_ref()?.tile(result.unit.tile))
+            .and_then(|t| t.wanted_pixels(result.unit.first_pass, result.unit.pass_count));
         let acc = match &mut job.frames[frame] {
             FrameSlot::Live(acc) => acc,
             // Complete and checkpointed: the unit is merged; its copy cannot be compared
@@ -916,6 +949,7 @@ impl Scheduler {
             // It does not fit: the unit is leased again once it does.
             FrameSlot::Pending => return Err(SubmitError::NotResident(result.unit.frame)),
         };
+        let result = canonical_masked(result, wanted.as_ref(), &job.plan)?;
         let copy = job.adaptive.as_ref().map(|_| result.clone());
         let outcome = acc.offer(result)?;
         if let (Some(a), Some(copy)) = (job.adaptive.as_mut(), copy) {
@@ -1710,7 +1744,14 @@ mod tests {
                         continue; // a lost result: re-leased after expiry
                     }
                     let n = p.tile(l.unit.tile).pixel_count() as u64;
-                    let outcome = s.submit(l.lease_id, 7, masked(l.unit, &set)).unwrap();
+                    // Some copies come from workers that trace whole tiles (older ones,
+                    // bdpt): they are the same unit to the comparison.
+                    let r = if rng.is_multiple_of(7) {
+                        noisy_result(&p, l.unit)
+                    } else {
+                        masked(l.unit, &set)
+                    };
+                    let outcome = s.submit(l.lease_id, 7, r).unwrap();
                     match outcome {
                         Submitted::Accepted => {
                             traced += set.as_ref().map_or(n, crate::PixelRuns::count)
