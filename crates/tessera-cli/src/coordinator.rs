@@ -83,6 +83,10 @@ pub struct CoordinatorArgs {
     /// by this CA (PEM); the certificate's common name is the worker's identity.
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_client_ca: Option<PathBuf>,
+    /// Dry runs (`POST /api/v1/jobs?dry_run=true`): seconds a quote's pilot may render on
+    /// this host (one at a time, on one thread, in a child process) before it is killed.
+    #[arg(long, default_value_t = 120, value_name = "SECS")]
+    pub pilot_timeout: u64,
 }
 
 /// A byte count with an optional binary or decimal unit: `4GiB`, `512MiB`, `2GB`, `1024`.
@@ -146,6 +150,15 @@ impl CoordinatorArgs {
         cfg.heartbeat_ms = self.heartbeat_ms;
         cfg.grace_ms = self.grace_ms;
         cfg.memory_budget = self.memory_budget;
+        if !(1..=3600).contains(&self.pilot_timeout) {
+            bail!(
+                "--pilot-timeout {} must be between 1 and 3600 seconds",
+                self.pilot_timeout
+            );
+        }
+        cfg.pilot_timeout_ms = self.pilot_timeout * 1000;
+        // The pilot is this binary's hidden `tessera pilot`.
+        cfg.pilot_program = std::env::current_exe().ok();
         cfg.http_limits = HttpLimits {
             header_timeout: Duration::from_secs(self.http_header_timeout),
             body_timeout: Duration::from_secs(self.http_body_timeout),

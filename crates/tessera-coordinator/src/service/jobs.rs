@@ -106,7 +106,11 @@ impl Coordinator {
     /// Refuses a job whose merge state cannot fit the memory budget: one frame (frames
     /// of a job that is not adaptive are released as they complete) or, for adaptive jobs,
     /// all frames (their policy state is not checkpointed, so it stays until the job ends).
-    fn check_memory(&self, job: &ValidatedJob, resolved: &ResolvedJob) -> CoordResult<()> {
+    pub(crate) fn check_memory(
+        &self,
+        job: &ValidatedJob,
+        resolved: &ResolvedJob,
+    ) -> CoordResult<()> {
         if resolved.black {
             return Ok(());
         }
@@ -214,6 +218,7 @@ impl Coordinator {
             passes_done,
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
             error_estimate: history.last().and_then(|h| h.error_estimate),
+            error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
             target_reached: verdict.and_then(|v| v.target_reached()),
             stop_reason: verdict.map(|v| v.summary()),
             elapsed_seconds: elapsed,
@@ -397,6 +402,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             None => spp_so_far(&rt.resolved, passes_done, rt.job().frames.count()),
         },
         error_estimate: error,
+        error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
         target_error: rt.job().target_error,
         target_reached: verdict.and_then(|v| v.target_reached()),
         stop_reason: verdict.map(|v| v.summary()),

@@ -11,6 +11,7 @@
 //! | [`resume`] | a stored job resolved again, tile checkpoints restored, the restart |
 //! | [`images`] | a frame's merged state, its image and its tile map |
 //! | [`metrics`] | the Prometheus exposition |
+//! | [`quote`] | dry runs: a job quoted from a pilot rendered in a child process |
 //!
 //! # Durability (ARCHITECTURE.md §6)
 //! The store is the truth. A job is inserted before `POST /jobs` answers. A result is
@@ -46,6 +47,7 @@ use crate::store::{Store, StoreError, StoreUrl, WatchedStore};
 pub mod images;
 pub mod jobs;
 pub mod metrics;
+pub mod quote;
 pub mod results;
 pub mod resume;
 pub mod scenes;
@@ -96,6 +98,11 @@ pub struct CoordinatorConfig {
     /// TLS on both ports, and mutual TLS for workers with a client CA (`crate::tls`);
     /// `None` serves plain text.
     pub tls: Option<crate::tls::TlsFiles>,
+    /// The program a dry run's pilot runs as (`PROGRAM pilot ...`, normally the coordinator's
+    /// own `tessera` binary; [`quote`]); `None` refuses dry runs with 503.
+    pub pilot_program: Option<PathBuf>,
+    /// How long a dry run's pilot may render before it is killed, ms.
+    pub pilot_timeout_ms: u64,
 }
 
 impl std::fmt::Debug for CoordinatorConfig {
@@ -114,6 +121,8 @@ impl std::fmt::Debug for CoordinatorConfig {
             .field("http_limits", &self.http_limits)
             .field("forget_lost_ms", &self.forget_lost_ms)
             .field("tls", &self.tls)
+            .field("pilot_program", &self.pilot_program)
+            .field("pilot_timeout_ms", &self.pilot_timeout_ms)
             .finish()
     }
 }
@@ -125,7 +134,8 @@ pub const DEFAULT_MEMORY_BUDGET: u64 = 4 << 30;
 impl CoordinatorConfig {
     /// Defaults for a data directory: 10 s leases, 1 s heartbeats, 3 s restart grace, one
     /// pass per unit, no tokens, the default HTTP limits ([`HttpLimits::default`]), lost
-    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`].
+    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`], no pilot program
+    /// (no dry runs) and a [`quote::PILOT_TIMEOUT_MS`] pilot timeout.
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
             data_dir: data_dir.into(),
@@ -140,6 +150,8 @@ impl CoordinatorConfig {
             http_limits: HttpLimits::default(),
             forget_lost_ms: FORGET_LOST_MS,
             tls: None,
+            pilot_program: None,
+            pilot_timeout_ms: quote::PILOT_TIMEOUT_MS,
         }
     }
 }
@@ -182,6 +194,8 @@ struct Inner {
     /// Permits for image requests that restore or encode a frame
     /// ([`images::HEAVY_REQUESTS`]).
     heavy: tokio::sync::Semaphore,
+    /// The one permit of a dry run's pilot ([`quote`]).
+    pilots: tokio::sync::Semaphore,
     /// Encoded images for pollers.
     images: Mutex<images::ImageCache>,
     /// Set once a graceful shutdown began: heartbeats tell workers to stop and no new
@@ -232,6 +246,7 @@ impl Coordinator {
                 lease_blocked_until_ms: blocked,
                 started: Instant::now(),
                 heavy: tokio::sync::Semaphore::new(images::HEAVY_REQUESTS),
+                pilots: tokio::sync::Semaphore::new(1),
                 images: Mutex::new(images::ImageCache::default()),
                 stopping: std::sync::atomic::AtomicBool::new(false),
                 deposed: OnceLock::new(),
