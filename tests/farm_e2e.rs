@@ -152,6 +152,48 @@ fn a_killed_coordinator_resumes_and_loses_no_job() {
     assert_eq!(client.jobs(10, None).unwrap().jobs.len(), 2);
 }
 
+/// Issue 15: why a job stopped survives a restart. A job stopped by its time limit says so
+/// in its status and EXR header before and after its coordinator restarts (the store keeps
+/// the stop with the `done` state), and the reason is not reported as an error.
+#[test]
+fn a_time_limit_stop_is_still_named_after_a_restart() {
+    let dir = temp_dir("e2e", "time-limit-restart");
+    let data = dir.join("data");
+    let (http, grpc) = (
+        format!("127.0.0.1:{}", free_port()),
+        format!("127.0.0.1:{}", free_port()),
+    );
+    let mut c = start_coordinator(&data, &http, &grpc, &[]);
+    let _w = start_worker(&c.grpc, "w1", &[]);
+    let client = Client::new(&c.http, None);
+    let mut s = job(16, 16, 1 << 20);
+    s.time_limit_seconds = Some(1.0);
+    s.target_error = Some(1e-6);
+    let id = client.submit(&s, None).unwrap().id;
+    let done = wait_done(&client, id);
+    let reason = |st: &tessera_api::JobStatus| st.stop_reason.clone().unwrap_or_default();
+    assert!(reason(&done).contains("time limit"), "{done:?}");
+    assert_eq!(done.target_reached, Some(false));
+    assert_eq!(done.error, None);
+    let header = |exr: &[u8]| String::from_utf8_lossy(exr).contains("time limit");
+    assert!(
+        header(&client.image(id, "exr").unwrap()),
+        "EXR header before the restart"
+    );
+    c.proc.stop();
+    let c2 = start_coordinator(&data, &http, &grpc, &[]);
+    let client = Client::new(&c2.http, None);
+    let after = client.job(id).unwrap();
+    assert_eq!(after.state, tessera_api::JobState::Done);
+    assert_eq!(reason(&after), reason(&done), "{after:?}");
+    assert_eq!(after.target_reached, Some(false));
+    assert_eq!(after.error, None);
+    assert!(
+        header(&client.image(id, "exr").unwrap()),
+        "EXR header after the restart"
+    );
+}
+
 fn api_error(r: Result<impl std::fmt::Debug, ClientError>) -> (u16, tessera_api::ApiError) {
     match r {
         Err(ClientError::Api { status, error }) => (status, error),

@@ -227,6 +227,30 @@ pub enum Stop {
     TimeLimit,
 }
 
+impl Stop {
+    /// The message stored with a job's `done` state when its time limit stopped it
+    /// ([`crate::store::JobRecord::error`] holds the message of the last state change), so
+    /// that a restarted coordinator still says why it stopped: the rest of the verdict
+    /// (target, estimate, budget) is recomputed from the stored job and its history.
+    pub const TIME_LIMIT_MESSAGE: &'static str = "stopped by its time limit";
+
+    /// The message to store with the `done` state.
+    pub fn stored_message(self) -> Option<String> {
+        match self {
+            Self::Finished => None,
+            Self::TimeLimit => Some(Self::TIME_LIMIT_MESSAGE.to_string()),
+        }
+    }
+
+    /// Why a stored job stopped: `None` unless it is done.
+    pub fn of_stored(state: JobState, message: Option<&str>) -> Option<Self> {
+        (state == JobState::Done).then_some(match message {
+            Some(Self::TIME_LIMIT_MESSAGE) => Self::TimeLimit,
+            _ => Self::Finished,
+        })
+    }
+}
+
 impl JobRuntime {
     /// A job with nothing merged yet, in `state`, accepted at `created_unix_ms`.
     pub fn new(

@@ -187,12 +187,12 @@ impl Coordinator {
             (Some(s), None) => now_ms().saturating_sub(s) as f64 / 1e3,
             _ => 0.0,
         };
-        // The store does not keep whether a time limit stopped it.
         let stops_early = settings.adaptive != "off"
             || settings.target_error.is_some()
             || settings.time_limit_seconds.is_some();
-        let verdict = (rec.state == JobState::Done && stops_early).then(|| StopVerdict {
-            time_limit: false,
+        let stop = Stop::of_stored(rec.state, rec.error.as_deref());
+        let verdict = stop.filter(|_| stops_early).map(|stop| StopVerdict {
+            time_limit: stop == Stop::TimeLimit,
             target: settings.target_error,
             estimate: history.last().and_then(|h| h.error_estimate),
             spp: plan.spp(),
@@ -227,7 +227,8 @@ impl Coordinator {
             priority: rec.priority,
             faults,
             rejected_samples,
-            error: rec.error.clone(),
+            // A done job's message is why it stopped (above), not an error.
+            error: rec.error.clone().filter(|_| stop.is_none()),
             plan: None,
         })
     }

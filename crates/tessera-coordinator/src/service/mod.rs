@@ -319,7 +319,9 @@ impl Coordinator {
         self.inner.started.elapsed().as_secs_f64()
     }
 
-    /// Moves a job to `state`: in the store first, then in memory (ARCHITECTURE.md §9).
+    /// Moves a job to `state`: in the store first, then in memory (ARCHITECTURE.md §9). The
+    /// message of a `done` state is why it stopped ([`Stop::stored_message`]), not an
+    /// error: it is stored, and kept out of the status's `error`.
     async fn set_state(
         &self,
         id: JobId,
@@ -346,7 +348,7 @@ impl Coordinator {
                     rt.started_unix_ms = Some(now);
                 }
             }
-            rt.error = error;
+            rt.error = if state == JobState::Done { None } else { error };
         }
         Ok(())
     }
@@ -356,6 +358,7 @@ impl Coordinator {
     pub async fn tick(&self) {
         let now = now_ms();
         let mut over_time = Vec::new();
+        let mut final_points = Vec::new();
         if let Ok(mut farm) = self.inner.farm.lock() {
             // During the grace period leases of the previous run are not expired.
             if !self.leasing_paused() {
@@ -373,12 +376,24 @@ impl Coordinator {
                 if let Some(rt) = farm.runtime.get_mut(id) {
                     rt.stopped = Some(Stop::TimeLimit);
                 }
+                // The final point, as at completion: a restarted coordinator reads the
+                // stopped job's estimate from its history.
+                if let Some(point) = results::history_point(&mut farm, *id, now, true) {
+                    final_points.push(point);
+                }
             }
             self.forget_lost_workers(&mut farm, now);
         }
+        for (job, point) in final_points {
+            if let Err(e) = self.inner.store.append_history(job, point).await {
+                tracing::warn!(job, error = %e, "history point not stored");
+            }
+        }
         for id in over_time {
             tracing::info!(job = id, "time limit reached");
-            let _ = self.set_state(id, JobState::Done, None).await;
+            let _ = self
+                .set_state(id, JobState::Done, Stop::TimeLimit.stored_message())
+                .await;
         }
     }
 

@@ -438,7 +438,7 @@ fn record_merge(farm: &mut Farm, m: &Merged, rejected_samples: u64) -> Option<Ti
 
 /// A convergence-history point (spp, image error, elapsed seconds), at most every
 /// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10).
-fn history_point(
+pub(crate) fn history_point(
     farm: &mut Farm,
     job: JobId,
     now: u64,
