@@ -78,6 +78,27 @@ fn a_dry_run_quotes_like_tessera_estimate_and_queues_nothing() {
         q["quote"]["targets"][2]["passes"], e["quote"]["targets"][2]["passes"],
         "the passes to 2% follow from the pilot's error alone"
     );
+    // `tessera submit --dry-run` asks the same and prints it as `tessera estimate` does.
+    let out = output_ok(tessera().args([
+        "submit",
+        "builtin:cornell-box",
+        "--server",
+        &c.http,
+        "--dry-run",
+        "--workers",
+        "2",
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--spp",
+        "64",
+    ]));
+    assert!(
+        out.contains("dry run on the coordinator; assumes 2 worker(s) as asked"),
+        "{out}"
+    );
+    assert!(out.contains("to reach error 0.02"), "{out}");
     // Nothing was queued or stored.
     assert!(client.jobs(10, None).unwrap().jobs.is_empty());
 

@@ -51,7 +51,8 @@ pub struct EstimateArgs {
     pub json: bool,
 }
 
-/// What a quote is for, and the quote: printed as one JSON object with `--json`.
+/// What a quote is for, and the quote: printed as one JSON object with `--json`, and
+/// what a coordinator's dry run answers (with `dry_run` and `fleet` besides).
 struct EstimateOutput {
     scene: String,
     width: u32,
@@ -96,6 +97,52 @@ impl EstimateOutput {
             "quote": self.quote,
         })
     }
+
+    /// The inverse of [`EstimateOutput::to_json`] (a dry run's answer has more fields).
+    fn from_json(v: &serde_json::Value) -> Result<Self> {
+        let int = |k: &str| {
+            v[k].as_u64()
+                .with_context(|| format!("the quote has no whole number {k:?}"))
+        };
+        let num = |k: &str| v[k].as_f64().unwrap_or(0.0);
+        let text = |k: &str| v[k].as_str().unwrap_or("").to_string();
+        Ok(Self {
+            scene: text("scene"),
+            width: int("width")? as u32,
+            height: int("height")? as u32,
+            frames: int("frames")?,
+            spp: int("spp")? as u32,
+            passes: int("passes")? as u32,
+            samples_per_pass: int("samples_per_pass")? as u32,
+            integrator: text("integrator"),
+            adaptive: text("adaptive"),
+            workers: int("workers")? as u32,
+            threads: int("threads")? as usize,
+            worker_threads: int("worker_threads")? as usize,
+            pilot_tiles: int("pilot_tiles")? as usize,
+            pilot_seconds: num("pilot_seconds"),
+            pilot_cpu_seconds: num("pilot_cpu_seconds"),
+            setup_seconds: num("setup_seconds"),
+            black: v["black"].as_bool().unwrap_or(false),
+            quote: match &v["quote"] {
+                serde_json::Value::Null => None,
+                q => Some(serde_json::from_value(q.clone()).context("reading the quote")?),
+            },
+        })
+    }
+}
+
+/// Prints a coordinator's dry-run answer (`tessera submit --dry-run`) as `tessera
+/// estimate` prints its quote, after the fleet it assumes.
+pub fn print_dry_run(v: serde_json::Value) -> Result<()> {
+    let fleet = v["fleet"].as_str().unwrap_or("").to_string();
+    let out = EstimateOutput::from_json(&v)?;
+    println!("dry run on the coordinator; assumes {fleet}");
+    match &out.quote {
+        Some(q) => print_quote(&out, q),
+        None => println!("the image is black (no light reaches the camera): nothing to render"),
+    }
+    Ok(())
 }
 
 /// Renders the pilot's units on `threads` threads (each takes the next unit), timing each
