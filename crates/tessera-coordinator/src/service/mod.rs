@@ -96,6 +96,9 @@ pub struct CoordinatorConfig {
     /// TLS on both ports, and mutual TLS for workers with a client CA (`crate::tls`);
     /// `None` serves plain text.
     pub tls: Option<crate::tls::TlsFiles>,
+    /// The fraction of units rendered a second time by a different worker and compared
+    /// (spot checks, ARCHITECTURE.md §6; `--spot-check-fraction`), 0 to 1; 0 disables.
+    pub spot_check_fraction: f64,
 }
 
 impl std::fmt::Debug for CoordinatorConfig {
@@ -114,6 +117,7 @@ impl std::fmt::Debug for CoordinatorConfig {
             .field("http_limits", &self.http_limits)
             .field("forget_lost_ms", &self.forget_lost_ms)
             .field("tls", &self.tls)
+            .field("spot_check_fraction", &self.spot_check_fraction)
             .finish()
     }
 }
@@ -125,7 +129,8 @@ pub const DEFAULT_MEMORY_BUDGET: u64 = 4 << 30;
 impl CoordinatorConfig {
     /// Defaults for a data directory: 10 s leases, 1 s heartbeats, 3 s restart grace, one
     /// pass per unit, no tokens, the default HTTP limits ([`HttpLimits::default`]), lost
-    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`].
+    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`], spot checks of
+    /// [`tessera_farm::DEFAULT_SPOT_CHECK_FRACTION`] (2%) of the units.
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
             data_dir: data_dir.into(),
@@ -140,6 +145,7 @@ impl CoordinatorConfig {
             http_limits: HttpLimits::default(),
             forget_lost_ms: FORGET_LOST_MS,
             tls: None,
+            spot_check_fraction: tessera_farm::DEFAULT_SPOT_CHECK_FRACTION,
         }
     }
 }
@@ -210,6 +216,9 @@ impl Coordinator {
         let high_water = store.max_lease_id().await?;
         let mut state = Farm::with_first_lease(cfg.lease_ms, high_water);
         state.scheduler.set_memory_budget(cfg.memory_budget);
+        state
+            .scheduler
+            .set_spot_check_fraction(cfg.spot_check_fraction);
         let farm = Arc::new(Mutex::new(state));
         let resumed = resume::resume_all(&*store, &farm).await?;
         if let Some(f) = watch.fault() {
