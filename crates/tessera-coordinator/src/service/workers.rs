@@ -371,7 +371,8 @@ impl Coordinator {
     }
 
     /// Removes workers that have been lost for [`CoordinatorConfig::forget_lost_ms`] and
-    /// hold no lease, keeping their totals in [`Farm::forgotten`] (called by `tick`).
+    /// hold no lease, keeping their totals in [`Farm::forgotten`] (called by `tick`);
+    /// quarantined workers are kept.
     ///
     /// [`CoordinatorConfig::forget_lost_ms`]: super::CoordinatorConfig::forget_lost_ms
     pub(crate) fn forget_lost_workers(&self, farm: &mut Farm, now: u64) {
@@ -382,7 +383,10 @@ impl Coordinator {
             .workers
             .iter()
             .filter(|(&id, w)| {
-                now.saturating_sub(w.last_seen_ms) > silent
+                // A quarantined worker stays listed: its name keeps it quarantined when it
+                // registers again.
+                w.quarantined.is_none()
+                    && now.saturating_sub(w.last_seen_ms) > silent
                     && !farm.scheduler.leases().any(|l| l.worker == id)
             })
             .map(|(&id, _)| id)
