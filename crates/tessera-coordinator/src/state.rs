@@ -32,7 +32,8 @@ pub struct WorkerEntry {
     pub threads: u32,
     /// Last heartbeat or request, Unix ms.
     pub last_seen_ms: u64,
-    /// Units accepted from it.
+    /// Units merged from it (a spot-checked unit counts once, for the worker whose copy
+    /// completed the agreement; a held copy does not count).
     pub units_done: u64,
     /// Its last reported throughput.
     pub paths_per_second: f64,

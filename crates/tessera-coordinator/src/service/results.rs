@@ -375,8 +375,9 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
                 Ok(Accepted::Late)
             }
             Submitted::Held => {
+                // Rendering time spent, but not a merged unit (`units_done` and
+                // `tessera_units_merged_total` count each unit once, when it merges).
                 if let Some(w) = w {
-                    w.units_done += 1;
                     if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
                         w.render_seconds += d.render_seconds;
                     }
