@@ -237,6 +237,13 @@ pub struct WorkerInfo {
     /// (its identity); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identity: Option<String>,
+    /// Whether a spot check found the worker faulty: it gets no leases and its results
+    /// are refused (ARCHITECTURE.md §6, "Spot checks and quarantine").
+    #[serde(default)]
+    pub quarantined: bool,
+    /// Why it is quarantined; absent if it is not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quarantine_reason: Option<String>,
 }
 
 /// `GET /api/v1/workers`.
@@ -431,6 +438,8 @@ mod tests {
             faults: 0,
             version: "0.1.0".into(),
             identity: Some("render-3.farm".into()),
+            quarantined: true,
+            quarantine_reason: Some("spot check".into()),
         };
         let v = round_trip(&WorkerList {
             workers: vec![w.clone()],

@@ -73,6 +73,13 @@ pub struct CoordinatorArgs {
     /// needs more is refused; frames beyond it wait for others to complete.
     #[arg(long, default_value = "4GiB", value_parser = parse_bytes)]
     pub memory_budget: u64,
+    /// The fraction (0 to 1) of units spot-checked: rendered a second time by a
+    /// different worker and compared byte for byte; a worker whose copy differs from the
+    /// one the others agree on is quarantined. Chosen by a hash of each unit, so a restart
+    /// checks the same units. 0 disables (docs/ARCHITECTURE.md §6).
+    #[arg(long, value_name = "FRACTION", default_value_t = tessera_farm::DEFAULT_SPOT_CHECK_FRACTION,
+          value_parser = crate::worker::parse_fraction)]
+    pub spot_check_fraction: f64,
     /// TLS on both ports: the server's certificate chain (PEM), reloaded on SIGHUP.
     #[arg(long, value_name = "FILE", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -159,6 +166,7 @@ impl CoordinatorArgs {
         cfg.pilot_timeout_ms = self.pilot_timeout * 1000;
         // The pilot is this binary's hidden `tessera pilot`.
         cfg.pilot_program = std::env::current_exe().ok();
+        cfg.spot_check_fraction = self.spot_check_fraction;
         cfg.http_limits = HttpLimits {
             header_timeout: Duration::from_secs(self.http_header_timeout),
             body_timeout: Duration::from_secs(self.http_body_timeout),

@@ -32,7 +32,8 @@ pub struct WorkerEntry {
     pub threads: u32,
     /// Last heartbeat or request, Unix ms.
     pub last_seen_ms: u64,
-    /// Units accepted from it.
+    /// Units merged from it (a spot-checked unit counts once, for the worker whose copy
+    /// completed the agreement; a held copy does not count).
     pub units_done: u64,
     /// Its last reported throughput.
     pub paths_per_second: f64,
@@ -46,6 +47,9 @@ pub struct WorkerEntry {
     pub render_seconds: f64,
     /// The common name of its TLS client certificate, under mutual TLS.
     pub identity: Option<String>,
+    /// Why it is quarantined (a spot check found a copy of its unlike the others'): it
+    /// gets no leases and its results are refused (ARCHITECTURE.md §6). `None` if trusted.
+    pub quarantined: Option<String>,
 }
 
 /// A job as the gRPC service needs it to hand out leases: what a worker must know to
@@ -102,7 +106,32 @@ pub struct Farm {
     /// Leases that lapsed without a result and whose units went back to the queue
     /// (`tessera_leases_expired_total`): workers that died, stalled or lost their network.
     pub leases_expired: u64,
+    /// What spot checks found (`/metrics`).
+    pub spot: SpotCounters,
     next_worker: WorkerId,
+}
+
+/// Counters of the spot checks (ARCHITECTURE.md §6), for `/metrics`.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SpotCounters {
+    /// Spot checks ended with two different workers agreeing and no copy differing.
+    pub matched: u64,
+    /// Spot checks ended with a copy unlike the agreed one (its worker quarantined).
+    pub mismatched: u64,
+    /// Spot checks of a worker alone, which re-rendered its own copy.
+    pub alone: u64,
+    /// Workers quarantined.
+    pub quarantined: u64,
+    /// Tiles dropped and merged again because a quarantined worker had merged into them.
+    pub tiles_reset: u64,
+    /// Units of quarantined workers rendered again whose new copy equals the old one.
+    pub reverified_identical: u64,
+    /// Units of quarantined workers rendered again whose new copy differs: corrupt
+    /// copies that had been merged, repaired.
+    pub reverified_differed: u64,
+    /// Unverified units of quarantined workers that could not be rendered again (their
+    /// frame or job was finished).
+    pub unrepaired: u64,
 }
 
 /// Totals of the workers forgotten after being lost (`Coordinator::tick`).
@@ -131,6 +160,7 @@ impl Farm {
             runtime: BTreeMap::new(),
             forgotten: ForgottenWorkers::default(),
             leases_expired: 0,
+            spot: SpotCounters::default(),
             next_worker: 1,
         }
     }

@@ -103,6 +103,9 @@ pub struct CoordinatorConfig {
     pub pilot_program: Option<PathBuf>,
     /// How long a dry run's pilot may render before it is killed, ms.
     pub pilot_timeout_ms: u64,
+    /// The fraction of units rendered a second time by a different worker and compared
+    /// (spot checks, ARCHITECTURE.md §6; `--spot-check-fraction`), 0 to 1; 0 disables.
+    pub spot_check_fraction: f64,
 }
 
 impl std::fmt::Debug for CoordinatorConfig {
@@ -123,6 +126,7 @@ impl std::fmt::Debug for CoordinatorConfig {
             .field("tls", &self.tls)
             .field("pilot_program", &self.pilot_program)
             .field("pilot_timeout_ms", &self.pilot_timeout_ms)
+            .field("spot_check_fraction", &self.spot_check_fraction)
             .finish()
     }
 }
@@ -134,7 +138,8 @@ pub const DEFAULT_MEMORY_BUDGET: u64 = 4 << 30;
 impl CoordinatorConfig {
     /// Defaults for a data directory: 10 s leases, 1 s heartbeats, 3 s restart grace, one
     /// pass per unit, no tokens, the default HTTP limits ([`HttpLimits::default`]), lost
-    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`], no pilot program
+    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`], spot checks of
+    /// [`tessera_farm::DEFAULT_SPOT_CHECK_FRACTION`] (2%) of the units, no pilot program
     /// (no dry runs) and a [`quote::PILOT_TIMEOUT_MS`] pilot timeout.
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
@@ -152,6 +157,7 @@ impl CoordinatorConfig {
             tls: None,
             pilot_program: None,
             pilot_timeout_ms: quote::PILOT_TIMEOUT_MS,
+            spot_check_fraction: tessera_farm::DEFAULT_SPOT_CHECK_FRACTION,
         }
     }
 }
@@ -224,6 +230,9 @@ impl Coordinator {
         let high_water = store.max_lease_id().await?;
         let mut state = Farm::with_first_lease(cfg.lease_ms, high_water);
         state.scheduler.set_memory_budget(cfg.memory_budget);
+        state
+            .scheduler
+            .set_spot_check_fraction(cfg.spot_check_fraction);
         let farm = Arc::new(Mutex::new(state));
         let resumed = resume::resume_all(&*store, &farm).await?;
         if let Some(f) = watch.fault() {
