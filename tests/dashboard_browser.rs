@@ -492,6 +492,36 @@ fn dashboard_in_headless_chromium() {
     browser.type_into("#f-height", "64");
     browser.type_into("#f-spp", "16");
     browser.type_into("#f-name", "browser test");
+    // The quote before submitting (a dry run): a table with the planned row and one row
+    // per default target, each with a wall time; no job is created by it.
+    browser.click("#f-quote");
+    let rows = wait_for("the quote table", || {
+        let v = browser.exec(
+            "return [[...document.querySelectorAll('#quote tbody tr')].map(r => r.textContent), \
+             document.querySelector('#submit-status')?.textContent ?? ''];",
+            json!([]),
+        )?;
+        let status = v[1].as_str().unwrap_or("");
+        assert!(
+            !status.contains("No quote"),
+            "the quote was refused: {status}"
+        );
+        match v[0].as_array() {
+            Some(r) if r.len() == 5 => Ok(r.clone()),
+            _ => Err(v.to_string()),
+        }
+    });
+    println!("quote rows: {rows:?}");
+    browser.screenshot(&artifacts_dir().join("submit-quote.png"));
+    assert!(
+        rows[0].as_str().unwrap().starts_with("as planned"),
+        "{rows:?}"
+    );
+    for (row, target) in rows[1..].iter().zip(["10 %", "5 %", "2 %", "1 %"]) {
+        let row = row.as_str().unwrap();
+        assert!(row.starts_with(&format!("{target} error")), "{row}");
+        assert!(row.contains(" s (") || row.contains(" min ("), "{row}");
+    }
     browser.click("#f-submit");
 
     // The form navigates to the new job's page.

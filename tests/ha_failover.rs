@@ -3,7 +3,8 @@
 //! tests/common/postgres.rs), one active and one standby, and workers that know both.
 //! `kill -9` of the active one mid-job: the standby takes over, the job completes
 //! byte-identical to `tessera render` and nothing is merged twice. A standby refuses
-//! workers; a coordinator whose lock connection is lost stops granting.
+//! workers; a coordinator whose lock connection is lost stops granting; a frozen active
+//! coordinator woken after the takeover writes nothing that lands (the deposed writer).
 //!
 //! Skipped without `TESSERA_TEST_POSTGRES` unless `TESSERA_REQUIRE_POSTGRES=1`.
 
@@ -222,4 +223,86 @@ fn a_coordinator_that_loses_its_lock_connection_stops_granting() {
     assert_eq!(worker_calls(&b.grpc).map(|s| s.code()), None);
     // The deposed one stays a standby while the other holds the lock.
     assert!(readyz(&a).1.starts_with("standby:"));
+}
+
+/// Sends `signal` (`STOP`, `CONT`) to the process `pid`.
+fn signal(pid: u32, signal: &str) {
+    let ok = std::process::Command::new("kill")
+        .arg(format!("-{signal}"))
+        .arg(pid.to_string())
+        .status()
+        .is_ok_and(|s| s.success());
+    assert!(ok, "kill -{signal} {pid}");
+}
+
+/// The deposed writer (issue 14): the active coordinator is frozen (`SIGSTOP`, as a long
+/// GC-like pause or a suspended VM would), the standby takes over once the frozen one's
+/// lock session times out, and the frozen one is then woken (`SIGCONT`) with leases,
+/// merged passes and possibly a group commit of its own in hand. Whatever it still tries
+/// to write is fenced: a job submitted to it is refused and lands nowhere, it stands by,
+/// and the job completes on the new coordinator byte-identical to `tessera render` with
+/// every tile at exactly its planned passes.
+#[test]
+fn a_frozen_then_woken_coordinator_writes_nothing_that_lands() {
+    let Some(url) = fresh_database("ha_deposed_writer") else {
+        return;
+    };
+    let dir = temp_dir("ha", "deposed-writer");
+    let s = cornell_job(48, 48, 96);
+    let reference = local_render(&dir, &s);
+
+    let a = coordinator(&dir, "a", &url);
+    a.wait_active();
+    let b = coordinator(&dir, "b", &url);
+    wait_standby(&b, "the second coordinator to stand by");
+    let grpc = [a.grpc.as_str(), b.grpc.as_str()];
+    let _w1 = start_worker_of(&grpc, "w1", &[], Some(&dir.join("w1.log")));
+    let _w2 = start_worker_of(&grpc, "w2", &[], Some(&dir.join("w2.log")));
+    let client_a = Client::new(&a.http, None);
+    let job = client_a.submit(&s, None).unwrap();
+    poll("a quarter of the passes", TIMEOUT, || {
+        let j = client_a.job(job.id).unwrap();
+        j.passes_done * 4 >= j.passes_planned
+    });
+
+    let pid = a.proc.pid().unwrap();
+    let frozen = Instant::now();
+    signal(pid, "STOP");
+    b.wait_active();
+    println!(
+        "takeover: the standby was active {:.0} ms after the active one froze",
+        frozen.elapsed().as_secs_f64() * 1000.0
+    );
+    signal(pid, "CONT");
+    // Woken, it may not have noticed yet that it lost the lock: either way its write
+    // must not land (a fenced insert or a refusal as not active, both 503).
+    let refused = client_a.submit(&cornell_job(16, 16, 4), None);
+    match refused {
+        Err(tessera_api::client::ClientError::Api { status: 503, .. }) => {}
+        other => panic!("the woken, deposed coordinator accepted a job: {other:?}"),
+    }
+    wait_standby(&a, "the woken coordinator to stand by");
+
+    let client_b = Client::new(&b.http, None);
+    let done = wait_done(&client_b, job.id);
+    assert_eq!(done.passes_done, done.passes_planned);
+    assert_eq!(done.spp_so_far, f64::from(s.spp));
+    let tiles = client_b.tiles(job.id).unwrap();
+    for t in &tiles.tiles {
+        assert_eq!(
+            t.passes, tiles.passes_planned,
+            "tile {} merged {} passes of {}",
+            t.index, t.passes, tiles.passes_planned
+        );
+    }
+    assert!(
+        client_b.image(job.id, "exr").unwrap() == reference,
+        "the EXR after the frozen coordinator woke differs from tessera render"
+    );
+    let jobs = client_b.jobs(10, None).unwrap().jobs;
+    assert_eq!(
+        jobs.iter().map(|j| j.id).collect::<Vec<_>>(),
+        [job.id],
+        "a job submitted to the deposed coordinator landed"
+    );
 }

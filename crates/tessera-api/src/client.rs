@@ -151,6 +151,23 @@ impl Client {
         Self::json(&self.post("/jobs", "application/json", &body, idempotency_key)?)
     }
 
+    /// `POST /jobs?dry_run=true`: the job's quote (the JSON object of `tessera estimate
+    /// --json`, with `dry_run` and `fleet`), for `workers` workers or the connected ones.
+    /// Nothing is queued.
+    pub fn quote(
+        &self,
+        settings: &JobSettings,
+        workers: Option<u32>,
+    ) -> Result<serde_json::Value, ClientError> {
+        let body = serde_json::to_vec(settings)
+            .map_err(|e| ClientError::Transport(format!("encoding the job: {e}")))?;
+        let path = match workers {
+            Some(n) => format!("/jobs?dry_run=true&workers={n}"),
+            None => "/jobs?dry_run=true".to_string(),
+        };
+        Self::json(&self.post(&path, "application/json", &body, None)?)
+    }
+
     /// `POST /jobs` with a raw body (for tests of malformed input).
     pub fn submit_raw(&self, body: &[u8]) -> Result<JobStatus, ClientError> {
         Self::json(&self.post("/jobs", "application/json", body, None)?)

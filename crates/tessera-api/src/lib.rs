@@ -37,7 +37,7 @@ pub use error::{ApiError, ErrorCode};
 pub use settings::FromJson;
 pub use status::{
     FrameQuery, History, HistoryPoint, ImageFormat, ImageQuery, JobList, JobListQuery, JobState,
-    JobStatus, SceneUploaded, TileInfo, TileMap, WorkerInfo, WorkerList, WorkerState,
+    JobStatus, SceneUploaded, SubmitQuery, TileInfo, TileMap, WorkerInfo, WorkerList, WorkerState,
 };
 pub use tessera_farm::job::{
     resolve_resolution, AdaptiveMode, FrameRange, Integrator, IntegratorChoice, JobError,

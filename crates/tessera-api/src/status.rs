@@ -78,6 +78,11 @@ pub struct JobStatus {
     /// The current image error estimate (RMS relative error, ARCHITECTURE.md §3); `None` until
     /// every pixel has at least two passes.
     pub error_estimate: Option<f64>,
+    /// Which estimator `error_estimate` and the per-pixel intervals are
+    /// (`tessera_farm::ERROR_ESTIMATOR`, also in the EXR header). Absent from older
+    /// servers.
+    #[serde(default)]
+    pub error_estimator: Option<String>,
     /// The requested target error, if any.
     pub target_error: Option<f64>,
     /// Once a job with a target error is done: whether its error estimate is at or below
@@ -144,6 +149,19 @@ pub struct JobListQuery {
     /// Only jobs in this state.
     #[serde(default)]
     pub state: Option<JobState>,
+}
+
+/// Query string of `POST /api/v1/jobs`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SubmitQuery {
+    /// Quote the job instead of queueing it: a short pilot predicts the seconds and
+    /// worker-seconds to reach 10%, 5%, 2% and 1% error (or the job's `target_error`).
+    #[serde(default)]
+    pub dry_run: bool,
+    /// With `dry_run`: workers the quote assumes (default: the connected workers).
+    #[serde(default)]
+    pub workers: Option<u32>,
 }
 
 /// Image file format of `GET /api/v1/jobs/{id}/image`; serialized in lowercase.
@@ -219,6 +237,13 @@ pub struct WorkerInfo {
     /// (its identity); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub identity: Option<String>,
+    /// Whether a spot check found the worker faulty: it gets no leases and its results
+    /// are refused (ARCHITECTURE.md §6, "Spot checks and quarantine").
+    #[serde(default)]
+    pub quarantined: bool,
+    /// Why it is quarantined; absent if it is not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub quarantine_reason: Option<String>,
 }
 
 /// `GET /api/v1/workers`.
@@ -331,6 +356,7 @@ mod tests {
             passes_done: 100,
             spp_so_far: 12.5,
             error_estimate: Some(0.031),
+            error_estimator: Some("pass-spread".into()),
             target_error: None,
             target_reached: None,
             stop_reason: None,
@@ -412,6 +438,8 @@ mod tests {
             faults: 0,
             version: "0.1.0".into(),
             identity: Some("render-3.farm".into()),
+            quarantined: true,
+            quarantine_reason: Some("spot check".into()),
         };
         let v = round_trip(&WorkerList {
             workers: vec![w.clone()],

@@ -73,6 +73,13 @@ pub struct CoordinatorArgs {
     /// needs more is refused; frames beyond it wait for others to complete.
     #[arg(long, default_value = "4GiB", value_parser = parse_bytes)]
     pub memory_budget: u64,
+    /// The fraction (0 to 1) of units spot-checked: rendered a second time by a
+    /// different worker and compared byte for byte; a worker whose copy differs from the
+    /// one the others agree on is quarantined. Chosen by a hash of each unit, so a restart
+    /// checks the same units. 0 disables (docs/ARCHITECTURE.md §6).
+    #[arg(long, value_name = "FRACTION", default_value_t = tessera_farm::DEFAULT_SPOT_CHECK_FRACTION,
+          value_parser = crate::worker::parse_fraction)]
+    pub spot_check_fraction: f64,
     /// TLS on both ports: the server's certificate chain (PEM), reloaded on SIGHUP.
     #[arg(long, value_name = "FILE", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -83,6 +90,10 @@ pub struct CoordinatorArgs {
     /// by this CA (PEM); the certificate's common name is the worker's identity.
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_client_ca: Option<PathBuf>,
+    /// Dry runs (`POST /api/v1/jobs?dry_run=true`): seconds a quote's pilot may render on
+    /// this host (one at a time, on one thread, in a child process) before it is killed.
+    #[arg(long, default_value_t = 120, value_name = "SECS")]
+    pub pilot_timeout: u64,
 }
 
 /// A byte count with an optional binary or decimal unit: `4GiB`, `512MiB`, `2GB`, `1024`.
@@ -146,6 +157,16 @@ impl CoordinatorArgs {
         cfg.heartbeat_ms = self.heartbeat_ms;
         cfg.grace_ms = self.grace_ms;
         cfg.memory_budget = self.memory_budget;
+        if !(1..=3600).contains(&self.pilot_timeout) {
+            bail!(
+                "--pilot-timeout {} must be between 1 and 3600 seconds",
+                self.pilot_timeout
+            );
+        }
+        cfg.pilot_timeout_ms = self.pilot_timeout * 1000;
+        // The pilot is this binary's hidden `tessera pilot`.
+        cfg.pilot_program = std::env::current_exe().ok();
+        cfg.spot_check_fraction = self.spot_check_fraction;
         cfg.http_limits = HttpLimits {
             header_timeout: Duration::from_secs(self.http_header_timeout),
             body_timeout: Duration::from_secs(self.http_body_timeout),

@@ -20,7 +20,9 @@ use tessera_farm::quote::{
 use tessera_farm::{FrameAccumulator, FramePlan, WorkUnit};
 use tessera_render::render::render_unit;
 
-use crate::render::{prepare, JobArgs, StopArgs};
+use sha2::{Digest, Sha256};
+
+use crate::render::{prepare, prepare_settings, JobArgs, Prepared, SceneSource, StopArgs};
 
 /// `tessera estimate`'s arguments: the job flags of `tessera render` and `tessera submit`.
 #[derive(Args)]
@@ -49,9 +51,10 @@ pub struct EstimateArgs {
     pub json: bool,
 }
 
-/// What a quote is for, and the quote: printed as one JSON object with `--json`.
-struct EstimateOutput<'a> {
-    scene: &'a str,
+/// What a quote is for, and the quote: printed as one JSON object with `--json`, and
+/// what a coordinator's dry run answers (with `dry_run` and `fleet` besides).
+struct EstimateOutput {
+    scene: String,
     width: u32,
     height: u32,
     frames: u64,
@@ -62,15 +65,16 @@ struct EstimateOutput<'a> {
     adaptive: String,
     workers: u32,
     threads: usize,
+    worker_threads: usize,
     pilot_tiles: usize,
     pilot_seconds: f64,
     pilot_cpu_seconds: f64,
     setup_seconds: f64,
     black: bool,
-    quote: Option<&'a Quote>,
+    quote: Option<Quote>,
 }
 
-impl EstimateOutput<'_> {
+impl EstimateOutput {
     fn to_json(&self) -> serde_json::Value {
         serde_json::json!({
             "scene": self.scene,
@@ -84,6 +88,7 @@ impl EstimateOutput<'_> {
             "adaptive": self.adaptive,
             "workers": self.workers,
             "threads": self.threads,
+            "worker_threads": self.worker_threads,
             "pilot_tiles": self.pilot_tiles,
             "pilot_seconds": self.pilot_seconds,
             "pilot_cpu_seconds": self.pilot_cpu_seconds,
@@ -92,6 +97,52 @@ impl EstimateOutput<'_> {
             "quote": self.quote,
         })
     }
+
+    /// The inverse of [`EstimateOutput::to_json`] (a dry run's answer has more fields).
+    fn from_json(v: &serde_json::Value) -> Result<Self> {
+        let int = |k: &str| {
+            v[k].as_u64()
+                .with_context(|| format!("the quote has no whole number {k:?}"))
+        };
+        let num = |k: &str| v[k].as_f64().unwrap_or(0.0);
+        let text = |k: &str| v[k].as_str().unwrap_or("").to_string();
+        Ok(Self {
+            scene: text("scene"),
+            width: int("width")? as u32,
+            height: int("height")? as u32,
+            frames: int("frames")?,
+            spp: int("spp")? as u32,
+            passes: int("passes")? as u32,
+            samples_per_pass: int("samples_per_pass")? as u32,
+            integrator: text("integrator"),
+            adaptive: text("adaptive"),
+            workers: int("workers")? as u32,
+            threads: int("threads")? as usize,
+            worker_threads: int("worker_threads")? as usize,
+            pilot_tiles: int("pilot_tiles")? as usize,
+            pilot_seconds: num("pilot_seconds"),
+            pilot_cpu_seconds: num("pilot_cpu_seconds"),
+            setup_seconds: num("setup_seconds"),
+            black: v["black"].as_bool().unwrap_or(false),
+            quote: match &v["quote"] {
+                serde_json::Value::Null => None,
+                q => Some(serde_json::from_value(q.clone()).context("reading the quote")?),
+            },
+        })
+    }
+}
+
+/// Prints a coordinator's dry-run answer (`tessera submit --dry-run`) as `tessera
+/// estimate` prints its quote, after the fleet it assumes.
+pub fn print_dry_run(v: serde_json::Value) -> Result<()> {
+    let fleet = v["fleet"].as_str().unwrap_or("").to_string();
+    let out = EstimateOutput::from_json(&v)?;
+    println!("dry run on the coordinator; assumes {fleet}");
+    match &out.quote {
+        Some(q) => print_quote(&out, q),
+        None => println!("the image is black (no light reaches the camera): nothing to render"),
+    }
+    Ok(())
 }
 
 /// Renders the pilot's units on `threads` threads (each takes the next unit), timing each
@@ -158,14 +209,167 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
     };
     // Validates every job flag (naming it) and resolves the job as `tessera render` does.
     let p = prepare(&args.job, &args.stop, frames.start)?;
-    let plan = p.resolved.plan;
     let threads = if args.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
         args.threads
     };
+    let run = PilotRun {
+        scene: args.job.scene.clone(),
+        frames,
+        targets,
+        adaptive: args.stop.adaptive.clone(),
+        workers: args.workers,
+        threads,
+        worker_threads: threads,
+    };
+    let out = run_pilot(&p, &run).map_err(|e| match e {
+        PilotError::Target(m) => anyhow::anyhow!("--target-error: {m}"),
+        PilotError::Other(e) => e,
+    })?;
+    match (&out.quote, args.json) {
+        (_, true) => println!("{}", serde_json::to_string_pretty(&out.to_json())?),
+        (Some(q), false) => print_quote(&out, q),
+        // The plan found no light: nothing is traced, every target is met at once.
+        (None, false) => {
+            println!("the image is black (no light reaches the camera): nothing to render")
+        }
+    }
+    Ok(())
+}
+
+/// `tessera pilot`'s arguments. The job's settings come as JSON on standard input.
+#[derive(Args)]
+pub struct PilotArgs {
+    /// The uploaded scene the job names by hash (its SHA-256 must be that hash); not
+    /// needed for a built-in scene.
+    #[arg(long)]
+    pub scene_file: Option<std::path::PathBuf>,
+    /// Workers the job will run on.
+    #[arg(long, default_value_t = 1)]
+    pub workers: u32,
+    /// Threads of each of those workers: the pilot's thread-seconds are divided by them.
+    #[arg(long, default_value_t = 1)]
+    pub worker_threads: usize,
+    /// Threads the pilot renders on.
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+}
+
+/// The largest job settings document `tessera pilot` reads: the coordinator's own limit on
+/// a job's JSON body.
+const MAX_SETTINGS_BYTES: u64 = 1 << 20;
+
+/// `tessera pilot`: the pilot of a dry run (`POST /api/v1/jobs?dry_run=true`), run by the
+/// coordinator as a child process so that rendering user content never shares its
+/// address space (a scene that crashes the renderer takes only the pilot down). Reads the
+/// job's settings as JSON on standard input, prints `tessera estimate --json`'s object.
+/// An error goes to standard error as one line naming what is wrong, with exit code 1.
+pub fn pilot(args: PilotArgs) -> Result<()> {
+    use std::io::Read;
+    use tessera_api::FromJson;
+    use tessera_farm::job::{JobSettings, SceneRef};
+
+    if args.threads == 0 || args.threads > 4096 {
+        bail!("--threads {} must be 1 to 4096", args.threads);
+    }
+    if args.worker_threads == 0 || args.worker_threads > 65536 {
+        bail!(
+            "--worker-threads {} must be 1 to 65536",
+            args.worker_threads
+        );
+    }
+    let mut body = Vec::new();
+    std::io::stdin()
+        .take(MAX_SETTINGS_BYTES + 1)
+        .read_to_end(&mut body)
+        .context("reading the job settings from standard input")?;
+    if body.len() as u64 > MAX_SETTINGS_BYTES {
+        bail!("the job settings are larger than {MAX_SETTINGS_BYTES} bytes");
+    }
+    let settings = JobSettings::from_json(&body).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let validated = settings
+        .validate()
+        .map_err(|e| anyhow::anyhow!("invalid {}: {}", e.field, e.problem))?;
+    let bytes = match (&validated.scene, &args.scene_file) {
+        (SceneRef::Builtin(_), _) => None,
+        (SceneRef::Hash(h), Some(path)) => {
+            let bytes = std::fs::read(path)
+                .with_context(|| format!("reading scene file {}", path.display()))?;
+            let digest: String = Sha256::digest(&bytes)
+                .iter()
+                .map(|b| format!("{b:02x}"))
+                .collect();
+            if &digest != h {
+                bail!(
+                    "scene file {} has SHA-256 {digest}, not the job's scene {h}",
+                    path.display()
+                );
+            }
+            Some(bytes)
+        }
+        (SceneRef::Hash(h), None) => bail!("the job names scene {h}: give --scene-file"),
+    };
+    let source = match &bytes {
+        Some(b) => SceneSource::Bytes(b),
+        None => SceneSource::Path(&settings.scene),
+    };
+    let frames = validated.frames;
+    let p = prepare_settings(settings.clone(), source, frames.start)?;
+    let run = PilotRun {
+        scene: settings.scene.clone(),
+        frames,
+        targets: match settings.target_error {
+            Some(t) => vec![t],
+            None => DEFAULT_TARGETS.to_vec(),
+        },
+        adaptive: settings.adaptive.clone(),
+        workers: args.workers.max(1),
+        threads: args.threads,
+        worker_threads: args.worker_threads,
+    };
+    let out = run_pilot(&p, &run).map_err(|e| match e {
+        PilotError::Target(m) => anyhow::anyhow!("invalid target_error: {m}"),
+        PilotError::Other(e) => e,
+    })?;
+    println!("{}", serde_json::to_string(&out.to_json())?);
+    Ok(())
+}
+
+/// What a pilot is for: the job beyond its resolved plan, and the machine it predicts.
+struct PilotRun {
+    scene: String,
+    frames: FrameRange,
+    targets: Vec<f64>,
+    adaptive: String,
+    workers: u32,
+    /// Threads the pilot renders on.
+    threads: usize,
+    /// Threads of each worker the job will run on: a worker-second is a second of a worker
+    /// with that many threads, each as fast as one of this machine's.
+    worker_threads: usize,
+}
+
+/// Why a pilot gave no quote.
+enum PilotError {
+    /// A target error the quote cannot use (the message says why).
+    Target(String),
+    Other(anyhow::Error),
+}
+
+impl From<anyhow::Error> for PilotError {
+    fn from(e: anyhow::Error) -> Self {
+        Self::Other(e)
+    }
+}
+
+/// Renders the pilot of the prepared job and quotes it ([`tessera_farm::quote::quote`]).
+fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError> {
+    let plan = p.resolved.plan;
+    let threads = run.threads.max(1);
+    let frames = run.frames;
     let mut out = EstimateOutput {
-        scene: &args.job.scene,
+        scene: run.scene.clone(),
         width: plan.width,
         height: plan.height,
         frames: frames.count(),
@@ -173,9 +377,10 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         passes: plan.passes,
         samples_per_pass: plan.samples_per_pass,
         integrator: p.resolved.config.integrator.to_string(),
-        adaptive: args.stop.adaptive.clone(),
-        workers: args.workers,
+        adaptive: run.adaptive.clone(),
+        workers: run.workers,
         threads,
+        worker_threads: run.worker_threads.max(1),
         pilot_tiles: 0,
         pilot_seconds: 0.0,
         pilot_cpu_seconds: 0.0,
@@ -183,16 +388,10 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         black: p.resolved.black,
         quote: None,
     };
-    if p.resolved.black {
+    let Some(render_scene) = p.render_scene.as_ref() else {
         // The plan found no light: nothing is traced, every target is met at once.
-        if args.json {
-            println!("{}", serde_json::to_string_pretty(&out.to_json())?);
-        } else {
-            println!("the image is black (no light reaches the camera): nothing to render");
-        }
-        return Ok(());
-    }
-    let render_scene = p.render_scene.as_ref().expect("built unless black");
+        return Ok(out);
+    };
     // The job's tiles and pass size, with the pilot's passes.
     let pilot_plan = FramePlan::new(
         plan.width,
@@ -245,7 +444,7 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
             pixel_passes: pixels,
             // A worker renders on all its threads at once: a unit's thread-seconds are
             // 1/threads of a worker-second.
-            worker_seconds: seconds * share / threads as f64,
+            worker_seconds: seconds * share / out.worker_threads as f64,
         });
         acc.offer(result).context("merging the pilot")?;
     }
@@ -260,22 +459,16 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         frames: frames.count(),
         planned_passes: plan.passes,
         samples_per_pass: plan.samples_per_pass,
-        workers: args.workers,
+        workers: run.workers,
         setup_seconds: p.build_seconds,
     };
-    let q = quote(&pilot, &job, &targets).map_err(|e| match e {
+    out.quote = Some(quote(&pilot, &job, &run.targets).map_err(|e| match e {
         tessera_farm::quote::QuoteError::Field("target_error", m) => {
-            anyhow::anyhow!("--target-error: {m}")
+            PilotError::Target(m.to_string())
         }
-        e => anyhow::anyhow!(e),
-    })?;
-    out.quote = Some(&q);
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&out.to_json())?);
-    } else {
-        print_quote(&out, &q);
-    }
-    Ok(())
+        e => PilotError::Other(anyhow::anyhow!(e)),
+    })?);
+    Ok(out)
 }
 
 /// The pilot's pixels in groups for the spread of the error: each pilot tile, or bands of

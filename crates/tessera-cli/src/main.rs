@@ -42,6 +42,10 @@ enum Command {
     /// Quote a job before rendering it: a short pilot on this machine predicts the seconds
     /// and worker-seconds to reach 10%, 5%, 2% and 1% error (or --target-error).
     Estimate(estimate::EstimateArgs),
+    /// The pilot of a coordinator's dry run (internal): job settings as JSON on standard
+    /// input, the quote as JSON on standard output.
+    #[command(hide = true)]
+    Pilot(estimate::PilotArgs),
     /// Measure rendering throughput (paths per second).
     Bench(BenchArgs),
     /// Compare the render plan's configuration with the general one (and bdpt with path on
@@ -111,6 +115,7 @@ fn main() {
             None => bench(args),
         },
         Command::Estimate(args) => contained("estimating", || estimate::estimate(args)),
+        Command::Pilot(args) => contained("piloting", || estimate::pilot(args)),
         Command::BenchPlan(args) => bench_plan::bench_plan(args),
         Command::Serve(args) => serve::serve(args),
         Command::Coordinator(args) => coordinator::coordinator(args),

@@ -272,23 +272,52 @@ fn job_error(e: JobError, settings: &JobSettings) -> anyhow::Error {
 /// and `tessera render --frame F` write the same header); the frame is then rendered from
 /// the scene at `frame / fps`.
 pub fn prepare(job: &JobArgs, stop: &StopArgs, frame: u32) -> Result<Prepared> {
-    let mut settings = job.settings(scene_ref(&job.scene)?, stop);
+    let settings = job.settings(scene_ref(&job.scene)?, stop);
+    prepare_settings(settings, SceneSource::Path(&job.scene), frame)
+}
+
+/// Where [`prepare_settings`] reads a scene that is not built in.
+#[derive(Clone, Copy)]
+pub enum SceneSource<'a> {
+    /// A file named on the command line, which may refer to files beside it.
+    Path(&'a str),
+    /// The bytes of an uploaded scene, loaded as a farm worker loads them (no external
+    /// files).
+    Bytes(&'a [u8]),
+}
+
+/// [`prepare`] for settings that are already a [`JobSettings`] (a dry run's pilot reads
+/// them as JSON from the coordinator): the frame range is set to `frame` alone.
+pub fn prepare_settings(
+    mut settings: JobSettings,
+    source: SceneSource,
+    frame: u32,
+) -> Result<Prepared> {
     settings.frames = FrameRange {
         start: frame,
         end: frame,
     };
     let validated = settings.validate().map_err(|e| job_error(e, &settings))?;
     let camera = validated.camera.as_deref();
+    let name = match source {
+        SceneSource::Path(path) => path.to_string(),
+        SceneSource::Bytes(_) => validated.scene.to_string(),
+    };
     let load = |time: &SceneTime| {
-        match &validated.scene {
+        match (&validated.scene, source) {
             // The farm's loader: it refuses a camera name for a built-in scene.
-            SceneRef::Builtin(_) => {
+            (SceneRef::Builtin(_), _) => {
                 tessera_scene::job::load_job_scene_at(&validated.scene, None, camera, time)
             }
             // A file may refer to files beside it, which an upload may not.
-            SceneRef::Hash(_) => tessera_scene::load_at(&job.scene, camera, time),
+            (SceneRef::Hash(_), SceneSource::Path(path)) => {
+                tessera_scene::load_at(path, camera, time)
+            }
+            (SceneRef::Hash(_), SceneSource::Bytes(bytes)) => {
+                tessera_scene::job::load_job_scene_at(&validated.scene, Some(bytes), camera, time)
+            }
         }
-        .with_context(|| format!("loading scene {}", job.scene))
+        .with_context(|| format!("loading scene {name}"))
     };
     let at_zero = SceneTime {
         seconds: 0.0,

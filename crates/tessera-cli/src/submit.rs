@@ -47,6 +47,17 @@ pub struct SubmitArgs {
     /// Idempotency key: a retried submission with the same key returns the same job.
     #[arg(long)]
     pub idempotency_key: Option<String>,
+    /// Quote the job instead of submitting it (`POST /jobs?dry_run=true`): the coordinator
+    /// renders a short pilot and predicts the time to reach 10%, 5%, 2% and 1% error (or
+    /// --target-error) on its workers. Nothing is queued.
+    #[arg(long, conflicts_with_all = ["wait", "output", "idempotency_key"])]
+    pub dry_run: bool,
+    /// With --dry-run: the workers the quote assumes (default: the connected ones).
+    #[arg(long, requires = "dry_run")]
+    pub workers: Option<u32>,
+    /// With --dry-run: print the coordinator's answer as JSON.
+    #[arg(long, requires = "dry_run")]
+    pub json: bool,
     /// Wait until the job is done, showing progress.
     #[arg(long)]
     pub wait: bool,
@@ -87,6 +98,14 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
                 s.frames.count()
             );
         }
+    }
+    if args.dry_run {
+        let v = client.quote(&s, args.workers).map_err(client_error)?;
+        if args.json {
+            println!("{}", serde_json::to_string_pretty(&v)?);
+            return Ok(());
+        }
+        return crate::estimate::print_dry_run(v);
     }
     let job = client
         .submit(&s, args.idempotency_key.as_deref())

@@ -41,6 +41,13 @@ pub struct WorkerArgs {
     /// The private key (PEM) of --tls-cert.
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+    /// TESTING AID, never for production: corrupt this fraction (0 to 1) of the units
+    /// this worker renders, chosen by a hash of each unit (the same units every run), by
+    /// flipping the lowest bit of one value. The results stay well-formed, so only the
+    /// coordinator's spot checks (--spot-check-fraction) catch them and quarantine the
+    /// worker (docs/ARCHITECTURE.md §6, "Spot checks and quarantine").
+    #[arg(long, value_name = "FRACTION", default_value_t = 0.0, value_parser = parse_fraction)]
+    pub inject_faults: f64,
     /// Exit when standard input closes (used by `tessera serve` for its local workers, so
     /// they never outlive it).
     #[arg(long, hide = true)]
@@ -73,6 +80,7 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
         name,
         token: args.token.clone().filter(|t| !t.is_empty()),
         tls,
+        inject_faults: args.inject_faults,
     };
     let exit_with_stdin = args.exit_with_stdin;
     runtime()?.block_on(async move {
@@ -80,6 +88,14 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
             .await
             .map_err(anyhow::Error::from)
     })
+}
+
+/// A fraction between 0 and 1.
+pub(crate) fn parse_fraction(s: &str) -> std::result::Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(f) if (0.0..=1.0).contains(&f) => Ok(f),
+        _ => Err(format!("{s:?} is not a fraction between 0 and 1")),
+    }
 }
 
 /// Completes on Ctrl-C or SIGTERM, or (with `exit_with_stdin`) when standard input closes.

@@ -172,6 +172,8 @@ export const api = {
   cancel: (id) => request(`/api/v1/jobs/${enc(id)}`, { method: "DELETE" }),
   submit: (settings, key) =>
     request("/api/v1/jobs", { method: "POST", json: settings, headers: { "idempotency-key": key } }),
+  // A dry run: the job's quote from a short pilot; nothing is queued.
+  quote: (settings) => request("/api/v1/jobs?dry_run=true", { method: "POST", json: settings }),
   uploadScene: (bytes, contentType) =>
     request("/api/v1/scenes", {
       method: "POST",

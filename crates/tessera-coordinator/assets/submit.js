@@ -1,6 +1,8 @@
 // The submit form: a built-in scene (GET /api/v1/builtins) or an uploaded .gltf/.glb
 // (POST /api/v1/scenes, then the job names the returned hash), and the job settings
-// (POST /api/v1/jobs with an idempotency key, so a double click submits once).
+// (POST /api/v1/jobs with an idempotency key, so a double click submits once). "Quote"
+// asks for a dry run first (POST /api/v1/jobs?dry_run=true): the predicted time and
+// worker-seconds to reach 10%, 5%, 2% and 1% error (or the target), shown before you submit.
 
 import { api, idempotencyKey } from "./api.js";
 import { h, int } from "./util.js";
@@ -38,7 +40,9 @@ export function submitView() {
   const shutterClose = h("input", { type: "number", id: "f-shutter-close", name: "shutter-close", min: -1, max: 1, step: "any", placeholder: "none", inputmode: "decimal" });
   const name = h("input", { type: "text", id: "f-name", name: "name", maxlength: 200, autocomplete: "off", placeholder: "optional label" });
   const submit = h("button", { type: "submit", id: "f-submit", class: "primary" }, "Submit job");
+  const quoteButton = h("button", { type: "button", id: "f-quote" }, "Quote");
   const status = h("div", { id: "submit-status", class: "form-status", role: "alert", "aria-live": "assertive" });
+  const quoteEl = h("div", { id: "quote", class: "quote", "aria-live": "polite" });
 
   const builtinRow = row("Built-in scene", builtin);
   const uploadRow = row("glTF file", file, "A .glb, or a .gltf with its buffers and images embedded.");
@@ -70,8 +74,8 @@ export function submitView() {
     h("fieldset", {}, h("legend", {}, "Scheduling"),
       row("Priority", priority, "Higher runs first."),
       row("Name", name)),
-    h("div", { class: "actions" }, submit),
-    status);
+    h("div", { class: "actions" }, quoteButton, submit),
+    status, quoteEl);
 
   const el = h("section", { "aria-labelledby": "submit-title", class: "submit" },
     h("h1", { id: "submit-title" }, "Submit a job"), form);
@@ -120,9 +124,8 @@ export function submitView() {
     key = idempotencyKey(); // a changed form is a new job
   });
 
-  form.addEventListener("submit", async (ev) => {
-    ev.preventDefault();
-    clearErrors();
+  // The form's settings, or null after showing what is wrong.
+  function readSettings() {
     let settings;
     try {
       settings = {
@@ -148,35 +151,108 @@ export function submitView() {
       if (settings.spp === null) throw Object.assign(new Error("spp: required"), { field: "spp" });
     } catch (e) {
       showError(e.message, e.field);
-      return;
+      return null;
     }
     for (const k of Object.keys(settings)) if (settings[k] === null) delete settings[k];
+    return settings;
+  }
 
+  // The uploaded file's hash, so that a quote and then a submission upload it once.
+  let uploaded = null;
+
+  // Sets settings.scene to the uploaded file's hash (uploading it if needed); false after
+  // showing what went wrong.
+  async function sceneReady(settings) {
+    if (!srcUpload.checked) {
+      if (settings.scene) return true;
+      showError("Choose a built-in scene.", "scene");
+      return false;
+    }
+    const f = file.files && file.files[0];
+    if (!f) {
+      showError("Choose a .gltf or .glb file to upload.", "scene");
+      return false;
+    }
+    if (uploaded && uploaded.file === f) {
+      settings.scene = uploaded.hash;
+      return true;
+    }
+    status.className = "form-status";
+    status.replaceChildren(h("p", {}, `Uploading ${f.name} (${int(f.size)} bytes)…`));
+    const type = f.name.toLowerCase().endsWith(".glb") ? "model/gltf-binary" : "model/gltf+json";
+    let up;
+    try {
+      up = await api.uploadScene(await f.arrayBuffer(), type);
+    } catch (e) {
+      showError(`The scene was not accepted: ${e.message}`, "scene");
+      return false;
+    }
+    status.replaceChildren(h("p", {},
+      `Uploaded: ${int(up.triangles)} triangles, ${up.meshes} meshes, ${up.materials} materials, ${up.lights} lights.`));
+    uploaded = { file: f, hash: up.hash };
+    settings.scene = up.hash;
+    return true;
+  }
+
+  function seconds(s) {
+    if (s < 100) return `${s.toFixed(s < 10 ? 2 : 1)} s`;
+    if (s < 7200) return `${(s / 60).toFixed(1)} min`;
+    return `${(s / 3600).toFixed(1)} h`;
+  }
+
+  function showQuote(q) {
+    if (q.black || !q.quote) {
+      quoteEl.replaceChildren(h("p", {}, "The image is black (no light reaches the camera): nothing to render."));
+      return;
+    }
+    const cell = (i) => `${seconds(i.estimate)} (${seconds(i.low)}–${seconds(i.high)})`;
+    const tr = (label, c, note) => h("tr", {},
+      h("th", { scope: "row" }, label),
+      h("td", {}, `${int(c.spp.estimate)}`),
+      h("td", {}, cell(c.seconds)),
+      h("td", {}, cell(c.worker_seconds)),
+      h("td", {}, note || ""));
+    const rows = [tr(`as planned: error ${(q.quote.planned.error.estimate * 100).toFixed(2)} %`, q.quote.planned)];
+    for (const t of q.quote.targets) {
+      rows.push(tr(`${+(t.target * 100).toFixed(3)} % error`, t.cost, t.within_plan ? "" : "needs more than the planned spp"));
+    }
+    quoteEl.replaceChildren(
+      h("h2", {}, "Quote"),
+      h("p", { class: "hint" }, `${q.width}×${q.height}, ${q.frames} frame(s), ${int(q.spp)} spp planned, ${q.integrator}; for ${q.fleet}. Pilot: ${q.pilot_tiles} tiles, ${q.quote.pilot_passes} passes in ${q.pilot_seconds.toFixed(2)} s. Intervals are 95 %.`),
+      h("div", { class: "table-wrap" }, h("table", { class: "grid quote-table" },
+        h("thead", {}, h("tr", {},
+          h("th", { scope: "col" }, "to reach"), h("th", { scope: "col" }, "spp"),
+          h("th", { scope: "col" }, "wall time"), h("th", { scope: "col" }, "worker-seconds"),
+          h("th", { scope: "col" }, ""))),
+        h("tbody", {}, ...rows))));
+  }
+
+  quoteButton.addEventListener("click", async () => {
+    clearErrors();
+    quoteEl.replaceChildren();
+    const settings = readSettings();
+    if (!settings) return;
+    quoteButton.disabled = true;
+    try {
+      if (!(await sceneReady(settings))) return;
+      quoteEl.replaceChildren(h("p", {}, "Rendering a short pilot…"));
+      showQuote(await api.quote(settings));
+    } catch (e) {
+      quoteEl.replaceChildren();
+      showError(e.status === 0 ? e.message : `No quote: ${e.message}`, e.field);
+    } finally {
+      quoteButton.disabled = false;
+    }
+  });
+
+  form.addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    clearErrors();
+    const settings = readSettings();
+    if (!settings) return;
     submit.disabled = true;
     try {
-      if (srcUpload.checked) {
-        const f = file.files && file.files[0];
-        if (!f) {
-          showError("Choose a .gltf or .glb file to upload.", "scene");
-          return;
-        }
-        status.className = "form-status";
-        status.replaceChildren(h("p", {}, `Uploading ${f.name} (${int(f.size)} bytes)…`));
-        const type = f.name.toLowerCase().endsWith(".glb") ? "model/gltf-binary" : "model/gltf+json";
-        let up;
-        try {
-          up = await api.uploadScene(await f.arrayBuffer(), type);
-        } catch (e) {
-          showError(`The scene was not accepted: ${e.message}`, "scene");
-          return;
-        }
-        status.replaceChildren(h("p", {},
-          `Uploaded: ${int(up.triangles)} triangles, ${up.meshes} meshes, ${up.materials} materials, ${up.lights} lights.`));
-        settings.scene = up.hash;
-      } else if (!settings.scene) {
-        showError("Choose a built-in scene.", "scene");
-        return;
-      }
+      if (!(await sceneReady(settings))) return;
       const job = await api.submit(settings, key);
       key = idempotencyKey();
       location.hash = `#/jobs/${job.id}`;

@@ -50,11 +50,15 @@ export function workersView() {
         badge = h("span");
         row.tds[2].append(badge);
       }
-      badge.className = `badge worker-${w.state}`;
-      setText(badge, w.state);
+      // A quarantined worker (a spot check found it faulty) shows that instead of its
+      // state, with the reason on hover: it gets no work whatever its state.
+      const shown = w.quarantined ? "quarantined" : w.state;
+      badge.className = `badge worker-${shown}`;
+      badge.title = w.quarantined ? (w.quarantine_reason || "quarantined") : "";
+      setText(badge, shown);
       setText(row.tds[4], ago(w.last_heartbeat_unix_ms, now));
       row.tds[4].title = clock(w.last_heartbeat_unix_ms);
-      row.tr.className = `worker-row-${w.state}`;
+      row.tr.className = `worker-row-${shown}`;
       order.push(row.tr);
     }
     for (const [id, row] of rows) if (!seen.has(id)) rows.delete(id);
@@ -63,9 +67,10 @@ export function workersView() {
     empty.hidden = workers.length > 0;
     const live = workers.filter((w) => w.state !== "lost");
     const busy = workers.filter((w) => w.state === "busy").length;
+    const quarantined = workers.filter((w) => w.quarantined).length;
     const threads = live.reduce((a, w) => a + w.threads, 0);
     const pps = live.reduce((a, w) => a + (w.paths_per_second || 0), 0);
-    setText(summary, `${workers.length} worker${workers.length === 1 ? "" : "s"}: ${busy} busy, ${live.length - busy} idle or draining, ${workers.length - live.length} lost; ${int(threads)} threads, ${num(pps)} paths per second in all.`);
+    setText(summary, `${workers.length} worker${workers.length === 1 ? "" : "s"}: ${busy} busy, ${live.length - busy} idle or draining, ${workers.length - live.length} lost${quarantined ? `, ${quarantined} quarantined` : ""}; ${int(threads)} threads, ${num(pps)} paths per second in all.`);
   }
 
   return {

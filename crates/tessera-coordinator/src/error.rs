@@ -54,6 +54,10 @@ pub enum CoordError {
     /// names the state.
     #[error("{0}")]
     NotActive(String),
+    /// The coordinator cannot do this now or here (e.g. another dry run's pilot is
+    /// rendering, or dry runs are not set up); the text says why and what to do instead.
+    #[error("{0}")]
+    Unavailable(String),
     /// Anything else that is the coordinator's fault.
     #[error("internal error: {0}")]
     Internal(String),
@@ -135,7 +139,7 @@ impl From<CoordError> for ApiError {
             // The store takes no writes (full disk, I/O error, read-only file): the
             // coordinator stops accepting work until restarted (docs/store.md).
             CoordError::Store(s) if s.is_write_failure() => ErrorCode::Unavailable,
-            CoordError::NotActive(_) => ErrorCode::Unavailable,
+            CoordError::NotActive(_) | CoordError::Unavailable(_) => ErrorCode::Unavailable,
             CoordError::Conflict { field, .. } => {
                 return ApiError {
                     code: ErrorCode::Conflict,
@@ -163,7 +167,7 @@ impl From<CoordError> for Status {
             e @ CoordError::Conflict { .. } => Status::already_exists(e.to_string()),
             CoordError::Store(e) => Status::unavailable(format!("coordinator store: {e}")),
             // UNAVAILABLE: the worker tries the next coordinator it knows.
-            CoordError::NotActive(m) => Status::unavailable(m),
+            CoordError::NotActive(m) | CoordError::Unavailable(m) => Status::unavailable(m),
             CoordError::Internal(m) => Status::internal(m),
         }
     }

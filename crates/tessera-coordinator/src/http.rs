@@ -25,7 +25,7 @@ use axum::{Extension, Json, Router};
 use serde::de::DeserializeOwned;
 use tessera_api::{
     ApiError, ErrorCode, FrameQuery, FromJson, ImageFormat, ImageQuery, JobListQuery, JobSettings,
-    API_PREFIX, IDEMPOTENCY_KEY_HEADER,
+    SubmitQuery, API_PREFIX, IDEMPOTENCY_KEY_HEADER,
 };
 use tracing::Instrument;
 
@@ -227,9 +227,16 @@ fn parse_id(id: &str) -> Result<u64, ApiError> {
 async fn submit_job(
     State(core): State<Coordinator>,
     headers: HeaderMap,
+    RawQuery(q): RawQuery,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult<Response> {
     let body = body.map_err(body_error)?;
+    let q: SubmitQuery = parse_query(q)?;
+    if q.workers.is_some() && !q.dry_run {
+        return Err(
+            ApiError::invalid_field("workers", "only a dry run (dry_run=true) takes it").into(),
+        );
+    }
     if let Some(ct) = headers.get(header::CONTENT_TYPE) {
         let ct = ct.to_str().unwrap_or("");
         if !ct.starts_with("application/json") {
@@ -249,6 +256,10 @@ async fn submit_job(
         None => None,
     };
     let settings = JobSettings::from_json(&body)?;
+    if q.dry_run {
+        // A quote creates nothing, so the idempotency key has nothing to guard.
+        return Ok(Json(core.quote(settings, q.workers).await?).into_response());
+    }
     let (status, created) = core.submit(settings, key).await?;
     let code = if created {
         StatusCode::CREATED

@@ -32,7 +32,8 @@ pub struct WorkerEntry {
     pub threads: u32,
     /// Last heartbeat or request, Unix ms.
     pub last_seen_ms: u64,
-    /// Units accepted from it.
+    /// Units merged from it (a spot-checked unit counts once, for the worker whose copy
+    /// completed the agreement; a held copy does not count).
     pub units_done: u64,
     /// Its last reported throughput.
     pub paths_per_second: f64,
@@ -49,6 +50,9 @@ pub struct WorkerEntry {
     pub pixel_passes: u64,
     /// The common name of its TLS client certificate, under mutual TLS.
     pub identity: Option<String>,
+    /// Why it is quarantined (a spot check found a copy of its unlike the others'): it
+    /// gets no leases and its results are refused (ARCHITECTURE.md §6). `None` if trusted.
+    pub quarantined: Option<String>,
 }
 
 /// A job as the gRPC service needs it to hand out leases: what a worker must know to
@@ -105,7 +109,32 @@ pub struct Farm {
     /// Leases that lapsed without a result and whose units went back to the queue
     /// (`tessera_leases_expired_total`): workers that died, stalled or lost their network.
     pub leases_expired: u64,
+    /// What spot checks found (`/metrics`).
+    pub spot: SpotCounters,
     next_worker: WorkerId,
+}
+
+/// Counters of the spot checks (ARCHITECTURE.md §6), for `/metrics`.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct SpotCounters {
+    /// Spot checks ended with two different workers agreeing and no copy differing.
+    pub matched: u64,
+    /// Spot checks ended with a copy unlike the agreed one (its worker quarantined).
+    pub mismatched: u64,
+    /// Spot checks of a worker alone, which re-rendered its own copy.
+    pub alone: u64,
+    /// Workers quarantined.
+    pub quarantined: u64,
+    /// Tiles dropped and merged again because a quarantined worker had merged into them.
+    pub tiles_reset: u64,
+    /// Units of quarantined workers rendered again whose new copy equals the old one.
+    pub reverified_identical: u64,
+    /// Units of quarantined workers rendered again whose new copy differs: corrupt
+    /// copies that had been merged, repaired.
+    pub reverified_differed: u64,
+    /// Unverified units of quarantined workers that could not be rendered again (their
+    /// frame or job was finished).
+    pub unrepaired: u64,
 }
 
 /// Totals of the workers forgotten after being lost (`Coordinator::tick`).
@@ -136,6 +165,7 @@ impl Farm {
             runtime: BTreeMap::new(),
             forgotten: ForgottenWorkers::default(),
             leases_expired: 0,
+            spot: SpotCounters::default(),
             next_worker: 1,
         }
     }
@@ -230,6 +260,30 @@ pub enum Stop {
     Finished,
     /// Its time limit.
     TimeLimit,
+}
+
+impl Stop {
+    /// The message stored with a job's `done` state when its time limit stopped it
+    /// ([`crate::store::JobRecord::error`] holds the message of the last state change), so
+    /// that a restarted coordinator still says why it stopped: the rest of the verdict
+    /// (target, estimate, budget) is recomputed from the stored job and its history.
+    pub const TIME_LIMIT_MESSAGE: &'static str = "stopped by its time limit";
+
+    /// The message to store with the `done` state.
+    pub fn stored_message(self) -> Option<String> {
+        match self {
+            Self::Finished => None,
+            Self::TimeLimit => Some(Self::TIME_LIMIT_MESSAGE.to_string()),
+        }
+    }
+
+    /// Why a stored job stopped: `None` unless it is done.
+    pub fn of_stored(state: JobState, message: Option<&str>) -> Option<Self> {
+        (state == JobState::Done).then_some(match message {
+            Some(Self::TIME_LIMIT_MESSAGE) => Self::TimeLimit,
+            _ => Self::Finished,
+        })
+    }
 }
 
 impl JobRuntime {

@@ -364,3 +364,94 @@ async fn queued_and_leased_units_in_metrics_follow_the_jobs_units() {
     assert_eq!(gauge(&m, "tessera_units_queued"), units - 3, "{m}");
     assert_eq!(gauge(&m, "tessera_leases_outstanding"), 3, "{m}");
 }
+
+/// Issue 15: a spot check through the coordinator. A worker's corrupt copy is held, not
+/// merged; the honest copies of two other workers outvote it; the faulty worker is then
+/// quarantined: listed so over HTTP, leased nothing, told to drop its leases, and still
+/// quarantined when it registers again under its name.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_spot_check_mismatch_quarantines_the_worker() {
+    use tessera_coordinator::service::{Accepted, Delivery, Rejected};
+    use tessera_farm::UnitResult;
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    cfg.spot_check_fraction = 1.0;
+    let (http, _, core, _stop) = start(cfg).await;
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(64), Some(64), 4);
+    let (status, _) = core.submit(job, None).await.unwrap();
+    let [bad, b, c] = ["bad", "b", "c"].map(|n| core.register_worker(n.into(), 1, "t").unwrap());
+    let deliver = |worker, l: &tessera_proto::LeasedUnit, corrupt: bool| {
+        let rect = l.plan.tile(l.unit.tile);
+        let mut pass_means = vec![[0.5f32; 3]; rect.pixel_count() * l.unit.pass_count as usize];
+        if corrupt {
+            pass_means[0][0] = 0.75;
+        }
+        Delivery {
+            worker,
+            lease_id: l.lease_id,
+            job_hint: l.job_id,
+            result: Ok(UnitResult {
+                unit: l.unit,
+                width: rect.width,
+                height: rect.height,
+                pass_means,
+                rejected_samples: 0,
+            }),
+            render_seconds: 0.01,
+            traced_pixel_passes: 0,
+        }
+    };
+    let first = core.lease(bad, 1).await.unwrap().units.remove(0);
+    let got = core
+        .accept_result(deliver(bad, &first, true))
+        .await
+        .unwrap();
+    assert_eq!(got, Accepted::Held);
+    // The held unit goes to another worker, never back to the one with a copy.
+    let again = core.lease(bad, 1).await.unwrap().units.remove(0);
+    assert_ne!(again.unit, first.unit);
+    let second = core.lease(b, 1).await.unwrap().units.remove(0);
+    assert_eq!(second.unit, first.unit);
+    let got = core
+        .accept_result(deliver(b, &second, false))
+        .await
+        .unwrap();
+    assert_eq!(got, Accepted::Held, "disputed: waits for a third worker");
+    assert_eq!(core.status(status.id).await.unwrap().passes_done, 0);
+    let third = core.lease(c, 1).await.unwrap().units.remove(0);
+    assert_eq!(third.unit, first.unit);
+    let got = core.accept_result(deliver(c, &third, false)).await.unwrap();
+    assert_eq!(got, Accepted::Merged);
+    assert_eq!(core.status(status.id).await.unwrap().passes_done, 1);
+
+    let list = request(http, "GET", "/api/v1/workers", &[], "")
+        .await
+        .json();
+    for w in list["workers"].as_array().unwrap() {
+        let faulty = w["name"] == "bad";
+        assert_eq!(w["quarantined"], faulty, "{w}");
+        assert_eq!(w["quarantine_reason"].is_string(), faulty, "{w}");
+    }
+    // No more work, its lease revoked and to be dropped, its results refused.
+    let grant = core.lease(bad, 4).await.unwrap();
+    assert!(grant.units.is_empty() && grant.retry_after_ms >= 1000);
+    let hb = core.heartbeat(bad, 0.0, &[again.lease_id]).unwrap();
+    assert_eq!(hb.cancel, vec![again.lease_id]);
+    let refused = core.accept_result(deliver(bad, &again, false)).await;
+    assert!(
+        matches!(refused, Err(Rejected::Quarantined(_))),
+        "{refused:?}"
+    );
+    // Registering again does not launder it.
+    let back = core.register_worker("bad".into(), 1, "t").unwrap();
+    assert!(core.lease(back, 4).await.unwrap().units.is_empty());
+    let m = core.metrics().await.unwrap();
+    assert_eq!(
+        gauge(&m, "tessera_spot_checks_total{outcome=\"mismatch\"}"),
+        1,
+        "{m}"
+    );
+    assert_eq!(gauge(&m, "tessera_workers_quarantined_total"), 1, "{m}");
+    assert!(gauge(&m, "tessera_workers_quarantined") >= 1, "{m}");
+}

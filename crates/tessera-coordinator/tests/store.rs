@@ -1295,6 +1295,34 @@ async fn a_deposed_leaders_writes_are_fenced() {
         "a checkpoint",
     );
     refused(old.end_run().await, "the clean end");
+    refused(
+        old.append_history(
+            job,
+            HistoryPoint {
+                elapsed_seconds: 1.0,
+                spp: 2.0,
+                error_estimate: None,
+            },
+        )
+        .await,
+        "a history point",
+    );
+    refused(
+        old.record_fault(&FaultEvent {
+            worker: "w".into(),
+            job: Some(job),
+            kind: FaultKind::InvalidResult,
+            message: "m".into(),
+            unix_ms: 1,
+        })
+        .await,
+        "a fault event",
+    );
+    refused(
+        old.put_scene("ab", b"scene").await.map(|_| ()),
+        "a scene upload",
+    );
+    assert!(new.list_history(job).await.unwrap().is_empty());
     assert_eq!(new.max_lease_id().await.unwrap(), 4096);
     // The new leader writes.
     new.record_lease_high_water(8192).await.unwrap();

@@ -760,6 +760,21 @@ impl AdaptiveFrame {
         Ok(())
     }
 
+    /// Drops one tile's policy state and consumed passes, as if nothing had been offered
+    /// to it (spot-check repair, with [`crate::FrameAccumulator::reset_tile`]): its
+    /// decisions are then taken again from the passes merged anew. Returns whether the
+    /// tile exists.
+    pub fn reset_tile(&mut self, index: u32) -> bool {
+        let (settings, passes) = (self.settings, self.plan.passes);
+        match self.tiles.get_mut(index as usize) {
+            Some(t) => {
+                *t = AdaptiveTile::new(t.rect(), settings, passes);
+                true
+            }
+            None => false,
+        }
+    }
+
     /// Whether every tile is finished.
     pub fn finished(&self) -> bool {
         self.tiles.iter().all(AdaptiveTile::finished)

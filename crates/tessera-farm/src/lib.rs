@@ -75,6 +75,7 @@ mod plan;
 pub mod quote;
 mod result;
 mod schedule;
+pub mod spot;
 mod stats;
 
 pub use adaptive::{
@@ -93,6 +94,9 @@ pub use result::{ResultError, UnitResult};
 pub use schedule::{
     frame_state_bytes, tail_share, JobId, Lease, Progress, Residency, Resumed, Scheduler,
     SubmitError, Submitted, WorkerId,
+};
+pub use spot::{
+    is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,
 };
 pub use stats::{luminance, PixelStats, ERROR_ESTIMATOR, LUMINANCE_WEIGHTS, REL_EPS};
 

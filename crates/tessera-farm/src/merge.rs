@@ -385,6 +385,20 @@ impl FrameAccumulator {
         }
     }
 
+    /// Drops everything merged and buffered in one tile, leaving it empty (spot-check
+    /// repair, ARCHITECTURE.md §6): a tile's statistics are a running accumulation in
+    /// pass order, so a corrupt pass cannot be taken out again; the tile is merged anew
+    /// from re-rendered units. Returns whether the tile exists.
+    pub fn reset_tile(&mut self, index: u32) -> bool {
+        match self.tiles.get_mut(index as usize) {
+            Some(t) => {
+                *t = TileAccumulator::new(t.rect());
+                true
+            }
+            None => false,
+        }
+    }
+
     /// Whether every tile has merged all of the plan's passes.
     pub fn complete(&self) -> bool {
         self.tiles

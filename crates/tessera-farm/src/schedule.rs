@@ -26,6 +26,15 @@
 //! bit-identical with any number of workers. The cost is a short pipeline stall per tile at
 //! each boundary (other tiles' units fill it when there are enough tiles).
 //!
+//! Spot checks (issue 15, [`crate::spot`]): with [`Scheduler::set_spot_check_fraction`]
+//! a deterministic fraction of the units is rendered by two different workers. The first
+//! copy is held unmerged ([`Submitted::Held`]) and the unit leased again to a worker that
+//! has no copy; it is merged once two different workers' copies agree, and a worker whose
+//! copy differs is quarantined ([`Scheduler::quarantine`]): no more leases, its leases
+//! revoked, its results refused, and every tile it merged a unit into on its word alone
+//! dropped and merged again from units other workers render. What happened is reported as
+//! [`crate::SpotEvent`]s ([`Scheduler::take_spot_events`]).
+//!
 //! Memory (issue 16): a frame's per-pixel merge state is allocated when its first unit is
 //! leased and, for jobs that are not adaptive, released by [`Scheduler::release_frame`]
 //! once the frame is complete and its tiles are checkpointed. Allocations are charged to
@@ -37,6 +46,7 @@ use crate::adaptive::{AdaptiveError, AdaptiveFrame, AdaptiveSettings};
 use crate::merge::{FrameAccumulator, MergeError, Offer};
 use crate::plan::{FramePlan, WorkUnit};
 use crate::result::UnitResult;
+use crate::spot::{is_spot_checked, CopyGroup, SpotCheck, SpotEvent, SpotOutcome};
 use std::collections::{BTreeMap, BTreeSet};
 
 /// Identifier of a job.
@@ -73,6 +83,10 @@ pub enum Submitted {
     /// The unit's frame is complete and released from memory
     /// ([`Scheduler::release_frame`]): the unit was merged, this copy is not compared.
     Late,
+    /// A copy of a spot-checked unit, valid and kept unmerged until a copy from another
+    /// worker agrees with it ([`crate::spot`]); not durable (after a restart the unit is
+    /// rendered again).
+    Held,
 }
 
 /// Why a submission was refused.
@@ -92,6 +106,9 @@ pub enum SubmitError {
     /// worker.
     #[error("rejected result: {0}")]
     Invalid(#[from] MergeError),
+    /// The worker is quarantined ([`Scheduler::quarantine`]): its results are refused.
+    #[error("worker {0} is quarantined: its results are not used")]
+    Quarantined(WorkerId),
 }
 
 /// Progress of one job.
@@ -193,6 +210,14 @@ struct Job {
     evicted: bool,
     /// Adaptive jobs only: the policy state and the units it holds back.
     adaptive: Option<AdaptiveQueue>,
+    /// Spot-checked units with copies waiting for agreement, by canonical index.
+    checks: BTreeMap<u64, SpotCheck>,
+    /// Units merged (or buffered) on one worker's word: that worker and the digest. If
+    /// the worker is quarantined, their tiles are merged again.
+    unverified: BTreeMap<u64, (WorkerId, u64)>,
+    /// Units of dropped tiles that a quarantined worker had merged: that worker and its
+    /// copy's digest, compared with the copy that replaces it.
+    suspect: BTreeMap<u64, (WorkerId, u64)>,
 }
 
 /// The adaptive part of a job: one policy state per frame, units waiting for a decision
@@ -235,7 +260,12 @@ impl Job {
 
     /// The next adaptive unit to lease: a returned or waiting unit whose decision is made,
     /// else the next one from the cursor (holding back those that must wait).
-    fn next_adaptive_index(&mut self, mem: &mut Memory) -> Option<u64> {
+    fn next_adaptive_index(
+        &mut self,
+        mem: &mut Memory,
+        worker: WorkerId,
+        alone: bool,
+    ) -> Option<u64> {
         let candidates = self
             .returned
             .iter()
@@ -254,7 +284,7 @@ impl Job {
         candidates.dedup();
         for i in candidates {
             let gate = self.gate(i);
-            if gate == Gate::Wait {
+            if gate == Gate::Wait || (gate == Gate::Lease && !self.may_render(i, worker, alone)) {
                 continue;
             }
             self.returned.remove(&i);
@@ -378,16 +408,73 @@ impl Job {
         (i < self.units_total() && self.unit(i) == *u).then_some(i)
     }
 
-    fn next_index(&mut self, mem: &mut Memory) -> Option<u64> {
+    fn next_index(&mut self, mem: &mut Memory, worker: WorkerId, alone: bool) -> Option<u64> {
         if self.adaptive.is_some() {
-            return self.next_adaptive_index(mem);
+            return self.next_adaptive_index(mem, worker, alone);
         }
         // A returned unit was leased before, so its frame is live.
-        if let Some(&i) = self.returned.iter().next() {
+        if let Some(i) = self
+            .returned
+            .iter()
+            .copied()
+            .find(|&i| self.may_render(i, worker, alone))
+        {
             self.returned.remove(&i);
             return Some(i);
         }
         self.next_from_cursor(mem)
+    }
+
+    /// Unit `i`, a suspect of a quarantined worker, merged again with `digest`: the
+    /// comparison with the suspect copy.
+    fn reverified(&mut self, job: JobId, i: u64, digest: u64) -> Option<SpotEvent> {
+        let (worker, old) = self.suspect.remove(&i)?;
+        Some(SpotEvent::Reverified {
+            job,
+            unit: self.unit(i),
+            worker,
+            identical: old == digest,
+        })
+    }
+
+    /// Whether `worker` may render unit `i`: a spot-checked unit's next copy goes to a
+    /// worker without a copy of it (see [`SpotCheck::eligible`] for a worker alone).
+    fn may_render(&self, i: u64, worker: WorkerId, alone: bool) -> bool {
+        self.checks
+            .get(&i)
+            .is_none_or(|c| c.eligible(worker, alone))
+    }
+
+    /// Drops tile `tile` of live frame `k` (spot-check repair): its merged and buffered
+    /// passes and its adaptive state are cleared and every one of its units is leased
+    /// again (those leased now are merged when they arrive). Units `quarantined` had
+    /// merged are remembered as suspect, to compare with their new copies.
+    fn reset_tile(&mut self, k: usize, tile: u32, quarantined: WorkerId) {
+        if let Some(FrameSlot::Live(acc)) = self.frames.get_mut(k) {
+            acc.reset_tile(tile);
+        }
+        if let Some(Some(f)) = self.adaptive.as_mut().and_then(|a| a.frames.get_mut(k)) {
+            f.reset_tile(tile);
+        }
+        let tiles = self.plan.tile_count() as u64;
+        let base = k as u64 * self.units_per_frame() + u64::from(tile);
+        for c in 0..self.chunks() {
+            let i = base + c * tiles;
+            self.done.remove(&i);
+            if let Some((w, d)) = self.unverified.remove(&i) {
+                if w == quarantined {
+                    self.suspect.insert(i, (w, d));
+                }
+            }
+            if let Some(a) = self.adaptive.as_mut() {
+                a.skipped.remove(&i);
+                a.waiting.remove(&i);
+            }
+            // Units past the cursor were never leased: the cursor reaches them anyway.
+            if i < self.cursor && !self.leased.contains_key(&i) {
+                self.returned.insert(i);
+            }
+        }
     }
 
     /// The never-leased unit at the cursor, advancing it: units merged before a restart
@@ -506,6 +593,12 @@ pub struct Scheduler {
     /// The largest lease id issued by an earlier run of the coordinator (the high-water
     /// mark it was restarted with); results answering such leases are adopted.
     previous_run_max_lease: u64,
+    /// The fraction of units spot-checked ([`crate::spot`]); 0 disables.
+    spot_fraction: f64,
+    /// Workers found faulty: no leases, results refused.
+    quarantined: BTreeSet<WorkerId>,
+    /// What spot checks found since the last [`Scheduler::take_spot_events`].
+    spot_events: Vec<SpotEvent>,
 }
 
 impl Scheduler {
@@ -525,7 +618,120 @@ impl Scheduler {
             next_lease_id: first_lease_id + 1,
             next_seq: 0,
             previous_run_max_lease: first_lease_id,
+            spot_fraction: 0.0,
+            quarantined: BTreeSet::new(),
+            spot_events: Vec::new(),
         }
+    }
+
+    /// Sets the fraction of units spot-checked (0 by default: none; clamped to 0..=1, NaN
+    /// is 0). Which units are checked is [`crate::is_spot_checked`] of the job and unit,
+    /// so it is the same after a restart with the same fraction.
+    pub fn set_spot_check_fraction(&mut self, fraction: f64) {
+        self.spot_fraction = if fraction.is_nan() {
+            0.0
+        } else {
+            fraction.clamp(0.0, 1.0)
+        };
+    }
+
+    /// The fraction of units spot-checked.
+    pub fn spot_check_fraction(&self) -> f64 {
+        self.spot_fraction
+    }
+
+    /// Whether `worker` is quarantined.
+    pub fn is_quarantined(&self, worker: WorkerId) -> bool {
+        self.quarantined.contains(&worker)
+    }
+
+    /// The quarantined workers.
+    pub fn quarantined(&self) -> impl Iterator<Item = WorkerId> + '_ {
+        self.quarantined.iter().copied()
+    }
+
+    /// Spot-checked units whose copies wait for agreement, over all jobs, and how many of
+    /// them are disputed (copies that differ, waiting for a third worker).
+    pub fn spot_checks_waiting(&self) -> (u64, u64) {
+        self.jobs
+            .values()
+            .flat_map(|j| j.checks.values())
+            .fold((0, 0), |(n, d), c| {
+                (n + 1, d + u64::from(c.groups.len() > 1))
+            })
+    }
+
+    /// What spot checks found since the last call, oldest first.
+    pub fn take_spot_events(&mut self) -> Vec<SpotEvent> {
+        std::mem::take(&mut self.spot_events)
+    }
+
+    /// Quarantines `worker` (found faulty by a spot check, or by the caller): it gets no
+    /// more leases, its outstanding leases are revoked (their units return to the queue),
+    /// its results are refused ([`SubmitError::Quarantined`]), its copies of spot-checked
+    /// units no longer count, and every tile of a live frame of an unfinished job into
+    /// which it merged a unit on its word alone is dropped and merged again from scratch
+    /// (a tile's statistics are a running accumulation, so a corrupt pass cannot be taken
+    /// out). Its units in released frames or finished jobs cannot be rendered again; they
+    /// are counted in the [`SpotEvent::Quarantined`] this pushes. Returns false if the
+    /// worker was already quarantined.
+    pub fn quarantine(&mut self, worker: WorkerId, reason: &str) -> bool {
+        if !self.quarantined.insert(worker) {
+            return false;
+        }
+        let held: Vec<u64> = self
+            .leases
+            .values()
+            .filter(|l| l.worker == worker)
+            .map(|l| l.lease_id)
+            .collect();
+        for id in held {
+            self.release(id);
+        }
+        let mut reset_tiles = Vec::new();
+        let mut unrepaired_units = 0u64;
+        for (&job_id, job) in &mut self.jobs {
+            for check in job.checks.values_mut() {
+                for g in &mut check.groups {
+                    g.workers.retain(|&w| w != worker);
+                }
+                check.groups.retain(|g| !g.workers.is_empty());
+            }
+            job.checks.retain(|_, c| !c.groups.is_empty());
+            let units: Vec<u64> = job
+                .unverified
+                .iter()
+                .filter(|(_, (w, _))| *w == worker)
+                .map(|(&i, _)| i)
+                .collect();
+            if units.is_empty() || job.canceled {
+                continue;
+            }
+            if job.is_complete() {
+                unrepaired_units += units.len() as u64;
+                continue;
+            }
+            let mut tiles = BTreeSet::new();
+            for i in units {
+                let k = job.frame_index(i);
+                if matches!(job.frames.get(k), Some(FrameSlot::Live(_))) {
+                    tiles.insert((k, job.unit(i).tile));
+                } else {
+                    unrepaired_units += 1;
+                }
+            }
+            for (k, tile) in tiles {
+                job.reset_tile(k, tile, worker);
+                reset_tiles.push((job_id, job.first_frame + k as u32, tile));
+            }
+        }
+        self.spot_events.push(SpotEvent::Quarantined {
+            worker,
+            reason: reason.to_string(),
+            reset_tiles,
+            unrepaired_units,
+        });
+        true
     }
 
     /// Adds a job resumed after a restart (see [`Resumed`]), cut into units of
@@ -607,6 +813,9 @@ impl Scheduler {
             canceled: false,
             evicted: false,
             adaptive: None,
+            checks: BTreeMap::new(),
+            unverified: BTreeMap::new(),
+            suspect: BTreeMap::new(),
         };
         job.frames = slots;
         for i in 0..job.units_total() {
@@ -664,6 +873,9 @@ impl Scheduler {
                 canceled: false,
                 evicted: false,
                 adaptive: None,
+                checks: BTreeMap::new(),
+                unverified: BTreeMap::new(),
+                suspect: BTreeMap::new(),
             },
         );
     }
@@ -742,7 +954,24 @@ impl Scheduler {
     /// finished adaptive jobs, oldest first, give their frames back first: their policy
     /// state is not checkpointed (so they are not released as their frames complete),
     /// and their images then come from the store's checkpoints, as after a restart.
+    ///
+    /// The worker is not taken to be alone: a spot-checked unit it has a copy of waits
+    /// for another worker ([`Scheduler::lease_among`] knows better). A quarantined worker
+    /// gets nothing.
     pub fn lease(&mut self, worker: WorkerId, now_ms: u64, max_units: usize) -> Vec<Lease> {
+        self.lease_as(worker, now_ms, max_units, false)
+    }
+
+    fn lease_as(
+        &mut self,
+        worker: WorkerId,
+        now_ms: u64,
+        max_units: usize,
+        alone: bool,
+    ) -> Vec<Lease> {
+        if self.quarantined.contains(&worker) {
+            return Vec::new();
+        }
         self.evict_finished_adaptive();
         let mut order: Vec<(i32, u64, JobId)> = self
             .jobs
@@ -755,7 +984,7 @@ impl Scheduler {
         for (_, _, id) in order {
             let job = self.jobs.get_mut(&id).expect("listed job exists");
             while out.len() < max_units {
-                let Some(i) = job.next_index(&mut self.memory) else {
+                let Some(i) = job.next_index(&mut self.memory, worker, alone) else {
                     break;
                 };
                 let lease = Lease {
@@ -783,6 +1012,10 @@ impl Scheduler {
     /// worker is left rendering a large batch alone while the others wait (issue 14).
     /// Only who renders which unit depends on it, never what a unit is, so the image is
     /// the same.
+    ///
+    /// A worker alone (`threads >= total_threads`) may render the second copy of a
+    /// spot-checked unit it rendered first: there is no one else to compare with, and a
+    /// farm of one worker must still finish its jobs.
     pub fn lease_among(
         &mut self,
         worker: WorkerId,
@@ -798,7 +1031,7 @@ impl Scheduler {
             .map(Job::queued)
             .sum();
         let max = tail_share(queued, threads, total_threads, max_units);
-        self.lease(worker, now_ms, max)
+        self.lease_as(worker, now_ms, max, threads >= total_threads)
     }
 
     fn evict_finished_adaptive(&mut self) {
@@ -892,14 +1125,36 @@ impl Scheduler {
         }
     }
 
-    /// Accepts the result of `lease_id`. The lease must have been issued for exactly the
-    /// result's unit (it may have lapsed: a late result is still merged once or compared).
+    /// Accepts the result of `lease_id` from the worker that holds the lease (see
+    /// [`Scheduler::submit_from`]; a lapsed lease's worker is not known here, so spot
+    /// checks count such a copy as one of an unknown worker, [`WorkerId::MAX`]).
     pub fn submit(
         &mut self,
         lease_id: u64,
         job_id: JobId,
         result: UnitResult,
     ) -> Result<Submitted, SubmitError> {
+        let worker = self
+            .leases
+            .get(&lease_id)
+            .map_or(WorkerId::MAX, |l| l.worker);
+        self.submit_from(worker, lease_id, job_id, result)
+    }
+
+    /// Accepts `worker`'s result for `lease_id`. The lease must have been issued for
+    /// exactly the result's unit (it may have lapsed: a late result is still merged once or
+    /// compared). A spot-checked unit's copy is held until a copy from another worker
+    /// agrees ([`Submitted::Held`]; see the module docs); a quarantined worker's result is
+    /// refused.
+    pub fn submit_from(
+        &mut self,
+        worker: WorkerId,
+        lease_id: u64,
+        job_id: JobId,
+        result: UnitResult,
+    ) -> Result<Submitted, SubmitError> {
+        let spot_fraction = self.spot_fraction;
+        let quarantined = self.quarantined.contains(&worker);
         let job = self
             .jobs
             .get_mut(&job_id)
@@ -923,6 +1178,9 @@ impl Scheduler {
         };
         if !issued {
             return Err(SubmitError::UnknownLease(lease_id));
+        }
+        if quarantined {
+            return Err(SubmitError::Quarantined(worker));
         }
         let frame = (result.unit.frame - job.first_frame) as usize;
         // A lease of the previous run may be for a frame nothing of which was merged
@@ -950,6 +1208,11 @@ impl Scheduler {
             FrameSlot::Pending => return Err(SubmitError::NotResident(result.unit.frame)),
         };
         let result = canonical_masked(result, wanted.as_ref(), &job.plan)?;
+        if !job.done.contains(&i) && is_spot_checked(spot_fraction, job_id, &result.unit) {
+            result.validate(acc.plan()).map_err(MergeError::from)?;
+            return self.hold_copy(worker, lease_id, job_id, i, result);
+        }
+        let digest = result.digest();
         let copy = job.adaptive.as_ref().map(|_| result.clone());
         let outcome = acc.offer(result)?;
         if let (Some(a), Some(copy)) = (job.adaptive.as_mut(), copy) {
@@ -970,6 +1233,143 @@ impl Scheduler {
         job.returned.remove(&i);
         job.done.insert(i);
         Ok(match outcome {
+            Offer::Duplicate { identical } => Submitted::Duplicate { identical },
+            Offer::Merged { .. } | Offer::Buffered => {
+                job.unverified.insert(i, (worker, digest));
+                if let Some(e) = job.reverified(job_id, i, digest) {
+                    self.spot_events.push(e);
+                }
+                Submitted::Accepted
+            }
+        })
+    }
+
+    /// A validated copy of spot-checked unit `i` (not merged yet) from `worker`: held
+    /// with the others; once two agree ([`SpotCheck::agreed`]) the workers whose copy
+    /// differs are quarantined and the agreed copy is merged.
+    fn hold_copy(
+        &mut self,
+        worker: WorkerId,
+        lease_id: u64,
+        job_id: JobId,
+        i: u64,
+        result: UnitResult,
+    ) -> Result<Submitted, SubmitError> {
+        let unit = result.unit;
+        let digest = result.digest();
+        self.leases.remove(&lease_id);
+        self.lapsed.remove(&lease_id);
+        let job = self
+            .jobs
+            .get_mut(&job_id)
+            .ok_or(SubmitError::UnknownLease(lease_id))?;
+        if job.leased.get(&i) == Some(&lease_id) {
+            job.leased.remove(&i);
+        }
+        let check = job.checks.entry(i).or_default();
+        if check.groups.iter().any(|g| g.leases.contains(&lease_id)) {
+            return Ok(Submitted::Held);
+        }
+        let fresh = match check.groups.iter_mut().find(|g| g.digest == digest) {
+            Some(g) => {
+                g.workers.push(worker);
+                g.leases.push(lease_id);
+                false
+            }
+            None => {
+                check.groups.push(CopyGroup {
+                    digest,
+                    workers: vec![worker],
+                    leases: vec![lease_id],
+                    result,
+                });
+                true
+            }
+        };
+        let Some(k) = check.agreed() else {
+            if fresh && check.groups.len() > 1 {
+                let mut workers: Vec<WorkerId> = check
+                    .groups
+                    .iter()
+                    .flat_map(|g| g.workers.iter().copied())
+                    .collect();
+                workers.dedup();
+                self.spot_events.push(SpotEvent::Disputed {
+                    job: job_id,
+                    unit,
+                    workers,
+                });
+            }
+            // Wanted again, from a worker with no copy (unless a lease is out already).
+            if !job.leased.contains_key(&i) {
+                job.returned.insert(i);
+            }
+            return Ok(Submitted::Held);
+        };
+        let Some(mut check) = job.checks.remove(&i) else {
+            return Ok(Submitted::Held);
+        };
+        let agreed = check.groups.swap_remove(k);
+        // Every worker with a copy unlike the agreed one (even if it also rendered the
+        // agreed one: a worker whose copies differ is faulty).
+        let dissenters: BTreeSet<WorkerId> = check
+            .groups
+            .iter()
+            .flat_map(|g| g.workers.iter().copied())
+            .collect();
+        let distinct = agreed.workers.iter().any(|w| *w != agreed.workers[0]);
+        let outcome = if !dissenters.is_empty() {
+            SpotOutcome::Mismatch
+        } else if distinct {
+            SpotOutcome::Match
+        } else {
+            SpotOutcome::Alone
+        };
+        for &w in &dissenters {
+            let reason = format!(
+                "spot check: its copy of job {job_id} frame {} tile {} passes {}..{} differs \
+                 from the copy {} other worker(s) agree on",
+                unit.frame,
+                unit.tile,
+                unit.first_pass,
+                unit.end_pass(),
+                agreed.workers.len()
+            );
+            self.quarantine(w, &reason);
+        }
+        // Quarantine may have dropped this unit's tile; the frame is still live.
+        let job = self
+            .jobs
+            .get_mut(&job_id)
+            .ok_or(SubmitError::UnknownLease(lease_id))?;
+        let frame = job.frame_index(i);
+        let Some(FrameSlot::Live(acc)) = job.frames.get_mut(frame) else {
+            return Err(SubmitError::NotResident(unit.frame));
+        };
+        let copy = job.adaptive.as_ref().map(|_| agreed.result.clone());
+        let offered = acc.offer(agreed.result)?;
+        if let (Some(a), Some(copy)) = (job.adaptive.as_mut(), copy) {
+            if !matches!(offered, Offer::Duplicate { .. }) {
+                if let Some(Some(f)) = a.frames.get_mut(frame) {
+                    // Validated by the offer above; cannot fail.
+                    let _ = f.offer(&copy);
+                }
+            }
+        }
+        job.returned.remove(&i);
+        job.done.insert(i);
+        if outcome == SpotOutcome::Alone {
+            // Not verified by anyone else: repaired if its worker is found faulty later.
+            job.unverified.insert(i, (agreed.workers[0], digest));
+        }
+        let reverified = job.reverified(job_id, i, agreed.digest);
+        self.spot_events.push(SpotEvent::Checked {
+            job: job_id,
+            unit,
+            outcome,
+        });
+        self.spot_events.extend(reverified);
+        Ok(match offered {
             Offer::Duplicate { identical } => Submitted::Duplicate { identical },
             Offer::Merged { .. } | Offer::Buffered => Submitted::Accepted,
         })
@@ -1919,5 +2319,301 @@ mod tests {
         assert!(s.is_complete(1));
         assert_eq!(s.residency(1, 0), Some(Residency::Released));
         assert!(s.adaptive_frame(1, 0).is_none());
+    }
+}
+
+/// Spot checks and quarantine (issue 15).
+#[cfg(test)]
+mod spot_tests {
+    use super::*;
+    use crate::spot::SpotOutcome;
+    use crate::FrameImage;
+
+    fn plan() -> FramePlan {
+        FramePlan::new(40, 30, 16, 4, 6).unwrap() // 6 tiles, 6 passes: 36 units
+    }
+
+    /// What an honest worker renders: a pure function of the unit.
+    fn honest(plan: &FramePlan, unit: WorkUnit) -> UnitResult {
+        let rect = plan.tile(unit.tile);
+        let n = rect.pixel_count() * unit.pass_count as usize;
+        let base = 0.5 + unit.tile as f32 + unit.first_pass as f32 * 0.1;
+        let pass_means = (0..n).map(|k| [base + (k % 7) as f32 * 0.01; 3]).collect();
+        UnitResult {
+            unit,
+            width: rect.width,
+            height: rect.height,
+            pass_means,
+            rejected_samples: 0,
+        }
+    }
+
+    /// What a faulty worker renders: well-formed, one value off.
+    fn corrupt(plan: &FramePlan, unit: WorkUnit) -> UnitResult {
+        let mut r = honest(plan, unit);
+        r.pass_means[3][1] += 0.25;
+        r
+    }
+
+    fn bits(img: &FrameImage) -> Vec<u32> {
+        img.mean
+            .iter()
+            .chain(&img.variance_of_mean)
+            .flat_map(|p| p.map(f32::to_bits))
+            .chain(img.passes.iter().copied())
+            .collect()
+    }
+
+    /// The image of the job rendered by honest workers without spot checks.
+    fn reference() -> Vec<u32> {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        while !s.is_complete(1) {
+            for l in s.lease(1, 0, 100) {
+                s.submit(l.lease_id, 1, honest(&p, l.unit)).unwrap();
+            }
+        }
+        bits(&s.frame(1, 0).unwrap().image())
+    }
+
+    /// Drives `workers` (id, faulty) round-robin, each leasing up to 2 units as one of
+    /// `workers.len()` one-thread workers and delivering them the next round (so copies
+    /// of one unit are in flight at once), until the job completes or `rounds` pass.
+    /// Asserts that no worker is ever leased a spot-checked unit it already delivered a
+    /// copy of. Returns the events.
+    fn drive(s: &mut Scheduler, workers: &[(WorkerId, bool)], rounds: u32) -> Vec<SpotEvent> {
+        let p = plan();
+        let mut delivered: BTreeSet<(WorkUnit, WorkerId)> = BTreeSet::new();
+        let mut held: Vec<Lease> = Vec::new();
+        let mut events = Vec::new();
+        let live = workers
+            .iter()
+            .filter(|(w, _)| !s.is_quarantined(*w))
+            .count() as u64;
+        for round in 0..rounds {
+            if s.is_complete(1) {
+                break;
+            }
+            for &(w, faulty) in workers {
+                // Deliver what this worker leased last round.
+                let mine: Vec<Lease> = held.iter().filter(|l| l.worker == w).copied().collect();
+                held.retain(|l| l.worker != w);
+                for l in mine {
+                    let r = if faulty {
+                        corrupt(&p, l.unit)
+                    } else {
+                        honest(&p, l.unit)
+                    };
+                    match s.submit_from(w, l.lease_id, 1, r) {
+                        Ok(_) | Err(SubmitError::Quarantined(_)) => {}
+                        Err(e) => panic!("worker {w}: {e}"),
+                    }
+                    delivered.insert((l.unit, w));
+                    events.extend(s.take_spot_events());
+                }
+                let got = s.lease_among(w, u64::from(round), 2, 1, live);
+                for l in &got {
+                    if is_spot_checked(s.spot_check_fraction(), 1, &l.unit) {
+                        assert!(
+                            !delivered.contains(&(l.unit, w)) || live == 1,
+                            "worker {w} leased a second copy of {:?}",
+                            l.unit
+                        );
+                    }
+                }
+                held.extend(got);
+            }
+        }
+        events
+    }
+
+    #[test]
+    fn a_faulty_worker_is_quarantined_and_the_image_stays_identical() {
+        let p = plan();
+        let expected = reference();
+        for fraction in [0.3, 1.0] {
+            let mut s = Scheduler::new(100, 0);
+            s.set_spot_check_fraction(fraction);
+            s.add_job(1, 0, p, 0..=0, 1);
+            let events = drive(&mut s, &[(3, true), (1, false), (2, false)], 500);
+            assert!(s.is_complete(1), "fraction {fraction}: the job stalled");
+            assert_eq!(
+                bits(&s.frame(1, 0).unwrap().image()),
+                expected,
+                "fraction {fraction}: the image differs from the honest render"
+            );
+            assert!(s.is_quarantined(3));
+            assert!(!s.is_quarantined(1) && !s.is_quarantined(2));
+            assert!(
+                s.lease(3, 1000, 10).is_empty(),
+                "a quarantined worker leases"
+            );
+            let mismatches = events
+                .iter()
+                .filter(|e| {
+                    matches!(
+                        e,
+                        SpotEvent::Checked {
+                            outcome: SpotOutcome::Mismatch,
+                            ..
+                        }
+                    )
+                })
+                .count();
+            assert!(mismatches >= 1, "fraction {fraction}: {events:?}");
+            let q: Vec<_> = events
+                .iter()
+                .filter(|e| matches!(e, SpotEvent::Quarantined { worker: 3, .. }))
+                .collect();
+            assert_eq!(q.len(), 1, "quarantined once");
+            // The faulty worker delivered first (it leads the round), so at 0.3 some of
+            // its corrupt units were merged unchecked: their tiles were dropped and every
+            // re-rendered copy of its units differs from its own.
+            if fraction < 1.0 {
+                let SpotEvent::Quarantined { reset_tiles, .. } = q[0] else {
+                    unreachable!()
+                };
+                assert!(!reset_tiles.is_empty());
+                let reverified: Vec<bool> = events
+                    .iter()
+                    .filter_map(|e| match e {
+                        SpotEvent::Reverified { identical, .. } => Some(*identical),
+                        _ => None,
+                    })
+                    .collect();
+                assert!(!reverified.is_empty() && reverified.iter().all(|i| !i));
+            }
+            assert_eq!(s.spot_checks_waiting(), (0, 0));
+        }
+    }
+
+    #[test]
+    fn a_worker_alone_checks_itself_and_finishes() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.set_spot_check_fraction(0.3);
+        s.add_job(1, 0, p, 0..=0, 1);
+        let events = drive(&mut s, &[(1, false)], 500);
+        assert!(s.is_complete(1));
+        assert_eq!(bits(&s.frame(1, 0).unwrap().image()), reference());
+        let checked = (0..36u64)
+            .filter(|&i| {
+                let u = WorkUnit {
+                    frame: 0,
+                    tile: (i % 6) as u32,
+                    first_pass: (i / 6) as u32,
+                    pass_count: 1,
+                };
+                is_spot_checked(0.3, 1, &u)
+            })
+            .count();
+        assert!(checked > 0);
+        let alone = events
+            .iter()
+            .filter(|e| {
+                matches!(
+                    e,
+                    SpotEvent::Checked {
+                        outcome: SpotOutcome::Alone,
+                        ..
+                    }
+                )
+            })
+            .count();
+        assert_eq!(alone, checked);
+        // The plain lease (no knowledge of the others) never gives a worker its own
+        // spot-checked unit again.
+        let mut s = Scheduler::new(100, 0);
+        s.set_spot_check_fraction(1.0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        let first = s.lease(1, 0, 100);
+        assert_eq!(first.len(), 36);
+        for l in &first {
+            assert_eq!(
+                s.submit_from(1, l.lease_id, 1, honest(&p, l.unit)),
+                Ok(Submitted::Held)
+            );
+        }
+        assert!(s.lease(1, 0, 100).is_empty());
+        let second = s.lease(2, 0, 100);
+        assert_eq!(second.len(), 36);
+        for l in &second {
+            assert_eq!(
+                s.submit_from(2, l.lease_id, 1, honest(&p, l.unit)),
+                Ok(Submitted::Accepted)
+            );
+        }
+        assert!(s.is_complete(1));
+    }
+
+    #[test]
+    fn a_dispute_waits_for_a_third_worker() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.set_spot_check_fraction(1.0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        // Two workers, one faulty: every unit is disputed and nobody can decide.
+        drive(&mut s, &[(1, false), (2, true)], 100);
+        assert!(!s.is_complete(1));
+        assert!(!s.is_quarantined(1) && !s.is_quarantined(2));
+        let (waiting, disputed) = s.spot_checks_waiting();
+        assert!(waiting > 0 && disputed > 0, "{waiting} {disputed}");
+        assert_eq!(
+            s.progress(1).unwrap().passes_done,
+            0,
+            "nothing disputed is merged"
+        );
+        // A third worker decides by majority.
+        drive(&mut s, &[(1, false), (2, true), (3, false)], 500);
+        assert!(s.is_complete(1));
+        assert!(s.is_quarantined(2) && !s.is_quarantined(1) && !s.is_quarantined(3));
+        assert_eq!(bits(&s.frame(1, 0).unwrap().image()), reference());
+        // The quarantined worker's late results are refused.
+        let l = s.leases().next().copied();
+        assert!(l.is_none(), "its leases were revoked");
+    }
+
+    #[test]
+    fn quarantine_drops_the_tiles_of_unverified_units_and_revokes_leases() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        // Worker 9 merges the first pass of every tile (unchecked: no spot checks), and
+        // holds a lease.
+        for l in s.lease(9, 0, 6) {
+            s.submit_from(9, l.lease_id, 1, corrupt(&p, l.unit))
+                .unwrap();
+        }
+        let out = s.lease(9, 0, 1);
+        assert_eq!(s.progress(1).unwrap().passes_done, 6);
+        assert!(s.quarantine(9, "test"));
+        assert!(!s.quarantine(9, "again"));
+        assert_eq!(s.progress(1).unwrap().passes_done, 0);
+        assert_eq!(s.progress(1).unwrap().units_leased, 0);
+        assert_eq!(
+            s.submit_from(9, out[0].lease_id, 1, honest(&p, out[0].unit)),
+            Err(SubmitError::Quarantined(9))
+        );
+        let ev = s.take_spot_events();
+        assert!(
+            matches!(&ev[..], [SpotEvent::Quarantined { reset_tiles, unrepaired_units: 0, .. }] if reset_tiles.len() == 6)
+        );
+        while !s.is_complete(1) {
+            for l in s.lease(1, 0, 100) {
+                s.submit_from(1, l.lease_id, 1, honest(&p, l.unit)).unwrap();
+            }
+        }
+        assert_eq!(bits(&s.frame(1, 0).unwrap().image()), reference());
+        let again = s.take_spot_events();
+        assert_eq!(again.len(), 6);
+        assert!(again.iter().all(|e| matches!(
+            e,
+            SpotEvent::Reverified {
+                worker: 9,
+                identical: false,
+                ..
+            }
+        )));
     }
 }

@@ -58,6 +58,36 @@ pub struct WorkerConfig {
     /// TLS for an `https://` coordinator URL: the CA to trust and, for mutual TLS, the
     /// worker's certificate and key. `None` for `http://`.
     pub tls: Option<WorkerTls>,
+    /// A testing aid (`--inject-faults`): the fraction of units whose result this worker
+    /// corrupts ([`injects_fault`]), 0 for none. The corrupt results stay well-formed, so
+    /// only the coordinator's spot checks catch them. Never set it in production.
+    pub inject_faults: f64,
+}
+
+/// Salt of the `--inject-faults` selection, independent of the spot-check selection.
+pub const INJECT_FAULTS_SALT: u64 = 0x496e_6a46_6175_6c74; // "InjFault"
+
+/// Whether a worker started with `--inject-faults fraction` corrupts `unit` of job `job`:
+/// a hash of the unit's identity against the fraction ([`tessera_farm::unit_selected`]),
+/// so the same units on every run and every worker, and a test can compute which.
+pub fn injects_fault(fraction: f64, job: u64, unit: &tessera_farm::WorkUnit) -> bool {
+    tessera_farm::unit_selected(INJECT_FAULTS_SALT, fraction, job, unit)
+}
+
+/// Corrupts a result the way `--inject-faults` does: the lowest bit of the first traced value
+/// flipped (of its absolute value, so it stays finite and non-negative): well-formed, so
+/// validation accepts it, and a different digest, so a comparison does not.
+fn corrupt(result: &mut tessera_farm::UnitResult) {
+    // A traced pixel (nonzero): an untraced one of an adaptive lease is zeroed by the
+    // coordinator before copies are compared, which would hide the fault.
+    let first_traced = result
+        .pass_means
+        .iter()
+        .position(|v| v[0] != 0.0)
+        .unwrap_or(0);
+    if let Some(v) = result.pass_means.get_mut(first_traced) {
+        v[0] = f32::from_bits(v[0].abs().to_bits() ^ 1);
+    }
 }
 
 /// A worker's TLS settings, read from PEM files by [`WorkerTls::from_files`].
@@ -219,6 +249,12 @@ pub async fn run(
             config.threads
         )));
     }
+    if !(0.0..=1.0).contains(&config.inject_faults) {
+        return Err(WorkerError::Config(format!(
+            "inject_faults {} must be between 0 and 1",
+            config.inject_faults
+        )));
+    }
     if config.coordinators.is_empty() {
         return Err(WorkerError::Config(
             "no coordinator URL: give at least one (--coordinator)".into(),
@@ -244,6 +280,12 @@ pub async fn run(
             .build()
             .map_err(|e| WorkerError::Config(format!("thread pool: {e}")))?,
     );
+    if config.inject_faults > 0.0 {
+        tracing::warn!(
+            fraction = config.inject_faults,
+            "--inject-faults: this worker corrupts a fraction of its results (a testing aid)"
+        );
+    }
     let cache = Arc::new(Mutex::new(SceneCache::default()));
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let session = async {
@@ -521,7 +563,7 @@ async fn session(
                         give_back(&mut client, worker_id, b).await;
                     }
                 } else if !b.units.is_empty() {
-                    rendering = Some(Rendering::start(pool, b));
+                    rendering = Some(Rendering::start(pool, b, config.inject_faults));
                 }
             }
         }
@@ -881,7 +923,8 @@ struct Rendering {
 impl Rendering {
     /// Renders every unit of `batch` on the pool, on a blocking thread (never on the
     /// async runtime).
-    fn start(pool: &Arc<rayon::ThreadPool>, batch: Batch) -> Self {
+    /// `inject_faults` is [`WorkerConfig::inject_faults`].
+    fn start(pool: &Arc<rayon::ThreadPool>, batch: Batch, inject_faults: f64) -> Self {
         let lease_ids = batch.lease_ids().collect();
         let pool = pool.clone();
         let task = tokio::task::spawn_blocking(move || {
@@ -891,10 +934,15 @@ impl Rendering {
                     .par_iter()
                     .map(|(l, rs)| {
                         let t = Instant::now();
-                        let (result, pixel_passes) = match render_contained(rs, l) {
+                        let (mut result, pixel_passes) = match render_contained(rs, l) {
                             Ok((r, n)) => (Ok(r), n),
                             Err(e) => (Err(e), 0),
                         };
+                        if let Ok(r) = &mut result {
+                            if injects_fault(inject_faults, l.job_id, &l.unit) {
+                                corrupt(r);
+                            }
+                        }
                         Outcome {
                             lease_id: l.lease_id,
                             job_id: l.job_id,

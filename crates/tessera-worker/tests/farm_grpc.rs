@@ -80,6 +80,7 @@ async fn farm_render(workers: usize) -> FrameImage {
             name: format!("w{i}"),
             token: Some("s3cret".into()),
             tls: None,
+            inject_faults: 0.0,
         };
         let mut rx = stop_rx.clone();
         handles.push(tokio::spawn(run(cfg, async move {
@@ -144,6 +145,7 @@ async fn a_worker_without_the_token_is_refused() {
             name: "intruder".into(),
             token,
             tls: None,
+            inject_faults: 0.0,
         };
         let r = tokio::time::timeout(Duration::from_secs(30), run(cfg, std::future::pending()))
             .await
@@ -186,6 +188,7 @@ fn spawn_worker(
         name: name.into(),
         token: None,
         tls: None,
+        inject_faults: 0.0,
     };
     let h = tokio::spawn(run(cfg, async move {
         let _ = rx.changed().await;

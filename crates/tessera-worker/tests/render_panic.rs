@@ -77,6 +77,7 @@ async fn scenario() {
             name: "w".into(),
             token: None,
             tls: None,
+            inject_faults: 0.0,
         },
         async move {
             let _ = stop_rx.changed().await;

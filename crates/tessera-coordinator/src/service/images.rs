@@ -15,7 +15,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use tessera_api::{
-    FrameQuery, FrameRange, ImageFormat, ImageQuery, JobState, ResolvedJob, TileInfo, TileMap,
+    FrameQuery, FrameRange, ImageFormat, ImageQuery, ResolvedJob, TileInfo, TileMap,
 };
 use tessera_farm::{AdaptiveFrame, FrameAccumulator, FrameImage, FramePlan, JobId, Residency};
 
@@ -222,7 +222,7 @@ impl Coordinator {
         let stored = resolve_stored(store, &self.inner.farm, &rec).await?;
         Ok(FrameMeta {
             resolved: stored.resolved,
-            stopped: (rec.state == JobState::Done).then_some(Stop::Finished),
+            stopped: Stop::of_stored(rec.state, rec.error.as_deref()),
             frame: f,
             // Jobs of an earlier run no longer change.
             version: u64::MAX,

@@ -106,7 +106,11 @@ impl Coordinator {
     /// Refuses a job whose merge state cannot fit the memory budget: one frame (frames
     /// of a job that is not adaptive are released as they complete) or, for adaptive jobs,
     /// all frames (their policy state is not checkpointed, so it stays until the job ends).
-    fn check_memory(&self, job: &ValidatedJob, resolved: &ResolvedJob) -> CoordResult<()> {
+    pub(crate) fn check_memory(
+        &self,
+        job: &ValidatedJob,
+        resolved: &ResolvedJob,
+    ) -> CoordResult<()> {
         if resolved.black {
             return Ok(());
         }
@@ -183,12 +187,12 @@ impl Coordinator {
             (Some(s), None) => now_ms().saturating_sub(s) as f64 / 1e3,
             _ => 0.0,
         };
-        // The store does not keep whether a time limit stopped it.
         let stops_early = settings.adaptive != "off"
             || settings.target_error.is_some()
             || settings.time_limit_seconds.is_some();
-        let verdict = (rec.state == JobState::Done && stops_early).then(|| StopVerdict {
-            time_limit: false,
+        let stop = Stop::of_stored(rec.state, rec.error.as_deref());
+        let verdict = stop.filter(|_| stops_early).map(|stop| StopVerdict {
+            time_limit: stop == Stop::TimeLimit,
             target: settings.target_error,
             estimate: history.last().and_then(|h| h.error_estimate),
             spp: plan.spp(),
@@ -214,6 +218,7 @@ impl Coordinator {
             passes_done,
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
             error_estimate: history.last().and_then(|h| h.error_estimate),
+            error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
             target_reached: verdict.and_then(|v| v.target_reached()),
             stop_reason: verdict.map(|v| v.summary()),
             elapsed_seconds: elapsed,
@@ -222,7 +227,8 @@ impl Coordinator {
             priority: rec.priority,
             faults,
             rejected_samples,
-            error: rec.error.clone(),
+            // A done job's message is why it stopped (above), not an error.
+            error: rec.error.clone().filter(|_| stop.is_none()),
             plan: None,
         })
     }
@@ -397,6 +403,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             None => spp_so_far(&rt.resolved, passes_done, rt.job().frames.count()),
         },
         error_estimate: error,
+        error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
         target_error: rt.job().target_error,
         target_reached: verdict.and_then(|v| v.target_reached()),
         stop_reason: verdict.map(|v| v.summary()),

@@ -55,6 +55,37 @@ impl Coordinator {
             farm.workers.values().map(|w| w.pixel_passes).sum::<u64>() + forgotten.pixel_passes;
         let _ = writeln!(s, "# HELP tessera_worker_pixel_passes_total Pixel-passes workers traced for the units merged from them, as they reported them (pixels traced times passes: an adaptive lease names the pixels still wanted and the rest are not traced; 0 from workers that do not report it).\n# TYPE tessera_worker_pixel_passes_total counter\ntessera_worker_pixel_passes_total {pixel_passes}");
         let _ = writeln!(s, "# HELP tessera_worker_faults_total Refused results and mismatching duplicates.\n# TYPE tessera_worker_faults_total counter\ntessera_worker_faults_total {faults}");
+        let quarantined = farm
+            .workers
+            .values()
+            .filter(|w| w.quarantined.is_some())
+            .count();
+        let _ = writeln!(s, "# HELP tessera_workers_quarantined Listed workers quarantined by a spot check (no leases, results refused).\n# TYPE tessera_workers_quarantined gauge\ntessera_workers_quarantined {quarantined}");
+        let spot = farm.spot;
+        let _ = writeln!(s, "# HELP tessera_spot_checks_total Spot checks ended: match (two workers agreed), mismatch (a copy differed; its worker quarantined), alone (a worker alone re-rendered its own copy).\n# TYPE tessera_spot_checks_total counter");
+        for (outcome, n) in [
+            ("match", spot.matched),
+            ("mismatch", spot.mismatched),
+            ("alone", spot.alone),
+        ] {
+            let _ = writeln!(s, "tessera_spot_checks_total{{outcome=\"{outcome}\"}} {n}");
+        }
+        let (waiting, disputed) = farm.scheduler.spot_checks_waiting();
+        let _ = writeln!(s, "# HELP tessera_spot_checks_waiting Spot-checked units with a copy held, waiting for another worker's copy.\n# TYPE tessera_spot_checks_waiting gauge\ntessera_spot_checks_waiting {waiting}");
+        let _ = writeln!(s, "# HELP tessera_spot_checks_disputed Spot-checked units whose copies differ, waiting for a third worker to decide.\n# TYPE tessera_spot_checks_disputed gauge\ntessera_spot_checks_disputed {disputed}");
+        let _ = writeln!(s, "# HELP tessera_workers_quarantined_total Workers quarantined since the coordinator started.\n# TYPE tessera_workers_quarantined_total counter\ntessera_workers_quarantined_total {}", spot.quarantined);
+        let _ = writeln!(s, "# HELP tessera_tiles_reset_total Tiles dropped and merged again because a quarantined worker had merged units into them unverified.\n# TYPE tessera_tiles_reset_total counter\ntessera_tiles_reset_total {}", spot.tiles_reset);
+        let _ = writeln!(s, "# HELP tessera_units_reverified_total Units of quarantined workers rendered again by others: identical (its copy was right) or differed (its corrupt copy had been merged and was repaired).\n# TYPE tessera_units_reverified_total counter");
+        for (outcome, n) in [
+            ("identical", spot.reverified_identical),
+            ("differed", spot.reverified_differed),
+        ] {
+            let _ = writeln!(
+                s,
+                "tessera_units_reverified_total{{outcome=\"{outcome}\"}} {n}"
+            );
+        }
+        let _ = writeln!(s, "# HELP tessera_units_unrepaired_total Unverified units of quarantined workers that could not be rendered again (their frame or job had finished).\n# TYPE tessera_units_unrepaired_total counter\ntessera_units_unrepaired_total {}", spot.unrepaired);
         let _ = writeln!(s, "# HELP tessera_leases_expired_total Leases that lapsed without a result; their units were leased again.\n# TYPE tessera_leases_expired_total counter\ntessera_leases_expired_total {}", farm.leases_expired);
         let _ = writeln!(s, "# HELP tessera_leases_outstanding Leases currently held by workers.\n# TYPE tessera_leases_outstanding gauge\ntessera_leases_outstanding {}", farm.scheduler.leases().count());
         let (queued, leased) = units_waiting_and_leased(&farm);

@@ -11,6 +11,7 @@
 //! | [`resume`] | a stored job resolved again, tile checkpoints restored, the restart |
 //! | [`images`] | a frame's merged state, its image and its tile map |
 //! | [`metrics`] | the Prometheus exposition |
+//! | [`quote`] | dry runs: a job quoted from a pilot rendered in a child process |
 //!
 //! # Durability (ARCHITECTURE.md §6)
 //! The store is the truth. A job is inserted before `POST /jobs` answers. A result is
@@ -46,6 +47,7 @@ use crate::store::{Store, StoreError, StoreUrl, WatchedStore};
 pub mod images;
 pub mod jobs;
 pub mod metrics;
+pub mod quote;
 pub mod results;
 pub mod resume;
 pub mod scenes;
@@ -96,6 +98,14 @@ pub struct CoordinatorConfig {
     /// TLS on both ports, and mutual TLS for workers with a client CA (`crate::tls`);
     /// `None` serves plain text.
     pub tls: Option<crate::tls::TlsFiles>,
+    /// The program a dry run's pilot runs as (`PROGRAM pilot ...`, normally the coordinator's
+    /// own `tessera` binary; [`quote`]); `None` refuses dry runs with 503.
+    pub pilot_program: Option<PathBuf>,
+    /// How long a dry run's pilot may render before it is killed, ms.
+    pub pilot_timeout_ms: u64,
+    /// The fraction of units rendered a second time by a different worker and compared
+    /// (spot checks, ARCHITECTURE.md §6; `--spot-check-fraction`), 0 to 1; 0 disables.
+    pub spot_check_fraction: f64,
 }
 
 impl std::fmt::Debug for CoordinatorConfig {
@@ -114,6 +124,9 @@ impl std::fmt::Debug for CoordinatorConfig {
             .field("http_limits", &self.http_limits)
             .field("forget_lost_ms", &self.forget_lost_ms)
             .field("tls", &self.tls)
+            .field("pilot_program", &self.pilot_program)
+            .field("pilot_timeout_ms", &self.pilot_timeout_ms)
+            .field("spot_check_fraction", &self.spot_check_fraction)
             .finish()
     }
 }
@@ -125,7 +138,9 @@ pub const DEFAULT_MEMORY_BUDGET: u64 = 4 << 30;
 impl CoordinatorConfig {
     /// Defaults for a data directory: 10 s leases, 1 s heartbeats, 3 s restart grace, one
     /// pass per unit, no tokens, the default HTTP limits ([`HttpLimits::default`]), lost
-    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`].
+    /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`], spot checks of
+    /// [`tessera_farm::DEFAULT_SPOT_CHECK_FRACTION`] (2%) of the units, no pilot program
+    /// (no dry runs) and a [`quote::PILOT_TIMEOUT_MS`] pilot timeout.
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
             data_dir: data_dir.into(),
@@ -140,6 +155,9 @@ impl CoordinatorConfig {
             http_limits: HttpLimits::default(),
             forget_lost_ms: FORGET_LOST_MS,
             tls: None,
+            pilot_program: None,
+            pilot_timeout_ms: quote::PILOT_TIMEOUT_MS,
+            spot_check_fraction: tessera_farm::DEFAULT_SPOT_CHECK_FRACTION,
         }
     }
 }
@@ -182,6 +200,8 @@ struct Inner {
     /// Permits for image requests that restore or encode a frame
     /// ([`images::HEAVY_REQUESTS`]).
     heavy: tokio::sync::Semaphore,
+    /// The one permit of a dry run's pilot ([`quote`]).
+    pilots: tokio::sync::Semaphore,
     /// Encoded images for pollers.
     images: Mutex<images::ImageCache>,
     /// Set once a graceful shutdown began: heartbeats tell workers to stop and no new
@@ -210,6 +230,9 @@ impl Coordinator {
         let high_water = store.max_lease_id().await?;
         let mut state = Farm::with_first_lease(cfg.lease_ms, high_water);
         state.scheduler.set_memory_budget(cfg.memory_budget);
+        state
+            .scheduler
+            .set_spot_check_fraction(cfg.spot_check_fraction);
         let farm = Arc::new(Mutex::new(state));
         let resumed = resume::resume_all(&*store, &farm).await?;
         if let Some(f) = watch.fault() {
@@ -232,6 +255,7 @@ impl Coordinator {
                 lease_blocked_until_ms: blocked,
                 started: Instant::now(),
                 heavy: tokio::sync::Semaphore::new(images::HEAVY_REQUESTS),
+                pilots: tokio::sync::Semaphore::new(1),
                 images: Mutex::new(images::ImageCache::default()),
                 stopping: std::sync::atomic::AtomicBool::new(false),
                 deposed: OnceLock::new(),
@@ -304,7 +328,9 @@ impl Coordinator {
         self.inner.started.elapsed().as_secs_f64()
     }
 
-    /// Moves a job to `state`: in the store first, then in memory (ARCHITECTURE.md §9).
+    /// Moves a job to `state`: in the store first, then in memory (ARCHITECTURE.md §9). The
+    /// message of a `done` state is why it stopped ([`Stop::stored_message`]), not an
+    /// error: it is stored, and kept out of the status's `error`.
     async fn set_state(
         &self,
         id: JobId,
@@ -331,7 +357,7 @@ impl Coordinator {
                     rt.started_unix_ms = Some(now);
                 }
             }
-            rt.error = error;
+            rt.error = if state == JobState::Done { None } else { error };
         }
         Ok(())
     }
@@ -341,6 +367,7 @@ impl Coordinator {
     pub async fn tick(&self) {
         let now = now_ms();
         let mut over_time = Vec::new();
+        let mut final_points = Vec::new();
         if let Ok(mut farm) = self.inner.farm.lock() {
             // During the grace period leases of the previous run are not expired.
             if !self.leasing_paused() {
@@ -358,12 +385,24 @@ impl Coordinator {
                 if let Some(rt) = farm.runtime.get_mut(id) {
                     rt.stopped = Some(Stop::TimeLimit);
                 }
+                // The final point, as at completion: a restarted coordinator reads the
+                // stopped job's estimate from its history.
+                if let Some(point) = results::history_point(&mut farm, *id, now, true) {
+                    final_points.push(point);
+                }
             }
             self.forget_lost_workers(&mut farm, now);
         }
+        for (job, point) in final_points {
+            if let Err(e) = self.inner.store.append_history(job, point).await {
+                tracing::warn!(job, error = %e, "history point not stored");
+            }
+        }
         for id in over_time {
             tracing::info!(job = id, "time limit reached");
-            let _ = self.set_state(id, JobState::Done, None).await;
+            let _ = self
+                .set_state(id, JobState::Done, Stop::TimeLimit.stored_message())
+                .await;
         }
     }
 

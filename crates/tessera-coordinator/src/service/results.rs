@@ -4,17 +4,20 @@
 //!
 //! [`Coordinator::accept_result`] runs these steps, each a function with one job:
 //! [`submit`] (validate against the lease and merge), [`record_merge`] (rejected-sample
-//! counts, tile error, the checkpoint to write), [`history_point`], [`record_fault`], and
-//! [`Coordinator::write_back`] (the store writes, in that order).
+//! counts, tile error, the checkpoint to write), [`history_point`], [`record_fault`],
+//! [`apply_spot_events`] (spot-check outcomes, quarantines and the tiles they dropped),
+//! and [`Coordinator::write_back`] (the store writes, in that order).
 
 use std::sync::{Arc, OnceLock};
 
 use tessera_api::{HistoryPoint, JobState};
-use tessera_farm::{JobId, SubmitError, Submitted, UnitResult, WorkUnit, WorkerId};
+use tessera_farm::{
+    JobId, SpotEvent, SpotOutcome, SubmitError, Submitted, UnitResult, WorkUnit, WorkerId,
+};
 
 use super::jobs::spp_so_far;
 use super::Coordinator;
-use crate::state::{now_ms, tile_error, Farm};
+use crate::state::{now_ms, tile_error, Farm, TileRejected};
 use crate::store::{FaultEvent, FaultKind, StoreError, TileCheckpoint, UnitDigest};
 
 /// History points are recorded at most this often per job (plus the last one).
@@ -49,6 +52,9 @@ pub enum Accepted {
     /// A copy of a unit of a frame that is complete and released from memory: the unit
     /// is merged; this copy is not compared.
     Late,
+    /// A valid copy of a spot-checked unit, held until another worker's copy agrees
+    /// (ARCHITECTURE.md §6); not durable yet.
+    Held,
 }
 
 impl Accepted {
@@ -58,6 +64,7 @@ impl Accepted {
             Self::Merged => "",
             Self::Duplicate => "duplicate (identical)",
             Self::Late => "late: the frame is complete",
+            Self::Held => "held for a spot check",
         }
     }
 }
@@ -86,6 +93,10 @@ pub enum Rejected {
     /// A duplicate of a merged unit that differs from it. A fault of the worker.
     #[error("duplicate differs from the merged copy: faulty worker")]
     Mismatch,
+    /// The worker is quarantined: its results are not used (the fault that quarantined
+    /// it was counted once, then).
+    #[error("quarantined: {0}")]
+    Quarantined(String),
     /// The checkpoint could not be written; the unit will be leased again.
     #[error("the coordinator could not store the result: {0}")]
     Store(StoreError),
@@ -101,7 +112,11 @@ impl Rejected {
             Self::InvalidResult(_) => Some(FaultKind::InvalidResult),
             Self::UnknownLease(_) | Self::StaleLease(_) => Some(FaultKind::LeaseViolation),
             Self::Mismatch => Some(FaultKind::DuplicateMismatch),
-            Self::Canceled(_) | Self::Deferred(_) | Self::Store(_) | Self::Poisoned => None,
+            Self::Canceled(_)
+            | Self::Deferred(_)
+            | Self::Quarantined(_)
+            | Self::Store(_)
+            | Self::Poisoned => None,
         }
     }
 }
@@ -109,9 +124,12 @@ impl Rejected {
 /// What accepting a result leaves to write to the store, taken under the farm lock.
 #[derive(Default)]
 struct Writes {
+    /// Tiles dropped by a quarantine, in their state after this result (written before
+    /// `checkpoint`, which is newer).
+    resets: Vec<TileCheckpoint>,
     checkpoint: Option<TileCheckpoint>,
     history: Option<(JobId, HistoryPoint)>,
-    fault: Option<FaultEvent>,
+    faults: Vec<FaultEvent>,
     finished: Option<JobId>,
 }
 
@@ -138,22 +156,23 @@ impl Coordinator {
         let (outcome, writes, queued) = {
             let mut farm = self.inner.farm.lock().map_err(|_| Rejected::Poisoned)?;
             let (outcome, mut writes) = merge_delivery(&mut farm, d, now_ms());
-            let queued = match writes.checkpoint.take() {
-                Some(checkpoint) => {
-                    let key = (checkpoint.job, checkpoint.frame);
-                    let slot = Arc::new(OnceLock::new());
-                    self.inner
-                        .pending
-                        .lock()
-                        .map_err(|_| Rejected::Poisoned)?
-                        .push(PendingCheckpoint {
-                            checkpoint,
-                            outcome: slot.clone(),
-                        });
-                    Some((key, slot))
-                }
-                None => None,
-            };
+            // Pushed together, so they are committed in one batch: waiting for the last
+            // one's outcome waits for all.
+            let mut queued = None;
+            let all = std::mem::take(&mut writes.resets)
+                .into_iter()
+                .chain(writes.checkpoint.take());
+            let mut pending = self.inner.pending.lock().map_err(|_| Rejected::Poisoned)?;
+            for checkpoint in all {
+                let key = (checkpoint.job, checkpoint.frame);
+                let slot = Arc::new(OnceLock::new());
+                pending.push(PendingCheckpoint {
+                    checkpoint,
+                    outcome: slot.clone(),
+                });
+                queued = Some((key, slot));
+            }
+            drop(pending);
             (outcome, writes, queued)
         };
         // One writer at a time, taking the queue in merge order: a newer checkpoint of a
@@ -239,7 +258,7 @@ impl Coordinator {
                 tracing::warn!(job, error = %e, "history point not stored");
             }
         }
-        if let Some(f) = &w.fault {
+        for f in &w.faults {
             if let Err(e) = store.record_fault(f).await {
                 tracing::warn!(error = %e, "fault event not stored");
             }
@@ -289,7 +308,11 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
         r.rejected_samples
             .min((r.pass_means.len() as u64).saturating_mul(per_pass))
     });
-    let merged = match submit(farm, lease_id, job, d.result) {
+    let merged = submit(farm, (worker, lease_id), job, d.result);
+    // Spot checks may have ended, quarantined a worker and dropped tiles, whatever became
+    // of this result.
+    apply_spot_events(farm, now, &mut writes);
+    let merged = match merged {
         // Not the worker's fault: the job went away. Nothing is recorded.
         Err(Rejected::Canceled(j)) => {
             tracing::info!(
@@ -355,11 +378,29 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
                 );
                 Ok(Accepted::Late)
             }
+            Submitted::Held => {
+                // Rendering time spent, but not a merged unit (`units_done` and
+                // `tessera_units_merged_total` count each unit once, when it merges).
+                if let Some(w) = w {
+                    if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
+                        w.render_seconds += d.render_seconds;
+                    }
+                }
+                tracing::debug!(worker, lease_id, job = m.job, "copy held for a spot check");
+                Ok(Accepted::Held)
+            }
         },
         Err(r) => Err(r),
     };
     if let Err(r) = &outcome {
-        writes.fault = record_fault(farm, (worker, lease_id), worker_name, job, r, now);
+        writes.faults.extend(record_fault(
+            farm,
+            (worker, lease_id),
+            worker_name,
+            job,
+            r,
+            now,
+        ));
     }
     (outcome, writes)
 }
@@ -368,7 +409,7 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
 /// unit, the size and the values and merges it in pass order (ARCHITECTURE.md §2).
 fn submit(
     farm: &mut Farm,
-    lease_id: u64,
+    (worker, lease_id): (WorkerId, u64),
     job: Option<JobId>,
     result: Result<UnitResult, String>,
 ) -> Result<Merged, Rejected> {
@@ -380,7 +421,7 @@ fn submit(
         .frame(job, unit.frame)
         .and_then(|f| f.tile(unit.tile))
         .map_or(0, |t| t.merged_passes());
-    match farm.scheduler.submit(lease_id, job, result) {
+    match farm.scheduler.submit_from(worker, lease_id, job, result) {
         Ok(submitted) => Ok(Merged {
             job,
             unit,
@@ -390,6 +431,12 @@ fn submit(
         Err(SubmitError::Invalid(e)) => Err(Rejected::InvalidResult(e.to_string())),
         Err(SubmitError::Canceled(j)) => Err(Rejected::Canceled(j)),
         Err(e @ SubmitError::NotResident(_)) => Err(Rejected::Deferred(e)),
+        Err(SubmitError::Quarantined(w)) => Err(Rejected::Quarantined(
+            farm.workers
+                .get(&w)
+                .and_then(|e| e.quarantined.clone())
+                .unwrap_or_else(|| "found faulty by a spot check".into()),
+        )),
         Err(e) => Err(Rejected::StaleLease(e)),
     }
 }
@@ -422,10 +469,20 @@ fn record_merge(farm: &mut Farm, m: &Merged, rejected_samples: u64) -> Option<Ti
     {
         *slot = tile_error(tile);
     }
-    Some(TileCheckpoint {
+    Some(checkpoint_of(job, unit.frame, tile, rejected))
+}
+
+/// The checkpoint of a tile's merged state.
+fn checkpoint_of(
+    job: JobId,
+    frame: u32,
+    tile: &tessera_farm::TileAccumulator,
+    rejected_samples: u64,
+) -> TileCheckpoint {
+    TileCheckpoint {
         job,
-        frame: unit.frame,
-        tile: unit.tile,
+        frame,
+        tile: tile.rect().index,
         merged_passes: tile.merged_passes(),
         pixels: tile.pixels().to_vec(),
         units: tile
@@ -436,13 +493,116 @@ fn record_merge(farm: &mut Farm, m: &Merged, rejected_samples: u64) -> Option<Ti
                 digest,
             })
             .collect(),
-        rejected_samples: rejected,
-    })
+        rejected_samples,
+    }
+}
+
+/// Takes what the scheduler's spot checks found during the last submission
+/// (ARCHITECTURE.md §6): counts outcomes, marks quarantined workers (a fault event each),
+/// and for every tile a quarantine dropped, resets the job's per-tile error and
+/// rejected-sample counts and queues the tile's checkpoint, so a restart does not bring
+/// back the dropped passes.
+fn apply_spot_events(farm: &mut Farm, now: u64, writes: &mut Writes) {
+    for event in farm.scheduler.take_spot_events() {
+        match event {
+            SpotEvent::Checked { job, unit, outcome } => match outcome {
+                SpotOutcome::Match => farm.spot.matched += 1,
+                SpotOutcome::Alone => farm.spot.alone += 1,
+                SpotOutcome::Mismatch => {
+                    farm.spot.mismatched += 1;
+                    if let Some(rt) = farm.runtime.get_mut(&job) {
+                        rt.faults += 1;
+                    }
+                    tracing::warn!(
+                        job,
+                        ?unit,
+                        "spot check mismatch: the agreed copy was merged"
+                    );
+                }
+            },
+            SpotEvent::Disputed { job, unit, workers } => {
+                tracing::warn!(
+                    job,
+                    ?unit,
+                    ?workers,
+                    "spot check: copies differ; waiting for another worker to decide"
+                );
+            }
+            SpotEvent::Quarantined {
+                worker,
+                reason,
+                reset_tiles,
+                unrepaired_units,
+            } => {
+                farm.spot.quarantined += 1;
+                farm.spot.tiles_reset += reset_tiles.len() as u64;
+                farm.spot.unrepaired += unrepaired_units;
+                let name = match farm.workers.get_mut(&worker) {
+                    Some(w) => {
+                        w.quarantined = Some(reason.clone());
+                        w.faults += 1;
+                        w.name.clone()
+                    }
+                    None => format!("worker {worker}"),
+                };
+                tracing::error!(
+                    worker,
+                    name = %name,
+                    reason = %reason,
+                    tiles_reset = reset_tiles.len(),
+                    unrepaired_units,
+                    "worker quarantined"
+                );
+                writes.faults.push(FaultEvent {
+                    worker: name,
+                    job: reset_tiles.first().map(|t| t.0),
+                    kind: FaultKind::SpotCheckMismatch,
+                    message: reason,
+                    unix_ms: now,
+                });
+                for (job, frame, tile) in reset_tiles {
+                    writes.resets.extend(reset_tile(farm, job, frame, tile));
+                }
+            }
+            SpotEvent::Reverified { identical, .. } => {
+                if identical {
+                    farm.spot.reverified_identical += 1;
+                } else {
+                    farm.spot.reverified_differed += 1;
+                }
+            }
+        }
+    }
+}
+
+/// The job's bookkeeping of a tile the scheduler dropped: its error and rejected-sample
+/// counts start again, its images change, and its checkpoint (of what is merged in it now)
+/// is returned to be written.
+fn reset_tile(farm: &mut Farm, job: JobId, frame: u32, tile: u32) -> Option<TileCheckpoint> {
+    let t = farm.scheduler.frame(job, frame)?.tile(tile)?;
+    let rt = farm.runtime.get_mut(&job)?;
+    let fi = frame.checked_sub(rt.job().frames.start)? as usize;
+    if let Some(slot) = rt
+        .tile_error
+        .get_mut(fi)
+        .and_then(|f| f.get_mut(tile as usize))
+    {
+        *slot = tile_error(t);
+    }
+    if let Some(slot) = rt
+        .tile_rejected
+        .get_mut(fi)
+        .and_then(|f| f.get_mut(tile as usize))
+    {
+        *slot = TileRejected::default();
+    }
+    rt.merges += 1;
+    Some(checkpoint_of(job, frame, t, 0))
 }
 
 /// A convergence-history point (spp, image error, elapsed seconds), at most every
 /// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10).
-fn history_point(
+pub(crate) fn history_point(
     farm: &mut Farm,
     job: JobId,
     now: u64,

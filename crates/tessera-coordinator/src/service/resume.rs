@@ -311,7 +311,7 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
     rt.started_unix_ms = rec.started_unix_ms;
     rt.faults = faults;
     rt.history = history;
-    rt.stopped = (rec.state == JobState::Done).then_some(Stop::Finished);
+    rt.stopped = Stop::of_stored(rec.state, rec.error.as_deref());
     farm.runtime.insert(rec.id, rt);
     Ok(())
 }

@@ -20,6 +20,8 @@ const MAX_UNITS_PER_LEASE: u32 = 256;
 const RETRY_IN_GRACE_MS: u32 = 250;
 /// How soon an idle worker asks again, ms: a new job starts within ~50 ms.
 const RETRY_IDLE_MS: u32 = 50;
+/// How soon a quarantined worker asks again, ms: it gets nothing, so rarely.
+const RETRY_QUARANTINED_MS: u32 = 5_000;
 /// Returns of a job's leases as unusable (a worker could not load or build its scene)
 /// after which the job fails: more than one worker, or one worker more than once, tried.
 pub const MAX_UNUSABLE_RETURNS: u32 = 3;
@@ -81,7 +83,28 @@ impl Coordinator {
             ..WorkerEntry::default()
         };
         let identity = entry.identity.clone();
-        let id = self.lock()?.register_worker(entry);
+        let mut farm = self.lock()?;
+        // A quarantined worker that registers again (a restart, a reconnection) under the
+        // same name and identity stays quarantined: a new id must not launder it.
+        let inherited = farm
+            .workers
+            .values()
+            .find(|w| w.name == entry.name && w.identity == entry.identity)
+            .and_then(|w| w.quarantined.clone());
+        let id = farm.register_worker(entry);
+        if let Some(reason) = inherited {
+            farm.scheduler.quarantine(id, &reason);
+            // Nothing of its own to repair: it has rendered nothing under this id.
+            farm.scheduler.take_spot_events();
+            if let Some(w) = farm.workers.get_mut(&id) {
+                w.quarantined = Some(reason);
+            }
+            tracing::warn!(
+                worker = id,
+                "quarantined worker registered again; still quarantined"
+            );
+        }
+        drop(farm);
         tracing::info!(
             worker = id,
             threads,
@@ -108,6 +131,7 @@ impl Coordinator {
         if paths_per_second.is_finite() && paths_per_second >= 0.0 {
             w.paths_per_second = paths_per_second;
         }
+        let quarantined = w.quarantined.is_some();
         let extended = farm.scheduler.extend(worker, lease_ids, now);
         // Leases not extended are lapsed, canceled or unknown. Only the last two are
         // cancelled (worker.proto: "drop without submitting"): a lapsed lease of a live job
@@ -120,9 +144,12 @@ impl Coordinator {
             .iter()
             .copied()
             .filter(|id| {
-                !extended.iter().any(|(e, _)| e == id)
-                    && !farm.scheduler.is_previous_run_lease(*id)
-                    && !farm.scheduler.is_lapsed_and_wanted(*id)
+                // A quarantined worker's leases were revoked and its results are refused:
+                // it should stop rendering them.
+                quarantined
+                    || !extended.iter().any(|(e, _)| e == id)
+                        && !farm.scheduler.is_previous_run_lease(*id)
+                        && !farm.scheduler.is_lapsed_and_wanted(*id)
             })
             .collect();
         Ok(Heartbeat {
@@ -157,8 +184,16 @@ impl Coordinator {
         }
         let units = {
             let mut farm = self.lock()?;
-            if !farm.workers.contains_key(&worker) {
-                return Err(CoordError::unknown_worker());
+            match farm.workers.get_mut(&worker) {
+                None => return Err(CoordError::unknown_worker()),
+                Some(w) if w.quarantined.is_some() => {
+                    w.last_seen_ms = now;
+                    return Ok(LeaseGrant {
+                        units: Vec::new(),
+                        retry_after_ms: RETRY_QUARANTINED_MS,
+                    });
+                }
+                Some(_) => {}
             }
             farm.expire_leases(now);
             let max = max_units.clamp(1, MAX_UNITS_PER_LEASE) as usize;
@@ -166,7 +201,9 @@ impl Coordinator {
             // for the scheduler's tail rule.
             let lost_after = self.lost_after_ms();
             let sharing = |w: &&crate::state::WorkerEntry| {
-                !w.draining && now.saturating_sub(w.last_seen_ms) <= lost_after
+                !w.draining
+                    && w.quarantined.is_none()
+                    && now.saturating_sub(w.last_seen_ms) <= lost_after
             };
             let total: u64 = farm
                 .workers
@@ -336,7 +373,8 @@ impl Coordinator {
     }
 
     /// Removes workers that have been lost for [`CoordinatorConfig::forget_lost_ms`] and
-    /// hold no lease, keeping their totals in [`Farm::forgotten`] (called by `tick`).
+    /// hold no lease, keeping their totals in [`Farm::forgotten`] (called by `tick`);
+    /// quarantined workers are kept.
     ///
     /// [`CoordinatorConfig::forget_lost_ms`]: super::CoordinatorConfig::forget_lost_ms
     pub(crate) fn forget_lost_workers(&self, farm: &mut Farm, now: u64) {
@@ -347,7 +385,10 @@ impl Coordinator {
             .workers
             .iter()
             .filter(|(&id, w)| {
-                now.saturating_sub(w.last_seen_ms) > silent
+                // A quarantined worker stays listed: its name keeps it quarantined when it
+                // registers again.
+                w.quarantined.is_none()
+                    && now.saturating_sub(w.last_seen_ms) > silent
                     && !farm.scheduler.leases().any(|l| l.worker == id)
             })
             .map(|(&id, _)| id)
@@ -394,6 +435,8 @@ impl Coordinator {
                     faults: w.faults,
                     version: w.version.clone(),
                     identity: w.identity.clone(),
+                    quarantined: w.quarantined.is_some(),
+                    quarantine_reason: w.quarantined.clone(),
                 }
             })
             .collect();

@@ -504,6 +504,9 @@ pub enum FaultKind {
     DuplicateMismatch,
     /// A result answered a lease the worker does not hold (wrong fencing token).
     LeaseViolation,
+    /// A spot check found the worker's copy of a unit unlike the copy other workers
+    /// agree on; the worker was quarantined (ARCHITECTURE.md §6).
+    SpotCheckMismatch,
 }
 
 impl FaultKind {
@@ -513,6 +516,7 @@ impl FaultKind {
             Self::InvalidResult => "invalid_result",
             Self::DuplicateMismatch => "duplicate_mismatch",
             Self::LeaseViolation => "lease_violation",
+            Self::SpotCheckMismatch => "spot_check_mismatch",
         }
     }
 
@@ -522,6 +526,7 @@ impl FaultKind {
             Self::InvalidResult,
             Self::DuplicateMismatch,
             Self::LeaseViolation,
+            Self::SpotCheckMismatch,
         ]
         .into_iter()
         .find(|k| k.as_str() == s)

@@ -453,6 +453,8 @@ impl PostgresStore {
             return Err(StoreError::InvalidInput("scene hash is empty".into()));
         }
         let size = to_i64(bytes.len() as u64, "scene size")?;
+        let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         let stored = sqlx::query(
             "INSERT INTO scenes (hash, size, data, stored_unix_ms) VALUES ($1, $2, $3, $4) \
              ON CONFLICT (hash) DO NOTHING",
@@ -461,9 +463,10 @@ impl PostgresStore {
         .bind(size)
         .bind(bytes)
         .bind(now_unix_ms())
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await?
         .rows_affected();
+        tx.commit().await?;
         Ok(stored > 0)
     }
 
@@ -587,6 +590,8 @@ impl PostgresStore {
             .error_estimate
             .map(|e| check_finite(e, "history error_estimate"))
             .transpose()?;
+        let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         let n = sqlx::query(
             "INSERT INTO history (job, elapsed_seconds, spp, error_estimate) \
              SELECT $1, $2, $3, $4 WHERE EXISTS (SELECT 1 FROM jobs WHERE id = $1)",
@@ -595,9 +600,10 @@ impl PostgresStore {
         .bind(elapsed)
         .bind(spp)
         .bind(error)
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await?
         .rows_affected();
+        tx.commit().await?;
         if n == 0 {
             return Err(StoreError::JobNotFound(job));
         }
@@ -628,6 +634,8 @@ impl PostgresStore {
     async fn record_fault_(&self, fault: &FaultEvent) -> StoreResult<()> {
         let job = fault.job.map(|j| to_i64(j, "fault job")).transpose()?;
         let unix_ms = to_i64(fault.unix_ms, "fault unix_ms")?;
+        let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
         sqlx::query(
             "INSERT INTO faults (worker, job, kind, message, unix_ms) VALUES ($1, $2, $3, $4, $5)",
         )
@@ -636,8 +644,9 @@ impl PostgresStore {
         .bind(fault.kind.as_str())
         .bind(&fault.message)
         .bind(unix_ms)
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await?;
+        tx.commit().await?;
         Ok(())
     }
 
