@@ -1537,6 +1537,14 @@ impl Scheduler {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One step of Knuth's MMIX linear congruential generator: the fixed pseudo-random
+    /// delivery order of the scheduler's property tests.
+    fn lcg_step(rng: &mut u64) {
+        *rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+    }
     use crate::merge::TileAccumulator;
     use crate::stats::PixelStats;
     use crate::FrameImage;
@@ -1793,9 +1801,7 @@ mod tests {
                 for w in 0..workers {
                     held.extend(s.lease(w, now, 1));
                 }
-                rng = rng
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
+                lcg_step(&mut rng);
                 // Deliver a pseudo-random held lease; sometimes drop one (a dead worker).
                 if held.is_empty() {
                     s.expire(now + 1000);
@@ -2013,9 +2019,7 @@ mod tests {
                         leased_units.extend(new.iter().map(|l| l.unit));
                         held.extend(new);
                     }
-                    rng = rng
-                        .wrapping_mul(6364136223846793005)
-                        .wrapping_add(1442695040888963407);
+                    lcg_step(&mut rng);
                     if held.is_empty() {
                         s.expire(now + 1000);
                         continue;
@@ -2131,9 +2135,7 @@ mod tests {
                             held.push((l, set));
                         }
                     }
-                    rng = rng
-                        .wrapping_mul(6364136223846793005)
-                        .wrapping_add(1442695040888963407);
+                    lcg_step(&mut rng);
                     if held.is_empty() {
                         s.expire(now + 1000);
                         continue;
