@@ -183,8 +183,11 @@ impl Coordinator {
         })?;
         let scene_file = match (&job.scene, bytes) {
             (SceneRef::Builtin(_), _) => None,
+            // Up to MAX_SCENE_BYTES of file I/O: off the async runtime's threads.
             (SceneRef::Hash(_), Some(b)) => Some(
-                TempScene::write(&b)
+                tokio::task::spawn_blocking(move || TempScene::write(&b))
+                    .await
+                    .map_err(CoordError::internal)?
                     .map_err(|e| CoordError::internal(format!("writing the pilot's scene: {e}")))?,
             ),
             (SceneRef::Hash(h), None) => {
