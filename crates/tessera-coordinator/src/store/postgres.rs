@@ -85,7 +85,12 @@ impl PostgresStore {
             url: shown.clone(),
             reason: e.to_string(),
         })?;
-        let options = options.application_name("tessera-coordinator");
+        // A coordinator frozen inside a write transaction (a suspended VM, SIGSTOP) would
+        // hold its row locks, and so block a standby's takeover, until TCP gave up: the
+        // server ends such a session after 5 s, as the lock session's idle timeout does.
+        let options = options
+            .application_name("tessera-coordinator")
+            .options([("idle_in_transaction_session_timeout", "5000")]);
         let pool = PgPoolOptions::new()
             .max_connections(MAX_CONNECTIONS)
             .acquire_timeout(ACQUIRE_TIMEOUT)
