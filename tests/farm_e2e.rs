@@ -227,6 +227,72 @@ fn a_killed_coordinator_resumes_and_loses_no_job() {
     assert_eq!(client.jobs(10, None).unwrap().jobs.len(), 2);
 }
 
+/// Issue 15: the adaptive policy's state is checkpointed with its tiles. `kill -9` of
+/// the coordinator in the middle of an adaptive job, for both modes: the restarted
+/// coordinator resumes from the merged passes and the decisions taken on them (before,
+/// an adaptive job started again from pass 0), redoing at most the units in flight, and
+/// the job ends byte-identical to `tessera render`. A further restart once it is done
+/// rebuilds the finished image from the store alone: the policy's image, not the
+/// accumulator of every leased pass (which averages in a discarded pilot and the zeros of
+/// stopped pixels).
+#[test]
+fn a_killed_coordinator_resumes_an_adaptive_job_where_its_policy_was() {
+    let dir = temp_dir("e2e", "kill-adaptive");
+    for (mode, target) in [("unbiased", 0.06), ("sequential", 0.06)] {
+        let mut s = job(64, 64, 1024);
+        s.adaptive = mode.into();
+        s.target_error = Some(target);
+        let reference = local_render_adaptive(&dir, &format!("local-{mode}.exr"), &s);
+        let data = dir.join(format!("data-{mode}"));
+        let (http, grpc) = (
+            format!("127.0.0.1:{}", free_port()),
+            format!("127.0.0.1:{}", free_port()),
+        );
+        let mut c = start_coordinator(&data, &http, &grpc, &[]);
+        let _w1 = start_worker(&c.grpc, "w1", &[]);
+        let _w2 = start_worker(&c.grpc, "w2", &[]);
+        let client = Client::new(&c.http, None);
+        let st = client.submit(&s, None).unwrap();
+        // Past the unbiased pilot (8 of 64 passes) or the first sequential decisions.
+        poll("the first decisions", TIMEOUT, || {
+            let j = client.job(st.id).unwrap();
+            j.passes_done * 6 >= j.passes_planned || j.state == tessera_api::JobState::Done
+        });
+        c.proc.kill9();
+        let c2 = start_coordinator(&data, &http, &grpc, &[]);
+        let client = Client::new(&c2.http, None);
+        let after = client.job(st.id).unwrap();
+        assert_ne!(
+            after.state,
+            tessera_api::JobState::Done,
+            "{mode}: the job finished before the kill; make it longer"
+        );
+        assert!(
+            after.passes_done * 8 >= after.passes_planned,
+            "{mode}: {} of {} passes after the restart: the merged passes were not resumed",
+            after.passes_done,
+            after.passes_planned
+        );
+        let done = wait_done(&client, st.id);
+        assert!(done.spp_so_far < 1024.0, "{mode}: {} spp", done.spp_so_far);
+        let exr = client.image(st.id, "exr").unwrap();
+        assert!(
+            exr == reference,
+            "{mode}: adaptive EXR after a coordinator restart differs from tessera render"
+        );
+        drop(client);
+        drop(c2);
+        // The finished job's image from the store alone.
+        let c3 = start_coordinator(&data, &http, &grpc, &[]);
+        let client = Client::new(&c3.http, None);
+        let stored = client.image(st.id, "exr").unwrap();
+        assert!(
+            stored == reference,
+            "{mode}: the stored image of the finished adaptive job differs from tessera render"
+        );
+    }
+}
+
 /// Issue 15: why a job stopped survives a restart. A job stopped by its time limit says so
 /// in its status and EXR header before and after its coordinator restarts (the store keeps
 /// the stop with the `done` state), and the reason is not reported as an error.

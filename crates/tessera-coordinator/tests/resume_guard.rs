@@ -126,6 +126,7 @@ async fn a_job_that_crashes_every_start_ends_failed_and_the_coordinator_comes_up
             pixels: &pixels,
             units: &units,
             rejected_samples: 0,
+            adaptive: None,
         },
     )
     .await

@@ -14,7 +14,7 @@ use tessera_coordinator::store::{
     self, FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, NewJob, PostgresStore,
     SqliteStore, Store, StoreError, StoreUrl, TileCheckpoint, UnitDigest, DATABASE_FILE,
 };
-use tessera_farm::{FramePlan, JobId, PixelStats};
+use tessera_farm::{AdaptivePixel, AdaptiveTileCheckpoint, FramePlan, JobId, PixelStats};
 
 #[path = "../../../tests/common/postgres.rs"]
 mod postgres;
@@ -172,6 +172,7 @@ both_backends!(
     job_states_and_resume,
     scenes_by_content_hash,
     tile_checkpoints_round_trip_and_upsert,
+    adaptive_policy_state_round_trips,
     invalid_checkpoints_are_refused_atomically,
     corrupt_blobs_are_errors_naming_the_tile,
     lease_high_water_history_and_faults,
@@ -248,6 +249,7 @@ fn checkpoint(job: JobId, frame: u32, tile: u32, unit_passes: &[u32]) -> TileChe
         units: units(unit_passes),
         // Any count round-trips; a distinct one per tile catches mixed-up rows.
         rejected_samples: u64::from(tile) * 1000 + u64::from(merged),
+        adaptive: None,
     }
 }
 
@@ -276,6 +278,76 @@ fn assert_same_checkpoint(a: &TileCheckpoint, b: &TileCheckpoint) {
         bits(&b.pixels),
         "statistics differ bitwise"
     );
+    let policy_bits = |c: &TileCheckpoint| {
+        c.adaptive.as_ref().map(|a| {
+            let stats: Vec<PixelStats> = a.pixels.iter().map(|p| p.stats).collect();
+            let rest: Vec<[u32; 3]> = a
+                .pixels
+                .iter()
+                .map(|p| [p.stopped_at, p.needed, p.traced])
+                .collect();
+            (a.consumed_passes, bits(&stats), rest)
+        })
+    };
+    assert_eq!(
+        policy_bits(a),
+        policy_bits(b),
+        "adaptive policy states differ"
+    );
+}
+
+/// A policy state for `c`'s tile: every pixel's statistics, stops at pass 2 for some.
+fn with_policy(mut c: TileCheckpoint) -> TileCheckpoint {
+    c.adaptive = Some(AdaptiveTileCheckpoint {
+        consumed_passes: c.merged_passes,
+        pixels: c
+            .pixels
+            .iter()
+            .enumerate()
+            .map(|(i, &stats)| AdaptivePixel {
+                stats,
+                stopped_at: if i % 3 == 0 { 2 } else { 0 },
+                needed: i as u32 % 5,
+                traced: c.merged_passes,
+            })
+            .collect(),
+    });
+    c
+}
+
+/// Issue 15: an adaptive job's tile keeps its policy state beside its merged passes,
+/// bit-exact; a checkpoint without one reads back without one (and clears it on upsert);
+/// a state of the wrong size is refused when saved and a damaged one when loaded.
+async fn adaptive_policy_state_round_trips(f: &Fixture) {
+    let store = f.open().await;
+    let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
+    let t = with_policy(checkpoint(job, 3, 4, &[2, 1]));
+    store.save_tile(t.as_ref()).await.unwrap();
+    let loaded = store.load_tiles(job, Some(3)).await.unwrap();
+    assert!(loaded[0].adaptive.is_some());
+    assert_same_checkpoint(&loaded[0], &t);
+    let plain = checkpoint(job, 3, 4, &[2, 1]);
+    store.save_tile(plain.as_ref()).await.unwrap();
+    assert!(store.load_tiles(job, Some(3)).await.unwrap()[0]
+        .adaptive
+        .is_none());
+
+    let mut short = t.clone();
+    if let Some(a) = short.adaptive.as_mut() {
+        a.pixels.pop();
+    }
+    let e = store.save_tile(short.as_ref()).await.unwrap_err();
+    assert!(e.to_string().contains("adaptive policy state has"), "{e}");
+    // The refused write changed nothing.
+    assert!(store.load_tiles(job, Some(3)).await.unwrap()[0]
+        .adaptive
+        .is_none());
+
+    store.save_tile(t.as_ref()).await.unwrap();
+    let mut blob = f.blob("tiles", "adaptive").await;
+    blob.truncate(blob.len() - 1);
+    f.set_blob("tiles", "adaptive", blob).await;
+    expect_corrupt_tile(&*store, job, "adaptive policy blob holds").await;
 }
 
 /// A raw connection to the SQLite database in `dir`, behind the store.
@@ -618,6 +690,7 @@ async fn tile_checkpoints_round_trip_and_upsert(f: &Fixture) {
         pixels: vec![PixelStats::default(); 8 * 16],
         units: vec![],
         rejected_samples: 0,
+        adaptive: None,
     };
     store.save_tile(empty.as_ref()).await.unwrap();
     let loaded = store.load_tiles(job, Some(4)).await.unwrap();

@@ -147,6 +147,20 @@ pub enum AdaptiveError {
 }
 
 impl AdaptiveSettings {
+    /// The settings a farm job cut into units of `passes_per_unit` passes runs with:
+    /// decisions fall between units, so `min_passes` and `interval` are rounded up to
+    /// multiples of it. [`crate::Scheduler::add_adaptive_job`] applies it, and so must
+    /// whoever restores the job's policy state from a checkpoint.
+    pub fn for_units(self, passes_per_unit: u32) -> Self {
+        let ppu = passes_per_unit.max(1);
+        let round_up = |v: u32| v.div_ceil(ppu).saturating_mul(ppu);
+        Self {
+            min_passes: round_up(self.min_passes),
+            interval: round_up(self.interval.max(1)),
+            ..self
+        }
+    }
+
     /// Checks the settings against a plan with `passes` passes.
     pub fn validate(&self, passes: u32) -> Result<(), AdaptiveError> {
         if self.mode == AdaptiveMode::Off {

@@ -92,8 +92,8 @@ pub use plan::{
 };
 pub use result::{ResultError, UnitResult};
 pub use schedule::{
-    frame_state_bytes, tail_share, JobId, Lease, Progress, Residency, Resumed, Scheduler,
-    SubmitError, Submitted, WorkerId,
+    frame_state_bytes, tail_share, JobId, Lease, Progress, Residency, Resumed, ResumedAdaptive,
+    Scheduler, SubmitError, Submitted, WorkerId,
 };
 pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,

@@ -141,6 +141,18 @@ pub struct Resumed {
     pub complete: Vec<u32>,
 }
 
+/// What a restart restored of an adaptive job for [`Scheduler::add_resumed_adaptive_job`].
+#[derive(Debug)]
+pub struct ResumedAdaptive {
+    /// The frames the job renders (inclusive range).
+    pub frames: std::ops::RangeInclusive<u32>,
+    /// The adaptive settings as submitted (rounded to the units again when added).
+    pub settings: AdaptiveSettings,
+    /// Each frame with checkpoints: its merged passes and, per tile in tile order, the
+    /// policy state saved with them (`None`: nothing consumed).
+    pub restored: Vec<(FrameAccumulator, Vec<Option<crate::AdaptiveTileCheckpoint>>)>,
+}
+
 /// Where a frame's merge state is ([`Scheduler::residency`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Residency {
@@ -885,9 +897,9 @@ impl Scheduler {
     /// when every tile of every frame is (see the module docs for how units wait for
     /// decisions). Decision boundaries must fall on unit boundaries, so `min_passes` and
     /// `interval` are rounded up to multiples of `passes_per_unit`; the settings actually
-    /// used are returned. Fails if the settings do not fit the plan (e.g. an unbiased pilot
-    /// leaving no fresh passes). Adaptive state is not checkpointed by
-    /// [`Scheduler::add_resumed_job`] yet.
+    /// used are returned ([`AdaptiveSettings::for_units`]). Fails if the settings do not fit
+    /// the plan (e.g. an unbiased pilot leaving no fresh passes). A restart brings such a
+    /// job back with [`Scheduler::add_resumed_adaptive_job`].
     ///
     /// The image of an adaptive job is [`Scheduler::adaptive_frame`]'s, not
     /// [`Scheduler::frame`]'s (which still merges every leased pass of every pixel, and is
@@ -902,12 +914,7 @@ impl Scheduler {
         adaptive: AdaptiveSettings,
     ) -> Result<AdaptiveSettings, AdaptiveError> {
         let ppu = passes_per_unit.max(1);
-        let round_up = |v: u32| v.div_ceil(ppu).saturating_mul(ppu);
-        let settings = AdaptiveSettings {
-            min_passes: round_up(adaptive.min_passes),
-            interval: round_up(adaptive.interval.max(1)),
-            ..adaptive
-        };
+        let settings = adaptive.for_units(ppu);
         // Checked once here; each frame's state is allocated with its first lease.
         AdaptiveFrame::new(plan, *frames.start(), settings)?;
         let count = frames.clone().count();
@@ -922,6 +929,104 @@ impl Scheduler {
             });
         }
         Ok(settings)
+    }
+
+    /// Adds an adaptive job resumed after a restart (issue 15): like
+    /// [`Scheduler::add_adaptive_job`], with each frame in `restored` brought back from its
+    /// checkpoints: the merged passes (the accumulator) and, per tile in tile order, the
+    /// policy state saved with them (`None`: nothing consumed). Units whose passes a tile
+    /// merged are done; the rest are gated by the restored decisions exactly as they
+    /// would have been without the restart (leased, waiting for a decision, or skipped),
+    /// so the job ends with the image an uninterrupted run makes, bit for bit.
+    ///
+    /// Refuses (naming the frame and tile) a policy state that the settings could not have
+    /// produced ([`AdaptiveFrame::restore`]), one that consumed other passes than its tile
+    /// merged (an unfinished tile consumes every merged pass; a finished one may have
+    /// merged a unit past its end), a frame outside the job or of another plan, and merged
+    /// passes that do not end on a unit boundary. Restored frames stay live (adaptive
+    /// frames are never released) and are charged to the memory budget even beyond it.
+    pub fn add_resumed_adaptive_job(
+        &mut self,
+        id: JobId,
+        priority: i32,
+        plan: FramePlan,
+        passes_per_unit: u32,
+        resumed: ResumedAdaptive,
+    ) -> Result<AdaptiveSettings, String> {
+        let ResumedAdaptive {
+            frames,
+            settings: adaptive,
+            restored,
+        } = resumed;
+        let ppu = passes_per_unit.max(1);
+        let settings = adaptive.for_units(ppu);
+        AdaptiveFrame::new(plan, *frames.start(), settings)
+            .map_err(|e| format!("job {id}: {e}"))?;
+        let first_frame = *frames.start();
+        let mut live = Vec::with_capacity(restored.len());
+        for (acc, checkpoints) in restored {
+            let f = acc.frame();
+            if *acc.plan() != plan {
+                return Err(format!("job {id}: frame {f} has another plan"));
+            }
+            if !frames.contains(&f) {
+                return Err(format!("job {id}: frame {f} is outside the job"));
+            }
+            let policy = AdaptiveFrame::restore(plan, f, settings, &checkpoints)
+                .map_err(|e| format!("job {id}: frame {f}: {e}"))?;
+            for (t, a) in acc.tiles().iter().zip(policy.tiles()) {
+                let (merged, consumed) = (t.merged_passes(), a.consumed_passes());
+                let consistent = if a.finished() {
+                    consumed <= merged
+                } else {
+                    consumed == merged
+                };
+                if !consistent || (merged % ppu != 0 && merged != plan.passes) {
+                    return Err(format!(
+                        "job {id}: frame {f} tile {}: {merged} passes merged in units of \
+                         {ppu}, {consumed} consumed by the adaptive policy{}",
+                        t.rect().index,
+                        if a.finished() { " (finished)" } else { "" }
+                    ));
+                }
+            }
+            live.push((acc, policy));
+        }
+        let count = frames.clone().count();
+        self.add_job(id, priority, plan, frames, ppu);
+        let frame_bytes = frame_state_bytes(&plan, true);
+        let Some(job) = self.jobs.get_mut(&id) else {
+            return Err(format!("job {id}: not added"));
+        };
+        job.frame_bytes = frame_bytes;
+        let mut queue = AdaptiveQueue {
+            settings,
+            frames: (0..count).map(|_| None).collect(),
+            waiting: BTreeSet::new(),
+            skipped: BTreeSet::new(),
+        };
+        for (acc, policy) in live {
+            let k = (acc.frame() - first_frame) as usize;
+            job.frames[k] = FrameSlot::Live(Box::new(acc));
+            queue.frames[k] = Some(policy);
+            self.memory.resident += frame_bytes;
+        }
+        job.adaptive = Some(queue);
+        for i in 0..job.units_total() {
+            let u = job.unit(i);
+            if let FrameSlot::Live(f) = &job.frames[(u.frame - first_frame) as usize] {
+                if u64::from(f.tiles()[u.tile as usize].merged_passes()) >= u.end_pass() {
+                    job.done.insert(i);
+                }
+            }
+        }
+        Ok(settings)
+    }
+
+    /// The adaptive settings an adaptive job runs with (rounded to its units,
+    /// [`AdaptiveSettings::for_units`]); `None` for other or unknown jobs.
+    pub fn adaptive_settings(&self, job_id: JobId) -> Option<AdaptiveSettings> {
+        Some(self.jobs.get(&job_id)?.adaptive.as_ref()?.settings)
     }
 
     /// The adaptive state (and image) of one frame of an adaptive job.
@@ -1932,6 +2037,198 @@ mod tests {
             };
             assert_eq!(bits(&a), bits(&b), "batch {batch}, {workers} workers");
         }
+    }
+
+    /// What a coordinator's store holds of an adaptive job at a crash: per live frame, the
+    /// tiles' merged state (as restored from their checkpoints) and the policy state saved
+    /// with it; a tile with nothing merged has no checkpoint.
+    fn adaptive_snapshot(
+        s: &Scheduler,
+        job: JobId,
+        plan: FramePlan,
+        frames: std::ops::RangeInclusive<u32>,
+    ) -> Vec<(FrameAccumulator, Vec<Option<crate::AdaptiveTileCheckpoint>>)> {
+        let mut out = Vec::new();
+        for f in frames {
+            let Some(acc) = s.frame(job, f) else {
+                continue;
+            };
+            let policy = s.adaptive_frame(job, f).unwrap();
+            let mut restored = FrameAccumulator::for_frame(plan, f);
+            let mut cps = Vec::new();
+            for (t, a) in acc.tiles().iter().zip(policy.tiles()) {
+                let units: Vec<_> = t.merged_units().collect();
+                let tile = TileAccumulator::restore(
+                    t.rect(),
+                    t.merged_passes(),
+                    t.pixels().to_vec(),
+                    &units,
+                )
+                .unwrap();
+                restored.restore_tile(tile).unwrap();
+                cps.push((t.merged_passes() > 0).then(|| a.checkpoint()));
+            }
+            out.push((restored, cps));
+        }
+        out
+    }
+
+    /// Issue 15: an adaptive job survives a coordinator crash at any point. The store's
+    /// view at the crash (merged passes and the policy state checkpointed with them;
+    /// buffered results and outstanding leases are lost) is resumed by a new scheduler,
+    /// which redoes only the lost units and ends with the image of an uninterrupted run
+    /// bit for bit, for both modes and crashes early, mid-decision and late, in a
+    /// two-frame job with one frame possibly not started.
+    #[test]
+    fn adaptive_jobs_resume_from_checkpoints_bit_identically() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(24, 16, 8, 1, 48).unwrap(); // 6 tiles
+        let frames = 3..=4u32;
+        for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
+            let settings = AdaptiveSettings {
+                mode,
+                target_error: 0.05,
+                min_passes: 8,
+                interval: 4,
+                ..AdaptiveSettings::default()
+            };
+            let references: Vec<FrameImage> = frames
+                .clone()
+                .map(|f| {
+                    let mut local = AdaptiveFrame::new(p, f, settings).unwrap();
+                    for u in p.units(f, 2) {
+                        local.offer(&noisy_result(&p, u)).unwrap();
+                    }
+                    local.image()
+                })
+                .collect();
+            for (crash_at, seed) in [(5usize, 11u64), (40, 12), (90, 13), (150, 14)] {
+                let mut s = Scheduler::new(100, 0);
+                s.add_adaptive_job(7, 0, p, frames.clone(), 2, settings)
+                    .unwrap();
+                let (mut now, mut rng, mut submitted) = (0u64, seed, 0usize);
+                let mut held: Vec<Lease> = Vec::new();
+                let mut crashed = false;
+                let mut merged_before = 0u64;
+                while !s.is_complete(7) {
+                    now += 10;
+                    assert!(now < 1_000_000, "{mode}: the job stalls");
+                    if submitted == crash_at && !crashed {
+                        crashed = true;
+                        merged_before = s.progress(7).unwrap().passes_done;
+                        let snapshot = adaptive_snapshot(&s, 7, p, frames.clone());
+                        s = Scheduler::new(100, 1_000);
+                        s.add_resumed_adaptive_job(
+                            7,
+                            0,
+                            p,
+                            2,
+                            ResumedAdaptive {
+                                frames: frames.clone(),
+                                settings,
+                                restored: snapshot,
+                            },
+                        )
+                        .unwrap();
+                        held.clear();
+                        // Merged passes are restored, not rendered again.
+                        assert_eq!(s.progress(7).unwrap().passes_done, merged_before);
+                    }
+                    for w in 0..3 {
+                        held.extend(s.lease(w, now, 2));
+                    }
+                    lcg_step(&mut rng);
+                    if held.is_empty() {
+                        s.expire(now + 1000);
+                        continue;
+                    }
+                    let k = (rng >> 33) as usize % held.len();
+                    let l = held.swap_remove(k);
+                    if rng.is_multiple_of(7) {
+                        continue; // a lost result: re-leased after expiry
+                    }
+                    let _ = s.submit(l.lease_id, 7, noisy_result(&p, l.unit));
+                    submitted += 1;
+                    if rng.is_multiple_of(4) {
+                        s.expire(now + 1000);
+                    }
+                }
+                assert!(
+                    crashed,
+                    "{mode}: the job ended before the crash at {crash_at}"
+                );
+                assert!(
+                    crash_at < 10 || merged_before > 0,
+                    "{mode}: nothing merged before the crash at {crash_at}"
+                );
+                for (f, reference) in frames.clone().zip(&references) {
+                    let image = s.adaptive_frame(7, f).unwrap().image();
+                    assert_eq!(
+                        &image, reference,
+                        "{mode}, crash after {crash_at} results: frame {f}"
+                    );
+                }
+            }
+        }
+    }
+
+    /// A restored policy state that its tile's merged passes contradict is refused.
+    #[test]
+    fn a_policy_state_out_of_step_with_its_tile_is_refused() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(16, 8, 8, 1, 48).unwrap(); // 2 tiles
+        let settings = AdaptiveSettings {
+            mode: AdaptiveMode::Sequential,
+            target_error: 0.05,
+            ..AdaptiveSettings::default()
+        };
+        let mut s = Scheduler::new(100, 0);
+        s.add_adaptive_job(7, 0, p, 0..=0, 2, settings).unwrap();
+        // Tile 1 (noisy) takes its first 4 passes.
+        for _ in 0..8 {
+            for l in s.lease(0, 0, 4) {
+                let _ = s.submit(l.lease_id, 7, noisy_result(&p, l.unit));
+            }
+        }
+        let good = adaptive_snapshot(&s, 7, p, 0..=0);
+        assert!(Scheduler::new(100, 0)
+            .add_resumed_adaptive_job(
+                7,
+                0,
+                p,
+                2,
+                ResumedAdaptive {
+                    frames: 0..=0,
+                    settings,
+                    restored: good.clone()
+                }
+            )
+            .is_ok());
+        // The policy state of an older checkpoint beside newer merged passes.
+        let mut stale = good;
+        let mut fresh = AdaptiveFrame::new(p, 0, settings).unwrap();
+        for u in p
+            .units(0, 2)
+            .into_iter()
+            .filter(|u| u.tile == 1 && u.first_pass < 2)
+        {
+            fresh.offer(&noisy_result(&p, u)).unwrap();
+        }
+        stale[0].1[1] = Some(fresh.tile(1).unwrap().checkpoint());
+        let err = Scheduler::new(100, 0)
+            .add_resumed_adaptive_job(
+                7,
+                0,
+                p,
+                2,
+                ResumedAdaptive {
+                    frames: 0..=0,
+                    settings,
+                    restored: stale,
+                },
+            )
+            .unwrap_err();
+        assert!(err.contains("frame 0 tile 1"), "{err}");
     }
 
     /// A reproducible noisy pass mean: tile 0 is constant (converges at once), the others

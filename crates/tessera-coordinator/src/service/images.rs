@@ -17,7 +17,9 @@ use std::sync::Arc;
 use tessera_api::{
     FrameQuery, FrameRange, ImageFormat, ImageQuery, ResolvedJob, TileInfo, TileMap,
 };
-use tessera_farm::{AdaptiveFrame, FrameAccumulator, FrameImage, FramePlan, JobId, Residency};
+use tessera_farm::{
+    AdaptiveFrame, AdaptiveSettings, FrameAccumulator, FrameImage, FramePlan, JobId, Residency,
+};
 
 use super::resume::{resolve_stored, restore_frames};
 use super::Coordinator;
@@ -59,6 +61,19 @@ struct FrameMeta {
     /// merge count while it runs, plus one once it stopped; `u64::MAX` for a frame that no
     /// longer changes (released, or of a job of an earlier run).
     version: u64,
+    /// The adaptive settings the job ran with (rounded to its units), for an adaptive
+    /// job: its image is the policy's, restored from the store's checkpoints.
+    adaptive: Option<AdaptiveSettings>,
+}
+
+/// A frame rebuilt from the store.
+enum StoredFrame {
+    /// A job the render plan found nothing to trace in.
+    Black,
+    /// The merged passes.
+    Merged(FrameAccumulator),
+    /// The adaptive policy's state (issue 15).
+    Adaptive(AdaptiveFrame),
 }
 
 /// A frame found in memory, or where to read it from.
@@ -143,6 +158,7 @@ impl Coordinator {
             stopped: rt.stopped,
             frame: fr,
             version: rt.merges.wrapping_mul(2) + u64::from(rt.stopped.is_some()),
+            adaptive: farm.scheduler.adaptive_settings(id),
         };
         if rt.resolved.black {
             return Ok(Some(Located::Done(f(Source::Black, &meta))));
@@ -198,10 +214,11 @@ impl Coordinator {
                     .map_err(CoordError::internal)?,
             )
         };
-        let acc = self.restore_frame(id, &meta).await?;
-        tokio::task::spawn_blocking(move || match &acc {
-            Some(acc) => f(Source::Merged(acc, None), &meta),
-            None => f(Source::Black, &meta),
+        let stored = self.restore_frame(id, &meta).await?;
+        tokio::task::spawn_blocking(move || match &stored {
+            StoredFrame::Merged(acc) => f(Source::Merged(acc, None), &meta),
+            StoredFrame::Adaptive(a) => f(Source::Adaptive(a), &meta),
+            StoredFrame::Black => f(Source::Black, &meta),
         })
         .await
         .map_err(CoordError::internal)
@@ -220,7 +237,9 @@ impl Coordinator {
             return Err(frame_error(f, rec.frames));
         }
         let stored = resolve_stored(store, &self.inner.farm, &rec).await?;
+        let adaptive = stored.resolved.job.adaptive_settings();
         Ok(FrameMeta {
+            adaptive: adaptive.map(|a| a.for_units(rec.passes_per_unit)),
             resolved: stored.resolved,
             stopped: Stop::of_stored(rec.state, rec.error.as_deref()),
             frame: f,
@@ -229,19 +248,34 @@ impl Coordinator {
         })
     }
 
-    /// A frame's accumulator rebuilt from its checkpoints; `None` for a black job.
-    async fn restore_frame(
-        &self,
-        id: JobId,
-        meta: &FrameMeta,
-    ) -> CoordResult<Option<FrameAccumulator>> {
+    /// A frame rebuilt from its checkpoints: an adaptive job's from the policy state saved
+    /// with them (issue 15), any other's from the merged passes.
+    async fn restore_frame(&self, id: JobId, meta: &FrameMeta) -> CoordResult<StoredFrame> {
         if meta.resolved.black {
-            return Ok(None);
+            return Ok(StoredFrame::Black);
         }
+        let plan = meta.resolved.plan;
         let checkpoints = self.inner.store.load_tiles(id, Some(meta.frame)).await?;
-        let mut restored = restore_frames(meta.resolved.plan, [meta.frame], checkpoints)
-            .map_err(CoordError::Internal)?;
-        Ok(restored.frames.pop())
+        let mut restored =
+            restore_frames(plan, [meta.frame], checkpoints).map_err(CoordError::Internal)?;
+        if let (Some(settings), false, Some(policy)) = (
+            meta.adaptive,
+            restored.without_policy,
+            restored.policy.pop(),
+        ) {
+            let frame = AdaptiveFrame::restore(plan, meta.frame, settings, &policy)
+                .map_err(|e| CoordError::Internal(format!("job {id}: {e}")))?;
+            return Ok(StoredFrame::Adaptive(frame));
+        }
+        // An adaptive job checkpointed by a build that did not save its policy's state
+        // shows its merged passes, as that build did.
+        match restored.frames.pop() {
+            Some(acc) => Ok(StoredFrame::Merged(acc)),
+            None => Err(CoordError::Internal(format!(
+                "job {id}: frame {} was not restored",
+                meta.frame
+            ))),
+        }
     }
 
     /// `GET /jobs/{id}/image`: the current merged image as PNG or EXR, from the cache

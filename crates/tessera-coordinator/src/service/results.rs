@@ -469,16 +469,24 @@ fn record_merge(farm: &mut Farm, m: &Merged, rejected_samples: u64) -> Option<Ti
     {
         *slot = tile_error(tile);
     }
-    Some(checkpoint_of(job, unit.frame, tile, rejected))
+    Some(checkpoint_of(farm, job, unit.frame, tile, rejected))
 }
 
-/// The checkpoint of a tile's merged state.
+/// The checkpoint of a tile's merged state, with the adaptive policy's state of the tile
+/// after the same merge for an adaptive job (issue 15: both are taken under the farm lock,
+/// so they are always of the same merge).
 fn checkpoint_of(
+    farm: &Farm,
     job: JobId,
     frame: u32,
     tile: &tessera_farm::TileAccumulator,
     rejected_samples: u64,
 ) -> TileCheckpoint {
+    let adaptive = farm
+        .scheduler
+        .adaptive_frame(job, frame)
+        .and_then(|f| f.tile(tile.rect().index))
+        .map(tessera_farm::AdaptiveTile::checkpoint);
     TileCheckpoint {
         job,
         frame,
@@ -494,6 +502,7 @@ fn checkpoint_of(
             })
             .collect(),
         rejected_samples,
+        adaptive,
     }
 }
 
@@ -597,7 +606,7 @@ fn reset_tile(farm: &mut Farm, job: JobId, frame: u32, tile: u32) -> Option<Tile
         *slot = TileRejected::default();
     }
     rt.merges += 1;
-    Some(checkpoint_of(job, frame, t, 0))
+    Some(checkpoint_of(farm, job, frame, t, 0))
 }
 
 /// A convergence-history point (spp, image error, elapsed seconds), at most every

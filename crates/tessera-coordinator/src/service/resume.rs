@@ -10,7 +10,7 @@ use std::sync::Mutex;
 
 use tessera_api::{JobSettings, JobState, ResolvedJob};
 use tessera_farm::job::JobError;
-use tessera_farm::{FrameAccumulator, FramePlan, JobId, Resumed};
+use tessera_farm::{AdaptiveTileCheckpoint, FrameAccumulator, FramePlan, JobId, Resumed};
 use tessera_scene::job::resolve_job;
 
 use super::jobs::add_to_scheduler;
@@ -90,6 +90,12 @@ pub(crate) struct Restored {
     pub frames: Vec<FrameAccumulator>,
     /// Per frame (number, per tile): the rejected samples of the merged passes.
     pub rejected: Vec<(u32, Vec<u64>)>,
+    /// Per frame, per tile: the adaptive policy's state saved with the tile (adaptive
+    /// jobs; `None` where the tile has no checkpoint or its checkpoint none).
+    pub policy: Vec<Vec<Option<AdaptiveTileCheckpoint>>>,
+    /// Whether some checkpoint has merged passes but no policy state: an adaptive job's
+    /// checkpoint written before schema version 4, whose policy cannot be restored.
+    pub without_policy: bool,
 }
 
 /// What a restart keeps of a complete frame: per tile, its rejected samples and its
@@ -124,6 +130,8 @@ async fn restore_incomplete(
     let mut restored = Restored {
         frames: Vec::new(),
         rejected: Vec::new(),
+        policy: Vec::new(),
+        without_policy: false,
     };
     let mut complete = Vec::new();
     for (f, slots) in frames {
@@ -153,6 +161,37 @@ async fn restore_incomplete(
     Ok((restored, complete))
 }
 
+/// Every frame of an adaptive job that has checkpoints, restored with its policy state
+/// (issue 15). Adaptive frames are never released, so a restart holds what the run held;
+/// `None` when a checkpoint predates the policy state (the job then starts over).
+async fn restore_adaptive(store: &dyn Store, rec: &JobRecord) -> Result<Option<Restored>, String> {
+    let summaries = store
+        .tile_summaries(rec.id)
+        .await
+        .map_err(|e| e.to_string())?;
+    let frames: std::collections::BTreeSet<u32> = summaries.iter().map(|s| s.frame).collect();
+    let mut restored = Restored {
+        frames: Vec::new(),
+        rejected: Vec::new(),
+        policy: Vec::new(),
+        without_policy: false,
+    };
+    for f in frames {
+        let checkpoints = store
+            .load_tiles(rec.id, Some(f))
+            .await
+            .map_err(|e| e.to_string())?;
+        let mut one = restore_frames(rec.plan, [f], checkpoints)?;
+        if one.without_policy {
+            return Ok(None);
+        }
+        restored.frames.append(&mut one.frames);
+        restored.rejected.append(&mut one.rejected);
+        restored.policy.append(&mut one.policy);
+    }
+    Ok(Some(restored))
+}
+
 /// The checkpoint-restore loop: accumulators of `frames` under `plan` with every
 /// checkpointed tile restored (bit-exact Welford state, ARCHITECTURE.md §6). Refuses a
 /// checkpoint of another frame, of an unknown tile, or one that does not restore.
@@ -169,12 +208,21 @@ pub(crate) fn restore_frames(
         .iter()
         .map(|a| (a.frame(), vec![0; plan.tile_count() as usize]))
         .collect();
-    for cp in checkpoints {
+    let mut policy: Vec<Vec<Option<AdaptiveTileCheckpoint>>> = accs
+        .iter()
+        .map(|_| vec![None; plan.tile_count() as usize])
+        .collect();
+    let mut without_policy = false;
+    for mut cp in checkpoints {
         let Some(fi) = accs.iter().position(|f| f.frame() == cp.frame) else {
             return Err(format!("checkpoint of frame {} outside the job", cp.frame));
         };
         if let Some(r) = rejected[fi].1.get_mut(cp.tile as usize) {
             *r = cp.rejected_samples;
+        }
+        without_policy |= cp.adaptive.is_none() && cp.merged_passes > 0;
+        if let Some(slot) = policy[fi].get_mut(cp.tile as usize) {
+            *slot = cp.adaptive.take();
         }
         let rect = plan
             .get_tile(cp.tile)
@@ -191,6 +239,8 @@ pub(crate) fn restore_frames(
     Ok(Restored {
         frames: accs,
         rejected,
+        policy,
+        without_policy,
     })
 }
 
@@ -254,8 +304,17 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
     if resolved.plan != rec.plan {
         return Err("the stored frame plan differs from this build's plan".into());
     }
-    let plan = rec.plan;
-    let (restored, complete) = restore_incomplete(store, rec).await?;
+    let adaptive = resolved.job.adaptive_settings();
+    let restored = match adaptive {
+        Some(a) => match restore_adaptive(store, rec).await? {
+            Some(r) => Restart::Adaptive(a, r),
+            None => Restart::Over,
+        },
+        None => {
+            let (r, c) = restore_incomplete(store, rec).await?;
+            Restart::Plain(r, c)
+        }
+    };
     let history = store.list_history(rec.id).await.unwrap_or_default();
     let faults = store
         .count_faults(&FaultFilter {
@@ -266,46 +325,63 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
         .unwrap_or(0);
     let mut farm = farm.lock().map_err(|_| "farm state poisoned".to_string())?;
     let mut rt = JobRuntime::new(settings, resolved, rec.state, rec.created_unix_ms);
-    if rt.job().adaptive_settings().is_some() {
-        // The adaptive policy's per-pixel state is not checkpointed: an adaptive job
-        // starts again from its first pass after a restart (its result is the same), so
-        // its tile errors and rejected counts start from zero too.
-        add_to_scheduler(
-            &mut farm,
-            rec.id,
-            rec.priority,
-            plan,
-            rt.job(),
-            rec.passes_per_unit,
-        )
-        .map_err(|e| e.to_string())?;
-    } else {
-        let first = rec.frames.start;
-        for f in &restored.frames {
-            if let Some(slot) = rt.tile_error.get_mut((f.frame() - first) as usize) {
-                *slot = f.tiles().iter().map(tile_error).collect();
+    let (plan, first, ppu) = (rec.plan, rec.frames.start, rec.passes_per_unit);
+    match restored {
+        Restart::Over => {
+            // Checkpoints of a build that did not save the policy's state: the job starts
+            // again from its first pass (its result is the same), so its rejected counts
+            // start from zero too.
+            tracing::warn!(
+                job = rec.id,
+                "adaptive job checkpointed without its policy state (an older build): \
+                 rendering it again from the first pass"
+            );
+            add_to_scheduler(&mut farm, rec.id, rec.priority, plan, rt.job(), ppu)
+                .map_err(|e| e.to_string())?;
+        }
+        Restart::Adaptive(settings, restored) => {
+            // Issue 15: the policy resumes where it was; only units in flight are redone.
+            restore_rejected(
+                &mut rt,
+                first,
+                restored.rejected.iter().map(|(f, r)| (*f, r)),
+            );
+            let resumed = tessera_farm::ResumedAdaptive {
+                frames: rec.frames.start..=rec.frames.end,
+                settings,
+                restored: restored.frames.into_iter().zip(restored.policy).collect(),
+            };
+            farm.scheduler
+                .add_resumed_adaptive_job(rec.id, rec.priority, plan, ppu, resumed)?;
+            if let Some(a) = farm.scheduler.adaptive_frame(rec.id, first) {
+                rt.adaptive_summary = (
+                    a.samples_per_pixel().0,
+                    a.every_pixel_estimated().then(|| a.image_error()),
+                );
             }
         }
-        for c in &complete {
-            if let Some(slot) = rt.tile_error.get_mut((c.frame - first) as usize) {
-                slot.clone_from(&c.errors);
-            }
-        }
-        let counts = complete.iter().map(|c| (c.frame, &c.rejected));
-        for (f, counts) in counts.chain(restored.rejected.iter().map(|(f, r)| (*f, r))) {
-            if let Some(slots) = rt.tile_rejected.get_mut((f - first) as usize) {
-                for (slot, &merged) in slots.iter_mut().zip(counts) {
-                    *slot = TileRejected::with_merged(merged);
+        Restart::Plain(restored, complete) => {
+            for f in &restored.frames {
+                if let Some(slot) = rt.tile_error.get_mut((f.frame() - first) as usize) {
+                    *slot = f.tiles().iter().map(tile_error).collect();
                 }
             }
+            for c in &complete {
+                if let Some(slot) = rt.tile_error.get_mut((c.frame - first) as usize) {
+                    slot.clone_from(&c.errors);
+                }
+            }
+            let counts = complete.iter().map(|c| (c.frame, &c.rejected));
+            let restored_counts = restored.rejected.iter().map(|(f, r)| (*f, r));
+            restore_rejected(&mut rt, first, counts.chain(restored_counts));
+            let resumed = Resumed {
+                frames: rec.frames.start..=rec.frames.end,
+                restored: restored.frames,
+                complete: complete.iter().map(|c| c.frame).collect(),
+            };
+            farm.scheduler
+                .add_resumed_job(rec.id, rec.priority, plan, resumed, ppu)?;
         }
-        let resumed = Resumed {
-            frames: rec.frames.start..=rec.frames.end,
-            restored: restored.frames,
-            complete: complete.iter().map(|c| c.frame).collect(),
-        };
-        farm.scheduler
-            .add_resumed_job(rec.id, rec.priority, plan, resumed, rec.passes_per_unit)?;
     }
     farm.jobs.insert(rec.id, JobEntry::of(&rt.resolved));
     rt.started_unix_ms = rec.started_unix_ms;
@@ -314,4 +390,31 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
     rt.stopped = Stop::of_stored(rec.state, rec.error.as_deref());
     farm.runtime.insert(rec.id, rt);
     Ok(())
+}
+
+/// How a stored job comes back.
+enum Restart {
+    /// Without adaptive stopping: its incomplete frames restored, its complete ones
+    /// summarized.
+    Plain(Restored, Vec<CompleteFrame>),
+    /// Adaptive, with the policy's state: every frame with checkpoints restored.
+    Adaptive(tessera_farm::AdaptiveSettings, Restored),
+    /// Adaptive, checkpointed without the policy's state: from its first pass.
+    Over,
+}
+
+/// Per frame (number, per tile), the rejected samples of the merged passes, into the
+/// job's counts.
+fn restore_rejected<'a>(
+    rt: &mut JobRuntime,
+    first: u32,
+    counts: impl Iterator<Item = (u32, &'a Vec<u64>)>,
+) {
+    for (f, counts) in counts {
+        if let Some(slots) = rt.tile_rejected.get_mut((f - first) as usize) {
+            for (slot, &merged) in slots.iter_mut().zip(counts) {
+                *slot = TileRejected::with_merged(merged);
+            }
+        }
+    }
 }

@@ -2,7 +2,7 @@
 //! validation against a job's plan. Pure functions, shared by every store implementation.
 
 use tessera_api::FrameRange;
-use tessera_farm::{FramePlan, PixelStats};
+use tessera_farm::{AdaptivePixel, AdaptiveTileCheckpoint, FramePlan, PixelStats};
 
 use super::{UnitDigest, CHECKPOINT_FORMAT_VERSION};
 
@@ -13,6 +13,100 @@ pub(crate) const PIXEL_BYTES: usize = 4 + 8 * 8;
 /// Bytes per unit in the digest blob: `first_pass`, `pass_count` (u32) and `digest` (u64).
 pub(crate) const UNIT_BYTES: usize = 4 + 4 + 8;
 
+/// Bytes per pixel in the adaptive policy blob: the statistics record, then `stopped_at`,
+/// `needed` and `traced` (u32).
+pub(crate) const ADAPTIVE_PIXEL_BYTES: usize = PIXEL_BYTES + 3 * 4;
+
+fn put_stats(out: &mut Vec<u8>, p: &PixelStats) {
+    out.extend_from_slice(&p.passes.to_le_bytes());
+    for v in p.mean.iter().chain(&p.m2).chain([&p.mean_lum, &p.m2_lum]) {
+        out.extend_from_slice(&v.to_bits().to_le_bytes());
+    }
+}
+
+fn get_stats(r: &[u8]) -> PixelStats {
+    let f = |i: usize| f64::from_bits(u64_at(r, 4 + 8 * i));
+    PixelStats {
+        passes: u32_at(r, 0),
+        mean: [f(0), f(1), f(2)],
+        m2: [f(3), f(4), f(5)],
+        mean_lum: f(6),
+        m2_lum: f(7),
+    }
+}
+
+/// Encodes the adaptive policy state of a tile (format in the [module docs](super)): the
+/// header, `consumed_passes` (u32), then one record per pixel.
+pub(crate) fn encode_adaptive(cp: &AdaptiveTileCheckpoint) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER_BYTES + 4 + ADAPTIVE_PIXEL_BYTES * cp.pixels.len());
+    out.push(CHECKPOINT_FORMAT_VERSION);
+    out.extend_from_slice(&(cp.pixels.len() as u32).to_le_bytes());
+    out.extend_from_slice(&cp.consumed_passes.to_le_bytes());
+    for p in &cp.pixels {
+        put_stats(&mut out, &p.stats);
+        for v in [p.stopped_at, p.needed, p.traced] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
+/// Decodes the adaptive policy state of a tile; the error says what is wrong. Only the
+/// layout is checked here: whether the state is one the job's policy could have reached
+/// is [`tessera_farm::AdaptiveTile::restore`]'s to say, with the settings at hand.
+pub(crate) fn decode_adaptive(blob: &[u8]) -> Result<AdaptiveTileCheckpoint, String> {
+    let Some((consumed, rest)) = blob
+        .get(HEADER_BYTES..)
+        .and_then(|b| b.split_first_chunk::<4>())
+    else {
+        return Err(format!(
+            "adaptive policy blob is truncated: {} bytes, shorter than its {}-byte header",
+            blob.len(),
+            HEADER_BYTES + 4
+        ));
+    };
+    // The version and count checks of the other blobs, over the header and the records.
+    let mut framed = Vec::with_capacity(HEADER_BYTES + rest.len());
+    framed.extend_from_slice(&blob[..HEADER_BYTES]);
+    framed.extend_from_slice(rest);
+    let body = records(&framed, "adaptive policy", ADAPTIVE_PIXEL_BYTES)?;
+    Ok(AdaptiveTileCheckpoint {
+        consumed_passes: u32::from_le_bytes(*consumed),
+        pixels: body
+            .chunks_exact(ADAPTIVE_PIXEL_BYTES)
+            .map(|r| AdaptivePixel {
+                stats: get_stats(r),
+                stopped_at: u32_at(r, PIXEL_BYTES),
+                needed: u32_at(r, PIXEL_BYTES + 4),
+                traced: u32_at(r, PIXEL_BYTES + 8),
+            })
+            .collect(),
+    })
+}
+
+/// Checks an adaptive policy state against its tile: one record per pixel, no more
+/// passes consumed than the plan has.
+pub(crate) fn check_adaptive(
+    plan: &FramePlan,
+    tile: u32,
+    cp: &AdaptiveTileCheckpoint,
+) -> Result<(), String> {
+    let pixels = plan.get_tile(tile).map_or(0, |r| r.pixel_count());
+    if cp.pixels.len() != pixels {
+        return Err(format!(
+            "adaptive policy state has {} pixels, the tile {pixels}",
+            cp.pixels.len()
+        ));
+    }
+    if cp.consumed_passes > plan.passes {
+        return Err(format!(
+            "adaptive policy state consumed {} passes, the plan has {}",
+            cp.consumed_passes, plan.passes
+        ));
+    }
+    Ok(())
+}
+
 /// Encodes per-pixel statistics. The caller guarantees `pixels.len() <= u32::MAX` (a tile
 /// has at most 256 x 256 pixels).
 pub(crate) fn encode_stats(pixels: &[PixelStats]) -> Vec<u8> {
@@ -20,10 +114,7 @@ pub(crate) fn encode_stats(pixels: &[PixelStats]) -> Vec<u8> {
     out.push(CHECKPOINT_FORMAT_VERSION);
     out.extend_from_slice(&(pixels.len() as u32).to_le_bytes());
     for p in pixels {
-        out.extend_from_slice(&p.passes.to_le_bytes());
-        for v in p.mean.iter().chain(&p.m2).chain([&p.mean_lum, &p.m2_lum]) {
-            out.extend_from_slice(&v.to_bits().to_le_bytes());
-        }
+        put_stats(&mut out, p);
     }
     out
 }
@@ -83,19 +174,7 @@ fn u64_at(b: &[u8], at: usize) -> u64 {
 /// Decodes per-pixel statistics; the error says what is wrong.
 pub(crate) fn decode_stats(blob: &[u8]) -> Result<Vec<PixelStats>, String> {
     let body = records(blob, "statistics", PIXEL_BYTES)?;
-    Ok(body
-        .chunks_exact(PIXEL_BYTES)
-        .map(|r| {
-            let f = |i: usize| f64::from_bits(u64_at(r, 4 + 8 * i));
-            PixelStats {
-                passes: u32_at(r, 0),
-                mean: [f(0), f(1), f(2)],
-                m2: [f(3), f(4), f(5)],
-                mean_lum: f(6),
-                m2_lum: f(7),
-            }
-        })
-        .collect())
+    Ok(body.chunks_exact(PIXEL_BYTES).map(get_stats).collect())
 }
 
 /// Decodes unit digests; the error says what is wrong.
@@ -226,6 +305,45 @@ mod tests {
             assert_eq!(bits(a), bits(b));
         }
         assert_eq!(decode_stats(&encode_stats(&[])).unwrap(), vec![]);
+    }
+
+    #[test]
+    fn adaptive_state_round_trips_and_refuses_bad_blobs() {
+        let cp = AdaptiveTileCheckpoint {
+            consumed_passes: 12,
+            pixels: stats(5)
+                .into_iter()
+                .enumerate()
+                .map(|(i, stats)| AdaptivePixel {
+                    stats,
+                    stopped_at: if i == 2 { 8 } else { 0 },
+                    needed: i as u32,
+                    traced: 12 - i as u32,
+                })
+                .collect(),
+        };
+        let blob = encode_adaptive(&cp);
+        assert_eq!(blob.len(), HEADER_BYTES + 4 + 5 * ADAPTIVE_PIXEL_BYTES);
+        assert_eq!(decode_adaptive(&blob).unwrap(), cp);
+        let empty = AdaptiveTileCheckpoint {
+            consumed_passes: 0,
+            pixels: vec![],
+        };
+        assert_eq!(decode_adaptive(&encode_adaptive(&empty)).unwrap(), empty);
+        // Truncated, padded, another version.
+        for (bad, says) in [
+            (blob[..7].to_vec(), "truncated"),
+            (blob[..blob.len() - 1].to_vec(), "announces 5 records"),
+            ([blob.as_slice(), &[0]].concat(), "announces 5 records"),
+            ([&[2u8], &blob[1..]].concat(), "format version 2"),
+        ] {
+            let e = decode_adaptive(&bad).unwrap_err();
+            assert!(e.contains(says), "{e}");
+            assert!(e.contains("adaptive policy"), "{e}");
+        }
+        let plan = FramePlan::new(16, 16, 16, 4, 8).unwrap();
+        let e = check_adaptive(&plan, 0, &cp).unwrap_err();
+        assert!(e.contains("5 pixels, the tile 256"), "{e}");
     }
 
     #[test]

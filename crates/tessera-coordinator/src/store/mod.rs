@@ -39,6 +39,18 @@
 //! | 4     | unit count `u` (u32) |
 //! | 16 u  | per merged unit in pass order: `first_pass` (u32), `pass_count` (u32), `digest` (u64) |
 //!
+//! A tile of an adaptive job also holds the adaptive policy's state after the same merge
+//! (schema version 4; `NULL` for other jobs and for checkpoints written before), so a
+//! restart resumes the policy where it was (issue 15) and a finished job's image is the
+//! policy's, rebuilt from the store:
+//!
+//! | bytes | content |
+//! |-------|---------|
+//! | 1     | format version, `1` |
+//! | 4     | pixel count `n` (u32) |
+//! | 4     | passes consumed by the policy (u32) |
+//! | 80 n  | per pixel, row-major within the tile: its kept statistics as in the statistics blob (68 bytes), then `stopped_at`, `needed`, `traced` (u32; [`tessera_farm::AdaptivePixel`]) |
+//!
 //! f64 values are stored by their bits, so a round trip is bit-exact. Decoding checks the
 //! version, the lengths, that the pixel count matches the tile of the job's plan, that
 //! every value is finite, that no pixel has more passes than the tile merged, and that the
@@ -60,7 +72,7 @@ pub use watch::WatchedStore;
 
 use async_trait::async_trait;
 use tessera_api::{FrameRange, HistoryPoint, JobState};
-use tessera_farm::{FramePlan, JobId, PixelStats};
+use tessera_farm::{AdaptiveTileCheckpoint, FramePlan, JobId, PixelStats};
 
 /// Current version of the tile checkpoint blob formats (the leading byte of each blob).
 pub const CHECKPOINT_FORMAT_VERSION: u8 = 1;
@@ -445,6 +457,8 @@ pub struct TileCheckpointRef<'a> {
     pub units: &'a [UnitDigest],
     /// Samples the renderers dropped as invalid (NaN, infinite, negative) in those units.
     pub rejected_samples: u64,
+    /// Adaptive jobs: the policy's state after the same merge; `None` for other jobs.
+    pub adaptive: Option<&'a AdaptiveTileCheckpoint>,
 }
 
 /// What a status needs of a tile checkpoint, without its pixels.
@@ -478,6 +492,9 @@ pub struct TileCheckpoint {
     /// Samples the renderers dropped as invalid (NaN, infinite, negative) in those units;
     /// 0 for checkpoints stored before schema version 2.
     pub rejected_samples: u64,
+    /// Adaptive jobs: the policy's state after the same merge; `None` for other jobs and
+    /// for checkpoints stored before schema version 4.
+    pub adaptive: Option<AdaptiveTileCheckpoint>,
 }
 
 impl TileCheckpoint {
@@ -491,6 +508,7 @@ impl TileCheckpoint {
             pixels: &self.pixels,
             units: &self.units,
             rejected_samples: self.rejected_samples,
+            adaptive: self.adaptive.as_ref(),
         }
     }
 }

@@ -25,7 +25,7 @@ use sqlx::Row;
 use tessera_api::{FrameRange, HistoryPoint, JobState};
 use tessera_farm::{FramePlan, JobId};
 
-use super::codec::{encode_stats, encode_units};
+use super::codec::{encode_adaptive, encode_stats, encode_units};
 use super::rows::{
     check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, int_col,
     job_from_row, now_unix_ms, plan_from_row, state_count_from_row, summary_from_row,
@@ -42,6 +42,10 @@ use super::{
 const MIGRATIONS: &[(i64, &str)] = &[
     (1, include_str!("migrations/postgres/0001_initial.sql")),
     (2, include_str!("migrations/postgres/0002_leader_epoch.sql")),
+    (
+        3,
+        include_str!("migrations/postgres/0003_adaptive_policy.sql"),
+    ),
 ];
 
 /// Connections in the pool: the coordinator's concurrent requests, merges and the ticker.
@@ -494,13 +498,14 @@ impl PostgresStore {
             check_tile_to_save(&plan, frames, t)?;
             sqlx::query(
                 "INSERT INTO tiles (job, frame, tile, merged_passes, stats, units, \
-                     rejected_samples) \
-                 VALUES ($1, $2, $3, $4, $5, $6, $7) \
+                     rejected_samples, adaptive) \
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8) \
                  ON CONFLICT (job, frame, tile) DO UPDATE SET \
                      merged_passes = EXCLUDED.merged_passes, \
                      stats = EXCLUDED.stats, \
                      units = EXCLUDED.units, \
-                     rejected_samples = EXCLUDED.rejected_samples",
+                     rejected_samples = EXCLUDED.rejected_samples, \
+                     adaptive = EXCLUDED.adaptive",
             )
             .bind(to_i64(t.job, "job id")?)
             .bind(i64::from(t.frame))
@@ -509,6 +514,7 @@ impl PostgresStore {
             .bind(encode_stats(t.pixels))
             .bind(encode_units(t.units))
             .bind(to_i64(t.rejected_samples, "rejected_samples")?)
+            .bind(t.adaptive.map(encode_adaptive))
             .execute(&mut *tx)
             .await?;
         }
@@ -524,7 +530,8 @@ impl PostgresStore {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let (plan, frames) = Self::job_plan(&self.pool, job).await?;
         let rows = sqlx::query(
-            "SELECT frame, tile, merged_passes, stats, units, rejected_samples FROM tiles \
+            "SELECT frame, tile, merged_passes, stats, units, rejected_samples, adaptive \
+             FROM tiles \
              WHERE job = $1 AND ($2::BIGINT IS NULL OR frame = $2::BIGINT) ORDER BY frame, tile",
         )
         .bind(key)
@@ -535,7 +542,8 @@ impl PostgresStore {
             .map(|row| {
                 let stats: Vec<u8> = row.try_get("stats")?;
                 let units: Vec<u8> = row.try_get("units")?;
-                tile_from_parts(&plan, frames, job, row, &stats, &units)
+                let adaptive: Option<Vec<u8>> = row.try_get("adaptive")?;
+                tile_from_parts(&plan, frames, job, row, &stats, &units, adaptive.as_deref())
             })
             .collect()
     }

@@ -265,6 +265,10 @@ pub(super) fn check_tile_to_save(
         t.pixels,
         t.units,
     )
+    .and_then(|()| match t.adaptive {
+        Some(a) => super::codec::check_adaptive(plan, t.tile, a),
+        None => Ok(()),
+    })
     .map_err(|reason| {
         StoreError::InvalidInput(format!(
             "checkpoint of job {}, frame {}, tile {}: {reason}",
@@ -282,8 +286,11 @@ pub(super) fn tile_from_parts(
     row: &impl Columns,
     stats: &[u8],
     units: &[u8],
+    adaptive: Option<&[u8]>,
 ) -> StoreResult<super::TileCheckpoint> {
-    use super::codec::{check_checkpoint, decode_stats, decode_units};
+    use super::codec::{
+        check_adaptive, check_checkpoint, decode_adaptive, decode_stats, decode_units,
+    };
     let place = || format!("tiles of job {job}");
     let frame: u32 = int_col(row, "frame", &place)?;
     let tile: u32 = int_col(row, "tile", &place)?;
@@ -298,6 +305,14 @@ pub(super) fn tile_from_parts(
     let pixels = decode_stats(stats).map_err(corrupt)?;
     let units = decode_units(units).map_err(corrupt)?;
     check_checkpoint(plan, frames, frame, tile, merged_passes, &pixels, &units).map_err(corrupt)?;
+    let adaptive = adaptive
+        .map(|blob| {
+            let a = decode_adaptive(blob)?;
+            check_adaptive(plan, tile, &a)?;
+            Ok(a)
+        })
+        .transpose()
+        .map_err(corrupt)?;
     Ok(super::TileCheckpoint {
         job,
         frame,
@@ -306,6 +321,7 @@ pub(super) fn tile_from_parts(
         pixels,
         units,
         rejected_samples,
+        adaptive,
     })
 }
 

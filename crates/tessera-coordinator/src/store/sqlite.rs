@@ -11,7 +11,7 @@ use sqlx::{Connection, Row};
 use tessera_api::{FrameRange, HistoryPoint, JobState};
 use tessera_farm::{FramePlan, JobId};
 
-use super::codec::{encode_stats, encode_units};
+use super::codec::{encode_adaptive, encode_stats, encode_units};
 use super::marker::{self, CommitMark};
 use super::rows::{
     check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, int_col,
@@ -32,6 +32,7 @@ const MIGRATIONS: &[(i64, &str)] = &[
     (1, include_str!("migrations/0001_initial.sql")),
     (2, include_str!("migrations/0002_rejected_samples.sql")),
     (3, include_str!("migrations/0003_integrity.sql")),
+    (4, include_str!("migrations/0004_adaptive_policy.sql")),
 ];
 
 /// A job resumed this many times in a row after a crash without a new merged pass is
@@ -625,13 +626,14 @@ impl Store for SqliteStore {
             check_tile_to_save(&plan, frames, t)?;
             sqlx::query(
                 "INSERT INTO tiles (job, frame, tile, merged_passes, stats, units, \
-                     rejected_samples) \
-                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7) \
+                     rejected_samples, adaptive) \
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8) \
                  ON CONFLICT (job, frame, tile) DO UPDATE SET \
                      merged_passes = excluded.merged_passes, \
                      stats = excluded.stats, \
                      units = excluded.units, \
-                     rejected_samples = excluded.rejected_samples",
+                     rejected_samples = excluded.rejected_samples, \
+                     adaptive = excluded.adaptive",
             )
             .bind(to_i64(t.job, "job id")?)
             .bind(i64::from(t.frame))
@@ -640,6 +642,7 @@ impl Store for SqliteStore {
             .bind(encode_stats(t.pixels))
             .bind(encode_units(t.units))
             .bind(to_i64(t.rejected_samples, "rejected_samples")?)
+            .bind(t.adaptive.map(encode_adaptive))
             .execute(&mut *tx)
             .await?;
         }
@@ -651,7 +654,8 @@ impl Store for SqliteStore {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let (plan, frames) = Self::job_plan(&self.reader, job).await?;
         let rows = sqlx::query(
-            "SELECT frame, tile, merged_passes, stats, units, rejected_samples FROM tiles \
+            "SELECT frame, tile, merged_passes, stats, units, rejected_samples, adaptive \
+             FROM tiles \
              WHERE job = ?1 AND (?2 IS NULL OR frame = ?2) ORDER BY frame, tile",
         )
         .bind(key)
@@ -662,7 +666,8 @@ impl Store for SqliteStore {
             .map(|row| {
                 let stats: Vec<u8> = row.try_get("stats")?;
                 let units: Vec<u8> = row.try_get("units")?;
-                tile_from_parts(&plan, frames, job, row, &stats, &units)
+                let adaptive: Option<Vec<u8>> = row.try_get("adaptive")?;
+                tile_from_parts(&plan, frames, job, row, &stats, &units, adaptive.as_deref())
             })
             .collect()
     }
