@@ -295,7 +295,8 @@ fn a_killed_coordinator_resumes_an_adaptive_job_where_its_policy_was() {
 
 /// Issue 15: why a job stopped survives a restart. A job stopped by its time limit says so
 /// in its status and EXR header before and after its coordinator restarts (the store keeps
-/// the stop with the `done` state), and the reason is not reported as an error.
+/// the stop with the `done` state), and the reason is not reported as an error; its
+/// unfinished frame is not counted as done.
 #[test]
 fn a_time_limit_stop_is_still_named_after_a_restart() {
     let dir = temp_dir("e2e", "time-limit-restart");
@@ -329,6 +330,9 @@ fn a_time_limit_stop_is_still_named_after_a_restart() {
     assert_eq!(reason(&after), reason(&done), "{after:?}");
     assert_eq!(after.target_reached, Some(false));
     assert_eq!(after.error, None);
+    // The frame was stopped, not finished, before and after (the stored status counted
+    // every frame of a `done` job as finished).
+    assert_eq!((done.frames_done, after.frames_done), (0, 0), "{after:?}");
     assert!(
         header(&client.image(id, "exr").unwrap()),
         "EXR header after the restart"

@@ -208,10 +208,12 @@ impl Coordinator {
             width: Some(plan.width),
             height: Some(plan.height),
             frames_total,
-            frames_done: if rec.state == JobState::Done {
-                frames_total
-            } else {
-                0
+            // A job stopped by its time limit finished only the frames every tile of which
+            // merged its planned passes; one that finished, every frame.
+            frames_done: match stop {
+                Some(Stop::TimeLimit) => complete_frames(&tiles, plan),
+                Some(_) => frames_total,
+                None => 0,
             },
             tiles_total,
             passes_planned,
@@ -321,6 +323,18 @@ pub(crate) fn add_to_scheduler(
             .add_job(id, priority, plan, job.frames.iter(), passes_per_unit),
     }
     Ok(())
+}
+
+/// Frames whose every tile merged the plan's passes, from the stored tile summaries.
+fn complete_frames(tiles: &[TileSummary], plan: FramePlan) -> u32 {
+    let mut per_frame: std::collections::BTreeMap<u32, u32> = Default::default();
+    for t in tiles.iter().filter(|t| t.merged_passes >= plan.passes) {
+        *per_frame.entry(t.frame).or_default() += 1;
+    }
+    per_frame
+        .values()
+        .filter(|&&n| n >= plan.tile_count())
+        .count() as u32
 }
 
 /// Samples per pixel merged so far.
