@@ -1,0 +1,340 @@
+#!/usr/bin/env python3
+"""Worker-seconds to a measured error on the farm: adaptive vs uniform (issue 15).
+
+For each scene, renders a converged reference once with `tessera render` (cached in
+--cache, outside the repository), then starts `tessera serve --workers 2
+--threads-per-worker 1 --spot-check-fraction 0` on free loopback ports and submits, one
+at a time:
+
+- uniform (`adaptive: off`) at a ladder of samples per pixel;
+- `adaptive: unbiased` and `adaptive: sequential` at a ladder of target errors, with a
+  large spp cap.
+
+For every job it records the worker-seconds it cost, two ways:
+
+- `cpu`: CPU seconds (user + system, /proc/PID/stat) of the two worker processes from
+  submission to done: what the table uses, since it does not move with the machine's load;
+- `render`: `tessera_worker_render_seconds_total` in /metrics over the job (the wall
+  seconds the workers report for their units; inflated when the machine is loaded);
+
+and the MEASURED relative RMS error of the job's EXR against the reference, defined as in
+`tessera bench accuracy` (crates/tessera-cli/src/accuracy.rs): with `lum` the Rec. 709
+luminance, `v_r` the reference's luminance variance of the mean and REL_EPS = 0.01,
+`relMSE = max(0, mean over pixels of ((lum m - lum r)^2 - v_r) / (max(lum r, 0) + REL_EPS)^2)`
+and the error is `sqrt(relMSE)`. Sequential stopping is biased (docs/ARCHITECTURE.md §3,
+"Adaptive stopping"): its measured error includes the bias, which is the fair comparison.
+
+Per scene and mode, the worker-seconds to reach the goal error (default 2%) are
+interpolated on log-log axes between the runs that bracket it (as `time_to_reach` in
+accuracy.rs); where a mode never reaches it, the table says so and a second table compares
+the modes at the smallest error all of them reach.
+
+Every run is appended to --cache/runs-<size>.jsonl and reused by later invocations with the
+same binary (keyed by scene, size, mode, ladder value and the binary's SHA-256), so an
+interrupted benchmark resumes where it stopped.
+
+Usage: bench/adaptive_farm.py [--bin target/release/tessera] [--cache /work/bench-cache]
+       [--size 64] [--scenes builtin:veach-mis,builtin:caustic] [--goal 0.02]
+Not a test: it measures CPU time; its figures go to docs/benchmarks.md.
+"""
+import argparse, json, math, os, socket, subprocess, sys, tempfile, time, urllib.request
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from exr import read_exr  # noqa: E402
+
+LUM = (0.2126, 0.7152, 0.0722)
+REL_EPS = 0.01
+REF_SEED = 0x5EED0001  # distinct from every run's seed (1, 2, ...)
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def parse_args():
+    target = os.environ.get("CARGO_TARGET_DIR", "target")
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--bin", default=f"{target}/release/tessera")
+    p.add_argument("--cache", default="/work/bench-cache")
+    p.add_argument("--size", type=int, default=64, help="width and height")
+    p.add_argument("--scenes", default="builtin:veach-mis,builtin:caustic")
+    p.add_argument("--modes", default="off,unbiased,sequential")
+    p.add_argument("--reference-spp", type=int, default=65536)
+    p.add_argument("--uniform-spp", default="16,32,64,128,256,512,1024,2048,4096,8192")
+    p.add_argument("--targets", default="0.2,0.1,0.05,0.035,0.025,0.018,0.0125,0.009")
+    p.add_argument("--adaptive-cap", type=int, default=16384, help="spp cap of adaptive jobs")
+    p.add_argument("--goal", type=float, default=0.02)
+    p.add_argument("--report-only", action="store_true", help="print the tables from the cache")
+    return p.parse_args()
+
+
+# ---- measurement -------------------------------------------------------------------------
+
+def lum_of(ch, i, prefix=""):
+    return sum(w * ch[prefix + c][i] for w, c in zip(LUM, "RGB"))
+
+
+def measured_error(path, ref):
+    img = read_exr(path)["channels"]
+    r = ref["channels"]
+    n = len(img["R"])
+    if n != len(r["R"]):
+        raise SystemExit(f"{path}: size differs from the reference")
+    total = 0.0
+    for i in range(n):
+        lr = lum_of(r, i)
+        d = lum_of(img, i) - lr
+        vr = sum(w * w * r["variance." + c][i] for w, c in zip(LUM, "RGB"))
+        total += (d * d - vr) / (max(lr, 0.0) + REL_EPS) ** 2
+    return math.sqrt(max(0.0, total / n))
+
+
+def estimated_error(path):
+    rel = read_exr(path)["channels"]["relerr.Y"]
+    return math.sqrt(sum(x * x for x in rel) / len(rel))
+
+
+def reference(a, scene):
+    name = scene.replace("builtin:", "").replace("/", "_")
+    path = os.path.join(a.cache, f"ref-{name}-{a.size}x{a.size}-{a.reference_spp}spp.exr")
+    if not os.path.exists(path):
+        print(f"rendering the reference {path} ...", file=sys.stderr, flush=True)
+        tmp = path + ".tmp.exr"
+        out = subprocess.run(
+            [a.bin, "render", scene, "--width", str(a.size), "--height", str(a.size),
+             "--spp", str(a.reference_spp), "--seed", str(REF_SEED), "-o", tmp],
+            check=True, capture_output=True, text=True).stdout
+        with open(path + ".txt", "w") as f:
+            f.write(out)
+        os.rename(tmp, path)
+    return path
+
+
+# ---- the farm ----------------------------------------------------------------------------
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def get(url, raw=False):
+    with urllib.request.urlopen(url, timeout=30) as r:
+        return r.read() if raw else json.load(r)
+
+
+def post(url, body):
+    req = urllib.request.Request(url, data=body, headers={"content-type": "application/json"})
+    with urllib.request.urlopen(req, timeout=60) as r:
+        return json.load(r)
+
+
+def metric(base, name):
+    text = get(base.replace("/api/v1", "/metrics"), raw=True).decode()
+    for line in text.splitlines():
+        if line.startswith(name + " ") or line.startswith(name + "{"):
+            return float(line.rsplit(" ", 1)[1])
+    return 0.0
+
+
+def children(pid):
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    st = f.read()
+            except OSError:
+                continue
+            fields = st[st.rindex(")") + 2:].split()
+            if int(fields[1]) == pid:
+                out.append(int(d))
+    return out
+
+
+def cpu_seconds(pids):
+    total = 0
+    for pid in pids:
+        with open(f"/proc/{pid}/stat") as f:
+            st = f.read()
+        fields = st[st.rindex(")") + 2:].split()
+        total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14, 15)
+    return total / TICK
+
+
+class Farm:
+    def __init__(self, a):
+        self.http, self.grpc = free_port(), free_port()
+        self.data = tempfile.mkdtemp(prefix="tessera-adaptive-bench-")
+        self.proc = subprocess.Popen(
+            [a.bin, "serve", "--workers", "2", "--threads-per-worker", "1",
+             "--spot-check-fraction", "0", "--http", f"127.0.0.1:{self.http}",
+             "--grpc", f"127.0.0.1:{self.grpc}", "--data", self.data, "--demo", "none"],
+            stdout=subprocess.DEVNULL, stderr=open(os.path.join(self.data, "serve.log"), "w"))
+        self.base = f"http://127.0.0.1:{self.http}/api/v1"
+        for _ in range(600):
+            try:
+                if len(get(f"{self.base}/workers")["workers"]) >= 2:
+                    break
+            except Exception:
+                pass
+            time.sleep(0.1)
+        else:
+            raise SystemExit("the farm did not come up")
+        self.workers = [p for p in children(self.proc.pid) if b"worker" in open(f"/proc/{p}/cmdline", "rb").read()]
+        if len(self.workers) != 2:
+            raise SystemExit(f"expected 2 worker processes, found {self.workers}")
+
+    def run(self, settings, out_path):
+        cpu0 = cpu_seconds(self.workers)
+        rs0 = metric(self.base, "tessera_worker_render_seconds_total")
+        pp0 = metric(self.base, "tessera_worker_pixel_passes_total")
+        job = post(f"{self.base}/jobs", json.dumps(settings).encode())
+        while True:
+            st = get(f"{self.base}/jobs/{job['id']}")
+            if st["state"] in ("done", "failed", "canceled"):
+                break
+            time.sleep(0.05)
+        cpu1 = cpu_seconds(self.workers)
+        rs1 = metric(self.base, "tessera_worker_render_seconds_total")
+        pp1 = metric(self.base, "tessera_worker_pixel_passes_total")
+        if st["state"] != "done":
+            raise SystemExit(f"job {job['id']} {st['state']}: {st.get('error')}")
+        with open(out_path, "wb") as f:
+            f.write(get(f"{self.base}/jobs/{job['id']}/image?format=exr", raw=True))
+        return {"cpu": cpu1 - cpu0, "render": rs1 - rs0, "pixel_passes": pp1 - pp0,
+                "wall": st["elapsed_seconds"], "spp": st["spp_so_far"],
+                "status_error": st["error_estimate"], "target_reached": st["target_reached"],
+                "stop_reason": st["stop_reason"]}
+
+    def close(self):
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+# ---- interpolation and tables ------------------------------------------------------------
+
+def cost_to_reach(points, target):
+    """As `time_to_reach` in accuracy.rs: the first crossing, log-log interpolated."""
+    pts = sorted(p for p in points if p[0] > 0 and p[1] > 0)
+    if not pts:
+        return None
+    if pts[0][1] <= target:
+        return pts[0][0]
+    for (t0, e0), (t1, e1) in zip(pts, pts[1:]):
+        if e0 > target >= e1:
+            f = (math.log(target) - math.log(e0)) / (math.log(e1) - math.log(e0))
+            return math.exp(math.log(t0) + f * (math.log(t1) - math.log(t0)))
+    return None
+
+
+def tables(a, runs):
+    goal = a.goal
+    modes = a.modes.split(",")
+    label = {"off": "uniform", "unbiased": "adaptive unbiased", "sequential": "adaptive sequential"}
+    lines = [f"Worker-seconds (CPU seconds of the 2 worker processes) to a measured {goal:.0%}, "
+             f"{a.size}x{a.size}; in brackets the workers' reported render seconds.", "",
+             "| scene | mode | worker CPU-s to %g%% | render s to %g%% | uniform / mode (CPU-s) | lowest measured error (at CPU-s) |" % (goal * 100, goal * 100),
+             "|---|---|---|---|---|---|"]
+    common_lines = []
+    for scene in a.scenes.split(","):
+        per = {m: [r for r in runs if r["scene"] == scene and r["mode"] == m] for m in modes}
+        base = cost_to_reach([(r["cpu"], r["measured"]) for r in per["off"]], goal) if "off" in per else None
+        for m in modes:
+            pts = [(r["cpu"], r["measured"]) for r in per[m]]
+            c = cost_to_reach(pts, goal)
+            rs = cost_to_reach([(r["render"], r["measured"]) for r in per[m]], goal)
+            low = min(per[m], key=lambda r: r["measured"]) if per[m] else None
+            ratio = f"{base / c:.2f}" if (c and base) else "-"
+            lines.append(f"| {scene} | {label[m]} | {'%.1f' % c if c else 'not reached'} | "
+                         f"{'%.1f' % rs if rs else '-'} | {ratio} | "
+                         f"{'%.4f (%.1f)' % (low['measured'], low['cpu']) if low else '-'} |")
+        # The smallest error every mode reaches: the largest of the modes' lowest errors.
+        if all(per[m] for m in modes):
+            common = max(min(r["measured"] for r in per[m]) for m in modes) * 1.0001
+            cells = []
+            cb = cost_to_reach([(r["cpu"], r["measured"]) for r in per["off"]], common)
+            for m in modes:
+                c = cost_to_reach([(r["cpu"], r["measured"]) for r in per[m]], common)
+                cells.append(f"{c:.1f} ({cb / c:.2f})" if c and cb else "-")
+            common_lines.append(f"| {scene} | {common:.4f} | " + " | ".join(cells) + " |")
+    out = "\n".join(lines)
+    if common_lines:
+        out += ("\n\nAt the smallest measured error every mode reaches: worker CPU-s (uniform / mode):\n\n"
+                "| scene | error | " + " | ".join(label[m] for m in modes) + " |\n|---|---|"
+                + "---|" * len(modes) + "\n" + "\n".join(common_lines))
+    return out
+
+
+def runs_table(runs):
+    out = ["| scene | mode | spp / target | spp traced (mean) | worker CPU-s | render s | pixel-passes | measured error | estimated (status) | stop |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        out.append(f"| {r['scene']} | {r['mode']} | {r['param']} | {r['spp']:.1f} | {r['cpu']:.2f} | "
+                   f"{r['render']:.2f} | {int(r['pixel_passes'])} | {r['measured']:.4f} | "
+                   f"{r['status_error'] if r['status_error'] is None else '%.4f' % r['status_error']} | "
+                   f"{r['stop_reason'] or ''} |")
+    return "\n".join(out)
+
+
+def build_id(binary):
+    """The binary's SHA-256 (12 hex digits): runs are reused only with the same binary."""
+    import hashlib
+    with open(binary, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()[:12]
+
+
+def main():
+    a = parse_args()
+    os.makedirs(a.cache, exist_ok=True)
+    version = build_id(a.bin)
+    log = os.path.join(a.cache, f"runs-{a.size}.jsonl")
+    runs = []
+    if os.path.exists(log):
+        with open(log) as f:
+            runs = [json.loads(l) for l in f if l.strip()]
+    done = {(r["scene"], r["mode"], r["param"], r["version"]) for r in runs}
+    if not a.report_only:
+        refs = {s: reference(a, s) for s in a.scenes.split(",")}
+        farm = None
+        try:
+            for scene in a.scenes.split(","):
+                ref = read_exr(refs[scene])
+                print(f"reference {refs[scene]}: estimated error {estimated_error(refs[scene]):.5f}",
+                      file=sys.stderr, flush=True)
+                seed = 0
+                for mode in a.modes.split(","):
+                    ladder = a.uniform_spp if mode == "off" else a.targets
+                    for param in ladder.split(","):
+                        seed += 1
+                        if (scene, mode, param, version) in done:
+                            continue
+                        if farm is None:
+                            farm = Farm(a)
+                        s = {"scene": scene, "width": a.size, "height": a.size, "seed": seed,
+                             "adaptive": mode}
+                        if mode == "off":
+                            s["spp"] = int(param)
+                        else:
+                            s["spp"] = a.adaptive_cap
+                            s["target_error"] = float(param)
+                        out = os.path.join(farm.data, "out.exr")
+                        r = farm.run(s, out)
+                        r.update(scene=scene, mode=mode, param=param, version=version, seed=seed,
+                                 size=a.size, measured=measured_error(out, ref), uptime=os.getloadavg())
+                        print(json.dumps(r), file=sys.stderr, flush=True)
+                        with open(log, "a") as f:
+                            f.write(json.dumps(r) + "\n")
+                        runs.append(r)
+        finally:
+            if farm is not None:
+                farm.close()
+    runs = [r for r in runs if r["version"] == version and r["scene"] in a.scenes.split(",")]
+    print(f"binary: {a.bin} (sha256 {version})\n")
+    print(tables(a, runs))
+    print("\nEvery run:\n")
+    print(runs_table(runs))
+
+
+if __name__ == "__main__":
+    main()
