@@ -55,12 +55,15 @@ def parse_args():
     p.add_argument("--cache", default="/work/bench-cache")
     p.add_argument("--size", type=int, default=64, help="width and height")
     p.add_argument("--scenes", default="builtin:veach-mis,builtin:caustic")
-    p.add_argument("--modes", default="off,unbiased,sequential")
+    p.add_argument("--modes", default="off,unbiased,sequential",
+                   help="off, unbiased, sequential; an adaptive mode with -pN sets min_passes N")
     p.add_argument("--reference-spp", type=int, default=65536)
     p.add_argument("--uniform-spp", default="16,32,64,128,256,512,1024,2048,4096,8192")
     p.add_argument("--targets", default="0.2,0.1,0.05,0.035,0.025,0.018,0.0125,0.009")
     p.add_argument("--adaptive-cap", type=int, default=16384, help="spp cap of adaptive jobs")
     p.add_argument("--goal", type=float, default=0.02)
+    p.add_argument("--replicate", type=int, default=0,
+                   help="another ladder with other seeds (seed + 1000 x N), kept beside the others")
     p.add_argument("--report-only", action="store_true", help="print the tables from the cache")
     return p.parse_args()
 
@@ -228,49 +231,92 @@ def cost_to_reach(points, target):
     return None
 
 
+def label(mode):
+    """`off`, `unbiased`, `sequential`, or either adaptive mode with `-pN`: --min-passes N."""
+    name, _, pilot = mode.partition("-p")
+    text = {"off": "uniform", "unbiased": "adaptive unbiased", "sequential": "adaptive sequential"}[name]
+    return f"{text} (min passes {pilot})" if pilot else text
+
+
+def job_settings(scene, size, seed, mode, param, cap):
+    name, _, pilot = mode.partition("-p")
+    s = {"scene": scene, "width": size, "height": size, "seed": seed, "adaptive": name}
+    if name == "off":
+        s["spp"] = int(param)
+    else:
+        s["spp"] = cap
+        s["target_error"] = float(param)
+    if pilot:
+        s["min_passes"] = int(pilot)
+    return s
+
+
+def reach(rs, key, target):
+    """Per replicate (a ladder run with its own seeds), the cost to reach `target`; the
+    geometric mean over the replicates if every one reached it, else None."""
+    per = [cost_to_reach([(r[key], r["measured"]) for r in rs if r.get("replicate", 0) == k], target)
+           for k in sorted({r.get("replicate", 0) for r in rs})]
+    if per and all(per):
+        return math.exp(sum(math.log(c) for c in per) / len(per)), per
+    return None, per
+
+
+def fmt_reach(c, per):
+    if c is None:
+        return "not reached" if not any(per) else "not reached by every replicate (%s)" % ", ".join(
+            "-" if p is None else "%.1f" % p for p in per)
+    return "%.1f" % c + (" (%s)" % ", ".join("%.1f" % p for p in per) if len(per) > 1 else "")
+
+
 def tables(a, runs):
     goal = a.goal
     modes = a.modes.split(",")
-    label = {"off": "uniform", "unbiased": "adaptive unbiased", "sequential": "adaptive sequential"}
     lines = [f"Worker-seconds (CPU seconds of the 2 worker processes) to a measured {goal:.0%}, "
-             f"{a.size}x{a.size}; in brackets the workers' reported render seconds.", "",
+             f"{a.size}x{a.size}; beside them, the render seconds the workers reported (wall time of their units, "
+             "inflated by load). With several replicates (ladders with other seeds): the geometric mean, "
+             "each replicate in brackets.", "",
              "| scene | mode | worker CPU-s to %g%% | render s to %g%% | uniform / mode (CPU-s) | lowest measured error (at CPU-s) |" % (goal * 100, goal * 100),
              "|---|---|---|---|---|---|"]
     common_lines = []
     for scene in a.scenes.split(","):
         per = {m: [r for r in runs if r["scene"] == scene and r["mode"] == m] for m in modes}
-        base = cost_to_reach([(r["cpu"], r["measured"]) for r in per["off"]], goal) if "off" in per else None
+        base = reach(per["off"], "cpu", goal)[0] if "off" in per else None
         for m in modes:
-            pts = [(r["cpu"], r["measured"]) for r in per[m]]
-            c = cost_to_reach(pts, goal)
-            rs = cost_to_reach([(r["render"], r["measured"]) for r in per[m]], goal)
-            low = min(per[m], key=lambda r: r["measured"]) if per[m] else None
+            if not per[m]:
+                continue
+            c, reps = reach(per[m], "cpu", goal)
+            rs = reach(per[m], "render", goal)[0]
+            low = min(per[m], key=lambda r: r["measured"])
             ratio = f"{base / c:.2f}" if (c and base) else "-"
-            lines.append(f"| {scene} | {label[m]} | {'%.1f' % c if c else 'not reached'} | "
+            lines.append(f"| {scene} | {label(m)} | {fmt_reach(c, reps)} | "
                          f"{'%.1f' % rs if rs else '-'} | {ratio} | "
                          f"{'%.4f (%.1f)' % (low['measured'], low['cpu']) if low else '-'} |")
-        # The smallest error every mode reaches: the largest of the modes' lowest errors.
-        if all(per[m] for m in modes):
-            common = max(min(r["measured"] for r in per[m]) for m in modes) * 1.0001
+        # The smallest error every mode (that ran on this scene) reaches: the largest of the
+        # modes' lowest errors.
+        ran = [m for m in modes if per[m]]
+        if "off" in ran and len(ran) > 1:
+            common = max(min(r["measured"] for r in per[m] if r.get("replicate", 0) == k)
+                         for m in ran for k in {r.get("replicate", 0) for r in per[m]}) * 1.0001
             cells = []
-            cb = cost_to_reach([(r["cpu"], r["measured"]) for r in per["off"]], common)
+            cb = reach(per["off"], "cpu", common)[0]
             for m in modes:
-                c = cost_to_reach([(r["cpu"], r["measured"]) for r in per[m]], common)
+                c = reach(per[m], "cpu", common)[0]
                 cells.append(f"{c:.1f} ({cb / c:.2f})" if c and cb else "-")
             common_lines.append(f"| {scene} | {common:.4f} | " + " | ".join(cells) + " |")
     out = "\n".join(lines)
     if common_lines:
         out += ("\n\nAt the smallest measured error every mode reaches: worker CPU-s (uniform / mode):\n\n"
-                "| scene | error | " + " | ".join(label[m] for m in modes) + " |\n|---|---|"
+                "| scene | error | " + " | ".join(label(m) for m in modes) + " |\n|---|---|"
                 + "---|" * len(modes) + "\n" + "\n".join(common_lines))
     return out
 
 
 def runs_table(runs):
-    out = ["| scene | mode | spp / target | spp traced (mean) | worker CPU-s | render s | pixel-passes | measured error | estimated (status) | stop |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+    out = ["| scene | mode | replicate | spp / target (cap) | spp in the image (mean) | worker CPU-s | render s | pixel-passes | measured error | estimated (status) | stop |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
-        out.append(f"| {r['scene']} | {r['mode']} | {r['param']} | {r['spp']:.1f} | {r['cpu']:.2f} | "
+        cap = "" if r["mode"] == "off" else " (%d)" % r.get("cap", 16384)
+        out.append(f"| {r['scene']} | {r['mode']} | {r.get('replicate', 0)} | {r['param']}{cap} | {r['spp']:.1f} | {r['cpu']:.2f} | "
                    f"{r['render']:.2f} | {int(r['pixel_passes'])} | {r['measured']:.4f} | "
                    f"{r['status_error'] if r['status_error'] is None else '%.4f' % r['status_error']} | "
                    f"{r['stop_reason'] or ''} |")
@@ -293,7 +339,9 @@ def main():
     if os.path.exists(log):
         with open(log) as f:
             runs = [json.loads(l) for l in f if l.strip()]
-    done = {(r["scene"], r["mode"], r["param"], r["version"]) for r in runs}
+    # Adaptive runs are keyed by their spp cap too (records from before the field: 16384).
+    cap_of = lambda r: 0 if r["mode"] == "off" else r.get("cap", 16384)
+    done = {(r["scene"], r["mode"], r["param"], r["version"], cap_of(r), r.get("replicate", 0)) for r in runs}
     if not a.report_only:
         refs = {s: reference(a, s) for s in a.scenes.split(",")}
         farm = None
@@ -307,20 +355,15 @@ def main():
                     ladder = a.uniform_spp if mode == "off" else a.targets
                     for param in ladder.split(","):
                         seed += 1
-                        if (scene, mode, param, version) in done:
+                        cap = 0 if mode == "off" else a.adaptive_cap
+                        if (scene, mode, param, version, cap, a.replicate) in done:
                             continue
                         if farm is None:
                             farm = Farm(a)
-                        s = {"scene": scene, "width": a.size, "height": a.size, "seed": seed,
-                             "adaptive": mode}
-                        if mode == "off":
-                            s["spp"] = int(param)
-                        else:
-                            s["spp"] = a.adaptive_cap
-                            s["target_error"] = float(param)
+                        s = job_settings(scene, a.size, seed + 1000 * a.replicate, mode, param, a.adaptive_cap)
                         out = os.path.join(farm.data, "out.exr")
                         r = farm.run(s, out)
-                        r.update(scene=scene, mode=mode, param=param, version=version, seed=seed,
+                        r.update(scene=scene, mode=mode, param=param, version=version, seed=s["seed"], cap=cap, replicate=a.replicate,
                                  size=a.size, measured=measured_error(out, ref), uptime=os.getloadavg())
                         print(json.dumps(r), file=sys.stderr, flush=True)
                         with open(log, "a") as f:
