@@ -50,18 +50,19 @@ TICK = os.sysconf("SC_CLK_TCK")
 
 def parse_args():
     target = os.environ.get("CARGO_TARGET_DIR", "target")
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--bin", default=f"{target}/release/tessera")
-    p.add_argument("--cache", default="/work/bench-cache")
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--bin", default=f"{target}/release/tessera", help="the tessera binary")
+    p.add_argument("--cache", default="/work/bench-cache", help="references and runs (outside the repository)")
     p.add_argument("--size", type=int, default=64, help="width and height")
-    p.add_argument("--scenes", default="builtin:veach-mis,builtin:caustic")
+    p.add_argument("--scenes", default="builtin:veach-mis,builtin:caustic", help="comma-separated")
     p.add_argument("--modes", default="off,unbiased,sequential",
                    help="off, unbiased, sequential; an adaptive mode with -pN sets min_passes N")
-    p.add_argument("--reference-spp", type=int, default=65536)
-    p.add_argument("--uniform-spp", default="16,32,64,128,256,512,1024,2048,4096,8192")
-    p.add_argument("--targets", default="0.2,0.1,0.05,0.035,0.025,0.018,0.0125,0.009")
+    p.add_argument("--reference-spp", type=int, default=65536, help="samples per pixel of the references")
+    p.add_argument("--uniform-spp", default="16,32,64,128,256,512,1024,2048,4096,8192", help="ladder of the uniform jobs")
+    p.add_argument("--targets", default="0.2,0.1,0.05,0.035,0.025,0.018,0.0125,0.009", help="ladder of the adaptive jobs")
     p.add_argument("--adaptive-cap", type=int, default=16384, help="spp cap of adaptive jobs")
-    p.add_argument("--goal", type=float, default=0.02)
+    p.add_argument("--goal", type=float, default=0.02, help="the measured error to reach")
     p.add_argument("--replicate", type=int, default=0,
                    help="another ladder with other seeds (seed + 1000 x N), kept beside the others")
     p.add_argument("--report-only", action="store_true", help="print the tables from the cache")
