@@ -25,15 +25,16 @@
 //! over each run, so that a loaded machine measures what the render needs, not what it
 //! waited; wall seconds are in the CSV too.
 //!
-//! Budgets. The defaults (32x32, a 262,144-spp reference, uniform budgets 4 to 32,768 spp,
-//! adaptive targets down to 0.625% under a 131,072-spp cap) are what reaching a measured 1%
+//! Budgets. The defaults (32x32, a 262,144-spp reference, uniform budgets 4 to 65,536 spp,
+//! adaptive targets down to 0.625% under a 262,144-spp cap) are what reaching a measured 1%
 //! takes on `builtin:veach-mis`: its measured error is carried by a few dark pixels on the
 //! glossy plates and beside the small lights, where a rare path reaches a light of radiance
 //! up to 900 (at 32x32 the 5 worst of 1,024 pixels carry about half of the relative MSE),
 //! so it falls like `1/sqrt(spp)` from a high start: 4.4% at 1,024 spp, 2.0% at 4,096,
-//! 0.98% at 32,768 (`docs/bench-accuracy/README.md`). A smaller image does not help
+//! 0.98% at 32,768, 0.79% at 65,536 (`docs/bench-accuracy/README.md`); one seed's error
+//! scatters by tens of percent, so the largest budget leaves a margin below 1%. A smaller image does not help
 //! (16x16 measured 1.3% at 16,384 spp). The reference must be well below the 1% it
-//! measures: 8x the largest budget puts its own estimated error near 0.26%.
+//! measures: 4x the largest budget puts its own estimated error near 0.26%.
 
 use crate::common::cpu_seconds;
 use crate::render::{prepare, JobArgs, StopArgs};
@@ -76,7 +77,7 @@ pub struct AccuracyArgs {
     pub reference_spp: u32,
     /// Largest budget of the ladder (4, 8, 16, ... up to this); adaptive runs are capped
     /// at 4 times this.
-    #[arg(long, default_value_t = 32_768)]
+    #[arg(long, default_value_t = 65_536)]
     pub max_spp: u32,
     /// Worker threads (0 = all cores).
     #[arg(long, default_value_t = 0)]
