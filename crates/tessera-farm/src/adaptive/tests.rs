@@ -217,7 +217,8 @@ fn unbiased_discards_the_pilot_and_takes_the_planned_fresh_passes() {
     let mut t = AdaptiveTile::new(rect, unb(target), plan.passes);
     // Pixel 0: pilot alternates 0.5 / 1.5 (lum mean 1, per-pass variance 8/7 * 0.25 in
     // luminance units of the (v, v/2, v/4) colour), then a constant 7.0 in fresh passes.
-    // Pixel 1: constant 1.0: needs the minimum, 4.
+    // Pixel 1: constant 1.0; alone it would need the minimum, 4, but it pools its
+    // neighbour's variance: half of pixel 0's (the mean over the 2x1 tile).
     let f = |p: u32, i: usize| match (i, p < 8) {
         (0, true) => 0.5 + (p % 2) as f32,
         (0, false) => 7.0,
@@ -227,21 +228,48 @@ fn unbiased_discards_the_pilot_and_takes_the_planned_fresh_passes() {
     let lum = |v: f64| crate::stats::luminance([v, v * 0.5, v * 0.25]);
     let s2 = lum(0.5).powi(2) * 8.0 / 7.0;
     let expected = (s2 / (target * (lum(1.0) + REL_EPS)).powi(2)).ceil() as u32;
+    let pooled = (0.5 * s2 / (target * (lum(1.0) + REL_EPS)).powi(2)).ceil() as u32;
+    assert!(pooled > 4 && pooled < expected, "{pooled}");
     let needed: Vec<u32> = t.fresh_passes_needed().collect();
-    assert_eq!(needed, [expected, 4]);
+    assert_eq!(needed, [expected, pooled]);
     assert!(t.pixels().iter().all(|s| s.passes == 0), "pilot discarded");
     assert_eq!(t.end_pass(), 8 + expected);
     assert_eq!(t.lease_horizon(), 8 + expected);
     assert!(t.wants(0, 8 + expected - 1) && !t.wants(0, 8 + expected));
-    assert!(t.wants(1, 11) && !t.wants(1, 12));
+    assert!(t.wants(1, 8 + pooled - 1) && !t.wants(1, 8 + pooled));
     t.offer(&result_from(rect, unit(0, 8, 92), &f));
     assert!(t.finished());
     // Only fresh passes: pixel 0's mean is exactly 7 (no trace of the pilot).
     assert_eq!(t.pixels()[0].mean[0], 7.0);
     assert_eq!(t.pixels()[0].passes, expected);
-    assert_eq!(t.pixels()[1].passes, 4);
+    assert_eq!(t.pixels()[1].passes, pooled);
     let traced: Vec<u32> = t.traced_passes().collect();
-    assert_eq!(traced, [8 + expected, 12]);
+    assert_eq!(traced, [8 + expected, 8 + pooled]);
+}
+
+/// Unbiased: a pixel's pilot variance is pooled over its 3x3 neighbourhood within the
+/// tile, so a quiet pixel next to a noisy one is not given the minimum, and pixels two
+/// away, or across a tile border, are not affected.
+#[test]
+fn unbiased_pools_the_pilot_over_the_neighbourhood_in_the_tile() {
+    // Two 4x1 tiles; pixel 1 of tile 0 is noisy in the pilot, every other pixel constant.
+    let plan = FramePlan::new(8, 1, 4, 1, 100).unwrap();
+    let target = 0.1;
+    let f = |p: u32, i: usize| if i == 1 { 0.5 + (p % 2) as f32 } else { 1.0 };
+    let mut t0 = AdaptiveTile::new(plan.tile(0), unb(target), plan.passes);
+    t0.offer(&result_from(plan.tile(0), unit(0, 0, 8), &f));
+    let needed: Vec<u32> = t0.fresh_passes_needed().collect();
+    // Pixel 1 pools over pixels 0..=2 (its own variance is the largest: kept); pixels 0
+    // and 2 pool over 2 and 3 pixels holding pixel 1; pixel 3 is two away.
+    let lum = |v: f64| crate::stats::luminance([v, v * 0.5, v * 0.25]);
+    let s2 = lum(0.5).powi(2) * 8.0 / 7.0;
+    let n = |v: f64| (v / (target * (lum(1.0) + REL_EPS)).powi(2)).ceil() as u32;
+    assert_eq!(needed, [n(s2 / 2.0), n(s2), n(s2 / 3.0), 4]);
+    // The same pixels in tile 1 are all constant: tile 0's pilot does not reach it.
+    let mut t1 = AdaptiveTile::new(plan.tile(1), unb(target), plan.passes);
+    t1.offer(&result_from(plan.tile(1), unit(1, 0, 8), &|_, _| 1.0));
+    assert!(t1.fresh_passes_needed().all(|n| n == 4));
+    assert_eq!(pooled_pilot_variance(&[], 0, 0, 0, 0), 0.0);
 }
 
 #[test]
