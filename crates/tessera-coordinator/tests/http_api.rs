@@ -467,7 +467,8 @@ async fn a_spot_check_mismatch_quarantines_the_worker() {
 
 /// Issue 15: the quarantine list is in the store and an operator can lift it. A worker
 /// quarantined by a spot check is quarantined again at once when it registers with a
-/// coordinator restarted on the same store (under the same name and identity only);
+/// coordinator restarted on the same store (under the same name and identity only), and
+/// is in the quarantine list of `GET /api/v1/workers` before it registers;
 /// `DELETE /api/v1/workers/{name}/quarantine` (token required) lifts it (204): it is no
 /// longer listed as quarantined, is leased units again, the lift is counted and stored
 /// (a further restart does not bring the quarantine back), and a second lift is a 404
@@ -512,8 +513,19 @@ async fn a_quarantine_outlives_a_restart_until_an_operator_lifts_it() {
     core.store().close().await;
     drop(core);
 
-    // Restarted on the same store: no worker is known, yet the name is distrusted.
+    // Restarted on the same store: no worker is known, yet the name is distrusted, and
+    // listed so.
     let (http, _, core, stop) = start(config()).await;
+    let auth = ["Authorization: Bearer tok"];
+    let list = request(http, "GET", "/api/v1/workers", &auth, "")
+        .await
+        .json();
+    assert_eq!(list["workers"], serde_json::json!([]), "{list}");
+    let listed = &list["quarantines"];
+    assert_eq!(listed.as_array().map(Vec::len), Some(1), "{list}");
+    assert_eq!(listed[0]["name"], "bad", "{list}");
+    assert!(listed[0].get("identity").is_none(), "{list}");
+    assert_eq!(listed[0]["reason"].as_str(), reason.as_deref(), "{list}");
     let again = core.register_worker("bad".into(), 1, "t").unwrap();
     let other_identity = core
         .register_worker_as("bad".into(), 1, "t", Some("cn-bad".into()))
@@ -528,7 +540,6 @@ async fn a_quarantine_outlives_a_restart_until_an_operator_lifts_it() {
     assert!(!core.lease(honest, 1).await.unwrap().units.is_empty());
 
     let path = "/api/v1/workers/bad/quarantine";
-    let auth = ["Authorization: Bearer tok"];
     assert_eq!(request(http, "DELETE", path, &[], "").await.status, 401);
     let lifted = request(http, "DELETE", path, &auth, "").await;
     assert_eq!(lifted.status, 204, "{}", lifted.body);
@@ -539,6 +550,7 @@ async fn a_quarantine_outlives_a_restart_until_an_operator_lifts_it() {
         assert_eq!(w["quarantined"], false, "{w}");
         assert!(w["quarantine_reason"].is_null(), "{w}");
     }
+    assert_eq!(list["quarantines"], serde_json::json!([]), "{list}");
     assert!(!core.lease(again, 1).await.unwrap().units.is_empty());
     assert!(core.store().list_quarantines().await.unwrap().is_empty());
     let twice = request(http, "DELETE", path, &auth, "").await;

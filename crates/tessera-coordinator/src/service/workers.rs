@@ -4,7 +4,7 @@
 //! The gRPC service decodes a worker's request, calls one of these and encodes the
 //! answer; nothing here knows the wire format beyond the farm's [`LeasedUnit`].
 
-use tessera_api::{JobState, WorkerInfo, WorkerList, WorkerState};
+use tessera_api::{JobState, QuarantineInfo, WorkerInfo, WorkerList, WorkerState};
 use tessera_farm::{JobId, WorkerId};
 use tessera_proto::LeasedUnit;
 
@@ -452,7 +452,7 @@ impl Coordinator {
         }
     }
 
-    /// `GET /workers`.
+    /// `GET /workers`: the workers this run knows, and the quarantine list.
     pub fn workers(&self) -> CoordResult<WorkerList> {
         let farm = self.lock()?;
         let now = now_ms();
@@ -487,6 +487,19 @@ impl Coordinator {
                 }
             })
             .collect();
-        Ok(WorkerList { workers })
+        let quarantines = farm
+            .quarantines
+            .values()
+            .map(|q| QuarantineInfo {
+                name: q.worker.clone(),
+                identity: q.identity.clone(),
+                reason: q.reason.clone(),
+                since_unix_ms: q.unix_ms,
+            })
+            .collect();
+        Ok(WorkerList {
+            workers,
+            quarantines,
+        })
     }
 }
