@@ -12,8 +12,8 @@
 //! - Every failure is an [`ApiError`], serialized as
 //!   `{"error": {"code": "...", "message": "...", "field": "..."}}` with
 //!   [`ApiError::status`] giving the HTTP status.
-//! - Responses: [`JobStatus`], [`JobList`], [`WorkerInfo`], [`WorkerList`],
-//!   [`SceneUploaded`], [`HistoryPoint`].
+//! - Responses: [`JobStatus`], [`JobList`], [`WorkerInfo`], [`WorkerList`] (with its
+//!   [`QuarantineInfo`] list), [`SceneUploaded`], [`HistoryPoint`].
 //!
 //! ```
 //! use tessera_api::{ApiError, FromJson, JobSettings};
@@ -37,7 +37,8 @@ pub use error::{ApiError, ErrorCode};
 pub use settings::FromJson;
 pub use status::{
     FrameQuery, History, HistoryPoint, ImageFormat, ImageQuery, JobList, JobListQuery, JobState,
-    JobStatus, SceneUploaded, SubmitQuery, TileInfo, TileMap, WorkerInfo, WorkerList, WorkerState,
+    JobStatus, QuarantineInfo, SceneUploaded, SubmitQuery, TileInfo, TileMap, WorkerInfo,
+    WorkerList, WorkerState,
 };
 pub use tessera_farm::job::{
     resolve_resolution, AdaptiveMode, FrameRange, Integrator, IntegratorChoice, JobError,

@@ -251,6 +251,27 @@ pub struct WorkerInfo {
 pub struct WorkerList {
     /// The workers, by id.
     pub workers: Vec<WorkerInfo>,
+    /// The quarantine list: every name and identity under which a worker is quarantined
+    /// when it registers, whether or not such a worker is connected now (after a restart
+    /// of the coordinator it may not have registered yet).
+    #[serde(default)]
+    pub quarantines: Vec<QuarantineInfo>,
+}
+
+/// One entry of the quarantine list in `GET /api/v1/workers` (ARCHITECTURE.md §6, "Spot
+/// checks and quarantine"): kept in the coordinator's store until
+/// `DELETE /api/v1/workers/{name}/quarantine` lifts it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct QuarantineInfo {
+    /// The name the worker registered with.
+    pub name: String,
+    /// The common name of its TLS client certificate under mutual TLS; absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub identity: Option<String>,
+    /// Why it was quarantined.
+    pub reason: String,
+    /// When it was first quarantined, Unix milliseconds.
+    pub since_unix_ms: u64,
 }
 
 /// `POST /api/v1/scenes`: the stored scene's content hash and statistics.
@@ -443,9 +464,22 @@ mod tests {
         };
         let v = round_trip(&WorkerList {
             workers: vec![w.clone()],
+            quarantines: vec![QuarantineInfo {
+                name: "render-3".into(),
+                identity: None,
+                reason: "spot check".into(),
+                since_unix_ms: 1_700_000_000_000,
+            }],
         });
         assert_eq!(v["workers"][0]["state"], "busy");
         assert_eq!(v["workers"][0]["paths_per_second"], 1.5e6);
+        assert_eq!(
+            v["quarantines"],
+            json!([{"name": "render-3", "reason": "spot check", "since_unix_ms": 1_700_000_000_000u64}])
+        );
+        // A list from a coordinator without the quarantine list still reads.
+        let old: WorkerList = serde_json::from_value(json!({"workers": []})).unwrap();
+        assert!(old.quarantines.is_empty());
 
         let sc = SceneUploaded {
             hash: "ab".repeat(32),

@@ -20,7 +20,7 @@ use axum::extract::{DefaultBodyLimit, Path, RawQuery, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
+use axum::routing::{delete, get, post};
 use axum::{Extension, Json, Router};
 use serde::de::DeserializeOwned;
 use tessera_api::{
@@ -126,6 +126,7 @@ pub fn router(core: Coordinator) -> Router {
         )
         .route("/builtins", get(builtins))
         .route("/workers", get(workers))
+        .route("/workers/{name}/quarantine", delete(lift_quarantine))
         .route("/openapi.json", get(openapi))
         .fallback(api_not_found)
         .layer(DefaultBodyLimit::max(1 << 20))
@@ -393,6 +394,16 @@ fn builtin_description(name: &str) -> &'static str {
 
 async fn workers(State(core): State<Coordinator>) -> HttpResult<Response> {
     Ok(Json(core.workers()?).into_response())
+}
+
+/// `DELETE /workers/{name}/quarantine`: 204 when a quarantine of that name was lifted,
+/// 404 naming the worker when there was none.
+async fn lift_quarantine(
+    State(core): State<Coordinator>,
+    Path(name): Path<String>,
+) -> HttpResult<Response> {
+    core.lift_quarantine(&name).await?;
+    Ok(StatusCode::NO_CONTENT.into_response())
 }
 
 async fn openapi() -> Response {

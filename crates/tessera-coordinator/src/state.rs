@@ -16,6 +16,8 @@ use tessera_api::{HistoryPoint, JobSettings, JobState, ResolvedJob, ValidatedJob
 use tessera_farm::job::{RenderConfig, SceneRef, Shutter};
 use tessera_farm::{FramePlan, JobId, Scheduler, TileAccumulator, WorkerId};
 
+use crate::store::QuarantineRecord;
+
 /// Milliseconds since the Unix epoch.
 pub fn now_ms() -> u64 {
     SystemTime::now()
@@ -111,7 +113,22 @@ pub struct Farm {
     pub leases_expired: u64,
     /// What spot checks found (`/metrics`).
     pub spot: SpotCounters,
+    /// The quarantine list (ARCHITECTURE.md §6) by what a quarantine follows, the worker's
+    /// name and TLS identity ([`quarantine_key`]): loaded from the store at start, added to
+    /// when a worker is quarantined (and stored then), emptied of a name when an operator
+    /// lifts it. A worker registering under a listed key is quarantined at once.
+    pub quarantines: BTreeMap<(String, Option<String>), QuarantineRecord>,
     next_worker: WorkerId,
+}
+
+/// The key of [`Farm::quarantines`] for a worker registered as `name` with `identity`: an
+/// empty TLS identity counts as none, as the store keeps it
+/// ([`QuarantineRecord::identity`]).
+pub fn quarantine_key(name: &str, identity: Option<&str>) -> (String, Option<String>) {
+    (
+        name.to_string(),
+        identity.filter(|i| !i.is_empty()).map(str::to_string),
+    )
 }
 
 /// Counters of the spot checks (ARCHITECTURE.md §6), for `/metrics`.
@@ -125,6 +142,8 @@ pub struct SpotCounters {
     pub alone: u64,
     /// Workers quarantined.
     pub quarantined: u64,
+    /// Quarantines lifted by an operator (`DELETE /workers/{name}/quarantine`).
+    pub lifted: u64,
     /// Tiles dropped and merged again because a quarantined worker had merged into them.
     pub tiles_reset: u64,
     /// Units of quarantined workers rendered again whose new copy equals the old one.
@@ -166,6 +185,7 @@ impl Farm {
             forgotten: ForgottenWorkers::default(),
             leases_expired: 0,
             spot: SpotCounters::default(),
+            quarantines: BTreeMap::new(),
             next_worker: 1,
         }
     }

@@ -365,14 +365,41 @@ async fn queued_and_leased_units_in_metrics_follow_the_jobs_units() {
     assert_eq!(gauge(&m, "tessera_leases_outstanding"), 3, "{m}");
 }
 
+/// A worker's result for a lease: a flat grey image, with one value off if `corrupt`
+/// (well-formed, so only a spot check's comparison catches it).
+fn delivery(
+    worker: tessera_farm::WorkerId,
+    l: &tessera_proto::LeasedUnit,
+    corrupt: bool,
+) -> tessera_coordinator::service::Delivery {
+    let rect = l.plan.tile(l.unit.tile);
+    let mut pass_means = vec![[0.5f32; 3]; rect.pixel_count() * l.unit.pass_count as usize];
+    if corrupt {
+        pass_means[0][0] = 0.75;
+    }
+    tessera_coordinator::service::Delivery {
+        worker,
+        lease_id: l.lease_id,
+        job_hint: l.job_id,
+        result: Ok(tessera_farm::UnitResult {
+            unit: l.unit,
+            width: rect.width,
+            height: rect.height,
+            pass_means,
+            rejected_samples: 0,
+        }),
+        render_seconds: 0.01,
+        traced_pixel_passes: 0,
+    }
+}
+
 /// Issue 15: a spot check through the coordinator. A worker's corrupt copy is held, not
 /// merged; the honest copies of two other workers outvote it; the faulty worker is then
 /// quarantined: listed so over HTTP, leased nothing, told to drop its leases, and still
 /// quarantined when it registers again under its name.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_spot_check_mismatch_quarantines_the_worker() {
-    use tessera_coordinator::service::{Accepted, Delivery, Rejected};
-    use tessera_farm::UnitResult;
+    use tessera_coordinator::service::{Accepted, Rejected};
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = CoordinatorConfig::new(dir.path());
     cfg.spot_check_fraction = 1.0;
@@ -381,30 +408,9 @@ async fn a_spot_check_mismatch_quarantines_the_worker() {
     (job.width, job.height, job.spp) = (Some(64), Some(64), 4);
     let (status, _) = core.submit(job, None).await.unwrap();
     let [bad, b, c] = ["bad", "b", "c"].map(|n| core.register_worker(n.into(), 1, "t").unwrap());
-    let deliver = |worker, l: &tessera_proto::LeasedUnit, corrupt: bool| {
-        let rect = l.plan.tile(l.unit.tile);
-        let mut pass_means = vec![[0.5f32; 3]; rect.pixel_count() * l.unit.pass_count as usize];
-        if corrupt {
-            pass_means[0][0] = 0.75;
-        }
-        Delivery {
-            worker,
-            lease_id: l.lease_id,
-            job_hint: l.job_id,
-            result: Ok(UnitResult {
-                unit: l.unit,
-                width: rect.width,
-                height: rect.height,
-                pass_means,
-                rejected_samples: 0,
-            }),
-            render_seconds: 0.01,
-            traced_pixel_passes: 0,
-        }
-    };
     let first = core.lease(bad, 1).await.unwrap().units.remove(0);
     let got = core
-        .accept_result(deliver(bad, &first, true))
+        .accept_result(delivery(bad, &first, true))
         .await
         .unwrap();
     assert_eq!(got, Accepted::Held);
@@ -414,14 +420,17 @@ async fn a_spot_check_mismatch_quarantines_the_worker() {
     let second = core.lease(b, 1).await.unwrap().units.remove(0);
     assert_eq!(second.unit, first.unit);
     let got = core
-        .accept_result(deliver(b, &second, false))
+        .accept_result(delivery(b, &second, false))
         .await
         .unwrap();
     assert_eq!(got, Accepted::Held, "disputed: waits for a third worker");
     assert_eq!(core.status(status.id).await.unwrap().passes_done, 0);
     let third = core.lease(c, 1).await.unwrap().units.remove(0);
     assert_eq!(third.unit, first.unit);
-    let got = core.accept_result(deliver(c, &third, false)).await.unwrap();
+    let got = core
+        .accept_result(delivery(c, &third, false))
+        .await
+        .unwrap();
     assert_eq!(got, Accepted::Merged);
     assert_eq!(core.status(status.id).await.unwrap().passes_done, 1);
 
@@ -438,7 +447,7 @@ async fn a_spot_check_mismatch_quarantines_the_worker() {
     assert!(grant.units.is_empty() && grant.retry_after_ms >= 1000);
     let hb = core.heartbeat(bad, 0.0, &[again.lease_id]).unwrap();
     assert_eq!(hb.cancel, vec![again.lease_id]);
-    let refused = core.accept_result(deliver(bad, &again, false)).await;
+    let refused = core.accept_result(delivery(bad, &again, false)).await;
     assert!(
         matches!(refused, Err(Rejected::Quarantined(_))),
         "{refused:?}"
@@ -454,4 +463,113 @@ async fn a_spot_check_mismatch_quarantines_the_worker() {
     );
     assert_eq!(gauge(&m, "tessera_workers_quarantined_total"), 1, "{m}");
     assert!(gauge(&m, "tessera_workers_quarantined") >= 1, "{m}");
+}
+
+/// Issue 15: the quarantine list is in the store and an operator can lift it. A worker
+/// quarantined by a spot check is quarantined again at once when it registers with a
+/// coordinator restarted on the same store (under the same name and identity only), and
+/// is in the quarantine list of `GET /api/v1/workers` before it registers;
+/// `DELETE /api/v1/workers/{name}/quarantine` (token required) lifts it (204): it is no
+/// longer listed as quarantined, is leased units again, the lift is counted and stored
+/// (a further restart does not bring the quarantine back), and a second lift is a 404
+/// naming the worker.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_quarantine_outlives_a_restart_until_an_operator_lifts_it() {
+    use tessera_coordinator::service::Accepted;
+    let dir = tempfile::tempdir().unwrap();
+    let config = || {
+        let mut cfg = CoordinatorConfig::new(dir.path());
+        cfg.spot_check_fraction = 1.0;
+        cfg.grace_ms = 0;
+        cfg.api_token = Some("tok".into());
+        cfg
+    };
+    let core = Coordinator::open(config()).await.unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(64), Some(64), 4);
+    core.submit(job, None).await.unwrap();
+    let [bad, b, c] = ["bad", "b", "c"].map(|n| core.register_worker(n.into(), 1, "t").unwrap());
+    // Two honest copies outvote the corrupt one.
+    let l = core.lease(bad, 1).await.unwrap().units.remove(0);
+    let got = core.accept_result(delivery(bad, &l, true)).await.unwrap();
+    assert_eq!(got, Accepted::Held);
+    for w in [b, c] {
+        let l = core.lease(w, 1).await.unwrap().units.remove(0);
+        core.accept_result(delivery(w, &l, false)).await.unwrap();
+    }
+    let quarantined = |list: &tessera_api::WorkerList, id| {
+        let w = list.workers.iter().find(|w| w.id == id).unwrap();
+        (w.quarantined, w.quarantine_reason.clone())
+    };
+    let (q, reason) = quarantined(&core.workers().unwrap(), bad);
+    assert!(q, "the spot check quarantined it");
+    let stored = core.store().list_quarantines().await.unwrap();
+    assert_eq!(stored.len(), 1, "{stored:?}");
+    assert_eq!(
+        (stored[0].worker.as_str(), stored[0].identity.as_deref()),
+        ("bad", None)
+    );
+    assert_eq!(Some(&stored[0].reason), reason.as_ref());
+    core.store().close().await;
+    drop(core);
+
+    // Restarted on the same store: no worker is known, yet the name is distrusted, and
+    // listed so.
+    let (http, _, core, stop) = start(config()).await;
+    let auth = ["Authorization: Bearer tok"];
+    let list = request(http, "GET", "/api/v1/workers", &auth, "")
+        .await
+        .json();
+    assert_eq!(list["workers"], serde_json::json!([]), "{list}");
+    let listed = &list["quarantines"];
+    assert_eq!(listed.as_array().map(Vec::len), Some(1), "{list}");
+    assert_eq!(listed[0]["name"], "bad", "{list}");
+    assert!(listed[0].get("identity").is_none(), "{list}");
+    assert_eq!(listed[0]["reason"].as_str(), reason.as_deref(), "{list}");
+    let again = core.register_worker("bad".into(), 1, "t").unwrap();
+    let other_identity = core
+        .register_worker_as("bad".into(), 1, "t", Some("cn-bad".into()))
+        .unwrap();
+    let honest = core.register_worker("b".into(), 1, "t").unwrap();
+    let list = core.workers().unwrap();
+    assert_eq!(quarantined(&list, again), (true, reason.clone()));
+    assert_eq!(quarantined(&list, other_identity), (false, None));
+    assert_eq!(quarantined(&list, honest), (false, None));
+    let grant = core.lease(again, 1).await.unwrap();
+    assert!(grant.units.is_empty() && grant.retry_after_ms >= 1000);
+    assert!(!core.lease(honest, 1).await.unwrap().units.is_empty());
+
+    let path = "/api/v1/workers/bad/quarantine";
+    assert_eq!(request(http, "DELETE", path, &[], "").await.status, 401);
+    let lifted = request(http, "DELETE", path, &auth, "").await;
+    assert_eq!(lifted.status, 204, "{}", lifted.body);
+    let list = request(http, "GET", "/api/v1/workers", &auth, "")
+        .await
+        .json();
+    for w in list["workers"].as_array().unwrap() {
+        assert_eq!(w["quarantined"], false, "{w}");
+        assert!(w["quarantine_reason"].is_null(), "{w}");
+    }
+    assert_eq!(list["quarantines"], serde_json::json!([]), "{list}");
+    assert!(!core.lease(again, 1).await.unwrap().units.is_empty());
+    assert!(core.store().list_quarantines().await.unwrap().is_empty());
+    let twice = request(http, "DELETE", path, &auth, "").await;
+    assert_eq!(twice.status, 404, "{}", twice.body);
+    let e = twice.json();
+    assert_eq!(e["error"]["code"], "not_found", "{e}");
+    assert!(
+        e["error"]["message"].as_str().unwrap().contains("\"bad\""),
+        "{e}"
+    );
+    let m = core.metrics().await.unwrap();
+    assert_eq!(gauge(&m, "tessera_quarantines_lifted_total"), 1, "{m}");
+    assert_eq!(gauge(&m, "tessera_workers_quarantined"), 0, "{m}");
+    let _ = stop.send(());
+    core.store().close().await;
+    drop(core);
+
+    // The lift was stored: after another restart the name is trusted.
+    let core = Coordinator::open(config()).await.unwrap();
+    let back = core.register_worker("bad".into(), 1, "t").unwrap();
+    assert_eq!(quarantined(&core.workers().unwrap(), back), (false, None));
 }

@@ -12,7 +12,8 @@ use sqlx::Connection;
 use tessera_api::{FrameRange, HistoryPoint, JobState};
 use tessera_coordinator::store::{
     self, FaultEvent, FaultFilter, FaultKind, JobOrder, JobQuery, NewJob, PostgresStore,
-    SqliteStore, Store, StoreError, StoreUrl, TileCheckpoint, UnitDigest, DATABASE_FILE,
+    QuarantineRecord, SqliteStore, Store, StoreError, StoreUrl, TileCheckpoint, UnitDigest,
+    DATABASE_FILE,
 };
 use tessera_farm::{AdaptivePixel, AdaptiveTileCheckpoint, FramePlan, JobId, PixelStats};
 
@@ -176,6 +177,7 @@ both_backends!(
     invalid_checkpoints_are_refused_atomically,
     corrupt_blobs_are_errors_naming_the_tile,
     lease_high_water_history_and_faults,
+    quarantines_round_trip,
     runs_and_resume_counts,
     reopened_store_sees_everything,
     newer_schema_is_refused,
@@ -844,6 +846,64 @@ async fn corrupt_blobs_are_errors_naming_the_tile(f: &Fixture) {
         store.get_job(job).await,
         Err(StoreError::Corrupt(_))
     ));
+}
+
+/// Issue 15: the quarantine list. One row per (worker, identity), the first kept; listed
+/// in order of name then identity (none first); a lift removes every identity of a name
+/// and nothing else, and a second lift removes nothing; the rows outlive the store's
+/// reopening.
+async fn quarantines_round_trip(f: &Fixture) {
+    let q = |worker: &str, identity: Option<&str>, t: u64| QuarantineRecord {
+        worker: worker.into(),
+        identity: identity.map(str::to_string),
+        reason: format!("spot check at {t}"),
+        unix_ms: t,
+    };
+    {
+        let store = f.open().await;
+        assert!(store.list_quarantines().await.unwrap().is_empty());
+        assert!(store
+            .record_quarantine(&q("bad", Some("cn-b"), 20))
+            .await
+            .unwrap());
+        assert!(store.record_quarantine(&q("bad", None, 10)).await.unwrap());
+        assert!(store
+            .record_quarantine(&q("other", None, 30))
+            .await
+            .unwrap());
+        // The same worker and identity again: the first reason and time are kept.
+        assert!(!store.record_quarantine(&q("bad", None, 40)).await.unwrap());
+        // An empty identity is none.
+        assert!(!store
+            .record_quarantine(&q("bad", Some(""), 50))
+            .await
+            .unwrap());
+        assert!(matches!(
+            store.record_quarantine(&q("bad", None, u64::MAX)).await,
+            Err(StoreError::InvalidInput(_))
+        ));
+        store.close().await;
+    }
+    let store = f.open().await;
+    let expected = [
+        q("bad", None, 10),
+        q("bad", Some("cn-b"), 20),
+        q("other", None, 30),
+    ];
+    assert_eq!(store.list_quarantines().await.unwrap(), expected);
+    assert_eq!(store.delete_quarantines("nobody").await.unwrap(), 0);
+    assert_eq!(store.delete_quarantines("bad").await.unwrap(), 2);
+    assert_eq!(store.delete_quarantines("bad").await.unwrap(), 0);
+    assert_eq!(
+        store.list_quarantines().await.unwrap(),
+        [q("other", None, 30)]
+    );
+    // Quarantined again after the lift: a new row, with the new reason.
+    assert!(store.record_quarantine(&q("bad", None, 60)).await.unwrap());
+    assert_eq!(
+        store.list_quarantines().await.unwrap(),
+        [q("bad", None, 60), q("other", None, 30)]
+    );
 }
 
 async fn lease_high_water_history_and_faults(f: &Fixture) {

@@ -32,8 +32,9 @@
 //! has no copy; it is merged once two different workers' copies agree, and a worker whose
 //! copy differs is quarantined ([`Scheduler::quarantine`]): no more leases, its leases
 //! revoked, its results refused, and every tile it merged a unit into on its word alone
-//! dropped and merged again from units other workers render. What happened is reported as
-//! [`crate::SpotEvent`]s ([`Scheduler::take_spot_events`]).
+//! dropped and merged again from units other workers render, until an operator lifts it
+//! ([`Scheduler::lift_quarantine`]). What happened is reported as [`crate::SpotEvent`]s
+//! ([`Scheduler::take_spot_events`]).
 //!
 //! Memory (issue 16): a frame's per-pixel merge state is allocated when its first unit is
 //! leased and, for jobs that are not adaptive, released by [`Scheduler::release_frame`]
@@ -743,6 +744,26 @@ impl Scheduler {
             reset_tiles,
             unrepaired_units,
         });
+        true
+    }
+
+    /// Lifts the quarantine of `worker` (an operator decided to trust it again): it is
+    /// leased units and its results are taken again. Nothing the quarantine did is undone:
+    /// its dropped tiles stay dropped (their units were or are being rendered again by
+    /// others), its revoked leases stay lapsed, its discarded spot-check copies stay gone,
+    /// and its old copies that the repair compares with their new ones
+    /// ([`SpotEvent::Reverified`]) are still compared. Its units the quarantine could not
+    /// repair (in released frames or finished jobs, counted then in
+    /// [`SpotEvent::Quarantined`]) are forgotten as its own, so a later quarantine of the
+    /// same worker neither counts them twice nor tries to repair what cannot be. Returns
+    /// false if it was not quarantined.
+    pub fn lift_quarantine(&mut self, worker: WorkerId) -> bool {
+        if !self.quarantined.remove(&worker) {
+            return false;
+        }
+        for job in self.jobs.values_mut() {
+            job.unverified.retain(|_, (w, _)| *w != worker);
+        }
         true
     }
 
@@ -2914,5 +2935,39 @@ mod spot_tests {
                 ..
             }
         )));
+    }
+
+    #[test]
+    fn a_lifted_quarantine_leases_again_and_takes_results() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=0, 1);
+        assert!(!s.lift_quarantine(9), "not quarantined");
+        let held = s.lease(9, 0, 1);
+        assert!(s.quarantine(9, "test"));
+        s.take_spot_events();
+        assert!(s.lease(9, 0, 1).is_empty());
+        assert_eq!(
+            s.submit_from(9, held[0].lease_id, 1, honest(&p, held[0].unit)),
+            Err(SubmitError::Quarantined(9))
+        );
+        assert!(s.lift_quarantine(9));
+        assert!(!s.is_quarantined(9));
+        assert!(!s.lift_quarantine(9), "lifted once");
+        // Leased again, and its result merged.
+        let again = s.lease(9, 0, 1);
+        assert_eq!(again.len(), 1);
+        assert_eq!(
+            s.submit_from(9, again[0].lease_id, 1, honest(&p, again[0].unit)),
+            Ok(Submitted::Accepted)
+        );
+        assert_eq!(s.progress(1).unwrap().passes_done, 1);
+        // Quarantined again: the unit it merged since is dropped and repaired as before.
+        assert!(s.quarantine(9, "again"));
+        assert!(matches!(
+            &s.take_spot_events()[..],
+            [SpotEvent::Quarantined { reset_tiles, unrepaired_units: 0, .. }] if reset_tiles.len() == 1
+        ));
+        assert_eq!(s.progress(1).unwrap().passes_done, 0);
     }
 }

@@ -74,6 +74,7 @@ impl Coordinator {
         let _ = writeln!(s, "# HELP tessera_spot_checks_waiting Spot-checked units with a copy held, waiting for another worker's copy.\n# TYPE tessera_spot_checks_waiting gauge\ntessera_spot_checks_waiting {waiting}");
         let _ = writeln!(s, "# HELP tessera_spot_checks_disputed Spot-checked units whose copies differ, waiting for a third worker to decide.\n# TYPE tessera_spot_checks_disputed gauge\ntessera_spot_checks_disputed {disputed}");
         let _ = writeln!(s, "# HELP tessera_workers_quarantined_total Workers quarantined since the coordinator started.\n# TYPE tessera_workers_quarantined_total counter\ntessera_workers_quarantined_total {}", spot.quarantined);
+        let _ = writeln!(s, "# HELP tessera_quarantines_lifted_total Quarantines lifted by an operator (DELETE /api/v1/workers/NAME/quarantine) since the coordinator started.\n# TYPE tessera_quarantines_lifted_total counter\ntessera_quarantines_lifted_total {}", spot.lifted);
         let _ = writeln!(s, "# HELP tessera_tiles_reset_total Tiles dropped and merged again because a quarantined worker had merged units into them unverified.\n# TYPE tessera_tiles_reset_total counter\ntessera_tiles_reset_total {}", spot.tiles_reset);
         let _ = writeln!(s, "# HELP tessera_units_reverified_total Units of quarantined workers rendered again by others: identical (its copy was right) or differed (its corrupt copy had been merged and was repaired).\n# TYPE tessera_units_reverified_total counter");
         for (outcome, n) in [

@@ -233,6 +233,12 @@ impl Coordinator {
         state
             .scheduler
             .set_spot_check_fraction(cfg.spot_check_fraction);
+        // The quarantine list outlives the run: a worker quarantined before the restart
+        // is quarantined again as soon as it registers (ARCHITECTURE.md §6).
+        for q in store.list_quarantines().await? {
+            let key = crate::state::quarantine_key(&q.worker, q.identity.as_deref());
+            state.quarantines.insert(key, q);
+        }
         let farm = Arc::new(Mutex::new(state));
         let resumed = resume::resume_all(&*store, &farm).await?;
         if let Some(f) = watch.fault() {

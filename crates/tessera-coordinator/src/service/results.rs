@@ -17,8 +17,10 @@ use tessera_farm::{
 
 use super::jobs::spp_so_far;
 use super::Coordinator;
-use crate::state::{now_ms, tile_error, Farm, TileRejected};
-use crate::store::{FaultEvent, FaultKind, StoreError, TileCheckpoint, UnitDigest};
+use crate::state::{now_ms, quarantine_key, tile_error, Farm, TileRejected};
+use crate::store::{
+    FaultEvent, FaultKind, QuarantineRecord, StoreError, TileCheckpoint, UnitDigest,
+};
 
 /// History points are recorded at most this often per job (plus the last one).
 const HISTORY_INTERVAL_MS: u64 = 200;
@@ -130,6 +132,8 @@ struct Writes {
     checkpoint: Option<TileCheckpoint>,
     history: Option<(JobId, HistoryPoint)>,
     faults: Vec<FaultEvent>,
+    /// Workers quarantined by this result's spot checks, for the store's quarantine list.
+    quarantines: Vec<QuarantineRecord>,
     finished: Option<JobId>,
 }
 
@@ -250,7 +254,8 @@ impl Coordinator {
         Ok(())
     }
 
-    /// Writes the history point and the fault event; neither refuses the result.
+    /// Writes the history point, the fault events and the quarantines; none refuses the
+    /// result. A quarantine that is not stored still holds in memory until a restart.
     async fn write_back(&self, w: &Writes) {
         let store = &self.inner.store;
         if let Some((job, point)) = w.history {
@@ -261,6 +266,15 @@ impl Coordinator {
         for f in &w.faults {
             if let Err(e) = store.record_fault(f).await {
                 tracing::warn!(error = %e, "fault event not stored");
+            }
+        }
+        for q in &w.quarantines {
+            if let Err(e) = store.record_quarantine(q).await {
+                tracing::error!(
+                    name = %q.worker,
+                    error = %e,
+                    "quarantine not stored: a restarted coordinator will trust the worker again"
+                );
             }
         }
     }
@@ -507,10 +521,10 @@ fn checkpoint_of(
 }
 
 /// Takes what the scheduler's spot checks found during the last submission
-/// (ARCHITECTURE.md §6): counts outcomes, marks quarantined workers (a fault event each),
-/// and for every tile a quarantine dropped, resets the job's per-tile error and
-/// rejected-sample counts and queues the tile's checkpoint, so a restart does not bring
-/// back the dropped passes.
+/// (ARCHITECTURE.md §6): counts outcomes, marks quarantined workers (a fault event each,
+/// and an entry of the quarantine list to store), and for every tile a quarantine
+/// dropped, resets the job's per-tile error and rejected-sample counts and queues the
+/// tile's checkpoint, so a restart does not bring back the dropped passes.
 fn apply_spot_events(farm: &mut Farm, now: u64, writes: &mut Writes) {
     for event in farm.scheduler.take_spot_events() {
         match event {
@@ -550,6 +564,22 @@ fn apply_spot_events(farm: &mut Farm, now: u64, writes: &mut Writes) {
                     Some(w) => {
                         w.quarantined = Some(reason.clone());
                         w.faults += 1;
+                        // Listed by what it registers as, so that it stays quarantined
+                        // under a new id, after a restart too. A worker unknown here (a
+                        // forgotten one) has no name to list; its id is not reused.
+                        let key = quarantine_key(&w.name, w.identity.as_deref());
+                        if let std::collections::btree_map::Entry::Vacant(slot) =
+                            farm.quarantines.entry(key)
+                        {
+                            let (worker, identity) = slot.key().clone();
+                            let record = QuarantineRecord {
+                                worker,
+                                identity,
+                                reason: reason.clone(),
+                                unix_ms: now,
+                            };
+                            writes.quarantines.push(slot.insert(record).clone());
+                        }
                         w.name.clone()
                     }
                     None => format!("worker {worker}"),

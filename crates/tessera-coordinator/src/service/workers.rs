@@ -4,13 +4,13 @@
 //! The gRPC service decodes a worker's request, calls one of these and encodes the
 //! answer; nothing here knows the wire format beyond the farm's [`LeasedUnit`].
 
-use tessera_api::{JobState, WorkerInfo, WorkerList, WorkerState};
+use tessera_api::{JobState, QuarantineInfo, WorkerInfo, WorkerList, WorkerState};
 use tessera_farm::{JobId, WorkerId};
 use tessera_proto::LeasedUnit;
 
 use super::{Coordinator, LEASE_ID_BLOCK};
 use crate::error::{CoordError, CoordResult};
-use crate::state::{now_ms, Farm, WorkerEntry};
+use crate::state::{now_ms, quarantine_key, Farm, WorkerEntry};
 
 /// Longest worker name accepted at registration.
 const MAX_WORKER_NAME: usize = 200;
@@ -84,13 +84,13 @@ impl Coordinator {
         };
         let identity = entry.identity.clone();
         let mut farm = self.lock()?;
-        // A quarantined worker that registers again (a restart, a reconnection) under the
-        // same name and identity stays quarantined: a new id must not launder it.
+        // A quarantined worker that registers again (a reconnection, a restart of the
+        // worker or of the coordinator: the list is loaded from the store) under the same
+        // name and identity stays quarantined: a new id must not launder it.
         let inherited = farm
-            .workers
-            .values()
-            .find(|w| w.name == entry.name && w.identity == entry.identity)
-            .and_then(|w| w.quarantined.clone());
+            .quarantines
+            .get(&quarantine_key(&entry.name, entry.identity.as_deref()))
+            .map(|q| q.reason.clone());
         let id = farm.register_worker(entry);
         if let Some(reason) = inherited {
             farm.scheduler.quarantine(id, &reason);
@@ -314,6 +314,52 @@ impl Coordinator {
         Ok(returned)
     }
 
+    /// `DELETE /workers/{name}/quarantine`: an operator lifts the quarantine of the
+    /// worker named `name`, under any TLS identity (ARCHITECTURE.md §6). The stored
+    /// quarantines go first, so a failed write changes nothing; then the quarantine list
+    /// in memory, and every listed worker of that name gets leases and has its results
+    /// taken again ([`tessera_farm::Scheduler::lift_quarantine`]). What the quarantine
+    /// dropped is not restored: its units were rendered again. [`CoordError::NotFound`]
+    /// naming the worker if no quarantine of that name is stored or in force.
+    pub async fn lift_quarantine(&self, name: &str) -> CoordResult<()> {
+        self.active()?;
+        // Under the write lock, so that a quarantine being recorded by a result
+        // (`write_back`) is not interleaved with the removal.
+        let write = self.inner.write.lock().await;
+        let stored = self.inner.store.delete_quarantines(name).await?;
+        let lifted = {
+            let mut farm = self.lock()?;
+            let listed = farm.quarantines.len();
+            farm.quarantines.retain(|(n, _), _| n != name);
+            let mut lifted = farm.quarantines.len() < listed;
+            let ids: Vec<WorkerId> = farm
+                .workers
+                .iter_mut()
+                .filter(|(_, w)| w.name == name && w.quarantined.is_some())
+                .map(|(&id, w)| {
+                    w.quarantined = None;
+                    id
+                })
+                .collect();
+            for &id in &ids {
+                farm.scheduler.lift_quarantine(id);
+            }
+            lifted |= !ids.is_empty() || stored > 0;
+            if lifted {
+                farm.spot.lifted += 1;
+            }
+            lifted
+        };
+        drop(write);
+        if !lifted {
+            return Err(CoordError::NotFound(format!(
+                "worker {name:?} is not quarantined"
+            )));
+        }
+        tracing::warn!(name = %name, stored, "quarantine lifted by an operator");
+        Ok(())
+    }
+
     /// Commits the reservation of lease ids before any of them reaches a worker, and
     /// marks jobs that started running (ARCHITECTURE.md §9, step 7).
     async fn after_lease(&self, jobs: Vec<JobId>) -> CoordResult<()> {
@@ -385,8 +431,9 @@ impl Coordinator {
             .workers
             .iter()
             .filter(|(&id, w)| {
-                // A quarantined worker stays listed: its name keeps it quarantined when it
-                // registers again.
+                // A quarantined worker stays listed, so that the operator sees it (the
+                // quarantine list, not the listing, keeps it quarantined when it
+                // registers again).
                 w.quarantined.is_none()
                     && now.saturating_sub(w.last_seen_ms) > silent
                     && !farm.scheduler.leases().any(|l| l.worker == id)
@@ -405,7 +452,7 @@ impl Coordinator {
         }
     }
 
-    /// `GET /workers`.
+    /// `GET /workers`: the workers this run knows, and the quarantine list.
     pub fn workers(&self) -> CoordResult<WorkerList> {
         let farm = self.lock()?;
         let now = now_ms();
@@ -440,6 +487,19 @@ impl Coordinator {
                 }
             })
             .collect();
-        Ok(WorkerList { workers })
+        let quarantines = farm
+            .quarantines
+            .values()
+            .map(|q| QuarantineInfo {
+                name: q.worker.clone(),
+                identity: q.identity.clone(),
+                reason: q.reason.clone(),
+                since_unix_ms: q.unix_ms,
+            })
+            .collect();
+        Ok(WorkerList {
+            workers,
+            quarantines,
+        })
     }
 }

@@ -13,7 +13,9 @@
 //!   upserted as passes merge;
 //! - the **lease high-water mark**, so fencing tokens never repeat after a restart;
 //! - **convergence history** points per job ([`HistoryPoint`]);
-//! - **worker fault events** ([`FaultEvent`]).
+//! - **worker fault events** ([`FaultEvent`]);
+//! - the **quarantine list** ([`QuarantineRecord`]): workers a spot check found faulty,
+//!   until an operator lifts their quarantine.
 //!
 //! Two implementations share one contract and one test suite (`tests/store.rs`):
 //! [`SqliteStore`], the embedded default, on one SQLite file (WAL, `synchronous=FULL`), and
@@ -576,6 +578,23 @@ pub struct FaultFilter {
     pub worker: Option<String>,
 }
 
+/// A quarantined worker as the store keeps it (schema version 5; ARCHITECTURE.md §6):
+/// keyed by what a quarantine follows, the name the worker registers with and its TLS
+/// identity, so that a coordinator restarted on the store quarantines the worker again
+/// as soon as it registers.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct QuarantineRecord {
+    /// The name the worker registered with.
+    pub worker: String,
+    /// The common name of its TLS client certificate (mutual TLS); `None` without one.
+    /// Stored as `''` for `None`, so an empty common name reads back as `None`.
+    pub identity: Option<String>,
+    /// Why it was quarantined (the spot check that found its copy unlike the others').
+    pub reason: String,
+    /// When, Unix milliseconds (at most `i64::MAX`).
+    pub unix_ms: u64,
+}
+
 /// How the previous coordinator run on a store ended ([`Store::begin_run`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
 pub struct PreviousRun {
@@ -715,6 +734,19 @@ pub trait Store: Send + Sync {
 
     /// The newest `limit` fault events matching the filter, newest first.
     async fn list_faults(&self, filter: &FaultFilter, limit: u32) -> StoreResult<Vec<FaultEvent>>;
+
+    /// Records that a worker is quarantined. One row per (worker, identity): if one is
+    /// stored already it is kept as it is (the first reason and time, since when the
+    /// worker is distrusted) and `Ok(false)` is returned; `Ok(true)` for a new row.
+    async fn record_quarantine(&self, quarantine: &QuarantineRecord) -> StoreResult<bool>;
+
+    /// Every stored quarantine, ordered by worker name then identity (`None` first).
+    async fn list_quarantines(&self) -> StoreResult<Vec<QuarantineRecord>>;
+
+    /// Removes the stored quarantines of the worker named `worker`, under any identity
+    /// (an operator lifted it); returns how many rows were removed, 0 if none (so a
+    /// second call changes nothing).
+    async fn delete_quarantines(&self, worker: &str) -> StoreResult<u64>;
 
     /// Ids of the jobs to resume (every queued or running job), oldest first. Unlike
     /// [`Store::jobs_to_resume`] a row that cannot be decoded does not fail the call:

@@ -27,13 +27,13 @@ use tessera_farm::{FramePlan, JobId};
 
 use super::codec::{encode_adaptive, encode_stats, encode_units};
 use super::rows::{
-    check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, int_col,
-    job_from_row, now_unix_ms, plan_from_row, state_count_from_row, summary_from_row,
-    tile_from_parts, to_i64, JOB_COLUMNS, PLAN_COLUMNS,
+    check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, identity_col,
+    int_col, job_from_row, now_unix_ms, plan_from_row, quarantine_from_row, state_count_from_row,
+    summary_from_row, tile_from_parts, to_i64, JOB_COLUMNS, PLAN_COLUMNS, QUARANTINE_COLUMNS,
 };
 use super::{
-    FaultEvent, FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, Store, StoreError,
-    StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
+    FaultEvent, FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, QuarantineRecord,
+    Store, StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
 /// Schema migrations of the PostgreSQL store: (version, SQL), applied in order in one
@@ -46,6 +46,7 @@ const MIGRATIONS: &[(i64, &str)] = &[
         3,
         include_str!("migrations/postgres/0003_adaptive_policy.sql"),
     ),
+    (4, include_str!("migrations/postgres/0004_quarantine.sql")),
 ];
 
 /// Connections in the pool: the coordinator's concurrent requests, merges and the ticker.
@@ -694,6 +695,47 @@ impl PostgresStore {
         rows.iter().map(fault_from_row).collect()
     }
 
+    async fn record_quarantine_(&self, q: &QuarantineRecord) -> StoreResult<bool> {
+        let unix_ms = to_i64(q.unix_ms, "quarantine unix_ms")?;
+        let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
+        let n = sqlx::query(
+            "INSERT INTO quarantines (worker, identity, reason, unix_ms) \
+             VALUES ($1, $2, $3, $4) ON CONFLICT (worker, identity) DO NOTHING",
+        )
+        .bind(&q.worker)
+        .bind(identity_col(q.identity.as_deref()))
+        .bind(&q.reason)
+        .bind(unix_ms)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        tx.commit().await?;
+        Ok(n == 1)
+    }
+
+    async fn list_quarantines_(&self) -> StoreResult<Vec<QuarantineRecord>> {
+        // `COLLATE "C"`: byte order, as SQLite sorts text, whatever the database's locale.
+        let sql = format!(
+            "SELECT {QUARANTINE_COLUMNS} FROM quarantines \
+             ORDER BY worker COLLATE \"C\", identity COLLATE \"C\""
+        );
+        let rows = sqlx::query(&sql).fetch_all(&self.pool).await?;
+        rows.iter().map(quarantine_from_row).collect()
+    }
+
+    async fn delete_quarantines_(&self, worker: &str) -> StoreResult<u64> {
+        let mut tx = self.pool.begin().await?;
+        self.fence(&mut tx).await?;
+        let n = sqlx::query("DELETE FROM quarantines WHERE worker = $1")
+            .bind(worker)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        tx.commit().await?;
+        Ok(n)
+    }
+
     async fn job_ids_to_resume_(&self) -> StoreResult<Vec<JobId>> {
         let ids: Vec<i64> = sqlx::query_scalar(
             "SELECT id FROM jobs WHERE state IN ('queued', 'running') ORDER BY id",
@@ -863,6 +905,18 @@ impl Store for PostgresStore {
 
     async fn list_faults(&self, filter: &FaultFilter, limit: u32) -> StoreResult<Vec<FaultEvent>> {
         self.lift(self.list_faults_(filter, limit).await)
+    }
+
+    async fn record_quarantine(&self, quarantine: &QuarantineRecord) -> StoreResult<bool> {
+        self.lift(self.record_quarantine_(quarantine).await)
+    }
+
+    async fn list_quarantines(&self) -> StoreResult<Vec<QuarantineRecord>> {
+        self.lift(self.list_quarantines_().await)
+    }
+
+    async fn delete_quarantines(&self, worker: &str) -> StoreResult<u64> {
+        self.lift(self.delete_quarantines_(worker).await)
     }
 
     async fn job_ids_to_resume(&self) -> StoreResult<Vec<JobId>> {

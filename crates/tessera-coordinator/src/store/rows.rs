@@ -9,7 +9,7 @@ use sqlx::Row;
 use tessera_api::{FrameRange, JobState};
 use tessera_farm::{FramePlan, JobId};
 
-use super::{FaultEvent, FaultKind, JobRecord, NewJob, StoreError, StoreResult};
+use super::{FaultEvent, FaultKind, JobRecord, NewJob, QuarantineRecord, StoreError, StoreResult};
 
 /// Columns of `jobs` read by [`job_from_row`], in its order (the same in both schemas).
 pub(super) const JOB_COLUMNS: &str = "id, idempotency_key, name, scene_ref, settings_json, \
@@ -191,6 +191,28 @@ pub(super) fn fault_from_row(row: &impl Columns) -> StoreResult<FaultEvent> {
             .ok_or_else(|| StoreError::Corrupt(format!("faults row: unknown kind {kind:?}")))?,
         message: row.text("message")?,
         unix_ms: int_col(row, "unix_ms", &place)?,
+    })
+}
+
+/// Columns of `quarantines` read by [`quarantine_from_row`], in its order.
+pub(super) const QUARANTINE_COLUMNS: &str = "worker, identity, reason, unix_ms";
+
+/// A stored quarantine's identity column: `''` stands for none, since a primary key
+/// column cannot hold `NULL` in both schemas.
+pub(super) fn identity_col(identity: Option<&str>) -> &str {
+    identity.unwrap_or("")
+}
+
+/// A row of `quarantines` ([`QUARANTINE_COLUMNS`]) as a record.
+pub(super) fn quarantine_from_row(row: &impl Columns) -> StoreResult<QuarantineRecord> {
+    let worker = row.text("worker")?;
+    let place = || format!("quarantines row of worker {worker:?}");
+    let identity = row.text("identity")?;
+    Ok(QuarantineRecord {
+        identity: (!identity.is_empty()).then_some(identity),
+        reason: row.text("reason")?,
+        unix_ms: int_col(row, "unix_ms", &place)?,
+        worker,
     })
 }
 

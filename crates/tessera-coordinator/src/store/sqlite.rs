@@ -14,13 +14,13 @@ use tessera_farm::{FramePlan, JobId};
 use super::codec::{encode_adaptive, encode_stats, encode_units};
 use super::marker::{self, CommitMark};
 use super::rows::{
-    check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, int_col,
-    job_from_row, now_unix_ms, plan_from_row, state_count_from_row, summary_from_row,
-    tile_from_parts, to_i64, JOB_COLUMNS, PLAN_COLUMNS,
+    check_finite, check_new_job, check_tile_to_save, fault_from_row, fault_where, identity_col,
+    int_col, job_from_row, now_unix_ms, plan_from_row, quarantine_from_row, state_count_from_row,
+    summary_from_row, tile_from_parts, to_i64, JOB_COLUMNS, PLAN_COLUMNS, QUARANTINE_COLUMNS,
 };
 use super::{
-    FaultEvent, FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, Store, StoreError,
-    StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
+    FaultEvent, FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, QuarantineRecord,
+    Store, StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
 /// Name of the database file inside the data directory.
@@ -33,6 +33,7 @@ const MIGRATIONS: &[(i64, &str)] = &[
     (2, include_str!("migrations/0002_rejected_samples.sql")),
     (3, include_str!("migrations/0003_integrity.sql")),
     (4, include_str!("migrations/0004_adaptive_policy.sql")),
+    (5, include_str!("migrations/0005_quarantine.sql")),
 ];
 
 /// A job resumed this many times in a row after a crash without a new merged pass is
@@ -814,6 +815,43 @@ impl Store for SqliteStore {
         }
         let rows = q.fetch_all(&self.reader).await?;
         rows.iter().map(fault_from_row).collect()
+    }
+
+    async fn record_quarantine(&self, q: &QuarantineRecord) -> StoreResult<bool> {
+        let unix_ms = to_i64(q.unix_ms, "quarantine unix_ms")?;
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let n = sqlx::query(
+            "INSERT INTO quarantines (worker, identity, reason, unix_ms) \
+             VALUES (?1, ?2, ?3, ?4) ON CONFLICT (worker, identity) DO NOTHING",
+        )
+        .bind(&q.worker)
+        .bind(identity_col(q.identity.as_deref()))
+        .bind(&q.reason)
+        .bind(unix_ms)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        tx.commit().await?;
+        Ok(n == 1)
+    }
+
+    async fn list_quarantines(&self) -> StoreResult<Vec<QuarantineRecord>> {
+        let sql = format!("SELECT {QUARANTINE_COLUMNS} FROM quarantines ORDER BY worker, identity");
+        let rows = sqlx::query(&sql).fetch_all(&self.reader).await?;
+        rows.iter().map(quarantine_from_row).collect()
+    }
+
+    async fn delete_quarantines(&self, worker: &str) -> StoreResult<u64> {
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        let n = sqlx::query("DELETE FROM quarantines WHERE worker = ?1")
+            .bind(worker)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+        tx.commit().await?;
+        Ok(n)
     }
 
     async fn job_ids_to_resume(&self) -> StoreResult<Vec<JobId>> {

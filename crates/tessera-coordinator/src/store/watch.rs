@@ -15,8 +15,8 @@ use tessera_api::{HistoryPoint, JobState};
 use tessera_farm::JobId;
 
 use super::{
-    FaultEvent, FaultFilter, JobQuery, JobRecord, NewJob, PreviousRun, Store, StoreError,
-    StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
+    FaultEvent, FaultFilter, JobQuery, JobRecord, NewJob, PreviousRun, QuarantineRecord, Store,
+    StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
 /// A store wrapper that records the first write failure (see the [module docs](self)).
@@ -155,6 +155,20 @@ impl Store for WatchedStore {
 
     async fn list_faults(&self, filter: &FaultFilter, limit: u32) -> StoreResult<Vec<FaultEvent>> {
         self.inner.list_faults(filter, limit).await
+    }
+
+    async fn record_quarantine(&self, quarantine: &QuarantineRecord) -> StoreResult<bool> {
+        let r = self.inner.record_quarantine(quarantine).await;
+        self.watch("storing a quarantine", r)
+    }
+
+    async fn list_quarantines(&self) -> StoreResult<Vec<QuarantineRecord>> {
+        self.inner.list_quarantines().await
+    }
+
+    async fn delete_quarantines(&self, worker: &str) -> StoreResult<u64> {
+        let r = self.inner.delete_quarantines(worker).await;
+        self.watch("lifting a quarantine", r)
     }
 
     async fn job_ids_to_resume(&self) -> StoreResult<Vec<JobId>> {
