@@ -129,9 +129,16 @@ pub fn spawn_worker(
 
 /// Waits until job `id` is done (failing the test if it ends otherwise).
 pub fn wait_done(client: &Client, id: u64) -> JobStatus {
-    let s = client
-        .wait(id, Duration::from_millis(100), TIMEOUT, |_| {})
-        .unwrap();
+    let s = match client.wait(id, Duration::from_millis(100), TIMEOUT, |_| {}) {
+        Ok(s) => s,
+        // A stalled job: say where it stood and who was there, so that a failure in CI
+        // can be understood from its log.
+        Err(e) => panic!(
+            "job {id}: {e}\nstatus: {:?}\nworkers: {:?}",
+            client.job(id),
+            client.workers()
+        ),
+    };
     assert_eq!(
         s.state,
         JobState::Done,
