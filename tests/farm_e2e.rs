@@ -12,7 +12,7 @@ use common::farm::{
     cornell_job as job, local_render, local_render_adaptive, start_coordinator, start_worker,
     wait_done, TIMEOUT,
 };
-use common::{free_port, http_get, output, poll, read_exr, temp_dir, tessera, Proc};
+use common::{free_addresses, http_get, output, poll, read_exr, temp_dir, tessera, Proc};
 use tessera_api::client::{Client, ClientError};
 use tessera_api::JobSettings;
 
@@ -186,10 +186,7 @@ fn a_killed_coordinator_resumes_and_loses_no_job() {
     let data = dir.join("data");
     let s = job(64, 64, 128);
     let reference = local_render(&dir, &s);
-    let (http, grpc) = (
-        format!("127.0.0.1:{}", free_port()),
-        format!("127.0.0.1:{}", free_port()),
-    );
+    let (http, grpc) = free_addresses();
     let mut c = start_coordinator(&data, &http, &grpc, &[]);
     let _w1 = start_worker(&c.grpc, "w1", &[]);
     let _w2 = start_worker(&c.grpc, "w2", &[]);
@@ -244,10 +241,7 @@ fn a_killed_coordinator_resumes_an_adaptive_job_where_its_policy_was() {
         s.target_error = Some(target);
         let reference = local_render_adaptive(&dir, &format!("local-{mode}.exr"), &s);
         let data = dir.join(format!("data-{mode}"));
-        let (http, grpc) = (
-            format!("127.0.0.1:{}", free_port()),
-            format!("127.0.0.1:{}", free_port()),
-        );
+        let (http, grpc) = free_addresses();
         let mut c = start_coordinator(&data, &http, &grpc, &[]);
         let _w1 = start_worker(&c.grpc, "w1", &[]);
         let _w2 = start_worker(&c.grpc, "w2", &[]);
@@ -301,10 +295,7 @@ fn a_killed_coordinator_resumes_an_adaptive_job_where_its_policy_was() {
 fn a_time_limit_stop_is_still_named_after_a_restart() {
     let dir = temp_dir("e2e", "time-limit-restart");
     let data = dir.join("data");
-    let (http, grpc) = (
-        format!("127.0.0.1:{}", free_port()),
-        format!("127.0.0.1:{}", free_port()),
-    );
+    let (http, grpc) = free_addresses();
     let mut c = start_coordinator(&data, &http, &grpc, &[]);
     let _w = start_worker(&c.grpc, "w1", &[]);
     let client = Client::new(&c.http, None);

@@ -8,7 +8,7 @@ mod common;
 
 use common::farm::TIMEOUT;
 use common::farm::{cornell_job, local_render, start_coordinator, start_worker, wait_done};
-use common::{free_port, output, poll, temp_dir};
+use common::{free_addresses, output, poll, temp_dir};
 use tessera_api::client::Client;
 
 /// A fresh database URL, or `None` when PostgreSQL tests are skipped.
@@ -30,10 +30,7 @@ fn a_farm_on_postgres_renders_the_local_image_and_resumes_after_kill9() {
     let data = dir.join("unused-data");
     let s = cornell_job(64, 64, 128);
     let reference = local_render(&dir, &s);
-    let (http, grpc) = (
-        format!("127.0.0.1:{}", free_port()),
-        format!("127.0.0.1:{}", free_port()),
-    );
+    let (http, grpc) = free_addresses();
     let store = ["--store", url.as_str()];
     let mut c = start_coordinator(&data, &http, &grpc, &store);
     c.wait_active();

@@ -76,6 +76,15 @@ pub fn free_port() -> u16 {
         .port()
 }
 
+/// Two free loopback addresses `(http, grpc)` for a coordinator that must come back on
+/// the same ones after a restart ([`free_port`]).
+pub fn free_addresses() -> (String, String) {
+    (
+        format!("127.0.0.1:{}", free_port()),
+        format!("127.0.0.1:{}", free_port()),
+    )
+}
+
 /// `GET path` on the HTTP server at `base` (`http://HOST:PORT`, an `/api/v1` suffix is
 /// ignored) without a client library: (status, body); (0, error) when it cannot connect.
 pub fn http_get(base: &str, path: &str) -> (u16, String) {

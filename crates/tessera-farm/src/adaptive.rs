@@ -491,13 +491,9 @@ impl AdaptiveTile {
                 for y in 0..h {
                     for x in 0..w {
                         let i = y * w + x;
-                        let needed = match pilot_relative_variance(&self.stats[i]) {
-                            Some(own) => {
-                                let pooled = pooled_pilot_variance(&self.stats, w, h, x, y);
-                                fresh_passes_for(own.max(pooled), target, lo, max_fresh)
-                            }
-                            None => max_fresh.max(lo),
-                        };
+                        let pooled = pooled_pilot_variance(&self.stats, w, h, x, y);
+                        let needed =
+                            fresh_passes_needed(&self.stats[i], pooled, target, lo, max_fresh);
                         self.state[i].needed = needed;
                         end = end.max(pilot.saturating_add(needed));
                     }
@@ -665,16 +661,22 @@ impl AdaptiveTile {
     }
 }
 
-/// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, Jensen 2001, section 10.3)
-/// judged on its own pilot alone: `ceil(s² / (target (lum + eps))²)` with
-/// `s² = m2_lum / (K - 1)` the pilot's per-pass variance of the luminance, clamped to
-/// `[lo, hi]`; `hi` with fewer than 2 pilot passes. [`AdaptiveTile`] uses the larger of this
-/// and its neighbourhood's ([`pooled_pilot_variance`]).
-pub fn fresh_passes_needed(pilot: &PixelStats, target: f64, lo: u32, hi: u32) -> u32 {
-    match pilot_relative_variance(pilot) {
-        Some(v) => fresh_passes_for(v, target, lo, hi),
-        None => hi.max(lo),
+/// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, Jensen 2001, section 10.3):
+/// `ceil(v / target²)`, clamped to `[lo, hi]`, so that the relative error `sqrt(v / n)` is
+/// about the target; `v` is the larger of the pilot's own per-pass relative variance
+/// ([`pilot_relative_variance`], `s² / (lum + eps)²`) and `pooled` (its neighbourhood's,
+/// [`pooled_pilot_variance`]; 0 judges the pixel on its own pilot). `hi` with fewer than
+/// 2 pilot passes.
+pub fn fresh_passes_needed(pilot: &PixelStats, pooled: f64, target: f64, lo: u32, hi: u32) -> u32 {
+    let hi = hi.max(lo);
+    let Some(own) = pilot_relative_variance(pilot) else {
+        return hi;
+    };
+    let n = (own.max(pooled) / (target * target)).ceil();
+    if n.is_nan() {
+        return hi;
     }
+    (n.min(f64::from(hi)) as u32).clamp(lo, hi)
 }
 
 /// A pilot pixel's per-pass *relative* variance of the luminance, `s² / (lum + eps)²` with
@@ -731,17 +733,6 @@ pub fn pooled_pilot_variance(stats: &[PixelStats], w: usize, h: usize, x: usize,
 
 /// Radius of the neighbourhood [`pooled_pilot_variance`] pools: 1, a 3x3 block.
 pub const POOL_RADIUS: usize = 1;
-
-/// `ceil(v / target²)` fresh passes for a per-pass relative variance `v`, clamped to
-/// `[lo, hi]`: the passes after which the relative error `sqrt(v / n)` is about the target.
-fn fresh_passes_for(rel_var: f64, target: f64, lo: u32, hi: u32) -> u32 {
-    let hi = hi.max(lo);
-    let n = (rel_var / (target * target)).ceil();
-    if n.is_nan() {
-        return hi;
-    }
-    (n.min(f64::from(hi)) as u32).clamp(lo, hi)
-}
 
 /// The adaptive state of a whole frame: one [`AdaptiveTile`] per tile.
 #[derive(Debug, Clone, Serialize, Deserialize)]

@@ -2158,20 +2158,8 @@ mod tests {
                     for w in 0..3 {
                         held.extend(s.lease(w, now, 2));
                     }
-                    lcg_step(&mut rng);
-                    if held.is_empty() {
-                        s.expire(now + 1000);
-                        continue;
-                    }
-                    let k = (rng >> 33) as usize % held.len();
-                    let l = held.swap_remove(k);
-                    if rng.is_multiple_of(7) {
-                        continue; // a lost result: re-leased after expiry
-                    }
-                    let _ = s.submit(l.lease_id, 7, noisy_result(&p, l.unit));
-                    submitted += 1;
-                    if rng.is_multiple_of(4) {
-                        s.expire(now + 1000);
+                    if deliver_random(&mut s, 7, &p, &mut held, &mut rng, now, (7, 4)) {
+                        submitted += 1;
                     }
                 }
                 assert!(
@@ -2284,6 +2272,37 @@ mod tests {
         }
     }
 
+    /// One delivery of a randomly interleaved farm: a lease of `held` chosen by `rng`
+    /// delivers its [`noisy_result`], except one in `odds.0` whose result is lost (its
+    /// unit is leased again after expiry); after one delivery in `odds.1`, and whenever
+    /// nothing is held, the outstanding leases lapse. Returns whether a result was
+    /// submitted.
+    fn deliver_random(
+        s: &mut Scheduler,
+        job: JobId,
+        plan: &FramePlan,
+        held: &mut Vec<Lease>,
+        rng: &mut u64,
+        now: u64,
+        odds: (u64, u64),
+    ) -> bool {
+        lcg_step(rng);
+        if held.is_empty() {
+            s.expire(now + 1000);
+            return false;
+        }
+        let k = (*rng >> 33) as usize % held.len();
+        let l = held.swap_remove(k);
+        if rng.is_multiple_of(odds.0) {
+            return false;
+        }
+        let _ = s.submit(l.lease_id, job, noisy_result(plan, l.unit));
+        if rng.is_multiple_of(odds.1) {
+            s.expire(now + 1000);
+        }
+        true
+    }
+
     /// Issue 4: adaptive farm jobs. Whatever the number of workers and the interleaving
     /// (with lost leases re-leased after expiry), no unit is leased beyond an open decision,
     /// finished tiles stop being leased, and the image equals the local adaptive render of
@@ -2337,20 +2356,7 @@ mod tests {
                         leased_units.extend(new.iter().map(|l| l.unit));
                         held.extend(new);
                     }
-                    lcg_step(&mut rng);
-                    if held.is_empty() {
-                        s.expire(now + 1000);
-                        continue;
-                    }
-                    let k = (rng >> 33) as usize % held.len();
-                    let l = held.swap_remove(k);
-                    if rng.is_multiple_of(5) {
-                        continue; // a lost result: re-leased after expiry
-                    }
-                    let _ = s.submit(l.lease_id, 7, noisy_result(&p, l.unit));
-                    if rng.is_multiple_of(3) {
-                        s.expire(now + 1000);
-                    }
+                    deliver_random(&mut s, 7, &p, &mut held, &mut rng, now, (5, 3));
                 }
                 let image = s.adaptive_frame(7, 0).unwrap().image();
                 assert_eq!(image, reference, "{mode} with {workers} workers");

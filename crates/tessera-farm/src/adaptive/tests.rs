@@ -275,13 +275,13 @@ fn unbiased_pools_the_pilot_over_the_neighbourhood_in_the_tile() {
 #[test]
 fn fresh_passes_are_clamped() {
     let mut s = PixelStats::default();
-    assert_eq!(fresh_passes_needed(&s, 0.1, 4, 50), 50);
+    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 50), 50);
     s.push([1.0; 3]);
     s.push([1.0; 3]);
-    assert_eq!(fresh_passes_needed(&s, 0.1, 4, 50), 4);
+    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 50), 4);
     s.push([100.0; 3]);
-    assert_eq!(fresh_passes_needed(&s, 0.1, 4, 50), 50);
-    assert_eq!(fresh_passes_needed(&s, 0.1, 4, 2), 4);
+    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 50), 50);
+    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 2), 4);
 }
 
 #[test]
