@@ -912,27 +912,15 @@ impl AdaptiveFrame {
         img
     }
 
-    /// Image relative error estimate: the RMS of [`PixelStats::relative_error`] over the
-    /// pixels with at least 2 passes in their estimate (ARCHITECTURE.md §3); 0 if there are none.
+    /// Image relative error estimate ([`crate::image_relative_error`],
+    /// ARCHITECTURE.md §3) over the pixels with at least 2 passes in their estimate; 0 if
+    /// there are none.
     pub fn image_error(&self) -> f64 {
-        let mut sum = 0.0f64;
-        let mut count = 0u64;
-        for s in self.tiles.iter().flat_map(|t| t.pixels()) {
-            if s.passes >= 2 {
-                let rel = s.relative_error();
-                sum += rel * rel;
-                count += 1;
-            }
-        }
-        if count == 0 {
-            return 0.0;
-        }
-        let e = (sum / count as f64).sqrt();
-        if e.is_finite() {
-            e
-        } else {
-            0.0
-        }
+        crate::stats::image_relative_error_of_tiles(
+            self.plan.width as usize,
+            self.plan.height as usize,
+            self.tiles.iter().map(|t| (t.rect(), t.pixels())),
+        )
     }
 
     /// Whether every pixel has at least 2 passes in its estimate, i.e. an error estimate.

@@ -22,7 +22,8 @@
 //!   arrival order (ARCHITECTURE.md §2). Duplicates are detected and compared, never merged twice.
 //! - A [`FrameAccumulator`] holds one tile accumulator per tile and assembles a
 //!   [`FrameImage`] (mean, variance of the mean, passes, samples and relative error layers)
-//!   and the image error estimate, the RMS of per-pixel relative errors.
+//!   and the image error estimate, the RMS of per-pixel relative errors over a robust
+//!   scale ([`robust_scale`], ARCHITECTURE.md §3).
 //!
 //! Nothing here panics on untrusted input: results are validated and every failure is a
 //! typed error ([`PlanError`], [`ResultError`], [`MergeError`]). The only documented panics
@@ -99,7 +100,10 @@ pub use schedule::{
 pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,
 };
-pub use stats::{luminance, PixelStats, ERROR_ESTIMATOR, LUMINANCE_WEIGHTS, REL_EPS};
+pub use stats::{
+    image_relative_error, luminance, robust_scale, PixelStats, ERROR_ESTIMATOR, LUMINANCE_WEIGHTS,
+    REL_EPS,
+};
 
 #[cfg(test)]
 mod test_util {

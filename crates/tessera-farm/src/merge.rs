@@ -453,32 +453,16 @@ impl FrameAccumulator {
         img
     }
 
-    /// Image relative error estimate: the root mean square of
-    /// [`PixelStats::relative_error`] over the pixels with at least 2 merged passes
-    /// (ARCHITECTURE.md §3). Pixels with fewer passes have no error estimate and are excluded;
-    /// 0 if no pixel has 2 passes. Never NaN.
+    /// Image relative error estimate ([`crate::image_relative_error`],
+    /// ARCHITECTURE.md §3) over the pixels of the tiles with at least 2 merged passes;
+    /// pixels with fewer have no error estimate and are excluded. 0 if no pixel has 2
+    /// passes. Never NaN.
     pub fn image_error(&self) -> f64 {
-        let mut sum = 0.0f64;
-        let mut count = 0u64;
-        for tile in &self.tiles {
-            if tile.merged_passes() < 2 {
-                continue;
-            }
-            for s in tile.pixels() {
-                let rel = s.relative_error();
-                sum += rel * rel;
-                count += 1;
-            }
-        }
-        if count == 0 {
-            return 0.0;
-        }
-        let e = (sum / count as f64).sqrt();
-        if e.is_nan() {
-            0.0
-        } else {
-            e
-        }
+        crate::stats::image_relative_error_of_tiles(
+            self.plan.width as usize,
+            self.plan.height as usize,
+            self.tiles.iter().map(|t| (t.rect(), t.pixels())),
+        )
     }
 }
 
@@ -571,21 +555,28 @@ impl FrameImage {
         out
     }
 
-    /// The image's relative error estimate from its own layers: the RMS of
-    /// [`FrameImage::relative_error`] over all pixels (ARCHITECTURE.md §3), or `None` while
-    /// a pixel has fewer than 2 passes (it has no estimate, so no claim about the image
-    /// can be made). Computed from the written layers, so every renderer of the same
+    /// The image's relative error estimate from its own layers
+    /// ([`crate::image_relative_error`], ARCHITECTURE.md §3: each pixel's standard
+    /// error `relative_error * (lum(mean) + REL_EPS)` over its robust scale), or `None`
+    /// while a pixel has fewer than 2 passes (it has no estimate, so no claim about the
+    /// image can be made). Computed from the written layers, so every renderer of the same
     /// image (local or farm, live or restored from checkpoints) gets the same number.
     pub fn error_estimate(&self) -> Option<f64> {
         if self.passes.is_empty() || self.passes.iter().any(|&p| p < 2) {
             return None;
         }
-        let sum: f64 = self
-            .relative_error
+        let pixels: Vec<Option<(f64, f64)>> = self
+            .mean
             .iter()
-            .map(|&e| f64::from(e) * f64::from(e))
-            .sum();
-        let e = (sum / self.relative_error.len() as f64).sqrt();
+            .zip(&self.relative_error)
+            .map(|(rgb, &rel)| {
+                let m = crate::luminance(rgb.map(f64::from));
+                let se = f64::from(rel) * (m.max(0.0) + crate::REL_EPS);
+                Some((m, se * se))
+            })
+            .collect();
+        let e =
+            crate::stats::image_relative_error(self.width as usize, self.height as usize, &pixels);
         e.is_finite().then_some(e)
     }
 }
@@ -1003,9 +994,13 @@ mod tests {
         acc.offer(result(unit(1, 0), [[9.0, 0.0, 0.0], [1.0; 3], z, [5.0; 3]]))
             .unwrap();
 
+        // Pixel 0: passes of luminance 0.2126 and 0, mean l0 = 0.1063, standard error l0;
+        // it is darker than its neighbourhood, so its scale is its own mean.
         let l0 = 0.2126f64 / 2.0;
         let rel0 = l0 / (l0 + 0.01);
-        let rel1 = 1.0 / 3.01;
+        // Pixel 1: passes 2 and 4, mean 3, standard error 1; its neighbourhood (pixels 0-2)
+        // has mean (l0 + 3) / 3 < 3, so the robust scale falls to the floor 3 - 1 = 2.
+        let rel1 = 1.0 / 2.01;
         let expected = ((rel0 * rel0 + rel1 * rel1) / 4.0).sqrt();
         let got = acc.image_error();
         assert!(
@@ -1025,7 +1020,8 @@ mod tests {
         assert_eq!(img.variance_of_mean[7], [0.0; 3]);
         assert_eq!(img.relative_error[7], 0.0);
         assert!((f64::from(img.relative_error[0]) - rel0).abs() < 1e-6);
-        assert!((f64::from(img.relative_error[1]) - rel1).abs() < 1e-6);
+        // The layer keeps the pixel's own rel, standard error over its own mean.
+        assert!((f64::from(img.relative_error[1]) - 1.0 / 3.01).abs() < 1e-6);
         assert!(!acc.complete());
         assert_eq!(acc.merged_pass_count(), 3);
     }

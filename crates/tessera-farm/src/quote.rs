@@ -9,8 +9,8 @@
 //!
 //! Passes are independent replicates (ARCHITECTURE.md §3), so a pixel's variance of the
 //! mean after `n` passes is `σ²/n`, and its relative error falls like `1/sqrt(n)`: the
-//! image error (the RMS of the per-pixel relative error, `FrameImage::error_estimate`)
-//! after `n` passes is
+//! image error (the RMS of the per-pixel relative errors over their robust scale,
+//! `FrameImage::error_estimate`) after `n` passes is
 //!
 //! ```text
 //! E(n) = sqrt(M · P / n),   M = mean over pilot pixels of rel², P = pilot passes

@@ -12,13 +12,103 @@ use serde::{Deserialize, Serialize};
 /// error.
 pub const REL_EPS: f64 = 1e-2;
 
-/// The error estimator in use, as the EXR header (`error_estimator`) and `tessera render`
-/// name it (ARCHITECTURE.md §3): the image error is the RMS of the pixels' relative errors
-/// from the spread of their independent passes, and a pixel's interval uses the variance
-/// pooled over its 3x3 neighbourhood ([`crate::FrameImage::interval_variance`]). Known to be
-/// optimistic where rare bright paths carry the error (caustics, small lights in glossy
-/// reflections): `docs/benchmarks.md`, "Calibration suite".
-pub const ERROR_ESTIMATOR: &str = "pass-spread; pixel intervals pooled 3x3";
+/// The error estimator in use, as the EXR header (`error_estimator`), the job status and
+/// `tessera render` name it (ARCHITECTURE.md §3): the image error is the RMS of the pixels'
+/// relative errors from the spread of their independent passes, each divided by a robust
+/// scale ([`robust_scale`]: the pixel's mean, allowed down to its 3x3 neighbourhood's mean
+/// but never below the mean minus one standard error); a pixel's interval uses the variance
+/// pooled over its 3x3 neighbourhood ([`crate::FrameImage::interval_variance`]). Still
+/// optimistic where no pass has caught the rare paths that carry the error (path-traced
+/// caustics of small lights): `docs/benchmarks.md`, "Calibration suite".
+pub const ERROR_ESTIMATOR: &str = "pass-spread, robust scale; pixel intervals pooled 3x3";
+
+/// The luminance scale a pixel's standard error is divided by in the image error
+/// estimate: `max(m - se, min(m, m_3x3))`, clamped at 0, plus [`REL_EPS`], where `m` is the
+/// pixel's mean luminance, `se` its estimated standard error and `m_3x3` the mean
+/// luminance of its 3x3 neighbourhood.
+///
+/// Why not `m` alone (the pixel's own `rel`): with heavy-tailed radiance (a glossy
+/// caustic, a small light in a glossy floor) a pass that catches a rare bright path raises
+/// the mean and the spread together, so `se / m` stays below 1 however far the mean is
+/// from the truth, and the image estimate was 0.5-0.85 of the measured error
+/// (`docs/benchmarks.md`, "Calibration suite"). Such a pixel is brighter than its
+/// neighbourhood, so its scale falls towards `m_3x3`, an estimate of its expected value
+/// from nine times the passes. A pixel that is genuinely brighter than its neighbours
+/// (a highlight, an emitter's edge) has consistent passes and a small `se`, and the floor
+/// `m - se` keeps its scale close to `m`: by Samuelson's inequality (Samuelson 1968) the
+/// largest of `K` passes is at most `m + s (K - 1) / sqrt(K)`, so `m - se` is a lower
+/// bound of the mean of the other `K - 1` passes, exact when one pass alone departs from
+/// the rest. Darker pixels than their neighbourhood keep `m`.
+#[inline]
+pub fn robust_scale(mean_lum: f64, lum_variance_of_mean: f64, neighbourhood_mean: f64) -> f64 {
+    let m = mean_lum.max(0.0);
+    let floor = m - lum_variance_of_mean.max(0.0).sqrt();
+    floor.max(m.min(neighbourhood_mean)).max(0.0) + REL_EPS
+}
+
+/// The image relative error estimate (ARCHITECTURE.md §3): the root mean square over the
+/// pixels with an estimate of `sqrt(v) / robust_scale(m, v, m_3x3)`, where `pixels` holds,
+/// row-major over a `width` x `height` frame, each pixel's mean luminance `m` and
+/// estimated variance of that mean `v`, or `None` for a pixel with fewer than 2 passes.
+/// The neighbourhood mean `m_3x3` is over the neighbours (the pixel included) that have an
+/// estimate. 0 when no pixel has one; never NaN.
+///
+/// It is a function of the merged statistics alone, so every renderer of a frame (local,
+/// farm, restored from checkpoints) gets the same number from the same passes.
+pub fn image_relative_error(width: usize, height: usize, pixels: &[Option<(f64, f64)>]) -> f64 {
+    debug_assert_eq!(pixels.len(), width * height);
+    let (mut sum, mut count) = (0.0f64, 0u64);
+    for y in 0..height {
+        for x in 0..width {
+            let Some((m, v)) = pixels[y * width + x] else {
+                continue;
+            };
+            let (mut nsum, mut n) = (0.0f64, 0u32);
+            for qy in y.saturating_sub(1)..(y + 2).min(height) {
+                let row = &pixels[qy * width..(qy + 1) * width];
+                for (qm, _) in row[x.saturating_sub(1)..(x + 2).min(width)]
+                    .iter()
+                    .flatten()
+                {
+                    nsum += qm.max(0.0);
+                    n += 1;
+                }
+            }
+            let rel = v.max(0.0).sqrt() / robust_scale(m, v, nsum / f64::from(n));
+            sum += rel * rel;
+            count += 1;
+        }
+    }
+    if count == 0 {
+        return 0.0;
+    }
+    let e = (sum / count as f64).sqrt();
+    if e.is_finite() {
+        e
+    } else {
+        0.0
+    }
+}
+
+/// [`image_relative_error`] of a frame held as tiles: each tile's rectangle and its pixels'
+/// statistics, row-major within the tile. Pixels with fewer than 2 passes have no estimate.
+pub(crate) fn image_relative_error_of_tiles<'a>(
+    width: usize,
+    height: usize,
+    tiles: impl Iterator<Item = (crate::TileRect, &'a [PixelStats])>,
+) -> f64 {
+    let mut pixels = vec![None; width * height];
+    for (r, stats) in tiles {
+        let rw = r.width.max(1) as usize;
+        for (i, s) in stats.iter().enumerate() {
+            let p = (r.y0 as usize + i / rw) * width + r.x0 as usize + i % rw;
+            if s.passes >= 2 && p < pixels.len() {
+                pixels[p] = Some((s.mean_lum, s.lum_variance_of_mean()));
+            }
+        }
+    }
+    image_relative_error(width, height, &pixels)
+}
 
 /// Luminance weights of linear Rec. 709 / sRGB primaries.
 pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
@@ -112,6 +202,52 @@ mod tests {
 
     fn rel_close(a: f64, b: f64, tol: f64) -> bool {
         (a - b).abs() <= tol * a.abs().max(b.abs()).max(f64::MIN_POSITIVE)
+    }
+
+    /// The robust scale of a firefly, a highlight and a dark pixel next to a bright one.
+    #[test]
+    fn robust_scale_cases() {
+        // A firefly: 4 passes 0, 0, 0, 8 in a neighbourhood of mean 0.5. Its mean is 2,
+        // its standard error 2 (s^2 = 16, v = 4), so the floor is 0 and the scale falls
+        // to the neighbourhood's 0.5: rel = 2 / 0.51 instead of 2 / 2.01.
+        let mut s = PixelStats::default();
+        for x in [0.0, 0.0, 0.0, 8.0] {
+            s.push([x; 3]);
+        }
+        assert!((s.mean_lum - 2.0).abs() < 1e-12 && (s.lum_variance_of_mean() - 4.0).abs() < 1e-12);
+        assert!((robust_scale(2.0, 4.0, 0.5) - 0.51).abs() < 1e-12);
+        // The floor is exactly the mean of the other passes when one pass departs from
+        // equal others (Samuelson's bound is attained): passes 1, 1, 1, 9.
+        let mut s = PixelStats::default();
+        for x in [1.0, 1.0, 1.0, 9.0] {
+            s.push([x; 3]);
+        }
+        let floor = s.mean_lum - s.lum_variance_of_mean().sqrt();
+        assert!((floor - 1.0).abs() < 1e-12, "{floor}");
+        // A highlight: consistent passes (mean 10, se 0.5) among dark neighbours keeps a
+        // scale of at least 9.5.
+        assert!((robust_scale(10.0, 0.25, 1.2) - 9.51).abs() < 1e-12);
+        // A dark pixel next to bright ones keeps its own mean.
+        assert!((robust_scale(0.2, 0.01, 5.0) - 0.21).abs() < 1e-12);
+        // Negative means (never produced, but clamped) and zero variance.
+        assert_eq!(robust_scale(-1.0, 0.0, -3.0), REL_EPS);
+    }
+
+    /// On a flat image the robust estimate equals the RMS of the pixels' own `rel`;
+    /// pixels without an estimate are left out of the sum and of their neighbours' means.
+    #[test]
+    fn image_relative_error_flat_and_missing() {
+        let px = Some((1.0, 0.01));
+        let mut pixels = vec![px; 12];
+        let own = 0.1 / 1.01;
+        assert!((image_relative_error(4, 3, &pixels) - own).abs() < 1e-12);
+        pixels[5] = None;
+        pixels[6] = Some((100.0, 0.0));
+        // Pixel 6 is exact (v = 0) but raises its neighbours' means; they are darker
+        // than it and keep their own means, so the estimate over 11 pixels is 10 x own^2.
+        let e = image_relative_error(4, 3, &pixels);
+        assert!((e - (10.0 * own * own / 11.0).sqrt()).abs() < 1e-12, "{e}");
+        assert_eq!(image_relative_error(2, 1, &[None, None]), 0.0);
     }
 
     #[test]

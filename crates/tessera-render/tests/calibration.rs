@@ -20,15 +20,19 @@
 //! reference's own variance so that it estimates the test render's error alone:
 //! `measured² = mean_p ((lum m - lum r)² - v_r,lum) / (lum r + eps)²`.
 //!
-//! The suite (issue 15) is six path-traced scenes at 64, 256 and 1024 spp. On three of
-//! them (veach-mis with its glossy caustics, the glass caustic, a small light in a glossy
-//! floor) the image estimate is optimistic, 0.1-0.85 of the measured error
-//! (docs/benchmarks.md, "Calibration suite"): the measured error there is carried by a
-//! few pixels, either where one pass caught a rare bright path (the pixel's own estimate
-//! `sqrt(v) / mean` cannot exceed 1 however far the mean is from the truth, since the
-//! same path raised the mean) or where no pass caught the caustic at all (no sample
-//! carries evidence of it). Those scenes are held to their pooled coverage and to not
-//! overstating the error; the others to the estimate within 0.8-1.25 of the measured.
+//! The suite (issue 15) is six path-traced scenes at 64, 256 and 1024 spp, each rendered
+//! with four seeds. Where rare bright paths carry the error (veach-mis with its glossy
+//! caustics, the glass caustic, a small light in a glossy floor), one render's measured
+//! error is carried by a few pixels and jumps between seeds, so the image estimate is held
+//! to the measured error in the mean over the seeds (root mean square of each). The
+//! estimate divides each pixel's standard error by a robust scale
+//! (`tessera_farm::robust_scale`, ARCHITECTURE.md §3): with its own mean, a pixel where
+//! one pass caught a rare bright path has `sqrt(v) / mean` below 1 however far the mean is
+//! from the truth, since the same path raised the mean, and the estimate was 0.44-0.58 of
+//! the measured error at 64 spp on veach-mis and the glossy floor. The caustic stays
+//! optimistic (most caustic pixels have no pass that caught the caustic, and no sample
+//! carries evidence of it) and is held to its pooled coverage and to not overstating the
+//! error (docs/benchmarks.md, "Calibration suite with the robust scale").
 
 use std::sync::OnceLock;
 use tessera_farm::{luminance, REL_EPS};
@@ -331,6 +335,9 @@ struct Calibration {
     /// Estimated over measured image error.
     ratio: f64,
     estimated: f64,
+    /// The estimate before issue 15's robust scale: the RMS of the pixels' own `rel`
+    /// (`relerr.Y`), each standard error over the pixel's own mean.
+    own_estimated: f64,
     measured: f64,
     /// Degrees of freedom of a pixel's own estimate, `K - 1`.
     dof: u32,
@@ -357,12 +364,20 @@ fn calibrate(name: &str, scene: &str, spp: u32, seed: u64) -> Calibration {
         }
     }
     let estimated = img.error_estimate().unwrap();
+    let own_estimated = (img
+        .relative_error
+        .iter()
+        .map(|&e| f64::from(e).powi(2))
+        .sum::<f64>()
+        / img.relative_error.len() as f64)
+        .sqrt();
     let measured = measured_error(&img, &r);
     Calibration {
         coverage: inside as f64 / counted as f64,
         coverage_pooled: inside_pooled as f64 / counted as f64,
         ratio: estimated / measured,
         estimated,
+        own_estimated,
         measured,
         dof: plan.passes - 1,
     }
@@ -387,55 +402,80 @@ fn t_coverage(dof: u32) -> f64 {
     integral((2.0 / v.sqrt()).atan()) / integral(std::f64::consts::FRAC_PI_2)
 }
 
+/// Seeds of the suite's renders at each budget. The image estimate is held to the
+/// measured error in the mean over them (root mean square over the seeds of each): where
+/// rare bright paths carry the error, one render's measured error is itself a heavy-tailed
+/// random number (veach-mis at 64 spp: 0.12 to 0.30 over 8 seeds; the caustic at 256 spp:
+/// 0.10 to 6.0), which no estimate from the same samples can follow render by render.
+/// The first seed's render is also held to the coverage checks.
+const SUITE_SEEDS: [u64; 4] = [8, 9, 10, 11];
+
 /// What a scene of the suite is held to.
 struct Expect {
     /// The least 3x3-pooled coverage.
     min_pooled: f64,
-    /// The range of estimated over measured image error, or `None` for the heavy-tailed
-    /// scenes, where the estimate is known to be optimistic (see the module docs of the
-    /// suite) and is only held to not overstating the error.
-    ratio: Option<(f64, f64)>,
+    /// The range of estimated over measured image error (root mean square over
+    /// [`SUITE_SEEDS`] of each) at each budget of [`BUDGETS`], or `None` where the
+    /// estimate is known to be optimistic (the path-traced caustic, see the module docs)
+    /// and is only held to not overstating the error.
+    ratio: Option<[(f64, f64); 3]>,
 }
 
-/// The suite's check of one scene at the three budgets (seed 8): the 3x3-pooled interval
-/// covers within `min_pooled..=0.97`; a pixel's own interval covers at most what Student's t
-/// for `K - 1` degrees of freedom predicts (plus 0.03), and at most 0.15 less (short passes
-/// are skewed: a pixel whose passes missed rare bright paths has both a low mean and a low
-/// variance, 74% against t's 86% at 64 spp on the caustic and the indirect room); and the
-/// image estimate is within its range of the measured error.
+/// 0.8-1.25 at every budget.
+const CALIBRATED: Option<[(f64, f64); 3]> = Some([(0.8, 1.25); 3]);
+
+/// The suite's check of one scene at the three budgets: for the first seed, the
+/// 3x3-pooled interval covers within `min_pooled..=0.97`, and a pixel's own interval
+/// covers at most what Student's t for `K - 1` degrees of freedom predicts (plus 0.03),
+/// and at most 0.15 less (short passes are skewed: a pixel whose passes missed rare bright
+/// paths has both a low mean and a low variance, 74% against t's 86% at 64 spp on the
+/// caustic and the indirect room); over all seeds, the image estimate is within its range
+/// of the measured error.
 fn suite_check(name: &str, expect: Expect) {
     let scene = SUITE.iter().find(|s| s.0 == name).unwrap().1;
-    for spp in BUDGETS {
-        let c = calibrate(name, scene, spp, 8);
-        let t = t_coverage(c.dof);
+    for (b, spp) in BUDGETS.into_iter().enumerate() {
+        let (mut estimated2, mut measured2) = (0.0, 0.0);
+        for (i, seed) in SUITE_SEEDS.into_iter().enumerate() {
+            let c = calibrate(name, scene, spp, seed);
+            estimated2 += c.estimated * c.estimated;
+            measured2 += c.measured * c.measured;
+            eprintln!(
+                "calibration {name} {spp} spp seed {seed}: own {:.2}% (t_{} {:.2}%), pooled 3x3 \
+                 {:.2}%, estimated {:.4} (own rel {:.4}) / measured {:.4} = {:.3}",
+                100.0 * c.coverage,
+                c.dof,
+                100.0 * t_coverage(c.dof),
+                100.0 * c.coverage_pooled,
+                c.estimated,
+                c.own_estimated,
+                c.measured,
+                c.ratio
+            );
+            if i > 0 {
+                continue;
+            }
+            let t = t_coverage(c.dof);
+            assert!(
+                (expect.min_pooled..=0.97).contains(&c.coverage_pooled),
+                "{name} {spp} spp: pooled coverage {}",
+                c.coverage_pooled
+            );
+            assert!(
+                (t - 0.15..=t + 0.03).contains(&c.coverage),
+                "{name} {spp} spp: own coverage {} against t {t}",
+                c.coverage
+            );
+        }
+        let ratio = (estimated2 / measured2).sqrt();
         eprintln!(
-            "calibration {name} {spp} spp: own {:.2}% (t_{} {:.2}%), pooled 3x3 {:.2}%, \
-             estimated {:.4} / measured {:.4} = {:.3}",
-            100.0 * c.coverage,
-            c.dof,
-            100.0 * t,
-            100.0 * c.coverage_pooled,
-            c.estimated,
-            c.measured,
-            c.ratio
-        );
-        assert!(
-            (expect.min_pooled..=0.97).contains(&c.coverage_pooled),
-            "{name} {spp} spp: pooled coverage {}",
-            c.coverage_pooled
-        );
-        assert!(
-            (t - 0.15..=t + 0.03).contains(&c.coverage),
-            "{name} {spp} spp: own coverage {} against t {t}",
-            c.coverage
+            "calibration {name} {spp} spp over {SUITE_SEEDS:?}: estimated / measured {ratio:.3}"
         );
         match expect.ratio {
-            Some((lo, hi)) => assert!(
-                (lo..=hi).contains(&c.ratio),
-                "{name} {spp} spp: estimated / measured {}",
-                c.ratio
+            Some(ranges) => assert!(
+                (ranges[b].0..=ranges[b].1).contains(&ratio),
+                "{name} {spp} spp: estimated / measured {ratio} over seeds {SUITE_SEEDS:?}"
             ),
-            None => assert!(c.ratio <= 1.25, "{name} {spp} spp: overstated {}", c.ratio),
+            None => assert!(ratio <= 1.25, "{name} {spp} spp: overstated {ratio}"),
         }
     }
 }
@@ -446,7 +486,7 @@ fn calibration_suite_cornell_box() {
         "cornell-box",
         Expect {
             min_pooled: 0.93,
-            ratio: Some((0.8, 1.25)),
+            ratio: CALIBRATED,
         },
     );
 }
@@ -457,37 +497,46 @@ fn calibration_suite_textured_room() {
         "textured-room",
         Expect {
             min_pooled: 0.93,
-            ratio: Some((0.8, 1.25)),
+            ratio: CALIBRATED,
         },
     );
 }
 
-/// Lit mostly indirectly: at 64 spp (4 passes) the estimate is 0.78 of the measured error
-/// (the skew of short passes), within 0.8-1.25 from 256 spp on.
+/// Lit mostly indirectly. With the pixels' own `rel` the estimate was 0.78 of the
+/// measured error at 64 spp (4 passes: a pass that caught a bright indirect path raised
+/// the mean it was divided by); the robust scale brings it to 0.97.
 #[test]
 fn calibration_suite_indirect_room() {
     suite_check(
         "indirect-room",
         Expect {
             min_pooled: 0.93,
-            ratio: Some((0.75, 1.25)),
+            ratio: CALIBRATED,
         },
     );
 }
 
 /// Path-traced (issue 15: not direct lighting), so the floor sees the plates' glossy
-/// caustics: heavy-tailed.
+/// caustics: heavy-tailed. With the pixels' own `rel` the estimate was 0.58 of the
+/// measured error at 64 spp; with the robust scale 1.03 (8 seeds).
 #[test]
 fn calibration_suite_veach_mis() {
     suite_check(
         "veach-mis",
         Expect {
             min_pooled: 0.93,
-            ratio: None,
+            ratio: CALIBRATED,
         },
     );
 }
 
+/// The glass sphere's caustic of a small light, path-traced: the estimate stays
+/// optimistic (about 0.03 at 64 spp, 0.2 at 1024 spp of the measured error in the mean
+/// over 8 seeds). The caustic is reached only by BSDF sampling through the glass onto the
+/// light, so at these budgets most caustic pixels have no pass that found it (no sample
+/// carries evidence of the missing light), and the measured error of one render ranges
+/// over two orders of magnitude between seeds (0.10 to 24 at 64 spp). Bidirectional path
+/// tracing is the remedy (the job's `integrator`); the suite keeps it as the known limit.
 #[test]
 fn calibration_suite_caustic() {
     suite_check(
@@ -500,23 +549,28 @@ fn calibration_suite_caustic() {
 }
 
 /// The glossy floor's caustic of the small light puts rare bright paths on the wall:
-/// the pooled coverage is 92-94%.
+/// the pooled coverage is 92-94%. At 64 spp (4 passes) the estimate is 0.78 of the
+/// measured error over 8 seeds (0.52 with the pixels' own `rel`), within 0.8-1.25 from
+/// 256 spp.
 #[test]
 fn calibration_suite_glossy_highlight() {
     suite_check(
         "glossy-highlight",
         Expect {
             min_pooled: 0.915,
-            ratio: None,
+            ratio: Some([(0.7, 1.25), (0.8, 1.25), (0.8, 1.25)]),
         },
     );
 }
 
-/// The suite's table for docs/benchmarks.md, two seeds per cell.
+/// The suite's table for docs/benchmarks.md: per scene and budget, the estimated over
+/// measured image error (root mean square over 8 seeds of each), with the robust scale
+/// and with the pixels' own `rel`, the range of one render's ratio, and the first seed's
+/// coverages.
 #[test]
 #[ignore = "prints the calibration table (about 5 minutes)"]
 fn calibration_suite_table() {
-    eprintln!("| scene | spp (passes) | own 2-sigma coverage (t predicts) | pooled 3x3 coverage | estimated / measured image error | estimated | measured |");
+    eprintln!("| scene | spp (passes) | estimated / measured, robust (one render: min-max) | own `rel` | measured error (min-max) | own 2-sigma coverage (t predicts) | pooled 3x3 coverage |");
     eprintln!("|---|---|---|---|---|---|---|");
     let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
     for (name, scene) in SUITE {
@@ -524,19 +578,29 @@ fn calibration_suite_table() {
             continue;
         }
         for spp in BUDGETS {
-            for seed in [8, 9] {
-                let c = calibrate(name, scene, spp, seed);
-                eprintln!(
-                    "| {name} (seed {seed}) | {spp} ({}) | {:.2}% ({:.2}%) | {:.2}% | {:.3} | {:.4} | {:.4} |",
-                    c.dof + 1,
-                    100.0 * c.coverage,
-                    100.0 * t_coverage(c.dof),
-                    100.0 * c.coverage_pooled,
-                    c.ratio,
-                    c.estimated,
-                    c.measured
-                );
-            }
+            let cs: Vec<Calibration> = (8..16)
+                .map(|seed| calibrate(name, scene, spp, seed))
+                .collect();
+            let sum = |f: fn(&Calibration) -> f64| cs.iter().map(|c| f(c).powi(2)).sum::<f64>();
+            let range = |f: fn(&Calibration) -> f64| {
+                cs.iter()
+                    .map(f)
+                    .fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)))
+            };
+            let (rlo, rhi) = range(|c| c.ratio);
+            let (mlo, mhi) = range(|c| c.measured);
+            let m2 = sum(|c| c.measured);
+            let c = &cs[0];
+            eprintln!(
+                "| {name} | {spp} ({}) | {:.3} ({rlo:.3}-{rhi:.3}) | {:.3} | {:.4} ({mlo:.4}-{mhi:.4}) | {:.2}% ({:.2}%) | {:.2}% |",
+                c.dof + 1,
+                (sum(|c| c.estimated) / m2).sqrt(),
+                (sum(|c| c.own_estimated) / m2).sqrt(),
+                (m2 / cs.len() as f64).sqrt(),
+                100.0 * c.coverage,
+                100.0 * t_coverage(c.dof),
+                100.0 * c.coverage_pooled,
+            );
         }
     }
 }
