@@ -44,7 +44,7 @@ pub struct JobArgs {
     /// --max-depth is given).
     #[arg(long, default_value = "auto")]
     pub integrator: String,
-    /// MIS heuristic: balance, power, cutoff[:ALPHA] or maximum.
+    /// MIS heuristic: balance, power, cutoff (cutoff:ALPHA sets the threshold) or maximum.
     #[arg(long, default_value = "power")]
     pub mis: String,
     /// Sampler: sobol (randomized QMC) or independent.

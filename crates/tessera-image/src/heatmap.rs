@@ -13,7 +13,7 @@ const STOPS: [[f32; 3]; 5] = [
     [0.99, 0.99, 0.75],
 ];
 
-/// The map's colour at `t` in [0, 1] (piecewise linear between [`STOPS`]).
+/// The map's colour at `t` in [0, 1] (piecewise linear between the map's colour stops, `STOPS`).
 pub fn heat_colour(t: f32) -> [u8; 3] {
     let t = if t.is_nan() { 0.0 } else { t.clamp(0.0, 1.0) };
     let x = t * (STOPS.len() - 1) as f32;

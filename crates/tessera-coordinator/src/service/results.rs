@@ -3,10 +3,10 @@
 //! then is the worker told whether it was accepted.
 //!
 //! [`Coordinator::accept_result`] runs these steps, each a function with one job:
-//! [`submit`] (validate against the lease and merge), [`record_merge`] (rejected-sample
-//! counts, tile error, the checkpoint to write), [`history_point`], [`record_fault`],
-//! [`apply_spot_events`] (spot-check outcomes, quarantines and the tiles they dropped),
-//! and [`Coordinator::write_back`] (the store writes, in that order).
+//! `submit` (validate against the lease and merge), `record_merge` (rejected-sample
+//! counts, tile error, the checkpoint to write), `history_point`, `record_fault`,
+//! `apply_spot_events` (spot-check outcomes, quarantines and the tiles they dropped),
+//! and `Coordinator::write_back` (the store writes, in that order).
 
 use std::sync::{Arc, OnceLock};
 

@@ -2,9 +2,9 @@
 //! resume and the grace period").
 //!
 //! Two rules are written once here and used by both the restart and the images of jobs
-//! that finished before it: [`resolve_stored`] turns a stored job into a resolved one
+//! that finished before it: `resolve_stored` turns a stored job into a resolved one
 //! (parse the stored settings, validate, load the scene, resolve), and
-//! [`restore_frames`] rebuilds frame accumulators from tile checkpoints, bit-exact.
+//! `restore_frames` rebuilds frame accumulators from tile checkpoints, bit-exact.
 
 use std::sync::Mutex;
 

@@ -814,7 +814,7 @@ impl PostgresStore {
 }
 
 /// Every method runs its `_` twin above and turns connection failures into
-/// [`StoreError::Unreachable`] ([`PostgresStore::lift`]).
+/// [`StoreError::Unreachable`] (`PostgresStore::lift`).
 #[async_trait]
 impl Store for PostgresStore {
     async fn insert_job(&self, job: NewJob) -> StoreResult<(JobId, bool)> {

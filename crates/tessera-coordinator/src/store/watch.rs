@@ -19,7 +19,7 @@ use super::{
     StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
-/// A store wrapper that records the first write failure (see the [module docs](self)).
+/// A store wrapper that records the first write failure (see the module docs).
 pub struct WatchedStore {
     inner: Arc<dyn Store>,
     fault: Mutex<Option<String>>,

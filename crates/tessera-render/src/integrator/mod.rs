@@ -30,7 +30,7 @@
 //!   the error estimate reads. It is left out of the sum (the pass mean still divides by
 //!   `samples_per_pass`: a dropped sample counts as black) and counted in
 //!   [`UnitResult::rejected_samples`], which the coordinator sums per job.
-//!   [`accumulate`] does both; use it for every contribution.
+//!   `accumulate` does both; use it for every contribution.
 //! - **Pixels outside `wanted` may be skipped** (left black), if the integrator's cost is
 //!   per pixel; bdpt renders every pixel (its splats land anywhere).
 //!
@@ -63,7 +63,7 @@ use glam::{Vec2, Vec3};
 use tessera_farm::{FramePlan, UnitResult, WorkUnit};
 
 /// Everything that decides the value of a sample, besides the scene and the plan: the job
-/// contract's resolved [`RenderConfig`](tessera_farm::job::RenderConfig) (for bdpt, `mis`
+/// contract's resolved [`tessera_farm::job::RenderConfig`] (for bdpt, `mis`
 /// balance selects β = 1, any other the power heuristic).
 pub use tessera_farm::job::RenderConfig;
 

@@ -23,8 +23,8 @@
 //!   to `π + Ω`); a triangle covering nearly a hemisphere (the point almost on it) makes the
 //!   warp ill-conditioned.
 //!
-//! [`TriangleLight::pdf_li`] applies the same rule, so it returns exactly the density
-//! [`TriangleLight::sample_li`] used. The spherical warp runs in f64: it is a handful of
+//! `TriangleLight::pdf_li` applies the same rule, so it returns exactly the density
+//! `TriangleLight::sample_li` used. The spherical warp runs in f64: it is a handful of
 //! operations per shadow ray, and keeps the warp's area `α + β + γ - π` consistent with the
 //! solid angle `Ω` of the pdf (computed by Van Oosterom & Strackee's formula) for solid
 //! angles down to `MIN_SPHERICAL_SOLID_ANGLE`.

@@ -16,7 +16,7 @@ pub mod warp;
 use glam::Vec2;
 
 /// Which randomized point set a [`PixelSampler`] draws from: the job contract's
-/// [`SamplerKind`](tessera_farm::job::SamplerKind). `Sobol` is Owen-scrambled Sobol'
+/// [`tessera_farm::job::SamplerKind`]. `Sobol` is Owen-scrambled Sobol'
 /// (Burley 2020): each 2D request is a fresh, independently scrambled and shuffled
 /// (0,m,2)-net, padded by Latin supercube sampling (Owen 2001, section 6.8);
 /// `Independent` is independent uniform random numbers from a hash of (pass, sample
