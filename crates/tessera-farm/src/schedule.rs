@@ -37,7 +37,7 @@
 //! ([`Scheduler::take_spot_events`]).
 //!
 //! Memory (issue 16): a frame's per-pixel merge state is allocated when its first unit is
-//! leased and, for jobs that are not adaptive, released by [`Scheduler::release_frame`]
+//! leased and released by [`Scheduler::release_frame`]
 //! once the frame is complete and its tiles are checkpointed. Allocations are charged to
 //! one budget for all jobs ([`Scheduler::set_memory_budget`]): a frame that does not fit
 //! waits (its units are not leased) until completed frames free their memory, so the
@@ -325,10 +325,12 @@ impl Job {
             return true;
         }
         match &self.adaptive {
-            Some(a) => a
-                .frames
-                .iter()
-                .all(|f| f.as_ref().is_some_and(AdaptiveFrame::finished)),
+            // A released frame was finished when it was released (its state is in the
+            // store now).
+            Some(a) => a.frames.iter().zip(&self.frames).all(|(f, slot)| {
+                matches!(slot, FrameSlot::Released)
+                    || f.as_ref().is_some_and(AdaptiveFrame::finished)
+            }),
             None => self.frames.iter().all(|f| match f {
                 FrameSlot::Pending => false,
                 FrameSlot::Live(f) => f.complete(),
@@ -964,8 +966,9 @@ impl Scheduler {
     /// produced ([`AdaptiveFrame::restore`]), one that consumed other passes than its tile
     /// merged (an unfinished tile consumes every merged pass; a finished one may have
     /// merged a unit past its end), a frame outside the job or of another plan, and merged
-    /// passes that do not end on a unit boundary. Restored frames stay live (adaptive
-    /// frames are never released) and are charged to the memory budget even beyond it.
+    /// passes that do not end on a unit boundary. Restored frames stay live, finished ones
+    /// too, until the job ends (no result will come to release them), and are charged to
+    /// the memory budget even beyond it.
     pub fn add_resumed_adaptive_job(
         &mut self,
         id: JobId,
@@ -1541,24 +1544,37 @@ impl Scheduler {
 
     /// Drops a complete frame's merge state from memory, once the caller has made its
     /// checkpoints durable; later results for it are [`Submitted::Late`] and its image
-    /// comes from the store. Frames of adaptive jobs stay (their policy state is not
-    /// checkpointed). Returns whether the frame was released now.
+    /// comes from the store. A frame of an adaptive job is complete when its policy has
+    /// finished every tile (issue 15): the policy state is checkpointed with each tile, so
+    /// the frame's image is restored from the store like any other, and the frames of an
+    /// animation no longer hold memory until the whole job ends (with a budget of one
+    /// frame, the next frame waited for that forever). Returns whether the frame was
+    /// released now.
     pub fn release_frame(&mut self, job_id: JobId, frame: u32) -> bool {
         let Some(job) = self.jobs.get_mut(&job_id) else {
             return false;
         };
-        let Some(k) = frame.checked_sub(job.first_frame) else {
+        let Some(k) = frame.checked_sub(job.first_frame).map(|k| k as usize) else {
             return false;
         };
-        let complete = job
-            .frames
-            .get(k as usize)
-            .and_then(FrameSlot::live)
-            .is_some_and(FrameAccumulator::complete);
-        if job.adaptive.is_some() || !complete {
+        let Some(acc) = job.frames.get(k).and_then(FrameSlot::live) else {
+            return false;
+        };
+        let complete = match &job.adaptive {
+            Some(a) => a
+                .frames
+                .get(k)
+                .and_then(Option::as_ref)
+                .is_some_and(AdaptiveFrame::finished),
+            None => acc.complete(),
+        };
+        if !complete {
             return false;
         }
-        job.frames[k as usize] = FrameSlot::Released;
+        job.frames[k] = FrameSlot::Released;
+        if let Some(a) = job.adaptive.as_mut() {
+            a.frames[k] = None;
+        }
         self.memory.resident = self.memory.resident.saturating_sub(job.frame_bytes);
         true
     }
@@ -2577,6 +2593,76 @@ mod tests {
         assert_eq!((pr.frames_done, pr.passes_done), (3, pr.passes_planned));
         assert_eq!(s.residency(1, 2), Some(Residency::Released));
         assert!(s.frame(1, 2).is_none());
+    }
+
+    /// Issue 15: a finished frame of a running adaptive job gives its memory back, so an
+    /// adaptive animation under a budget of one frame renders frame after frame (before,
+    /// adaptive frames stayed until the job ended and the second frame never fit).
+    #[test]
+    fn finished_adaptive_frames_are_released_and_the_next_frame_fits() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(16, 8, 8, 1, 48).unwrap(); // 2 tiles, 48 passes
+        for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
+            let settings = AdaptiveSettings {
+                mode,
+                target_error: 0.05,
+                ..AdaptiveSettings::default()
+            };
+            let frame = frame_state_bytes(&p, true);
+            let mut s = Scheduler::new(1000, 0);
+            s.set_memory_budget(frame);
+            s.add_adaptive_job(7, 0, p, 0..=2, 2, settings).unwrap();
+            let mut order = Vec::new();
+            for _ in 0..1000 {
+                let ls = s.lease(1, 0, 100);
+                if ls.is_empty() {
+                    break;
+                }
+                assert!(s.resident_bytes() <= frame, "{mode}: one frame at a time");
+                for l in &ls {
+                    if order.last() != Some(&l.unit.frame) {
+                        order.push(l.unit.frame);
+                    }
+                    assert_eq!(
+                        s.submit(l.lease_id, 7, result(&p, l.unit, 0.5)),
+                        Ok(Submitted::Accepted)
+                    );
+                }
+                let f = ls[0].unit.frame;
+                if s.adaptive_frame(7, f).is_some_and(AdaptiveFrame::finished) {
+                    // Not before its checkpoints are durable: the caller says when.
+                    assert_eq!(s.residency(7, f), Some(Residency::Live));
+                    assert!(s.release_frame(7, f), "{mode}: frame {f}");
+                    assert_eq!(s.residency(7, f), Some(Residency::Released));
+                    assert!(s.adaptive_frame(7, f).is_none());
+                    assert_eq!(s.resident_bytes(), 0);
+                }
+            }
+            assert_eq!(order, [0, 1, 2], "{mode}");
+            assert!(s.is_complete(7), "{mode}");
+            let pr = s.progress(7).unwrap();
+            assert_eq!(pr.frames_done, 3, "{mode}");
+        }
+    }
+
+    /// An unfinished adaptive frame is not released.
+    #[test]
+    fn an_unfinished_adaptive_frame_is_not_released() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(16, 8, 8, 1, 48).unwrap();
+        let settings = AdaptiveSettings {
+            mode: AdaptiveMode::Sequential,
+            target_error: 0.05,
+            ..AdaptiveSettings::default()
+        };
+        let mut s = Scheduler::new(1000, 0);
+        s.add_adaptive_job(7, 0, p, 0..=0, 2, settings).unwrap();
+        let ls = s.lease(1, 0, 1);
+        s.submit(ls[0].lease_id, 7, result(&p, ls[0].unit, 0.5))
+            .unwrap();
+        assert!(!s.release_frame(7, 0));
+        assert!(!s.release_frame(7, 5), "no such frame");
+        assert!(s.adaptive_frame(7, 0).is_some());
     }
 
     #[test]

@@ -105,7 +105,9 @@ impl Coordinator {
 
     /// Refuses a job whose merge state cannot fit the memory budget: one frame (frames
     /// of a job that is not adaptive are released as they complete) or, for adaptive jobs,
-    /// all frames (their policy state is not checkpointed, so it stays until the job ends).
+    /// all frames: a running adaptive job releases its finished frames too, but a restart
+    /// restores every frame that has checkpoints, finished ones included
+    /// (`Scheduler::add_resumed_adaptive_job`).
     pub(crate) fn check_memory(
         &self,
         job: &ValidatedJob,

@@ -208,8 +208,27 @@ impl Coordinator {
                 .runtime
                 .get(job)
                 .is_some_and(|rt| !rt.unsaved_checkpoints);
-            if saved && farm.scheduler.release_frame(*job, *frame) {
-                tracing::debug!(job, frame, "frame complete and released");
+            if saved {
+                // An adaptive job's status and history read the first frame's policy
+                // state: keep its final figures before the state leaves memory.
+                let summary = farm
+                    .scheduler
+                    .adaptive_frame(*job, *frame)
+                    .filter(|a| a.finished())
+                    .map(|a| {
+                        (
+                            a.samples_per_pixel().0,
+                            a.every_pixel_estimated().then(|| a.image_error()),
+                        )
+                    });
+                if farm.scheduler.release_frame(*job, *frame) {
+                    tracing::debug!(job, frame, "frame complete and released");
+                    if let (Some(summary), Some(rt)) = (summary, farm.runtime.get_mut(job)) {
+                        if rt.job().frames.start == *frame {
+                            rt.adaptive_summary = summary;
+                        }
+                    }
+                }
             }
         }
         self.write_back(&writes).await;
@@ -662,6 +681,8 @@ pub(crate) fn history_point(
             rt.adaptive_summary = summary;
             summary
         }
+        // The first frame finished and was released: its final figures.
+        None if rt.job().adaptive_settings().is_some() => rt.adaptive_summary,
         None => (
             spp_so_far(&rt.resolved, p.passes_done, rt.job().frames.count()),
             rt.error_estimate(),

@@ -162,8 +162,9 @@ async fn restore_incomplete(
 }
 
 /// Every frame of an adaptive job that has checkpoints, restored with its policy state
-/// (issue 15). Adaptive frames are never released, so a restart holds what the run held;
-/// `None` when a checkpoint predates the policy state (the job then starts over).
+/// (issue 15), finished ones included (they stay in memory until the job ends, which is
+/// why an adaptive job must fit the budget with all its frames); `None` when a checkpoint
+/// predates the policy state (the job then starts over).
 async fn restore_adaptive(store: &dyn Store, rec: &JobRecord) -> Result<Option<Restored>, String> {
     let summaries = store
         .tile_summaries(rec.id)
