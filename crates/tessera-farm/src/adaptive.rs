@@ -916,11 +916,9 @@ impl AdaptiveFrame {
     /// ARCHITECTURE.md §3) over the pixels with at least 2 passes in their estimate; 0 if
     /// there are none.
     pub fn image_error(&self) -> f64 {
-        crate::stats::image_relative_error_of_tiles(
-            self.plan.width as usize,
-            self.plan.height as usize,
-            self.tiles.iter().map(|t| (t.rect(), t.pixels())),
-        )
+        crate::stats::image_relative_error_of_tiles(&self.plan, |t| {
+            self.tiles.get(t).map(AdaptiveTile::pixels)
+        })
     }
 
     /// Whether every pixel has at least 2 passes in its estimate, i.e. an error estimate.

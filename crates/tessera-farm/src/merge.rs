@@ -458,11 +458,9 @@ impl FrameAccumulator {
     /// pixels with fewer have no error estimate and are excluded. 0 if no pixel has 2
     /// passes. Never NaN.
     pub fn image_error(&self) -> f64 {
-        crate::stats::image_relative_error_of_tiles(
-            self.plan.width as usize,
-            self.plan.height as usize,
-            self.tiles.iter().map(|t| (t.rect(), t.pixels())),
-        )
+        crate::stats::image_relative_error_of_tiles(&self.plan, |t| {
+            self.tiles.get(t).map(TileAccumulator::pixels)
+        })
     }
 }
 
@@ -565,18 +563,13 @@ impl FrameImage {
         if self.passes.is_empty() || self.passes.iter().any(|&p| p < 2) {
             return None;
         }
-        let pixels: Vec<Option<(f64, f64)>> = self
-            .mean
-            .iter()
-            .zip(&self.relative_error)
-            .map(|(rgb, &rel)| {
-                let m = crate::luminance(rgb.map(f64::from));
-                let se = f64::from(rel) * (m.max(0.0) + crate::REL_EPS);
-                Some((m, se * se))
-            })
-            .collect();
-        let e =
-            crate::stats::image_relative_error(self.width as usize, self.height as usize, &pixels);
+        let w = self.width as usize;
+        let e = crate::stats::image_relative_error(w, self.height as usize, |x, y| {
+            let p = y * w + x;
+            let m = crate::luminance(self.mean.get(p)?.map(f64::from));
+            let se = f64::from(*self.relative_error.get(p)?) * (m.max(0.0) + crate::REL_EPS);
+            Some((m, se * se))
+        });
         e.is_finite().then_some(e)
     }
 }
@@ -1055,5 +1048,31 @@ mod tests {
                 assert_eq!(img.mean[(y * 37 + x) as usize], [x as f32, y as f32, 0.0]);
             }
         }
+    }
+
+    /// The image error reads each pixel from its tile (no frame-sized copy): on a plan
+    /// whose last tile column and row are narrower, it equals the estimate over the same
+    /// statistics laid out row-major over the frame.
+    #[test]
+    fn image_error_reads_pixels_where_their_tiles_are() {
+        let plan = FramePlan::new(37, 23, 8, 1, 3).unwrap();
+        let mut acc = FrameAccumulator::new(plan);
+        for u in plan.units(0, 3) {
+            acc.offer(render(&plan, u)).unwrap();
+        }
+        let mut frame = vec![None; 37 * 23];
+        for tile in &acc.tiles {
+            let r = tile.rect();
+            for (i, s) in tile.pixels().iter().enumerate() {
+                let (x, y) = (
+                    r.x0 as usize + i % r.width as usize,
+                    r.y0 as usize + i / r.width as usize,
+                );
+                frame[y * 37 + x] = Some((s.mean_lum, s.lum_variance_of_mean()));
+            }
+        }
+        let expected = crate::image_relative_error(37, 23, |x, y| frame[y * 37 + x]);
+        assert!(expected > 0.0);
+        assert_eq!(acc.image_error().to_bits(), expected.to_bits());
     }
 }

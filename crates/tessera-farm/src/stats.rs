@@ -47,31 +47,35 @@ pub fn robust_scale(mean_lum: f64, lum_variance_of_mean: f64, neighbourhood_mean
 }
 
 /// The image relative error estimate (ARCHITECTURE.md §3): the root mean square over the
-/// pixels with an estimate of `sqrt(v) / robust_scale(m, v, m_3x3)`, where `pixels` holds,
-/// row-major over a `width` x `height` frame, each pixel's mean luminance `m` and
+/// pixels with an estimate of `sqrt(v) / robust_scale(m, v, m_3x3)`, where `pixel(x, y)`
+/// gives, for pixel `(x, y)` of a `width` x `height` frame, its mean luminance `m` and
 /// estimated variance of that mean `v`, or `None` for a pixel with fewer than 2 passes.
 /// The neighbourhood mean `m_3x3` is over the neighbours (the pixel included) that have an
 /// estimate. 0 when no pixel has one; never NaN.
 ///
 /// It is a function of the merged statistics alone, so every renderer of a frame (local,
-/// farm, restored from checkpoints) gets the same number from the same passes.
-pub fn image_relative_error(width: usize, height: usize, pixels: &[Option<(f64, f64)>]) -> f64 {
-    debug_assert_eq!(pixels.len(), width * height);
+/// farm, restored from checkpoints) gets the same number from the same passes. The
+/// statistics are read where they are (tiles, image layers) rather than copied into a
+/// frame-sized buffer: the coordinator calls this for its status and history, and a
+/// 16384x16384 frame's copy would be 6 GiB beside the budgeted merge state.
+pub fn image_relative_error(
+    width: usize,
+    height: usize,
+    pixel: impl Fn(usize, usize) -> Option<(f64, f64)>,
+) -> f64 {
     let (mut sum, mut count) = (0.0f64, 0u64);
     for y in 0..height {
         for x in 0..width {
-            let Some((m, v)) = pixels[y * width + x] else {
+            let Some((m, v)) = pixel(x, y) else {
                 continue;
             };
             let (mut nsum, mut n) = (0.0f64, 0u32);
             for qy in y.saturating_sub(1)..(y + 2).min(height) {
-                let row = &pixels[qy * width..(qy + 1) * width];
-                for (qm, _) in row[x.saturating_sub(1)..(x + 2).min(width)]
-                    .iter()
-                    .flatten()
-                {
-                    nsum += qm.max(0.0);
-                    n += 1;
+                for qx in x.saturating_sub(1)..(x + 2).min(width) {
+                    if let Some((qm, _)) = pixel(qx, qy) {
+                        nsum += qm.max(0.0);
+                        n += 1;
+                    }
                 }
             }
             let rel = v.max(0.0).sqrt() / robust_scale(m, v, nsum / f64::from(n));
@@ -90,24 +94,22 @@ pub fn image_relative_error(width: usize, height: usize, pixels: &[Option<(f64, 
     }
 }
 
-/// [`image_relative_error`] of a frame held as tiles: each tile's rectangle and its pixels'
-/// statistics, row-major within the tile. Pixels with fewer than 2 passes have no estimate.
+/// [`image_relative_error`] of a frame of `plan` held as tiles: `tile(t)` gives tile `t`'s
+/// pixels' statistics, row-major within the tile ([`crate::FramePlan::get_tile`]). Pixels
+/// with fewer than 2 passes have no estimate.
 pub(crate) fn image_relative_error_of_tiles<'a>(
-    width: usize,
-    height: usize,
-    tiles: impl Iterator<Item = (crate::TileRect, &'a [PixelStats])>,
+    plan: &crate::FramePlan,
+    tile: impl Fn(usize) -> Option<&'a [PixelStats]>,
 ) -> f64 {
-    let mut pixels = vec![None; width * height];
-    for (r, stats) in tiles {
-        let rw = r.width.max(1) as usize;
-        for (i, s) in stats.iter().enumerate() {
-            let p = (r.y0 as usize + i / rw) * width + r.x0 as usize + i % rw;
-            if s.passes >= 2 && p < pixels.len() {
-                pixels[p] = Some((s.mean_lum, s.lum_variance_of_mean()));
-            }
-        }
-    }
-    image_relative_error(width, height, &pixels)
+    let (width, height) = (plan.width as usize, plan.height as usize);
+    let edge = plan.tile_size.max(1) as usize;
+    let tiles_x = plan.tiles_x() as usize;
+    image_relative_error(width, height, |x, y| {
+        let (lx, ly) = (x % edge, y % edge);
+        let tile_width = edge.min(width - (x - lx));
+        let s = tile((y / edge) * tiles_x + x / edge)?.get(ly * tile_width + lx)?;
+        (s.passes >= 2).then(|| (s.mean_lum, s.lum_variance_of_mean()))
+    })
 }
 
 /// Luminance weights of linear Rec. 709 / sRGB primaries.
@@ -240,14 +242,16 @@ mod tests {
         let px = Some((1.0, 0.01));
         let mut pixels = vec![px; 12];
         let own = 0.1 / 1.01;
-        assert!((image_relative_error(4, 3, &pixels) - own).abs() < 1e-12);
+        let of =
+            |pixels: &[Option<(f64, f64)>]| image_relative_error(4, 3, |x, y| pixels[y * 4 + x]);
+        assert!((of(&pixels) - own).abs() < 1e-12);
         pixels[5] = None;
         pixels[6] = Some((100.0, 0.0));
         // Pixel 6 is exact (v = 0) but raises its neighbours' means; they are darker
         // than it and keep their own means, so the estimate over 11 pixels is 10 x own^2.
-        let e = image_relative_error(4, 3, &pixels);
+        let e = of(&pixels);
         assert!((e - (10.0 * own * own / 11.0).sqrt()).abs() < 1e-12, "{e}");
-        assert_eq!(image_relative_error(2, 1, &[None, None]), 0.0);
+        assert_eq!(image_relative_error(2, 1, |_, _| None), 0.0);
     }
 
     #[test]

@@ -211,22 +211,16 @@ impl Coordinator {
             if saved {
                 // An adaptive job's status and history read the first frame's policy
                 // state: keep its final figures before the state leaves memory.
+                let first = farm.runtime.get(job).map(|rt| rt.job().frames.start);
                 let summary = farm
                     .scheduler
                     .adaptive_frame(*job, *frame)
-                    .filter(|a| a.finished())
-                    .map(|a| {
-                        (
-                            a.samples_per_pixel().0,
-                            a.every_pixel_estimated().then(|| a.image_error()),
-                        )
-                    });
+                    .filter(|a| first == Some(*frame) && a.finished())
+                    .map(adaptive_summary);
                 if farm.scheduler.release_frame(*job, *frame) {
                     tracing::debug!(job, frame, "frame complete and released");
                     if let (Some(summary), Some(rt)) = (summary, farm.runtime.get_mut(job)) {
-                        if rt.job().frames.start == *frame {
-                            rt.adaptive_summary = summary;
-                        }
+                        rt.adaptive_summary = summary;
                     }
                 }
             }
@@ -658,6 +652,15 @@ fn reset_tile(farm: &mut Farm, job: JobId, frame: u32, tile: u32) -> Option<Tile
     Some(checkpoint_of(farm, job, frame, t, 0))
 }
 
+/// An adaptive frame's figures for the job's status and history: its mean samples per
+/// pixel and its image error estimate, once every pixel has one.
+pub(crate) fn adaptive_summary(a: &tessera_farm::AdaptiveFrame) -> (f64, Option<f64>) {
+    (
+        a.samples_per_pixel().0,
+        a.every_pixel_estimated().then(|| a.image_error()),
+    )
+}
+
 /// A convergence-history point (spp, image error, elapsed seconds), at most every
 /// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10).
 pub(crate) fn history_point(
@@ -674,10 +677,7 @@ pub(crate) fn history_point(
     rt.last_history_ms = now;
     let (spp, error_estimate) = match farm.scheduler.adaptive_frame(job, rt.job().frames.start) {
         Some(a) => {
-            let summary = (
-                a.samples_per_pixel().0,
-                a.every_pixel_estimated().then(|| a.image_error()),
-            );
+            let summary = adaptive_summary(a);
             rt.adaptive_summary = summary;
             summary
         }

@@ -355,10 +355,7 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
             farm.scheduler
                 .add_resumed_adaptive_job(rec.id, rec.priority, plan, ppu, resumed)?;
             if let Some(a) = farm.scheduler.adaptive_frame(rec.id, first) {
-                rt.adaptive_summary = (
-                    a.samples_per_pixel().0,
-                    a.every_pixel_estimated().then(|| a.image_error()),
-                );
+                rt.adaptive_summary = super::results::adaptive_summary(a);
             }
         }
         Restart::Plain(restored, complete) => {
