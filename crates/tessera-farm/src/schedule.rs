@@ -571,8 +571,8 @@ pub fn tail_share(queued: u64, threads: u64, total_threads: u64, max_units: usiz
 /// whole (a worker is still faulted for a NaN in a pixel it did not have to trace).
 ///
 /// Why: a worker that traces only the named pixels reports 0 for the others, but one
-/// that predates `Lease.wanted`, or an integrator that cannot skip pixels (bdpt), reports
-/// real values there. The policy reads neither, yet the digests that compare copies of a
+/// that predates `Lease.wanted` reports real values there, and bdpt reports the splats
+/// that landed on them (it skips their camera subpaths, not the light subpaths). The policy reads neither, yet the digests that compare copies of a
 /// unit would differ; zeroing here makes every valid copy of a unit the same bytes.
 fn canonical_masked(
     mut result: UnitResult,
@@ -2486,8 +2486,8 @@ mod tests {
                         continue; // a lost result: re-leased after expiry
                     }
                     let n = p.tile(l.unit.tile).pixel_count() as u64;
-                    // Some copies come from workers that trace whole tiles (older ones,
-                    // bdpt): they are the same unit to the comparison.
+                    // Some copies come from workers that trace whole tiles (older ones)
+                    // or carry values outside the set (bdpt splats): the same unit.
                     let r = if rng.is_multiple_of(7) {
                         noisy_result(&p, l.unit)
                     } else {

@@ -15,7 +15,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use tessera_farm::{FrameAccumulator, FramePlan};
 use tessera_render::integrator::Integrator;
-use tessera_render::render::{render_frame, render_unit, RenderConfig};
+use tessera_render::render::{render_frame, render_unit, render_unit_where, RenderConfig};
 use tessera_render::scene::RenderScene;
 use tessera_scene::builtin::{look_at_camera, FURNACE_ALBEDO, FURNACE_EMISSION};
 use tessera_scene::{Material, MaterialKind, Mesh, PunctualLight, Scene, Sphere};
@@ -327,6 +327,53 @@ fn bdpt_is_deterministic_across_threads_splits_and_reruns() {
         |_, _| {},
     );
     assert!(bits(&other) != bits(&one));
+}
+
+/// Adaptive stopping (issue 15): a bdpt unit asked for some pixels traces camera subpaths
+/// only for them, and each of them gets bit for bit the value it has when every pixel is
+/// rendered (the splats of the skipped pixels' light subpaths included). The caustic scene
+/// has light-tracing splats everywhere on its floor, so a skipped light subpath would show.
+#[test]
+fn masked_bdpt_units_keep_the_wanted_pixels_bit_for_bit() {
+    let scene = tessera_scene::load("builtin:caustic").unwrap();
+    let (w, h) = (24, 16);
+    let rs = RenderScene::build(&scene, w, h).unwrap();
+    let plan = whole_frame_plan(w, h, 4, 3);
+    let s = settings(Integrator::Bdpt, 7, 8);
+    let pixels = (w * h) as usize;
+    // A different set each pass, as the policy's decisions make it.
+    let wanted = |i: usize, pass: u32| (i * 7 + pass as usize * 3) % 5 < 2;
+    let asked = std::cell::Cell::new(0usize);
+    for unit in plan.units(0, 3) {
+        let full = render_unit(&rs, &s, &plan, unit);
+        let masked = render_unit_where(&rs, &s, &plan, unit, |i, pass| {
+            asked.set(asked.get() + 1);
+            wanted(i, pass)
+        });
+        masked.validate(&plan).unwrap();
+        let (mut kept, mut differ) = (0, 0);
+        for (k, (f, m)) in full.pass_means.iter().zip(&masked.pass_means).enumerate() {
+            let (i, pass) = (k % pixels, unit.first_pass + (k / pixels) as u32);
+            if wanted(i, pass) {
+                assert_eq!(
+                    f.map(f32::to_bits),
+                    m.map(f32::to_bits),
+                    "pixel {i}, pass {pass}"
+                );
+                kept += 1;
+            } else if f != m {
+                differ += 1;
+            }
+        }
+        assert!(kept > pixels / 2, "{kept}");
+        // The skipped pixels really skipped their camera subpaths (their values changed).
+        assert!(
+            differ > pixels / 2,
+            "{differ} of the skipped pixels changed"
+        );
+    }
+    // Asked once per tile pixel and pass, not per sample.
+    assert_eq!(asked.get(), pixels * plan.passes as usize);
 }
 
 /// A tiled plan (splats outside a unit's tile are produced by the other units' light

@@ -34,7 +34,6 @@ use std::time::{Duration, Instant};
 use tessera_farm::job::SceneRef;
 use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
-use tessera_render::integrator::Integrator;
 use tessera_render::render::{render_unit, render_unit_where};
 use tessera_render::scene::RenderScene;
 use tessera_scene::{Scene, SceneTime};
@@ -998,13 +997,9 @@ fn render_contained(
             traced.set(traced.get() + u64::from(yes));
             yes
         });
-        // bdpt renders every pixel of its whole-frame tile (its light paths splat anywhere)
-        // without asking.
-        let traced = match l.settings.integrator {
-            Integrator::Bdpt => all,
-            Integrator::Path | Integrator::Direct => traced.get(),
-        };
-        (result, traced)
+        // bdpt asks too: it traces camera subpaths for the wanted pixels only (the light
+        // subpaths of every pixel still run, since their splats land anywhere).
+        (result, traced.get())
     }))
     .map_err(|payload| panic_message(payload.as_ref()))
 }

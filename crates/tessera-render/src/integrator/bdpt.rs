@@ -59,6 +59,13 @@
 //! (the subpath of a pixel outside the tile is traced alone), which costs `tile count` times
 //! the light tracing. `tessera` always plans `bdpt` with the whole-frame tile.
 //!
+//! # Adaptive stopping
+//! A pixel the adaptive policy has stopped traces no camera subpath: its camera
+//! techniques (`t >= 2`, with their connections) are the bulk of a sample's cost. Its light
+//! subpaths are still traced, because their splats belong to other pixels; skipping them
+//! would change every pixel they land in. So a stopped pixel costs its light subpaths
+//! only, and the wanted pixels get exactly the values of a render of every pixel.
+//!
 //! Limits: subpaths have at most [`MAX_BDPT_DEPTH`] bounces (fixed-size vertex arrays on the
 //! stack: nothing is allocated per sample); deeper `max_depth` settings are clamped.
 
@@ -875,12 +882,19 @@ struct Scratch {
 /// Invalid contributions (NaN, infinite, negative) are dropped and counted in
 /// `rejected_samples`: a camera sample's estimate of a tile pixel, and each light-tracing
 /// splat landing in the tile.
+///
+/// Only tile pixels where `wanted(i, pass)` holds (`i` row-major in the tile) trace camera
+/// subpaths; every pixel of the frame still traces its light subpaths, so a wanted pixel
+/// gets the same value as when every pixel is wanted, splats included. An unwanted pixel's
+/// pass mean holds only the splats that landed in it: a partial estimate, which the
+/// adaptive policy never reads and the farm zeroes (issue 15).
 pub fn render_unit(
     scene: &RenderScene,
     st: &BdptSettings,
     stream: SampleStream,
     plan: &FramePlan,
     unit: WorkUnit,
+    wanted: impl Fn(usize, u32) -> bool,
 ) -> UnitResult {
     let mut ctx = Ctx {
         scene,
@@ -917,8 +931,13 @@ pub fn render_unit(
                 let pixel = y * plan.width + x;
                 let inside = in_tile(x, y);
                 let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
+                // A pixel the adaptive policy no longer wants traces no camera subpath (nor
+                // its connections, the bulk of the cost), but its light subpath still runs:
+                // its splats land on other pixels, which must get the same values as in a
+                // render of every pixel.
+                let traced = inside.filter(|&j| wanted(j, pass));
                 let mut cs =
-                    inside.map(|_| PixelSampler::new(kind, stream.seed, unit.frame, pixel, pass));
+                    traced.map(|_| PixelSampler::new(kind, stream.seed, unit.frame, pixel, pass));
                 for i in 0..spp {
                     ls.start_sample(i);
                     if motion {
@@ -944,7 +963,7 @@ pub fn render_unit(
                             accumulate(&mut sum[j], l, &mut rejected_samples);
                         }
                     });
-                    if let Some(j) = inside {
+                    if let Some(j) = traced {
                         accumulate(&mut sum[j], camera_l, &mut rejected_samples);
                     }
                 }

@@ -31,8 +31,10 @@
 //!   `samples_per_pass`: a dropped sample counts as black) and counted in
 //!   [`UnitResult::rejected_samples`], which the coordinator sums per job.
 //!   `accumulate` does both; use it for every contribution.
-//! - **Pixels outside `wanted` may be skipped** (left black), if the integrator's cost is
-//!   per pixel; bdpt renders every pixel (its splats land anywhere).
+//! - **Pixels outside `wanted` may be skipped** (left black, or holding partial values
+//!   the adaptive policy never reads): `path` and `direct` skip them entirely; bdpt skips
+//!   their camera subpaths but still traces their light subpaths, whose splats land on
+//!   other pixels.
 //!
 //! # Adding an integrator
 //!
@@ -108,8 +110,10 @@ pub fn render_unit(
 /// stopped: a wanted pixel's value is the same as with [`render_unit`], and the policy
 /// ignores the others, so the image is the same as when whole tiles are rendered.
 ///
-/// Bidirectional path tracing renders every pixel: its light-tracing splats land
-/// anywhere in the (whole-frame) tile, so skipping pixels would not save their cost.
+/// Bidirectional path tracing skips the camera subpaths of unwanted pixels but traces
+/// every pixel's light subpaths (their splats land anywhere in the whole-frame tile), so
+/// an unwanted pixel may hold the splats that landed in it: the policy ignores it, and the
+/// farm zeroes it (`Scheduler`'s canonical masked result).
 pub fn render_unit_where(
     scene: &RenderScene,
     settings: &RenderConfig,
@@ -138,7 +142,7 @@ pub fn render_unit_where(
         // (and why bdpt plans use one whole-frame tile).
         Integrator::Bdpt => {
             let bdpt = bdpt::BdptSettings::new(settings.mis, settings.max_depth, settings.rr_depth);
-            bdpt::render_unit(scene, &bdpt, stream, plan, unit)
+            bdpt::render_unit(scene, &bdpt, stream, plan, unit, wanted)
         }
     }
 }
