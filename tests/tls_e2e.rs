@@ -129,6 +129,74 @@ fn a_mutual_tls_farm_renders_the_local_image_byte_for_byte() {
     assert_eq!(workers[0].identity.as_deref(), Some("render-node-1"));
 }
 
+/// Issue 14: per-pod worker certificates rotate under a running worker (cert-manager's
+/// csi-driver renews them in place, docs/deploy.md). The worker reads its files again
+/// before every connection, so after its coordinator restarts it registers under the new
+/// certificate's name, without a restart of its own.
+#[test]
+fn a_worker_presents_its_rotated_client_certificate_on_the_next_connection() {
+    let dir = temp_dir("tls", "rotate");
+    let (ca, worker_ca) = (Ca::new("farm CA"), Ca::new("worker CA"));
+    let ca_pem = ca.write(&dir, "ca.pem");
+    let worker_ca_pem = worker_ca.write(&dir, "worker-ca.pem");
+    let (cert, key) = ca.issue(&dir, "server", "coordinator", true);
+    let (wcert, wkey) = worker_ca.issue(&dir, "worker", "pod-a", false);
+    let tls = [
+        "--tls-cert",
+        s(&cert),
+        "--tls-key",
+        s(&key),
+        "--tls-client-ca",
+        s(&worker_ca_pem),
+    ];
+    let data = dir.join("data");
+    let mut c = start_coordinator(&data, "127.0.0.1:0", "127.0.0.1:0", &tls);
+    let _w = start_worker(
+        &c.grpc,
+        "w1",
+        &[
+            "--tls-ca",
+            s(&ca_pem),
+            "--tls-cert",
+            s(&wcert),
+            "--tls-key",
+            s(&wkey),
+        ],
+    );
+    let identities = |http: &str| -> Vec<String> {
+        let client = tessera_api::client::Client::new(http, None)
+            .with_tls_ca(&std::fs::read(&ca_pem).unwrap())
+            .unwrap();
+        client
+            .workers()
+            .map(|w| w.workers.into_iter().filter_map(|w| w.identity).collect())
+            .unwrap_or_default()
+    };
+    poll(
+        "the worker registered as pod-a",
+        Duration::from_secs(30),
+        || identities(&c.http) == ["pod-a"],
+    );
+    // The certificate is renewed in place (written whole, then renamed), and the
+    // coordinator restarts on the same addresses: the worker reconnects with the new one.
+    worker_ca.issue(&dir, "worker", "pod-b", false);
+    let (http, grpc) = (
+        c.http.trim_start_matches("https://").to_string(),
+        c.grpc.trim_start_matches("https://").to_string(),
+    );
+    c.proc.kill9();
+    let c2 = start_coordinator(&data, &http, &grpc, &tls);
+    poll(
+        "the worker registered again as pod-b",
+        Duration::from_secs(30),
+        || identities(&c2.http).contains(&"pod-b".to_string()),
+    );
+    assert!(
+        !identities(&c2.http).contains(&"pod-a".to_string()),
+        "the old certificate was presented again"
+    );
+}
+
 #[test]
 fn sighup_puts_new_certificate_files_in_force_and_keeps_the_old_ones_if_bad() {
     let dir = temp_dir("tls", "sighup");

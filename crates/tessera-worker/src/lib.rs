@@ -90,12 +90,28 @@ fn corrupt(result: &mut tessera_farm::UnitResult) {
 }
 
 /// A worker's TLS settings, read from PEM files by [`WorkerTls::from_files`].
+///
+/// Read from files, they are read again before every connection to a coordinator
+/// ([`WorkerTls::reread`]): a certificate that rotates under a running worker (a
+/// per-pod certificate that cert-manager's csi-driver renews before it expires,
+/// docs/deploy.md) is presented on the next connection, without a restart.
 #[derive(Clone)]
 pub struct WorkerTls {
     /// The CA certificates (PEM) the coordinator's certificate must be issued by.
     pub ca_pem: Vec<u8>,
     /// The worker's certificate chain and private key (PEM), for mutual TLS.
     pub identity: Option<(Vec<u8>, Vec<u8>)>,
+    /// The files they were read from, if they were: the CA, then the certificate and key.
+    pub files: Option<TlsFiles>,
+}
+
+/// The PEM files of a [`WorkerTls`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TlsFiles {
+    /// The CA certificates.
+    pub ca: std::path::PathBuf,
+    /// For mutual TLS: the worker's certificate chain and its private key.
+    pub cert_and_key: Option<(std::path::PathBuf, std::path::PathBuf)>,
 }
 
 impl std::fmt::Debug for WorkerTls {
@@ -152,7 +168,31 @@ impl WorkerTls {
                 Some((cert_pem, key_pem))
             }
         };
-        Ok(Self { ca_pem, identity })
+        let files = Some(TlsFiles {
+            ca: ca.to_path_buf(),
+            cert_and_key: cert_and_key.map(|(c, k)| (c.to_path_buf(), k.to_path_buf())),
+        });
+        Ok(Self {
+            ca_pem,
+            identity,
+            files,
+        })
+    }
+
+    /// The settings read again from the files they came from, if the files now hold
+    /// something else; `None` when they did not come from files or are unchanged. An
+    /// error (a file missing or half written during a rotation) names the file; the
+    /// caller keeps the settings it has.
+    pub fn reread(&self) -> Option<Result<Self, WorkerError>> {
+        let files = self.files.as_ref()?;
+        let cert_and_key = files
+            .cert_and_key
+            .as_ref()
+            .map(|(c, k)| (c.as_path(), k.as_path()));
+        match Self::from_files(&files.ca, cert_and_key) {
+            Ok(fresh) if fresh.ca_pem == self.ca_pem && fresh.identity == self.identity => None,
+            other => Some(other),
+        }
     }
 
     fn client_config(&self) -> ClientTlsConfig {
@@ -259,11 +299,15 @@ pub async fn run(
             "no coordinator URL: give at least one (--coordinator)".into(),
         ));
     }
-    let endpoints = config
-        .coordinators
-        .iter()
-        .map(|url| endpoint(url, config.tls.as_ref()))
-        .collect::<Result<Vec<_>, _>>()?;
+    let endpoints_for = |tls: Option<&WorkerTls>| {
+        config
+            .coordinators
+            .iter()
+            .map(|url| endpoint(url, tls))
+            .collect::<Result<Vec<_>, _>>()
+    };
+    let mut tls = config.tls.clone();
+    let mut endpoints = endpoints_for(tls.as_ref())?;
     let auth = match &config.token {
         Some(t) => Some(
             format!("Bearer {t}")
@@ -310,6 +354,20 @@ pub async fn run(
             }
             let url = &config.coordinators[next];
             carry.registered = false;
+            // Certificates rotate under a running worker: each connection presents the
+            // files as they are now. Bad new files leave the current ones in use.
+            if let Some(fresh) = tls.as_ref().and_then(WorkerTls::reread) {
+                match fresh.and_then(|f| Ok((endpoints_for(Some(&f))?, f))) {
+                    Ok((e, f)) => {
+                        tracing::info!("TLS files changed: the next connections present them");
+                        endpoints = e;
+                        tls = Some(f);
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "TLS files changed but cannot be used; keeping the ones in force");
+                    }
+                }
+            }
             match endpoints[next].connect().await {
                 Ok(channel) => {
                     let client = v1::worker_service_client::WorkerServiceClient::with_interceptor(
