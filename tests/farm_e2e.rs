@@ -480,6 +480,7 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
             .lease_work(v1::LeaseRequest {
                 worker_id: reg.worker_id,
                 max_units: 3,
+                wait_ms: 0,
             })
             .await
             .unwrap()

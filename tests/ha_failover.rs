@@ -82,6 +82,7 @@ fn worker_calls(grpc: &str) -> Option<tonic::Status> {
         c.lease_work(v1::LeaseRequest {
             worker_id,
             max_units: 1,
+            wait_ms: 0,
         })
         .await
         .err()

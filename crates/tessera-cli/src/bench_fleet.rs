@@ -232,6 +232,7 @@ async fn simulate(
             .lease_work(v1::LeaseRequest {
                 worker_id: w.id,
                 max_units: 1,
+                wait_ms: 0,
             })
             .await?
             .into_inner();

@@ -11,6 +11,7 @@
 //! tile, passes, lease id and worker, so a unit's story can be followed in the logs.
 
 use std::pin::Pin;
+use std::time::Duration;
 
 use tessera_farm::UnitResult;
 use tessera_proto::v1;
@@ -18,7 +19,7 @@ use tonic::{Request, Response, Status};
 use tracing::Instrument;
 
 use crate::error::CoordError;
-use crate::service::{Coordinator, Delivery};
+use crate::service::{Coordinator, Delivery, MAX_LEASE_WAIT_MS};
 
 /// The gRPC service of a [`Coordinator`].
 #[derive(Clone)]
@@ -136,7 +137,11 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         let r = req.into_inner();
         let grant = self
             .core
-            .lease(r.worker_id, r.max_units)
+            .lease_waiting(
+                r.worker_id,
+                r.max_units,
+                Duration::from_millis(u64::from(r.wait_ms.min(MAX_LEASE_WAIT_MS))),
+            )
             .await
             .map_err(status)?;
         let leases = grant

@@ -192,11 +192,11 @@ impl Farm {
 
     /// Returns the units of every lapsed lease to the queue ([`Scheduler::expire`]),
     /// counting and logging them: a re-lease is the farm's only sign of a worker cut off
-    /// mid-unit, so operators should see it.
-    pub fn expire_leases(&mut self, now_ms: u64) {
+    /// mid-unit, so operators should see it. Returns how many lapsed.
+    pub fn expire_leases(&mut self, now_ms: u64) -> usize {
         let expired = self.scheduler.expire(now_ms);
         if expired.is_empty() {
-            return;
+            return 0;
         }
         self.leases_expired += expired.len() as u64;
         let workers: std::collections::BTreeSet<WorkerId> =
@@ -206,6 +206,7 @@ impl Farm {
             ?workers,
             "leases expired without a result; their units are leased again"
         );
+        expired.len()
     }
 
     /// Registers a worker and returns its new id (ids are never reused in a run).

@@ -176,6 +176,7 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
             .lease_work(Request::new(v1::LeaseRequest {
                 worker_id,
                 max_units: 4,
+                wait_ms: 0,
             }))
             .await
             .unwrap()

@@ -111,6 +111,7 @@ async fn a_busy_worker_is_told_to_stop_and_can_still_return_its_leases() {
         client.lease_work(v1::LeaseRequest {
             worker_id,
             max_units: 1,
+            wait_ms: 0,
         }),
     )
     .await
@@ -186,6 +187,7 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
                     .lease_work(v1::LeaseRequest {
                         worker_id,
                         max_units: 1,
+                        wait_ms: 0,
                     })
                     .await
                     .unwrap()
@@ -234,10 +236,63 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
         .lease_work(v1::LeaseRequest {
             worker_id,
             max_units: 4,
+            wait_ms: 0,
         })
         .await
         .unwrap()
         .into_inner()
         .leases;
     assert!(leases.is_empty());
+}
+
+/// Issue 14/15: a lease request with `wait_ms` is a long poll. With nothing queued it
+/// waits; a job queued meanwhile wakes it, and it answers with units (the wait counted
+/// `woken`, not `deadline`: without the wake-up it would find them only at its deadline).
+/// With nothing arriving it ends at its deadline, empty.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_waiting_lease_request_is_woken_by_a_job_queued() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let worker = core.register_worker("w".into(), 1, "test").unwrap();
+    // Nothing comes: the wait ends at its deadline, with no unit.
+    let grant = core
+        .lease_waiting(worker, 1, Duration::from_millis(20))
+        .await
+        .unwrap();
+    assert!(grant.units.is_empty());
+    assert_eq!(core.lease_wait_counts(), (0, 0, 1));
+    // The longest wait there is, so that only a wake-up ends it early.
+    let waiting = tokio::spawn({
+        let core = core.clone();
+        async move {
+            core.lease_waiting(worker, 4, Duration::from_secs(2))
+                .await
+                .unwrap()
+        }
+    });
+    bounded("the request waiting", async {
+        while core.lease_wait_counts().0 != 1 {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    })
+    .await;
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
+    core.submit(job, None).await.unwrap();
+    let grant = bounded("the woken request", waiting).await.unwrap();
+    assert!(!grant.units.is_empty(), "the woken request found no unit");
+    let (now, woken, deadline) = core.lease_wait_counts();
+    assert_eq!((now, woken), (0, 1), "the wait was not woken by the job");
+    assert_eq!(deadline, 1, "only the first wait ended at its deadline");
+    let metrics = core.metrics().await.unwrap();
+    assert!(
+        metrics.contains("tessera_lease_waits_total{ended=\"woken\"} 1"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("tessera_lease_requests_waiting 0"),
+        "{metrics}"
+    );
 }

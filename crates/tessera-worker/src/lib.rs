@@ -880,6 +880,12 @@ enum Fetched {
     Empty(Duration),
 }
 
+/// How long a lease request may wait at the coordinator for work (a long poll,
+/// `LeaseRequest.wait_ms`). Without it an idle worker asks again every 50 ms, and a unit
+/// that becomes leasable in between (an adaptive decision taken, a job queued) waits for
+/// the next ask.
+const LEASE_WAIT_MS: u32 = 1000;
+
 /// Leases up to `max_units` units and makes sure every scene is here and built before
 /// the clock starts; the leases of units whose scene cannot be used are returned as
 /// unusable, saying why, so that the coordinator fails a job whose scene no worker can
@@ -894,6 +900,7 @@ async fn fetch_batch(
         .lease_work(v1::LeaseRequest {
             worker_id,
             max_units,
+            wait_ms: LEASE_WAIT_MS,
         })
         .await?
         .into_inner();

@@ -95,6 +95,7 @@ impl Coordinator {
             farm.runtime.insert(id, rt);
         }
         tracing::info!(job = id, black, "job accepted");
+        self.work_changed(true);
         if black {
             // Nothing to trace: the plan found no light (ARCHITECTURE.md §4).
             self.set_state(id, JobState::Running, None).await?;

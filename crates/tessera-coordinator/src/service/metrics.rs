@@ -54,6 +54,9 @@ impl Coordinator {
         let pixel_passes: u64 =
             farm.workers.values().map(|w| w.pixel_passes).sum::<u64>() + forgotten.pixel_passes;
         let _ = writeln!(s, "# HELP tessera_worker_pixel_passes_total Pixel-passes workers traced for the units merged from them, as they reported them (pixels traced times passes: an adaptive lease names the pixels still wanted and the rest are not traced; 0 from workers that do not report it).\n# TYPE tessera_worker_pixel_passes_total counter\ntessera_worker_pixel_passes_total {pixel_passes}");
+        let (waiting, woken, expired) = self.lease_wait_counts();
+        let _ = writeln!(s, "# HELP tessera_lease_requests_waiting Lease requests held waiting for work (long polls of idle workers, LeaseRequest.wait_ms).\n# TYPE tessera_lease_requests_waiting gauge\ntessera_lease_requests_waiting {waiting}");
+        let _ = writeln!(s, "# HELP tessera_lease_waits_total Waits of lease requests for work, by how they ended: woken when units may have become leasable, or at the request's deadline.\n# TYPE tessera_lease_waits_total counter\ntessera_lease_waits_total{{ended=\"woken\"}} {woken}\ntessera_lease_waits_total{{ended=\"deadline\"}} {expired}");
         let _ = writeln!(s, "# HELP tessera_worker_faults_total Refused results and mismatching duplicates.\n# TYPE tessera_worker_faults_total counter\ntessera_worker_faults_total {faults}");
         let quarantined = farm
             .workers

@@ -55,7 +55,7 @@ pub mod workers;
 
 pub use results::{Accepted, Delivery, Rejected};
 pub use tessera_farm::quote::job_eta_seconds;
-pub use workers::{Heartbeat, LeaseGrant, MAX_UNUSABLE_RETURNS};
+pub use workers::{Heartbeat, LeaseGrant, MAX_LEASE_WAIT_MS, MAX_UNUSABLE_RETURNS};
 
 /// Lease ids are reserved in blocks of this many (one store write per block).
 pub const LEASE_ID_BLOCK: u64 = 4096;
@@ -210,6 +210,19 @@ struct Inner {
     /// Set, with the reason, when this coordinator lost the leadership of its
     /// PostgreSQL store (`crate::ha`): from then on it grants nothing and takes nothing.
     deposed: OnceLock<String>,
+    /// Wakes lease requests waiting for work ([`Coordinator::lease_waiting`]).
+    work: tokio::sync::Notify,
+    /// Lease requests waiting for work now, and how the waits ended: woken (something
+    /// may have become leasable) or at their deadline (`/metrics`).
+    lease_waits: LeaseWaits,
+}
+
+/// The long polls' gauge and counters ([`Coordinator::lease_waiting`]).
+#[derive(Default)]
+struct LeaseWaits {
+    waiting: std::sync::atomic::AtomicU64,
+    woken: std::sync::atomic::AtomicU64,
+    expired: std::sync::atomic::AtomicU64,
 }
 
 impl Coordinator {
@@ -265,6 +278,8 @@ impl Coordinator {
                 images: Mutex::new(images::ImageCache::default()),
                 stopping: std::sync::atomic::AtomicBool::new(false),
                 deposed: OnceLock::new(),
+                work: tokio::sync::Notify::new(),
+                lease_waits: LeaseWaits::default(),
             }),
         })
     }
@@ -275,6 +290,8 @@ impl Coordinator {
         self.inner
             .stopping
             .store(true, std::sync::atomic::Ordering::SeqCst);
+        // Lease requests waiting for work answer now (with no unit).
+        self.work_changed(true);
     }
 
     /// Whether [`Coordinator::begin_shutdown`] was called.
@@ -300,6 +317,7 @@ impl Coordinator {
     /// no result taken after the loss. The first reason is kept.
     pub fn depose(&self, reason: String) {
         let _ = self.inner.deposed.set(reason);
+        self.work_changed(true);
     }
 
     /// `Ok` while this coordinator is the active one; [`CoordError::NotActive`] once it
@@ -368,6 +386,18 @@ impl Coordinator {
         Ok(())
     }
 
+    /// Tells the lease requests waiting for work ([`Coordinator::lease_waiting`]) that
+    /// units may have become leasable: all of them (`everyone`: a job queued, leases
+    /// returned or lapsed, a shutdown), or one (a result merged; a request that gets
+    /// units wakes the next).
+    pub(crate) fn work_changed(&self, everyone: bool) {
+        if everyone {
+            self.inner.work.notify_waiters();
+        } else {
+            self.inner.work.notify_one();
+        }
+    }
+
     /// Periodic housekeeping: expire lapsed leases, stop jobs past their time limit
     /// (ARCHITECTURE.md §9, step 11).
     pub async fn tick(&self) {
@@ -376,8 +406,8 @@ impl Coordinator {
         let mut final_points = Vec::new();
         if let Ok(mut farm) = self.inner.farm.lock() {
             // During the grace period leases of the previous run are not expired.
-            if !self.leasing_paused() {
-                farm.expire_leases(now);
+            if !self.leasing_paused() && farm.expire_leases(now) > 0 {
+                self.work_changed(true);
             }
             for (&id, rt) in &farm.runtime {
                 if let (Some(limit), JobState::Running) = (rt.job().time_limit_seconds, rt.state) {

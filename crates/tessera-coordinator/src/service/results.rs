@@ -179,6 +179,9 @@ impl Coordinator {
             drop(pending);
             (outcome, writes, queued)
         };
+        // A merge may open units (an adaptive decision, a tile emptied for repair after a
+        // quarantine): tell the lease requests waiting for work.
+        self.work_changed(!writes.quarantines.is_empty());
         // One writer at a time, taking the queue in merge order: a newer checkpoint of a
         // tile is never overwritten by an older one.
         let write = self.inner.write.lock().await;
@@ -219,6 +222,8 @@ impl Coordinator {
                     .map(adaptive_summary);
                 if farm.scheduler.release_frame(*job, *frame) {
                     tracing::debug!(job, frame, "frame complete and released");
+                    // Its memory may admit the job's next frame.
+                    self.work_changed(true);
                     if let (Some(summary), Some(rt)) = (summary, farm.runtime.get_mut(job)) {
                         rt.adaptive_summary = summary;
                     }

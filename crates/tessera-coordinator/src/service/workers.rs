@@ -4,6 +4,9 @@
 //! The gRPC service decodes a worker's request, calls one of these and encodes the
 //! answer; nothing here knows the wire format beyond the farm's [`LeasedUnit`].
 
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
 use tessera_api::{JobState, QuarantineInfo, WorkerInfo, WorkerList, WorkerState};
 use tessera_farm::{JobId, WorkerId};
 use tessera_proto::LeasedUnit;
@@ -20,6 +23,11 @@ const MAX_UNITS_PER_LEASE: u32 = 256;
 const RETRY_IN_GRACE_MS: u32 = 250;
 /// How soon an idle worker asks again, ms: a new job starts within ~50 ms.
 const RETRY_IDLE_MS: u32 = 50;
+
+/// The longest a lease request is held waiting for work ([`Coordinator::lease_waiting`]):
+/// short enough that a worker's request never nears a gRPC deadline and a shutdown
+/// never waits long on it.
+pub const MAX_LEASE_WAIT_MS: u32 = 2000;
 /// How soon a quarantined worker asks again, ms: it gets nothing, so rarely.
 const RETRY_QUARANTINED_MS: u32 = 5_000;
 /// Returns of a job's leases as unusable (a worker could not load or build its scene)
@@ -163,6 +171,73 @@ impl Coordinator {
     /// order, after expiring lapsed leases. The lease ids are reserved durably before
     /// this returns; if that fails, nothing is handed out (the leases lapse).
     pub async fn lease(&self, worker: WorkerId, max_units: u32) -> CoordResult<LeaseGrant> {
+        self.lease_waiting(worker, max_units, Duration::ZERO).await
+    }
+
+    /// [`Coordinator::lease`] as a long poll: when no unit is available, waits up to
+    /// `wait` (at most [`MAX_LEASE_WAIT_MS`]) for one and answers as soon as it may be
+    /// (`LeaseRequest.wait_ms`).
+    ///
+    /// Why: an idle worker otherwise asks again after [`RETRY_IDLE_MS`], and a unit that
+    /// opens in between waits for that ask. An adaptive job opens units only as its
+    /// decisions are taken, a few passes at a time; with one whole-frame tile (bdpt) every
+    /// merge is such a moment.
+    ///
+    /// Wake-ups ([`Coordinator::work_changed`]): a merged result wakes one waiting request
+    /// (and a request that got units wakes the next, so a decision that opens several
+    /// units reaches as many workers as take them, without waking every idle worker of a
+    /// large fleet for each result); a job queued, leases lapsed or returned, a worker
+    /// quarantined or a shutdown wake them all.
+    pub async fn lease_waiting(
+        &self,
+        worker: WorkerId,
+        max_units: u32,
+        wait: Duration,
+    ) -> CoordResult<LeaseGrant> {
+        let deadline = tokio::time::Instant::now()
+            + wait.min(Duration::from_millis(u64::from(MAX_LEASE_WAIT_MS)));
+        loop {
+            // Registered before looking, so a wake-up between the look and the wait is
+            // not lost.
+            let notified = self.inner.work.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            let grant = self.lease_now(worker, max_units).await?;
+            if !grant.units.is_empty() {
+                // There may be more for the next waiting worker.
+                self.inner.work.notify_one();
+                return Ok(grant);
+            }
+            if grant.retry_after_ms != RETRY_IDLE_MS || tokio::time::Instant::now() >= deadline {
+                // Not idle for want of work (draining, the grace period, quarantine), or
+                // waited long enough: the worker asks again later.
+                return Ok(grant);
+            }
+            let waits = &self.inner.lease_waits;
+            waits.waiting.fetch_add(1, Ordering::Relaxed);
+            let woken = tokio::select! {
+                () = &mut notified => true,
+                () = tokio::time::sleep_until(deadline) => false,
+            };
+            waits.waiting.fetch_sub(1, Ordering::Relaxed);
+            let ended = if woken { &waits.woken } else { &waits.expired };
+            ended.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// Lease requests waiting for work now, and the waits that ended woken and at their
+    /// deadline ([`Coordinator::lease_waiting`]; `/metrics`).
+    pub fn lease_wait_counts(&self) -> (u64, u64, u64) {
+        let w = &self.inner.lease_waits;
+        (
+            w.waiting.load(Ordering::Relaxed),
+            w.woken.load(Ordering::Relaxed),
+            w.expired.load(Ordering::Relaxed),
+        )
+    }
+
+    /// One look at the queue for [`Coordinator::lease_waiting`].
+    async fn lease_now(&self, worker: WorkerId, max_units: u32) -> CoordResult<LeaseGrant> {
         let now = now_ms();
         if self.shutting_down() || self.accepting_work().is_err() {
             // Draining, or the store takes no writes (no checkpoint could be saved): the
@@ -255,10 +330,16 @@ impl Coordinator {
     /// Leases a worker gives back unrendered (it is shutting down); returns how many
     /// were outstanding.
     pub fn return_leases(&self, worker: WorkerId, lease_ids: &[u64]) -> CoordResult<u32> {
-        let mut farm = self.lock()?;
-        let before = farm.scheduler.leases().count();
-        farm.scheduler.give_back(worker, lease_ids);
-        Ok((before - farm.scheduler.leases().count()) as u32)
+        let returned = {
+            let mut farm = self.lock()?;
+            let before = farm.scheduler.leases().count();
+            farm.scheduler.give_back(worker, lease_ids);
+            (before - farm.scheduler.leases().count()) as u32
+        };
+        if returned > 0 {
+            self.work_changed(true);
+        }
+        Ok(returned)
     }
 
     /// Leases a worker gives back because it cannot render them (`reason`: it could not
@@ -304,6 +385,9 @@ impl Coordinator {
             (returned, to_fail)
         };
         tracing::warn!(worker, returned, reason = %reason, "worker could not use its leases");
+        if returned > 0 {
+            self.work_changed(true);
+        }
         for job in to_fail {
             let error = format!(
                 "workers could not use the scene (load, build or render it) {MAX_UNUSABLE_RETURNS} times: {reason}"
