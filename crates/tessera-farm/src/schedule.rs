@@ -572,8 +572,9 @@ pub fn tail_share(queued: u64, threads: u64, total_threads: u64, max_units: usiz
 ///
 /// Why: a worker that traces only the named pixels reports 0 for the others, but one
 /// that predates `Lease.wanted` reports real values there, and bdpt reports the splats
-/// that landed on them (it skips their camera subpaths, not the light subpaths). The policy reads neither, yet the digests that compare copies of a
-/// unit would differ; zeroing here makes every valid copy of a unit the same bytes.
+/// that landed on them (it skips their camera subpaths, not the light subpaths). The
+/// policy reads neither, yet the digests that compare copies of a unit would differ;
+/// zeroing here makes every valid copy of a unit the same bytes.
 fn canonical_masked(
     mut result: UnitResult,
     wanted: Option<&crate::PixelRuns>,
