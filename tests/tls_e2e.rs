@@ -19,6 +19,30 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
+/// A worker named `w1` connecting over TLS to `grpc`, trusting `ca`, presenting the client
+/// certificate `cert` with its key `key`.
+fn tls_worker(grpc: &str, ca: &Path, cert: &Path, key: &Path) -> Proc {
+    start_worker(
+        grpc,
+        "w1",
+        &[
+            "--tls-ca",
+            s(ca),
+            "--tls-cert",
+            s(cert),
+            "--tls-key",
+            s(key),
+        ],
+    )
+}
+
+/// An API client of the coordinator at `http` (https://) that trusts `ca`.
+fn tls_client(http: &str, ca: &Path) -> tessera_api::client::Client {
+    tessera_api::client::Client::new(http, None)
+        .with_tls_ca(&std::fs::read(ca).unwrap())
+        .unwrap()
+}
+
 /// `tessera status --server SERVER --tls-ca CA --json`: whether it succeeded, and its
 /// stderr.
 fn status(server: &str, ca: &Path) -> (bool, String) {
@@ -81,18 +105,7 @@ fn a_mutual_tls_farm_renders_the_local_image_byte_for_byte() {
     let (ok, _, _) = output(tessera().args(["status", "--server", &plain]));
     assert!(!ok, "plain text was answered on the TLS port");
 
-    let _w = start_worker(
-        &c.grpc,
-        "w1",
-        &[
-            "--tls-ca",
-            s(&ca_pem),
-            "--tls-cert",
-            s(&wcert),
-            "--tls-key",
-            s(&wkey),
-        ],
-    );
+    let _w = tls_worker(&c.grpc, &ca_pem, &wcert, &wkey);
     let farm = dir.join("farm.exr");
     output_ok(tessera().args([
         "submit",
@@ -121,10 +134,7 @@ fn a_mutual_tls_farm_renders_the_local_image_byte_for_byte() {
     );
 
     // The worker registered under its certificate's common name.
-    let client = tessera_api::client::Client::new(&c.http, None)
-        .with_tls_ca(&std::fs::read(&ca_pem).unwrap())
-        .unwrap();
-    let workers = client.workers().unwrap().workers;
+    let workers = tls_client(&c.http, &ca_pem).workers().unwrap().workers;
     assert_eq!(workers.len(), 1);
     assert_eq!(workers[0].identity.as_deref(), Some("render-node-1"));
 }
@@ -151,23 +161,9 @@ fn a_worker_presents_its_rotated_client_certificate_on_the_next_connection() {
     ];
     let data = dir.join("data");
     let mut c = start_coordinator(&data, "127.0.0.1:0", "127.0.0.1:0", &tls);
-    let _w = start_worker(
-        &c.grpc,
-        "w1",
-        &[
-            "--tls-ca",
-            s(&ca_pem),
-            "--tls-cert",
-            s(&wcert),
-            "--tls-key",
-            s(&wkey),
-        ],
-    );
+    let _w = tls_worker(&c.grpc, &ca_pem, &wcert, &wkey);
     let identities = |http: &str| -> Vec<String> {
-        let client = tessera_api::client::Client::new(http, None)
-            .with_tls_ca(&std::fs::read(&ca_pem).unwrap())
-            .unwrap();
-        client
+        tls_client(http, &ca_pem)
             .workers()
             .map(|w| w.workers.into_iter().filter_map(|w| w.identity).collect())
             .unwrap_or_default()
