@@ -521,7 +521,45 @@ impl Job {
         let ahead = self.units_total().saturating_sub(self.cursor);
         let merged_ahead = self.done.range(self.cursor..).count() as u64;
         let waiting = self.adaptive.as_ref().map_or(0, |a| a.waiting.len() as u64);
-        self.returned.len() as u64 + ahead.saturating_sub(merged_ahead) + waiting
+        let queued = self.returned.len() as u64 + ahead.saturating_sub(merged_ahead) + waiting;
+        self.adaptive_open_units()
+            .map_or(queued, |open| queued.min(open))
+    }
+
+    /// For an adaptive job: the units its policy lets be rendered before the next
+    /// decisions, leased or not, which bounds those leasable now: per unfinished tile of
+    /// a live frame, the units covering passes `[consumed, lease_horizon)`; per tile of a
+    /// frame not yet live, those before its first decision. `None` for other jobs.
+    ///
+    /// Why: the units ahead of the cursor are not leasable while they wait for a
+    /// decision. Counted as queued, they made [`tail_share`] give the first worker to ask
+    /// the whole window before a decision (on a whole-frame bdpt tile: every open pass),
+    /// and the other workers waited for it.
+    fn adaptive_open_units(&self) -> Option<u64> {
+        let a = self.adaptive.as_ref()?;
+        let ppu = self.passes_per_unit.max(1);
+        let first_window = a
+            .settings
+            .next_boundary(0)
+            .unwrap_or(self.plan.passes)
+            .min(self.plan.passes)
+            .div_ceil(ppu);
+        let mut open = 0u64;
+        for (f, slot) in a.frames.iter().zip(&self.frames) {
+            match (f, slot) {
+                (_, FrameSlot::Released) => {}
+                (Some(f), _) => {
+                    for t in f.tiles().iter().filter(|t| !t.finished()) {
+                        let passes = t.lease_horizon().saturating_sub(t.consumed_passes());
+                        open += u64::from(passes.div_ceil(ppu));
+                    }
+                }
+                (None, _) => {
+                    open += u64::from(self.plan.tile_count()) * u64::from(first_window);
+                }
+            }
+        }
+        Some(open)
     }
 
     fn has_work(&self) -> bool {
@@ -2040,6 +2078,40 @@ mod tests {
         s.expire(1000);
         // 16 returned, shared by 2 one-thread workers: 4 each.
         assert_eq!(s.lease_among(5, 1000, 64, 1, 2).len(), 4);
+    }
+
+    /// An adaptive job's units waiting for a decision are not queued work: with one
+    /// whole-frame tile (bdpt) the first worker to ask used to get every unit before the
+    /// next decision, and the other waited (the tail rule counted the whole plan).
+    #[test]
+    fn adaptive_windows_are_shared_between_workers() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::whole_frame(16, 16, 4).unwrap();
+        let p = FramePlan::new(p.width, p.height, p.tile_size, 4, 64).unwrap();
+        assert_eq!(p.tile_count(), 1);
+        let settings = AdaptiveSettings {
+            mode: AdaptiveMode::Sequential,
+            target_error: 0.05,
+            ..AdaptiveSettings::default()
+        };
+        let mut s = Scheduler::new(100, 0);
+        s.add_adaptive_job(3, 0, p, 0..=0, 1, settings).unwrap();
+        // Before the first decision (min_passes 8): 8 units of one pass open. Two
+        // one-thread workers asking for 8 each get 2 each (half their share of 8).
+        let a = s.lease_among(0, 0, 8, 1, 2);
+        let b = s.lease_among(1, 0, 8, 1, 2);
+        assert_eq!(
+            (a.len(), b.len()),
+            (2, 2),
+            "the first worker took the window"
+        );
+        // The window is all there is: the rest of it is shared out, then nothing is left.
+        let mut leased: Vec<_> = a.into_iter().chain(b).collect();
+        for w in (0..2).cycle().take(8) {
+            leased.extend(s.lease_among(w, 0, 8, 1, 2));
+        }
+        assert_eq!(leased.len(), 8);
+        assert!(leased.iter().all(|l| l.unit.first_pass < 8));
     }
 
     #[test]
