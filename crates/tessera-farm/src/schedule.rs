@@ -2086,8 +2086,8 @@ mod tests {
     #[test]
     fn adaptive_windows_are_shared_between_workers() {
         use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
-        let p = FramePlan::whole_frame(16, 16, 4).unwrap();
-        let p = FramePlan::new(p.width, p.height, p.tile_size, 4, 64).unwrap();
+        // One 16-pixel tile covering the frame: the plan of a bdpt job.
+        let p = FramePlan::new(16, 16, 16, 4, 64).unwrap();
         assert_eq!(p.tile_count(), 1);
         let settings = AdaptiveSettings {
             mode: AdaptiveMode::Sequential,
