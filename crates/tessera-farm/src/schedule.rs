@@ -493,8 +493,13 @@ impl Job {
     }
 
     /// The never-leased unit at the cursor, advancing it: units merged before a restart
-    /// are skipped (a resumed job's `done` set is not a prefix of the canonical order); a
-    /// unit whose frame does not fit the budget yet waits, with the cursor on it (`None`).
+    /// are skipped (a resumed job's `done` set is not a prefix of the canonical order), and
+    /// so are the units of a released frame; a unit whose frame does not fit the budget
+    /// yet waits, with the cursor on it (`None`).
+    ///
+    /// A released adaptive frame can have units the cursor has not reached: its policy
+    /// finished every tile before the passes past the tiles' ends were visited (skipped).
+    /// They have nothing to render, and waiting on them stalled the job's later frames.
     fn next_from_cursor(&mut self, mem: &mut Memory) -> Option<u64> {
         while self.cursor < self.units_total() {
             let i = self.cursor;
@@ -502,7 +507,12 @@ impl Job {
                 self.cursor += 1;
                 continue;
             }
-            if !self.make_live(self.frame_index(i), mem) {
+            let k = self.frame_index(i);
+            if matches!(self.frames.get(k), Some(FrameSlot::Released)) {
+                self.cursor = (k as u64 + 1) * self.units_per_frame();
+                continue;
+            }
+            if !self.make_live(k, mem) {
                 return None;
             }
             self.cursor += 1;
@@ -2715,6 +2725,45 @@ mod tests {
             assert!(s.is_complete(7), "{mode}");
             let pr = s.progress(7).unwrap();
             assert_eq!(pr.frames_done, 3, "{mode}");
+        }
+    }
+
+    /// A frame released while the cursor is still inside it (one unit per lease: the
+    /// cursor stops at each leasable unit, so the passes past the tiles' ends are not
+    /// visited yet when the policy finishes) does not hold the cursor: the later frames
+    /// are rendered. Before the fix the job stalled after frame 0's first units.
+    #[test]
+    fn a_frame_released_ahead_of_the_cursor_does_not_stall_the_job() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(16, 8, 8, 1, 48).unwrap();
+        for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
+            let settings = AdaptiveSettings {
+                mode,
+                target_error: 0.05,
+                ..AdaptiveSettings::default()
+            };
+            let mut s = Scheduler::new(1000, 0);
+            s.set_memory_budget(frame_state_bytes(&p, true));
+            s.add_adaptive_job(7, 0, p, 0..=2, 2, settings).unwrap();
+            let mut order = Vec::new();
+            for _ in 0..10_000 {
+                let Some(l) = s.lease(1, 0, 1).pop() else {
+                    break;
+                };
+                if order.last() != Some(&l.unit.frame) {
+                    order.push(l.unit.frame);
+                }
+                assert_eq!(
+                    s.submit(l.lease_id, 7, result(&p, l.unit, 0.5)),
+                    Ok(Submitted::Accepted)
+                );
+                let f = l.unit.frame;
+                if s.adaptive_frame(7, f).is_some_and(AdaptiveFrame::finished) {
+                    assert!(s.release_frame(7, f));
+                }
+            }
+            assert_eq!(order, [0, 1, 2], "{mode}");
+            assert!(s.is_complete(7), "{mode}");
         }
     }
 
