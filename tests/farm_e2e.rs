@@ -9,8 +9,8 @@
 mod common;
 
 use common::farm::{
-    cornell_job as job, local_render, local_render_adaptive, start_coordinator, start_worker,
-    wait_done, TIMEOUT,
+    cornell_job as job, local_render, local_render_adaptive, local_render_with, start_coordinator,
+    start_worker, wait_done, TIMEOUT,
 };
 use common::{free_addresses, http_get, output, poll, read_exr, temp_dir, tessera, Proc};
 use tessera_api::client::{Client, ClientError};
@@ -292,6 +292,92 @@ fn a_killed_coordinator_resumes_an_adaptive_job_where_its_policy_was() {
         assert!(
             stored == reference,
             "{mode}: the stored image of the finished adaptive job differs from tessera render"
+        );
+    }
+}
+
+/// Issue 15: an adaptive animation comes back from `kill -9` holding only its frame in
+/// progress. The store keeps a finished frame's checkpoints, so a restart finds every
+/// frame the job finished; they were restored live until the job ended, beyond a budget of
+/// one frame (and an adaptive job had to fit the budget with all its frames). Now the
+/// restart releases them: under `--memory-budget` of one adaptive frame, `/metrics` shows
+/// one frame resident after the restart, the job ends, and every frame's EXR (the
+/// released one from the store) is byte-identical to `tessera render --frame F`.
+#[test]
+fn a_restarted_adaptive_animation_holds_only_its_frame_in_progress() {
+    let dir = temp_dir("e2e", "adaptive-frames-restart");
+    let mut s = job(32, 32, 4096);
+    s.adaptive = "sequential".into();
+    s.target_error = Some(0.03);
+    s.frames = tessera_api::FrameRange { start: 0, end: 2 };
+    // One adaptive frame of 32 x 32 (ARCHITECTURE.md §6: 157 B per pixel).
+    let frame_bytes = tessera_farm::frame_state_bytes(
+        &tessera_farm::FramePlan::new(32, 32, 16, 1, 1).unwrap(),
+        true,
+    );
+    let budget = frame_bytes.to_string();
+    let extra = ["--memory-budget", budget.as_str()];
+    let data = dir.join("data");
+    let (http, grpc) = free_addresses();
+    let mut c = start_coordinator(&data, &http, &grpc, &extra);
+    let _w = start_worker(&c.grpc, "w1", &[]);
+    let client = Client::new(&c.http, None);
+    let st = client.submit(&s, None).unwrap();
+    let id = st.id;
+    // Frame 0 finished and released, frame 1 with merged passes.
+    poll("frame 0 done and frame 1 begun", TIMEOUT, || {
+        let tiles = client.get_raw(&format!("/api/v1/jobs/{id}/tiles?frame=1"));
+        let begun = tiles.is_ok_and(|t| {
+            let v: serde_json::Value = serde_json::from_slice(&t).unwrap();
+            v["tiles"]
+                .as_array()
+                .is_some_and(|ts| ts.iter().any(|t| t["passes"].as_u64() > Some(0)))
+        });
+        let j = client.job(id).unwrap();
+        (j.frames_done >= 1 && begun) || j.state == tessera_api::JobState::Done
+    });
+    c.proc.kill9();
+    let c2 = start_coordinator(&data, &http, &grpc, &extra);
+    let client = Client::new(&c2.http, None);
+    let after = client.job(id).unwrap();
+    assert_ne!(
+        after.state,
+        tessera_api::JobState::Done,
+        "the job finished before the kill; make it longer"
+    );
+    let metrics = String::from_utf8(client.get_raw("/metrics").unwrap()).unwrap();
+    let resident: u64 = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("tessera_merge_state_bytes "))
+        .and_then(|v| v.parse().ok())
+        .expect("tessera_merge_state_bytes in /metrics");
+    assert_eq!(
+        resident, frame_bytes,
+        "after the restart: {resident} bytes of merge state, one frame is {frame_bytes}"
+    );
+    let _w2 = start_worker(&c2.grpc, "w2", &[]);
+    wait_done(&client, id);
+    for f in 0..=2u32 {
+        let exr = client
+            .get_raw(&format!("/api/v1/jobs/{id}/image?frame={f}&format=exr"))
+            .unwrap();
+        let frame = f.to_string();
+        let reference = local_render_with(
+            &dir,
+            &format!("local-{f}.exr"),
+            &s,
+            &[
+                "--adaptive",
+                "sequential",
+                "--target-error",
+                "0.03",
+                "--frame",
+                &frame,
+            ],
+        );
+        assert!(
+            exr == reference,
+            "frame {f}: EXR after the restart differs from tessera render --frame {f}"
         );
     }
 }

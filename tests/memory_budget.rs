@@ -57,13 +57,14 @@ fn jobs_beyond_the_budget_are_refused_and_long_jobs_hold_only_frames_in_progress
         e.message.contains("16384x16384") && e.message.contains("--memory-budget"),
         "{e}"
     );
-    // An adaptive job keeps every frame's policy state: 100 frames of 256x256 do not fit.
+    // An adaptive frame carries its policy's per-pixel state on top of the merge state:
+    // 800x800 fits the budget plain (46 MB) but not adaptive.
     let (status, e) = api_error(client.submit_raw(
-        br#"{"scene":"builtin:cornell-box","width":256,"height":256,"spp":64,
-             "target_error":0.05,"adaptive":"unbiased","frames":{"start":1,"end":100}}"#,
+        br#"{"scene":"builtin:cornell-box","width":800,"height":800,"spp":64,
+             "target_error":0.05,"adaptive":"unbiased"}"#,
     ));
     assert_eq!(status, 413, "{e}");
-    assert!(e.message.contains("100 adaptive frames"), "{e}");
+    assert!(e.message.contains("800x800 adaptive frame"), "{e}");
 
     // 100,000 frames of 16x16: 1.8 GB if every frame were allocated at once.
     let st = client

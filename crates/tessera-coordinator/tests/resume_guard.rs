@@ -192,3 +192,59 @@ async fn jobs_that_cannot_be_resumed_fail_alone_and_the_coordinator_starts() {
     }
     assert_eq!(core.status(good).await.unwrap().state, JobState::Queued);
 }
+
+/// A crash between a job's last checkpoint and its `done` state leaves a job whose every
+/// pass is merged and stored but whose state says `running`: no result will ever come to
+/// finish it, so the next start marks it done (`Coordinator::finish_complete_jobs`).
+#[tokio::test]
+async fn a_job_complete_in_the_store_is_done_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = open(dir.path()).await;
+    let st = core
+        .submit(small_job("builtin:cornell-box"), None)
+        .await
+        .unwrap()
+        .0;
+    assert_eq!(st.tiles_total, 1, "a 16x16 job is one tile");
+    let passes = u32::try_from(st.passes_planned).unwrap();
+    drop(core); // crash
+
+    let store = tessera_coordinator::store::SqliteStore::open(dir.path())
+        .await
+        .unwrap();
+    let pixels = vec![PixelStats::default(); 16 * 16];
+    let units: Vec<UnitDigest> = (0..passes)
+        .map(|p| UnitDigest {
+            first_pass: p,
+            pass_count: 1,
+            digest: u64::from(p),
+        })
+        .collect();
+    tessera_coordinator::store::Store::save_tile(
+        &store,
+        TileCheckpointRef {
+            job: st.id,
+            frame: 0,
+            tile: 0,
+            merged_passes: passes,
+            pixels: &pixels,
+            units: &units,
+            rejected_samples: 0,
+            adaptive: None,
+        },
+    )
+    .await
+    .unwrap();
+    tessera_coordinator::store::Store::close(&store).await;
+    sql(
+        dir.path(),
+        &format!("UPDATE jobs SET state = 'running' WHERE id = {}", st.id),
+    )
+    .await;
+
+    let core = open(dir.path()).await;
+    let s = core.status(st.id).await.unwrap();
+    assert_eq!(s.state, JobState::Done, "{:?}", s.error);
+    assert_eq!(s.passes_done, s.passes_planned);
+    assert_eq!(stored(dir.path(), st.id).await.0, "done");
+}

@@ -149,9 +149,13 @@ pub struct ResumedAdaptive {
     pub frames: std::ops::RangeInclusive<u32>,
     /// The adaptive settings as submitted (rounded to the units again when added).
     pub settings: AdaptiveSettings,
-    /// Each frame with checkpoints: its merged passes and, per tile in tile order, the
-    /// policy state saved with them (`None`: nothing consumed).
+    /// Each unfinished frame with checkpoints: its merged passes and, per tile in tile
+    /// order, the policy state saved with them (`None`: nothing consumed).
     pub restored: Vec<(FrameAccumulator, Vec<Option<crate::AdaptiveTileCheckpoint>>)>,
+    /// Frames whose restored policy had finished every tile: not loaded, released at once
+    /// (their images are restored from the store when asked for, as after a release in
+    /// the running job).
+    pub complete: Vec<u32>,
 }
 
 /// Where a frame's merge state is ([`Scheduler::residency`]).
@@ -1015,9 +1019,9 @@ impl Scheduler {
     /// produced ([`AdaptiveFrame::restore`]), one that consumed other passes than its tile
     /// merged (an unfinished tile consumes every merged pass; a finished one may have
     /// merged a unit past its end), a frame outside the job or of another plan, and merged
-    /// passes that do not end on a unit boundary. Restored frames stay live, finished ones
-    /// too, until the job ends (no result will come to release them), and are charged to
-    /// the memory budget even beyond it.
+    /// passes that do not end on a unit boundary. Restored frames are live and charged to
+    /// the memory budget even beyond it (the caller restores only the unfinished ones);
+    /// `complete` frames are released, their units never leased again.
     pub fn add_resumed_adaptive_job(
         &mut self,
         id: JobId,
@@ -1030,6 +1034,7 @@ impl Scheduler {
             frames,
             settings: adaptive,
             restored,
+            complete,
         } = resumed;
         let ppu = passes_per_unit.max(1);
         let settings = adaptive.for_units(ppu);
@@ -1065,6 +1070,16 @@ impl Scheduler {
             }
             live.push((acc, policy));
         }
+        for &f in &complete {
+            if !frames.contains(&f) {
+                return Err(format!("job {id}: frame {f} is outside the job"));
+            }
+            if live.iter().any(|(acc, _)| acc.frame() == f) {
+                return Err(format!(
+                    "job {id}: frame {f} is both finished and in progress"
+                ));
+            }
+        }
         let count = frames.clone().count();
         self.add_job(id, priority, plan, frames, ppu);
         let frame_bytes = frame_state_bytes(&plan, true);
@@ -1078,6 +1093,9 @@ impl Scheduler {
             waiting: BTreeSet::new(),
             skipped: BTreeSet::new(),
         };
+        for &f in &complete {
+            job.frames[(f - first_frame) as usize] = FrameSlot::Released;
+        }
         for (acc, policy) in live {
             let k = (acc.frame() - first_frame) as usize;
             job.frames[k] = FrameSlot::Live(Box::new(acc));
@@ -2247,6 +2265,7 @@ mod tests {
                                 frames: frames.clone(),
                                 settings,
                                 restored: snapshot,
+                                complete: Vec::new(),
                             },
                         )
                         .unwrap();
@@ -2280,6 +2299,100 @@ mod tests {
         }
     }
 
+    /// Issue 15: a restart releases the frames its restored policy had finished. The
+    /// store keeps a released frame's checkpoints, so a restart finds every frame the job
+    /// finished; restored live, they held the memory budget until the job ended (under a
+    /// budget of one frame the frame in progress came back beyond it, and an adaptive job
+    /// had to fit the budget with all its frames). Here frame 0 comes back released,
+    /// frame 1 live, and the job ends with the images of an uninterrupted run, one frame
+    /// in memory at a time, never leasing frame 0 again.
+    #[test]
+    fn a_resumed_adaptive_job_releases_its_finished_frames() {
+        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        let p = FramePlan::new(24, 16, 8, 1, 48).unwrap(); // 6 tiles
+        let frames = 0..=2u32;
+        let budget = frame_state_bytes(&p, true);
+        for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
+            let settings = AdaptiveSettings {
+                mode,
+                target_error: 0.05,
+                min_passes: 8,
+                interval: 4,
+                ..AdaptiveSettings::default()
+            };
+            let references: Vec<FrameImage> = frames
+                .clone()
+                .map(|f| {
+                    let mut local = AdaptiveFrame::new(p, f, settings).unwrap();
+                    for u in p.units(f, 2) {
+                        local.offer(&noisy_result(&p, u)).unwrap();
+                    }
+                    local.image()
+                })
+                .collect();
+            // One unit at a time until frame 0 is released and frame 1 has merged passes.
+            let mut s = Scheduler::new(100, 0);
+            s.set_memory_budget(budget);
+            s.add_adaptive_job(7, 0, p, frames.clone(), 2, settings)
+                .unwrap();
+            while s.residency(7, 0) != Some(Residency::Released)
+                || s.frame(7, 1).is_none_or(|f| f.merged_pass_count() == 0)
+            {
+                let l = s.lease(1, 0, 1).pop().expect("the job has work");
+                s.submit(l.lease_id, 7, noisy_result(&p, l.unit)).unwrap();
+                if s.adaptive_frame(7, 0).is_some_and(AdaptiveFrame::finished) {
+                    assert!(s.release_frame(7, 0));
+                }
+            }
+            let restored = adaptive_snapshot(&s, 7, p, frames.clone());
+            assert_eq!(restored.len(), 1, "{mode}: frame 1 only");
+            let resumed = |complete: Vec<u32>| ResumedAdaptive {
+                frames: frames.clone(),
+                settings,
+                restored: restored.clone(),
+                complete,
+            };
+            let err = Scheduler::new(100, 0)
+                .add_resumed_adaptive_job(7, 0, p, 2, resumed(vec![0, 1]))
+                .unwrap_err();
+            assert!(
+                err.contains("frame 1 is both finished and in progress"),
+                "{err}"
+            );
+            let err = Scheduler::new(100, 0)
+                .add_resumed_adaptive_job(7, 0, p, 2, resumed(vec![3]))
+                .unwrap_err();
+            assert!(err.contains("frame 3 is outside the job"), "{err}");
+
+            let mut s = Scheduler::new(100, 0);
+            s.set_memory_budget(budget);
+            s.add_resumed_adaptive_job(7, 0, p, 2, resumed(vec![0]))
+                .unwrap();
+            assert_eq!(s.residency(7, 0), Some(Residency::Released), "{mode}");
+            assert!(s.adaptive_frame(7, 0).is_none(), "{mode}");
+            assert_eq!(s.resident_bytes(), budget, "{mode}: frame 1 alone");
+            let mut order = Vec::new();
+            for _ in 0..10_000 {
+                let Some(l) = s.lease(1, 0, 1).pop() else {
+                    break;
+                };
+                let f = l.unit.frame;
+                if order.last() != Some(&f) {
+                    order.push(f);
+                }
+                s.submit(l.lease_id, 7, noisy_result(&p, l.unit)).unwrap();
+                assert!(s.resident_bytes() <= budget, "{mode}: one frame at a time");
+                if let Some(a) = s.adaptive_frame(7, f).filter(|a| a.finished()) {
+                    assert_eq!(a.image(), references[f as usize], "{mode}: frame {f}");
+                    assert!(s.release_frame(7, f));
+                }
+            }
+            assert_eq!(order, [1, 2], "{mode}");
+            assert!(s.is_complete(7), "{mode}");
+            assert_eq!(s.progress(7).unwrap().frames_done, 3, "{mode}");
+        }
+    }
+
     /// A restored policy state that its tile's merged passes contradict is refused.
     #[test]
     fn a_policy_state_out_of_step_with_its_tile_is_refused() {
@@ -2308,7 +2421,8 @@ mod tests {
                 ResumedAdaptive {
                     frames: 0..=0,
                     settings,
-                    restored: good.clone()
+                    restored: good.clone(),
+                    complete: Vec::new(),
                 }
             )
             .is_ok());
@@ -2333,6 +2447,7 @@ mod tests {
                     frames: 0..=0,
                     settings,
                     restored: stale,
+                    complete: Vec::new(),
                 },
             )
             .unwrap_err();

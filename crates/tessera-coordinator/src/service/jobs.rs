@@ -104,11 +104,10 @@ impl Coordinator {
         Ok((self.status(id).await?, true))
     }
 
-    /// Refuses a job whose merge state cannot fit the memory budget: one frame (frames
-    /// of a job that is not adaptive are released as they complete) or, for adaptive jobs,
-    /// all frames: a running adaptive job releases its finished frames too, but a restart
-    /// restores every frame that has checkpoints, finished ones included
-    /// (`Scheduler::add_resumed_adaptive_job`).
+    /// Refuses a job whose merge state cannot fit the memory budget: one frame, since
+    /// frames are released as they complete (an adaptive frame once its policy has
+    /// finished every tile, also at a restart: `resume::restore_adaptive`), and the frames
+    /// that do not fit wait for that.
     pub(crate) fn check_memory(
         &self,
         job: &ValidatedJob,
@@ -119,18 +118,18 @@ impl Coordinator {
         }
         let adaptive = job.adaptive_settings().is_some();
         let per_frame = frame_state_bytes(&resolved.plan, adaptive);
-        let frames = if adaptive { job.frames.count() } else { 1 };
-        let needed = per_frame.saturating_mul(frames);
+        let needed = per_frame;
         let budget = self.inner.cfg.memory_budget;
         if needed <= budget {
             return Ok(());
         }
         let plan = &resolved.plan;
-        let what = if adaptive && frames > 1 {
-            format!("{frames} adaptive frames of {}x{}", plan.width, plan.height)
-        } else {
-            format!("a {}x{} frame", plan.width, plan.height)
-        };
+        let what = format!(
+            "a {}x{}{} frame",
+            plan.width,
+            plan.height,
+            if adaptive { " adaptive" } else { "" }
+        );
         Err(CoordError::TooLarge(format!(
             "{what} needs {} of merge state in the coordinator, above its memory budget of {} \
              (--memory-budget); render fewer or smaller frames, or raise the budget",

@@ -95,6 +95,8 @@ impl Coordinator {
         let (queued, leased) = units_waiting_and_leased(&farm);
         let _ = writeln!(s, "# HELP tessera_units_queued Units of queued and running jobs waiting to be leased (the queue depth workers autoscale on; for adaptive jobs an upper bound).\n# TYPE tessera_units_queued gauge\ntessera_units_queued {queued}");
         let _ = writeln!(s, "# HELP tessera_units_leased Units of queued and running jobs leased to workers now.\n# TYPE tessera_units_leased gauge\ntessera_units_leased {leased}");
+        let _ = writeln!(s, "# HELP tessera_merge_state_bytes Bytes of per-pixel merge state in memory (the frames in progress of every job, ARCHITECTURE.md section 6).\n# TYPE tessera_merge_state_bytes gauge\ntessera_merge_state_bytes {}", farm.scheduler.resident_bytes());
+        let _ = writeln!(s, "# HELP tessera_merge_state_budget_bytes The merge state's budget (--memory-budget); frames that do not fit wait.\n# TYPE tessera_merge_state_budget_bytes gauge\ntessera_merge_state_budget_bytes {}", self.inner.cfg.memory_budget);
         let _ = writeln!(s, "# HELP tessera_worker_paths_per_second Last reported throughput per worker.\n# TYPE tessera_worker_paths_per_second gauge");
         for w in farm.workers.values() {
             let _ = writeln!(

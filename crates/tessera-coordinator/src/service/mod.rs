@@ -262,7 +262,7 @@ impl Coordinator {
         if let Ok(mut f) = farm.lock() {
             f.scheduler.grace(blocked + cfg.lease_ms);
         }
-        Ok(Self {
+        let coordinator = Self {
             inner: Arc::new(Inner {
                 farm,
                 store,
@@ -281,7 +281,44 @@ impl Coordinator {
                 work: tokio::sync::Notify::new(),
                 lease_waits: LeaseWaits::default(),
             }),
-        })
+        };
+        coordinator.finish_complete_jobs().await?;
+        Ok(coordinator)
+    }
+
+    /// Marks done the resumed jobs that were complete when the last run stopped: every
+    /// frame merged and checkpointed, the `done` state not yet written (a crash between
+    /// the last checkpoint and the state change). No result would come to finish them, so
+    /// they would stay `running` for ever.
+    async fn finish_complete_jobs(&self) -> Result<(), StoreError> {
+        let complete: Vec<(JobId, Option<(JobId, tessera_api::HistoryPoint)>)> = {
+            let Ok(mut farm) = self.inner.farm.lock() else {
+                return Ok(());
+            };
+            let ids: Vec<JobId> = farm
+                .runtime
+                .iter()
+                .filter(|(_, rt)| matches!(rt.state, JobState::Queued | JobState::Running))
+                .map(|(id, _)| *id)
+                .filter(|id| farm.scheduler.is_complete(*id))
+                .collect();
+            ids.into_iter()
+                .map(|id| (id, results::history_point(&mut farm, id, now_ms(), true)))
+                .collect()
+        };
+        for (id, point) in complete {
+            if let Some((job, point)) = point {
+                if let Err(e) = self.inner.store.append_history(job, point).await {
+                    tracing::warn!(job, error = %e, "history point not stored");
+                }
+            }
+            match self.set_state(id, JobState::Done, None).await {
+                Ok(()) => tracing::info!(job = id, "resumed job was complete: done"),
+                Err(CoordError::Store(e)) => return Err(e),
+                Err(e) => tracing::error!(job = id, error = %e, "cannot mark job done"),
+            }
+        }
+        Ok(())
     }
 
     /// Begins a graceful shutdown: from now on heartbeats answer `shutdown` (workers

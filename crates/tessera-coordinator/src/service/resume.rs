@@ -10,7 +10,10 @@ use std::sync::Mutex;
 
 use tessera_api::{JobSettings, JobState, ResolvedJob};
 use tessera_farm::job::JobError;
-use tessera_farm::{AdaptiveTileCheckpoint, FrameAccumulator, FramePlan, JobId, Resumed};
+use tessera_farm::{
+    AdaptiveFrame, AdaptiveSettings, AdaptiveTileCheckpoint, FrameAccumulator, FramePlan, JobId,
+    Resumed,
+};
 use tessera_scene::job::resolve_job;
 
 use super::jobs::add_to_scheduler;
@@ -161,22 +164,30 @@ async fn restore_incomplete(
     Ok((restored, complete))
 }
 
-/// Every frame of an adaptive job that has checkpoints, restored with its policy state
-/// (issue 15), finished ones included (they stay in memory until the job ends, which is
-/// why an adaptive job must fit the budget with all its frames); `None` when a checkpoint
-/// predates the policy state (the job then starts over).
-async fn restore_adaptive(store: &dyn Store, rec: &JobRecord) -> Result<Option<Restored>, String> {
+/// An adaptive job's frames with checkpoints (issue 15), one at a time: the unfinished
+/// ones restored with their policy state, those whose policy had finished every tile
+/// summarized and dropped (their images are restored from the store when asked for), so
+/// a restart holds the frames in progress only, as a running job does after releasing
+/// its finished frames. `None` when a checkpoint predates the policy state (the job then
+/// starts over).
+async fn restore_adaptive(
+    store: &dyn Store,
+    rec: &JobRecord,
+    settings: AdaptiveSettings,
+) -> Result<Option<(Restored, Vec<FinishedAdaptive>)>, String> {
     let summaries = store
         .tile_summaries(rec.id)
         .await
         .map_err(|e| e.to_string())?;
     let frames: std::collections::BTreeSet<u32> = summaries.iter().map(|s| s.frame).collect();
+    let settings = settings.for_units(rec.passes_per_unit);
     let mut restored = Restored {
         frames: Vec::new(),
         rejected: Vec::new(),
         policy: Vec::new(),
         without_policy: false,
     };
+    let mut finished = Vec::new();
     for f in frames {
         let checkpoints = store
             .load_tiles(rec.id, Some(f))
@@ -186,11 +197,31 @@ async fn restore_adaptive(store: &dyn Store, rec: &JobRecord) -> Result<Option<R
         if one.without_policy {
             return Ok(None);
         }
+        let policy = one.policy.first().map(Vec::as_slice).unwrap_or_default();
+        let state = AdaptiveFrame::restore(rec.plan, f, settings, policy)
+            .map_err(|e| format!("frame {f}: {e}"))?;
+        if state.finished() {
+            finished.push(FinishedAdaptive {
+                frame: f,
+                rejected: one.rejected.pop().map(|(_, r)| r).unwrap_or_default(),
+                // The job's status and history read the first frame's final figures.
+                summary: (f == rec.frames.start).then(|| super::results::adaptive_summary(&state)),
+            });
+            continue;
+        }
         restored.frames.append(&mut one.frames);
         restored.rejected.append(&mut one.rejected);
         restored.policy.append(&mut one.policy);
     }
-    Ok(Some(restored))
+    Ok(Some((restored, finished)))
+}
+
+/// What a restart keeps of an adaptive frame whose policy had finished: its rejected
+/// samples per tile and, for the job's first frame, its summary.
+struct FinishedAdaptive {
+    frame: u32,
+    rejected: Vec<u64>,
+    summary: Option<(f64, Option<f64>)>,
 }
 
 /// The checkpoint-restore loop: accumulators of `frames` under `plan` with every
@@ -307,8 +338,8 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
     }
     let adaptive = resolved.job.adaptive_settings();
     let restored = match adaptive {
-        Some(a) => match restore_adaptive(store, rec).await? {
-            Some(r) => Restart::Adaptive(a, r),
+        Some(a) => match restore_adaptive(store, rec, a).await? {
+            Some((r, finished)) => Restart::Adaptive(a, r, finished),
             None => Restart::Over,
         },
         None => {
@@ -340,22 +371,23 @@ async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> R
             add_to_scheduler(&mut farm, rec.id, rec.priority, plan, rt.job(), ppu)
                 .map_err(|e| e.to_string())?;
         }
-        Restart::Adaptive(settings, restored) => {
+        Restart::Adaptive(settings, restored, finished) => {
             // Issue 15: the policy resumes where it was; only units in flight are redone.
-            restore_rejected(
-                &mut rt,
-                first,
-                restored.rejected.iter().map(|(f, r)| (*f, r)),
-            );
+            let finished_counts = finished.iter().map(|f| (f.frame, &f.rejected));
+            let restored_counts = restored.rejected.iter().map(|(f, r)| (*f, r));
+            restore_rejected(&mut rt, first, finished_counts.chain(restored_counts));
             let resumed = tessera_farm::ResumedAdaptive {
                 frames: rec.frames.start..=rec.frames.end,
                 settings,
                 restored: restored.frames.into_iter().zip(restored.policy).collect(),
+                complete: finished.iter().map(|f| f.frame).collect(),
             };
             farm.scheduler
                 .add_resumed_adaptive_job(rec.id, rec.priority, plan, ppu, resumed)?;
-            if let Some(a) = farm.scheduler.adaptive_frame(rec.id, first) {
-                rt.adaptive_summary = super::results::adaptive_summary(a);
+            let summary = finished.iter().find_map(|f| f.summary);
+            match farm.scheduler.adaptive_frame(rec.id, first) {
+                Some(a) => rt.adaptive_summary = super::results::adaptive_summary(a),
+                None => rt.adaptive_summary = summary.unwrap_or(rt.adaptive_summary),
             }
         }
         Restart::Plain(restored, complete) => {
@@ -395,8 +427,9 @@ enum Restart {
     /// Without adaptive stopping: its incomplete frames restored, its complete ones
     /// summarized.
     Plain(Restored, Vec<CompleteFrame>),
-    /// Adaptive, with the policy's state: every frame with checkpoints restored.
-    Adaptive(tessera_farm::AdaptiveSettings, Restored),
+    /// Adaptive, with the policy's state: its unfinished frames restored, its finished
+    /// ones summarized.
+    Adaptive(AdaptiveSettings, Restored, Vec<FinishedAdaptive>),
     /// Adaptive, checkpointed without the policy's state: from its first pass.
     Over,
 }
