@@ -254,6 +254,10 @@ pub struct PilotArgs {
     /// Threads the pilot renders on.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
+    /// Run the technique pilot instead of a quote (`tessera_render::pilot`): print
+    /// `{"path_wins":BOOL,"reason":TEXT}`, or `{}` when the job's plan leaves no choice.
+    #[arg(long)]
+    pub technique: bool,
 }
 
 /// The largest job settings document `tessera pilot` reads: the coordinator's own limit on
@@ -310,6 +314,13 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
         }
         (SceneRef::Hash(h), None) => bail!("the job names scene {h}: give --scene-file"),
     };
+    if args.technique {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(args.threads)
+            .build()
+            .context("starting the pilot's threads")?;
+        return pool.install(|| technique(&validated, bytes.as_deref()));
+    }
     let source = match &bytes {
         Some(b) => SceneSource::Bytes(b),
         None => SceneSource::Path(&settings.scene),
@@ -333,6 +344,34 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
         PilotError::Other(e) => e,
     })?;
     println!("{}", serde_json::to_string(&out.to_json())?);
+    Ok(())
+}
+
+/// `tessera pilot --technique`: the coordinator's technique pilot, in a child process for
+/// the reason a dry run's is. The scene is loaded as the coordinator loads it (at time 0,
+/// the job's camera and animation) and the verdict is exactly what `tessera render`
+/// computes in process ([`tessera_render::pilot::resolve_job`]).
+fn technique(job: &tessera_farm::job::ValidatedJob, bytes: Option<&[u8]>) -> Result<()> {
+    let time = tessera_scene::SceneTime {
+        seconds: 0.0,
+        animation: job.animation.clone(),
+    };
+    let scene =
+        tessera_scene::job::load_job_scene_at(&job.scene, bytes, job.camera.as_deref(), &time)?;
+    let mut plan = tessera_scene::analysis::analyse(&scene);
+    let out = if plan.technique_pilot.is_some()
+        && job.render.integrator == tessera_farm::job::IntegratorChoice::Auto
+    {
+        let size = job.resolution(scene.default_resolution);
+        tessera_render::pilot::settle(&scene, job, &mut plan, size);
+        serde_json::json!({
+            "path_wins": plan.integrator == tessera_farm::job::PlannedIntegrator::Path,
+            "reason": plan.reasons.first().cloned().unwrap_or_default(),
+        })
+    } else {
+        serde_json::json!({})
+    };
+    println!("{out}");
     Ok(())
 }
 

@@ -1,6 +1,6 @@
 //! `tessera render`: a job rendered on this machine. The flags become a
 //! [`JobSettings`], validated and resolved against the scene exactly as the coordinator
-//! does ([`tessera_scene::job::resolve_job`]), and the EXR header is the resolved job's
+//! does ([`tessera_render::pilot::resolve_job`]), and the EXR header is the resolved job's
 //! [`ResolvedJob::metadata_json`], so a local render and a farm job with the same settings
 //! write byte-identical files (docs/ARCHITECTURE.md §2).
 
@@ -324,8 +324,8 @@ pub fn prepare_settings(
         animation: validated.animation.clone(),
     };
     let first = load(&at_zero)?;
-    let resolved =
-        tessera_scene::job::resolve_job(&validated, &first).map_err(|e| job_error(e, &settings))?;
+    let resolved = tessera_render::pilot::resolve_job(&validated, &first)
+        .map_err(|e| job_error(e, &settings))?;
     let time = tessera_scene::job::frame_time(&validated, frame);
     let scene = if first.animated && time != at_zero {
         load(&time)?
@@ -436,6 +436,12 @@ pub fn render(args: RenderArgs) -> Result<()> {
     // CPU time of all render threads: what a comparison on a loaded machine can trust
     // (bench/compare divides noise by it), at the 10 ms resolution of /proc.
     println!("cpu seconds: {cpu_seconds:.2}");
+    println!(
+        "rays: {} ({:.0} per second, {:.2} per path)",
+        rendered.rays,
+        rendered.rays as f64 / seconds,
+        rendered.rays as f64 / paths
+    );
     print_rejected_samples(rendered.rejected_samples);
     if let Some(map) = &args.spp_map {
         adaptive::write_spp_map(map, &image)?;

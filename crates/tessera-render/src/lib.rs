@@ -6,7 +6,8 @@
 //! - [`geometry`]: triangles in an `obvhs` CWBVH (watertight, near-hit safe) and spheres;
 //! - [`bsdf`] and [`light`]: closed enums of scattering models and emitters, each
 //!   variant in its own file with its documentation;
-//! - [`integrator`]: path tracing with NEE and MIS, and direct lighting;
+//! - [`integrator`]: path tracing with NEE and MIS, direct lighting and bdpt;
+//! - [`pilot`]: the measured choice between path tracing and bdpt where both are correct;
 //! - [`scene::RenderScene`]: a [`tessera_scene::Scene`] prepared for tracing;
 //! - [`render::render_unit`]: renders one `tessera-farm` work unit (tile x pass range), the
 //!   only entry point the farm's workers and the local renderer use;
@@ -34,6 +35,7 @@ pub mod integrator;
 pub mod light;
 pub mod math;
 pub mod motion;
+pub mod pilot;
 pub mod render;
 pub mod sampling;
 pub mod scene;

@@ -24,6 +24,9 @@ pub struct RenderedFrame {
     /// Samples dropped as NaN, infinite or negative, summed over the frame's units (see
     /// [`tessera_farm::UnitResult::rejected_samples`]); 0 in a healthy render.
     pub rejected_samples: u64,
+    /// Rays traced, closest hits and shadow rays ([`crate::scene::rays_traced`]): paths
+    /// per second depends on path length, rays per second less so.
+    pub rays: u64,
 }
 
 /// Renders a whole frame on `threads` threads (0 = all cores), calling `progress(done,
@@ -53,6 +56,7 @@ pub fn render_frame_counted(
     let total = units.len();
     let mut acc = FrameAccumulator::for_frame(*plan, frame);
     let mut rejected_samples = 0u64;
+    let mut rays = 0u64;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -62,11 +66,15 @@ pub fn render_frame_counted(
         scope.spawn(move |_| {
             use rayon::prelude::*;
             units.into_par_iter().for_each_with(tx, |tx, unit| {
-                let _ = tx.send(render_unit(scene, settings, plan, unit));
+                // A unit renders on one thread: its counter brackets the unit's rays.
+                let before = crate::scene::rays_traced();
+                let result = render_unit(scene, settings, plan, unit);
+                let _ = tx.send((result, crate::scene::rays_traced() - before));
             });
         });
-        for (done, result) in rx.iter().enumerate() {
+        for (done, (result, unit_rays)) in rx.iter().enumerate() {
             rejected_samples += result.rejected_samples;
+            rays += unit_rays;
             // Our own results always fit the plan; a failure here is a bug worth a panic.
             acc.offer(result).expect("locally rendered unit is valid");
             progress(done + 1, total);
@@ -75,5 +83,6 @@ pub fn render_frame_counted(
     RenderedFrame {
         accumulator: acc,
         rejected_samples,
+        rays,
     }
 }

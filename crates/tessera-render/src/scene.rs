@@ -325,6 +325,7 @@ impl RenderScene {
     /// [`RenderScene::intersect`] at shutter fraction `time` (motion blur).
     #[inline]
     pub fn intersect_at(&self, origin: Vec3, dir: Vec3, t_max: f32, time: f32) -> Option<Hit> {
+        count_ray();
         if !self.any_alpha {
             return self
                 .geometry
@@ -348,6 +349,7 @@ impl RenderScene {
     /// [`RenderScene::occluded`] at shutter fraction `time` (motion blur).
     #[inline]
     pub fn occluded_at(&self, origin: Vec3, dir: Vec3, t_max: f32, time: f32) -> bool {
+        count_ray();
         if !self.any_alpha {
             return self
                 .geometry
@@ -961,6 +963,27 @@ fn mean_emission_scale(
         }
     }
     sum / (N * N) as f32
+}
+
+thread_local! {
+    /// Rays traced on this thread ([`rays_traced`]).
+    static RAYS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+/// Counts one ray query: a thread-local add, a few instructions beside the traversal's
+/// thousands, so every render counts without a branch or a shared cache line.
+#[inline(always)]
+fn count_ray() {
+    RAYS.with(|r| r.set(r.get().wrapping_add(1)));
+}
+
+/// Ray queries ([`RenderScene::intersect_at`] and [`RenderScene::occluded_at`], closest
+/// hits and shadow rays alike) made on the calling thread since it started. The difference
+/// across a call that renders on this thread is that call's ray count: deterministic, as
+/// the render is, so it can stand for cost where wall time cannot (the technique pilot,
+/// [`crate::pilot`]) and give rays per second beside paths per second.
+pub fn rays_traced() -> u64 {
+    RAYS.with(std::cell::Cell::get)
 }
 
 #[cfg(test)]

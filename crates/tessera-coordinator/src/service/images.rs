@@ -236,7 +236,7 @@ impl Coordinator {
         if !rec.frames.iter().contains(&f) {
             return Err(frame_error(f, rec.frames));
         }
-        let stored = resolve_stored(store, &self.inner.farm, &rec).await?;
+        let stored = resolve_stored(store, &self.inner.farm, &self.inner.technique, &rec).await?;
         let adaptive = stored.resolved.job.adaptive_settings();
         Ok(FrameMeta {
             adaptive: adaptive.map(|a| a.for_units(rec.passes_per_unit)),

@@ -11,7 +11,6 @@ use tessera_api::{
 use tessera_farm::job::StopVerdict;
 use tessera_farm::quote::{job_eta_seconds, JobProgress};
 use tessera_farm::{frame_state_bytes, FramePlan, JobId};
-use tessera_scene::job::resolve_job;
 
 use super::{Coordinator, MAX_PAGE};
 use crate::error::{CoordError, CoordResult};
@@ -43,9 +42,14 @@ impl Coordinator {
             .scene(&job.scene, job.camera.as_deref(), job.animation.as_deref())
             .await?;
         // Resolution also checks the adaptive settings against the plan (field `adaptive`).
-        let resolved = resolve_job(&job, &scene)?;
-        self.check_memory(&job, &resolved)?;
         let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;
+        let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene);
+        let resolved = self
+            .inner
+            .technique
+            .resolve(&job, settings_json.as_bytes(), &scene, bytes)
+            .await?;
+        self.check_memory(&job, &resolved)?;
         let created = now_ms();
         let (id, new) = self
             .inner

@@ -44,6 +44,7 @@ use crate::error::{CoordError, CoordResult};
 use crate::state::{now_ms, Farm, Stop};
 use crate::store::{Store, StoreError, StoreUrl, WatchedStore};
 
+mod child;
 pub mod images;
 pub mod jobs;
 pub mod metrics;
@@ -51,6 +52,7 @@ pub mod quote;
 pub mod results;
 pub mod resume;
 pub mod scenes;
+mod technique;
 pub mod workers;
 
 pub use results::{Accepted, Delivery, Rejected};
@@ -202,6 +204,8 @@ struct Inner {
     heavy: tokio::sync::Semaphore,
     /// The one permit of a dry run's pilot ([`quote`]).
     pilots: tokio::sync::Semaphore,
+    /// Technique pilots and their verdicts ([`technique`]).
+    technique: Arc<technique::TechniquePilots>,
     /// Encoded images for pollers.
     images: Mutex<images::ImageCache>,
     /// Set once a graceful shutdown began: heartbeats tell workers to stop and no new
@@ -253,7 +257,11 @@ impl Coordinator {
             state.quarantines.insert(key, q);
         }
         let farm = Arc::new(Mutex::new(state));
-        let resumed = resume::resume_all(&*store, &farm).await?;
+        let technique = Arc::new(technique::TechniquePilots::new(
+            cfg.pilot_program.clone(),
+            std::time::Duration::from_millis(cfg.pilot_timeout_ms.max(1)),
+        ));
+        let resumed = resume::resume_all(&*store, &farm, &technique).await?;
         if let Some(f) = watch.fault() {
             return Err(StoreError::Failing(f));
         }
@@ -275,6 +283,7 @@ impl Coordinator {
                 started: Instant::now(),
                 heavy: tokio::sync::Semaphore::new(images::HEAVY_REQUESTS),
                 pilots: tokio::sync::Semaphore::new(1),
+                technique,
                 images: Mutex::new(images::ImageCache::default()),
                 stopping: std::sync::atomic::AtomicBool::new(false),
                 deposed: OnceLock::new(),

@@ -21,28 +21,17 @@
 //! [`CoordinatorConfig::pilot_program`]: super::CoordinatorConfig::pilot_program
 //! [`CoordinatorConfig::pilot_timeout_ms`]: super::CoordinatorConfig::pilot_timeout_ms
 
-use std::io::Write;
-use std::path::PathBuf;
-use std::process::Stdio;
 use std::time::Duration;
 
-use tessera_farm::job::{JobSettings, SceneRef};
-use tessera_farm::quote::{pilot_tiles, PILOT_PASSES};
-use tessera_scene::job::resolve_job;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-
+use super::child::{run_pilot, ChildError};
 use super::Coordinator;
 use crate::error::{CoordError, CoordResult};
 use crate::state::now_ms;
+use tessera_farm::job::{JobSettings, SceneRef};
+use tessera_farm::quote::{pilot_tiles, PILOT_PASSES};
 
 /// Default of [`super::CoordinatorConfig::pilot_timeout_ms`]: two minutes.
 pub const PILOT_TIMEOUT_MS: u64 = 120_000;
-
-/// The most a pilot may print: its quote is a few kilobytes.
-const MAX_PILOT_OUTPUT: u64 = 1 << 20;
-
-/// The most of a failed pilot's standard error that is read (its last line is reported).
-const MAX_PILOT_STDERR: u64 = 64 << 10;
 
 /// The most camera paths a dry run's pilot may trace on the coordinator's host: about ten
 /// seconds of one thread on the built-in scenes. A larger pilot (big tiles, or one
@@ -52,35 +41,6 @@ pub const MAX_PILOT_PATHS: u64 = 1 << 23;
 
 /// The largest fleet a quote may assume.
 pub const MAX_QUOTE_WORKERS: u32 = 100_000;
-
-/// A scene file handed to a pilot, removed when dropped.
-struct TempScene(PathBuf);
-
-impl TempScene {
-    /// Writes `bytes` to a new file in the system's temporary directory.
-    fn write(bytes: &[u8]) -> std::io::Result<Self> {
-        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-        let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let path = std::env::temp_dir().join(format!(
-            "tessera-pilot-{}-{}-{n}.glb",
-            std::process::id(),
-            now_ms()
-        ));
-        let mut f = std::fs::OpenOptions::new()
-            .write(true)
-            .create_new(true)
-            .open(&path)?;
-        let t = Self(path);
-        f.write_all(bytes)?;
-        Ok(t)
-    }
-}
-
-impl Drop for TempScene {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.0);
-    }
-}
 
 /// The fleet a quote assumes: workers, threads per worker, and how they were chosen.
 fn fleet(connected: &[u32], asked: Option<u32>, host_threads: u32) -> (u32, u32, String) {
@@ -130,7 +90,13 @@ impl Coordinator {
         let scene = self
             .scene(&job.scene, job.camera.as_deref(), job.animation.as_deref())
             .await?;
-        let resolved = resolve_job(&job, &scene)?;
+        let body = serde_json::to_vec(&settings).map_err(CoordError::internal)?;
+        let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene);
+        let resolved = self
+            .inner
+            .technique
+            .resolve(&job, &body, &scene, bytes)
+            .await?;
         drop(scene);
         // A quote for a job the coordinator would refuse would mislead.
         self.check_memory(&job, &resolved)?;
@@ -181,91 +147,42 @@ impl Coordinator {
                 "another dry run's pilot is rendering; retry in a few seconds".into(),
             )
         })?;
-        let scene_file = match (&job.scene, bytes) {
+        let scene_bytes = match (&job.scene, bytes) {
             (SceneRef::Builtin(_), _) => None,
-            // Up to MAX_SCENE_BYTES of file I/O: off the async runtime's threads.
-            (SceneRef::Hash(_), Some(b)) => Some(
-                tokio::task::spawn_blocking(move || TempScene::write(&b))
-                    .await
-                    .map_err(CoordError::internal)?
-                    .map_err(|e| CoordError::internal(format!("writing the pilot's scene: {e}")))?,
-            ),
+            (SceneRef::Hash(_), Some(b)) => Some(b),
             (SceneRef::Hash(h), None) => {
                 return Err(CoordError::internal(format!(
                     "scene {h} loaded but its bytes are not in memory"
                 )))
             }
         };
-        let body = serde_json::to_vec(&settings).map_err(CoordError::internal)?;
-        let mut cmd = tokio::process::Command::new(&program);
-        cmd.arg("pilot")
-            .args(["--workers", &workers.to_string()])
-            .args(["--worker-threads", &worker_threads.to_string()])
-            .args(["--threads", "1"])
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .kill_on_drop(true);
-        if let Some(f) = &scene_file {
-            cmd.arg("--scene-file").arg(&f.0);
-        }
+        let args = [
+            "--workers".to_string(),
+            workers.to_string(),
+            "--worker-threads".to_string(),
+            worker_threads.to_string(),
+            "--threads".to_string(),
+            "1".to_string(),
+        ];
         let timeout = Duration::from_millis(self.inner.cfg.pilot_timeout_ms.max(1));
         let started = std::time::Instant::now();
-        let run = async {
-            let mut child = cmd.spawn().map_err(|e| {
-                CoordError::internal(format!("starting the pilot {}: {e}", program.display()))
-            })?;
-            let (Some(mut stdin), Some(stdout), Some(stderr)) =
-                (child.stdin.take(), child.stdout.take(), child.stderr.take())
-            else {
-                return Err(CoordError::internal("the pilot's pipes were not opened"));
-            };
-            let mut out = Vec::new();
-            let mut err = Vec::new();
-            let mut stdout = stdout.take(MAX_PILOT_OUTPUT);
-            let mut stderr = stderr.take(MAX_PILOT_STDERR);
-            let write = async {
-                // A pilot that exits early closes its end: its exit status says why.
-                let _ = stdin.write_all(&body).await;
-                drop(stdin);
-            };
-            let (_, o, e, status) = tokio::join!(
-                write,
-                stdout.read_to_end(&mut out),
-                stderr.read_to_end(&mut err),
-                child.wait()
-            );
-            o.and(e)
-                .map_err(|e| CoordError::internal(format!("reading the pilot: {e}")))?;
-            let status =
-                status.map_err(|e| CoordError::internal(format!("waiting for the pilot: {e}")))?;
-            Ok((status, out, err))
-        };
-        let (status, out, err) = match tokio::time::timeout(timeout, run).await {
-            Ok(r) => r?,
-            // Dropping the future kills the child (kill_on_drop).
-            Err(_) => {
+        let out = match run_pilot(&program, &args, scene_bytes, body, timeout).await {
+            Ok(out) => out,
+            Err(ChildError::Io(e)) => return Err(CoordError::internal(e)),
+            Err(ChildError::Timeout(t)) => {
                 return Err(CoordError::Unavailable(format!(
                     "the pilot did not finish within {} s (--pilot-timeout); quote a smaller \
                      job, or run `tessera estimate` on a worker",
-                    timeout.as_secs_f64()
+                    t.as_secs_f64()
                 )))
             }
+            Err(ChildError::Failed { status, message }) => {
+                tracing::warn!(%status, message, "dry-run pilot failed");
+                return Err(CoordError::InvalidScene(format!(
+                    "the pilot render failed ({status}): {message}"
+                )));
+            }
         };
-        if !status.success() {
-            let text = String::from_utf8_lossy(&err);
-            let last = text
-                .lines()
-                .rev()
-                .find(|l| !l.trim().is_empty())
-                .unwrap_or("no message")
-                .trim()
-                .trim_start_matches("error: ");
-            tracing::warn!(%status, message = last, "dry-run pilot failed");
-            return Err(CoordError::InvalidScene(format!(
-                "the pilot render failed ({status}): {last}"
-            )));
-        }
         let mut value: serde_json::Value = serde_json::from_slice(&out)
             .map_err(|e| CoordError::internal(format!("the pilot's answer is not JSON: {e}")))?;
         let Some(obj) = value.as_object_mut() else {

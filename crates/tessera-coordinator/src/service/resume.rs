@@ -6,18 +6,19 @@
 //! (parse the stored settings, validate, load the scene, resolve), and
 //! `restore_frames` rebuilds frame accumulators from tile checkpoints, bit-exact.
 
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 use tessera_api::{JobSettings, JobState, ResolvedJob};
 use tessera_farm::job::JobError;
+use tessera_farm::job::SceneRef;
 use tessera_farm::{
     AdaptiveFrame, AdaptiveSettings, AdaptiveTileCheckpoint, FrameAccumulator, FramePlan, JobId,
     Resumed,
 };
-use tessera_scene::job::resolve_job;
 
 use super::jobs::add_to_scheduler;
 use super::scenes::{load_scene, SceneLoadError};
+use super::technique::{ResolveError, TechniquePilots};
 use crate::error::CoordError;
 use crate::state::{now_ms, tile_error, Farm, JobEntry, JobRuntime, Stop, TileRejected};
 use crate::store::{
@@ -50,6 +51,18 @@ pub(crate) enum StoredJobError {
     /// The scene is gone or no longer loads.
     #[error(transparent)]
     Scene(#[from] SceneLoadError),
+    /// The technique pilot failed ([`super::technique`]).
+    #[error("{0}")]
+    Pilot(String),
+}
+
+impl From<ResolveError> for StoredJobError {
+    fn from(e: ResolveError) -> Self {
+        match e {
+            ResolveError::Job(e) => Self::Invalid(e),
+            e @ ResolveError::Pilot(_) => Self::Pilot(e.to_string()),
+        }
+    }
 }
 
 impl From<StoredJobError> for CoordError {
@@ -60,6 +73,7 @@ impl From<StoredJobError> for CoordError {
             }
             StoredJobError::Invalid(e) => e.into(),
             StoredJobError::Scene(e) => e.into(),
+            StoredJobError::Pilot(e) => CoordError::InvalidScene(e),
         }
     }
 }
@@ -70,6 +84,7 @@ impl From<StoredJobError> for CoordError {
 pub(crate) async fn resolve_stored(
     store: &dyn Store,
     farm: &Mutex<Farm>,
+    pilots: &TechniquePilots,
     rec: &JobRecord,
 ) -> Result<StoredJob, StoredJobError> {
     let settings: JobSettings = serde_json::from_str(&rec.settings_json)
@@ -83,8 +98,20 @@ pub(crate) async fn resolve_stored(
         job.animation.as_deref(),
     )
     .await?;
-    let resolved = resolve_job(&job, &scene)?;
+    let bytes = scene_bytes(farm, &job.scene);
+    let resolved = pilots
+        .resolve(&job, rec.settings_json.as_bytes(), &scene, bytes)
+        .await?;
     Ok(StoredJob { settings, resolved })
+}
+
+/// The bytes of an uploaded scene in memory (`load_scene` keeps them); `None` for a
+/// built-in scene.
+pub(crate) fn scene_bytes(farm: &Mutex<Farm>, scene: &SceneRef) -> Option<Arc<Vec<u8>>> {
+    match scene {
+        SceneRef::Builtin(_) => None,
+        SceneRef::Hash(h) => farm.lock().ok()?.scenes.get(h).cloned(),
+    }
 }
 
 /// Frames rebuilt from tile checkpoints.
@@ -289,7 +316,11 @@ pub(crate) fn restore_frames(
 /// failed instead of resumed. A crash during a start is blamed on the job that start was
 /// resuming alone; a crash after it on every job then unfinished (a job that made
 /// progress starts counting again). A graceful shutdown counts nothing.
-pub(crate) async fn resume_all(store: &dyn Store, farm: &Mutex<Farm>) -> Result<bool, StoreError> {
+pub(crate) async fn resume_all(
+    store: &dyn Store,
+    farm: &Mutex<Farm>,
+    pilots: &TechniquePilots,
+) -> Result<bool, StoreError> {
     let previous = store.begin_run().await?;
     let mut resumed = false;
     for id in store.job_ids_to_resume().await? {
@@ -302,7 +333,7 @@ pub(crate) async fn resume_all(store: &dyn Store, farm: &Mutex<Farm>) -> Result<
                  coordinator's log of those runs"
             )),
             Ok(_) => match store.get_job(id).await {
-                Ok(Some(rec)) => resume_job(store, farm, &rec).await,
+                Ok(Some(rec)) => resume_job(store, farm, pilots, &rec).await,
                 Ok(None) => continue,
                 Err(e) if e.is_write_failure() => return Err(e),
                 Err(e) => Err(format!("the stored job cannot be read: {e}")),
@@ -329,8 +360,13 @@ pub(crate) async fn resume_all(store: &dyn Store, farm: &Mutex<Farm>) -> Result<
 
 /// Brings one stored job back: resolved again, its plan checked, its tiles restored, its
 /// remaining units queued.
-async fn resume_job(store: &dyn Store, farm: &Mutex<Farm>, rec: &JobRecord) -> Result<(), String> {
-    let StoredJob { settings, resolved } = resolve_stored(store, farm, rec)
+async fn resume_job(
+    store: &dyn Store,
+    farm: &Mutex<Farm>,
+    pilots: &TechniquePilots,
+    rec: &JobRecord,
+) -> Result<(), String> {
+    let StoredJob { settings, resolved } = resolve_stored(store, farm, pilots, rec)
         .await
         .map_err(|e| e.to_string())?;
     if resolved.plan != rec.plan {

@@ -178,12 +178,12 @@ impl Coordinator {
     /// `wait` (at most [`MAX_LEASE_WAIT_MS`]) for one and answers as soon as it may be
     /// (`LeaseRequest.wait_ms`).
     ///
-    /// Why: an idle worker otherwise asks again after [`RETRY_IDLE_MS`], and a unit that
+    /// Why: an idle worker otherwise asks again after `RETRY_IDLE_MS`, and a unit that
     /// opens in between waits for that ask. An adaptive job opens units only as its
     /// decisions are taken, a few passes at a time; with one whole-frame tile (bdpt) every
     /// merge is such a moment.
     ///
-    /// Wake-ups ([`Coordinator::work_changed`]): a merged result wakes one waiting request
+    /// Wake-ups (`Coordinator::work_changed`): a merged result wakes one waiting request
     /// (and a request that got units wakes the next, so a decision that opens several
     /// units reaches as many workers as take them, without waking every idle worker of a
     /// large fleet for each result); a job queued, leases lapsed or returned, a worker

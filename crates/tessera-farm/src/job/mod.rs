@@ -35,6 +35,7 @@
 //!     reasons: vec![],
 //!     overridden: None,
 //!     warnings: vec![],
+//!     technique_pilot: None,
 //! };
 //! let resolved = job.resolve(SceneFacts { default_resolution: (512, 256) }, plan)?;
 //! assert_eq!(resolved.config.integrator, Integrator::Bdpt);
@@ -53,7 +54,7 @@ pub use choice::{
     AdaptiveMode, Integrator, IntegratorChoice, MisHeuristic, SamplerKind, SceneRef,
     DEFAULT_CUTOFF_ALPHA, MAX_BUILTIN_NAME_CHARS,
 };
-pub use plan::{Effect, EffectKind, PlannedIntegrator, RenderPlan};
+pub use plan::{Effect, EffectKind, PlannedIntegrator, RenderPlan, TechniquePilot};
 pub use resolve::{ResolvedJob, SceneFacts, StopVerdict};
 pub use settings::{
     resolve_resolution, FrameRange, JobError, JobSettings, RenderConfig, RenderRequest, Shutter,

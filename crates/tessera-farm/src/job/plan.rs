@@ -159,6 +159,20 @@ pub struct RenderPlan {
     pub overridden: Option<String>,
     /// What the scene loader ignored (e.g. unsupported optional glTF extensions).
     pub warnings: Vec<String>,
+    /// Set when the analysis chose bdpt but path tracing is as correct (the caustics' only
+    /// lights are tiny finite ones, which BSDF sampling can hit): the choice waits for a
+    /// measured pilot of both (`tessera_render::pilot`), which settles it with
+    /// [`RenderPlan::settle_technique`]. Not in [`RenderPlan::to_json`]: the verdict is.
+    pub technique_pilot: Option<TechniquePilot>,
+}
+
+/// A plan's provisional choice between bdpt and path tracing ([`RenderPlan::technique_pilot`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TechniquePilot {
+    /// How many leading [`RenderPlan::reasons`] explain bdpt (replaced if path wins).
+    pub bdpt_reasons: usize,
+    /// The reasons that replace them if path tracing wins.
+    pub path_reasons: Vec<String>,
 }
 
 impl RenderPlan {
@@ -173,6 +187,21 @@ impl RenderPlan {
             .iter()
             .find(|e| e.kind == kind)
             .map(|e| e.evidence.as_str())
+    }
+
+    /// Settles a provisional choice ([`RenderPlan::technique_pilot`]) by a pilot's
+    /// measurement: path tracing if `path_wins`, bdpt otherwise, with `verdict` (what was
+    /// measured) as the first reason. Does nothing on a plan without a pilot.
+    pub fn settle_technique(&mut self, path_wins: bool, verdict: String) {
+        let Some(pilot) = self.technique_pilot.take() else {
+            return;
+        };
+        let n = pilot.bdpt_reasons.min(self.reasons.len());
+        if path_wins {
+            self.integrator = PlannedIntegrator::Path;
+            self.reasons.splice(0..n, pilot.path_reasons);
+        }
+        self.reasons.insert(0, verdict);
     }
 
     /// Records that the user forced `what` (e.g. "--integrator path") instead of the plan,

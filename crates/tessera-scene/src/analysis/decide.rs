@@ -4,8 +4,9 @@
 use super::lights::Lights;
 use super::transport::Transport;
 use super::{
-    Effect, EffectKind, PlannedIntegrator, RenderPlan, BRIGHT_ALBEDO, CLOSED_FRACTION,
-    CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, OPEN_SCENE_RR_DEPTH, REFRACTION_DEPTH,
+    Effect, EffectKind, PlannedIntegrator, RenderPlan, TechniquePilot, BRIGHT_ALBEDO,
+    CLOSED_FRACTION, CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, OPEN_SCENE_RR_DEPTH,
+    REFRACTION_DEPTH,
 };
 use crate::Camera;
 
@@ -20,6 +21,19 @@ pub(super) fn plan(
 ) -> RenderPlan {
     let mut reasons: Vec<String> = Vec::new();
     let integrator = choose_integrator(lights, transport, &mut reasons);
+    // Tiny finite lights: path tracing is correct too, and which technique is more
+    // efficient (Veach & Guibas 1995, section 2: 1 / (variance x time)) depends on the
+    // scene (their section 4.3 compares the two at equal time), so a measured pilot
+    // decides; the reasons given for bdpt are swapped for path tracing's if it wins.
+    let technique_pilot =
+        (integrator == PlannedIntegrator::Bdpt && transport.tiny_lit_only).then(|| {
+            let mut path_reasons = Vec::new();
+            path_reasons_into(transport, &mut path_reasons);
+            TechniquePilot {
+                bdpt_reasons: reasons.len(),
+                path_reasons,
+            }
+        });
     let (max_depth, rr_depth) = depths(integrator, transport, &mut reasons);
     if integrator != PlannedIntegrator::Black {
         reasons.push(if lens_sampling {
@@ -71,6 +85,7 @@ pub(super) fn plan(
         reasons,
         overridden: None,
         warnings: Vec::new(),
+        technique_pilot,
     }
 }
 
@@ -109,23 +124,27 @@ fn choose_integrator(
         ));
         PlannedIntegrator::Direct
     } else if transport.delta_lit {
-        reasons.push(
-            "bdpt: caustics lit by delta or tiny lights, which a path tracer with next-event \
-             estimation samples with zero or vanishing probability"
-                .into(),
-        );
+        reasons.push(if transport.tiny_lit_only {
+            "bdpt: caustics lit by tiny lights, which a path tracer with next-event estimation \
+             finds only when a BSDF-sampled ray hits the light"
+                .into()
+        } else {
+            "bdpt: caustics lit by delta lights, which a path tracer with next-event \
+             estimation samples with zero probability"
+                .into()
+        });
         reasons.push(
             "bdpt light-traces onto the film: one whole-frame tile, units split by passes".into(),
         );
         PlannedIntegrator::Bdpt
     } else {
-        path_reasons(transport, reasons);
+        path_reasons_into(transport, reasons);
         PlannedIntegrator::Path
     }
 }
 
 /// Why path tracing: the effects that need more than one bounce.
-fn path_reasons(transport: &Transport, reasons: &mut Vec<String>) {
+fn path_reasons_into(transport: &Transport, reasons: &mut Vec<String>) {
     let s = &transport.surfaces;
     let mut why: Vec<&str> = Vec::new();
     if transport.indirect_diffuse {

@@ -115,7 +115,9 @@ mod lights;
 mod survey;
 mod transport;
 
-pub use tessera_farm::job::plan::{Effect, EffectKind, PlannedIntegrator, RenderPlan};
+pub use tessera_farm::job::plan::{
+    Effect, EffectKind, PlannedIntegrator, RenderPlan, TechniquePilot,
+};
 
 #[cfg(doc)]
 use crate::PunctualLight;

@@ -79,6 +79,10 @@ pub(super) struct Transport {
     pub(super) caustics: bool,
     /// [`EffectKind::DeltaLitCaustics`] is present.
     pub(super) delta_lit: bool,
+    /// Only finite (tiny area or sphere) lights light the caustics, no point, spot or
+    /// directional light: path tracing finds them too, by BSDF sampling, so it is a
+    /// correct alternative to bdpt.
+    pub(super) tiny_lit_only: bool,
 }
 
 /// Finds the transport effects, records them with their evidence, and returns what the
@@ -128,7 +132,11 @@ pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect
             ),
         );
     }
-    let delta_lit = caustics && report_delta_lit(survey, lights, effects);
+    let (delta_lit, tiny_lit_only) = if caustics {
+        report_delta_lit(survey, lights, effects)
+    } else {
+        (false, false)
+    };
     Transport {
         surfaces,
         bouncing,
@@ -137,6 +145,7 @@ pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect
         indirect_diffuse,
         caustics,
         delta_lit,
+        tiny_lit_only,
     }
 }
 
@@ -311,8 +320,8 @@ fn report_reflection(survey: &Survey, surfaces: &Surfaces, effects: &mut Vec<Eff
 }
 
 /// For a scene with caustics: records [`EffectKind::DeltaLitCaustics`] if delta or tiny
-/// lights light them, and returns whether it did.
-fn report_delta_lit(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>) -> bool {
+/// lights light them, and returns whether it did and whether only tiny finite lights did.
+fn report_delta_lit(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>) -> (bool, bool) {
     let scene_radius = survey.scene_radius;
     let mut delta_evidence: Vec<String> = Vec::new();
     if lights.points > 0 {
@@ -328,6 +337,7 @@ fn report_delta_lit(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>)
             "directional lights",
         ));
     }
+    let delta_lights = !delta_evidence.is_empty();
     let tiny = TINY_LIGHT_FRACTION * scene_radius;
     for (i, s) in &lights.spheres {
         if s.radius < tiny {
@@ -362,5 +372,5 @@ fn report_delta_lit(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>)
             ),
         );
     }
-    delta_lit
+    (delta_lit, delta_lit && !delta_lights)
 }

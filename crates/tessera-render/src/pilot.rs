@@ -1,0 +1,325 @@
+//! The technique pilot: the cheaper of path tracing and bdpt for the same error, measured
+//! (issue 13, item 4; ARCHITECTURE.md §4).
+//!
+//! The scene analysis picks bdpt for caustics lit by delta or tiny lights. With a delta
+//! light (point, spot, directional) path tracing cannot find such a caustic at all, so
+//! bdpt is the only correct choice. With a tiny *finite* light it can, when a
+//! BSDF-sampled ray happens to hit the light, and which of the two then reaches an error
+//! sooner depends on the scene: a small caustic in a large diffusely lit room is cheaper
+//! to path trace, a caustic that fills the view is not (Veach & Guibas 1995, section 4.3,
+//! compare the two at equal time). For those scenes the analysis leaves the choice to
+//! this pilot ([`tessera_farm::job::RenderPlan::technique_pilot`]).
+//!
+//! # The measurement
+//!
+//! Both techniques render the same small frame ([`PILOT_LONG_SIDE`] pixels on the long
+//! side, the job's aspect ratio and camera) with [`PILOT_PASSES`] passes of
+//! [`PILOT_SAMPLES_PER_PASS`] samples, the plan's depths and the job's MIS and sampler,
+//! from a fixed seed. Each is scored by its efficiency (Veach & Guibas 1995, section 2:
+//! `1 / (variance x cost)`): its pilot image's mean squared relative error times its cost.
+//!
+//! Both techniques estimate the same image, and the pilot uses that twice. A pixel's
+//! error is relative to its mean *in both pilots*: a path-traced caustic pixel where one
+//! pass found the light has a relative error no larger than its neighbours' by its own
+//! mean, while against the caustic's true brightness (which bdpt's pilot finds) it is the
+//! firefly the eye sees. And a technique's error is never taken below what the difference
+//! of the two images shows (`on_one_scale`): where path tracing's passes missed a caustic
+//! altogether its own variance shows nothing, the difference does.
+//!
+//! The cost is not wall time, which would make the choice, and so the image, depend on the
+//! machine's load: it is the number of rays traced (closest hits and shadow rays,
+//! [`crate::scene::rays_traced`]), bdpt's weighted by [`BDPT_RAY_COST`], its measured time
+//! per ray relative to path tracing's (its rays also pay for MIS weights over every
+//! connection and for splatting). Every input is deterministic, so the choice is a pure
+//! function of the scene and the job: `tessera render`, the coordinator at submission and
+//! at every restart all choose alike, and a farm render stays byte-identical to a local one.
+//!
+//! # What it cannot see
+//!
+//! A pilot's error estimate is optimistic where paths are rare (issue 15's calibration:
+//! caustic pixels whose passes never found the light show no error at all; Jensen 2001,
+//! section 10.3, on what a pilot can miss). That bias favours path tracing, whose
+//! caustics are the rare paths, so path tracing must win by [`PATH_MARGIN`], with its
+//! error spread over the image rather than carried by a few pixels ([`MIN_PATH_SPREAD`]),
+//! to be chosen. Either choice is unbiased: a wrong one costs time, never correctness.
+
+use crate::integrator::{render_unit, RenderConfig};
+use crate::scene::{rays_traced, RenderScene};
+use rayon::prelude::*;
+use tessera_farm::job::{
+    Integrator, JobError, PlannedIntegrator, RenderPlan, ResolvedJob, SceneFacts, ValidatedJob,
+};
+use tessera_farm::{FrameAccumulator, FramePlan};
+use tessera_scene::Scene;
+
+/// Pixels on the long side of the pilot frame.
+pub const PILOT_LONG_SIDE: u32 = 64;
+/// Passes of each technique: 8 replicates give each pixel a variance estimate with 7
+/// degrees of freedom.
+pub const PILOT_PASSES: u32 = 8;
+/// Samples per pass.
+pub const PILOT_SAMPLES_PER_PASS: u32 = 4;
+/// The pilot's seed: fixed, so the choice does not depend on the job's seed.
+pub const PILOT_SEED: u64 = 0x0070_696c_6f74;
+/// Time per ray of bdpt relative to path tracing, measured with `tessera bench-plan`
+/// (docs/benchmarks.md, "Technique pilot"): the cost of a bdpt ray in path-tracing rays.
+pub const BDPT_RAY_COST: f64 = 1.45;
+/// Path tracing is chosen only when its measured efficiency is at least this many times
+/// bdpt's, since the pilot's error estimate flatters it (module documentation).
+pub const PATH_MARGIN: f64 = 1.5;
+/// ... and only when its error is spread over at least this fraction of the pixels
+/// ([`TechniqueMeasurement::spread`]): an error carried by a few pixels is the heavy tail
+/// of rare paths, whose true variance a pilot of a few dozen samples per pixel cannot
+/// measure. On `builtin:caustic` path tracing's pilot spreads its error over 0.7-4.4% of
+/// the pixels and claims 3.3-3.9x bdpt's efficiency; the variance over 24 seeds says
+/// 0.17x (docs/benchmarks.md, "Technique pilot").
+pub const MIN_PATH_SPREAD: f64 = 0.1;
+
+/// One technique's pilot.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TechniqueMeasurement {
+    /// The pilot image's RMS relative error, each pixel's against the mean of both
+    /// pilots (module documentation).
+    pub error: f64,
+    /// Rays traced.
+    pub rays: u64,
+    /// Cost in path-tracing ray equivalents (`rays`, bdpt's times [`BDPT_RAY_COST`]).
+    pub cost: f64,
+    /// How evenly the pixels carry the error: Kish's effective number of pixels,
+    /// `(sum v)² / sum v²` over the pixels' relative variances `v`, as a fraction of the
+    /// pixels (1: every pixel alike; small: a handful carry it, the heavy tail of rare
+    /// paths whose true size a pilot cannot measure).
+    pub spread: f64,
+}
+
+impl TechniqueMeasurement {
+    /// `1 / (error² x cost)`: higher is better; per million ray equivalents, so the
+    /// numbers reported stay readable.
+    pub fn efficiency(&self) -> f64 {
+        1e6 / (self.error * self.error * self.cost)
+    }
+}
+
+/// What the pilot measured and chose.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TechniqueVerdict {
+    /// Path tracing's pilot.
+    pub path: TechniqueMeasurement,
+    /// Bdpt's pilot.
+    pub bdpt: TechniqueMeasurement,
+    /// Pilot frame size.
+    pub size: (u32, u32),
+}
+
+impl TechniqueVerdict {
+    /// Whether path tracing is chosen: its efficiency is at least [`PATH_MARGIN`] times
+    /// bdpt's and its error is spread over at least [`MIN_PATH_SPREAD`] of the pixels. A
+    /// technique whose pilot shows no error (a black pilot) counts as free of error, so
+    /// path tracing, the simpler, wins a tie of zeros.
+    pub fn path_wins(&self) -> bool {
+        let (p, b) = (&self.path, &self.bdpt);
+        // Compare error² x cost without dividing, so zero errors compare too.
+        p.error * p.error * p.cost * PATH_MARGIN <= b.error * b.error * b.cost
+            && p.spread >= MIN_PATH_SPREAD
+    }
+
+    /// The reason the plan records, with the measured efficiencies.
+    pub fn reason(&self) -> String {
+        let (p, b) = (&self.path, &self.bdpt);
+        let ratio = if p.efficiency().is_finite() && b.efficiency() > 0.0 {
+            format!("{:.2}x", p.efficiency() / b.efficiency())
+        } else {
+            "n/a".into()
+        };
+        format!(
+            "technique pilot ({}x{}, {PILOT_PASSES} passes of {PILOT_SAMPLES_PER_PASS} \
+             samples each): path error {:.4} for {} rays (spread {:.3}), bdpt error {:.4} for \
+             {} rays (x{BDPT_RAY_COST} per ray, spread {:.3}); efficiency 1/(error^2 x cost) path {:.4}, bdpt {:.4} \
+             (path/bdpt {ratio}; path needs {PATH_MARGIN}x and a spread of \
+             {MIN_PATH_SPREAD}): {} chosen",
+            self.size.0,
+            self.size.1,
+            p.error,
+            p.rays,
+            p.spread,
+            b.error,
+            b.rays,
+            b.spread,
+            p.efficiency(),
+            b.efficiency(),
+            if self.path_wins() { "path" } else { "bdpt" }
+        )
+    }
+}
+
+/// The pilot frame for a `width x height` job: [`PILOT_LONG_SIDE`] on the long side, the
+/// same aspect ratio, at least 1 pixel each way.
+pub fn pilot_size(width: u32, height: u32) -> (u32, u32) {
+    let long = width.max(height).max(1);
+    let scale = |v: u32| {
+        ((u64::from(v) * u64::from(PILOT_LONG_SIDE) + u64::from(long) / 2) / u64::from(long))
+            .clamp(1, u64::from(PILOT_LONG_SIDE)) as u32
+    };
+    if long <= PILOT_LONG_SIDE {
+        (width.max(1), height.max(1))
+    } else {
+        (scale(width), scale(height))
+    }
+}
+
+/// One technique's pilot before the two are put on one scale: per pixel the mean and
+/// the variance of the mean (luminance weights over the channels), and the rays traced.
+struct Raw {
+    mean: Vec<f64>,
+    variance: Vec<f64>,
+    rays: u64,
+}
+
+/// Below this fraction of the image's mean luminance a pixel's scale is floored, so dark
+/// pixels do not turn tiny absolute noise into large relative errors.
+const DARK_FLOOR: f64 = 0.1;
+
+/// Renders the pilot of one technique on `scene` (built at the pilot size).
+fn measure(scene: &RenderScene, config: &RenderConfig, plan: &FramePlan) -> Raw {
+    let units = plan.units(0, 1);
+    // Each unit is rendered on one thread, so the thread's ray counter brackets it.
+    let results: Vec<_> = units
+        .into_par_iter()
+        .map(|unit| {
+            let before = rays_traced();
+            let result = render_unit(scene, config, plan, unit);
+            (result, rays_traced() - before)
+        })
+        .collect();
+    let mut acc = FrameAccumulator::for_frame(*plan, 0);
+    let mut rays = 0u64;
+    for (result, r) in results {
+        rays += r;
+        // Our own results always fit the plan.
+        acc.offer(result).expect("pilot unit fits its plan");
+    }
+    let image = acc.image();
+    let lum = |c: &[f32; 3]| tessera_farm::luminance(c.map(f64::from));
+    Raw {
+        mean: image.mean.iter().map(lum).collect(),
+        variance: image.variance_of_mean.iter().map(lum).collect(),
+        rays,
+    }
+}
+
+/// Both pilots on one scale: per pixel, squared errors over the square of the pixel's
+/// mean in both pilots (both estimate the same image; bdpt's finds the caustic path
+/// tracing's may have missed), floored at [`DARK_FLOOR`] of the image's mean, averaged
+/// over the image. Relative, so a directly seen emitter's edge weighs no more than any
+/// pixel.
+///
+/// Each technique's mean squared error is the larger of its own variance estimate `S_t`
+/// and what the difference of the two images says: `E[(m_path - m_bdpt)²] = V_path +
+/// V_bdpt` for two independent unbiased estimates, so `D - S_other` estimates `V_t`
+/// without trusting `S_t`. Where path tracing's passes never found a caustic its `S_t`
+/// shows nothing, but its image lacks the caustic bdpt's has, and `D` sees that.
+fn on_one_scale(path: Raw, bdpt: Raw) -> (TechniqueMeasurement, TechniqueMeasurement) {
+    let n = path.mean.len().min(bdpt.mean.len());
+    let pooled: Vec<f64> = (0..n)
+        .map(|i| 0.5 * (path.mean[i] + bdpt.mean[i]))
+        .collect();
+    let image_mean = pooled.iter().sum::<f64>() / n.max(1) as f64;
+    let floor = DARK_FLOOR * image_mean;
+    let (mut s_path, mut s_bdpt, mut d) = (0.0, 0.0, 0.0);
+    let (mut q_path, mut q_bdpt) = (0.0, 0.0);
+    for (i, &mean) in pooled.iter().enumerate() {
+        let scale = mean.max(floor);
+        if scale > 0.0 {
+            let s2 = scale * scale;
+            let (vp, vb) = (
+                path.variance[i].max(0.0) / s2,
+                bdpt.variance[i].max(0.0) / s2,
+            );
+            (s_path, s_bdpt) = (s_path + vp, s_bdpt + vb);
+            (q_path, q_bdpt) = (q_path + vp * vp, q_bdpt + vb * vb);
+            let diff = path.mean[i] - bdpt.mean[i];
+            d += diff * diff / s2;
+        }
+    }
+    let spread = |s: f64, q: f64| {
+        if q > 0.0 {
+            s * s / q / n.max(1) as f64
+        } else {
+            1.0
+        }
+    };
+    let of = |r: &Raw, own: f64, q: f64, other: f64, ray_cost: f64| TechniqueMeasurement {
+        error: (own.max(d - other) / n.max(1) as f64).sqrt(),
+        rays: r.rays,
+        cost: r.rays as f64 * ray_cost,
+        spread: spread(own, q),
+    };
+    (
+        of(&path, s_path, q_path, s_bdpt, 1.0),
+        of(&bdpt, s_bdpt, q_bdpt, s_path, BDPT_RAY_COST),
+    )
+}
+
+/// Measures path tracing and bdpt on `scene` for a job of `width x height` with the
+/// plan's depths and the job's MIS and sampler.
+pub fn run(
+    scene: &Scene,
+    job: &ValidatedJob,
+    plan: &RenderPlan,
+    (width, height): (u32, u32),
+) -> Result<TechniqueVerdict, String> {
+    let size = pilot_size(width, height);
+    let rs = RenderScene::build(scene, size.0, size.1).map_err(|e| e.to_string())?;
+    let frame = FramePlan::new(
+        size.0,
+        size.1,
+        size.0.max(size.1),
+        PILOT_SAMPLES_PER_PASS,
+        PILOT_PASSES,
+    )
+    .map_err(|e| e.to_string())?;
+    let config = |integrator| RenderConfig {
+        integrator,
+        mis: job.render.mis,
+        sampler: job.render.sampler,
+        seed: PILOT_SEED,
+        max_depth: job.render.max_depth.unwrap_or(plan.max_depth),
+        rr_depth: plan.rr_depth,
+    };
+    let (path, bdpt) = on_one_scale(
+        measure(&rs, &config(Integrator::Path), &frame),
+        measure(&rs, &config(Integrator::Bdpt), &frame),
+    );
+    Ok(TechniqueVerdict { path, bdpt, size })
+}
+
+/// Settles `plan`'s provisional choice ([`RenderPlan::technique_pilot`]) for `job` by
+/// running the pilot; a pilot that cannot run (its scene does not build) leaves bdpt, the
+/// analysis's choice, and says why.
+pub fn settle(scene: &Scene, job: &ValidatedJob, plan: &mut RenderPlan, size: (u32, u32)) {
+    if plan.technique_pilot.is_none() || plan.integrator != PlannedIntegrator::Bdpt {
+        return;
+    }
+    match run(scene, job, plan, size) {
+        Ok(v) => plan.settle_technique(v.path_wins(), v.reason()),
+        Err(e) => plan.settle_technique(false, format!("technique pilot not run ({e}): bdpt")),
+    }
+}
+
+/// Resolves `job` against `scene` as [`tessera_scene::job::resolve_job`] does, with the
+/// technique pilot settling the plan's choice first when the plan leaves it open and the
+/// job asks for `auto`. Every renderer of a job (`tessera render`, the coordinator)
+/// resolves with this, so they agree on the integrator.
+pub fn resolve_job(job: &ValidatedJob, scene: &Scene) -> Result<ResolvedJob, JobError> {
+    let mut plan = tessera_scene::analysis::analyse(scene);
+    if job.render.integrator == tessera_farm::job::IntegratorChoice::Auto {
+        let size = job.resolution(scene.default_resolution);
+        settle(scene, job, &mut plan, size);
+    }
+    job.resolve(
+        SceneFacts {
+            default_resolution: scene.default_resolution,
+        },
+        plan,
+    )
+}

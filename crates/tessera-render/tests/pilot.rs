@@ -1,0 +1,112 @@
+//! The technique pilot (issue 13 item 4): where path tracing and bdpt are both correct,
+//! the plan takes the one measured to be more efficient, deterministically, and says what
+//! it measured.
+
+use glam::Vec3;
+use tessera_farm::job::{Integrator, JobSettings, PlannedIntegrator};
+use tessera_render::pilot::{self, resolve_job};
+
+fn job(settings: &str) -> tessera_farm::job::ValidatedJob {
+    let raw: JobSettings = serde_json::from_str(settings).unwrap();
+    raw.validate().unwrap()
+}
+
+/// The caustic scene with its glass ball shrunk to a pebble at the edge of the view and
+/// a bright sky: the caustic is a few pixels, the rest is lit by the sky, which path
+/// tracing samples well and bdpt's light subpaths from the tiny light do not help.
+fn pebble_under_the_sky() -> tessera_scene::Scene {
+    let mut s = tessera_scene::builtin::caustic();
+    s.spheres[0].center = Vec3::new(-1.2, 0.1, 0.5);
+    s.spheres[0].radius = 0.1;
+    s.environment = Some(Vec3::splat(1.0));
+    s
+}
+
+#[test]
+fn the_caustic_scene_keeps_bdpt_as_path_tracings_error_is_a_heavy_tail() {
+    let scene = tessera_scene::load("builtin:caustic").unwrap();
+    let analysed = tessera_scene::analysis::analyse(&scene);
+    assert_eq!(analysed.integrator, PlannedIntegrator::Bdpt);
+    assert!(analysed.technique_pilot.is_some(), "a tiny finite light");
+    let j = job(r#"{"scene":"builtin:caustic","width":64,"height":48,"spp":16}"#);
+    let r = resolve_job(&j, &scene).unwrap();
+    assert_eq!(r.config.integrator, Integrator::Bdpt);
+    let first = &r.render_plan.reasons[0];
+    assert!(
+        first.starts_with("technique pilot") && first.ends_with("bdpt chosen"),
+        "{first}"
+    );
+    assert!(r.render_plan.technique_pilot.is_none(), "settled");
+    // Deterministic: the same verdict, to the digit, every time (it is in the EXR header).
+    let again = resolve_job(&j, &scene).unwrap();
+    assert_eq!(again.render_plan, r.render_plan);
+    assert_eq!(again.metadata_json(None), r.metadata_json(None));
+}
+
+#[test]
+fn a_small_caustic_under_a_bright_sky_is_path_traced() {
+    let scene = pebble_under_the_sky();
+    let analysed = tessera_scene::analysis::analyse(&scene);
+    assert_eq!(
+        analysed.integrator,
+        PlannedIntegrator::Bdpt,
+        "{:?}",
+        analysed.reasons
+    );
+    let j = job(r#"{"scene":"builtin:caustic","width":64,"height":48,"spp":16}"#);
+    let v = pilot::run(&scene, &j, &analysed, (64, 48)).unwrap();
+    println!("{}", v.reason());
+    assert!(v.path_wins(), "{}", v.reason());
+    let r = resolve_job(&j, &scene).unwrap();
+    assert_eq!(r.config.integrator, Integrator::Path);
+    assert!(
+        !r.plan.is_whole_frame(),
+        "path tracing keeps the tiled plan"
+    );
+    let reasons = r.render_plan.reasons.join("\n");
+    assert!(reasons.contains("path chosen"), "{reasons}");
+    assert!(!reasons.contains("bdpt light-traces"), "{reasons}");
+    assert!(
+        reasons.contains("path tracing with next-event estimation"),
+        "{reasons}"
+    );
+}
+
+#[test]
+fn an_explicit_integrator_or_a_delta_light_runs_no_pilot() {
+    let scene = tessera_scene::load("builtin:caustic").unwrap();
+    let j = job(r#"{"scene":"builtin:caustic","width":32,"height":24,"integrator":"path"}"#);
+    let r = resolve_job(&j, &scene).unwrap();
+    assert_eq!(r.config.integrator, Integrator::Path);
+    assert!(
+        !r.render_plan
+            .reasons
+            .iter()
+            .any(|r| r.starts_with("technique pilot")),
+        "{:?}",
+        r.render_plan.reasons
+    );
+    // A spot light through glass: path tracing cannot find the caustic, bdpt is the only
+    // correct choice and no pilot is asked for.
+    let spot = tessera_scene::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenes/glass-spot.gltf"
+    ))
+    .unwrap();
+    let plan = tessera_scene::analysis::analyse(&spot);
+    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+    assert!(plan.technique_pilot.is_none());
+    assert!(
+        plan.reasons[0].contains("delta lights"),
+        "{}",
+        plan.reasons[0]
+    );
+}
+
+#[test]
+fn the_pilot_frame_keeps_the_aspect_ratio() {
+    assert_eq!(pilot::pilot_size(640, 480), (64, 48));
+    assert_eq!(pilot::pilot_size(48, 32), (48, 32));
+    assert_eq!(pilot::pilot_size(4000, 10), (64, 1));
+    assert_eq!(pilot::pilot_size(1, 1), (1, 1));
+}
