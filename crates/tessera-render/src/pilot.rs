@@ -22,8 +22,8 @@
 //! error is relative to its mean *in both pilots*: a path-traced caustic pixel where one
 //! pass found the light has a relative error no larger than its neighbours' by its own
 //! mean, while against the caustic's true brightness (which bdpt's pilot finds) it is the
-//! firefly the eye sees. And a technique's error is never taken below what the difference
-//! of the two images shows (`on_one_scale`): where path tracing's passes missed a caustic
+//! firefly the eye sees. And path tracing's error is never taken below what the
+//! difference of the two images shows (`on_one_scale`): where its passes missed a caustic
 //! altogether its own variance shows nothing, the difference does.
 //!
 //! The cost is not wall time, which would make the choice, and so the image, depend on the
@@ -70,8 +70,8 @@ pub const PATH_MARGIN: f64 = 1.5;
 /// ... and only when its error is spread over at least this fraction of the pixels
 /// ([`TechniqueMeasurement::spread`]): an error carried by a few pixels is the heavy tail
 /// of rare paths, whose true variance a pilot of a few dozen samples per pixel cannot
-/// measure. On `builtin:caustic` path tracing's pilot spreads its error over 0.7-4.4% of
-/// the pixels and claims 3.3-3.9x bdpt's efficiency; the variance over 24 seeds says
+/// measure. On `builtin:caustic` path tracing's pilot spreads its error over 0.7-9.4% of
+/// the pixels and claims 1.5-2.9x bdpt's efficiency; the variance over 24 seeds says
 /// 0.17x (docs/benchmarks.md, "Technique pilot").
 pub const MIN_PATH_SPREAD: f64 = 0.1;
 
@@ -213,11 +213,13 @@ fn measure(scene: &RenderScene, config: &RenderConfig, plan: &FramePlan) -> Raw 
 /// over the image. Relative, so a directly seen emitter's edge weighs no more than any
 /// pixel.
 ///
-/// Each technique's mean squared error is the larger of its own variance estimate `S_t`
+/// Path tracing's mean squared error is the larger of its own variance estimate `S_path`
 /// and what the difference of the two images says: `E[(m_path - m_bdpt)²] = V_path +
-/// V_bdpt` for two independent unbiased estimates, so `D - S_other` estimates `V_t`
-/// without trusting `S_t`. Where path tracing's passes never found a caustic its `S_t`
-/// shows nothing, but its image lacks the caustic bdpt's has, and `D` sees that.
+/// V_bdpt` for two independent unbiased estimates, so `D - S_bdpt` estimates `V_path`
+/// without trusting `S_path`. Where path tracing's passes never found a caustic its
+/// `S_path` shows nothing, but its image lacks the caustic bdpt's has, and `D` sees that.
+/// Not the other way round: bdpt, built for these paths, is the one whose estimate is
+/// trusted here, and `D - S_path` would charge path tracing's missed caustic to bdpt.
 fn on_one_scale(path: Raw, bdpt: Raw) -> (TechniqueMeasurement, TechniqueMeasurement) {
     let n = path.mean.len().min(bdpt.mean.len());
     let pooled: Vec<f64> = (0..n)
@@ -248,15 +250,15 @@ fn on_one_scale(path: Raw, bdpt: Raw) -> (TechniqueMeasurement, TechniqueMeasure
             1.0
         }
     };
-    let of = |r: &Raw, own: f64, q: f64, other: f64, ray_cost: f64| TechniqueMeasurement {
-        error: (own.max(d - other) / n.max(1) as f64).sqrt(),
+    let of = |r: &Raw, own: f64, q: f64, floor: f64, ray_cost: f64| TechniqueMeasurement {
+        error: (own.max(floor) / n.max(1) as f64).sqrt(),
         rays: r.rays,
         cost: r.rays as f64 * ray_cost,
         spread: spread(own, q),
     };
     (
-        of(&path, s_path, q_path, s_bdpt, 1.0),
-        of(&bdpt, s_bdpt, q_bdpt, s_path, BDPT_RAY_COST),
+        of(&path, s_path, q_path, d - s_bdpt, 1.0),
+        of(&bdpt, s_bdpt, q_bdpt, 0.0, BDPT_RAY_COST),
     )
 }
 
@@ -322,4 +324,75 @@ pub fn resolve_job(job: &ValidatedJob, scene: &Scene) -> Result<ResolvedJob, Job
         },
         plan,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn raw(mean: &[f64], variance: &[f64], rays: u64) -> Raw {
+        Raw {
+            mean: mean.to_vec(),
+            variance: variance.to_vec(),
+            rays,
+        }
+    }
+
+    /// Path tracing's passes missed a caustic bdpt found: its own variance shows nothing
+    /// there, the difference of the images does, and its error is not taken below it.
+    #[test]
+    fn a_missed_caustic_counts_against_path_tracing() {
+        let path = raw(&[1.0, 1.0, 0.0, 1.0], &[0.01, 0.01, 0.0, 0.01], 100);
+        let bdpt = raw(&[1.0, 1.0, 4.0, 1.0], &[0.01, 0.01, 0.04, 0.01], 100);
+        let (p, b) = on_one_scale(path, bdpt);
+        // Pooled means 1, 1, 2, 1: the difference 4² / 2² = 4 dominates path's 0.03.
+        let d = 4.0;
+        let s_b = 0.01 * 3.0 + 0.04 / 4.0;
+        assert!(
+            (p.error - ((d - s_b) / 4.0f64).sqrt()).abs() < 1e-12,
+            "{p:?}"
+        );
+        assert!(p.error > b.error, "{p:?} {b:?}");
+        assert_eq!(b.cost, 100.0 * BDPT_RAY_COST);
+        let v = TechniqueVerdict {
+            path: p,
+            bdpt: b,
+            size: (2, 2),
+        };
+        assert!(!v.path_wins(), "{}", v.reason());
+    }
+
+    /// Path tracing cheaper and its error spread evenly: chosen. The same figures with the
+    /// error carried by one pixel in sixteen: not.
+    #[test]
+    fn path_tracing_needs_the_margin_and_the_spread() {
+        let even = TechniqueMeasurement {
+            error: 0.1,
+            rays: 100,
+            cost: 100.0,
+            spread: 0.9,
+        };
+        let bdpt = TechniqueMeasurement {
+            error: 0.1,
+            rays: 100,
+            cost: 100.0 * PATH_MARGIN * 1.01,
+            spread: 0.9,
+        };
+        let v = |path| TechniqueVerdict {
+            path,
+            bdpt,
+            size: (4, 4),
+        };
+        assert!(v(even).path_wins());
+        assert!(!v(TechniqueMeasurement {
+            spread: 1.0 / 16.0,
+            ..even
+        })
+        .path_wins());
+        assert!(!v(TechniqueMeasurement {
+            cost: 102.0,
+            ..even
+        })
+        .path_wins());
+    }
 }

@@ -339,3 +339,59 @@ pub(crate) fn json_string(s: &str) -> String {
     out.push('"');
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn provisional() -> RenderPlan {
+        RenderPlan {
+            effects: vec![],
+            absent: vec![],
+            integrator: PlannedIntegrator::Bdpt,
+            max_depth: 12,
+            rr_depth: 5,
+            lens_sampling: false,
+            reasons: vec![
+                "bdpt: tiny lights".into(),
+                "bdpt light-traces onto the film".into(),
+                "max depth 12".into(),
+            ],
+            overridden: None,
+            warnings: vec![],
+            technique_pilot: Some(TechniquePilot {
+                bdpt_reasons: 2,
+                path_reasons: vec!["path tracing: refraction".into()],
+            }),
+        }
+    }
+
+    #[test]
+    fn settling_swaps_the_reasons_of_the_technique_that_lost() {
+        let mut plan = provisional();
+        plan.settle_technique(true, "pilot: path".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Path);
+        assert_eq!(
+            plan.reasons,
+            ["pilot: path", "path tracing: refraction", "max depth 12"]
+        );
+        assert!(plan.technique_pilot.is_none());
+        // Settled once: a second verdict changes nothing.
+        plan.settle_technique(false, "again".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Path);
+        assert_eq!(plan.reasons.len(), 3);
+
+        let mut plan = provisional();
+        plan.settle_technique(false, "pilot: bdpt".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+        assert_eq!(
+            plan.reasons,
+            [
+                "pilot: bdpt",
+                "bdpt: tiny lights",
+                "bdpt light-traces onto the film",
+                "max depth 12"
+            ]
+        );
+    }
+}
