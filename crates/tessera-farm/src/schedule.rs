@@ -2217,29 +2217,43 @@ mod tests {
     /// which redoes only the lost units and ends with the image of an uninterrupted run
     /// bit for bit, for both modes and crashes early, mid-decision and late, in a
     /// two-frame job with one frame possibly not started.
+    /// The adaptive settings of the resume tests.
+    fn resume_settings(mode: crate::adaptive::AdaptiveMode) -> crate::adaptive::AdaptiveSettings {
+        crate::adaptive::AdaptiveSettings {
+            mode,
+            target_error: 0.05,
+            min_passes: 8,
+            interval: 4,
+            ..crate::adaptive::AdaptiveSettings::default()
+        }
+    }
+
+    /// Each frame of `frames` rendered by one uninterrupted adaptive frame, units of 2
+    /// passes: what a resumed job must end with.
+    fn local_adaptive_images(
+        p: &FramePlan,
+        frames: std::ops::RangeInclusive<u32>,
+        settings: crate::adaptive::AdaptiveSettings,
+    ) -> Vec<FrameImage> {
+        frames
+            .map(|f| {
+                let mut local = AdaptiveFrame::new(*p, f, settings).unwrap();
+                for u in p.units(f, 2) {
+                    local.offer(&noisy_result(p, u)).unwrap();
+                }
+                local.image()
+            })
+            .collect()
+    }
+
     #[test]
     fn adaptive_jobs_resume_from_checkpoints_bit_identically() {
-        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        use crate::adaptive::AdaptiveMode;
         let p = FramePlan::new(24, 16, 8, 1, 48).unwrap(); // 6 tiles
         let frames = 3..=4u32;
         for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
-            let settings = AdaptiveSettings {
-                mode,
-                target_error: 0.05,
-                min_passes: 8,
-                interval: 4,
-                ..AdaptiveSettings::default()
-            };
-            let references: Vec<FrameImage> = frames
-                .clone()
-                .map(|f| {
-                    let mut local = AdaptiveFrame::new(p, f, settings).unwrap();
-                    for u in p.units(f, 2) {
-                        local.offer(&noisy_result(&p, u)).unwrap();
-                    }
-                    local.image()
-                })
-                .collect();
+            let settings = resume_settings(mode);
+            let references = local_adaptive_images(&p, frames.clone(), settings);
             for (crash_at, seed) in [(5usize, 11u64), (40, 12), (90, 13), (150, 14)] {
                 let mut s = Scheduler::new(100, 0);
                 s.add_adaptive_job(7, 0, p, frames.clone(), 2, settings)
@@ -2308,28 +2322,13 @@ mod tests {
     /// in memory at a time, never leasing frame 0 again.
     #[test]
     fn a_resumed_adaptive_job_releases_its_finished_frames() {
-        use crate::adaptive::{AdaptiveMode, AdaptiveSettings};
+        use crate::adaptive::AdaptiveMode;
         let p = FramePlan::new(24, 16, 8, 1, 48).unwrap(); // 6 tiles
         let frames = 0..=2u32;
         let budget = frame_state_bytes(&p, true);
         for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
-            let settings = AdaptiveSettings {
-                mode,
-                target_error: 0.05,
-                min_passes: 8,
-                interval: 4,
-                ..AdaptiveSettings::default()
-            };
-            let references: Vec<FrameImage> = frames
-                .clone()
-                .map(|f| {
-                    let mut local = AdaptiveFrame::new(p, f, settings).unwrap();
-                    for u in p.units(f, 2) {
-                        local.offer(&noisy_result(&p, u)).unwrap();
-                    }
-                    local.image()
-                })
-                .collect();
+            let settings = resume_settings(mode);
+            let references = local_adaptive_images(&p, frames.clone(), settings);
             // One unit at a time until frame 0 is released and frame 1 has merged passes.
             let mut s = Scheduler::new(100, 0);
             s.set_memory_budget(budget);
