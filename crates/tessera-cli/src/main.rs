@@ -20,7 +20,7 @@ mod worker;
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 use std::time::Instant;
-use tessera_render::render::render_frame;
+use tessera_render::render::render_frame_counted;
 
 use render::{prepare, JobArgs, RenderArgs, StopArgs};
 
@@ -46,7 +46,7 @@ enum Command {
     /// input, the quote as JSON on standard output.
     #[command(hide = true)]
     Pilot(estimate::PilotArgs),
-    /// Measure rendering throughput (paths per second).
+    /// Measure rendering throughput (paths and rays per second).
     Bench(BenchArgs),
     /// Compare the render plan's configuration with the general one (and bdpt with path on
     /// the caustic scene): time to reach a target error, side by side.
@@ -172,9 +172,10 @@ fn bench(args: BenchArgs) -> Result<()> {
     };
     let paths = plan.width as f64 * plan.height as f64 * plan.spp() as f64;
     let mut rates = Vec::new();
+    let mut rays = 0;
     for i in 0..args.repeat.max(1) {
         let start = Instant::now();
-        let acc = render_frame(
+        let rendered = render_frame_counted(
             render_scene,
             &p.resolved.config,
             &plan,
@@ -184,18 +185,24 @@ fn bench(args: BenchArgs) -> Result<()> {
         );
         let s = start.elapsed().as_secs_f64();
         rates.push(paths / s);
+        // The same every run: the render is deterministic.
+        rays = rendered.rays;
         println!(
-            "run {}: {:.3} s, {:.0} paths/s, estimated error {:.4}",
+            "run {}: {:.3} s, {:.0} paths/s, {:.0} rays/s, estimated error {:.4}",
             i + 1,
             s,
             paths / s,
-            acc.image_error()
+            rays as f64 / s,
+            rendered.accumulator.image_error()
         );
     }
     rates.sort_by(f64::total_cmp);
     let median = rates[rates.len() / 2];
+    // Paths per second depends on the path length; rays per second (closest hits and
+    // shadow rays) much less so (issue 13 item 5 asks for both).
+    let rays_per_path = rays as f64 / paths;
     println!(
-        "bench {} {}x{} {} spp max-depth {} on {} threads: median {:.0} paths/s ({:.0} paths/s per thread)",
+        "bench {} {}x{} {} spp max-depth {} on {} threads: median {:.0} paths/s ({:.0} paths/s per thread), {:.0} rays/s ({:.2} rays per path)",
         args.scene,
         args.width,
         args.height,
@@ -203,7 +210,9 @@ fn bench(args: BenchArgs) -> Result<()> {
         args.max_depth,
         threads,
         median,
-        median / threads as f64
+        median / threads as f64,
+        median * rays_per_path,
+        rays_per_path
     );
     Ok(())
 }
