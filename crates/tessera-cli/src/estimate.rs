@@ -359,11 +359,8 @@ fn technique(job: &tessera_farm::job::ValidatedJob, bytes: Option<&[u8]>) -> Res
     let scene =
         tessera_scene::job::load_job_scene_at(&job.scene, bytes, job.camera.as_deref(), &time)?;
     let mut plan = tessera_scene::analysis::analyse(&scene);
-    let out = if plan.technique_pilot.is_some()
-        && job.render.integrator == tessera_farm::job::IntegratorChoice::Auto
-    {
-        let size = job.resolution(scene.default_resolution);
-        tessera_render::pilot::settle(&scene, job, &mut plan, size);
+    let out = if plan.awaits_technique_pilot(job.render.integrator) {
+        tessera_render::pilot::settle(&scene, job, &mut plan);
         serde_json::json!({
             "path_wins": plan.integrator == tessera_farm::job::PlannedIntegrator::Path,
             "reason": plan.reasons.first().cloned().unwrap_or_default(),

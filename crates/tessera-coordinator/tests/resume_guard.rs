@@ -51,6 +51,38 @@ async fn stored(dir: &Path, job: JobId) -> (String, Option<String>, i64) {
     row
 }
 
+/// Stores the checkpoint of tile 0 of a one-tile 16x16 `job` with its first `passes`
+/// passes merged, one unit per pass, as the coordinator would have before a crash.
+async fn checkpoint_passes(dir: &Path, job: JobId, passes: u32) {
+    let store = tessera_coordinator::store::SqliteStore::open(dir)
+        .await
+        .unwrap();
+    let pixels = vec![PixelStats::default(); 16 * 16];
+    let units: Vec<UnitDigest> = (0..passes)
+        .map(|p| UnitDigest {
+            first_pass: p,
+            pass_count: 1,
+            digest: u64::from(p),
+        })
+        .collect();
+    tessera_coordinator::store::Store::save_tile(
+        &store,
+        TileCheckpointRef {
+            job,
+            frame: 0,
+            tile: 0,
+            merged_passes: passes,
+            pixels: &pixels,
+            units: &units,
+            rejected_samples: 0,
+            adaptive: None,
+        },
+    )
+    .await
+    .unwrap();
+    tessera_coordinator::store::Store::close(&store).await;
+}
+
 #[tokio::test]
 async fn a_job_that_crashes_every_start_ends_failed_and_the_coordinator_comes_up() {
     let dir = tempfile::tempdir().unwrap();
@@ -107,31 +139,7 @@ async fn a_job_that_crashes_every_start_ends_failed_and_the_coordinator_comes_up
     assert_eq!(stored(dir.path(), b).await.2, 1);
 
     // Progress (a merged pass since the previous resume) starts the count again.
-    let store = tessera_coordinator::store::SqliteStore::open(dir.path())
-        .await
-        .unwrap();
-    let pixels = vec![PixelStats::default(); 16 * 16];
-    let units = [UnitDigest {
-        first_pass: 0,
-        pass_count: 1,
-        digest: 7,
-    }];
-    tessera_coordinator::store::Store::save_tile(
-        &store,
-        TileCheckpointRef {
-            job: b,
-            frame: 0,
-            tile: 0,
-            merged_passes: 1,
-            pixels: &pixels,
-            units: &units,
-            rejected_samples: 0,
-            adaptive: None,
-        },
-    )
-    .await
-    .unwrap();
-    tessera_coordinator::store::Store::close(&store).await;
+    checkpoint_passes(dir.path(), b, 1).await;
     let core = open(dir.path()).await;
     drop(core);
     assert_eq!(
@@ -209,33 +217,7 @@ async fn a_job_complete_in_the_store_is_done_after_a_restart() {
     let passes = u32::try_from(st.passes_planned).unwrap();
     drop(core); // crash
 
-    let store = tessera_coordinator::store::SqliteStore::open(dir.path())
-        .await
-        .unwrap();
-    let pixels = vec![PixelStats::default(); 16 * 16];
-    let units: Vec<UnitDigest> = (0..passes)
-        .map(|p| UnitDigest {
-            first_pass: p,
-            pass_count: 1,
-            digest: u64::from(p),
-        })
-        .collect();
-    tessera_coordinator::store::Store::save_tile(
-        &store,
-        TileCheckpointRef {
-            job: st.id,
-            frame: 0,
-            tile: 0,
-            merged_passes: passes,
-            pixels: &pixels,
-            units: &units,
-            rejected_samples: 0,
-            adaptive: None,
-        },
-    )
-    .await
-    .unwrap();
-    tessera_coordinator::store::Store::close(&store).await;
+    checkpoint_passes(dir.path(), st.id, passes).await;
     sql(
         dir.path(),
         &format!("UPDATE jobs SET state = 'running' WHERE id = {}", st.id),

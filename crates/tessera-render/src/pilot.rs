@@ -46,9 +46,7 @@
 use crate::integrator::{render_unit, RenderConfig};
 use crate::scene::{rays_traced, RenderScene};
 use rayon::prelude::*;
-use tessera_farm::job::{
-    Integrator, JobError, PlannedIntegrator, RenderPlan, ResolvedJob, SceneFacts, ValidatedJob,
-};
+use tessera_farm::job::{Integrator, JobError, RenderPlan, ResolvedJob, SceneFacts, ValidatedJob};
 use tessera_farm::{FrameAccumulator, FramePlan};
 use tessera_scene::Scene;
 
@@ -296,12 +294,14 @@ pub fn run(
 }
 
 /// Settles `plan`'s provisional choice ([`RenderPlan::technique_pilot`]) for `job` by
-/// running the pilot; a pilot that cannot run (its scene does not build) leaves bdpt, the
-/// analysis's choice, and says why.
-pub fn settle(scene: &Scene, job: &ValidatedJob, plan: &mut RenderPlan, size: (u32, u32)) {
-    if plan.technique_pilot.is_none() || plan.integrator != PlannedIntegrator::Bdpt {
+/// running the pilot, if the job waits for it ([`RenderPlan::awaits_technique_pilot`]); a
+/// pilot that cannot run (its scene does not build) leaves bdpt, the analysis's choice,
+/// and says why.
+pub fn settle(scene: &Scene, job: &ValidatedJob, plan: &mut RenderPlan) {
+    if !plan.awaits_technique_pilot(job.render.integrator) {
         return;
     }
+    let size = job.resolution(scene.default_resolution);
     match run(scene, job, plan, size) {
         Ok(v) => plan.settle_technique(v.path_wins(), v.reason()),
         Err(e) => plan.settle_technique(false, format!("technique pilot not run ({e}): bdpt")),
@@ -314,10 +314,7 @@ pub fn settle(scene: &Scene, job: &ValidatedJob, plan: &mut RenderPlan, size: (u
 /// resolves with this, so they agree on the integrator.
 pub fn resolve_job(job: &ValidatedJob, scene: &Scene) -> Result<ResolvedJob, JobError> {
     let mut plan = tessera_scene::analysis::analyse(scene);
-    if job.render.integrator == tessera_farm::job::IntegratorChoice::Auto {
-        let size = job.resolution(scene.default_resolution);
-        settle(scene, job, &mut plan, size);
-    }
+    settle(scene, job, &mut plan);
     job.resolve(
         SceneFacts {
             default_resolution: scene.default_resolution,

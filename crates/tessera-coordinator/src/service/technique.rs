@@ -19,7 +19,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use serde::Deserialize;
-use tessera_farm::job::{IntegratorChoice, JobError, ResolvedJob, SceneFacts, ValidatedJob};
+use tessera_farm::job::{JobError, ResolvedJob, SceneFacts, ValidatedJob};
 use tessera_scene::Scene;
 
 use super::child::{run_pilot, ChildError};
@@ -76,7 +76,7 @@ impl TechniquePilots {
         scene_bytes: Option<Arc<Vec<u8>>>,
     ) -> Result<ResolvedJob, ResolveError> {
         let mut plan = tessera_scene::analysis::analyse(scene);
-        if plan.technique_pilot.is_some() && job.render.integrator == IntegratorChoice::Auto {
+        if plan.awaits_technique_pilot(job.render.integrator) {
             let verdict = self.verdict(job, settings_json, scene, scene_bytes).await?;
             plan.settle_technique(verdict.path_wins, verdict.reason);
         }

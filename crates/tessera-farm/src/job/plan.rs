@@ -9,6 +9,8 @@
 
 use std::fmt;
 
+use super::choice::IntegratorChoice;
+
 /// A light-transport effect a scene may contain.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum EffectKind {
@@ -187,6 +189,12 @@ impl RenderPlan {
             .iter()
             .find(|e| e.kind == kind)
             .map(|e| e.evidence.as_str())
+    }
+
+    /// Whether a job asking for `asked` waits for the technique pilot: the plan left the
+    /// choice open ([`RenderPlan::technique_pilot`]) and the job asks for `auto`.
+    pub fn awaits_technique_pilot(&self, asked: IntegratorChoice) -> bool {
+        self.technique_pilot.is_some() && asked == IntegratorChoice::Auto
     }
 
     /// Settles a provisional choice ([`RenderPlan::technique_pilot`]) by a pilot's
