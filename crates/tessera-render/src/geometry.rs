@@ -32,7 +32,7 @@
 //! leaving it can be offset robustly by [`crate::math::offset_ray_origin`].
 
 use crate::math::gamma;
-use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A};
+use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A, Vec3Swizzles};
 use obvhs::cwbvh::CwBvh;
 use obvhs::ray::{Ray, RayHit};
 
@@ -179,41 +179,75 @@ pub struct Geometry {
 }
 
 /// Per-ray constants of the watertight triangle test: the permutation that makes the ray
-/// direction's largest component z, and the shear that aligns the ray with +z.
+/// direction's largest component z (`KZ` is that component's axis, a type parameter so the
+/// permutation compiles to a fixed shuffle instead of indexing through memory), and the
+/// shear that aligns the ray with +z.
 #[derive(Clone, Copy)]
-struct WatertightRay {
-    origin: Vec3,
-    kx: usize,
-    ky: usize,
-    kz: usize,
+struct WatertightRay<const KZ: usize> {
+    /// The ray origin, permuted.
+    origin: Vec3A,
     sx: f32,
     sy: f32,
     sz: f32,
 }
 
-impl WatertightRay {
-    #[inline]
-    fn new(origin: Vec3, dir: Vec3) -> Self {
-        let a = dir.abs();
-        let kz = if a.x > a.y {
-            if a.x > a.z {
-                0
-            } else {
-                2
-            }
-        } else if a.y > a.z {
-            1
+/// The axis of `dir`'s largest component (ties to the later axis), which becomes z in the
+/// watertight test.
+#[inline(always)]
+fn dominant_axis(dir: Vec3) -> usize {
+    let a = dir.abs();
+    if a.x > a.y {
+        if a.x > a.z {
+            0
         } else {
             2
-        };
-        let kx = (kz + 1) % 3;
-        let ky = (kx + 1) % 3;
-        let d = Vec3::new(dir[kx], dir[ky], dir[kz]);
+        }
+    } else if a.y > a.z {
+        1
+    } else {
+        2
+    }
+}
+
+/// Runs `$body` with `$wt` bound to the [`WatertightRay`] of `origin + t dir` for the
+/// direction's dominant axis: one branch per ray, and the traversal in `$body` is
+/// compiled once per axis.
+macro_rules! with_watertight_ray {
+    ($origin:expr, $dir:expr, |$wt:ident| $body:expr) => {{
+        let (origin, dir) = ($origin, $dir);
+        match dominant_axis(dir) {
+            0 => {
+                let $wt = WatertightRay::<0>::new(origin, dir);
+                $body
+            }
+            1 => {
+                let $wt = WatertightRay::<1>::new(origin, dir);
+                $body
+            }
+            _ => {
+                let $wt = WatertightRay::<2>::new(origin, dir);
+                $body
+            }
+        }
+    }};
+}
+
+impl<const KZ: usize> WatertightRay<KZ> {
+    /// `(v[kx], v[ky], v[kz])` with `kx = (kz + 1) % 3`, `ky = (kx + 1) % 3`.
+    #[inline(always)]
+    fn permute(v: Vec3A) -> Vec3A {
+        match KZ {
+            0 => v.yzx(),
+            1 => v.zxy(),
+            _ => v,
+        }
+    }
+
+    #[inline(always)]
+    fn new(origin: Vec3, dir: Vec3) -> Self {
+        let d = Self::permute(Vec3A::from(dir));
         Self {
-            origin,
-            kx,
-            ky,
-            kz,
+            origin: Self::permute(Vec3A::from(origin)),
             sx: -d.x / d.z,
             sy: -d.y / d.z,
             sz: 1.0 / d.z,
@@ -223,11 +257,9 @@ impl WatertightRay {
     /// Returns (t, b0, b1, b2) for a hit with `t < t_max`, or `None`.
     #[inline(always)]
     fn intersect(&self, p: &[Vec3; 3], t_max: f32) -> Option<(f32, f32, f32, f32)> {
-        let (kx, ky, kz) = (self.kx, self.ky, self.kz);
-        let tr = |v: Vec3| {
-            let q = (v - self.origin).to_array();
-            Vec3::new(q[kx], q[ky], q[kz])
-        };
+        // Permuting before subtracting the (permuted) origin gives the same bits as
+        // subtracting first: each lane is one subtraction either way.
+        let tr = |v: Vec3| Self::permute(Vec3A::from(v)) - self.origin;
         let mut p0t = tr(p[0]);
         let mut p1t = tr(p[1]);
         let mut p2t = tr(p[2]);
@@ -644,31 +676,36 @@ impl TriangleLevel<'_> {
         best_t: &mut f32,
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> Option<Hit> {
-        let wt = WatertightRay::new(origin, dir);
         let ray = traversal_ray(origin, dir, *best_t);
         let mut hit = RayHit::none();
         let mut best = None;
         let tris = self.triangles;
         let instance = self.instance;
-        self.bvh.ray_traverse(ray, &mut hit, |_, id| {
-            let tri = &tris[id];
-            match wt.intersect(&tri.p, *best_t) {
-                Some((t, _b0, b1, b2)) if keep(tri, triangle_key(instance, id as u32), b1, b2) => {
-                    *best_t = t;
-                    best = Some(Hit {
-                        t,
-                        primitive: Primitive::Triangle {
-                            index: id as u32,
-                            instance,
-                            b1,
-                            b2,
-                        },
-                    });
-                    traversal_t(t)
+        with_watertight_ray!(origin, dir, |wt| self.bvh.ray_traverse(
+            ray,
+            &mut hit,
+            |_, id| {
+                let tri = &tris[id];
+                match wt.intersect(&tri.p, *best_t) {
+                    Some((t, _b0, b1, b2))
+                        if keep(tri, triangle_key(instance, id as u32), b1, b2) =>
+                    {
+                        *best_t = t;
+                        best = Some(Hit {
+                            t,
+                            primitive: Primitive::Triangle {
+                                index: id as u32,
+                                instance,
+                                b1,
+                                b2,
+                            },
+                        });
+                        traversal_t(t)
+                    }
+                    _ => f32::INFINITY,
                 }
-                _ => f32::INFINITY,
             }
-        });
+        ));
         best
     }
 
@@ -681,17 +718,23 @@ impl TriangleLevel<'_> {
         t_max: f32,
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> bool {
-        let wt = WatertightRay::new(origin, dir);
         let ray = traversal_ray(origin, dir, t_max);
         let tris = self.triangles;
         let instance = self.instance;
-        !self.bvh.ray_traverse_miss(ray, |_, id| {
-            let tri = &tris[id];
-            match wt.intersect(&tri.p, t_max) {
-                Some((_, _, b1, b2)) if keep(tri, triangle_key(instance, id as u32), b1, b2) => 0.0,
-                _ => f32::INFINITY,
+        !with_watertight_ray!(origin, dir, |wt| self.bvh.ray_traverse_miss(
+            ray,
+            |_, id| {
+                let tri = &tris[id];
+                match wt.intersect(&tri.p, t_max) {
+                    Some((_, _, b1, b2))
+                        if keep(tri, triangle_key(instance, id as u32), b1, b2) =>
+                    {
+                        0.0
+                    }
+                    _ => f32::INFINITY,
+                }
             }
-        })
+        ))
     }
 }
 
@@ -885,31 +928,34 @@ impl MotionTriangles {
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> Option<Hit> {
         let (s, u) = self.segment_of(time);
-        let wt = WatertightRay::new(origin, dir);
         let ray = traversal_ray(origin, dir, *best_t);
         let mut hit = RayHit::none();
         let mut best = None;
         let order = &self.orders[s];
-        self.bvhs[s].ray_traverse(ray, &mut hit, |_, id| {
-            let r = order[id] as usize;
-            let p = self.positions_in(r, s, u);
-            match wt.intersect(&p, *best_t) {
-                Some((t, _b0, b1, b2)) if self.kept(keep, r, b1, b2) => {
-                    *best_t = t;
-                    best = Some(Hit {
-                        t,
-                        primitive: Primitive::Moving {
-                            index: r as u32,
-                            b1,
-                            b2,
-                            time,
-                        },
-                    });
-                    traversal_t(t)
+        with_watertight_ray!(origin, dir, |wt| self.bvhs[s].ray_traverse(
+            ray,
+            &mut hit,
+            |_, id| {
+                let r = order[id] as usize;
+                let p = self.positions_in(r, s, u);
+                match wt.intersect(&p, *best_t) {
+                    Some((t, _b0, b1, b2)) if self.kept(keep, r, b1, b2) => {
+                        *best_t = t;
+                        best = Some(Hit {
+                            t,
+                            primitive: Primitive::Moving {
+                                index: r as u32,
+                                b1,
+                                b2,
+                                time,
+                            },
+                        });
+                        traversal_t(t)
+                    }
+                    _ => f32::INFINITY,
                 }
-                _ => f32::INFINITY,
             }
-        });
+        ));
         best
     }
 
@@ -924,17 +970,19 @@ impl MotionTriangles {
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> bool {
         let (s, u) = self.segment_of(time);
-        let wt = WatertightRay::new(origin, dir);
         let ray = traversal_ray(origin, dir, t_max);
         let order = &self.orders[s];
-        !self.bvhs[s].ray_traverse_miss(ray, |_, id| {
-            let r = order[id] as usize;
-            let p = self.positions_in(r, s, u);
-            match wt.intersect(&p, t_max) {
-                Some((_, _, b1, b2)) if self.kept(keep, r, b1, b2) => 0.0,
-                _ => f32::INFINITY,
+        !with_watertight_ray!(origin, dir, |wt| self.bvhs[s].ray_traverse_miss(
+            ray,
+            |_, id| {
+                let r = order[id] as usize;
+                let p = self.positions_in(r, s, u);
+                match wt.intersect(&p, t_max) {
+                    Some((_, _, b1, b2)) if self.kept(keep, r, b1, b2) => 0.0,
+                    _ => f32::INFINITY,
+                }
             }
-        })
+        ))
     }
 }
 

@@ -144,8 +144,22 @@ impl LightBounds {
     /// box union, the sum of powers, the smallest cone around both cones (slightly widened
     /// against rounding), the widest emission angle.
     pub fn union(&self, o: &LightBounds) -> LightBounds {
-        let (w, cos_theta_o) = cone_union(self.w, self.cos_theta_o, o.w, o.cos_theta_o);
-        LightBounds {
+        Angled::of(*self).union(&Angled::of(*o)).bounds
+    }
+
+    /// [`LightBounds::union`] given the cone angles `θ_o` of both (the axis and `cos θ_o`
+    /// of the union, and its `θ_o`).
+    #[inline]
+    fn union_with(&self, theta_a: f32, o: &LightBounds, theta_b: f32) -> (LightBounds, f32) {
+        let (w, cos_theta_o, theta_o) = cone_union(
+            self.w,
+            self.cos_theta_o,
+            theta_a,
+            o.w,
+            o.cos_theta_o,
+            theta_b,
+        );
+        let bounds = LightBounds {
             min: self.min.min(o.min),
             max: self.max.max(o.max),
             w,
@@ -153,7 +167,8 @@ impl LightBounds {
             cos_theta_o,
             cos_theta_e: self.cos_theta_e.min(o.cos_theta_e),
             two_sided: self.two_sided || o.two_sided,
-        }
+        };
+        (bounds, theta_o)
     }
 
     fn centroid(&self) -> Vec3 {
@@ -173,10 +188,15 @@ impl LightBounds {
     /// a node do not get unbounded importance.
     #[inline]
     pub fn importance(&self, p: Vec3, n: Vec3) -> f32 {
-        let pc = self.centroid();
-        let diag = self.max - self.min;
+        self.importance_with(&Shape::of(self), p, n)
+    }
+
+    /// [`LightBounds::importance`] with the point-independent part precomputed.
+    #[inline]
+    fn importance_with(&self, shape: &Shape, p: Vec3, n: Vec3) -> f32 {
+        let pc = shape.centroid;
         let d2_center = p.distance_squared(pc);
-        let d2 = d2_center.max(0.5 * diag.length()).max(f32::MIN_POSITIVE);
+        let d2 = d2_center.max(shape.half_diagonal).max(f32::MIN_POSITIVE);
         let wi = (p - pc).normalize_or_zero();
         let mut cos_w = self.w.dot(wi);
         if self.two_sided {
@@ -184,7 +204,7 @@ impl LightBounds {
         }
         let sin_w = safe_sqrt(1.0 - cos_w * cos_w);
         // θ_b: the cone of directions the box's bounding sphere subtends from p.
-        let r2 = 0.25 * diag.length_squared();
+        let r2 = shape.r2;
         let cos_b = if d2_center <= r2 {
             -1.0
         } else {
@@ -192,7 +212,7 @@ impl LightBounds {
         };
         let sin_b = safe_sqrt(1.0 - cos_b * cos_b);
         // θ' = max(0, θ_w - θ_o - θ_b).
-        let sin_o = safe_sqrt(1.0 - self.cos_theta_o * self.cos_theta_o);
+        let sin_o = shape.sin_o;
         let cos_x = cos_sub_clamped(sin_w, cos_w, sin_o, self.cos_theta_o);
         let sin_x = sin_sub_clamped(sin_w, cos_w, sin_o, self.cos_theta_o);
         let cos_p = cos_sub_clamped(sin_x, cos_x, sin_b, cos_b);
@@ -215,9 +235,7 @@ impl LightBounds {
     /// The surface-area-orientation cost of a set of lights (Conty Estevez & Kulla 2018,
     /// section 4.4): power times the orientation measure `M_Ω` times the surface area of
     /// the box, times `kr`, which favours splitting a long parent box across its length.
-    fn cost(&self, kr: f32) -> f32 {
-        let theta_o = self.cos_theta_o.clamp(-1.0, 1.0).acos();
-        let theta_e = self.cos_theta_e.clamp(-1.0, 1.0).acos();
+    fn cost(&self, theta_o: f32, theta_e: f32, kr: f32) -> f32 {
         let theta_w = (theta_o + theta_e).min(PI);
         let sin_o = theta_o.sin();
         let m_omega = 2.0 * PI * (1.0 - self.cos_theta_o)
@@ -231,44 +249,128 @@ impl LightBounds {
     }
 }
 
+/// The parts of [`LightBounds::importance`] that depend on the bounds only, computed once
+/// per tree node rather than at every visit of every shading point.
+#[derive(Clone, Copy, Debug)]
+struct Shape {
+    /// Centre of the box.
+    centroid: Vec3,
+    /// Half the box diagonal's length: the floor of the squared distance.
+    half_diagonal: f32,
+    /// Squared radius of the box's bounding sphere.
+    r2: f32,
+    /// `sin θ_o`.
+    sin_o: f32,
+}
+
+impl Shape {
+    #[inline]
+    fn of(b: &LightBounds) -> Self {
+        let diag = b.max - b.min;
+        Shape {
+            centroid: b.centroid(),
+            half_diagonal: 0.5 * diag.length(),
+            r2: 0.25 * diag.length_squared(),
+            sin_o: safe_sqrt(1.0 - b.cos_theta_o * b.cos_theta_o),
+        }
+    }
+}
+
 /// The angle between two unit vectors.
 #[inline]
 fn angle_between(a: Vec3, b: Vec3) -> f32 {
     a.cross(b).length().atan2(a.dot(b))
 }
 
-/// The smallest cone containing two cones given by axis and `cos θ` (the direction-cone
-/// union of Conty Estevez & Kulla 2018, section 4.1, algorithm 1).
-fn cone_union(wa: Vec3, cos_a: f32, wb: Vec3, cos_b: f32) -> (Vec3, f32) {
-    let theta_a = cos_a.clamp(-1.0, 1.0).acos();
-    let theta_b = cos_b.clamp(-1.0, 1.0).acos();
+/// `θ` of `cos θ`, clamped against rounding.
+#[inline]
+fn angle_of(cos: f32) -> f32 {
+    cos.clamp(-1.0, 1.0).acos()
+}
+
+/// The smallest cone containing two cones given by axis, `cos θ` and `θ` (the
+/// direction-cone union of Conty Estevez & Kulla 2018, section 4.1, algorithm 1): its
+/// axis, `cos θ` and `θ`. The angles come with the cones, `θ = angle_of(cos θ)`, so that
+/// building a tree computes each once rather than at every union and cost.
+fn cone_union(
+    wa: Vec3,
+    cos_a: f32,
+    theta_a: f32,
+    wb: Vec3,
+    cos_b: f32,
+    theta_b: f32,
+) -> (Vec3, f32, f32) {
     let theta_d = angle_between(wa, wb);
     if (theta_d + theta_b).min(PI) <= theta_a {
-        return (wa, cos_a);
+        return (wa, cos_a, theta_a);
     }
     if (theta_d + theta_a).min(PI) <= theta_b {
-        return (wb, cos_b);
+        return (wb, cos_b, theta_b);
     }
     let theta_o = 0.5 * (theta_a + theta_d + theta_b) + CONE_SLACK;
     if theta_o >= PI {
-        return (wa, -1.0);
+        return (wa, -1.0, angle_of(-1.0));
     }
     let axis = wa.cross(wb);
     if axis.length_squared() == 0.0 {
-        return (wa, -1.0);
+        return (wa, -1.0, angle_of(-1.0));
     }
     // Rotate wa toward wb by θ_o - θ_a about their common normal (Rodrigues; the axis is
     // orthogonal to wa).
     let k = axis.normalize();
     let (s, c) = (theta_o - theta_a).sin_cos();
     let w = (wa * c + k.cross(wa) * s).normalize();
-    (w, theta_o.cos())
+    // The stored cosine is what the tree keeps; its angle is taken from it (not θ_o
+    // itself), as every later use of the cone would.
+    let cos_o = theta_o.cos();
+    (w, cos_o, angle_of(cos_o))
+}
+
+/// [`LightBounds`] with the angles of its cones, `θ_o` and `θ_e`, as the build needs
+/// them at every union and cost.
+#[derive(Clone, Copy, Debug)]
+struct Angled {
+    bounds: LightBounds,
+    theta_o: f32,
+    theta_e: f32,
+}
+
+impl Angled {
+    fn of(bounds: LightBounds) -> Self {
+        Angled {
+            bounds,
+            theta_o: angle_of(bounds.cos_theta_o),
+            theta_e: angle_of(bounds.cos_theta_e),
+        }
+    }
+
+    #[inline]
+    fn union(&self, o: &Angled) -> Angled {
+        let (bounds, theta_o) = self.bounds.union_with(self.theta_o, &o.bounds, o.theta_o);
+        // `cos θ_e` of the union is the smaller cosine: the angle of the same cone.
+        let theta_e = if self.bounds.cos_theta_e <= o.bounds.cos_theta_e {
+            self.theta_e
+        } else {
+            o.theta_e
+        };
+        Angled {
+            bounds,
+            theta_o,
+            theta_e,
+        }
+    }
+
+    fn cost(&self, kr: f32) -> f32 {
+        self.bounds.cost(self.theta_o, self.theta_e, kr)
+    }
 }
 
 /// One node, in depth-first order: an interior node's first child follows it.
 #[derive(Clone, Copy, Debug)]
 struct Node {
     bounds: LightBounds,
+    /// `Shape::of(&bounds)`.
+    shape: Shape,
     /// Interior: the index of the second child. Leaf: the light's index.
     index: u32,
     leaf: bool,
@@ -278,6 +380,24 @@ struct Node {
     /// (Where both would be zero, a light that cannot contribute is chosen instead of
     /// none: a wasted shadow ray, not a bias, since the pmf is the same.)
     fixed_p0: Option<f64>,
+}
+
+impl Node {
+    fn new(bounds: LightBounds, index: u32, leaf: bool, fixed_p0: Option<f64>) -> Self {
+        Node {
+            bounds,
+            shape: Shape::of(&bounds),
+            index,
+            leaf,
+            fixed_p0,
+        }
+    }
+
+    /// [`LightBounds::importance`] of the node's bounds.
+    #[inline]
+    fn importance(&self, p: Vec3, n: Vec3) -> f32 {
+        self.bounds.importance_with(&self.shape, p, n)
+    }
 }
 
 /// The light hierarchy over the finite lights of a [`super::LightSet`], and the infinite
@@ -297,7 +417,7 @@ pub struct LightTree {
 #[derive(Clone, Copy)]
 struct Item {
     light: u32,
-    bounds: LightBounds,
+    bounds: Angled,
     centroid: Vec3,
 }
 
@@ -312,7 +432,7 @@ impl LightTree {
             if let Some(bounds) = LightBounds::of(l) {
                 items.push(Item {
                     light: i as u32,
-                    bounds,
+                    bounds: Angled::of(bounds),
                     centroid: bounds.centroid(),
                 });
             } else if l.is_infinite() && pmf[i] > 0.0 {
@@ -341,35 +461,27 @@ impl LightTree {
         let at = self.nodes.len();
         if items.len() == 1 {
             let it = items[0];
-            self.nodes.push(Node {
-                bounds: it.bounds,
-                index: it.light,
-                leaf: true,
-                fixed_p0: None,
-            });
+            self.nodes
+                .push(Node::new(it.bounds.bounds, it.light, true, None));
             self.trails[it.light as usize] = trail;
-            return it.bounds;
+            return it.bounds.bounds;
         }
         let mid = split(items, depth);
         // Placeholder, filled in once the children are built.
-        self.nodes.push(Node {
-            bounds: items[0].bounds,
-            index: 0,
-            leaf: false,
-            fixed_p0: None,
-        });
+        self.nodes
+            .push(Node::new(items[0].bounds.bounds, 0, false, None));
         let (left, right) = items.split_at_mut(mid);
         let b0 = self.build_node(left, depth + 1, trail);
         let second = self.nodes.len() as u32;
         let b1 = self.build_node(right, depth + 1, trail | (1u64 << depth));
         let bounds = b0.union(&b1);
         let same = LightBounds { phi: b1.phi, ..b0 } == b1;
-        self.nodes[at] = Node {
+        self.nodes[at] = Node::new(
             bounds,
-            index: second,
-            leaf: false,
-            fixed_p0: same.then(|| b0.phi as f64 / (b0.phi as f64 + b1.phi as f64)),
-        };
+            second,
+            false,
+            same.then(|| b0.phi as f64 / (b0.phi as f64 + b1.phi as f64)),
+        );
         bounds
     }
 
@@ -385,10 +497,8 @@ impl LightTree {
         if let Some(p0) = self.nodes[node].fixed_p0 {
             return Some(p0);
         }
-        let i0 = self.nodes[node + 1].bounds.importance(p, n) as f64;
-        let i1 = self.nodes[self.nodes[node].index as usize]
-            .bounds
-            .importance(p, n) as f64;
+        let i0 = self.nodes[node + 1].importance(p, n) as f64;
+        let i1 = self.nodes[self.nodes[node].index as usize].importance(p, n) as f64;
         if i0 == 0.0 && i1 == 0.0 {
             return None;
         }
@@ -415,7 +525,7 @@ impl LightTree {
         u = ((u - acc) / self.p_tree).clamp(0.0, 1.0 - f64::EPSILON);
         let mut pmf = self.p_tree;
         let mut node = 0usize;
-        if self.nodes[0].leaf && self.nodes[0].bounds.importance(p, n) <= 0.0 {
+        if self.nodes[0].leaf && self.nodes[0].importance(p, n) <= 0.0 {
             return None;
         }
         while !self.nodes[node].leaf {
@@ -450,7 +560,7 @@ impl LightTree {
         if self.p_tree <= 0.0 {
             return 0.0;
         }
-        if self.nodes[0].leaf && self.nodes[0].bounds.importance(p, n) <= 0.0 {
+        if self.nodes[0].leaf && self.nodes[0].importance(p, n) <= 0.0 {
             return 0.0;
         }
         let mut pmf = self.p_tree;
@@ -484,13 +594,16 @@ fn split(items: &mut [Item], depth: u32) -> usize {
     }
     let mut cmin = Vec3::splat(f32::INFINITY);
     let mut cmax = Vec3::splat(f32::NEG_INFINITY);
-    let mut bounds = items[0].bounds;
+    // Only the box of the whole set is needed here: its cone union would cost three
+    // inverse trigonometric functions per light and level.
+    let (mut bmin, mut bmax) = (items[0].bounds.bounds.min, items[0].bounds.bounds.max);
     for it in items.iter() {
         cmin = cmin.min(it.centroid);
         cmax = cmax.max(it.centroid);
-        bounds = bounds.union(&it.bounds);
+        bmin = bmin.min(it.bounds.bounds.min);
+        bmax = bmax.max(it.bounds.bounds.max);
     }
-    let diag = bounds.max - bounds.min;
+    let diag = bmax - bmin;
     let extent = cmax - cmin;
     let bucket_of = |c: Vec3, dim: usize| -> usize {
         let t = (c[dim] - cmin[dim]) / extent[dim];
@@ -501,7 +614,7 @@ fn split(items: &mut [Item], depth: u32) -> usize {
         if extent[dim].is_nan() || extent[dim] <= 0.0 || diag[dim].is_nan() || diag[dim] <= 0.0 {
             continue;
         }
-        let mut buckets: [Option<LightBounds>; BUCKETS] = [None; BUCKETS];
+        let mut buckets: [Option<Angled>; BUCKETS] = [None; BUCKETS];
         for it in items.iter() {
             let b = &mut buckets[bucket_of(it.centroid, dim)];
             *b = Some(match b {
@@ -515,7 +628,7 @@ fn split(items: &mut [Item], depth: u32) -> usize {
                 buckets[r]
                     .iter()
                     .flatten()
-                    .fold(None, |acc: Option<LightBounds>, b| {
+                    .fold(None, |acc: Option<Angled>, b| {
                         Some(acc.map_or(*b, |a| a.union(b)))
                     })
             };

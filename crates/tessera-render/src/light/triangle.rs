@@ -69,6 +69,10 @@ pub struct TriangleLight {
     /// `(mesh, triangle)` when the emission varies over the triangle: the render scene
     /// then evaluates it where a point is sampled.
     pub shading: Option<(u32, u32)>,
+    /// Centroid of `p`, for the cheap bound of [`TriangleLight::spherical`].
+    centroid: Vec3,
+    /// Squared distance from the centroid to the farthest vertex.
+    bound_r2: f32,
 }
 
 impl TriangleLight {
@@ -79,6 +83,13 @@ impl TriangleLight {
         if !(len > 0.0 && len.is_finite()) {
             return None;
         }
+        // The bounding sphere of `spherical`'s early out, computed once per light rather
+        // than once per shading point.
+        let centroid = (p[0] + p[1] + p[2]) / 3.0;
+        let bound_r2 = (p[0] - centroid)
+            .length_squared()
+            .max((p[1] - centroid).length_squared())
+            .max((p[2] - centroid).length_squared());
         Some(Self {
             p,
             n: c / len,
@@ -87,6 +98,8 @@ impl TriangleLight {
             two_sided,
             power_scale: Vec3::ONE,
             shading: None,
+            centroid,
+            bound_r2,
         })
     }
 
@@ -120,12 +133,8 @@ impl TriangleLight {
         // through its farthest vertex, which subtends `2π (1 - cos θ) <= 2π r² / d²`.
         // Only when even twice that is below the threshold is the exact angle skipped, so
         // the rule is the exact one.
-        let c = (self.p[0] + self.p[1] + self.p[2]) / 3.0;
-        let r2 = (self.p[0] - c)
-            .length_squared()
-            .max((self.p[1] - c).length_squared())
-            .max((self.p[2] - c).length_squared());
-        let d2 = (c - p_ref).length_squared();
+        let r2 = self.bound_r2;
+        let d2 = (self.centroid - p_ref).length_squared();
         if d2 > r2 && 4.0 * PI * r2 < MIN_SPHERICAL_SOLID_ANGLE as f32 * d2 {
             return None;
         }

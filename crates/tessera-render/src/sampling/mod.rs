@@ -101,6 +101,9 @@ pub struct PixelSampler {
     /// `hash(pass seed, index)`, cached for the independent generator.
     sample_seed: u64,
     index: u32,
+    /// `index.reverse_bits()`, cached: every Sobol' request of the sample shuffles the
+    /// index, which starts from its bit reversal (x86 has no bit-reverse instruction).
+    index_reversed: u32,
     dimension: u32,
 }
 
@@ -123,6 +126,7 @@ impl PixelSampler {
             pass_seed,
             sample_seed: 0,
             index: 0,
+            index_reversed: 0,
             dimension: 0,
         };
         sampler.start_sample(0);
@@ -132,6 +136,7 @@ impl PixelSampler {
     /// Starts sample `index` (within the pass) and resets the dimension index to 0.
     pub fn start_sample(&mut self, index: u32) {
         self.index = index;
+        self.index_reversed = index.reverse_bits();
         self.dimension = 0;
         self.sample_seed = hash_combine(self.pass_seed, index as u64);
     }
@@ -142,7 +147,7 @@ impl PixelSampler {
         let bits = match self.kind {
             SamplerKind::Sobol if d < SOBOL_DIMENSIONS => {
                 let s = self.cached_scramble(d);
-                sobol::shuffled_scrambled_sobol_1d(self.index, s.shuffle, s.x)
+                sobol::shuffled_scrambled_sobol_1d(self.index_reversed, s.shuffle, s.x)
             }
             _ => (self.random_bits(d) >> 32) as u32,
         };
@@ -154,7 +159,7 @@ impl PixelSampler {
         let d = self.take_dimension();
         let (x, y) = match self.kind {
             SamplerKind::Sobol if d < SOBOL_DIMENSIONS => {
-                sobol::shuffled_scrambled_sobol_2d(self.index, self.cached_scramble(d))
+                sobol::shuffled_scrambled_sobol_2d(self.index_reversed, self.cached_scramble(d))
             }
             _ => {
                 let h = self.random_bits(d);

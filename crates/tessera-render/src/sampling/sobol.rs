@@ -144,6 +144,9 @@ pub(crate) fn laine_karras_permutation(mut x: u32, seed: u32) -> u32 {
 
 /// Base-2 Owen scrambling (nested uniform scrambling, Owen 2001, section 6.7) of a 0.32 fixed-point
 /// value, or of an integer index (Burley 2020 §3: the same operation shuffles the index).
+/// (The hot path folds its first reversal into the sampler; kept as the textbook
+/// reference for tests.)
+#[cfg(test)]
 #[inline]
 pub(crate) fn nested_uniform_scramble(x: u32, seed: u32) -> u32 {
     laine_karras_permutation(x.reverse_bits(), seed).reverse_bits()
@@ -160,15 +163,17 @@ pub(crate) struct Scramble {
     pub(crate) y: u32,
 }
 
-/// Point `index` of a shuffled, Owen-scrambled 2D Sobol' set, in 0.32 fixed point.
+/// Point `index` of a shuffled, Owen-scrambled 2D Sobol' set, in 0.32 fixed point, given
+/// `index_reversed = index.reverse_bits()` (the sampler reverses each sample's index once).
 ///
 /// For `index < 2^m` the shuffled indices are a permutation of one aligned block of `2^m`
 /// consecutive sequence indices: the Owen scramble of the index permutes its low `m` bits
 /// among themselves and maps the (all-zero) high bits to a seed-dependent constant. Such a
 /// block of a (0,2)-sequence is a (0,m,2)-net.
 #[inline]
-pub(crate) fn shuffled_scrambled_sobol_2d(index: u32, s: Scramble) -> (u32, u32) {
-    let i = nested_uniform_scramble(index, s.shuffle);
+pub(crate) fn shuffled_scrambled_sobol_2d(index_reversed: u32, s: Scramble) -> (u32, u32) {
+    // nested_uniform_scramble(index, shuffle), its first reversal done by the caller.
+    let i = laine_karras_permutation(index_reversed, s.shuffle).reverse_bits();
     // nested_uniform_scramble(v, seed) = rev(LK(rev(v), seed)); with dimension 0 being
     // rev(i) and dimension 1 read from bit-reversed tables, the inner reversals cancel
     // (x86 has no bit-reverse instruction, so this saves three of seven).
@@ -179,11 +184,11 @@ pub(crate) fn shuffled_scrambled_sobol_2d(index: u32, s: Scramble) -> (u32, u32)
 }
 
 /// Point `index` of a shuffled, Owen-scrambled 1D Sobol' (van der Corput) set, in 0.32
-/// fixed point; any `2^m` consecutive shuffled indices starting at 0 are stratified into
-/// `2^m` equal intervals.
+/// fixed point, given `index_reversed = index.reverse_bits()`; any `2^m` consecutive
+/// shuffled indices starting at 0 are stratified into `2^m` equal intervals.
 #[inline]
-pub(crate) fn shuffled_scrambled_sobol_1d(index: u32, shuffle: u32, seed: u32) -> u32 {
-    let i = nested_uniform_scramble(index, shuffle);
+pub(crate) fn shuffled_scrambled_sobol_1d(index_reversed: u32, shuffle: u32, seed: u32) -> u32 {
+    let i = laine_karras_permutation(index_reversed, shuffle).reverse_bits();
     // As in the 2D case: rev(LK(rev(rev(i)))) = rev(LK(i)).
     laine_karras_permutation(i, seed).reverse_bits()
 }
@@ -207,9 +212,10 @@ mod tests {
                 nested_uniform_scramble(sobol_dim0(j), s.x),
                 nested_uniform_scramble(sobol_dim1(j), s.y),
             );
-            assert_eq!(shuffled_scrambled_sobol_2d(index, s), textbook);
+            let reversed = index.reverse_bits();
+            assert_eq!(shuffled_scrambled_sobol_2d(reversed, s), textbook);
             assert_eq!(
-                shuffled_scrambled_sobol_1d(index, s.shuffle, s.x),
+                shuffled_scrambled_sobol_1d(reversed, s.shuffle, s.x),
                 textbook.0
             );
         }
@@ -270,7 +276,7 @@ mod tests {
                     y: seed.wrapping_mul(0xc2b2_ae35) ^ 0x5678,
                 };
                 let pts: Vec<(u32, u32)> = (0..(1u32 << m))
-                    .map(|i| shuffled_scrambled_sobol_2d(i, s))
+                    .map(|i| shuffled_scrambled_sobol_2d(i.reverse_bits(), s))
                     .collect();
                 assert!(is_net(&pts, m), "m = {m}, seed = {seed}");
             }
