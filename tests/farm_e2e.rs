@@ -595,7 +595,7 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
                     unit: Some(unit),
                     width,
                     height,
-                    pass_means,
+                    pass_means: tessera_proto::means_to_bytes(&pass_means),
                     render_seconds: 0.1,
                     job_id: l.job_id,
                     rejected_samples: 0,

@@ -263,7 +263,7 @@ async fn simulate(
                     unit: Some(unit),
                     width: rect.width,
                     height: rect.height,
-                    pass_means: vec![0.5; values],
+                    pass_means: tessera_proto::means_to_bytes(&vec![0.5; values]),
                     render_seconds: 0.0,
                     job_id: lease.job_id,
                     rejected_samples: 0,

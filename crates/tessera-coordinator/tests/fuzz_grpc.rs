@@ -103,26 +103,27 @@ fn mutate(rng: &mut Rng, r: &mut v1::SubmitResultRequest) -> (&'static str, bool
             ("other size", false)
         }
         5 => {
-            let n = r.pass_means.len();
-            let i = rng.below(n as u64) as usize;
-            r.pass_means[i] = rng.bad_f32();
+            let mut means = r.means();
+            let i = rng.below(means.len() as u64) as usize;
+            means[i] = rng.bad_f32();
+            r.set_means(&means);
             ("bad value", false)
         }
         6 => {
             let bad = rng.bad_f32();
-            for v in &mut r.pass_means {
-                *v = bad;
-            }
+            let means = vec![bad; r.means().len()];
+            r.set_means(&means);
             ("all values bad", false)
         }
         7 => {
+            // Any number of bytes short: a partial float, or whole pixels missing.
             let keep = rng.below(r.pass_means.len() as u64) as usize;
             r.pass_means.truncate(keep);
             ("too few values", false)
         }
         8 => {
-            let extra = 1 + rng.below(300) as usize;
-            r.pass_means.extend(std::iter::repeat_n(0.5, extra));
+            let extra = 1 + rng.below(1200) as usize;
+            r.pass_means.extend(std::iter::repeat_n(0x3f, extra));
             ("too many values", false)
         }
         9 => {
@@ -196,7 +197,9 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
                 unit: Some(unit),
                 width: w,
                 height: h,
-                pass_means: (0..n).map(|i| (i % 7) as f32 * 0.125).collect(),
+                pass_means: tessera_proto::means_to_bytes(
+                    &(0..n).map(|i| (i % 7) as f32 * 0.125).collect::<Vec<_>>(),
+                ),
                 render_seconds: 0.01,
                 job_id: lease.job_id,
                 rejected_samples: 0,

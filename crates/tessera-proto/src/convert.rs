@@ -207,7 +207,7 @@ impl v1::SubmitResultRequest {
             unit: Some(result.unit.into()),
             width: result.width,
             height: result.height,
-            pass_means: result.pass_means.as_flattened().to_vec(),
+            pass_means: means_to_bytes(result.pass_means.as_flattened()),
             render_seconds,
             job_id: 0,
             rejected_samples: result.rejected_samples,
@@ -237,13 +237,14 @@ impl v1::SubmitResultRequest {
                 ));
             }
         }
-        let len = self.pass_means.len();
-        if !len.is_multiple_of(3) {
+        let bytes = self.pass_means.len();
+        if !bytes.is_multiple_of(12) {
             return Err(ProtoError::new(
                 "pass_means",
-                format_args!("has {len} values, not a multiple of 3 (r, g, b)"),
+                format_args!("has {bytes} bytes, not a multiple of 12 (r, g, b as 4-byte floats)"),
             ));
         }
+        let len = bytes / 4;
         let expected =
             3 * u64::from(unit.pass_count) * u64::from(self.width) * u64::from(self.height);
         if len as u64 != expected {
@@ -275,8 +276,44 @@ impl v1::SubmitResultRequest {
     }
 }
 
-fn unflatten(values: &[f32]) -> Vec<[f32; 3]> {
-    values.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+/// The little-endian bytes of `values` (the wire form of `SubmitResultRequest.pass_means`).
+pub fn means_to_bytes(values: &[f32]) -> Vec<u8> {
+    let mut out = vec![0u8; 4 * values.len()];
+    for (b, v) in out.chunks_exact_mut(4).zip(values) {
+        b.copy_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// The floats of `bytes` (4 little-endian bytes each; a trailing partial value is
+/// ignored): the inverse of [`means_to_bytes`].
+pub fn means_from_bytes(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
+/// Pixels `[r, g, b]` from the wire bytes of `pass_means` (a multiple of 12 bytes, which
+/// `check_shape` has verified).
+fn unflatten(bytes: &[u8]) -> Vec<[f32; 3]> {
+    let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    bytes
+        .chunks_exact(12)
+        .map(|c| [f(&c[0..4]), f(&c[4..8]), f(&c[8..12])])
+        .collect()
+}
+
+impl v1::SubmitResultRequest {
+    /// The pass means as floats (see [`means_from_bytes`]).
+    pub fn means(&self) -> Vec<f32> {
+        means_from_bytes(&self.pass_means)
+    }
+
+    /// Replaces the pass means by `values` (see [`means_to_bytes`]).
+    pub fn set_means(&mut self, values: &[f32]) {
+        self.pass_means = means_to_bytes(values);
+    }
 }
 
 impl TryFrom<&v1::SubmitResultRequest> for UnitResult {
@@ -725,11 +762,11 @@ mod tests {
             let r = result(unit);
             let req = v1::SubmitResultRequest::from_result(5, 77, &r, 1.5);
             assert_eq!(
-                req.pass_means.len(),
+                req.means().len(),
                 3 * unit.pass_count as usize * p.tile(unit.tile).pixel_count()
             );
             // Interleaved r, g, b.
-            assert_eq!(&req.pass_means[..3], &r.pass_means[0][..]);
+            assert_eq!(&req.means()[..3], &r.pass_means[0][..]);
             let req = wire(&req);
             assert_eq!((req.worker_id, req.lease_id), (5, 77));
             assert_eq!(req.render_seconds, 1.5);
@@ -764,6 +801,53 @@ mod tests {
         assert!(bytes.len() < 48 * 4 + 32, "{} bytes", bytes.len());
     }
 
+    /// The message as a worker from before `pass_means` became `bytes` encoded it: the
+    /// same fields, the means as `repeated float [packed = true]`.
+    #[derive(Clone, PartialEq, prost::Message)]
+    struct PackedFloatsRequest {
+        #[prost(uint64, tag = "1")]
+        worker_id: u64,
+        #[prost(uint64, tag = "2")]
+        lease_id: u64,
+        #[prost(message, optional, tag = "3")]
+        unit: Option<v1::WorkUnit>,
+        #[prost(uint32, tag = "4")]
+        width: u32,
+        #[prost(uint32, tag = "5")]
+        height: u32,
+        #[prost(float, repeated, packed = "true", tag = "6")]
+        pass_means: Vec<f32>,
+        #[prost(double, tag = "7")]
+        render_seconds: f64,
+    }
+
+    #[test]
+    fn pass_means_bytes_are_the_packed_floats_of_older_workers() {
+        // (`rejected_samples` came later than these fields; the old message has none.)
+        let r = UnitResult {
+            rejected_samples: 0,
+            ..result(plan().units(1, 2)[1])
+        };
+        let old = PackedFloatsRequest {
+            worker_id: 3,
+            lease_id: 9,
+            unit: Some(r.unit.into()),
+            width: r.width,
+            height: r.height,
+            pass_means: r.pass_means.as_flattened().to_vec(),
+            render_seconds: 0.25,
+        };
+        // An old worker's message, read by this coordinator: the same result, bit for bit.
+        let now = v1::SubmitResultRequest::decode(old.encode_to_vec().as_slice()).unwrap();
+        assert_eq!(UnitResult::try_from(&now).unwrap(), r);
+        // This worker's message, read by an old coordinator: the same floats.
+        let new = v1::SubmitResultRequest::from_result(3, 9, &r, 0.25);
+        let back = PackedFloatsRequest::decode(new.encode_to_vec().as_slice()).unwrap();
+        assert_eq!(back, old);
+        // And the two encodings are the same bytes.
+        assert_eq!(new.encode_to_vec(), old.encode_to_vec());
+    }
+
     #[test]
     fn unit_result_rejections_name_the_field() {
         let r = result(plan().units(0, 2)[0]);
@@ -795,11 +879,11 @@ mod tests {
             ("pass_means", |q| {
                 q.pass_means.pop();
             }),
-            ("pass_means", |q| q.pass_means.push(1.0)),
+            ("pass_means", |q| q.pass_means.extend(1.0f32.to_le_bytes())),
             ("pass_means", |q| {
-                q.pass_means.truncate(q.pass_means.len() - 3)
+                q.pass_means.truncate(q.pass_means.len() - 12)
             }),
-            ("pass_means", |q| q.pass_means.extend([0.0; 3])),
+            ("pass_means", |q| q.pass_means.extend([0u8; 12])),
             ("render_seconds", |q| q.render_seconds = f64::NAN),
             ("render_seconds", |q| q.render_seconds = -1.0),
             ("traced_pixel_passes", |q| {
@@ -815,7 +899,7 @@ mod tests {
         let mut q = good.clone();
         q.pass_means.pop();
         let e = UnitResult::try_from(&q).unwrap_err();
-        assert!(e.reason.contains("not a multiple of 3"), "{e}");
+        assert!(e.reason.contains("not a multiple of 12"), "{e}");
         let status = tonic::Status::from(e);
         assert_eq!(status.code(), tonic::Code::InvalidArgument);
         assert!(status.message().starts_with("pass_means: "));
@@ -823,12 +907,14 @@ mod tests {
         let mut q = good.clone();
         q.width -= 1;
         q.pass_means
-            .truncate(3 * 2 * q.width as usize * q.height as usize);
+            .truncate(12 * 2 * q.width as usize * q.height as usize);
         let back = UnitResult::try_from(&q).unwrap();
         assert!(back.validate(&plan()).is_err());
         // Non-finite values pass the shape check and are refused by the farm's validate.
         let mut q = good;
-        q.pass_means[4] = f32::NAN;
+        let mut means = q.means();
+        means[4] = f32::NAN;
+        q.set_means(&means);
         let back = UnitResult::try_from(&q).unwrap();
         assert!(back.validate(&plan()).is_err());
     }

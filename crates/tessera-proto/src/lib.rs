@@ -31,7 +31,7 @@
 //! let unit = plan.units(0, 1)[0];
 //! let result = UnitResult { unit, width: 32, height: 32, pass_means: vec![[0.5; 3]; 32 * 32], rejected_samples: 0 };
 //! let request = v1::SubmitResultRequest::from_result(7, 99, &result, 0.25);
-//! assert_eq!(request.pass_means.len(), 3 * 32 * 32);
+//! assert_eq!(request.means().len(), 3 * 32 * 32);
 //! assert_eq!(UnitResult::try_from(request)?, result);
 //!
 //! let bad = v1::FramePlan { width: 0, ..v1::FramePlan::from(&plan) };
@@ -50,7 +50,7 @@ pub mod v1 {
 
 mod convert;
 
-pub use convert::{LeasedUnit, ProtoError, MAX_TILE_INDEX};
+pub use convert::{means_from_bytes, means_to_bytes, LeasedUnit, ProtoError, MAX_TILE_INDEX};
 pub use v1::worker_service_client::WorkerServiceClient;
 pub use v1::worker_service_server::{WorkerService, WorkerServiceServer};
 

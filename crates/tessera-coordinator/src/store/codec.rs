@@ -18,9 +18,22 @@ pub(crate) const UNIT_BYTES: usize = 4 + 4 + 8;
 pub(crate) const ADAPTIVE_PIXEL_BYTES: usize = PIXEL_BYTES + 3 * 4;
 
 fn put_stats(out: &mut Vec<u8>, p: &PixelStats) {
-    out.extend_from_slice(&p.passes.to_le_bytes());
-    for v in p.mean.iter().chain(&p.m2).chain([&p.mean_lum, &p.m2_lum]) {
-        out.extend_from_slice(&v.to_bits().to_le_bytes());
+    let mut record = [0u8; PIXEL_BYTES];
+    write_stats(&mut record, p);
+    out.extend_from_slice(&record);
+}
+
+/// One pixel's statistics record into `record` (`PIXEL_BYTES` long): written in place,
+/// because the checkpoint of a tile is encoded again for every result merged into it and
+/// a growing vector's per-value capacity checks were most of the cost.
+#[inline]
+fn write_stats(record: &mut [u8], p: &PixelStats) {
+    record[..4].copy_from_slice(&p.passes.to_le_bytes());
+    let values = [
+        p.mean[0], p.mean[1], p.mean[2], p.m2[0], p.m2[1], p.m2[2], p.mean_lum, p.m2_lum,
+    ];
+    for (b, v) in record[4..].chunks_exact_mut(8).zip(values) {
+        b.copy_from_slice(&v.to_bits().to_le_bytes());
     }
 }
 
@@ -110,11 +123,14 @@ pub(crate) fn check_adaptive(
 /// Encodes per-pixel statistics. The caller guarantees `pixels.len() <= u32::MAX` (a tile
 /// has at most 256 x 256 pixels).
 pub(crate) fn encode_stats(pixels: &[PixelStats]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER_BYTES + PIXEL_BYTES * pixels.len());
-    out.push(CHECKPOINT_FORMAT_VERSION);
-    out.extend_from_slice(&(pixels.len() as u32).to_le_bytes());
-    for p in pixels {
-        put_stats(&mut out, p);
+    let mut out = vec![0u8; HEADER_BYTES + PIXEL_BYTES * pixels.len()];
+    out[0] = CHECKPOINT_FORMAT_VERSION;
+    out[1..HEADER_BYTES].copy_from_slice(&(pixels.len() as u32).to_le_bytes());
+    for (record, p) in out[HEADER_BYTES..]
+        .chunks_exact_mut(PIXEL_BYTES)
+        .zip(pixels)
+    {
+        write_stats(record, p);
     }
     out
 }
