@@ -8,10 +8,15 @@
 //! | [`ggx_albedo_average`] | `E_avg(α) = 2 ∫ E(μ) μ dμ`, the cosine-weighted hemispherical average, as `(A_avg, B_avg)` |
 //! | [`sheen_albedo`] | `E(μ, r)` of the Charlie sheen lobe of KHR_materials_sheen as published, sheen colour 1 |
 //!
-//! The tables are computed once per process (a [`OnceLock`], rows in parallel; 0.6 s for
-//! the GGX tables and 0.75 s for the sheen table, which is only built when a sheen is used,
-//! measured at opt-level 3 on a busy two-core machine) by fixed quadrature, so they are
-//! deterministic: the GGX integrals by the midpoint rule on the square of the
+//! The tables are computed by fixed quadrature and committed (`albedo_tables.bin`, read
+//! once per process): computing them at start-up took 0.6 s for the GGX tables and
+//! 0.75 s for the sheen table at opt-level 3 on a busy two-core machine, paid by every
+//! `tessera render`, worker and pilot process that met a glTF material (0.93 G of the
+//! 3.8 G instructions of a small render of the Veach scene), and a committed table is
+//! the same on every platform whatever its `sin` and `cos`. The test
+//! `committed_tables_are_the_quadrature` recomputes them; `cargo test -p tessera-render
+//! --lib write_albedo_tables -- --ignored` writes the file again after a change to the
+//! quadrature or the node layout. The GGX integrals by the midpoint rule on the square of the
 //! visible-normal warp (`∫ F G2/G1 dD_wo`, Heitz 2018), the sheen integral by the midpoint
 //! rule in `(sqrt(cos θi), φ)`. Lookups interpolate bilinearly in
 //! `(sqrt(μ), r)` with `r = sqrt(α)` the perceptual roughness: the square root puts the
@@ -22,8 +27,11 @@
 
 use super::microfacet::MIN_ALPHA;
 use super::sheen;
+#[cfg(test)]
 use crate::sampling::warp::{ggx_g1, ggx_lambda, sample_ggx_vndf};
+#[cfg(test)]
 use glam::{Vec2, Vec3};
+#[cfg(test)]
 use rayon::prelude::*;
 use std::sync::OnceLock;
 
@@ -32,8 +40,10 @@ const N_MU: usize = 64;
 /// Nodes along the perceptual roughness `r` (uniform in [0, 1]).
 const N_R: usize = 32;
 /// Quadrature points per side of the unit square, per table entry.
+#[cfg(test)]
 const N_QUAD: usize = 48;
 /// `μ` at which the grazing column is evaluated (the integrals are continuous there).
+#[cfg(test)]
 const MU_MIN: f32 = 1e-4;
 
 /// A table over `(μ, r)` with bilinear lookup; the `r` nodes are uniform in
@@ -68,6 +78,7 @@ impl Table {
     }
 
     /// The roughness of node `j`.
+    #[cfg(test)]
     fn r_node(&self, j: usize) -> f32 {
         self.r_min + (1.0 - self.r_min) * node(j, N_R)
     }
@@ -89,15 +100,18 @@ impl Table {
     }
 }
 
+#[cfg(test)]
 fn node(i: usize, n: usize) -> f32 {
     i as f32 / (n - 1) as f32
 }
 
+#[cfg(test)]
 /// `μ` of node `i` (the nodes are uniform in `sqrt(μ)`).
 fn mu_node(i: usize) -> f32 {
     node(i, N_MU).powi(2)
 }
 
+#[cfg(test)]
 /// `(A, B)` at one `(μ, α)` by the midpoint rule on the visible-normal warp.
 fn ggx_albedo_quadrature(mu: f32, alpha: f32) -> (f32, f32) {
     let mu = mu.max(MU_MIN);
@@ -126,6 +140,7 @@ fn ggx_albedo_quadrature(mu: f32, alpha: f32) -> (f32, f32) {
     ((a / n) as f32, (b / n) as f32)
 }
 
+#[cfg(test)]
 /// `E` of the sheen lobe (colour 1) at one `(μ, r)`: `∫ f cos dω` by the midpoint rule
 /// in `(t, φ)` with `μi = t²` (`dω = 2t dt dφ`), dense at the horizon, where the smooth
 /// Charlie lobe puts its energy; `φ` over half the circle (the lobe is symmetric about the
@@ -158,35 +173,84 @@ struct GgxTables {
     b_avg: [f32; N_R],
 }
 
+/// The committed tables: `A`, `B` and the sheen `E`, each `N_MU` rows of `N_R` values,
+/// little-endian binary32 (written by `write_albedo_tables`).
+static COMMITTED: &[u8; 3 * TABLE_BYTES] = include_bytes!("albedo_tables.bin");
+
+/// Bytes of one table in `albedo_tables.bin`.
+const TABLE_BYTES: usize = 4 * N_MU * N_R;
+
+/// The values of a table, row by row.
+type Values = [[f32; N_R]; N_MU];
+
+/// Table `k` (0: A, 1: B, 2: sheen) of the committed file.
+fn committed(k: usize) -> Values {
+    let bytes = &COMMITTED[k * TABLE_BYTES..(k + 1) * TABLE_BYTES];
+    let mut v = [[0.0; N_R]; N_MU];
+    for (x, b) in v.as_flattened_mut().iter_mut().zip(bytes.chunks_exact(4)) {
+        *x = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+    }
+    v
+}
+
+#[cfg(test)]
+/// The GGX tables `(A, B)` by quadrature, rows in parallel (the order of the results is
+/// fixed, so the tables are the same on any number of threads).
+fn ggx_quadrature_tables() -> (Values, Values) {
+    let r_min = MIN_ALPHA.sqrt();
+    let probe = Table {
+        v: [[0.0; N_R]; N_MU],
+        r_min,
+    };
+    let rows: Vec<[(f32, f32); N_R]> = (0..N_MU)
+        .into_par_iter()
+        .map(|i| {
+            std::array::from_fn(|j| {
+                let r = probe.r_node(j);
+                ggx_albedo_quadrature(mu_node(i), (r * r).max(MIN_ALPHA))
+            })
+        })
+        .collect();
+    let (mut a, mut b) = ([[0.0; N_R]; N_MU], [[0.0; N_R]; N_MU]);
+    for (i, row) in rows.iter().enumerate() {
+        for (j, &(ea, eb)) in row.iter().enumerate() {
+            a[i][j] = ea;
+            b[i][j] = eb;
+        }
+    }
+    (a, b)
+}
+
+#[cfg(test)]
+/// The sheen table by quadrature, rows in parallel.
+fn sheen_quadrature_table() -> Values {
+    let probe = Table {
+        v: [[0.0; N_R]; N_MU],
+        r_min: sheen::MIN_SHEEN_ROUGHNESS,
+    };
+    let rows: Vec<[f32; N_R]> = (0..N_MU)
+        .into_par_iter()
+        .map(|i| std::array::from_fn(|j| sheen_albedo_quadrature(mu_node(i), probe.r_node(j))))
+        .collect();
+    let mut v = [[0.0; N_R]; N_MU];
+    for (i, row) in rows.into_iter().enumerate() {
+        v[i] = row;
+    }
+    v
+}
+
 fn ggx_tables() -> &'static GgxTables {
     static TABLES: OnceLock<GgxTables> = OnceLock::new();
     TABLES.get_or_init(|| {
         let r_min = MIN_ALPHA.sqrt();
-        let mut a = Table {
-            v: [[0.0; N_R]; N_MU],
+        let a = Table {
+            v: committed(0),
             r_min,
         };
-        let mut b = Table {
-            v: [[0.0; N_R]; N_MU],
+        let b = Table {
+            v: committed(1),
             r_min,
         };
-        // Rows in parallel (once per process; the order of the results is fixed, so the
-        // tables are the same on any number of threads).
-        let rows: Vec<[(f32, f32); N_R]> = (0..N_MU)
-            .into_par_iter()
-            .map(|i| {
-                std::array::from_fn(|j| {
-                    let r = a.r_node(j);
-                    ggx_albedo_quadrature(mu_node(i), (r * r).max(MIN_ALPHA))
-                })
-            })
-            .collect();
-        for (i, row) in rows.iter().enumerate() {
-            for (j, &(ea, eb)) in row.iter().enumerate() {
-                a.v[i][j] = ea;
-                b.v[i][j] = eb;
-            }
-        }
         let a_avg = std::array::from_fn(|j| a.column_average(j));
         let b_avg = std::array::from_fn(|j| b.column_average(j));
         GgxTables { a, b, a_avg, b_avg }
@@ -195,19 +259,9 @@ fn ggx_tables() -> &'static GgxTables {
 
 fn sheen_table() -> &'static Table {
     static TABLE: OnceLock<Table> = OnceLock::new();
-    TABLE.get_or_init(|| {
-        let mut t = Table {
-            v: [[0.0; N_R]; N_MU],
-            r_min: sheen::MIN_SHEEN_ROUGHNESS,
-        };
-        let rows: Vec<[f32; N_R]> = (0..N_MU)
-            .into_par_iter()
-            .map(|i| std::array::from_fn(|j| sheen_albedo_quadrature(mu_node(i), t.r_node(j))))
-            .collect();
-        for (i, row) in rows.into_iter().enumerate() {
-            t.v[i] = row;
-        }
-        t
+    TABLE.get_or_init(|| Table {
+        v: committed(2),
+        r_min: sheen::MIN_SHEEN_ROUGHNESS,
     })
 }
 
@@ -245,4 +299,51 @@ pub(crate) fn ggx_albedo_reference(mu: f32, alpha: f32) -> (f32, f32) {
 #[cfg(test)]
 pub(crate) fn sheen_albedo_reference(mu: f32, r: f32) -> f32 {
     sheen_albedo_quadrature(mu, r)
+}
+
+#[cfg(test)]
+mod committed_tests {
+    use super::*;
+
+    /// The three tables by quadrature, in the committed file's order.
+    fn computed() -> [Values; 3] {
+        let (a, b) = ggx_quadrature_tables();
+        [a, b, sheen_quadrature_table()]
+    }
+
+    /// The committed tables are what the quadrature gives, within rounding: the same bits
+    /// on the machine that wrote them, and within 1e-5 wherever `sin`, `cos` and `sqrt`
+    /// round differently (they are albedos, of order one).
+    #[test]
+    fn committed_tables_are_the_quadrature() {
+        for (k, table) in computed().iter().enumerate() {
+            let stored = committed(k);
+            for i in 0..N_MU {
+                for j in 0..N_R {
+                    let (c, s) = (table[i][j], stored[i][j]);
+                    assert!(
+                        (c - s).abs() <= 1e-5,
+                        "table {k} node ({i}, {j}): quadrature {c}, committed {s}; \
+                         regenerate with `cargo test -p tessera-render --lib \
+                         write_albedo_tables -- --ignored`"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Writes `albedo_tables.bin` from the quadrature (run by hand, see the module docs).
+    #[test]
+    #[ignore = "writes src/bsdf/albedo_tables.bin; run by hand after changing the quadrature"]
+    fn write_albedo_tables() {
+        let mut bytes = Vec::with_capacity(3 * TABLE_BYTES);
+        for table in computed() {
+            for v in table.as_flattened() {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf/albedo_tables.bin");
+        std::fs::write(&path, bytes).unwrap();
+    }
 }
