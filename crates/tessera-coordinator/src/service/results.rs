@@ -180,8 +180,12 @@ impl Coordinator {
             (outcome, writes, queued)
         };
         // A merge may open units (an adaptive decision, a tile emptied for repair after a
-        // quarantine): tell the lease requests waiting for work.
-        self.work_changed(!writes.quarantines.is_empty());
+        // quarantine): tell the lease requests waiting for work. A copy held for a spot
+        // check opens its unit to the other workers only: one wake-up could go to a request
+        // of the worker that delivered it, which may not take the copy, so all are woken
+        // (a spot-checked last unit otherwise finished a long poll late).
+        let held = matches!(outcome, Ok(Accepted::Held));
+        self.work_changed(held || !writes.quarantines.is_empty());
         // One writer at a time, taking the queue in merge order: a newer checkpoint of a
         // tile is never overwritten by an older one.
         let write = self.inner.write.lock().await;
