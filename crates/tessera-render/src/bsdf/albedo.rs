@@ -77,12 +77,6 @@ impl Table {
         (r - self.r_min) / (1.0 - self.r_min)
     }
 
-    /// The roughness of node `j`.
-    #[cfg(test)]
-    fn r_node(&self, j: usize) -> f32 {
-        self.r_min + (1.0 - self.r_min) * node(j, N_R)
-    }
-
     /// `2 ∫ E(μ) μ dμ` of column `j`, exactly for its interpolation: with `x = sqrt(μ)`,
     /// `2 μ dμ = 4 x³ dx` and `E` is linear in `x` on each cell.
     fn column_average(&self, j: usize) -> f32 {
@@ -105,14 +99,20 @@ fn node(i: usize, n: usize) -> f32 {
     i as f32 / (n - 1) as f32
 }
 
-#[cfg(test)]
 /// `μ` of node `i` (the nodes are uniform in `sqrt(μ)`).
+#[cfg(test)]
 fn mu_node(i: usize) -> f32 {
     node(i, N_MU).powi(2)
 }
 
+/// The roughness of node `j` of a table whose `r` nodes are uniform in `[r_min, 1]`.
 #[cfg(test)]
+fn r_node(r_min: f32, j: usize) -> f32 {
+    r_min + (1.0 - r_min) * node(j, N_R)
+}
+
 /// `(A, B)` at one `(μ, α)` by the midpoint rule on the visible-normal warp.
+#[cfg(test)]
 fn ggx_albedo_quadrature(mu: f32, alpha: f32) -> (f32, f32) {
     let mu = mu.max(MU_MIN);
     let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
@@ -140,11 +140,11 @@ fn ggx_albedo_quadrature(mu: f32, alpha: f32) -> (f32, f32) {
     ((a / n) as f32, (b / n) as f32)
 }
 
-#[cfg(test)]
 /// `E` of the sheen lobe (colour 1) at one `(μ, r)`: `∫ f cos dω` by the midpoint rule
 /// in `(t, φ)` with `μi = t²` (`dω = 2t dt dφ`), dense at the horizon, where the smooth
 /// Charlie lobe puts its energy; `φ` over half the circle (the lobe is symmetric about the
 /// plane of incidence).
+#[cfg(test)]
 fn sheen_albedo_quadrature(mu: f32, r: f32) -> f32 {
     const N_T: usize = 96;
     const N_PHI: usize = 48;
@@ -193,20 +193,16 @@ fn committed(k: usize) -> Values {
     v
 }
 
-#[cfg(test)]
 /// The GGX tables `(A, B)` by quadrature, rows in parallel (the order of the results is
 /// fixed, so the tables are the same on any number of threads).
+#[cfg(test)]
 fn ggx_quadrature_tables() -> (Values, Values) {
     let r_min = MIN_ALPHA.sqrt();
-    let probe = Table {
-        v: [[0.0; N_R]; N_MU],
-        r_min,
-    };
     let rows: Vec<[(f32, f32); N_R]> = (0..N_MU)
         .into_par_iter()
         .map(|i| {
             std::array::from_fn(|j| {
-                let r = probe.r_node(j);
+                let r = r_node(r_min, j);
                 ggx_albedo_quadrature(mu_node(i), (r * r).max(MIN_ALPHA))
             })
         })
@@ -221,16 +217,13 @@ fn ggx_quadrature_tables() -> (Values, Values) {
     (a, b)
 }
 
-#[cfg(test)]
 /// The sheen table by quadrature, rows in parallel.
+#[cfg(test)]
 fn sheen_quadrature_table() -> Values {
-    let probe = Table {
-        v: [[0.0; N_R]; N_MU],
-        r_min: sheen::MIN_SHEEN_ROUGHNESS,
-    };
+    let r_min = sheen::MIN_SHEEN_ROUGHNESS;
     let rows: Vec<[f32; N_R]> = (0..N_MU)
         .into_par_iter()
-        .map(|i| std::array::from_fn(|j| sheen_albedo_quadrature(mu_node(i), probe.r_node(j))))
+        .map(|i| std::array::from_fn(|j| sheen_albedo_quadrature(mu_node(i), r_node(r_min, j))))
         .collect();
     let mut v = [[0.0; N_R]; N_MU];
     for (i, row) in rows.into_iter().enumerate() {
