@@ -2,11 +2,11 @@
 //!
 //! A real `tessera coordinator` process is driven over real gRPC on loopback by N
 //! simulated workers, each its own connection, registering, heartbeating, leasing one
-//! unit at a time and answering it at once with a valid result of the right size (a flat
-//! synthetic radiance: the coordinator validates and merges it like any other). No ray is
-//! traced, so what is measured is the coordinator: merged units per second, lease latency,
-//! and its CPU and memory, for each fleet size. A benchmark, not a test: nothing asserts
-//! a speed.
+//! unit at a time and answering it at once (or after `--unit-ms`) with a valid result of
+//! the right size (a flat synthetic radiance: the coordinator validates and merges it like
+//! any other). No ray is traced, so what is measured is the coordinator: merged units per
+//! second, lease latency, and its CPU and memory, for each fleet size. A benchmark, not a
+//! test: nothing asserts a speed.
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
@@ -42,6 +42,12 @@ pub struct BenchFleetArgs {
     /// The `tessera` binary that runs the coordinator (default: this one).
     #[arg(long)]
     pub coordinator_binary: Option<std::path::PathBuf>,
+    /// Each simulated worker's render time per unit, ms: 0 answers at once (the
+    /// coordinator saturated, every worker always waiting on it, so latency is the queue
+    /// Little's law says); e.g. 150 offers 1,000 workers' 6,000 units/s at most, a fleet
+    /// rendering real units, which is where lease latency means something.
+    #[arg(long, default_value_t = 0)]
+    pub unit_ms: u64,
 }
 
 /// What one fleet size measured.
@@ -135,7 +141,7 @@ fn run_fleet(exe: &Path, args: &BenchFleetArgs, data: &Path, n: usize) -> Result
         let job = client.submit(&s, None).map_err(client_error)?;
         let tasks: Vec<_> = fleet
             .into_iter()
-            .map(|w| rt.spawn(simulate(w, stop.clone(), merged.clone())))
+            .map(|w| rt.spawn(simulate(w, stop.clone(), merged.clone(), args.unit_ms)))
             .collect();
         let done = client
             .wait(
@@ -206,12 +212,14 @@ async fn connect_fleet(grpc: &str, n: usize) -> Result<Vec<SimWorker>> {
     Ok(out)
 }
 
-/// One simulated worker until `stop`: lease a unit, answer it at once with a flat valid
-/// result, heartbeat on time. Returns the latency of every lease call that got a unit.
+/// One simulated worker until `stop`: lease a unit, answer it after `unit_ms` (at once
+/// for 0) with a flat valid result, heartbeat on time. Returns the latency of every lease
+/// call that got a unit.
 async fn simulate(
     mut w: SimWorker,
     stop: Arc<AtomicBool>,
     merged: Arc<AtomicU64>,
+    unit_ms: u64,
 ) -> Result<Vec<f64>> {
     let mut latency = Vec::new();
     let mut last_beat = Instant::now();
@@ -254,6 +262,10 @@ async fn simulate(
                     unit.tile
                 );
             };
+            if unit_ms > 0 {
+                // Rendering: the worker has no request at the coordinator meanwhile.
+                tokio::time::sleep(Duration::from_millis(unit_ms)).await;
+            }
             let values = 3 * unit.pass_count as usize * rect.pixel_count();
             let r = w
                 .client

@@ -119,6 +119,22 @@ pub struct Farm {
     /// lifts it. A worker registering under a listed key is quarantined at once.
     pub quarantines: BTreeMap<(String, Option<String>), QuarantineRecord>,
     next_worker: WorkerId,
+    /// The last count of [`Farm::sharing_threads`].
+    sharing: Option<SharingCount>,
+}
+
+/// How often [`Farm::sharing_threads`] counts the fleet again when no worker registered,
+/// was removed or was quarantined, ms.
+pub const SHARING_RECOUNT_MS: u64 = 250;
+
+/// A count of the render threads sharing the queue, and what it was counted from.
+#[derive(Debug, Clone, Copy)]
+struct SharingCount {
+    at_ms: u64,
+    next_worker: WorkerId,
+    workers: usize,
+    quarantined: usize,
+    threads: u64,
 }
 
 /// The key of [`Farm::quarantines`] for a worker registered as `name` with `identity`: an
@@ -187,7 +203,50 @@ impl Farm {
             spot: SpotCounters::default(),
             quarantines: BTreeMap::new(),
             next_worker: 1,
+            sharing: None,
         }
+    }
+
+    /// The render threads of the workers that share the queue (live: heard from within
+    /// `lost_after_ms`; not draining; not quarantined), for the scheduler's tail rule
+    /// ([`tessera_farm::Scheduler::lease_among`]).
+    ///
+    /// Counted again when a worker registered, was removed or was quarantined or lifted
+    /// since the last count, and otherwise at most every [`SHARING_RECOUNT_MS`]: every
+    /// lease asks, and counting a fleet of a thousand workers for each was a few percent
+    /// of the coordinator's CPU (docs/bench-fleet.md). What a stale count can change is
+    /// only who renders a unit, for a quarter of a second after a worker fell silent or
+    /// stopped, never an image.
+    pub fn sharing_threads(&mut self, now_ms: u64, lost_after_ms: u64) -> u64 {
+        let quarantined = self.scheduler.quarantined().count();
+        if let Some(c) = self.sharing {
+            if c.next_worker == self.next_worker
+                && c.workers == self.workers.len()
+                && c.quarantined == quarantined
+                && now_ms >= c.at_ms
+                && now_ms - c.at_ms < SHARING_RECOUNT_MS
+            {
+                return c.threads;
+            }
+        }
+        let threads = self
+            .workers
+            .values()
+            .filter(|w| {
+                !w.draining
+                    && w.quarantined.is_none()
+                    && now_ms.saturating_sub(w.last_seen_ms) <= lost_after_ms
+            })
+            .map(|w| u64::from(w.threads.max(1)))
+            .sum();
+        self.sharing = Some(SharingCount {
+            at_ms: now_ms,
+            next_worker: self.next_worker,
+            workers: self.workers.len(),
+            quarantined,
+            threads,
+        });
+        threads
     }
 
     /// Returns the units of every lapsed lease to the queue ([`Scheduler::expire`]),

@@ -652,6 +652,11 @@ pub struct Scheduler {
     lease_ms: u64,
     jobs: BTreeMap<JobId, Job>,
     leases: BTreeMap<u64, Lease>,
+    /// A lower bound of every lease's deadline (`u64::MAX` with none): deadlines only
+    /// grow (extend, grace), so a new lease's deadline is all that can lower it, and
+    /// [`Scheduler::expire`], called before every lease, looks at the lease table only
+    /// when the bound has passed instead of scanning a fleet's thousand leases each time.
+    next_expiry_ms: u64,
     /// Leases that lapsed or were given back, with their (job, canonical unit index): a
     /// late result may still answer one of them, and only them.
     lapsed: BTreeMap<u64, (JobId, u64)>,
@@ -678,6 +683,7 @@ impl Scheduler {
             lease_ms,
             jobs: BTreeMap::new(),
             leases: BTreeMap::new(),
+            next_expiry_ms: u64::MAX,
             lapsed: BTreeMap::new(),
             memory: Memory {
                 budget: u64::MAX,
@@ -1193,6 +1199,7 @@ impl Scheduler {
                 self.next_lease_id += 1;
                 job.leased.insert(i, lease.lease_id);
                 self.leases.insert(lease.lease_id, lease);
+                self.next_expiry_ms = self.next_expiry_ms.min(lease.deadline_ms);
                 out.push(lease);
             }
             if out.len() >= max_units {
@@ -1266,6 +1273,9 @@ impl Scheduler {
             if let Some(l) = self.leases.get_mut(id) {
                 if l.worker == worker && l.deadline_ms >= now_ms {
                     l.deadline_ms = now_ms.saturating_add(self.lease_ms);
+                    // Only a clock that went back can lower a deadline; keep the bound
+                    // of `expire` true even then.
+                    self.next_expiry_ms = self.next_expiry_ms.min(l.deadline_ms);
                     out.push((*id, l.deadline_ms));
                 }
             }
@@ -1275,6 +1285,9 @@ impl Scheduler {
 
     /// Returns the units of every lease whose deadline has passed to the queue.
     pub fn expire(&mut self, now_ms: u64) -> Vec<Lease> {
+        if self.next_expiry_ms >= now_ms {
+            return Vec::new();
+        }
         let expired: Vec<Lease> = self
             .leases
             .values()
@@ -1284,6 +1297,12 @@ impl Scheduler {
         for l in &expired {
             self.release(l.lease_id);
         }
+        self.next_expiry_ms = self
+            .leases
+            .values()
+            .map(|l| l.deadline_ms)
+            .min()
+            .unwrap_or(u64::MAX);
         expired
     }
 
@@ -1832,6 +1851,54 @@ mod tests {
         assert_eq!(
             s.submit(a[2].lease_id, 1, result(&p, a[2].unit, 0.25)),
             Ok(Submitted::Duplicate { identical: false })
+        );
+    }
+
+    /// `expire` looks at the lease table only once the earliest deadline may have passed
+    /// (`next_expiry_ms`); every lease must still lapse at its own deadline, whatever was
+    /// leased, extended or expired before it.
+    #[test]
+    fn every_lease_lapses_at_its_deadline_after_extensions_and_earlier_expiries() {
+        let p = plan();
+        let mut s = Scheduler::new(100, 0);
+        s.add_job(1, 0, p, 0..=1, 3);
+        let a = s.lease(1, 0, 2); // deadlines 100
+        assert!(s.expire(100).is_empty(), "a deadline is inclusive");
+        // a[0] is extended to 150: the bound (100) is stale-low, a scan finds a[1] only.
+        assert_eq!(s.extend(1, &[a[0].lease_id], 50).len(), 1);
+        let e = s.expire(101);
+        assert_eq!(
+            e.iter().map(|l| l.lease_id).collect::<Vec<_>>(),
+            [a[1].lease_id]
+        );
+        assert!(s.expire(150).is_empty());
+        assert_eq!(s.expire(151).len(), 1, "the extended lease lapses at 150");
+        // With no lease left the bound is open; a new lease must lower it again.
+        assert!(s.expire(10_000).is_empty());
+        let b = s.lease(2, 10_000, 1);
+        assert_eq!(b.len(), 1);
+        assert!(s.expire(10_100).is_empty());
+        let e = s.expire(10_101);
+        assert_eq!(
+            e.iter().map(|l| l.lease_id).collect::<Vec<_>>(),
+            [b[0].lease_id]
+        );
+        // A lease taken while an earlier one is held, then the earlier one delivered:
+        // the later deadline is still found.
+        let c = s.lease(3, 20_000, 1);
+        let d = s.lease(3, 20_050, 1);
+        assert_eq!(
+            s.submit(c[0].lease_id, 1, result(&p, c[0].unit, 0.5)),
+            Ok(Submitted::Accepted)
+        );
+        assert!(
+            s.expire(20_101).is_empty(),
+            "c was delivered, d lapses at 20,150"
+        );
+        let e = s.expire(20_151);
+        assert_eq!(
+            e.iter().map(|l| l.lease_id).collect::<Vec<_>>(),
+            [d[0].lease_id]
         );
     }
 

@@ -272,20 +272,7 @@ impl Coordinator {
             }
             farm.expire_leases(now);
             let max = max_units.clamp(1, MAX_UNITS_PER_LEASE) as usize;
-            // The threads of the workers that share the queue (live and not draining),
-            // for the scheduler's tail rule.
-            let lost_after = self.lost_after_ms();
-            let sharing = |w: &&crate::state::WorkerEntry| {
-                !w.draining
-                    && w.quarantined.is_none()
-                    && now.saturating_sub(w.last_seen_ms) <= lost_after
-            };
-            let total: u64 = farm
-                .workers
-                .values()
-                .filter(sharing)
-                .map(|w| u64::from(w.threads.max(1)))
-                .sum();
+            let total = farm.sharing_threads(now, self.lost_after_ms());
             let threads = farm
                 .workers
                 .get(&worker)
