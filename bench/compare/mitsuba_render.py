@@ -56,10 +56,13 @@ def write_ply(path, mesh):
         f.write(faces.tobytes())
 
 
-def bsdf(m, texture_file):
+def bsdf(m, texture_file, nearest=False):
     color = {"type": "rgb", "value": m["base_color"]}
     if texture_file is not None:
-        color = {"type": "bitmap", "filename": texture_file}
+        # glTF's magFilter NEAREST (9728) is Mitsuba's "nearest"; otherwise bilinear, as
+        # Tessera's (no mipmaps in either).
+        color = {"type": "bitmap", "filename": texture_file,
+                 "filter_type": "nearest" if nearest else "bilinear"}
     if m["transmission"] > 0.5:
         alpha = m["roughness"] ** 2
         if alpha < 1e-3:
@@ -88,13 +91,16 @@ def scene_dict(path, width, height, spp, seed, sampler, max_depth, rr_depth, tmp
         m = gltf_read.material(doc, mesh["material"])
         tex = m["base_color_texture"]
         texture_file = None
+        nearest = False
         if tex is not None and mesh["uvs"] is not None:
+            sampler = doc["textures"][tex].get("sampler")
+            nearest = sampler is not None and doc["samplers"][sampler].get("magFilter") == 9728
             if tex not in textures:
                 textures[tex] = os.path.join(tmp, "texture%d.png" % tex)
                 with open(textures[tex], "wb") as f:
                     f.write(gltf_read.image_bytes(doc, buffers, tex, os.path.dirname(path)))
             texture_file = textures[tex]
-        shape = {"type": "ply", "filename": ply, "face_normals": mesh["normals"] is None, "bsdf": bsdf(m, texture_file)}
+        shape = {"type": "ply", "filename": ply, "face_normals": mesh["normals"] is None, "bsdf": bsdf(m, texture_file, nearest)}
         if max(m["emission"]) > 0:
             shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": m["emission"]}}
         d["mesh%d" % k] = shape

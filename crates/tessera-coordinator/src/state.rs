@@ -249,6 +249,19 @@ impl Farm {
         threads
     }
 
+    /// Marks a worker as draining (it gave its leases back because it is stopping) or not
+    /// (it asked for work again), for /workers and the tail rule's count of the threads
+    /// sharing the queue, which is counted again when the flag changes. Unknown workers
+    /// are ignored.
+    pub fn set_draining(&mut self, worker: WorkerId, draining: bool) {
+        if let Some(w) = self.workers.get_mut(&worker) {
+            if w.draining != draining {
+                w.draining = draining;
+                self.sharing = None;
+            }
+        }
+    }
+
     /// Returns the units of every lapsed lease to the queue ([`Scheduler::expire`]),
     /// counting and logging them: a re-lease is the farm's only sign of a worker cut off
     /// mid-unit, so operators should see it. Returns how many lapsed.

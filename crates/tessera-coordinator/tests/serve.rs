@@ -296,3 +296,52 @@ async fn a_waiting_lease_request_is_woken_by_a_job_queued() {
         "{metrics}"
     );
 }
+
+/// A worker stopping says so with a plain ReturnLeases (empty when it holds nothing
+/// unstarted) while it finishes the unit it renders: /workers shows it draining until it
+/// asks for work again. An unusable return is not a drain.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_returning_its_leases_is_draining_until_it_leases_again() {
+    use tessera_api::WorkerState;
+    let dir = tempfile::tempdir().unwrap();
+    let (core, _job) = coordinator_with_a_job(&dir).await;
+    let (ls, _http, grpc) = listeners().await;
+    let (_tx, rx) = oneshot::channel::<()>();
+    let _served: Served = tokio::spawn(serve_coordinator(core.clone(), ls, async {
+        let _ = rx.await;
+    }));
+    let (mut client, worker_id) = bounded("Register", register(grpc)).await;
+    let state = || {
+        let list = core.workers().unwrap();
+        let w = list.workers.iter().find(|w| w.id == worker_id).unwrap();
+        w.state
+    };
+    let lease = v1::LeaseRequest {
+        worker_id,
+        max_units: 1,
+        wait_ms: 0,
+    };
+    let held = client.lease_work(lease).await.unwrap().into_inner().leases;
+    assert_eq!(held.len(), 1);
+    assert_eq!(state(), WorkerState::Busy);
+    let give_back = |unusable: &str| v1::ReturnLeasesRequest {
+        worker_id,
+        lease_ids: Vec::new(),
+        unusable: unusable.into(),
+    };
+    let back = client.return_leases(give_back("")).await.unwrap();
+    assert_eq!(back.into_inner().returned, 0, "nothing was given back");
+    assert_eq!(state(), WorkerState::Draining, "while it finishes its unit");
+    let more = client.lease_work(lease).await.unwrap().into_inner().leases;
+    assert_eq!(more.len(), 1);
+    assert_eq!(state(), WorkerState::Busy, "asking for work ends a drain");
+    client
+        .return_leases(give_back("scene: cannot load"))
+        .await
+        .unwrap();
+    assert_eq!(
+        state(),
+        WorkerState::Busy,
+        "an unusable return is not a drain"
+    );
+}

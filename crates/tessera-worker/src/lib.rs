@@ -609,8 +609,18 @@ async fn session(
     // next coordinator, then the session ends with this status.
     let mut broken: Option<Status> = None;
     let mut stop = stop;
+    // Whether the coordinator was told this worker is stopping.
+    let mut drain_announced = false;
     let outcome = loop {
         let stopping = told_to_stop || *stop.borrow();
+        if *stop.borrow() && !drain_announced && broken.is_none() {
+            // Stopping (SIGTERM): say so at once, giving back the prefetched batch if any,
+            // so /workers shows the worker draining while it finishes the units rendering
+            // and the tail rule stops counting its threads.
+            drain_announced = true;
+            let b = next.take().unwrap_or(Batch { units: Vec::new() });
+            give_back(&mut client, worker_id, b).await;
+        }
         // The pool is free: start the prefetched batch, or give it back when stopping.
         if rendering.is_none() && broken.is_none() {
             if let Some(mut b) = next.take() {
@@ -944,7 +954,8 @@ async fn fetch_batch(
 }
 
 /// Gives a batch that was never started back to the coordinator (a worker stopping):
-/// its units are leased again at once instead of when their leases lapse.
+/// its units are leased again at once instead of when their leases lapse. Sent with an
+/// empty batch too, which tells the coordinator the worker is draining.
 async fn give_back(client: &mut Client, worker_id: u64, batch: Batch) {
     let lease_ids: Vec<u64> = batch.lease_ids().collect();
     let n = lease_ids.len();
@@ -956,7 +967,11 @@ async fn give_back(client: &mut Client, worker_id: u64, batch: Batch) {
         })
         .await
     {
-        Ok(_) => tracing::info!(worker_id, leases = n, "returned the units not started"),
+        Ok(_) => tracing::info!(
+            worker_id,
+            leases = n,
+            "draining: returned the units not started"
+        ),
         Err(s) => {
             tracing::warn!(worker_id, leases = n, error = %s, "could not return the units not started; they lapse")
         }

@@ -270,6 +270,8 @@ impl Coordinator {
                 }
                 Some(_) => {}
             }
+            // A worker asking for work is not draining (any more).
+            farm.set_draining(worker, false);
             farm.expire_leases(now);
             let max = max_units.clamp(1, MAX_UNITS_PER_LEASE) as usize;
             let total = farm.sharing_threads(now, self.lost_after_ms());
@@ -315,10 +317,13 @@ impl Coordinator {
     }
 
     /// Leases a worker gives back unrendered (it is shutting down); returns how many
-    /// were outstanding.
+    /// were outstanding. The worker is draining from then on (/workers) until it asks for
+    /// work again; a worker stopping announces it this way even with no lease to give
+    /// back.
     pub fn return_leases(&self, worker: WorkerId, lease_ids: &[u64]) -> CoordResult<u32> {
         let returned = {
             let mut farm = self.lock()?;
+            farm.set_draining(worker, true);
             let before = farm.scheduler.leases().count();
             farm.scheduler.give_back(worker, lease_ids);
             (before - farm.scheduler.leases().count()) as u32
