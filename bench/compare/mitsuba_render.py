@@ -93,8 +93,8 @@ def scene_dict(path, width, height, spp, seed, sampler, max_depth, rr_depth, tmp
         texture_file = None
         nearest = False
         if tex is not None and mesh["uvs"] is not None:
-            sampler = doc["textures"][tex].get("sampler")
-            nearest = sampler is not None and doc["samplers"][sampler].get("magFilter") == 9728
+            tex_sampler = doc["textures"][tex].get("sampler")
+            nearest = tex_sampler is not None and doc["samplers"][tex_sampler].get("magFilter") == 9728
             if tex not in textures:
                 textures[tex] = os.path.join(tmp, "texture%d.png" % tex)
                 with open(textures[tex], "wb") as f:
