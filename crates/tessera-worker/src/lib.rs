@@ -618,7 +618,7 @@ async fn session(
             // so /workers shows the worker draining while it finishes the units rendering
             // and the tail rule stops counting its threads.
             drain_announced = true;
-            let b = next.take().unwrap_or(Batch { units: Vec::new() });
+            let b = next.take().unwrap_or_default();
             give_back(&mut client, worker_id, b).await;
         }
         // The pool is free: start the prefetched batch, or give it back when stopping.
@@ -872,6 +872,7 @@ fn sort_results(
 }
 
 /// Leased units whose scenes are loaded and built, ready to render.
+#[derive(Default)]
 struct Batch {
     units: Vec<(LeasedUnit, Arc<RenderScene>)>,
 }
