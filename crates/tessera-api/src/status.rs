@@ -103,6 +103,16 @@ pub struct JobStatus {
     pub eta_seconds: Option<f64>,
     /// When the job was accepted, Unix milliseconds.
     pub created_unix_ms: u64,
+    /// When the job started running (its first lease), Unix milliseconds; `None` while
+    /// queued. Absent from older servers.
+    #[serde(default)]
+    pub started_unix_ms: Option<u64>,
+    /// When the job reached its final state (done, failed or canceled), Unix
+    /// milliseconds, as the coordinator's clock read it; `None` until then. A client
+    /// polling the status learns when a job ended to the millisecond without polling
+    /// that often. Absent from older servers.
+    #[serde(default)]
+    pub finished_unix_ms: Option<u64>,
     /// Scheduling priority (higher first).
     pub priority: i32,
     /// Faulty-worker events on this job: refused results (wrong size, non-finite values)
@@ -384,6 +394,8 @@ mod tests {
             elapsed_seconds: 3.25,
             eta_seconds: Some(10.0),
             created_unix_ms: 1_700_000_000_000,
+            started_unix_ms: Some(1_700_000_000_250),
+            finished_unix_ms: None,
             priority: 0,
             faults: 1,
             rejected_samples: 3,

@@ -69,6 +69,9 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
     let mut farm = Vec::new();
     // Of the farm runs: the fraction of the workers' thread time spent rendering.
     let mut busy = Vec::new();
+    // Of the farm runs: throughput per unit of work rendered, spot checks' second copies
+    // counted as work (the farm's own overhead, without the checks' deliberate cost).
+    let mut per_work = Vec::new();
     // The compared binary's farm: seconds and busy fractions.
     let mut compared = Vec::new();
     let mut compared_busy = Vec::new();
@@ -86,6 +89,7 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
         let f = alone.seconds;
         cpu[0] += alone.coordinator_cpu;
         busy.push(alone.busy);
+        per_work.push(l / f * (1.0 + alone.rendered_twice));
         if args.pollers > 0 {
             let data = dir.join(format!("polled{rep}"));
             let _ = std::fs::remove_dir_all(&data);
@@ -110,12 +114,13 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
             latencies.append(&mut lat);
         }
         println!(
-            "run {}: tessera render --threads {}: {l:.3} s; tessera serve --workers {} (1 thread each): {f:.3} s; farm/local throughput {:.3}; workers rendering {:.1}% of the time",
+            "run {}: tessera render --threads {}: {l:.3} s; tessera serve --workers {} (1 thread each): {f:.3} s; farm/local throughput {:.3}; workers rendering {:.1}% of the time; spot checks rendered {:.1}% of the units twice",
             rep + 1,
             args.threads,
             args.threads,
             l / f,
-            100.0 * alone.busy
+            100.0 * alone.busy,
+            100.0 * alone.rendered_twice
         );
         if let Some(other) = &args.compare_binary {
             let data = dir.join(format!("compared{rep}"));
@@ -135,7 +140,7 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
         local.push(l);
         farm.push(f);
     }
-    for v in [&mut busy, &mut compared, &mut compared_busy] {
+    for v in [&mut busy, &mut per_work, &mut compared, &mut compared_busy] {
         v.sort_by(f64::total_cmp);
     }
     local.sort_by(f64::total_cmp);
@@ -152,6 +157,10 @@ pub fn bench_farm(args: BenchFarmArgs) -> Result<()> {
         paths / f,
         100.0 * l / f,
         100.0 * (f / l - 1.0)
+    );
+    println!(
+        "bench-farm per unit of work: farm throughput {:.1}% of local counting the units spot checks rendered twice as work (median)",
+        100.0 * per_work[per_work.len() / 2]
     );
     println!(
         "bench-farm workers: rendering {:.1}% of the farm's wall time (median; the rest is waiting on leases, scenes and the start and end of the job)",
@@ -271,6 +280,8 @@ struct FarmRun {
     /// The workers' reported render seconds over their threads' wall time from
     /// submission to done (`tessera_worker_render_seconds_total` in `/metrics`).
     busy: f64,
+    /// Units rendered a second time by spot checks over the units merged.
+    rendered_twice: f64,
 }
 
 /// A fresh `tessera serve` on `data` from the job's submission to done, with `pollers`
@@ -292,7 +303,16 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> R
     s.spp = args.spp;
     let self_cpu = cpu_seconds("self");
     let t = Instant::now();
+    let t_unix_ms = unix_ms();
     let job = client.submit(&s, None).map_err(client_error)?;
+    // A coordinator that reports when the job finished (`finished_unix_ms`, the same
+    // host's clock) is polled every 100 ms and timed by that: polling every 10 ms cost
+    // the farm's two cores about 1% (a status request each, answered and parsed) that no
+    // real client spends. An older binary (`--compare-binary`) is timed by the poll.
+    let reports_finish = client
+        .get_raw(&format!("/jobs/{}", job.id))
+        .is_ok_and(|b| String::from_utf8_lossy(&b).contains("\"finished_unix_ms\""));
+    let every = Duration::from_millis(if reports_finish { 100 } else { 10 });
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let watchers: Vec<_> = (0..pollers)
         .map(|_| {
@@ -301,14 +321,12 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> R
         })
         .collect();
     let done = client
-        .wait(
-            job.id,
-            Duration::from_millis(10),
-            Duration::from_secs(3600),
-            |_| {},
-        )
+        .wait(job.id, every, Duration::from_secs(3600), |_| {})
         .map_err(client_error)?;
-    let f = t.elapsed().as_secs_f64();
+    let f = match done.finished_unix_ms {
+        Some(end) if reports_finish => end.saturating_sub(t_unix_ms) as f64 / 1e3,
+        _ => t.elapsed().as_secs_f64(),
+    };
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     let mut latencies = Vec::new();
     for w in watchers {
@@ -316,17 +334,20 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> R
     }
     let pollers_cpu = cpu_seconds("self") - self_cpu;
     let coordinator_cpu = cpu_seconds(&child.id().to_string());
-    // An older binary without the counter reports 0.
-    let render_seconds = client
+    // An older binary without the counters reports 0.
+    let metrics = client
         .get_raw("/metrics")
-        .ok()
-        .and_then(|m| {
-            metric(
-                &String::from_utf8_lossy(&m),
-                "tessera_worker_render_seconds_total",
-            )
-        })
-        .unwrap_or(0.0);
+        .map(|m| String::from_utf8_lossy(&m).into_owned())
+        .unwrap_or_default();
+    let render_seconds = metric(&metrics, "tessera_worker_render_seconds_total").unwrap_or(0.0);
+    // Spot checks (`--spot-check-fraction`, 2% by default) lease some units a second
+    // time on purpose: work the local render does not do.
+    let merged = metric(&metrics, "tessera_units_merged_total").unwrap_or(0.0);
+    let spot_checked: f64 = metrics
+        .lines()
+        .filter(|l| l.starts_with("tessera_spot_checks_total{"))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum();
     let _ = child.kill();
     let _ = child.wait();
     if done.state != JobState::Done {
@@ -338,7 +359,19 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> R
         coordinator_cpu,
         pollers_cpu,
         busy: render_seconds / (f * args.threads.max(1) as f64),
+        rendered_twice: if merged > 0.0 {
+            spot_checked / merged
+        } else {
+            0.0
+        },
     })
+}
+
+/// The wall clock, Unix milliseconds.
+fn unix_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
 }
 
 /// A busy fraction as printed: "not reported" by a coordinator without the counter.

@@ -330,11 +330,6 @@ pub struct JobRuntime {
     /// Results merged into this job so far in this run: the version of its images
     /// (the image cache's key, `service::images`).
     pub(crate) merges: u64,
-    /// When the earliest unit merged in this run began rendering, Unix ms: its merge time
-    /// less the `render_seconds` its worker reported. The ETA's rate is measured from
-    /// here, so the set-up before the first unit (workers fetching the scene, building
-    /// its BVH) does not count as rendering (issue 15).
-    pub(crate) rendering_since_ms: Option<u64>,
     /// A checkpoint of this job failed to write: its frames stay in memory (they hold
     /// passes the store may not have) instead of being released when complete.
     pub(crate) unsaved_checkpoints: bool,
@@ -407,7 +402,6 @@ impl JobRuntime {
             plan_json,
             adaptive_summary: (0.0, None),
             merges: 0,
-            rendering_since_ms: None,
             unsaved_checkpoints: false,
             stopped: None,
             starting: false,
@@ -449,21 +443,6 @@ impl JobRuntime {
         match self.started_unix_ms {
             Some(s) => (self.finished_unix_ms.unwrap_or(now).saturating_sub(s)) as f64 / 1e3,
             None => 0.0,
-        }
-    }
-
-    /// Seconds spent rendering: since [`JobRuntime::rendering_since_ms`] (never before the
-    /// job started), or all of [`JobRuntime::elapsed_seconds`] before a unit was merged.
-    pub(crate) fn rendering_seconds(&self, now: u64) -> f64 {
-        match (self.rendering_since_ms, self.started_unix_ms) {
-            (Some(r), Some(s)) => {
-                (self
-                    .finished_unix_ms
-                    .unwrap_or(now)
-                    .saturating_sub(r.max(s))) as f64
-                    / 1e3
-            }
-            _ => self.elapsed_seconds(now),
         }
     }
 }

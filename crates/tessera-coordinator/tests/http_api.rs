@@ -639,3 +639,46 @@ async fn a_held_spot_check_copy_wakes_the_other_workers_request() {
         "B found the copy only at its wait's deadline"
     );
 }
+
+/// Issue 15: the ETA counts the passes rendered and buffered for the canonical merge
+/// order, not only the merged ones. A one-tile job of 4 passes, one unit each: passes 1,
+/// 2 and 3 delivered before pass 0 wait in the tile's buffer (nothing is merged), yet
+/// three quarters of the work is done, so the ETA is a third of the time spent (it was
+/// `None`, as if nothing had been rendered); once pass 0 arrives the job is done.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_eta_counts_passes_buffered_for_the_merge_order() {
+    use tessera_coordinator::service::Accepted;
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    (cfg.spot_check_fraction, cfg.passes_per_unit) = (0.0, 1);
+    let core = Coordinator::open(cfg).await.unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
+    let (status, _) = core.submit(job, None).await.unwrap();
+    assert_eq!((status.tiles_total, status.passes_planned), (1, 4));
+    let w = core.register_worker("w".into(), 1, "t").unwrap();
+    let mut units = core.lease(w, 4).await.unwrap().units;
+    assert_eq!(units.len(), 4);
+    units.sort_by_key(|l| l.unit.first_pass);
+    // Some rendering time, so that the rate is measurable (milliseconds).
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    for l in &units[1..] {
+        let got = core.accept_result(delivery(w, l, false)).await.unwrap();
+        assert_eq!(got, Accepted::Merged, "buffered counts as merged");
+    }
+    let s = core.status(status.id).await.unwrap();
+    assert_eq!(s.passes_done, 0, "passes 1 to 3 wait for pass 0");
+    let eta = s.eta_seconds.expect("an ETA from the passes rendered");
+    // Three of four passes took the job's elapsed time (since the first lease; the status
+    // reads one clock for both): one more takes a third.
+    assert!(
+        eta > 0.0 && (eta - s.elapsed_seconds / 3.0).abs() < 1e-9,
+        "eta {eta} s after {} s",
+        s.elapsed_seconds
+    );
+    core.accept_result(delivery(w, &units[0], false))
+        .await
+        .unwrap();
+    let s = core.status(status.id).await.unwrap();
+    assert_eq!((s.passes_done, s.state.as_str()), (4, "done"));
+}

@@ -173,6 +173,8 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
     use tessera_coordinator::service::MAX_UNUSABLE_RETURNS;
     let dir = tempfile::tempdir().unwrap();
     let (core, job) = coordinator_with_a_job(&dir).await;
+    // Queued: neither started nor finished.
+    assert_eq!((job.started_unix_ms, job.finished_unix_ms), (None, None));
     let (ls, _http, grpc) = listeners().await;
     let (_tx, rx) = oneshot::channel::<()>();
     let _served: Served = tokio::spawn(serve_coordinator(core.clone(), ls, async {
@@ -212,6 +214,11 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
         .unwrap()
         .into_inner();
     assert_eq!(back.returned, 1);
+    // Running since its first lease, not finished.
+    let running = core.status(job.id).await.unwrap();
+    let started = running.started_unix_ms.expect("started at the first lease");
+    assert!(started >= job.created_unix_ms);
+    assert_eq!(running.finished_unix_ms, None);
     for i in 0..MAX_UNUSABLE_RETURNS {
         assert!(!core.status(job.id).await.unwrap().state.is_terminal());
         let ids = bounded("a lease", lease(&mut client)).await;
@@ -228,6 +235,10 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
     }
     let status = core.status(job.id).await.unwrap();
     assert_eq!(status.state.as_str(), "failed");
+    // A final state records when it was reached; the start stays the first lease's.
+    assert_eq!(status.started_unix_ms, Some(started));
+    let finished = status.finished_unix_ms.expect("a failed job has finished");
+    assert!(finished >= started);
     let error = status.error.unwrap_or_default();
     assert!(error.contains("could not use the scene"), "{error}");
     assert!(error.contains("out of memory"), "{error}");

@@ -10,7 +10,7 @@ use tessera_api::{
 };
 use tessera_farm::job::StopVerdict;
 use tessera_farm::quote::{job_eta_seconds, JobProgress};
-use tessera_farm::{frame_state_bytes, FramePlan, JobId};
+use tessera_farm::{frame_state_bytes, FramePlan, JobId, Progress};
 
 use super::{Coordinator, MAX_PAGE};
 use crate::error::{CoordError, CoordResult};
@@ -232,6 +232,8 @@ impl Coordinator {
             elapsed_seconds: elapsed,
             eta_seconds: None,
             created_unix_ms: rec.created_unix_ms,
+            started_unix_ms: rec.started_unix_ms,
+            finished_unix_ms: rec.finished_unix_ms,
             priority: rec.priority,
             faults,
             rejected_samples,
@@ -355,6 +357,27 @@ pub(crate) fn spp_so_far(r: &ResolvedJob, passes_done: u64, frames: u64) -> f64 
 }
 
 /// The status of a job in memory.
+/// The passes the ETA counts as done: the merged ones, or if more, the planned passes in
+/// the proportion of units rendered, buffered ones included.
+///
+/// Results merge in a fixed order (ARCHITECTURE.md §2), so a later pass rendered before
+/// an earlier one waits in the tile's buffer: with whole-frame units (bdpt) one worker
+/// renders passes 0, 1, ... while another renders 4, 5, ..., and the merged count lags
+/// the work done by half. An ETA from merged passes alone then predicted two to four
+/// times the job's actual length at 10% and 25% of it (docs/benchmarks.md, "The job status
+/// ETA"). Units of a job hold equal numbers of passes (the last of a tile may hold
+/// fewer), so their proportion is the work's.
+fn eta_passes_done(progress: Option<Progress>, passes_done: u64, passes_planned: u64) -> u64 {
+    match progress {
+        Some(p) if p.units_total > 0 => {
+            let rendered = u128::from(passes_planned) * u128::from(p.units_done.min(p.units_total))
+                / u128::from(p.units_total);
+            passes_done.max(u64::try_from(rendered).unwrap_or(u64::MAX))
+        }
+        _ => passes_done,
+    }
+}
+
 fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     let now = now_ms();
     let plan = rt.resolved.plan;
@@ -386,9 +409,13 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         Some(0.0)
     } else {
         job_eta_seconds(&JobProgress {
-            // The rate of rendering, not of the set-up before it.
-            elapsed_seconds: rt.rendering_seconds(now),
-            passes_done,
+            // Since the first lease. Not from when the first merged unit began rendering
+            // (its merge time less its render seconds, as before): a worker submits a
+            // batch's results together, so that start was the batch's last unit's and the
+            // rate too fast early on (-30% to -39% at 10% of veach-mis and a bdpt job,
+            // docs/benchmarks.md); the workers' set-up it left out is small by comparison.
+            elapsed_seconds: rt.elapsed_seconds(now),
+            passes_done: eta_passes_done(progress, passes_done, passes_planned),
             passes_planned,
             error,
             // On the farm only adaptive jobs stop at their target (ARCHITECTURE.md §3).
@@ -430,6 +457,8 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         elapsed_seconds: elapsed,
         eta_seconds: eta,
         created_unix_ms: rt.created_unix_ms,
+        started_unix_ms: rt.started_unix_ms,
+        finished_unix_ms: rt.finished_unix_ms,
         priority: rt.job().priority,
         faults: rt.faults,
         rejected_samples: rt.rejected_samples(),

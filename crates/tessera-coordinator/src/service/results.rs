@@ -380,14 +380,6 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
                 writes.checkpoint = record_merge(farm, &m, rejected_samples);
                 if let Some(rt) = farm.runtime.get_mut(&m.job) {
                     rt.merges += 1;
-                    let render_ms = if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
-                        (d.render_seconds * 1e3).min(now as f64) as u64
-                    } else {
-                        0
-                    };
-                    let began = now.saturating_sub(render_ms);
-                    rt.rendering_since_ms =
-                        Some(rt.rendering_since_ms.map_or(began, |r| r.min(began)));
                 }
                 let complete = farm.scheduler.is_complete(m.job);
                 writes.history = history_point(farm, m.job, now, complete);
