@@ -306,9 +306,10 @@ fn time_farm(exe: &Path, args: &BenchFarmArgs, data: &Path, pollers: usize) -> R
     let t_unix_ms = unix_ms();
     let job = client.submit(&s, None).map_err(client_error)?;
     // A coordinator that reports when the job finished (`finished_unix_ms`, the same
-    // host's clock) is polled every 100 ms and timed by that: polling every 10 ms cost
-    // the farm's two cores about 1% (a status request each, answered and parsed) that no
-    // real client spends. An older binary (`--compare-binary`) is timed by the poll.
+    // host's clock) is polled every 100 ms and timed by that, to the millisecond, without
+    // a status request every 10 ms on the farm's cores (no real client polls that often;
+    // the difference was within the run-to-run spread, docs/benchmarks.md). An older
+    // binary (`--compare-binary`) is timed by the poll.
     let reports_finish = client
         .get_raw(&format!("/jobs/{}", job.id))
         .is_ok_and(|b| String::from_utf8_lossy(&b).contains("\"finished_unix_ms\""));

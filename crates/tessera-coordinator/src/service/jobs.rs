@@ -356,7 +356,6 @@ pub(crate) fn spp_so_far(r: &ResolvedJob, passes_done: u64, frames: u64) -> f64 
     passes_done as f64 / tiles as f64 * f64::from(r.plan.samples_per_pass)
 }
 
-/// The status of a job in memory.
 /// The passes the ETA counts as done: the merged ones, or if more, the planned passes in
 /// the proportion of units rendered, buffered ones included.
 ///
@@ -378,6 +377,7 @@ fn eta_passes_done(progress: Option<Progress>, passes_done: u64, passes_planned:
     }
 }
 
+/// The status of a job in memory.
 fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     let now = now_ms();
     let plan = rt.resolved.plan;
