@@ -83,6 +83,13 @@ pub struct JobStatus {
     /// servers.
     #[serde(default)]
     pub error_estimator: Option<String>,
+    /// Why `error_estimate` may be optimistic for this job, when the render plan knows
+    /// (path tracing a scene whose caustics are lit by tiny or delta lights, which only
+    /// bdpt samples; `tessera_farm::job::ResolvedJob::error_estimate_caveat`, also in the
+    /// EXR header). Absent when there is none, and from older servers; like `plan`, only
+    /// while the job is held in memory.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error_estimate_caveat: Option<String>,
     /// The requested target error, if any.
     pub target_error: Option<f64>,
     /// Once a job with a target error is done: whether its error estimate is at or below
@@ -388,6 +395,7 @@ mod tests {
             spp_so_far: 12.5,
             error_estimate: Some(0.031),
             error_estimator: Some("pass-spread".into()),
+            error_estimate_caveat: None,
             target_error: None,
             target_reached: None,
             stop_reason: None,

@@ -117,6 +117,7 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
     }
     println!("seconds: {:.3}", out.seconds);
     println!("estimated relative error: {:.4}", out.frame.image_error());
+    crate::render::print_caveat(&p.resolved);
     println!(
         "paths per second: {:.0}",
         out.paths as f64 / out.seconds.max(1e-9)

@@ -433,6 +433,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         args.output.display()
     );
     print_totals(&plan, seconds, acc.image_error(), paths / seconds);
+    print_caveat(&p.resolved);
     // CPU time of all render threads: what a comparison on a loaded machine can trust
     // (bench/compare divides noise by it), at the 10 ms resolution of /proc.
     println!("cpu seconds: {cpu_seconds:.2}");
@@ -490,6 +491,14 @@ fn print_totals(plan: &FramePlan, seconds: f64, error: f64, paths_per_second: f6
         tessera_farm::ERROR_ESTIMATOR
     );
     println!("paths per second: {paths_per_second:.0}");
+}
+
+/// Why the estimate just printed may be optimistic, when the plan knows
+/// ([`tessera_farm::job::ResolvedJob::error_estimate_caveat`]); nothing otherwise.
+pub fn print_caveat(resolved: &tessera_farm::job::ResolvedJob) {
+    if let Some(caveat) = resolved.error_estimate_caveat() {
+        println!("error estimate caveat: {caveat}");
+    }
 }
 
 /// The summary line for samples the integrator dropped as invalid; nothing when there

@@ -168,7 +168,10 @@ export function jobView(id, poke) {
     const target = j.target_error ? percent(j.target_error) : "none";
     // Once done, the server's verdict: a finished job need not have reached its target.
     const verdict = j.stop_reason ? ` (${j.stop_reason})` : "";
-    setText(f.error, `${percent(j.error_estimate)} / ${target}${verdict}`);
+    // The plan's caveat (path tracing caustics of a tiny light): flagged, in full on hover.
+    const caveat = j.error_estimate_caveat ? " — may be optimistic" : "";
+    setText(f.error, `${percent(j.error_estimate)} / ${target}${verdict}${caveat}`);
+    f.error.title = j.error_estimate_caveat || "";
     setText(f.elapsed, duration(j.elapsed_seconds));
     setText(f.eta, terminal(j.state) ? "—" : j.eta_seconds === null ? "not yet predictable" : `≈ ${duration(j.eta_seconds)}`);
     const w = j.width ?? j.settings?.width;

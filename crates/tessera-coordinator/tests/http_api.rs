@@ -682,3 +682,33 @@ async fn the_eta_counts_passes_buffered_for_the_merge_order() {
     let s = core.status(status.id).await.unwrap();
     assert_eq!((s.passes_done, s.state.as_str()), (4, "done"));
 }
+
+/// Issue 15: a job that path-traces caustics of a tiny light (`builtin:caustic`, where the
+/// plan chooses bdpt) is told in its status that its error estimate may be optimistic, and
+/// why; the same scene with bdpt, and a scene without such caustics, are not.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_status_says_when_the_error_estimate_may_be_optimistic() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let submit = |scene: &str, integrator: &str| {
+        let mut job = JobSettings::new(scene);
+        (job.width, job.height, job.spp) = (Some(16), Some(16), 4);
+        job.integrator = integrator.into();
+        let core = core.clone();
+        async move { core.submit(job, None).await.unwrap().0 }
+    };
+    let path = submit("builtin:caustic", "path").await;
+    let caveat = path
+        .error_estimate_caveat
+        .expect("path tracing the caustic of a tiny light: a caveat");
+    assert!(
+        caveat.contains("may be optimistic") && caveat.contains("sphere light"),
+        "{caveat}"
+    );
+    let bdpt = submit("builtin:caustic", "bdpt").await;
+    assert_eq!(bdpt.error_estimate_caveat, None);
+    let cornell = submit("builtin:cornell-box", "path").await;
+    assert_eq!(cornell.error_estimate_caveat, None);
+}

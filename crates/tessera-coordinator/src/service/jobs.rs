@@ -227,6 +227,8 @@ impl Coordinator {
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
             error_estimate: history.last().and_then(|h| h.error_estimate),
             error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
+            // Like `plan`: the render plan is not kept once the job leaves memory.
+            error_estimate_caveat: None,
             target_reached: verdict.and_then(|v| v.target_reached()),
             stop_reason: verdict.map(|v| v.summary()),
             elapsed_seconds: elapsed,
@@ -451,6 +453,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         },
         error_estimate: error,
         error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
+        error_estimate_caveat: rt.resolved.error_estimate_caveat(),
         target_error: rt.job().target_error,
         target_reached: verdict.and_then(|v| v.target_reached()),
         stop_reason: verdict.map(|v| v.summary()),

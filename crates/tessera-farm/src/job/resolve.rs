@@ -195,8 +195,9 @@ impl ResolvedJob {
     /// image's estimate is at or below `target_error`; `null` without a target) and
     /// `error_reached` (the image's estimate, [`FrameImage::error_estimate`]); the last
     /// three are `null` while it runs. Every header names the error estimator of its
-    /// variance layers and estimate (`error_estimator`, [`crate::ERROR_ESTIMATOR`]). The
-    /// text is ASCII.
+    /// variance layers and estimate (`error_estimator`, [`crate::ERROR_ESTIMATOR`]); a job
+    /// whose estimate may be optimistic ends with `error_estimate_caveat` saying why
+    /// ([`ResolvedJob::error_estimate_caveat`]). The text is ASCII.
     pub fn metadata_json(&self, stopped: Option<&StopVerdict>) -> String {
         let job = &self.job;
         let c = &self.config;
@@ -257,6 +258,22 @@ impl ResolvedJob {
             json_string(crate::ERROR_ESTIMATOR),
             self.render_plan.to_json()
         );
+        // Only where it applies, so other jobs keep the header they always had.
+        if let Some(caveat) = self.error_estimate_caveat() {
+            out.pop();
+            out += &format!(",\"error_estimate_caveat\":{}}}", json_string(&caveat));
+        }
         out
+    }
+
+    /// Why this job's error estimate may be optimistic, or `None`
+    /// ([`crate::job::RenderPlan::error_estimate_caveat`] for the integrator it renders
+    /// with).
+    pub fn error_estimate_caveat(&self) -> Option<String> {
+        if self.black {
+            return None;
+        }
+        self.render_plan
+            .error_estimate_caveat(self.config.integrator)
     }
 }
