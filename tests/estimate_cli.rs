@@ -38,6 +38,11 @@ fn json_names_the_job_and_quotes_every_default_target() {
     assert_eq!(v["workers"], 2);
     assert_eq!(v["integrator"], "path");
     assert_eq!(v["black"], false);
+    assert_eq!(
+        v["error_estimate_caveat"],
+        Value::Null,
+        "no caustics of a tiny light"
+    );
     let q = &v["quote"];
     assert_eq!(q["pilot_passes"], 4);
     assert!(f(&q["pilot_error"]) > 0.0);
@@ -186,4 +191,30 @@ fn bad_options_are_named() {
         assert!(!ok, "{args:?} accepted");
         assert!(stderr.contains(needle), "{args:?}: {stderr}");
     }
+}
+
+/// Path tracing the caustic of a tiny light: the quote says its errors may be optimistic,
+/// and why (the plan's `delta-lit-caustics`); with bdpt it does not.
+#[test]
+fn the_quote_says_when_its_errors_may_be_optimistic() {
+    let quote = |integrator: &str| {
+        let out = output_ok(tessera().args([
+            "estimate",
+            "builtin:caustic",
+            "--json",
+            "--width",
+            "16",
+            "--height",
+            "16",
+            "--spp",
+            "8",
+            "--integrator",
+            integrator,
+        ]));
+        serde_json::from_str::<Value>(&out).unwrap_or_else(|e| panic!("{e}: {out}"))
+    };
+    let path = quote("path");
+    let caveat = path["error_estimate_caveat"].as_str().expect("a caveat");
+    assert!(caveat.contains("sphere light"), "{caveat}");
+    assert_eq!(quote("bdpt")["error_estimate_caveat"], Value::Null);
 }

@@ -72,6 +72,9 @@ struct EstimateOutput {
     setup_seconds: f64,
     black: bool,
     quote: Option<Quote>,
+    /// Why the quoted errors may be optimistic, when the render plan knows
+    /// ([`tessera_farm::job::ResolvedJob::error_estimate_caveat`]).
+    error_estimate_caveat: Option<String>,
 }
 
 impl EstimateOutput {
@@ -95,6 +98,7 @@ impl EstimateOutput {
             "setup_seconds": self.setup_seconds,
             "black": self.black,
             "quote": self.quote,
+            "error_estimate_caveat": self.error_estimate_caveat,
         })
     }
 
@@ -124,6 +128,7 @@ impl EstimateOutput {
             pilot_cpu_seconds: num("pilot_cpu_seconds"),
             setup_seconds: num("setup_seconds"),
             black: v["black"].as_bool().unwrap_or(false),
+            error_estimate_caveat: v["error_estimate_caveat"].as_str().map(str::to_string),
             quote: match &v["quote"] {
                 serde_json::Value::Null => None,
                 q => Some(serde_json::from_value(q.clone()).context("reading the quote")?),
@@ -423,6 +428,7 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
         setup_seconds: p.build_seconds,
         black: p.resolved.black,
         quote: None,
+        error_estimate_caveat: p.resolved.error_estimate_caveat(),
     };
     let Some(render_scene) = p.render_scene.as_ref() else {
         // The plan found no light: nothing is traced, every target is met at once.
@@ -594,4 +600,7 @@ fn print_quote(o: &EstimateOutput, q: &Quote) {
         row(&format!("to reach error {}{note}:", t.target), &t.cost);
     }
     println!("intervals are 95%; assumes {}", q.assumes);
+    if let Some(caveat) = &o.error_estimate_caveat {
+        println!("error estimate caveat: the quoted errors {caveat}");
+    }
 }
