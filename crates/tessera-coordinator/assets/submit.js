@@ -224,7 +224,9 @@ export function submitView() {
           h("th", { scope: "col" }, "to reach"), h("th", { scope: "col" }, "spp"),
           h("th", { scope: "col" }, "wall time"), h("th", { scope: "col" }, "worker-seconds"),
           h("th", { scope: "col" }, ""))),
-        h("tbody", {}, ...rows))));
+        h("tbody", {}, ...rows))),
+      // The plan's caveat (path tracing caustics of a tiny light): these errors may be low.
+      ...(q.error_estimate_caveat ? [h("p", { class: "hint caveat" }, `The quoted errors ${q.error_estimate_caveat}.`)] : []));
   }
 
   quoteButton.addEventListener("click", async () => {
