@@ -65,6 +65,9 @@ pub fn status(args: StatusArgs) -> Result<()> {
                 if let Some(r) = &s.stop_reason {
                     println!("stopped: {r}");
                 }
+                if let Some(c) = &s.error_estimate_caveat {
+                    println!("error estimate caveat: {c}");
+                }
             }
         }
         None => {
