@@ -296,6 +296,18 @@ fn a_killed_coordinator_resumes_an_adaptive_job_where_its_policy_was() {
     }
 }
 
+/// Whether the tile map of frame `frame` of job `id` shows a tile with merged passes.
+fn has_merged_passes(client: &Client, id: u64, frame: u32) -> bool {
+    client
+        .get_raw(&format!("/api/v1/jobs/{id}/tiles?frame={frame}"))
+        .is_ok_and(|t| {
+            let v: serde_json::Value = serde_json::from_slice(&t).unwrap();
+            v["tiles"]
+                .as_array()
+                .is_some_and(|ts| ts.iter().any(|t| t["passes"].as_u64() > Some(0)))
+        })
+}
+
 /// Issue 15: an adaptive animation comes back from `kill -9` holding only its frame in
 /// progress. The store keeps a finished frame's checkpoints, so a restart finds every
 /// frame the job finished; they were restored live until the job ended, beyond a budget of
@@ -332,13 +344,7 @@ fn a_restarted_adaptive_animation_holds_only_its_frame_in_progress() {
     let id = st.id;
     // Frame 0 finished and released, frame 1 with merged passes.
     poll("frame 0 done and frame 1 begun", TIMEOUT, || {
-        let tiles = client.get_raw(&format!("/api/v1/jobs/{id}/tiles?frame=1"));
-        let begun = tiles.is_ok_and(|t| {
-            let v: serde_json::Value = serde_json::from_slice(&t).unwrap();
-            v["tiles"]
-                .as_array()
-                .is_some_and(|ts| ts.iter().any(|t| t["passes"].as_u64() > Some(0)))
-        });
+        let begun = has_merged_passes(&client, id, 1);
         let j = client.job(id).unwrap();
         (j.frames_done >= 1 && begun) || j.state == tessera_api::JobState::Done
     });
@@ -362,14 +368,7 @@ fn a_restarted_adaptive_animation_holds_only_its_frame_in_progress() {
     // Frames finish in order under a budget of one frame: the one in progress, if any,
     // is the first not done. Read after /metrics, so reading it cannot load it.
     let next = after.frames_done;
-    let in_progress = client
-        .get_raw(&format!("/api/v1/jobs/{id}/tiles?frame={next}"))
-        .is_ok_and(|t| {
-            let v: serde_json::Value = serde_json::from_slice(&t).unwrap();
-            v["tiles"]
-                .as_array()
-                .is_some_and(|ts| ts.iter().any(|t| t["passes"].as_u64() > Some(0)))
-        });
+    let in_progress = has_merged_passes(&client, id, next);
     let expected = if in_progress { frame_bytes } else { 0 };
     assert_eq!(
         resident, expected,

@@ -316,8 +316,8 @@ fn suite_reference(name: &str) -> FrameImage {
 /// error of 20 in that pixel. Both integrators converge to the same image: region means of
 /// the floor within 0.25% of Mitsuba 3's path tracer at 262,144 spp (`bench/compare`'s
 /// conventions, docs/benchmarks.md). Bidirectional path tracing finds the light through
-/// the glass by light tracing, so its reference is converged where the test renders are
-/// not; the test renders stay path-traced.
+/// the glass by light tracing, so its reference is converged where path-traced renders
+/// are not.
 fn reference_settings(name: &str) -> (RenderConfig, u32) {
     let settings = suite_settings(1000);
     if name == "caustic" {
@@ -449,8 +449,8 @@ const SUITE_SEEDS: [u64; 4] = [8, 9, 10, 11];
 
 /// What a scene of the suite is held to.
 struct Expect {
-    /// The integrator of the test renders (path tracing but for the caustic's second
-    /// test, see [`calibration_suite_caustic_bdpt`]).
+    /// The integrator of the test renders (path tracing but for the caustic, see
+    /// [`calibration_suite_caustic`]).
     integrator: Integrator,
     /// The least 3x3-pooled coverage.
     min_pooled: f64,

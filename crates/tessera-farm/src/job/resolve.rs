@@ -242,8 +242,12 @@ impl ResolvedJob {
         if let Some(s) = &job.shutter {
             camera += &format!(",\"shutter\":[{},{}]", s.open, s.close);
         }
+        // Only where it applies, so other jobs keep the header they always had.
+        let caveat = self.error_estimate_caveat().map_or(String::new(), |c| {
+            format!(",\"error_estimate_caveat\":{}", json_string(&c))
+        });
         out += &format!(
-            "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"error_estimator\":{},\"plan\":{}}}",
+            "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"error_estimator\":{},\"plan\":{}{caveat}}}",
             json_string(&job.scene.to_string()),
             p.width,
             p.height,
@@ -258,11 +262,6 @@ impl ResolvedJob {
             json_string(crate::ERROR_ESTIMATOR),
             self.render_plan.to_json()
         );
-        // Only where it applies, so other jobs keep the header they always had.
-        if let Some(caveat) = self.error_estimate_caveat() {
-            out.pop();
-            out += &format!(",\"error_estimate_caveat\":{}}}", json_string(&caveat));
-        }
         out
     }
 
