@@ -86,8 +86,8 @@ pub struct JobStatus {
     /// Why `error_estimate` may be optimistic for this job, when the render plan knows
     /// (path tracing a scene whose caustics are lit by tiny or delta lights, which only
     /// bdpt samples; `tessera_farm::job::ResolvedJob::error_estimate_caveat`, also in the
-    /// EXR header). Absent when there is none, and from older servers; like `plan`, only
-    /// while the job is held in memory.
+    /// EXR header). Absent when there is none, from older servers, and for a job stored
+    /// by one (before store schema version 6, PostgreSQL 5).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error_estimate_caveat: Option<String>,
     /// The requested target error, if any.
@@ -135,8 +135,9 @@ pub struct JobStatus {
     pub error: Option<String>,
     /// The render plan (ARCHITECTURE.md §4): the light-transport effects found in the scene with
     /// their evidence, the absent ones, and the integrator configuration chosen for them,
-    /// as `tessera_farm::job::RenderPlan::to_json` writes it. `None` until the
-    /// scene has been analysed.
+    /// as `tessera_farm::job::RenderPlan::to_json` writes it, kept with the job in the
+    /// store. `None` for a job stored by an older build (before store schema version 6,
+    /// PostgreSQL 5).
     #[serde(default)]
     pub plan: Option<serde_json::Value>,
     /// Adaptive stopping mode (`off`, `sequential`, `unbiased`).

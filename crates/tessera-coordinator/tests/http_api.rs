@@ -7,7 +7,7 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use tessera_api::JobSettings;
+use tessera_api::{JobSettings, JobState};
 use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
 use tessera_coordinator::{serve_coordinator, Listeners};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -711,4 +711,26 @@ async fn the_status_says_when_the_error_estimate_may_be_optimistic() {
     assert_eq!(bdpt.error_estimate_caveat, None);
     let cornell = submit("builtin:cornell-box", "path").await;
     assert_eq!(cornell.error_estimate_caveat, None);
+
+    // A job no longer held in memory (finished before a restart) is read back from the
+    // store with its plan and its caveat as accepted.
+    for id in [path.id, bdpt.id] {
+        core.cancel(id).await.unwrap();
+    }
+    core.store().close().await;
+    drop(core);
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let stored = core.status(path.id).await.unwrap();
+    assert_eq!(stored.state, JobState::Canceled);
+    assert_eq!(
+        stored.error_estimate_caveat.as_deref(),
+        Some(caveat.as_str())
+    );
+    assert!(path.plan.is_some());
+    assert_eq!(stored.plan, path.plan);
+    let stored = core.status(bdpt.id).await.unwrap();
+    assert_eq!(stored.error_estimate_caveat, None);
+    assert_eq!(stored.plan, bdpt.plan);
 }

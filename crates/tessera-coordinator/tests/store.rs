@@ -200,6 +200,8 @@ fn new_job(n: u32, key: Option<&str>) -> NewJob {
         name: Some(format!("job {n}")),
         idempotency_key: key.map(str::to_string),
         created_unix_ms: 1_700_000_000_000 + u64::from(n),
+        render_plan_json: Some(format!(r#"{{"effects":[],"job":{n}}}"#)),
+        error_estimate_caveat: (n % 2 == 1).then(|| format!("caveat of job {n}")),
     }
 }
 
@@ -395,16 +397,25 @@ async fn jobs_round_trip(f: &Fixture) {
     assert_eq!(rec.error, None);
     assert_eq!(rec.created_unix_ms, 1_700_000_000_001);
     assert_eq!((rec.started_unix_ms, rec.finished_unix_ms), (None, None));
+    assert_eq!(rec.render_plan_json, want.render_plan_json);
+    assert_eq!(
+        rec.error_estimate_caveat.as_deref(),
+        Some("caveat of job 1")
+    );
     let rec_b = store.get_job(b).await.unwrap().unwrap();
     assert_eq!(rec_b.idempotency_key.as_deref(), Some("k"));
+    assert_eq!(rec_b.error_estimate_caveat, None);
     assert_eq!(store.get_job(b + 100).await.unwrap(), None);
     assert_eq!(store.get_job(u64::MAX).await.unwrap(), None);
 
     // Unnamed job, no key.
     let mut anon = new_job(3, None);
     anon.name = None;
+    anon.render_plan_json = None;
     let (c, _) = store.insert_job(anon).await.unwrap();
-    assert_eq!(store.get_job(c).await.unwrap().unwrap().name, None);
+    let rec_c = store.get_job(c).await.unwrap().unwrap();
+    assert_eq!(rec_c.name, None);
+    assert_eq!(rec_c.render_plan_json, None);
 }
 
 async fn invalid_jobs_are_refused(f: &Fixture) {

@@ -64,6 +64,8 @@ impl Coordinator {
                 name: job.name.clone(),
                 idempotency_key: idempotency_key.clone(),
                 created_unix_ms: created,
+                render_plan_json: Some(resolved.render_plan.to_json()),
+                error_estimate_caveat: resolved.error_estimate_caveat(),
             })
             .await?;
         if !new {
@@ -227,8 +229,8 @@ impl Coordinator {
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
             error_estimate: history.last().and_then(|h| h.error_estimate),
             error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
-            // Like `plan`: the render plan is not kept once the job leaves memory.
-            error_estimate_caveat: None,
+            // Both as accepted (store schema 6); absent for jobs stored by older builds.
+            error_estimate_caveat: rec.error_estimate_caveat.clone(),
             target_reached: verdict.and_then(|v| v.target_reached()),
             stop_reason: verdict.map(|v| v.summary()),
             elapsed_seconds: elapsed,
@@ -241,7 +243,10 @@ impl Coordinator {
             rejected_samples,
             // A done job's message is why it stopped (above), not an error.
             error: rec.error.clone().filter(|_| stop.is_none()),
-            plan: None,
+            plan: rec
+                .render_plan_json
+                .as_deref()
+                .and_then(|j| serde_json::from_str(j).ok()),
         })
     }
 

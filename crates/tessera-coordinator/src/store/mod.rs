@@ -359,6 +359,12 @@ pub struct NewJob {
     pub idempotency_key: Option<String>,
     /// When the job was accepted, Unix milliseconds (at most `i64::MAX`).
     pub created_unix_ms: u64,
+    /// The render plan's JSON (`tessera_farm::RenderPlan::to_json`), kept for the status
+    /// of the job once it is read back from the store.
+    pub render_plan_json: Option<String>,
+    /// Why the job's error estimate may be optimistic, if the plan says so
+    /// (`tessera_farm::job::ResolvedJob::error_estimate_caveat`).
+    pub error_estimate_caveat: Option<String>,
 }
 
 /// A stored job.
@@ -392,6 +398,12 @@ pub struct JobRecord {
     pub started_unix_ms: Option<u64>,
     /// When it reached a terminal state, Unix milliseconds.
     pub finished_unix_ms: Option<u64>,
+    /// The render plan's JSON as accepted; `None` for jobs stored by builds before schema
+    /// version 6 (PostgreSQL 5).
+    pub render_plan_json: Option<String>,
+    /// Why the job's error estimate may be optimistic; `None` when it has no caveat or
+    /// was stored before schema version 6 (PostgreSQL 5).
+    pub error_estimate_caveat: Option<String>,
 }
 
 /// Order of [`Store::list_jobs`].

@@ -47,6 +47,7 @@ const MIGRATIONS: &[(i64, &str)] = &[
         include_str!("migrations/postgres/0003_adaptive_policy.sql"),
     ),
     (4, include_str!("migrations/postgres/0004_quarantine.sql")),
+    (5, include_str!("migrations/postgres/0005_render_plan.sql")),
 ];
 
 /// Connections in the pool: the coordinator's concurrent requests, merges and the ticker.
@@ -322,8 +323,10 @@ impl PostgresStore {
         let inserted: Option<i64> = sqlx::query_scalar(
             "INSERT INTO jobs (idempotency_key, name, scene_ref, settings_json, \
                  plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
-                 first_frame, last_frame, passes_per_unit, priority, state, created_unix_ms) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, 'queued', $14) \
+                 first_frame, last_frame, passes_per_unit, priority, state, created_unix_ms, \
+                 render_plan_json, error_estimate_caveat) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, 'queued', $14, \
+                 $15, $16) \
              ON CONFLICT (idempotency_key) DO NOTHING \
              RETURNING id",
         )
@@ -341,6 +344,8 @@ impl PostgresStore {
         .bind(i64::from(job.passes_per_unit))
         .bind(i64::from(job.priority))
         .bind(created)
+        .bind(job.render_plan_json.as_deref())
+        .bind(job.error_estimate_caveat.as_deref())
         .fetch_optional(&mut *tx)
         .await?;
         let (id, created) = match inserted {

@@ -15,7 +15,8 @@ use super::{FaultEvent, FaultKind, JobRecord, NewJob, QuarantineRecord, StoreErr
 pub(super) const JOB_COLUMNS: &str = "id, idempotency_key, name, scene_ref, settings_json, \
      plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
      first_frame, last_frame, passes_per_unit, priority, state, error, \
-     created_unix_ms, started_unix_ms, finished_unix_ms";
+     created_unix_ms, started_unix_ms, finished_unix_ms, render_plan_json, \
+     error_estimate_caveat";
 
 /// Columns of `jobs` read by [`plan_from_row`].
 pub(super) const PLAN_COLUMNS: &str = "plan_width, plan_height, plan_tile_size, \
@@ -177,6 +178,8 @@ pub(super) fn job_from_row(row: &impl Columns) -> StoreResult<JobRecord> {
         created_unix_ms: int_col(row, "created_unix_ms", &place)?,
         started_unix_ms: opt_int_col(row, "started_unix_ms", &place)?,
         finished_unix_ms: opt_int_col(row, "finished_unix_ms", &place)?,
+        render_plan_json: row.opt_text("render_plan_json")?,
+        error_estimate_caveat: row.opt_text("error_estimate_caveat")?,
     })
 }
 

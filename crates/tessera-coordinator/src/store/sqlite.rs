@@ -34,6 +34,7 @@ const MIGRATIONS: &[(i64, &str)] = &[
     (3, include_str!("migrations/0003_integrity.sql")),
     (4, include_str!("migrations/0004_adaptive_policy.sql")),
     (5, include_str!("migrations/0005_quarantine.sql")),
+    (6, include_str!("migrations/0006_render_plan.sql")),
 ];
 
 /// A job resumed this many times in a row after a crash without a new merged pass is
@@ -405,8 +406,10 @@ impl Store for SqliteStore {
         let inserted: Option<i64> = sqlx::query_scalar(
             "INSERT INTO jobs (idempotency_key, name, scene_ref, settings_json, \
                  plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
-                 first_frame, last_frame, passes_per_unit, priority, state, created_unix_ms) \
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, 'queued', ?14) \
+                 first_frame, last_frame, passes_per_unit, priority, state, created_unix_ms, \
+                 render_plan_json, error_estimate_caveat) \
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, 'queued', ?14, \
+                 ?15, ?16) \
              ON CONFLICT (idempotency_key) DO NOTHING \
              RETURNING id",
         )
@@ -424,6 +427,8 @@ impl Store for SqliteStore {
         .bind(i64::from(job.passes_per_unit))
         .bind(job.priority)
         .bind(created)
+        .bind(job.render_plan_json.as_deref())
+        .bind(job.error_estimate_caveat.as_deref())
         .fetch_optional(&mut *tx)
         .await?;
         let (id, created) = match inserted {
