@@ -40,6 +40,8 @@ fn a_dry_run_quotes_like_tessera_estimate_and_queues_nothing() {
     assert_eq!(q["dry_run"], true, "{q}");
     assert_eq!(q["workers"], 3, "{q}");
     assert_eq!(q["threads"], 1, "{q}");
+    // The coordinator's own spot-check fraction (its default), which the seconds count.
+    assert_eq!(q["spot_check_fraction"], 0.02, "{q}");
     assert!(
         q["fleet"]
             .as_str()

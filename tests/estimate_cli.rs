@@ -30,7 +30,17 @@ fn f(v: &Value) -> f64 {
 
 #[test]
 fn json_names_the_job_and_quotes_every_default_target() {
-    let v = estimate(&["--spp", "64", "--workers", "2", "--frame-end", "2"]);
+    let v = estimate(&[
+        "--spp",
+        "64",
+        "--workers",
+        "2",
+        "--frame-end",
+        "2",
+        "--spot-check-fraction",
+        "0",
+    ]);
+    assert_eq!(v["spot_check_fraction"], 0.0);
     assert_eq!(v["width"], 32);
     assert_eq!(v["height"], 32);
     assert_eq!(v["frames"], 3);
@@ -71,7 +81,8 @@ fn json_names_the_job_and_quotes_every_default_target() {
                 "{field}: {i}"
             );
         }
-        // The whole job is three frames; wall time is worker-seconds over 2 workers.
+        // The whole job is three frames; without spot checks, and with the frame's 16
+        // tiles shared evenly, wall time is worker-seconds over 2 workers.
         let per_frame = f(&cost["worker_seconds_per_frame"]["estimate"]);
         let whole = f(&cost["worker_seconds"]["estimate"]);
         assert!((whole - 3.0 * per_frame).abs() <= 1e-9 * whole.max(1.0));
@@ -100,6 +111,8 @@ fn a_target_option_and_the_job_options_are_honoured() {
     ]);
     assert_eq!(v["integrator"], "direct");
     assert_eq!(v["spp"], 256);
+    // The quote counts the default farm's spot checks unless told otherwise.
+    assert_eq!(v["spot_check_fraction"], 0.02);
     assert_eq!(v["frames"], 1);
     let t = v["quote"]["targets"].as_array().unwrap();
     assert_eq!(t.len(), 1);
@@ -127,6 +140,7 @@ fn a_target_option_and_the_job_options_are_honoured() {
         "pilot: ",
         "to reach error 0.03",
         "whole job: ",
+        "2% of units spot-checked",
     ] {
         assert!(text.contains(needle), "lacks {needle:?}:\n{text}");
     }
@@ -169,6 +183,7 @@ fn the_planned_error_is_predicted() {
 fn bad_options_are_named() {
     for (args, needle) in [
         (vec!["--workers", "0"], "--workers"),
+        (vec!["--spot-check-fraction", "2"], "--spot-check-fraction"),
         (vec!["--target-error=-1"], "target"),
         (
             vec!["--frame-start", "3", "--frame-end", "1"],

@@ -46,6 +46,11 @@ pub struct EstimateArgs {
     /// with that many threads.
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
+    /// The farm's spot-check fraction (`tessera serve --spot-check-fraction`): that
+    /// fraction of the units is rendered twice, which the quote's seconds count. 0 for a
+    /// farm without spot checks.
+    #[arg(long, default_value_t = tessera_farm::DEFAULT_SPOT_CHECK_FRACTION)]
+    pub spot_check_fraction: f64,
     /// Print the quote as JSON.
     #[arg(long)]
     pub json: bool,
@@ -70,6 +75,8 @@ struct EstimateOutput {
     pilot_seconds: f64,
     pilot_cpu_seconds: f64,
     setup_seconds: f64,
+    /// The farm's spot-check fraction the seconds count.
+    spot_check_fraction: f64,
     black: bool,
     quote: Option<Quote>,
     /// Why the quoted errors may be optimistic, when the render plan knows
@@ -96,6 +103,7 @@ impl EstimateOutput {
             "pilot_seconds": self.pilot_seconds,
             "pilot_cpu_seconds": self.pilot_cpu_seconds,
             "setup_seconds": self.setup_seconds,
+            "spot_check_fraction": self.spot_check_fraction,
             "black": self.black,
             "quote": self.quote,
             "error_estimate_caveat": self.error_estimate_caveat,
@@ -127,6 +135,7 @@ impl EstimateOutput {
             pilot_seconds: num("pilot_seconds"),
             pilot_cpu_seconds: num("pilot_cpu_seconds"),
             setup_seconds: num("setup_seconds"),
+            spot_check_fraction: num("spot_check_fraction"),
             black: v["black"].as_bool().unwrap_or(false),
             error_estimate_caveat: v["error_estimate_caveat"].as_str().map(str::to_string),
             quote: match &v["quote"] {
@@ -191,6 +200,12 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
     if args.workers == 0 {
         bail!("--workers must be at least 1");
     }
+    if !(0.0..=1.0).contains(&args.spot_check_fraction) {
+        bail!(
+            "--spot-check-fraction {} must be 0 to 1",
+            args.spot_check_fraction
+        );
+    }
     if args.threads > 4096 {
         bail!(
             "--threads {} must be at most 4096 (0 = all cores)",
@@ -227,6 +242,8 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         workers: args.workers,
         threads,
         worker_threads: threads,
+        spot_check_fraction: args.spot_check_fraction,
+        passes_per_unit: 1,
     };
     let out = run_pilot(&p, &run).map_err(|e| match e {
         PilotError::Target(m) => anyhow::anyhow!("--target-error: {m}"),
@@ -259,6 +276,12 @@ pub struct PilotArgs {
     /// Threads the pilot renders on.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
+    /// The coordinator's spot-check fraction (units rendered twice).
+    #[arg(long, default_value_t = tessera_farm::DEFAULT_SPOT_CHECK_FRACTION)]
+    pub spot_check_fraction: f64,
+    /// The coordinator's passes per work unit.
+    #[arg(long, default_value_t = 1)]
+    pub passes_per_unit: u32,
     /// Run the technique pilot instead of a quote (`tessera_render::pilot`): print
     /// `{"path_wins":BOOL,"reason":TEXT}`, or `{}` when the job's plan leaves no choice.
     #[arg(long)]
@@ -281,6 +304,13 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
 
     if args.threads == 0 || args.threads > 4096 {
         bail!("--threads {} must be 1 to 4096", args.threads);
+    }
+    if !(0.0..=1.0).contains(&args.spot_check_fraction) || args.passes_per_unit == 0 {
+        bail!(
+            "--spot-check-fraction {} must be 0 to 1 and --passes-per-unit {} at least 1",
+            args.spot_check_fraction,
+            args.passes_per_unit
+        );
     }
     if args.worker_threads == 0 || args.worker_threads > 65536 {
         bail!(
@@ -343,6 +373,8 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
         workers: args.workers.max(1),
         threads: args.threads,
         worker_threads: args.worker_threads,
+        spot_check_fraction: args.spot_check_fraction,
+        passes_per_unit: args.passes_per_unit,
     };
     let out = run_pilot(&p, &run).map_err(|e| match e {
         PilotError::Target(m) => anyhow::anyhow!("invalid target_error: {m}"),
@@ -389,6 +421,10 @@ struct PilotRun {
     /// Threads of each worker the job will run on: a worker-second is a second of a worker
     /// with that many threads, each as fast as one of this machine's.
     worker_threads: usize,
+    /// The farm's spot-check fraction: units rendered twice.
+    spot_check_fraction: f64,
+    /// The farm's passes per work unit.
+    passes_per_unit: u32,
 }
 
 /// Why a pilot gave no quote.
@@ -426,6 +462,7 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
         pilot_seconds: 0.0,
         pilot_cpu_seconds: 0.0,
         setup_seconds: p.build_seconds,
+        spot_check_fraction: run.spot_check_fraction,
         black: p.resolved.black,
         quote: None,
         error_estimate_caveat: p.resolved.error_estimate_caveat(),
@@ -503,6 +540,9 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
         samples_per_pass: plan.samples_per_pass,
         workers: run.workers,
         setup_seconds: p.build_seconds,
+        tiles_per_frame: plan.tile_count(),
+        passes_per_unit: run.passes_per_unit,
+        spot_check_fraction: run.spot_check_fraction,
     };
     out.quote = Some(quote(&pilot, &job, &run.targets).map_err(|e| match e {
         tessera_farm::quote::QuoteError::Field("target_error", m) => {
@@ -560,8 +600,16 @@ fn print_quote(o: &EstimateOutput, q: &Quote) {
         format!("{} frames", o.frames)
     };
     println!(
-        "quote for {}: {}x{}, {frames}, {} spp planned ({} passes of {}), {} integrator, {} worker(s)",
-        o.scene, o.width, o.height, o.spp, o.passes, o.samples_per_pass, o.integrator, o.workers
+        "quote for {}: {}x{}, {frames}, {} spp planned ({} passes of {}), {} integrator, {} worker(s), {}% of units spot-checked",
+        o.scene,
+        o.width,
+        o.height,
+        o.spp,
+        o.passes,
+        o.samples_per_pass,
+        o.integrator,
+        o.workers,
+        o.spot_check_fraction * 100.0
     );
     println!(
         "pilot: {} tiles ({} pixels), {} passes, {:.2} s ({:.2} CPU s) on {} threads; image error {:.4}",

@@ -21,6 +21,15 @@
 //! pixel-pass, the pilot's worker-seconds over its pixel-passes, so a frame of `W · H`
 //! pixels costs `n · C · W · H` worker-seconds and the job `frames` times that.
 //!
+//! On the farm those are `U = frames · tiles · ceil(n / passes_per_unit)` units of equal
+//! cost, and the spot checks render `K` of them twice (`K` ~ Binomial(`U`, fraction),
+//! since which units are checked hashes the job's id, not known before it is submitted).
+//! The worker-seconds count the copies; the wall seconds are the set-up plus the rounds
+//! of units the workers take, `ceil((U + K) / workers)` units' time, expected over `K`.
+//! With many small units that is the worker-seconds over the workers; with a few large
+//! ones it is not: 8 whole-frame bdpt units on 2 workers take 4 rounds, or 5 when one
+//! unit is spot-checked (a 2% fraction checks one of 8 units in 15% of jobs).
+//!
 //! # The interval
 //!
 //! `M` and `C` are means over a sample of the frame, and each carries a standard error:
@@ -34,10 +43,11 @@
 //!   spread, and the quote falls back on that per-replicate figure, which is conservative.
 //! - `C` from the spread of the pilot's per-unit costs per pixel-pass, the same way.
 //!
-//! Seconds are proportional to `M · C`, so their relative standard error is
+//! Worker-seconds are proportional to `M · C`, so their relative standard error is
 //! `r = sqrt((se(M)/M)² + (se(C)/C)²)`, and the quote gives the 95% interval
 //! `[s · exp(-1.96 r), s · exp(1.96 r)]` (log-normal, so it stays positive). An error's
-//! interval uses `se(M)/(2M)` alike.
+//! interval uses `se(M)/(2M)` alike. The farm's figures take the spot checks' copies at
+//! the 2.5% and 97.5% quantiles of `K` for the interval's two ends.
 //!
 //! What the interval does not cover: paths so rare that no pilot pass found them (a
 //! caustic the pilot missed makes every prediction optimistic; Jensen 2001, section 10.3,
@@ -64,6 +74,9 @@
 //!     samples_per_pass: 16,
 //!     workers: 2,
 //!     setup_seconds: 0.0,
+//!     tiles_per_frame: 64,
+//!     passes_per_unit: 1,
+//!     spot_check_fraction: 0.0,
 //! };
 //! let q = quote(&pilot, &job, &[0.05]).unwrap();
 //! // 0.2 after 4 passes: 0.1 after 16, 0.05 after 64.
@@ -141,6 +154,14 @@ pub struct QuoteJob {
     /// Seconds of set-up before the first unit (loading the scene, building its BVH),
     /// added once to the wall time.
     pub setup_seconds: f64,
+    /// Tiles of a frame: a pass of a frame is this many units (1 for a whole-frame tile,
+    /// as bdpt renders).
+    pub tiles_per_frame: u32,
+    /// Passes per work unit (the coordinator's `passes_per_unit`, 1 by default).
+    pub passes_per_unit: u32,
+    /// The fraction of units the farm renders a second time to compare the copies (spot
+    /// checks, `tessera_farm::DEFAULT_SPOT_CHECK_FRACTION` by default; 0 for none).
+    pub spot_check_fraction: f64,
 }
 
 /// A predicted quantity and its 95% interval.
@@ -245,6 +266,82 @@ pub enum QuoteError {
     Field(&'static str, String),
 }
 
+/// Which end of an interval a figure is for.
+#[derive(Clone, Copy)]
+enum End {
+    Low,
+    Estimate,
+    High,
+}
+
+/// The spot checks' second copies among `U` units: each unit is chosen with probability
+/// `f` by a hash of its identity (`crate::is_spot_checked`), so the count `K` is, for a job
+/// not yet numbered, Binomial(`U`, `f`).
+struct Copies {
+    /// `E[K] = U f`.
+    mean: f64,
+    /// The 2.5% quantile of `K`.
+    low: f64,
+    /// The 97.5% quantile of `K`.
+    high: f64,
+    /// `E[ceil((U + K) / W)]`: the expected rounds of units `W` workers take.
+    mean_rounds: f64,
+}
+
+impl Copies {
+    /// Exact for `U f <= 30` (the pmf by its recurrence from `(1 - f)^U`); above that, the
+    /// normal approximation with `ceil` adding `(W - 1) / (2 W)` rounds on average.
+    fn of(units: f64, f: f64, workers: f64) -> Self {
+        let rounds = |k: f64| ((units + k) / workers).ceil();
+        if f <= 0.0 || f >= 1.0 {
+            let k = if f >= 1.0 { units } else { 0.0 };
+            return Self {
+                mean: k,
+                low: k,
+                high: k,
+                mean_rounds: rounds(k),
+            };
+        }
+        let mean = units * f;
+        let p0 = (units * (-f).ln_1p()).exp();
+        if mean <= 30.0 && p0 > 0.0 {
+            let (mut p, mut cdf, mut mean_rounds) = (p0, 0.0, 0.0);
+            let (mut low, mut high) = (None, None);
+            let mut k = 0.0;
+            loop {
+                cdf += p;
+                mean_rounds += p * rounds(k);
+                if low.is_none() && cdf >= 0.025 {
+                    low = Some(k);
+                }
+                if high.is_none() && cdf >= 0.975 {
+                    high = Some(k);
+                }
+                if k >= units || (high.is_some() && 1.0 - cdf < 1e-12) {
+                    break;
+                }
+                p *= (units - k) / (k + 1.0) * f / (1.0 - f);
+                k += 1.0;
+            }
+            // What the loop left of the tail (under 1e-12) counts at its last round.
+            mean_rounds += (1.0 - cdf).max(0.0) * rounds(k);
+            return Self {
+                mean,
+                low: low.unwrap_or(0.0),
+                high: high.unwrap_or(k),
+                mean_rounds,
+            };
+        }
+        let sd = (mean * (1.0 - f)).sqrt();
+        Self {
+            mean,
+            low: (mean - Z95 * sd).round().max(0.0),
+            high: (mean + Z95 * sd).round().min(units),
+            mean_rounds: (units + mean) / workers + (workers - 1.0) / (2.0 * workers),
+        }
+    }
+}
+
 /// A pixel-weighted mean over clusters and its standard error (a ratio estimator:
 /// `sum y / sum x`, with the cluster-sampling variance `T/(T-1) sum (w (y/x - R))²`,
 /// `w = x / sum x`). `None` for the error when fewer than 2 clusters.
@@ -300,6 +397,18 @@ pub fn quote(
     if job.workers == 0 {
         return Err(QuoteError::Field("workers", "must be at least 1".into()));
     }
+    if job.tiles_per_frame == 0 || job.passes_per_unit == 0 {
+        return Err(QuoteError::Field(
+            "job",
+            "tiles_per_frame and passes_per_unit must be at least 1".into(),
+        ));
+    }
+    if !(0.0..=1.0).contains(&job.spot_check_fraction) {
+        return Err(QuoteError::Field(
+            "spot_check_fraction",
+            format!("must be 0 to 1, got {}", job.spot_check_fraction),
+        ));
+    }
     if bad(job.setup_seconds) {
         return Err(QuoteError::Field(
             "setup_seconds",
@@ -336,6 +445,26 @@ pub fn quote(
     let frame_px = job.pixels_per_frame as f64;
     let frames = job.frames as f64;
     let workers = f64::from(job.workers);
+    let units_per_pass = f64::from(job.tiles_per_frame);
+    let ppu = f64::from(job.passes_per_unit);
+    let fraction = job.spot_check_fraction;
+
+    // The farm's work for `n` passes of `frames` frames: worker-seconds with the spot
+    // checks' copies, and wall seconds, the rounds of equal units the workers take
+    // (`ceil((U + K) / W)` for `U` units and `K` copies: a few large units, as a
+    // whole-frame bdpt tile makes, do not share out evenly). `ws` is the worker-seconds
+    // of the `U` units alone, `end` which end of the interval (copies at its quantile).
+    let farm = |n: f64, ws: f64, frames: f64, end: End| {
+        let units = frames * units_per_pass * (n / ppu).ceil();
+        let per_unit = ws / units;
+        let k = Copies::of(units, fraction, workers);
+        let (copies, rounds) = match end {
+            End::Low => (k.low, ((units + k.low) / workers).ceil()),
+            End::Estimate => (k.mean, k.mean_rounds),
+            End::High => (k.high, ((units + k.high) / workers).ceil()),
+        };
+        (ws + copies * per_unit, rounds * per_unit)
+    };
 
     // The cost of `passes` (an interval of whole passes), the cost's own spread added.
     let cost_of = |passes: Interval, error: Interval| {
@@ -345,15 +474,30 @@ pub fn quote(
             high: per_frame.high * passes.high / passes.estimate,
             ..per_frame
         };
-        let whole = per_frame.map(|s| s * frames);
+        let on_farm = |frames: f64| {
+            let at = |n: f64, ws: f64, end| farm(n, ws * frames, frames, end);
+            let (lo, est, hi) = (
+                at(passes.low, per_frame.low, End::Low),
+                at(passes.estimate, per_frame.estimate, End::Estimate),
+                at(passes.high, per_frame.high, End::High),
+            );
+            let pick = |f: fn((f64, f64)) -> f64| Interval {
+                estimate: f(est),
+                low: f(lo),
+                high: f(hi),
+            };
+            (pick(|x| x.0), pick(|x| x.1))
+        };
+        let (ws_frame, wall_frame) = on_farm(1.0);
+        let (ws_whole, wall_whole) = on_farm(frames);
         Cost {
             passes,
             spp: passes.map(|n| n * f64::from(job.samples_per_pass)),
             error,
-            worker_seconds_per_frame: per_frame,
-            worker_seconds: whole,
-            seconds_per_frame: per_frame.map(|s| s / workers),
-            seconds: whole.map(|s| job.setup_seconds + s / workers),
+            worker_seconds_per_frame: ws_frame,
+            worker_seconds: ws_whole,
+            seconds_per_frame: wall_frame,
+            seconds: wall_whole.map(|s| job.setup_seconds + s),
         }
     };
 
@@ -392,7 +536,8 @@ pub fn quote(
         targets,
         assumes: "every pixel takes every pass (adaptive off; adaptive stopping is expected \
                   to need no more for the same image error); frames cost like the pilot's \
-                  frame; the error falls like 1/sqrt(passes); workers as fast as the pilot's"
+                  frame; the error falls like 1/sqrt(passes); workers as fast as the pilot's, \
+                  sharing out units of equal cost, the spot-checked ones twice"
             .into(),
     })
 }
@@ -488,6 +633,9 @@ mod tests {
             samples_per_pass: 16,
             workers: 4,
             setup_seconds: 0.5,
+            tiles_per_frame: 256,
+            passes_per_unit: 1,
+            spot_check_fraction: 0.0,
         }
     }
 
@@ -607,6 +755,97 @@ mod tests {
         assert!(width < 2.0, "mean high/low {width}");
     }
 
+    /// A few large units (8 whole-frame passes, as bdpt renders them) on 2 workers take
+    /// whole rounds, and a spot check's copy of one of them costs a round more.
+    #[test]
+    fn a_few_large_units_take_whole_rounds_and_spot_checks_add_one() {
+        let pilot = PilotMeasurement {
+            passes: 4,
+            groups: vec![
+                PilotGroup {
+                    pixels: 1024,
+                    sum_sq_rel: 1024.0 * 0.04,
+                };
+                4
+            ],
+            // 2 worker-seconds a unit, without spread.
+            units: vec![
+                PilotUnit {
+                    pixel_passes: 1024,
+                    worker_seconds: 2.0,
+                };
+                4
+            ],
+        };
+        let job = QuoteJob {
+            pixels_per_frame: 1024,
+            frames: 1,
+            planned_passes: 8,
+            samples_per_pass: 16,
+            workers: 2,
+            setup_seconds: 0.0,
+            tiles_per_frame: 1,
+            passes_per_unit: 1,
+            spot_check_fraction: 0.0,
+        };
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
+        let c = quote(&pilot, &job, &[]).unwrap().planned;
+        assert!(close(c.worker_seconds.estimate, 16.0));
+        assert!(close(c.seconds.estimate, 8.0) && close(c.seconds.high, 8.0));
+        // 3 workers: ceil(8 / 3) = 3 rounds, not 16 / 3 worker-seconds.
+        let three = quote(&pilot, &QuoteJob { workers: 3, ..job }, &[]).unwrap();
+        assert!(close(three.planned.seconds.estimate, 6.0));
+
+        // 2% spot-checked: K ~ Binomial(8, 0.02); 4 rounds when K = 0, 5 for K = 1 or 2,
+        // ceil((8 + k) / 2) in general.
+        let f = 0.02;
+        let checked = QuoteJob {
+            spot_check_fraction: f,
+            ..job
+        };
+        let c = quote(&pilot, &checked, &[]).unwrap().planned;
+        let (mut p, mut rounds) = ((1.0f64 - f).powi(8), 0.0);
+        for k in 0..=8 {
+            rounds += p * f64::from((8 + k + 1) / 2);
+            p *= f64::from(8 - k) / f64::from(k + 1) * f / (1.0 - f);
+        }
+        assert!((rounds - 4.15).abs() < 0.01, "{rounds}");
+        assert!(close(c.seconds.estimate, 2.0 * rounds), "{:?}", c.seconds);
+        // P(K = 0) = 0.851, P(K <= 1) = 0.990: the 95% interval spans 4 to 5 rounds.
+        assert!(close(c.seconds.low, 8.0) && close(c.seconds.high, 10.0));
+        assert!(close(c.worker_seconds.estimate, 16.0 * 1.02));
+        assert!(close(c.worker_seconds.high, 18.0));
+        assert!(close(c.seconds_per_frame.estimate, c.seconds.estimate));
+    }
+
+    /// The copies' figures are continuous where [`Copies::of`] changes from the exact
+    /// binomial to the normal approximation, and every unit is copied at fraction 1.
+    #[test]
+    fn spot_check_copies_are_continuous_between_exact_and_normal() {
+        let exact = Copies::of(1500.0, 0.02, 7.0);
+        let normal = Copies::of(1501.0, 0.02, 7.0);
+        assert!((exact.mean_rounds - normal.mean_rounds).abs() < 0.3);
+        assert!(
+            (exact.high - normal.high).abs() <= 1.0,
+            "{} {}",
+            exact.high,
+            normal.high
+        );
+        assert!(
+            (exact.low - normal.low).abs() <= 1.0,
+            "{} {}",
+            exact.low,
+            normal.low
+        );
+        let all = Copies::of(10.0, 1.0, 4.0);
+        assert_eq!(
+            (all.low, all.mean, all.high, all.mean_rounds),
+            (10.0, 10.0, 10.0, 5.0)
+        );
+        let none = Copies::of(10.0, 0.0, 4.0);
+        assert_eq!((none.high, none.mean_rounds), (0.0, 3.0));
+    }
+
     #[test]
     fn bad_input_names_the_problem() {
         let pilot = synthetic(&mut Rng::new(1), 0.5, 1e-6, 4, 4);
@@ -622,6 +861,16 @@ mod tests {
         )
         .unwrap_err();
         assert!(e.to_string().starts_with("workers"), "{e}");
+        let e = quote(
+            &pilot,
+            &QuoteJob {
+                spot_check_fraction: 1.5,
+                ..job(16)
+            },
+            &[0.1],
+        )
+        .unwrap_err();
+        assert!(e.to_string().starts_with("spot_check_fraction"), "{e}");
         let one = PilotMeasurement {
             passes: 1,
             ..pilot.clone()

@@ -163,6 +163,10 @@ impl Coordinator {
             worker_threads.to_string(),
             "--threads".to_string(),
             "1".to_string(),
+            "--spot-check-fraction".to_string(),
+            self.inner.cfg.spot_check_fraction.to_string(),
+            "--passes-per-unit".to_string(),
+            self.inner.cfg.passes_per_unit.max(1).to_string(),
         ];
         let timeout = Duration::from_millis(self.inner.cfg.pilot_timeout_ms.max(1));
         let started = std::time::Instant::now();
