@@ -683,6 +683,57 @@ async fn the_eta_counts_passes_buffered_for_the_merge_order() {
     assert_eq!((s.passes_done, s.state.as_str()), (4, "done"));
 }
 
+/// The spot checks' second copies are work the ETA counts: with every unit checked, a job
+/// of 4 units renders 8, and after the first 4 copies (held, nothing merged) half of the
+/// work is done.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_eta_counts_the_spot_checks_copies() {
+    use tessera_coordinator::service::Accepted;
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    (cfg.spot_check_fraction, cfg.passes_per_unit) = (1.0, 1);
+    let core = Coordinator::open(cfg).await.unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
+    let (status, _) = core.submit(job, None).await.unwrap();
+    assert_eq!((status.tiles_total, status.passes_planned), (1, 4));
+    let first = core.register_worker("first".into(), 1, "t").unwrap();
+    let units = core.lease(first, 4).await.unwrap().units;
+    assert_eq!(units.len(), 4);
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    for l in &units {
+        let got = core.accept_result(delivery(first, l, false)).await.unwrap();
+        assert_eq!(got, Accepted::Held, "the first copy waits for a second");
+    }
+    let s = core.status(status.id).await.unwrap();
+    assert_eq!(s.passes_done, 0, "every unit waits for its second copy");
+    let eta = s.eta_seconds.expect("an ETA from the copies rendered");
+    // 4 of 8 units' work in the elapsed time: as long again.
+    assert!(
+        eta > 0.0 && (eta - s.elapsed_seconds).abs() < 1e-9,
+        "eta {eta} s after {} s",
+        s.elapsed_seconds
+    );
+    let second = core.register_worker("second".into(), 1, "t").unwrap();
+    let mut copies = 0;
+    while copies < 4 {
+        // Near the end of the work leases shrink (the tail share): as many rounds as it takes.
+        let leased = core.lease(second, 4).await.unwrap().units;
+        assert!(
+            !leased.is_empty(),
+            "the second copies are leased to the other worker"
+        );
+        for l in &leased {
+            core.accept_result(delivery(second, l, false))
+                .await
+                .unwrap();
+        }
+        copies += leased.len();
+    }
+    let s = core.status(status.id).await.unwrap();
+    assert_eq!((s.passes_done, s.state.as_str()), (4, "done"));
+}
+
 /// Issue 15: a job that path-traces caustics of a tiny light (`builtin:caustic`, where the
 /// plan chooses bdpt) is told in its status that its error estimate may be optimistic, and
 /// why; the same scene with bdpt, and a scene without such caustics, are not.

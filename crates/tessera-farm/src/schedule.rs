@@ -127,7 +127,18 @@ pub struct Progress {
     pub passes_planned: u64,
     /// Frames whose every tile has all its passes.
     pub frames_done: u32,
+    /// Second copies the spot checks will render over the whole job (one per checked
+    /// unit): counted exactly for up to [`EXACT_SPOT_COUNT`] units, as the expected
+    /// `units_total x fraction` (rounded) beyond.
+    pub copies_total: u64,
+    /// Copies of spot-checked units rendered so far beyond those counted in `units_done`.
+    pub copies_done: u64,
 }
+
+/// Jobs of up to this many units have their spot-checked units counted one by one in
+/// [`Scheduler::progress`] (a hash each); larger ones use the expected count, whose
+/// relative error is then below `1 / sqrt(EXACT_SPOT_COUNT x fraction)`.
+pub const EXACT_SPOT_COUNT: u64 = 4096;
 
 /// What a restart restored of a job for [`Scheduler::add_resumed_job`].
 #[derive(Debug)]
@@ -229,6 +240,9 @@ struct Job {
     adaptive: Option<AdaptiveQueue>,
     /// Spot-checked units with copies waiting for agreement, by canonical index.
     checks: BTreeMap<u64, SpotCheck>,
+    /// Copies of spot-checked units received beyond the one a merged unit counts in
+    /// `done`: the work the spot checks have added so far ([`Progress::copies_done`]).
+    extra_copies: u64,
     /// Units merged (or buffered) on one worker's word: that worker and the digest. If
     /// the worker is quarantined, their tiles are merged again.
     unverified: BTreeMap<u64, (WorkerId, u64)>,
@@ -908,6 +922,7 @@ impl Scheduler {
             evicted: false,
             adaptive: None,
             checks: BTreeMap::new(),
+            extra_copies: 0,
             unverified: BTreeMap::new(),
             suspect: BTreeMap::new(),
         };
@@ -968,6 +983,7 @@ impl Scheduler {
                 evicted: false,
                 adaptive: None,
                 checks: BTreeMap::new(),
+                extra_copies: 0,
                 unverified: BTreeMap::new(),
                 suspect: BTreeMap::new(),
             },
@@ -1485,6 +1501,7 @@ impl Scheduler {
         if check.groups.iter().any(|g| g.leases.contains(&lease_id)) {
             return Ok(Submitted::Held);
         }
+        job.extra_copies += 1;
         let fresh = match check.groups.iter_mut().find(|g| g.digest == digest) {
             Some(g) => {
                 g.workers.push(worker);
@@ -1573,6 +1590,8 @@ impl Scheduler {
         }
         job.returned.remove(&i);
         job.done.insert(i);
+        // The unit counts in `done` now; its other copies stay extra work.
+        job.extra_copies = job.extra_copies.saturating_sub(1);
         if outcome == SpotOutcome::Alone {
             // Not verified by anyone else: repaired if its worker is found faulty later.
             job.unverified.insert(i, (agreed.workers[0], digest));
@@ -1707,13 +1726,26 @@ impl Scheduler {
                 }
             }
         }
+        let units_total = job.units_total();
+        let f = self.spot_fraction;
+        let copies_total = if f <= 0.0 {
+            0
+        } else if units_total <= EXACT_SPOT_COUNT {
+            (0..units_total)
+                .filter(|&i| is_spot_checked(f, job_id, &job.unit(i)))
+                .count() as u64
+        } else {
+            (units_total as f64 * f).round() as u64
+        };
         Some(Progress {
-            units_total: job.units_total(),
+            units_total,
             units_done: job.done.len() as u64,
             units_leased: job.leased.len() as u64,
             passes_done,
             passes_planned: full * job.frames.len() as u64,
             frames_done,
+            copies_total,
+            copies_done: job.extra_copies,
         })
     }
 
@@ -3237,6 +3269,13 @@ mod spot_tests {
             })
             .count();
         assert_eq!(alone, checked);
+        // The copies are counted as work: one more per checked unit, all rendered.
+        let progress = s.progress(1).unwrap();
+        assert_eq!(progress.copies_total, checked as u64);
+        assert_eq!(
+            (progress.units_done, progress.copies_done),
+            (36, checked as u64)
+        );
         // The plain lease (no knowledge of the others) never gives a worker its own
         // spot-checked unit again.
         let mut s = Scheduler::new(100, 0);
@@ -3251,6 +3290,16 @@ mod spot_tests {
             );
         }
         assert!(s.lease(1, 0, 100).is_empty());
+        let progress = s.progress(1).unwrap();
+        assert_eq!(
+            (
+                progress.units_done,
+                progress.copies_total,
+                progress.copies_done
+            ),
+            (0, 36, 36),
+            "36 first copies held: half the work"
+        );
         let second = s.lease(2, 0, 100);
         assert_eq!(second.len(), 36);
         for l in &second {
@@ -3260,6 +3309,8 @@ mod spot_tests {
             );
         }
         assert!(s.is_complete(1));
+        let progress = s.progress(1).unwrap();
+        assert_eq!((progress.units_done, progress.copies_done), (36, 36));
     }
 
     #[test]
