@@ -701,10 +701,22 @@ async fn the_eta_counts_the_spot_checks_copies() {
     let units = core.lease(first, 4).await.unwrap().units;
     assert_eq!(units.len(), 4);
     tokio::time::sleep(Duration::from_millis(30)).await;
-    for l in &units {
+    for l in &units[..3] {
         let got = core.accept_result(delivery(first, l, false)).await.unwrap();
         assert_eq!(got, Accepted::Held, "the first copy waits for a second");
     }
+    // 3 of 8 units' work: 5/3 of the elapsed time again (not truncated to whole passes,
+    // 1.5 of the 4 planned, which would say 3 times).
+    let s = core.status(status.id).await.unwrap();
+    let eta = s.eta_seconds.expect("an ETA from the copies rendered");
+    assert!(
+        (eta - s.elapsed_seconds * 5.0 / 3.0).abs() < 1e-9,
+        "eta {eta} s after {} s",
+        s.elapsed_seconds
+    );
+    core.accept_result(delivery(first, &units[3], false))
+        .await
+        .unwrap();
     let s = core.status(status.id).await.unwrap();
     assert_eq!(s.passes_done, 0, "every unit waits for its second copy");
     let eta = s.eta_seconds.expect("an ETA from the copies rendered");

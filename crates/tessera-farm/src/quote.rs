@@ -577,9 +577,11 @@ pub struct JobProgress {
     /// Seconds spent rendering so far (the rate's denominator; the coordinator counts
     /// from when its first merged unit began rendering, not the set-up before it).
     pub elapsed_seconds: f64,
-    /// Passes merged, over all tiles and frames.
+    /// Passes merged, over all tiles and frames; or any measure of the work done in the
+    /// unit of `passes_planned` (only their ratio counts: the coordinator passes passes
+    /// times units, to count the spot checks' copies without truncating).
     pub passes_done: u64,
-    /// Passes planned, over all tiles and frames.
+    /// Passes planned, over all tiles and frames (or the work planned, as above).
     pub passes_planned: u64,
     /// The current image error estimate, if there is one.
     pub error: Option<f64>,

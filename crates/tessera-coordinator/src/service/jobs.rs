@@ -363,7 +363,7 @@ pub(crate) fn spp_so_far(r: &ResolvedJob, passes_done: u64, frames: u64) -> f64 
     passes_done as f64 / tiles as f64 * f64::from(r.plan.samples_per_pass)
 }
 
-/// The passes the ETA counts as done: the merged ones, or if more, the planned passes in
+/// The work the ETA counts as done: the merged passes, or if more, the planned passes in
 /// the proportion of units rendered, buffered ones included.
 ///
 /// Results merge in a fixed order (ARCHITECTURE.md §2), so a later pass rendered before
@@ -378,18 +378,27 @@ pub(crate) fn spp_so_far(r: &ResolvedJob, passes_done: u64, frames: u64) -> f64 
 /// copies, and the passes the ETA counts as done are the planned passes in the proportion
 /// of that work rendered. A bdpt job of 8 whole-frame units one of which is spot-checked
 /// renders 9 units; counted as 8 its ETA was 18-22% short (docs/benchmarks.md).
-fn eta_passes_done(progress: Option<Progress>, passes_done: u64, passes_planned: u64) -> u64 {
+///
+/// Returns (done, planned) in a common unit of work, `passes_planned x work units`, so
+/// that no proportion is truncated (2 of 9 units of an 8-pass job are not 1 pass).
+fn eta_work(progress: Option<Progress>, passes_done: u64, passes_planned: u64) -> (u64, u64) {
     match progress {
         Some(p) if p.units_total > 0 => {
             let total = u128::from(p.units_total) + u128::from(p.copies_total);
             let work = (u128::from(p.units_done.min(p.units_total)) + u128::from(p.copies_done))
                 .min(total);
-            let rendered = u128::from(passes_planned) * work / total;
+            let rendered = u128::from(passes_planned) * work;
             // Merged passes exclude the copies: in the same proportion of the work.
-            let merged = u128::from(passes_done) * u128::from(p.units_total) / total;
-            u64::try_from(rendered.max(merged)).unwrap_or(u64::MAX)
+            let merged = u128::from(passes_done) * u128::from(p.units_total);
+            let (mut done, mut planned) =
+                (rendered.max(merged), u128::from(passes_planned) * total);
+            // Both fit in 64 bits for any real job; halve both (keeping the ratio) if not.
+            while planned > u128::from(u64::MAX) {
+                (done, planned) = (done / 2, planned / 2);
+            }
+            (done as u64, planned as u64)
         }
-        _ => passes_done,
+        _ => (passes_done, passes_planned),
     }
 }
 
@@ -424,6 +433,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     let eta = if rt.state.is_terminal() {
         Some(0.0)
     } else {
+        let (eta_done, eta_planned) = eta_work(progress, passes_done, passes_planned);
         job_eta_seconds(&JobProgress {
             // Since the first lease. Not from when the first merged unit began rendering
             // (its merge time less its render seconds, as before): a worker submits a
@@ -431,8 +441,8 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             // rate too fast early on (-30% to -39% at 10% of veach-mis and a bdpt job,
             // docs/benchmarks.md); the workers' set-up it left out is small by comparison.
             elapsed_seconds: rt.elapsed_seconds(now),
-            passes_done: eta_passes_done(progress, passes_done, passes_planned),
-            passes_planned,
+            passes_done: eta_done,
+            passes_planned: eta_planned,
             error,
             // On the farm only adaptive jobs stop at their target (ARCHITECTURE.md §3).
             stopping_target: adaptive.and(rt.job().target_error),
