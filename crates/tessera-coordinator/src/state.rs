@@ -330,6 +330,9 @@ pub struct JobRuntime {
     /// Results merged into this job so far in this run: the version of its images
     /// (the image cache's key, `service::images`).
     pub(crate) merges: u64,
+    /// The render seconds workers reported for this job's units in this run, and how many
+    /// units: the mean time of a unit, with which the ETA credits units in flight.
+    pub(crate) unit_seconds: (f64, u64),
     /// A checkpoint of this job failed to write: its frames stay in memory (they hold
     /// passes the store may not have) instead of being released when complete.
     pub(crate) unsaved_checkpoints: bool,
@@ -402,6 +405,7 @@ impl JobRuntime {
             plan_json,
             adaptive_summary: (0.0, None),
             merges: 0,
+            unit_seconds: (0.0, 0),
             unsaved_checkpoints: false,
             stopped: None,
             starting: false,

@@ -663,7 +663,10 @@ async fn the_eta_counts_passes_buffered_for_the_merge_order() {
     // Some rendering time, so that the rate is measurable (milliseconds).
     tokio::time::sleep(Duration::from_millis(30)).await;
     for l in &units[1..] {
-        let got = core.accept_result(delivery(w, l, false)).await.unwrap();
+        let got = core
+            .accept_result(slow(delivery(w, l, false)))
+            .await
+            .unwrap();
         assert_eq!(got, Accepted::Merged, "buffered counts as merged");
     }
     let s = core.status(status.id).await.unwrap();
@@ -681,6 +684,45 @@ async fn the_eta_counts_passes_buffered_for_the_merge_order() {
         .unwrap();
     let s = core.status(status.id).await.unwrap();
     assert_eq!((s.passes_done, s.state.as_str()), (4, "done"));
+}
+
+/// A delivery whose unit took a very long time to render, so that the ETA credits the
+/// units still in flight with nothing (their age is nothing beside it).
+fn slow(mut d: tessera_coordinator::service::Delivery) -> tessera_coordinator::service::Delivery {
+    d.render_seconds = 1e6;
+    d
+}
+
+/// Units in flight count as far as their age says: a batch of 4 leased together, one
+/// delivered after a unit time of 1 ms, the other 3 leased long before that: they count
+/// 90% (2.7 units), and 1 + 2.7 of 4 units is done. Without the credit the ETA would be 3
+/// times the elapsed time.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_eta_credits_units_in_flight_by_their_age() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    (cfg.spot_check_fraction, cfg.passes_per_unit) = (0.0, 1);
+    let core = Coordinator::open(cfg).await.unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
+    let (status, _) = core.submit(job, None).await.unwrap();
+    let w = core.register_worker("w".into(), 1, "t").unwrap();
+    let mut units = core.lease(w, 4).await.unwrap().units;
+    assert_eq!(units.len(), 4);
+    units.sort_by_key(|l| l.unit.first_pass);
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    let mut d = delivery(w, &units[0], false);
+    d.render_seconds = 1e-3;
+    core.accept_result(d).await.unwrap();
+    let s = core.status(status.id).await.unwrap();
+    assert_eq!(s.passes_done, 1);
+    let eta = s.eta_seconds.expect("an ETA");
+    let want = s.elapsed_seconds * (4.0 - 3.7) / 3.7;
+    assert!(
+        (eta - want).abs() < 1e-9,
+        "eta {eta} s after {} s, want {want}",
+        s.elapsed_seconds
+    );
 }
 
 /// The spot checks' second copies are work the ETA counts: with every unit checked, a job
@@ -702,7 +744,10 @@ async fn the_eta_counts_the_spot_checks_copies() {
     assert_eq!(units.len(), 4);
     tokio::time::sleep(Duration::from_millis(30)).await;
     for l in &units[..3] {
-        let got = core.accept_result(delivery(first, l, false)).await.unwrap();
+        let got = core
+            .accept_result(slow(delivery(first, l, false)))
+            .await
+            .unwrap();
         assert_eq!(got, Accepted::Held, "the first copy waits for a second");
     }
     // 3 of 8 units' work: 5/3 of the elapsed time again (not truncated to whole passes,

@@ -68,6 +68,8 @@ pub struct Lease {
     pub worker: WorkerId,
     /// When the lease lapses unless extended by a heartbeat.
     pub deadline_ms: u64,
+    /// When it was issued (the scheduler's clock): how long its unit has been rendering.
+    pub leased_ms: u64,
 }
 
 /// What became of a submitted result.
@@ -1211,6 +1213,7 @@ impl Scheduler {
                     unit: job.unit(i),
                     worker,
                     deadline_ms: now_ms.saturating_add(self.lease_ms),
+                    leased_ms: now_ms,
                 };
                 self.next_lease_id += 1;
                 job.leased.insert(i, lease.lease_id);
@@ -1747,6 +1750,22 @@ impl Scheduler {
             copies_total,
             copies_done: job.extra_copies,
         })
+    }
+
+    /// The job's outstanding leases: who holds each and since when
+    /// ([`Lease::leased_ms`]), in lease order. Empty for an unknown job.
+    pub fn in_flight(&self, job_id: JobId) -> Vec<(WorkerId, u64)> {
+        let Some(job) = self.jobs.get(&job_id) else {
+            return Vec::new();
+        };
+        let mut out: Vec<(u64, WorkerId, u64)> = job
+            .leased
+            .values()
+            .filter_map(|id| self.leases.get(id))
+            .map(|l| (l.lease_id, l.worker, l.leased_ms))
+            .collect();
+        out.sort_unstable();
+        out.into_iter().map(|(_, w, t)| (w, t)).collect()
     }
 
     /// True once every frame of the job is complete.

@@ -10,7 +10,7 @@ use tessera_api::{
 };
 use tessera_farm::job::StopVerdict;
 use tessera_farm::quote::{job_eta_seconds, JobProgress};
-use tessera_farm::{frame_state_bytes, FramePlan, JobId, Progress};
+use tessera_farm::{frame_state_bytes, FramePlan, JobId, Progress, WorkerId};
 
 use super::{Coordinator, MAX_PAGE};
 use crate::error::{CoordError, CoordResult};
@@ -379,17 +379,27 @@ pub(crate) fn spp_so_far(r: &ResolvedJob, passes_done: u64, frames: u64) -> f64 
 /// of that work rendered. A bdpt job of 8 whole-frame units one of which is spot-checked
 /// renders 9 units; counted as 8 its ETA was 18-22% short (docs/benchmarks.md).
 ///
-/// Returns (done, planned) in a common unit of work, `passes_planned x work units`, so
+/// Units in flight count too, `in_flight_milli` thousandths of a unit
+/// ([`in_flight_credit`]): a worker delivers a batch of units at once, so right after one
+/// worker's batch arrives the others' (as far along) count nothing, and with a few large
+/// units the rate then halves (a bdpt job's ETA said +64% to +78% at its first merge).
+///
+/// Returns (done, planned) in a common unit of work, `passes_planned x milli-units`, so
 /// that no proportion is truncated (2 of 9 units of an 8-pass job are not 1 pass).
-fn eta_work(progress: Option<Progress>, passes_done: u64, passes_planned: u64) -> (u64, u64) {
+fn eta_work(
+    progress: Option<Progress>,
+    passes_done: u64,
+    passes_planned: u64,
+    in_flight_milli: u64,
+) -> (u64, u64) {
     match progress {
         Some(p) if p.units_total > 0 => {
-            let total = u128::from(p.units_total) + u128::from(p.copies_total);
-            let work = (u128::from(p.units_done.min(p.units_total)) + u128::from(p.copies_done))
-                .min(total);
+            let total = (u128::from(p.units_total) + u128::from(p.copies_total)) * 1000;
+            let units = u128::from(p.units_done.min(p.units_total)) + u128::from(p.copies_done);
+            let work = (units * 1000 + u128::from(in_flight_milli)).min(total);
             let rendered = u128::from(passes_planned) * work;
             // Merged passes exclude the copies: in the same proportion of the work.
-            let merged = u128::from(passes_done) * u128::from(p.units_total);
+            let merged = u128::from(passes_done) * u128::from(p.units_total) * 1000;
             let (mut done, mut planned) =
                 (rendered.max(merged), u128::from(passes_planned) * total);
             // Both fit in 64 bits for any real job; halve both (keeping the ratio) if not.
@@ -400,6 +410,31 @@ fn eta_work(progress: Option<Progress>, passes_done: u64, passes_planned: u64) -
         }
         _ => (passes_done, passes_planned),
     }
+}
+
+/// The units of a job in flight, in thousandths, as far as their age says they are: a
+/// worker's batch (its leases issued at one time) leased `a` seconds ago, of `k` units
+/// of mean time `u` (`JobRuntime::unit_seconds`), counts `min(a / u, 0.9 k)` units: a
+/// worker renders a batch's units one after another, and one overdue is not done until
+/// it arrives (hence at most 90% of it). Nothing before any unit's time is known.
+/// Conservative for workers that render a batch's units in parallel.
+fn in_flight_credit(in_flight: &[(WorkerId, u64)], unit_seconds: (f64, u64), now: u64) -> u64 {
+    let (sum, n) = unit_seconds;
+    if n == 0 || sum.is_nan() || sum <= 0.0 {
+        return 0;
+    }
+    let mean = sum / n as f64;
+    let mut batches: std::collections::BTreeMap<(WorkerId, u64), u64> = Default::default();
+    for &(w, at) in in_flight {
+        *batches.entry((w, at)).or_default() += 1;
+    }
+    batches
+        .iter()
+        .map(|(&(_, at), &k)| {
+            let age = now.saturating_sub(at) as f64 / 1e3;
+            ((age / mean).min(0.9 * k as f64) * 1000.0) as u64
+        })
+        .sum()
 }
 
 /// The status of a job in memory.
@@ -433,7 +468,8 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     let eta = if rt.state.is_terminal() {
         Some(0.0)
     } else {
-        let (eta_done, eta_planned) = eta_work(progress, passes_done, passes_planned);
+        let credit = in_flight_credit(&farm.scheduler.in_flight(id), rt.unit_seconds, now);
+        let (eta_done, eta_planned) = eta_work(progress, passes_done, passes_planned, credit);
         job_eta_seconds(&JobProgress {
             // Since the first lease. Not from when the first merged unit began rendering
             // (its merge time less its render seconds, as before): a worker submits a

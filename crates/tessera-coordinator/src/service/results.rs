@@ -366,6 +366,18 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
     if let Some(w) = w.as_deref_mut() {
         w.last_seen_ms = now;
     }
+    if let Ok(m) = &merged {
+        // Rendered for the job, merged or held for a spot check: the ETA's unit time.
+        if matches!(m.submitted, Submitted::Accepted | Submitted::Held)
+            && d.render_seconds.is_finite()
+            && d.render_seconds > 0.0
+        {
+            if let Some(rt) = farm.runtime.get_mut(&m.job) {
+                rt.unit_seconds.0 += d.render_seconds;
+                rt.unit_seconds.1 += 1;
+            }
+        }
+    }
     let outcome = match merged {
         Ok(m) => match m.submitted {
             Submitted::Accepted => {
