@@ -34,6 +34,9 @@ pub struct WorkerEntry {
     pub threads: u32,
     /// Last heartbeat or request, Unix ms.
     pub last_seen_ms: u64,
+    /// When its last result arrived, Unix ms (0 before any): a worker renders its next
+    /// batch from about then (the job status ETA's units in flight).
+    pub last_result_ms: u64,
     /// Units merged from it (a spot-checked unit counts once, for the worker whose copy
     /// completed the agreement; a held copy does not count).
     pub units_done: u64,

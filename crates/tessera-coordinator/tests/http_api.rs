@@ -694,9 +694,9 @@ fn slow(mut d: tessera_coordinator::service::Delivery) -> tessera_coordinator::s
 }
 
 /// Units in flight count as far as their age says: a batch of 4 leased together, one
-/// delivered after a unit time of 1 ms, the other 3 leased long before that: they count
-/// 90% (2.7 units), and 1 + 2.7 of 4 units is done. Without the credit the ETA would be 3
-/// times the elapsed time.
+/// delivered with a unit time of 1 ms, and 30 ms later the other 3 (rendering since that
+/// result) count 90% (2.7 units): 1 + 2.7 of 4 units is done. Without the credit the ETA
+/// would be 3 times the elapsed time.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_eta_credits_units_in_flight_by_their_age() {
     let dir = tempfile::tempdir().unwrap();
@@ -714,6 +714,8 @@ async fn the_eta_credits_units_in_flight_by_their_age() {
     let mut d = delivery(w, &units[0], false);
     d.render_seconds = 1e-3;
     core.accept_result(d).await.unwrap();
+    // The worker renders the rest from its last result on: let 30 unit times pass.
+    tokio::time::sleep(Duration::from_millis(30)).await;
     let s = core.status(status.id).await.unwrap();
     assert_eq!(s.passes_done, 1);
     let eta = s.eta_seconds.expect("an ETA");

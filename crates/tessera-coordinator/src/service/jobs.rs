@@ -412,26 +412,36 @@ fn eta_work(
     }
 }
 
-/// The units of a job in flight, in thousandths, as far as their age says they are: a
-/// worker's batch (its leases issued at one time) leased `a` seconds ago, of `k` units
-/// of mean time `u` (`JobRuntime::unit_seconds`), counts `min(a / u, 0.9 k)` units: a
-/// worker renders a batch's units one after another, and one overdue is not done until
-/// it arrives (hence at most 90% of it). Nothing before any unit's time is known.
-/// Conservative for workers that render a batch's units in parallel.
-fn in_flight_credit(in_flight: &[(WorkerId, u64)], unit_seconds: (f64, u64), now: u64) -> u64 {
+/// The units of a job in flight, in thousandths, as far as their age says they are. A
+/// worker renders one batch while it leases the next (the worker's pipeline), so per
+/// worker: its oldest batch here (the leases issued with its oldest), rendering since that
+/// lease or its last result, whichever is later, for `a` seconds, of `k` units of mean
+/// time `u` (`JobRuntime::unit_seconds`), counts `min(a / u, 0.9 k)` units (one overdue
+/// is not done until it arrives, hence at most 90%); a prefetched batch counts nothing.
+/// Nothing before any unit's time is known. Conservative for workers that render a
+/// batch's units in parallel.
+fn in_flight_credit(farm: &Farm, job: JobId, unit_seconds: (f64, u64), now: u64) -> u64 {
     let (sum, n) = unit_seconds;
     if n == 0 || sum.is_nan() || sum <= 0.0 {
         return 0;
     }
     let mean = sum / n as f64;
-    let mut batches: std::collections::BTreeMap<(WorkerId, u64), u64> = Default::default();
-    for &(w, at) in in_flight {
-        *batches.entry((w, at)).or_default() += 1;
+    // Per worker: its oldest lease time and how many units it holds from then.
+    let mut oldest: std::collections::BTreeMap<WorkerId, (u64, u64)> = Default::default();
+    for (w, at) in farm.scheduler.in_flight(job) {
+        let e = oldest.entry(w).or_insert((at, 0));
+        if at < e.0 {
+            *e = (at, 0);
+        }
+        if at == e.0 {
+            e.1 += 1;
+        }
     }
-    batches
+    oldest
         .iter()
-        .map(|(&(_, at), &k)| {
-            let age = now.saturating_sub(at) as f64 / 1e3;
+        .map(|(w, &(at, k))| {
+            let since = farm.workers.get(w).map_or(at, |e| at.max(e.last_result_ms));
+            let age = now.saturating_sub(since) as f64 / 1e3;
             ((age / mean).min(0.9 * k as f64) * 1000.0) as u64
         })
         .sum()
@@ -468,7 +478,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
     let eta = if rt.state.is_terminal() {
         Some(0.0)
     } else {
-        let credit = in_flight_credit(&farm.scheduler.in_flight(id), rt.unit_seconds, now);
+        let credit = in_flight_credit(farm, id, rt.unit_seconds, now);
         let (eta_done, eta_planned) = eta_work(progress, passes_done, passes_planned, credit);
         job_eta_seconds(&JobProgress {
             // Since the first lease. Not from when the first merged unit began rendering

@@ -365,6 +365,7 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
     let mut w = farm.workers.get_mut(&worker);
     if let Some(w) = w.as_deref_mut() {
         w.last_seen_ms = now;
+        w.last_result_ms = now;
     }
     if let Ok(m) = &merged {
         // Rendered for the job, merged or held for a spot check: the ETA's unit time.
