@@ -95,7 +95,7 @@ pub use plan::{
 pub use result::{ResultError, UnitResult};
 pub use schedule::{
     frame_state_bytes, tail_share, JobId, Lease, Progress, Residency, Resumed, ResumedAdaptive,
-    Scheduler, SubmitError, Submitted, WorkerId,
+    Scheduler, SubmitError, Submitted, WorkerId, EXACT_SPOT_COUNT,
 };
 pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,

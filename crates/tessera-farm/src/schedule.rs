@@ -137,8 +137,8 @@ pub struct Progress {
     pub copies_done: u64,
 }
 
-/// Jobs of up to this many units have their spot-checked units counted one by one in
-/// [`Scheduler::progress`] (a hash each); larger ones use the expected count, whose
+/// Jobs of up to this many units have their spot-checked units counted one by one when
+/// added (a hash each); larger ones use the expected count, whose
 /// relative error is then below `1 / sqrt(EXACT_SPOT_COUNT x fraction)`.
 pub const EXACT_SPOT_COUNT: u64 = 4096;
 
@@ -245,6 +245,9 @@ struct Job {
     /// Copies of spot-checked units received beyond the one a merged unit counts in
     /// `done`: the work the spot checks have added so far ([`Progress::copies_done`]).
     extra_copies: u64,
+    /// Second copies the spot checks render over the whole job ([`Progress::copies_total`]),
+    /// counted when the job is added or the fraction changes, not per status request.
+    copies_total: u64,
     /// Units merged (or buffered) on one worker's word: that worker and the digest. If
     /// the worker is quarantined, their tiles are merged again.
     unverified: BTreeMap<u64, (WorkerId, u64)>,
@@ -272,6 +275,21 @@ enum Gate {
 }
 
 impl Job {
+    /// The units of job `id` spot-checked at `fraction`: counted one by one for up to
+    /// [`EXACT_SPOT_COUNT`] units, the expected `units x fraction` (rounded) beyond.
+    fn spot_copies(&self, fraction: f64, id: JobId) -> u64 {
+        let units = self.units_total();
+        if fraction <= 0.0 {
+            0
+        } else if units <= EXACT_SPOT_COUNT {
+            (0..units)
+                .filter(|&i| is_spot_checked(fraction, id, &self.unit(i)))
+                .count() as u64
+        } else {
+            (units as f64 * fraction).round() as u64
+        }
+    }
+
     /// Whether unit `i` may be leased now, must wait for a decision, or is not needed.
     fn gate(&self, i: u64) -> Gate {
         let Some(a) = &self.adaptive else {
@@ -723,6 +741,10 @@ impl Scheduler {
         } else {
             fraction.clamp(0.0, 1.0)
         };
+        let f = self.spot_fraction;
+        for (&id, job) in &mut self.jobs {
+            job.copies_total = job.spot_copies(f, id);
+        }
     }
 
     /// The fraction of units spot-checked.
@@ -925,6 +947,7 @@ impl Scheduler {
             adaptive: None,
             checks: BTreeMap::new(),
             extra_copies: 0,
+            copies_total: 0,
             unverified: BTreeMap::new(),
             suspect: BTreeMap::new(),
         };
@@ -949,6 +972,7 @@ impl Scheduler {
             };
         }
         self.memory.resident += job.resident_bytes();
+        job.copies_total = job.spot_copies(self.spot_fraction, id);
         self.jobs.insert(id, job);
         Ok(())
     }
@@ -986,10 +1010,15 @@ impl Scheduler {
                 adaptive: None,
                 checks: BTreeMap::new(),
                 extra_copies: 0,
+                copies_total: 0,
                 unverified: BTreeMap::new(),
                 suspect: BTreeMap::new(),
             },
         );
+        let fraction = self.spot_fraction;
+        if let Some(job) = self.jobs.get_mut(&id) {
+            job.copies_total = job.spot_copies(fraction, id);
+        }
     }
 
     /// Adds an adaptive job (issue 4): like [`Scheduler::add_job`], but each tile stops
@@ -1729,25 +1758,14 @@ impl Scheduler {
                 }
             }
         }
-        let units_total = job.units_total();
-        let f = self.spot_fraction;
-        let copies_total = if f <= 0.0 {
-            0
-        } else if units_total <= EXACT_SPOT_COUNT {
-            (0..units_total)
-                .filter(|&i| is_spot_checked(f, job_id, &job.unit(i)))
-                .count() as u64
-        } else {
-            (units_total as f64 * f).round() as u64
-        };
         Some(Progress {
-            units_total,
+            units_total: job.units_total(),
             units_done: job.done.len() as u64,
             units_leased: job.leased.len() as u64,
             passes_done,
             passes_planned: full * job.frames.len() as u64,
             frames_done,
-            copies_total,
+            copies_total: job.copies_total,
             copies_done: job.extra_copies,
         })
     }
