@@ -640,6 +640,33 @@ async fn a_held_spot_check_copy_wakes_the_other_workers_request() {
     );
 }
 
+/// A coordinator with spot-check fraction `spot` and one queued job of one 16x16 tile and 4
+/// passes of one unit each (the Cornell box at 64 spp), for the ETA tests.
+async fn one_tile_job(spot: f64) -> (tempfile::TempDir, Coordinator, tessera_api::JobStatus) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    (cfg.spot_check_fraction, cfg.passes_per_unit) = (spot, 1);
+    let core = Coordinator::open(cfg).await.unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
+    let (status, _) = core.submit(job, None).await.unwrap();
+    assert_eq!((status.tiles_total, status.passes_planned), (1, 4));
+    (dir, core, status)
+}
+
+/// Reads the job's status and checks that its ETA is `times` its elapsed time (and
+/// positive): the rate so far applied to the work left.
+async fn assert_eta(core: &Coordinator, id: u64, times: f64) -> tessera_api::JobStatus {
+    let s = core.status(id).await.unwrap();
+    let eta = s.eta_seconds.expect("an ETA");
+    assert!(
+        eta > 0.0 && (eta - s.elapsed_seconds * times).abs() < 1e-9,
+        "eta {eta} s after {} s, want {times} times that",
+        s.elapsed_seconds
+    );
+    s
+}
+
 /// Issue 15: the ETA counts the passes rendered and buffered for the canonical merge
 /// order, not only the merged ones. A one-tile job of 4 passes, one unit each: passes 1,
 /// 2 and 3 delivered before pass 0 wait in the tile's buffer (nothing is merged), yet
@@ -648,14 +675,7 @@ async fn a_held_spot_check_copy_wakes_the_other_workers_request() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_eta_counts_passes_buffered_for_the_merge_order() {
     use tessera_coordinator::service::Accepted;
-    let dir = tempfile::tempdir().unwrap();
-    let mut cfg = CoordinatorConfig::new(dir.path());
-    (cfg.spot_check_fraction, cfg.passes_per_unit) = (0.0, 1);
-    let core = Coordinator::open(cfg).await.unwrap();
-    let mut job = JobSettings::new("builtin:cornell-box");
-    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
-    let (status, _) = core.submit(job, None).await.unwrap();
-    assert_eq!((status.tiles_total, status.passes_planned), (1, 4));
+    let (_dir, core, status) = one_tile_job(0.0).await;
     let w = core.register_worker("w".into(), 1, "t").unwrap();
     let mut units = core.lease(w, 4).await.unwrap().units;
     assert_eq!(units.len(), 4);
@@ -669,16 +689,10 @@ async fn the_eta_counts_passes_buffered_for_the_merge_order() {
             .unwrap();
         assert_eq!(got, Accepted::Merged, "buffered counts as merged");
     }
-    let s = core.status(status.id).await.unwrap();
-    assert_eq!(s.passes_done, 0, "passes 1 to 3 wait for pass 0");
-    let eta = s.eta_seconds.expect("an ETA from the passes rendered");
     // Three of four passes took the job's elapsed time (since the first lease; the status
     // reads one clock for both): one more takes a third.
-    assert!(
-        eta > 0.0 && (eta - s.elapsed_seconds / 3.0).abs() < 1e-9,
-        "eta {eta} s after {} s",
-        s.elapsed_seconds
-    );
+    let s = assert_eta(&core, status.id, 1.0 / 3.0).await;
+    assert_eq!(s.passes_done, 0, "passes 1 to 3 wait for pass 0");
     core.accept_result(delivery(w, &units[0], false))
         .await
         .unwrap();
@@ -699,13 +713,7 @@ fn slow(mut d: tessera_coordinator::service::Delivery) -> tessera_coordinator::s
 /// would be 3 times the elapsed time.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_eta_credits_units_in_flight_by_their_age() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut cfg = CoordinatorConfig::new(dir.path());
-    (cfg.spot_check_fraction, cfg.passes_per_unit) = (0.0, 1);
-    let core = Coordinator::open(cfg).await.unwrap();
-    let mut job = JobSettings::new("builtin:cornell-box");
-    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
-    let (status, _) = core.submit(job, None).await.unwrap();
+    let (_dir, core, status) = one_tile_job(0.0).await;
     let w = core.register_worker("w".into(), 1, "t").unwrap();
     let mut units = core.lease(w, 4).await.unwrap().units;
     assert_eq!(units.len(), 4);
@@ -716,15 +724,8 @@ async fn the_eta_credits_units_in_flight_by_their_age() {
     core.accept_result(d).await.unwrap();
     // The worker renders the rest from its last result on: let 30 unit times pass.
     tokio::time::sleep(Duration::from_millis(30)).await;
-    let s = core.status(status.id).await.unwrap();
+    let s = assert_eta(&core, status.id, (4.0 - 3.7) / 3.7).await;
     assert_eq!(s.passes_done, 1);
-    let eta = s.eta_seconds.expect("an ETA");
-    let want = s.elapsed_seconds * (4.0 - 3.7) / 3.7;
-    assert!(
-        (eta - want).abs() < 1e-9,
-        "eta {eta} s after {} s, want {want}",
-        s.elapsed_seconds
-    );
 }
 
 /// The spot checks' second copies are work the ETA counts: with every unit checked, a job
@@ -733,14 +734,7 @@ async fn the_eta_credits_units_in_flight_by_their_age() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_eta_counts_the_spot_checks_copies() {
     use tessera_coordinator::service::Accepted;
-    let dir = tempfile::tempdir().unwrap();
-    let mut cfg = CoordinatorConfig::new(dir.path());
-    (cfg.spot_check_fraction, cfg.passes_per_unit) = (1.0, 1);
-    let core = Coordinator::open(cfg).await.unwrap();
-    let mut job = JobSettings::new("builtin:cornell-box");
-    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
-    let (status, _) = core.submit(job, None).await.unwrap();
-    assert_eq!((status.tiles_total, status.passes_planned), (1, 4));
+    let (_dir, core, status) = one_tile_job(1.0).await;
     let first = core.register_worker("first".into(), 1, "t").unwrap();
     let units = core.lease(first, 4).await.unwrap().units;
     assert_eq!(units.len(), 4);
@@ -754,25 +748,13 @@ async fn the_eta_counts_the_spot_checks_copies() {
     }
     // 3 of 8 units' work: 5/3 of the elapsed time again (not truncated to whole passes,
     // 1.5 of the 4 planned, which would say 3 times).
-    let s = core.status(status.id).await.unwrap();
-    let eta = s.eta_seconds.expect("an ETA from the copies rendered");
-    assert!(
-        (eta - s.elapsed_seconds * 5.0 / 3.0).abs() < 1e-9,
-        "eta {eta} s after {} s",
-        s.elapsed_seconds
-    );
+    assert_eta(&core, status.id, 5.0 / 3.0).await;
     core.accept_result(delivery(first, &units[3], false))
         .await
         .unwrap();
-    let s = core.status(status.id).await.unwrap();
-    assert_eq!(s.passes_done, 0, "every unit waits for its second copy");
-    let eta = s.eta_seconds.expect("an ETA from the copies rendered");
     // 4 of 8 units' work in the elapsed time: as long again.
-    assert!(
-        eta > 0.0 && (eta - s.elapsed_seconds).abs() < 1e-9,
-        "eta {eta} s after {} s",
-        s.elapsed_seconds
-    );
+    let s = assert_eta(&core, status.id, 1.0).await;
+    assert_eq!(s.passes_done, 0, "every unit waits for its second copy");
     let second = core.register_worker("second".into(), 1, "t").unwrap();
     let mut copies = 0;
     while copies < 4 {
