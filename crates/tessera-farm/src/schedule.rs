@@ -991,34 +991,29 @@ impl Scheduler {
         let first_frame = *frames.start();
         let frames: Vec<FrameSlot> = frames.map(|_| FrameSlot::Pending).collect();
         self.next_seq += 1;
-        self.jobs.insert(
-            id,
-            Job {
-                priority,
-                seq: self.next_seq,
-                plan,
-                first_frame,
-                passes_per_unit: passes_per_unit.max(1),
-                frames,
-                frame_bytes: frame_state_bytes(&plan, false),
-                cursor: 0,
-                returned: BTreeSet::new(),
-                done: BTreeSet::new(),
-                leased: BTreeMap::new(),
-                canceled: false,
-                evicted: false,
-                adaptive: None,
-                checks: BTreeMap::new(),
-                extra_copies: 0,
-                copies_total: 0,
-                unverified: BTreeMap::new(),
-                suspect: BTreeMap::new(),
-            },
-        );
-        let fraction = self.spot_fraction;
-        if let Some(job) = self.jobs.get_mut(&id) {
-            job.copies_total = job.spot_copies(fraction, id);
-        }
+        let mut job = Job {
+            priority,
+            seq: self.next_seq,
+            plan,
+            first_frame,
+            passes_per_unit: passes_per_unit.max(1),
+            frames,
+            frame_bytes: frame_state_bytes(&plan, false),
+            cursor: 0,
+            returned: BTreeSet::new(),
+            done: BTreeSet::new(),
+            leased: BTreeMap::new(),
+            canceled: false,
+            evicted: false,
+            adaptive: None,
+            checks: BTreeMap::new(),
+            extra_copies: 0,
+            copies_total: 0,
+            unverified: BTreeMap::new(),
+            suspect: BTreeMap::new(),
+        };
+        job.copies_total = job.spot_copies(self.spot_fraction, id);
+        self.jobs.insert(id, job);
     }
 
     /// Adds an adaptive job (issue 4): like [`Scheduler::add_job`], but each tile stops
@@ -1771,19 +1766,15 @@ impl Scheduler {
     }
 
     /// The job's outstanding leases: who holds each and since when
-    /// ([`Lease::leased_ms`]), in lease order. Empty for an unknown job.
+    /// ([`Lease::leased_ms`]), in unit order. Empty for an unknown job.
     pub fn in_flight(&self, job_id: JobId) -> Vec<(WorkerId, u64)> {
-        let Some(job) = self.jobs.get(&job_id) else {
-            return Vec::new();
-        };
-        let mut out: Vec<(u64, WorkerId, u64)> = job
-            .leased
-            .values()
-            .filter_map(|id| self.leases.get(id))
-            .map(|l| (l.lease_id, l.worker, l.leased_ms))
-            .collect();
-        out.sort_unstable();
-        out.into_iter().map(|(_, w, t)| (w, t)).collect()
+        self.jobs.get(&job_id).map_or_else(Vec::new, |job| {
+            job.leased
+                .values()
+                .filter_map(|id| self.leases.get(id))
+                .map(|l| (l.worker, l.leased_ms))
+                .collect()
+        })
     }
 
     /// True once every frame of the job is complete.

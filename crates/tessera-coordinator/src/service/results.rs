@@ -368,11 +368,15 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
         w.last_result_ms = now;
     }
     if let Ok(m) = &merged {
-        // Rendered for the job, merged or held for a spot check: the ETA's unit time.
+        // Rendering time spent for the job, merged or held for a spot check: the worker's
+        // and the job's (the ETA's unit time).
         if matches!(m.submitted, Submitted::Accepted | Submitted::Held)
             && d.render_seconds.is_finite()
             && d.render_seconds > 0.0
         {
+            if let Some(w) = w.as_deref_mut() {
+                w.render_seconds += d.render_seconds;
+            }
             if let Some(rt) = farm.runtime.get_mut(&m.job) {
                 rt.unit_seconds.0 += d.render_seconds;
                 rt.unit_seconds.1 += 1;
@@ -384,9 +388,6 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
             Submitted::Accepted => {
                 if let Some(w) = w {
                     w.units_done += 1;
-                    if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
-                        w.render_seconds += d.render_seconds;
-                    }
                     // Bounded by the unit's size when decoded.
                     w.pixel_passes = w.pixel_passes.saturating_add(d.traced_pixel_passes);
                 }
@@ -420,13 +421,8 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
                 Ok(Accepted::Late)
             }
             Submitted::Held => {
-                // Rendering time spent, but not a merged unit (`units_done` and
-                // `tessera_units_merged_total` count each unit once, when it merges).
-                if let Some(w) = w {
-                    if d.render_seconds.is_finite() && d.render_seconds > 0.0 {
-                        w.render_seconds += d.render_seconds;
-                    }
-                }
+                // Rendering time spent (counted above), but not a merged unit (`units_done`
+                // and `tessera_units_merged_total` count each unit once, when it merges).
                 tracing::debug!(worker, lease_id, job = m.job, "copy held for a spot check");
                 Ok(Accepted::Held)
             }
