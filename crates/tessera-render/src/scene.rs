@@ -5,7 +5,7 @@
 use crate::bsdf::{
     dielectric::RoughDielectric,
     diffuse::Diffuse,
-    gltf::{gltf_bsdf, GltfParams},
+    gltf::{gltf_bsdf_at, GltfParams},
     microfacet::{Conductor, MIN_ALPHA},
     phong::Phong,
     specular::{Glass, Mirror},
@@ -718,9 +718,11 @@ impl RenderScene {
         Some(es)
     }
 
-    /// The BSDF of the material at `sp`.
+    /// The BSDF of the material at `sp`, for light leaving toward the world direction
+    /// `wo` (a glTF lobe looks up what depends on `wo` alone once; any `wo` may be
+    /// evaluated).
     #[inline]
-    pub fn bsdf(&self, sp: &SurfacePoint) -> Bsdf {
+    pub fn bsdf(&self, sp: &SurfacePoint, wo: Vec3) -> Bsdf {
         let m = &self.materials[sp.material as usize];
         match &m.kind {
             MaterialKind::Diffuse { albedo } => {
@@ -757,7 +759,8 @@ impl RenderScene {
                     }))
                 }
             }
-            MaterialKind::Gltf(g) => gltf_bsdf(&self.gltf_params(g, sp)),
+            // `wo.dot(ns)` is `Frame::from_normal(ns).to_local(wo).z` to the bit.
+            MaterialKind::Gltf(g) => gltf_bsdf_at(&self.gltf_params(g, sp), wo.dot(sp.ns)),
         }
     }
 

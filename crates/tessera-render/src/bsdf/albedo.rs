@@ -66,6 +66,13 @@ impl Table {
     fn lookup(&self, mu: f32, r: f32) -> f32 {
         let (i, s) = Self::locate(mu.max(0.0).sqrt(), N_MU);
         let (j, t) = Self::locate(self.r_coordinate(r), N_R);
+        self.interpolate(i, s, j, t)
+    }
+
+    /// The bilinear interpolation in cell `(i, j)` at fractions `(s, t)` (from
+    /// [`Table::locate`]), so tables on the same grid share one location.
+    #[inline]
+    fn interpolate(&self, i: usize, s: f32, j: usize, t: f32) -> f32 {
         let a = self.v[i][j] + (self.v[i + 1][j] - self.v[i][j]) * s;
         let b = self.v[i][j + 1] + (self.v[i + 1][j + 1] - self.v[i][j + 1]) * s;
         a + (b - a) * t
@@ -264,7 +271,10 @@ fn sheen_table() -> &'static Table {
 pub fn ggx_albedo(mu: f32, alpha: f32) -> (f32, f32) {
     let t = ggx_tables();
     let r = alpha.max(0.0).sqrt();
-    (t.a.lookup(mu, r), t.b.lookup(mu, r))
+    // A and B share their grid (and `r_min`): locate once.
+    let (i, s) = Table::locate(mu.max(0.0).sqrt(), N_MU);
+    let (j, u) = Table::locate(t.a.r_coordinate(r), N_R);
+    (t.a.interpolate(i, s, j, u), t.b.interpolate(i, s, j, u))
 }
 
 /// `(A_avg, B_avg)`: the cosine-weighted averages `2 ∫ A(μ) μ dμ` and `2 ∫ B(μ) μ dμ` of

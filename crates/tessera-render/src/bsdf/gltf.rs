@@ -110,7 +110,16 @@ impl Default for GltfParams {
 /// transmission, coat or sheen) or plain smooth glass. (A metal is the layered lobe: it
 /// carries the multiple-scattering term the built-in conductor does not.)
 pub fn gltf_bsdf(p: &GltfParams) -> Bsdf {
-    let g = GltfLobe::new(p);
+    gltf_bsdf_at(p, f32::NAN)
+}
+
+/// [`gltf_bsdf`] prepared for the outgoing direction of local `z` coordinate `wo_z` (its
+/// cosine with the shading normal): the layered lobe then looks up its albedo tables at
+/// `wo` once rather than at every `eval`, `pdf` and `sample` (`GltfLobe::prepare`; the
+/// results are bit-identical, and calls with another `wo` stay correct). NaN prepares
+/// nothing.
+pub fn gltf_bsdf_at(p: &GltfParams, wo_z: f32) -> Bsdf {
+    let mut g = GltfLobe::new(p);
     let layered = g.clearcoat > 0.0 || g.sheen_max > 0.0;
     if !layered {
         let no_spec = g.f0 == Vec3::ZERO && g.f90 == 0.0;
@@ -121,6 +130,9 @@ pub fn gltf_bsdf(p: &GltfParams) -> Bsdf {
             return Bsdf::single(Lobe::Glass(g.glass()));
         }
     }
+    // `Bsdf` hands an opaque lobe `wo` mirrored to the upper hemisphere (`flip_z`).
+    let flip = !g.transmits() && wo_z < 0.0;
+    g.prepare(if flip { -wo_z } else { wo_z });
     Bsdf::single(Lobe::Gltf(g))
 }
 
@@ -163,6 +175,32 @@ pub struct GltfLobe {
     sheen_r: f32,
     /// `max(sheen_color)`, the weight of the sheen's albedo scaling.
     sheen_max: f32,
+    /// The terms that depend on `wo` alone, for the `wo` of [`GltfLobe::prepare`].
+    at_wo: WoTerms,
+}
+
+/// The albedo tables of a [`GltfLobe`] at the outgoing direction: the specular layer's and
+/// the metal's at `μo`. A path vertex evaluates its BSDF several times with one `wo` (the
+/// light sample's `eval` and `pdf`, the BSDF sample's `select`, `pdf` and `eval`), each of
+/// which would look them up again; [`GltfLobe::prepare`] looks them up once, with the same
+/// functions, so a prepared lobe gives bit-identical results. Kept small: the lobe is
+/// copied with every path vertex.
+#[derive(Clone, Copy, Debug)]
+struct WoTerms {
+    /// The `wo.z` these terms are for; NaN (equal to nothing) until prepared.
+    z: f32,
+    /// [`GltfLobe::spec_albedo`] at `|wo.z|` (zero without an opaque dielectric).
+    spec_albedo: Vec3,
+    /// [`GltfLobe::ms_loss`] at `|wo.z|` (zero without metal).
+    ms_loss: f32,
+}
+
+impl WoTerms {
+    const UNPREPARED: WoTerms = WoTerms {
+        z: f32::NAN,
+        spec_albedo: Vec3::ZERO,
+        ms_loss: 0.0,
+    };
 }
 
 /// GGX reflection with Schlick's Fresnel `f0 + (f90 - f0)(1 - wo·h)^5`, times `cos θi`.
@@ -242,6 +280,42 @@ impl GltfLobe {
             sheen,
             sheen_r,
             sheen_max: sheen_color.max_element(),
+            at_wo: WoTerms::UNPREPARED,
+        }
+    }
+
+    /// Computes the terms that depend on `wo` alone once, for every later call with a
+    /// `wo` of the same `z` (see [`WoTerms`]); calls with another `wo` compute their own.
+    #[inline]
+    pub(crate) fn prepare(&mut self, wo_z: f32) {
+        if wo_z.is_nan() {
+            return;
+        }
+        let (spec_albedo, ms_loss) = self.albedos(wo_z.abs());
+        self.at_wo = WoTerms {
+            z: wo_z,
+            spec_albedo,
+            ms_loss,
+        };
+    }
+
+    /// [`GltfLobe::spec_albedo`] at `wo.z >= 0`, prepared or looked up.
+    #[inline]
+    fn spec_albedo_wo(&self, wo: Vec3) -> Vec3 {
+        if wo.z == self.at_wo.z {
+            self.at_wo.spec_albedo
+        } else {
+            self.spec_albedo(wo.z)
+        }
+    }
+
+    /// [`GltfLobe::ms_loss`] at `wo.z >= 0`, prepared or looked up.
+    #[inline]
+    fn ms_loss_wo(&self, wo: Vec3) -> f32 {
+        if wo.z == self.at_wo.z {
+            self.at_wo.ms_loss
+        } else {
+            self.ms_loss(wo.z)
         }
     }
 
@@ -325,14 +399,14 @@ impl GltfLobe {
     fn opaque_eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         let mut f = Vec3::ZERO;
         if self.metal > 0.0 {
-            let ms = self.ms_scale * (self.ms_loss(wo.z) * self.ms_loss(wi.z) * wi.z);
+            let ms = self.ms_scale * (self.ms_loss_wo(wo) * self.ms_loss(wi.z) * wi.z);
             f += self.metal * (self.conductor().eval(wo, wi) + ms);
         }
         if self.opaque > 0.0 {
             let spec = ggx_reflection(wo, wi, self.alpha, self.f0, self.f90);
             // Kulla & Conty 2017: the base receives what the layer does not reflect, in
             // the reciprocal form (1 - E(μo))(1 - E(μi)) / (1 - E_avg).
-            let eo = Vec3::ONE - self.spec_albedo(wo.z);
+            let eo = Vec3::ONE - self.spec_albedo_wo(wo);
             let ei = Vec3::ONE - self.spec_albedo(wi.z);
             let scale = (eo * ei / self.one_minus_e_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
             let diffuse = self.base * scale * (FRAC_1_PI * wi.z);
@@ -343,7 +417,34 @@ impl GltfLobe {
 
     /// Component selection probabilities at `wo` (estimates of their albedos), in the
     /// order [`COAT`], [`SHEEN`], [`METAL`], [`SPEC`], [`DIFFUSE`], [`GLASS`].
+    #[inline]
     fn select(&self, wo: Vec3) -> [f32; 6] {
+        if wo.z == self.at_wo.z {
+            self.select_with(wo, self.at_wo.spec_albedo, self.at_wo.ms_loss)
+        } else {
+            let (e, ms) = self.albedos(wo.z.abs());
+            self.select_with(wo, e, ms)
+        }
+    }
+
+    /// The specular layer's albedo and the metal's loss at `mu`, where the lobe has them.
+    #[inline]
+    fn albedos(&self, mu: f32) -> (Vec3, f32) {
+        let e = if self.opaque > 0.0 {
+            self.spec_albedo(mu)
+        } else {
+            Vec3::ZERO
+        };
+        let ms = if self.metal > 0.0 {
+            self.ms_loss(mu)
+        } else {
+            0.0
+        };
+        (e, ms)
+    }
+
+    /// [`GltfLobe::select`] from the [`GltfLobe::albedos`] at `|wo.z|`.
+    fn select_with(&self, wo: Vec3, spec_albedo: Vec3, ms_loss: f32) -> [f32; 6] {
         let outside = wo.z > 0.0;
         let mu = wo.z.abs();
         let mut w = [0.0f32; 6];
@@ -363,11 +464,11 @@ impl GltfLobe {
             w[METAL] = under * self.metal * f.max(0.05);
             // The multiple-scattering lobe is cosine-like: sampled with the diffuse one.
             // Its albedo is ms_scale π (1 - E1(μo)) (1 - E1_avg) <= F_ms (1 - E1(μo)).
-            let ms = self.ms_scale.max_element() * std::f32::consts::PI * self.ms_loss(mu);
+            let ms = self.ms_scale.max_element() * std::f32::consts::PI * ms_loss;
             w[DIFFUSE] += under * self.metal * ms;
         }
         if self.opaque > 0.0 {
-            let e = self.spec_albedo(mu);
+            let e = spec_albedo;
             w[SPEC] = under * self.opaque * e.max_element();
             w[DIFFUSE] += under * self.opaque * (self.base * (Vec3::ONE - e)).max_element();
         }
@@ -428,7 +529,11 @@ impl GltfLobe {
         if wo.z == 0.0 || wi.z == 0.0 {
             return 0.0;
         }
-        let w = self.select(wo);
+        self.pdf_with(&self.select(wo), wo, wi)
+    }
+
+    /// [`GltfLobe::pdf`] with the selection weights `w = select(wo)` already at hand.
+    fn pdf_with(&self, w: &[f32; 6], wo: Vec3, wi: Vec3) -> f32 {
         let glass = if self.smooth || w[GLASS] == 0.0 {
             0.0
         } else {
@@ -498,7 +603,8 @@ impl GltfLobe {
         if wi.z == 0.0 || (k != GLASS && wi.z * wo.z <= 0.0) {
             return None;
         }
-        let pdf = self.pdf(wo, wi);
+        // `pdf` would select again: the weights are those of this `wo`.
+        let pdf = self.pdf_with(&w, wo, wi);
         if pdf <= 0.0 || !pdf.is_finite() {
             return None;
         }

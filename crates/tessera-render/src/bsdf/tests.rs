@@ -16,7 +16,7 @@
 use super::albedo::{ggx_albedo, ggx_albedo_reference, sheen_albedo, sheen_albedo_reference};
 use super::dielectric::RoughDielectric;
 use super::diffuse::Diffuse;
-use super::gltf::{gltf_bsdf, GltfLobe, GltfParams};
+use super::gltf::{gltf_bsdf, gltf_bsdf_at, GltfLobe, GltfParams};
 use super::microfacet::Conductor;
 use super::phong::Phong;
 use super::specular::{Glass, Mirror};
@@ -1883,4 +1883,55 @@ fn gltf_builder_shortcuts_and_delta_transmission() {
         }
     }
     assert!(delta > 1000 && smooth > 10, "delta {delta} coat {smooth}");
+}
+
+/// A glTF BSDF prepared for `wo` ([`gltf_bsdf_at`]) gives the same bits as an unprepared
+/// one for every call, with that `wo` (mirrored or not, inside or outside) and with any
+/// other: the preparation only saves table look-ups (issue 13, raw speed).
+#[test]
+fn a_prepared_gltf_bsdf_gives_the_same_bits() {
+    let mut rng = SplitMix64::new(0x9e9a_4ed0);
+    let bits = |v: Vec3| v.to_array().map(f32::to_bits);
+    let mut materials: Vec<GltfParams> = furnace_materials().into_iter().map(|m| m.1).collect();
+    // Tinted, partly metallic, partly transmissive, with sheen: every component at once.
+    materials.push(GltfParams {
+        base_color: Vec3::new(0.8, 0.4, 0.2),
+        metallic: 0.4,
+        roughness: 0.45,
+        transmission: 0.3,
+        specular_color: Vec3::new(1.0, 0.7, 0.5),
+        clearcoat: 0.5,
+        clearcoat_roughness: 0.2,
+        sheen_color: Vec3::new(0.3, 0.5, 0.2),
+        sheen_roughness: 0.4,
+        ..GltfParams::default()
+    });
+    let mut layered = 0;
+    for p in &materials {
+        for _ in 0..50 {
+            let wo = square_to_uniform_sphere(Vec2::new(rng.next_f32(), rng.next_f32()));
+            let plain = gltf_bsdf(p);
+            let prepared = gltf_bsdf_at(p, wo.z);
+            layered += usize::from(matches!(prepared.lobes[0], Lobe::Gltf(_)));
+            let other = square_to_uniform_sphere(Vec2::new(rng.next_f32(), rng.next_f32()));
+            for w in [wo, Vec3::new(wo.x, wo.y, -wo.z), other] {
+                for _ in 0..4 {
+                    let wi = square_to_uniform_sphere(Vec2::new(rng.next_f32(), rng.next_f32()));
+                    assert_eq!(bits(plain.eval(w, wi)), bits(prepared.eval(w, wi)), "{p:?}");
+                    assert_eq!(plain.pdf(w, wi).to_bits(), prepared.pdf(w, wi).to_bits());
+                    let (u1, u2) = (rng.next_f32(), Vec2::new(rng.next_f32(), rng.next_f32()));
+                    let (a, b) = (plain.sample(w, u1, u2), prepared.sample(w, u1, u2));
+                    assert_eq!(a.is_some(), b.is_some(), "{p:?}");
+                    if let (Some(a), Some(b)) = (a, b) {
+                        assert_eq!(bits(a.wi), bits(b.wi));
+                        assert_eq!(bits(a.weight), bits(b.weight));
+                        assert_eq!(a.pdf.to_bits(), b.pdf.to_bits());
+                        assert_eq!(a.delta, b.delta);
+                    }
+                }
+            }
+        }
+    }
+    // Most of them are the layered lobe (the others reduce to a built-in one).
+    assert!(layered > materials.len() * 25, "{layered}");
 }

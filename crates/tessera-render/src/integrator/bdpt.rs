@@ -423,22 +423,32 @@ fn random_walk(
         // Absorption inside a KHR_materials_volume medium along the segment just traced
         // (connections between two vertices inside a medium are not attenuated).
         beta *= scene.transmittance(&sp, dir, hit.t);
-        let mut v = Vertex::empty();
-        v.kind = Kind::Surface;
-        v.p = sp.p;
-        v.p_error = sp.p_error;
-        v.ng = sp.ng;
-        v.ns = sp.ns;
-        v.wo = -dir;
-        v.frame = Frame::from_normal(sp.ns);
-        v.bsdf = scene.bsdf(&sp);
-        v.beta = beta;
-        v.light = sp.light;
-        if !importance && sp.light != NO_LIGHT {
-            v.le = scene.emitted(&sp, -dir);
-        }
-        v.pdf_fwd = ctx.convert_density(&path[n - 1], pdf_fwd, &v);
-        path[n] = v;
+        // Written in place: a vertex (with its BSDF) is large.
+        path[n] = Vertex {
+            kind: Kind::Surface,
+            p: sp.p,
+            p_error: sp.p_error,
+            ng: sp.ng,
+            ns: sp.ns,
+            wo: -dir,
+            frame: Frame::from_normal(sp.ns),
+            bsdf: scene.bsdf(&sp, -dir),
+            beta,
+            le: if !importance && sp.light != NO_LIGHT {
+                scene.emitted(&sp, -dir)
+            } else {
+                Vec3::ZERO
+            },
+            light: sp.light,
+            infinite: false,
+            delta: false,
+            delta_light: false,
+            pdf_fwd: 0.0,
+            pdf_rev: 0.0,
+        };
+        let (before, here) = path.split_at_mut(n);
+        let v = &mut here[0];
+        v.pdf_fwd = ctx.convert_density(&before[n - 1], pdf_fwd, v);
         n += 1;
         if n >= max_vertices {
             break;
@@ -630,13 +640,15 @@ fn pow_beta(r: f32, beta: i32) -> f32 {
 
 /// The MIS weight of technique `(s, t)` for the path `light[..s] + cam[..t]` (reversed),
 /// with `sampled` replacing `light[0]` (s = 1) or `cam[0]` (t = 1). The arrays are edited in
-/// place and restored (pbrt's scoped assignments), so nothing is copied per technique.
+/// place and restored (pbrt's scoped assignments): only the edited fields are saved, and a
+/// whole vertex only where `sampled` replaces one (a vertex carries its BSDF: hundreds of
+/// bytes, and this runs once per technique).
 fn mis_weight(
     ctx: &Ctx,
     st: &BdptSettings,
     light: &mut [Vertex; MAX_VERTICES],
     cam: &mut [Vertex; MAX_VERTICES],
-    sampled: Option<Vertex>,
+    sampled: Option<&Vertex>,
     s: usize,
     t: usize,
 ) -> f32 {
@@ -644,18 +656,22 @@ fn mis_weight(
         return 1.0;
     }
     let exp = st.beta_exponent();
-    // Save what is edited.
-    let saved_l0 = light[0];
-    let saved_c0 = cam[0];
-    let saved_q = if s > 0 { Some(light[s - 1]) } else { None };
-    let saved_p = cam[t - 1];
+    // Save what is edited: the connection vertices' `delta` and `pdf_rev`, their
+    // predecessors' `pdf_rev`, and a vertex `sampled` replaces.
+    let saved_p = (cam[t - 1].delta, cam[t - 1].pdf_rev);
+    let saved_q = if s > 0 {
+        (light[s - 1].delta, light[s - 1].pdf_rev)
+    } else {
+        (false, 0.0)
+    };
     let saved_qm = if s > 1 { light[s - 2].pdf_rev } else { 0.0 };
     let saved_pm = if t > 1 { cam[t - 2].pdf_rev } else { 0.0 };
+    let (mut saved_l0, mut saved_c0) = (None, None);
     if let Some(v) = sampled {
         if s == 1 {
-            light[0] = v;
+            saved_l0 = Some(std::mem::replace(&mut light[0], *v));
         } else if t == 1 {
-            cam[0] = v;
+            saved_c0 = Some(std::mem::replace(&mut cam[0], *v));
         }
     }
     // The connection vertices are connected, not scattered by a delta lobe.
@@ -714,18 +730,22 @@ fn mis_weight(
         }
     }
 
-    // Restore.
-    light[0] = saved_l0;
-    cam[0] = saved_c0;
-    if let Some(q) = saved_q {
-        light[s - 1] = q;
+    // Restore: the fields, then a replaced vertex whole.
+    (cam[t - 1].delta, cam[t - 1].pdf_rev) = saved_p;
+    if s > 0 {
+        (light[s - 1].delta, light[s - 1].pdf_rev) = saved_q;
     }
     if s > 1 {
         light[s - 2].pdf_rev = saved_qm;
     }
-    cam[t - 1] = saved_p;
     if t > 1 {
         cam[t - 2].pdf_rev = saved_pm;
+    }
+    if let Some(v) = saved_l0 {
+        light[0] = v;
+    }
+    if let Some(v) = saved_c0 {
+        cam[0] = v;
     }
     let w = 1.0 / (1.0 + sum);
     if w.is_finite() {
@@ -773,7 +793,7 @@ fn splat_light_paths(
         c.kind = Kind::Camera;
         c.p = cs.p_lens;
         c.beta = Vec3::splat(cs.we / cs.pdf);
-        l *= mis_weight(ctx, st, light, cam, Some(c), s, 1);
+        l *= mis_weight(ctx, st, light, cam, Some(&c), s, 1);
         if l != Vec3::ZERO {
             splat(cs.raster, l);
         }
@@ -795,13 +815,16 @@ fn camera_techniques(
     let max_depth = st.max_depth as usize;
     let mut total = Vec3::ZERO;
     for t in 2..=n_cam {
+        // `pt` is cam[t - 1], borrowed afresh around each `mis_weight` (which edits the
+        // subpaths in place and restores them): a vertex is too large to copy per technique.
         // s = 0: the camera subpath found an emitter.
-        let pt = cam[t - 1];
+        let pt = &cam[t - 1];
         if pt.is_light() && pt.le != Vec3::ZERO {
             let l = pt.le * pt.beta;
             let w = mis_weight(ctx, st, light, cam, None, 0, t);
             total += l * w;
         }
+        let pt = &cam[t - 1];
         if pt.kind == Kind::Light {
             continue; // an escaped ray connects to nothing
         }
@@ -812,7 +835,7 @@ fn camera_techniques(
             if let Some((li, pmf)) = scene.lights.select(u_light) {
                 let lt = &scene.lights.lights[li];
                 if let Some(ls) = scene.sample_li(li, pt.p, u2) {
-                    let f = ctx.f(&pt, ls.wi, false);
+                    let f = ctx.f(pt, ls.wi, false);
                     let l = pt.beta * f * ls.li * (pt.ns.dot(ls.wi).abs() / (ls.pdf * pmf));
                     let visible = l != Vec3::ZERO
                         && if ls.dist.is_finite() {
@@ -833,33 +856,33 @@ fn camera_techniques(
                         v.wo = -ls.wi;
                         v.delta_light = lt.is_delta();
                         v.beta = ls.li / (ls.pdf * pmf);
-                        v.pdf_fwd = ctx.pdf_light_origin(&v, &pt);
-                        let w = mis_weight(ctx, st, light, cam, Some(v), 1, t);
+                        v.pdf_fwd = ctx.pdf_light_origin(&v, pt);
+                        let w = mis_weight(ctx, st, light, cam, Some(&v), 1, t);
                         total += l * w;
                     }
                 }
             }
         }
         // s >= 2: connect light[s-1] and cam[t-1].
-        if !pt.connectible() {
+        if !cam[t - 1].connectible() {
             continue;
         }
         for s in 2..=n_light {
             if s + t - 2 > max_depth {
                 break;
             }
-            let qs = light[s - 1];
+            let (qs, pt) = (&light[s - 1], &cam[t - 1]);
             if !qs.connectible() {
                 continue;
             }
-            let Some(d) = pt.dir_to(&qs) else {
+            let Some(d) = pt.dir_to(qs) else {
                 continue;
             };
-            let l = qs.beta * ctx.f(&qs, -d, true) * ctx.f(&pt, d, false) * pt.beta;
+            let l = qs.beta * ctx.f(qs, -d, true) * ctx.f(pt, d, false) * pt.beta;
             if l == Vec3::ZERO {
                 continue;
             }
-            let g = ctx.g(&qs, &pt);
+            let g = ctx.g(qs, pt);
             if g == 0.0 {
                 continue;
             }

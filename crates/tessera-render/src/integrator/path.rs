@@ -112,7 +112,7 @@ pub fn radiance(
             break;
         }
 
-        let bsdf = scene.bsdf(&sp);
+        let bsdf = scene.bsdf(&sp, wo_world);
         let frame = Frame::from_normal(sp.ns);
         let wo = frame.to_local(wo_world);
 

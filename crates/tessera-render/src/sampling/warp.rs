@@ -67,6 +67,7 @@ pub fn uniform_hemisphere_pdf() -> f32 {
 /// is area-preserving with far less distortion than the polar map `sqrt(u.x), 2 pi u.y` of
 /// Arvo 2001, section 4.3.2 (eq. 4.23), which keeps strata compact. Density `1 / pi` with respect to
 /// area on the unit disk.
+#[inline]
 pub fn square_to_concentric_disk(u: Vec2) -> Vec2 {
     let a = 2.0 * u.x - 1.0;
     let b = 2.0 * u.y - 1.0;
@@ -87,6 +88,7 @@ pub fn square_to_concentric_disk(u: Vec2) -> Vec2 {
 /// of the unit disk (here [`square_to_concentric_disk`]) projected up onto the hemisphere has
 /// density `cos theta / pi` in solid angle, because projecting to the disk multiplies solid
 /// angle by `cos theta` (Nusselt analog). See [`cosine_hemisphere_pdf`].
+#[inline]
 pub fn square_to_cosine_hemisphere(u: Vec2) -> Vec3 {
     let d = square_to_concentric_disk(u);
     let z = (1.0 - d.length_squared()).max(0.0).sqrt();
@@ -95,6 +97,7 @@ pub fn square_to_cosine_hemisphere(u: Vec2) -> Vec3 {
 
 /// Density of [`square_to_cosine_hemisphere`] with respect to solid angle:
 /// `max(cos theta, 0) / pi`.
+#[inline]
 pub fn cosine_hemisphere_pdf(cos_theta: f32) -> f32 {
     cos_theta.max(0.0) * FRAC_1_PI
 }
