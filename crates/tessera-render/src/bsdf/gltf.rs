@@ -555,6 +555,7 @@ impl GltfLobe {
 
     /// Samples a component by `u1` (rescaled and reused by the component), then its
     /// direction by `u2`.
+    #[inline]
     pub(crate) fn sample(&self, wo: Vec3, u1: f32, u2: Vec2) -> Option<BsdfSample> {
         if wo.z == 0.0 {
             return None;
