@@ -423,31 +423,51 @@ fn random_walk(
         // Absorption inside a KHR_materials_volume medium along the segment just traced
         // (connections between two vertices inside a medium are not attenuated).
         beta *= scene.transmittance(&sp, dir, hit.t);
-        // Written in place: a vertex (with its BSDF) is large.
-        path[n] = Vertex {
-            kind: Kind::Surface,
-            p: sp.p,
-            p_error: sp.p_error,
-            ng: sp.ng,
-            ns: sp.ns,
-            wo: -dir,
-            frame: Frame::from_normal(sp.ns),
-            bsdf: scene.bsdf(&sp, -dir),
-            beta,
-            le: if !importance && sp.light != NO_LIGHT {
+        // Written field by field in place: a vertex (with its BSDF) is large, and one built
+        // on the stack is copied whole into the array. The pattern names every field, so a
+        // new one cannot be left stale.
+        let (before, here) = path.split_at_mut(n);
+        let v = &mut here[0];
+        {
+            let Vertex {
+                kind,
+                p,
+                p_error,
+                ng,
+                ns,
+                wo,
+                frame,
+                bsdf,
+                beta: v_beta,
+                le,
+                light,
+                infinite,
+                delta,
+                delta_light,
+                pdf_fwd: v_pdf_fwd,
+                pdf_rev,
+            } = v;
+            *kind = Kind::Surface;
+            *p = sp.p;
+            *p_error = sp.p_error;
+            *ng = sp.ng;
+            *ns = sp.ns;
+            *wo = -dir;
+            *frame = Frame::from_normal(sp.ns);
+            *bsdf = scene.bsdf(&sp, -dir);
+            *v_beta = beta;
+            *le = if !importance && sp.light != NO_LIGHT {
                 scene.emitted(&sp, -dir)
             } else {
                 Vec3::ZERO
-            },
-            light: sp.light,
-            infinite: false,
-            delta: false,
-            delta_light: false,
-            pdf_fwd: 0.0,
-            pdf_rev: 0.0,
-        };
-        let (before, here) = path.split_at_mut(n);
-        let v = &mut here[0];
+            };
+            *light = sp.light;
+            *infinite = false;
+            *delta = false;
+            *delta_light = false;
+            *v_pdf_fwd = 0.0;
+            *pdf_rev = 0.0;
+        }
         v.pdf_fwd = ctx.convert_density(&before[n - 1], pdf_fwd, v);
         n += 1;
         if n >= max_vertices {
