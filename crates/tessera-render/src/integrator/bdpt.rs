@@ -160,7 +160,108 @@ struct Vertex {
     pdf_rev: f32,
 }
 
+/// A vertex without its BSDF: all an endpoint (a camera or light vertex, whose BSDF is
+/// never evaluated) holds. `mis_weight` swaps a sampled endpoint in and out through it
+/// rather than copying whole vertices (hundreds of bytes each) once per technique.
+#[derive(Clone, Copy)]
+struct Endpoint {
+    kind: Kind,
+    p: Vec3,
+    p_error: Vec3,
+    ng: Vec3,
+    ns: Vec3,
+    wo: Vec3,
+    frame: Frame,
+    beta: Vec3,
+    le: Vec3,
+    light: u32,
+    infinite: bool,
+    delta: bool,
+    delta_light: bool,
+    pdf_fwd: f32,
+    pdf_rev: f32,
+}
+
 impl Vertex {
+    /// Every field but the BSDF (the patterns name every field, so a new one is not
+    /// forgotten).
+    #[inline]
+    fn endpoint(&self) -> Endpoint {
+        let Vertex {
+            kind,
+            p,
+            p_error,
+            ng,
+            ns,
+            wo,
+            frame,
+            bsdf: _,
+            beta,
+            le,
+            light,
+            infinite,
+            delta,
+            delta_light,
+            pdf_fwd,
+            pdf_rev,
+        } = *self;
+        Endpoint {
+            kind,
+            p,
+            p_error,
+            ng,
+            ns,
+            wo,
+            frame,
+            beta,
+            le,
+            light,
+            infinite,
+            delta,
+            delta_light,
+            pdf_fwd,
+            pdf_rev,
+        }
+    }
+
+    /// Sets every field but the BSDF from `e`.
+    #[inline]
+    fn set_endpoint(&mut self, e: Endpoint) {
+        let Vertex {
+            kind,
+            p,
+            p_error,
+            ng,
+            ns,
+            wo,
+            frame,
+            bsdf: _,
+            beta,
+            le,
+            light,
+            infinite,
+            delta,
+            delta_light,
+            pdf_fwd,
+            pdf_rev,
+        } = self;
+        *kind = e.kind;
+        *p = e.p;
+        *p_error = e.p_error;
+        *ng = e.ng;
+        *ns = e.ns;
+        *wo = e.wo;
+        *frame = e.frame;
+        *beta = e.beta;
+        *le = e.le;
+        *light = e.light;
+        *infinite = e.infinite;
+        *delta = e.delta;
+        *delta_light = e.delta_light;
+        *pdf_fwd = e.pdf_fwd;
+        *pdf_rev = e.pdf_rev;
+    }
+
     fn empty() -> Self {
         Self {
             kind: Kind::Camera,
@@ -660,9 +761,10 @@ fn pow_beta(r: f32, beta: i32) -> f32 {
 
 /// The MIS weight of technique `(s, t)` for the path `light[..s] + cam[..t]` (reversed),
 /// with `sampled` replacing `light[0]` (s = 1) or `cam[0]` (t = 1). The arrays are edited in
-/// place and restored (pbrt's scoped assignments): only the edited fields are saved, and a
-/// whole vertex only where `sampled` replaces one (a vertex carries its BSDF: hundreds of
-/// bytes, and this runs once per technique).
+/// place and restored (pbrt's scoped assignments): only the edited fields are saved, and
+/// where `sampled` replaces an endpoint, every field of it but the BSDF ([`Endpoint`]: the
+/// replaced vertex and `sampled` are both endpoints, whose BSDF nothing reads; a vertex
+/// carries its BSDF, hundreds of bytes, and this runs once per technique).
 fn mis_weight(
     ctx: &Ctx,
     st: &BdptSettings,
@@ -688,10 +790,15 @@ fn mis_weight(
     let saved_pm = if t > 1 { cam[t - 2].pdf_rev } else { 0.0 };
     let (mut saved_l0, mut saved_c0) = (None, None);
     if let Some(v) = sampled {
+        debug_assert!(v.kind != Kind::Surface, "only an endpoint is sampled");
         if s == 1 {
-            saved_l0 = Some(std::mem::replace(&mut light[0], *v));
+            debug_assert!(light[0].kind != Kind::Surface);
+            saved_l0 = Some(light[0].endpoint());
+            light[0].set_endpoint(v.endpoint());
         } else if t == 1 {
-            saved_c0 = Some(std::mem::replace(&mut cam[0], *v));
+            debug_assert!(cam[0].kind != Kind::Surface);
+            saved_c0 = Some(cam[0].endpoint());
+            cam[0].set_endpoint(v.endpoint());
         }
     }
     // The connection vertices are connected, not scattered by a delta lobe.
@@ -761,11 +868,11 @@ fn mis_weight(
     if t > 1 {
         cam[t - 2].pdf_rev = saved_pm;
     }
-    if let Some(v) = saved_l0 {
-        light[0] = v;
+    if let Some(e) = saved_l0 {
+        light[0].set_endpoint(e);
     }
-    if let Some(v) = saved_c0 {
-        cam[0] = v;
+    if let Some(e) = saved_c0 {
+        cam[0].set_endpoint(e);
     }
     let w = 1.0 / (1.0 + sum);
     if w.is_finite() {
