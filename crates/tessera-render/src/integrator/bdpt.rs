@@ -162,7 +162,8 @@ struct Vertex {
 
 /// A vertex without its BSDF: all an endpoint (a camera or light vertex, whose BSDF is
 /// never evaluated) holds. `mis_weight` swaps a sampled endpoint in and out through it
-/// rather than copying whole vertices (hundreds of bytes each) once per technique.
+/// rather than copying whole vertices (hundreds of bytes each) once per technique, and
+/// `random_walk` writes a surface vertex through it and its BSDF separately, in place.
 #[derive(Clone, Copy)]
 struct Endpoint {
     kind: Kind,
@@ -524,51 +525,32 @@ fn random_walk(
         // Absorption inside a KHR_materials_volume medium along the segment just traced
         // (connections between two vertices inside a medium are not attenuated).
         beta *= scene.transmittance(&sp, dir, hit.t);
-        // Written field by field in place: a vertex (with its BSDF) is large, and one built
-        // on the stack is copied whole into the array. The pattern names every field, so a
-        // new one cannot be left stale.
+        // Written in place, the BSDF straight into its slot: a vertex (with its BSDF) is
+        // large, and one built on the stack is copied whole into the array.
         let (before, here) = path.split_at_mut(n);
         let v = &mut here[0];
-        {
-            let Vertex {
-                kind,
-                p,
-                p_error,
-                ng,
-                ns,
-                wo,
-                frame,
-                bsdf,
-                beta: v_beta,
-                le,
-                light,
-                infinite,
-                delta,
-                delta_light,
-                pdf_fwd: v_pdf_fwd,
-                pdf_rev,
-            } = v;
-            *kind = Kind::Surface;
-            *p = sp.p;
-            *p_error = sp.p_error;
-            *ng = sp.ng;
-            *ns = sp.ns;
-            *wo = -dir;
-            *frame = Frame::from_normal(sp.ns);
-            *bsdf = scene.bsdf(&sp, -dir);
-            *v_beta = beta;
-            *le = if !importance && sp.light != NO_LIGHT {
+        v.set_endpoint(Endpoint {
+            kind: Kind::Surface,
+            p: sp.p,
+            p_error: sp.p_error,
+            ng: sp.ng,
+            ns: sp.ns,
+            wo: -dir,
+            frame: Frame::from_normal(sp.ns),
+            beta,
+            le: if !importance && sp.light != NO_LIGHT {
                 scene.emitted(&sp, -dir)
             } else {
                 Vec3::ZERO
-            };
-            *light = sp.light;
-            *infinite = false;
-            *delta = false;
-            *delta_light = false;
-            *v_pdf_fwd = 0.0;
-            *pdf_rev = 0.0;
-        }
+            },
+            light: sp.light,
+            infinite: false,
+            delta: false,
+            delta_light: false,
+            pdf_fwd: 0.0,
+            pdf_rev: 0.0,
+        });
+        v.bsdf = scene.bsdf(&sp, -dir);
         v.pdf_fwd = ctx.convert_density(&before[n - 1], pdf_fwd, v);
         n += 1;
         if n >= max_vertices {
