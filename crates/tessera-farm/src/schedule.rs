@@ -928,30 +928,7 @@ impl Scheduler {
             let k = (f.frame() - first_frame) as usize;
             slots[k] = FrameSlot::Live(Box::new(f));
         }
-        self.next_seq += 1;
-        let frame_bytes = frame_state_bytes(&plan, false);
-        let mut job = Job {
-            priority,
-            seq: self.next_seq,
-            plan,
-            first_frame,
-            passes_per_unit,
-            frames: Vec::new(),
-            frame_bytes,
-            cursor: 0,
-            returned: BTreeSet::new(),
-            done: BTreeSet::new(),
-            leased: BTreeMap::new(),
-            canceled: false,
-            evicted: false,
-            adaptive: None,
-            checks: BTreeMap::new(),
-            extra_copies: 0,
-            copies_total: 0,
-            unverified: BTreeMap::new(),
-            suspect: BTreeMap::new(),
-        };
-        job.frames = slots;
+        let mut job = self.new_job(id, priority, plan, first_frame, passes_per_unit, slots);
         for i in 0..job.units_total() {
             let u = job.unit(i);
             let merged = match &job.frames[(u.frame - first_frame) as usize] {
@@ -972,24 +949,22 @@ impl Scheduler {
             };
         }
         self.memory.resident += job.resident_bytes();
-        job.copies_total = job.spot_copies(self.spot_fraction, id);
         self.jobs.insert(id, job);
         Ok(())
     }
 
-    /// Adds a job rendering `frames` (inclusive range) of `plan`, cut into units of
-    /// `passes_per_unit` passes. Jobs added earlier run first among equal priorities.
-    pub fn add_job(
+    /// A job `id` with its frame slots, nothing leased or merged, queued after every job
+    /// added so far among equal priorities; its spot-check copies counted at the
+    /// scheduler's fraction.
+    fn new_job(
         &mut self,
         id: JobId,
         priority: i32,
         plan: FramePlan,
-        frames: std::ops::RangeInclusive<u32>,
+        first_frame: u32,
         passes_per_unit: u32,
-    ) {
-        // Nothing is allocated yet: each frame's merge state comes with its first lease.
-        let first_frame = *frames.start();
-        let frames: Vec<FrameSlot> = frames.map(|_| FrameSlot::Pending).collect();
+        frames: Vec<FrameSlot>,
+    ) -> Job {
         self.next_seq += 1;
         let mut job = Job {
             priority,
@@ -1013,6 +988,23 @@ impl Scheduler {
             suspect: BTreeMap::new(),
         };
         job.copies_total = job.spot_copies(self.spot_fraction, id);
+        job
+    }
+
+    /// Adds a job rendering `frames` (inclusive range) of `plan`, cut into units of
+    /// `passes_per_unit` passes. Jobs added earlier run first among equal priorities.
+    pub fn add_job(
+        &mut self,
+        id: JobId,
+        priority: i32,
+        plan: FramePlan,
+        frames: std::ops::RangeInclusive<u32>,
+        passes_per_unit: u32,
+    ) {
+        // Nothing is allocated yet: each frame's merge state comes with its first lease.
+        let first_frame = *frames.start();
+        let frames: Vec<FrameSlot> = frames.map(|_| FrameSlot::Pending).collect();
+        let job = self.new_job(id, priority, plan, first_frame, passes_per_unit, frames);
         self.jobs.insert(id, job);
     }
 
