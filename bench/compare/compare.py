@@ -8,9 +8,14 @@ For every scene and seed the renderers run one after another (interleaved, so a 
 the machine's load hits all of them alike), each with 2 threads, writing an EXR. Then, per
 renderer and scene:
 
-- noise: the per-pixel variance of one render, estimated from the difference of the two
+- noise: the per-pixel variance of one render, estimated from the difference of two
   seeds' images, `mean_p mean_c (a - b)^2 / 2`, so that bias does not enter; pixels that
   see an emitter directly (any of 4x4 camera rays per pixel, cast by Mitsuba) are left out.
+  With more than two seeds (`--seeds 1,2,3,4,...`) the seeds are taken in disjoint pairs
+  (1 and 2, 3 and 4, ...): the noise is the mean of the pairs' estimates, and their spread
+  gives its standard error (printed as `± SE`; the efficiency ratios' relative error
+  combines the two renderers' relative errors). Heavy-tailed scenes (fireflies) need
+  several pairs before two renderers can be ranked.
   Each renderer's images are first scaled so that their mean over the kept pixels equals
   Tessera's (the anchors' unit conventions differ by a few percent; the scale is printed),
   so the noise is compared at equal brightness.
@@ -147,24 +152,38 @@ def main():
         if not os.path.exists(mask_file):
             mitsuba(a, scene, seeds[0], os.path.join(a.out, "mask.exr"), "independent", mask_file)
         keep = ~np.load(mask_file)
-        imgs = {r: [read_exr(os.path.join(a.out, "%s.%s.%d.exr" % (name, r, s))) for s in seeds[:2]] for r in renderers}
+        pairs = len(seeds) // 2
+        imgs = {r: [read_exr(os.path.join(a.out, "%s.%s.%d.exr" % (name, r, s))) for s in seeds[:2 * pairs]]
+                for r in renderers}
         base = renderers[0]
         base_mean = np.mean([im[keep].mean() for im in imgs[base]])
         rows = {}
         for r in renderers:
             scale = base_mean / np.mean([im[keep].mean() for im in imgs[r]])
-            x, y = (im * scale for im in imgs[r])
-            noise = (((x - y) ** 2) / 2.0)[keep].mean()
+            scaled = [im * scale for im in imgs[r]]
+            # One independent estimate of the per-pixel variance per disjoint pair of seeds.
+            per_pair = np.array([(((scaled[2 * i] - scaled[2 * i + 1]) ** 2) / 2.0)[keep].mean()
+                                 for i in range(pairs)])
+            noise = float(per_pair.mean())
+            rel_se = float(per_pair.std(ddof=1) / np.sqrt(pairs) / noise) if pairs > 1 else float("nan")
             seconds = float(np.mean(times[r]))
             cpu_seconds = float(np.mean(cpu[r]))
-            rows[r] = {"scale": scale, "noise": noise, "seconds": seconds, "cpu": cpu_seconds,
-                       "eff": 1.0 / (noise * cpu_seconds),
-                       "mean": (imgs[r][0] + imgs[r][1]) / 2.0}
+            rows[r] = {"scale": scale, "noise": noise, "rel_se": rel_se, "seconds": seconds,
+                       "cpu": cpu_seconds, "eff": 1.0 / (noise * cpu_seconds),
+                       "mean": sum(scaled) / len(scaled) / scale}
         ref = next((r for r in renderers if r.startswith("mitsuba")), base)
         ref_regions = region_means(rows[ref]["mean"], keep)
-        cyc = rows.get("cycles", rows[base])["eff"]
-        best_anchor = max((rows[r]["eff"] for r in renderers if not r.startswith("tessera")),
-                          default=rows[base]["eff"])
+        cyc_row = rows.get("cycles", rows[base])
+        cyc = cyc_row["eff"]
+        best_row = max((rows[r] for r in renderers if not r.startswith("tessera")),
+                       key=lambda q: q["eff"], default=rows[base])
+        best_anchor = best_row["eff"]
+
+        def vs(q, other):
+            text = "%.2fx" % (q["eff"] / other["eff"])
+            if pairs > 1 and q is not other:
+                text += " ± %.0f%%" % (100 * np.hypot(q["rel_se"], other["rel_se"]))
+            return text
         paths = a.width * a.height * a.spp
         print("## %s (Tessera plan: %s)\n" % (name, plan))
         print("| renderer | seconds | CPU seconds | M paths per CPU-s | noise variance | efficiency vs Cycles | vs best anchor | brightness scale | region means / %s (min..max) |" % ref)
@@ -172,9 +191,12 @@ def main():
         for r in renderers:
             q = rows[r]
             ratio = region_means(q["mean"], keep) / ref_regions
-            print("| %s | %.2f | %.2f | %.3f | %.4g | %.2fx | %.2fx | %.4f | %.3f..%.3f |" % (
-                r, q["seconds"], q["cpu"], paths / q["cpu"] / 1e6, q["noise"], q["eff"] / cyc,
-                q["eff"] / best_anchor, q["scale"], np.nanmin(ratio), np.nanmax(ratio)))
+            noise = "%.4g" % q["noise"]
+            if pairs > 1:
+                noise += " ± %.0f%%" % (100 * q["rel_se"])
+            print("| %s | %.2f | %.2f | %.3f | %s | %s | %s | %.4f | %.3f..%.3f |" % (
+                r, q["seconds"], q["cpu"], paths / q["cpu"] / 1e6, noise, vs(q, cyc_row),
+                vs(q, best_row), q["scale"], np.nanmin(ratio), np.nanmax(ratio)))
         print()
         sys.stdout.flush()
 
