@@ -85,7 +85,8 @@ pub struct JobStatus {
     pub error_estimator: Option<String>,
     /// Why `error_estimate` may be optimistic for this job, when the render plan knows
     /// (path tracing a scene whose caustics are lit by tiny or delta lights, which only
-    /// bdpt samples; `tessera_farm::job::ResolvedJob::error_estimate_caveat`, also in the
+    /// bdpt samples; adaptive stopping on a scene of rare bright paths;
+    /// `tessera_farm::job::ResolvedJob::error_estimate_caveat`, also in the
     /// EXR header). Absent when there is none, from older servers, and for a job stored
     /// by one (before store schema version 6, PostgreSQL 5).
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -168,7 +168,8 @@ export function jobView(id, poke) {
     const target = j.target_error ? percent(j.target_error) : "none";
     // Once done, the server's verdict: a finished job need not have reached its target.
     const verdict = j.stop_reason ? ` (${j.stop_reason})` : "";
-    // The plan's caveat (path tracing caustics of a tiny light): flagged, in full on hover.
+    // The estimate's caveat (path-traced caustics of a tiny light, adaptive stopping on a
+    // scene of rare paths): flagged, in full on hover.
     const caveat = j.error_estimate_caveat ? " — may be optimistic" : "";
     setText(f.error, `${percent(j.error_estimate)} / ${target}${verdict}${caveat}`);
     f.error.title = j.error_estimate_caveat || "";

@@ -225,7 +225,8 @@ export function submitView() {
           h("th", { scope: "col" }, "wall time"), h("th", { scope: "col" }, "worker-seconds"),
           h("th", { scope: "col" }, ""))),
         h("tbody", {}, ...rows))),
-      // The plan's caveat (path tracing caustics of a tiny light): these errors may be low.
+      // The estimate's caveat (path-traced caustics of a tiny light, adaptive stopping on a
+      // scene of rare paths): these errors may be low.
       ...(q.error_estimate_caveat ? [h("p", { class: "hint caveat" }, `The quoted errors ${q.error_estimate_caveat}.`)] : []));
   }
 

@@ -192,6 +192,46 @@ mod tests {
         assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 64));
     }
 
+    /// Issue 15: an adaptive render's estimate is optimistic where rare paths carry the
+    /// error (glossy veach-mis), calibrated on the diffuse Cornell box; the header says so
+    /// only where it applies.
+    #[test]
+    fn adaptive_jobs_of_scenes_with_rare_paths_carry_a_caveat() {
+        let caveat = |json: &str| {
+            let r = resolve(json);
+            let v: serde_json::Value = serde_json::from_str(&r.metadata_json(None)).unwrap();
+            assert_eq!(
+                v["error_estimate_caveat"].as_str(),
+                r.error_estimate_caveat().as_deref()
+            );
+            r.error_estimate_caveat()
+        };
+        let adaptive = r#", "spp": 1024, "adaptive": "unbiased", "target_error": 0.05}"#;
+        let veach =
+            format!(r#"{{"scene": "builtin:veach-mis", "width": 32, "height": 32{adaptive}"#);
+        let c = caveat(&veach).expect("glossy plates under adaptive stopping");
+        assert!(
+            c.contains("adaptive stopping") && c.contains("glossily"),
+            "{c}"
+        );
+        assert_eq!(
+            caveat(r#"{"scene": "builtin:veach-mis", "width": 32, "height": 32, "spp": 64}"#),
+            None
+        );
+        let cornell =
+            format!(r#"{{"scene": "builtin:cornell-box", "width": 32, "height": 32{adaptive}"#);
+        assert_eq!(caveat(&cornell), None);
+        // Path-traced caustics of a tiny light under adaptive stopping: both reasons.
+        let caustic = format!(
+            r#"{{"scene": "builtin:caustic", "width": 32, "height": 32, "integrator": "path"{adaptive}"#
+        );
+        let c = caveat(&caustic).unwrap();
+        assert!(
+            c.contains("BSDF-sampled ray") && c.contains("; may be optimistic under adaptive"),
+            "{c}"
+        );
+    }
+
     #[test]
     fn metadata_is_json_with_the_settings() {
         let r = resolve(r#"{"scene": "builtin:furnace", "width": 8, "height": 4, "spp": 16}"#);

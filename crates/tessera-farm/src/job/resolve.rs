@@ -265,14 +265,23 @@ impl ResolvedJob {
         out
     }
 
-    /// Why this job's error estimate may be optimistic, or `None`
-    /// ([`crate::job::RenderPlan::error_estimate_caveat`] for the integrator it renders
-    /// with).
+    /// Why this job's error estimate may be optimistic, or `None`: for the integrator it
+    /// renders with ([`crate::job::RenderPlan::error_estimate_caveat`]) and, for an
+    /// adaptive job, for its stopping
+    /// ([`crate::job::RenderPlan::adaptive_error_estimate_caveat`]), joined by "; ".
     pub fn error_estimate_caveat(&self) -> Option<String> {
         if self.black {
             return None;
         }
-        self.render_plan
-            .error_estimate_caveat(self.config.integrator)
+        let integrator = self
+            .render_plan
+            .error_estimate_caveat(self.config.integrator);
+        let adaptive = (self.job.adaptive != super::choice::AdaptiveMode::Off)
+            .then(|| self.render_plan.adaptive_error_estimate_caveat())
+            .flatten();
+        match (integrator, adaptive) {
+            (Some(a), Some(b)) => Some(format!("{a}; {b}")),
+            (a, b) => a.or(b),
+        }
     }
 }
