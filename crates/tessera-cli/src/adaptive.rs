@@ -116,7 +116,11 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
         println!("target: {target}");
     }
     println!("seconds: {:.3}", out.seconds);
-    println!("estimated relative error: {:.4}", out.frame.image_error());
+    println!(
+        "estimated relative error: {:.4} (estimator: {})",
+        out.frame.image_error(),
+        p.resolved.error_estimator().name()
+    );
     crate::render::print_caveat(&p.resolved);
     println!(
         "paths per second: {:.0}",

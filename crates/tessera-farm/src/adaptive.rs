@@ -912,11 +912,13 @@ impl AdaptiveFrame {
         img
     }
 
-    /// Image relative error estimate ([`crate::image_relative_error`],
-    /// ARCHITECTURE.md §3) over the pixels with at least 2 passes in their estimate; 0 if
-    /// there are none.
+    /// Image relative error estimate (ARCHITECTURE.md §3; the mode's
+    /// [`crate::ErrorEstimator`]: [`crate::image_relative_error_pooled`] for unbiased,
+    /// [`crate::image_relative_error`] otherwise) over the pixels with at least 2 passes in
+    /// their estimate; 0 if there are none.
     pub fn image_error(&self) -> f64 {
-        crate::stats::image_relative_error_of_tiles(&self.plan, |t| {
+        let estimator = crate::ErrorEstimator::for_mode(self.settings.mode);
+        crate::stats::image_relative_error_of_tiles(&self.plan, estimator, |t| {
             self.tiles.get(t).map(AdaptiveTile::pixels)
         })
     }

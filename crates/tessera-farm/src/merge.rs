@@ -458,9 +458,11 @@ impl FrameAccumulator {
     /// pixels with fewer have no error estimate and are excluded. 0 if no pixel has 2
     /// passes. Never NaN.
     pub fn image_error(&self) -> f64 {
-        crate::stats::image_relative_error_of_tiles(&self.plan, |t| {
-            self.tiles.get(t).map(TileAccumulator::pixels)
-        })
+        crate::stats::image_relative_error_of_tiles(
+            &self.plan,
+            crate::ErrorEstimator::Robust,
+            |t| self.tiles.get(t).map(TileAccumulator::pixels),
+        )
     }
 }
 
@@ -553,23 +555,32 @@ impl FrameImage {
         out
     }
 
-    /// The image's relative error estimate from its own layers
-    /// ([`crate::image_relative_error`], ARCHITECTURE.md §3: each pixel's standard
-    /// error `relative_error * (lum(mean) + REL_EPS)` over its robust scale), or `None`
-    /// while a pixel has fewer than 2 passes (it has no estimate, so no claim about the
-    /// image can be made). Computed from the written layers, so every renderer of the same
-    /// image (local or farm, live or restored from checkpoints) gets the same number.
-    pub fn error_estimate(&self) -> Option<f64> {
+    /// The image's relative error estimate `estimator` from its own layers
+    /// (ARCHITECTURE.md §3: [`crate::image_relative_error`] or
+    /// [`crate::image_relative_error_pooled`], from each pixel's standard error
+    /// `relative_error * (lum(mean) + REL_EPS)` and its passes), or `None` while a pixel
+    /// has fewer than 2 passes (it has no estimate, so no claim about the image can be
+    /// made). Computed from the written layers, so every renderer of the same image (local
+    /// or farm, live or restored from checkpoints) gets the same number.
+    pub fn error_estimate(&self, estimator: crate::ErrorEstimator) -> Option<f64> {
         if self.passes.is_empty() || self.passes.iter().any(|&p| p < 2) {
             return None;
         }
-        let w = self.width as usize;
-        let e = crate::stats::image_relative_error(w, self.height as usize, |x, y| {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let pixel = |x: usize, y: usize| {
             let p = y * w + x;
             let m = crate::luminance(self.mean.get(p)?.map(f64::from));
             let se = f64::from(*self.relative_error.get(p)?) * (m.max(0.0) + crate::REL_EPS);
-            Some((m, se * se))
-        });
+            Some((m, se * se, *self.passes.get(p)?))
+        };
+        let e = match estimator {
+            crate::ErrorEstimator::Robust => {
+                crate::stats::image_relative_error(w, h, |x, y| pixel(x, y).map(|(m, v, _)| (m, v)))
+            }
+            crate::ErrorEstimator::PooledPerPass => {
+                crate::stats::image_relative_error_pooled(w, h, pixel)
+            }
+        };
         e.is_finite().then_some(e)
     }
 }

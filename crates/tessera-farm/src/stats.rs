@@ -22,6 +22,41 @@ pub const REL_EPS: f64 = 1e-2;
 /// caustics of small lights): `docs/benchmarks.md`, "Calibration suite".
 pub const ERROR_ESTIMATOR: &str = "pass-spread, robust scale; pixel intervals pooled 3x3";
 
+/// The error estimator of unbiased adaptive renders ([`ErrorEstimator::PooledPerPass`]),
+/// named as [`ERROR_ESTIMATOR`] is.
+pub const ERROR_ESTIMATOR_POOLED: &str =
+    "pass-spread, robust scale, per-pass variance pooled 3x3; pixel intervals pooled 3x3";
+
+/// Which image error estimate a render reports (ARCHITECTURE.md §3).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ErrorEstimator {
+    /// [`image_relative_error`]: each pixel's own pass spread over its robust scale.
+    /// Uniform and sequential renders.
+    Robust,
+    /// [`image_relative_error_pooled`]: each pixel's per-pass relative variance pooled
+    /// over its 3x3 neighbourhood, over its own pass count. Unbiased adaptive renders,
+    /// whose pass counts follow a pilot that missed rare paths where the error is.
+    PooledPerPass,
+}
+
+impl ErrorEstimator {
+    /// The estimator of a render with adaptive mode `mode`.
+    pub fn for_mode(mode: crate::job::AdaptiveMode) -> Self {
+        match mode {
+            crate::job::AdaptiveMode::Unbiased => Self::PooledPerPass,
+            crate::job::AdaptiveMode::Off | crate::job::AdaptiveMode::Sequential => Self::Robust,
+        }
+    }
+
+    /// The name in the EXR header (`error_estimator`), the job status and `tessera render`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Robust => ERROR_ESTIMATOR,
+            Self::PooledPerPass => ERROR_ESTIMATOR_POOLED,
+        }
+    }
+}
+
 /// The luminance scale a pixel's standard error is divided by in the image error
 /// estimate: `max(m - se, min(m, m_3x3))`, clamped at 0, plus [`REL_EPS`], where `m` is the
 /// pixel's mean luminance, `se` its estimated standard error and `m_3x3` the mean
@@ -69,20 +104,111 @@ pub fn image_relative_error(
             let Some((m, v)) = pixel(x, y) else {
                 continue;
             };
-            let (mut nsum, mut n) = (0.0f64, 0u32);
-            for qy in y.saturating_sub(1)..(y + 2).min(height) {
-                for qx in x.saturating_sub(1)..(x + 2).min(width) {
-                    if let Some((qm, _)) = pixel(qx, qy) {
-                        nsum += qm.max(0.0);
-                        n += 1;
-                    }
-                }
-            }
-            let rel = v.max(0.0).sqrt() / robust_scale(m, v, nsum / f64::from(n));
-            sum += rel * rel;
+            sum += robust_relative_variance(width, height, x, y, m, v, |qx, qy| {
+                pixel(qx, qy).map(|q| q.0)
+            });
             count += 1;
         }
     }
+    root_mean(sum, count)
+}
+
+/// The image relative error estimate of an unbiased adaptive render (ARCHITECTURE.md §3,
+/// [`ErrorEstimator::PooledPerPass`]): the root mean square over the pixels with an
+/// estimate of `sqrt(q_3x3 / k)`, where `k` is the pixel's pass count and `q_3x3` the mean
+/// over its 3x3 neighbourhood (the neighbours with an estimate, the pixel included) of the
+/// per-pass relative variance `q = k v / robust_scale(m, v, m_3x3)²`. `pixel(x, y)` gives
+/// the mean luminance `m`, the estimated variance of that mean `v` and the passes `k`, or
+/// `None` for a pixel with fewer than 2 passes. 0 when no pixel has an estimate; never NaN.
+///
+/// Why: in Kirk & Arvo's two-stage scheme a pixel's fresh pass count follows its pilot,
+/// and a pixel whose pilot missed the rare bright paths near it gets the fewest; its few
+/// fresh passes mostly miss them too, so its own variance is low exactly where its error is
+/// high, and the plain estimate was 0.59-0.71 of the measured error on path-traced
+/// veach-mis (docs/benchmarks.md, "the error estimate under adaptive sampling"). Its neighbours'
+/// per-pass variance is an estimate of its own that does not depend on its luck (the
+/// pilot already pools it for the allocation, `pooled_pilot_variance`). With equal pass
+/// counts the mean over pixels of `q_3x3 / k` is the mean of `v / scale²` up to the
+/// image's border, so a uniform render would get the plain estimate back. Measured: 0.85-1.10
+/// of the measured error on veach-mis at 64x64 and 128x128 (plain 0.60-0.77); it
+/// overstates where a neighbourhood spans a sharp change of the variance (1.24-1.29 at
+/// 32x32), and it cannot find rare paths the neighbours missed too (a small light's
+/// highlight in a glossy floor: 0.61, plain 0.57).
+pub fn image_relative_error_pooled(
+    width: usize,
+    height: usize,
+    pixel: impl Fn(usize, usize) -> Option<(f64, f64, u32)>,
+) -> f64 {
+    // Rows y - 1, y and y + 1 of the per-pass relative variances, in a ring: each is
+    // computed once, and nothing frame-sized is allocated.
+    let mut rows: [Vec<Option<f64>>; 3] = Default::default();
+    let per_pass_row = |y: usize, out: &mut Vec<Option<f64>>| {
+        out.clear();
+        out.extend((0..width).map(|x| {
+            pixel(x, y).map(|(m, v, k)| {
+                let q = robust_relative_variance(width, height, x, y, m, v, |qx, qy| {
+                    pixel(qx, qy).map(|p| p.0)
+                });
+                q * f64::from(k)
+            })
+        }));
+    };
+    let (mut sum, mut count) = (0.0f64, 0u64);
+    for y in 0..height {
+        if y == 0 {
+            per_pass_row(0, &mut rows[0]);
+        }
+        if y + 1 < height {
+            per_pass_row(y + 1, &mut rows[(y + 1) % 3]);
+        }
+        for x in 0..width {
+            let Some((_, _, k)) = pixel(x, y) else {
+                continue;
+            };
+            let (mut qsum, mut n) = (0.0f64, 0u32);
+            let columns = x.saturating_sub(1)..(x + 2).min(width);
+            for qy in y.saturating_sub(1)..(y + 2).min(height) {
+                for q in rows[qy % 3][columns.clone()].iter().flatten() {
+                    qsum += q;
+                    n += 1;
+                }
+            }
+            // n >= 1: the pixel itself has an estimate.
+            sum += qsum / f64::from(n) / f64::from(k.max(1));
+            count += 1;
+        }
+    }
+    root_mean(sum, count)
+}
+
+/// `(sqrt(v) / robust_scale(m, v, m_3x3))²` of pixel `(x, y)`, where `m_3x3` is the mean of
+/// `mean_at` over its 3x3 neighbourhood (the neighbours with one, the pixel included).
+fn robust_relative_variance(
+    width: usize,
+    height: usize,
+    x: usize,
+    y: usize,
+    m: f64,
+    v: f64,
+    mean_at: impl Fn(usize, usize) -> Option<f64>,
+) -> f64 {
+    let (mut nsum, mut n) = (0.0f64, 0u32);
+    for qy in y.saturating_sub(1)..(y + 2).min(height) {
+        for qx in x.saturating_sub(1)..(x + 2).min(width) {
+            if let Some(qm) = mean_at(qx, qy) {
+                nsum += qm.max(0.0);
+                n += 1;
+            }
+        }
+    }
+    // The square of `sqrt(v) / scale`, in that order: the estimate's bits stay those of
+    // the relative error it always summed.
+    let rel = v.max(0.0).sqrt() / robust_scale(m, v, nsum / f64::from(n.max(1)));
+    rel * rel
+}
+
+/// `sqrt(sum / count)`, 0 for no pixels or a non-finite result.
+fn root_mean(sum: f64, count: u64) -> f64 {
     if count == 0 {
         return 0.0;
     }
@@ -94,22 +220,31 @@ pub fn image_relative_error(
     }
 }
 
-/// [`image_relative_error`] of a frame of `plan` held as tiles: `tile(t)` gives tile `t`'s
+/// The image error estimate `estimator` of a frame of `plan` held as tiles: `tile(t)` gives tile `t`'s
 /// pixels' statistics, row-major within the tile ([`crate::FramePlan::get_tile`]). Pixels
 /// with fewer than 2 passes have no estimate.
 pub(crate) fn image_relative_error_of_tiles<'a>(
     plan: &crate::FramePlan,
+    estimator: ErrorEstimator,
     tile: impl Fn(usize) -> Option<&'a [PixelStats]>,
 ) -> f64 {
     let (width, height) = (plan.width as usize, plan.height as usize);
     let edge = plan.tile_size.max(1) as usize;
     let tiles_x = plan.tiles_x() as usize;
-    image_relative_error(width, height, |x, y| {
+    let stats = |x: usize, y: usize| {
         let (lx, ly) = (x % edge, y % edge);
         let tile_width = edge.min(width - (x - lx));
         let s = tile((y / edge) * tiles_x + x / edge)?.get(ly * tile_width + lx)?;
-        (s.passes >= 2).then(|| (s.mean_lum, s.lum_variance_of_mean()))
-    })
+        (s.passes >= 2).then_some(s)
+    };
+    match estimator {
+        ErrorEstimator::Robust => image_relative_error(width, height, |x, y| {
+            stats(x, y).map(|s| (s.mean_lum, s.lum_variance_of_mean()))
+        }),
+        ErrorEstimator::PooledPerPass => image_relative_error_pooled(width, height, |x, y| {
+            stats(x, y).map(|s| (s.mean_lum, s.lum_variance_of_mean(), s.passes))
+        }),
+    }
 }
 
 /// Luminance weights of linear Rec. 709 / sRGB primaries.
@@ -252,6 +387,97 @@ mod tests {
         let e = of(&pixels);
         assert!((e - (10.0 * own * own / 11.0).sqrt()).abs() < 1e-12, "{e}");
         assert_eq!(image_relative_error(2, 1, |_, _| None), 0.0);
+    }
+
+    /// The pooled estimate against a direct, frame-sized computation of its definition,
+    /// on random images with holes and unequal pass counts (the ring of rows must see the
+    /// right neighbours at every row and at the borders); on a flat image with equal passes
+    /// it is the plain estimate.
+    #[test]
+    fn pooled_estimate_matches_its_definition() {
+        let mut rng = Rng::new(15);
+        for case in 0..50 {
+            let (w, h) = (1 + case % 7, 1 + (case / 7) % 6);
+            let pixels: Vec<Option<(f64, f64, u32)>> = (0..w * h)
+                .map(|_| {
+                    (rng.uniform() > 0.15).then(|| {
+                        let m = 10f64.powf(-3.0 + 4.0 * rng.uniform());
+                        let v = m * m * 10f64.powf(-4.0 + 4.0 * rng.uniform());
+                        (m, v, 2 + (rng.next_u64() % 60) as u32)
+                    })
+                })
+                .collect();
+            let at = |x: usize, y: usize| pixels[y * w + x];
+            let neighbours = |x: usize, y: usize| {
+                (y.saturating_sub(1)..(y + 2).min(h)).flat_map(move |qy| {
+                    (x.saturating_sub(1)..(x + 2).min(w)).map(move |qx| (qx, qy))
+                })
+            };
+            let q: Vec<Option<f64>> = (0..w * h)
+                .map(|i| {
+                    let (x, y) = (i % w, i / w);
+                    let (m, v, k) = at(x, y)?;
+                    let ms: Vec<f64> = neighbours(x, y)
+                        .filter_map(|(qx, qy)| at(qx, qy).map(|p| p.0))
+                        .collect();
+                    let m3 = ms.iter().sum::<f64>() / ms.len() as f64;
+                    Some(v / robust_scale(m, v, m3).powi(2) * f64::from(k))
+                })
+                .collect();
+            let (mut sum, mut count) = (0.0, 0);
+            for i in 0..w * h {
+                let (x, y) = (i % w, i / w);
+                let Some((_, _, k)) = at(x, y) else { continue };
+                let qs: Vec<f64> = neighbours(x, y)
+                    .filter_map(|(qx, qy)| q[qy * w + qx])
+                    .collect();
+                sum += qs.iter().sum::<f64>() / qs.len() as f64 / f64::from(k);
+                count += 1;
+            }
+            let expected = if count == 0 {
+                0.0
+            } else {
+                (sum / count as f64).sqrt()
+            };
+            let got = image_relative_error_pooled(w, h, at);
+            assert!(
+                rel_close(got, expected, 1e-12),
+                "case {case}: {got} != {expected}"
+            );
+        }
+        let flat = |_, _| Some((1.0, 0.01, 4));
+        let plain = image_relative_error(5, 4, |_, _| Some((1.0, 0.01)));
+        assert!(rel_close(
+            image_relative_error_pooled(5, 4, flat),
+            plain,
+            1e-12
+        ));
+        assert_eq!(image_relative_error_pooled(3, 2, |_, _| None), 0.0);
+    }
+
+    /// What the pooling is for: a pixel left with few passes, whose own spread is small,
+    /// beside pixels whose many passes show a large per-pass variance, is estimated from
+    /// theirs; the plain estimate trusts its own.
+    #[test]
+    fn pooled_estimate_lends_neighbours_variance_to_a_lucky_pixel() {
+        // 3x1: two noisy pixels (per-pass relative variance 1, 100 passes) around a pixel
+        // with 4 passes that all missed (variance 0).
+        let px = |x: usize, _| {
+            Some(if x == 1 {
+                (1.0, 0.0, 4)
+            } else {
+                (1.0, 1.01f64.powi(2) / 100.0, 100)
+            })
+        };
+        let plain = image_relative_error(3, 1, |x, y| px(x, y).map(|(m, v, _)| (m, v)));
+        let pooled = image_relative_error_pooled(3, 1, px);
+        assert!(rel_close(plain, (2.0f64 / 300.0).sqrt(), 1e-12), "{plain}");
+        // Per-pass relative variances: 1 at the edges (0.01 x 100 passes), 0 in the
+        // middle. Each edge pools itself and the middle, (1 + 0) / 2 over 100 passes; the
+        // middle pools all three, (1 + 0 + 1) / 3 over its 4 passes.
+        let expected = ((2.0 * 0.5 / 100.0 + (2.0 / 3.0) / 4.0) / 3.0f64).sqrt();
+        assert!(rel_close(pooled, expected, 1e-12), "{pooled} != {expected}");
+        assert!(pooled > 2.5 * plain, "{pooled} against {plain}");
     }
 
     #[test]

@@ -38,7 +38,9 @@
 
 use std::sync::OnceLock;
 use tessera_farm::{luminance, REL_EPS};
-use tessera_farm::{AdaptiveFrame, AdaptiveMode, AdaptiveSettings, FrameImage, FramePlan};
+use tessera_farm::{
+    AdaptiveFrame, AdaptiveMode, AdaptiveSettings, ErrorEstimator, FrameImage, FramePlan,
+};
 use tessera_render::adaptive::{render_adaptive, Limits};
 use tessera_render::integrator::Integrator;
 use tessera_render::render::{render_frame, RenderConfig};
@@ -265,9 +267,18 @@ fn suite_settings(seed: u64) -> RenderConfig {
 }
 
 fn suite_scene(scene: &str) -> RenderScene {
-    let s = tessera_scene::load(&suite_path(scene)).unwrap();
-    RenderScene::build(&s, W, H).unwrap()
+    suite_scene_sized(scene, W, H)
 }
+
+fn suite_scene_sized(scene: &str, width: u32, height: u32) -> RenderScene {
+    let s = tessera_scene::load(&suite_path(scene)).unwrap();
+    RenderScene::build(&s, width, height).unwrap()
+}
+
+/// References at 64x64 (name, scene, edge): where 32x32 pixels are too coarse for a
+/// check (the unbiased adaptive estimate on veach-mis, whose 3x3 neighbourhoods at 32x32
+/// span the plates' edges), written with the suite's reference settings.
+const LARGE_REFERENCES: [(&str, &str, u32); 1] = [("veach-mis-64", "builtin:veach-mis", 64)];
 
 fn reference_file(name: &str) -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -277,6 +288,11 @@ fn reference_file(name: &str) -> std::path::PathBuf {
 
 /// The committed reference of `name`: its mean and variance-of-mean layers.
 fn suite_reference(name: &str) -> FrameImage {
+    suite_reference_sized(name, W, H)
+}
+
+/// [`suite_reference`] of a reference of `width` x `height` pixels.
+fn suite_reference_sized(name: &str, width: u32, height: u32) -> FrameImage {
     let path = reference_file(name);
     let bytes = std::fs::read(&path).unwrap_or_else(|e| {
         panic!(
@@ -286,7 +302,7 @@ fn suite_reference(name: &str) -> FrameImage {
         )
     });
     let exr = tessera_image::read_exr(&bytes).unwrap();
-    assert_eq!((exr.width, exr.height), (W as usize, H as usize));
+    assert_eq!((exr.width, exr.height), (width as usize, height as usize));
     let layer = |c: &str| exr.get(c).unwrap().to_vec();
     let (r, g, b) = (layer("R"), layer("G"), layer("B"));
     let (vr, vg, vb) = (
@@ -294,8 +310,9 @@ fn suite_reference(name: &str) -> FrameImage {
         layer("variance.G"),
         layer("variance.B"),
     );
-    let n = (W * H) as usize;
-    let mut img = FrameImage::black(&FramePlan::new(W, H, 8, 64, REFERENCE_PASSES).unwrap());
+    let n = (width * height) as usize;
+    let mut img =
+        FrameImage::black(&FramePlan::new(width, height, 8, 64, REFERENCE_PASSES).unwrap());
     for p in 0..n {
         img.mean[p] = [r[p], g[p], b[p]];
         img.variance_of_mean[p] = [vr[p], vg[p], vb[p]];
@@ -337,13 +354,14 @@ fn reference_settings(name: &str) -> (RenderConfig, u32) {
 fn write_calibration_references() {
     std::fs::create_dir_all(reference_file("x").parent().unwrap()).unwrap();
     let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
-    for (name, scene) in SUITE {
+    let sized = SUITE.iter().map(|&(name, scene)| (name, scene, W));
+    for (name, scene, edge) in sized.chain(LARGE_REFERENCES) {
         if !only.is_empty() && !only.split(',').any(|s| s == name) {
             continue;
         }
-        let rs = suite_scene(scene);
+        let rs = suite_scene_sized(scene, edge, edge);
         let (settings, per_pass) = reference_settings(name);
-        let plan = FramePlan::new(W, H, 8, per_pass, REFERENCE_PASSES).unwrap();
+        let plan = FramePlan::new(edge, edge, 8, per_pass, REFERENCE_PASSES).unwrap();
         let img = render_frame(&rs, &settings, &plan, 0, 0, |_, _| {}).image();
         let meta = format!(
             "{{\"calibration_reference\":\"{scene}\",\"passes\":{REFERENCE_PASSES},\"samples_per_pass\":{per_pass},\"seed\":1000,\"max_depth\":8,\"integrator\":\"{}\"}}",
@@ -353,7 +371,7 @@ fn write_calibration_references() {
         std::fs::write(reference_file(name), bytes).unwrap();
         eprintln!(
             "{name}: reference written, estimated error {:.4}",
-            img.error_estimate().unwrap()
+            img.error_estimate(ErrorEstimator::Robust).unwrap()
         );
     }
 }
@@ -400,7 +418,7 @@ fn calibrate(name: &str, scene: &str, spp: u32, seed: u64, integrator: Integrato
             inside_pooled += usize::from(d <= 2.0 * (f64::from(pooled) + vr).sqrt());
         }
     }
-    let estimated = img.error_estimate().unwrap();
+    let estimated = img.error_estimate(ErrorEstimator::Robust).unwrap();
     let own_estimated = (img
         .relative_error
         .iter()
@@ -670,4 +688,78 @@ fn t_coverage_matches_tables() {
     assert!((t_coverage(3) - 0.8607).abs() < 1e-3, "{}", t_coverage(3));
     assert!((t_coverage(15) - 0.9361).abs() < 1e-3, "{}", t_coverage(15));
     assert!((t_coverage(10_000) - 0.9545).abs() < 1e-3);
+}
+
+/// Estimated over measured image error of unbiased adaptive renders of a suite scene at
+/// `target` (cap 2,048 spp), root mean square over `seeds`, with the estimator the mode
+/// reports (pooled per-pass variance) and with the plain robust estimate.
+fn adaptive_calibration(name: &str, target: f64, seeds: &[u64]) -> (f64, f64) {
+    let sized = SUITE.iter().map(|&(name, scene)| (name, scene, W));
+    let (_, scene, edge) = sized.chain(LARGE_REFERENCES).find(|s| s.0 == name).unwrap();
+    let r = suite_reference_sized(name, edge, edge);
+    let rs = suite_scene_sized(scene, edge, edge);
+    let plan = tessera_farm::adaptive_plan(edge, edge, 16384, 32).unwrap();
+    let (mut pooled2, mut plain2, mut measured2) = (0.0, 0.0, 0.0);
+    for &seed in seeds {
+        let s = AdaptiveSettings {
+            mode: AdaptiveMode::Unbiased,
+            target_error: target,
+            ..AdaptiveSettings::default()
+        };
+        let frame = AdaptiveFrame::new(plan, 0, s).unwrap();
+        let settings = RenderConfig {
+            rr_depth: 3,
+            ..suite_settings(seed)
+        };
+        let out = render_adaptive(&rs, &settings, frame, 0, Limits::default(), |_| {});
+        let img = out.frame.image();
+        let pooled = img.error_estimate(ErrorEstimator::PooledPerPass).unwrap();
+        // The frame reports the mode's estimator, and from the written layers it is the same.
+        assert!(
+            (out.frame.image_error() - pooled).abs() <= 1e-5 * pooled,
+            "{} against {pooled}",
+            out.frame.image_error()
+        );
+        let plain = img.error_estimate(ErrorEstimator::Robust).unwrap();
+        let measured = measured_error(&img, &r);
+        eprintln!(
+            "adaptive calibration {name} unbiased {target} seed {seed}: pooled {pooled:.4}, \
+             plain {plain:.4}, measured {measured:.4}"
+        );
+        pooled2 += pooled * pooled;
+        plain2 += plain * plain;
+        measured2 += measured * measured;
+    }
+    ((pooled2 / measured2).sqrt(), (plain2 / measured2).sqrt())
+}
+
+/// Seeds of the adaptive calibration check: one render's measured error on veach-mis is
+/// heavy-tailed (0.025-0.060 over seeds 1-8 at target 0.05, while the estimates stay
+/// within 10%), so four seeds do not pin the ratio (seeds 8-11 alone: 1.29 pooled).
+const ADAPTIVE_SEEDS: [u64; 16] = [8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23];
+
+/// Issue 15: an unbiased adaptive render's estimate is calibrated where rare paths carry
+/// the error. Path-traced veach-mis, whose floor sees the plates' glossy caustics of the
+/// small lights: the pixels a pilot left at the fewest fresh passes are those whose
+/// passes missed the rare paths near them, and the plain estimate was 0.59-0.71 of the
+/// measured error at 64x64 (docs/benchmarks.md, "the error estimate under adaptive
+/// sampling"). With
+/// each pixel's per-pass variance pooled over its neighbourhood
+/// (`tessera_farm::image_relative_error_pooled`) it must be within 0.8-1.25 over four
+/// seeds, on the diffuse Cornell box as well. Veach-mis is checked at 64x64
+/// ([`LARGE_REFERENCES`]): at 32x32 a 3x3 neighbourhood spans a plate's edge, and the
+/// pooled estimate is conservative there (1.24, the plain one 0.81).
+#[test]
+fn unbiased_adaptive_estimate_is_calibrated() {
+    for (name, target) in [("veach-mis-64", 0.05), ("cornell-box", 0.05)] {
+        let (pooled, plain) = adaptive_calibration(name, target, &ADAPTIVE_SEEDS);
+        eprintln!(
+            "adaptive calibration {name} unbiased {target} over {ADAPTIVE_SEEDS:?}: estimated / \
+             measured {pooled:.3} pooled, {plain:.3} plain"
+        );
+        assert!(
+            (0.8..=1.25).contains(&pooled),
+            "{name}: pooled estimate / measured {pooled} (plain {plain})"
+        );
+    }
 }

@@ -209,6 +209,18 @@ mod tests {
         let adaptive = r#", "spp": 1024, "adaptive": "unbiased", "target_error": 0.05}"#;
         let veach =
             format!(r#"{{"scene": "builtin:veach-mis", "width": 32, "height": 32{adaptive}"#);
+        // The unbiased mode reports the pooled per-pass estimator; the header names it.
+        let header = |json: &str| -> serde_json::Value {
+            serde_json::from_str(&resolve(json).metadata_json(None)).unwrap()
+        };
+        assert_eq!(
+            header(&veach)["error_estimator"],
+            tessera_farm::ERROR_ESTIMATOR_POOLED
+        );
+        assert_eq!(
+            header(&veach.replace("unbiased", "sequential"))["error_estimator"],
+            tessera_farm::ERROR_ESTIMATOR
+        );
         let c = caveat(&veach).expect("glossy plates under adaptive stopping");
         assert!(
             c.contains("adaptive stopping") && c.contains("glossily"),

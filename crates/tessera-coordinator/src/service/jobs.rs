@@ -205,6 +205,8 @@ impl Coordinator {
             estimate: history.last().and_then(|h| h.error_estimate),
             spp: plan.spp(),
         });
+        let estimator =
+            tessera_farm::ErrorEstimator::for_mode(settings.adaptive.parse().unwrap_or_default());
         Ok(JobStatus {
             id: rec.id,
             name: rec.name.clone(),
@@ -228,7 +230,7 @@ impl Coordinator {
             passes_done,
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
             error_estimate: history.last().and_then(|h| h.error_estimate),
-            error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
+            error_estimator: Some(estimator.name().to_string()),
             // Both as accepted (store schema 6); absent for jobs stored by older builds.
             error_estimate_caveat: rec.error_estimate_caveat.clone(),
             target_reached: verdict.and_then(|v| v.target_reached()),
@@ -522,7 +524,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             None => spp_so_far(&rt.resolved, passes_done, rt.job().frames.count()),
         },
         error_estimate: error,
-        error_estimator: Some(tessera_farm::ERROR_ESTIMATOR.to_string()),
+        error_estimator: Some(rt.resolved.error_estimator().name().to_string()),
         error_estimate_caveat: rt.resolved.error_estimate_caveat(),
         target_error: rt.job().target_error,
         target_reached: verdict.and_then(|v| v.target_reached()),

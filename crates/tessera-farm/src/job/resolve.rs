@@ -134,7 +134,7 @@ impl StopVerdict {
         Self {
             time_limit,
             target: job.job.target_error,
-            estimate: image.error_estimate(),
+            estimate: image.error_estimate(job.error_estimator()),
             spp: job.plan.spp(),
         }
     }
@@ -195,7 +195,7 @@ impl ResolvedJob {
     /// image's estimate is at or below `target_error`; `null` without a target) and
     /// `error_reached` (the image's estimate, [`FrameImage::error_estimate`]); the last
     /// three are `null` while it runs. Every header names the error estimator of its
-    /// variance layers and estimate (`error_estimator`, [`crate::ERROR_ESTIMATOR`]); a job
+    /// variance layers and estimate (`error_estimator`, [`ResolvedJob::error_estimator`]); a job
     /// whose estimate may be optimistic ends with `error_estimate_caveat` saying why
     /// ([`ResolvedJob::error_estimate_caveat`]). The text is ASCII.
     pub fn metadata_json(&self, stopped: Option<&StopVerdict>) -> String {
@@ -259,10 +259,16 @@ impl ResolvedJob {
             c.seed,
             c.max_depth,
             c.rr_depth,
-            json_string(crate::ERROR_ESTIMATOR),
+            json_string(self.error_estimator().name()),
             self.render_plan.to_json()
         );
         out
+    }
+
+    /// The image error estimate this job reports ([`crate::ErrorEstimator::for_mode`] of
+    /// its adaptive mode).
+    pub fn error_estimator(&self) -> crate::ErrorEstimator {
+        crate::ErrorEstimator::for_mode(self.job.adaptive)
     }
 
     /// Why this job's error estimate may be optimistic, or `None`: for the integrator it
