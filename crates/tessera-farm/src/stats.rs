@@ -12,8 +12,9 @@ use serde::{Deserialize, Serialize};
 /// error.
 pub const REL_EPS: f64 = 1e-2;
 
-/// The error estimator in use, as the EXR header (`error_estimator`), the job status and
-/// `tessera render` name it (ARCHITECTURE.md §3): the image error is the RMS of the pixels'
+/// The error estimator of uniform and sequential renders ([`ErrorEstimator::Robust`]), as
+/// the EXR header (`error_estimator`), the job status and `tessera render` name it
+/// (ARCHITECTURE.md §3): the image error is the RMS of the pixels'
 /// relative errors from the spread of their independent passes, each divided by a robust
 /// scale ([`robust_scale`]: the pixel's mean, allowed down to its 3x3 neighbourhood's mean
 /// but never below the mean minus one standard error); a pixel's interval uses the variance
