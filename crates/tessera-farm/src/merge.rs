@@ -573,14 +573,7 @@ impl FrameImage {
             let se = f64::from(*self.relative_error.get(p)?) * (m.max(0.0) + crate::REL_EPS);
             Some((m, se * se, *self.passes.get(p)?))
         };
-        let e = match estimator {
-            crate::ErrorEstimator::Robust => {
-                crate::stats::image_relative_error(w, h, |x, y| pixel(x, y).map(|(m, v, _)| (m, v)))
-            }
-            crate::ErrorEstimator::PooledPerPass => {
-                crate::stats::image_relative_error_pooled(w, h, pixel)
-            }
-        };
+        let e = estimator.image_error(w, h, pixel);
         e.is_finite().then_some(e)
     }
 }

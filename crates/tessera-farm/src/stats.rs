@@ -56,6 +56,24 @@ impl ErrorEstimator {
             Self::PooledPerPass => ERROR_ESTIMATOR_POOLED,
         }
     }
+
+    /// This estimate of a `width` x `height` image: [`image_relative_error`] or
+    /// [`image_relative_error_pooled`], where `pixel(x, y)` gives a pixel's mean
+    /// luminance, the estimated variance of that mean and its passes, or `None` for a pixel
+    /// with fewer than 2 passes (the plain estimate ignores the passes).
+    pub fn image_error(
+        self,
+        width: usize,
+        height: usize,
+        pixel: impl Fn(usize, usize) -> Option<(f64, f64, u32)>,
+    ) -> f64 {
+        match self {
+            Self::Robust => {
+                image_relative_error(width, height, |x, y| pixel(x, y).map(|(m, v, _)| (m, v)))
+            }
+            Self::PooledPerPass => image_relative_error_pooled(width, height, pixel),
+        }
+    }
 }
 
 /// The luminance scale a pixel's standard error is divided by in the image error
@@ -238,14 +256,9 @@ pub(crate) fn image_relative_error_of_tiles<'a>(
         let s = tile((y / edge) * tiles_x + x / edge)?.get(ly * tile_width + lx)?;
         (s.passes >= 2).then_some(s)
     };
-    match estimator {
-        ErrorEstimator::Robust => image_relative_error(width, height, |x, y| {
-            stats(x, y).map(|s| (s.mean_lum, s.lum_variance_of_mean()))
-        }),
-        ErrorEstimator::PooledPerPass => image_relative_error_pooled(width, height, |x, y| {
-            stats(x, y).map(|s| (s.mean_lum, s.lum_variance_of_mean(), s.passes))
-        }),
-    }
+    estimator.image_error(width, height, |x, y| {
+        stats(x, y).map(|s| (s.mean_lum, s.lum_variance_of_mean(), s.passes))
+    })
 }
 
 /// Luminance weights of linear Rec. 709 / sRGB primaries.

@@ -280,6 +280,14 @@ fn suite_scene_sized(scene: &str, width: u32, height: u32) -> RenderScene {
 /// span the plates' edges), written with the suite's reference settings.
 const LARGE_REFERENCES: [(&str, &str, u32); 1] = [("veach-mis-64", "builtin:veach-mis", 64)];
 
+/// Every committed reference: (name, scene, edge in pixels).
+fn references() -> impl Iterator<Item = (&'static str, &'static str, u32)> {
+    SUITE
+        .iter()
+        .map(|&(name, scene)| (name, scene, W))
+        .chain(LARGE_REFERENCES)
+}
+
 fn reference_file(name: &str) -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../../tests/fixtures/calibration")
@@ -354,8 +362,7 @@ fn reference_settings(name: &str) -> (RenderConfig, u32) {
 fn write_calibration_references() {
     std::fs::create_dir_all(reference_file("x").parent().unwrap()).unwrap();
     let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
-    let sized = SUITE.iter().map(|&(name, scene)| (name, scene, W));
-    for (name, scene, edge) in sized.chain(LARGE_REFERENCES) {
+    for (name, scene, edge) in references() {
         if !only.is_empty() && !only.split(',').any(|s| s == name) {
             continue;
         }
@@ -690,12 +697,14 @@ fn t_coverage_matches_tables() {
     assert!((t_coverage(10_000) - 0.9545).abs() < 1e-3);
 }
 
-/// Estimated over measured image error of unbiased adaptive renders of a suite scene at
-/// `target` (cap 2,048 spp), root mean square over `seeds`, with the estimator the mode
-/// reports (pooled per-pass variance) and with the plain robust estimate.
+/// Estimated over measured image error of unbiased adaptive renders of a reference's scene
+/// at `target`, root mean square over `seeds`, with the estimator the mode reports (pooled
+/// per-pass variance) and with the plain robust estimate. Planned as `tessera render`
+/// plans them (tiles of 32, a 16,384-spp cap), with the suite's settings but roulette from
+/// depth 3, as the plan renders veach-mis (roulette changes the variance, not what the
+/// reference converged to).
 fn adaptive_calibration(name: &str, target: f64, seeds: &[u64]) -> (f64, f64) {
-    let sized = SUITE.iter().map(|&(name, scene)| (name, scene, W));
-    let (_, scene, edge) = sized.chain(LARGE_REFERENCES).find(|s| s.0 == name).unwrap();
+    let (_, scene, edge) = references().find(|s| s.0 == name).unwrap();
     let r = suite_reference_sized(name, edge, edge);
     let rs = suite_scene_sized(scene, edge, edge);
     let plan = tessera_farm::adaptive_plan(edge, edge, 16384, 32).unwrap();
