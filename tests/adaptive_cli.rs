@@ -185,7 +185,9 @@ fn a_target_the_budget_does_not_reach_is_not_claimed() {
     assert!(stdout.contains("stopped: finished\n"), "{stdout}");
     assert!(
         stdout.contains("target: target error 0.001 not reached: the estimate is 0.")
-            && stdout.contains("when the sample budget (64 spp) ran out"),
+            && stdout.contains(
+                "when the passes its pilot planned (within the sample budget of 64 spp) were done"
+            ),
         "{stdout}"
     );
     let meta = read_exr(&out).metadata.expect("EXR metadata");

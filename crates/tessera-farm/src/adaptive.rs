@@ -25,13 +25,18 @@
 //!   remains.
 //! - [`AdaptiveMode::Unbiased`]: Kirk & Arvo's two-stage remedy (Jensen 2001, section 10.3: "to
 //!   eliminate bias the pilot sample must be thrown away"). A pilot of `min_passes` passes
-//!   estimates each pixel's per-pass variance `s²`; the pixel is given
-//!   `n = ceil(s² / (target · (lum + eps))²)` fresh passes, clamped to
-//!   `[min_fresh_passes, plan passes - pilot]`, so that `sqrt(s² / n) / (lum + eps)` is about
-//!   the target. The relative variance `s² / (lum + eps)²` is the larger of the pixel's own
-//!   and the mean over its 3x3 neighbourhood in the tile ([`pooled_pilot_variance`]), so
-//!   that a dark pixel whose own pilot missed a rare bright path that its neighbours' pilots
-//!   caught is not given the minimum. The pilot statistics are then discarded and only passes
+//!   estimates each pixel's per-pass relative deviation `d = s / (lum + eps)`; the pixel is
+//!   given `n = ceil(max(λ d, d² / (2 target)²))` fresh passes, clamped to
+//!   `[min_fresh_passes, plan passes - pilot]`, with `λ` chosen so that the tile's planned
+//!   RMS relative error `sqrt(mean(d² / n))` is the target ([`neyman_scale`],
+//!   [`fresh_passes_needed`]). That is the optimal (Neyman) allocation for the image's RMS
+//!   error, `n ∝ d` (Owen 2001, section 6.2), with no pixel planned above twice the target
+//!   ([`NEYMAN_ERROR_CAP`]); giving each pixel the target, `n = d² / target²` (the rule
+//!   before 2026-12-05), costs as much as uniform sampling for the same RMS. The relative
+//!   variance `d²` is the larger of the pixel's own and the mean over its 3x3 neighbourhood
+//!   in the tile ([`pooled_pilot_variance`]), so that a dark pixel whose own pilot missed a
+//!   rare bright path that its neighbours' pilots caught is not given the minimum. The
+//!   pilot statistics are then discarded and only passes
 //!   `pilot .. pilot + n` form the pixel's mean and error estimate. Because `n` depends only
 //!   on the pilot, which is independent of the fresh passes (passes are independent
 //!   replicates, Owen 2001, section 6.7), the fresh mean is unbiased whatever `n` turned out to be.
@@ -485,18 +490,27 @@ impl AdaptiveTile {
                 let max_fresh = self.max_passes.saturating_sub(pilot);
                 let lo = self.settings.min_fresh_passes.min(max_fresh).max(1);
                 let (w, h) = (self.rect.width as usize, self.rect.height as usize);
-                let mut end = pilot;
                 // Decide every pixel first (the pooled variance reads the neighbours'
-                // pilots), then discard the pilots.
-                for y in 0..h {
-                    for x in 0..w {
-                        let i = y * w + x;
+                // pilots), then discard the pilots. Once per tile: the allocation is fine.
+                let deviations: Vec<Option<f64>> = (0..h)
+                    .flat_map(|y| (0..w).map(move |x| (x, y)))
+                    .map(|(x, y)| {
                         let pooled = pooled_pilot_variance(&self.stats, w, h, x, y);
-                        let needed =
-                            fresh_passes_needed(&self.stats[i], pooled, target, lo, max_fresh);
-                        self.state[i].needed = needed;
-                        end = end.max(pilot.saturating_add(needed));
-                    }
+                        pilot_relative_variance(&self.stats[y * w + x])
+                            .map(|own| own.max(pooled).sqrt())
+                    })
+                    .collect();
+                let finite: Vec<f64> = deviations.iter().flatten().copied().collect();
+                let cap = NEYMAN_ERROR_CAP;
+                let lambda = neyman_scale(&finite, target, cap);
+                let mut end = pilot;
+                for (st, d) in self.state.iter_mut().zip(&deviations) {
+                    let needed = match d {
+                        Some(d) => fresh_passes_needed(*d, lambda, cap * target, lo, max_fresh),
+                        None => max_fresh.max(lo),
+                    };
+                    st.needed = needed;
+                    end = end.max(pilot.saturating_add(needed));
                 }
                 // Kirk & Arvo: the pilot is thrown away; only fresh passes count.
                 self.stats.fill(PixelStats::default());
@@ -661,22 +675,66 @@ impl AdaptiveTile {
     }
 }
 
-/// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, Jensen 2001, section 10.3):
-/// `ceil(v / target²)`, clamped to `[lo, hi]`, so that the relative error `sqrt(v / n)` is
-/// about the target; `v` is the larger of the pilot's own per-pass relative variance
-/// ([`pilot_relative_variance`], `s² / (lum + eps)²`) and `pooled` (its neighbourhood's,
-/// [`pooled_pilot_variance`]; 0 judges the pixel on its own pilot). `hi` with fewer than
-/// 2 pilot passes.
-pub fn fresh_passes_needed(pilot: &PixelStats, pooled: f64, target: f64, lo: u32, hi: u32) -> u32 {
+/// Fresh passes for a pixel after its pilot (Kirk & Arvo two-stage, Jensen 2001, section
+/// 10.3), by the capped optimal (Neyman) allocation within its tile:
+/// `ceil(max(λ d, (d / pixel_cap)²))`, clamped to `[lo, hi]`, for `d` the pixel's per-pass
+/// relative standard deviation (the square root of the larger of its own pilot's
+/// [`pilot_relative_variance`] and its neighbourhood's [`pooled_pilot_variance`]), `λ` the
+/// tile's scale from [`neyman_scale`] and `pixel_cap` the largest error planned for one
+/// pixel ([`NEYMAN_ERROR_CAP`] times the target). `hi` when the result is not finite.
+///
+/// Why not `ceil(d² / target²)`, each pixel to the target (the rule before 2026-12-05): the
+/// target is the image's error, the RMS over pixels of `d / sqrt(n)`, and for a fixed sum
+/// of passes that RMS is least with `n ∝ d` (Owen 2001, section 6.2: optimal allocations
+/// take `n_h ∝ σ_h`), where `n ∝ d²` costs as much as giving every pixel the same passes.
+/// Noisy pixels end noisier than quiet ones, which is what minimizes the image's error; the
+/// cap keeps any one of them within twice the target. `n` still depends on the pilot
+/// alone, so the fresh mean stays unbiased.
+pub fn fresh_passes_needed(d: f64, lambda: f64, pixel_cap: f64, lo: u32, hi: u32) -> u32 {
     let hi = hi.max(lo);
-    let Some(own) = pilot_relative_variance(pilot) else {
-        return hi;
-    };
-    let n = (own.max(pooled) / (target * target)).ceil();
-    if n.is_nan() {
+    let n = (lambda * d).max((d / pixel_cap).powi(2)).ceil();
+    if !n.is_finite() {
         return hi;
     }
-    (n.min(f64::from(hi)) as u32).clamp(lo, hi)
+    (n.clamp(0.0, f64::from(hi)) as u32).clamp(lo, hi)
+}
+
+/// No pixel's error is planned above this multiple of the target (see [`neyman_scale`]).
+/// Measured on veach-mis (docs/benchmarks.md, 2026-12-05): 2 keeps most of the plain
+/// optimal allocation's saving, 1.41 none of it; without a cap the noisiest pixels' few
+/// fresh passes miss the rare paths their pilot found.
+pub const NEYMAN_ERROR_CAP: f64 = 2.0;
+
+/// The scale `λ` of the capped optimal allocation `n_i = max(λ d_i, d_i² / (c t)²)` that
+/// makes the tile's planned RMS error `sqrt(mean(d_i² / n_i))` the target `t`:
+/// `Σ min(d_i / λ, c² t²) = N t²`. Pixels whose optimal share would leave them above `c t`
+/// are given `d² / (c t)²` and the rest share what remains (`λ = S / ((N - k c²) t²)` for
+/// the `k` capped pixels and the sum `S` of the others' deviations). NaN when `deviations`
+/// is empty; 0 when every deviation is 0.
+pub fn neyman_scale(deviations: &[f64], target: f64, cap: f64) -> f64 {
+    let n = deviations.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    let mut sorted = deviations.to_vec();
+    sorted.sort_by(|a, b| b.total_cmp(a));
+    let t2 = target * target;
+    let c2 = cap * cap;
+    let mut rest: f64 = sorted.iter().sum();
+    for (k, &largest) in sorted.iter().enumerate() {
+        // k pixels capped: the others share what is left.
+        let room = (n as f64 - k as f64 * c2) * t2;
+        if room <= 0.0 {
+            break;
+        }
+        let lambda = rest / room;
+        if largest <= lambda * c2 * t2 {
+            return lambda;
+        }
+        rest -= largest;
+    }
+    // Only with c <= 1: every pixel at its cap is at most the target.
+    0.0
 }
 
 /// A pilot pixel's per-pass *relative* variance of the luminance, `s² / (lum + eps)²` with

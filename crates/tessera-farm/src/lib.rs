@@ -80,10 +80,10 @@ pub mod spot;
 mod stats;
 
 pub use adaptive::{
-    adaptive_plan, eta_seconds, fresh_passes_needed, pilot_relative_variance,
+    adaptive_plan, eta_seconds, fresh_passes_needed, neyman_scale, pilot_relative_variance,
     pooled_pilot_variance, AdaptiveError, AdaptiveFrame, AdaptiveMode, AdaptivePixel,
     AdaptiveRestoreError, AdaptiveSettings, AdaptiveTile, AdaptiveTileCheckpoint, ConvergencePoint,
-    ADAPTIVE_MAX_SAMPLES_PER_PASS, POOL_RADIUS,
+    ADAPTIVE_MAX_SAMPLES_PER_PASS, NEYMAN_ERROR_CAP, POOL_RADIUS,
 };
 pub use mask::{MaskError, PixelRuns};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};

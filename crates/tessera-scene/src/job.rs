@@ -268,6 +268,7 @@ mod tests {
             target: Some(0.1),
             estimate: Some(0.125),
             spp: 256,
+            unbiased: false,
         };
         let v: serde_json::Value = serde_json::from_str(&r.metadata_json(Some(&short))).unwrap();
         assert_eq!(v["adaptive"], "unbiased");
@@ -297,6 +298,23 @@ mod tests {
             "target error 0.1 not reached: no estimate yet when the time limit ran out"
         );
         assert_eq!(timed.target_reached(), Some(false));
+        // An unbiased render adds no passes after its pilot's plan: that is why it ended.
+        let planned = StopVerdict {
+            unbiased: true,
+            ..short
+        };
+        assert_eq!(
+            planned.summary(),
+            "target error 0.1 not reached: the estimate is 0.1250 when the passes its pilot \
+             planned (within the sample budget of 256 spp) were done"
+        );
+        let planned_timed = StopVerdict {
+            time_limit: true,
+            ..planned
+        };
+        assert!(planned_timed
+            .summary()
+            .ends_with("when the time limit ran out"));
     }
 
     #[test]

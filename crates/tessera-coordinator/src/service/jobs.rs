@@ -204,6 +204,8 @@ impl Coordinator {
             target: settings.target_error,
             estimate: history.last().and_then(|h| h.error_estimate),
             spp: plan.spp(),
+            unbiased: settings.adaptive.parse::<tessera_farm::AdaptiveMode>().ok()
+                == Some(tessera_farm::AdaptiveMode::Unbiased),
         });
         let estimator =
             tessera_farm::ErrorEstimator::for_mode(settings.adaptive.parse().unwrap_or_default());
@@ -503,6 +505,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             target: rt.job().target_error,
             estimate: error,
             spp: plan.spp(),
+            unbiased: rt.job().adaptive == tessera_farm::AdaptiveMode::Unbiased,
         }),
         _ => None,
     };

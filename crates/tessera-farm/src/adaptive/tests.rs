@@ -227,9 +227,16 @@ fn unbiased_discards_the_pilot_and_takes_the_planned_fresh_passes() {
     t.offer(&result_from(rect, unit(0, 0, 8), &f));
     let lum = |v: f64| crate::stats::luminance([v, v * 0.5, v * 0.25]);
     let s2 = lum(0.5).powi(2) * 8.0 / 7.0;
-    let expected = (s2 / (target * (lum(1.0) + REL_EPS)).powi(2)).ceil() as u32;
-    let pooled = (0.5 * s2 / (target * (lum(1.0) + REL_EPS)).powi(2)).ceil() as u32;
+    // Relative deviations: pixel 0 its own, pixel 1 the pooled half of its variance; each
+    // is given d · mean(d) / target² (the optimal allocation in the tile).
+    let d = [s2.sqrt(), (0.5 * s2).sqrt()].map(|x| x / (lum(1.0) + REL_EPS));
+    let mean = (d[0] + d[1]) / 2.0;
+    let [expected, pooled] = d.map(|d| (d * mean / (target * target)).ceil() as u32);
     assert!(pooled > 4 && pooled < expected, "{pooled}");
+    // The tile's RMS error by the pilot is then at most the target.
+    let rms =
+        ((d[0].powi(2) / f64::from(expected) + d[1].powi(2) / f64::from(pooled)) / 2.0).sqrt();
+    assert!(rms <= target && rms > 0.9 * target, "{rms}");
     let needed: Vec<u32> = t.fresh_passes_needed().collect();
     assert_eq!(needed, [expected, pooled]);
     assert!(t.pixels().iter().all(|s| s.passes == 0), "pilot discarded");
@@ -263,8 +270,11 @@ fn unbiased_pools_the_pilot_over_the_neighbourhood_in_the_tile() {
     // and 2 pool over 2 and 3 pixels holding pixel 1; pixel 3 is two away.
     let lum = |v: f64| crate::stats::luminance([v, v * 0.5, v * 0.25]);
     let s2 = lum(0.5).powi(2) * 8.0 / 7.0;
-    let n = |v: f64| (v / (target * (lum(1.0) + REL_EPS)).powi(2)).ceil() as u32;
-    assert_eq!(needed, [n(s2 / 2.0), n(s2), n(s2 / 3.0), 4]);
+    let d = [s2 / 2.0, s2, s2 / 3.0, 0.0].map(|v| v.sqrt() / (lum(1.0) + REL_EPS));
+    let mean = d.iter().sum::<f64>() / 4.0;
+    let n = |d: f64| ((d * mean / (target * target)).ceil() as u32).max(4);
+    assert_eq!(needed, [n(d[0]), n(d[1]), n(d[2]), 4]);
+    assert!(needed[1] > needed[0] && needed[0] > needed[2] && needed[2] > 4);
     // The same pixels in tile 1 are all constant: tile 0's pilot does not reach it.
     let mut t1 = AdaptiveTile::new(plan.tile(1), unb(target), plan.passes);
     t1.offer(&result_from(plan.tile(1), unit(1, 0, 8), &|_, _| 1.0));
@@ -274,14 +284,62 @@ fn unbiased_pools_the_pilot_over_the_neighbourhood_in_the_tile() {
 
 #[test]
 fn fresh_passes_are_clamped() {
-    let mut s = PixelStats::default();
-    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 50), 50);
-    s.push([1.0; 3]);
-    s.push([1.0; 3]);
-    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 50), 4);
-    s.push([100.0; 3]);
-    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 50), 50);
-    assert_eq!(fresh_passes_needed(&s, 0.0, 0.1, 4, 2), 4);
+    // max(λ d, (d / cap)²): 50 · 0.2 = 10 against (0.2 / 0.2)² = 1.
+    assert_eq!(fresh_passes_needed(0.2, 50.0, 0.2, 4, 50), 10);
+    // The cap decides: (1 / 0.1)² = 100 against 10 · 1 = 10.
+    assert_eq!(fresh_passes_needed(1.0, 10.0, 0.1, 4, 500), 100);
+    assert_eq!(fresh_passes_needed(0.0, 50.0, 0.2, 4, 50), 4);
+    assert_eq!(fresh_passes_needed(5.0, 50.0, 0.2, 4, 50), 50);
+    assert_eq!(fresh_passes_needed(5.0, 50.0, 0.2, 4, 2), 4);
+    assert_eq!(fresh_passes_needed(f64::NAN, 50.0, 0.2, 4, 50), 50);
+    assert_eq!(fresh_passes_needed(0.5, f64::INFINITY, 0.2, 4, 50), 50);
+}
+
+/// The capped optimal allocation: the planned RMS error is the target, no pixel is planned
+/// above `cap · target`, and without a binding cap it is Neyman's `n ∝ d` (Owen 2001,
+/// section 6.2).
+#[test]
+fn neyman_scale_meets_the_target_and_the_cap() {
+    let (t, cap) = (0.05, 2.0);
+    // No pixel near the cap: λ = mean(d) / t².
+    let d = [0.1, 0.2, 0.3, 0.2];
+    assert!((neyman_scale(&d, t, cap) - 0.2 / (t * t)).abs() < 1e-9);
+    let mut rng = Rng::new(11);
+    for case in 0..200 {
+        // Heavy-tailed deviations: most pixels quiet, a few very noisy.
+        let d: Vec<f64> = (0..64)
+            .map(|_| {
+                let u = rng.uniform();
+                if u < 0.05 {
+                    20.0 * rng.uniform()
+                } else {
+                    0.05 + 0.3 * u
+                }
+            })
+            .collect();
+        let lambda = neyman_scale(&d, t, cap);
+        let n: Vec<f64> = d
+            .iter()
+            .map(|d| (lambda * d).max((d / (cap * t)).powi(2)))
+            .collect();
+        let ms = d.iter().zip(&n).map(|(d, n)| d * d / n).sum::<f64>() / d.len() as f64;
+        assert!(
+            (ms.sqrt() / t - 1.0).abs() < 1e-9,
+            "case {case}: rms {}",
+            ms.sqrt()
+        );
+        for (d, n) in d.iter().zip(&n) {
+            assert!(
+                d / n.sqrt() <= cap * t * (1.0 + 1e-9),
+                "case {case}: {d} {n}"
+            );
+        }
+        // Cheaper than each pixel to the target (n = d² / t²), never dearer.
+        let each: f64 = d.iter().map(|d| d * d / (t * t)).sum();
+        assert!(n.iter().sum::<f64>() <= each * (1.0 + 1e-9));
+    }
+    assert!(neyman_scale(&[], t, cap).is_nan());
+    assert_eq!(neyman_scale(&[0.0, 0.0], t, cap), 0.0);
 }
 
 #[test]

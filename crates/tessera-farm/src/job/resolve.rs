@@ -126,6 +126,11 @@ pub struct StopVerdict {
     pub estimate: Option<f64>,
     /// The job's sample budget per pixel (`spp`), named when it ran out first.
     pub spp: u32,
+    /// The job used the unbiased adaptive mode: its fresh passes were planned from a pilot
+    /// and it adds none after the plan (`crate::AdaptiveMode::Unbiased`), so a render that
+    /// ends above its target ended because its plan was done, not only because of the
+    /// budget.
+    pub unbiased: bool,
 }
 
 impl StopVerdict {
@@ -136,6 +141,7 @@ impl StopVerdict {
             target: job.job.target_error,
             estimate: image.error_estimate(job.error_estimator()),
             spp: job.plan.spp(),
+            unbiased: job.job.adaptive == crate::AdaptiveMode::Unbiased,
         }
     }
 
@@ -165,8 +171,10 @@ impl StopVerdict {
     }
 
     /// One line on the target for summaries and statuses, e.g. "target error 0.03 not
-    /// reached: the estimate is 0.0362 when the sample budget (4096 spp) ran out"; `None`
-    /// without a target.
+    /// reached: the estimate is 0.0362 when the sample budget (4096 spp) ran out" (an
+    /// unbiased adaptive render: "... when the passes its pilot planned (within the sample
+    /// budget of 4096 spp) were done", since the two-stage scheme adds no passes after its
+    /// plan, whatever its estimate says); `None` without a target.
     pub fn describe(&self) -> Option<String> {
         let t = self.target?;
         let estimate = self.estimate.map_or("no estimate yet".to_string(), |e| {
@@ -177,6 +185,11 @@ impl StopVerdict {
             _ if self.time_limit => {
                 format!("target error {t} not reached: {estimate} when the time limit ran out")
             }
+            _ if self.unbiased => format!(
+                "target error {t} not reached: {estimate} when the passes its pilot planned \
+                 (within the sample budget of {} spp) were done",
+                self.spp
+            ),
             _ => format!(
                 "target error {t} not reached: {estimate} when the sample budget ({} spp) ran out",
                 self.spp
