@@ -491,7 +491,8 @@ impl AdaptiveTile {
                 let lo = self.settings.min_fresh_passes.min(max_fresh).max(1);
                 let (w, h) = (self.rect.width as usize, self.rect.height as usize);
                 // Decide every pixel first (the pooled variance reads the neighbours'
-                // pilots), then discard the pilots. Once per tile: the allocation is fine.
+                // pilots, the scale λ every pixel's deviation), then discard the pilots.
+                // Once per tile, not per pass: the two vectors are not in a hot loop.
                 let deviations: Vec<Option<f64>> = (0..h)
                     .flat_map(|y| (0..w).map(move |x| (x, y)))
                     .map(|(x, y)| {
@@ -500,9 +501,9 @@ impl AdaptiveTile {
                             .map(|own| own.max(pooled).sqrt())
                     })
                     .collect();
-                let finite: Vec<f64> = deviations.iter().flatten().copied().collect();
+                let known: Vec<f64> = deviations.iter().flatten().copied().collect();
                 let cap = NEYMAN_ERROR_CAP;
-                let lambda = neyman_scale(&finite, target, cap);
+                let lambda = neyman_scale(&known, target, cap);
                 let mut end = pilot;
                 for (st, d) in self.state.iter_mut().zip(&deviations) {
                     let needed = match d {
