@@ -198,17 +198,17 @@ impl Coordinator {
         let stops_early = settings.adaptive != "off"
             || settings.target_error.is_some()
             || settings.time_limit_seconds.is_some();
+        // Stored settings were validated when accepted; an unknown spelling reads as off.
+        let mode: tessera_farm::AdaptiveMode = settings.adaptive.parse().unwrap_or_default();
         let stop = Stop::of_stored(rec.state, rec.error.as_deref());
         let verdict = stop.filter(|_| stops_early).map(|stop| StopVerdict {
             time_limit: stop == Stop::TimeLimit,
             target: settings.target_error,
             estimate: history.last().and_then(|h| h.error_estimate),
             spp: plan.spp(),
-            unbiased: settings.adaptive.parse::<tessera_farm::AdaptiveMode>().ok()
-                == Some(tessera_farm::AdaptiveMode::Unbiased),
+            unbiased: mode == tessera_farm::AdaptiveMode::Unbiased,
         });
-        let estimator =
-            tessera_farm::ErrorEstimator::for_mode(settings.adaptive.parse().unwrap_or_default());
+        let estimator = tessera_farm::ErrorEstimator::for_mode(mode);
         Ok(JobStatus {
             id: rec.id,
             name: rec.name.clone(),
