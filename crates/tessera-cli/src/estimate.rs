@@ -330,7 +330,7 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
     let validated = settings
         .validate()
         .map_err(|e| anyhow::anyhow!("invalid {}: {}", e.field, e.problem))?;
-    let bytes = match (&validated.scene, &args.scene_file) {
+    let bytes = match (&validated.scene.source, &args.scene_file) {
         (SceneRef::Builtin(_), _) => None,
         (SceneRef::Hash(h), Some(path)) => {
             let bytes = std::fs::read(path)
@@ -385,27 +385,32 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
 }
 
 /// `tessera pilot --technique`: the coordinator's technique pilot, in a child process for
-/// the reason a dry run's is. The scene is loaded as the coordinator loads it (at time 0,
-/// the job's camera and animation) and the verdict is exactly what `tessera render`
-/// computes in process ([`tessera_render::pilot::resolve_job`]).
+/// the reason a dry run's is. The scene is loaded as the coordinator loads it (at
+/// [`tessera_scene::job::resolution_time`], with the job's camera) and resolved on the
+/// same path as `tessera render` ([`tessera_scene::job::resolve_job`] with
+/// [`tessera_render::pilot::verdict`]), so the verdict printed (a
+/// [`tessera_farm::job::PilotVerdict`] as JSON, or `null` when the job asks for none) is
+/// the one a local render reaches.
 fn technique(job: &tessera_farm::job::ValidatedJob, bytes: Option<&[u8]>) -> Result<()> {
-    let time = tessera_scene::SceneTime {
-        seconds: 0.0,
-        animation: job.animation.clone(),
-    };
-    let scene =
-        tessera_scene::job::load_job_scene_at(&job.scene, bytes, job.camera.as_deref(), &time)?;
-    let mut plan = tessera_scene::analysis::analyse(&scene);
-    let out = if plan.awaits_technique_pilot(job.render.integrator) {
-        tessera_render::pilot::settle(&scene, job, &mut plan);
-        serde_json::json!({
-            "path_wins": plan.integrator == tessera_farm::job::PlannedIntegrator::Path,
-            "reason": plan.reasons.first().cloned().unwrap_or_default(),
-        })
-    } else {
-        serde_json::json!({})
-    };
-    println!("{out}");
+    let time = tessera_scene::job::resolution_time(&job.scene);
+    let scene = tessera_scene::job::load_job_scene_at(&job.scene, bytes, &time)?;
+    let mut asked = None;
+    let resolved = tessera_scene::job::resolve_job(job, &scene, |q| {
+        let v = tessera_render::pilot::verdict(q);
+        asked = Some(v.clone());
+        v
+    });
+    match resolved {
+        // The settings' own problems are the coordinator's to report, as it resolves the
+        // job itself with this verdict.
+        Ok(_) | Err(tessera_scene::job::ResolveError::Job(_)) => {
+            println!(
+                "{}",
+                serde_json::to_string(&asked.transpose().map_err(anyhow::Error::msg)?)?
+            )
+        }
+        Err(e) => return Err(e.into()),
+    }
     Ok(())
 }
 

@@ -1,6 +1,7 @@
 //! `tessera render`: a job rendered on this machine. The flags become a
 //! [`JobSettings`], validated and resolved against the scene exactly as the coordinator
-//! does ([`tessera_render::pilot::resolve_job`]), and the EXR header is the resolved job's
+//! does ([`tessera_scene::job::resolve_job`] with the in-process technique pilot,
+//! [`tessera_render::pilot::verdict`]), and the EXR header is the resolved job's
 //! [`ResolvedJob::metadata_json`], so a local render and a farm job with the same settings
 //! write byte-identical files (docs/ARCHITECTURE.md §2).
 
@@ -17,6 +18,7 @@ use tessera_farm::job::{
 use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::render::render_frame_counted;
 use tessera_render::scene::RenderScene;
+use tessera_scene::job::ResolveError;
 use tessera_scene::{Scene, SceneTime};
 
 use crate::adaptive;
@@ -298,41 +300,41 @@ pub fn prepare_settings(
         end: frame,
     };
     let validated = settings.validate().map_err(|e| job_error(e, &settings))?;
-    let camera = validated.camera.as_deref();
+    let js = &validated.scene;
     let name = match source {
         SceneSource::Path(path) => path.to_string(),
-        SceneSource::Bytes(_) => validated.scene.to_string(),
+        SceneSource::Bytes(_) => js.source.to_string(),
     };
     let load = |time: &SceneTime| {
-        match (&validated.scene, source) {
+        match (&js.source, source) {
             // The farm's loader: it refuses a camera name for a built-in scene.
-            (SceneRef::Builtin(_), _) => {
-                tessera_scene::job::load_job_scene_at(&validated.scene, None, camera, time)
-            }
+            (SceneRef::Builtin(_), _) => tessera_scene::job::load_job_scene_at(js, None, time),
             // A file may refer to files beside it, which an upload may not.
             (SceneRef::Hash(_), SceneSource::Path(path)) => {
-                tessera_scene::load_at(path, camera, time)
+                tessera_scene::load_at(path, js.camera.as_deref(), time)
             }
             (SceneRef::Hash(_), SceneSource::Bytes(bytes)) => {
-                tessera_scene::job::load_job_scene_at(&validated.scene, Some(bytes), camera, time)
+                tessera_scene::job::load_job_scene_at(js, Some(bytes), time)
             }
         }
         .with_context(|| format!("loading scene {name}"))
     };
-    let at_zero = SceneTime {
-        seconds: 0.0,
-        animation: validated.animation.clone(),
-    };
+    let at_zero = tessera_scene::job::resolution_time(js);
     let first = load(&at_zero)?;
-    let resolved = tessera_render::pilot::resolve_job(&validated, &first)
-        .map_err(|e| job_error(e, &settings))?;
-    let time = tessera_scene::job::frame_time(&validated, frame);
+    let resolved =
+        tessera_scene::job::resolve_job(&validated, &first, tessera_render::pilot::verdict)
+            .map_err(|e| match e {
+                ResolveError::Job(e) => job_error(e, &settings),
+                e @ ResolveError::Pilot(_) => anyhow!("{e}"),
+            })?;
+    let time = tessera_scene::job::frame_time(js, frame);
     let scene = if first.animated && time != at_zero {
         load(&time)?
     } else {
         first
     };
-    let keys = tessera_scene::job::shutter_scenes(&validated, frame, &scene, load)?;
+    let times = tessera_scene::job::shutter_times(js, frame);
+    let keys = tessera_scene::job::shutter_scenes(&times, &scene, load)?;
     let start = Instant::now();
     let render_scene = if resolved.black {
         None
@@ -464,7 +466,7 @@ fn print_scene_line(p: &Prepared) {
         bytes as f64 / (1024.0 * 1024.0),
         bytes as f64 / p.scene.stored_triangle_count().max(1) as f64
     );
-    if let Some(s) = p.resolved.job.shutter {
+    if let Some(s) = p.resolved.job.scene.shutter {
         println!(
             "motion blur: shutter [{}, {}] frames: {}",
             s.open,

@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use tessera_api::{HistoryPoint, JobSettings, JobState, ResolvedJob, ValidatedJob};
-use tessera_farm::job::{RenderConfig, SceneRef, Shutter};
+use tessera_farm::job::{JobScene, RenderConfig};
 use tessera_farm::{FramePlan, JobId, Scheduler, TileAccumulator, WorkerId};
 
 use crate::store::QuarantineRecord;
@@ -64,16 +64,8 @@ pub struct WorkerEntry {
 /// render any of its units.
 #[derive(Clone, Debug)]
 pub struct JobEntry {
-    /// The scene.
-    pub scene: SceneRef,
-    /// The glTF camera the job renders from, if it names one.
-    pub camera: Option<String>,
-    /// Frames per second (a frame's time is `frame / fps`).
-    pub fps: f64,
-    /// The glTF animation that plays, if the job names one.
-    pub animation: Option<String>,
-    /// The shutter for motion blur, if the job has one.
-    pub shutter: Option<Shutter>,
+    /// The scene, its camera and its clock.
+    pub scene: JobScene,
     /// Render settings.
     pub settings: RenderConfig,
     /// Frame plan.
@@ -86,10 +78,6 @@ impl JobEntry {
         let job = &resolved.job;
         Self {
             scene: job.scene.clone(),
-            camera: job.camera.clone(),
-            fps: job.fps,
-            animation: job.animation.clone(),
-            shutter: job.shutter,
             settings: resolved.config,
             plan: resolved.plan,
         }

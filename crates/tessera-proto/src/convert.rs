@@ -3,7 +3,7 @@
 use std::fmt;
 
 use tessera_farm::job::{
-    Integrator, MisHeuristic, RenderConfig, SamplerKind, SceneRef, Shutter, DEFAULT_FPS,
+    Integrator, JobScene, MisHeuristic, RenderConfig, SamplerKind, SceneRef, Shutter, DEFAULT_FPS,
     MAX_ANIMATION_CHARS, MAX_CAMERA_CHARS, MAX_FPS,
 };
 use tessera_farm::{
@@ -479,23 +479,16 @@ pub struct LeasedUnit {
     pub deadline_unix_ms: u64,
     /// The job.
     pub job_id: u64,
-    /// The scene.
-    pub scene: SceneRef,
-    /// The glTF camera the job renders from, if it names one.
-    pub camera: Option<String>,
-    /// Frames per second of the job's time (`t = frame / fps`), in (0, `MAX_FPS`].
-    pub fps: f64,
-    /// The glTF animation that plays, if the job names one.
-    pub animation: Option<String>,
-    /// The shutter for motion blur, if the job has one.
-    pub shutter: Option<Shutter>,
+    /// The job's scene, its camera and its clock (the wire's `scene_hash`, `camera`,
+    /// `fps`, `animation` and `shutter`).
+    pub scene: JobScene,
     /// How samples are computed.
     pub settings: RenderConfig,
     /// The job's frame plan.
     pub plan: FramePlan,
     /// The unit to render; a unit of `plan`.
     pub unit: WorkUnit,
-    /// The pixels of the unit's tile to trace (adaptive jobs, issue 15); `None`: every
+    /// The pixels of the unit's tile to trace (adaptive jobs, ARCHITECTURE.md §3); `None`: every
     /// pixel. Checked against the tile: canonical runs inside it.
     pub wanted: Option<PixelRuns>,
 }
@@ -506,11 +499,11 @@ impl From<&LeasedUnit> for v1::Lease {
             lease_id: l.lease_id,
             deadline_unix_ms: l.deadline_unix_ms,
             job_id: l.job_id,
-            scene_hash: l.scene.to_string(),
-            camera: l.camera.clone().unwrap_or_default(),
-            fps: l.fps,
-            animation: l.animation.clone().unwrap_or_default(),
-            shutter: l.shutter.map(|s| v1::Shutter {
+            scene_hash: l.scene.source.to_string(),
+            camera: l.scene.camera.clone().unwrap_or_default(),
+            fps: l.scene.fps,
+            animation: l.scene.animation.clone().unwrap_or_default(),
+            shutter: l.scene.shutter.map(|s| v1::Shutter {
                 open: s.open,
                 close: s.close,
             }),
@@ -612,11 +605,13 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             lease_id: l.lease_id,
             deadline_unix_ms: l.deadline_unix_ms,
             job_id: l.job_id,
-            scene,
-            camera,
-            fps,
-            animation,
-            shutter,
+            scene: JobScene {
+                source: scene,
+                camera,
+                fps,
+                animation,
+                shutter,
+            },
             settings,
             plan,
             unit,
@@ -1007,14 +1002,16 @@ mod tests {
             lease_id: 12,
             deadline_unix_ms: 1_700_000_000_000,
             job_id: 3,
-            scene: SceneRef::Hash(HASH.into()),
-            camera: Some("dolly".into()),
-            fps: 30.0,
-            animation: Some("walk".into()),
-            shutter: Some(Shutter {
-                open: -0.25,
-                close: 0.5,
-            }),
+            scene: JobScene {
+                source: SceneRef::Hash(HASH.into()),
+                camera: Some("dolly".into()),
+                fps: 30.0,
+                animation: Some("walk".into()),
+                shutter: Some(Shutter {
+                    open: -0.25,
+                    close: 0.5,
+                }),
+            },
             settings: configs()[7],
             plan: p,
             unit,
@@ -1030,8 +1027,11 @@ mod tests {
         assert_eq!(w.scene_hash, HASH);
         assert_eq!(LeasedUnit::try_from(w).unwrap(), l);
         let l = LeasedUnit {
-            scene: SceneRef::Builtin("cornell-box".into()),
-            camera: None,
+            scene: JobScene {
+                source: SceneRef::Builtin("cornell-box".into()),
+                camera: None,
+                ..leased().scene
+            },
             wanted: None,
             ..leased()
         };

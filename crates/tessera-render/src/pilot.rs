@@ -1,5 +1,5 @@
 //! The technique pilot: the cheaper of path tracing and bdpt for the same error, measured
-//! (issue 13, item 4; ARCHITECTURE.md §4).
+//! (ARCHITECTURE.md §4).
 //!
 //! The scene analysis picks bdpt for caustics lit by delta or tiny lights. With a delta
 //! light (point, spot, directional) path tracing cannot find such a caustic at all, so
@@ -36,7 +36,8 @@
 //!
 //! # What it cannot see
 //!
-//! A pilot's error estimate is optimistic where paths are rare (issue 15's calibration:
+//! A pilot's error estimate is optimistic where paths are rare (the calibration suite's
+//! finding:
 //! caustic pixels whose passes never found the light show no error at all; Jensen 2001,
 //! section 10.3, on what a pilot can miss). That bias favours path tracing, whose
 //! caustics are the rare paths, so path tracing must win by [`PATH_MARGIN`], with its
@@ -46,8 +47,9 @@
 use crate::integrator::{render_unit, RenderConfig};
 use crate::scene::{rays_traced, RenderScene};
 use rayon::prelude::*;
-use tessera_farm::job::{Integrator, JobError, RenderPlan, ResolvedJob, SceneFacts, ValidatedJob};
+use tessera_farm::job::{Integrator, PilotVerdict, RenderPlan, ValidatedJob};
 use tessera_farm::{FrameAccumulator, FramePlan};
+use tessera_scene::job::PilotQuestion;
 use tessera_scene::Scene;
 
 /// Pixels on the long side of the pilot frame.
@@ -293,34 +295,21 @@ pub fn run(
     Ok(TechniqueVerdict { path, bdpt, size })
 }
 
-/// Settles `plan`'s provisional choice ([`RenderPlan::technique_pilot`]) for `job` by
-/// running the pilot, if the job waits for it ([`RenderPlan::awaits_technique_pilot`]); a
-/// pilot that cannot run (its scene does not build) leaves bdpt, the analysis's choice,
-/// and says why.
-pub fn settle(scene: &Scene, job: &ValidatedJob, plan: &mut RenderPlan) {
-    if !plan.awaits_technique_pilot(job.render.integrator) {
-        return;
-    }
-    let size = job.resolution(scene.default_resolution);
-    match run(scene, job, plan, size) {
-        Ok(v) => plan.settle_technique(v.path_wins(), v.reason()),
-        Err(e) => plan.settle_technique(false, format!("technique pilot not run ({e}): bdpt")),
-    }
-}
-
-/// Resolves `job` against `scene` as [`tessera_scene::job::resolve_job`] does, with the
-/// technique pilot settling the plan's choice first when the plan leaves it open and the
-/// job asks for `auto`. Every renderer of a job (`tessera render`, the coordinator)
-/// resolves with this, so they agree on the integrator.
-pub fn resolve_job(job: &ValidatedJob, scene: &Scene) -> Result<ResolvedJob, JobError> {
-    let mut plan = tessera_scene::analysis::analyse(scene);
-    settle(scene, job, &mut plan);
-    job.resolve(
-        SceneFacts {
-            default_resolution: scene.default_resolution,
-        },
-        plan,
-    )
+/// The technique pilot's verdict for `question` ([`tessera_scene::job::resolve_job`]
+/// calls it where the plan leaves the choice to a measurement): [`run`] at the job's
+/// resolution with the analysis's depths. Fails only when the pilot's scene or frame plan
+/// cannot be built; the job is then refused (the resolve path's one failure policy).
+pub fn verdict(question: &PilotQuestion<'_>) -> Result<PilotVerdict, String> {
+    let v = run(
+        question.scene,
+        question.job,
+        question.plan,
+        question.resolution(),
+    )?;
+    Ok(PilotVerdict {
+        path_wins: v.path_wins(),
+        reason: v.reason(),
+    })
 }
 
 #[cfg(test)]

@@ -1,10 +1,19 @@
-//! The technique pilot (issue 13 item 4): where path tracing and bdpt are both correct,
+//! The technique pilot (ARCHITECTURE.md §4): where path tracing and bdpt are both correct,
 //! the plan takes the one measured to be more efficient, deterministically, and says what
 //! it measured.
 
 use glam::Vec3;
-use tessera_farm::job::{Integrator, JobSettings, PlannedIntegrator};
-use tessera_render::pilot::{self, resolve_job};
+use tessera_farm::job::{Integrator, JobSettings, PlannedIntegrator, ResolvedJob, ValidatedJob};
+use tessera_render::pilot;
+use tessera_scene::job::ResolveError;
+
+/// The resolve path every renderer takes, with the in-process pilot.
+fn resolve_job(
+    job: &ValidatedJob,
+    scene: &tessera_scene::Scene,
+) -> Result<ResolvedJob, ResolveError> {
+    tessera_scene::job::resolve_job(job, scene, pilot::verdict)
+}
 
 fn job(settings: &str) -> tessera_farm::job::ValidatedJob {
     let raw: JobSettings = serde_json::from_str(settings).unwrap();
@@ -109,4 +118,23 @@ fn the_pilot_frame_keeps_the_aspect_ratio() {
     assert_eq!(pilot::pilot_size(48, 32), (48, 32));
     assert_eq!(pilot::pilot_size(4000, 10), (64, 1));
     assert_eq!(pilot::pilot_size(1, 1), (1, 1));
+}
+
+/// One failure policy: a pilot that fails refuses the job (locally and on the farm), with
+/// the way around it; a job that names its integrator never asks the pilot.
+#[test]
+fn a_failed_pilot_refuses_the_job_and_an_explicit_integrator_never_asks() {
+    let scene = tessera_scene::load("builtin:caustic").unwrap();
+    let j = job(r#"{"scene":"builtin:caustic","width":32,"height":24}"#);
+    let e =
+        tessera_scene::job::resolve_job(&j, &scene, |_| Err("it timed out".into())).unwrap_err();
+    assert!(matches!(e, ResolveError::Pilot(_)), "{e}");
+    let message = e.to_string();
+    assert!(
+        message.contains("it timed out") && message.contains("name an integrator"),
+        "{message}"
+    );
+    let j = job(r#"{"scene":"builtin:caustic","width":32,"height":24,"integrator":"bdpt"}"#);
+    let r = tessera_scene::job::resolve_job(&j, &scene, |_| panic!("no pilot for bdpt")).unwrap();
+    assert_eq!(r.config.integrator, Integrator::Bdpt);
 }

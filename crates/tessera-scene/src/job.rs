@@ -1,39 +1,46 @@
-//! Jobs meet scenes: loading a job's scene (with its camera) and resolving the job against
-//! it, the one path both `tessera render` and the coordinator take (ARCHITECTURE.md §2).
+//! Jobs meet scenes: loading a job's scene at a time, and resolving the job against it.
 //!
-//! The job contract itself lives in [`tessera_farm::job`]; this module adds the two steps
-//! that need a parsed scene: [`load_job_scene`] and [`resolve_job`] (the render plan of
-//! [`crate::analysis::analyse`] fed to [`ValidatedJob::resolve`]).
+//! The job contract lives in [`tessera_farm::job`]; this module adds the steps that need a
+//! parsed scene, each written once and used by every renderer of a job (`tessera render`,
+//! `tessera estimate`, the coordinator and the worker), so that local and farm images agree
+//! bit for bit (ARCHITECTURE.md §2):
+//!
+//! - [`load_job_scene_at`]: a job's [`JobScene`] (the scene, its camera) parsed at a
+//!   [`SceneTime`]: [`resolution_time`] to resolve the job, [`frame_time`] for a frame,
+//!   [`shutter_times`] for motion blur's key times;
+//! - [`resolve_job`]: the analysis's render plan ([`crate::analysis::analyse`]), the
+//!   technique pilot where the plan leaves the choice between path tracing and bdpt to a
+//!   measurement (the pilot is passed in: `tessera_render::pilot::verdict` in process, a
+//!   child process on the coordinator), then [`ValidatedJob::resolve`].
+//!
+//! One failure policy (ARCHITECTURE.md §4): a pilot that fails refuses the job
+//! ([`ResolveError::Pilot`]), locally and on the farm alike. A pilot fails only when the
+//! job's scene does not render at the pilot's size or the pilot could not finish; falling
+//! back to another integrator there would let the same job resolve differently on another
+//! attempt (a coordinator that restarts resolves stored jobs again), and its units would
+//! then merge two techniques. A job that names its integrator never waits for a pilot.
 
-use tessera_farm::job::{JobError, ResolvedJob, SceneFacts, SceneRef, Shutter, ValidatedJob};
+use tessera_farm::job::{
+    JobError, JobScene, PilotVerdict, RenderPlan, ResolvedJob, SceneFacts, SceneRef, ValidatedJob,
+};
 
 use crate::{builtin, gltf_import, Scene, SceneError, SceneTime};
 
 /// The scene of a job: a built-in scene, or an uploaded self-contained glTF/GLB given as
-/// its `bytes`, rendered from the glTF camera named `camera` (default: its first camera).
+/// its `bytes`, rendered from the glTF camera `scene.camera` names (default: its first
+/// camera), evaluated at `time`.
 ///
-/// Built-in scenes have one camera, so naming one is an error rather than silently ignored.
-/// Uploaded scenes are named `scene HASH` (their content hash), as everywhere in the farm.
-/// The scene is evaluated at t = 0 ([`load_job_scene_at`] for a frame's time).
-pub fn load_job_scene(
-    scene: &SceneRef,
-    bytes: Option<&[u8]>,
-    camera: Option<&str>,
-) -> Result<Scene, SceneError> {
-    load_job_scene_at(scene, bytes, camera, &SceneTime::default())
-}
-
-/// [`load_job_scene`] evaluated at `time` (a frame of the job: [`frame_time`]); built-in
-/// scenes are static.
+/// Built-in scenes have one camera, so naming one is an error rather than silently ignored;
+/// they are static. Uploaded scenes are named `scene HASH` (their content hash), as
+/// everywhere in the farm.
 pub fn load_job_scene_at(
-    scene: &SceneRef,
+    scene: &JobScene,
     bytes: Option<&[u8]>,
-    camera: Option<&str>,
     time: &SceneTime,
 ) -> Result<Scene, SceneError> {
-    match (scene, bytes) {
+    match (&scene.source, bytes) {
         (SceneRef::Builtin(name), _) => {
-            if let Some(c) = camera {
+            if let Some(c) = &scene.camera {
                 return Err(SceneError::Invalid {
                     scene: format!("builtin:{name}"),
                     message: format!(
@@ -44,9 +51,13 @@ pub fn load_job_scene_at(
             }
             builtin::load(name)
         }
-        (SceneRef::Hash(h), Some(b)) => {
-            gltf_import::load_slice_at(b, &format!("scene {h}"), None, camera, time)
-        }
+        (SceneRef::Hash(h), Some(b)) => gltf_import::load_slice_at(
+            b,
+            &format!("scene {h}"),
+            None,
+            scene.camera.as_deref(),
+            time,
+        ),
         (SceneRef::Hash(h), None) => Err(SceneError::Invalid {
             scene: format!("scene {h}"),
             message: "its bytes are not stored".into(),
@@ -54,72 +65,136 @@ pub fn load_job_scene_at(
     }
 }
 
-/// The time of `frame` of `job`: `frame / fps` seconds with the job's animation
-/// (ARCHITECTURE.md §8, "Time"). Every renderer of a frame (`tessera render --frame`, the
-/// coordinator, the workers) loads the scene at this time.
-pub fn frame_time(job: &ValidatedJob, frame: u32) -> SceneTime {
+/// The scene time at `seconds`, with the job's animation.
+pub fn scene_time(scene: &JobScene, seconds: f64) -> SceneTime {
     SceneTime {
-        seconds: job.frame_seconds(frame),
-        animation: job.animation.clone(),
+        seconds,
+        animation: scene.animation.clone(),
     }
 }
 
-/// The shutter's key times of `frame` ([`tessera_farm::job::Shutter::key_frames`] over
-/// the job's fps, with the job's animation), at which motion blur evaluates the scene;
-/// empty when the job has no shutter.
-pub fn shutter_times(job: &ValidatedJob, frame: u32) -> Vec<SceneTime> {
-    shutter_times_of(job.shutter, job.fps, job.animation.as_deref(), frame)
+/// The time a job is resolved at: t = 0 with its animation. The render plan, the default
+/// resolution and the technique pilot see the scene at this time on every renderer.
+pub fn resolution_time(scene: &JobScene) -> SceneTime {
+    scene_time(scene, 0.0)
 }
 
-/// [`shutter_times`] from a lease's fields: the shutter, fps and animation of its job.
-pub fn shutter_times_of(
-    shutter: Option<Shutter>,
-    fps: f64,
-    animation: Option<&str>,
-    frame: u32,
-) -> Vec<SceneTime> {
-    shutter.map_or_else(Vec::new, |s| {
-        s.key_frames(frame)
-            .into_iter()
-            .map(|f| SceneTime {
-                seconds: f / fps,
-                animation: animation.map(str::to_owned),
-            })
-            .collect()
-    })
+/// The time of `frame`: [`JobScene::frame_seconds`] with the job's animation
+/// (ARCHITECTURE.md §8, "Time"). Every renderer of a frame (`tessera render --frame`, the
+/// workers) loads the scene at this time.
+pub fn frame_time(scene: &JobScene, frame: u32) -> SceneTime {
+    scene_time(scene, scene.frame_seconds(frame))
 }
 
-/// The scene at the shutter's key times of `frame` ([`shutter_times`]), loaded by `load`;
-/// empty when the job has no shutter or `scene` (the frame's scene) is not animated, so a
-/// static scene never pays for them.
+/// The shutter's key times of `frame` ([`JobScene::shutter_seconds`], with the job's
+/// animation), at which motion blur evaluates the scene; empty when the job has no shutter.
+pub fn shutter_times(scene: &JobScene, frame: u32) -> Vec<SceneTime> {
+    scene
+        .shutter_seconds(frame)
+        .into_iter()
+        .map(|t| scene_time(scene, t))
+        .collect()
+}
+
+/// The scene at the key times `times` ([`shutter_times`]), loaded by `load`; empty when
+/// `frame_scene` (the frame's scene) is not animated, so a static scene never pays for
+/// them.
 pub fn shutter_scenes<E>(
-    job: &ValidatedJob,
-    frame: u32,
-    scene: &Scene,
-    load: impl FnMut(&SceneTime) -> Result<Scene, E>,
-) -> Result<Vec<Scene>, E> {
-    shutter_scenes_of(&shutter_times(job, frame), scene, load)
-}
-
-/// [`shutter_scenes`] at the key times `times` ([`shutter_times_of`]).
-pub fn shutter_scenes_of<E>(
     times: &[SceneTime],
-    scene: &Scene,
+    frame_scene: &Scene,
     load: impl FnMut(&SceneTime) -> Result<Scene, E>,
 ) -> Result<Vec<Scene>, E> {
-    if !scene.animated {
+    if !frame_scene.animated {
         return Ok(Vec::new());
     }
     times.iter().map(load).collect()
 }
 
-/// Resolves `job` against `scene`: [`ValidatedJob::resolve`] with the scene's default
-/// resolution and its render plan ([`crate::analysis::analyse`]).
-pub fn resolve_job(job: &ValidatedJob, scene: &Scene) -> Result<ResolvedJob, JobError> {
+/// What the technique pilot is asked to measure: the job, its scene at
+/// [`resolution_time`], and the analysis's plan, whose choice between path tracing and
+/// bdpt waits for it ([`RenderPlan::awaits_technique_pilot`]).
+#[derive(Clone, Copy, Debug)]
+pub struct PilotQuestion<'a> {
+    /// The job.
+    pub job: &'a ValidatedJob,
+    /// Its scene at [`resolution_time`].
+    pub scene: &'a Scene,
+    /// The analysis's plan (its depths are the pilot's).
+    pub plan: &'a RenderPlan,
+}
+
+impl PilotQuestion<'_> {
+    /// The job's image size (the pilot renders the same view, smaller).
+    pub fn resolution(&self) -> (u32, u32) {
+        self.job.resolution(self.scene.default_resolution)
+    }
+
+    /// What the verdict depends on, as a key for caches of verdicts: the scene, its camera
+    /// and animation (the scene at [`resolution_time`]), the image size (the pilot's view
+    /// has its aspect), the depth asked for, the MIS heuristic and the sampler. The pilot's
+    /// seed and size are constants, so nothing else changes its verdict.
+    pub fn key(&self) -> String {
+        let (w, h) = self.resolution();
+        let (s, r) = (&self.job.scene, &self.job.render);
+        format!(
+            "{}|{:?}|{:?}|{w}x{h}|{:?}|{}|{}",
+            s.source, s.camera, s.animation, r.max_depth, r.mis, r.sampler
+        )
+    }
+}
+
+/// Why a job did not resolve against its scene.
+#[derive(Debug, thiserror::Error)]
+pub enum ResolveError {
+    /// The settings do not resolve against the scene (a [`JobError`] naming the field).
+    #[error("{0}")]
+    Job(#[from] JobError),
+    /// The technique pilot failed: the scene does not render at the pilot's size, or the
+    /// pilot could not finish. The job is refused (the module's failure policy).
+    #[error(
+        "the technique pilot, which measures path tracing against bdpt for this scene, \
+         failed: {0} (name an integrator to render without it)"
+    )]
+    Pilot(String),
+}
+
+/// Resolves `job` against `scene` (loaded at [`resolution_time`]): the render plan of
+/// [`crate::analysis::analyse`]; where the plan leaves the choice between path tracing
+/// and bdpt to a measurement and the job asks for `auto`, `pilot`'s verdict settles it
+/// ([`RenderPlan::settle_technique`]); then [`ValidatedJob::resolve`] with the scene's
+/// default resolution. `pilot` is called at most once; its error refuses the job.
+pub fn resolve_job(
+    job: &ValidatedJob,
+    scene: &Scene,
+    pilot: impl FnOnce(&PilotQuestion<'_>) -> Result<PilotVerdict, String>,
+) -> Result<ResolvedJob, ResolveError> {
+    let mut plan = crate::analysis::analyse(scene);
+    if plan.awaits_technique_pilot(job.render.integrator) {
+        let verdict = pilot(&PilotQuestion {
+            job,
+            scene,
+            plan: &plan,
+        })
+        .map_err(ResolveError::Pilot)?;
+        plan.settle_technique(verdict.path_wins, verdict.reason);
+    }
     let facts = SceneFacts {
         default_resolution: scene.default_resolution,
     };
-    job.resolve(facts, crate::analysis::analyse(scene))
+    Ok(job.resolve(facts, plan)?)
+}
+
+/// A pilot that does not measure: the analysis's choice (bdpt, which samples every path
+/// path tracing does) stands, and the plan's first reason says why, with `why`. For
+/// renderers that cannot run the pilot (a coordinator without a pilot program) and for
+/// tests of resolution alone.
+pub fn no_pilot(why: &str) -> impl FnOnce(&PilotQuestion<'_>) -> Result<PilotVerdict, String> + '_ {
+    move |_| {
+        Ok(PilotVerdict {
+            path_wins: false,
+            reason: format!("technique pilot not run ({why}): bdpt, the analysis's choice"),
+        })
+    }
 }
 
 #[cfg(test)]
@@ -132,8 +207,8 @@ mod tests {
     fn resolve(settings: &str) -> ResolvedJob {
         let raw: JobSettings = serde_json::from_str(settings).unwrap();
         let job = raw.validate().unwrap();
-        let scene = load_job_scene(&job.scene, None, None).unwrap();
-        resolve_job(&job, &scene).unwrap()
+        let scene = load_job_scene_at(&job.scene, None, &resolution_time(&job.scene)).unwrap();
+        resolve_job(&job, &scene, no_pilot("a test of resolution")).unwrap()
     }
 
     #[test]
@@ -180,7 +255,7 @@ mod tests {
         assert_eq!(r.plan.tile_size, 32);
     }
 
-    /// Regression (redesign issue): bdpt with adaptive stopping kept tiles in
+    /// Regression: bdpt with adaptive stopping once kept tiles in
     /// `tessera render` but one whole-frame tile on the farm; now both resolve here.
     #[test]
     fn bdpt_with_adaptive_stopping_keeps_one_whole_frame_tile() {
@@ -192,7 +267,7 @@ mod tests {
         assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 64));
     }
 
-    /// Issue 15: an adaptive render's estimate is optimistic where rare paths carry the
+    /// An adaptive render's estimate is optimistic where rare paths carry the
     /// error (glossy veach-mis), calibrated on the diffuse Cornell box; the header says so
     /// only where it applies.
     #[test]
@@ -262,7 +337,7 @@ mod tests {
         let v: serde_json::Value = serde_json::from_str(&r.metadata_json(None)).unwrap();
         assert_eq!(v["stopped"], serde_json::Value::Null);
         assert_eq!(v["target_reached"], serde_json::Value::Null);
-        // Issue 15: a render whose pixels ran out of passes above the target says so.
+        // A render whose pixels ran out of passes above the target says so.
         let short = StopVerdict {
             time_limit: false,
             target: Some(0.1),
@@ -319,8 +394,14 @@ mod tests {
 
     #[test]
     fn builtin_scenes_refuse_a_camera_name() {
-        let e = load_job_scene(&SceneRef::Builtin("cornell-box".into()), None, Some("side"))
-            .unwrap_err();
+        let scene = JobScene {
+            source: SceneRef::Builtin("cornell-box".into()),
+            camera: Some("side".into()),
+            fps: 24.0,
+            animation: None,
+            shutter: None,
+        };
+        let e = load_job_scene_at(&scene, None, &SceneTime::default()).unwrap_err();
         assert!(e.to_string().contains("camera \"side\""), "{e}");
     }
 }

@@ -36,7 +36,7 @@ use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
 use tessera_render::render::{render_unit, render_unit_where};
 use tessera_render::scene::RenderScene;
-use tessera_scene::{Scene, SceneTime};
+use tessera_scene::Scene;
 use tonic::metadata::MetadataValue;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
@@ -930,10 +930,10 @@ async fn fetch_batch(
         match scene_for(&mut client, &cache, &l).await {
             Ok(rs) => units.push((l, rs)),
             Err(e) => {
-                tracing::warn!(scene = %l.scene, error = %e, "cannot load scene; returning lease");
+                tracing::warn!(scene = %l.scene.source, error = %e, "cannot load scene; returning lease");
                 unusable.push(l.lease_id);
                 if why.is_empty() {
-                    why = format!("scene {}: {e}", l.scene);
+                    why = format!("scene {}: {e}", l.scene.source);
                 }
             }
         }
@@ -1100,30 +1100,19 @@ fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
 ///
 /// A static scene is parsed once and built once per image size, whatever the frame. An
 /// animated one (glTF animations, [`Scene::animated`]) is parsed and built at each
-/// frame's time (`frame / fps`, [`tessera_scene::job::frame_time`]'s rule), from its bytes
-/// kept in the cache; the built scenes of the last few times are kept.
+/// frame's time ([`tessera_scene::job::frame_time`], the rule every renderer uses), from
+/// its bytes kept in the cache; the built scenes of the last few times are kept.
 async fn scene_for(
     client: &mut Client,
     cache: &Arc<Mutex<SceneCache>>,
     l: &LeasedUnit,
 ) -> Result<Arc<RenderScene>, String> {
-    let (scene, plan) = (&l.scene, &l.plan);
-    let key = match l.camera.as_deref() {
-        Some(c) => format!("{scene}#{c}"),
-        None => scene.to_string(),
-    };
-    let time = SceneTime {
-        seconds: f64::from(l.unit.frame) / l.fps,
-        animation: l.animation.clone(),
-    };
+    let (js, plan, frame) = (&l.scene, &l.plan, l.unit.frame);
+    let key = js.parse_key();
+    let time = tessera_scene::job::frame_time(js, frame);
     // The key of the built scene: the scene and camera, and the time (with the shutter)
     // for animated scenes.
-    let timed_key = format!(
-        "{key}@{}#{}#{:?}",
-        time.seconds,
-        time.animation.as_deref().unwrap_or(""),
-        l.shutter.map(<[f64; 2]>::from)
-    );
+    let timed_key = js.frame_key(frame);
     let lock = || cache.lock().map_err(|_| "scene cache poisoned".to_string());
     let built_key = {
         let c = lock()?;
@@ -1148,20 +1137,15 @@ async fn scene_for(
     let (parsed, built_key) = match cached {
         Some(s) => (s, built_key),
         None => {
-            let bytes = match (scene, raw) {
+            let bytes = match (&js.source, raw) {
                 (SceneRef::Builtin(_), _) => None,
                 (_, Some(b)) => b,
                 (SceneRef::Hash(hash), None) => Some(Arc::new(fetch_scene(client, hash).await?)),
             };
             // The same loader as the coordinator's, so both see the same scene.
-            let (sref, cam, b2, t) = (scene.clone(), l.camera.clone(), bytes.clone(), time.clone());
+            let (js2, b2, t) = (js.clone(), bytes.clone(), time.clone());
             let parsed = tokio::task::spawn_blocking(move || {
-                tessera_scene::job::load_job_scene_at(
-                    &sref,
-                    b2.as_deref().map(Vec::as_slice),
-                    cam.as_deref(),
-                    &t,
-                )
+                tessera_scene::job::load_job_scene_at(&js2, b2.as_deref().map(Vec::as_slice), &t)
             })
             .await
             .map_err(|e| e.to_string())?
@@ -1183,26 +1167,16 @@ async fn scene_for(
     let (w, h) = (plan.width, plan.height);
     // Motion blur: an animated scene with a shutter is also loaded at the shutter's key
     // times (from the bytes kept for it), as `tessera render` does.
-    let raw = if parsed.animated && l.shutter.is_some() {
+    let raw = if parsed.animated && js.shutter.is_some() {
         lock()?.animated.get(&key).cloned().flatten()
     } else {
         None
     };
-    let times = tessera_scene::job::shutter_times_of(
-        l.shutter,
-        l.fps,
-        l.animation.as_deref(),
-        l.unit.frame,
-    );
-    let (sref, cam) = (scene.clone(), l.camera.clone());
+    let times = tessera_scene::job::shutter_times(js, frame);
+    let js2 = js.clone();
     let built = tokio::task::spawn_blocking(move || {
-        let keys = tessera_scene::job::shutter_scenes_of(&times, &parsed, |t| {
-            tessera_scene::job::load_job_scene_at(
-                &sref,
-                raw.as_deref().map(Vec::as_slice),
-                cam.as_deref(),
-                t,
-            )
+        let keys = tessera_scene::job::shutter_scenes(&times, &parsed, |t| {
+            tessera_scene::job::load_job_scene_at(&js2, raw.as_deref().map(Vec::as_slice), t)
         })
         .map_err(|e| e.to_string())?;
         RenderScene::build_in_motion(&parsed, &keys, w, h).map_err(|e| e.to_string())

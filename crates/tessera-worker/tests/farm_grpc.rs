@@ -117,7 +117,8 @@ async fn one_and_three_workers_match_the_local_render() {
     // The local render resolves the job as `tessera render` does (ARCHITECTURE.md §1).
     let scene = tessera_scene::load("builtin:cornell-box").unwrap();
     let job = settings().validate().unwrap();
-    let resolved = tessera_scene::job::resolve_job(&job, &scene).unwrap();
+    let resolved =
+        tessera_scene::job::resolve_job(&job, &scene, tessera_render::pilot::verdict).unwrap();
     assert_eq!(resolved.plan, plan());
     assert_eq!(resolved.config.seed, 11);
     let rs = RenderScene::build(&scene, 40, 32).unwrap();
@@ -166,7 +167,12 @@ fn long_settings() -> JobSettings {
 /// `tessera render`'s image of `s` (resolved as the coordinator resolves it).
 fn local_image(s: &JobSettings) -> FrameImage {
     let scene = tessera_scene::load("builtin:cornell-box").unwrap();
-    let resolved = tessera_scene::job::resolve_job(&s.clone().validate().unwrap(), &scene).unwrap();
+    let resolved = tessera_scene::job::resolve_job(
+        &s.clone().validate().unwrap(),
+        &scene,
+        tessera_render::pilot::verdict,
+    )
+    .unwrap();
     let rs = RenderScene::build(&scene, resolved.plan.width, resolved.plan.height).unwrap();
     render_frame(&rs, &resolved.config, &resolved.plan, 0, 2, |_, _| {}).image()
 }

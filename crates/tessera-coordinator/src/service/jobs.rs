@@ -38,16 +38,14 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
-        let scene = self
-            .scene(&job.scene, job.camera.as_deref(), job.animation.as_deref())
-            .await?;
+        let scene = self.scene(&job.scene).await?;
         // Resolution also checks the adaptive settings against the plan (field `adaptive`).
         let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;
-        let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene);
+        let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene.source);
         let resolved = self
             .inner
             .technique
-            .resolve(&job, settings_json.as_bytes(), &scene, bytes)
+            .resolve(&job, settings_json.as_bytes(), scene, bytes)
             .await?;
         self.check_memory(&job, &resolved)?;
         let created = now_ms();
@@ -60,7 +58,7 @@ impl Coordinator {
                 frames: job.frames,
                 passes_per_unit: self.inner.cfg.passes_per_unit,
                 priority: job.priority,
-                scene_ref: job.scene.to_string(),
+                scene_ref: job.scene.source.to_string(),
                 name: job.name.clone(),
                 idempotency_key: idempotency_key.clone(),
                 created_unix_ms: created,
@@ -513,7 +511,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         id,
         name: rt.job().name.clone(),
         state: rt.state,
-        scene: rt.job().scene.to_string(),
+        scene: rt.job().scene.source.to_string(),
         settings: rt.settings.clone(),
         width: Some(plan.width),
         height: Some(plan.height),

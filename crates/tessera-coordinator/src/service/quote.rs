@@ -87,17 +87,14 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
-        let scene = self
-            .scene(&job.scene, job.camera.as_deref(), job.animation.as_deref())
-            .await?;
+        let scene = self.scene(&job.scene).await?;
         let body = serde_json::to_vec(&settings).map_err(CoordError::internal)?;
-        let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene);
+        let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene.source);
         let resolved = self
             .inner
             .technique
-            .resolve(&job, &body, &scene, bytes)
+            .resolve(&job, &body, scene, bytes)
             .await?;
-        drop(scene);
         // A quote for a job the coordinator would refuse would mislead.
         self.check_memory(&job, &resolved)?;
         let plan = resolved.plan;
@@ -132,7 +129,7 @@ impl Coordinator {
                 .filter(|w| !w.draining && now.saturating_sub(w.last_seen_ms) <= lost_after)
                 .map(|w| w.threads)
                 .collect();
-            let bytes = match &job.scene {
+            let bytes = match &job.scene.source {
                 SceneRef::Builtin(_) => None,
                 SceneRef::Hash(h) => farm.scenes.get(h).cloned(),
             };
@@ -147,7 +144,7 @@ impl Coordinator {
                 "another dry run's pilot is rendering; retry in a few seconds".into(),
             )
         })?;
-        let scene_bytes = match (&job.scene, bytes) {
+        let scene_bytes = match (&job.scene.source, bytes) {
             (SceneRef::Builtin(_), _) => None,
             (SceneRef::Hash(_), Some(b)) => Some(b),
             (SceneRef::Hash(h), None) => {
@@ -201,7 +198,7 @@ impl Coordinator {
             started.elapsed().as_secs_f64().into(),
         );
         tracing::info!(
-            scene = %job.scene,
+            scene = %job.scene.source,
             workers,
             worker_threads,
             seconds = started.elapsed().as_secs_f64(),

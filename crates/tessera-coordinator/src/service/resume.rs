@@ -18,12 +18,13 @@ use tessera_farm::{
 
 use super::jobs::add_to_scheduler;
 use super::scenes::{load_scene, SceneLoadError};
-use super::technique::{ResolveError, TechniquePilots};
+use super::technique::TechniquePilots;
 use crate::error::CoordError;
 use crate::state::{now_ms, tile_error, Farm, JobEntry, JobRuntime, Stop, TileRejected};
 use crate::store::{
     FaultFilter, JobRecord, Store, StoreError, TileCheckpoint, MAX_RESUMES_WITHOUT_PROGRESS,
 };
+use tessera_scene::job::ResolveError;
 
 /// A stored job as this build understands it.
 pub(crate) struct StoredJob {
@@ -84,23 +85,16 @@ impl From<StoredJobError> for CoordError {
 pub(crate) async fn resolve_stored(
     store: &dyn Store,
     farm: &Mutex<Farm>,
-    pilots: &TechniquePilots,
+    pilots: &Arc<TechniquePilots>,
     rec: &JobRecord,
 ) -> Result<StoredJob, StoredJobError> {
     let settings: JobSettings = serde_json::from_str(&rec.settings_json)
         .map_err(|error| StoredJobError::Unreadable { job: rec.id, error })?;
     let job = settings.validate()?;
-    let scene = load_scene(
-        store,
-        farm,
-        &job.scene,
-        job.camera.as_deref(),
-        job.animation.as_deref(),
-    )
-    .await?;
-    let bytes = scene_bytes(farm, &job.scene);
+    let scene = load_scene(store, farm, &job.scene).await?;
+    let bytes = scene_bytes(farm, &job.scene.source);
     let resolved = pilots
-        .resolve(&job, rec.settings_json.as_bytes(), &scene, bytes)
+        .resolve(&job, rec.settings_json.as_bytes(), scene, bytes)
         .await?;
     Ok(StoredJob { settings, resolved })
 }
@@ -319,7 +313,7 @@ pub(crate) fn restore_frames(
 pub(crate) async fn resume_all(
     store: &dyn Store,
     farm: &Mutex<Farm>,
-    pilots: &TechniquePilots,
+    pilots: &Arc<TechniquePilots>,
 ) -> Result<bool, StoreError> {
     let previous = store.begin_run().await?;
     let mut resumed = false;
@@ -363,7 +357,7 @@ pub(crate) async fn resume_all(
 async fn resume_job(
     store: &dyn Store,
     farm: &Mutex<Farm>,
-    pilots: &TechniquePilots,
+    pilots: &Arc<TechniquePilots>,
     rec: &JobRecord,
 ) -> Result<(), String> {
     let StoredJob { settings, resolved } = resolve_stored(store, farm, pilots, rec)

@@ -9,9 +9,9 @@ use std::sync::{Arc, Mutex};
 
 use sha2::{Digest, Sha256};
 use tessera_api::{SceneRef, SceneUploaded};
-use tessera_scene::job::load_job_scene_at;
+use tessera_farm::job::JobScene;
+use tessera_scene::job::{load_job_scene_at, resolution_time};
 use tessera_scene::Scene;
-use tessera_scene::SceneTime;
 
 use super::{Coordinator, MAX_SCENE_BYTES};
 use crate::error::{CoordError, CoordResult};
@@ -59,12 +59,10 @@ impl From<SceneLoadError> for CoordError {
 pub(crate) async fn load_scene(
     store: &dyn Store,
     farm: &Mutex<Farm>,
-    scene_ref: &SceneRef,
-    camera: Option<&str>,
-    animation: Option<&str>,
+    scene: &JobScene,
 ) -> Result<Scene, SceneLoadError> {
     let poisoned = || SceneLoadError::Internal("farm state poisoned".into());
-    let bytes = match scene_ref {
+    let bytes = match &scene.source {
         SceneRef::Hash(h) => {
             let cached = farm.lock().map_err(|_| poisoned())?.scenes.get(h).cloned();
             let b = match cached {
@@ -84,17 +82,12 @@ pub(crate) async fn load_scene(
         }
         SceneRef::Builtin(_) => None,
     };
-    let (scene_ref, camera) = (scene_ref.clone(), camera.map(str::to_owned));
-    let time = SceneTime {
-        seconds: 0.0,
-        animation: animation.map(str::to_owned),
-    };
+    let scene = scene.clone();
     tokio::task::spawn_blocking(move || {
         load_job_scene_at(
-            &scene_ref,
+            &scene,
             bytes.as_deref().map(|b| b.as_slice()),
-            camera.as_deref(),
-            &time,
+            &resolution_time(&scene),
         )
     })
     .await
@@ -144,20 +137,8 @@ impl Coordinator {
     }
 
     /// A job's scene, loaded by [`load_scene`]; errors name the `scene` field.
-    pub(crate) async fn scene(
-        &self,
-        scene_ref: &SceneRef,
-        camera: Option<&str>,
-        animation: Option<&str>,
-    ) -> CoordResult<Scene> {
-        Ok(load_scene(
-            &*self.inner.store,
-            &self.inner.farm,
-            scene_ref,
-            camera,
-            animation,
-        )
-        .await?)
+    pub(crate) async fn scene(&self, scene: &JobScene) -> CoordResult<Scene> {
+        Ok(load_scene(&*self.inner.store, &self.inner.farm, scene).await?)
     }
 
     /// The bytes of an uploaded scene, for a worker's FetchScene.

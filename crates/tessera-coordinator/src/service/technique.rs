@@ -11,15 +11,16 @@
 //! scene submitted many times, or a finished job's image served again, pilots once.
 //!
 //! A coordinator without a pilot program (one embedded in a test) cannot run it and keeps
-//! the analysis's bdpt, saying so in the plan.
+//! the analysis's bdpt, saying so in the plan. A pilot that fails refuses the job, as it
+//! does in `tessera render` (the resolve path's one failure policy, ARCHITECTURE.md §4).
 
 use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use serde::Deserialize;
-use tessera_farm::job::{JobError, ResolvedJob, SceneFacts, ValidatedJob};
+use tessera_farm::job::{PilotVerdict, ResolvedJob, ValidatedJob};
+use tessera_scene::job::{no_pilot, resolve_job, PilotQuestion, ResolveError};
 use tessera_scene::Scene;
 
 use super::child::{run_pilot, ChildError};
@@ -27,31 +28,13 @@ use super::child::{run_pilot, ChildError};
 /// Verdicts kept; the cache is emptied when it is full (a verdict costs one pilot again).
 const CACHE_ENTRIES: usize = 1024;
 
-/// The child's answer.
-#[derive(Clone, Debug, Deserialize)]
-struct Verdict {
-    path_wins: bool,
-    reason: String,
-}
-
 /// How the coordinator runs technique pilots: its program, their time limit, one at a
 /// time, and the verdicts so far.
 pub(crate) struct TechniquePilots {
     program: Option<PathBuf>,
     timeout: Duration,
     permit: tokio::sync::Semaphore,
-    cache: Mutex<HashMap<String, Verdict>>,
-}
-
-/// Why a job did not resolve.
-#[derive(Debug, thiserror::Error)]
-pub(crate) enum ResolveError {
-    /// The settings do not resolve against the scene.
-    #[error("{0}")]
-    Job(#[from] JobError),
-    /// The technique pilot failed: the scene does not render.
-    #[error("the technique pilot failed: {0}")]
-    Pilot(String),
+    cache: Mutex<HashMap<String, PilotVerdict>>,
 }
 
 impl TechniquePilots {
@@ -65,90 +48,64 @@ impl TechniquePilots {
         }
     }
 
-    /// Resolves `job` against `scene` as `tessera_render::pilot::resolve_job` does in
-    /// process: the analysis, the technique pilot where the plan asks for one (in a child,
-    /// given `settings_json` and the uploaded scene's `scene_bytes`), then resolution.
+    /// Resolves `job` against `scene` on the one resolve path
+    /// ([`tessera_scene::job::resolve_job`], as `tessera render` does in process), with a
+    /// child process as the technique pilot where the plan asks for one (given
+    /// `settings_json` and the uploaded scene's `scene_bytes`). The analysis is CPU work
+    /// on a scene of any size, so it runs on a blocking thread, which waits for the child
+    /// on the runtime.
     pub(crate) async fn resolve(
-        &self,
+        self: &Arc<Self>,
         job: &ValidatedJob,
         settings_json: &[u8],
-        scene: &Scene,
+        scene: Scene,
         scene_bytes: Option<Arc<Vec<u8>>>,
     ) -> Result<ResolvedJob, ResolveError> {
-        let mut plan = tessera_scene::analysis::analyse(scene);
-        if plan.awaits_technique_pilot(job.render.integrator) {
-            let verdict = self.verdict(job, settings_json, scene, scene_bytes).await?;
-            plan.settle_technique(verdict.path_wins, verdict.reason);
-        }
-        Ok(job.resolve(
-            SceneFacts {
-                default_resolution: scene.default_resolution,
-            },
-            plan,
-        )?)
+        let this = self.clone();
+        let job = job.clone();
+        let settings_json = settings_json.to_vec();
+        let runtime = tokio::runtime::Handle::current();
+        tokio::task::spawn_blocking(move || {
+            resolve_job(&job, &scene, |q| {
+                runtime.block_on(this.verdict(q, settings_json, scene_bytes))
+            })
+        })
+        .await
+        .map_err(|e| ResolveError::Pilot(format!("the resolution panicked: {e}")))?
     }
 
-    /// The pilot's verdict for `job`, from the cache or a child.
+    /// The pilot's verdict for `q`, from the cache or a child.
     async fn verdict(
         &self,
-        job: &ValidatedJob,
-        settings_json: &[u8],
-        scene: &Scene,
+        q: &PilotQuestion<'_>,
+        settings_json: Vec<u8>,
         scene_bytes: Option<Arc<Vec<u8>>>,
-    ) -> Result<Verdict, ResolveError> {
+    ) -> Result<PilotVerdict, String> {
         let Some(program) = &self.program else {
-            return Ok(Verdict {
-                path_wins: false,
-                reason: "technique pilot not run (this coordinator has no pilot program): \
-                         bdpt, the analysis's choice"
-                    .into(),
-            });
+            return no_pilot("this coordinator has no pilot program")(q);
         };
-        // What the verdict depends on (tessera_render::pilot::run): the scene, its camera
-        // and animation, the resolution's aspect, the depth, MIS and sampler.
-        let (w, h) = job.resolution(scene.default_resolution);
-        let key = format!(
-            "{}|{:?}|{:?}|{w}x{h}|{:?}|{}|{}",
-            job.scene,
-            job.camera,
-            job.animation,
-            job.render.max_depth,
-            job.render.mis,
-            job.render.sampler
-        );
+        let key = q.key();
         if let Some(v) = self.cached(&key) {
             return Ok(v);
         }
-        let _permit = self
-            .permit
-            .acquire()
-            .await
-            .map_err(|e| ResolveError::Pilot(e.to_string()))?;
+        let _permit = self.permit.acquire().await.map_err(|e| e.to_string())?;
         // Another request may have piloted the same job while this one waited.
         if let Some(v) = self.cached(&key) {
             return Ok(v);
         }
         let args = ["--technique".to_string(), "--threads".into(), "1".into()];
-        let out = run_pilot(
-            program,
-            &args,
-            scene_bytes,
-            settings_json.to_vec(),
-            self.timeout,
-        )
-        .await
-        .map_err(|e| {
-            ResolveError::Pilot(match e {
+        let out = run_pilot(program, &args, scene_bytes, settings_json, self.timeout)
+            .await
+            .map_err(|e| match e {
                 ChildError::Io(e) => e,
                 ChildError::Timeout(t) => {
                     format!("it did not finish within {} s", t.as_secs_f64())
                 }
                 ChildError::Failed { status, message } => format!("{status}: {message}"),
-            })
-        })?;
-        let v: Verdict = serde_json::from_slice(&out)
-            .map_err(|e| ResolveError::Pilot(format!("its answer is not a verdict: {e}")))?;
-        tracing::info!(scene = %job.scene, path_wins = v.path_wins, "technique pilot");
+            })?;
+        let v: PilotVerdict = serde_json::from_slice(&out)
+            .map_err(|e| format!("its answer is not a verdict: {e}"))?;
+        tracing::info!(scene = %q.job.scene.source, path_wins = v.path_wins, "technique pilot");
         if let Ok(mut c) = self.cache.lock() {
             if c.len() >= CACHE_ENTRIES {
                 c.clear();
@@ -158,7 +115,7 @@ impl TechniquePilots {
         Ok(v)
     }
 
-    fn cached(&self, key: &str) -> Option<Verdict> {
+    fn cached(&self, key: &str) -> Option<PilotVerdict> {
         self.cache.lock().ok()?.get(key).cloned()
     }
 }

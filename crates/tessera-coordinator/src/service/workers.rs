@@ -289,14 +289,10 @@ impl Coordinator {
                         deadline_unix_ms: l.deadline_ms,
                         job_id: l.job,
                         scene: job.scene.clone(),
-                        camera: job.camera.clone(),
-                        fps: job.fps,
-                        animation: job.animation.clone(),
-                        shutter: job.shutter,
                         settings: job.settings,
                         plan: job.plan,
                         unit: l.unit,
-                        // Adaptive jobs: only the pixels still wanted (issue 15).
+                        // Adaptive jobs: only the pixels still wanted (ARCHITECTURE.md §3).
                         wanted: farm.scheduler.wanted_pixels(l.job, &l.unit),
                     })
                 })

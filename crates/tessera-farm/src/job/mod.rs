@@ -48,14 +48,16 @@
 mod choice;
 pub mod plan;
 mod resolve;
+mod scene;
 mod settings;
 
 pub use choice::{
     AdaptiveMode, Integrator, IntegratorChoice, MisHeuristic, SamplerKind, SceneRef,
     DEFAULT_CUTOFF_ALPHA, MAX_BUILTIN_NAME_CHARS,
 };
-pub use plan::{Effect, EffectKind, PlannedIntegrator, RenderPlan, TechniquePilot};
+pub use plan::{Effect, EffectKind, PilotVerdict, PlannedIntegrator, RenderPlan, TechniquePilot};
 pub use resolve::{ResolvedJob, SceneFacts, StopVerdict};
+pub use scene::JobScene;
 pub use settings::{
     resolve_resolution, FrameRange, JobError, JobSettings, RenderConfig, RenderRequest, Shutter,
     ValidatedJob, DEFAULT_FPS, DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES, DEFAULT_RR_DEPTH,

@@ -177,6 +177,19 @@ pub struct TechniquePilot {
     pub path_reasons: Vec<String>,
 }
 
+/// The technique pilot's answer ([`RenderPlan::settle_technique`]): whether path tracing
+/// wins, and what was measured. Written once here so that the renderer that runs the pilot
+/// and the coordinator that runs it in a child process (`tessera pilot --technique`, which
+/// prints this as JSON) read and write the same thing.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PilotVerdict {
+    /// Path tracing wins (otherwise bdpt, the analysis's choice, stays).
+    pub path_wins: bool,
+    /// The plan's first reason: what was measured, or why nothing was.
+    pub reason: String,
+}
+
 impl RenderPlan {
     /// Whether the plan found `kind`.
     pub fn has(&self, kind: EffectKind) -> bool {

@@ -240,19 +240,20 @@ impl ResolvedJob {
         let p = &self.plan;
         // Only a named camera is recorded: the default camera adds nothing.
         let camera = job
+            .scene
             .camera
             .as_deref()
             .map_or(String::new(), |c| format!(",\"camera\":{}", json_string(c)));
         // Time settings only when they differ from the default (every animation at 24
         // frames per second), so static jobs keep the header they always had.
         let mut camera = camera;
-        if job.fps != super::settings::DEFAULT_FPS {
-            camera += &format!(",\"fps\":{}", job.fps);
+        if job.scene.fps != super::settings::DEFAULT_FPS {
+            camera += &format!(",\"fps\":{}", job.scene.fps);
         }
-        if let Some(a) = &job.animation {
+        if let Some(a) = &job.scene.animation {
             camera += &format!(",\"animation\":{}", json_string(a));
         }
-        if let Some(s) = &job.shutter {
+        if let Some(s) = &job.scene.shutter {
             camera += &format!(",\"shutter\":[{},{}]", s.open, s.close);
         }
         // Only where it applies, so other jobs keep the header they always had.
@@ -261,7 +262,7 @@ impl ResolvedJob {
         });
         out += &format!(
             "\"scene\":{}{camera},\"width\":{},\"height\":{},\"spp\":{},\"samples_per_pass\":{},\"passes\":{},\"integrator\":\"{integrator}\",\"mis\":\"{}\",\"sampler\":\"{}\",\"seed\":{},\"max_depth\":{},\"rr_depth\":{},\"error_estimator\":{},\"plan\":{}{caveat}}}",
-            json_string(&job.scene.to_string()),
+            json_string(&job.scene.source.to_string()),
             p.width,
             p.height,
             p.spp(),

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::choice::{
     AdaptiveMode, Integrator, IntegratorChoice, MisHeuristic, SamplerKind, SceneRef,
 };
+use super::scene::JobScene;
 use crate::adaptive::{adaptive_plan, AdaptiveSettings};
 use crate::plan::{
     FramePlan, PlanError, MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION, MAX_PASSES, MAX_TILE_SIZE,
@@ -508,16 +509,18 @@ impl JobSettings {
             check_label("name", name, MAX_NAME_CHARS)?;
         }
         let job = ValidatedJob {
-            scene,
-            camera: self.camera.clone(),
+            scene: JobScene {
+                source: scene,
+                camera: self.camera.clone(),
+                fps: self.fps,
+                animation: self.animation.clone(),
+                shutter: self.shutter,
+            },
             width: self.width,
             height: self.height,
             spp: self.spp,
             render,
             frames: self.frames,
-            fps: self.fps,
-            animation: self.animation.clone(),
-            shutter: self.shutter,
             priority: self.priority,
             target_error: self.target_error,
             adaptive,
@@ -588,10 +591,8 @@ fn parse_field<T: FromStr<Err = String>>(field: &str, value: &str) -> Result<T, 
 /// configuration. Construct it only through validation (or with the same checks).
 #[derive(Debug, Clone, PartialEq)]
 pub struct ValidatedJob {
-    /// The scene.
-    pub scene: SceneRef,
-    /// The glTF camera to render from, if one was named.
-    pub camera: Option<String>,
+    /// The scene, its camera and its clock (frames per second, animation, shutter).
+    pub scene: JobScene,
     /// Requested image width; `None`: from the scene ([`resolve_resolution`]).
     pub width: Option<u32>,
     /// Requested image height; `None`: from the scene ([`resolve_resolution`]).
@@ -602,12 +603,6 @@ pub struct ValidatedJob {
     pub render: RenderRequest,
     /// Frames to render, `start <= end`, at most [`MAX_FRAMES`].
     pub frames: FrameRange,
-    /// Frames per second, in (0, [`MAX_FPS`]]: frame `F` is the scene at `F / fps` s.
-    pub fps: f64,
-    /// The animation that plays (name, or else index); `None`: all of them.
-    pub animation: Option<String>,
-    /// The shutter for motion blur (checked by [`Shutter::check`]); `None`: no blur.
-    pub shutter: Option<Shutter>,
     /// Scheduling priority (higher first).
     pub priority: i32,
     /// Target image error in (0, 1].
@@ -679,11 +674,6 @@ impl ValidatedJob {
         })
     }
 
-    /// The time of `frame` in seconds: `frame / fps` (ARCHITECTURE.md §8, "Time").
-    pub fn frame_seconds(&self, frame: u32) -> f64 {
-        f64::from(frame) / self.fps
-    }
-
     /// Whether the job stops early at all: adaptive stopping, a target error or a time
     /// limit. Such jobs record their stopping settings in the EXR header.
     pub fn stops_early(&self) -> bool {
@@ -697,8 +687,8 @@ impl ValidatedJob {
     /// this.
     pub fn to_settings(&self) -> JobSettings {
         JobSettings {
-            scene: self.scene.to_string(),
-            camera: self.camera.clone(),
+            scene: self.scene.source.to_string(),
+            camera: self.scene.camera.clone(),
             width: self.width,
             height: self.height,
             spp: self.spp,
@@ -708,9 +698,9 @@ impl ValidatedJob {
             seed: self.render.seed,
             max_depth: self.render.max_depth,
             frames: self.frames,
-            fps: self.fps,
-            animation: self.animation.clone(),
-            shutter: self.shutter,
+            fps: self.scene.fps,
+            animation: self.scene.animation.clone(),
+            shutter: self.scene.shutter,
             priority: self.priority,
             target_error: self.target_error,
             adaptive: self.adaptive.to_string(),

@@ -33,7 +33,7 @@ fn defaults() {
     let s: JobSettings = serde_json::from_str(r#"{"scene":"builtin:cornell-box"}"#).unwrap();
     assert_eq!(s, base());
     let j = s.validate().unwrap();
-    assert_eq!(j.scene, SceneRef::Builtin("cornell-box".into()));
+    assert_eq!(j.scene.source, SceneRef::Builtin("cornell-box".into()));
     assert_eq!((j.width, j.height), (None, None));
     assert_eq!(j.spp, 64);
     assert_eq!(j.render, RenderRequest::default());
@@ -60,7 +60,7 @@ fn full_json_round_trip() {
     let s: JobSettings = serde_json::from_value(json.clone()).unwrap();
     assert_eq!(serde_json::to_value(&s).unwrap(), json);
     let j = s.validate().unwrap();
-    assert_eq!(j.scene, SceneRef::Hash(HASH.into()));
+    assert_eq!(j.scene.source, SceneRef::Hash(HASH.into()));
     assert_eq!(j.render.integrator, IntegratorChoice::BDPT);
     assert_eq!(j.render.mis, MisHeuristic::Cutoff(0.25));
     assert_eq!(j.render.sampler, SamplerKind::Independent);
@@ -105,7 +105,10 @@ fn scene() {
     rejects("scene", |s| s.scene = "scenes/room.gltf".into());
     accepts(|s| s.scene = "builtin:veach-mis".into());
     accepts(|s| s.scene = format!("builtin:{}", "x".repeat(64)));
-    assert_eq!(accepts(|s| s.scene = HASH.into()).scene.hash(), Some(HASH));
+    assert_eq!(
+        accepts(|s| s.scene = HASH.into()).scene.source.hash(),
+        Some(HASH)
+    );
 }
 
 #[test]
@@ -288,7 +291,7 @@ fn shutter() {
         })
     });
     // The key times: SHUTTER_SEGMENTS + 1, evenly from the opening to the closing.
-    let keys = j.shutter.unwrap().key_frames(12);
+    let keys = j.scene.shutter.unwrap().key_frames(12);
     assert_eq!(keys.len(), SHUTTER_SEGMENTS as usize + 1);
     assert_eq!((keys[0], *keys.last().unwrap()), (11.75, 12.25));
     // The JSON form is a pair.
@@ -457,6 +460,7 @@ fn camera_and_min_passes() {
     rejects("camera", |s| s.camera = Some("a\tb".into()));
     assert_eq!(
         accepts(|s| s.camera = Some("dolly".into()))
+            .scene
             .camera
             .as_deref(),
         Some("dolly")
