@@ -69,6 +69,7 @@
 #![deny(missing_docs)]
 
 mod adaptive;
+mod ids;
 pub mod job;
 mod mask;
 mod merge;
@@ -85,6 +86,7 @@ pub use adaptive::{
     AdaptiveRestoreError, AdaptiveSettings, AdaptiveTile, AdaptiveTileCheckpoint, ConvergencePoint,
     ADAPTIVE_MAX_SAMPLES_PER_PASS, NEYMAN_ERROR_CAP, POOL_RADIUS,
 };
+pub use ids::{JobId, WorkerId};
 pub use mask::{MaskError, PixelRuns};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
 pub use plan::{
@@ -94,8 +96,8 @@ pub use plan::{
 };
 pub use result::{ResultError, UnitResult};
 pub use schedule::{
-    frame_state_bytes, tail_share, JobId, Lease, Progress, Residency, Resumed, ResumedAdaptive,
-    Scheduler, SubmitError, Submitted, WorkerId, EXACT_SPOT_COUNT,
+    frame_state_bytes, tail_share, Lease, Progress, Residency, Resumed, ResumedAdaptive, Scheduler,
+    SubmitError, Submitted, EXACT_SPOT_COUNT,
 };
 pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,

@@ -1,5 +1,6 @@
-//! Spot checks (issue 15, "Workers you can trust"): which units are rendered twice on
-//! purpose, and what the scheduler reports when their copies are compared.
+//! Spot checks (ARCHITECTURE.md §6, "Spot checks and quarantine"): which units are
+//! rendered twice on purpose, and what the scheduler reports when their copies are
+//! compared.
 //!
 //! Rendering is deterministic (ARCHITECTURE.md §2), so two workers' copies of one unit are
 //! bit-identical and any difference is a fault. A fraction of the units is chosen by
@@ -13,9 +14,12 @@
 //! image stays byte-identical to a local render even when a faulty copy came first).
 //! Workers whose copy differs from the agreed one are quarantined (see
 //! [`crate::Scheduler::quarantine`] and ARCHITECTURE.md §6, "Spot checks and quarantine").
+//!
+//! A leaf: the selection and the events depend on no scheduler state. The scheduler's
+//! side (held copies, agreement, quarantine) is `schedule/spot.rs`.
 
+use crate::ids::{JobId, WorkerId};
 use crate::plan::WorkUnit;
-use crate::schedule::{JobId, WorkerId};
 
 /// The default fraction of units spot-checked by a coordinator: 2%.
 pub const DEFAULT_SPOT_CHECK_FRACTION: f64 = 0.02;
@@ -145,53 +149,6 @@ pub enum SpotEvent {
         /// corrupt, and dropping the tile repaired the image).
         identical: bool,
     },
-}
-
-/// Copies of one spot-checked unit that are waiting for agreement, grouped by digest.
-#[derive(Debug, Default)]
-pub(crate) struct SpotCheck {
-    pub(crate) groups: Vec<CopyGroup>,
-}
-
-/// The copies of a unit with one digest: who rendered them and the result (kept once).
-#[derive(Debug)]
-pub(crate) struct CopyGroup {
-    pub(crate) digest: u64,
-    /// One entry per copy; the same worker twice when it re-rendered the unit alone.
-    pub(crate) workers: Vec<WorkerId>,
-    /// The leases the copies answered: a result submitted again for the same lease (a
-    /// worker retrying after a lost answer) is not a second copy.
-    pub(crate) leases: Vec<u64>,
-    pub(crate) result: crate::UnitResult,
-}
-
-impl SpotCheck {
-    /// Whether `worker` has rendered a copy.
-    pub(crate) fn has(&self, worker: WorkerId) -> bool {
-        self.groups.iter().any(|g| g.workers.contains(&worker))
-    }
-
-    /// Whether `worker` may render the next copy: one it has no copy of, or, when it is
-    /// the only worker sharing the queue (`alone`), a second copy of an undisputed unit
-    /// (re-rendering its own copy catches faults that do not repeat; a dispute needs a
-    /// third, different worker).
-    pub(crate) fn eligible(&self, worker: WorkerId, alone: bool) -> bool {
-        !self.has(worker) || (alone && self.groups.len() == 1)
-    }
-
-    /// The index of the group the copies agree on, if any: two different workers with the
-    /// same digest, or (undisputed) two copies of the same worker.
-    pub(crate) fn agreed(&self) -> Option<usize> {
-        let distinct = |g: &CopyGroup| {
-            g.workers
-                .iter()
-                .any(|w| g.workers.first().is_some_and(|f| f != w))
-        };
-        if let Some(k) = self.groups.iter().position(distinct) {
-            return Some(k);
-        }
-        (self.groups.len() == 1 && self.groups[0].workers.len() >= 2).then_some(0)
-    }
 }
 
 #[cfg(test)]
