@@ -181,20 +181,10 @@ fn load_reference(path: &Path, width: u32, height: u32) -> Result<FrameImage> {
     })
 }
 
-/// Runs the bench.
+/// Runs the bench: references, every configuration's error against time, the CSV, the
+/// plot and the table, and Veach & Guibas' figure 5.
 pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
-    if args.max_spp < 4 || args.max_spp > 65536 {
-        bail!("--max-spp {} must be between 4 and 65536", args.max_spp);
-    }
-    if args.reference_spp == 0 {
-        bail!("--reference-spp must be at least 1");
-    }
-    if args.figure5_samples < 100 {
-        bail!(
-            "--figure5-samples {} must be at least 100",
-            args.figure5_samples
-        );
-    }
+    check_args(&args)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating --out {}", args.out.display()))?;
     let job = JobArgs {
@@ -220,155 +210,24 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
 
     // References: the automatic plan's, and the direct integrator's (a different image).
     let ref_plan = FramePlan::for_spp(w, h, args.reference_spp, 16)?;
-    let render_reference = |settings: RenderConfig, name: &str| -> Result<FrameImage> {
-        let start = Instant::now();
-        let acc = render_frame(rs, &settings, &ref_plan, 0, args.threads, |_, _| {});
-        let img = acc.image();
-        let path = args.out.join(name);
-        tessera_image::write_image(&path, &img, None)?;
-        println!(
-            "reference {name}: {} spp in {:.1} s, estimated error {:.4}",
-            ref_plan.spp(),
-            start.elapsed().as_secs_f64(),
-            acc.image_error()
-        );
-        Ok(img)
-    };
-    let ref_seed = 0x5eed_0000_0001;
-    let auto_ref = match &args.reference {
-        Some(path) => load_reference(path, w, h)?,
-        None => render_reference(
-            RenderConfig {
-                seed: ref_seed,
-                ..base
-            },
-            "reference.exr",
-        )?,
-    };
-    let direct = RenderConfig {
-        integrator: Integrator::Direct,
-        max_depth: 1,
-        ..base
-    };
-    let direct_ref = if base.integrator == Integrator::Direct {
-        auto_ref.clone()
-    } else {
-        render_reference(
-            RenderConfig {
-                seed: ref_seed,
-                ..direct
-            },
-            "reference-direct.exr",
-        )?
-    };
-    let references = [auto_ref, direct_ref];
-
-    let label = |s: &RenderConfig, a: AdaptiveMode| {
-        format!("{}/{}/{}/{}", s.integrator, s.sampler.as_str(), s.mis, a)
-    };
-    let mut configs = Vec::new();
-    let mut add = |settings: RenderConfig, adaptive: AdaptiveMode, reference: usize| {
-        configs.push(Config {
-            name: label(&settings, adaptive),
-            settings,
-            adaptive,
-            reference,
-        });
-    };
-    add(base, AdaptiveMode::Off, 0);
-    add(
-        RenderConfig {
-            sampler: SamplerKind::Independent,
-            ..base
-        },
-        AdaptiveMode::Off,
-        0,
-    );
-    for mis in [
-        MisHeuristic::Balance,
-        MisHeuristic::Cutoff(0.1),
-        MisHeuristic::Maximum,
-    ] {
-        add(RenderConfig { mis, ..base }, AdaptiveMode::Off, 0);
-    }
-    if base.integrator != Integrator::Direct {
-        add(direct, AdaptiveMode::Off, 1);
-    }
-    add(base, AdaptiveMode::Sequential, 0);
-    add(base, AdaptiveMode::Unbiased, 0);
-
+    let references = references(&args, rs, base, &ref_plan, (w, h))?;
+    let configs = configurations(base);
     let mut ladder = Vec::new();
     let mut spp = 4;
     while spp <= args.max_spp {
         ladder.push(spp);
         spp *= 2;
     }
-    // Down to 0.625%: the estimate is optimistic where rare bright paths carry the error
-    // (ARCHITECTURE.md §3), so a measured 1% needs an estimated target below it.
-    let targets = [0.4, 0.2, 0.1, 0.05, 0.025, 0.0125, 0.00625];
     let mut runs = Vec::new();
     for (k, c) in configs.iter().enumerate() {
-        let settings = RenderConfig {
-            seed: 1 + k as u64,
-            ..c.settings
-        };
-        let reference = &references[c.reference];
-        if c.adaptive == AdaptiveMode::Off {
-            for &spp in &ladder {
-                let plan = FramePlan::for_spp(w, h, spp, 16)?;
-                let start = Instant::now();
-                let cpu_start = cpu_seconds("self");
-                let acc = render_frame(rs, &settings, &plan, 0, args.threads, |_, _| {});
-                let seconds = start.elapsed().as_secs_f64();
-                let cpu = cpu_seconds("self") - cpu_start;
-                let img = acc.image();
-                let (rmse, rel_mse) = measure(&img, reference);
-                runs.push(Run {
-                    config: c.name.clone(),
-                    spp: f64::from(plan.spp()),
-                    seconds,
-                    cpu_seconds: cpu,
-                    estimated: acc.image_error(),
-                    rmse,
-                    rel_mse,
-                });
-            }
-        } else {
-            // Adaptive: a ladder of targets, the largest budget times 4 as the cap.
-            let plan = adaptive_plan(w, h, args.max_spp.saturating_mul(4), 16)?;
-            for &target in &targets {
-                let frame = AdaptiveFrame::new(
-                    plan,
-                    0,
-                    AdaptiveSettings {
-                        mode: c.adaptive,
-                        target_error: target,
-                        ..AdaptiveSettings::default()
-                    },
-                )?;
-                let cpu_start = cpu_seconds("self");
-                let out = render_adaptive(
-                    rs,
-                    &settings,
-                    frame,
-                    args.threads,
-                    Limits::default(),
-                    |_| {},
-                );
-                let cpu = cpu_seconds("self") - cpu_start;
-                let img = out.frame.image();
-                let (rmse, rel_mse) = measure(&img, reference);
-                runs.push(Run {
-                    config: c.name.clone(),
-                    spp: out.frame.samples_per_pixel().0,
-                    seconds: out.seconds,
-                    cpu_seconds: cpu,
-                    estimated: out.frame.image_error(),
-                    rmse,
-                    rel_mse,
-                });
-            }
-        }
+        runs.extend(run_configuration(
+            rs,
+            &args,
+            (k, c),
+            &references[c.reference],
+            (w, h),
+            &ladder,
+        )?);
         for r in runs.iter().filter(|r| r.config == c.name) {
             println!(
                 "{:<36} spp {:>8.1}  {:>7.3} s  {:>7.2} cpu s  estimated {:.4}  measured {:.4}  RMSE {:.5}",
@@ -467,6 +326,213 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
         );
     }
 
+    figure5_section(&args, &mut md)?;
+    write(&args.out.join("accuracy.md"), &md)?;
+    println!("{md}");
+    println!(
+        "wrote accuracy.csv, accuracy.svg, accuracy.md, figure5.csv, figure5.svg to {}",
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Refuses arguments the bench cannot use.
+fn check_args(args: &AccuracyArgs) -> Result<()> {
+    if args.max_spp < 4 || args.max_spp > 65536 {
+        bail!("--max-spp {} must be between 4 and 65536", args.max_spp);
+    }
+    if args.reference_spp == 0 {
+        bail!("--reference-spp must be at least 1");
+    }
+    if args.figure5_samples < 100 {
+        bail!(
+            "--figure5-samples {} must be at least 100",
+            args.figure5_samples
+        );
+    }
+    Ok(())
+}
+
+/// The direct-lighting configuration beside the automatic plan's `base`.
+fn direct_config(base: RenderConfig) -> RenderConfig {
+    RenderConfig {
+        integrator: Integrator::Direct,
+        max_depth: 1,
+        ..base
+    }
+}
+
+/// The converged references: the automatic plan's (`--reference`, or rendered at
+/// `ref_plan`'s spp) and the direct integrator's (a different image).
+fn references(
+    args: &AccuracyArgs,
+    rs: &RenderScene,
+    base: RenderConfig,
+    ref_plan: &FramePlan,
+    (w, h): (u32, u32),
+) -> Result<[FrameImage; 2]> {
+    let render_reference = |settings: RenderConfig, name: &str| -> Result<FrameImage> {
+        let start = Instant::now();
+        let acc = render_frame(rs, &settings, &ref_plan, 0, args.threads, |_, _| {});
+        let img = acc.image();
+        let path = args.out.join(name);
+        tessera_image::write_image(&path, &img, None)?;
+        println!(
+            "reference {name}: {} spp in {:.1} s, estimated error {:.4}",
+            ref_plan.spp(),
+            start.elapsed().as_secs_f64(),
+            acc.image_error()
+        );
+        Ok(img)
+    };
+    let ref_seed = 0x5eed_0000_0001;
+    let auto_ref = match &args.reference {
+        Some(path) => load_reference(path, w, h)?,
+        None => render_reference(
+            RenderConfig {
+                seed: ref_seed,
+                ..base
+            },
+            "reference.exr",
+        )?,
+    };
+    let direct = direct_config(base);
+    let direct_ref = if base.integrator == Integrator::Direct {
+        auto_ref.clone()
+    } else {
+        render_reference(
+            RenderConfig {
+                seed: ref_seed,
+                ..direct
+            },
+            "reference-direct.exr",
+        )?
+    };
+    Ok([auto_ref, direct_ref])
+}
+
+/// The configurations measured: the automatic plan, independent sampling, the other MIS
+/// heuristics, direct lighting, and both adaptive modes.
+fn configurations(base: RenderConfig) -> Vec<Config> {
+    let label = |s: &RenderConfig, a: AdaptiveMode| {
+        format!("{}/{}/{}/{}", s.integrator, s.sampler.as_str(), s.mis, a)
+    };
+    let mut configs = Vec::new();
+    let mut add = |settings: RenderConfig, adaptive: AdaptiveMode, reference: usize| {
+        configs.push(Config {
+            name: label(&settings, adaptive),
+            settings,
+            adaptive,
+            reference,
+        });
+    };
+    add(base, AdaptiveMode::Off, 0);
+    add(
+        RenderConfig {
+            sampler: SamplerKind::Independent,
+            ..base
+        },
+        AdaptiveMode::Off,
+        0,
+    );
+    for mis in [
+        MisHeuristic::Balance,
+        MisHeuristic::Cutoff(0.1),
+        MisHeuristic::Maximum,
+    ] {
+        add(RenderConfig { mis, ..base }, AdaptiveMode::Off, 0);
+    }
+    if base.integrator != Integrator::Direct {
+        add(direct_config(base), AdaptiveMode::Off, 1);
+    }
+    add(base, AdaptiveMode::Sequential, 0);
+    add(base, AdaptiveMode::Unbiased, 0);
+
+    configs
+}
+
+/// The runs of configuration `c` (the `k`-th, which seeds it): the spp `ladder` for
+/// uniform sampling, a ladder of targets for adaptive modes; errors measured against
+/// `reference`.
+fn run_configuration(
+    rs: &RenderScene,
+    args: &AccuracyArgs,
+    (k, c): (usize, &Config),
+    reference: &FrameImage,
+    (w, h): (u32, u32),
+    ladder: &[u32],
+) -> Result<Vec<Run>> {
+    // Down to 0.625%: the estimate is optimistic where rare bright paths carry the error
+    // (ARCHITECTURE.md §3), so a measured 1% needs an estimated target below it.
+    let targets = [0.4, 0.2, 0.1, 0.05, 0.025, 0.0125, 0.00625];
+    let mut runs = Vec::new();
+    let settings = RenderConfig {
+        seed: 1 + k as u64,
+        ..c.settings
+    };
+    let reference = &references[c.reference];
+    if c.adaptive == AdaptiveMode::Off {
+        for &spp in ladder {
+            let plan = FramePlan::for_spp(w, h, spp, 16)?;
+            let start = Instant::now();
+            let cpu_start = cpu_seconds("self");
+            let acc = render_frame(rs, &settings, &plan, 0, args.threads, |_, _| {});
+            let seconds = start.elapsed().as_secs_f64();
+            let cpu = cpu_seconds("self") - cpu_start;
+            let img = acc.image();
+            let (rmse, rel_mse) = measure(&img, reference);
+            runs.push(Run {
+                config: c.name.clone(),
+                spp: f64::from(plan.spp()),
+                seconds,
+                cpu_seconds: cpu,
+                estimated: acc.image_error(),
+                rmse,
+                rel_mse,
+            });
+        }
+    } else {
+        // Adaptive: a ladder of targets, the largest budget times 4 as the cap.
+        let plan = adaptive_plan(w, h, args.max_spp.saturating_mul(4), 16)?;
+        for &target in &targets {
+            let frame = AdaptiveFrame::new(
+                plan,
+                0,
+                AdaptiveSettings {
+                    mode: c.adaptive,
+                    target_error: target,
+                    ..AdaptiveSettings::default()
+                },
+            )?;
+            let cpu_start = cpu_seconds("self");
+            let out = render_adaptive(
+                rs,
+                &settings,
+                frame,
+                args.threads,
+                Limits::default(),
+                |_| {},
+            );
+            let cpu = cpu_seconds("self") - cpu_start;
+            let img = out.frame.image();
+            let (rmse, rel_mse) = measure(&img, reference);
+            runs.push(Run {
+                config: c.name.clone(),
+                spp: out.frame.samples_per_pixel().0,
+                seconds: out.seconds,
+                cpu_seconds: cpu,
+                estimated: out.frame.image_error(),
+                rmse,
+                rel_mse,
+            });
+        }
+    }
+    Ok(runs)
+}
+
+/// Veach & Guibas 1995's figure 5, recomputed: its CSV and plot, and its table and claims
+/// appended to `md`.
+fn figure5_section(args: &AccuracyArgs, md: &mut String) -> Result<()> {
     // Figure 5.
     let start = Instant::now();
     let rows = figure5::run(args.figure5_samples, 1995);
@@ -482,30 +548,24 @@ pub fn bench_accuracy(args: AccuracyArgs) -> Result<()> {
     )?;
     let claims = figure5::Claims::check(&rows);
     let _ = write!(
-        md,
+        *md,
         "\n# Veach & Guibas 1995, figure 5 ({} samples per roughness)\n\nsigma/mu of one sample:\n\n| roughness | exponent | light | bsdf | balance | power | cutoff | maximum |\n|---|---|---|---|---|---|---|---|\n",
         args.figure5_samples
     );
     for r in &rows {
         let s = r.sigma_over_mu;
         let _ = writeln!(
-            md,
+            *md,
             "| {:.5} | {:.1} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} |",
             r.roughness, r.exponent, s[0], s[1], s[2], s[3], s[4], s[5]
         );
     }
     let _ = write!(md, "\nClaims:\n\n```\n{}```\n", claims.summary());
-    write(&args.out.join("accuracy.md"), &md)?;
     println!(
         "figure 5 ({} samples per roughness, {:.1} s):\n{}",
         args.figure5_samples,
         start.elapsed().as_secs_f64(),
         claims.summary()
-    );
-    println!("{md}");
-    println!(
-        "wrote accuracy.csv, accuracy.svg, accuracy.md, figure5.csv, figure5.svg to {}",
-        args.out.display()
     );
     Ok(())
 }

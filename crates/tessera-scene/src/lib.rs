@@ -448,29 +448,40 @@ impl Scene {
     }
 
     /// Checks every invariant the renderer relies on: finite numbers, in-range indices,
-    /// positive radii, parameters within their physical ranges.
+    /// positive radii, parameters within their physical ranges. The first problem found is
+    /// the error, checked part by part: camera, meshes, instances, spheres, materials,
+    /// textures and images, lights and the environment.
     pub fn validate(&self) -> Result<(), SceneError> {
-        let bad = |message: String| {
-            Err(SceneError::Invalid {
+        self.check_camera()
+            .and_then(|()| self.check_meshes())
+            .and_then(|()| self.check_instances())
+            .and_then(|()| self.check_spheres())
+            .and_then(|()| self.check_materials())
+            .and_then(|()| self.check_images())
+            .and_then(|()| self.check_lights())
+            .map_err(|message| SceneError::Invalid {
                 scene: self.name.clone(),
                 message,
             })
-        };
+    }
+
+    /// A finite camera inside the coordinate bound, with a field of view and lens in range.
+    fn check_camera(&self) -> Result<(), String> {
         let cam = &self.camera;
         if !cam.world_from_camera.is_finite() {
-            return bad("camera transform is not finite".into());
+            return Err("camera transform is not finite".into());
         }
         let eye = cam.world_from_camera.w_axis.truncate();
         if eye.abs().max_element() > MAX_COORDINATE {
-            return bad(format!(
+            return Err(format!(
                 "camera position {eye} is beyond ±{MAX_COORDINATE:e} scene units"
             ));
         }
         if !(cam.yfov > 0.0 && cam.yfov < std::f32::consts::PI) {
-            return bad(format!("camera yfov {} is outside (0, pi)", cam.yfov));
+            return Err(format!("camera yfov {} is outside (0, pi)", cam.yfov));
         }
         if !(cam.aperture_radius >= 0.0 && cam.aperture_radius.is_finite()) {
-            return bad(format!(
+            return Err(format!(
                 "camera aperture {} is invalid",
                 cam.aperture_radius
             ));
@@ -478,51 +489,58 @@ impl Scene {
         if cam.aperture_radius > 0.0
             && !(cam.focus_distance > 0.0 && cam.focus_distance.is_finite())
         {
-            return bad(format!(
+            return Err(format!(
                 "camera focus distance {} is invalid",
                 cam.focus_distance
             ));
         }
+        Ok(())
+    }
+
+    /// Meshes and prototypes: existing materials, finite vertices inside the coordinate
+    /// bound, indices within the vertices, consistent normals, texture coordinates and
+    /// tangents.
+    fn check_meshes(&self) -> Result<(), String> {
         let nmat = self.materials.len() as u32;
         let meshes = self.meshes.iter().enumerate().map(|(i, m)| ("mesh", i, m));
         let prototypes = self.prototypes.iter().enumerate();
         for (kind, i, m) in meshes.chain(prototypes.map(|(i, m)| ("prototype", i, m))) {
             if m.material >= nmat {
-                return bad(format!(
+                return Err(format!(
                     "{kind} {i} ({}) uses material {} of {nmat}",
                     m.name, m.material
                 ));
             }
             if let Some(p) = m.positions.iter().position(|p| !p.is_finite()) {
-                return bad(format!("{kind} {i} ({}) vertex {p} is not finite", m.name));
+                return Err(format!("{kind} {i} ({}) vertex {p} is not finite", m.name));
             }
             if let Some(p) = m
                 .positions
                 .iter()
                 .position(|p| p.abs().max_element() > MAX_COORDINATE)
             {
-                return bad(format!(
+                return Err(format!(
                     "{kind} {i} ({}) vertex {p} at {} is beyond ±{MAX_COORDINATE:e} scene units",
                     m.name, m.positions[p]
                 ));
             }
             let nv = m.positions.len() as u32;
             if let Some(t) = m.indices.iter().position(|t| t.iter().any(|&v| v >= nv)) {
-                return bad(format!(
+                return Err(format!(
                     "{kind} {i} ({}) triangle {t} indexes past its {nv} vertices",
                     m.name
                 ));
             }
             if let Some(n) = &m.normals {
                 if n.len() != m.positions.len() || n.iter().any(|v| !v.is_finite()) {
-                    return bad(format!("{kind} {i} ({}) has invalid normals", m.name));
+                    return Err(format!("{kind} {i} ({}) has invalid normals", m.name));
                 }
             }
             for (set, uv) in m.uvs.iter().enumerate() {
                 if (!uv.is_empty() && uv.len() != m.positions.len())
                     || uv.iter().any(|v| !v.is_finite())
                 {
-                    return bad(format!(
+                    return Err(format!(
                         "{kind} {i} ({}) has invalid texture coordinates TEXCOORD_{set}",
                         m.name
                     ));
@@ -530,22 +548,29 @@ impl Scene {
             }
             if let Some(t) = &m.tangents {
                 if t.len() != m.indices.len() || t.iter().flatten().any(|v| !v.is_finite()) {
-                    return bad(format!("{kind} {i} ({}) has invalid tangents", m.name));
+                    return Err(format!("{kind} {i} ({}) has invalid tangents", m.name));
                 }
             }
         }
+        Ok(())
+    }
+
+    /// Instances: an existing prototype, an invertible transform that keeps every vertex
+    /// inside the coordinate bound, and no emissive prototype (area lights are world-space
+    /// meshes).
+    fn check_instances(&self) -> Result<(), String> {
         let proto_bounds: Vec<Option<(Vec3, Vec3)>> =
             self.prototypes.iter().map(mesh_bounds).collect();
         for (i, inst) in self.instances.iter().enumerate() {
             let Some(proto) = self.prototypes.get(inst.prototype as usize) else {
-                return bad(format!(
+                return Err(format!(
                     "instance {i} places prototype {} of {}",
                     inst.prototype,
                     self.prototypes.len()
                 ));
             };
             if !Instance::transform_is_invertible(&inst.world_from_object) {
-                return bad(format!(
+                return Err(format!(
                     "instance {i} of prototype {} has a transform that is not finite and \
                      invertible",
                     inst.prototype
@@ -553,7 +578,7 @@ impl Scene {
             }
             let bounds = proto_bounds[inst.prototype as usize];
             if let Some((v, at)) = far_vertex(proto, bounds, &inst.world_from_object) {
-                return bad(format!(
+                return Err(format!(
                     "instance {i} of prototype {} ({}) places vertex {v} at {at}, beyond \
                      ±{MAX_COORDINATE:e} scene units",
                     inst.prototype, proto.name,
@@ -564,30 +589,42 @@ impl Scene {
                 .get(proto.material as usize)
                 .is_some_and(Material::is_emissive)
             {
-                return bad(format!(
+                return Err(format!(
                     "instance {i}: prototype {} ({}) is emissive; area lights must be \
                      world-space meshes",
                     inst.prototype, proto.name
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// Spheres: a finite centre and positive radius inside the bound, an existing material.
+    fn check_spheres(&self) -> Result<(), String> {
+        let nmat = self.materials.len() as u32;
         for (i, s) in self.spheres.iter().enumerate() {
             if !(s.center.is_finite()
                 && s.radius > 0.0
                 && s.radius.is_finite()
                 && (s.center.abs() + s.radius).max_element() <= MAX_COORDINATE)
             {
-                return bad(format!("sphere {i} has an invalid centre or radius"));
+                return Err(format!("sphere {i} has an invalid centre or radius"));
             }
             if s.material >= nmat {
-                return bad(format!("sphere {i} uses material {} of {nmat}", s.material));
+                return Err(format!("sphere {i} uses material {} of {nmat}", s.material));
             }
         }
+        Ok(())
+    }
+
+    /// Materials: emission and every parameter within its physical range, existing
+    /// textures.
+    fn check_materials(&self) -> Result<(), String> {
         let ntex = self.textures.len() as u32;
         for (i, m) in self.materials.iter().enumerate() {
             let unit = |v: Vec3| v.is_finite() && v.min_element() >= 0.0;
             if !unit(m.emission) {
-                return bad(format!("material {i} ({}) has invalid emission", m.name));
+                return Err(format!("material {i} ({}) has invalid emission", m.name));
             }
             let ok = match &m.kind {
                 MaterialKind::Diffuse { albedo } => unit(*albedo) && albedo.max_element() <= 1.0,
@@ -618,16 +655,21 @@ impl Scene {
                 }
             };
             if !ok {
-                return bad(format!(
+                return Err(format!(
                     "material {i} ({}) has parameters out of range: {:?}",
                     m.name, m.kind
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// Textures name existing images, and images have the size their texels say.
+    fn check_images(&self) -> Result<(), String> {
         let nimg = self.images.len() as u32;
         for (i, t) in self.textures.iter().enumerate() {
             if t.image >= nimg {
-                return bad(format!("texture {i} uses image {} of {nimg}", t.image));
+                return Err(format!("texture {i} uses image {} of {nimg}", t.image));
             }
         }
         for (i, im) in self.images.iter().enumerate() {
@@ -635,9 +677,15 @@ impl Scene {
                 || im.height == 0
                 || im.texels.len() != (im.width as usize) * (im.height as usize)
             {
-                return bad(format!("image {i} has inconsistent size"));
+                return Err(format!("image {i} has inconsistent size"));
             }
         }
+        Ok(())
+    }
+
+    /// Lights and the environment: finite, non-negative, directions normalised, spot
+    /// cones within a hemisphere; and a non-zero default resolution.
+    fn check_lights(&self) -> Result<(), String> {
         for (i, l) in self.lights.iter().enumerate() {
             let ok = match l {
                 PunctualLight::Point {
@@ -671,17 +719,17 @@ impl Scene {
                 }
             };
             if !ok {
-                return bad(format!("light {i} has invalid parameters: {l:?}"));
+                return Err(format!("light {i} has invalid parameters: {l:?}"));
             }
         }
         if let Some(e) = self.environment {
             if !(e.is_finite() && e.min_element() >= 0.0) {
-                return bad("environment radiance is invalid".into());
+                return Err("environment radiance is invalid".into());
             }
         }
         let (w, h) = self.default_resolution;
         if w == 0 || h == 0 {
-            return bad("default resolution is zero".into());
+            return Err("default resolution is zero".into());
         }
         Ok(())
     }

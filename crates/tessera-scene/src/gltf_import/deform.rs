@@ -148,7 +148,8 @@ impl Importer<'_> {
         Ok(())
     }
 
-    /// Skins the primitive with skin `si` (linear blend skinning into world space).
+    /// Skins the primitive with skin `si` (linear blend skinning into world space): the
+    /// joints' matrices, every vertex's influences, then the blend.
     fn skin(
         &self,
         si: usize,
@@ -157,6 +158,15 @@ impl Importer<'_> {
         what: &str,
         out: &mut LocalPrimitive,
     ) -> Res<()> {
+        let joints = self.skin_joints(si, what)?;
+        let n = out.positions.len();
+        let influences = self.skin_influences(si, mi, pi, what, n, joints.len())?;
+        self.blend_skin(&joints, &influences, what, out)
+    }
+
+    /// The skinning matrices of skin `si`'s joints: each joint's world transform times its
+    /// inverse bind matrix (identity when the skin has none).
+    fn skin_joints(&self, si: usize, what: &str) -> Res<Vec<DMat4>> {
         let Some(skin) = self.root.skins.get(si) else {
             return self.err(format!(
                 "{what}: skin {si} is past the end ({} skins)",
@@ -196,8 +206,21 @@ impl Importer<'_> {
             });
             joints.push(*global * inverse_bind);
         }
-        // Every JOINTS_n / WEIGHTS_n set, as (joint, weight) per vertex and influence.
-        let n = out.positions.len();
+        Ok(joints)
+    }
+
+    /// Every JOINTS_n / WEIGHTS_n set of primitive `pi` of mesh `mi`, as (joints, weights)
+    /// per set and vertex (set-major: `n` vertices per set), checked against the skin's
+    /// `joint_count` joints.
+    fn skin_influences(
+        &self,
+        si: usize,
+        mi: usize,
+        pi: usize,
+        what: &str,
+        n: usize,
+        joint_count: usize,
+    ) -> Res<Vec<([u32; 4], [f32; 4])>> {
         let prim = &self.root.meshes[mi].primitives[pi];
         let attribute = |s: json::mesh::Semantic| prim.attributes.get(&Checked::Valid(s)).copied();
         let mut influences: Vec<([u32; 4], [f32; 4])> = Vec::new();
@@ -238,12 +261,11 @@ impl Importer<'_> {
                             ww[c]
                         ));
                     }
-                    if ww[c] > 0.0 && jj[c] as usize >= joints.len() {
+                    if ww[c] > 0.0 && jj[c] as usize >= joint_count {
                         return self.err(format!(
                             "{what}: JOINTS_{set} vertex {v} names joint {} of skin {si}, \
                              which has {} joints",
-                            jj[c],
-                            joints.len()
+                            jj[c], joint_count
                         ));
                     }
                 }
@@ -253,6 +275,20 @@ impl Importer<'_> {
         if influences.is_empty() {
             return self.err(format!("{what}: has a skin but no JOINTS_0/WEIGHTS_0"));
         }
+        Ok(influences)
+    }
+
+    /// Blends every vertex of `out` by its `influences` over the `joints` (weights
+    /// normalised to sum to one), transforms normals by the inverse transpose and tangents
+    /// by the linear part, and re-winds triangles a mirroring blend turns inside out.
+    fn blend_skin(
+        &self,
+        joints: &[DMat4],
+        influences: &[([u32; 4], [f32; 4])],
+        what: &str,
+        out: &mut LocalPrimitive,
+    ) -> Res<()> {
+        let n = out.positions.len();
         let sets = influences.len() / n.max(1);
         // Per vertex: the blended matrix, applied to the position, its inverse transpose
         // to the normal; its linear part kept for the per-corner tangents.
