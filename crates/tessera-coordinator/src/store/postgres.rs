@@ -167,17 +167,22 @@ impl PostgresStore {
     /// Creates `schema_version` if needed and applies the missing migrations, all in one
     /// transaction under an advisory lock.
     async fn migrate(&self) -> StoreResult<()> {
-        let tx = self
-            .pool
-            .begin()
-            .await
-            .map_err(|e| store_error(Some(&self.url), e))?;
-        let mut tx = Tx::Postgres(tx, &self.url);
+        let mut tx = self.begin().await?;
         tx.conn()
             .execute(stmt("SELECT pg_advisory_xact_lock($1)").bind(MIGRATION_LOCK))
             .await?;
         sql::migrate(&mut tx, MIGRATIONS).await?;
         tx.commit().await
+    }
+
+    /// Begins a transaction.
+    async fn begin(&self) -> StoreResult<Tx<'_>> {
+        let tx = self
+            .pool
+            .begin()
+            .await
+            .map_err(|e| store_error(Some(&self.url), e))?;
+        Ok(Tx::Postgres(tx, &self.url))
     }
 }
 
@@ -213,12 +218,7 @@ impl SqlBackend for PostgresStore {
     }
 
     async fn begin_write(&self) -> StoreResult<Write<'_>> {
-        let tx = self
-            .pool
-            .begin()
-            .await
-            .map_err(|e| store_error(Some(&self.url), e))?;
-        let mut tx = Tx::Postgres(tx, &self.url);
+        let mut tx = self.begin().await?;
         self.fence(&mut tx).await?;
         Ok(Write { tx, turn: None })
     }

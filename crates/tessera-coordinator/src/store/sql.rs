@@ -21,7 +21,7 @@ use std::borrow::Cow;
 use async_trait::async_trait;
 use sqlx::postgres::{PgArguments, PgConnection, PgPool, PgRow, Postgres};
 use sqlx::sqlite::{Sqlite, SqliteArguments, SqliteConnection, SqlitePool, SqliteRow};
-use sqlx::{Arguments, Decode, Executor, Row as _, Transaction, Type};
+use sqlx::{Arguments, Decode, Encode, Executor, Row as _, Transaction, Type};
 use tessera_api::{FrameRange, HistoryPoint, JobState};
 use tessera_farm::{FramePlan, JobId};
 
@@ -230,24 +230,17 @@ impl<'a> Stmt<'a> {
         self
     }
 
-    /// The values as SQLite arguments.
-    fn sqlite_args(&self) -> Result<SqliteArguments<'_>, sqlx::Error> {
-        let mut out = SqliteArguments::default();
-        for a in &self.args {
-            match a {
-                Arg::Int(v) => out.add(*v),
-                Arg::Real(v) => out.add(*v),
-                Arg::Text(v) => out.add(*v),
-                Arg::Bytes(v) => out.add(v.as_deref()),
-            }
-            .map_err(sqlx::Error::Encode)?;
-        }
-        Ok(out)
-    }
-
-    /// The values as PostgreSQL arguments.
-    fn pg_args(&self) -> Result<PgArguments, sqlx::Error> {
-        let mut out = PgArguments::default();
+    /// The values as the arguments of database `A::Database` (both encode these four
+    /// types).
+    fn arguments<'q, A>(&'q self) -> Result<A, sqlx::Error>
+    where
+        A: Arguments<'q>,
+        Option<i64>: Encode<'q, A::Database> + Type<A::Database>,
+        Option<f64>: Encode<'q, A::Database> + Type<A::Database>,
+        Option<&'q str>: Encode<'q, A::Database> + Type<A::Database>,
+        Option<&'q [u8]>: Encode<'q, A::Database> + Type<A::Database>,
+    {
+        let mut out = A::default();
         for a in &self.args {
             match a {
                 Arg::Int(v) => out.add(*v),
@@ -303,7 +296,7 @@ async fn run_sqlite<'c>(
     fetch: Fetch,
 ) -> Result<(u64, Vec<Row>), sqlx::Error> {
     let sql = Dialect::Sqlite.placeholders(&s.sql);
-    let q = sqlx::query_with(&sql, s.sqlite_args()?);
+    let q = sqlx::query_with(&sql, s.arguments::<SqliteArguments>()?);
     Ok(match fetch {
         Fetch::Affected => (q.execute(e).await?.rows_affected(), Vec::new()),
         Fetch::Optional => (
@@ -327,7 +320,7 @@ async fn run_pg<'c>(
     s: &Stmt<'_>,
     fetch: Fetch,
 ) -> Result<(u64, Vec<Row>), sqlx::Error> {
-    let q = sqlx::query_with(&s.sql, s.pg_args()?);
+    let q = sqlx::query_with(&s.sql, s.arguments::<PgArguments>()?);
     Ok(match fetch {
         Fetch::Affected => (q.execute(e).await?.rows_affected(), Vec::new()),
         Fetch::Optional => (
