@@ -13,6 +13,7 @@ use sqlx::sqlite::{SqliteConnectOptions, SqlitePool, SqlitePoolOptions};
 use sqlx::Connection;
 
 use super::marker::{self, CommitMark};
+use super::sql::Conn;
 use super::sqlite::{classify, commit_mark, connect_writer, open_error, quick_check, SqliteStore};
 use super::{StoreError, StoreResult, DATABASE_FILE};
 
@@ -171,7 +172,7 @@ async fn inspect(file: &Path) -> CheckReport {
         .await
         .ok()
         .flatten();
-    report.database = commit_mark(&pool).await.ok();
+    report.database = commit_mark(&mut Conn::SqlitePool(&pool)).await.ok();
     let jobs: Vec<(String, i64)> =
         sqlx::query_as("SELECT state, COUNT(*) FROM jobs GROUP BY state ORDER BY state")
             .fetch_all(&pool)
@@ -256,7 +257,9 @@ async fn job_id_floor(dir: &Path) -> u64 {
     let from_db = if path.exists() {
         match read_only(&path).await {
             Ok(pool) => {
-                let m = commit_mark(&pool).await.map_or(0, |m| m.max_job_id);
+                let m = commit_mark(&mut Conn::SqlitePool(&pool))
+                    .await
+                    .map_or(0, |m| m.max_job_id);
                 pool.close().await;
                 m
             }
@@ -377,7 +380,7 @@ async fn reseal(dir: &Path, floor: u64) -> StoreResult<(u64, CommitMark)> {
         )
         .execute(&mut *tx)
         .await?;
-        let mark = super::sqlite::bump_generation(&mut tx).await?;
+        let mark = super::sqlite::bump_generation(&mut Conn::Sqlite(&mut tx)).await?;
         tx.commit().await?;
         mark
     };

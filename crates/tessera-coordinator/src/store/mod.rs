@@ -43,7 +43,7 @@
 //!
 //! A tile of an adaptive job also holds the adaptive policy's state after the same merge
 //! (schema version 4; `NULL` for other jobs and for checkpoints written before), so a
-//! restart resumes the policy where it was (issue 15) and a finished job's image is the
+//! restart resumes the policy where it was and a finished job's image is the
 //! policy's, rebuilt from the store:
 //!
 //! | bytes | content |
@@ -64,6 +64,7 @@ pub mod maintenance;
 pub mod marker;
 mod postgres;
 mod rows;
+mod sql;
 mod sqlite;
 mod watch;
 

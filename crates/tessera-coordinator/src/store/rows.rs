@@ -3,12 +3,12 @@
 //! [`PostgresStore`](super::PostgresStore)) share, so they cannot drift apart.
 //!
 //! Both schemas store every integer as a 64-bit signed column and every string as text,
-//! so a row is read through the few typed getters of [`Columns`].
+//! so a [`Row`] of either database decodes the same Rust types.
 
-use sqlx::Row;
 use tessera_api::{FrameRange, JobState};
 use tessera_farm::{FramePlan, JobId};
 
+use super::sql::Row;
 use super::{FaultEvent, FaultKind, JobRecord, NewJob, QuarantineRecord, StoreError, StoreResult};
 
 /// Columns of `jobs` read by [`job_from_row`], in its order (the same in both schemas).
@@ -21,41 +21,6 @@ pub(super) const JOB_COLUMNS: &str = "id, idempotency_key, name, scene_ref, sett
 /// Columns of `jobs` read by [`plan_from_row`].
 pub(super) const PLAN_COLUMNS: &str = "plan_width, plan_height, plan_tile_size, \
      plan_samples_per_pass, plan_passes, first_frame, last_frame";
-
-/// The typed column getters a database row offers the shared decoders.
-pub(super) trait Columns {
-    /// A non-null 64-bit integer column.
-    fn i64_col(&self, col: &str) -> Result<i64, sqlx::Error>;
-    /// A nullable 64-bit integer column.
-    fn opt_i64_col(&self, col: &str) -> Result<Option<i64>, sqlx::Error>;
-    /// A non-null text column.
-    fn text(&self, col: &str) -> Result<String, sqlx::Error>;
-    /// A nullable text column.
-    fn opt_text(&self, col: &str) -> Result<Option<String>, sqlx::Error>;
-}
-
-/// Implements [`Columns`] for a sqlx row type by `try_get`.
-macro_rules! columns_for {
-    ($row:ty) => {
-        impl Columns for $row {
-            fn i64_col(&self, col: &str) -> Result<i64, sqlx::Error> {
-                self.try_get(col)
-            }
-            fn opt_i64_col(&self, col: &str) -> Result<Option<i64>, sqlx::Error> {
-                self.try_get(col)
-            }
-            fn text(&self, col: &str) -> Result<String, sqlx::Error> {
-                self.try_get(col)
-            }
-            fn opt_text(&self, col: &str) -> Result<Option<String>, sqlx::Error> {
-                self.try_get(col)
-            }
-        }
-    };
-}
-
-columns_for!(sqlx::sqlite::SqliteRow);
-columns_for!(sqlx::postgres::PgRow);
 
 /// Unix milliseconds now, as stored.
 pub(super) fn now_unix_ms() -> i64 {
@@ -73,22 +38,22 @@ pub(super) fn to_i64(v: u64, what: &str) -> StoreResult<i64> {
 /// Reads an integer column and converts it, reporting a stored value out of range as
 /// corrupt (`place` names the row).
 pub(super) fn int_col<T: TryFrom<i64>>(
-    row: &impl Columns,
+    row: &Row,
     col: &str,
     place: &dyn Fn() -> String,
 ) -> StoreResult<T> {
-    let v = row.i64_col(col)?;
+    let v = row.try_get::<i64>(col)?;
     T::try_from(v)
         .map_err(|_| StoreError::Corrupt(format!("{}: {col} = {v} is out of range", place())))
 }
 
 /// [`int_col`] of a nullable column.
 pub(super) fn opt_int_col<T: TryFrom<i64>>(
-    row: &impl Columns,
+    row: &Row,
     col: &str,
     place: &dyn Fn() -> String,
 ) -> StoreResult<Option<T>> {
-    row.opt_i64_col(col)?
+    row.try_get::<Option<i64>>(col)?
         .map(|v| {
             T::try_from(v).map_err(|_| {
                 StoreError::Corrupt(format!("{}: {col} = {v} is out of range", place()))
@@ -98,10 +63,7 @@ pub(super) fn opt_int_col<T: TryFrom<i64>>(
 }
 
 /// The plan and frame range of a job row ([`PLAN_COLUMNS`]), checked.
-pub(super) fn plan_from_row(
-    row: &impl Columns,
-    job: JobId,
-) -> StoreResult<(FramePlan, FrameRange)> {
+pub(super) fn plan_from_row(row: &Row, job: JobId) -> StoreResult<(FramePlan, FrameRange)> {
     let place = || format!("jobs row {job}");
     let plan = FramePlan::new(
         int_col(row, "plan_width", &place)?,
@@ -139,21 +101,21 @@ pub(super) fn parse_state(s: &str) -> Option<JobState> {
     .find(|st| st.as_str() == s)
 }
 
-/// A job row ([`JOB_COLUMNS`]), checked.
 /// One row of `SELECT state, COUNT(*) AS n FROM jobs GROUP BY state`.
-pub(super) fn state_count_from_row(row: &impl Columns) -> StoreResult<(JobState, u64)> {
-    let state = row.text("state")?;
-    let n = row.i64_col("n")?;
+pub(super) fn state_count_from_row(row: &Row) -> StoreResult<(JobState, u64)> {
+    let state = row.try_get::<String>("state")?;
+    let n = row.try_get::<i64>("n")?;
     let state = parse_state(&state)
         .ok_or_else(|| StoreError::Corrupt(format!("jobs: unknown state {state:?}")))?;
     Ok((state, n.max(0) as u64))
 }
 
-pub(super) fn job_from_row(row: &impl Columns) -> StoreResult<JobRecord> {
+/// A job row ([`JOB_COLUMNS`]), checked.
+pub(super) fn job_from_row(row: &Row) -> StoreResult<JobRecord> {
     let id: JobId = int_col(row, "id", &|| "jobs row".to_string())?;
     let place = || format!("jobs row {id}");
     let (plan, frames) = plan_from_row(row, id)?;
-    let state = row.text("state")?;
+    let state = row.try_get::<String>("state")?;
     let state = parse_state(&state)
         .ok_or_else(|| StoreError::Corrupt(format!("{}: unknown state {state:?}", place())))?;
     let passes_per_unit: u32 = int_col(row, "passes_per_unit", &place)?;
@@ -165,34 +127,34 @@ pub(super) fn job_from_row(row: &impl Columns) -> StoreResult<JobRecord> {
     }
     Ok(JobRecord {
         id,
-        settings_json: row.text("settings_json")?,
+        settings_json: row.try_get("settings_json")?,
         plan,
         frames,
         passes_per_unit,
         priority: int_col(row, "priority", &place)?,
-        scene_ref: row.text("scene_ref")?,
-        name: row.opt_text("name")?,
-        idempotency_key: row.opt_text("idempotency_key")?,
+        scene_ref: row.try_get("scene_ref")?,
+        name: row.try_get("name")?,
+        idempotency_key: row.try_get("idempotency_key")?,
         state,
-        error: row.opt_text("error")?,
+        error: row.try_get("error")?,
         created_unix_ms: int_col(row, "created_unix_ms", &place)?,
         started_unix_ms: opt_int_col(row, "started_unix_ms", &place)?,
         finished_unix_ms: opt_int_col(row, "finished_unix_ms", &place)?,
-        render_plan_json: row.opt_text("render_plan_json")?,
-        error_estimate_caveat: row.opt_text("error_estimate_caveat")?,
+        render_plan_json: row.try_get("render_plan_json")?,
+        error_estimate_caveat: row.try_get("error_estimate_caveat")?,
     })
 }
 
 /// A `faults` row (`worker, job, kind, message, unix_ms`), checked.
-pub(super) fn fault_from_row(row: &impl Columns) -> StoreResult<FaultEvent> {
+pub(super) fn fault_from_row(row: &Row) -> StoreResult<FaultEvent> {
     let place = || "faults row".to_string();
-    let kind = row.text("kind")?;
+    let kind = row.try_get::<String>("kind")?;
     Ok(FaultEvent {
-        worker: row.text("worker")?,
+        worker: row.try_get("worker")?,
         job: opt_int_col(row, "job", &place)?,
         kind: FaultKind::parse(&kind)
             .ok_or_else(|| StoreError::Corrupt(format!("faults row: unknown kind {kind:?}")))?,
-        message: row.text("message")?,
+        message: row.try_get("message")?,
         unix_ms: int_col(row, "unix_ms", &place)?,
     })
 }
@@ -207,13 +169,13 @@ pub(super) fn identity_col(identity: Option<&str>) -> &str {
 }
 
 /// A row of `quarantines` ([`QUARANTINE_COLUMNS`]) as a record.
-pub(super) fn quarantine_from_row(row: &impl Columns) -> StoreResult<QuarantineRecord> {
-    let worker = row.text("worker")?;
+pub(super) fn quarantine_from_row(row: &Row) -> StoreResult<QuarantineRecord> {
+    let worker = row.try_get::<String>("worker")?;
     let place = || format!("quarantines row of worker {worker:?}");
-    let identity = row.text("identity")?;
+    let identity = row.try_get::<String>("identity")?;
     Ok(QuarantineRecord {
         identity: (!identity.is_empty()).then_some(identity),
-        reason: row.text("reason")?,
+        reason: row.try_get("reason")?,
         unix_ms: int_col(row, "unix_ms", &place)?,
         worker,
     })
@@ -251,13 +213,10 @@ pub(super) fn check_new_job(job: &NewJob) -> StoreResult<i64> {
     to_i64(job.created_unix_ms, "created_unix_ms")
 }
 
-/// The `WHERE` clause of a fault filter, with the placeholders `p(1)`, `p(2)`, ... of the
-/// database (`?1` or `$1`), and the values to bind in order: the job id (if filtered),
-/// then the worker name (if filtered).
-pub(super) fn fault_where(
-    filter: &super::FaultFilter,
-    p: impl Fn(usize) -> String,
-) -> StoreResult<(String, Option<i64>)> {
+/// The `WHERE` clause of a fault filter, with the placeholders `$1`, `$2`, ..., and the
+/// values to bind in order: the job id (if filtered), then the worker name (if filtered).
+pub(super) fn fault_where(filter: &super::FaultFilter) -> StoreResult<(String, Option<i64>)> {
+    let p = |i: usize| format!("${i}");
     let mut clauses = Vec::new();
     let job = filter.job.map(|j| to_i64(j, "job id")).transpose()?;
     if job.is_some() {
@@ -308,7 +267,7 @@ pub(super) fn tile_from_parts(
     plan: &FramePlan,
     frames: FrameRange,
     job: JobId,
-    row: &impl Columns,
+    row: &Row,
     stats: &[u8],
     units: &[u8],
     adaptive: Option<&[u8]>,
@@ -351,7 +310,7 @@ pub(super) fn tile_from_parts(
 }
 
 /// A `tiles` summary row (`frame, tile, merged_passes, rejected_samples`).
-pub(super) fn summary_from_row(row: &impl Columns, job: JobId) -> StoreResult<super::TileSummary> {
+pub(super) fn summary_from_row(row: &Row, job: JobId) -> StoreResult<super::TileSummary> {
     let place = || format!("tiles of job {job}");
     Ok(super::TileSummary {
         frame: int_col(row, "frame", &place)?,
