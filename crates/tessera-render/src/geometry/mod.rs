@@ -1,0 +1,564 @@
+//! Ray–scene intersection: triangles in an `obvhs` compressed wide BVH, analytic spheres,
+//! and instances of prototype meshes in two levels.
+//!
+//! **Two levels.** World-space triangles (meshes placed once) live in one BVH. A prototype
+//! (a mesh placed at several places) has its own BVH over its object-space triangles, a
+//! bottom-level structure built once; a top-level BVH over the instances' world bounds
+//! points each leaf at one instance and so at its prototype (pbrt-v4, Pharr, Jakob &
+//! Humphreys, 4th ed., section 7.1 "Object instancing"; the top level is "a BVH of
+//! BVHs", section 7.3). At an instance leaf the ray is carried into object space by the
+//! inverse affine transform, origin and direction, the direction *not* renormalised, so
+//! the ray parameter `t` means the same point in both spaces and the nearest hit over
+//! all instances is the one with the smallest `t`. The watertight test and the shift
+//! trick below then run unchanged in object space. A scene without instances skips the
+//! top level with one branch per ray.
+//!
+//! Two defects of obvhs 0.4.0 are kept out of our images here:
+//!
+//! 1. **Near hits.** Its CWBVH node test clamps a child's entry distance at a hard-coded
+//!    `1e-4` and ignores `Ray::tmin`, so a child box lying entirely within `1e-4` of the ray
+//!    origin is never visited and nearby hits are lost (small-scale scenes break). We traverse
+//!    with a *shifted* ray whose origin lies [`TRAVERSAL_SHIFT`] behind the real origin, so
+//!    every real hit is at least that far along the traversal ray, beyond the clamp. The
+//!    triangles themselves are intersected with the *unshifted* ray, so no precision is
+//!    lost; only the pruning distance handed back to obvhs is expressed in the shifted
+//!    parameterisation (rounded up, so pruning stays conservative).
+//! 2. **Watertightness.** Its Möller–Trumbore test can let rays slip through shared edges.
+//!    We use the watertight test of Woop, Benthin & Wald (JCGT 2013) in pbrt's formulation
+//!    (3rd ed. §3.6.2), with the fallback to double precision on exact zero edge functions
+//!    and pbrt's conservative bound that rejects hits whose `t` is not provably positive.
+//!
+//! Every hit carries a floating-point error bound on its position (pbrt §3.9) so that rays
+//! leaving it can be offset robustly by [`crate::math::offset_ray_origin`].
+
+//!
+//! The code is split by concern: `watertight` holds the ray–triangle and ray–sphere
+//! tests, `traversal` the walk through one BVH of triangles, `moving` the triangles that
+//! move within the shutter, and `build` the construction of every BVH (robust against
+//! coincident primitives, on a thread with a stack of known size).
+
+use crate::math::gamma;
+use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A};
+use obvhs::cwbvh::CwBvh;
+use obvhs::ray::RayHit;
+
+#[macro_use]
+mod watertight;
+mod build;
+mod moving;
+mod traversal;
+
+pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN};
+pub use moving::{shutter_segment, MotionTriangles};
+use traversal::{bvh_bytes, traversal_ray, traversal_t, triangle_bvh, TriangleLevel};
+pub use watertight::intersect_sphere;
+
+/// How far behind the real origin the BVH traversal ray starts (see the module docs). It
+/// must exceed obvhs' internal clamp of `1e-4` on node entry distances.
+pub const TRAVERSAL_SHIFT: f32 = 1e-3;
+
+/// Sentinel for "not a light".
+pub const NO_LIGHT: u32 = u32::MAX;
+
+/// [`SurfacePoint::mesh`] of a point on a sphere.
+pub const NO_MESH: u32 = u32::MAX;
+
+/// [`Primitive::Triangle::instance`] of a triangle stored in world space.
+pub const NO_INSTANCE: u32 = u32::MAX;
+
+/// A triangle as stored for intersection, in BVH leaf order.
+#[derive(Clone, Copy, Debug)]
+pub struct TriangleRecord {
+    /// Vertex positions in world space (in object space for a prototype's triangle).
+    pub p: [Vec3; 3],
+    /// Index of the mesh in the scene.
+    pub mesh: u32,
+    /// Index of the triangle within its mesh (for normals and texture coordinates).
+    pub index: u32,
+    /// Material index.
+    pub material: u32,
+    /// Index in the light list if the triangle emits, else [`NO_LIGHT`].
+    pub light: u32,
+}
+
+/// An analytic sphere.
+#[derive(Clone, Copy, Debug)]
+pub struct SphereRecord {
+    /// Centre.
+    pub center: Vec3,
+    /// Radius.
+    pub radius: f32,
+    /// Material index.
+    pub material: u32,
+    /// Index in the light list if the sphere emits, else [`NO_LIGHT`].
+    pub light: u32,
+}
+
+/// What a ray hit.
+#[derive(Clone, Copy, Debug)]
+pub enum Primitive {
+    /// A triangle: index into [`Geometry::triangles`] (or, for an instance, into its
+    /// prototype's [`Prototype::triangles`]) and barycentrics of vertices 1 and 2.
+    Triangle {
+        /// Index into the BVH-ordered triangle array.
+        index: u32,
+        /// Index into [`Geometry::instances`], or [`NO_INSTANCE`] for a world-space
+        /// triangle.
+        instance: u32,
+        /// Barycentric coordinate of vertex 1.
+        b1: f32,
+        /// Barycentric coordinate of vertex 2.
+        b2: f32,
+    },
+    /// A sphere: index into [`Geometry::spheres`].
+    Sphere {
+        /// Index of the sphere.
+        index: u32,
+    },
+    /// A triangle that moves within the shutter (motion blur): index into
+    /// [`MotionTriangles::records`], barycentrics of vertices 1 and 2 of the triangle as it
+    /// stood at `time`, and that time (shutter fraction), so shading sees the same
+    /// triangle the ray hit.
+    Moving {
+        /// Index into [`MotionTriangles::records`].
+        index: u32,
+        /// Barycentric coordinate of vertex 1.
+        b1: f32,
+        /// Barycentric coordinate of vertex 2.
+        b2: f32,
+        /// Shutter fraction in `[0, 1]` of the ray.
+        time: f32,
+    },
+}
+
+/// The nearest intersection found along a ray.
+#[derive(Clone, Copy, Debug)]
+pub struct Hit {
+    /// Ray parameter of the hit.
+    pub t: f32,
+    /// What was hit.
+    pub primitive: Primitive,
+}
+
+/// A mesh stored once and placed by instances: its object-space triangles in their own
+/// BVH (the bottom level).
+pub struct Prototype {
+    bvh: CwBvh,
+    /// Object-space triangles in the order the BVH leaves refer to them.
+    pub triangles: Vec<TriangleRecord>,
+}
+
+impl Prototype {
+    /// Bytes of the BVH nodes and triangle records.
+    pub fn bytes(&self) -> usize {
+        bvh_bytes(&self.bvh) + std::mem::size_of_val(self.triangles.as_slice())
+    }
+}
+
+/// One placement of a [`Prototype`], with the transforms intersection and shading need.
+#[derive(Clone, Copy, Debug)]
+pub struct InstanceRecord {
+    /// Position of the instance in the list given to [`Geometry::build_instanced`]
+    /// (`tessera_scene::Scene::instances` order).
+    pub index: u32,
+    /// Index into [`Geometry::prototypes`].
+    pub prototype: u32,
+    /// World-from-object transform.
+    pub world_from_object: Affine3A,
+    /// Its inverse (computed in double precision), which carries rays into object space.
+    pub object_from_world: Affine3A,
+    /// The inverse transpose of the linear part: transforms normals to world space, and
+    /// keeps the front side that a flattened copy, re-wound when mirrored, would have.
+    pub normal_to_world: Mat3A,
+    /// 1, or -1 when the transform mirrors (flips the bitangent sign of tangents).
+    pub handedness: f32,
+}
+
+/// Scene geometry with its acceleration structure.
+pub struct Geometry {
+    bvh: CwBvh,
+    /// Triangles in the order the BVH leaves refer to them.
+    pub triangles: Vec<TriangleRecord>,
+    /// Meshes stored once, each with its bottom-level BVH.
+    pub prototypes: Vec<Prototype>,
+    /// The top level: a BVH over the instances' world bounds.
+    tlas: CwBvh,
+    /// Instances in the order the top-level leaves refer to them.
+    pub instances: Vec<InstanceRecord>,
+    /// Analytic spheres (tested linearly: scenes have few).
+    pub spheres: Vec<SphereRecord>,
+    /// Triangles that move within the shutter, when the scene has motion blur.
+    pub motion: Option<MotionTriangles>,
+    /// Centre and radius of a sphere bounding everything.
+    pub bounds_center: Vec3,
+    /// Radius of the bounding sphere.
+    pub bounds_radius: f32,
+    /// What building the BVHs cost.
+    build_stats: BvhBuildStats,
+}
+
+impl Geometry {
+    /// Builds the BVH over `triangles` (any order) and keeps `spheres`.
+    pub fn build(triangles: Vec<TriangleRecord>, spheres: Vec<SphereRecord>) -> Self {
+        Self::build_instanced(triangles, spheres, Vec::new(), &[])
+    }
+
+    /// [`Geometry::build`] with prototypes (object-space triangles, one BVH each) and
+    /// `instances` as `(prototype, world_from_object)`; every transform must be finite and
+    /// invertible (what `tessera_scene::Scene::validate` checks).
+    ///
+    /// The BVHs are built on a thread of their own with a stack of [`BUILD_STACK_BYTES`],
+    /// whatever the caller's stack, and stay `O(n log n)` on coincident primitives (see
+    /// [`Geometry::build_stats`]).
+    pub fn build_instanced(
+        triangles: Vec<TriangleRecord>,
+        spheres: Vec<SphereRecord>,
+        prototypes: Vec<Vec<TriangleRecord>>,
+        instances: &[(u32, Affine3A)],
+    ) -> Self {
+        build::on_build_stack(move || {
+            Self::build_on_this_thread(triangles, spheres, prototypes, instances)
+        })
+    }
+
+    /// [`Geometry::build_instanced`] on the calling thread.
+    fn build_on_this_thread(
+        triangles: Vec<TriangleRecord>,
+        spheres: Vec<SphereRecord>,
+        prototypes: Vec<Vec<TriangleRecord>>,
+        instances: &[(u32, Affine3A)],
+    ) -> Self {
+        let mut build_stats = BvhBuildStats::default();
+        let mut lo = Vec3::splat(f32::INFINITY);
+        let mut hi = Vec3::splat(f32::NEG_INFINITY);
+        for t in &triangles {
+            for p in t.p {
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        let (bvh, ordered) = triangle_bvh(&triangles, &mut build_stats);
+        let prototypes: Vec<Prototype> = prototypes
+            .iter()
+            .map(|tris| {
+                let (bvh, triangles) = triangle_bvh(tris, &mut build_stats);
+                Prototype { bvh, triangles }
+            })
+            .collect();
+        // Instances of empty prototypes can never be hit (and an empty box has no centre
+        // for the builder): leave them out.
+        let instances: Vec<(u32, u32, Affine3A)> = instances
+            .iter()
+            .enumerate()
+            .filter(|&(_, &(p, _))| !prototypes[p as usize].triangles.is_empty())
+            .map(|(i, &(p, m))| (i as u32, p, m))
+            .collect();
+        // The top level: each instance's world bounds are its prototype's object bounds
+        // transformed corner by corner (conservative for any affine map).
+        let world_bounds: Vec<obvhs::aabb::Aabb> = instances
+            .iter()
+            .map(|&(_, proto, m)| {
+                let b = prototypes[proto as usize].bvh.total_aabb;
+                let mut wb = obvhs::aabb::Aabb::empty();
+                for k in 0..8 {
+                    let c = Vec3A::new(
+                        if k & 1 == 0 { b.min.x } else { b.max.x },
+                        if k & 2 == 0 { b.min.y } else { b.max.y },
+                        if k & 4 == 0 { b.min.z } else { b.max.z },
+                    );
+                    wb.extend(m.transform_point3a(c));
+                }
+                lo = lo.min(wb.min.into());
+                hi = hi.max(wb.max.into());
+                wb
+            })
+            .collect();
+        let (tlas, instances) = if instances.is_empty() {
+            (CwBvh::default(), Vec::new())
+        } else {
+            let tlas = build::boxes_cwbvh(&world_bounds, &mut build_stats);
+            let records = tlas
+                .primitive_indices
+                .iter()
+                .map(|&i| {
+                    let (index, prototype, m) = instances[i as usize];
+                    let inverse = m.as_daffine3().inverse();
+                    InstanceRecord {
+                        index,
+                        prototype,
+                        world_from_object: m,
+                        object_from_world: inverse.as_affine3a(),
+                        normal_to_world: Mat3A::from(inverse.matrix3.transpose().as_mat3()),
+                        handedness: if m.matrix3.determinant() < 0.0 {
+                            -1.0
+                        } else {
+                            1.0
+                        },
+                    }
+                })
+                .collect();
+            (tlas, records)
+        };
+        for s in &spheres {
+            lo = lo.min(s.center - s.radius);
+            hi = hi.max(s.center + s.radius);
+        }
+        let (bounds_center, bounds_radius) = if lo.x <= hi.x {
+            ((lo + hi) * 0.5, ((hi - lo) * 0.5).length().max(1e-6))
+        } else {
+            (Vec3::ZERO, 1.0)
+        };
+        Self {
+            bvh,
+            triangles: ordered,
+            prototypes,
+            tlas,
+            instances,
+            spheres,
+            motion: None,
+            bounds_center,
+            bounds_radius,
+            build_stats,
+        }
+    }
+
+    /// What building the BVHs cost (including the moving triangles' once added): a
+    /// count of our own work, bounded by a constant times `n log n` (see
+    /// [`BvhBuildStats::work`]).
+    pub fn build_stats(&self) -> BvhBuildStats {
+        self.build_stats
+    }
+
+    /// Adds the triangles that move within the shutter (see [`MotionTriangles`]) and
+    /// widens the bounding sphere to cover them at every key time.
+    pub fn with_motion(mut self, motion: MotionTriangles) -> Self {
+        if motion.records.is_empty() {
+            return self;
+        }
+        let (mut lo, mut hi) = (
+            self.bounds_center - Vec3::splat(self.bounds_radius),
+            self.bounds_center + Vec3::splat(self.bounds_radius),
+        );
+        if self.triangles.is_empty() && self.instances.is_empty() && self.spheres.is_empty() {
+            lo = Vec3::splat(f32::INFINITY);
+            hi = Vec3::splat(f32::NEG_INFINITY);
+        }
+        for p in motion.keys.iter().flatten() {
+            lo = lo.min(*p);
+            hi = hi.max(*p);
+        }
+        self.bounds_center = (lo + hi) * 0.5;
+        self.bounds_radius = ((hi - lo) * 0.5).length().max(1e-6);
+        self.build_stats.add(&motion.build_stats);
+        self.motion = Some(motion);
+        self
+    }
+
+    /// Bytes of the acceleration structures and triangle records (BVH nodes, leaf index
+    /// arrays, triangles, instances), from their lengths: what the geometry costs in
+    /// memory, for comparing instancing with flattening.
+    pub fn bytes(&self) -> usize {
+        bvh_bytes(&self.bvh)
+            + std::mem::size_of_val(self.triangles.as_slice())
+            + self.prototypes.iter().map(Prototype::bytes).sum::<usize>()
+            + bvh_bytes(&self.tlas)
+            + std::mem::size_of_val(self.instances.as_slice())
+            + self.motion.as_ref().map_or(0, MotionTriangles::bytes)
+    }
+
+    /// The nearest hit along `origin + t dir` with `0 < t < t_max`. `dir` need not be
+    /// normalised, but the shift trick assumes it has unit length within a few percent.
+    #[inline]
+    pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
+        self.intersect_where(origin, dir, t_max, 0.0, |_, _, _, _| true)
+    }
+
+    /// [`Geometry::intersect`] counting only the triangle hits `keep(record, key, b1, b2)`
+    /// accepts (alpha-tested surfaces pass rays through where `keep` says so); `key`
+    /// identifies the triangle (see [`triangle_key`]). Rejected hits do not shorten the
+    /// ray, so the traversal goes on past them. `time` is the ray's shutter fraction in
+    /// `[0, 1]`: moving triangles ([`Geometry::motion`]) are intersected where they stand
+    /// then; everything else ignores it.
+    pub fn intersect_where(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_max: f32,
+        time: f32,
+        keep: impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+    ) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        let mut best_t = t_max;
+        if !self.triangles.is_empty() {
+            if let Some(h) = self.world_level().nearest(origin, dir, &mut best_t, &keep) {
+                best = Some(h);
+            }
+        }
+        if !self.instances.is_empty() {
+            let ray = traversal_ray(origin, dir, best_t);
+            let mut hit = RayHit::none();
+            self.tlas.ray_traverse(ray, &mut hit, |_, id| {
+                let (level, o, d) = self.instance_level(id, origin, dir);
+                match level.nearest(o, d, &mut best_t, &keep) {
+                    Some(h) => {
+                        best = Some(h);
+                        traversal_t(h.t)
+                    }
+                    None => f32::INFINITY,
+                }
+            });
+        }
+        if let Some(m) = &self.motion {
+            if let Some(h) = m.nearest(origin, dir, &mut best_t, time, &keep) {
+                best = Some(h);
+            }
+        }
+        for (i, s) in self.spheres.iter().enumerate() {
+            if let Some(t) = intersect_sphere(s.center, s.radius, origin, dir, best_t) {
+                best_t = t;
+                best = Some(Hit {
+                    t,
+                    primitive: Primitive::Sphere { index: i as u32 },
+                });
+            }
+        }
+        best
+    }
+
+    /// True if anything blocks `origin + t dir` for `0 < t < t_max`.
+    #[inline]
+    pub fn occluded(&self, origin: Vec3, dir: Vec3, t_max: f32) -> bool {
+        self.occluded_where(origin, dir, t_max, 0.0, |_, _, _, _| true)
+    }
+
+    /// [`Geometry::occluded`] at shutter fraction `time`, with the triangle filter of
+    /// [`Geometry::intersect_where`].
+    pub fn occluded_where(
+        &self,
+        origin: Vec3,
+        dir: Vec3,
+        t_max: f32,
+        time: f32,
+        keep: impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+    ) -> bool {
+        for s in &self.spheres {
+            if intersect_sphere(s.center, s.radius, origin, dir, t_max).is_some() {
+                return true;
+            }
+        }
+        if !self.triangles.is_empty() && self.world_level().any(origin, dir, t_max, &keep) {
+            return true;
+        }
+        if let Some(m) = &self.motion {
+            if m.any(origin, dir, t_max, time, &keep) {
+                return true;
+            }
+        }
+        if self.instances.is_empty() {
+            return false;
+        }
+        let ray = traversal_ray(origin, dir, t_max);
+        !self.tlas.ray_traverse_miss(ray, |_, id| {
+            let (level, o, d) = self.instance_level(id, origin, dir);
+            if level.any(o, d, t_max, &keep) {
+                0.0
+            } else {
+                f32::INFINITY
+            }
+        })
+    }
+}
+
+impl Geometry {
+    /// The world-space triangles as a traversal level.
+    #[inline(always)]
+    fn world_level(&self) -> TriangleLevel<'_> {
+        TriangleLevel {
+            bvh: &self.bvh,
+            triangles: &self.triangles,
+            instance: NO_INSTANCE,
+        }
+    }
+
+    /// Instance `id`'s prototype as a traversal level, with the ray in its object space
+    /// (the direction unnormalised, so `t` is shared with the world ray).
+    #[inline(always)]
+    fn instance_level(
+        &self,
+        id: usize,
+        origin: Vec3,
+        dir: Vec3,
+    ) -> (TriangleLevel<'_>, Vec3, Vec3) {
+        let inst = &self.instances[id];
+        let proto = &self.prototypes[inst.prototype as usize];
+        let level = TriangleLevel {
+            bvh: &proto.bvh,
+            triangles: &proto.triangles,
+            instance: id as u32,
+        };
+        let o = inst.object_from_world.transform_point3(origin);
+        let d = inst.object_from_world.transform_vector3(dir);
+        (level, o, d)
+    }
+}
+
+/// Identifies a triangle for the filter of [`Geometry::intersect_where`] (and for hashing
+/// decisions per triangle, such as stochastic alpha): its index for a world-space
+/// triangle, its index and instance otherwise.
+#[inline]
+pub fn triangle_key(instance: u32, index: u32) -> u64 {
+    if instance == NO_INSTANCE {
+        u64::from(index)
+    } else {
+        ((u64::from(instance) + 1) << 32) | u64::from(index)
+    }
+}
+
+/// Surface data at a hit, in world space.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfacePoint {
+    /// Position.
+    pub p: Vec3,
+    /// Conservative absolute error bound of each coordinate of `p`.
+    pub p_error: Vec3,
+    /// Unit geometric normal (for triangles: `(p1 - p0) x (p2 - p0)` normalised, i.e. the
+    /// front side is counter-clockwise; for spheres: outward).
+    pub ng: Vec3,
+    /// Unit shading normal, on the same side as `ng` (interpolated, then normal-mapped).
+    pub ns: Vec3,
+    /// Texture coordinates of set 0 (`TEXCOORD_0`; spherical coordinates on spheres).
+    pub uv: Vec2,
+    /// Mesh of the hit triangle, or [`NO_MESH`] on a sphere.
+    pub mesh: u32,
+    /// Triangle index within its mesh.
+    pub tri: u32,
+    /// Barycentric coordinates `(b1, b2)` of the hit in its triangle.
+    pub bary: Vec2,
+    /// Material index.
+    pub material: u32,
+    /// Light index or [`NO_LIGHT`].
+    pub light: u32,
+}
+
+/// Position on a triangle from barycentrics, with pbrt's error bound (§3.9.4).
+#[inline]
+pub fn triangle_point(p: &[Vec3; 3], b0: f32, b1: f32, b2: f32) -> (Vec3, Vec3) {
+    let pos = b0 * p[0] + b1 * p[1] + b2 * p[2];
+    let err = gamma(7) * ((b0 * p[0]).abs() + (b1 * p[1]).abs() + (b2 * p[2]).abs());
+    (pos, err)
+}
+
+/// Position on a sphere re-projected onto its surface, with pbrt's error bound (§3.9.4).
+#[inline]
+pub fn sphere_point(center: Vec3, radius: f32, p: Vec3) -> (Vec3, Vec3, Vec3) {
+    let local = p - center;
+    let len = local.length();
+    let n = if len > 0.0 { local / len } else { Vec3::Y };
+    let local = n * radius;
+    let pos = center + local;
+    let err = gamma(5) * local.abs() + gamma(1) * center.abs() + gamma(1) * pos.abs();
+    (pos, err, n)
+}
+
+#[cfg(test)]
+mod tests;
