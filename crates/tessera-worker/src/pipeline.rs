@@ -56,6 +56,10 @@ pub(crate) struct Rendered {
     pub(crate) pixel_passes: u64,
 }
 
+/// How a submission ended: on a failure, the status with the results it did not deliver
+/// (the failed one first).
+pub(crate) type Submitted = Result<(), (Status, Vec<Rendered>)>;
+
 /// A batch's outcomes, sorted by [`Pipeline::rendered`].
 pub(crate) struct Sorted {
     /// The results to submit (canceled leases left out).
@@ -304,7 +308,7 @@ impl<B: Leases> Pipeline<B> {
     }
 
     /// The submission under way ended; on a failure, with the results it did not deliver.
-    pub(crate) fn submitted(&mut self, answer: Result<(), (Status, Vec<Rendered>)>) {
+    pub(crate) fn submitted(&mut self, answer: Submitted) {
         self.submitting = None;
         if let Err((s, left)) = answer {
             self.undelivered.extend(left);

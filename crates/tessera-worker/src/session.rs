@@ -6,7 +6,7 @@
 use crate::connect::{self, Client, Failover};
 use crate::faults::Hooks;
 use crate::lease::{fetch_batch, give_back, return_unusable, Fetched};
-use crate::pipeline::{Pipeline, Rendered, Start};
+use crate::pipeline::{Pipeline, Rendered, Start, Submitted};
 use crate::render::Rendering;
 use crate::scene_cache::SceneCache;
 use crate::{WorkerConfig, WorkerError, WorkerTls};
@@ -130,11 +130,7 @@ pub(crate) async fn sessions(
 
 /// Submits `results` in order; on a failure returns the status with the results not yet
 /// answered (the failed one first), for the next session.
-async fn submit_all(
-    client: &mut Client,
-    worker_id: u64,
-    results: Vec<Rendered>,
-) -> Result<(), (Status, Vec<Rendered>)> {
+async fn submit_all(client: &mut Client, worker_id: u64, results: Vec<Rendered>) -> Submitted {
     let mut rest = results.into_iter();
     while let Some(r) = rest.next() {
         let mut req =
@@ -167,7 +163,7 @@ struct Tasks {
     /// The lease request, with the loading of its scenes.
     fetch: Option<JoinHandle<Result<Fetched, Status>>>,
     /// The submission of rendered results.
-    submit: Option<JoinHandle<Result<(), (Status, Vec<Rendered>)>>>,
+    submit: Option<JoinHandle<Submitted>>,
 }
 
 /// One registered session with a coordinator. Returns `Ok` when asked to stop, or the
