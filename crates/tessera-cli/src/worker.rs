@@ -41,17 +41,50 @@ pub struct WorkerArgs {
     /// The private key (PEM) of --tls-cert.
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
-    /// TESTING AID, never for production: corrupt this fraction (0 to 1) of the units
-    /// this worker renders, chosen by a hash of each unit (the same units every run), by
-    /// flipping the lowest bit of one value. The results stay well-formed, so only the
-    /// coordinator's spot checks (--spot-check-fraction) catch them and quarantine the
-    /// worker (docs/ARCHITECTURE.md §6, "Spot checks and quarantine").
-    #[arg(long, value_name = "FRACTION", default_value_t = 0.0, value_parser = parse_fraction)]
-    pub inject_faults: f64,
+    // Testing aids: none in a release build (tessera-worker's `fault-injection` feature).
+    // (A comment, not a doc comment: the flattened arguments carry their own help.)
+    #[command(flatten)]
+    pub faults: FaultArgs,
     /// Exit when standard input closes (used by `tessera serve` for its local workers, so
     /// they never outlive it).
     #[arg(long, hide = true)]
     pub exit_with_stdin: bool,
+}
+
+tessera_worker::with_fault_injection! {
+    /// The testing aids of `tessera worker`, in a build with tessera-worker's
+    /// `fault-injection` feature (the test builds; `--features fault-injection`).
+    #[derive(Args, Clone, Debug)]
+    pub struct FaultArgs {
+        /// TESTING AID, never for production: corrupt this fraction (0 to 1) of the units
+        /// this worker renders, chosen by a hash of each unit (the same units every run), by
+        /// flipping the lowest bit of one value. The results stay well-formed, so only the
+        /// coordinator's spot checks (--spot-check-fraction) catch them and quarantine the
+        /// worker (docs/ARCHITECTURE.md §6, "Spot checks and quarantine").
+        #[arg(long, value_name = "FRACTION", default_value_t = 0.0, value_parser = parse_fraction)]
+        pub inject_faults: f64,
+    }
+
+    impl FaultArgs {
+        /// The fraction of units to corrupt.
+        fn inject_faults(&self) -> f64 {
+            self.inject_faults
+        }
+    }
+}
+
+tessera_worker::without_fault_injection! {
+    /// The testing aids of `tessera worker`: none in this build (tessera-worker's
+    /// `fault-injection` feature is off).
+    #[derive(Args, Clone, Debug)]
+    pub struct FaultArgs {}
+
+    impl FaultArgs {
+        /// No unit is corrupted.
+        fn inject_faults(&self) -> f64 {
+            0.0
+        }
+    }
 }
 
 /// `tessera worker`.
@@ -80,7 +113,7 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
         name,
         token: args.token.clone().filter(|t| !t.is_empty()),
         tls,
-        inject_faults: args.inject_faults,
+        inject_faults: args.faults.inject_faults(),
     };
     let exit_with_stdin = args.exit_with_stdin;
     runtime()?.block_on(async move {
