@@ -1,4 +1,5 @@
-//! Quotes: what an accuracy costs, predicted from a short pilot render (issue 15).
+//! Quotes: what an accuracy costs, predicted from a short pilot render (ARCHITECTURE.md
+//! §3, "Quotes and ETA").
 //!
 //! A pilot renders a few passes of a deterministic subset of a job's tiles with the job's
 //! own settings and pass size, so a pilot pass costs and scatters like a pass of the job.
@@ -366,6 +367,56 @@ pub fn quote(
     job: &QuoteJob,
     targets: &[f64],
 ) -> Result<Quote, QuoteError> {
+    check_inputs(pilot, job, targets)?;
+    let fit = Fit::of(pilot);
+    let pricing = Pricing::new(&fit, job);
+    let planned_n = f64::from(job.planned_passes);
+    let planned_error = Interval::lognormal(fit.error_after(planned_n), fit.rel_m / 2.0);
+    let planned = pricing.cost(
+        Interval {
+            estimate: planned_n,
+            low: planned_n,
+            high: planned_n,
+        },
+        planned_error,
+    );
+    let targets = targets
+        .iter()
+        .map(|&t| {
+            let m_interval = Interval::lognormal(fit.m, fit.rel_m);
+            let passes = m_interval.map(|m| (m * fit.p / (t * t)).ceil().max(2.0));
+            let error = Interval::lognormal(fit.error_after(passes.estimate), fit.rel_m / 2.0);
+            TargetQuote {
+                target: t,
+                within_plan: passes.estimate <= planned_n,
+                passes,
+                cost: pricing.cost(passes, error),
+            }
+        })
+        .collect();
+    Ok(Quote {
+        pilot_error: fit.m.sqrt(),
+        pilot_passes: pilot.passes,
+        pilot_pixels: pilot.groups.iter().map(|g| g.pixels).sum(),
+        pilot_worker_seconds: pilot.units.iter().map(|u| u.worker_seconds).sum(),
+        worker_seconds_per_pixel_pass: fit.c,
+        relative_standard_error: fit.rel_m.hypot(fit.rel_c),
+        planned,
+        targets,
+        assumes: "every pixel takes every pass (adaptive off; adaptive stopping is expected \
+                  to need no more for the same image error); frames cost like the pilot's \
+                  frame; the error falls like 1/sqrt(passes); workers as fast as the pilot's, \
+                  sharing out units of equal cost, the spot-checked ones twice"
+            .into(),
+    })
+}
+
+/// Refuses a pilot that measured nothing usable, and job fields or targets out of range.
+fn check_inputs(
+    pilot: &PilotMeasurement,
+    job: &QuoteJob,
+    targets: &[f64],
+) -> Result<(), QuoteError> {
     if pilot.passes < 2 {
         return Err(QuoteError::Pilot(format!(
             "{} passes give no error estimate; at least 2 are needed",
@@ -421,125 +472,141 @@ pub fn quote(
             format!("must be > 0, got {t}"),
         ));
     }
+    Ok(())
+}
 
-    let (m, se_m) = ratio_mean(pilot.groups.iter().map(|g| (g.pixels as f64, g.sum_sq_rel)));
-    let (c, se_c) = ratio_mean(
-        pilot
-            .units
-            .iter()
-            .map(|u| (u.pixel_passes as f64, u.worker_seconds)),
-    );
-    // Without a spread over groups, the per-pixel figure for K replicates (Owen 2001,
-    // section 6.7): the error estimate's relative s.e. 1/sqrt(2 (K - 1)), that of M twice it.
-    let rel_m = match se_m {
-        Some(se) if m > 0.0 => se / m,
-        _ => 2.0 / (2.0 * f64::from(pilot.passes - 1)).sqrt(),
-    };
-    let rel_c = match se_c {
-        Some(se) if c > 0.0 => se / c,
-        _ => 0.0,
-    };
-    let rel_seconds = rel_m.hypot(rel_c);
-    let p = f64::from(pilot.passes);
-    let error_after = |n: f64| (m * p / n).sqrt();
-    let frame_px = job.pixels_per_frame as f64;
-    let frames = job.frames as f64;
-    let workers = f64::from(job.workers);
-    let units_per_pass = f64::from(job.tiles_per_frame);
-    let ppu = f64::from(job.passes_per_unit);
-    let fraction = job.spot_check_fraction;
+/// The model's two figures from a pilot, each with its relative standard error (see the
+/// module documentation): `M`, the mean squared relative error of a pilot pixel after
+/// the pilot's `P` passes, and `C`, the worker-seconds per pixel-pass.
+struct Fit {
+    m: f64,
+    rel_m: f64,
+    c: f64,
+    rel_c: f64,
+    /// `P`, the pilot's passes.
+    p: f64,
+}
 
-    // The farm's work for `n` passes of `frames` frames: worker-seconds with the spot
-    // checks' copies, and wall seconds, the rounds of equal units the workers take
-    // (`ceil((U + K) / W)` for `U` units and `K` copies: a few large units, as a
-    // whole-frame bdpt tile makes, do not share out evenly). `ws` is the worker-seconds
-    // of the `U` units alone, `end` which end of the interval (copies at its quantile).
-    let farm = |n: f64, ws: f64, frames: f64, end: End| {
-        let units = frames * units_per_pass * (n / ppu).ceil();
+impl Fit {
+    fn of(pilot: &PilotMeasurement) -> Self {
+        let (m, se_m) = ratio_mean(pilot.groups.iter().map(|g| (g.pixels as f64, g.sum_sq_rel)));
+        let (c, se_c) = ratio_mean(
+            pilot
+                .units
+                .iter()
+                .map(|u| (u.pixel_passes as f64, u.worker_seconds)),
+        );
+        // Without a spread over groups, the per-pixel figure for K replicates (Owen 2001,
+        // section 6.7): the error estimate's relative s.e. 1/sqrt(2 (K - 1)), that of M twice it.
+        let rel_m = match se_m {
+            Some(se) if m > 0.0 => se / m,
+            _ => 2.0 / (2.0 * f64::from(pilot.passes - 1)).sqrt(),
+        };
+        let rel_c = match se_c {
+            Some(se) if c > 0.0 => se / c,
+            _ => 0.0,
+        };
+        Self {
+            m,
+            rel_m,
+            c,
+            rel_c,
+            p: f64::from(pilot.passes),
+        }
+    }
+
+    /// `E(n)`: the image error after `n` passes.
+    fn error_after(&self, n: f64) -> f64 {
+        (self.m * self.p / n).sqrt()
+    }
+}
+
+/// What passes cost on the job's farm: the fit's cost per pixel-pass and the job's
+/// figures, as the model uses them.
+struct Pricing {
+    c: f64,
+    rel_c: f64,
+    frame_px: f64,
+    frames: f64,
+    workers: f64,
+    units_per_pass: f64,
+    ppu: f64,
+    fraction: f64,
+    samples_per_pass: f64,
+    setup_seconds: f64,
+}
+
+impl Pricing {
+    fn new(fit: &Fit, job: &QuoteJob) -> Self {
+        Self {
+            c: fit.c,
+            rel_c: fit.rel_c,
+            frame_px: job.pixels_per_frame as f64,
+            frames: job.frames as f64,
+            workers: f64::from(job.workers),
+            units_per_pass: f64::from(job.tiles_per_frame),
+            ppu: f64::from(job.passes_per_unit),
+            fraction: job.spot_check_fraction,
+            samples_per_pass: f64::from(job.samples_per_pass),
+            setup_seconds: job.setup_seconds,
+        }
+    }
+
+    /// The farm's work for `n` passes of `frames` frames: worker-seconds with the spot
+    /// checks' copies, and wall seconds, the rounds of equal units the workers take
+    /// (`ceil((U + K) / W)` for `U` units and `K` copies: a few large units, as a
+    /// whole-frame bdpt tile makes, do not share out evenly). `ws` is the worker-seconds
+    /// of the `U` units alone, `end` which end of the interval (copies at its quantile).
+    fn farm(&self, n: f64, ws: f64, frames: f64, end: End) -> (f64, f64) {
+        let workers = self.workers;
+        let units = frames * self.units_per_pass * (n / self.ppu).ceil();
         let per_unit = ws / units;
-        let k = Copies::of(units, fraction, workers);
+        let k = Copies::of(units, self.fraction, workers);
         let (copies, rounds) = match end {
             End::Low => (k.low, ((units + k.low) / workers).ceil()),
             End::Estimate => (k.mean, k.mean_rounds),
             End::High => (k.high, ((units + k.high) / workers).ceil()),
         };
         (ws + copies * per_unit, rounds * per_unit)
-    };
+    }
 
-    // The cost of `passes` (an interval of whole passes), the cost's own spread added.
-    let cost_of = |passes: Interval, error: Interval| {
-        let per_frame = Interval::lognormal(passes.estimate * c * frame_px, rel_c);
+    /// Worker-seconds and wall seconds of `frames` frames, each end of `passes` at the
+    /// same end of the per-frame worker-seconds `per_frame`.
+    fn on_farm(&self, passes: Interval, per_frame: Interval, frames: f64) -> (Interval, Interval) {
+        let at = |n: f64, ws: f64, end| self.farm(n, ws * frames, frames, end);
+        let (lo, est, hi) = (
+            at(passes.low, per_frame.low, End::Low),
+            at(passes.estimate, per_frame.estimate, End::Estimate),
+            at(passes.high, per_frame.high, End::High),
+        );
+        let pick = |f: fn((f64, f64)) -> f64| Interval {
+            estimate: f(est),
+            low: f(lo),
+            high: f(hi),
+        };
+        (pick(|x| x.0), pick(|x| x.1))
+    }
+
+    /// The cost of `passes` (an interval of whole passes), the cost's own spread added.
+    fn cost(&self, passes: Interval, error: Interval) -> Cost {
+        let per_frame = Interval::lognormal(passes.estimate * self.c * self.frame_px, self.rel_c);
         let per_frame = Interval {
             low: per_frame.low * passes.low / passes.estimate,
             high: per_frame.high * passes.high / passes.estimate,
             ..per_frame
         };
-        let on_farm = |frames: f64| {
-            let at = |n: f64, ws: f64, end| farm(n, ws * frames, frames, end);
-            let (lo, est, hi) = (
-                at(passes.low, per_frame.low, End::Low),
-                at(passes.estimate, per_frame.estimate, End::Estimate),
-                at(passes.high, per_frame.high, End::High),
-            );
-            let pick = |f: fn((f64, f64)) -> f64| Interval {
-                estimate: f(est),
-                low: f(lo),
-                high: f(hi),
-            };
-            (pick(|x| x.0), pick(|x| x.1))
-        };
-        let (ws_frame, wall_frame) = on_farm(1.0);
-        let (ws_whole, wall_whole) = on_farm(frames);
+        let (ws_frame, wall_frame) = self.on_farm(passes, per_frame, 1.0);
+        let (ws_whole, wall_whole) = self.on_farm(passes, per_frame, self.frames);
         Cost {
             passes,
-            spp: passes.map(|n| n * f64::from(job.samples_per_pass)),
+            spp: passes.map(|n| n * self.samples_per_pass),
             error,
             worker_seconds_per_frame: ws_frame,
             worker_seconds: ws_whole,
             seconds_per_frame: wall_frame,
-            seconds: wall_whole.map(|s| job.setup_seconds + s),
+            seconds: wall_whole.map(|s| self.setup_seconds + s),
         }
-    };
-
-    let planned_n = f64::from(job.planned_passes);
-    let planned_error = Interval::lognormal(error_after(planned_n), rel_m / 2.0);
-    let planned = cost_of(
-        Interval {
-            estimate: planned_n,
-            low: planned_n,
-            high: planned_n,
-        },
-        planned_error,
-    );
-    let targets = targets
-        .iter()
-        .map(|&t| {
-            let m_interval = Interval::lognormal(m, rel_m);
-            let passes = m_interval.map(|m| (m * p / (t * t)).ceil().max(2.0));
-            let error = Interval::lognormal(error_after(passes.estimate), rel_m / 2.0);
-            TargetQuote {
-                target: t,
-                within_plan: passes.estimate <= planned_n,
-                passes,
-                cost: cost_of(passes, error),
-            }
-        })
-        .collect();
-    Ok(Quote {
-        pilot_error: m.sqrt(),
-        pilot_passes: pilot.passes,
-        pilot_pixels: pixels,
-        pilot_worker_seconds: pilot.units.iter().map(|u| u.worker_seconds).sum(),
-        worker_seconds_per_pixel_pass: c,
-        relative_standard_error: rel_seconds,
-        planned,
-        targets,
-        assumes: "every pixel takes every pass (adaptive off; adaptive stopping is expected \
-                  to need no more for the same image error); frames cost like the pilot's \
-                  frame; the error falls like 1/sqrt(passes); workers as fast as the pilot's, \
-                  sharing out units of equal cost, the spot-checked ones twice"
-            .into(),
-    })
+    }
 }
 
 /// The tiles a pilot renders: about [`PILOT_PIXELS`] pixels of whole tiles, at least

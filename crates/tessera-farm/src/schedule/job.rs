@@ -139,14 +139,17 @@ impl Job {
         (i < self.units_total() && self.unit(i) == *u).then_some(i)
     }
 
+    /// Units per tile of a frame: its passes cut into chunks of `passes_per_unit`.
     pub(super) fn chunks(&self) -> u64 {
         self.plan.chunks_per_tile(self.passes_per_unit) as u64
     }
 
+    /// Units per frame: a chunk of every tile, per chunk.
     pub(super) fn units_per_frame(&self) -> u64 {
         self.chunks() * self.plan.tile_count() as u64
     }
 
+    /// Units in the whole job.
     pub(super) fn units_total(&self) -> u64 {
         self.units_per_frame() * self.frames.len() as u64
     }
@@ -156,6 +159,9 @@ impl Job {
         (i / self.units_per_frame()) as usize
     }
 
+    /// The next unit `worker` may render, by canonical index: a returned unit first (in
+    /// canonical order), else the next one from the cursor; `None` when nothing can be
+    /// leased to it now.
     pub(super) fn next_index(
         &mut self,
         mem: &mut Memory,
@@ -326,6 +332,8 @@ impl Job {
         Some(open)
     }
 
+    /// Whether the job may have a unit to lease (not canceled, and units returned, ahead
+    /// of the cursor or waiting for a decision).
     pub(super) fn has_work(&self) -> bool {
         let waiting = self
             .adaptive
@@ -334,6 +342,8 @@ impl Job {
         !self.canceled && (!self.returned.is_empty() || self.cursor < self.units_total() || waiting)
     }
 
+    /// Whether every frame is complete (for an adaptive job: every tile finished by its
+    /// policy), released, or the job was evicted finished.
     pub(super) fn is_complete(&self) -> bool {
         if self.evicted {
             return true;

@@ -92,8 +92,8 @@ impl Scheduler {
     }
 
     /// Drops a complete frame's merge state from memory, once the caller has made its
-    /// checkpoints durable; later results for it are [`Submitted::Late`] and its image
-    /// comes from the store. A frame of an adaptive job is complete when its policy has
+    /// checkpoints durable; later results for it are
+    /// [`Submitted::Late`](super::Submitted::Late) and its image comes from the store. A frame of an adaptive job is complete when its policy has
     /// finished every tile: the policy state is checkpointed with each tile, so
     /// the frame's image is restored from the store like any other, and the frames of an
     /// animation no longer hold memory until the whole job ends (with a budget of one

@@ -420,6 +420,7 @@ impl Scheduler {
         let Verdict {
             agreed, outcome, ..
         } = verdict;
+        // Every copy held for `i` is of the same unit (`Job::index` is a bijection).
         let unit = agreed.result.unit;
         // Quarantine may have dropped this unit's tile; the frame is still live.
         let job = self
