@@ -52,6 +52,7 @@ use tessera_render::figure5;
 use tessera_render::integrator::{Integrator, MisHeuristic};
 use tessera_render::render::{render_frame, RenderConfig};
 use tessera_render::sampling::SamplerKind;
+use tessera_render::scene::RenderScene;
 
 /// Arguments of `tessera bench accuracy`.
 #[derive(Args, Clone, Debug)]
@@ -470,7 +471,6 @@ fn run_configuration(
         seed: 1 + k as u64,
         ..c.settings
     };
-    let reference = &references[c.reference];
     if c.adaptive == AdaptiveMode::Off {
         for &spp in ladder {
             let plan = FramePlan::for_spp(w, h, spp, 16)?;
