@@ -3,7 +3,8 @@
 //! Architecture, bottom up:
 //!
 //! - [`sampling`]: the per-pixel randomized quasi-Monte Carlo sampler and the warps;
-//! - [`geometry`]: triangles in an `obvhs` CWBVH (watertight, near-hit safe) and spheres;
+//! - [`geometry`]: triangles in an `obvhs` CWBVH (watertight, near-hit safe; built in
+//!   `O(n log n)` even on coincident primitives, on a stack of known size) and spheres;
 //! - [`bsdf`] and [`light`]: closed enums of scattering models and emitters, each
 //!   variant in its own file with its documentation;
 //! - [`integrator`]: path tracing with NEE and MIS, direct lighting and bdpt;

@@ -30,7 +30,6 @@
 //!
 //! Every hit carries a floating-point error bound on its position (pbrt §3.9) so that rays
 //! leaving it can be offset robustly by [`crate::math::offset_ray_origin`].
-
 //!
 //! The code is split by concern: `watertight` holds the ray–triangle and ray–sphere
 //! tests, `traversal` the walk through one BVH of triangles, `moving` the triangles that
