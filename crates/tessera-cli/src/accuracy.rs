@@ -374,7 +374,7 @@ fn references(
 ) -> Result<[FrameImage; 2]> {
     let render_reference = |settings: RenderConfig, name: &str| -> Result<FrameImage> {
         let start = Instant::now();
-        let acc = render_frame(rs, &settings, &ref_plan, 0, args.threads, |_, _| {});
+        let acc = render_frame(rs, &settings, ref_plan, 0, args.threads, |_, _| {});
         let img = acc.image();
         let path = args.out.join(name);
         tessera_image::write_image(&path, &img, None)?;
