@@ -159,12 +159,16 @@ fn build_like_a_worker(glb: Vec<u8>) -> RenderScene {
     std::thread::Builder::new()
         .stack_size(2 << 20)
         .spawn(move || {
-            let scene = tessera_scene::job::load_job_scene(
-                &SceneRef::Hash("coincident".into()),
-                Some(&glb),
-                None,
-            )
-            .expect("the scene loads");
+            let job_scene = tessera_farm::job::JobScene {
+                source: SceneRef::Hash("coincident".into()),
+                camera: None,
+                fps: tessera_farm::job::DEFAULT_FPS,
+                animation: None,
+                shutter: None,
+            };
+            let time = tessera_scene::job::resolution_time(&job_scene);
+            let scene = tessera_scene::job::load_job_scene_at(&job_scene, Some(&glb), &time)
+                .expect("the scene loads");
             RenderScene::build(&scene, 16, 16).expect("the scene builds")
         })
         .unwrap()
