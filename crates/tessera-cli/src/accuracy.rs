@@ -1,4 +1,4 @@
-//! `tessera bench accuracy`: what each step of accuracy costs in time (issue 4).
+//! `tessera bench accuracy`: what each step of accuracy costs in time.
 //!
 //! Renders (or loads) a converged reference, then renders the scene at a ladder of budgets
 //! for each configuration — integrator, sampler (independent vs randomized Sobol), MIS

@@ -1,4 +1,4 @@
-//! `tessera render` with error targets, adaptive stopping and time limits (issue 4):
+//! `tessera render` with error targets, adaptive stopping and time limits:
 //! `--target-error`, `--adaptive off|sequential|unbiased`, `--time-limit`, `--spp-map`.
 //!
 //! The render runs `tessera-farm`'s adaptive policy round by round through

@@ -1,4 +1,4 @@
-//! `tessera bench-fleet`: the coordinator under a fleet of simulated workers (issue 14).
+//! `tessera bench-fleet`: the coordinator under a fleet of simulated workers.
 //!
 //! A real `tessera coordinator` process is driven over real gRPC on loopback by N
 //! simulated workers, each its own connection, registering, heartbeating, leasing one

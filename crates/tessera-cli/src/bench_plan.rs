@@ -1,5 +1,5 @@
 //! `tessera bench-plan`: what the render plan buys, measured side by side in one run
-//! (ARCHITECTURE.md §4, issue 6 "Evidence").
+//! (ARCHITECTURE.md §4).
 //!
 //! For each pair of configurations the same scene is rendered at the same size and sample
 //! count; the time to reach a target relative error (default 5%) is predicted from the

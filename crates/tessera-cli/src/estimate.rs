@@ -1,4 +1,4 @@
-//! `tessera estimate`: what accuracy costs, before rendering (issue 15).
+//! `tessera estimate`: what accuracy costs, before rendering.
 //!
 //! The job is resolved exactly as `tessera render` resolves it ([`crate::render::prepare`]),
 //! then a pilot renders [`PILOT_PASSES`] passes of a deterministic subset of the job's own

@@ -199,7 +199,7 @@ fn bench(args: BenchArgs) -> Result<()> {
     rates.sort_by(f64::total_cmp);
     let median = rates[rates.len() / 2];
     // Paths per second depends on the path length; rays per second (closest hits and
-    // shadow rays) much less so (issue 13 item 5 asks for both).
+    // shadow rays) much less so.
     let rays_per_path = rays as f64 / paths;
     println!(
         "bench {} {}x{} {} spp max-depth {} on {} threads: median {:.0} paths/s ({:.0} paths/s per thread), {:.0} rays/s ({:.2} rays per path)",

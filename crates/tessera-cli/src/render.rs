@@ -453,7 +453,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
 }
 
 /// `scene: T triangles, built in S s, B MiB of geometry (b bytes per triangle)`: what a
-/// large scene costs before the first ray (issue 13's large-scene figures come from it).
+/// large scene costs before the first ray (the large-scene figures in docs/benchmarks.md come from it).
 fn print_scene_line(p: &Prepared) {
     let Some(rs) = &p.render_scene else {
         return;

@@ -1,4 +1,4 @@
-//! The browser dashboard's static files (issue 5), embedded in the binary.
+//! The browser dashboard's static files, embedded in the binary.
 //!
 //! Plain HTML, CSS and JavaScript modules from `assets/`, with no build step: the page
 //! talks only to the public HTTP API v1 and polls it about once a second. The router

@@ -1,5 +1,5 @@
 //! Adaptive stopping: which pixels of a tile still need passes, and when a tile is done
-//! (ARCHITECTURE.md §3, issue 4). Pure: no I/O, no clock, no threads.
+//! (ARCHITECTURE.md §3). Pure: no I/O, no clock, no threads.
 //!
 //! # Why decisions are made at fixed pass indices
 //!
@@ -46,7 +46,7 @@
 //! [`AdaptiveTile::wants`] tells whether a pixel will use a given pass. A local renderer
 //! skips the pixels that do not (their values are ignored when merged). On the farm a lease
 //! carries the same set, [`AdaptiveTile::wanted_pixels`] as a run-length list
-//! ([`crate::PixelRuns`], issue 15), and the worker traces only those pixels and reports
+//! ([`crate::PixelRuns`]), and the worker traces only those pixels and reports
 //! the others as black; the policy reads only the passes it wants, so the image is the same
 //! as the local one, and a worker that renders whole tiles (one that predates the field)
 //! gives the same image too. [`AdaptiveTile::lease_horizon`] is the first pass that cannot
@@ -392,7 +392,7 @@ impl AdaptiveTile {
     /// Call it only for a unit below the [`AdaptiveTile::lease_horizon`] (or one already
     /// consumed): then every decision it reads is taken and final, so the set is a pure
     /// function of the job, the same whenever it is asked and for every copy of the unit
-    /// (ARCHITECTURE.md §2, issue 15).
+    /// (ARCHITECTURE.md §2).
     pub fn wanted_pixels(&self, first_pass: u32, pass_count: u32) -> Option<PixelRuns> {
         let end = first_pass.saturating_add(pass_count.max(1));
         let runs = PixelRuns::from_fn(self.state.len(), |i| {
@@ -561,7 +561,7 @@ pub struct AdaptivePixel {
 }
 
 /// The policy state of one tile as plain data, to be stored with the tile's merged passes
-/// (issue 15, part 2: a coordinator restart resumes an adaptive job from its merged
+/// (a coordinator restart resumes an adaptive job from its merged
 /// passes). Results buffered ahead of their turn are not part of it (they are not part of
 /// the tile's merge checkpoint either: their units are leased again).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -754,7 +754,7 @@ pub fn pilot_relative_variance(pilot: &PixelStats) -> Option<f64> {
 /// `(2 POOL_RADIUS + 1)²` neighbourhood of pixel `(x, y)` of a `w x h` tile, clipped to the
 /// tile (0 when none has a variance).
 ///
-/// Why the unbiased mode pools (issue 15): a pixel's own 8-pass pilot cannot see a path
+/// Why the unbiased mode pools: a pixel's own 8-pass pilot cannot see a path
 /// rarer than about one in its hundred-odd samples, so a dark pixel lit mostly by rare
 /// bright paths (light reflected off a small emitter, a caustic) has a pilot variance near
 /// 0 and was given the minimum of fresh passes whatever the target; one of them catching

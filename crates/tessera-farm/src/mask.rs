@@ -1,4 +1,4 @@
-//! The pixels of a tile a leased unit must trace (issue 15): a run-length list over the
+//! The pixels of a tile a leased unit must trace: a run-length list over the
 //! tile's row-major pixel indices.
 //!
 //! An adaptive job's lease names the pixels the policy still wants for the unit's passes

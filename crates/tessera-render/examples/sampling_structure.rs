@@ -1,6 +1,6 @@
 //! How a pixel's samples are grouped into replicates, measured: the noise variance of the
 //! pixel mean and the calibration of its error estimate, for each candidate structure
-//! (issue 13, item 1; the table is in `docs/benchmarks.md`, "Sampling structure").
+//! (the table is in `docs/benchmarks.md`, "Sampling structure").
 //!
 //! ```text
 //! cargo run --release -p tessera-render --example sampling_structure [-- SIZE REF_SPP]

@@ -1,5 +1,5 @@
 //! Adaptive local rendering: the round-by-round driver of `tessera-farm`'s adaptive policy
-//! (ARCHITECTURE.md §3, issue 4).
+//! (ARCHITECTURE.md §3).
 //!
 //! Each round renders, for every tile that is not finished, its next chunk of passes
 //! ([`tessera_farm::AdaptiveTile::next_chunk`], never crossing a decision boundary) on a

@@ -397,7 +397,7 @@ fn heavy_tailed_tile(settings: AdaptiveSettings, rng: &mut Rng, plan: &FramePlan
     (mean, spp)
 }
 
-/// Bias test (issue 4, Jensen 2001, section 10.3): over many independent trials of an 8x8 tile of
+/// Bias test (Jensen 2001, section 10.3): over many independent trials of an 8x8 tile of
 /// heavy-tailed pixels, the sequential policy's mean is measurably off the true mean,
 /// while the unbiased two-stage policy matches it within 3 standard errors.
 ///
@@ -446,7 +446,7 @@ fn sequential_is_biased_and_unbiased_is_not() {
     assert!(z_unb.abs() < 3.0, "unbiased mode is biased: z = {z_unb}");
 }
 
-/// Issue 15, part 2 (the building block): the policy state checkpointed at any point and
+/// The policy state checkpointed at any point and
 /// restored continues exactly as the uninterrupted state, bit for bit, with the same
 /// leased pixel sets; a checkpoint no run could have produced is refused.
 #[test]

@@ -1887,7 +1887,7 @@ fn gltf_builder_shortcuts_and_delta_transmission() {
 
 /// A glTF BSDF prepared for `wo` ([`gltf_bsdf_at`]) gives the same bits as an unprepared
 /// one for every call, with that `wo` (mirrored or not, inside or outside) and with any
-/// other: the preparation only saves table look-ups (issue 13, raw speed).
+/// other: the preparation only saves table look-ups (raw speed).
 #[test]
 fn a_prepared_gltf_bsdf_gives_the_same_bits() {
     let mut rng = SplitMix64::new(0x9e9a_4ed0);

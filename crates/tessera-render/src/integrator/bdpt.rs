@@ -1019,7 +1019,7 @@ struct Scratch {
 /// subpaths; every pixel of the frame still traces its light subpaths, so a wanted pixel
 /// gets the same value as when every pixel is wanted, splats included. An unwanted pixel's
 /// pass mean holds only the splats that landed in it: a partial estimate, which the
-/// adaptive policy never reads and the farm zeroes (issue 15).
+/// adaptive policy never reads and the farm zeroes.
 pub fn render_unit(
     scene: &RenderScene,
     st: &BdptSettings,
