@@ -304,7 +304,7 @@ fn suite_reference_sized(name: &str, width: u32, height: u32) -> FrameImage {
     let path = reference_file(name);
     let bytes = std::fs::read(&path).unwrap_or_else(|e| {
         panic!(
-            "{}: {e}; regenerate with `cargo test --release -p tessera-render --test calibration \
+            "{}: {e}; regenerate with `cargo test --release -p tessera-render --test it \
              -- --ignored write_calibration_references`",
             path.display()
         )
