@@ -204,10 +204,7 @@ fn spawn_worker(
 
 /// The value of the unlabelled sample `name` in the coordinator's `/metrics`.
 async fn metric(core: &Coordinator, name: &str) -> f64 {
-    let text = core.metrics().await.unwrap();
-    text.lines()
-        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
-        .unwrap_or_else(|| panic!("no {name} in /metrics:\n{text}"))
+    tessera_testkit::require_metric(&core.metrics().await.unwrap(), name)
 }
 
 async fn wait_done(core: &Coordinator, job: u64) {

@@ -1,0 +1,279 @@
+//! Worker results over gRPC, fuzzed (robustness issue: a fuzz target per input surface;
+//! docs/fuzzing.md, "gRPC results"): a deterministic, bounded mutation harness on stable
+//! Rust against a real `Coordinator` over a temporary store, through the real gRPC
+//! service (`WorkerGrpc`, decode and all; no socket).
+//!
+//! For every leased unit the harness sends mutated copies of the correct result (fields
+//! set to random or edge values, values made non-finite or negative, the list cut or
+//! grown, the unit or lease moved, an unknown worker), then the correct one, unless a
+//! mutation that touched only unvalidated diagnostics was accepted first. It checks:
+//! nothing panics; every refusal of the registered worker's result is counted as one of
+//! its faults (in the worker list and `/metrics`); no unknown worker appears in the
+//! listing; and nothing accepted is lost: the job ends `done` with every planned pass,
+//! and a coordinator reopened on the store sees the same.
+
+use tessera_api::JobSettings;
+use tessera_coordinator::grpc::WorkerGrpc;
+use tessera_coordinator::service::{Coordinator, CoordinatorConfig};
+use tessera_proto::v1;
+use tessera_proto::v1::worker_service_server::WorkerService;
+use tonic::Request;
+
+/// The harness's seed: change it to explore, keep it fixed in CI.
+const SEED: u64 = 0x7e55_e7a0_0016;
+/// Mutated copies sent per unit before the correct one.
+const MUTANTS_PER_UNIT: usize = 6;
+
+use tessera_testkit::SplitMix64 as Rng;
+
+/// The values this harness draws besides plain numbers.
+trait Draw {
+    /// A u32 that is often an edge case.
+    fn edge_u32(&mut self) -> u32;
+    /// A value a pass mean must not have.
+    fn bad_f32(&mut self) -> f32;
+}
+
+impl Draw for Rng {
+    fn edge_u32(&mut self) -> u32 {
+        const EDGES: [u32; 6] = [0, 1, 2, 7, u32::MAX, u32::MAX - 1];
+        if self.below(2) == 0 {
+            EDGES[self.below(EDGES.len() as u64) as usize]
+        } else {
+            self.next() as u32
+        }
+    }
+    fn bad_f32(&mut self) -> f32 {
+        [
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            -1.0,
+            -1e-30,
+            f32::MIN,
+        ][self.below(6) as usize]
+    }
+}
+
+/// Which mutation a copy got, and whether the coordinator may accept it (the mutation
+/// touched only diagnostics it does not validate).
+fn mutate(rng: &mut Rng, r: &mut v1::SubmitResultRequest) -> (&'static str, bool) {
+    let (w0, h0) = (r.width, r.height);
+    match rng.below(12) {
+        0 => {
+            // Leases are fencing tokens, not credentials (the worker token is): a valid
+            // result under a valid lease is taken whoever sends it, but an unknown
+            // worker id must not appear in the listing.
+            r.worker_id = r.worker_id.wrapping_add(1 + rng.below(1 << 40));
+            ("unknown worker", true)
+        }
+        1 => {
+            r.lease_id = match rng.below(3) {
+                0 => 0,
+                1 => r.lease_id.wrapping_add(1 + rng.below(1000)),
+                _ => rng.next(),
+            };
+            ("other lease", false)
+        }
+        2 => {
+            let u = r.unit.get_or_insert_with(Default::default);
+            match rng.below(4) {
+                0 => u.frame = rng.edge_u32().max(1),
+                1 => u.tile = u.tile.wrapping_add(1 + rng.below(64) as u32),
+                2 => u.first_pass = u.first_pass.wrapping_add(1 + rng.below(64) as u32),
+                _ => u.pass_count = [0, 2, 3, u32::MAX][rng.below(4) as usize],
+            }
+            ("other unit", false)
+        }
+        3 => {
+            r.unit = None;
+            ("no unit", false)
+        }
+        4 => {
+            if rng.below(2) == 0 {
+                r.width = rng.edge_u32();
+            } else {
+                r.height = rng.edge_u32();
+            }
+            if (r.width, r.height) == (w0, h0) {
+                r.width = w0 + 1;
+            }
+            ("other size", false)
+        }
+        5 => {
+            let mut means = r.means();
+            let i = rng.below(means.len() as u64) as usize;
+            means[i] = rng.bad_f32();
+            r.set_means(&means);
+            ("bad value", false)
+        }
+        6 => {
+            let bad = rng.bad_f32();
+            let means = vec![bad; r.means().len()];
+            r.set_means(&means);
+            ("all values bad", false)
+        }
+        7 => {
+            // Any number of bytes short: a partial float, or whole pixels missing.
+            let keep = rng.below(r.pass_means.len() as u64) as usize;
+            r.pass_means.truncate(keep);
+            ("too few values", false)
+        }
+        8 => {
+            let extra = 1 + rng.below(1200) as usize;
+            r.pass_means.extend(std::iter::repeat_n(0x3f, extra));
+            ("too many values", false)
+        }
+        9 => {
+            r.render_seconds = [f64::NAN, f64::INFINITY, -1.0, 1e300][rng.below(4) as usize];
+            ("odd render seconds", true)
+        }
+        10 => {
+            r.rejected_samples = rng.next();
+            ("odd rejected samples", true)
+        }
+        _ => {
+            // The job hint is trusted only for leases of a previous run.
+            r.job_id = rng.next();
+            ("other job hint", true)
+        }
+    }
+}
+
+/// The size of tile `tile` of a `width` x `height` frame cut in `ts`-pixel tiles.
+fn tile_size(width: u32, height: u32, ts: u32, tile: u32) -> (u32, u32) {
+    let across = width.div_ceil(ts);
+    let (x, y) = ((tile % across) * ts, (tile / across) * ts);
+    ((width - x).min(ts), (height - y).min(ts))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp, job.tile_size) = (Some(60), Some(28), 8, 8);
+    let (job, _) = core.submit(job, None).await.unwrap();
+    let svc = WorkerGrpc::for_coordinator(core.clone());
+    let worker_id = svc
+        .register(Request::new(v1::RegisterRequest {
+            name: "fuzzer".into(),
+            threads: 1,
+            version: "test".into(),
+            capabilities: vec!["path".into()],
+        }))
+        .await
+        .unwrap()
+        .into_inner()
+        .worker_id;
+    let mut rng = Rng(SEED);
+    let (mut sent, mut refused_mine, mut units) = (0u64, 0u64, 0u64);
+    loop {
+        let leases = svc
+            .lease_work(Request::new(v1::LeaseRequest {
+                worker_id,
+                max_units: 4,
+                wait_ms: 0,
+            }))
+            .await
+            .unwrap()
+            .into_inner()
+            .leases;
+        if leases.is_empty() {
+            break;
+        }
+        for lease in leases {
+            let plan = lease.plan.unwrap();
+            let unit = lease.unit.unwrap();
+            let (w, h) = tile_size(plan.width, plan.height, plan.tile_size, unit.tile);
+            let n = 3 * (unit.pass_count * w * h) as usize;
+            let good = v1::SubmitResultRequest {
+                worker_id,
+                lease_id: lease.lease_id,
+                unit: Some(unit),
+                width: w,
+                height: h,
+                pass_means: tessera_proto::means_to_bytes(
+                    &(0..n).map(|i| (i % 7) as f32 * 0.125).collect::<Vec<_>>(),
+                ),
+                render_seconds: 0.01,
+                job_id: lease.job_id,
+                rejected_samples: 0,
+                traced_pixel_passes: 0,
+            };
+            let mut delivered = false;
+            for _ in 0..MUTANTS_PER_UNIT {
+                let mut bad = good.clone();
+                let (what, may_pass) = mutate(&mut rng, &mut bad);
+                let mine = bad.worker_id == worker_id;
+                let answer = svc.submit_result(Request::new(bad)).await;
+                sent += 1;
+                // A malformed result is answered "not accepted" with the reason (and
+                // counted), never with a gRPC error.
+                let accepted = answer
+                    .unwrap_or_else(|s| panic!("{what}: {s}"))
+                    .into_inner()
+                    .accepted;
+                assert!(
+                    !accepted || may_pass,
+                    "{what}: a malformed result was accepted"
+                );
+                if !accepted && mine {
+                    refused_mine += 1;
+                }
+                if accepted {
+                    // A harmless mutation delivered the unit. (Sending it again under
+                    // the same lease would be refused as an unknown lease and counted
+                    // as a fault: the scheduler forgets a lease once its unit merged.)
+                    delivered = true;
+                    break;
+                }
+            }
+            if !delivered {
+                let a = svc
+                    .submit_result(Request::new(good))
+                    .await
+                    .unwrap()
+                    .into_inner();
+                sent += 1;
+                assert!(a.accepted, "the correct result was refused: {}", a.reason);
+            }
+            units += 1;
+        }
+    }
+    let status = core.status(job.id).await.unwrap();
+    assert_eq!(status.state.as_str(), "done", "{status:?}");
+    assert_eq!(status.passes_done, status.passes_planned);
+    let workers = core.workers().unwrap().workers;
+    assert_eq!(
+        workers.len(),
+        1,
+        "unknown worker ids were listed: {workers:?}"
+    );
+    // Every refusal of the worker's results is one fault.
+    assert!(refused_mine > 0);
+    assert_eq!(workers[0].faults, refused_mine);
+    let metrics = core.metrics().await.unwrap();
+    assert!(
+        metrics.contains(&format!(
+            "tessera_worker_faults_total {}",
+            workers[0].faults
+        )),
+        "{metrics}"
+    );
+    eprintln!(
+        "fuzz_grpc: {sent} results sent for {units} units, {refused_mine} of the worker's refused, {} faults",
+        workers[0].faults
+    );
+    // Nothing accepted is lost: a coordinator reopened on the store has every pass.
+    core.store().close().await;
+    drop((svc, core));
+    let again = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let status = again.status(job.id).await.unwrap();
+    assert_eq!(status.state.as_str(), "done");
+    assert_eq!(status.passes_done, status.passes_planned);
+}
