@@ -518,7 +518,7 @@ impl FrameImage {
     /// variance changes slowly across the image, and the passes of different pixels are
     /// independent, so pooling 9 pixels gives up to `9 (K - 1)` degrees of freedom and
     /// brings the 2-sigma coverage to 93-96% on the calibration suite
-    /// (`crates/tessera-render/tests/calibration.rs`, `docs/benchmarks.md` "Calibration
+    /// (`crates/tessera-render/tests/it/calibration.rs`, `docs/benchmarks.md` "Calibration
     /// suite"), at the price of a bias at sharp changes of the variance (an emitter's
     /// silhouette), where pixels on the quiet side get a wider interval and pixels on the
     /// noisy side a narrower one. The image error estimate keeps the pixels' own

@@ -17,7 +17,7 @@
 //! - the **quarantine list** ([`QuarantineRecord`]): workers a spot check found faulty,
 //!   until an operator lifts their quarantine.
 //!
-//! Two implementations share one contract and one test suite (`tests/store.rs`):
+//! Two implementations share one contract and one test suite (`tests/it/store.rs`):
 //! [`SqliteStore`], the embedded default, on one SQLite file (WAL, `synchronous=FULL`), and
 //! [`PostgresStore`] on a PostgreSQL database (docs/store.md, "PostgreSQL"). [`StoreUrl`]
 //! is the coordinator's `--store` choice between them and [`open`] opens either as

@@ -53,8 +53,8 @@
 //!    the shared camera-sample loop instead, as `path` and `direct` do.
 //! 3. The arm in [`render_unit_where`]: the compiler's exhaustive-match error points at it.
 //! 4. Tests beside the file (`#[cfg(test)] mod tests`) and an agreement test against
-//!    `path` in `tests/` (as `tests/bdpt.rs` does); determinism across thread counts and
-//!    unit splits comes from the contract and is checked by `tests/determinism.rs`.
+//!    `path` in `tests/it/` (as `tests/it/bdpt.rs` does); determinism across thread counts and
+//!    unit splits comes from the contract and is checked by `tests/it/determinism.rs`.
 
 pub mod bdpt;
 pub mod path;

@@ -20,7 +20,7 @@
 //! [`Light::sample_li`], which for large triangles samples by solid angle, and divide by
 //! that density; their MIS weights use the light-origin area density for every technique
 //! alike, as pbrt-v4 does, so the weights still sum to one and the estimate stays unbiased
-//! (`tests/bdpt.rs` compares bdpt with the path tracer).
+//! (`tests/it/bdpt.rs` compares bdpt with the path tracer).
 //!
 //! Variants, one file each: [`triangle`] (emissive triangles: area lights), [`sphere`]
 //! (spherical lights, sampled by the cone they subtend), [`punctual`] (point, spot,
