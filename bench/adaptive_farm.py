@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Worker-seconds to a measured error on the farm: adaptive vs uniform (issue 15).
+"""Worker-seconds to a measured error on the farm: adaptive vs uniform.
 
 For each scene, renders a converged reference once with `tessera render` (cached in
 --cache, outside the repository), then starts `tessera serve --workers 2

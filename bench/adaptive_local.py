@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Compares the unbiased adaptive mode of two builds, and uniform sampling, in one process
-each (`tessera render`), on one scene at 64x64 (issue 15; docs/benchmarks.md, "the optimal
+each (`tessera render`), on one scene at 64x64 (docs/benchmarks.md, "the optimal
 (Neyman) allocation for the unbiased mode").
 
 Usage: bench/adaptive_local.py SCENE OLD_BINARY NEW_BINARY

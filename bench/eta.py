@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Measures the job status ETA against the actual finishing time (issue 15).
+"""Measures the job status ETA against the actual finishing time.
 
 Starts `tessera serve` (a coordinator and local workers) on free loopback ports, submits
 one job per scene, polls its status every 0.1 s, and records the ETA the status reports

@@ -12,7 +12,7 @@
   area light (0.2 m, 1.5 m above the ball, radiance 250): a caustic seen through glass.
 
 - large.glb: 2,000,000 triangles of displaced terrain under a square area light (item 6 of
-  issue 13: build time, memory and speed on a large mesh).
+  build time, memory and speed on a large mesh).
 - cornell-box.gltf: scenes/cornell-box.gltf with Lambertian walls (see `cornell_lambert`).
 
 Run: python3 bench/compare/make_scenes.py (standard library only).

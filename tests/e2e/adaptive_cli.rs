@@ -1,4 +1,4 @@
-//! Issue 4 end to end: `tessera render` with --target-error/--adaptive/--time-limit/
+//! Adaptive stopping end to end: `tessera render` with --target-error/--adaptive/--time-limit/
 //! --spp-map, as a user runs it.
 
 use crate::common;
@@ -158,7 +158,7 @@ fn off_mode_stops_at_a_target_or_time_limit() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 15: an adaptive render whose pixels run out of passes above the target says it
+/// An adaptive render whose pixels run out of passes above the target says it
 /// finished without reaching the target, in its summary and in its EXR header, instead of
 /// "finished (target error 0.001)".
 #[test]

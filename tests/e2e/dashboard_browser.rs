@@ -1,4 +1,4 @@
-//! Issue 5: the dashboard in a real browser, end to end.
+//! The dashboard in a real browser, end to end.
 //!
 //! Starts `tessera serve` (SQLite store in a temp dir, two local workers of one thread,
 //! port-0 listeners, no demo job), opens the dashboard in headless Chromium driven over

@@ -1,4 +1,4 @@
-//! `POST /api/v1/jobs?dry_run=true` (issue 15): a real `tessera coordinator` quotes a job
+//! `POST /api/v1/jobs?dry_run=true`: a real `tessera coordinator` quotes a job
 //! from a pilot it renders in a child process (`tessera pilot`), with the same maths and
 //! the same pilot as `tessera estimate`, and queues nothing.
 

@@ -1,4 +1,4 @@
-//! `tessera estimate`: a quote from a short pilot (issue 15). Its JSON names the job it is
+//! `tessera estimate`: a quote from a short pilot. Its JSON names the job it is
 //! for, honours the job's options (resolution, spp, integrator, frames, target), and its
 //! prediction of the planned error covers what `tessera render` then reaches.
 

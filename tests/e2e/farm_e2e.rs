@@ -79,7 +79,7 @@ fn adaptive_farm_jobs_are_identical_with_one_and_three_workers() {
             per_mode[0] == per_mode[1],
             "{mode}: adaptive EXR differs between 1 and 3 workers"
         );
-        // Leases name only the pixels still wanted (issue 15) and the image is still the
+        // Leases name only the pixels still wanted and the image is still the
         // local render's, byte for byte.
         assert!(
             per_mode[0] == reference,
@@ -90,7 +90,7 @@ fn adaptive_farm_jobs_are_identical_with_one_and_three_workers() {
     assert!(images[0] != images[1], "the two modes gave the same image");
 }
 
-/// Issue 15: a stopped pixel costs nothing on the farm. The workers report the
+/// A stopped pixel costs nothing on the farm. The workers report the
 /// pixel-passes they traced (`tessera_worker_pixel_passes_total`): for an adaptive job
 /// whose pixels mostly stop early it equals the pixel-passes `tessera render` used for
 /// the same image (its `samples.Y` layer over the samples per pass), and is far below
@@ -227,7 +227,7 @@ fn a_killed_coordinator_resumes_and_loses_no_job() {
     assert_eq!(client.jobs(10, None).unwrap().jobs.len(), 2);
 }
 
-/// Issue 15: the adaptive policy's state is checkpointed with its tiles. `kill -9` of
+/// The adaptive policy's state is checkpointed with its tiles. `kill -9` of
 /// the coordinator in the middle of an adaptive job, for both modes: the restarted
 /// coordinator resumes from the merged passes and the decisions taken on them (before,
 /// an adaptive job started again from pass 0), redoing at most the units in flight, and
@@ -302,7 +302,7 @@ fn has_merged_passes(client: &Client, id: u64, frame: u32) -> bool {
         })
 }
 
-/// Issue 15: an adaptive animation comes back from `kill -9` holding only its frame in
+/// An adaptive animation comes back from `kill -9` holding only its frame in
 /// progress. The store keeps a finished frame's checkpoints, so a restart finds every
 /// frame the job finished; they were restored live until the job ended, beyond a budget of
 /// one frame (and an adaptive job had to fit the budget with all its frames). Now the
@@ -397,7 +397,7 @@ fn a_restarted_adaptive_animation_holds_only_its_frame_in_progress() {
     }
 }
 
-/// Issue 15: why a job stopped survives a restart. A job stopped by its time limit says so
+/// Why a job stopped survives a restart. A job stopped by its time limit says so
 /// in its status and EXR header before and after its coordinator restarts (the store keeps
 /// the stop with the `done` state), and the reason is not reported as an error; its
 /// unfinished frame is not counted as done.
@@ -636,7 +636,7 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
     );
 }
 
-/// Issue 15, "Workers you can trust": a worker started with `--inject-faults` corrupts
+/// Workers you can trust (ARCHITECTURE.md §6, "Spot checks and quarantine"): a worker started with `--inject-faults` corrupts
 /// its results in a way validation cannot see; spot checks catch it, quarantine it and
 /// repair what it had merged, and the job still ends byte-identical to `tessera render`.
 ///

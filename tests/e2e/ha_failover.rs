@@ -1,4 +1,4 @@
-//! High availability on PostgreSQL (issue 14; docs/store.md, "High availability"): two
+//! High availability on PostgreSQL (docs/store.md, "High availability"): two
 //! real `tessera coordinator` processes on one fresh database (a schema of its own, see
 //! `tessera_testkit::postgres`), one active and one standby, and workers that know both.
 //! `kill -9` of the active one mid-job: the standby takes over, the job completes
@@ -236,7 +236,7 @@ fn signal(pid: u32, signal: &str) {
     assert!(ok, "kill -{signal} {pid}");
 }
 
-/// The deposed writer (issue 14): the active coordinator is frozen (`SIGSTOP`, as a long
+/// The deposed writer: the active coordinator is frozen (`SIGSTOP`, as a long
 /// GC-like pause or a suspended VM would), the standby takes over once the frozen one's
 /// lock session times out, and the frozen one is then woken (`SIGCONT`) with leases,
 /// merged passes and possibly a group commit of its own in hand. Whatever it still tries

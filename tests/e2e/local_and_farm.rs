@@ -3,7 +3,7 @@
 //! glTF scene and on a glTF scene whose plan is bdpt (a spot light through glass), each
 //! rendered from a named camera — `tessera render` and a farm job give byte-identical
 //! EXRs, headers included (ARCHITECTURE.md §2). And every frame of an animated multi-frame
-//! job is byte-identical to `tessera render --frame F` (issue 12).
+//! job is byte-identical to `tessera render --frame F`.
 
 use crate::common;
 
@@ -83,7 +83,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
                 // bdpt, chosen by the plan or asked for, renders one whole-frame tile.
                 let bdpt = integrator == "bdpt" || (integrator == "auto" && plan_is_bdpt);
                 assert_eq!(done.tiles_total == 1, bdpt, "{case}: tiles");
-                // Issue 15: a done job with a target says whether it reached it.
+                // A done job with a target says whether it reached it.
                 assert_eq!(
                     done.target_reached.is_some(),
                     s.target_error.is_some(),
@@ -105,7 +105,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 12: a multi-frame job of an animated scene (Blender's keyframed cubes) on two
+/// A multi-frame job of an animated scene (Blender's keyframed cubes) on two
 /// workers, at 2.4 frames per second so that frames 0, 1 and 2 are the scene at t = 0,
 /// 5/12 and 5/6 s: each frame's EXR is byte-identical to `tessera render --frame F
 /// --fps 2.4`, and the frames differ, since the cubes move.
@@ -191,7 +191,7 @@ fn every_frame_of_an_animated_farm_job_equals_tessera_render_frame() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// Issue 12, motion blur: Blender's moving sphere and turning cube with a shutter of one
+/// Motion blur: Blender's moving sphere and turning cube with a shutter of one
 /// frame on two workers, all 24 frames with the path tracer and frames 11 and 12 with
 /// bdpt: each frame's EXR is byte-identical to `tessera render --frame F
 /// --shutter=-0.5,0.5`, frames differ where the scene moves, and the blurred frame

@@ -1,4 +1,4 @@
-//! Issue 16, storage integrity, against the real `tessera` binary (docs/store.md): a
+//! Storage integrity against the real `tessera` binary (docs/store.md): a
 //! store that lost its WAL, has damaged pages or cannot be written is refused at start
 //! with the recovery steps; a write failing while the coordinator runs makes it stop
 //! accepting work (503) while reads keep working; `tessera store backup` of a running

@@ -139,7 +139,7 @@ fn a_mutual_tls_farm_renders_the_local_image_byte_for_byte() {
     assert_eq!(workers[0].identity.as_deref(), Some("render-node-1"));
 }
 
-/// Issue 14: per-pod worker certificates rotate under a running worker (cert-manager's
+/// Per-pod worker certificates rotate under a running worker (cert-manager's
 /// csi-driver renews them in place, docs/deploy.md). The worker reads its files again
 /// before every connection, so after its coordinator restarts it registers under the new
 /// certificate's name, without a restart of its own.

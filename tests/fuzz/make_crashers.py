@@ -1,4 +1,4 @@
-"""Writes the minimized crashers of the robustness issue (issue 16) into corpus/gltf/.
+"""Writes the minimized crashers of the robustness issue into corpus/gltf/.
 
 Each is a one-triangle .glb:
 - crasher-scale-1e38.glb: nodes[0].scale = [1e38, 1e38, 1e38] (the BVH builder panicked)

@@ -2,7 +2,7 @@
 //! rendered by one worker and by three workers gives the same image, bit for bit, as the
 //! local renderer (ARCHITECTURE.md §2); a worker without the token is refused; a worker
 //! stopped mid-job delivers what it rendered and gives back the units it prefetched, and
-//! heartbeats keep prefetched leases alive (issue 14).
+//! heartbeats keep prefetched leases alive.
 //!
 //! The service is the production one: a real [`Coordinator`] over a temporary SQLite
 //! store, the job submitted through it as `POST /jobs` would.

@@ -385,7 +385,7 @@ fn delivery(
     }
 }
 
-/// Issue 15: a spot check through the coordinator. A worker's corrupt copy is held, not
+/// A spot check through the coordinator. A worker's corrupt copy is held, not
 /// merged; the honest copies of two other workers outvote it; the faulty worker is then
 /// quarantined: listed so over HTTP, leased nothing, told to drop its leases, and still
 /// quarantined when it registers again under its name.
@@ -457,7 +457,7 @@ async fn a_spot_check_mismatch_quarantines_the_worker() {
     assert!(gauge(&m, "tessera_workers_quarantined") >= 1, "{m}");
 }
 
-/// Issue 15: the quarantine list is in the store and an operator can lift it. A worker
+/// The quarantine list is in the store and an operator can lift it. A worker
 /// quarantined by a spot check is quarantined again at once when it registers with a
 /// coordinator restarted on the same store (under the same name and identity only), and
 /// is in the quarantine list of `GET /api/v1/workers` before it registers;
@@ -566,7 +566,7 @@ async fn a_quarantine_outlives_a_restart_until_an_operator_lifts_it() {
     assert_eq!(quarantined(&core.workers().unwrap(), back), (false, None));
 }
 
-/// Issue 14: a spot-checked result opens a copy of its unit to the *other* workers only,
+/// A spot-checked result opens a copy of its unit to the *other* workers only,
 /// so it must wake their waiting lease requests, even when a request of the worker that
 /// delivered it waits first. A single wake-up went to the oldest waiting request; when
 /// that was the deliverer's own (a worker prefetching its next batch), it found nothing it
@@ -659,7 +659,7 @@ async fn assert_eta(core: &Coordinator, id: u64, times: f64) -> tessera_api::Job
     s
 }
 
-/// Issue 15: the ETA counts the passes rendered and buffered for the canonical merge
+/// The ETA counts the passes rendered and buffered for the canonical merge
 /// order, not only the merged ones. A one-tile job of 4 passes, one unit each: passes 1,
 /// 2 and 3 delivered before pass 0 wait in the tile's buffer (nothing is merged), yet
 /// three quarters of the work is done, so the ETA is a third of the time spent (it was
@@ -767,7 +767,7 @@ async fn the_eta_counts_the_spot_checks_copies() {
     assert_eq!((s.passes_done, s.state.as_str()), (4, "done"));
 }
 
-/// Issue 15: a job that path-traces caustics of a tiny light (`builtin:caustic`, where the
+/// A job that path-traces caustics of a tiny light (`builtin:caustic`, where the
 /// plan chooses bdpt) is told in its status that its error estimate may be optimistic, and
 /// why; the same scene with bdpt, and a scene without such caustics, are not.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

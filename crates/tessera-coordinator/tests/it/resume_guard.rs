@@ -1,4 +1,4 @@
-//! Issue 16, "no crash loop": the coordinator always comes up. A job that crashed the
+//! No crash loop: the coordinator always comes up. A job that crashed the
 //! coordinator at every start ends failed after a bounded number of restarts, with the
 //! reason in its status; a job that cannot be resumed fails alone instead of stopping the
 //! start. A crash is simulated by dropping the coordinator without the graceful end that

@@ -249,7 +249,7 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
     assert!(leases.is_empty());
 }
 
-/// Issue 14/15: a lease request with `wait_ms` is a long poll. With nothing queued it
+/// A lease request with `wait_ms` is a long poll. With nothing queued it
 /// waits; a job queued meanwhile wakes it, and it answers with units (the wait counted
 /// `woken`, not `deadline`: without the wake-up it would find them only at its deadline).
 /// With nothing arriving it ends at its deadline, empty.

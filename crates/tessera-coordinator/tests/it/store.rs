@@ -318,7 +318,7 @@ fn with_policy(mut c: TileCheckpoint) -> TileCheckpoint {
     c
 }
 
-/// Issue 15: an adaptive job's tile keeps its policy state beside its merged passes,
+/// An adaptive job's tile keeps its policy state beside its merged passes,
 /// bit-exact; a checkpoint without one reads back without one (and clears it on upsert);
 /// a state of the wrong size is refused when saved and a damaged one when loaded.
 async fn adaptive_policy_state_round_trips(f: &Fixture) {
@@ -858,7 +858,7 @@ async fn corrupt_blobs_are_errors_naming_the_tile(f: &Fixture) {
     ));
 }
 
-/// Issue 15: the quarantine list. One row per (worker, identity), the first kept; listed
+/// The quarantine list. One row per (worker, identity), the first kept; listed
 /// in order of name then identity (none first); a lift removes every identity of a name
 /// and nothing else, and a second lift removes nothing; the rows outlive the store's
 /// reopening.

@@ -327,7 +327,7 @@ fn bdpt_is_deterministic_across_threads_splits_and_reruns() {
     assert!(bits(&other) != bits(&one));
 }
 
-/// Adaptive stopping (issue 15): a bdpt unit asked for some pixels traces camera subpaths
+/// Adaptive stopping: a bdpt unit asked for some pixels traces camera subpaths
 /// only for them, and each of them gets bit for bit the value it has when every pixel is
 /// rendered (the splats of the skipped pixels' light subpaths included). The caustic scene
 /// has light-tracing splats everywhere on its floor, so a skipped light subpath would show.

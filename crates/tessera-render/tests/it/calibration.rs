@@ -1,4 +1,4 @@
-//! Issues 4 and 15: the error estimate is calibrated, and adaptive renders meet their
+//! The error estimate is calibrated, and adaptive renders meet their
 //! target.
 //!
 //! Each scene is rendered at 32x32 against a converged reference rendered with an
@@ -21,7 +21,7 @@
 //! reference's own variance so that it estimates the test render's error alone:
 //! `measured² = mean_p ((lum m - lum r)² - v_r,lum) / (lum r + eps)²`.
 //!
-//! The suite (issue 15) is six path-traced scenes at 64, 256 and 1024 spp, each rendered
+//! The suite is six path-traced scenes at 64, 256 and 1024 spp, each rendered
 //! with four seeds. Where rare bright paths carry the error (veach-mis with its glossy
 //! caustics, the glass caustic, a small light in a glossy floor), one render's measured
 //! error is carried by a few pixels and jumps between seeds, so the image estimate is held
@@ -135,7 +135,7 @@ fn coverage_and_error_ratio(scene: &str, plan: FramePlan, seed: u64) -> (f64, f6
     (fraction, estimated / measured)
 }
 
-/// Issue 13: the default plan at 64 spp (`FramePlan::for_spp`: 4 passes of 16, so 3
+/// The default plan at 64 spp (`FramePlan::for_spp`: 4 passes of 16, so 3
 /// degrees of freedom per pixel) keeps a calibrated error estimate. The image error, an
 /// average of unbiased per-pixel variance estimates, is within 25% of the measured one as
 /// with 64 passes; a single pixel's 2-sigma interval covers with Student's t probability
@@ -227,7 +227,7 @@ fn adaptive_render_is_bit_identical_for_any_thread_count() {
 }
 
 // ---------------------------------------------------------------------------------------
-// Issue 15: the calibration suite. Six path-traced scenes, each at 64, 256 and 1024 spp
+// The calibration suite. Six path-traced scenes, each at 64, 256 and 1024 spp
 // with the default plan (`FramePlan::for_spp`), against committed converged references.
 // ---------------------------------------------------------------------------------------
 
@@ -393,7 +393,7 @@ struct Calibration {
     /// Estimated over measured image error.
     ratio: f64,
     estimated: f64,
-    /// The estimate before issue 15's robust scale: the RMS of the pixels' own `rel`
+    /// The estimate before the robust scale: the RMS of the pixels' own `rel`
     /// (`relerr.Y`), each standard error over the pixel's own mean.
     own_estimated: f64,
     measured: f64,
@@ -580,7 +580,7 @@ fn calibration_suite_indirect_room() {
     );
 }
 
-/// Path-traced (issue 15: not direct lighting), so the floor sees the plates' glossy
+/// Path-traced (not direct lighting), so the floor sees the plates' glossy
 /// caustics: heavy-tailed. With the pixels' own `rel` the estimate was 0.58 of the
 /// measured error at 64 spp; with the robust scale 1.03 (8 seeds).
 #[test]
@@ -747,7 +747,7 @@ fn adaptive_calibration(name: &str, target: f64, seeds: &[u64]) -> (f64, f64) {
 /// within 10%), so four seeds do not pin the ratio (seeds 8-11 alone: 1.29 pooled).
 const ADAPTIVE_SEEDS: [u64; 16] = [8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23];
 
-/// Issue 15: an unbiased adaptive render's estimate is calibrated where rare paths carry
+/// An unbiased adaptive render's estimate is calibrated where rare paths carry
 /// the error. Path-traced veach-mis, whose floor sees the plates' glossy caustics of the
 /// small lights: the pixels a pilot left at the fewest fresh passes are those whose
 /// passes missed the rare paths near them, and the plain estimate was 0.59-0.71 of the

@@ -1,4 +1,4 @@
-//! Frames that move, against Blender (issue 12): `tests/fixtures/motion/motion_ball.glb`
+//! Frames that move, against Blender: `tests/fixtures/motion/motion_ball.glb`
 //! was animated in Blender 5.0 and exported with its glTF exporter; its Cycles references
 //! were rendered from the re-imported file (`make_motion.py` there; CI never runs
 //! Blender). A sphere crosses the view, fast between frames 11 and 13, while a cube turns

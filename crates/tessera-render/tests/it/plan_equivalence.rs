@@ -1,4 +1,4 @@
-//! Issue 6 evidence: where the render plan drops machinery (direct lighting only, a
+//! Evidence for the render plan (ARCHITECTURE.md §4): where the render plan drops machinery (direct lighting only, a
 //! reduced maximum depth), its image has the same expected value as the general
 //! configuration (`--integrator path`, max depth 16). Both are rendered here at modest
 //! sample counts and compared tile by tile (8 x 8 pixel blocks) with a z-test; the errors

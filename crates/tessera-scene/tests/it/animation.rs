@@ -1,4 +1,4 @@
-//! Animation, skins and morph targets (issue 12) on files made in Blender 5.0 and exported
+//! Animation, skins and morph targets on files made in Blender 5.0 and exported
 //! with its glTF exporter (`tests/fixtures/animation/make_animation.py`): a keyframed
 //! cube's position in each interpolation mode against values computed by hand from the
 //! file's keyframes, and a skinned cylinder and a morph target against the world-space
