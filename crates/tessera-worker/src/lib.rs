@@ -215,14 +215,22 @@ pub enum WorkerError {
     Unauthenticated(String),
 }
 
-/// Adds the bearer token to every request.
+/// Adds the bearer token to every request, and the session secret of the current
+/// registration (worker.proto, "Sessions"; set by [`session`] once registered).
 #[derive(Clone)]
-struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>);
+struct Auth(Option<MetadataValue<tonic::metadata::Ascii>>, Session);
+
+/// The session secret of the current registration, shared by the clones of a client.
+type Session = Arc<Mutex<Option<MetadataValue<tonic::metadata::Ascii>>>>;
 
 impl tonic::service::Interceptor for Auth {
     fn call(&mut self, mut req: Request<()>) -> Result<Request<()>, Status> {
         if let Some(v) = &self.0 {
             req.metadata_mut().insert("authorization", v.clone());
+        }
+        if let Some(v) = self.1.lock().ok().and_then(|s| s.clone()) {
+            req.metadata_mut()
+                .insert(tessera_proto::SESSION_METADATA, v);
         }
         Ok(req)
     }
@@ -370,11 +378,21 @@ pub async fn run(
             }
             match endpoints[next].connect().await {
                 Ok(channel) => {
+                    let session = Session::default();
                     let client = v1::worker_service_client::WorkerServiceClient::with_interceptor(
                         channel,
-                        Auth(auth.clone()),
+                        Auth(auth.clone(), session.clone()),
                     );
-                    match serve(&config, client, &pool, &cache, stop_rx.clone(), &mut carry).await {
+                    let serving = serve(
+                        &config,
+                        client,
+                        &session,
+                        &pool,
+                        &cache,
+                        stop_rx.clone(),
+                        &mut carry,
+                    );
+                    match serving.await {
                         Ok(()) => return Ok(()),
                         Err(s) if s.code() == tonic::Code::Unauthenticated => {
                             return Err(WorkerError::Unauthenticated(s.message().to_string()))
@@ -470,6 +488,8 @@ fn endpoint(url: &str, tls: Option<&WorkerTls>) -> Result<Endpoint, WorkerError>
 struct Rendered {
     lease_id: u64,
     job_id: u64,
+    /// The lease's seal, sent back with the result.
+    fence: Vec<u8>,
     result: tessera_farm::UnitResult,
     seconds: f64,
     /// Pixel-passes traced (reported with the result).
@@ -500,6 +520,7 @@ async fn submit_all(
             v1::SubmitResultRequest::from_result(worker_id, r.lease_id, &r.result, r.seconds);
         req.job_id = r.job_id;
         req.traced_pixel_passes = r.pixel_passes;
+        req.fence = r.fence.clone();
         match client.submit_result(req).await {
             Ok(resp) => {
                 let resp = resp.into_inner();
@@ -524,13 +545,24 @@ type Submitting = tokio::task::JoinHandle<Result<(), (Status, Vec<Rendered>)>>;
 async fn serve(
     config: &WorkerConfig,
     client: Client,
+    session_secret: &Session,
     pool: &Arc<rayon::ThreadPool>,
     cache: &Arc<Mutex<SceneCache>>,
     stop: tokio::sync::watch::Receiver<bool>,
     carry: &mut Carry,
 ) -> Result<(), Status> {
     let mut in_flight: Option<Submitting> = None;
-    let r = session(config, client, pool, cache, stop, carry, &mut in_flight).await;
+    let r = session(
+        config,
+        client,
+        session_secret,
+        pool,
+        cache,
+        stop,
+        carry,
+        &mut in_flight,
+    )
+    .await;
     // A batch still being submitted when the session broke: keep what it did not deliver.
     if let Some(h) = in_flight.take() {
         if let Ok(Err((_, left))) = h.await {
@@ -541,9 +573,11 @@ async fn serve(
 }
 
 /// [`serve`]'s loop; `in_flight` is the batch being submitted in the background.
+#[allow(clippy::too_many_arguments)]
 async fn session(
     config: &WorkerConfig,
     mut client: Client,
+    session_secret: &Session,
     pool: &Arc<rayon::ThreadPool>,
     cache: &Arc<Mutex<SceneCache>>,
     stop: tokio::sync::watch::Receiver<bool>,
@@ -560,6 +594,11 @@ async fn session(
         .await?
         .into_inner();
     let worker_id = reg.worker_id;
+    let secret = MetadataValue::try_from(reg.session.as_str())
+        .map_err(|_| Status::internal("the coordinator sent a session that is not ASCII"))?;
+    if let Ok(mut s) = session_secret.lock() {
+        *s = Some(secret);
+    }
     let heartbeat_every =
         Duration::from_millis(u64::from(reg.heartbeat_interval_ms.clamp(50, 60_000)));
     tracing::info!(worker_id, name = %config.name, "registered");
@@ -852,6 +891,7 @@ fn sort_results(
             Ok(result) if !dropped => rendered.push(Rendered {
                 lease_id: o.lease_id,
                 job_id: o.job_id,
+                fence: o.fence,
                 result,
                 seconds: o.seconds,
                 pixel_passes: o.pixel_passes,
@@ -983,6 +1023,8 @@ async fn give_back(client: &mut Client, worker_id: u64, batch: Batch) {
 struct Outcome {
     lease_id: u64,
     job_id: u64,
+    /// The lease's seal.
+    fence: Vec<u8>,
     /// The result, or the message of the renderer's panic.
     result: Result<tessera_farm::UnitResult, String>,
     /// Seconds it took on its thread.
@@ -1026,6 +1068,7 @@ impl Rendering {
                         Outcome {
                             lease_id: l.lease_id,
                             job_id: l.job_id,
+                            fence: l.fence.clone(),
                             result,
                             seconds: t.elapsed().as_secs_f64(),
                             // Only the pixels traced count towards the throughput.

@@ -601,6 +601,32 @@ impl PostgresStore {
         Ok(())
     }
 
+    async fn fence_key_(&self, fresh: [u8; 32]) -> StoreResult<[u8; 32]> {
+        let mut tx = self.pool.begin().await?;
+        // Kept if absent, in one transaction: concurrent coordinators agree on one key
+        // (the primary key makes the later insert do nothing).
+        for (i, word) in fresh.chunks_exact(8).enumerate() {
+            let v = i64::from_le_bytes(word.try_into().expect("8 bytes"));
+            sqlx::query(
+                "INSERT INTO counters (name, value) VALUES ($1, $2) ON CONFLICT (name) DO NOTHING",
+            )
+            .bind(format!("fence_key_{i}"))
+            .bind(v)
+            .execute(&mut *tx)
+            .await?;
+        }
+        let mut key = [0u8; 32];
+        for (i, word) in key.chunks_exact_mut(8).enumerate() {
+            let v: i64 = sqlx::query_scalar("SELECT value FROM counters WHERE name = $1")
+                .bind(format!("fence_key_{i}"))
+                .fetch_one(&mut *tx)
+                .await?;
+            word.copy_from_slice(&v.to_le_bytes());
+        }
+        tx.commit().await?;
+        Ok(key)
+    }
+
     async fn append_history_(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let elapsed = check_finite(point.elapsed_seconds, "history elapsed_seconds")?;
@@ -890,6 +916,10 @@ impl Store for PostgresStore {
 
     async fn record_lease_high_water(&self, lease_id: u64) -> StoreResult<()> {
         self.lift(self.record_lease_high_water_(lease_id).await)
+    }
+
+    async fn fence_key(&self, fresh: [u8; 32]) -> StoreResult<[u8; 32]> {
+        self.lift(self.fence_key_(fresh).await)
     }
 
     async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {

@@ -722,6 +722,32 @@ impl Store for SqliteStore {
         Ok(())
     }
 
+    async fn fence_key(&self, fresh: [u8; 32]) -> StoreResult<[u8; 32]> {
+        let mut conn = self.writer.acquire().await?;
+        let mut tx = conn.begin_with("BEGIN IMMEDIATE").await?;
+        // Kept if absent, in one transaction: two coordinators never end up with two keys.
+        for (i, word) in fresh.chunks_exact(8).enumerate() {
+            let v = i64::from_le_bytes(word.try_into().expect("8 bytes"));
+            sqlx::query(
+                "INSERT INTO counters (name, value) VALUES (?1, ?2) ON CONFLICT (name) DO NOTHING",
+            )
+            .bind(format!("fence_key_{i}"))
+            .bind(v)
+            .execute(&mut *tx)
+            .await?;
+        }
+        let mut key = [0u8; 32];
+        for (i, word) in key.chunks_exact_mut(8).enumerate() {
+            let v: i64 = sqlx::query_scalar("SELECT value FROM counters WHERE name = ?1")
+                .bind(format!("fence_key_{i}"))
+                .fetch_one(&mut *tx)
+                .await?;
+            word.copy_from_slice(&v.to_le_bytes());
+        }
+        tx.commit().await?;
+        Ok(key)
+    }
+
     async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let elapsed = check_finite(point.elapsed_seconds, "history elapsed_seconds")?;
