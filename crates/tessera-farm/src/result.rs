@@ -358,9 +358,15 @@ mod tests {
         result(&p, 14, 7, 3).validate(&p).unwrap();
         result(&p, 0, 0, 10).validate(&p).unwrap();
         let mut r = result(&p, 3, 0, 1);
-        r.pass_means[0] = [-0.0, 0.0, f32::MAX];
+        r.pass_means[0] = [-0.0, 0.0, MAX_PASS_MEAN];
         r.validate(&p).unwrap();
         r.validate_for_tile(&p.tile(3)).unwrap();
+        // Beyond the bound: its square would overflow the merged statistics.
+        r.pass_means[0] = [-0.0, 0.0, f32::MAX];
+        assert!(matches!(
+            r.validate(&p),
+            Err(ResultError::TooLarge { channel: 2, .. })
+        ));
     }
 
     #[test]
