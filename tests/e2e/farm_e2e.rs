@@ -557,10 +557,12 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
         .build()
         .unwrap();
     let faults = rt.block_on(async {
-        let mut g = tessera_proto::WorkerServiceClient::connect(c.grpc.clone())
+        let channel = tonic::transport::Endpoint::from_shared(c.grpc.clone())
+            .unwrap()
+            .connect()
             .await
             .unwrap();
-        let reg = g
+        let reg = tessera_proto::WorkerServiceClient::new(channel.clone())
             .register(v1::RegisterRequest {
                 name: "faulty".into(),
                 threads: 1,
@@ -570,6 +572,11 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
             .await
             .unwrap()
             .into_inner();
+        // Every call after Register carries the session (worker.proto, "Sessions").
+        let mut g = tessera_proto::WorkerServiceClient::with_interceptor(
+            channel,
+            tessera_proto::WithSession::new(&reg.session).unwrap(),
+        );
         let leases = g
             .lease_work(v1::LeaseRequest {
                 worker_id: reg.worker_id,
@@ -608,6 +615,7 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
                     job_id: l.job_id,
                     rejected_samples: 0,
                     traced_pixel_passes: 0,
+                    fence: l.fence.clone(),
                 })
                 .await
                 .unwrap()

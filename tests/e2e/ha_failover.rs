@@ -75,17 +75,22 @@ fn worker_calls(grpc: &str) -> Option<tonic::Status> {
                 capabilities: vec![],
             })
             .await;
-        let worker_id = match reg {
-            Ok(r) => r.into_inner().worker_id,
+        let (worker_id, session) = match reg {
+            Ok(r) => {
+                let r = r.into_inner();
+                (r.worker_id, r.session)
+            }
             Err(s) => return Some(s),
         };
-        c.lease_work(v1::LeaseRequest {
+        let mut lease = tonic::Request::new(v1::LeaseRequest {
             worker_id,
             max_units: 1,
             wait_ms: 0,
-        })
-        .await
-        .err()
+        });
+        lease
+            .metadata_mut()
+            .insert(tessera_proto::SESSION_METADATA, session.parse().unwrap());
+        c.lease_work(lease).await.err()
     })
 }
 

@@ -179,7 +179,13 @@ fn run_fleet(exe: &Path, args: &BenchFleetArgs, data: &Path, n: usize) -> Result
 
 /// A registered simulated worker.
 struct SimWorker {
-    client: WorkerServiceClient<tonic::transport::Channel>,
+    /// Carries the worker's session secret on every call (worker.proto, "Sessions").
+    client: WorkerServiceClient<
+        tonic::service::interceptor::InterceptedService<
+            tonic::transport::Channel,
+            tessera_proto::WithSession,
+        >,
+    >,
     id: u64,
     heartbeat: Duration,
 }
@@ -193,8 +199,7 @@ async fn connect_fleet(grpc: &str, n: usize) -> Result<Vec<SimWorker>> {
             .connect()
             .await
             .with_context(|| format!("connecting simulated worker {i} to {grpc}"))?;
-        let mut client = WorkerServiceClient::new(channel);
-        let reg = client
+        let reg = WorkerServiceClient::new(channel.clone())
             .register(v1::RegisterRequest {
                 name: format!("sim-{i}"),
                 threads: 1,
@@ -203,8 +208,9 @@ async fn connect_fleet(grpc: &str, n: usize) -> Result<Vec<SimWorker>> {
             })
             .await?
             .into_inner();
+        let session = tessera_proto::WithSession::new(&reg.session)?;
         out.push(SimWorker {
-            client,
+            client: WorkerServiceClient::with_interceptor(channel, session),
             id: reg.worker_id,
             heartbeat: Duration::from_millis(u64::from(reg.heartbeat_interval_ms.max(50))),
         });
@@ -280,6 +286,7 @@ async fn simulate(
                     job_id: lease.job_id,
                     rejected_samples: 0,
                     traced_pixel_passes: 0,
+                    fence: lease.fence.clone(),
                 })
                 .await?
                 .into_inner();

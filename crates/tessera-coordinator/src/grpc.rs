@@ -5,7 +5,10 @@
 //! answer. The job life cycle — leases, merges, checkpoints, faults — lives in
 //! [`crate::service`]; errors become a `tonic::Status` through the one mapping in
 //! [`crate::error`]. When a worker token is configured, requests without it are refused
-//! with `UNAUTHENTICATED`.
+//! with `UNAUTHENTICATED`. Every call after Register that names a worker id must carry
+//! that worker's session secret (metadata `x-tessera-session`, [`crate::trust`]); a
+//! missing or wrong one is refused with `PERMISSION_DENIED` before anything of the
+//! worker's state is read or changed.
 //!
 //! Every leased unit and every delivered result gets a `unit` span with the job, frame,
 //! tile, passes, lease id and worker, so a unit's story can be followed in the logs.
@@ -54,6 +57,32 @@ impl WorkerGrpc {
         self.core.active().map_err(status)
     }
 
+    /// Checks that the call carries the session secret issued to `worker`: NOT_FOUND for a
+    /// worker this run does not know (it registers again), PERMISSION_DENIED for a missing
+    /// or wrong secret. Compared in constant time.
+    fn check_session<T>(&self, req: &Request<T>, worker: u64) -> Result<(), Status> {
+        let given = req
+            .metadata()
+            .get(tessera_proto::SESSION_METADATA)
+            .map(|v| v.as_bytes())
+            .unwrap_or_default();
+        let Some(expected) = self.core.worker_session(worker).map_err(status)? else {
+            return Err(Status::not_found(format!(
+                "unknown worker {worker}: register again"
+            )));
+        };
+        if crate::trust::same_secret(given, expected.as_bytes()) {
+            Ok(())
+        } else {
+            // Not UNAUTHENTICATED, which tells a worker its token is wrong and to stop: a
+            // worker of a previous run may hold an id this run gave another worker, and must
+            // register again.
+            Err(Status::permission_denied(format!(
+                "the session of worker {worker} is missing or wrong: register again"
+            )))
+        }
+    }
+
     fn check_token<T>(&self, req: &Request<T>) -> Result<(), Status> {
         let Some(token) = &self.core.config().worker_token else {
             return Ok(());
@@ -97,11 +126,17 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
             .core
             .register_worker_as(r.name, r.threads, &r.version, identity)
             .map_err(status)?;
+        let session = self
+            .core
+            .worker_session(id)
+            .map_err(status)?
+            .unwrap_or_default();
         let cfg = self.core.config();
         Ok(Response::new(v1::RegisterResponse {
             worker_id: id,
             heartbeat_interval_ms: cfg.heartbeat_ms,
             lease_duration_ms: cfg.lease_ms.min(u64::from(u32::MAX)) as u32,
+            session,
         }))
     }
 
@@ -110,6 +145,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         req: Request<v1::HeartbeatRequest>,
     ) -> Result<Response<v1::HeartbeatResponse>, Status> {
         self.authorize(&req)?;
+        self.check_session(&req, req.get_ref().worker_id)?;
         let r = req.into_inner();
         let hb = self
             .core
@@ -134,6 +170,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         req: Request<v1::LeaseRequest>,
     ) -> Result<Response<v1::LeaseResponse>, Status> {
         self.authorize(&req)?;
+        self.check_session(&req, req.get_ref().worker_id)?;
         let r = req.into_inner();
         let grant = self
             .core
@@ -173,7 +210,9 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         req: Request<v1::SubmitResultRequest>,
     ) -> Result<Response<v1::SubmitResultResponse>, Status> {
         self.authorize(&req)?;
-        let r = req.into_inner();
+        self.check_session(&req, req.get_ref().worker_id)?;
+        let mut r = req.into_inner();
+        let fence = std::mem::take(&mut r.fence);
         let span = tracing::info_span!(
             "unit",
             job = r.job_id,
@@ -203,6 +242,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         let delivery = Delivery {
             worker,
             lease_id,
+            fence,
             job_hint,
             result,
             render_seconds,
@@ -247,6 +287,7 @@ impl v1::worker_service_server::WorkerService for WorkerGrpc {
         req: Request<v1::ReturnLeasesRequest>,
     ) -> Result<Response<v1::ReturnLeasesResponse>, Status> {
         self.authorize(&req)?;
+        self.check_session(&req, req.get_ref().worker_id)?;
         let r = req.into_inner();
         let returned = if r.unusable.is_empty() {
             self.core.return_leases(r.worker_id, &r.lease_ids)

@@ -44,6 +44,7 @@ pub mod service;
 pub mod state;
 pub mod store;
 pub mod tls;
+pub mod trust;
 
 pub use connections::HttpLimits;
 pub use ha::serve_ha;

@@ -58,6 +58,12 @@ pub struct WorkerEntry {
     /// Why it is quarantined (a spot check found a copy of its unlike the others'): it
     /// gets no leases and its results are refused (ARCHITECTURE.md §6). `None` if trusted.
     pub quarantined: Option<String>,
+    /// The session secret issued at registration (`RegisterResponse.session`): every later
+    /// call under this worker's id must carry it ([`crate::trust`]).
+    pub session: String,
+    /// How many of its fault events are still stored and logged in this window
+    /// ([`crate::trust::FaultBudget`]).
+    pub fault_budget: crate::trust::FaultBudget,
 }
 
 /// A job as the gRPC service needs it to hand out leases: what a worker must know to
@@ -303,6 +309,9 @@ pub struct JobRuntime {
     /// Leases of this job that workers returned because they could not load or build
     /// its scene.
     pub unusable_returns: u32,
+    /// The distinct workers (by name and TLS identity, [`quarantine_key`]) among them:
+    /// one worker alone cannot fail a job by returning its units (ARCHITECTURE.md §6).
+    pub unusable_workers: std::collections::BTreeSet<(String, Option<String>)>,
     /// Per frame, per tile: (sum of squared relative errors, pixel count) of the tiles with
     /// at least two passes, kept incrementally so the image error costs O(tiles).
     pub(crate) tile_error: Vec<Vec<(f64, u64)>>,
@@ -389,6 +398,7 @@ impl JobRuntime {
             error: None,
             faults: 0,
             unusable_returns: 0,
+            unusable_workers: std::collections::BTreeSet::new(),
             tile_error: vec![vec![(0.0, 0); tiles]; frames],
             tile_rejected: vec![vec![TileRejected::default(); tiles]; frames],
             last_history_ms: 0,

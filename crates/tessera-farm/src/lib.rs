@@ -94,7 +94,7 @@ pub use plan::{
     MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS, MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS,
     MIN_TILE_SIZE, TARGET_MIN_PASSES, WHOLE_FRAME_MAX_SAMPLES_PER_PASS,
 };
-pub use result::{ResultError, UnitResult};
+pub use result::{ResultError, UnitResult, MAX_PASS_MEAN};
 pub use schedule::{
     frame_state_bytes, tail_share, Lease, Progress, Residency, Resumed, ResumedAdaptive, Scheduler,
     SubmitError, Submitted, EXACT_SPOT_COUNT,

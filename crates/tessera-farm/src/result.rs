@@ -120,13 +120,35 @@ pub enum ResultError {
         /// The offending value.
         value: f32,
     },
+    /// A value is larger than [`MAX_PASS_MEAN`]: no render gives such a mean, and merged
+    /// its square would overflow the variance sums to infinity.
+    #[error("pass_means[{index}] is {value}, above the bound {MAX_PASS_MEAN:e} (channel {channel} of pixel {pixel} in pass {pass})")]
+    TooLarge {
+        /// Index into `pass_means`.
+        index: usize,
+        /// Colour channel (0 = R, 1 = G, 2 = B).
+        channel: usize,
+        /// Pixel index within the tile (row-major).
+        pixel: usize,
+        /// Absolute pass index.
+        pass: u64,
+        /// The offending value.
+        value: f32,
+    },
 }
+
+/// The largest pass mean a result may carry. A pass mean is an average of radiance
+/// samples; a worker reporting more is faulty or hostile. The bound keeps what the merge
+/// and the images derive from pass means finite in `f32`: the square of a mean (1e32) times
+/// the most passes a plan has (65,536) stays below `f32::MAX` (3.4e38), so a tile's sums of
+/// squares and the EXR's variance layers cannot overflow to infinity.
+pub const MAX_PASS_MEAN: f32 = 1.0e16;
 
 impl UnitResult {
     /// Checks the result against a plan: the tile exists, `width`/`height` equal the tile's,
     /// `pass_count >= 1` and the passes lie within the plan, `pass_means` has
-    /// `pass_count * pixels` values, and every value is finite and `>= 0` (`-0.0` is
-    /// accepted). The frame number is not checked (a plan is the same for every frame).
+    /// `pass_count * pixels` values, and every value is finite, `>= 0` (`-0.0` is
+    /// accepted) and at most [`MAX_PASS_MEAN`]. The frame number is not checked (a plan is the same for every frame).
     pub fn validate(&self, plan: &FramePlan) -> Result<(), ResultError> {
         let tile = self.unit.tile;
         let rect = plan.get_tile(tile).ok_or(ResultError::UnknownTile {
@@ -204,12 +226,20 @@ impl UnitResult {
         for (index, rgb) in self.pass_means.iter().enumerate() {
             for (channel, &value) in rgb.iter().enumerate() {
                 // `!(value >= 0.0)` also catches NaN; finiteness is reported first.
-                if value.is_finite() && value >= 0.0 {
+                if (0.0..=MAX_PASS_MEAN).contains(&value) {
                     continue;
                 }
                 let pixel = index % pixels;
                 let pass = u64::from(self.unit.first_pass) + (index / pixels) as u64;
-                return Err(if value.is_finite() {
+                return Err(if value > MAX_PASS_MEAN && value.is_finite() {
+                    ResultError::TooLarge {
+                        index,
+                        channel,
+                        pixel,
+                        pass,
+                        value,
+                    }
+                } else if value.is_finite() {
                     ResultError::Negative {
                         index,
                         channel,
@@ -328,9 +358,15 @@ mod tests {
         result(&p, 14, 7, 3).validate(&p).unwrap();
         result(&p, 0, 0, 10).validate(&p).unwrap();
         let mut r = result(&p, 3, 0, 1);
-        r.pass_means[0] = [-0.0, 0.0, f32::MAX];
+        r.pass_means[0] = [-0.0, 0.0, MAX_PASS_MEAN];
         r.validate(&p).unwrap();
         r.validate_for_tile(&p.tile(3)).unwrap();
+        // Beyond the bound: its square would overflow the merged statistics.
+        r.pass_means[0] = [-0.0, 0.0, f32::MAX];
+        assert!(matches!(
+            r.validate(&p),
+            Err(ResultError::TooLarge { channel: 2, .. })
+        ));
     }
 
     #[test]

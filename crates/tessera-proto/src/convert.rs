@@ -212,6 +212,7 @@ impl v1::SubmitResultRequest {
             job_id: 0,
             rejected_samples: result.rejected_samples,
             traced_pixel_passes: 0,
+            fence: Vec::new(),
         }
     }
 
@@ -491,7 +492,14 @@ pub struct LeasedUnit {
     /// The pixels of the unit's tile to trace (adaptive jobs, ARCHITECTURE.md §3); `None`: every
     /// pixel. Checked against the tile: canonical runs inside it.
     pub wanted: Option<PixelRuns>,
+    /// The lease's seal (`Lease.fence`): opaque to the worker, which sends it back with
+    /// the result (`SubmitResultRequest.fence`). At most [`MAX_FENCE_BYTES`].
+    pub fence: Vec<u8>,
 }
+
+/// The longest `Lease.fence` / `SubmitResultRequest.fence` accepted: the coordinator's
+/// seal is an HMAC-SHA256 (32 bytes); anything much longer is not one.
+pub const MAX_FENCE_BYTES: usize = 64;
 
 impl From<&LeasedUnit> for v1::Lease {
     fn from(l: &LeasedUnit) -> Self {
@@ -511,6 +519,7 @@ impl From<&LeasedUnit> for v1::Lease {
             plan: Some((&l.plan).into()),
             unit: Some((&l.unit).into()),
             wanted: l.wanted.as_ref().map(|w| v1::PixelRuns { runs: w.flat() }),
+            fence: l.fence.clone(),
         }
     }
 }
@@ -601,6 +610,15 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             ),
             _ => None,
         };
+        if l.fence.len() > MAX_FENCE_BYTES {
+            return Err(ProtoError::new(
+                "fence",
+                format_args!(
+                    "must be at most {MAX_FENCE_BYTES} bytes, got {}",
+                    l.fence.len()
+                ),
+            ));
+        }
         Ok(Self {
             lease_id: l.lease_id,
             deadline_unix_ms: l.deadline_unix_ms,
@@ -616,6 +634,7 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             plan,
             unit,
             wanted,
+            fence: l.fence,
         })
     }
 }
@@ -1017,6 +1036,7 @@ mod tests {
             unit,
             // Pixels in blobs: the set an adaptive lease carries.
             wanted: Some(PixelRuns::from_fn(n, |i| (i / 7) % 3 != 1)),
+            fence: vec![7; 32],
         }
     }
 

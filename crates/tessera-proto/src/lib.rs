@@ -50,7 +50,34 @@ pub mod v1 {
 
 mod convert;
 
-pub use convert::{means_from_bytes, means_to_bytes, LeasedUnit, ProtoError, MAX_TILE_INDEX};
+pub use convert::{
+    means_from_bytes, means_to_bytes, LeasedUnit, ProtoError, MAX_FENCE_BYTES, MAX_TILE_INDEX,
+};
+
+/// The gRPC metadata key carrying a worker's session secret (`RegisterResponse.session`)
+/// on every call after Register that names its worker id (worker.proto, "Sessions").
+pub const SESSION_METADATA: &str = "x-tessera-session";
+
+/// A client interceptor adding a worker's session secret ([`SESSION_METADATA`]) to every
+/// call: `WorkerServiceClient::with_interceptor(channel, WithSession::new(&session)?)`
+/// after Register.
+#[derive(Clone, Debug)]
+pub struct WithSession(tonic::metadata::MetadataValue<tonic::metadata::Ascii>);
+
+impl WithSession {
+    /// The interceptor of `session` (`RegisterResponse.session`); an error if it is not
+    /// a valid metadata value (printable ASCII).
+    pub fn new(session: &str) -> Result<Self, tonic::metadata::errors::InvalidMetadataValue> {
+        Ok(Self(session.parse()?))
+    }
+}
+
+impl tonic::service::Interceptor for WithSession {
+    fn call(&mut self, mut req: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+        req.metadata_mut().insert(SESSION_METADATA, self.0.clone());
+        Ok(req)
+    }
+}
 pub use v1::worker_service_client::WorkerServiceClient;
 pub use v1::worker_service_server::{WorkerService, WorkerServiceServer};
 

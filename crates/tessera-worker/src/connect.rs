@@ -3,6 +3,7 @@
 //! waits when every one failed ([`Failover`]).
 
 use crate::{WorkerError, WorkerTls};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tessera_proto::v1;
 use tonic::metadata::{Ascii, MetadataValue};
@@ -10,9 +11,13 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
 use tonic::{Request, Status};
 
-/// Adds the bearer token to every request.
+/// Adds the bearer token to every request, and the session secret of the connection's
+/// registration once there is one (worker.proto, "Sessions").
 #[derive(Clone)]
-pub(crate) struct Auth(Option<MetadataValue<Ascii>>);
+pub(crate) struct Auth(Option<MetadataValue<Ascii>>, Session);
+
+/// The session secret of a connection's registration, shared by the clones of its client.
+type Session = Arc<Mutex<Option<MetadataValue<Ascii>>>>;
 
 impl Auth {
     /// `Bearer TOKEN`, or nothing without a token; refuses a token that cannot travel in
@@ -21,10 +26,27 @@ impl Auth {
         match token {
             Some(t) => format!("Bearer {t}")
                 .parse()
-                .map(|v| Self(Some(v)))
+                .map(|v| Self(Some(v), Session::default()))
                 .map_err(|_| WorkerError::Config("the token must be printable ASCII".into())),
-            None => Ok(Self(None)),
+            None => Ok(Self(None, Session::default())),
         }
+    }
+
+    /// The same token with no session yet: one per connection, whose registration sets
+    /// it ([`Auth::set_session`]).
+    pub(crate) fn for_connection(&self) -> Self {
+        Self(self.0.clone(), Session::default())
+    }
+
+    /// Sends `secret` (the coordinator's answer to Register) with every later request of
+    /// this connection.
+    pub(crate) fn set_session(&self, secret: &str) -> Result<(), Status> {
+        let v = MetadataValue::try_from(secret)
+            .map_err(|_| Status::internal("the coordinator sent a session that is not ASCII"))?;
+        if let Ok(mut s) = self.1.lock() {
+            *s = Some(v);
+        }
+        Ok(())
     }
 }
 
@@ -32,6 +54,10 @@ impl tonic::service::Interceptor for Auth {
     fn call(&mut self, mut req: Request<()>) -> Result<Request<()>, Status> {
         if let Some(v) = &self.0 {
             req.metadata_mut().insert("authorization", v.clone());
+        }
+        if let Some(v) = self.1.lock().ok().and_then(|s| s.clone()) {
+            req.metadata_mut()
+                .insert(tessera_proto::SESSION_METADATA, v);
         }
         Ok(req)
     }
@@ -222,7 +248,7 @@ mod tests {
 
     #[test]
     fn a_token_becomes_a_bearer_header_and_one_with_a_control_character_is_refused() {
-        let Auth(Some(v)) = Auth::bearer(Some("s3cret")).unwrap() else {
+        let Auth(Some(v), _) = Auth::bearer(Some("s3cret")).unwrap() else {
             panic!("no header");
         };
         assert_eq!(v.to_str().unwrap(), "Bearer s3cret");

@@ -48,6 +48,8 @@ pub(crate) struct Rendered {
     pub(crate) lease_id: u64,
     /// The unit's job.
     pub(crate) job_id: u64,
+    /// The lease's seal, sent back with the result.
+    pub(crate) fence: Vec<u8>,
     /// The result.
     pub(crate) result: tessera_farm::UnitResult,
     /// Seconds it took on its thread.
@@ -391,6 +393,7 @@ fn sort_results(results: Vec<Outcome>, canceled: &mut HashSet<u64>) -> Sorted {
             Ok(result) if !dropped => rendered.push(Rendered {
                 lease_id: o.lease_id,
                 job_id: o.job_id,
+                fence: o.fence,
                 result,
                 seconds: o.seconds,
                 pixel_passes: o.pixel_passes,
@@ -455,6 +458,7 @@ mod tests {
         Outcome {
             lease_id: id,
             job_id: 1,
+            fence: Vec::new(),
             result: Ok(unit_result()),
             seconds,
             paths: 1000.0,
@@ -467,6 +471,7 @@ mod tests {
         Outcome {
             lease_id: id,
             job_id: 1,
+            fence: Vec::new(),
             result: Err(message.to_string()),
             seconds: 100.0,
             paths: 0.0,
@@ -755,6 +760,7 @@ mod tests {
         Rendered {
             lease_id: id,
             job_id: 1,
+            fence: Vec::new(),
             result: unit_result(),
             seconds: 0.1,
             pixel_passes: 10,

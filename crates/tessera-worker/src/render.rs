@@ -44,6 +44,8 @@ pub(crate) struct Outcome {
     pub(crate) lease_id: u64,
     /// The unit's job.
     pub(crate) job_id: u64,
+    /// The lease's seal.
+    pub(crate) fence: Vec<u8>,
     /// The result, or the message of the renderer's panic.
     pub(crate) result: Result<tessera_farm::UnitResult, String>,
     /// Seconds it took on its thread.
@@ -84,6 +86,7 @@ impl Rendering {
                         Outcome {
                             lease_id: l.lease_id,
                             job_id: l.job_id,
+                            fence: l.fence.clone(),
                             result,
                             seconds: t.elapsed().as_secs_f64(),
                             // Only the pixels traced count towards the throughput.

@@ -91,8 +91,9 @@ pub(crate) async fn sessions(
         }
         match endpoints[next].connect().await {
             Ok(channel) => {
-                let client = connect::client(channel, &worker.auth);
-                match session(worker, client, stop.clone(), &mut carry).await {
+                let auth = worker.auth.for_connection();
+                let client = connect::client(channel, &auth);
+                match session(worker, client, &auth, stop.clone(), &mut carry).await {
                     Ok(()) => return Ok(()),
                     Err(s) if s.code() == tonic::Code::Unauthenticated => {
                         return Err(WorkerError::Unauthenticated(s.message().to_string()))
@@ -135,6 +136,7 @@ async fn submit_all(client: &mut Client, worker_id: u64, results: Vec<Rendered>)
     while let Some(r) = rest.next() {
         let mut req =
             v1::SubmitResultRequest::from_result(worker_id, r.lease_id, &r.result, r.seconds);
+        req.fence = r.fence.clone();
         req.job_id = r.job_id;
         req.traced_pixel_passes = r.pixel_passes;
         match client.submit_result(req).await {
@@ -172,6 +174,7 @@ struct Tasks {
 async fn session(
     worker: &Worker,
     mut client: Client,
+    auth: &connect::Auth,
     mut stop: watch::Receiver<bool>,
     carry: &mut Carry,
 ) -> Result<(), Status> {
@@ -186,6 +189,8 @@ async fn session(
         .await?
         .into_inner();
     let worker_id = reg.worker_id;
+    // Every later call of this connection carries the registration's session secret.
+    auth.set_session(&reg.session)?;
     let heartbeat_every =
         Duration::from_millis(u64::from(reg.heartbeat_interval_ms.clamp(50, 60_000)));
     tracing::info!(worker_id, name = %config.name, "registered");

@@ -98,11 +98,16 @@ impl Coordinator {
         let _ = writeln!(s, "# HELP tessera_merge_state_bytes Bytes of per-pixel merge state in memory (the frames in progress of every job, ARCHITECTURE.md section 6).\n# TYPE tessera_merge_state_bytes gauge\ntessera_merge_state_bytes {}", farm.scheduler.resident_bytes());
         let _ = writeln!(s, "# HELP tessera_merge_state_budget_bytes The merge state's budget (--memory-budget); frames that do not fit wait.\n# TYPE tessera_merge_state_budget_bytes gauge\ntessera_merge_state_budget_bytes {}", self.inner.cfg.memory_budget);
         let _ = writeln!(s, "# HELP tessera_worker_paths_per_second Last reported throughput per worker.\n# TYPE tessera_worker_paths_per_second gauge");
+        // One series per name: names need not be unique (worker.proto), and a scrape
+        // with two samples of one series is refused; workers sharing a name are summed.
+        let mut by_name: std::collections::BTreeMap<&str, f64> = std::collections::BTreeMap::new();
         for w in farm.workers.values() {
+            *by_name.entry(w.name.as_str()).or_default() += w.paths_per_second;
+        }
+        for (name, paths_per_second) in by_name {
             let _ = writeln!(
                 s,
-                "tessera_worker_paths_per_second{{worker={:?}}} {}",
-                w.name, w.paths_per_second
+                "tessera_worker_paths_per_second{{worker={name:?}}} {paths_per_second}"
             );
         }
         let _ = writeln!(s, "# HELP tessera_uptime_seconds Seconds since the coordinator started.\n# TYPE tessera_uptime_seconds gauge\ntessera_uptime_seconds {:.3}", self.uptime_seconds());

@@ -57,7 +57,10 @@ pub mod workers;
 
 pub use results::{Accepted, Delivery, Rejected};
 pub use tessera_farm::quote::job_eta_seconds;
-pub use workers::{Heartbeat, LeaseGrant, MAX_LEASE_WAIT_MS, MAX_UNUSABLE_RETURNS};
+pub use workers::{
+    Heartbeat, LeaseGrant, MAX_LEASE_WAIT_MS, MAX_UNUSABLE_RETURNS, MAX_WORKER_THREADS,
+    UNUSABLE_WORKERS,
+};
 
 /// Lease ids are reserved in blocks of this many (one store write per block).
 pub const LEASE_ID_BLOCK: u64 = 4096;
@@ -197,6 +200,12 @@ struct Inner {
     lease_reserved: Mutex<u64>,
     /// No leases are handed out before this (Unix ms): the restart grace period.
     lease_blocked_until_ms: u64,
+    /// Results answering leases of the previous run are taken until this (Unix ms): the
+    /// grace period and one lease duration after it (the resumed leases' deadline,
+    /// [`tessera_farm::Scheduler::grace`]); 0 when nothing was resumed.
+    previous_run_until_ms: u64,
+    /// Seals leases (`Lease.fence`), kept in the store ([`crate::trust::FenceKey`]).
+    fence: crate::trust::FenceKey,
     /// Set when the coordinator started, for uptime.
     started: Instant,
     /// Permits for image requests that restore or encode a frame
@@ -245,6 +254,10 @@ impl Coordinator {
         let watch = Arc::new(WatchedStore::new(store));
         let store: Arc<dyn Store> = watch.clone();
         let high_water = store.max_lease_id().await?;
+        // The same key for every run on the store: a restarted coordinator verifies the
+        // seals of the leases its predecessor issued (ARCHITECTURE.md §6).
+        let fence =
+            crate::trust::FenceKey::new(&store.fence_key(crate::trust::random_bytes()).await?);
         let mut state = Farm::with_first_lease(cfg.lease_ms, high_water);
         state.scheduler.set_memory_budget(cfg.memory_budget);
         state
@@ -270,6 +283,11 @@ impl Coordinator {
         if let Ok(mut f) = farm.lock() {
             f.scheduler.grace(blocked + cfg.lease_ms);
         }
+        let previous_run_until_ms = if resumed {
+            blocked.saturating_add(cfg.lease_ms)
+        } else {
+            0
+        };
         let coordinator = Self {
             inner: Arc::new(Inner {
                 farm,
@@ -280,6 +298,8 @@ impl Coordinator {
                 pending: Mutex::new(Vec::new()),
                 lease_reserved: Mutex::new(high_water),
                 lease_blocked_until_ms: blocked,
+                previous_run_until_ms,
+                fence,
                 started: Instant::now(),
                 heavy: tokio::sync::Semaphore::new(images::HEAVY_REQUESTS),
                 pilots: tokio::sync::Semaphore::new(1),

@@ -24,6 +24,9 @@ use crate::store::{
 
 /// History points are recorded at most this often per job (plus the last one).
 const HISTORY_INTERVAL_MS: u64 = 200;
+/// Seconds a worker may report rendering a unit beyond the time since its lease was
+/// issued (clocks, the lease's trip to the worker): more is not counted.
+pub const RENDER_SECONDS_SLACK: f64 = 60.0;
 
 /// What a worker delivered for a lease, decoded by the gRPC service.
 #[derive(Debug)]
@@ -32,12 +35,17 @@ pub struct Delivery {
     pub worker: WorkerId,
     /// The lease (fencing token) the result answers.
     pub lease_id: u64,
+    /// The lease's seal as the worker sent it back (`SubmitResultRequest.fence`): the
+    /// result is taken only if it verifies for the lease, its job, the result's unit and
+    /// the worker's registered name ([`crate::trust::FenceKey`]).
+    pub fence: Vec<u8>,
     /// The job the worker says the lease is of: only trusted for leases of the previous
     /// run, which this run's scheduler never issued (ARCHITECTURE.md §9, restart).
     pub job_hint: JobId,
     /// The result, or why it did not decode.
     pub result: Result<UnitResult, String>,
-    /// Seconds the worker spent rendering it, as it reports them.
+    /// Seconds the worker spent rendering it, as it reports them; counted at most as the
+    /// time since the lease was issued plus [`RENDER_SECONDS_SLACK`].
     pub render_seconds: f64,
     /// Pixel-passes the worker says it traced for it (0: not reported), for `/metrics`.
     pub traced_pixel_passes: u64,
@@ -85,6 +93,16 @@ pub enum Rejected {
     /// worker.
     #[error("{0}")]
     StaleLease(SubmitError),
+    /// The lease's seal does not verify: the lease was not issued for this job and unit
+    /// to a worker of this name (or the seal is missing). A fault of the worker that
+    /// submitted it, never of the lease's holder.
+    #[error("lease {0} was not issued to this worker for this unit (its fence does not verify)")]
+    NotSealed(u64),
+    /// A lease of the previous run delivered after the restart's grace period: its run is
+    /// over. Not counted as a fault (a worker may have rendered long); the unit is
+    /// leased again.
+    #[error("lease {0} is of the coordinator's previous run, whose grace period is over")]
+    PreviousRunOver(u64),
     /// The job was canceled; not the worker's fault.
     #[error("job {0} was canceled")]
     Canceled(JobId),
@@ -112,11 +130,14 @@ impl Rejected {
     pub fn fault_kind(&self) -> Option<FaultKind> {
         match self {
             Self::InvalidResult(_) => Some(FaultKind::InvalidResult),
-            Self::UnknownLease(_) | Self::StaleLease(_) => Some(FaultKind::LeaseViolation),
+            Self::UnknownLease(_) | Self::StaleLease(_) | Self::NotSealed(_) => {
+                Some(FaultKind::LeaseViolation)
+            }
             Self::Mismatch => Some(FaultKind::DuplicateMismatch),
             Self::Canceled(_)
             | Self::Deferred(_)
             | Self::Quarantined(_)
+            | Self::PreviousRunOver(_)
             | Self::Store(_)
             | Self::Poisoned => None,
         }
@@ -159,7 +180,12 @@ impl Coordinator {
     pub async fn accept_result(&self, d: Delivery) -> Result<Accepted, Rejected> {
         let (outcome, writes, queued) = {
             let mut farm = self.inner.farm.lock().map_err(|_| Rejected::Poisoned)?;
-            let (outcome, mut writes) = merge_delivery(&mut farm, d, now_ms());
+            let trust = Trust {
+                fence: &self.inner.fence,
+                previous_run_until_ms: self.inner.previous_run_until_ms,
+                uptime_seconds: self.uptime_seconds(),
+            };
+            let (outcome, mut writes) = merge_delivery(&mut farm, d, now_ms(), &trust);
             // Pushed together, so they are committed in one batch: waiting for the last
             // one's outcome waits for all.
             let mut queued = None;
@@ -309,16 +335,43 @@ pub(crate) struct PendingCheckpoint {
     outcome: Arc<OnceLock<Result<(), String>>>,
 }
 
-/// Everything done under the farm lock: find the lease's job, merge, and collect what
-/// the store must learn.
-fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, Rejected>, Writes) {
+/// What [`merge_delivery`] checks a delivery's lease against.
+struct Trust<'a> {
+    /// The key of the lease seals.
+    fence: &'a crate::trust::FenceKey,
+    /// Leases of the previous run are taken until this, Unix ms.
+    previous_run_until_ms: u64,
+    /// Seconds since this run started: the longest a lease this run no longer holds can
+    /// have been rendering in it.
+    uptime_seconds: f64,
+}
+
+/// Everything done under the farm lock: find the lease's job, check the lease's seal,
+/// merge, and collect what the store must learn.
+fn merge_delivery(
+    farm: &mut Farm,
+    d: Delivery,
+    now: u64,
+    trust: &Trust<'_>,
+) -> (Result<Accepted, Rejected>, Writes) {
     let mut writes = Writes::default();
     // The scheduler knows the job of this run's leases, outstanding or lapsed; a lease of
-    // the previous run is adopted under the job the worker names.
-    let job = farm.scheduler.lease_job(d.lease_id).or_else(|| {
-        (farm.scheduler.is_previous_run_lease(d.lease_id) && d.job_hint != 0).then_some(d.job_hint)
-    });
+    // the previous run is adopted under the job the worker names (its seal says whether
+    // that is the job it was issued for).
+    let this_run = farm.scheduler.lease_job(d.lease_id);
+    let previous_run = this_run.is_none() && farm.scheduler.is_previous_run_lease(d.lease_id);
+    let job = this_run.or_else(|| (previous_run && d.job_hint != 0).then_some(d.job_hint));
     let (worker, lease_id) = (d.worker, d.lease_id);
+    // The longest the worker can have rendered it: since the lease was issued, or since
+    // this run started for a lease it no longer holds.
+    let max_seconds = farm
+        .scheduler
+        .outstanding(lease_id)
+        .map_or(trust.uptime_seconds, |l| {
+            now.saturating_sub(l.leased_ms) as f64 / 1000.0
+        })
+        + RENDER_SECONDS_SLACK;
+    let render_seconds = d.render_seconds.min(max_seconds);
     let known = farm.workers.contains_key(&worker);
     let worker_name = farm
         .workers
@@ -344,7 +397,26 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
         r.rejected_samples
             .min((r.pass_means.len() as u64).saturating_mul(per_pass))
     });
-    let merged = submit(farm, (worker, lease_id), job, d.result);
+    // The seal binds the lease to its job, its unit and the name of the worker it was
+    // issued to: a guessed lease id, another worker's lease or a previous run's lease
+    // replayed for another unit is refused here, as the submitter's fault (ARCHITECTURE.md
+    // §6). A malformed result or an unknown lease is left to `submit` to name.
+    let sealed = match (&d.result, job) {
+        (Ok(r), Some(j)) => {
+            known
+                && trust
+                    .fence
+                    .verify(&d.fence, lease_id, j, &r.unit, &worker_name)
+        }
+        _ => true,
+    };
+    let merged = if !sealed {
+        Err(Rejected::NotSealed(lease_id))
+    } else if previous_run && now >= trust.previous_run_until_ms {
+        Err(Rejected::PreviousRunOver(lease_id))
+    } else {
+        submit(farm, (worker, lease_id), job, d.result)
+    };
     // Spot checks may have ended, quarantined a worker and dropped tiles, whatever became
     // of this result.
     apply_spot_events(farm, now, &mut writes);
@@ -371,14 +443,14 @@ fn merge_delivery(farm: &mut Farm, d: Delivery, now: u64) -> (Result<Accepted, R
         // Rendering time spent for the job, merged or held for a spot check: the worker's
         // and the job's (the ETA's unit time).
         if matches!(m.submitted, Submitted::Accepted | Submitted::Held)
-            && d.render_seconds.is_finite()
-            && d.render_seconds > 0.0
+            && render_seconds.is_finite()
+            && render_seconds > 0.0
         {
             if let Some(w) = w.as_deref_mut() {
-                w.render_seconds += d.render_seconds;
+                w.render_seconds += render_seconds;
             }
             if let Some(rt) = farm.runtime.get_mut(&m.job) {
-                rt.unit_seconds.0 += d.render_seconds;
+                rt.unit_seconds.0 += render_seconds;
                 rt.unit_seconds.1 += 1;
             }
         }
@@ -718,11 +790,31 @@ fn record_fault(
     now: u64,
 ) -> Option<FaultEvent> {
     let kind = r.fault_kind()?;
+    // Every fault is counted; a worker's fault events are stored and logged at most
+    // `FAULTS_PER_WINDOW` per window, so a flood of bogus results costs neither the
+    // store's rows nor the log's lines (ARCHITECTURE.md §6).
+    let mut allowed = true;
     if let Some(w) = farm.workers.get_mut(&worker) {
         w.faults += 1;
+        allowed = w.fault_budget.allow(now);
     }
     if let Some(rt) = job.and_then(|j| farm.runtime.get_mut(&j)) {
         rt.faults += 1;
+    }
+    if !allowed {
+        let first = farm
+            .workers
+            .get(&worker)
+            .is_some_and(|w| w.fault_budget.first_refused_in_window());
+        if first {
+            tracing::warn!(
+                worker,
+                per_window = crate::trust::FAULTS_PER_WINDOW,
+                window_ms = crate::trust::FAULT_WINDOW_MS,
+                "this worker's faults are coming too fast: counted, neither stored nor logged, for the rest of the window"
+            );
+        }
+        return None;
     }
     tracing::warn!(worker, lease_id, kind = kind.as_str(), error = %r, "result refused");
     Some(FaultEvent {

@@ -15,10 +15,21 @@ use super::{Coordinator, LEASE_ID_BLOCK};
 use crate::error::{CoordError, CoordResult};
 use crate::state::{now_ms, quarantine_key, Farm, WorkerEntry};
 
-/// Longest worker name accepted at registration.
+/// Longest worker name accepted at registration, in characters.
 const MAX_WORKER_NAME: usize = 200;
 /// Most units one lease request gets.
 const MAX_UNITS_PER_LEASE: u32 = 256;
+/// The most render threads a worker is taken to have: more claimed at registration are
+/// counted as this many, so one worker's word cannot claim the farm's whole share of
+/// work (the tail rule sizes leases by threads).
+pub const MAX_WORKER_THREADS: u32 = 1024;
+/// Units one worker may hold per render thread it claims: a batch rendering, one
+/// prefetched and one being delivered, of at most 64 units per thread each (what the
+/// worker asks for), so an honest worker never reaches it.
+const HELD_UNITS_PER_THREAD: u64 = 3 * 64;
+/// Units one worker may hold at all: three full lease requests. A worker claiming many
+/// threads (or lying about them) still leaves the rest of a large job to the others.
+const MAX_HELD_UNITS: u64 = 3 * MAX_UNITS_PER_LEASE as u64;
 /// How soon a worker asks again during the restart grace period, ms.
 const RETRY_IN_GRACE_MS: u32 = 250;
 /// How soon an idle worker asks again, ms: a new job starts within ~50 ms.
@@ -31,8 +42,16 @@ pub const MAX_LEASE_WAIT_MS: u32 = 2000;
 /// How soon a quarantined worker asks again, ms: it gets nothing, so rarely.
 const RETRY_QUARANTINED_MS: u32 = 5_000;
 /// Returns of a job's leases as unusable (a worker could not load or build its scene)
-/// after which the job fails: more than one worker, or one worker more than once, tried.
+/// after which the job fails, if enough distinct workers made them
+/// ([`UNUSABLE_WORKERS`]).
 pub const MAX_UNUSABLE_RETURNS: u32 = 3;
+/// Distinct workers (by name and TLS identity) that must have returned a job's leases as
+/// unusable before it fails; fewer suffice when fewer live workers are registered (a farm
+/// of one worker still fails a scene it cannot use). So one worker, faulty or hostile,
+/// cannot fail a job the others render.
+pub const UNUSABLE_WORKERS: usize = 3;
+/// Longest "unusable" reason kept, in characters.
+const MAX_UNUSABLE_REASON: usize = 500;
 
 /// The answer to a heartbeat.
 #[derive(Debug, Clone, Default)]
@@ -57,7 +76,8 @@ pub struct LeaseGrant {
 
 impl Coordinator {
     /// Registers a worker; returns its id. The name is at most 200 characters; the
-    /// version is cut to 64.
+    /// version is cut to 64; the threads are counted as at most [`MAX_WORKER_THREADS`]. A
+    /// session secret is issued with the id ([`Coordinator::worker_session`]).
     pub fn register_worker(
         &self,
         name: String,
@@ -76,18 +96,20 @@ impl Coordinator {
         version: &str,
         identity: Option<String>,
     ) -> CoordResult<WorkerId> {
-        if name.len() > MAX_WORKER_NAME {
+        if name.chars().count() > MAX_WORKER_NAME {
             return Err(CoordError::invalid_field(
                 "name",
                 format!("at most {MAX_WORKER_NAME} characters"),
             ));
         }
+        let threads = threads.min(MAX_WORKER_THREADS);
         let entry = WorkerEntry {
             name,
             threads,
             last_seen_ms: now_ms(),
             version: version.chars().take(64).collect(),
             identity: identity.map(|i| i.chars().take(MAX_WORKER_NAME).collect()),
+            session: crate::trust::new_session(),
             ..WorkerEntry::default()
         };
         let identity = entry.identity.clone();
@@ -120,6 +142,20 @@ impl Coordinator {
             "worker registered"
         );
         Ok(id)
+    }
+
+    /// The session secret issued to worker `worker` at registration; `None` for a worker
+    /// this run does not know (NOT_FOUND: it must register again).
+    pub fn worker_session(&self, worker: WorkerId) -> CoordResult<Option<String>> {
+        Ok(self.lock()?.workers.get(&worker).map(|w| w.session.clone()))
+    }
+
+    /// Whether a result for lease `lease_id` of the previous run may still be taken
+    /// (ARCHITECTURE.md §6): during the restart grace period and one lease duration after
+    /// it, and only for a lease id at or below the previous run's high-water mark.
+    pub(crate) fn previous_run_open(&self, farm: &Farm, lease_id: u64) -> bool {
+        farm.scheduler.is_previous_run_lease(lease_id)
+            && now_ms() < self.inner.previous_run_until_ms
     }
 
     /// A worker's heartbeat: records its throughput and extends the leases it holds.
@@ -156,7 +192,7 @@ impl Coordinator {
                 // it should stop rendering them.
                 quarantined
                     || !extended.iter().any(|(e, _)| e == id)
-                        && !farm.scheduler.is_previous_run_lease(*id)
+                        && !self.previous_run_open(&farm, *id)
                         && !farm.scheduler.is_lapsed_and_wanted(*id)
             })
             .collect();
@@ -273,18 +309,33 @@ impl Coordinator {
             // A worker asking for work is not draining (any more).
             farm.set_draining(worker, false);
             farm.expire_leases(now);
-            let max = max_units.clamp(1, MAX_UNITS_PER_LEASE) as usize;
             let total = farm.sharing_threads(now, self.lost_after_ms());
-            let threads = farm
-                .workers
-                .get(&worker)
-                .map_or(1, |w| u64::from(w.threads.max(1)));
-            let leases = farm.scheduler.lease_among(worker, now, max, threads, total);
+            let (threads, name) = farm.workers.get(&worker).map_or((1, String::new()), |w| {
+                (u64::from(w.threads.max(1)), w.name.clone())
+            });
+            // What it holds already counts against what one worker may hold.
+            let held = farm
+                .scheduler
+                .leases()
+                .filter(|l| l.worker == worker)
+                .count() as u64;
+            let room = threads
+                .saturating_mul(HELD_UNITS_PER_THREAD)
+                .min(MAX_HELD_UNITS)
+                .saturating_sub(held);
+            let max = u64::from(max_units.clamp(1, MAX_UNITS_PER_LEASE)).min(room) as usize;
+            let leases = if max == 0 {
+                Vec::new()
+            } else {
+                farm.scheduler.lease_among(worker, now, max, threads, total)
+            };
+            let fence = &self.inner.fence;
             let units: Vec<LeasedUnit> = leases
                 .into_iter()
                 .filter_map(|l| {
                     let job = farm.jobs.get(&l.job)?;
                     Some(LeasedUnit {
+                        fence: fence.seal(l.lease_id, l.job, &l.unit, &name),
                         lease_id: l.lease_id,
                         deadline_unix_ms: l.deadline_ms,
                         job_id: l.job,
@@ -332,17 +383,37 @@ impl Coordinator {
 
     /// Leases a worker gives back because it cannot render them (`reason`: it could not
     /// load or build their scene). Each job's count of such returns grows; a job that
-    /// reaches [`MAX_UNUSABLE_RETURNS`] fails with the reason, so a scene no worker can
-    /// use ends its job instead of being leased again forever.
+    /// reaches [`MAX_UNUSABLE_RETURNS`] returns from [`UNUSABLE_WORKERS`] distinct workers
+    /// (or from every live worker, when fewer are registered) fails with the reason, so a
+    /// scene no worker can use ends its job instead of being leased again forever, and one
+    /// worker alone cannot fail a job the others render. The reason is cut to 500
+    /// characters and its control characters escaped before it is logged or shown.
     pub async fn return_unusable(
         &self,
         worker: WorkerId,
         lease_ids: &[u64],
         reason: &str,
     ) -> CoordResult<u32> {
-        let reason: String = reason.chars().take(500).collect();
+        let reason = crate::trust::printable(reason, MAX_UNUSABLE_REASON);
+        let now = now_ms();
+        let lost_after = self.lost_after_ms();
         let (returned, to_fail) = {
             let mut farm = self.lock()?;
+            let who = farm
+                .workers
+                .get(&worker)
+                .map(|w| quarantine_key(&w.name, w.identity.as_deref()));
+            // The workers that could vote: registered, heard from lately, trusted.
+            let live = farm
+                .workers
+                .values()
+                .filter(|w| {
+                    w.quarantined.is_none() && now.saturating_sub(w.last_seen_ms) <= lost_after
+                })
+                .map(|w| quarantine_key(&w.name, w.identity.as_deref()))
+                .collect::<std::collections::BTreeSet<_>>()
+                .len();
+            let needed = UNUSABLE_WORKERS.min(live).max(1);
             let jobs: Vec<JobId> = lease_ids
                 .iter()
                 .filter(|id| {
@@ -359,7 +430,11 @@ impl Coordinator {
             for job in jobs {
                 if let Some(rt) = farm.runtime.get_mut(&job) {
                     rt.unusable_returns += 1;
+                    if let Some(who) = &who {
+                        rt.unusable_workers.insert(who.clone());
+                    }
                     if rt.unusable_returns >= MAX_UNUSABLE_RETURNS
+                        && rt.unusable_workers.len() >= needed
                         && !rt.state.is_terminal()
                         && !to_fail.contains(&job)
                     {

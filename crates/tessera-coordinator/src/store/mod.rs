@@ -731,6 +731,13 @@ pub trait Store: Send + Sync {
     /// Raises the lease-id high-water mark to `lease_id` (a lower value changes nothing).
     async fn record_lease_high_water(&self, lease_id: u64) -> StoreResult<()>;
 
+    /// The key that seals leases (`Lease.fence`, ARCHITECTURE.md §6): stored beside the
+    /// lease-id high-water mark, as the four 64-bit counters `fence_key_0..3`. The first
+    /// call on a store keeps `fresh` (random bytes the caller drew) and returns it; every
+    /// later call, of any coordinator on the store, returns that same key, so a restarted
+    /// or succeeding coordinator recognises the leases of the one before.
+    async fn fence_key(&self, fresh: [u8; 32]) -> StoreResult<[u8; 32]>;
+
     /// Appends a convergence history point to a job. Values must be finite
     /// ([`StoreError::InvalidInput`]); [`StoreError::JobNotFound`] if the job does not
     /// exist.

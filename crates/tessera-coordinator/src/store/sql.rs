@@ -905,6 +905,35 @@ impl<B: SqlBackend> Store for B {
         self.finish_write(w, false).await
     }
 
+    async fn fence_key(&self, fresh: [u8; 32]) -> StoreResult<[u8; 32]> {
+        // Kept if absent, in one write: concurrent coordinators agree on one key (the
+        // primary key makes a later insert do nothing), and every later call returns it.
+        let mut w = self.begin_write().await?;
+        let mut key = [0u8; 32];
+        for (i, (word, out)) in fresh
+            .chunks_exact(8)
+            .zip(key.chunks_exact_mut(8))
+            .enumerate()
+        {
+            let name = format!("fence_key_{i}");
+            let v = i64::from_le_bytes(word.try_into().expect("8 bytes"));
+            w.execute(
+                stmt("INSERT INTO counters (name, value) VALUES ($1, $2) ON CONFLICT (name) DO NOTHING")
+                    .bind(&name)
+                    .bind(v),
+            )
+            .await?;
+            let kept: i64 = w
+                .fetch_optional(stmt("SELECT value FROM counters WHERE name = $1").bind(&name))
+                .await?
+                .ok_or_else(|| StoreError::Corrupt(format!("counters: the {name} row is missing")))?
+                .try_get("value")?;
+            out.copy_from_slice(&kept.to_le_bytes());
+        }
+        self.finish_write(w, false).await?;
+        Ok(key)
+    }
+
     async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let elapsed = check_finite(point.elapsed_seconds, "history elapsed_seconds")?;

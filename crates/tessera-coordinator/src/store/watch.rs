@@ -133,6 +133,10 @@ impl Store for WatchedStore {
         self.watch("reserving lease ids", r)
     }
 
+    async fn fence_key(&self, fresh: [u8; 32]) -> StoreResult<[u8; 32]> {
+        self.inner.fence_key(fresh).await
+    }
+
     async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {
         let r = self.inner.append_history(job, point).await;
         self.watch("storing a history point", r)

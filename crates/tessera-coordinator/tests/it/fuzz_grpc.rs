@@ -61,11 +61,10 @@ fn mutate(rng: &mut Rng, r: &mut v1::SubmitResultRequest) -> (&'static str, bool
     let (w0, h0) = (r.width, r.height);
     match rng.below(12) {
         0 => {
-            // Leases are fencing tokens, not credentials (the worker token is): a valid
-            // result under a valid lease is taken whoever sends it, but an unknown
-            // worker id must not appear in the listing.
+            // Every call is bound to the caller's session: a result under any other
+            // worker id is refused before it is read, and the id is never listed.
             r.worker_id = r.worker_id.wrapping_add(1 + rng.below(1 << 40));
-            ("unknown worker", true)
+            ("unknown worker", false)
         }
         1 => {
             r.lease_id = match rng.below(3) {
@@ -157,7 +156,7 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
     (job.width, job.height, job.spp, job.tile_size) = (Some(60), Some(28), 8, 8);
     let (job, _) = core.submit(job, None).await.unwrap();
     let svc = WorkerGrpc::for_coordinator(core.clone());
-    let worker_id = svc
+    let reg = svc
         .register(Request::new(v1::RegisterRequest {
             name: "fuzzer".into(),
             threads: 1,
@@ -166,17 +165,29 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
         }))
         .await
         .unwrap()
-        .into_inner()
-        .worker_id;
+        .into_inner();
+    let (worker_id, session) = (reg.worker_id, reg.session);
+    // Every call after Register carries the worker's session secret.
+    let sess = |msg| {
+        let mut r = Request::new(msg);
+        r.metadata_mut()
+            .insert(tessera_proto::SESSION_METADATA, session.parse().unwrap());
+        r
+    };
     let mut rng = Rng(SEED);
     let (mut sent, mut refused_mine, mut units) = (0u64, 0u64, 0u64);
     loop {
         let leases = svc
-            .lease_work(Request::new(v1::LeaseRequest {
-                worker_id,
-                max_units: 4,
-                wait_ms: 0,
-            }))
+            .lease_work({
+                let mut r = Request::new(v1::LeaseRequest {
+                    worker_id,
+                    max_units: 4,
+                    wait_ms: 0,
+                });
+                r.metadata_mut()
+                    .insert(tessera_proto::SESSION_METADATA, session.parse().unwrap());
+                r
+            })
             .await
             .unwrap()
             .into_inner()
@@ -202,14 +213,22 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
                 job_id: lease.job_id,
                 rejected_samples: 0,
                 traced_pixel_passes: 0,
+                fence: lease.fence.clone(),
             };
             let mut delivered = false;
             for _ in 0..MUTANTS_PER_UNIT {
                 let mut bad = good.clone();
                 let (what, may_pass) = mutate(&mut rng, &mut bad);
                 let mine = bad.worker_id == worker_id;
-                let answer = svc.submit_result(Request::new(bad)).await;
+                let answer = svc.submit_result(sess(bad)).await;
                 sent += 1;
+                if !mine {
+                    // Another worker's id without its session: refused before anything
+                    // is read, as a gRPC error (NOT_FOUND for an id nobody has).
+                    let s = answer.expect_err("a result under an unknown worker id was taken");
+                    assert_eq!(s.code(), tonic::Code::NotFound, "{what}: {s}");
+                    continue;
+                }
                 // A malformed result is answered "not accepted" with the reason (and
                 // counted), never with a gRPC error.
                 let accepted = answer
@@ -232,11 +251,7 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
                 }
             }
             if !delivered {
-                let a = svc
-                    .submit_result(Request::new(good))
-                    .await
-                    .unwrap()
-                    .into_inner();
+                let a = svc.submit_result(sess(good)).await.unwrap().into_inner();
                 sent += 1;
                 assert!(a.accepted, "the correct result was refused: {}", a.reason);
             }

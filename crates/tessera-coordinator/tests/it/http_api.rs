@@ -372,6 +372,7 @@ fn delivery(
     tessera_coordinator::service::Delivery {
         worker,
         lease_id: l.lease_id,
+        fence: l.fence.clone(),
         job_hint: l.job_id,
         result: Ok(tessera_farm::UnitResult {
             unit: l.unit,

@@ -14,3 +14,4 @@ mod resume_guard;
 mod serve;
 mod store;
 mod tls;
+mod worker_trust;

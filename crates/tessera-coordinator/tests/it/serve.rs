@@ -32,11 +32,21 @@ async fn get(addr: SocketAddr, path: &str) -> String {
     out
 }
 
-async fn register(grpc: SocketAddr) -> (WorkerServiceClient<tonic::transport::Channel>, u64) {
-    let mut client = WorkerServiceClient::connect(format!("http://{grpc}"))
+type Client = WorkerServiceClient<
+    tonic::service::interceptor::InterceptedService<
+        tonic::transport::Channel,
+        tessera_proto::WithSession,
+    >,
+>;
+
+/// Registers a worker; its client carries the session from then on.
+async fn register(grpc: SocketAddr) -> (Client, u64) {
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{grpc}"))
+        .unwrap()
+        .connect()
         .await
         .unwrap();
-    let reg = client
+    let reg = WorkerServiceClient::new(channel.clone())
         .register(v1::RegisterRequest {
             name: "test".into(),
             threads: 1,
@@ -46,7 +56,11 @@ async fn register(grpc: SocketAddr) -> (WorkerServiceClient<tonic::transport::Ch
         .await
         .unwrap()
         .into_inner();
-    (client, reg.worker_id)
+    let session = tessera_proto::WithSession::new(&reg.session).unwrap();
+    (
+        WorkerServiceClient::with_interceptor(channel, session),
+        reg.worker_id,
+    )
 }
 
 type Served = tokio::task::JoinHandle<Result<(), ServeError>>;
@@ -174,7 +188,7 @@ async fn a_scene_no_worker_can_use_fails_its_job() {
         let _ = rx.await;
     }));
     let (mut client, worker_id) = bounded("Register", register(grpc)).await;
-    let lease = |client: &mut WorkerServiceClient<tonic::transport::Channel>| {
+    let lease = |client: &mut Client| {
         let mut c = client.clone();
         async move {
             loop {

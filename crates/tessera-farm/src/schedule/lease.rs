@@ -250,6 +250,12 @@ impl Scheduler {
             .or_else(|| self.lapsed.get(&lease_id).map(|(j, _)| *j))
     }
 
+    /// The outstanding lease `lease_id` (`None` once it lapsed, was given back or
+    /// answered).
+    pub fn outstanding(&self, lease_id: u64) -> Option<&Lease> {
+        self.leases.get(&lease_id)
+    }
+
     /// All outstanding leases.
     pub fn leases(&self) -> impl Iterator<Item = &Lease> {
         self.leases.values()
