@@ -50,7 +50,7 @@ pub struct WorkerEntry {
     pub draining: bool,
     /// Seconds spent rendering the units it delivered, as it reported them.
     pub render_seconds: f64,
-    /// Pixel-passes it traced for the units merged from it, as it reported them (issue 15:
+    /// Pixel-passes it traced for the units merged from it, as it reported them (
     /// an adaptive lease's stopped pixels are not traced).
     pub pixel_passes: u64,
     /// The common name of its TLS client certificate, under mutual TLS.

@@ -72,7 +72,7 @@ enum StoredFrame {
     Black,
     /// The merged passes.
     Merged(FrameAccumulator),
-    /// The adaptive policy's state (issue 15).
+    /// The adaptive policy's state.
     Adaptive(AdaptiveFrame),
 }
 
@@ -249,7 +249,7 @@ impl Coordinator {
     }
 
     /// A frame rebuilt from its checkpoints: an adaptive job's from the policy state saved
-    /// with them (issue 15), any other's from the merged passes.
+    /// with them, any other's from the merged passes.
     async fn restore_frame(&self, id: JobId, meta: &FrameMeta) -> CoordResult<StoredFrame> {
         if meta.resolved.black {
             return Ok(StoredFrame::Black);

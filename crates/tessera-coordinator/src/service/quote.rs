@@ -1,5 +1,5 @@
 //! Dry runs: `POST /api/v1/jobs?dry_run=true` quotes a job instead of queueing it
-//! (issue 15). The job is validated and resolved exactly as a submission is, so a quote is
+//!. The job is validated and resolved exactly as a submission is, so a quote is
 //! refused for what a submission would be refused for; then a short pilot renders a
 //! deterministic subset of the job's tiles and the quote is
 //! [`tessera_farm::quote::quote`]'s, the same maths as `tessera estimate`.

@@ -582,7 +582,7 @@ fn record_merge(farm: &mut Farm, m: &Merged, rejected_samples: u64) -> Option<Ti
 }
 
 /// The checkpoint of a tile's merged state, with the adaptive policy's state of the tile
-/// after the same merge for an adaptive job (issue 15: both are taken under the farm lock,
+/// after the same merge for an adaptive job (both are taken under the farm lock,
 /// so they are always of the same merge).
 fn checkpoint_of(
     farm: &Farm,

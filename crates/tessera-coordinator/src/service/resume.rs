@@ -185,7 +185,7 @@ async fn restore_incomplete(
     Ok((restored, complete))
 }
 
-/// An adaptive job's frames with checkpoints (issue 15), one at a time: the unfinished
+/// An adaptive job's frames with checkpoints, one at a time: the unfinished
 /// ones restored with their policy state, those whose policy had finished every tile
 /// summarized and dropped (their images are restored from the store when asked for), so
 /// a restart holds the frames in progress only, as a running job does after releasing
@@ -402,7 +402,7 @@ async fn resume_job(
                 .map_err(|e| e.to_string())?;
         }
         Restart::Adaptive(settings, restored, finished) => {
-            // Issue 15: the policy resumes where it was; only units in flight are redone.
+            // The policy resumes where it was; only units in flight are redone.
             let finished_counts = finished.iter().map(|f| (f.frame, &f.rejected));
             let restored_counts = restored.rejected.iter().map(|(f, r)| (*f, r));
             restore_rejected(&mut rt, first, finished_counts.chain(restored_counts));
