@@ -14,7 +14,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use tessera_api::{HistoryPoint, JobSettings, JobState, ResolvedJob, ValidatedJob};
 use tessera_farm::job::{JobScene, RenderConfig};
-use tessera_farm::{FramePlan, JobId, Scheduler, TileAccumulator, WorkerId};
+use tessera_farm::{FramePlan, JobId, Lease, Scheduler, TileAccumulator, WorkUnit, WorkerId};
 
 use crate::store::QuarantineRecord;
 
@@ -115,10 +115,22 @@ pub struct Farm {
     /// when a worker is quarantined (and stored then), emptied of a name when an operator
     /// lifts it. A worker registering under a listed key is quarantined at once.
     pub quarantines: BTreeMap<(String, Option<String>), QuarantineRecord>,
+    /// Jobs to fail because one of their units was lost too often ([`Farm::expire_leases`],
+    /// [`LOST_UNIT_LEASES`]), with the reason; the ticker fails them.
+    pub lost_jobs: Vec<(JobId, String)>,
     next_worker: WorkerId,
     /// The last count of [`Farm::sharing_threads`].
     sharing: Option<SharingCount>,
 }
+
+/// Workers by what a quarantine follows, their name and TLS identity ([`quarantine_key`]).
+pub type WorkerKeys = std::collections::BTreeSet<(String, Option<String>)>;
+
+/// Lapsed leases of one unit, without a result, that fail its job ([`Farm::expire_leases`]).
+pub const LOST_UNIT_LEASES: u32 = 3;
+/// Distinct workers among them that fail its job (or every registered trusted worker,
+/// when fewer are registered).
+pub const LOST_UNIT_WORKERS: usize = 3;
 
 /// How often [`Farm::sharing_threads`] counts the fleet again when no worker registered,
 /// was removed or was quarantined, ms.
@@ -199,6 +211,7 @@ impl Farm {
             leases_expired: 0,
             spot: SpotCounters::default(),
             quarantines: BTreeMap::new(),
+            lost_jobs: Vec::new(),
             next_worker: 1,
             sharing: None,
         }
@@ -268,6 +281,7 @@ impl Farm {
             return 0;
         }
         self.leases_expired += expired.len() as u64;
+        self.count_lost_units(&expired);
         let workers: std::collections::BTreeSet<WorkerId> =
             expired.iter().map(|l| l.worker).collect();
         tracing::warn!(
@@ -276,6 +290,54 @@ impl Farm {
             "leases expired without a result; their units are leased again"
         );
         expired.len()
+    }
+
+    /// Counts the units of `expired` leases as lost by their workers. A unit whose leases
+    /// lapsed without a result [`LOST_UNIT_LEASES`] times, from [`LOST_UNIT_WORKERS`]
+    /// distinct workers (by name and TLS identity, [`quarantine_key`]; or from every
+    /// registered trusted worker, when fewer are registered), kills or hangs the workers
+    /// that render it: its job is canceled and queued in [`Farm::lost_jobs`] to fail with
+    /// the reason, instead of being leased again forever. A worker that dies once, or one
+    /// whose network failed, loses a unit once; that alone fails nothing.
+    fn count_lost_units(&mut self, expired: &[Lease]) {
+        let trusted: std::collections::BTreeSet<_> = self
+            .workers
+            .values()
+            .filter(|w| w.quarantined.is_none())
+            .map(|w| quarantine_key(&w.name, w.identity.as_deref()))
+            .collect();
+        let needed = LOST_UNIT_WORKERS.min(trusted.len()).max(1);
+        for l in expired {
+            let who = self.workers.get(&l.worker).map_or_else(
+                || (format!("worker {}", l.worker), None),
+                |w| quarantine_key(&w.name, w.identity.as_deref()),
+            );
+            let Some(rt) = self.runtime.get_mut(&l.job) else {
+                continue;
+            };
+            if rt.state.is_terminal() || self.lost_jobs.iter().any(|(j, _)| *j == l.job) {
+                continue;
+            }
+            let (times, by) = rt.lost_units.entry(l.unit).or_default();
+            *times += 1;
+            by.insert(who);
+            if *times >= LOST_UNIT_LEASES && by.len() >= needed {
+                let u = l.unit;
+                let reason = format!(
+                    "unit (frame {}, tile {}, passes {}..{}) was lost {times} times by {} \
+                     distinct workers: their leases lapsed without a result, so rendering it \
+                     kills or hangs workers (a scene too large or too slow to build, or a \
+                     crash); the job is failed rather than leased again forever",
+                    u.frame,
+                    u.tile,
+                    u.first_pass,
+                    u.end_pass(),
+                    by.len()
+                );
+                self.scheduler.cancel(l.job);
+                self.lost_jobs.push((l.job, reason));
+            }
+        }
     }
 
     /// Registers a worker and returns its new id (ids are never reused in a run).
@@ -312,6 +374,9 @@ pub struct JobRuntime {
     /// The distinct workers (by name and TLS identity, [`quarantine_key`]) among them:
     /// one worker alone cannot fail a job by returning its units (ARCHITECTURE.md §6).
     pub unusable_workers: std::collections::BTreeSet<(String, Option<String>)>,
+    /// Per unit whose leases lapsed without a result: how often, and the distinct workers
+    /// (by name and TLS identity) that lost it ([`Farm::expire_leases`]).
+    pub lost_units: BTreeMap<WorkUnit, (u32, WorkerKeys)>,
     /// Per frame, per tile: (sum of squared relative errors, pixel count) of the tiles with
     /// at least two passes, kept incrementally so the image error costs O(tiles).
     pub(crate) tile_error: Vec<Vec<(f64, u64)>>,
@@ -399,6 +464,7 @@ impl JobRuntime {
             faults: 0,
             unusable_returns: 0,
             unusable_workers: std::collections::BTreeSet::new(),
+            lost_units: BTreeMap::new(),
             tile_error: vec![vec![(0.0, 0); tiles]; frames],
             tile_rejected: vec![vec![TileRejected::default(); tiles]; frames],
             last_history_ms: 0,
@@ -526,5 +592,66 @@ mod tests {
         assert!(r.buffered.is_empty());
         r.accept(4, 0, 6);
         assert_eq!((r.merged, r.total()), (6, 6));
+    }
+
+    /// Whether a job fails when the workers named `losers` (indices into `workers`), in
+    /// turn, each lease its first unit and let the lease lapse without a result.
+    fn fails_after_losses(workers: &[&str], losers: &[usize]) -> Option<String> {
+        let settings: JobSettings = serde_json::from_str(
+            r#"{"scene": "builtin:cornell-box", "width": 16, "height": 16, "spp": 8}"#,
+        )
+        .unwrap();
+        let job = settings.validate().unwrap();
+        let time = tessera_scene::job::resolution_time(&job.scene);
+        let scene = tessera_scene::job::load_job_scene_at(&job.scene, None, &time).unwrap();
+        let resolved =
+            tessera_scene::job::resolve_job(&job, &scene, tessera_scene::job::no_pilot("a test"))
+                .unwrap();
+        let mut farm = Farm::with_first_lease(1_000, 0);
+        let ids: Vec<WorkerId> = workers
+            .iter()
+            .map(|name| {
+                farm.register_worker(WorkerEntry {
+                    name: (*name).to_string(),
+                    threads: 1,
+                    ..WorkerEntry::default()
+                })
+            })
+            .collect();
+        farm.scheduler.add_job(1, 0, resolved.plan, 0..=0, 1);
+        farm.runtime
+            .insert(1, JobRuntime::new(settings, resolved, JobState::Running, 0));
+        let mut now = 0;
+        let mut first = None;
+        for &w in losers {
+            let leases = farm.scheduler.lease(ids[w], now, 1);
+            assert_eq!(leases.len(), 1, "the job has work");
+            // The lapsed unit goes back to the queue at its canonical place: leased again.
+            assert_eq!(*first.get_or_insert(leases[0].unit), leases[0].unit);
+            now += 2_000;
+            assert_eq!(farm.expire_leases(now), 1);
+        }
+        farm.lost_jobs.pop().map(|(job, reason)| {
+            assert_eq!(job, 1);
+            reason
+        })
+    }
+
+    /// A unit that kills or hangs every worker that renders it fails its job once three
+    /// distinct workers lost it; one worker losing it (a crash, a cut network) does not,
+    /// however often, while others are registered; a farm of one fails after three losses.
+    #[test]
+    fn a_unit_lost_by_distinct_workers_fails_its_job() {
+        let three = ["a", "b", "c"];
+        let reason = fails_after_losses(&three, &[0, 1, 2]).expect("three workers lost it");
+        assert!(
+            reason.contains("lost 3 times by 3 distinct workers"),
+            "{reason}"
+        );
+        assert_eq!(fails_after_losses(&three, &[0, 1]), None);
+        assert_eq!(fails_after_losses(&three, &[0, 0, 0, 0]), None);
+        assert_eq!(fails_after_losses(&three, &[0, 0, 1, 1]), None);
+        assert!(fails_after_losses(&["alone"], &[0, 0, 0]).is_some());
+        assert_eq!(fails_after_losses(&["alone"], &[0, 0]), None);
     }
 }

@@ -470,6 +470,7 @@ impl Coordinator {
         let now = now_ms();
         let mut over_time = Vec::new();
         let mut final_points = Vec::new();
+        let mut lost = Vec::new();
         if let Ok(mut farm) = self.inner.farm.lock() {
             // During the grace period leases of the previous run are not expired.
             if !self.leasing_paused() && farm.expire_leases(now) > 0 {
@@ -494,6 +495,15 @@ impl Coordinator {
                 }
             }
             self.forget_lost_workers(&mut farm, now);
+            lost = std::mem::take(&mut farm.lost_jobs);
+        }
+        // Units that kill or hang every worker that renders them fail their job
+        // (`Farm::expire_leases`), as scenes no worker can use do.
+        for (job, error) in lost {
+            tracing::error!(job, error = %error, "job failed");
+            if let Err(e) = self.set_state(job, JobState::Failed, Some(error)).await {
+                tracing::warn!(job, error = %e, "cannot fail the job");
+            }
         }
         for (job, point) in final_points {
             if let Err(e) = self.inner.store.append_history(job, point).await {
