@@ -292,6 +292,20 @@ impl Farm {
         expired.len()
     }
 
+    /// The distinct trusted (not quarantined) workers, by name and TLS identity
+    /// ([`quarantine_key`]), heard from within `lost_after_ms` before `now_ms`: who may
+    /// vote that a job's scene cannot be rendered (one worker alone cannot fail a job).
+    pub fn trusted_workers(&self, now_ms: u64, lost_after_ms: u64) -> usize {
+        self.workers
+            .values()
+            .filter(|w| {
+                w.quarantined.is_none() && now_ms.saturating_sub(w.last_seen_ms) <= lost_after_ms
+            })
+            .map(|w| quarantine_key(&w.name, w.identity.as_deref()))
+            .collect::<std::collections::BTreeSet<_>>()
+            .len()
+    }
+
     /// Counts the units of `expired` leases as lost by their workers. A unit whose leases
     /// lapsed without a result [`LOST_UNIT_LEASES`] times, from [`LOST_UNIT_WORKERS`]
     /// distinct workers (by name and TLS identity, [`quarantine_key`]; or from every
@@ -300,13 +314,11 @@ impl Farm {
     /// the reason, instead of being leased again forever. A worker that dies once, or one
     /// whose network failed, loses a unit once; that alone fails nothing.
     fn count_lost_units(&mut self, expired: &[Lease]) {
-        let trusted: std::collections::BTreeSet<_> = self
-            .workers
-            .values()
-            .filter(|w| w.quarantined.is_none())
-            .map(|w| quarantine_key(&w.name, w.identity.as_deref()))
-            .collect();
-        let needed = LOST_UNIT_WORKERS.min(trusted.len()).max(1);
+        // Every registered trusted worker may vote here, not only the live ones: the
+        // workers a unit kills stop being live, and must not lower the bar.
+        let needed = LOST_UNIT_WORKERS
+            .min(self.trusted_workers(u64::MAX, u64::MAX))
+            .max(1);
         for l in expired {
             let who = self.workers.get(&l.worker).map_or_else(
                 || (format!("worker {}", l.worker), None),

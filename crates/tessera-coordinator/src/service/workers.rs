@@ -404,15 +404,7 @@ impl Coordinator {
                 .get(&worker)
                 .map(|w| quarantine_key(&w.name, w.identity.as_deref()));
             // The workers that could vote: registered, heard from lately, trusted.
-            let live = farm
-                .workers
-                .values()
-                .filter(|w| {
-                    w.quarantined.is_none() && now.saturating_sub(w.last_seen_ms) <= lost_after
-                })
-                .map(|w| quarantine_key(&w.name, w.identity.as_deref()))
-                .collect::<std::collections::BTreeSet<_>>()
-                .len();
+            let live = farm.trusted_workers(now, lost_after);
             let needed = UNUSABLE_WORKERS.min(live).max(1);
             let jobs: Vec<JobId> = lease_ids
                 .iter()
