@@ -28,10 +28,21 @@
 //! A cluster of `g` primitives costs `O(g log g)` and adds `⌈log2 g⌉` levels, so the
 //! whole build stays `O(n log n)` and shallow.
 //!
-//! **Known limit.** Ties without coincidence are not detected: a long row of identical
-//! triangles at exactly even spacing ties every neighbour cost too, and obvhs builds it
-//! in `O(n²)` (measured: 5,000 triangles 1.1 s, 20,000 in 14 s) as a deep chain. Such
-//! input takes the ordinary path ([`BvhBuildStats::clustered`] is 0).
+//! **Ties without coincidence.** A long row of identical primitives at exactly even
+//! spacing (a fence, an array of instances placed by a modifier) ties every neighbour cost
+//! too, without any crowded cell: node `i` chooses `i + 1`, which chooses `i + 2`, and
+//! obvhs builds a chain in `O(n²)` (measured before this was handled: 5,000 triangles
+//! 0.28 s, 20,000 in 4.0 s). Such input is recognised by its boxes: when
+//! [`TIE_MIN`] boxes or more have bit-identical extents, every box is widened by a tiny,
+//! deterministic, index-dependent margin (at most `2^-10` of its own size, see
+//! [`tie_break_pad`]) before PLOC sees it. The costs then differ, pairs choose each other
+//! as in any ordinary input, and the build takes `O(log n)` passes and makes an
+//! `O(log n)`-deep tree ([`BvhBuildStats::tie_broken`] counts the primitives). A widened
+//! box still contains its primitive, so the tree stays conservative: hits are the exact
+//! triangle tests' as always. Ordinary scenes (no such run of equal extents) take the
+//! unchanged obvhs call, so their trees and images do not change. (A flat grid of
+//! identical quads is not affected in the first place: its Morton order makes pairs
+//! mutual; 524,288 such triangles build in 1 s either way.)
 //!
 //! **Stack.** All builds run on a thread of their own with a stack of
 //! [`BUILD_STACK_BYTES`] ([`on_build_stack`]), so obvhs' recursions never depend on the
@@ -60,6 +71,11 @@ pub const BUILD_STACK_BYTES: usize = 64 << 20;
 /// `g` extra passes, which below this stays within the passes an ordinary build needs.
 pub const CLUSTER_MIN: usize = 32;
 
+/// The fewest boxes with bit-identical extents for which ties are broken by widening
+/// the boxes (see the module docs). A tied run of `g` primitives costs obvhs about `g`
+/// passes over all `n`; below this it stays within a few milliseconds.
+pub const TIE_MIN: usize = 1024;
+
 /// Bits per axis of the centre cells: those of obvhs' 64-bit Morton codes.
 const CELL_BITS: u32 = 21;
 
@@ -86,8 +102,11 @@ pub struct BvhBuildStats {
     /// while grafting them and one per primitive per level of each cluster's median
     /// splits. At most `2 n ⌈log2 n⌉ + 6 n` per BVH.
     pub work: u64,
-    /// Deepest binary tree built by our own code (the grafted trees; 0 when every BVH
-    /// took the ordinary path, whose depth obvhs does not report).
+    /// Primitives whose boxes were widened to break PLOC's ties (0 for ordinary scenes).
+    pub tie_broken: u64,
+    /// Deepest binary tree built by our own code or measured by it (the grafted trees
+    /// and the tie-broken ones; 0 when every BVH took the ordinary path, whose depth
+    /// obvhs does not report).
     pub max_depth: u32,
 }
 
@@ -100,6 +119,7 @@ impl BvhBuildStats {
         self.clusters += other.clusters;
         self.ploc_inputs += other.ploc_inputs;
         self.work += other.work;
+        self.tie_broken += other.tie_broken;
         self.max_depth = self.max_depth.max(other.max_depth);
     }
 }
@@ -130,6 +150,7 @@ const fn params() -> BvhBuildParams {
 pub(super) fn triangles_cwbvh(triangles: &[Triangle], stats: &mut BvhBuildStats) -> CwBvh {
     let boxes: Vec<Aabb> = triangles.iter().map(Triangle::aabb).collect();
     match crowded_cells(&boxes, stats) {
+        None if tied_extents(&boxes, stats) => tie_broken_cwbvh(&boxes, stats),
         None => {
             let mut build_time = std::time::Duration::ZERO;
             obvhs::cwbvh::builder::build_cwbvh_from_tris(triangles, params(), &mut build_time)
@@ -142,6 +163,7 @@ pub(super) fn triangles_cwbvh(triangles: &[Triangle], stats: &mut BvhBuildStats)
 /// builder for ordinary input, the clustered build when centres crowd.
 pub(super) fn boxes_cwbvh(boxes: &[Aabb], stats: &mut BvhBuildStats) -> CwBvh {
     match crowded_cells(boxes, stats) {
+        None if tied_extents(boxes, stats) => tie_broken_cwbvh(boxes, stats),
         None => {
             let mut build_time = std::time::Duration::ZERO;
             obvhs::cwbvh::builder::build_cwbvh(boxes, params(), &mut build_time)
@@ -204,6 +226,85 @@ fn crowded_cells(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Option<Vec<(u64, 
         stats.ploc_inputs += n as u64;
         None
     }
+}
+
+/// Whether [`TIE_MIN`] or more of `boxes` have bit-identical extents (the input that
+/// ties PLOC's costs without crowding a cell; see the module docs). Counts its sort in
+/// `stats.work`.
+fn tied_extents(boxes: &[Aabb], stats: &mut BvhBuildStats) -> bool {
+    let n = boxes.len();
+    if n < TIE_MIN {
+        return false;
+    }
+    stats.work += n as u64 * ceil_log2(n) + n as u64;
+    let mut extents: Vec<[u32; 3]> = boxes
+        .iter()
+        .map(|b| (b.max - b.min).to_array().map(f32::to_bits))
+        .collect();
+    extents.sort_unstable();
+    extents
+        .chunk_by(|a, b| a == b)
+        .any(|run| run.len() >= TIE_MIN)
+}
+
+/// The margin box `i` is widened by on every side to break ties: a fraction between
+/// `2^-18` and `2^-10` of its largest extent, chosen by a hash of `i` (so every build of
+/// the same input agrees), or, for a box without extent, the same fraction of its largest
+/// coordinate (or of 1 at the origin). Large enough to change the surface areas PLOC
+/// compares in `f32`, small enough not to change which boxes a ray meets in practice.
+pub(super) fn tie_break_pad(b: &Aabb, i: u32) -> f32 {
+    let size = (b.max - b.min).max_element();
+    let scale = if size > 0.0 {
+        size
+    } else {
+        b.min.abs().max(b.max.abs()).max_element().max(1.0)
+    };
+    // SplitMix64's finaliser: the low 8 bits of a well-mixed hash of the index.
+    let mut z = u64::from(i).wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^= z >> 31;
+    let k = (z & 0xff) as f32 + 1.0;
+    scale * k * (1.0 / (1u32 << 18) as f32)
+}
+
+/// PLOC over `boxes` each widened by [`tie_break_pad`], then obvhs' reinsertion and
+/// CWBVH conversion as in its own builder (see the module docs).
+fn tie_broken_cwbvh(boxes: &[Aabb], stats: &mut BvhBuildStats) -> CwBvh {
+    let padded: Vec<Aabb> = boxes
+        .iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let d = glam::Vec3A::splat(tie_break_pad(b, i as u32));
+            Aabb::new(b.min - d, b.max + d)
+        })
+        .collect();
+    stats.tie_broken += boxes.len() as u64;
+    stats.ploc_inputs += boxes.len() as u64;
+    let p = params();
+    let mut bvh2 = PlocBuilder::with_capacity(padded.len()).build(
+        p.ploc_search_distance,
+        &padded,
+        (0..padded.len() as u32).collect(),
+        p.sort_precision,
+        p.search_depth_threshold,
+    );
+    ReinsertionOptimizer::default().run(&mut bvh2, p.reinsertion_batch_ratio, None);
+    // The tree's depth, without recursion: what the tests bound by `log n`.
+    let mut depth = 0u32;
+    let mut stack: Vec<(usize, u32)> = vec![(0, 0)];
+    while let Some((node, d)) = stack.pop() {
+        stats.work += 1;
+        depth = depth.max(d);
+        let node = &bvh2.nodes[node];
+        if !node.is_leaf() {
+            let child = node.first_index as usize;
+            stack.push((child, d + 1));
+            stack.push((child + 1, d + 1));
+        }
+    }
+    stats.max_depth = stats.max_depth.max(depth);
+    bvh2_to_cwbvh(&bvh2, p.max_prims_per_leaf.clamp(1, 3), true, false)
 }
 
 /// The clustered build (see the module docs) over `boxes`, given every box's centre cell

@@ -47,7 +47,7 @@ mod build;
 mod moving;
 mod traversal;
 
-pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN};
+pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN, TIE_MIN};
 pub use moving::{shutter_segment, MotionTriangles};
 use traversal::{bvh_bytes, traversal_ray, traversal_t, triangle_bvh, TriangleLevel};
 pub use watertight::intersect_sphere;

@@ -260,3 +260,66 @@ fn coincident_triangles_build_a_shallow_tree_in_n_log_n_work() {
         assert!((hit.expect("the triangle is hit").t - 1.0).abs() < 1e-6);
     }
 }
+
+/// A row of `n` identical triangles at exactly even spacing (powers of two, so every
+/// neighbour's union box has the same surface area): the input whose ties made obvhs'
+/// PLOC quadratic without any crowded cell.
+fn even_row(n: usize) -> Vec<TriangleRecord> {
+    (0..n as u32)
+        .map(|i| {
+            let x = i as f32 * 0.015625;
+            let p = [
+                Vec3::new(x, 0.0, 0.0),
+                Vec3::new(x + 0.0078125, 0.0, 0.0),
+                Vec3::new(x, 0.0078125, 0.0),
+            ];
+            record(p, i)
+        })
+        .collect()
+}
+
+#[test]
+fn an_evenly_spaced_row_of_identical_triangles_builds_a_shallow_tree() {
+    for n in [TIE_MIN, 20_000] {
+        let tris = even_row(n);
+        let geo = Geometry::build(tris.clone(), vec![]);
+        let stats = geo.build_stats();
+        let log = u64::from(usize::BITS - (n - 1).leading_zeros());
+        assert_eq!(stats.clustered, 0, "{stats:?}");
+        assert_eq!(stats.tie_broken, n as u64, "{stats:?}");
+        // A chain (the quadratic build) would be n deep; PLOC's ordinary trees are
+        // within a small multiple of log2 n.
+        assert!(u64::from(stats.max_depth) <= 3 * log, "{stats:?}");
+        assert!(stats.work <= 2 * n as u64 * log + 6 * n as u64, "{stats:?}");
+        // The widened boxes keep every triangle reachable: rays straight down onto
+        // triangles along the row (and between them) agree with brute force.
+        let mut s = 5u64;
+        for k in 0..400 {
+            let x = lcg(&mut s) * n as f32 * 0.015625;
+            let y = lcg(&mut s) * 0.01;
+            let origin = Vec3::new(x, y, 1.0 + k as f32 * 1e-3);
+            let want = brute_force(&tris, origin, -Vec3::Z);
+            let got = geo.intersect(origin, -Vec3::Z, f32::INFINITY).map(|h| h.t);
+            assert_eq!(got, want, "ray {k} at x {x}");
+        }
+    }
+}
+
+#[test]
+fn tie_break_margins_are_small_positive_and_deterministic() {
+    let b = obvhs::aabb::Aabb::new(glam::Vec3A::ZERO, glam::Vec3A::new(2.0, 1.0, 0.0));
+    let mut distinct = std::collections::BTreeSet::new();
+    for i in 0..4096u32 {
+        let d = build::tie_break_pad(&b, i);
+        assert!(
+            d >= 2.0 / (1u32 << 18) as f32 && d <= 2.0 / (1u32 << 10) as f32,
+            "{d}"
+        );
+        assert_eq!(d, build::tie_break_pad(&b, i));
+        distinct.insert(d.to_bits());
+    }
+    // 256 levels, nearly all used: neighbours rarely tie.
+    assert!(distinct.len() > 250, "{}", distinct.len());
+    let point = obvhs::aabb::Aabb::new(glam::Vec3A::splat(-8.0), glam::Vec3A::splat(-8.0));
+    assert!(build::tie_break_pad(&point, 0) > 0.0);
+}
