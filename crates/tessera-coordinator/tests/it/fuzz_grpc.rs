@@ -292,3 +292,266 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
     assert_eq!(status.state.as_str(), "done");
     assert_eq!(status.passes_done, status.passes_planned);
 }
+
+/// One byte-level mutation of an encoded message: a bit flipped, a byte replaced, the
+/// message cut short, random bytes inserted or appended (often a well-formed field of an
+/// unknown or known number), or a slice repeated (a field sent twice).
+fn mutate_bytes(rng: &mut Rng, bytes: &mut Vec<u8>) {
+    let at = |rng: &mut Rng, len: usize| rng.below(len as u64 + 1) as usize;
+    match rng.below(6) {
+        0 if !bytes.is_empty() => {
+            let i = rng.below(bytes.len() as u64) as usize;
+            bytes[i] ^= 1 << rng.below(8);
+        }
+        1 if !bytes.is_empty() => {
+            let i = rng.below(bytes.len() as u64) as usize;
+            bytes[i] = rng.next() as u8;
+        }
+        2 => {
+            let keep = at(rng, bytes.len());
+            bytes.truncate(keep);
+        }
+        3 => {
+            let i = at(rng, bytes.len());
+            let extra: Vec<u8> = (0..1 + rng.below(12)).map(|_| rng.next() as u8).collect();
+            bytes.splice(i..i, extra);
+        }
+        4 => {
+            // A varint field: a small field number (known or not), then an edge value.
+            let field = 1 + rng.below(20);
+            let mut v = match rng.below(3) {
+                0 => u64::MAX,
+                1 => u64::from(rng.edge_u32()),
+                _ => rng.next(),
+            };
+            bytes.push((field << 3) as u8);
+            while v >= 0x80 {
+                bytes.push((v as u8) | 0x80);
+                v >>= 7;
+            }
+            bytes.push(v as u8);
+        }
+        _ if bytes.len() >= 2 => {
+            let a = rng.below(bytes.len() as u64) as usize;
+            let b = a + 1 + rng.below((bytes.len() - a) as u64) as usize;
+            let slice = bytes[a..b.min(bytes.len())].to_vec();
+            bytes.extend_from_slice(&slice);
+        }
+        _ => bytes.push(rng.next() as u8),
+    }
+}
+
+/// `msg` encoded, mutated one to three times, and decoded again as `M`: `None` when the
+/// bytes no longer decode (prost refuses them before the service sees anything).
+fn mutated<M: prost::Message + Default>(rng: &mut Rng, msg: &M) -> Option<M> {
+    let mut bytes = msg.encode_to_vec();
+    for _ in 0..1 + rng.below(3) {
+        mutate_bytes(rng, &mut bytes);
+    }
+    M::decode(bytes.as_slice()).ok()
+}
+
+/// Every worker message, mutated at the byte level and sent by a registered worker with
+/// its valid session (the strongest position a rogue worker has), for every lease it
+/// holds: Register, Heartbeat, LeaseWork, SubmitResult, FetchScene and ReturnLeases. No
+/// call panics or hangs; an honest worker then finishes the job; every planned pass is
+/// merged once, and a reopened coordinator sees the same.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn byte_mutated_worker_messages_never_panic_and_the_job_completes() {
+    let dir = tempfile::tempdir().unwrap();
+    let core = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp, job.tile_size) = (Some(40), Some(24), 8, 8);
+    let (job, _) = core.submit(job, None).await.unwrap();
+    let svc = WorkerGrpc::for_coordinator(core.clone());
+    let register = |name: &str| v1::RegisterRequest {
+        name: name.into(),
+        threads: 1,
+        version: "test".into(),
+        capabilities: vec!["path".into()],
+    };
+    let reg = svc
+        .register(Request::new(register("rogue")))
+        .await
+        .unwrap()
+        .into_inner();
+    let (rogue, session) = (reg.worker_id, reg.session);
+    let sess = |msg| {
+        let mut r = Request::new(msg);
+        r.metadata_mut()
+            .insert(tessera_proto::SESSION_METADATA, session.parse().unwrap());
+        r
+    };
+    let mut rng = Rng(SEED ^ 0xb17e);
+    let (mut calls, mut undecodable, mut accepted_results) = (0u64, 0u64, 0u64);
+    for round in 0..24 {
+        // Mutated registrations (no session needed), lease requests and heartbeats.
+        for _ in 0..4 {
+            match mutated(&mut rng, &register("rogue")) {
+                Some(m) => {
+                    let _ = svc.register(Request::new(m)).await;
+                    calls += 1;
+                }
+                None => undecodable += 1,
+            }
+        }
+        let lease_req = v1::LeaseRequest {
+            worker_id: rogue,
+            max_units: 2,
+            wait_ms: 0,
+        };
+        let mut leases = Vec::new();
+        for _ in 0..3 {
+            match mutated(&mut rng, &lease_req) {
+                // A long poll is bounded by the coordinator (2 s); keep the harness fast.
+                Some(mut m) if m.wait_ms == 0 || round % 8 == 0 => {
+                    m.wait_ms = m.wait_ms.min(50);
+                    if let Ok(r) = svc.lease_work(sess(m)).await {
+                        leases.extend(r.into_inner().leases);
+                    }
+                    calls += 1;
+                }
+                Some(_) => {}
+                None => undecodable += 1,
+            }
+        }
+        let ids: Vec<u64> = leases.iter().map(|l| l.lease_id).collect();
+        let beat = v1::HeartbeatRequest {
+            worker_id: rogue,
+            lease_ids: ids.clone(),
+            paths_per_second: 1e6,
+        };
+        for _ in 0..3 {
+            match mutated(&mut rng, &beat) {
+                Some(m) => {
+                    let _ = svc.heartbeat(sess(m)).await;
+                    calls += 1;
+                }
+                None => undecodable += 1,
+            }
+        }
+        for lease in &leases {
+            let (Some(plan), Some(unit)) = (lease.plan.as_ref(), lease.unit) else {
+                continue;
+            };
+            let (w, h) = tile_size(plan.width, plan.height, plan.tile_size, unit.tile);
+            let n = 3 * (unit.pass_count * w * h) as usize;
+            let good = v1::SubmitResultRequest {
+                worker_id: rogue,
+                lease_id: lease.lease_id,
+                unit: Some(unit),
+                width: w,
+                height: h,
+                pass_means: tessera_proto::means_to_bytes(&vec![0.25; n]),
+                render_seconds: 0.01,
+                job_id: lease.job_id,
+                rejected_samples: 0,
+                traced_pixel_passes: 0,
+                fence: lease.fence.clone(),
+            };
+            for _ in 0..4 {
+                match mutated(&mut rng, &good) {
+                    Some(m) => {
+                        if let Ok(r) = svc.submit_result(sess(m)).await {
+                            accepted_results += u64::from(r.into_inner().accepted);
+                        }
+                        calls += 1;
+                    }
+                    None => undecodable += 1,
+                }
+            }
+            let fetch = v1::FetchSceneRequest {
+                scene_hash: lease.scene_hash.clone(),
+            };
+            if let Some(m) = mutated(&mut rng, &fetch) {
+                if let Ok(stream) = svc.fetch_scene(sess(m)).await {
+                    use tokio_stream::StreamExt;
+                    let mut s = stream.into_inner();
+                    while s.next().await.is_some() {}
+                }
+                calls += 1;
+            }
+        }
+        // Give the leases back (mutated first, then as they are, with no reason), so the
+        // honest worker below can take every unit the rogue did not deliver.
+        let give_back = v1::ReturnLeasesRequest {
+            worker_id: rogue,
+            lease_ids: ids,
+            unusable: String::new(),
+        };
+        if let Some(m) = mutated(&mut rng, &give_back) {
+            let _ = svc.return_leases(sess(m)).await;
+            calls += 1;
+        }
+        let _ = svc.return_leases(sess(give_back)).await;
+    }
+    assert!(calls > 300, "{calls} calls");
+    eprintln!(
+        "fuzz_grpc bytes: {calls} mutated calls, {undecodable} undecodable, \
+         {accepted_results} mutated results accepted"
+    );
+    // An honest worker finishes whatever is left.
+    let reg = svc
+        .register(Request::new(register("honest")))
+        .await
+        .unwrap()
+        .into_inner();
+    let honest = |msg| {
+        let mut r = Request::new(msg);
+        r.metadata_mut()
+            .insert(tessera_proto::SESSION_METADATA, reg.session.parse().unwrap());
+        r
+    };
+    for _ in 0..10_000 {
+        let leases = svc
+            .lease_work(honest(v1::LeaseRequest {
+                worker_id: reg.worker_id,
+                max_units: 8,
+                wait_ms: 0,
+            }))
+            .await
+            .unwrap()
+            .into_inner()
+            .leases;
+        if leases.is_empty() {
+            break;
+        }
+        for lease in leases {
+            let plan = lease.plan.unwrap();
+            let unit = lease.unit.unwrap();
+            let (w, h) = tile_size(plan.width, plan.height, plan.tile_size, unit.tile);
+            let n = 3 * (unit.pass_count * w * h) as usize;
+            let a = svc
+                .submit_result(honest(v1::SubmitResultRequest {
+                    worker_id: reg.worker_id,
+                    lease_id: lease.lease_id,
+                    unit: Some(unit),
+                    width: w,
+                    height: h,
+                    pass_means: tessera_proto::means_to_bytes(&vec![0.5; n]),
+                    render_seconds: 0.01,
+                    job_id: lease.job_id,
+                    rejected_samples: 0,
+                    traced_pixel_passes: 0,
+                    fence: lease.fence.clone(),
+                }))
+                .await
+                .unwrap()
+                .into_inner();
+            assert!(a.accepted, "an honest result was refused: {}", a.reason);
+        }
+    }
+    let status = core.status(job.id).await.unwrap();
+    assert_eq!(status.state.as_str(), "done", "{status:?}");
+    assert_eq!(status.passes_done, status.passes_planned);
+    core.store().close().await;
+    drop((svc, core));
+    let again = Coordinator::open(CoordinatorConfig::new(dir.path()))
+        .await
+        .unwrap();
+    let status = again.status(job.id).await.unwrap();
+    assert_eq!(status.state.as_str(), "done");
+    assert_eq!(status.passes_done, status.passes_planned);
+}
