@@ -8,3 +8,4 @@ mod animation;
 mod fuzz_gltf;
 mod gltf;
 mod gltf_materials;
+mod khronos;
