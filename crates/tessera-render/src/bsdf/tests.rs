@@ -1749,6 +1749,8 @@ fn furnace_materials() -> Vec<(String, GltfParams, f32)> {
             0.98,
         ));
         for cr in [0.0, 0.5] {
+            // The coat scales the Lambertian base in the reciprocal Kulla–Conty form: only
+            // the specular layer under its min factor loses a little.
             out.push((
                 format!("clearcoat {cr} over dielectric r {r}"),
                 GltfParams {
@@ -1756,7 +1758,7 @@ fn furnace_materials() -> Vec<(String, GltfParams, f32)> {
                     clearcoat_roughness: cr,
                     ..white(r)
                 },
-                0.9,
+                0.97,
             ));
         }
         out.push((
