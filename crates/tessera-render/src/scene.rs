@@ -433,9 +433,20 @@ impl RenderScene {
     }
 
     /// Surface data at a hit of the ray `origin + t dir`: position with its error bound,
-    /// normals (interpolated, then perturbed by a glTF normal map), texture coordinates.
+    /// normals (interpolated, then perturbed by a glTF normal map and kept facing the view
+    /// `-dir`, see [`view_facing_normal`]), texture coordinates.
     #[inline]
     pub fn surface(&self, hit: &Hit, origin: Vec3, dir: Vec3) -> SurfacePoint {
+        let mut sp = self.surface_unbent(hit, origin, dir);
+        if self.normal_map(sp.material).is_some() {
+            sp.ns = view_facing_normal(sp.ng, -dir, sp.ns);
+        }
+        sp
+    }
+
+    /// [`RenderScene::surface`] before a normal-mapped shading normal is bent for the view.
+    #[inline(always)]
+    fn surface_unbent(&self, hit: &Hit, origin: Vec3, dir: Vec3) -> SurfacePoint {
         match hit.primitive {
             Primitive::Triangle {
                 index,
@@ -947,6 +958,47 @@ fn normal_mapped(n: Vec3, ng: Vec3, tangent: Vec3, sign: f32, texel: Vec4, scale
     }
 }
 
+/// The shading normal `n` turned toward the geometric normal `ng`, in their common plane,
+/// just enough that the view direction `v` (unit, pointing away from the surface) is above
+/// the shading hemisphere by `min(0.9 v·ng, 0.01)`; `n` itself when it already is. A
+/// normal-mapped shading normal can face away from a grazing view that the surface faces:
+/// the opaque BSDFs then see `wo` below the shading hemisphere, mirror their frame and
+/// scatter into the lower shading hemisphere, nearly all of it below the geometric
+/// surface, which the integrators reject (light does not leak through surfaces): black
+/// holes on normal-mapped floors seen along their length. Cycles keeps such views
+/// shading (its diffuse closures ignore which side of `N` the view is on, its glossy ones
+/// bend `N` with `ensure_valid_specular_reflection`); the smallest turn that puts the view
+/// above the shading hemisphere does the same for every lobe while leaving every other
+/// shading point as it was (docs/rendering.md, "Normal maps at grazing angles", has the
+/// measurements). Seen from behind, `ng` and `n` are mirrored first.
+pub(crate) fn view_facing_normal(ng: Vec3, v: Vec3, n: Vec3) -> Vec3 {
+    let back = v.dot(ng) < 0.0;
+    let (ng, n) = if back { (-ng, -n) } else { (ng, n) };
+    let vz = v.dot(ng);
+    let threshold = (0.9 * vz).min(0.01);
+    if n.dot(v) >= threshold {
+        return if back { -n } else { n };
+    }
+    // With x the unit tangential part of n, n(ψ) = cos ψ x + sin ψ ng and
+    // v·n(ψ) = ρ cos(ψ - ψ0), ρ = |(v·x, v·ng)|, ψ0 = atan2(v·ng, v·x); it rises from below
+    // the threshold at n to v·ng above it at ng, crossing it at ψ0 - acos(threshold / ρ).
+    let x = (n - n.dot(ng) * ng).try_normalize().unwrap_or(n);
+    let vx = v.dot(x);
+    let rho = (vx * vx + vz * vz).sqrt();
+    let bent = if rho <= 0.0 {
+        ng
+    } else {
+        let psi = vz.atan2(vx) - (threshold / rho).clamp(-1.0, 1.0).acos();
+        let (s, c) = psi.sin_cos();
+        (c * x + s * ng).normalize_or(ng)
+    };
+    if back {
+        -bent
+    } else {
+        bent
+    }
+}
+
 /// The mean of a varying triangle light's [`RenderScene::emission_scale`] over the
 /// triangle, from a fixed 8 x 8 stratified set of points (for light selection by power).
 fn mean_emission_scale(
@@ -1117,5 +1169,47 @@ mod tests {
         assert!((sp.ns - Vec3::Z).length() < 1e-2, "{}", sp.ns);
         let (_, sp) = one_texel_scene(&[[255, 128, 128, 255]], with(0));
         assert!(sp.ns.x > 0.99, "{}", sp.ns);
+    }
+
+    /// The bent normal faces the view, from either side, by the threshold; normals that
+    /// already do are left alone, and the turn stays in the plane of `n` and `ng`.
+    #[test]
+    fn bent_normals_face_every_view() {
+        let mut rng = crate::chi2::SplitMix64::new(0xbe47);
+        let mut unit = || {
+            crate::sampling::warp::square_to_uniform_sphere(Vec2::new(
+                rng.next_f32(),
+                rng.next_f32(),
+            ))
+        };
+        let mut bent = 0;
+        for _ in 0..20_000 {
+            let ng = unit();
+            let (v, n) = (unit(), unit());
+            // A shading normal on the geometric normal's side, as the importer makes them.
+            let n = if n.dot(ng) < 0.0 { -n } else { n };
+            let side = if v.dot(ng) < 0.0 { -1.0 } else { 1.0 };
+            let out = view_facing_normal(ng, v, n);
+            assert!((out.length() - 1.0).abs() < 1e-4, "{out}");
+            let threshold = (0.9 * v.dot(ng) * side).min(0.01);
+            assert!(
+                out.dot(v) * side >= threshold - 1e-4 && out.dot(ng) > 0.0,
+                "ng {ng} v {v} n {n}: {out}"
+            );
+            if n.dot(v) * side >= threshold {
+                assert_eq!(out, n);
+            } else {
+                bent += 1;
+                assert!(
+                    out.dot(n.cross(ng)).abs() < 1e-3,
+                    "ng {ng} v {v} n {n}: {out}"
+                );
+                assert!(
+                    out.dot(ng) >= n.dot(ng) - 1e-4,
+                    "ng {ng} v {v} n {n}: {out}"
+                );
+            }
+        }
+        assert!(bent > 1000, "{bent}");
     }
 }

@@ -7,16 +7,22 @@
 //! | [`ggx_albedo`] | `E(μ, α) = f0 A(μ, α) + f90 B(μ, α)`: the GGX reflection albedo with Schlick's Fresnel `f0 + (f90 - f0)(1 - wo·h)^5` (linear in `f0` and `f90`, so two tables serve every colour) |
 //! | [`ggx_albedo_average`] | `E_avg(α) = 2 ∫ E(μ) μ dμ`, the cosine-weighted hemispherical average, as `(A_avg, B_avg)` |
 //! | [`sheen_albedo`] | `E(μ, r)` of the Charlie sheen lobe of KHR_materials_sheen as published, sheen colour 1 |
+//! | [`dielectric_albedo`] | `E(μ, α, η)`: the reflected plus transmitted power of the single-scattering rough dielectric, for `η` in `[1, 3]` and `1/η` (`dielectric_albedo.bin`), with its average [`dielectric_albedo_average`], for the multiple-scattering compensation of [`super::dielectric`] |
 //!
-//! The tables are computed by fixed quadrature and committed (`albedo_tables.bin`, read
+//! The tables are computed by fixed quadrature and committed (`albedo_tables.bin` and
+//! `dielectric_albedo.bin`, read
 //! once per process): computing them at start-up took 0.6 s for the GGX tables and
 //! 0.75 s for the sheen table at opt-level 3 on a busy two-core machine, paid by every
 //! `tessera render`, worker and pilot process that met a glTF material (0.93 G of the
 //! 3.8 G instructions of a small render of the Veach scene), and a committed table is
 //! the same on every platform whatever its `sin` and `cos`. The test
-//! `committed_tables_are_the_quadrature` recomputes them; `cargo test -p tessera-render
+//! `committed_tables_are_the_quadrature` (and `committed_dielectric_table_is_the_quadrature`)
+//! recomputes them; `cargo test -p tessera-render
 //! --lib write_albedo_tables -- --ignored` writes the file again after a change to the
-//! quadrature or the node layout. The GGX integrals by the midpoint rule on the square of the
+//! quadrature or the node layout (both files). The dielectric table by the midpoint rule on
+//! the visible-normal warp with both Fresnel branches of each microfacet
+//! (`RoughDielectric::single_scattering_energy`), trilinear in `(sqrt(μ), r, sqrt(η - 1))`. The GGX
+//! integrals by the midpoint rule on the square of the
 //! visible-normal warp (`∫ F G2/G1 dD_wo`, Heitz 2018), the sheen integral by the midpoint
 //! rule in `(sqrt(cos θi), φ)`. Lookups interpolate bilinearly in
 //! `(sqrt(μ), r)` with `r = sqrt(α)` the perceptual roughness: the square root puts the
@@ -84,21 +90,27 @@ impl Table {
         (r - self.r_min) / (1.0 - self.r_min)
     }
 
-    /// `2 ∫ E(μ) μ dμ` of column `j`, exactly for its interpolation: with `x = sqrt(μ)`,
-    /// `2 μ dμ = 4 x³ dx` and `E` is linear in `x` on each cell.
+    /// `2 ∫ E(μ) μ dμ` of column `j`, exactly for its interpolation.
     fn column_average(&self, j: usize) -> f32 {
-        let h = 1.0 / (N_MU - 1) as f64;
-        let mut sum = 0.0f64;
-        for i in 0..N_MU - 1 {
-            let (a, b) = (self.v[i][j] as f64, self.v[i + 1][j] as f64);
-            let (x0, x1) = (i as f64 * h, (i + 1) as f64 * h);
-            // ∫ 4x³ (a + (b - a)(x - x0)/h) dx over [x0, x1].
-            let p4 = x1.powi(4) - x0.powi(4);
-            let p5 = x1.powi(5) - x0.powi(5);
-            sum += a * p4 + (b - a) / h * (0.8 * p5 - x0 * p4);
-        }
-        sum as f32
+        let column: [f32; N_MU] = std::array::from_fn(|i| self.v[i][j]);
+        sqrt_mu_average(&column)
     }
+}
+
+/// `2 ∫ E(μ) μ dμ` of values `E` on nodes uniform in `x = sqrt(μ)` over [0, 1], exactly for
+/// their linear interpolation in `x`: `2 μ dμ = 4 x³ dx` and `E` is linear on each cell.
+fn sqrt_mu_average(column: &[f32]) -> f32 {
+    let h = 1.0 / (column.len() - 1) as f64;
+    let mut sum = 0.0f64;
+    for (i, pair) in column.windows(2).enumerate() {
+        let (a, b) = (pair[0] as f64, pair[1] as f64);
+        let (x0, x1) = (i as f64 * h, (i + 1) as f64 * h);
+        // ∫ 4x³ (a + (b - a)(x - x0)/h) dx over [x0, x1].
+        let p4 = x1.powi(4) - x0.powi(4);
+        let p5 = x1.powi(5) - x0.powi(5);
+        sum += a * p4 + (b - a) / h * (0.8 * p5 - x0 * p4);
+    }
+    sum as f32
 }
 
 #[cfg(test)]
@@ -294,6 +306,187 @@ pub fn sheen_albedo(mu: f32, r: f32) -> f32 {
     sheen_table().lookup(mu, r)
 }
 
+// ---------------------------------------------------------------------------------------
+// Rough dielectric energy tables
+// ---------------------------------------------------------------------------------------
+
+/// Nodes of the rough dielectric table along `sqrt(μ)`.
+const D_MU: usize = 32;
+/// Nodes along the perceptual roughness, uniform in `[sqrt(MIN_ALPHA), 1]`.
+const D_R: usize = 16;
+/// Nodes along the relative index, uniform in `sqrt((η - 1) / (DIELECTRIC_ETA_MAX - 1))`:
+/// close together near one, where the leaving side's total internal reflection sets in
+/// and its albedo changes fastest.
+const D_ETA: usize = 16;
+/// Largest relative index the dielectric table covers (diamond is 2.42); larger ones are
+/// looked up at this one (their compensation is then approximate).
+pub const DIELECTRIC_ETA_MAX: f32 = 3.0;
+/// Entries of one side (`η >= 1`, entering; `η < 1`, leaving) of the dielectric table.
+const D_SIDE: usize = D_ETA * D_MU * D_R;
+/// Quadrature points per side of the unit square, per dielectric table entry.
+#[cfg(test)]
+const D_QUAD: usize = 32;
+
+/// The committed rough dielectric table: `E(μ, r, η)` for the relative index `η` then
+/// `1/η` (two sides of `D_ETA × D_MU × D_R` values, `η` slowest, `r` fastest),
+/// little-endian binary32 (written by `write_albedo_tables`).
+static COMMITTED_DIELECTRIC: &[u8; 8 * D_SIDE] = include_bytes!("dielectric_albedo.bin");
+
+/// The rough dielectric table with its cosine-weighted averages per `(side, η, r)`.
+struct DielectricTable {
+    v: Vec<f32>,
+    avg: Vec<f32>,
+}
+
+#[inline]
+fn d_index(side: usize, k: usize, i: usize, j: usize) -> usize {
+    ((side * D_ETA + k) * D_MU + i) * D_R + j
+}
+
+/// `(side, η_table)` of a relative index seen from the outgoing direction: entering
+/// (`η >= 1`) is side 0, leaving is side 1 at `1/η`.
+#[inline]
+fn d_side(eta: f32) -> (usize, f32) {
+    if eta >= 1.0 {
+        (0, eta)
+    } else {
+        (1, 1.0 / eta)
+    }
+}
+
+/// The roughness of the dielectric table's node `j`.
+#[cfg(test)]
+fn d_r_node(j: usize) -> f32 {
+    let r_min = MIN_ALPHA.sqrt();
+    r_min + (1.0 - r_min) * node(j, D_R)
+}
+
+/// The relative index of the dielectric table's node `k` (before the side's inversion).
+#[cfg(test)]
+fn d_eta_node(k: usize) -> f32 {
+    1.0 + (DIELECTRIC_ETA_MAX - 1.0) * node(k, D_ETA).powi(2)
+}
+
+/// The energy albedo of the single-scattering rough dielectric at one `(μ, α, η)` by the
+/// midpoint rule on the visible-normal warp, with both branches of every microfacet taken
+/// at their Fresnel weights (what `RoughDielectric::sample` returns on average).
+#[cfg(test)]
+fn dielectric_albedo_quadrature(mu: f32, alpha: f32, eta: f32) -> f32 {
+    let mu = mu.max(MU_MIN);
+    let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
+    let lobe = super::dielectric::RoughDielectric {
+        eta,
+        alpha,
+        tint: Vec3::ONE,
+    };
+    let mut sum = 0.0f64;
+    for i in 0..D_QUAD {
+        for j in 0..D_QUAD {
+            let u = Vec2::new(
+                (i as f32 + 0.5) / D_QUAD as f32,
+                (j as f32 + 0.5) / D_QUAD as f32,
+            );
+            sum += lobe.single_scattering_energy(wo, u) as f64;
+        }
+    }
+    (sum / (D_QUAD * D_QUAD) as f64) as f32
+}
+
+/// The dielectric table by quadrature, in the committed file's order, rows in parallel.
+#[cfg(test)]
+fn dielectric_quadrature_table() -> Vec<f32> {
+    (0..2 * D_ETA * D_MU)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            let (side, k, i) = (row / (D_ETA * D_MU), (row / D_MU) % D_ETA, row % D_MU);
+            let eta = d_eta_node(k);
+            let eta = if side == 0 { eta } else { 1.0 / eta };
+            (0..D_R).map(move |j| {
+                let r = d_r_node(j);
+                dielectric_albedo_quadrature(mu_node_of(i, D_MU), (r * r).max(MIN_ALPHA), eta)
+            })
+        })
+        .collect()
+}
+
+/// `μ` of node `i` of `n` uniform in `sqrt(μ)`.
+#[cfg(test)]
+fn mu_node_of(i: usize, n: usize) -> f32 {
+    node(i, n).powi(2)
+}
+
+fn dielectric_table() -> &'static DielectricTable {
+    static TABLE: OnceLock<DielectricTable> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        let v: Vec<f32> = COMMITTED_DIELECTRIC
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        let mut avg = Vec::with_capacity(2 * D_ETA * D_R);
+        for side in 0..2 {
+            for k in 0..D_ETA {
+                for j in 0..D_R {
+                    let column: [f32; D_MU] = std::array::from_fn(|i| v[d_index(side, k, i, j)]);
+                    avg.push(sqrt_mu_average(&column));
+                }
+            }
+        }
+        DielectricTable { v, avg }
+    })
+}
+
+/// Cells and fractions of `(α, η)` in the dielectric table.
+#[inline]
+fn d_locate(alpha: f32, eta_table: f32) -> ((usize, f32), (usize, f32)) {
+    let r_min = MIN_ALPHA.sqrt();
+    let r = alpha.max(0.0).sqrt();
+    let rj = Table::locate((r - r_min) / (1.0 - r_min), D_R);
+    let t = ((eta_table - 1.0) / (DIELECTRIC_ETA_MAX - 1.0))
+        .max(0.0)
+        .sqrt();
+    let ek = Table::locate(t, D_ETA);
+    (rj, ek)
+}
+
+/// The energy albedo `E(μ)` of the single-scattering rough dielectric
+/// ([`super::dielectric::RoughDielectric`] without its compensation) with GGX `alpha` and
+/// relative index `eta` seen from the outgoing direction at `μ = |cos θo|`: the reflected
+/// plus the transmitted power, `∫ f_r cos + η² ∫ f_t cos` (the radiance BTDF's `1/η²`
+/// undone). Trilinear in `(sqrt(μ), sqrt(α), sqrt(η - 1))`.
+#[inline]
+pub fn dielectric_albedo(mu: f32, alpha: f32, eta: f32) -> f32 {
+    let t = dielectric_table();
+    let (side, eta_t) = d_side(eta);
+    let (i, s) = Table::locate(mu.max(0.0).sqrt(), D_MU);
+    let ((j, u), (k, w)) = d_locate(alpha, eta_t);
+    let bilinear = |k: usize| {
+        let at = |i, j| t.v[d_index(side, k, i, j)];
+        let a = at(i, j) + (at(i + 1, j) - at(i, j)) * s;
+        let b = at(i, j + 1) + (at(i + 1, j + 1) - at(i, j + 1)) * s;
+        a + (b - a) * u
+    };
+    let (lo, hi) = (bilinear(k), bilinear(k + 1));
+    lo + (hi - lo) * w
+}
+
+/// `E_avg = 2 ∫ E(μ) μ dμ` of the interpolated [`dielectric_albedo`] (exactly: the
+/// average is linear, so it is the bilinear interpolation of the nodes' averages).
+#[inline]
+pub fn dielectric_albedo_average(alpha: f32, eta: f32) -> f32 {
+    let t = dielectric_table();
+    let (side, eta_t) = d_side(eta);
+    let ((j, u), (k, w)) = d_locate(alpha, eta_t);
+    let at = |k: usize, j: usize| t.avg[(side * D_ETA + k) * D_R + j];
+    let lo = at(k, j) + (at(k, j + 1) - at(k, j)) * u;
+    let hi = at(k + 1, j) + (at(k + 1, j + 1) - at(k + 1, j)) * u;
+    lo + (hi - lo) * w
+}
+
+#[cfg(test)]
+pub(crate) fn dielectric_albedo_reference(mu: f32, alpha: f32, eta: f32) -> f32 {
+    dielectric_albedo_quadrature(mu, alpha, eta)
+}
+
 #[cfg(test)]
 pub(crate) fn ggx_albedo_reference(mu: f32, alpha: f32) -> (f32, f32) {
     ggx_albedo_quadrature(mu, alpha)
@@ -312,6 +505,21 @@ mod committed_tests {
     fn computed() -> [Values; 3] {
         let (a, b) = ggx_quadrature_tables();
         [a, b, sheen_quadrature_table()]
+    }
+
+    /// The committed rough dielectric table is what the quadrature gives, within rounding.
+    #[test]
+    fn committed_dielectric_table_is_the_quadrature() {
+        let table = dielectric_quadrature_table();
+        let stored = &dielectric_table().v;
+        assert_eq!(table.len(), stored.len());
+        for (n, (c, s)) in table.iter().zip(stored).enumerate() {
+            assert!(
+                (c - s).abs() <= 1e-5,
+                "dielectric entry {n}: quadrature {c}, committed {s}; regenerate with \
+                 `cargo test -p tessera-render --lib write_albedo_tables -- --ignored`"
+            );
+        }
     }
 
     /// The committed tables are what the quadrature gives, within rounding: the same bits
@@ -335,9 +543,10 @@ mod committed_tests {
         }
     }
 
-    /// Writes `albedo_tables.bin` from the quadrature (run by hand, see the module docs).
+    /// Writes `albedo_tables.bin` and `dielectric_albedo.bin` from the quadrature (run by
+    /// hand, see the module docs).
     #[test]
-    #[ignore = "writes src/bsdf/albedo_tables.bin; run by hand after changing the quadrature"]
+    #[ignore = "writes src/bsdf/*.bin; run by hand after changing the quadrature"]
     fn write_albedo_tables() {
         let mut bytes = Vec::with_capacity(3 * TABLE_BYTES);
         for table in computed() {
@@ -345,8 +554,12 @@ mod committed_tests {
                 bytes.extend_from_slice(&v.to_le_bytes());
             }
         }
-        let path =
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf/albedo_tables.bin");
-        std::fs::write(&path, bytes).unwrap();
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
+        std::fs::write(dir.join("albedo_tables.bin"), bytes).unwrap();
+        let bytes: Vec<u8> = dielectric_quadrature_table()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        std::fs::write(dir.join("dielectric_albedo.bin"), bytes).unwrap();
     }
 }

@@ -197,3 +197,67 @@ fn blender_fixtures_match_their_cycles_references() {
         "fixtures off their Cycles reference: {failures:#?}"
     );
 }
+
+/// The room's normal-mapped floor, seen along its length, has no black holes: pixels
+/// below 30% of Cycles' (where Cycles is not dark). A shading normal that faces away from
+/// the grazing view used to send the path below the geometric surface, where it ended:
+/// 141 such pixels at 256 spp (139 with bdpt), and the floor's regions from 9.4% darker
+/// than Cycles to 7.1% brighter.
+/// Turning the normal just enough to face the view (`scene::view_facing_normal`)
+/// leaves none; the floor regions then agree with Cycles like the rest of the room.
+#[test]
+fn room_floor_has_no_black_holes_at_grazing_views() {
+    use tessera_render::integrator::Integrator;
+    use tessera_render::render::RenderConfig;
+    let reference = std::fs::read(format!("{DIR}/room.cycles.exr")).unwrap();
+    let reference = tessera_image::read_exr(&reference).unwrap();
+    let (w, h) = (reference.width, reference.height);
+    let scene = tessera_scene::load(&format!("{DIR}/room.glb")).unwrap();
+    let lum = |p: [f32; 3]| (p[0] + p[1] + p[2]) / 3.0;
+    let [r, g, b] = ["R", "G", "B"].map(|c| reference.get(c).unwrap());
+    let theirs = regions(w, h, |x, y| {
+        let i = y * w + x;
+        (lum([r[i], g[i], b[i]]) as f64, 0.0)
+    });
+    for integrator in [Integrator::Path, Integrator::Bdpt] {
+        let config = RenderConfig {
+            integrator,
+            ..reference_config()
+        };
+        let image = render(&scene, w as u32, h as u32, 256, &config).image();
+        let mut holes = 0;
+        for i in 0..w * h {
+            let ours = lum(image.mean[i]);
+            assert!(ours.is_finite(), "{integrator:?} pixel {i}: {ours}");
+            if lum([r[i], g[i], b[i]]) > 0.05 && ours < 0.3 * lum([r[i], g[i], b[i]]) {
+                holes += 1;
+            }
+        }
+        // The floor's regions (rows 2 and 3 of the 4x4 grid), luminance.
+        let ours = regions(w, h, |x, y| (lum(image.mean[y * w + x]) as f64, 0.0));
+        let rel: Vec<f64> = (8..16).map(|k| ours[k].0 / theirs[k].0 - 1.0).collect();
+        eprintln!("room {integrator:?}: {holes} hole pixels; floor regions vs Cycles {rel:+.3?}");
+        assert!(
+            holes <= 15,
+            "{integrator:?}: {holes} pixels below 30% of Cycles'"
+        );
+        if matches!(integrator, Integrator::Bdpt) {
+            // bdpt and path disagree by several percent on this floor before and after
+            // (shading normals make the BSDF non-reciprocal, and bdpt's light subpaths
+            // see it from the other side): only the holes are judged.
+            continue;
+        }
+        // Each floor region within 10% of Cycles, and all of them within 10% of each
+        // other (before: -9.4% to +7.1%; the remaining offset is Cycles' own darkening of
+        // normal-mapped Lambert surfaces, see the `normal_map` fixture).
+        let (lo, hi) = rel
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &r| {
+                (lo.min(r), hi.max(r))
+            });
+        assert!(
+            lo > -0.1 && hi < 0.1 && hi - lo < 0.1,
+            "{integrator:?}: floor regions {lo:+.3} to {hi:+.3} off Cycles"
+        );
+    }
+}
