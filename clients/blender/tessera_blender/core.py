@@ -114,7 +114,24 @@ def job_settings(scene):
         adaptive=t.adaptive,
         time_limit_seconds=t.time_limit or None,
         name=f"{name}: {scene.name}"[:200],
+        shutter=shutter(scene),
     )
+
+
+def shutter(scene):
+    """Blender's motion blur as the job's shutter, in frames around the frame: Cycles'
+    shutter length and position (start, centre or end on the frame); ``None`` without
+    motion blur."""
+    r = scene.render
+    if not r.use_motion_blur:
+        return None
+    length = r.motion_blur_shutter
+    position = getattr(getattr(scene, "cycles", None), "motion_blur_position", "CENTER")
+    if position == "START":
+        return [0.0, length]
+    if position == "END":
+        return [-length, 0.0]
+    return [-length / 2.0, length / 2.0]
 
 
 def export_dir():

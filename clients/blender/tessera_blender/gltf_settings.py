@@ -20,6 +20,8 @@ Why each setting:
 - ``export_apply=False``: the fixtures have no modifiers; the add-on overrides it
   (:data:`ADDON_OVERRIDES`), since the importer sees meshes only as exported and would
   otherwise render every modifier (subdivision, mirror, arrays) as absent.
+- ``use_renderable=False``: the exporter's default (every object); the add-on overrides
+  it, so that an object disabled for rendering in Blender is not rendered on the farm.
 - ``export_gpu_instances=False``: Blender's default; the fixture ``gpu_instancing`` turns it
   on to check EXT_mesh_gpu_instancing.
 
@@ -37,12 +39,13 @@ EXPORT_SETTINGS = {
     "export_extras": False,
     "export_yup": True,
     "export_apply": False,
+    "use_renderable": False,
     "export_import_convert_lighting_mode": "SPEC",
     "export_image_format": "AUTO",
 }
 
 #: What the add-on changes for artists' scenes (see the module's documentation).
-ADDON_OVERRIDES = {"export_apply": True}
+ADDON_OVERRIDES = {"export_apply": True, "use_renderable": True}
 
 
 def settings(**overrides):

@@ -118,6 +118,25 @@ class Extension(unittest.TestCase):
         s.render.filepath = "/tmp/shots/take"
         self.assertEqual(core.output_pattern(s), "/tmp/shots/take####.exr")
 
+    def test_job_settings_come_from_the_scene(self):
+        from tessera_blender import core
+
+        s = build_scene("/tmp/shots/shot_####.exr")
+        s.render.resolution_percentage = 50
+        s.render.fps, s.render.fps_base = 30, 1.001
+        j = core.job_settings(s)
+        self.assertEqual((j.width, j.height, j.camera, j.spp, j.seed), (W // 2, H // 2, "Shot", SPP, 3))
+        self.assertEqual((j.frames.start, j.frames.end), (1, 3))
+        self.assertAlmostEqual(j.fps, 30 / 1.001, places=4)  # fps_base is a float32
+        self.assertIsNone(j.shutter)
+        s.render.use_motion_blur = True
+        s.render.motion_blur_shutter = 0.5
+        self.assertEqual(core.job_settings(s).shutter, [-0.25, 0.25])
+        s.tessera.use_scene_range = False
+        s.tessera.frame_start, s.tessera.frame_end = 2, 1
+        with self.assertRaises(core.UserError):
+            core.job_settings(s)
+
     @unittest.skipUnless(LIVE, "needs " + ", ".join(ENV))
     def test_three_frames_round_trip_byte_identical_to_tessera_render(self):
         d = os.path.join(os.environ["TESSERA_TEST_DIR"], "roundtrip")
