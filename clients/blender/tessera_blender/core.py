@@ -196,12 +196,18 @@ _lock = threading.Lock()
 _running = 0
 
 
+def inline():
+    """Whether requests run inline (background mode) rather than on threads (the
+    interface). A function, so that a test can take the interface's path headless."""
+    return bpy.app.background
+
+
 def run(work, finish):
     """Runs ``work()`` and then ``finish(result, error)`` on the main thread. In the
     interface ``work`` runs on a thread of its own and ``finish`` on the next timer tick;
     in background mode both run now."""
     global _running
-    if bpy.app.background:
+    if inline():
         try:
             r = work()
         except Exception as e:  # noqa: BLE001  (any failure becomes a message)
@@ -242,13 +248,22 @@ def _tick():
             finish(r, err)
         except Exception as e:  # noqa: BLE001  (a closed file, a removed scene)
             print(f"tessera: {describe(e)}")
+    # Jobs still running, and finished ones whose frames are still to be fetched (once:
+    # a failed fetch waits for the Fetch button rather than retrying every poll).
     pending = [(s.name, j.job_id) for s in bpy.data.scenes if hasattr(s, "tessera")
-               for j in s.tessera.jobs if j.state not in tc.FINAL_STATES or (j.state == "done" and not j.fetched)]
+               for j in s.tessera.jobs
+               if j.state not in tc.FINAL_STATES or (j.state == "done" and not j.fetched and not j.fetch_error)]
     now = time.monotonic()
     if pending and not _polling[0] and now - _last_poll[0] >= POLL_SECONDS:
         _last_poll[0] = now
         _polling[0] = True
-        run(lambda: _poll(pending), _polled)
+        try:
+            # Made here: the preferences are Blender data, read on the main thread only.
+            c = client()
+        except tc.TesseraError as e:
+            _polled(None, e)
+        else:
+            run(lambda: _poll(c, pending), _polled)
     with _lock:
         busy = _running > 0
     if not pending and not busy and _done.empty():
@@ -266,8 +281,7 @@ def stop_timer():
         bpy.app.timers.unregister(_tick)
 
 
-def _poll(pending):
-    c = client()
+def _poll(c, pending):
     out = []
     for scene_name, job_id in pending:
         try:
@@ -343,8 +357,16 @@ def fetch_frames(c, job_id, pattern, start, end):
 
 
 def fetch_async(scene, job):
+    """Downloads the job's frames on a thread, then shows the last one."""
     scene_name, job_id = scene.name, job.job_id
     pattern, start, end = job.output or output_pattern(scene), job.frame_start, job.frame_end
+    job.fetch_error = ""
+    try:
+        c = client()
+    except tc.TesseraError as e:
+        job.fetch_error = describe(e)
+        set_message(scene, f"fetching job {job_id}: {describe(e)}", e)
+        return
 
     def finish(paths, err):
         _fetching.pop((scene_name, job_id), None)
@@ -353,6 +375,8 @@ def fetch_async(scene, job):
             return
         j = find_job(s, job_id)
         if err is not None:
+            if j is not None:
+                j.fetch_error = describe(err)
             set_message(s, f"fetching job {job_id}: {describe(err)}", err)
             return
         if j is not None:
@@ -360,7 +384,7 @@ def fetch_async(scene, job):
         set_message(s, f"job {job_id}: wrote {len(paths)} frame(s), last {paths[-1]}")
         show_image(paths[-1])
 
-    run(lambda: fetch_frames(client(), job_id, pattern, start, end), finish)
+    run(lambda: fetch_frames(c, job_id, pattern, start, end), finish)
 
 
 def show_image(path):

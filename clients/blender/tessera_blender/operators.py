@@ -86,7 +86,7 @@ class TESSERA_OT_quote(bpy.types.Operator):
             result["quote"] = q
 
         core.run(lambda: c.quote_scene(data, s, workers), finish)
-        if bpy.app.background:
+        if core.inline():
             if "error" in result:
                 return _fail(self, scene, result["error"])
             _info(self, scene, "quote: " + "; ".join(result["quote"].lines()))
@@ -203,7 +203,7 @@ class TESSERA_OT_fetch(bpy.types.Operator):
                 raise core.UserError(f"the output path {pattern} needs a run of # for the frame number")
         except (core.UserError, tc.TesseraError) as e:
             return _fail(self, scene, e)
-        if not bpy.app.background and job is not None:
+        if not core.inline() and job is not None:
             core.fetch_async(scene, job)
             return {"FINISHED"}
         try:

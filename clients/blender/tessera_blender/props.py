@@ -66,6 +66,7 @@ class TesseraJob(bpy.types.PropertyGroup):
     message: StringProperty(name="Message")
     output: StringProperty(name="Output", subtype="FILE_PATH")
     fetched: BoolProperty(name="Fetched")
+    fetch_error: StringProperty(name="Fetch error", description="Why the last download of the frames failed")
 
 
 class TesseraSceneSettings(bpy.types.PropertyGroup):

@@ -175,6 +175,41 @@ class Extension(unittest.TestCase):
               f"submit+wait+fetch took {wall:.1f} s", flush=True)
 
     @unittest.skipUnless(LIVE, "needs " + ", ".join(ENV))
+    def test_the_interfaces_path_submits_on_a_thread_and_polls_on_the_timer(self):
+        # What the panel's buttons do in the interface, driven headless: the operators
+        # return at once, requests run on threads, and the timer function (called here as
+        # Blender's event loop would) applies their results, polls and fetches the frames.
+        from tessera_blender import core
+
+        d = os.path.join(os.environ["TESSERA_TEST_DIR"], "interface")
+        s = build_scene(os.path.join(d, "ui_####.exr"))
+        s.frame_end = 2
+        saved = core.inline
+        core.inline = lambda: False
+        try:
+            self.assertEqual(bpy.ops.tessera.quote(), {"FINISHED"})
+            # The quote is under way on its thread; the panel's buttons wait for it.
+            self.assertTrue(s.tessera.busy)
+            self.assertEqual(bpy.ops.tessera.submit(), {"CANCELLED"})
+            deadline = time.monotonic() + 120
+            while s.tessera.busy and time.monotonic() < deadline:
+                core._tick()
+                time.sleep(0.05)
+            self.assertEqual(bpy.ops.tessera.submit(), {"FINISHED"}, s.tessera.message)
+            while time.monotonic() < deadline:
+                core._tick()
+                if not s.tessera.busy and len(s.tessera.jobs) and s.tessera.jobs[-1].fetched:
+                    break
+                time.sleep(0.05)
+        finally:
+            core.inline = saved
+        self.assertTrue(s.tessera.quote_text.startswith("2 frame(s)"), s.tessera.quote_text)
+        job = s.tessera.jobs[-1]
+        self.assertEqual((job.state, job.frames_done, job.fetched), ("done", 2, True), s.tessera.message)
+        self.assertEqual(sorted(os.listdir(d)), ["ui_0001.exr", "ui_0002.exr"])
+        self.assertIn("wrote 2 frame(s)", s.tessera.message)
+
+    @unittest.skipUnless(LIVE, "needs " + ", ".join(ENV))
     def test_quote_fills_the_panel_and_queues_nothing(self):
         from tessera_blender import core
 
