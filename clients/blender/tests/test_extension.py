@@ -11,7 +11,6 @@ to the farm prints what it measured (``ROUNDTRIP``, ``QUOTE`` lines) for the tes
 
 import glob
 import hashlib
-import json
 import os
 import subprocess
 import sys
@@ -107,6 +106,32 @@ class Extension(unittest.TestCase):
         for op in ("quote", "submit", "fetch", "cancel", "open_dashboard"):
             self.assertTrue(hasattr(bpy.ops.tessera, op), op)
         self.assertTrue(hasattr(bpy.types, "TESSERA_PT_render"))
+
+    def test_the_panel_draws_every_state(self):
+        # No window headless: the panel's draw code runs against a layout that accepts
+        # every call, so a wrong property or operator name in it fails here.
+        import types
+
+        from tessera_blender import panel
+
+        class Layout:
+            def __getattr__(self, name):
+                return lambda *a, **k: Layout()
+
+        class Owner:
+            layout = Layout()
+
+        s = build_scene("/tmp/shots/shot_####.exr")
+        t = s.tessera
+        panel.TESSERA_PT_render.draw(Owner(), types.SimpleNamespace(scene=s))
+        t.message, t.failed, t.error_field = "target_error: needs a target", True, "target_error"
+        t.quote_text = "3 frame(s)\n5%: 1.0 s"
+        job = t.jobs.add()
+        job.job_id, job.state, job.eta_seconds, job.error_estimate, job.message = 5, "running", 130.0, 0.02, "x"
+        t.use_scene_range, t.camera = False, s.camera
+        panel.TESSERA_PT_render.draw(Owner(), types.SimpleNamespace(scene=s))
+        panel.TESSERA_UL_jobs.draw_item(Owner(), None, Layout(), None, job, 0, None, "")
+        t.jobs.clear()
 
     def test_output_pattern_follows_blenders_rule(self):
         from tessera_blender import core

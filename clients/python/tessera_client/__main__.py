@@ -66,7 +66,10 @@ def _scene_bytes(scene: str):
         raise TesseraError(f"reading {scene}: {e.strerror or e}") from None
 
 
-def _progress(last=[""]):
+def _progress():
+    """A progress callback printing each new status line to standard error."""
+    last = [""]
+
     def show(st):
         line = st.progress_line()
         if line != last[0]:
