@@ -116,8 +116,11 @@ fn the_python_client_against_a_real_farm() {
     let dir = temp_dir("python-clients", "client");
     let (c, _w) = farm(&dir);
     let out = unittest(&python, &repo().join("clients/python/tests"), &c, &dir);
+    // unittest -v prints `NAME (MODULE.CLASS.NAME) ... ok` for each test that passed.
     assert!(
-        out.contains("test_content_addressed_submit_wait_and_frames_equal_tessera_render ... ok"),
+        out.lines().any(|l| l
+            .starts_with("test_content_addressed_submit_wait_and_frames_equal_tessera_render ")
+            && l.ends_with("... ok")),
         "{out}"
     );
     let _ = std::fs::remove_dir_all(&dir);
