@@ -23,6 +23,7 @@ mod netns_partition;
 mod plan_cli;
 mod poison_scenes_cli;
 mod postgres_e2e;
+mod python_clients;
 mod render_cli;
 mod store_cli;
 mod tls_e2e;
