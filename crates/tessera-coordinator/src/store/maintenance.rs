@@ -85,6 +85,7 @@ impl std::fmt::Display for CheckReport {
             writeln!(f, "database: missing (a coordinator creates an empty one)")?;
         }
         match &self.integrity {
+            _ if !self.exists => {}
             Ok(()) => writeln!(f, "integrity: ok")?,
             Err(e) => writeln!(f, "integrity: DAMAGED: {e}")?,
         }

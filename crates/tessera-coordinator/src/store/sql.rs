@@ -619,8 +619,11 @@ async fn backfill_checksums(conn: &mut Conn<'_>) -> StoreResult<()> {
 const TILE_COLUMNS: &str =
     "job, frame, tile, merged_passes, stats, units, rejected_samples, adaptive, checksum";
 
-/// The blobs of a `tiles` row ([`TILE_COLUMNS`]): stats, units, adaptive.
-fn tile_blobs(row: &Row) -> StoreResult<(Vec<u8>, Vec<u8>, Option<Vec<u8>>)> {
+/// The blobs of a `tiles` row: stats, units, adaptive.
+type TileBlobs = (Vec<u8>, Vec<u8>, Option<Vec<u8>>);
+
+/// The blobs of a `tiles` row ([`TILE_COLUMNS`]).
+fn tile_blobs(row: &Row) -> StoreResult<TileBlobs> {
     Ok((
         row.try_get("stats")?,
         row.try_get("units")?,

@@ -289,8 +289,7 @@ async fn a_damaged_index_is_refused_by_start_and_check_alike() {
     let report = maintenance::check(dir.path()).await;
     let refused = SqliteStore::open(dir.path())
         .await
-        .err()
-        .expect("the start refuses a damaged index");
+        .expect_err("the start refuses a damaged index");
     assert!(matches!(refused, StoreError::Damaged { .. }), "{refused}");
     assert_eq!(
         report.refusal.as_deref(),
@@ -361,8 +360,7 @@ async fn a_deleted_marker_and_wal_are_refused_and_ids_never_repeat() {
 
     let refused = SqliteStore::open(lost.path())
         .await
-        .err()
-        .expect("a store without its marker is refused");
+        .expect_err("a store without its marker is refused");
     assert!(
         matches!(refused, StoreError::MarkerMissing { .. }),
         "{refused}"
