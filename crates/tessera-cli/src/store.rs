@@ -21,9 +21,12 @@ pub struct StoreArgs {
 
 #[derive(Subcommand, Debug)]
 enum StoreCommand {
-    /// Check a store without changing it (safe while a coordinator runs on it): SQLite's
-    /// integrity check, the schema version, the commit marker. Exit status 0 when a
-    /// coordinator would start on it, 1 otherwise.
+    /// Check a store without changing it (safe while a coordinator runs on it): the checks
+    /// a coordinator's start makes (SQLite's integrity check, the schema version, the
+    /// commit marker), then every row's checksum. Exit status 0 when a coordinator starts
+    /// on it and every row reads back, 2 when it starts but rows are damaged (listed,
+    /// with what the coordinator does about each), 1 when it refuses to start (with the
+    /// start's own message).
     Check(DataArg),
     /// Write a consistent backup of a store to a new file, while a coordinator may run on
     /// it (SQLite's VACUUM INTO), then check the copy.
@@ -46,6 +49,9 @@ enum StoreCommand {
     /// empty one after the damaged files were moved away): the commit marker is rewritten
     /// and job ids already issued are never issued again.
     AcceptLoss(DataArg),
+    /// Rebuild the indexes of a stopped coordinator's store from its tables (when the
+    /// check finds only index problems), then check it.
+    Reindex(DataArg),
 }
 
 #[derive(Args, Debug)]
@@ -95,6 +101,12 @@ pub fn store(args: StoreArgs) -> Result<()> {
                 if !report.healthy() {
                     bail!("the store in {} is not usable", d.data.display());
                 }
+                if !report.clean() {
+                    // Exit status 2: the coordinator starts, but rows are damaged.
+                    use std::io::Write;
+                    std::io::stdout().flush().ok();
+                    std::process::exit(2);
+                }
             }
             StoreCommand::Backup { data, out } => {
                 let data = data.resolve("backup")?;
@@ -135,6 +147,16 @@ pub fn store(args: StoreArgs) -> Result<()> {
                     .with_context(|| format!("accepting the store in {}", d.data.display()))?;
                 println!("accepted: {}", d.data.display());
                 println!("commit marker: {}", r.mark);
+            }
+            StoreCommand::Reindex(d) => {
+                let d = d.resolve("reindex")?;
+                let report = maintenance::reindex(&d.data)
+                    .await
+                    .with_context(|| format!("reindexing the store in {}", d.data.display()))?;
+                println!("{report}");
+                if !report.healthy() {
+                    bail!("the store in {} is still not usable", d.data.display());
+                }
             }
         }
         Ok(())

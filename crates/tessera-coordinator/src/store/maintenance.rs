@@ -1,6 +1,11 @@
-//! What `tessera store check|backup|restore|accept-loss` does (docs/store.md): check a
-//! store without changing it, take a consistent backup of a live store, replace a stopped
-//! coordinator's store with a checked backup, and accept a store that lost commits.
+//! What `tessera store check|backup|restore|accept-loss|reindex` does (docs/store.md):
+//! check a store without changing it, take a consistent backup of a live store, replace a
+//! stopped coordinator's store with a checked backup, accept a store that lost commits,
+//! and rebuild damaged indexes.
+//!
+//! The check runs the start's own checks ([`preflight`]), so what it reports as a
+//! refusal is what the coordinator refuses with, message for message, and the rows a
+//! read refuses ([`sql::damaged_rows`]), with what the coordinator does about each.
 //!
 //! Restore and accept-loss keep the rule that job ids never repeat: the job id sequence
 //! of the store they leave behind is raised to the highest id the commit marker (and the
@@ -12,9 +17,13 @@ use std::path::{Path, PathBuf};
 use sqlx::sqlite::{SqliteConnectOptions, SqlitePool, SqlitePoolOptions};
 use sqlx::Connection;
 
+use tessera_api::JobState;
+
 use super::marker::{self, CommitMark};
-use super::sql::Conn;
-use super::sqlite::{classify, commit_mark, connect_writer, open_error, quick_check, SqliteStore};
+use super::sql::{self, Conn, DamagedRow};
+use super::sqlite::{
+    classify, commit_mark, connect_writer, open_error, preflight, quick_check, SqliteStore,
+};
 use super::{StoreError, StoreResult, DATABASE_FILE};
 
 /// What [`check`] found. `Display` prints it for people, one finding per line.
@@ -37,18 +46,25 @@ pub struct CheckReport {
     pub marker: Result<Option<CommitMark>, String>,
     /// Jobs per state, if they could be read.
     pub jobs: Vec<(String, u64)>,
+    /// Why a coordinator refuses to start on this store: the message of the start's
+    /// error ([`preflight`]), word for word; `None` when it starts.
+    pub refusal: Option<String>,
+    /// The rows a read refuses (a checksum that does not match, a value that does not
+    /// decode); `Err` if they could not be checked (the reason).
+    pub damaged: Result<Vec<DamagedRow>, String>,
 }
 
 impl CheckReport {
-    /// Whether a coordinator would start on this store (exit status 0 of `store check`).
+    /// Whether a coordinator starts on this store (exit status other than 1 of
+    /// `store check`).
     pub fn healthy(&self) -> bool {
-        self.exists
-            && self.integrity.is_ok()
-            && self
-                .schema_version
-                .is_some_and(|v| v <= self.supported_version)
-            && self.marker.is_ok()
-            && !self.behind()
+        self.refusal.is_none()
+    }
+
+    /// Whether a coordinator starts on this store and every row reads back (exit status
+    /// 0 of `store check`).
+    pub fn clean(&self) -> bool {
+        self.healthy() && self.damaged.as_ref().is_ok_and(Vec::is_empty)
     }
 
     /// Whether the database is behind its marker (one without a generation is behind
@@ -66,9 +82,10 @@ impl std::fmt::Display for CheckReport {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         writeln!(f, "store: {}", self.path.display())?;
         if !self.exists {
-            writeln!(f, "database: missing")?;
+            writeln!(f, "database: missing (a coordinator creates an empty one)")?;
         }
         match &self.integrity {
+            _ if !self.exists => {}
             Ok(()) => writeln!(f, "integrity: ok")?,
             Err(e) => writeln!(f, "integrity: DAMAGED: {e}")?,
         }
@@ -107,15 +124,32 @@ impl std::fmt::Display for CheckReport {
             let jobs: Vec<String> = self.jobs.iter().map(|(s, n)| format!("{n} {s}")).collect();
             writeln!(f, "jobs: {}", jobs.join(", "))?;
         }
-        write!(
-            f,
-            "verdict: {}",
-            if self.healthy() {
-                "ok"
-            } else {
-                "NOT OK: a coordinator will refuse to start on this store (see docs/store.md)"
+        match &self.damaged {
+            Ok(rows) if rows.is_empty() => writeln!(
+                f,
+                "rows: ok (every job, tile checkpoint and scene reads back and matches its checksum)"
+            )?,
+            Ok(rows) => {
+                writeln!(f, "rows: {} DAMAGED:", rows.len())?;
+                for r in rows {
+                    writeln!(f, "  {} {}: {}; {}", r.table, r.key, r.reason, action(r))?;
+                }
             }
-        )
+            Err(e) => writeln!(f, "rows: not checked: {e}")?,
+        }
+        match (&self.refusal, &self.damaged) {
+            (Some(why), _) => write!(
+                f,
+                "verdict: NOT OK: a coordinator refuses to start on this store: {why}"
+            ),
+            (None, Ok(rows)) if !rows.is_empty() => write!(
+                f,
+                "verdict: DAMAGED ROWS: a coordinator starts on this store and handles the {} \
+                 damaged rows as said above (docs/store.md, \"Checksums\")",
+                rows.len()
+            ),
+            (None, _) => write!(f, "verdict: ok"),
+        }
     }
 }
 
@@ -134,18 +168,54 @@ async fn read_only(path: &Path) -> StoreResult<SqlitePool> {
         .map_err(|e| open_error(path, e))
 }
 
-/// Checks the store in `dir` without changing it: SQLite's full `integrity_check`, the
-/// schema version, the commit marker comparison, the jobs per state. Safe while a
-/// coordinator runs on it.
+/// What the coordinator does about a damaged row at its next start and after.
+fn action(r: &DamagedRow) -> &'static str {
+    let running = matches!(r.job, Some((_, Some(JobState::Queued | JobState::Running))));
+    match (r.table, running) {
+        ("tiles", true) => {
+            "the coordinator drops this checkpoint at its next start and renders the tile again"
+        }
+        ("tiles", false) => {
+            "reads of this frame's image are refused with this error (restore a backup to \
+             recover it)"
+        }
+        ("jobs", true) => "the coordinator fails this job at its next start with this error",
+        ("jobs", false) => "reads of this job (status, list, images) are refused with this error",
+        _ => "jobs that render this scene fail with this error when they load it",
+    }
+}
+
+/// Checks the store in `dir` without changing it: the start's checks ([`preflight`]:
+/// SQLite's full `integrity_check`, the schema version, the commit marker), then every
+/// row's checksum and decoding, and the jobs per state. Safe while a coordinator runs on
+/// it.
 pub async fn check(dir: &Path) -> CheckReport {
-    let mut report = inspect(&dir.join(DATABASE_FILE)).await;
+    let path = dir.join(DATABASE_FILE);
+    let mut report = inspect(&path, Some(dir)).await;
     report.marker = marker::read_marker(dir);
+    if !report.exists {
+        // The start creates an empty database, which is behind any marker.
+        report.refusal = match &report.marker {
+            Ok(Some(m)) => Some(
+                StoreError::BehindMarker {
+                    path,
+                    marker_path: marker::marker_path(dir),
+                    database: CommitMark::default(),
+                    marker: *m,
+                }
+                .to_string(),
+            ),
+            Ok(None) => None,
+            Err(e) => Some(StoreError::BadMarker(e.clone()).to_string()),
+        };
+        report.damaged = Ok(Vec::new());
+    }
     report
 }
 
-/// The checks of [`check`] on one database file (of any name, e.g. a backup), without
-/// the marker.
-async fn inspect(file: &Path) -> CheckReport {
+/// The checks of [`check`] on one database file (of any name, e.g. a backup); with `dir`
+/// its data directory (the marker is compared), without it the file alone.
+async fn inspect(file: &Path, dir: Option<&Path>) -> CheckReport {
     let mut report = CheckReport {
         path: file.to_path_buf(),
         exists: file.exists(),
@@ -155,6 +225,11 @@ async fn inspect(file: &Path) -> CheckReport {
         database: None,
         marker: Ok(None),
         jobs: Vec::new(),
+        refusal: Some(format!(
+            "the database file {} does not exist",
+            file.display()
+        )),
+        damaged: Err("the database file does not exist".into()),
     };
     if !report.exists {
         return report;
@@ -163,10 +238,16 @@ async fn inspect(file: &Path) -> CheckReport {
         Ok(p) => p,
         Err(e) => {
             report.integrity = Err(e.to_string());
+            report.refusal = Some(e.to_string());
             return report;
         }
     };
-    report.integrity = integrity(&pool).await;
+    let verdict = preflight(&pool, file, dir).await;
+    report.integrity = match &verdict {
+        Err(StoreError::Damaged { detail, .. }) => Err(detail.clone()),
+        _ => Ok(()),
+    };
+    report.refusal = verdict.err().map(|e| e.to_string());
     report.schema_version = sqlx::query_scalar("SELECT MAX(version) FROM schema_version")
         .fetch_one(&pool)
         .await
@@ -182,22 +263,24 @@ async fn inspect(file: &Path) -> CheckReport {
         .into_iter()
         .map(|(s, n)| (s, u64::try_from(n).unwrap_or(0)))
         .collect();
+    report.damaged = match report.schema_version {
+        _ if report.integrity.is_err() => {
+            Err("the database is damaged (integrity check above)".into())
+        }
+        Some(v) if v >= CHECKSUM_SCHEMA => sql::damaged_rows(&mut Conn::SqlitePool(&pool))
+            .await
+            .map_err(|e| e.to_string()),
+        _ => Err(format!(
+            "the store has no row checksums yet (schema version below {CHECKSUM_SCHEMA}); the \
+             coordinator computes them at its next start"
+        )),
+    };
     pool.close().await;
     report
 }
 
-/// SQLite's full `integrity_check` on `pool`.
-async fn integrity(pool: &SqlitePool) -> Result<(), String> {
-    let rows: Vec<String> = sqlx::query_scalar("PRAGMA integrity_check(20)")
-        .fetch_all(pool)
-        .await
-        .map_err(|e| e.to_string())?;
-    if rows.len() == 1 && rows[0] == "ok" {
-        Ok(())
-    } else {
-        Err(rows.join("; "))
-    }
-}
+/// The schema version that added row checksums.
+const CHECKSUM_SCHEMA: i64 = 7;
 
 /// Writes a consistent copy of the store in `dir` to `out` (which must not exist) with
 /// SQLite's `VACUUM INTO`, safe while a coordinator runs on the store: it reads one
@@ -232,7 +315,7 @@ pub async fn backup(dir: &Path, out: &Path) -> StoreResult<CheckReport> {
             path: out.to_path_buf(),
             detail: e.to_string(),
         })?;
-    Ok(inspect(out).await)
+    Ok(inspect(out, None).await)
 }
 
 /// What [`restore`] and [`accept_loss`] did.
@@ -246,29 +329,30 @@ pub struct Resealed {
     pub mark: CommitMark,
 }
 
-/// The highest job id the store in `dir` ever recorded: its marker's and, if the
-/// database can still be read, its own.
-async fn job_id_floor(dir: &Path) -> u64 {
-    let from_marker = marker::read_marker(dir)
-        .ok()
-        .flatten()
-        .map_or(0, |m| m.max_job_id);
+/// The highest job id and lease id the store in `dir` ever recorded: its marker's and,
+/// if the database can still be read, its own.
+async fn id_floor(dir: &Path) -> CommitMark {
+    let from_marker = marker::read_marker(dir).ok().flatten().unwrap_or_default();
     let path = dir.join(DATABASE_FILE);
     let from_db = if path.exists() {
         match read_only(&path).await {
             Ok(pool) => {
                 let m = commit_mark(&mut Conn::SqlitePool(&pool))
                     .await
-                    .map_or(0, |m| m.max_job_id);
+                    .unwrap_or_default();
                 pool.close().await;
                 m
             }
-            Err(_) => 0,
+            Err(_) => CommitMark::default(),
         }
     } else {
-        0
+        CommitMark::default()
     };
-    from_marker.max(from_db)
+    CommitMark {
+        generation: 0,
+        max_job_id: from_marker.max_job_id.max(from_db.max_job_id),
+        lease_high_water: from_marker.lease_high_water.max(from_db.lease_high_water),
+    }
 }
 
 /// Replaces the store in `dir` with the backup `file`, for a coordinator that is
@@ -277,7 +361,7 @@ async fn job_id_floor(dir: &Path) -> u64 {
 /// is copied in, migrated, its job id sequence raised above every id the old store issued,
 /// and the commit marker written for it.
 pub async fn restore(dir: &Path, file: &Path) -> StoreResult<Resealed> {
-    let report = inspect(file).await;
+    let report = inspect(file, None).await;
     if !report.healthy() {
         return Err(StoreError::InvalidInput(format!(
             "the backup {} is not usable:\n{report}",
@@ -288,7 +372,7 @@ pub async fn restore(dir: &Path, file: &Path) -> StoreResult<Resealed> {
         path: dir.to_path_buf(),
         source,
     })?;
-    let floor = job_id_floor(dir).await;
+    let floor = id_floor(dir).await;
     let io = |path: &Path, e: std::io::Error| StoreError::NotWritable {
         path: path.to_path_buf(),
         detail: e.to_string(),
@@ -338,7 +422,7 @@ pub async fn accept_loss(dir: &Path) -> StoreResult<Resealed> {
             return Err(StoreError::Damaged { path, detail: e });
         }
     }
-    let floor = job_id_floor(dir).await;
+    let floor = id_floor(dir).await;
     let (max_job_id, mark) = reseal(dir, floor).await?;
     Ok(Resealed {
         moved_to: None,
@@ -348,9 +432,17 @@ pub async fn accept_loss(dir: &Path) -> StoreResult<Resealed> {
 }
 
 /// Opens the database of `dir` (creating it if missing), brings its schema up to date,
-/// raises its job id sequence to `floor`, records that no coordinator runs on it, bumps
-/// its generation and writes the marker. Returns the highest job id and the new mark.
-async fn reseal(dir: &Path, floor: u64) -> StoreResult<(u64, CommitMark)> {
+/// raises its job id sequence and its lease-id high-water mark to `floor`'s, records
+/// that no coordinator runs on it, bumps its generation and writes the marker. Returns
+/// the highest job id and the new mark.
+async fn reseal(dir: &Path, floor: CommitMark) -> StoreResult<(u64, CommitMark)> {
+    let lease_floor = i64::try_from(floor.lease_high_water).map_err(|_| {
+        StoreError::Corrupt(format!(
+            "commit marker: lease_high_water {}",
+            floor.lease_high_water
+        ))
+    })?;
+    let floor = floor.max_job_id;
     let (writer, path) = connect_writer(dir, true).await?;
     quick_check(&writer, &path).await?;
     super::sqlite::migrate(&writer)
@@ -380,6 +472,11 @@ async fn reseal(dir: &Path, floor: u64) -> StoreResult<(u64, CommitMark)> {
         )
         .execute(&mut *tx)
         .await?;
+        // Fencing tokens never repeat either.
+        sqlx::query("UPDATE counters SET value = MAX(value, ?1) WHERE name = 'lease_high_water'")
+            .bind(lease_floor)
+            .execute(&mut *tx)
+            .await?;
         let mark = super::sqlite::bump_generation(&mut Conn::Sqlite(&mut tx)).await?;
         tx.commit().await?;
         mark
@@ -388,4 +485,25 @@ async fn reseal(dir: &Path, floor: u64) -> StoreResult<(u64, CommitMark)> {
     use super::Store;
     store.close().await;
     Ok((mark.max_job_id, mark))
+}
+
+/// Rebuilds every index of the store in `dir` from its tables (SQLite's `REINDEX`), for a
+/// coordinator that is **stopped**: the repair when SQLite's integrity check finds only
+/// index problems (entries missing from or extra in an index), which the tables
+/// themselves do not share. Returns the check of the store afterwards.
+pub async fn reindex(dir: &Path) -> StoreResult<CheckReport> {
+    let path = dir.join(DATABASE_FILE);
+    if !path.exists() {
+        return Err(StoreError::InvalidInput(format!(
+            "there is no store at {}",
+            path.display()
+        )));
+    }
+    let (writer, path) = connect_writer(dir, false).await?;
+    sqlx::query("REINDEX")
+        .execute(&writer)
+        .await
+        .map_err(|e| open_error(&path, e))?;
+    writer.close().await;
+    Ok(check(dir).await)
 }

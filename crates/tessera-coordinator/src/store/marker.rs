@@ -6,20 +6,30 @@
 //! complaint and the commits are simply gone: jobs answered 201 vanish, a done job is
 //! running again, and job ids are issued a second time. The marker makes that loss
 //! visible. Every commit that an answer depends on (a new job, a job's state change, a
-//! stored scene) increments the database's commit generation in the same transaction;
-//! after the commit, and before the caller is answered, the marker is replaced with the
-//! new generation and the highest job id ever issued, and fsynced.
+//! stored scene, a reservation of lease ids) increments the database's commit generation
+//! in the same transaction; after the commit, and before the caller is answered, the
+//! marker is replaced with the new generation, the highest job id ever issued and the
+//! lease-id high-water mark, and fsynced.
 //!
 //! At open the database must not be *behind* its marker. A crash between the commit and
 //! the marker write leaves the database one generation ahead, which is fine; only a
 //! database older than what was acknowledged is refused.
 //!
-//! Format (text, one field per line, so an operator can read it):
+//! The generation is kept in two files that no single deletion removes together: the
+//! marker, and the main database file (a start copies the WAL into it once it has
+//! written its first marker). A database whose generation is above 0 was opened by a
+//! coordinator that wrote a marker, so a missing marker means it was deleted, perhaps
+//! with the `-wal` file and the commits in it, and such a store is refused as well
+//! ([`StoreError::MarkerMissing`](super::StoreError::MarkerMissing)).
+//!
+//! Format (text, one field per line, so an operator can read it; `lease_high_water` is
+//! absent from markers of older builds and then reads as 0):
 //!
 //! ```text
 //! tessera commit marker 1
 //! generation 42
 //! max_job_id 17
+//! lease_high_water 4096
 //! ```
 
 use std::fs::{File, OpenOptions};
@@ -38,13 +48,17 @@ pub struct CommitMark {
     pub generation: u64,
     /// The highest job id ever issued.
     pub max_job_id: u64,
+    /// The lease-id high-water mark: fencing tokens up to it may have been issued.
+    pub lease_high_water: u64,
 }
 
 impl CommitMark {
     /// Whether `self` (the database) is behind `marker`: it lacks acknowledged commits or
-    /// would issue a job id again.
+    /// would issue a job id or a lease id again.
     pub fn is_behind(&self, marker: &CommitMark) -> bool {
-        self.generation < marker.generation || self.max_job_id < marker.max_job_id
+        self.generation < marker.generation
+            || self.max_job_id < marker.max_job_id
+            || self.lease_high_water < marker.lease_high_water
     }
 }
 
@@ -52,8 +66,8 @@ impl std::fmt::Display for CommitMark {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "commit generation {}, job ids up to {}",
-            self.generation, self.max_job_id
+            "commit generation {}, job ids up to {}, lease ids up to {}",
+            self.generation, self.max_job_id, self.lease_high_water
         )
     }
 }
@@ -72,21 +86,26 @@ pub fn read_marker(dir: &Path) -> Result<Option<CommitMark>, String> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(format!("cannot read {}: {e}", path.display())),
     };
-    let mut lines = text.lines();
-    if lines.next() != Some(HEADER) {
+    let lines: Vec<&str> = text.lines().collect();
+    if lines.first() != Some(&HEADER) {
         return Err(format!("{} does not start with {HEADER:?}", path.display()));
     }
-    let mut field = |name: &str| -> Result<u64, String> {
+    let field = |i: usize, name: &str| -> Result<u64, String> {
         lines
-            .next()
+            .get(i)
             .and_then(|l| l.strip_prefix(name))
             .and_then(|v| v.strip_prefix(' '))
             .and_then(|v| v.trim().parse().ok())
             .ok_or_else(|| format!("{}: expected a line `{name} N`", path.display()))
     };
     Ok(Some(CommitMark {
-        generation: field("generation")?,
-        max_job_id: field("max_job_id")?,
+        generation: field(1, "generation")?,
+        max_job_id: field(2, "max_job_id")?,
+        // Markers of builds before the lease high-water mark end after max_job_id.
+        lease_high_water: match lines.get(3) {
+            None => 0,
+            Some(_) => field(3, "lease_high_water")?,
+        },
     }))
 }
 
@@ -103,8 +122,8 @@ pub fn write_marker(dir: &Path, mark: CommitMark) -> std::io::Result<()> {
         .open(&tmp)?;
     write!(
         f,
-        "{HEADER}\ngeneration {}\nmax_job_id {}\n",
-        mark.generation, mark.max_job_id
+        "{HEADER}\ngeneration {}\nmax_job_id {}\nlease_high_water {}\n",
+        mark.generation, mark.max_job_id, mark.lease_high_water
     )?;
     f.sync_all()?;
     drop(f);
@@ -124,6 +143,7 @@ mod tests {
         let m = CommitMark {
             generation: 42,
             max_job_id: 17,
+            lease_high_water: 1024,
         };
         write_marker(dir.path(), m).unwrap();
         assert_eq!(read_marker(dir.path()), Ok(Some(m)));
@@ -133,9 +153,23 @@ mod tests {
             .contains("does not start"));
         std::fs::write(marker_path(dir.path()), format!("{HEADER}\ngeneration x\n")).unwrap();
         assert!(read_marker(dir.path()).unwrap_err().contains("generation"));
+        // A marker of an older build, without the lease line.
+        std::fs::write(
+            marker_path(dir.path()),
+            format!("{HEADER}\ngeneration 42\nmax_job_id 17\n"),
+        )
+        .unwrap();
+        assert_eq!(
+            read_marker(dir.path()),
+            Ok(Some(CommitMark {
+                lease_high_water: 0,
+                ..m
+            }))
+        );
         let db = CommitMark {
             generation: 43,
             max_job_id: 16,
+            lease_high_water: 1024,
         };
         assert!(db.is_behind(&m), "a job id could be issued again");
         assert!(!CommitMark {
@@ -143,5 +177,14 @@ mod tests {
             ..db
         }
         .is_behind(&m));
+        assert!(
+            CommitMark {
+                max_job_id: 17,
+                lease_high_water: 1000,
+                ..db
+            }
+            .is_behind(&m),
+            "a fencing token could be issued again"
+        );
     }
 }

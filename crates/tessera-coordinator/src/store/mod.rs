@@ -58,7 +58,16 @@
 //! every value is finite, that no pixel has more passes than the tile merged, and that the
 //! units cover passes `0..merged_passes` contiguously; any violation is
 //! [`StoreError::CorruptTile`] naming the job, frame and tile.
+//!
+//! # Row checksums (schema version 7; PostgreSQL 6)
+//!
+//! Every row of `jobs`, `tiles` and `scenes` also holds a SHA-256 of the columns an image
+//! depends on (`checksum.rs`; docs/store.md, "Checksums"), written with the row and
+//! verified on every read after decoding, so a byte changed in a value that still decodes
+//! is [`StoreError::CorruptTile`] or [`StoreError::Corrupt`] naming the row, never a
+//! wrong image. The migration that added the column computed it for existing rows.
 
+mod checksum;
 mod codec;
 pub mod maintenance;
 pub mod marker;
@@ -70,6 +79,7 @@ mod watch;
 
 pub use marker::{CommitMark, MARKER_FILE};
 pub use postgres::PostgresStore;
+pub use sql::DamagedRow;
 pub use sqlite::{SqliteStore, DATABASE_FILE, MAX_RESUMES_WITHOUT_PROGRESS};
 pub use watch::WatchedStore;
 
@@ -179,6 +189,29 @@ pub enum StoreError {
         database: CommitMark,
         /// What the marker recorded.
         marker: CommitMark,
+    },
+    /// The commit marker is missing although the database has a commit generation: the
+    /// database was opened by a coordinator that wrote a marker, so the marker was
+    /// deleted, and acknowledged commits may have been deleted with it (the `-wal` file)
+    /// with nothing left to tell how many.
+    #[error(
+        "the commit marker {marker_path} of the store {path} is missing, but the database \
+         has {database}: a coordinator wrote a marker for it, so the marker was deleted, \
+         and acknowledged commits may have been lost with it (a deleted {path}-wal file) \
+         without a trace. The coordinator will not start on it. Recover (docs/store.md): \
+         with the coordinator stopped, restore the marker if you have it, or restore a \
+         backup with `tessera store restore --data {dir} BACKUP_FILE`, or, if only the \
+         marker was deleted (the -wal file was kept), accept the store as it is with \
+         `tessera store accept-loss --data {dir}`",
+        dir = dir_of(path)
+    )]
+    MarkerMissing {
+        /// The database file.
+        path: std::path::PathBuf,
+        /// The missing marker file.
+        marker_path: std::path::PathBuf,
+        /// What the database holds.
+        database: CommitMark,
     },
     /// The marker file exists but cannot be read.
     #[error(
@@ -627,15 +660,16 @@ pub struct PreviousRun {
 /// - **Validation**: inputs the store could not read back are refused with
 ///   [`StoreError::InvalidInput`] (invalid plans, tile checkpoints that do not fit their
 ///   job's plan, non-finite history values, integers above `i64::MAX`). Stored data that
-///   cannot be decoded is reported as [`StoreError::CorruptTile`] or
-///   [`StoreError::Corrupt`], never a panic.
+///   cannot be decoded or does not match its row checksum is reported as
+///   [`StoreError::CorruptTile`] or [`StoreError::Corrupt`] naming the row, never a panic
+///   and never a wrong value.
 /// - **Concurrency**: every method may be called concurrently from many tasks; writes are
 ///   serialized by the store. Concurrent saves of the *same* tile are not ordered: the
 ///   caller must not race them (the last committed save wins).
 /// - **Ids**: job ids are assigned by the store, increase with insertion order and are
 ///   never reused, even after a restart.
-/// - **Commit marker** ([`SqliteStore`]): a new job, a job's state change and a newly
-///   stored scene are also recorded in the commit marker ([`marker`]) before the method
+/// - **Commit marker** ([`SqliteStore`]): a new job, a job's state change, a newly
+///   stored scene and a raised lease-id high-water mark are also recorded in the commit marker ([`marker`]) before the method
 ///   returns. If that write fails the method returns [`StoreError::NotWritable`] although
 ///   the transaction committed (the store is failing; the coordinator stops accepting
 ///   work).
@@ -774,7 +808,10 @@ pub trait Store: Send + Sync {
     async fn job_ids_to_resume(&self) -> StoreResult<Vec<JobId>>;
 
     /// Starts a coordinator run: returns how the previous run ended and records that a
-    /// run is in progress, so the next start can tell whether this one crashed.
+    /// run is in progress, so the next start can tell whether this one crashed. Also
+    /// deletes the tile checkpoints of queued and running jobs that a read would refuse
+    /// (damaged: a checksum mismatch, a blob that does not decode), each logged naming
+    /// it, so that resuming the job renders those tiles again instead of failing it.
     async fn begin_run(&self) -> StoreResult<PreviousRun>;
 
     /// Records that the run ended gracefully (called once the coordinator stopped).

@@ -38,7 +38,15 @@ const MIGRATIONS: &[(i64, &str)] = &[
     ),
     (4, include_str!("migrations/postgres/0004_quarantine.sql")),
     (5, include_str!("migrations/postgres/0005_render_plan.sql")),
+    (
+        CHECKSUM_SCHEMA,
+        include_str!("migrations/postgres/0006_checksums.sql"),
+    ),
 ];
+
+/// The schema version that added row checksums (filled for existing rows as it is
+/// applied).
+const CHECKSUM_SCHEMA: i64 = 6;
 
 /// Connections in the pool: the coordinator's concurrent requests, merges and the ticker.
 const MAX_CONNECTIONS: u32 = 8;
@@ -171,7 +179,7 @@ impl PostgresStore {
         tx.conn()
             .execute(stmt("SELECT pg_advisory_xact_lock($1)").bind(MIGRATION_LOCK))
             .await?;
-        sql::migrate(&mut tx, MIGRATIONS).await?;
+        sql::migrate(&mut tx, MIGRATIONS, CHECKSUM_SCHEMA).await?;
         tx.commit().await
     }
 

@@ -8,6 +8,7 @@
 use tessera_api::{FrameRange, JobState};
 use tessera_farm::{FramePlan, JobId};
 
+use super::checksum::{verify, JobSum, TileSum};
 use super::sql::Row;
 use super::{FaultEvent, FaultKind, JobRecord, NewJob, QuarantineRecord, StoreError, StoreResult};
 
@@ -16,7 +17,7 @@ pub(super) const JOB_COLUMNS: &str = "id, idempotency_key, name, scene_ref, sett
      plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
      first_frame, last_frame, passes_per_unit, priority, state, error, \
      created_unix_ms, started_unix_ms, finished_unix_ms, render_plan_json, \
-     error_estimate_caveat";
+     error_estimate_caveat, checksum";
 
 /// Columns of `jobs` read by [`plan_from_row`].
 pub(super) const PLAN_COLUMNS: &str = "plan_width, plan_height, plan_tile_size, \
@@ -110,8 +111,18 @@ pub(super) fn state_count_from_row(row: &Row) -> StoreResult<(JobState, u64)> {
     Ok((state, n.max(0) as u64))
 }
 
-/// A job row ([`JOB_COLUMNS`]), checked.
+/// A job row ([`JOB_COLUMNS`]), checked: decoded, then compared with its checksum
+/// ([`StoreError::Corrupt`] naming the row if it differs).
 pub(super) fn job_from_row(row: &Row) -> StoreResult<JobRecord> {
+    let job = decode_job(row)?;
+    let stored: Option<Vec<u8>> = row.try_get("checksum")?;
+    verify(stored.as_deref(), &JobSum::from(&job).checksum())
+        .map_err(|reason| StoreError::Corrupt(format!("jobs row {}: {reason}", job.id)))?;
+    Ok(job)
+}
+
+/// A job row ([`JOB_COLUMNS`]) decoded and checked, without its checksum (to compute it).
+pub(super) fn decode_job(row: &Row) -> StoreResult<JobRecord> {
     let id: JobId = int_col(row, "id", &|| "jobs row".to_string())?;
     let place = || format!("jobs row {id}");
     let (plan, frames) = plan_from_row(row, id)?;
@@ -261,8 +272,9 @@ pub(super) fn check_tile_to_save(
     })
 }
 
-/// Decodes and checks a stored tile checkpoint's columns against its job's plan
-/// ([`StoreError::CorruptTile`] naming the tile).
+/// Decodes and checks a stored tile checkpoint's columns against its job's plan, then
+/// against the row's checksum ([`StoreError::CorruptTile`] naming the tile). `row` has
+/// the columns `job, frame, tile, merged_passes, rejected_samples, checksum`.
 pub(super) fn tile_from_parts(
     plan: &FramePlan,
     frames: FrameRange,
@@ -287,8 +299,10 @@ pub(super) fn tile_from_parts(
     let merged_passes: u32 = int_col(row, "merged_passes", &place)?;
     let rejected_samples: u64 = int_col(row, "rejected_samples", &place)?;
     let pixels = decode_stats(stats).map_err(corrupt)?;
+    let unit_blob = units;
     let units = decode_units(units).map_err(corrupt)?;
     check_checkpoint(plan, frames, frame, tile, merged_passes, &pixels, &units).map_err(corrupt)?;
+    let blob = adaptive;
     let adaptive = adaptive
         .map(|blob| {
             let a = decode_adaptive(blob)?;
@@ -297,6 +311,18 @@ pub(super) fn tile_from_parts(
         })
         .transpose()
         .map_err(corrupt)?;
+    let sum = TileSum {
+        job: row.try_get("job")?,
+        frame: i64::from(frame),
+        tile: i64::from(tile),
+        merged_passes: i64::from(merged_passes),
+        rejected_samples: row.try_get("rejected_samples")?,
+        stats,
+        units: unit_blob,
+        adaptive: blob,
+    };
+    let stored: Option<Vec<u8>> = row.try_get("checksum")?;
+    verify(stored.as_deref(), &sum.checksum()).map_err(corrupt)?;
     Ok(super::TileCheckpoint {
         job,
         frame,

@@ -29,7 +29,15 @@ const MIGRATIONS: &[(i64, &str)] = &[
     (4, include_str!("migrations/0004_adaptive_policy.sql")),
     (5, include_str!("migrations/0005_quarantine.sql")),
     (6, include_str!("migrations/0006_render_plan.sql")),
+    (
+        CHECKSUM_SCHEMA,
+        include_str!("migrations/0007_checksums.sql"),
+    ),
 ];
+
+/// The schema version that added row checksums (filled for existing rows as it is
+/// applied).
+const CHECKSUM_SCHEMA: i64 = 7;
 
 /// A job resumed this many times in a row after a crash without a new merged pass is
 /// failed instead of resumed again (docs/store.md, "No crash loop").
@@ -73,44 +81,32 @@ impl SqliteStore {
     /// must not run on (docs/store.md, "What is checked at start"):
     ///
     /// 1. creates the directory and opens (or creates) `dir/tessera.sqlite3`;
-    /// 2. runs SQLite's `PRAGMA quick_check` ([`StoreError::Damaged`] if it finds
-    ///    anything, or if the file is not a database);
-    /// 3. brings the schema up to date ([`StoreError::SchemaTooNew`] if a newer build
-    ///    wrote it);
-    /// 4. compares the database with its commit marker ([`marker`]):
-    ///    [`StoreError::BehindMarker`] if acknowledged commits are missing;
-    /// 5. probes a write: one committed transaction and a marker write
+    /// 2. the checks of [`preflight`], which `tessera store check` runs too, so that
+    ///    both refuse the same stores with the same message: SQLite's full
+    ///    `integrity_check` ([`StoreError::Damaged`]), the schema version
+    ///    ([`StoreError::SchemaTooNew`]), the commit marker ([`StoreError::BadMarker`],
+    ///    [`StoreError::BehindMarker`], [`StoreError::MarkerMissing`]);
+    /// 3. brings the schema up to date (computing the checksums of older rows);
+    /// 4. probes a write: one committed transaction and a marker write
     ///    ([`StoreError::NotWritable`] for a read-only file, directory or filesystem, or a
-    ///    full disk), so such a store fails here rather than at the first request.
+    ///    full disk), so such a store fails here rather than at the first request;
+    /// 5. copies the WAL into the main database file, so the file itself carries a
+    ///    generation above 0 and a later loss of both the marker and the `-wal` file is
+    ///    refused ([`marker`]).
     pub async fn open(dir: &Path) -> StoreResult<Self> {
         let (writer, path) = connect_writer(dir, true).await?;
-        quick_check(&writer, &path).await?;
-        // Compared before migrating: a database that lost everything (even its schema)
+        // Checked before migrating: a database that lost everything (even its schema)
         // is refused as it is, not first filled with an empty schema.
-        if let Some(m) = marker::read_marker(dir).map_err(StoreError::BadMarker)? {
-            // A database without the generation (empty, or older than schema 3 while a
-            // marker exists) is behind any marker.
-            let db = match commit_mark(&mut Conn::SqlitePool(&writer)).await {
-                Ok(db) => db,
-                Err(StoreError::Database(sqlx::Error::Database(e)))
-                    if e.message().contains("no such table") =>
-                {
-                    CommitMark::default()
-                }
-                Err(StoreError::Corrupt(_)) => CommitMark::default(),
-                Err(e) => return Err(classify(&path, e)),
-            };
-            if db.is_behind(&m) {
-                return Err(StoreError::BehindMarker {
-                    path,
-                    marker_path: marker::marker_path(dir),
-                    database: db,
-                    marker: m,
-                });
-            }
-        }
+        let had_marker = preflight(&writer, &path, Some(dir)).await?.is_some();
         migrate(&writer).await.map_err(|e| classify(&path, e))?;
         let store = Self::from_writer(writer, path, dir).await?;
+        if !had_marker {
+            // A new store (or one of a build before the marker): the marker is written
+            // before the generation first rises, so a crash right after that rise does
+            // not leave a database with a generation and no marker.
+            let mark = store.commit_mark().await?;
+            store.publish(mark).await?;
+        }
         // The write probe: a generation bump, committed, then recorded in the marker.
         let mut conn = store.writer.acquire().await?;
         let mut tx = conn
@@ -123,6 +119,10 @@ impl SqliteStore {
         tx.commit().await.map_err(|e| store.probe_error(e))?;
         store.publish(mark).await?;
         drop(conn);
+        sqlx::query("PRAGMA wal_checkpoint(TRUNCATE)")
+            .execute(&store.writer)
+            .await
+            .map_err(|e| store.probe_error(e))?;
         Ok(store)
     }
 
@@ -193,8 +193,8 @@ impl SqliteStore {
         sql::schema_version(&mut self.reader()).await
     }
 
-    /// Runs SQLite's full `PRAGMA integrity_check` (the start runs the cheaper
-    /// `quick_check`); [`StoreError::Damaged`] lists the problems.
+    /// Runs SQLite's full `PRAGMA integrity_check` (as the start does, [`preflight`]);
+    /// [`StoreError::Damaged`] lists the problems.
     pub async fn integrity_check(&self) -> StoreResult<()> {
         run_check(&self.reader, &self.path, "integrity_check").await
     }
@@ -263,6 +263,69 @@ pub(super) async fn quick_check(pool: &SqlitePool, path: &Path) -> StoreResult<(
     run_check(pool, path, "quick_check").await
 }
 
+/// The checks a coordinator's start makes before it changes anything, in order, the
+/// first failure returned (docs/store.md, "What is checked at start"); `tessera store
+/// check` runs the same function on a read-only connection, so what it reports as a
+/// refusal is exactly what the start refuses, with the same message:
+///
+/// 1. SQLite's full `integrity_check`, including the cross-check of every index against
+///    its table ([`StoreError::Damaged`]): an index that lost or gained entries passes
+///    `quick_check` but makes queries fail or miss rows;
+/// 2. the schema version is one this build knows ([`StoreError::SchemaTooNew`]);
+/// 3. with `dir` (the data directory; `None` for a backup file): the commit marker can
+///    be read ([`StoreError::BadMarker`]), the database is not behind it
+///    ([`StoreError::BehindMarker`]), and a database with a commit generation has one
+///    ([`StoreError::MarkerMissing`]).
+///
+/// Returns the marker, if there is one.
+pub(super) async fn preflight(
+    pool: &SqlitePool,
+    path: &Path,
+    dir: Option<&Path>,
+) -> StoreResult<Option<CommitMark>> {
+    run_check(pool, path, "integrity_check").await?;
+    let no_table = |e: &StoreError| {
+        matches!(e, StoreError::Database(sqlx::Error::Database(d))
+            if d.message().contains("no such table"))
+    };
+    let found = match sql::schema_version(&mut Conn::SqlitePool(pool)).await {
+        Ok(v) => v,
+        Err(e) if no_table(&e) => 0,
+        Err(e) => return Err(classify(path, e)),
+    };
+    if found > SqliteStore::SUPPORTED_SCHEMA {
+        return Err(StoreError::SchemaTooNew {
+            found,
+            supported: SqliteStore::SUPPORTED_SCHEMA,
+        });
+    }
+    let Some(dir) = dir else {
+        return Ok(None);
+    };
+    let marker = marker::read_marker(dir).map_err(StoreError::BadMarker)?;
+    // A database without the generation (empty, or older than schema 3) has none.
+    let db = match commit_mark(&mut Conn::SqlitePool(pool)).await {
+        Ok(db) => db,
+        Err(e) if no_table(&e) => CommitMark::default(),
+        Err(StoreError::Corrupt(_)) => CommitMark::default(),
+        Err(e) => return Err(classify(path, e)),
+    };
+    match marker {
+        Some(m) if db.is_behind(&m) => Err(StoreError::BehindMarker {
+            path: path.to_path_buf(),
+            marker_path: marker::marker_path(dir),
+            database: db,
+            marker: m,
+        }),
+        None if db.generation > 0 => Err(StoreError::MarkerMissing {
+            path: path.to_path_buf(),
+            marker_path: marker::marker_path(dir),
+            database: db,
+        }),
+        m => Ok(m),
+    }
+}
+
 /// Runs `PRAGMA {pragma}` (`quick_check` or `integrity_check`); [`StoreError::Damaged`]
 /// lists the first problems it reports.
 async fn run_check(pool: &SqlitePool, path: &Path, pragma: &str) -> StoreResult<()> {
@@ -271,13 +334,24 @@ async fn run_check(pool: &SqlitePool, path: &Path, pragma: &str) -> StoreResult<
         .await
         .map_err(|e| open_error(path, e))?;
     if rows.len() == 1 && rows[0] == "ok" {
-        Ok(())
-    } else {
-        Err(StoreError::Damaged {
-            path: path.to_path_buf(),
-            detail: format!("SQLite's {pragma} reports: {}", rows.join("; ")),
-        })
+        return Ok(());
     }
+    // Entries missing from or extra in an index: the tables are whole, and rebuilding the
+    // indexes from them repairs the store without losing anything.
+    let only_indexes = rows.iter().all(|r| r.contains(" index "));
+    let hint = if only_indexes {
+        format!(
+            " (only indexes are affected: with the coordinator stopped, `tessera store \
+             reindex --data {}` rebuilds them from the tables and loses nothing)",
+            path.parent().unwrap_or(Path::new(".")).display()
+        )
+    } else {
+        String::new()
+    };
+    Err(StoreError::Damaged {
+        path: path.to_path_buf(),
+        detail: format!("SQLite's {pragma} reports: {}{hint}", rows.join("; ")),
+    })
 }
 
 /// The commit generation and the highest job id ever issued (the larger of the
@@ -287,7 +361,9 @@ pub(super) async fn commit_mark(conn: &mut Conn<'_>) -> StoreResult<CommitMark> 
         .fetch_one(stmt(
             "SELECT (SELECT value FROM counters WHERE name = 'commit_generation') AS generation, \
                  MAX(COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'jobs'), 0), \
-                     COALESCE((SELECT MAX(id) FROM jobs), 0)) AS max_job_id",
+                     COALESCE((SELECT MAX(id) FROM jobs), 0)) AS max_job_id, \
+                 COALESCE((SELECT value FROM counters WHERE name = 'lease_high_water'), 0) \
+                     AS lease_high_water",
         ))
         .await?;
     let place = || "counters".to_string();
@@ -300,6 +376,7 @@ pub(super) async fn commit_mark(conn: &mut Conn<'_>) -> StoreResult<CommitMark> 
             StoreError::Corrupt(format!("counters: commit_generation = {generation}"))
         })?,
         max_job_id: int_col(&row, "max_job_id", &place)?,
+        lease_high_water: int_col(&row, "lease_high_water", &place)?,
     })
 }
 
@@ -324,7 +401,7 @@ pub(super) async fn bump_generation(tx: &mut Conn<'_>) -> StoreResult<CommitMark
 /// both migrate).
 pub(super) async fn migrate(pool: &SqlitePool) -> StoreResult<()> {
     let mut tx = Tx::Sqlite(pool.begin_with("BEGIN IMMEDIATE").await?);
-    sql::migrate(&mut tx, MIGRATIONS).await?;
+    sql::migrate(&mut tx, MIGRATIONS, CHECKSUM_SCHEMA).await?;
     tx.commit().await
 }
 

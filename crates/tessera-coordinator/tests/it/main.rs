@@ -13,5 +13,6 @@ mod poison_scenes;
 mod resume_guard;
 mod serve;
 mod store;
+mod store_integrity;
 mod tls;
 mod worker_trust;

@@ -191,7 +191,8 @@ async fn jobs_that_cannot_be_resumed_fail_alone_and_the_coordinator_starts() {
     for (job, needle) in [
         (bad_plan, "invalid plan"),
         (missing_scene, "missing from the store"),
-        (unreadable, "unreadable"),
+        // Caught by the row's checksum before the settings are parsed.
+        (unreadable, "does not match its checksum"),
     ] {
         let (state, error, _) = stored(dir.path(), job).await;
         let error = error.unwrap_or_default();

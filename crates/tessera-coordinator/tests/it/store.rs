@@ -175,6 +175,8 @@ both_backends!(
     adaptive_policy_state_round_trips,
     invalid_checkpoints_are_refused_atomically,
     corrupt_blobs_are_errors_naming_the_tile,
+    changed_rows_fail_their_checksums,
+    stores_without_checksums_get_them_when_migrated,
     lease_high_water_history_and_faults,
     quarantines_round_trip,
     runs_and_resume_counts,
@@ -856,6 +858,96 @@ async fn corrupt_blobs_are_errors_naming_the_tile(f: &Fixture) {
         store.get_job(job).await,
         Err(StoreError::Corrupt(_))
     ));
+}
+
+/// Bytes changed behind the store in values that still decode (a tile's statistics, a
+/// job's settings, a scene's bytes) fail the row's checksum on read, naming the row; a
+/// start ([`Store::begin_run`]) drops the damaged checkpoints of an unfinished job so its
+/// tiles are rendered again.
+async fn changed_rows_fail_their_checksums(f: &Fixture) {
+    let store = f.open().await;
+    let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
+    let t = checkpoint(job, 3, 4, &[2, 1]);
+    store.save_tile(t.as_ref()).await.unwrap();
+    let mut stats = f.blob("tiles", "stats").await;
+    // A low mantissa byte of pixel 0's first mean: still finite, still decodes.
+    stats[10] ^= 0x01;
+    f.set_blob("tiles", "stats", stats).await;
+    expect_corrupt_tile(&*store, job, "checksum").await;
+    // The summaries (no pixels) still read; the start drops the checkpoint of the
+    // queued job, and the job's tiles then load empty.
+    assert_eq!(store.tile_summaries(job).await.unwrap().len(), 1);
+    store.begin_run().await.unwrap();
+    assert!(store.load_tiles(job, None).await.unwrap().is_empty());
+    assert!(store.tile_summaries(job).await.unwrap().is_empty());
+    // Saved again, it reads back.
+    store.save_tile(t.as_ref()).await.unwrap();
+    assert_eq!(store.load_tiles(job, None).await.unwrap().len(), 1);
+    // A checkpoint of a finished job is kept (its image is refused instead).
+    store
+        .set_job_state(job, JobState::Done, None, 5)
+        .await
+        .unwrap();
+    let mut units = f.blob("tiles", "units").await;
+    units[15] ^= 0x80; // a byte of unit 0's digest (after the 5-byte header, 8 bytes of passes)
+    f.set_blob("tiles", "units", units).await;
+    store.begin_run().await.unwrap();
+    expect_corrupt_tile(&*store, job, "checksum").await;
+    f.exec("UPDATE tiles SET checksum = NULL").await;
+    expect_corrupt_tile(&*store, job, "no checksum").await;
+
+    // The job's settings: one digit changed.
+    f.exec("UPDATE jobs SET settings_json = replace(settings_json, '33', '37')")
+        .await;
+    let e = store.get_job(job).await.unwrap_err();
+    assert!(
+        matches!(&e, StoreError::Corrupt(m) if m.contains(&format!("jobs row {job}")) && m.contains("checksum")),
+        "{e}"
+    );
+    assert!(store.list_jobs(JobQuery::first(10)).await.is_err());
+
+    // A scene's bytes.
+    store.put_scene("h1", b"scene bytes").await.unwrap();
+    assert_eq!(
+        store.get_scene("h1").await.unwrap().unwrap(),
+        b"scene bytes"
+    );
+    f.set_blob("scenes", "data", b"scene bytez".to_vec()).await;
+    let e = store.get_scene("h1").await.unwrap_err();
+    assert!(
+        matches!(&e, StoreError::Corrupt(m) if m.contains("scenes row h1") && m.contains("checksum")),
+        "{e}"
+    );
+    store.close().await;
+}
+
+/// A store written before the checksums opens, and the migration computes them for
+/// every existing row (simulated by removing the columns and the migration's record).
+async fn stores_without_checksums_get_them_when_migrated(f: &Fixture) {
+    let store = f.open().await;
+    let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
+    let t = checkpoint(job, 3, 4, &[2, 1]);
+    store.save_tile(t.as_ref()).await.unwrap();
+    store.put_scene("h1", b"scene bytes").await.unwrap();
+    let before = store.get_job(job).await.unwrap().unwrap();
+    store.close().await;
+    let version = f.supported_schema();
+    f.exec(&format!(
+        "DELETE FROM schema_version WHERE version = {version}; \
+         ALTER TABLE jobs DROP COLUMN checksum; \
+         ALTER TABLE tiles DROP COLUMN checksum; \
+         ALTER TABLE scenes DROP COLUMN checksum;"
+    ))
+    .await;
+    let store = f.open().await;
+    assert_eq!(f.schema_version().await, version);
+    assert_eq!(store.get_job(job).await.unwrap().unwrap(), before);
+    assert_same_checkpoint(&store.load_tiles(job, None).await.unwrap()[0], &t);
+    assert_eq!(
+        store.get_scene("h1").await.unwrap().unwrap(),
+        b"scene bytes"
+    );
+    store.close().await;
 }
 
 /// The quarantine list. One row per (worker, identity), the first kept; listed
