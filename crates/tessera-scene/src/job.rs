@@ -344,6 +344,7 @@ mod tests {
             estimate: Some(0.125),
             spp: 256,
             unbiased: false,
+            unsampled: false,
         };
         let v: serde_json::Value = serde_json::from_str(&r.metadata_json(Some(&short))).unwrap();
         assert_eq!(v["adaptive"], "unbiased");
@@ -362,6 +363,19 @@ mod tests {
         let v: serde_json::Value = serde_json::from_str(&r.metadata_json(Some(&met))).unwrap();
         assert_eq!(v["stopped"], "target error reached");
         assert_eq!(v["target_reached"], true);
+        // An integrator that cannot sample a light path class of the scene never reaches a
+        // target, whatever its (blind) estimate says.
+        let blind = StopVerdict {
+            unsampled: true,
+            ..met
+        };
+        assert_eq!(blind.target_reached(), Some(false));
+        assert_eq!(blind.stopped(), "finished");
+        assert!(
+            blind.summary().contains("cannot sample"),
+            "{}",
+            blind.summary()
+        );
         let timed = StopVerdict {
             time_limit: true,
             estimate: None,
