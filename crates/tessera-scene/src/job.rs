@@ -249,6 +249,12 @@ mod tests {
             r#"{"scene": "builtin:cornell-box", "width": 300, "height": 200, "integrator": "bdpt"}"#,
         );
         assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 300));
+        // vcm splats too, and merges with the whole pass's photons.
+        let r = resolve(
+            r#"{"scene": "builtin:cornell-box", "width": 300, "height": 200, "integrator": "vcm"}"#,
+        );
+        assert_eq!(r.config.integrator, Integrator::Vcm);
+        assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 300));
         let r = resolve(
             r#"{"scene": "builtin:caustic", "width": 320, "height": 240, "integrator": "path"}"#,
         );

@@ -149,18 +149,42 @@ fn floor_irradiance(r: f64) -> f64 {
     I * (1.0 - fresnel(t1.cos(), N)) * t1.sin() / (r * dr)
 }
 
-/// The mean of [`floor_irradiance`] over the disc of radius `radius` around the floor
+/// [`floor_irradiance`] tabulated on `0..=R_TABLE` (linear interpolation between
+/// `TABLE` + 1 points): the bisection is too slow to call per sample of the blur.
+struct Table(Vec<f64>);
+
+const R_TABLE: f64 = 4.0;
+const TABLE: usize = 4000;
+
+impl Table {
+    fn new(f: impl Fn(f64) -> f64) -> Self {
+        Self(
+            (0..=TABLE)
+                .map(|i| f(R_TABLE * i as f64 / TABLE as f64))
+                .collect(),
+        )
+    }
+
+    fn at(&self, r: f64) -> f64 {
+        let x = (r / R_TABLE * TABLE as f64).clamp(0.0, TABLE as f64 - 1e-9);
+        let i = x as usize;
+        let t = x - i as f64;
+        self.0[i] * (1.0 - t) + self.0[i + 1] * t
+    }
+}
+
+/// The mean of the irradiance `e` over the disc of radius `radius` around the floor
 /// point at distance `r` from the light's foot: the expected value of a merge with that
 /// radius (a constant kernel), by a midpoint rule in `(ρ², φ)`.
-fn blurred_irradiance(r: f64, radius: f64) -> f64 {
-    let (nr, nphi) = (24, 48);
+fn blurred_irradiance(e: &Table, r: f64, radius: f64) -> f64 {
+    let (nr, nphi) = (12, 24);
     let mut sum = 0.0;
     for i in 0..nr {
         let rho = radius * ((i as f64 + 0.5) / nr as f64).sqrt();
         for j in 0..nphi {
             let phi = std::f64::consts::TAU * (j as f64 + 0.5) / nphi as f64;
             let (x, z) = (r + rho * phi.cos(), rho * phi.sin());
-            sum += floor_irradiance((x * x + z * z).sqrt());
+            sum += e.at((x * x + z * z).sqrt());
         }
     }
     sum / (nr * nphi) as f64
@@ -251,13 +275,12 @@ fn vcm_renders_the_pool_floor_to_its_closed_form() {
     let exact = expected_blocks(&rs, w, h, block, floor_irradiance);
     let st = VcmSettings::new(s.mis, 3, 8, rs.geometry.bounds_radius, w, h);
     let radii: Vec<f64> = (0..passes).map(|k| st.radius(k) as f64).collect();
-    let blurred = expected_blocks(&rs, w, h, block, |r| {
-        radii
-            .iter()
-            .map(|&rk| blurred_irradiance(r, rk))
-            .sum::<f64>()
-            / radii.len() as f64
+    // The blur of each pass's radius, averaged over the passes, tabulated in r.
+    let e = Table::new(floor_irradiance);
+    let blur = Table::new(|r| {
+        radii.iter().map(|&rk| blurred_irradiance(&e, r, rk)).sum::<f64>() / radii.len() as f64
     });
+    let blurred = expected_blocks(&rs, w, h, block, |r| blur.at(r));
     let crit = z_critical(0.01, stats.len());
     let (mut worst_rel, mut worst_z) = (0.0f64, 0.0f64);
     for (b, &(mean, var)) in stats.iter().enumerate() {
@@ -400,4 +423,82 @@ fn vcm_is_bit_identical_across_threads_and_unit_splits() {
     }
     assert!(bits(&acc) == bits(&one), "units in reverse order differ");
     assert!(one.image().mean.iter().any(|p| p[0] > 0.0), "a black image");
+}
+
+/// Efficiency `1 / (MSE x seconds)` of vcm, bdpt and path on the pool (against the closed
+/// form, per pixel) and on `scenes/glass-spot.gltf` (against a vcm render with 4x the
+/// passes, its own variance subtracted). Prints a table; run with `--ignored --nocapture`.
+/// Wall time, so not an assertion.
+#[test]
+#[ignore = "a measurement: prints the efficiency table"]
+fn vcm_efficiency_table() {
+    use std::time::Instant;
+    let time = |rs: &RenderScene, s: &RenderConfig, plan: &FramePlan| {
+        let t = Instant::now();
+        let acc = render_frame(rs, s, plan, 0, 2, |_, _| {});
+        (acc.image(), t.elapsed().as_secs_f64())
+    };
+    let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
+    // The pool, max depth 3 (the closed form's paths).
+    let (w, h) = (64, 64);
+    let rs = RenderScene::build(&pool(), w, h).unwrap();
+    let exact = expected_blocks(&rs, w, h, 1, floor_irradiance);
+    let plan = FramePlan::new(w, h, w, 4, 16).unwrap();
+    for integrator in [Integrator::Vcm, Integrator::Bdpt, Integrator::Path] {
+        let (img, secs) = time(&rs, &settings(integrator, 3, 3), &plan);
+        let mse = img
+            .mean
+            .iter()
+            .zip(&exact)
+            .map(|(p, e)| (lum(*p) - e).powi(2))
+            .sum::<f64>()
+            / exact.len() as f64;
+        let mean = img.mean.iter().map(|p| lum(*p)).sum::<f64>() / exact.len() as f64;
+        let truth = exact.iter().sum::<f64>() / exact.len() as f64;
+        eprintln!(
+            "pool 64x64, 64 spp, {integrator}: {secs:.2} s, mean {mean:.4} (closed form \
+             {truth:.4}), rel. RMSE {:.4}, 1/(MSE s) {:.4e}",
+            mse.sqrt() / truth,
+            1.0 / (mse * secs)
+        );
+    }
+    // glass-spot: a spot light through a glass ball, seen through the ball.
+    let scene = tessera_scene::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenes/glass-spot.gltf"
+    ))
+    .unwrap();
+    let (w, h) = (48, 36);
+    let rs = RenderScene::build(&scene, w, h).unwrap();
+    let (reference, _) = time(
+        &rs,
+        &settings(Integrator::Vcm, 99, 12),
+        &FramePlan::new(w, h, w, 8, 64).unwrap(),
+    );
+    let ref_var: f64 = reference
+        .variance_of_mean
+        .iter()
+        .map(|v| lum(*v))
+        .sum::<f64>()
+        / reference.mean.len() as f64;
+    let plan = FramePlan::new(w, h, w, 4, 16).unwrap();
+    for integrator in [Integrator::Vcm, Integrator::Bdpt, Integrator::Path] {
+        let (img, secs) = time(&rs, &settings(integrator, 4, 12), &plan);
+        let n = img.mean.len() as f64;
+        let mse = img
+            .mean
+            .iter()
+            .zip(&reference.mean)
+            .map(|(p, r)| (lum(*p) - lum(*r)).powi(2))
+            .sum::<f64>()
+            / n
+            - ref_var;
+        let truth = reference.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
+        eprintln!(
+            "glass-spot 48x36, 64 spp, {integrator}: {secs:.2} s, rel. RMSE {:.4} (vs vcm \
+             256 spp), 1/(MSE s) {:.4e}",
+            mse.max(0.0).sqrt() / truth,
+            1.0 / (mse.max(1e-30) * secs)
+        );
+    }
 }

@@ -605,3 +605,17 @@ fn json_escapes_names() {
     let area = v["effects"][0]["evidence"].as_str().unwrap();
     assert!(area.contains("l\"ight\\ \u{e9}\u{1F4A1}\n"), "{area}");
 }
+
+/// The pool (`scenes/pool.gltf`): a point light above flat water over a diffuse floor, the
+/// camera above the water. Light reaches the camera only as `L S D S E`: the plan finds
+/// the class and chooses vcm, and says that merging is biased.
+#[test]
+fn pool_gltf_is_a_delta_lit_sds_scene_for_vcm() {
+    let plan = plan_of(&scene_path("pool.gltf"));
+    eprintln!("{}", plan.summary());
+    assert!(plan.has(DeltaLitCaustics) && plan.has(DeltaLitSds));
+    assert!(evidence(&plan, DeltaLitSds).contains("material 1 'water'"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
+    assert!(plan.reasons.iter().any(|r| r.starts_with("vcm is biased")));
+    assert!(plan.technique_pilot.is_none());
+}
