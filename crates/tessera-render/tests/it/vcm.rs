@@ -278,7 +278,11 @@ fn vcm_renders_the_pool_floor_to_its_closed_form() {
     // The blur of each pass's radius, averaged over the passes, tabulated in r.
     let e = Table::new(floor_irradiance);
     let blur = Table::new(|r| {
-        radii.iter().map(|&rk| blurred_irradiance(&e, r, rk)).sum::<f64>() / radii.len() as f64
+        radii
+            .iter()
+            .map(|&rk| blurred_irradiance(&e, r, rk))
+            .sum::<f64>()
+            / radii.len() as f64
     });
     let blurred = expected_blocks(&rs, w, h, block, |r| blur.at(r));
     let crit = z_critical(0.01, stats.len());
