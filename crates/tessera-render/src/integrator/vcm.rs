@@ -500,7 +500,7 @@ fn light_subpath(
         d_vm: d_vc * c.vc,
     };
     let mut n = 0;
-    while (w.depth as usize) < st.max_depth as usize {
+    while w.depth < st.max_depth {
         match ctx.trace(&mut w, slot, c, true) {
             Step::Surface => {}
             Step::Escaped | Step::Stop => break,
@@ -588,7 +588,8 @@ impl HashGrid {
             if frac.z < 0.5 { -1 } else { 1 },
         ];
         let mut seen = [usize::MAX; 8];
-        for k in 0..8usize {
+        let mut n_seen = 0;
+        for k in 0..8u32 {
             let cell = [
                 c[0].wrapping_add(if k & 1 != 0 { o[0] } else { 0 }),
                 c[1].wrapping_add(if k & 2 != 0 { o[1] } else { 0 }),
@@ -596,10 +597,11 @@ impl HashGrid {
             ];
             let b = self.bucket(cell);
             // Two cells hashed into one bucket: visit it once, or its photons count twice.
-            if seen[..k].contains(&b) {
+            if seen[..n_seen].contains(&b) {
                 continue;
             }
-            seen[k] = b;
+            seen[n_seen] = b;
+            n_seen += 1;
             for &i in &self.indices[self.starts[b] as usize..self.starts[b + 1] as usize] {
                 let ph = &photons[i as usize];
                 if (ph.p - p).length_squared() <= self.r2 {
