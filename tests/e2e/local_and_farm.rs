@@ -1,6 +1,7 @@
 //! One job vocabulary, one resolution path (the redesign issue): for a table of settings
-//! — every integrator (auto, path, direct, bdpt) times every adaptive mode, on a tiled
-//! glTF scene and on a glTF scene whose plan is bdpt (a spot light through glass), each
+//! — every integrator (auto, path, direct, bdpt, vcm) times every adaptive mode, on a
+//! tiled glTF scene and on a glTF scene whose plan renders one whole-frame tile (a spot
+//! light through glass, seen through the glass: vcm), each
 //! rendered from a named camera — `tessera render` and a farm job give byte-identical
 //! EXRs, headers included (ARCHITECTURE.md §2). And every frame of an animated multi-frame
 //! job is byte-identical to `tessera render --frame F`.
@@ -54,7 +55,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
     let dir = temp_dir("e2e", "local-and-farm");
     let (_c, _ws, client) = two_worker_farm(&dir);
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes");
-    // (file, camera, whether the render plan chooses bdpt)
+    // (file, camera, whether the render plan chooses a whole-frame integrator)
     let scenes = [
         ("cornell-box.gltf", "camera", false),
         ("glass-spot.gltf", "main", true),
@@ -63,7 +64,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
     for (file, camera, plan_is_bdpt) in scenes {
         let path = root.join(file);
         let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
-        for integrator in ["auto", "path", "direct", "bdpt"] {
+        for integrator in ["auto", "path", "direct", "bdpt", "vcm"] {
             for adaptive in ["off", "sequential", "unbiased"] {
                 let mut s = JobSettings::new(uploaded.hash.clone());
                 s.camera = Some(camera.into());
@@ -80,8 +81,10 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
                 let case = format!("{file} --integrator {integrator} --adaptive {adaptive}");
                 let st = client.submit(&s, None).unwrap();
                 let done = wait_done(&client, st.id);
-                // bdpt, chosen by the plan or asked for, renders one whole-frame tile.
-                let bdpt = integrator == "bdpt" || (integrator == "auto" && plan_is_bdpt);
+                // bdpt and vcm, chosen by the plan or asked for, render one whole-frame tile.
+                let bdpt = integrator == "bdpt"
+                    || integrator == "vcm"
+                    || (integrator == "auto" && plan_is_bdpt);
                 assert_eq!(done.tiles_total == 1, bdpt, "{case}: tiles");
                 // A done job with a target says whether it reached it.
                 assert_eq!(

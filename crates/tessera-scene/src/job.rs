@@ -249,6 +249,12 @@ mod tests {
             r#"{"scene": "builtin:cornell-box", "width": 300, "height": 200, "integrator": "bdpt"}"#,
         );
         assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 300));
+        // vcm splats too, and merges with the whole pass's photons.
+        let r = resolve(
+            r#"{"scene": "builtin:cornell-box", "width": 300, "height": 200, "integrator": "vcm"}"#,
+        );
+        assert_eq!(r.config.integrator, Integrator::Vcm);
+        assert_eq!((r.plan.tile_count(), r.plan.tile_size), (1, 300));
         let r = resolve(
             r#"{"scene": "builtin:caustic", "width": 320, "height": 240, "integrator": "path"}"#,
         );
@@ -344,6 +350,7 @@ mod tests {
             estimate: Some(0.125),
             spp: 256,
             unbiased: false,
+            unsampled: false,
         };
         let v: serde_json::Value = serde_json::from_str(&r.metadata_json(Some(&short))).unwrap();
         assert_eq!(v["adaptive"], "unbiased");
@@ -362,6 +369,19 @@ mod tests {
         let v: serde_json::Value = serde_json::from_str(&r.metadata_json(Some(&met))).unwrap();
         assert_eq!(v["stopped"], "target error reached");
         assert_eq!(v["target_reached"], true);
+        // An integrator that cannot sample a light path class of the scene never reaches a
+        // target, whatever its (blind) estimate says.
+        let blind = StopVerdict {
+            unsampled: true,
+            ..met
+        };
+        assert_eq!(blind.target_reached(), Some(false));
+        assert_eq!(blind.stopped(), "finished");
+        assert!(
+            blind.summary().contains("cannot sample"),
+            "{}",
+            blind.summary()
+        );
         let timed = StopVerdict {
             time_limit: true,
             estimate: None,

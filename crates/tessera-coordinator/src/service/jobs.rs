@@ -205,6 +205,7 @@ impl Coordinator {
             estimate: history.last().and_then(|h| h.error_estimate),
             spp: plan.spp(),
             unbiased: mode == tessera_farm::AdaptiveMode::Unbiased,
+            unsampled: StopVerdict::caveat_says_unsampled(rec.error_estimate_caveat.as_deref()),
         });
         let estimator = tessera_farm::ErrorEstimator::for_mode(mode);
         Ok(JobStatus {
@@ -504,6 +505,12 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             estimate: error,
             spp: plan.spp(),
             unbiased: rt.job().adaptive == tessera_farm::AdaptiveMode::Unbiased,
+            unsampled: !rt.resolved.black
+                && rt
+                    .resolved
+                    .render_plan
+                    .unsampled(rt.resolved.config.integrator)
+                    .is_some(),
         }),
         _ => None,
     };

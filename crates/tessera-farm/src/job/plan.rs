@@ -11,6 +11,11 @@ use std::fmt;
 
 use super::choice::{Integrator, IntegratorChoice};
 
+/// How [`RenderPlan::unsampled`] (and so an error estimate caveat that includes it) begins:
+/// a stored caveat that starts with it marks a job whose integrator cannot sample a light
+/// path class of its scene.
+pub const UNSAMPLED_CAVEAT: &str = "cannot sample";
+
 /// A light-transport effect a scene may contain.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum EffectKind {
@@ -41,6 +46,12 @@ pub enum EffectKind {
     Caustics,
     /// Caustics lit by delta (point, spot, directional) or tiny lights.
     DeltaLitCaustics,
+    /// Caustics of a delta light seen through specular surfaces: light reaching the
+    /// camera as `L S+ D S+ E` (Heckbert 1990's notation) from a point, spot or
+    /// directional light, e.g. a pool floor seen through the water. No technique of path
+    /// tracing or bdpt samples such a path (each would connect at the diffuse vertex
+    /// through a delta-BSDF neighbour); vertex merging does.
+    DeltaLitSds,
     /// Depth of field from a thin-lens camera.
     DepthOfField,
     /// Motion blur from animated transforms within the shutter.
@@ -51,7 +62,7 @@ pub enum EffectKind {
 
 impl EffectKind {
     /// Every kind, in the order plans list them.
-    pub const ALL: [EffectKind; 16] = [
+    pub const ALL: [EffectKind; 17] = [
         Self::DirectArea,
         Self::DirectSphere,
         Self::DirectPoint,
@@ -65,6 +76,7 @@ impl EffectKind {
         Self::TotalInternalReflection,
         Self::Caustics,
         Self::DeltaLitCaustics,
+        Self::DeltaLitSds,
         Self::DepthOfField,
         Self::Motion,
         Self::Textures,
@@ -86,6 +98,7 @@ impl EffectKind {
             Self::TotalInternalReflection => "total-internal-reflection",
             Self::Caustics => "caustics",
             Self::DeltaLitCaustics => "delta-lit-caustics",
+            Self::DeltaLitSds => "delta-lit-sds",
             Self::DepthOfField => "depth-of-field",
             Self::Motion => "motion",
             Self::Textures => "textures",
@@ -119,6 +132,9 @@ pub enum PlannedIntegrator {
     Path,
     /// Bidirectional path tracing (for caustics lit by delta or tiny lights).
     Bdpt,
+    /// Vertex connection and merging (for caustics of delta lights seen through specular
+    /// surfaces, [`EffectKind::DeltaLitSds`]).
+    Vcm,
 }
 
 impl PlannedIntegrator {
@@ -129,6 +145,7 @@ impl PlannedIntegrator {
             Self::Direct => "direct",
             Self::Path => "path",
             Self::Bdpt => "bdpt",
+            Self::Vcm => "vcm",
         }
     }
 }
@@ -234,16 +251,54 @@ impl RenderPlan {
     /// 44-89% and the image estimate is 0.3-1.0 of the measured error, where bdpt covers
     /// 93-96% (docs/benchmarks.md, "The caustic against a converged reference").
     /// Bidirectional path tracing reaches those caustics by light tracing.
+    ///
+    /// Before that, in this order: what `used` cannot sample at all
+    /// ([`RenderPlan::unsampled`]), and for a biased integrator (vcm) that its estimate
+    /// has a bias the pass spread does not see. Joined by "; ".
     pub fn error_estimate_caveat(&self, used: Integrator) -> Option<String> {
-        if used == Integrator::Bdpt || self.integrator == PlannedIntegrator::Black {
+        if self.integrator == PlannedIntegrator::Black {
             return None;
         }
-        let evidence = self.evidence(EffectKind::DeltaLitCaustics)?;
+        let mut parts: Vec<String> = Vec::new();
+        parts.extend(self.unsampled(used));
+        if used.is_biased() {
+            parts.push(
+                "biased: vertex merging blurs light over a radius that shrinks with the passes \
+                 (r_k = r_1 (k + 1)^-0.125, Knaus & Zwicker 2011); the pass spread does not see \
+                 the bias the passes share, which vanishes as passes are added (consistent)"
+                    .to_string(),
+            );
+        }
+        if used != Integrator::Bdpt && used != Integrator::Vcm {
+            if let Some(evidence) = self.evidence(EffectKind::DeltaLitCaustics) {
+                parts.push(format!(
+                    "may be optimistic: {} reaches the scene's caustics of tiny or delta lights only \
+                     when a BSDF-sampled ray happens to hit the light, or never ({evidence}); light \
+                     that no pass found is in neither the image nor its error estimate, and bdpt \
+                     finds it by light tracing",
+                    used.as_str()
+                ));
+            }
+        }
+        (!parts.is_empty()).then(|| parts.join("; "))
+    }
+
+    /// The light path class of the scene that `used` cannot sample at all, said in words
+    /// that start with [`UNSAMPLED_CAVEAT`], or `None`: light from a delta light that
+    /// reaches the camera only as `L S+ D S+ E` ([`EffectKind::DeltaLitSds`]) has no
+    /// technique in path tracing, direct lighting or bdpt, so the image lacks it and no
+    /// pass shows that it does. No render with such an integrator reports its target
+    /// error reached ([`crate::job::StopVerdict::target_reached`]).
+    pub fn unsampled(&self, used: Integrator) -> Option<String> {
+        if used == Integrator::Vcm || self.integrator == PlannedIntegrator::Black {
+            return None;
+        }
+        let evidence = self.evidence(EffectKind::DeltaLitSds)?;
         Some(format!(
-            "may be optimistic: {} reaches the scene's caustics of tiny or delta lights only \
-             when a BSDF-sampled ray happens to hit the light, or never ({evidence}); light \
-             that no pass found is in neither the image nor its error estimate, and bdpt \
-             finds it by light tracing",
+            "{UNSAMPLED_CAVEAT} every light path of this scene: {} has no technique for light \
+             from a delta light that reaches the camera as L S+ D S+ E ({evidence}); that \
+             light is missing from the image and from its error estimate, so no target error \
+             counts as reached; vcm samples it by vertex merging",
             used.as_str()
         ))
     }

@@ -70,6 +70,9 @@ impl ValidatedJob {
                     render_plan.max_depth,
                     render_plan.rr_depth,
                 ),
+                PlannedIntegrator::Vcm => {
+                    (Integrator::Vcm, render_plan.max_depth, render_plan.rr_depth)
+                }
             },
             IntegratorChoice::Fixed(i) => {
                 forced.push(format!("--integrator {i}"));
@@ -131,6 +134,10 @@ pub struct StopVerdict {
     /// ends above its target ended because its plan was done, not only because of the
     /// budget.
     pub unbiased: bool,
+    /// The integrator cannot sample a light path class of the scene
+    /// ([`crate::job::RenderPlan::unsampled`]): the estimate does not see the missing
+    /// light, so the target never counts as reached.
+    pub unsampled: bool,
 }
 
 impl StopVerdict {
@@ -142,12 +149,24 @@ impl StopVerdict {
             estimate: image.error_estimate(job.error_estimator()),
             spp: job.plan.spp(),
             unbiased: job.job.adaptive == crate::AdaptiveMode::Unbiased,
+            unsampled: !job.black && job.render_plan.unsampled(job.config.integrator).is_some(),
         }
     }
 
-    /// Whether the estimate is at or below the target; `None` without a target.
+    /// Whether a stored error estimate caveat marks a job whose integrator cannot sample a
+    /// light path class of its scene (it starts with
+    /// [`crate::job::plan::UNSAMPLED_CAVEAT`]): for [`StopVerdict::unsampled`] where only
+    /// the stored caveat is at hand.
+    pub fn caveat_says_unsampled(caveat: Option<&str>) -> bool {
+        caveat.is_some_and(|c| c.starts_with(super::plan::UNSAMPLED_CAVEAT))
+    }
+
+    /// Whether the estimate is at or below the target; `None` without a target. Never
+    /// `Some(true)` when the integrator cannot sample every light path class of the scene
+    /// ([`StopVerdict::unsampled`]): an estimate blind to missing light is no evidence.
     pub fn target_reached(&self) -> Option<bool> {
-        self.target.map(|t| self.estimate.is_some_and(|e| e <= t))
+        self.target
+            .map(|t| !self.unsampled && self.estimate.is_some_and(|e| e <= t))
     }
 
     /// Why the render ended, in the words `tessera render` prints after `stopped:`:
@@ -182,6 +201,10 @@ impl StopVerdict {
         });
         Some(match self.target_reached() {
             Some(true) => format!("target error {t} reached ({estimate})"),
+            _ if self.unsampled => format!(
+                "target error {t} not reached: {estimate}, but the integrator cannot sample \
+                 every light path of the scene (see the error estimate caveat)"
+            ),
             _ if self.time_limit => {
                 format!("target error {t} not reached: {estimate} when the time limit ran out")
             }

@@ -159,7 +159,7 @@ fn enumerations() {
     for (field, good, bad) in [
         (
             "integrator",
-            &["auto", "path", "direct", "bdpt"][..],
+            &["auto", "path", "direct", "bdpt", "vcm"][..],
             &["", "Path", "pt", "photon"][..],
         ),
         (

@@ -294,7 +294,12 @@ fn unit_result_rejections_name_the_field() {
 
 fn configs() -> Vec<RenderConfig> {
     let mut out = Vec::new();
-    for integrator in [Integrator::Path, Integrator::Direct, Integrator::Bdpt] {
+    for integrator in [
+        Integrator::Path,
+        Integrator::Direct,
+        Integrator::Bdpt,
+        Integrator::Vcm,
+    ] {
         for mis in [
             MisHeuristic::Balance,
             MisHeuristic::Power,

@@ -6,6 +6,7 @@
 //! | `path` | unidirectional path tracing with next-event estimation, multiple importance sampling and Russian roulette ([`path`]) |
 //! | `direct` | direct lighting only: emission seen by the camera and light arriving at the first surface, one bounce, both techniques combined by MIS ([`path`] with a bounce limit of 1) |
 //! | `bdpt` | bidirectional path tracing: camera and light subpaths joined by every connection technique, light tracing splatted onto the film, power-heuristic MIS ([`bdpt`]) |
+//! | `vcm` | vertex connection and merging: bdpt's techniques plus merging with a per-pass photon map, all weighted by MIS; biased, consistent ([`vcm`]) |
 //!
 //! # The interface
 //!
@@ -58,6 +59,7 @@
 
 pub mod bdpt;
 pub mod path;
+pub mod vcm;
 
 use crate::sampling::{PixelSampler, SamplerKind};
 use crate::scene::RenderScene;
@@ -143,6 +145,19 @@ pub fn render_unit_where(
         Integrator::Bdpt => {
             let bdpt = bdpt::BdptSettings::new(settings.mis, settings.max_depth, settings.rr_depth);
             bdpt::render_unit(scene, &bdpt, stream, plan, unit, wanted)
+        }
+        // Light tracing splats and merging reads the whole pass's photon map: whole-frame
+        // units as for bdpt, the photon map rebuilt per pass inside the unit.
+        Integrator::Vcm => {
+            let vcm = vcm::VcmSettings::new(
+                settings.mis,
+                settings.max_depth,
+                settings.rr_depth,
+                scene.geometry.bounds_radius,
+                plan.width,
+                plan.height,
+            );
+            vcm::render_unit(scene, &vcm, stream, plan, unit, wanted)
         }
     }
 }

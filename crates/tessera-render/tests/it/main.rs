@@ -20,3 +20,4 @@ mod motion_blur;
 mod pilot;
 mod plan_equivalence;
 mod robustness;
+mod vcm;

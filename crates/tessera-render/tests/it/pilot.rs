@@ -95,15 +95,15 @@ fn an_explicit_integrator_or_a_delta_light_runs_no_pilot() {
         "{:?}",
         r.render_plan.reasons
     );
-    // A spot light through glass: path tracing cannot find the caustic, bdpt is the only
-    // correct choice and no pilot is asked for.
+    // A spot light through glass, the caustic seen through the glass: path tracing and
+    // bdpt cannot find all of it, vcm is the only correct choice and no pilot is asked for.
     let spot = tessera_scene::load(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../../scenes/glass-spot.gltf"
     ))
     .unwrap();
     let plan = tessera_scene::analysis::analyse(&spot);
-    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
     assert!(plan.technique_pilot.is_none());
     assert!(
         plan.reasons[0].contains("delta lights"),

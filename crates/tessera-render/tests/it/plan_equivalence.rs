@@ -23,6 +23,7 @@ fn planned(scene: &Scene) -> (RenderConfig, PlannedIntegrator) {
         PlannedIntegrator::Direct => (Integrator::Direct, 1),
         PlannedIntegrator::Path => (Integrator::Path, plan.max_depth),
         PlannedIntegrator::Bdpt => (Integrator::Bdpt, plan.max_depth),
+        PlannedIntegrator::Vcm => (Integrator::Vcm, plan.max_depth),
         PlannedIntegrator::Black => (Integrator::Direct, 1),
     };
     (

@@ -89,7 +89,7 @@ pub(super) fn plan(
     }
 }
 
-/// Black, direct, BDPT or path tracing, with the reason.
+/// Black, direct, VCM, BDPT or path tracing, with the reason.
 fn choose_integrator(
     lights: &Lights,
     transport: &Transport,
@@ -123,6 +123,25 @@ fn choose_integrator(
             }
         ));
         PlannedIntegrator::Direct
+    } else if transport.delta_sds {
+        reasons.push(
+            "vcm: light from delta lights reaches the camera as L S+ D S+ E (a caustic seen \
+             through or in a specular surface), which no technique of path tracing or bdpt \
+             samples; vertex merging does, and MIS keeps bdpt's connections where they are \
+             better"
+                .into(),
+        );
+        reasons.push(
+            "vcm is biased: merging blurs light over a radius that shrinks with the passes \
+             (consistent); the error estimate does not see that bias"
+                .into(),
+        );
+        reasons.push(
+            "vcm light-traces onto the film and merges with the whole pass's photons: one \
+             whole-frame tile, units split by passes, each pass's photon map built in its unit"
+                .into(),
+        );
+        PlannedIntegrator::Vcm
     } else if transport.delta_lit {
         reasons.push(if transport.tiny_lit_only {
             "bdpt: caustics lit by tiny lights, which a path tracer with next-event estimation \
@@ -185,7 +204,7 @@ fn depths(
             reasons.push("max depth 1: one scattering event".into());
             (1, DEFAULT_RR_DEPTH)
         }
-        PlannedIntegrator::Path | PlannedIntegrator::Bdpt => {
+        PlannedIntegrator::Path | PlannedIntegrator::Bdpt | PlannedIntegrator::Vcm => {
             let closed_bright = transport.indirect_diffuse
                 && mean_albedo > BRIGHT_ALBEDO
                 && enclosure >= CLOSED_FRACTION;

@@ -67,6 +67,12 @@
 //!   next-event estimation reaches through a specular chain with zero (or almost zero)
 //!   probability.
 //!
+//! - [`EffectKind::DeltaLitSds`]: delta-lit caustics, at least one point, spot or
+//!   directional light, and a smooth specular primitive (sphere or triangle) whose bounding
+//!   sphere meets the camera's view cone: a caustic of a delta light may be seen through or
+//!   in it, as `L S+ D S+ E` (Heckbert 1990), which neither path tracing nor bdpt can
+//!   sample.
+//!
 //! **Camera, motion, textures.** [`EffectKind::DepthOfField`] iff the camera aperture
 //! radius is > 0, and then `lens_sampling` is on; [`EffectKind::Motion`] is always absent
 //! (there is no motion blur: each frame of an animated scene is the scene at one time,
@@ -78,10 +84,12 @@
 //! - [`PlannedIntegrator::Direct`] if nothing can bounce light to the camera a second
 //!   time: no indirect diffuse and nothing glossy, specular or refractive (e.g. a single
 //!   plane under a light);
-//! - [`PlannedIntegrator::Bdpt`] if there are delta-lit caustics;
+//! - [`PlannedIntegrator::Vcm`] if there are delta-lit caustics seen through specular
+//!   surfaces ([`EffectKind::DeltaLitSds`]): vertex merging is the only technique for them;
+//! - [`PlannedIntegrator::Bdpt`] if there are (other) delta-lit caustics;
 //! - [`PlannedIntegrator::Path`] otherwise.
 //!
-//! **Depth.** `Direct`: `max_depth` 1. `Path`/`Bdpt`: [`CLOSED_ROOM_DEPTH`] for a *closed
+//! **Depth.** `Direct`: `max_depth` 1. `Path`/`Bdpt`/`Vcm`: [`CLOSED_ROOM_DEPTH`] for a *closed
 //! bright room* — indirect diffuse, an area-weighted mean diffuse albedo above
 //! [`BRIGHT_ALBEDO`] and scattering surfaces whose area is at least [`CLOSED_FRACTION`] of
 //! the surface of the scene's bounding box — else [`DEFAULT_DEPTH`]; with refraction at

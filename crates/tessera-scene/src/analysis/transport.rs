@@ -83,6 +83,9 @@ pub(super) struct Transport {
     /// directional light: path tracing finds them too, by BSDF sampling, so it is a
     /// correct alternative to bdpt.
     pub(super) tiny_lit_only: bool,
+    /// [`EffectKind::DeltaLitSds`] is present: a delta light's caustics may be seen through
+    /// (or in) a specular surface the camera sees.
+    pub(super) delta_sds: bool,
 }
 
 /// Finds the transport effects, records them with their evidence, and returns what the
@@ -137,6 +140,7 @@ pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect
     } else {
         (false, false)
     };
+    let delta_sds = delta_lit && report_delta_sds(survey, lights, &surfaces, effects);
     Transport {
         surfaces,
         bouncing,
@@ -146,7 +150,88 @@ pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect
         caustics,
         delta_lit,
         tiny_lit_only,
+        delta_sds,
     }
+}
+
+/// The `L S+ D S+ E` class from delta lights ([`EffectKind::DeltaLitSds`]): the scene has
+/// delta-lit caustics, a point, spot or directional light, and the camera sees a smooth
+/// specular surface, through or in which a caustic may appear. Conservative: a specular
+/// primitive counts as seen when its bounding sphere meets the camera's view cone (the
+/// cone around the image's diagonal), whether or not a caustic shows through it.
+fn report_delta_sds(
+    survey: &Survey,
+    lights: &Lights,
+    surfaces: &Surfaces,
+    effects: &mut Vec<Effect>,
+) -> bool {
+    if lights.delta() == 0 {
+        return false;
+    }
+    let seen = specular_in_view(survey, &surfaces.smooth_specular);
+    if seen.is_empty() {
+        return false;
+    }
+    push(
+        effects,
+        EffectKind::DeltaLitSds,
+        format!(
+            "the camera sees specular {}, through or in which the caustics of {} can appear: \
+             light paths L S+ D S+ E, which no connection technique samples",
+            material_list(survey.scene, &seen, &survey.classes, false),
+            plural(lights.delta(), "delta light", "delta lights")
+        ),
+    );
+    true
+}
+
+/// The materials among `specular` of a sphere or triangle whose bounding sphere meets the
+/// camera's view cone, in material order.
+fn specular_in_view(survey: &Survey, specular: &[usize]) -> Vec<usize> {
+    let camera = &survey.scene.camera;
+    let origin = camera.world_from_camera.transform_point3(Vec3::ZERO);
+    let Some(forward) = camera
+        .world_from_camera
+        .transform_vector3(Vec3::NEG_Z)
+        .try_normalize()
+    else {
+        return Vec::new();
+    };
+    // Half the angle of the image's diagonal; an image without an aspect ratio of its own
+    // is taken as wide as 2:1 (erring on the side of seeing more).
+    let aspect = camera.aspect_ratio.unwrap_or(2.0).max(1.0);
+    let half = ((0.5 * camera.yfov).tan() * (1.0 + aspect * aspect).sqrt()).atan();
+    let in_view = |center: Vec3, radius: f32| {
+        let v = center - origin;
+        let d = v.length();
+        if d <= radius {
+            return true;
+        }
+        let angle = (v.dot(forward) / d).clamp(-1.0, 1.0).acos();
+        angle <= half + (radius / d).clamp(0.0, 1.0).asin()
+    };
+    let mut seen: Vec<usize> = Vec::new();
+    for s in &survey.scene.spheres {
+        let m = s.material as usize;
+        if specular.contains(&m) && !seen.contains(&m) && in_view(s.center, s.radius) {
+            seen.push(m);
+        }
+    }
+    for placed in survey.scene.placed_meshes() {
+        let m = placed.material() as usize;
+        if !specular.contains(&m) || seen.contains(&m) {
+            continue;
+        }
+        if placed.triangles().any(|t| {
+            let c = (t[0] + t[1] + t[2]) / 3.0;
+            let r = t.iter().map(|p| p.distance(c)).fold(0.0f32, f32::max);
+            in_view(c, r)
+        }) {
+            seen.push(m);
+        }
+    }
+    seen.sort_unstable();
+    seen
 }
 
 /// Multi-bounce: is the scattering geometry more than one plane or one convex sphere?

@@ -163,7 +163,7 @@ fn caustic_scene_needs_bdpt_for_its_tiny_light() {
 }
 
 #[test]
-fn glass_spot_gltf_is_a_delta_lit_caustic() {
+fn glass_spot_gltf_is_a_delta_lit_caustic_seen_through_glass() {
     let plan = plan_of(&scene_path("glass-spot.gltf"));
     assert_effects(
         "glass-spot",
@@ -176,12 +176,15 @@ fn glass_spot_gltf_is_a_delta_lit_caustic() {
             TotalInternalReflection,
             Caustics,
             DeltaLitCaustics,
+            DeltaLitSds,
         ],
     );
     assert_eq!(evidence(&plan, DirectSpot), "1 spot light");
     assert!(evidence(&plan, DeltaLitCaustics).contains("1 spot light"));
     assert!(evidence(&plan, Refraction).contains("material 1 'glass'"));
-    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+    // The camera sees the ball, through which the caustic under it appears.
+    assert!(evidence(&plan, DeltaLitSds).contains("1 delta light"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
     assert_eq!(plan.max_depth, 12);
 }
 
@@ -562,10 +565,19 @@ fn caustics_need_a_smooth_specular_surface_and_bdpt_needs_a_small_light() {
             SpecularReflection,
             Caustics,
             DeltaLitCaustics,
+            DeltaLitSds,
         ],
     );
-    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
+    // The camera sees the ball, in which the floor's caustic appears: L S D S E.
+    assert!(evidence(&plan, DeltaLitSds).contains("material 1 'mirror'"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
     assert_eq!((plan.max_depth, plan.rr_depth), (8, 3));
+
+    // The same ball behind the camera: the caustic is never seen through it, bdpt.
+    scene.spheres[0].center = Vec3::new(0.0, 0.5, 9.0);
+    let plan = analyse_valid(&scene);
+    assert!(!plan.has(DeltaLitSds), "{}", plan.summary());
+    assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
 }
 
 #[test]
@@ -592,4 +604,18 @@ fn json_escapes_names() {
     let v: serde_json::Value = serde_json::from_str(&json).unwrap();
     let area = v["effects"][0]["evidence"].as_str().unwrap();
     assert!(area.contains("l\"ight\\ \u{e9}\u{1F4A1}\n"), "{area}");
+}
+
+/// The pool (`scenes/pool.gltf`): a point light above flat water over a diffuse floor, the
+/// camera above the water. Light reaches the camera only as `L S D S E`: the plan finds
+/// the class and chooses vcm, and says that merging is biased.
+#[test]
+fn pool_gltf_is_a_delta_lit_sds_scene_for_vcm() {
+    let plan = plan_of(&scene_path("pool.gltf"));
+    eprintln!("{}", plan.summary());
+    assert!(plan.has(DeltaLitCaustics) && plan.has(DeltaLitSds));
+    assert!(evidence(&plan, DeltaLitSds).contains("material 1 'water'"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
+    assert!(plan.reasons.iter().any(|r| r.starts_with("vcm is biased")));
+    assert!(plan.technique_pilot.is_none());
 }

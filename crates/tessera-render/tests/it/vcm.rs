@@ -1,0 +1,508 @@
+//! Vertex connection and merging against a closed form, against path tracing, and against
+//! itself across thread counts.
+//!
+//! Statistics as in `bdpt.rs`: light tracing and the shared photon map make the pixels of
+//! one pass correlated, so block means are formed per pass and their spread is taken
+//! across passes (independent replicates, each with its own photon map).
+
+use crate::common::{block_passes, block_stats, z_critical};
+use glam::{Vec2, Vec3};
+use tessera_farm::FramePlan;
+use tessera_render::integrator::vcm::VcmSettings;
+use tessera_render::integrator::Integrator;
+use tessera_render::render::{render_frame, render_unit, RenderConfig};
+use tessera_render::scene::RenderScene;
+use tessera_scene::analysis::{analyse, EffectKind, PlannedIntegrator};
+use tessera_scene::builtin::look_at_camera;
+use tessera_scene::{Material, MaterialKind, Mesh, PunctualLight, Scene};
+
+/// Index of refraction of the water.
+const N: f64 = 1.33;
+/// Intensity of the point light (W/sr).
+const I: f64 = 10.0;
+/// Height of the light above the water surface.
+const H: f64 = 1.0;
+/// Depth of the water (surface to floor).
+const D: f64 = 0.5;
+/// Horizontal offset of the light from the camera's axis (so that its mirror image in the
+/// water is outside the view: `L S E` from a point light to a pinhole has no technique).
+const X_LIGHT: f64 = 1.0;
+/// Height of the camera above the water surface.
+const H_CAM: f64 = 2.0;
+/// Albedo of the floor.
+const RHO: f64 = 0.8;
+
+fn settings(integrator: Integrator, seed: u64, max_depth: u32) -> RenderConfig {
+    RenderConfig {
+        integrator,
+        seed,
+        max_depth,
+        rr_depth: 8,
+        ..RenderConfig::default()
+    }
+}
+
+fn quad(name: &str, y: f32, half: f32, material: u32) -> Mesh {
+    let v = Vec3::new;
+    Mesh {
+        name: name.into(),
+        positions: vec![
+            v(-half, y, -half),
+            v(-half, y, half),
+            v(half, y, half),
+            v(half, y, -half),
+        ],
+        normals: None,
+        uvs: vec![],
+        tangents: None,
+        indices: vec![[0, 1, 2], [0, 2, 3]],
+        material,
+    }
+}
+
+/// The pool: a diffuse floor (albedo [`RHO`]) at y = 0 under a flat water surface
+/// (smooth dielectric, index [`N`]) at y = [`D`], a point light [`H`] above the water and
+/// [`X_LIGHT`] to the side, and a pinhole camera [`H_CAM`] above the water looking
+/// straight down. Light reaches the camera only as `L S D S E` (and longer paths through
+/// the water): no technique of path tracing or bdpt samples it.
+pub fn pool() -> Scene {
+    let v = Vec3::new;
+    let materials = vec![
+        Material::diffuse("floor", Vec3::splat(RHO as f32)),
+        Material {
+            name: "water".into(),
+            kind: MaterialKind::Dielectric {
+                ior: N as f32,
+                roughness: 0.0,
+                tint: Vec3::ONE,
+            },
+            emission: Vec3::ZERO,
+            double_sided: false,
+        },
+    ];
+    let y_cam = (D + H_CAM) as f32;
+    Scene {
+        name: "test:pool".into(),
+        camera: look_at_camera(v(0.0, y_cam, 0.0), v(0.0, 0.0, 0.0), Vec3::Z, 20.0),
+        meshes: vec![quad("floor", 0.0, 2.0, 0), quad("water", D as f32, 2.0, 1)],
+        prototypes: Vec::new(),
+        instances: Vec::new(),
+        spheres: vec![],
+        materials,
+        textures: vec![],
+        images: vec![],
+        warnings: vec![],
+        lights: vec![PunctualLight::Point {
+            position: v(X_LIGHT as f32, (D + H) as f32, 0.0),
+            intensity: Vec3::splat(I as f32),
+        }],
+        environment: None,
+        default_resolution: (24, 24),
+        animated: false,
+    }
+}
+
+/// Unpolarised Fresnel reflectance for light arriving from air at `cos_i` onto index `n`
+/// (the same for the reverse direction inside, by reciprocity).
+fn fresnel(cos_i: f64, n: f64) -> f64 {
+    let sin_t = (1.0 - cos_i * cos_i).max(0.0).sqrt() / n;
+    let cos_t = (1.0 - sin_t * sin_t).max(0.0).sqrt();
+    let rs = (cos_i - n * cos_t) / (cos_i + n * cos_t);
+    let rp = (n * cos_i - cos_t) / (n * cos_i + cos_t);
+    0.5 * (rs * rs + rp * rp)
+}
+
+/// Irradiance on the pool floor at horizontal distance `r` from the point below the light.
+///
+/// A ray leaving the light at angle θ₁ from the vertical meets the water at horizontal
+/// distance `h tan θ₁`, refracts to θ₂ (`sin θ₁ = n sin θ₂`, Snell) and reaches the floor
+/// at `r(θ₁) = h tan θ₁ + d tan θ₂`. The power in the solid angle `sin θ₁ dθ₁ dφ` is
+/// `I sin θ₁ dθ₁ dφ`, of which the fraction `T(θ₁) = 1 - F(θ₁)` (Fresnel) crosses the
+/// surface; power is conserved through the refraction (no `n²` for flux), and it lands on
+/// the floor's annulus of area `r dr dφ`. So
+///
+/// `E(r) = I T(θ₁) sin θ₁ / (r dr/dθ₁)`, with
+/// `dr/dθ₁ = h / cos² θ₁ + (d / cos² θ₂) cos θ₁ / (n cos θ₂)`
+///
+/// (the refraction's compression of the solid angle: `dθ₂/dθ₁ = cos θ₁ / (n cos θ₂)`), and
+/// at `r = 0` the limit `I T(0) / (h + d/n)²` (the light's apparent distance).
+fn floor_irradiance(r: f64) -> f64 {
+    if r < 1e-9 {
+        return I * (1.0 - fresnel(1.0, N)) / (H + D / N).powi(2);
+    }
+    let r_of = |t1: f64| {
+        let t2 = (t1.sin() / N).asin();
+        H * t1.tan() + D * t2.tan()
+    };
+    let (mut lo, mut hi) = (0.0f64, std::f64::consts::FRAC_PI_2 - 1e-9);
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if r_of(mid) < r {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let t1 = 0.5 * (lo + hi);
+    let t2 = (t1.sin() / N).asin();
+    let dr = H / t1.cos().powi(2) + D / t2.cos().powi(2) * t1.cos() / (N * t2.cos());
+    I * (1.0 - fresnel(t1.cos(), N)) * t1.sin() / (r * dr)
+}
+
+/// [`floor_irradiance`] tabulated on `0..=R_TABLE` (linear interpolation between
+/// `TABLE` + 1 points): the bisection is too slow to call per sample of the blur.
+struct Table(Vec<f64>);
+
+const R_TABLE: f64 = 4.0;
+const TABLE: usize = 4000;
+
+impl Table {
+    fn new(f: impl Fn(f64) -> f64) -> Self {
+        Self(
+            (0..=TABLE)
+                .map(|i| f(R_TABLE * i as f64 / TABLE as f64))
+                .collect(),
+        )
+    }
+
+    fn at(&self, r: f64) -> f64 {
+        let x = (r / R_TABLE * TABLE as f64).clamp(0.0, TABLE as f64 - 1e-9);
+        let i = x as usize;
+        let t = x - i as f64;
+        self.0[i] * (1.0 - t) + self.0[i + 1] * t
+    }
+}
+
+/// The mean of the irradiance `e` over the disc of radius `radius` around the floor
+/// point at distance `r` from the light's foot: the expected value of a merge with that
+/// radius (a constant kernel), by a midpoint rule in `(ρ², φ)`.
+fn blurred_irradiance(e: &Table, r: f64, radius: f64) -> f64 {
+    let (nr, nphi) = (12, 24);
+    let mut sum = 0.0;
+    for i in 0..nr {
+        let rho = radius * ((i as f64 + 0.5) / nr as f64).sqrt();
+        for j in 0..nphi {
+            let phi = std::f64::consts::TAU * (j as f64 + 0.5) / nphi as f64;
+            let (x, z) = (r + rho * phi.cos(), rho * phi.sin());
+            sum += e.at((x * x + z * z).sqrt());
+        }
+    }
+    sum / (nr * nphi) as f64
+}
+
+/// The closed form of the radiance the camera receives along `dir` from `origin` (above
+/// the water), with `irradiance(r)` the floor's irradiance at distance `r` from the
+/// light's foot. The camera ray meets the water at angle θ_c, crosses it with `T(θ_c)`,
+/// refracts to θ_t and reaches the floor; the Lambertian floor leaves radiance `ρ E / π`
+/// in the water, and leaving the denser medium divides radiance by `n²` (radiance over
+/// n² is invariant along a ray, Veach 1997 §5.2):
+///
+/// `L = T(θ_c) ρ E(r) / (π n²)`.
+///
+/// Only `L S D S E` is counted: the test renders with `max_depth` 3, which leaves out the
+/// paths that bounce on the floor again after a reflection under the water surface.
+fn pool_radiance(origin: Vec3, dir: Vec3, irradiance: impl Fn(f64) -> f64) -> f64 {
+    let (o, d) = (origin.as_dvec3(), dir.as_dvec3().normalize());
+    let t = (D - o.y) / d.y;
+    let hit = o + d * t;
+    let cos_c = -d.y;
+    let horizontal = glam::DVec2::new(d.x, d.z);
+    let sin_c = horizontal.length();
+    let sin_t = sin_c / N;
+    let tan_t = sin_t / (1.0 - sin_t * sin_t).sqrt();
+    let u = if sin_c > 0.0 {
+        horizontal / sin_c
+    } else {
+        glam::DVec2::ZERO
+    };
+    let floor = glam::DVec2::new(hit.x, hit.z) + u * (D * tan_t);
+    let r = (floor - glam::DVec2::new(X_LIGHT, 0.0)).length();
+    (1.0 - fresnel(cos_c, N)) * RHO * irradiance(r) / (std::f64::consts::PI * N * N)
+}
+
+/// The expected value of each `block x block` block: the closed form averaged over a
+/// 4 x 4 grid of film points per pixel (the box filter), for `irradiance`.
+fn expected_blocks(
+    rs: &RenderScene,
+    w: u32,
+    h: u32,
+    block: u32,
+    irradiance: impl Fn(f64) -> f64 + Copy,
+) -> Vec<f64> {
+    let (bx, by) = (w.div_ceil(block), h.div_ceil(block));
+    let mut sums = vec![0.0f64; (bx * by) as usize];
+    let mut counts = vec![0u32; (bx * by) as usize];
+    for y in 0..h {
+        for x in 0..w {
+            let mut l = 0.0;
+            for sy in 0..4 {
+                for sx in 0..4 {
+                    let film = Vec2::new(
+                        x as f32 + (sx as f32 + 0.5) / 4.0,
+                        y as f32 + (sy as f32 + 0.5) / 4.0,
+                    );
+                    let (o, d) = rs.camera.generate_ray(film, Vec2::ZERO);
+                    l += pool_radiance(o, d, irradiance);
+                }
+            }
+            let b = ((y / block) * bx + x / block) as usize;
+            sums[b] += l / 16.0;
+            counts[b] += 1;
+        }
+    }
+    sums.iter()
+        .zip(&counts)
+        .map(|(s, &c)| s / c as f64)
+        .collect()
+}
+
+/// The SDS pool against its closed form. Each 6 x 6 block's mean over 48 passes must be
+/// within `z σ + bias` of the closed form, where σ is the block's standard error from the
+/// spread of the passes, z the Bonferroni-corrected 1% critical value, and `bias` the
+/// documented bias of merging: the closed form blurred by each pass's merging disc
+/// (`VcmSettings::radius`), averaged over the passes, minus the closed form. The blurred
+/// form itself must pass the plain z-test: that the render converges to it is what says
+/// the bias is only the kernel's.
+#[test]
+fn vcm_renders_the_pool_floor_to_its_closed_form() {
+    let scene = pool();
+    let (w, h, block) = (24, 24, 6);
+    let rs = RenderScene::build(&scene, w, h).unwrap();
+    let passes = 48;
+    let plan = FramePlan::new(w, h, w, 8, passes).unwrap();
+    let s = settings(Integrator::Vcm, 5, 3);
+    let stats = block_stats(&block_passes(&rs, &s, &plan, block));
+    let exact = expected_blocks(&rs, w, h, block, floor_irradiance);
+    let st = VcmSettings::new(s.mis, 3, 8, rs.geometry.bounds_radius, w, h);
+    let radii: Vec<f64> = (0..passes).map(|k| st.radius(k) as f64).collect();
+    // The blur of each pass's radius, averaged over the passes, tabulated in r.
+    let e = Table::new(floor_irradiance);
+    let blur = Table::new(|r| {
+        radii
+            .iter()
+            .map(|&rk| blurred_irradiance(&e, r, rk))
+            .sum::<f64>()
+            / radii.len() as f64
+    });
+    let blurred = expected_blocks(&rs, w, h, block, |r| blur.at(r));
+    let crit = z_critical(0.01, stats.len());
+    let (mut worst_rel, mut worst_z) = (0.0f64, 0.0f64);
+    for (b, &(mean, var)) in stats.iter().enumerate() {
+        let se = var.sqrt();
+        let bias = (blurred[b] - exact[b]).abs();
+        let rel = (mean - exact[b]) / exact[b];
+        eprintln!(
+            "pool block {b}: vcm {mean:.5} ± {se:.5}, closed form {:.5} (blurred {:.5}, \
+             bias bound {bias:.5}), relative error {rel:+.4}",
+            exact[b], blurred[b]
+        );
+        assert!(
+            (mean - exact[b]).abs() <= crit * se + bias,
+            "block {b}: {mean} vs closed form {} (se {se}, bias bound {bias})",
+            exact[b]
+        );
+        let z = (mean - blurred[b]) / se;
+        assert!(
+            z.abs() <= crit,
+            "block {b}: z = {z} against the blurred form"
+        );
+        worst_rel = worst_rel.max(rel.abs());
+        worst_z = worst_z.max(z.abs());
+    }
+    let mean: f64 = stats.iter().map(|s| s.0).sum::<f64>() / stats.len() as f64;
+    let expect: f64 = exact.iter().sum::<f64>() / exact.len() as f64;
+    eprintln!(
+        "pool image: vcm {mean:.5}, closed form {expect:.5} ({:+.3}%); worst block {:.3}%, \
+         worst |z| against the blurred form {worst_z:.2} (critical {crit:.2})",
+        100.0 * (mean / expect - 1.0),
+        100.0 * worst_rel
+    );
+    // Not vacuous: the floor is lit, and the image's mean is within 2% of the closed form.
+    assert!(expect > 0.01, "{expect}");
+    assert!((mean / expect - 1.0).abs() < 0.02, "{mean} vs {expect}");
+}
+
+/// Path tracing and bdpt leave the pool floor black: there is no technique for `L S D S E`
+/// from a point light. The analysis finds the class and plans vcm.
+#[test]
+fn the_pool_is_invisible_to_path_and_bdpt_and_the_plan_picks_vcm() {
+    let scene = pool();
+    let (w, h) = (12, 12);
+    let rs = RenderScene::build(&scene, w, h).unwrap();
+    let plan = FramePlan::new(w, h, w, 4, 4).unwrap();
+    for integrator in [Integrator::Path, Integrator::Bdpt] {
+        let acc = render_frame(&rs, &settings(integrator, 1, 3), &plan, 0, 1, |_, _| {});
+        let img = acc.image();
+        let max = img
+            .mean
+            .iter()
+            .map(|p| p[0].max(p[1]).max(p[2]))
+            .fold(0.0f32, f32::max);
+        assert_eq!(max, 0.0, "{integrator}: the floor is lit?");
+    }
+    let p = analyse(&scene);
+    assert!(p.has(EffectKind::DeltaLitSds), "{}", p.summary());
+    assert_eq!(p.integrator, PlannedIntegrator::Vcm, "{}", p.summary());
+    let caveat = p.error_estimate_caveat(Integrator::Bdpt).unwrap();
+    assert!(caveat.starts_with("cannot sample"), "{caveat}");
+    let caveat = p.error_estimate_caveat(Integrator::Vcm).unwrap();
+    assert!(caveat.starts_with("biased"), "{caveat}");
+}
+
+/// Every technique weighted by MIS, merging's bias aside: vcm agrees with path tracing on
+/// the Cornell box (area light, every connection and merge in play). The whole image's
+/// mean over the passes must be within `z σ` of path tracing's plus 1% for the merging
+/// bias at the corners.
+#[test]
+fn vcm_agrees_with_path_on_the_cornell_box() {
+    let scene = tessera_scene::load("builtin:cornell-box").unwrap();
+    let (w, h) = (24, 24);
+    let rs = RenderScene::build(&scene, w, h).unwrap();
+    let plan = FramePlan::new(w, h, w, 4, 32).unwrap();
+    let whole = |passes: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+        passes
+            .iter()
+            .map(|b| vec![b.iter().sum::<f64>() / b.len() as f64])
+            .collect()
+    };
+    let vcm = block_stats(&whole(block_passes(
+        &rs,
+        &settings(Integrator::Vcm, 21, 8),
+        &plan,
+        4,
+    )))[0];
+    let path = block_stats(&whole(block_passes(
+        &rs,
+        &settings(Integrator::Path, 22, 8),
+        &plan,
+        4,
+    )))[0];
+    let se = (vcm.1 + path.1).sqrt();
+    eprintln!(
+        "cornell box: vcm {:.5} ± {:.5}, path {:.5} ± {:.5}",
+        vcm.0,
+        vcm.1.sqrt(),
+        path.0,
+        path.1.sqrt()
+    );
+    assert!(
+        (vcm.0 - path.0).abs() <= z_critical(0.01, 1) * se + 0.01 * path.0,
+        "vcm {} vs path {}",
+        vcm.0,
+        path.0
+    );
+}
+
+/// ARCHITECTURE.md §2 for vcm: the photon map is built single-threaded per pass inside
+/// the unit, so thread counts and unit splits change nothing.
+#[test]
+fn vcm_is_bit_identical_across_threads_and_unit_splits() {
+    let scene = pool();
+    let (w, h) = (16, 12);
+    let rs = RenderScene::build(&scene, w, h).unwrap();
+    let plan = FramePlan::new(w, h, w.max(h), 2, 4).unwrap();
+    assert_eq!(plan.tile_count(), 1);
+    let s = settings(Integrator::Vcm, 9, 8);
+    let bits = |acc: &tessera_farm::FrameAccumulator| -> Vec<u32> {
+        let img = acc.image();
+        img.mean
+            .iter()
+            .zip(&img.variance_of_mean)
+            .flat_map(|(m, v)| {
+                m.iter()
+                    .chain(v.iter())
+                    .map(|x| x.to_bits())
+                    .collect::<Vec<_>>()
+            })
+            .collect()
+    };
+    let one = render_frame(&rs, &s, &plan, 0, 1, |_, _| {});
+    let two = render_frame(&rs, &s, &plan, 0, 2, |_, _| {});
+    assert!(bits(&one) == bits(&two), "2 threads differ from 1");
+    let mut acc = tessera_farm::FrameAccumulator::new(plan);
+    let mut units = plan.units(0, 1);
+    units.reverse();
+    for u in units {
+        acc.offer(render_unit(&rs, &s, &plan, u)).unwrap();
+    }
+    assert!(bits(&acc) == bits(&one), "units in reverse order differ");
+    assert!(one.image().mean.iter().any(|p| p[0] > 0.0), "a black image");
+}
+
+/// Efficiency `1 / (MSE x seconds)` of vcm, bdpt and path on the pool (against the closed
+/// form, per pixel) and on `scenes/glass-spot.gltf` (against a vcm render with 4x the
+/// passes, its own variance subtracted). Prints a table; run with `--ignored --nocapture`.
+/// Wall time, so not an assertion.
+#[test]
+#[ignore = "a measurement: prints the efficiency table"]
+fn vcm_efficiency_table() {
+    use std::time::Instant;
+    let time = |rs: &RenderScene, s: &RenderConfig, plan: &FramePlan| {
+        let t = Instant::now();
+        let acc = render_frame(rs, s, plan, 0, 2, |_, _| {});
+        (acc.image(), t.elapsed().as_secs_f64())
+    };
+    let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
+    // The pool, max depth 3 (the closed form's paths).
+    let (w, h) = (64, 64);
+    let rs = RenderScene::build(&pool(), w, h).unwrap();
+    let exact = expected_blocks(&rs, w, h, 1, floor_irradiance);
+    let plan = FramePlan::new(w, h, w, 4, 16).unwrap();
+    for integrator in [Integrator::Vcm, Integrator::Bdpt, Integrator::Path] {
+        let (img, secs) = time(&rs, &settings(integrator, 3, 3), &plan);
+        let mse = img
+            .mean
+            .iter()
+            .zip(&exact)
+            .map(|(p, e)| (lum(*p) - e).powi(2))
+            .sum::<f64>()
+            / exact.len() as f64;
+        let mean = img.mean.iter().map(|p| lum(*p)).sum::<f64>() / exact.len() as f64;
+        let truth = exact.iter().sum::<f64>() / exact.len() as f64;
+        eprintln!(
+            "pool 64x64, 64 spp, {integrator}: {secs:.2} s, mean {mean:.4} (closed form \
+             {truth:.4}), rel. RMSE {:.4}, 1/(MSE s) {:.4e}",
+            mse.sqrt() / truth,
+            1.0 / (mse * secs)
+        );
+    }
+    // glass-spot: a spot light through a glass ball, seen through the ball.
+    let scene = tessera_scene::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenes/glass-spot.gltf"
+    ))
+    .unwrap();
+    let (w, h) = (48, 36);
+    let rs = RenderScene::build(&scene, w, h).unwrap();
+    let (reference, _) = time(
+        &rs,
+        &settings(Integrator::Vcm, 99, 12),
+        &FramePlan::new(w, h, w, 8, 64).unwrap(),
+    );
+    let ref_var: f64 = reference
+        .variance_of_mean
+        .iter()
+        .map(|v| lum(*v))
+        .sum::<f64>()
+        / reference.mean.len() as f64;
+    let plan = FramePlan::new(w, h, w, 4, 16).unwrap();
+    for integrator in [Integrator::Vcm, Integrator::Bdpt, Integrator::Path] {
+        let (img, secs) = time(&rs, &settings(integrator, 4, 12), &plan);
+        let n = img.mean.len() as f64;
+        let mse = img
+            .mean
+            .iter()
+            .zip(&reference.mean)
+            .map(|(p, r)| (lum(*p) - lum(*r)).powi(2))
+            .sum::<f64>()
+            / n
+            - ref_var;
+        let truth = reference.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
+        eprintln!(
+            "glass-spot 48x36, 64 spp, {integrator}: {secs:.2} s, rel. RMSE {:.4} (vs vcm \
+             256 spp), 1/(MSE s) {:.4e}",
+            mse.max(0.0).sqrt() / truth,
+            1.0 / (mse.max(1e-30) * secs)
+        );
+    }
+}
