@@ -125,16 +125,26 @@ const fn params() -> BvhBuildParams {
     BvhBuildParams::medium_build()
 }
 
-/// A CWBVH over `triangles`: obvhs' triangle builder for ordinary input, the clustered
-/// build when centres crowd (see the module docs).
-pub(super) fn triangles_cwbvh(triangles: &[Triangle], stats: &mut BvhBuildStats) -> CwBvh {
+/// A binary BVH over `triangles`: obvhs' triangle builder (PLOC, then reinsertion) for
+/// ordinary input, the clustered build when centres crowd (see the module docs). It is
+/// the tree `obvhs::cwbvh::builder::build_cwbvh_from_tris` converts (without pre-splits),
+/// so [`to_cwbvh`] of it is the CWBVH that call returns.
+pub(super) fn triangles_bvh2(triangles: &[Triangle], stats: &mut BvhBuildStats) -> Bvh2 {
     let boxes: Vec<Aabb> = triangles.iter().map(Triangle::aabb).collect();
     match crowded_cells(&boxes, stats) {
         None => {
-            let mut build_time = std::time::Duration::ZERO;
-            obvhs::cwbvh::builder::build_cwbvh_from_tris(triangles, params(), &mut build_time)
+            let p = params();
+            let mut bvh2 = PlocBuilder::with_capacity(triangles.len()).build(
+                p.ploc_search_distance,
+                triangles,
+                (0..triangles.len() as u32).collect::<Vec<_>>(),
+                p.sort_precision,
+                p.search_depth_threshold,
+            );
+            ReinsertionOptimizer::default().run(&mut bvh2, p.reinsertion_batch_ratio, None);
+            bvh2
         }
-        Some(cells) => clustered_cwbvh(&boxes, &cells, stats),
+        Some(cells) => clustered_bvh2(&boxes, &cells, stats),
     }
 }
 
@@ -146,8 +156,13 @@ pub(super) fn boxes_cwbvh(boxes: &[Aabb], stats: &mut BvhBuildStats) -> CwBvh {
             let mut build_time = std::time::Duration::ZERO;
             obvhs::cwbvh::builder::build_cwbvh(boxes, params(), &mut build_time)
         }
-        Some(cells) => clustered_cwbvh(boxes, &cells, stats),
+        Some(cells) => to_cwbvh(&clustered_bvh2(boxes, &cells, stats)),
     }
+}
+
+/// obvhs' CWBVH of a binary BVH, with the leaf size its builders use.
+pub(super) fn to_cwbvh(bvh2: &Bvh2) -> CwBvh {
+    bvh2_to_cwbvh(bvh2, params().max_prims_per_leaf.clamp(1, 3), true, false)
 }
 
 /// `⌈log2 n⌉` (0 for `n <= 1`).
@@ -208,7 +223,7 @@ fn crowded_cells(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Option<Vec<(u64, 
 
 /// The clustered build (see the module docs) over `boxes`, given every box's centre cell
 /// as `(cell, index)` sorted by cell.
-fn clustered_cwbvh(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStats) -> CwBvh {
+fn clustered_bvh2(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStats) -> Bvh2 {
     // Items for PLOC: every crowded cell as one (its members a range of `members`), every
     // other primitive on its own.
     let mut members: Vec<u32> = Vec::with_capacity(boxes.len());
@@ -278,14 +293,13 @@ fn clustered_cwbvh(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildSta
     debug_assert_eq!(nodes.len(), 2 * n - 1);
     stats.work += work;
     stats.max_depth = stats.max_depth.max(max_depth);
-    let bvh2 = Bvh2 {
+    Bvh2 {
         nodes,
         // Leaves name their primitive directly (`first_index`), through the identity.
         primitive_indices: (0..n as u32).collect(),
         max_depth: (max_depth as usize + 1).max(obvhs::bvh2::DEFAULT_MAX_STACK_DEPTH),
         ..Bvh2::default()
-    };
-    bvh2_to_cwbvh(&bvh2, p.max_prims_per_leaf.clamp(1, 3), true, false)
+    }
 }
 
 /// Writes a balanced binary tree over `members` (primitive indices into `boxes`, at

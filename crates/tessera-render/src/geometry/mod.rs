@@ -44,12 +44,16 @@ use obvhs::ray::RayHit;
 #[macro_use]
 mod watertight;
 mod build;
+pub mod kernels;
 mod moving;
 mod traversal;
+mod wide;
 
 pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN};
 pub use moving::{shutter_segment, MotionTriangles};
+pub use kernels::Isa;
 use traversal::{bvh_bytes, traversal_ray, traversal_t, triangle_bvh, TriangleLevel};
+use wide::WideBvh;
 pub use watertight::intersect_sphere;
 
 /// How far behind the real origin the BVH traversal ray starts (see the module docs). It
@@ -142,7 +146,9 @@ pub struct Hit {
 /// A mesh stored once and placed by instances: its object-space triangles in their own
 /// BVH (the bottom level).
 pub struct Prototype {
-    bvh: CwBvh,
+    bvh: WideBvh,
+    /// Bounds of the object-space triangles.
+    bounds: obvhs::aabb::Aabb,
     /// Object-space triangles in the order the BVH leaves refer to them.
     pub triangles: Vec<TriangleRecord>,
 }
@@ -150,7 +156,7 @@ pub struct Prototype {
 impl Prototype {
     /// Bytes of the BVH nodes and triangle records.
     pub fn bytes(&self) -> usize {
-        bvh_bytes(&self.bvh) + std::mem::size_of_val(self.triangles.as_slice())
+        self.bvh.bytes() + std::mem::size_of_val(self.triangles.as_slice())
     }
 }
 
@@ -175,7 +181,7 @@ pub struct InstanceRecord {
 
 /// Scene geometry with its acceleration structure.
 pub struct Geometry {
-    bvh: CwBvh,
+    bvh: WideBvh,
     /// Triangles in the order the BVH leaves refer to them.
     pub triangles: Vec<TriangleRecord>,
     /// Meshes stored once, each with its bottom-level BVH.
@@ -194,6 +200,8 @@ pub struct Geometry {
     pub bounds_radius: f32,
     /// What building the BVHs cost.
     build_stats: BvhBuildStats,
+    /// The kernel that tests the wide BVHs' boxes.
+    isa: Isa,
 }
 
 impl Geometry {
@@ -236,12 +244,17 @@ impl Geometry {
                 hi = hi.max(p);
             }
         }
-        let (bvh, ordered) = triangle_bvh(&triangles, &mut build_stats);
+        let (bvh, ordered, _) = triangle_bvh(&triangles, &mut build_stats);
+        drop(triangles);
         let prototypes: Vec<Prototype> = prototypes
             .iter()
             .map(|tris| {
-                let (bvh, triangles) = triangle_bvh(tris, &mut build_stats);
-                Prototype { bvh, triangles }
+                let (bvh, triangles, bounds) = triangle_bvh(tris, &mut build_stats);
+                Prototype {
+                    bvh,
+                    bounds,
+                    triangles,
+                }
             })
             .collect();
         // Instances of empty prototypes can never be hit (and an empty box has no centre
@@ -257,7 +270,7 @@ impl Geometry {
         let world_bounds: Vec<obvhs::aabb::Aabb> = instances
             .iter()
             .map(|&(_, proto, m)| {
-                let b = prototypes[proto as usize].bvh.total_aabb;
+                let b = prototypes[proto as usize].bounds;
                 let mut wb = obvhs::aabb::Aabb::empty();
                 for k in 0..8 {
                     let c = Vec3A::new(
@@ -318,7 +331,24 @@ impl Geometry {
             bounds_center,
             bounds_radius,
             build_stats,
+            isa: kernels::active(),
         }
+    }
+
+    /// The kernel that tests the wide BVHs' boxes ([`kernels::active`] unless
+    /// [`Geometry::with_isa`] chose another).
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// This geometry traversed with kernel `isa`, or why this CPU cannot run it. Every
+    /// kernel finds the same hits, bit for bit (see [`kernels`]).
+    pub fn with_isa(mut self, isa: Isa) -> Result<Self, String> {
+        if !isa.available() {
+            return Err(format!("this CPU lacks {}", isa.name()));
+        }
+        self.isa = isa;
+        Ok(self)
     }
 
     /// What building the BVHs cost (including the moving triangles' once added): a
@@ -357,7 +387,7 @@ impl Geometry {
     /// arrays, triangles, instances), from their lengths: what the geometry costs in
     /// memory, for comparing instancing with flattening.
     pub fn bytes(&self) -> usize {
-        bvh_bytes(&self.bvh)
+        self.bvh.bytes()
             + std::mem::size_of_val(self.triangles.as_slice())
             + self.prototypes.iter().map(Prototype::bytes).sum::<usize>()
             + bvh_bytes(&self.tlas)
@@ -476,6 +506,7 @@ impl Geometry {
             bvh: &self.bvh,
             triangles: &self.triangles,
             instance: NO_INSTANCE,
+            isa: self.isa,
         }
     }
 
@@ -494,6 +525,7 @@ impl Geometry {
             bvh: &proto.bvh,
             triangles: &proto.triangles,
             instance: id as u32,
+            isa: self.isa,
         };
         let o = inst.object_from_world.transform_point3(origin);
         let d = inst.object_from_world.transform_vector3(dir);
