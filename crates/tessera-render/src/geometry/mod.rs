@@ -1,5 +1,6 @@
-//! Ray–scene intersection: triangles in an `obvhs` compressed wide BVH, analytic spheres,
-//! and instances of prototype meshes in two levels.
+//! Ray–scene intersection: triangles in a wide BVH of our own (`wide`, built from obvhs'
+//! binary tree and traversed by the SIMD kernels of [`kernels`]), analytic spheres, and
+//! instances of prototype meshes in two levels.
 //!
 //! **Two levels.** World-space triangles (meshes placed once) live in one BVH. A prototype
 //! (a mesh placed at several places) has its own BVH over its object-space triangles, a
@@ -12,6 +13,11 @@
 //! all instances is the one with the smallest `t`. The watertight test and the shift
 //! trick below then run unchanged in object space. A scene without instances skips the
 //! top level with one branch per ray.
+//!
+//! The top level over instances and the motion segments are still obvhs CWBVHs traversed
+//! by obvhs; its defects below are worked around there. Our wide BVH has none of them (it
+//! honours every distance from 0, and picks slab planes by the direction's sign bit), and
+//! tests triangles with the same watertight test.
 //!
 //! Two defects of obvhs 0.4.0 are kept out of our images here:
 //!
@@ -32,7 +38,8 @@
 //! leaving it can be offset robustly by [`crate::math::offset_ray_origin`].
 //!
 //! The code is split by concern: `watertight` holds the ray–triangle and ray–sphere
-//! tests, `traversal` the walk through one BVH of triangles, `moving` the triangles that
+//! tests, `traversal` the walk through one BVH of triangles, `wide` our wide BVH and its
+//! traversal, [`kernels`] its box tests per instruction set, `moving` the triangles that
 //! move within the shutter, and `build` the construction of every BVH (robust against
 //! coincident primitives, on a thread with a stack of known size).
 
@@ -50,11 +57,11 @@ mod traversal;
 mod wide;
 
 pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN};
-pub use moving::{shutter_segment, MotionTriangles};
 pub use kernels::Isa;
+pub use moving::{shutter_segment, MotionTriangles};
 use traversal::{bvh_bytes, traversal_ray, traversal_t, triangle_bvh, TriangleLevel};
-use wide::WideBvh;
 pub use watertight::intersect_sphere;
+use wide::WideBvh;
 
 /// How far behind the real origin the BVH traversal ray starts (see the module docs). It
 /// must exceed obvhs' internal clamp of `1e-4` on node entry distances.
@@ -341,14 +348,14 @@ impl Geometry {
         self.isa
     }
 
-    /// This geometry traversed with kernel `isa`, or why this CPU cannot run it. Every
-    /// kernel finds the same hits, bit for bit (see [`kernels`]).
-    pub fn with_isa(mut self, isa: Isa) -> Result<Self, String> {
+    /// Traverses this geometry with kernel `isa` from now on, or says why this CPU cannot
+    /// run it. Every kernel finds the same hits, bit for bit (see [`kernels`]).
+    pub fn set_isa(&mut self, isa: Isa) -> Result<(), String> {
         if !isa.available() {
             return Err(format!("this CPU lacks {}", isa.name()));
         }
         self.isa = isa;
-        Ok(self)
+        Ok(())
     }
 
     /// What building the BVHs cost (including the moving triangles' once added): a
@@ -591,5 +598,7 @@ pub fn sphere_point(center: Vec3, radius: f32, p: Vec3) -> (Vec3, Vec3, Vec3) {
     (pos, err, n)
 }
 
+#[cfg(test)]
+mod kernel_tests;
 #[cfg(test)]
 mod tests;

@@ -96,6 +96,15 @@ impl BoxRay {
     }
 }
 
+impl BoxRay {
+    /// Whether the origin is finite and the direction has no NaN (a zero component's
+    /// infinite reciprocal is fine).
+    #[inline(always)]
+    fn is_finite(&self) -> bool {
+        self.origin.iter().all(|c| c.is_finite()) && self.inv.iter().all(|c| !c.is_nan())
+    }
+}
+
 /// Scale of the far distance that makes the box test conservative (pbrt 3rd ed. §3.9.2).
 #[inline(always)]
 pub(super) fn far_scale() -> f32 {
@@ -236,18 +245,22 @@ impl WideBvh {
     pub(super) fn bytes(&self) -> usize {
         std::mem::size_of_val(self.nodes.as_slice()) + std::mem::size_of_val(self.prims.as_slice())
     }
+}
 
-    /// Runs `f` with a traversal stack large enough for this tree: on the machine stack
-    /// for every ordinary tree, on the heap for the pathological deep ones.
-    #[inline(always)]
-    fn with_stack<R>(&self, f: impl FnOnce(&mut [(u32, f32)]) -> R) -> R {
-        if self.stack_need <= STACK_INLINE {
-            let mut stack = [(0u32, 0f32); STACK_INLINE];
-            f(&mut stack)
-        } else {
-            let mut stack = vec![(0u32, 0f32); self.stack_need];
-            f(&mut stack)
-        }
+/// A traversal stack large enough for `bvh`: `inline` for every ordinary tree, `heap`
+/// (grown here) for the pathological deep ones. A slice rather than a closure, so the
+/// walk is inlined into each kernel's `#[target_feature]` function.
+#[inline(always)]
+fn stack_for<'s>(
+    bvh: &WideBvh,
+    inline: &'s mut [(u32, f32); STACK_INLINE],
+    heap: &'s mut Vec<(u32, f32)>,
+) -> &'s mut [(u32, f32)] {
+    if bvh.stack_need <= STACK_INLINE {
+        inline
+    } else {
+        heap.resize(bvh.stack_need, (0, 0.0));
+        heap
     }
 }
 
@@ -290,71 +303,72 @@ pub(super) fn nearest<K: BoxTest>(
     keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> Option<Hit> {
     let bvh = level.bvh;
-    if bvh.nodes.is_empty() {
+    // A ray with a NaN or infinite coordinate hits nothing (and would enter unused slots).
+    if bvh.nodes.is_empty() || !ray.is_finite() {
         return None;
     }
     let t_max = *best_t;
     let mut best: Option<Hit> = None;
     let mut best_index = u32::MAX;
-    bvh.with_stack(|stack| {
-        stack[0] = (0, 0.0);
-        let mut sp = 1;
-        while sp > 0 {
-            sp -= 1;
-            let (ni, entry) = stack[sp];
-            if entry > box_limit(*best_t) {
+    let (mut inline, mut heap) = ([(0u32, 0f32); STACK_INLINE], Vec::new());
+    let stack = stack_for(bvh, &mut inline, &mut heap);
+    stack[0] = (0, 0.0);
+    let mut sp = 1;
+    while sp > 0 {
+        sp -= 1;
+        let (ni, entry) = stack[sp];
+        if entry > box_limit(*best_t) {
+            continue;
+        }
+        let node = &bvh.nodes[ni as usize];
+        let (dist, mask) = K::test(node, ray, box_limit(*best_t));
+        let (order, n) = nearest_first(mask, &dist);
+        for &c in &order[..n] {
+            let c = c as usize;
+            let count = node.count[c];
+            if count == 0 {
                 continue;
             }
-            let node = &bvh.nodes[ni as usize];
-            let (dist, mask) = K::test(node, ray, box_limit(*best_t));
-            let (order, n) = nearest_first(mask, &dist);
-            for &c in &order[..n] {
-                let c = c as usize;
-                let count = node.count[c];
-                if count == 0 {
+            let first = node.child[c] as usize;
+            for &id in &bvh.prims[first..first + count as usize] {
+                let tri = &level.triangles[id as usize];
+                // The test's own bound admits ties with the best hit (see
+                // `box_limit`); the comparison below decides them exactly.
+                let bound = if best.is_some() {
+                    box_limit(*best_t).min(t_max)
+                } else {
+                    t_max
+                };
+                let Some((t, _, b1, b2)) = intersect(&tri.p, bound) else {
+                    continue;
+                };
+                if best.is_some() && !(t < *best_t || (t == *best_t && id < best_index)) {
                     continue;
                 }
-                let first = node.child[c] as usize;
-                for &id in &bvh.prims[first..first + count as usize] {
-                    let tri = &level.triangles[id as usize];
-                    // The test's own bound admits ties with the best hit (see
-                    // `box_limit`); the comparison below decides them exactly.
-                    let bound = if best.is_some() {
-                        box_limit(*best_t).min(t_max)
-                    } else {
-                        t_max
-                    };
-                    let Some((t, _, b1, b2)) = intersect(&tri.p, bound) else {
-                        continue;
-                    };
-                    if best.is_some() && !(t < *best_t || (t == *best_t && id < best_index)) {
-                        continue;
-                    }
-                    if !keep(tri, triangle_key(level.instance, id), b1, b2) {
-                        continue;
-                    }
-                    *best_t = t;
-                    best_index = id;
-                    best = Some(Hit {
-                        t,
-                        primitive: Primitive::Triangle {
-                            index: id,
-                            instance: level.instance,
-                            b1,
-                            b2,
-                        },
-                    });
+                if !keep(tri, triangle_key(level.instance, id), b1, b2) {
+                    continue;
                 }
-            }
-            for &c in order[..n].iter().rev() {
-                let c = c as usize;
-                if node.count[c] == 0 {
-                    stack[sp] = (node.child[c], dist[c]);
-                    sp += 1;
-                }
+                *best_t = t;
+                best_index = id;
+                best = Some(Hit {
+                    t,
+                    primitive: Primitive::Triangle {
+                        index: id,
+                        instance: level.instance,
+                        b1,
+                        b2,
+                    },
+                });
             }
         }
-    });
+        for &c in order[..n].iter().rev() {
+            let c = c as usize;
+            if node.count[c] == 0 {
+                stack[sp] = (node.child[c], dist[c]);
+                sp += 1;
+            }
+        }
+    }
     best
 }
 
@@ -369,37 +383,37 @@ pub(super) fn any<K: BoxTest>(
     keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> bool {
     let bvh = level.bvh;
-    if bvh.nodes.is_empty() {
+    if bvh.nodes.is_empty() || !ray.is_finite() {
         return false;
     }
     let limit = box_limit(t_max);
-    bvh.with_stack(|stack| {
-        stack[0] = (0, 0.0);
-        let mut sp = 1;
-        while sp > 0 {
-            sp -= 1;
-            let node = &bvh.nodes[stack[sp].0 as usize];
-            let (_, mut mask) = K::test(node, ray, limit);
-            while mask != 0 {
-                let c = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                let count = node.count[c];
-                if count == 0 {
-                    stack[sp] = (node.child[c], 0.0);
-                    sp += 1;
-                    continue;
-                }
-                let first = node.child[c] as usize;
-                for &id in &bvh.prims[first..first + count as usize] {
-                    let tri = &level.triangles[id as usize];
-                    if let Some((_, _, b1, b2)) = intersect(&tri.p, t_max) {
-                        if keep(tri, triangle_key(level.instance, id), b1, b2) {
-                            return true;
-                        }
+    let (mut inline, mut heap) = ([(0u32, 0f32); STACK_INLINE], Vec::new());
+    let stack = stack_for(bvh, &mut inline, &mut heap);
+    stack[0] = (0, 0.0);
+    let mut sp = 1;
+    while sp > 0 {
+        sp -= 1;
+        let node = &bvh.nodes[stack[sp].0 as usize];
+        let (_, mut mask) = K::test(node, ray, limit);
+        while mask != 0 {
+            let c = mask.trailing_zeros() as usize;
+            mask &= mask - 1;
+            let count = node.count[c];
+            if count == 0 {
+                stack[sp] = (node.child[c], 0.0);
+                sp += 1;
+                continue;
+            }
+            let first = node.child[c] as usize;
+            for &id in &bvh.prims[first..first + count as usize] {
+                let tri = &level.triangles[id as usize];
+                if let Some((_, _, b1, b2)) = intersect(&tri.p, t_max) {
+                    if keep(tri, triangle_key(level.instance, id), b1, b2) {
+                        return true;
                     }
                 }
             }
         }
-        false
-    })
+    }
+    false
 }
