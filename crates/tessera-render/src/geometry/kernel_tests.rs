@@ -166,7 +166,7 @@ fn every_kernel_finds_the_scalar_kernels_hits_and_obvhs_hits() {
         .collect();
     let hits = scalar.iter().filter(|h| h.is_some()).count();
     assert!(
-        hits > rays.len() / 4 && hits < rays.len(),
+        hits > rays.len() / 10 && hits < rays.len(),
         "{hits} hits of {}",
         rays.len()
     );
@@ -343,7 +343,7 @@ fn every_kernel_renders_the_builtin_scenes_and_a_large_one_bit_identically() {
             prototype: big.prototypes.len() as u32 - 1,
             world_from_object: glam::Affine3A::from_rotation_translation(
                 glam::Quat::from_rotation_y(0.7 * k as f32),
-                glam::Vec3::from(c) + Vec3::new(ext.x * (0.25 * k as f32 - 0.25), 0.0, 0.0),
+                c + Vec3::new(ext.x * (0.25 * k as f32 - 0.25), 0.0, 0.0),
             ),
         });
     }

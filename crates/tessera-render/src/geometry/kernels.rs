@@ -132,6 +132,8 @@ pub fn active() -> Isa {
 pub(super) struct Scalar;
 
 impl BoxTest for Scalar {
+    // Lanes are indexed by child on purpose: the same index walks six arrays.
+    #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     fn test(node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32) {
         let mut dist = [0.0f32; WIDTH];
@@ -164,6 +166,8 @@ impl BoxTest for Scalar {
 pub(super) struct Lanes;
 
 impl BoxTest for Lanes {
+    // Lanes are indexed by child on purpose: the same index walks six arrays.
+    #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     fn test(node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32) {
         let mut entry = [0.0f32; WIDTH];

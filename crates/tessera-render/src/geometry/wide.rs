@@ -140,6 +140,7 @@ pub(super) fn planes(node: &WideNode, axis: usize, neg: bool) -> (&[f32; WIDTH],
 impl WideBvh {
     /// The wide BVH of `bvh2` (non-empty), whose primitive `i` is at `position[i]` in the
     /// level's triangle array.
+    #[allow(clippy::needless_range_loop)] // axes index the node's arrays and the box's
     pub(super) fn collapse(bvh2: &Bvh2, position: &[u32]) -> Self {
         let bn = &bvh2.nodes;
         // Triangles under every binary node, children before parents by an explicit
