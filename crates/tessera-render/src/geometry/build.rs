@@ -145,17 +145,27 @@ const fn params() -> BvhBuildParams {
     BvhBuildParams::medium_build()
 }
 
-/// A CWBVH over `triangles`: obvhs' triangle builder for ordinary input, the clustered
-/// build when centres crowd (see the module docs).
-pub(super) fn triangles_cwbvh(triangles: &[Triangle], stats: &mut BvhBuildStats) -> CwBvh {
+/// A binary BVH over `triangles`: obvhs' triangle builder (PLOC, then reinsertion) for
+/// ordinary input, the clustered build when centres crowd (see the module docs). It is
+/// the tree `obvhs::cwbvh::builder::build_cwbvh_from_tris` converts (without pre-splits),
+/// so [`to_cwbvh`] of it is the CWBVH that call returns.
+pub(super) fn triangles_bvh2(triangles: &[Triangle], stats: &mut BvhBuildStats) -> Bvh2 {
     let boxes: Vec<Aabb> = triangles.iter().map(Triangle::aabb).collect();
     match crowded_cells(&boxes, stats) {
-        None if tied_extents(&boxes, stats) => tie_broken_cwbvh(&boxes, stats),
+        None if tied_extents(&boxes, stats) => tie_broken_bvh2(&boxes, stats),
         None => {
-            let mut build_time = std::time::Duration::ZERO;
-            obvhs::cwbvh::builder::build_cwbvh_from_tris(triangles, params(), &mut build_time)
+            let p = params();
+            let mut bvh2 = PlocBuilder::with_capacity(triangles.len()).build(
+                p.ploc_search_distance,
+                triangles,
+                (0..triangles.len() as u32).collect::<Vec<_>>(),
+                p.sort_precision,
+                p.search_depth_threshold,
+            );
+            ReinsertionOptimizer::default().run(&mut bvh2, p.reinsertion_batch_ratio, None);
+            bvh2
         }
-        Some(cells) => clustered_cwbvh(&boxes, &cells, stats),
+        Some(cells) => clustered_bvh2(&boxes, &cells, stats),
     }
 }
 
@@ -163,13 +173,18 @@ pub(super) fn triangles_cwbvh(triangles: &[Triangle], stats: &mut BvhBuildStats)
 /// builder for ordinary input, the clustered build when centres crowd.
 pub(super) fn boxes_cwbvh(boxes: &[Aabb], stats: &mut BvhBuildStats) -> CwBvh {
     match crowded_cells(boxes, stats) {
-        None if tied_extents(boxes, stats) => tie_broken_cwbvh(boxes, stats),
+        None if tied_extents(boxes, stats) => to_cwbvh(&tie_broken_bvh2(boxes, stats)),
         None => {
             let mut build_time = std::time::Duration::ZERO;
             obvhs::cwbvh::builder::build_cwbvh(boxes, params(), &mut build_time)
         }
-        Some(cells) => clustered_cwbvh(boxes, &cells, stats),
+        Some(cells) => to_cwbvh(&clustered_bvh2(boxes, &cells, stats)),
     }
+}
+
+/// obvhs' CWBVH of a binary BVH, with the leaf size its builders use.
+pub(super) fn to_cwbvh(bvh2: &Bvh2) -> CwBvh {
+    bvh2_to_cwbvh(bvh2, params().max_prims_per_leaf.clamp(1, 3), true, false)
 }
 
 /// `⌈log2 n⌉` (0 for `n <= 1`).
@@ -268,9 +283,9 @@ pub(super) fn tie_break_pad(b: &Aabb, i: u32) -> f32 {
     scale * k * (1.0 / (1u32 << 18) as f32)
 }
 
-/// PLOC over `boxes` each widened by [`tie_break_pad`], then obvhs' reinsertion and
-/// CWBVH conversion as in its own builder (see the module docs).
-fn tie_broken_cwbvh(boxes: &[Aabb], stats: &mut BvhBuildStats) -> CwBvh {
+/// PLOC over `boxes` each widened by [`tie_break_pad`], then obvhs' reinsertion, as in
+/// its own builder (see the module docs).
+fn tie_broken_bvh2(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Bvh2 {
     let padded: Vec<Aabb> = boxes
         .iter()
         .enumerate()
@@ -304,12 +319,12 @@ fn tie_broken_cwbvh(boxes: &[Aabb], stats: &mut BvhBuildStats) -> CwBvh {
         }
     }
     stats.max_depth = stats.max_depth.max(depth);
-    bvh2_to_cwbvh(&bvh2, p.max_prims_per_leaf.clamp(1, 3), true, false)
+    bvh2
 }
 
 /// The clustered build (see the module docs) over `boxes`, given every box's centre cell
 /// as `(cell, index)` sorted by cell.
-fn clustered_cwbvh(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStats) -> CwBvh {
+fn clustered_bvh2(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStats) -> Bvh2 {
     // Items for PLOC: every crowded cell as one (its members a range of `members`), every
     // other primitive on its own.
     let mut members: Vec<u32> = Vec::with_capacity(boxes.len());
@@ -379,14 +394,13 @@ fn clustered_cwbvh(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildSta
     debug_assert_eq!(nodes.len(), 2 * n - 1);
     stats.work += work;
     stats.max_depth = stats.max_depth.max(max_depth);
-    let bvh2 = Bvh2 {
+    Bvh2 {
         nodes,
         // Leaves name their primitive directly (`first_index`), through the identity.
         primitive_indices: (0..n as u32).collect(),
         max_depth: (max_depth as usize + 1).max(obvhs::bvh2::DEFAULT_MAX_STACK_DEPTH),
         ..Bvh2::default()
-    };
-    bvh2_to_cwbvh(&bvh2, p.max_prims_per_leaf.clamp(1, 3), true, false)
+    }
 }
 
 /// Writes a balanced binary tree over `members` (primitive indices into `boxes`, at

@@ -1,5 +1,6 @@
-//! Ray–scene intersection: triangles in an `obvhs` compressed wide BVH, analytic spheres,
-//! and instances of prototype meshes in two levels.
+//! Ray–scene intersection: triangles in a wide BVH of our own (`wide`, built from obvhs'
+//! binary tree and traversed by the SIMD kernels of [`kernels`]), analytic spheres, and
+//! instances of prototype meshes in two levels.
 //!
 //! **Two levels.** World-space triangles (meshes placed once) live in one BVH. A prototype
 //! (a mesh placed at several places) has its own BVH over its object-space triangles, a
@@ -12,6 +13,11 @@
 //! all instances is the one with the smallest `t`. The watertight test and the shift
 //! trick below then run unchanged in object space. A scene without instances skips the
 //! top level with one branch per ray.
+//!
+//! The top level over instances and the motion segments are still obvhs CWBVHs traversed
+//! by obvhs; its defects below are worked around there. Our wide BVH has none of them (it
+//! honours every distance from 0, and picks slab planes by the direction's sign bit), and
+//! tests triangles with the same watertight test.
 //!
 //! Two defects of obvhs 0.4.0 are kept out of our images here:
 //!
@@ -32,7 +38,8 @@
 //! leaving it can be offset robustly by [`crate::math::offset_ray_origin`].
 //!
 //! The code is split by concern: `watertight` holds the ray–triangle and ray–sphere
-//! tests, `traversal` the walk through one BVH of triangles, `moving` the triangles that
+//! tests, `traversal` the walk through one BVH of triangles, `wide` our wide BVH and its
+//! traversal, [`kernels`] its box tests per instruction set, `moving` the triangles that
 //! move within the shutter, and `build` the construction of every BVH (robust against
 //! coincident primitives, on a thread with a stack of known size).
 
@@ -44,13 +51,17 @@ use obvhs::ray::RayHit;
 #[macro_use]
 mod watertight;
 mod build;
+pub mod kernels;
 mod moving;
 mod traversal;
+mod wide;
 
 pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN, TIE_MIN};
+pub use kernels::Isa;
 pub use moving::{shutter_segment, MotionTriangles};
 use traversal::{bvh_bytes, traversal_ray, traversal_t, triangle_bvh, TriangleLevel};
 pub use watertight::intersect_sphere;
+use wide::WideBvh;
 
 /// How far behind the real origin the BVH traversal ray starts (see the module docs). It
 /// must exceed obvhs' internal clamp of `1e-4` on node entry distances.
@@ -142,7 +153,9 @@ pub struct Hit {
 /// A mesh stored once and placed by instances: its object-space triangles in their own
 /// BVH (the bottom level).
 pub struct Prototype {
-    bvh: CwBvh,
+    bvh: WideBvh,
+    /// Bounds of the object-space triangles.
+    bounds: obvhs::aabb::Aabb,
     /// Object-space triangles in the order the BVH leaves refer to them.
     pub triangles: Vec<TriangleRecord>,
 }
@@ -150,7 +163,7 @@ pub struct Prototype {
 impl Prototype {
     /// Bytes of the BVH nodes and triangle records.
     pub fn bytes(&self) -> usize {
-        bvh_bytes(&self.bvh) + std::mem::size_of_val(self.triangles.as_slice())
+        self.bvh.bytes() + std::mem::size_of_val(self.triangles.as_slice())
     }
 }
 
@@ -175,7 +188,7 @@ pub struct InstanceRecord {
 
 /// Scene geometry with its acceleration structure.
 pub struct Geometry {
-    bvh: CwBvh,
+    bvh: WideBvh,
     /// Triangles in the order the BVH leaves refer to them.
     pub triangles: Vec<TriangleRecord>,
     /// Meshes stored once, each with its bottom-level BVH.
@@ -194,6 +207,8 @@ pub struct Geometry {
     pub bounds_radius: f32,
     /// What building the BVHs cost.
     build_stats: BvhBuildStats,
+    /// The kernel that tests the wide BVHs' boxes.
+    isa: Isa,
 }
 
 impl Geometry {
@@ -236,12 +251,17 @@ impl Geometry {
                 hi = hi.max(p);
             }
         }
-        let (bvh, ordered) = triangle_bvh(&triangles, &mut build_stats);
+        let (bvh, ordered, _) = triangle_bvh(&triangles, &mut build_stats);
+        drop(triangles);
         let prototypes: Vec<Prototype> = prototypes
             .iter()
             .map(|tris| {
-                let (bvh, triangles) = triangle_bvh(tris, &mut build_stats);
-                Prototype { bvh, triangles }
+                let (bvh, triangles, bounds) = triangle_bvh(tris, &mut build_stats);
+                Prototype {
+                    bvh,
+                    bounds,
+                    triangles,
+                }
             })
             .collect();
         // Instances of empty prototypes can never be hit (and an empty box has no centre
@@ -257,7 +277,7 @@ impl Geometry {
         let world_bounds: Vec<obvhs::aabb::Aabb> = instances
             .iter()
             .map(|&(_, proto, m)| {
-                let b = prototypes[proto as usize].bvh.total_aabb;
+                let b = prototypes[proto as usize].bounds;
                 let mut wb = obvhs::aabb::Aabb::empty();
                 for k in 0..8 {
                     let c = Vec3A::new(
@@ -318,7 +338,24 @@ impl Geometry {
             bounds_center,
             bounds_radius,
             build_stats,
+            isa: kernels::active(),
         }
+    }
+
+    /// The kernel that tests the wide BVHs' boxes ([`kernels::active`] unless
+    /// [`Geometry::with_isa`] chose another).
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    /// Traverses this geometry with kernel `isa` from now on, or says why this CPU cannot
+    /// run it. Every kernel finds the same hits, bit for bit (see [`kernels`]).
+    pub fn set_isa(&mut self, isa: Isa) -> Result<(), String> {
+        if !isa.available() {
+            return Err(format!("this CPU lacks {}", isa.name()));
+        }
+        self.isa = isa;
+        Ok(())
     }
 
     /// What building the BVHs cost (including the moving triangles' once added): a
@@ -357,7 +394,7 @@ impl Geometry {
     /// arrays, triangles, instances), from their lengths: what the geometry costs in
     /// memory, for comparing instancing with flattening.
     pub fn bytes(&self) -> usize {
-        bvh_bytes(&self.bvh)
+        self.bvh.bytes()
             + std::mem::size_of_val(self.triangles.as_slice())
             + self.prototypes.iter().map(Prototype::bytes).sum::<usize>()
             + bvh_bytes(&self.tlas)
@@ -476,6 +513,7 @@ impl Geometry {
             bvh: &self.bvh,
             triangles: &self.triangles,
             instance: NO_INSTANCE,
+            isa: self.isa,
         }
     }
 
@@ -494,6 +532,7 @@ impl Geometry {
             bvh: &proto.bvh,
             triangles: &proto.triangles,
             instance: id as u32,
+            isa: self.isa,
         };
         let o = inst.object_from_world.transform_point3(origin);
         let d = inst.object_from_world.transform_vector3(dir);
@@ -559,5 +598,7 @@ pub fn sphere_point(center: Vec3, radius: f32, p: Vec3) -> (Vec3, Vec3, Vec3) {
     (pos, err, n)
 }
 
+#[cfg(test)]
+mod kernel_tests;
 #[cfg(test)]
 mod tests;

@@ -1,18 +1,24 @@
-//! The walk through one BVH of triangles, and the ray handed to obvhs for it (see the
-//! module docs of `geometry` for the shift and the defects it works around).
+//! The walk through one BVH of triangles (our wide BVH, see `wide`), and the ray handed
+//! to obvhs for the BVHs it still traverses, the top level over instances and the motion
+//! segments (see the module docs of `geometry` for the shift and the defects it works
+//! around).
 
 use super::build::{self, BvhBuildStats};
-use super::{triangle_key, Hit, Primitive, TriangleRecord, TRAVERSAL_SHIFT};
+use super::kernels::{self, Isa};
+use super::wide::{Level, WideBvh};
+use super::{Hit, TriangleRecord, TRAVERSAL_SHIFT};
 use glam::{Vec3, Vec3A};
+use obvhs::aabb::Aabb;
 use obvhs::cwbvh::CwBvh;
-use obvhs::ray::{Ray, RayHit};
+use obvhs::ray::Ray;
 
 /// One BVH of triangles (the world-space one, or a prototype's in object space) with the
-/// instance its hits report.
+/// instance its hits report, and the kernel that tests its boxes.
 pub(super) struct TriangleLevel<'g> {
-    pub(super) bvh: &'g CwBvh,
+    pub(super) bvh: &'g WideBvh,
     pub(super) triangles: &'g [TriangleRecord],
     pub(super) instance: u32,
+    pub(super) isa: Isa,
 }
 
 impl TriangleLevel<'_> {
@@ -25,37 +31,20 @@ impl TriangleLevel<'_> {
         best_t: &mut f32,
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> Option<Hit> {
-        let ray = traversal_ray(origin, dir, *best_t);
-        let mut hit = RayHit::none();
-        let mut best = None;
-        let tris = self.triangles;
-        let instance = self.instance;
-        with_watertight_ray!(origin, dir, |wt| self.bvh.ray_traverse(
-            ray,
-            &mut hit,
-            |_, id| {
-                let tri = &tris[id];
-                match wt.intersect(&tri.p, *best_t) {
-                    Some((t, _b0, b1, b2))
-                        if keep(tri, triangle_key(instance, id as u32), b1, b2) =>
-                    {
-                        *best_t = t;
-                        best = Some(Hit {
-                            t,
-                            primitive: Primitive::Triangle {
-                                index: id as u32,
-                                instance,
-                                b1,
-                                b2,
-                            },
-                        });
-                        traversal_t(t)
-                    }
-                    _ => f32::INFINITY,
-                }
-            }
-        ));
-        best
+        let level = Level {
+            bvh: self.bvh,
+            triangles: self.triangles,
+            instance: self.instance,
+        };
+        with_watertight_ray!(origin, dir, |wt| kernels::nearest(
+            self.isa,
+            &level,
+            origin,
+            dir,
+            best_t,
+            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+            keep
+        ))
     }
 
     /// Whether any kept hit of `origin + t dir` has `t < t_max`.
@@ -67,22 +56,19 @@ impl TriangleLevel<'_> {
         t_max: f32,
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> bool {
-        let ray = traversal_ray(origin, dir, t_max);
-        let tris = self.triangles;
-        let instance = self.instance;
-        !with_watertight_ray!(origin, dir, |wt| self.bvh.ray_traverse_miss(
-            ray,
-            |_, id| {
-                let tri = &tris[id];
-                match wt.intersect(&tri.p, t_max) {
-                    Some((_, _, b1, b2))
-                        if keep(tri, triangle_key(instance, id as u32), b1, b2) =>
-                    {
-                        0.0
-                    }
-                    _ => f32::INFINITY,
-                }
-            }
+        let level = Level {
+            bvh: self.bvh,
+            triangles: self.triangles,
+            instance: self.instance,
+        };
+        with_watertight_ray!(origin, dir, |wt| kernels::any(
+            self.isa,
+            &level,
+            origin,
+            dir,
+            t_max,
+            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+            keep
         ))
     }
 }
@@ -108,14 +94,16 @@ pub(super) fn traversal_t(t: f32) -> f32 {
     (t + TRAVERSAL_SHIFT) * (1.0 + 1e-5)
 }
 
-/// A BVH over `triangles` and the triangles in its leaf order (so the hot loop indexes
-/// them directly).
+/// The wide BVH over `triangles`, the triangles in obvhs' CWBVH leaf order (the order
+/// [`super::triangle_key`] has always numbered them by, so keys and images do not
+/// change), and their bounds. The binary tree is built once; the CWBVH is made only for
+/// its order and dropped.
 pub(super) fn triangle_bvh(
     triangles: &[TriangleRecord],
     stats: &mut BvhBuildStats,
-) -> (CwBvh, Vec<TriangleRecord>) {
+) -> (WideBvh, Vec<TriangleRecord>, Aabb) {
     if triangles.is_empty() {
-        return (CwBvh::default(), Vec::new());
+        return (WideBvh::default(), Vec::new(), Aabb::empty());
     }
     let tris: Vec<obvhs::triangle::Triangle> = triangles
         .iter()
@@ -125,13 +113,16 @@ pub(super) fn triangle_bvh(
             v2: t.p[2].into(),
         })
         .collect();
-    let bvh = build::triangles_cwbvh(&tris, stats);
-    let ordered = bvh
-        .primitive_indices
-        .iter()
-        .map(|&i| triangles[i as usize])
-        .collect();
-    (bvh, ordered)
+    let bvh2 = build::triangles_bvh2(&tris, stats);
+    drop(tris);
+    let order = build::to_cwbvh(&bvh2).primitive_indices;
+    let mut position = vec![0u32; triangles.len()];
+    for (k, &i) in order.iter().enumerate() {
+        position[i as usize] = k as u32;
+    }
+    let ordered = order.iter().map(|&i| triangles[i as usize]).collect();
+    let bounds = *bvh2.nodes[0].aabb();
+    (WideBvh::collapse(&bvh2, &position), ordered, bounds)
 }
 
 /// Bytes of a BVH's nodes and leaf index array.

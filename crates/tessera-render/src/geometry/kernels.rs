@@ -1,0 +1,328 @@
+//! The box-test kernels of the wide BVH and the choice among them at run time.
+//!
+//! Every kernel computes, for each child, the same IEEE operations in the same order:
+//! `(plane - origin) * inv_dir` per slab, the entry distance as the running maximum
+//! (starting at 0) and the exit distance as the running minimum (starting at the pruning
+//! limit) of the three axes, each as `if a > b { a } else { b }` (so a NaN slab, a ray
+//! lying in a box face, leaves the running value alone, and the compare is what
+//! `maxps`/`minps` compute), then `entry <= exit * (1 + 2 γ(3))`. No fused multiply-add,
+//! no approximate reciprocal: `inv_dir` is one correctly rounded division per ray. The
+//! kernels differ only in how many children one instruction covers:
+//!
+//! - `scalar`: one child at a time, skipping unused slots (the reference);
+//! - `sse2`: all [`WIDTH`] children as plain array code LLVM vectorises with the
+//!   baseline x86-64 instruction set (4 lanes);
+//! - `avx2`, `avx512`: the same array code compiled inside `#[target_feature]` functions
+//!   (8 lanes; AVX-512's mask registers for the compares).
+//!
+//! Traversal and triangle tests are the same code in every kernel (compiled per kernel
+//! too, so they use its registers), and the hit does not depend on the box test beyond
+//! its being conservative (see `wide`), so images are bit-identical across kernels.
+//!
+//! `TESSERA_ISA=scalar|sse2|avx2|avx512` forces a kernel; [`Isa::from_env`] refuses a
+//! value this CPU cannot run, with a message naming what it lacks.
+
+use super::wide::{self, far_scale, planes, BoxRay, BoxTest, Level, WideNode, WIDTH};
+use super::Hit;
+use super::TriangleRecord;
+use glam::Vec3;
+use std::sync::OnceLock;
+
+/// An instruction set the wide BVH's kernels can use.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Isa {
+    /// One child at a time (the reference kernel).
+    Scalar,
+    /// SSE2 (baseline x86-64): 4 lanes.
+    Sse2,
+    /// AVX2: 8 lanes.
+    Avx2,
+    /// AVX-512 (F): 8 lanes with mask registers.
+    Avx512,
+}
+
+impl Isa {
+    /// Every kernel, slowest first.
+    pub const ALL: [Isa; 4] = [Isa::Scalar, Isa::Sse2, Isa::Avx2, Isa::Avx512];
+
+    /// The name `TESSERA_ISA` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            Isa::Scalar => "scalar",
+            Isa::Sse2 => "sse2",
+            Isa::Avx2 => "avx2",
+            Isa::Avx512 => "avx512",
+        }
+    }
+
+    /// Whether this CPU runs the kernel.
+    pub fn available(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            match self {
+                Isa::Scalar | Isa::Sse2 => true,
+                Isa::Avx2 => std::arch::is_x86_feature_detected!("avx2"),
+                Isa::Avx512 => std::arch::is_x86_feature_detected!("avx512f"),
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self == Isa::Scalar
+        }
+    }
+
+    /// The widest kernel this CPU runs.
+    pub fn best() -> Isa {
+        Isa::ALL
+            .into_iter()
+            .rev()
+            .find(|i| i.available())
+            .unwrap_or(Isa::Scalar)
+    }
+
+    /// The kernel `TESSERA_ISA` names (the best one when it is unset or empty), or why
+    /// it cannot be used.
+    pub fn from_env() -> Result<Isa, String> {
+        match std::env::var("TESSERA_ISA") {
+            Err(_) => Ok(Isa::best()),
+            Ok(v) if v.trim().is_empty() => Ok(Isa::best()),
+            Ok(v) => Isa::parse(v.trim()),
+        }
+    }
+
+    /// The kernel named `name`, if this CPU runs it.
+    pub fn parse(name: &str) -> Result<Isa, String> {
+        let isa = Isa::ALL
+            .into_iter()
+            .find(|i| i.name().eq_ignore_ascii_case(name))
+            .ok_or_else(|| {
+                format!("TESSERA_ISA={name}: unknown; expected scalar, sse2, avx2 or avx512")
+            })?;
+        if isa.available() {
+            Ok(isa)
+        } else {
+            Err(format!(
+                "TESSERA_ISA={name}: this CPU lacks {} (available: {})",
+                isa.name(),
+                Isa::ALL
+                    .into_iter()
+                    .filter(|i| i.available())
+                    .map(Isa::name)
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))
+        }
+    }
+}
+
+/// The kernel of this process: [`Isa::from_env`], read once. An unusable `TESSERA_ISA`
+/// is reported on stderr once and the best kernel is used (images do not depend on the
+/// kernel); front ends that must refuse it call [`Isa::from_env`] at start-up.
+pub fn active() -> Isa {
+    static ACTIVE: OnceLock<Isa> = OnceLock::new();
+    *ACTIVE.get_or_init(|| {
+        Isa::from_env().unwrap_or_else(|e| {
+            eprintln!("tessera: {e}; using {}", Isa::best().name());
+            Isa::best()
+        })
+    })
+}
+
+/// The reference kernel: one child at a time.
+pub(super) struct Scalar;
+
+impl BoxTest for Scalar {
+    // Lanes are indexed by child on purpose: the same index walks six arrays.
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn test(node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32) {
+        let mut dist = [0.0f32; WIDTH];
+        let mut mask = 0u32;
+        for c in 0..WIDTH {
+            // Unused slots are empty boxes; skipping them also keeps this loop scalar.
+            if node.lo[0][c] > node.hi[0][c] {
+                continue;
+            }
+            let mut entry = 0.0f32;
+            let mut exit = limit;
+            for axis in 0..3 {
+                let (near, far) = planes(node, axis, ray.neg[axis]);
+                let a = (near[c] - ray.origin[axis]) * ray.inv[axis];
+                entry = if a > entry { a } else { entry };
+                let b = (far[c] - ray.origin[axis]) * ray.inv[axis];
+                exit = if b < exit { b } else { exit };
+            }
+            dist[c] = entry;
+            if entry <= exit * far_scale() {
+                mask |= 1 << c;
+            }
+        }
+        (dist, mask)
+    }
+}
+
+/// The array kernel: every child at once, vectorised by LLVM for the ISA of the function
+/// it is compiled into.
+pub(super) struct Lanes;
+
+impl BoxTest for Lanes {
+    // Lanes are indexed by child on purpose: the same index walks six arrays.
+    #[allow(clippy::needless_range_loop)]
+    #[inline(always)]
+    fn test(node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32) {
+        let mut entry = [0.0f32; WIDTH];
+        let mut exit = [limit; WIDTH];
+        for axis in 0..3 {
+            let (near, far) = planes(node, axis, ray.neg[axis]);
+            let (o, inv) = (ray.origin[axis], ray.inv[axis]);
+            for c in 0..WIDTH {
+                let a = (near[c] - o) * inv;
+                entry[c] = if a > entry[c] { a } else { entry[c] };
+                let b = (far[c] - o) * inv;
+                exit[c] = if b < exit[c] { b } else { exit[c] };
+            }
+        }
+        let scale = far_scale();
+        let mut mask = 0u32;
+        for c in 0..WIDTH {
+            mask |= u32::from(entry[c] <= exit[c] * scale) << c;
+        }
+        (entry, mask)
+    }
+}
+
+/// The nearest kept hit in `level` with `t < *best_t` (see [`wide::nearest`]), with
+/// kernel `isa`.
+#[inline(always)]
+pub(super) fn nearest(
+    isa: Isa,
+    level: &Level<'_>,
+    origin: Vec3,
+    dir: Vec3,
+    best_t: &mut f32,
+    intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+    keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+) -> Option<Hit> {
+    let ray = BoxRay::new(origin, dir);
+    match isa {
+        Isa::Scalar => wide::nearest::<Scalar>(level, &ray, best_t, intersect, keep),
+        Isa::Sse2 => wide::nearest::<Lanes>(level, &ray, best_t, intersect, keep),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => x86::nearest_avx2(level, &ray, best_t, intersect, keep),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx512 => x86::nearest_avx512(level, &ray, best_t, intersect, keep),
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => wide::nearest::<Scalar>(level, &ray, best_t, intersect, keep),
+    }
+}
+
+/// Whether any kept hit in `level` has `t < t_max` (see [`wide::any`]), with kernel
+/// `isa`.
+#[inline(always)]
+pub(super) fn any(
+    isa: Isa,
+    level: &Level<'_>,
+    origin: Vec3,
+    dir: Vec3,
+    t_max: f32,
+    intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+    keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+) -> bool {
+    let ray = BoxRay::new(origin, dir);
+    match isa {
+        Isa::Scalar => wide::any::<Scalar>(level, &ray, t_max, intersect, keep),
+        Isa::Sse2 => wide::any::<Lanes>(level, &ray, t_max, intersect, keep),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => x86::any_avx2(level, &ray, t_max, intersect, keep),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx512 => x86::any_avx512(level, &ray, t_max, intersect, keep),
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => wide::any::<Scalar>(level, &ray, t_max, intersect, keep),
+    }
+}
+
+/// The traversals compiled for AVX2 and AVX-512, and the one place the crate calls a
+/// `#[target_feature]` function from code without those features (ARCHITECTURE.md §1).
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+mod x86 {
+    use super::super::wide::{self, BoxRay, Level};
+    use super::super::{Hit, TriangleRecord};
+    use super::{Isa, Lanes};
+    use glam::Vec3;
+
+    macro_rules! kernel {
+        ($nearest:ident, $nearest_tf:ident, $any:ident, $any_tf:ident, $feature:literal, $isa:expr) => {
+            #[target_feature(enable = $feature)]
+            fn $nearest_tf(
+                level: &Level<'_>,
+                ray: &BoxRay,
+                best_t: &mut f32,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+            ) -> Option<Hit> {
+                wide::nearest::<Lanes>(level, ray, best_t, intersect, keep)
+            }
+
+            #[target_feature(enable = $feature)]
+            fn $any_tf(
+                level: &Level<'_>,
+                ray: &BoxRay,
+                t_max: f32,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+            ) -> bool {
+                wide::any::<Lanes>(level, ray, t_max, intersect, keep)
+            }
+
+            #[inline(always)]
+            pub(in super::super) fn $nearest(
+                level: &Level<'_>,
+                ray: &BoxRay,
+                best_t: &mut f32,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+            ) -> Option<Hit> {
+                if !$isa.available() {
+                    return wide::nearest::<Lanes>(level, ray, best_t, intersect, keep);
+                }
+                // SAFETY: `Isa::available` just confirmed with `is_x86_feature_detected!`
+                // that this CPU has the feature the function is compiled for.
+                unsafe { $nearest_tf(level, ray, best_t, intersect, keep) }
+            }
+
+            #[inline(always)]
+            pub(in super::super) fn $any(
+                level: &Level<'_>,
+                ray: &BoxRay,
+                t_max: f32,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+            ) -> bool {
+                if !$isa.available() {
+                    return wide::any::<Lanes>(level, ray, t_max, intersect, keep);
+                }
+                // SAFETY: `Isa::available` just confirmed with `is_x86_feature_detected!`
+                // that this CPU has the feature the function is compiled for.
+                unsafe { $any_tf(level, ray, t_max, intersect, keep) }
+            }
+        };
+    }
+
+    kernel!(
+        nearest_avx2,
+        nearest_avx2_tf,
+        any_avx2,
+        any_avx2_tf,
+        "avx2",
+        Isa::Avx2
+    );
+    kernel!(
+        nearest_avx512,
+        nearest_avx512_tf,
+        any_avx512,
+        any_avx512_tf,
+        "avx512f",
+        Isa::Avx512
+    );
+}
