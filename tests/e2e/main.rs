@@ -26,3 +26,4 @@ mod postgres_e2e;
 mod render_cli;
 mod store_cli;
 mod tls_e2e;
+mod worker_token;

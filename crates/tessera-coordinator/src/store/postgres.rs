@@ -38,6 +38,10 @@ const MIGRATIONS: &[(i64, &str)] = &[
     ),
     (4, include_str!("migrations/postgres/0004_quarantine.sql")),
     (5, include_str!("migrations/postgres/0005_render_plan.sql")),
+    (
+        6,
+        include_str!("migrations/postgres/0006_scene_uploads.sql"),
+    ),
 ];
 
 /// Connections in the pool: the coordinator's concurrent requests, merges and the ticker.
