@@ -134,11 +134,11 @@ pub async fn serve_coordinator(
     let mut core = core;
     let result = loop {
         let store = core.store();
-        let watched = core.clone();
+        let freed = space_freed(core.clone(), dir.clone());
         let end = async {
             tokio::select! {
                 _ = &mut shutdown => Ended::Shutdown,
-                _ = space_freed(&watched, dir.as_deref()) => Ended::Reopen,
+                _ = freed => Ended::Reopen,
             }
         };
         let ended = match sockets.listeners() {
@@ -149,9 +149,9 @@ pub async fn serve_coordinator(
         match ended {
             Ok(Ended::Reopen) => {
                 tracing::warn!("space was freed in the store's directory: opening the store again");
-                match Coordinator::open(core.config().clone()).await {
+                match reopen(core.config().clone()).await {
                     Ok(c) => core = c,
-                    Err(e) => break Err(ServeError::Open(e)),
+                    Err(e) => break Err(e),
                 }
                 if core.read_only() {
                     tracing::error!("the disk of the store is full again: serving reads only");
@@ -173,10 +173,11 @@ pub const SPACE_POLL: Duration = Duration::from_secs(2);
 /// takes writes again; never without a directory (PostgreSQL). A write failure whose
 /// error did not say "full" (an I/O error extending a file) counts as a full disk when
 /// a probe finds the directory full; any other failure waits for a restart.
-async fn space_freed(core: &Coordinator, dir: Option<&std::path::Path>) {
+async fn space_freed(core: Coordinator, dir: Option<std::path::PathBuf>) {
     let Some(dir) = dir else {
         return std::future::pending().await;
     };
+    let dir = dir.as_path();
     loop {
         tokio::time::sleep(SPACE_POLL).await;
         if !core.store_failing() {
@@ -193,6 +194,18 @@ async fn space_freed(core: &Coordinator, dir: Option<&std::path::Path>) {
             core.mark_disk_full();
         }
     }
+}
+
+/// [`Coordinator::open`] for [`serve_coordinator`], whose future must stay `Send` (it is
+/// spawned): the open's future trips rustc's higher-ranked `Send` check on sqlx futures
+/// (see [`serve`]), so it runs on a blocking thread driving it on this runtime, where
+/// the store's connections are made as they would be here.
+async fn reopen(config: CoordinatorConfig) -> Result<Coordinator, ServeError> {
+    let rt = tokio::runtime::Handle::current();
+    tokio::task::spawn_blocking(move || rt.block_on(Coordinator::open(config)))
+        .await
+        .map_err(|e| ServeError::Io(std::io::Error::other(e.to_string())))?
+        .map_err(ServeError::Open)
 }
 
 /// The bound sockets, kept for the whole run; each phase serves duplicates of them.

@@ -289,6 +289,13 @@ impl StoreError {
         const FULL: i64 = 13;
         match self {
             Self::DiskFull(_) => true,
+            // The write probe and the commit marker keep the I/O error as text: ENOSPC
+            // and EDQUOT as `std::io::Error` shows them, or SQLite's FULL.
+            Self::NotWritable { detail, .. } => {
+                ["os error 28)", "os error 122)", "database or disk is full"]
+                    .iter()
+                    .any(|m| detail.contains(m))
+            }
             Self::Database(sqlx::Error::Io(e)) => e.kind() == std::io::ErrorKind::StorageFull,
             Self::Database(sqlx::Error::Database(e)) => e.code().is_some_and(|c| {
                 &*c == "53100" || c.parse::<i64>().is_ok_and(|c| c & 0xff == FULL)
