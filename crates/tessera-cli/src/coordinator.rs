@@ -107,8 +107,9 @@ pub struct CoordinatorArgs {
     /// Delete stored scenes that no queued or running job needs once unused this long,
     /// e.g. `30d`, `12h`, `90m`; `off` keeps them until deleted with
     /// `DELETE /api/v1/scenes/{hash}`.
+    // Spelled out so clap takes `None` ("off") as a parsed value, not a missing flag.
     #[arg(long, env = "TESSERA_SCENE_RETENTION", default_value = "off", value_parser = parse_retention)]
-    pub scene_retention: Option<u64>,
+    pub scene_retention: ::std::option::Option<u64>,
     /// Dry runs (`POST /api/v1/jobs?dry_run=true`): seconds a quote's pilot may render on
     /// this host (one at a time, on one thread, in a child process) before it is killed.
     #[arg(long, default_value_t = 120, value_name = "SECS")]
