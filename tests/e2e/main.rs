@@ -27,3 +27,4 @@ mod python_clients;
 mod render_cli;
 mod store_cli;
 mod tls_e2e;
+mod worker_token;

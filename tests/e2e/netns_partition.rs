@@ -25,6 +25,9 @@ use tessera_api::JobSettings;
 const GRPC_PORT: u16 = 50051;
 /// The HTTP API, on the coordinator's loopback: only the test, from inside, talks to it.
 const HTTP: &str = "127.0.0.1:8080";
+/// The worker token: a coordinator listening beyond loopback requires one
+/// (docs/farm.md, "Worker credentials").
+const WORKER_TOKEN: &str = "netns-partition-worker-token";
 
 /// The namespaces, or `None` (the test passes) when they cannot be made here and `CI` is
 /// not set.
@@ -52,7 +55,9 @@ fn farm(h: &Hosts, dir: &Path, lease: &[&str]) -> (Coord, Vec<Proc>) {
     );
     let grpc = format!("0.0.0.0:{GRPC_PORT}");
     let log = dir.join("coordinator.log");
-    let c = spawn_coordinator(cmd, &dir.join("data"), HTTP, &grpc, lease, Some(&log));
+    let mut extra = vec!["--worker-token", WORKER_TOKEN];
+    extra.extend_from_slice(lease);
+    let c = spawn_coordinator(cmd, &dir.join("data"), HTTP, &grpc, &extra, Some(&log));
     let workers = h
         .workers
         .iter()
@@ -63,7 +68,7 @@ fn farm(h: &Hosts, dir: &Path, lease: &[&str]) -> (Coord, Vec<Proc>) {
                 Hosts::exec(ns, env!("CARGO_BIN_EXE_tessera")),
                 &[&url],
                 &format!("w{i}"),
-                &[],
+                &["--token", WORKER_TOKEN],
                 None,
             )
         })

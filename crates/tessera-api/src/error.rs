@@ -34,6 +34,10 @@ pub enum ErrorCode {
     /// The server cannot take this request now (its store takes no writes: a full disk,
     /// an I/O error, a read-only file); reads still work. 503.
     Unavailable,
+    /// The server has no room to store this: the stored scenes would exceed a quota (the
+    /// message names the limit and the numbers), or the server's disk is full (reads still
+    /// work; writes resume once space is freed). 507.
+    InsufficientStorage,
     /// A code this version does not know (sent by a newer server). Deserialization only;
     /// treated as 500.
     #[serde(other)]
@@ -52,6 +56,7 @@ impl ErrorCode {
             Self::RequestTimeout => 408,
             Self::Internal | Self::Unknown => 500,
             Self::Unavailable => 503,
+            Self::InsufficientStorage => 507,
         }
     }
 
@@ -68,6 +73,7 @@ impl ErrorCode {
             Self::RequestTimeout => "request_timeout",
             Self::Internal => "internal",
             Self::Unavailable => "unavailable",
+            Self::InsufficientStorage => "insufficient_storage",
             Self::Unknown => "unknown",
         }
     }
@@ -273,6 +279,7 @@ mod tests {
             (ErrorCode::TooLarge, 413),
             (ErrorCode::Internal, 500),
             (ErrorCode::Unavailable, 503),
+            (ErrorCode::InsufficientStorage, 507),
         ];
         for (code, status) in cases {
             assert_eq!(ApiError::new(code, "x").status(), status, "{code}");

@@ -34,7 +34,9 @@ pub struct CoordinatorArgs {
     /// Bearer token required on the HTTP API.
     #[arg(long, env = "TESSERA_API_TOKEN")]
     pub api_token: Option<String>,
-    /// Bearer token workers must present.
+    /// Bearer token workers must present. A coordinator whose gRPC port listens beyond
+    /// loopback without one (and without --tls-client-ca) generates one, keeps it in
+    /// DATA/worker-token and requires it (docs/farm.md, "Worker credentials").
     #[arg(long, env = "TESSERA_WORKER_TOKEN")]
     pub worker_token: Option<String>,
     /// Lease duration without a heartbeat, milliseconds.
@@ -90,6 +92,24 @@ pub struct CoordinatorArgs {
     /// by this CA (PEM); the certificate's common name is the worker's identity.
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_client_ca: Option<PathBuf>,
+    /// Largest scene upload, e.g. `64MiB` (at most 256MiB); a larger one is refused
+    /// with 413.
+    #[arg(long, env = "TESSERA_MAX_SCENE_SIZE", default_value = "256MiB", value_parser = parse_bytes)]
+    pub max_scene_size: u64,
+    /// Bytes all stored scenes together may hold, e.g. `10GiB`; an upload beyond is
+    /// refused with 507 naming the limit (docs/store.md, "Scene storage").
+    #[arg(long, env = "TESSERA_SCENE_QUOTA", default_value = "10GiB", value_parser = parse_bytes)]
+    pub scene_quota: u64,
+    /// Bytes the scenes first uploaded with one API token may hold; an upload beyond is
+    /// refused with 507 naming the limit.
+    #[arg(long, env = "TESSERA_SCENE_QUOTA_PER_TOKEN", default_value = "10GiB", value_parser = parse_bytes)]
+    pub scene_quota_per_token: u64,
+    /// Delete stored scenes that no queued or running job needs once unused this long,
+    /// e.g. `30d`, `12h`, `90m`; `off` keeps them until deleted with
+    /// `DELETE /api/v1/scenes/{hash}`.
+    // Spelled out so clap takes `None` ("off") as a parsed value, not a missing flag.
+    #[arg(long, env = "TESSERA_SCENE_RETENTION", default_value = "off", value_parser = parse_retention)]
+    pub scene_retention: ::std::option::Option<u64>,
     /// Dry runs (`POST /api/v1/jobs?dry_run=true`): seconds a quote's pilot may render on
     /// this host (one at a time, on one thread, in a child process) before it is killed.
     #[arg(long, default_value_t = 120, value_name = "SECS")]
@@ -125,7 +145,85 @@ fn parse_bytes(s: &str) -> std::result::Result<u64, String> {
         .ok_or_else(|| format!("{s:?} must be between 1 byte and 16 EiB"))
 }
 
+/// `--scene-retention`: `off`, or a duration with a unit (`s`, `m`, `h`, `d`), as
+/// milliseconds.
+fn parse_retention(s: &str) -> std::result::Result<Option<u64>, String> {
+    let t = s.trim();
+    if t.eq_ignore_ascii_case("off") {
+        return Ok(None);
+    }
+    let split = t.find(|c: char| !c.is_ascii_digit()).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let bad = || format!("{s:?} is not a duration such as 30d, 12h, 90m or 3600s, or off");
+    let n: u64 = num.parse().map_err(|_| bad())?;
+    let ms: u64 = match unit.trim() {
+        "s" => 1_000,
+        "m" => 60_000,
+        "h" => 3_600_000,
+        "d" => 86_400_000,
+        _ => return Err(bad()),
+    };
+    n.checked_mul(ms)
+        .filter(|&v| v > 0 && v <= i64::MAX as u64)
+        .map(Some)
+        .ok_or_else(|| format!("{s:?} must be at least 1s and less than 290 million years"))
+}
+
+/// The file in the data directory that keeps a generated worker token.
+pub const WORKER_TOKEN_FILE: &str = "worker-token";
+
 impl CoordinatorArgs {
+    /// Safe defaults for workers (docs/farm.md, "Worker credentials"): a gRPC port that
+    /// listens beyond loopback with neither a worker token nor mutual TLS would take
+    /// anonymous workers. Then the token kept in `DATA/worker-token` is used, or one is
+    /// generated, kept there (mode 0600) and printed once, on standard error, with where
+    /// workers take it. Loopback-only coordinators are left as they are.
+    pub fn require_worker_credentials(&mut self) -> Result<()> {
+        if self.worker_token.as_deref().is_some_and(|t| !t.is_empty())
+            || self.tls_client_ca.is_some()
+            || self.grpc.ip().is_loopback()
+        {
+            return Ok(());
+        }
+        let file = self.data.join(WORKER_TOKEN_FILE);
+        match std::fs::read_to_string(&file) {
+            Ok(t) if !t.trim().is_empty() => {
+                self.worker_token = Some(t.trim().to_string());
+                eprintln!(
+                    "tessera: the gRPC port {} listens beyond loopback: workers must present \
+                     the worker token kept in {} (TESSERA_WORKER_TOKEN)",
+                    self.grpc,
+                    file.display()
+                );
+                return Ok(());
+            }
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => {
+                return Err(e)
+                    .with_context(|| format!("reading the worker token {}", file.display()))
+            }
+        }
+        let bytes: [u8; 32] = tessera_coordinator::trust::random_bytes();
+        let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+        std::fs::create_dir_all(&self.data)
+            .with_context(|| format!("creating the data directory {}", self.data.display()))?;
+        write_secret(&file, &token)
+            .with_context(|| format!("keeping the worker token in {}", file.display()))?;
+        eprintln!(
+            "tessera: the gRPC port {grpc} listens beyond loopback and no worker token was \
+             given (--worker-token / TESSERA_WORKER_TOKEN, or --tls-client-ca): generated one \
+             and kept it in {file}; workers must present it:\n\n    \
+             TESSERA_WORKER_TOKEN={token} tessera worker --coordinator http://HOST:{port}\n\n\
+             It is printed this once; later starts read it from {file}.",
+            grpc = self.grpc,
+            file = file.display(),
+            port = self.grpc.port(),
+        );
+        self.worker_token = Some(token);
+        Ok(())
+    }
+
     /// The validated coordinator configuration.
     fn config(&self) -> Result<CoordinatorConfig> {
         if self.lease_ms < 100 || u64::from(self.heartbeat_ms) * 2 > self.lease_ms {
@@ -167,6 +265,17 @@ impl CoordinatorArgs {
         // The pilot is this binary's hidden `tessera pilot`.
         cfg.pilot_program = std::env::current_exe().ok();
         cfg.spot_check_fraction = self.spot_check_fraction;
+        let max_scene = tessera_coordinator::service::MAX_SCENE_BYTES;
+        if self.max_scene_size > max_scene as u64 {
+            bail!(
+                "--max-scene-size {} must be at most {max_scene} bytes (256MiB)",
+                self.max_scene_size
+            );
+        }
+        cfg.max_scene_bytes = self.max_scene_size as usize;
+        cfg.scene_quota_bytes = self.scene_quota;
+        cfg.scene_quota_per_token = self.scene_quota_per_token;
+        cfg.scene_retention_ms = self.scene_retention;
         cfg.http_limits = HttpLimits {
             header_timeout: Duration::from_secs(self.http_header_timeout),
             body_timeout: Duration::from_secs(self.http_body_timeout),
@@ -285,9 +394,24 @@ pub fn print_addresses(listeners: &Listeners, scheme: &str) -> Result<()> {
     Ok(())
 }
 
+/// Writes `secret` to a new file `path` readable by its owner only.
+fn write_secret(path: &std::path::Path, secret: &str) -> std::io::Result<()> {
+    let mut options = std::fs::OpenOptions::new();
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.mode(0o600);
+    }
+    let mut f = options.open(path)?;
+    writeln!(f, "{secret}")?;
+    f.sync_all()
+}
+
 /// `tessera coordinator`.
-pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
+pub fn coordinator(mut args: CoordinatorArgs) -> Result<()> {
     init_tracing();
+    args.require_worker_credentials()?;
     runtime()?.block_on(async {
         let (opened, listeners) = args.open().await?;
         print_addresses(&listeners, args.scheme())?;
@@ -297,7 +421,20 @@ pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::parse_bytes;
+    use super::{parse_bytes, parse_retention};
+
+    #[test]
+    fn retention_parses_units_and_off() {
+        assert_eq!(parse_retention("off"), Ok(None));
+        assert_eq!(parse_retention("OFF"), Ok(None));
+        assert_eq!(parse_retention("30d"), Ok(Some(30 * 86_400_000)));
+        assert_eq!(parse_retention("12h"), Ok(Some(12 * 3_600_000)));
+        assert_eq!(parse_retention("90m"), Ok(Some(90 * 60_000)));
+        assert_eq!(parse_retention("3600s"), Ok(Some(3_600_000)));
+        for bad in ["", "30", "0d", "1w", "d", "-1h", "99999999999999999d"] {
+            assert!(parse_retention(bad).is_err(), "{bad:?}");
+        }
+    }
 
     #[test]
     fn byte_counts_parse_with_units() {

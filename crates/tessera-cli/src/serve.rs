@@ -66,12 +66,14 @@ impl ServeArgs {
 }
 
 /// `tessera serve`: a coordinator and local worker processes over loopback gRPC.
-pub fn serve(args: ServeArgs) -> Result<()> {
+pub fn serve(mut args: ServeArgs) -> Result<()> {
     init_tracing();
     if args.workers > 256 {
         bail!("--workers {} must be at most 256", args.workers);
     }
     args.check_tls()?;
+    // Before the local workers start: they are handed the same token.
+    args.coordinator.require_worker_credentials()?;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let threads = if args.threads_per_worker == 0 {
         (cores / args.workers.max(1)).max(1)

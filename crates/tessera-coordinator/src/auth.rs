@@ -20,6 +20,21 @@ pub fn bearer_matches(given: Option<&str>, token: &str) -> bool {
     scheme.eq_ignore_ascii_case("bearer") && constant_time_eq(presented.trim(), token)
 }
 
+/// The name scene quotas count an API client's uploads under (docs/store.md, "Scene
+/// storage"): `token:` and the first 16 hex digits of the SHA-256 of the bearer token it
+/// was admitted with, so the name is stable across restarts and never reveals the token;
+/// `anonymous` on a coordinator without an API token.
+pub fn client_name(token: Option<&str>) -> String {
+    match token {
+        None => "anonymous".into(),
+        Some(t) => {
+            let digest = Sha256::digest(t.as_bytes());
+            let hex: String = digest[..8].iter().map(|b| format!("{b:02x}")).collect();
+            format!("token:{hex}")
+        }
+    }
+}
+
 /// Compares two secrets in time independent of their contents and lengths.
 fn constant_time_eq(a: &str, b: &str) -> bool {
     let (da, db) = (Sha256::digest(a.as_bytes()), Sha256::digest(b.as_bytes()));

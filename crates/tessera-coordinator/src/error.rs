@@ -36,6 +36,10 @@ pub enum CoordError {
     /// The request is larger than the coordinator accepts.
     #[error("{0}")]
     TooLarge(String),
+    /// Storing this would exceed a storage quota; the text names the limit and the
+    /// numbers.
+    #[error("{0}")]
+    InsufficientStorage(String),
     /// The request conflicts with what exists, e.g. an idempotency key reused with other
     /// settings; `field` names the input (the key's header).
     #[error("{field}: {message}")]
@@ -67,7 +71,11 @@ pub enum CoordError {
 fn store_message(e: &StoreError) -> String {
     match e {
         // Already says that no new work is accepted.
-        StoreError::Failing(_) => e.to_string(),
+        StoreError::Failing(_) | StoreError::DiskFull(_) => e.to_string(),
+        e if e.is_disk_full() => format!(
+            "the disk of the store is full ({e}); this coordinator serves reads and \
+             accepts no new work until space is freed, then resumes by itself (docs/store.md)"
+        ),
         e if e.is_write_failure() => format!(
             "the store failed to write ({e}); this coordinator accepts no new work until it \
              is restarted (docs/store.md)"
@@ -136,6 +144,9 @@ impl From<CoordError> for ApiError {
             CoordError::InvalidRequest(_) => ErrorCode::InvalidRequest,
             CoordError::InvalidScene(_) => ErrorCode::InvalidScene,
             CoordError::TooLarge(_) => ErrorCode::TooLarge,
+            CoordError::InsufficientStorage(_) => ErrorCode::InsufficientStorage,
+            // A full disk: 507, until space is freed (docs/store.md).
+            CoordError::Store(s) if s.is_disk_full() => ErrorCode::InsufficientStorage,
             // The store takes no writes (full disk, I/O error, read-only file): the
             // coordinator stops accepting work until restarted (docs/store.md).
             CoordError::Store(s) if s.is_write_failure() => ErrorCode::Unavailable,
@@ -163,7 +174,9 @@ impl From<CoordError> for Status {
             e @ CoordError::InvalidField { .. } => Status::invalid_argument(e.to_string()),
             CoordError::InvalidRequest(m) => Status::invalid_argument(m),
             e @ CoordError::InvalidScene(_) => Status::invalid_argument(e.to_string()),
-            CoordError::TooLarge(m) => Status::resource_exhausted(m),
+            CoordError::TooLarge(m) | CoordError::InsufficientStorage(m) => {
+                Status::resource_exhausted(m)
+            }
             e @ CoordError::Conflict { .. } => Status::already_exists(e.to_string()),
             CoordError::Store(e) => Status::unavailable(format!("coordinator store: {e}")),
             // UNAVAILABLE: the worker tries the next coordinator it knows.

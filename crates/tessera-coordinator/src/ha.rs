@@ -47,9 +47,8 @@ use std::time::{Duration, Instant};
 
 use sqlx::postgres::{PgConnectOptions, PgConnection};
 use sqlx::{ConnectOptions, Connection};
-use tokio::net::TcpListener;
 
-use crate::server::{serve_phase, Ended, Listeners, ServeError};
+use crate::server::{serve_phase, Ended, Listeners, ServeError, Sockets};
 use crate::service::{Coordinator, CoordinatorConfig};
 use crate::store::{PostgresStore, Store, StoreError};
 use crate::tls::ServerTls;
@@ -195,30 +194,6 @@ impl Leadership {
     }
 }
 
-/// The bound sockets, kept for the whole run; each phase serves duplicates of them.
-struct Sockets {
-    http: std::net::TcpListener,
-    grpc: std::net::TcpListener,
-}
-
-impl Sockets {
-    fn new(listeners: Listeners) -> std::io::Result<Self> {
-        // `into_std` leaves the sockets non-blocking, as `from_std` needs them (the mode
-        // is shared by their duplicates).
-        Ok(Self {
-            http: listeners.http.into_std()?,
-            grpc: listeners.grpc.into_std()?,
-        })
-    }
-
-    fn listeners(&self) -> std::io::Result<Listeners> {
-        Ok(Listeners {
-            http: TcpListener::from_std(self.http.try_clone()?)?,
-            grpc: TcpListener::from_std(self.grpc.try_clone()?)?,
-        })
-    }
-}
-
 /// Runs a coordinator on the PostgreSQL `store` (opened by the caller, so a bad URL or
 /// an unreachable server stops the start) as a standby, then as the active coordinator
 /// whenever it holds the leadership (see the [module documentation](self)), until
@@ -282,7 +257,8 @@ pub async fn serve_ha(
             }
         };
         match serve_phase(core, sockets.listeners()?, tls.clone(), end).await {
-            Ok(Ended::Shutdown) => break Ok(()),
+            // Reopen is the SQLite coordinator's (`serve_coordinator`), never this one's.
+            Ok(Ended::Shutdown | Ended::Reopen) => break Ok(()),
             Ok(Ended::Deposed(reason)) => {
                 tracing::error!(reason = %reason, "lost the leadership: stopped serving; standing by");
                 rejoin_after = REJOIN_DELAY;

@@ -31,7 +31,7 @@ use tracing::Instrument;
 
 use crate::connections::ConnectionStats;
 use crate::error::CoordError;
-use crate::service::{Coordinator, MAX_SCENE_BYTES};
+use crate::service::Coordinator;
 
 /// An [`ApiError`] as an HTTP response.
 pub struct HttpError(pub ApiError);
@@ -122,8 +122,9 @@ pub fn router(core: Coordinator) -> Router {
         .route("/jobs/{id}/tiles", get(job_tiles))
         .route(
             "/scenes",
-            post(upload_scene).layer(DefaultBodyLimit::max(MAX_SCENE_BYTES)),
+            post(upload_scene).layer(DefaultBodyLimit::max(core.config().max_scene_bytes)),
         )
+        .route("/scenes/{hash}", delete(delete_scene))
         .route("/builtins", get(builtins))
         .route("/workers", get(workers))
         .route("/workers/{name}/quarantine", delete(lift_quarantine))
@@ -165,8 +166,16 @@ pub fn standby_router(message: &'static str) -> Router {
         .fallback(move || async move { HttpError(ApiError::new(ErrorCode::Unavailable, message)) })
 }
 
-async fn require_token(State(core): State<Coordinator>, req: Request, next: Next) -> Response {
-    if let Some(token) = &core.config().api_token {
+/// The API client a request was admitted as ([`crate::auth::client_name`]): whose quota
+/// its scene uploads count in.
+#[derive(Clone)]
+struct ApiClient(String);
+
+async fn require_token(State(core): State<Coordinator>, mut req: Request, next: Next) -> Response {
+    let token = core.config().api_token.as_deref();
+    req.extensions_mut()
+        .insert(ApiClient(crate::auth::client_name(token)));
+    if let Some(token) = token {
         let given = req
             .headers()
             .get(header::AUTHORIZATION)
@@ -361,11 +370,35 @@ fn body_error(e: BytesRejection) -> ApiError {
 
 async fn upload_scene(
     State(core): State<Coordinator>,
+    client: Option<Extension<ApiClient>>,
     body: Result<Bytes, BytesRejection>,
 ) -> HttpResult<Response> {
-    let body = body.map_err(body_error)?;
-    let out = core.upload_scene(body.to_vec()).await?;
+    let body = body.map_err(|e| {
+        if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+            ApiError::new(
+                ErrorCode::TooLarge,
+                format!(
+                    "the scene is larger than the limit of {} bytes per upload (--max-scene-size)",
+                    core.config().max_scene_bytes
+                ),
+            )
+        } else {
+            body_error(e)
+        }
+    })?;
+    let client = client.map_or_else(|| crate::auth::client_name(None), |c| c.0 .0);
+    let out = core.upload_scene_as(body.to_vec(), &client).await?;
     Ok((StatusCode::CREATED, Json(out)).into_response())
+}
+
+/// `DELETE /scenes/{hash}`: 204 when the scene was deleted, 404 when no scene has this
+/// hash, 409 naming the queued or running jobs that need it.
+async fn delete_scene(
+    State(core): State<Coordinator>,
+    Path(hash): Path<String>,
+) -> HttpResult<Response> {
+    core.delete_scene(&hash).await?;
+    Ok(StatusCode::NO_CONTENT.into_response())
 }
 
 async fn builtins() -> Response {

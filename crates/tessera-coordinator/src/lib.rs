@@ -22,6 +22,7 @@
 //!   body and idle timeouts ([`HttpLimits`]).
 //! - [`server`]: [`serve`], which runs both servers and the ticker on bound listeners and
 //!   shuts them down gracefully (workers told to stop, requests in flight finished).
+//! - [`space`]: whether the data directory's disk is full, probed by writing.
 //! - [`ha`]: high availability on PostgreSQL: [`ha::serve_ha`] runs a coordinator as a
 //!   standby until it holds the store's leadership lock, then as the active one.
 //!
@@ -41,6 +42,7 @@ pub mod ha;
 pub mod http;
 pub mod server;
 pub mod service;
+pub mod space;
 pub mod state;
 pub mod store;
 pub mod tls;

@@ -107,6 +107,14 @@ pub async fn serve(
 
 /// Serves an open coordinator on `listeners` until `shutdown` completes, or until one of
 /// the servers fails (then the other is shut down the same way and the failure returned).
+///
+/// On a SQLite store whose disk is full — the coordinator started on it over a read-only
+/// view ([`Coordinator::open`]), or its writes failed for want of space — the data
+/// directory is probed every [`SPACE_POLL`] ([`crate::space`]); once space is freed the
+/// coordinator is opened again, as a restart would (unfinished jobs resumed, workers'
+/// leases adopted during the grace period), on the same listeners, so connections wait
+/// in the kernel's backlog rather than being refused (docs/store.md, "When the disk is
+/// full").
 pub async fn serve_coordinator(
     core: Coordinator,
     listeners: Listeners,
@@ -117,17 +125,113 @@ pub async fn serve_coordinator(
         None => None,
     };
     let reloader = tls.clone().map(ServerTls::reload_on_sighup);
-    let store = core.store();
-    let ended = serve_phase(core, listeners, tls, async {
-        shutdown.await;
-        Ended::Shutdown
-    })
-    .await;
+    let dir = match core.config().store_url() {
+        crate::store::StoreUrl::Sqlite(dir) => Some(dir),
+        crate::store::StoreUrl::Postgres(_) => None,
+    };
+    let sockets = Sockets::new(listeners)?;
+    tokio::pin!(shutdown);
+    let mut core = core;
+    let result = loop {
+        let store = core.store();
+        let freed = space_freed(core.clone(), dir.clone());
+        let end = async {
+            tokio::select! {
+                _ = &mut shutdown => Ended::Shutdown,
+                _ = freed => Ended::Reopen,
+            }
+        };
+        let ended = match sockets.listeners() {
+            Ok(l) => serve_phase(core.clone(), l, tls.clone(), end).await,
+            Err(e) => Err(e.into()),
+        };
+        store.close().await;
+        match ended {
+            Ok(Ended::Reopen) => {
+                tracing::warn!("space was freed in the store's directory: opening the store again");
+                match reopen(core.config().clone()).await {
+                    Ok(c) => core = c,
+                    Err(e) => break Err(e),
+                }
+                if core.read_only() {
+                    tracing::error!("the disk of the store is full again: serving reads only");
+                }
+            }
+            other => break other.map(|_| ()),
+        }
+    };
     if let Some(r) = reloader {
         r.abort();
     }
-    store.close().await;
-    ended.map(|_| ())
+    result
+}
+
+/// How often a coordinator whose disk is full probes for free space.
+pub const SPACE_POLL: Duration = Duration::from_secs(2);
+
+/// Completes once `core`'s store failed for want of space and the data directory `dir`
+/// takes writes again; never without a directory (PostgreSQL). A write failure whose
+/// error did not say "full" (an I/O error extending a file) counts as a full disk when
+/// a probe finds the directory full; any other failure waits for a restart.
+async fn space_freed(core: Coordinator, dir: Option<std::path::PathBuf>) {
+    let Some(dir) = dir else {
+        return std::future::pending().await;
+    };
+    let dir = dir.as_path();
+    loop {
+        tokio::time::sleep(SPACE_POLL).await;
+        if !core.store_failing() {
+            continue;
+        }
+        if core.disk_full() {
+            if crate::space::probe(dir).await.is_ok() {
+                return;
+            }
+        } else if crate::space::is_full(dir).await {
+            tracing::error!(
+                "the disk of the store is full: new work is refused until space is freed"
+            );
+            core.mark_disk_full();
+        }
+    }
+}
+
+/// [`Coordinator::open`] for [`serve_coordinator`], whose future must stay `Send` (it is
+/// spawned): the open's future trips rustc's higher-ranked `Send` check on sqlx futures
+/// (see [`serve`]), so it runs on a blocking thread driving it on this runtime, where
+/// the store's connections are made as they would be here.
+async fn reopen(config: CoordinatorConfig) -> Result<Coordinator, ServeError> {
+    let rt = tokio::runtime::Handle::current();
+    tokio::task::spawn_blocking(move || rt.block_on(Coordinator::open(config)))
+        .await
+        .map_err(|e| ServeError::Io(std::io::Error::other(e.to_string())))?
+        .map_err(ServeError::Open)
+}
+
+/// The bound sockets, kept for the whole run; each phase serves duplicates of them.
+pub(crate) struct Sockets {
+    http: std::net::TcpListener,
+    grpc: std::net::TcpListener,
+}
+
+impl Sockets {
+    /// Keeps `listeners`' sockets.
+    pub(crate) fn new(listeners: Listeners) -> std::io::Result<Self> {
+        // `into_std` leaves the sockets non-blocking, as `from_std` needs them (the mode
+        // is shared by their duplicates).
+        Ok(Self {
+            http: listeners.http.into_std()?,
+            grpc: listeners.grpc.into_std()?,
+        })
+    }
+
+    /// Duplicates of the sockets, for one phase.
+    pub(crate) fn listeners(&self) -> std::io::Result<Listeners> {
+        Ok(Listeners {
+            http: TcpListener::from_std(self.http.try_clone()?)?,
+            grpc: TcpListener::from_std(self.grpc.try_clone()?)?,
+        })
+    }
 }
 
 /// How a coordinator's serving ended ([`serve_phase`]).
@@ -137,6 +241,9 @@ pub(crate) enum Ended {
     Shutdown,
     /// It lost the leadership of its store (`crate::ha`), for this reason.
     Deposed(String),
+    /// Space was freed under a coordinator whose disk was full: stop serving and open
+    /// the coordinator again ([`serve_coordinator`]).
+    Reopen,
 }
 
 /// Serves `core` on `listeners` until `end` completes or a server fails, then stops
@@ -178,6 +285,20 @@ pub(crate) async fn serve_phase(
                 tracing::warn!(error = %e, "cannot record the graceful shutdown in the store");
             }
             tracing::info!("coordinator stopped");
+        }
+        Ended::Reopen => {
+            // As a restart: the workers' leases are adopted by the coordinator opened
+            // next, during its grace period; nothing is drained.
+            ticker.abort();
+            let _ = http_stop.send(());
+            let _ = grpc_stop.send(());
+            join_servers(http, grpc, SERVER_SHUTDOWN).await;
+            // A read-only coordinator began no run to end.
+            if !core.read_only() {
+                if let Err(e) = core.store().end_run().await {
+                    tracing::warn!(error = %e, "cannot record the end of the run in the store");
+                }
+            }
         }
         Ended::Deposed(reason) => {
             core.depose(reason.clone());

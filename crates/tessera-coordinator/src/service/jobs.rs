@@ -38,6 +38,8 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
+        // Held until the job is stored: its scene cannot be deleted meanwhile.
+        let _scene_kept = self.inner.scene_lock.read().await;
         let scene = self.scene(&job.scene).await?;
         // Resolution also checks the adaptive settings against the plan (field `adaptive`).
         let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;

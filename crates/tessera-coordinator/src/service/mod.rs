@@ -64,8 +64,11 @@ pub use workers::{
 
 /// Lease ids are reserved in blocks of this many (one store write per block).
 pub const LEASE_ID_BLOCK: u64 = 4096;
-/// Largest accepted scene upload.
+/// Largest accepted scene upload: the default of [`CoordinatorConfig::max_scene_bytes`],
+/// and the most it may be.
 pub const MAX_SCENE_BYTES: usize = 256 << 20;
+/// Default of [`CoordinatorConfig::scene_quota_bytes`]: 10 GiB of stored scenes.
+pub const DEFAULT_SCENE_QUOTA: u64 = 10 << 30;
 /// Default of [`CoordinatorConfig::forget_lost_ms`]: ten minutes.
 pub const FORGET_LOST_MS: u64 = 10 * 60 * 1000;
 /// Largest page of `GET /jobs`.
@@ -111,6 +114,19 @@ pub struct CoordinatorConfig {
     /// The fraction of units rendered a second time by a different worker and compared
     /// (spot checks, ARCHITECTURE.md §6; `--spot-check-fraction`), 0 to 1; 0 disables.
     pub spot_check_fraction: f64,
+    /// Largest scene upload, bytes (`--max-scene-size`; at most [`MAX_SCENE_BYTES`]): a
+    /// larger one is refused with 413.
+    pub max_scene_bytes: usize,
+    /// Bytes all stored scenes together may hold (`--scene-quota`): an upload that would
+    /// go beyond is refused with 507 (docs/store.md, "Scene storage").
+    pub scene_quota_bytes: u64,
+    /// Bytes the scenes first uploaded with one API token may hold
+    /// (`--scene-quota-per-token`; without an API token, all uploads are one client's).
+    pub scene_quota_per_token: u64,
+    /// Scenes no queued or running job needs and unused for this long are deleted by the
+    /// coordinator's maintenance (`--scene-retention`), ms; `None` keeps them until
+    /// deleted (`DELETE /api/v1/scenes/{hash}`).
+    pub scene_retention_ms: Option<u64>,
 }
 
 impl std::fmt::Debug for CoordinatorConfig {
@@ -132,6 +148,10 @@ impl std::fmt::Debug for CoordinatorConfig {
             .field("pilot_program", &self.pilot_program)
             .field("pilot_timeout_ms", &self.pilot_timeout_ms)
             .field("spot_check_fraction", &self.spot_check_fraction)
+            .field("max_scene_bytes", &self.max_scene_bytes)
+            .field("scene_quota_bytes", &self.scene_quota_bytes)
+            .field("scene_quota_per_token", &self.scene_quota_per_token)
+            .field("scene_retention_ms", &self.scene_retention_ms)
             .finish()
     }
 }
@@ -145,7 +165,9 @@ impl CoordinatorConfig {
     /// pass per unit, no tokens, the default HTTP limits ([`HttpLimits::default`]), lost
     /// workers forgotten after ten minutes, a [`DEFAULT_MEMORY_BUDGET`], spot checks of
     /// [`tessera_farm::DEFAULT_SPOT_CHECK_FRACTION`] (2%) of the units, no pilot program
-    /// (no dry runs) and a [`quote::PILOT_TIMEOUT_MS`] pilot timeout.
+    /// (no dry runs), a [`quote::PILOT_TIMEOUT_MS`] pilot timeout, uploads up to
+    /// [`MAX_SCENE_BYTES`], [`DEFAULT_SCENE_QUOTA`] of scenes in all and per token, and
+    /// no scene retention.
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         Self {
             data_dir: data_dir.into(),
@@ -163,6 +185,10 @@ impl CoordinatorConfig {
             pilot_program: None,
             pilot_timeout_ms: quote::PILOT_TIMEOUT_MS,
             spot_check_fraction: tessera_farm::DEFAULT_SPOT_CHECK_FRACTION,
+            max_scene_bytes: MAX_SCENE_BYTES,
+            scene_quota_bytes: DEFAULT_SCENE_QUOTA,
+            scene_quota_per_token: DEFAULT_SCENE_QUOTA,
+            scene_retention_ms: None,
         }
     }
 }
@@ -228,6 +254,17 @@ struct Inner {
     /// Lease requests waiting for work now, and how the waits ended: woken (something
     /// may have become leasable) or at their deadline (`/metrics`).
     lease_waits: LeaseWaits,
+    /// Scene uploads and submissions of uploaded scenes hold it shared, a scene's
+    /// deletion exclusively: no job is stored against a scene being deleted, and two
+    /// uploads do not both pass the quota for the same free bytes ([`scenes`]).
+    scene_lock: tokio::sync::RwLock<()>,
+    /// Serializes uploads' quota checks with their writes.
+    uploads: tokio::sync::Mutex<()>,
+    /// When scene retention last ran (Unix ms).
+    retention_ran_ms: std::sync::atomic::AtomicU64,
+    /// Started on a full disk over a read-only view of the store: nothing was resumed,
+    /// and the coordinator is opened again once space is freed (`crate::server`).
+    read_only: bool,
 }
 
 /// The long polls' gauge and counters ([`Coordinator::lease_waiting`]).
@@ -241,9 +278,56 @@ struct LeaseWaits {
 impl Coordinator {
     /// Opens the store ([`CoordinatorConfig::store_url`]) and resumes every unfinished job
     /// in it.
+    ///
+    /// On a SQLite store whose disk is full (the open's write probe fails and the data
+    /// directory takes no bytes), the coordinator starts all the same over a read-only
+    /// view of the store ([`SqliteStore::open_read_only`](crate::store::SqliteStore::open_read_only)):
+    /// it serves reads (status, images, the dashboard) and answers every write 507 naming
+    /// the full disk, and [`serve_coordinator`](crate::serve_coordinator) opens it again
+    /// normally once space is freed (docs/store.md, "When the disk is full").
     pub async fn open(cfg: CoordinatorConfig) -> Result<Self, StoreError> {
-        let store = crate::store::open(&cfg.store_url()).await?;
-        Self::with_store(cfg, store).await
+        let url = cfg.store_url();
+        match crate::store::open(&url).await {
+            Ok(store) => Self::with_store(cfg, store).await,
+            Err(e @ StoreError::NotWritable { .. }) => {
+                let crate::store::StoreUrl::Sqlite(dir) = &url else {
+                    return Err(e);
+                };
+                if !crate::space::is_full(dir).await {
+                    return Err(e);
+                }
+                let store = crate::store::SqliteStore::open_read_only(dir).await?;
+                tracing::error!(
+                    error = %e,
+                    "the disk of the store is full: serving reads only; new work is refused \
+                     until space is freed, then the store is opened again"
+                );
+                Self::build(cfg, Arc::new(store), Some(e.to_string())).await
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Whether this coordinator started on a full disk and serves reads only (see
+    /// [`Coordinator::open`]).
+    pub fn read_only(&self) -> bool {
+        self.inner.read_only
+    }
+
+    /// Whether writes failed for want of space, or the coordinator started on a full
+    /// disk: what freeing space cures.
+    pub fn disk_full(&self) -> bool {
+        self.inner.watch.disk_full()
+    }
+
+    /// Whether a write failed (the coordinator accepts no new work).
+    pub fn store_failing(&self) -> bool {
+        self.inner.watch.fault().is_some()
+    }
+
+    /// Records that the store's write failure is a full disk (probed by the caller).
+    pub(crate) fn mark_disk_full(&self) {
+        self.inner.watch.mark_disk_full();
     }
 
     /// Like [`Coordinator::open`] over a given store.
@@ -251,13 +335,32 @@ impl Coordinator {
         cfg: CoordinatorConfig,
         store: Arc<dyn Store>,
     ) -> Result<Self, StoreError> {
-        let watch = Arc::new(WatchedStore::new(store));
+        Self::build(cfg, store, None).await
+    }
+
+    /// [`Coordinator::with_store`]; with `full_disk` (why the store cannot be written) a
+    /// read-only coordinator: failing from the start, nothing resumed.
+    async fn build(
+        cfg: CoordinatorConfig,
+        store: Arc<dyn Store>,
+        full_disk: Option<String>,
+    ) -> Result<Self, StoreError> {
+        let read_only = full_disk.is_some();
+        let watch = Arc::new(match full_disk {
+            None => WatchedStore::new(store),
+            Some(why) => WatchedStore::failing(store, format!("starting the coordinator: {why}")),
+        });
         let store: Arc<dyn Store> = watch.clone();
         let high_water = store.max_lease_id().await?;
         // The same key for every run on the store: a restarted coordinator verifies the
-        // seals of the leases its predecessor issued (ARCHITECTURE.md §6).
-        let fence =
-            crate::trust::FenceKey::new(&store.fence_key(crate::trust::random_bytes()).await?);
+        // seals of the leases its predecessor issued (ARCHITECTURE.md §6). A read-only
+        // coordinator leases nothing: a key of its own does.
+        let fresh = crate::trust::random_bytes();
+        let fence = crate::trust::FenceKey::new(&if read_only {
+            fresh
+        } else {
+            store.fence_key(fresh).await?
+        });
         let mut state = Farm::with_first_lease(cfg.lease_ms, high_water);
         state.scheduler.set_memory_budget(cfg.memory_budget);
         state
@@ -274,8 +377,8 @@ impl Coordinator {
             cfg.pilot_program.clone(),
             std::time::Duration::from_millis(cfg.pilot_timeout_ms.max(1)),
         ));
-        let resumed = resume::resume_all(&*store, &farm, &technique).await?;
-        if let Some(f) = watch.fault() {
+        let resumed = !read_only && resume::resume_all(&*store, &farm, &technique).await?;
+        if let (Some(f), false) = (watch.fault(), read_only) {
             return Err(StoreError::Failing(f));
         }
         let blocked = if resumed { now_ms() + cfg.grace_ms } else { 0 };
@@ -309,6 +412,10 @@ impl Coordinator {
                 deposed: OnceLock::new(),
                 work: tokio::sync::Notify::new(),
                 lease_waits: LeaseWaits::default(),
+                scene_lock: tokio::sync::RwLock::new(()),
+                uploads: tokio::sync::Mutex::new(()),
+                retention_ran_ms: std::sync::atomic::AtomicU64::new(now_ms()),
+                read_only,
             }),
         };
         coordinator.finish_complete_jobs().await?;
@@ -400,9 +507,15 @@ impl Coordinator {
     /// Refuses new work once a store write failed ([`WatchedStore`]) or the coordinator
     /// was deposed ([`Coordinator::active`]): the error names the failed write or the
     /// state, and maps to 503 (HTTP) and `UNAVAILABLE` (gRPC).
+    ///
+    /// A full disk ([`Coordinator::disk_full`]) is [`StoreError::DiskFull`] instead:
+    /// 507 (HTTP) and `RESOURCE_EXHAUSTED` (gRPC), cured by freeing space.
     pub fn accepting_work(&self) -> CoordResult<()> {
         self.active()?;
         match self.inner.watch.fault() {
+            Some(f) if self.inner.watch.disk_full() => {
+                Err(CoordError::Store(StoreError::DiskFull(f)))
+            }
             Some(f) => Err(CoordError::Store(StoreError::Failing(f))),
             None => Ok(()),
         }
@@ -516,6 +629,7 @@ impl Coordinator {
                 .set_state(id, JobState::Done, Stop::TimeLimit.stored_message())
                 .await;
         }
+        self.scene_retention(now).await;
     }
 
     /// Runs [`Coordinator::tick`] every 200 ms until the returned handle is dropped.

@@ -4,6 +4,13 @@
 //! Uploaded bytes are kept in the farm's cache by content hash, because workers fetch
 //! them from there (`FetchScene`); a scene missing from the cache is read from the store.
 //! Parsing runs on a blocking thread, never on the async runtime.
+//!
+//! Storage is bounded (docs/store.md, "Scene storage"): an upload larger than
+//! [`CoordinatorConfig::max_scene_bytes`](super::CoordinatorConfig::max_scene_bytes) is
+//! refused with 413, one that would take the stored scenes beyond their total quota or
+//! its API client's quota with 507, each naming the limit and the numbers. A scene no
+//! queued or running job needs can be deleted (`DELETE /api/v1/scenes/{hash}`), and is
+//! deleted by the maintenance once unused for the retention period, if one is set.
 
 use std::sync::{Arc, Mutex};
 
@@ -13,10 +20,15 @@ use tessera_farm::job::JobScene;
 use tessera_scene::job::{load_job_scene_at, resolution_time};
 use tessera_scene::Scene;
 
-use super::{Coordinator, MAX_SCENE_BYTES};
+use super::Coordinator;
 use crate::error::{CoordError, CoordResult};
 use crate::state::Farm;
-use crate::store::{Store, StoreError};
+use crate::store::{SceneDeletion, Store, StoreError};
+
+/// Scenes deleted by one run of the retention, at most (the next run takes the rest).
+const RETENTION_BATCH: u32 = 64;
+/// How often the retention runs, ms.
+const RETENTION_EVERY_MS: u64 = 60_000;
 
 /// Why a job's scene could not be loaded. The text is the reason a resumed job fails
 /// with (`JobStatus.error`); requests see it as a [`CoordError`] on the `scene` field.
@@ -97,17 +109,31 @@ pub(crate) async fn load_scene(
 
 impl Coordinator {
     /// Stores an uploaded scene (a .glb or a self-contained .gltf) after checking that it
-    /// loads; returns its content hash and statistics.
+    /// loads; returns its content hash and statistics. The upload counts as the anonymous
+    /// client's ([`Coordinator::upload_scene_as`]).
     pub async fn upload_scene(&self, bytes: Vec<u8>) -> CoordResult<SceneUploaded> {
+        self.upload_scene_as(bytes, &crate::auth::client_name(None))
+            .await
+    }
+
+    /// [`Coordinator::upload_scene`] by the API client named `client`
+    /// ([`crate::auth::client_name`]), whose quota it counts in.
+    pub async fn upload_scene_as(
+        &self,
+        bytes: Vec<u8>,
+        client: &str,
+    ) -> CoordResult<SceneUploaded> {
         self.accepting_work()?;
         if bytes.is_empty() {
             return Err(CoordError::InvalidRequest(
                 "the scene upload is empty: send the bytes of a .glb or .gltf file".into(),
             ));
         }
-        if bytes.len() > MAX_SCENE_BYTES {
+        let max = self.inner.cfg.max_scene_bytes;
+        if bytes.len() > max {
             return Err(CoordError::TooLarge(format!(
-                "the scene is {} bytes, more than the limit of {MAX_SCENE_BYTES}",
+                "the scene is {} bytes, more than the limit of {max} bytes per upload \
+                 (--max-scene-size)",
                 bytes.len()
             )));
         }
@@ -121,7 +147,17 @@ impl Coordinator {
         .await
         .map_err(CoordError::internal)?
         .map_err(|e| CoordError::InvalidScene(e.to_string()))?;
-        self.inner.store.put_scene(&hash, &bytes).await?;
+        {
+            let _shared = self.inner.scene_lock.read().await;
+            let _turn = self.inner.uploads.lock().await;
+            let store = &self.inner.store;
+            // A scene stored already takes no more room: no quota applies to it again.
+            if !store.scene_exists(&hash).await? {
+                self.check_scene_quota(bytes.len() as u64, client).await?;
+            }
+            store.put_scene(&hash, &bytes).await?;
+            store.record_scene_upload(&hash, client).await?;
+        }
         let out = SceneUploaded {
             hash: hash.clone(),
             bytes: bytes.len() as u64,
@@ -131,9 +167,112 @@ impl Coordinator {
             materials: scene.materials.len() as u32,
             lights: light_count(&scene),
         };
-        tracing::info!(scene = %hash, bytes = bytes.len(), "scene uploaded");
+        tracing::info!(scene = %hash, bytes = bytes.len(), client, "scene uploaded");
         self.lock()?.scenes.insert(hash, bytes);
         Ok(out)
+    }
+
+    /// Refuses (507) a new scene of `size` bytes that would take the stored scenes beyond
+    /// the total quota or `client`'s quota; the error names the limit and the numbers.
+    async fn check_scene_quota(&self, size: u64, client: &str) -> CoordResult<()> {
+        let cfg = &self.inner.cfg;
+        let store = &self.inner.store;
+        let total = store.scene_bytes(None).await?;
+        if total.saturating_add(size) > cfg.scene_quota_bytes {
+            return Err(CoordError::InsufficientStorage(format!(
+                "the stored scenes would exceed their total quota (--scene-quota) of {} \
+                 bytes: they hold {total} bytes and this scene is {size}; delete scenes no \
+                 job needs (DELETE /api/v1/scenes/{{hash}}) or raise the quota",
+                cfg.scene_quota_bytes
+            )));
+        }
+        let own = store.scene_bytes(Some(client)).await?;
+        if own.saturating_add(size) > cfg.scene_quota_per_token {
+            return Err(CoordError::InsufficientStorage(format!(
+                "the scenes uploaded with this API token would exceed its quota \
+                 (--scene-quota-per-token) of {} bytes: they hold {own} bytes and this \
+                 scene is {size}; delete scenes no job needs (DELETE /api/v1/scenes/{{hash}}) \
+                 or raise the quota",
+                cfg.scene_quota_per_token
+            )));
+        }
+        Ok(())
+    }
+
+    /// Deletes the uploaded scene `hash` from the store and the farm's cache: 404 when no
+    /// scene has this hash, 409 naming the jobs while a queued or running job needs it.
+    pub async fn delete_scene(&self, hash: &str) -> CoordResult<()> {
+        self.accepting_work()?;
+        let not_found = || CoordError::NotFound(format!("no scene {hash}"));
+        if hash.len() != 64 || !hash.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f')) {
+            return Err(not_found());
+        }
+        let _exclusive = self.inner.scene_lock.write().await;
+        match self.inner.store.delete_scene(hash).await? {
+            SceneDeletion::Deleted => {
+                self.lock()?.scenes.remove(hash);
+                tracing::info!(scene = %hash, "scene deleted");
+                Ok(())
+            }
+            SceneDeletion::Missing => {
+                // Not in the store: nothing to keep in memory either.
+                self.lock()?.scenes.remove(hash);
+                Err(not_found())
+            }
+            SceneDeletion::Needed(jobs) => {
+                let list: Vec<String> = jobs.iter().map(u64::to_string).collect();
+                Err(CoordError::Conflict {
+                    field: "hash".into(),
+                    message: format!(
+                        "scene {hash} is needed by unfinished jobs {}: cancel them or let \
+                         them finish first",
+                        list.join(", ")
+                    ),
+                })
+            }
+        }
+    }
+
+    /// The scene retention of the periodic maintenance ([`Coordinator::tick`]): once a
+    /// minute, deletes scenes unused for
+    /// [`CoordinatorConfig::scene_retention_ms`](super::CoordinatorConfig::scene_retention_ms)
+    /// that no queued or running job needs. Failures are logged; the next run tries again.
+    pub(crate) async fn scene_retention(&self, now: u64) {
+        use std::sync::atomic::Ordering;
+        let Some(keep) = self.inner.cfg.scene_retention_ms else {
+            return;
+        };
+        let last = self.inner.retention_ran_ms.load(Ordering::SeqCst);
+        if now < last.saturating_add(RETENTION_EVERY_MS) || self.accepting_work().is_err() {
+            return;
+        }
+        self.inner.retention_ran_ms.store(now, Ordering::SeqCst);
+        match self.retain_scenes(now.saturating_sub(keep)).await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(scenes = n, "unused scenes past their retention deleted"),
+            Err(e) => tracing::warn!(error = %e, "scene retention failed"),
+        }
+    }
+
+    /// Deletes up to a batch of stored scenes that no queued or running job needs and
+    /// nothing used since `cutoff_unix_ms`; returns how many were deleted.
+    pub async fn retain_scenes(&self, cutoff_unix_ms: u64) -> CoordResult<usize> {
+        let unused = self
+            .inner
+            .store
+            .unused_scenes(cutoff_unix_ms, RETENTION_BATCH)
+            .await?;
+        let mut deleted = 0;
+        for hash in unused {
+            let _exclusive = self.inner.scene_lock.write().await;
+            // Checked again in the deletion's transaction: a job submitted meanwhile keeps it.
+            if self.inner.store.delete_scene(&hash).await? == SceneDeletion::Deleted {
+                self.lock()?.scenes.remove(&hash);
+                tracing::info!(scene = %hash, "unused scene deleted (retention)");
+                deleted += 1;
+            }
+        }
+        Ok(deleted)
     }
 
     /// A job's scene, loaded by [`load_scene`]; errors name the `scene` field.

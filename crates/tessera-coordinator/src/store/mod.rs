@@ -73,6 +73,7 @@ pub mod maintenance;
 pub mod marker;
 mod postgres;
 mod rows;
+mod scene_quota;
 mod sql;
 mod sqlite;
 mod watch;
@@ -254,6 +255,14 @@ pub enum StoreError {
         /// The underlying error.
         detail: String,
     },
+    /// The store's disk is full: a write failed for want of space (SQLite's `FULL`, or
+    /// `ENOSPC`), or the coordinator started on a full disk and serves reads only. Writes
+    /// resume by themselves once space is freed (docs/store.md, "When the disk is full").
+    #[error(
+        "the disk of the store is full ({0}): this coordinator serves reads and accepts no \
+         new work until space is freed; it resumes by itself then (docs/store.md)"
+    )]
+    DiskFull(String),
 }
 
 /// The data directory of a database path, for the recovery commands in messages.
@@ -296,12 +305,49 @@ impl StoreError {
                 }),
             // A deposed coordinator must stop accepting work as if its store had failed.
             Self::NotWritable { .. }
+            | Self::DiskFull(_)
             | Self::Damaged { .. }
             | Self::Failing(_)
             | Self::NotLeader { .. } => true,
             _ => false,
         }
     }
+}
+
+impl StoreError {
+    /// Whether this error says the disk is full (SQLite's `FULL`, PostgreSQL's
+    /// `53100 disk_full`, an `ENOSPC` I/O error, [`StoreError::DiskFull`]): a write
+    /// failure that freeing space cures, answered 507 rather than 503.
+    pub fn is_disk_full(&self) -> bool {
+        const FULL: i64 = 13;
+        match self {
+            Self::DiskFull(_) => true,
+            // The write probe and the commit marker keep the I/O error as text: ENOSPC
+            // and EDQUOT as `std::io::Error` shows them, or SQLite's FULL.
+            Self::NotWritable { detail, .. } => {
+                ["os error 28)", "os error 122)", "database or disk is full"]
+                    .iter()
+                    .any(|m| detail.contains(m))
+            }
+            Self::Database(sqlx::Error::Io(e)) => e.kind() == std::io::ErrorKind::StorageFull,
+            Self::Database(sqlx::Error::Database(e)) => e.code().is_some_and(|c| {
+                &*c == "53100" || c.parse::<i64>().is_ok_and(|c| c & 0xff == FULL)
+            }),
+            _ => false,
+        }
+    }
+}
+
+/// What [`Store::delete_scene`] did.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SceneDeletion {
+    /// The scene was deleted.
+    Deleted,
+    /// No scene has this hash.
+    Missing,
+    /// Unfinished (queued or running) jobs need the scene: these, lowest id first.
+    /// Nothing was deleted.
+    Needed(Vec<JobId>),
 }
 
 /// Where the coordinator keeps its store: the value of `--store`.
@@ -726,6 +772,24 @@ pub trait Store: Send + Sync {
 
     /// Whether a scene with this hash is stored (without reading it).
     async fn scene_exists(&self, hash: &str) -> StoreResult<bool>;
+
+    /// Bytes the stored scenes hold: all of them (`owner` `None`), or those first
+    /// uploaded by `owner` ([`Store::record_scene_upload`]). Reads sizes, not bytes.
+    async fn scene_bytes(&self, owner: Option<&str>) -> StoreResult<u64>;
+
+    /// Records that `owner` (an API client's name) uploaded the stored scene `hash` now:
+    /// the first uploader stays its owner; the time is the newest upload's.
+    async fn record_scene_upload(&self, hash: &str, owner: &str) -> StoreResult<()>;
+
+    /// Deletes the scene `hash` and its upload record, unless a queued or running job
+    /// refers to it ([`SceneDeletion::Needed`], nothing deleted); checked in the write's
+    /// transaction.
+    async fn delete_scene(&self, hash: &str) -> StoreResult<SceneDeletion>;
+
+    /// Up to `limit` stored scenes, oldest first, that no queued or running job needs
+    /// and nothing used since `cutoff_unix_ms` (stored or uploaded again, or a job of
+    /// them created or finished): what scene retention deletes.
+    async fn unused_scenes(&self, cutoff_unix_ms: u64, limit: u32) -> StoreResult<Vec<String>>;
 
     /// Saves tile checkpoints atomically: one row per (job, frame, tile), replacing any
     /// earlier checkpoint of the same tile.

@@ -42,6 +42,10 @@ const MIGRATIONS: &[(i64, &str)] = &[
         CHECKSUM_SCHEMA,
         include_str!("migrations/postgres/0006_checksums.sql"),
     ),
+    (
+        7,
+        include_str!("migrations/postgres/0007_scene_uploads.sql"),
+    ),
 ];
 
 /// The schema version that added row checksums (filled for existing rows as it is

@@ -1130,6 +1130,22 @@ impl<B: SqlBackend> Store for B {
             .is_some())
     }
 
+    async fn scene_bytes(&self, owner: Option<&str>) -> StoreResult<u64> {
+        super::scene_quota::scene_bytes(self, owner).await
+    }
+
+    async fn record_scene_upload(&self, hash: &str, owner: &str) -> StoreResult<()> {
+        super::scene_quota::record_scene_upload(self, hash, owner).await
+    }
+
+    async fn delete_scene(&self, hash: &str) -> StoreResult<super::SceneDeletion> {
+        super::scene_quota::delete_scene(self, hash).await
+    }
+
+    async fn unused_scenes(&self, cutoff_unix_ms: u64, limit: u32) -> StoreResult<Vec<String>> {
+        super::scene_quota::unused_scenes(self, cutoff_unix_ms, limit).await
+    }
+
     async fn save_tiles(&self, tiles: &[TileCheckpointRef<'_>]) -> StoreResult<()> {
         if tiles.is_empty() {
             return Ok(());

@@ -33,6 +33,7 @@ const MIGRATIONS: &[(i64, &str)] = &[
         CHECKSUM_SCHEMA,
         include_str!("migrations/0007_checksums.sql"),
     ),
+    (8, include_str!("migrations/0008_scene_uploads.sql")),
 ];
 
 /// The schema version that added row checksums (filled for existing rows as it is
@@ -124,6 +125,93 @@ impl SqliteStore {
             .await
             .map_err(|e| store.probe_error(e))?;
         Ok(store)
+    }
+
+    /// Opens the existing store in `dir` for reading only, for a coordinator that starts
+    /// on a full disk (docs/store.md, "When the disk is full"): nothing is created or
+    /// written, no migration runs, every write fails (`READONLY`). SQLite's WAL mode needs
+    /// a writable shared-memory file even to read; when the database has no WAL content
+    /// (the last coordinator stopped cleanly, or its WAL was checkpointed) the file is
+    /// opened `immutable`, needing none. Otherwise the existing `-wal` and `-shm` files are
+    /// read in place (`mode=ro`), and if even that needs space, the database alone is read
+    /// `immutable`, without the commits still in its WAL (logged as a warning: they come
+    /// back once space is freed and the store is opened normally).
+    ///
+    /// Refused with [`StoreError::NotWritable`] (`detail` says why) when there is no
+    /// database yet, or its schema is not this build's (a start on a full disk migrates
+    /// nothing).
+    pub async fn open_read_only(dir: &Path) -> StoreResult<Self> {
+        let path = dir.join(DATABASE_FILE);
+        let refuse = |detail: String| StoreError::NotWritable {
+            path: path.clone(),
+            detail,
+        };
+        if !path.is_file() {
+            return Err(refuse(
+                "there is no store to read yet and none can be created".into(),
+            ));
+        }
+        let wal = PathBuf::from(format!("{}-wal", path.display()));
+        let wal_empty = std::fs::metadata(&wal).map_or(true, |m| m.len() == 0);
+        let base = || {
+            SqliteConnectOptions::new()
+                .filename(&path)
+                .read_only(true)
+                .foreign_keys(true)
+                .busy_timeout(BUSY_TIMEOUT)
+        };
+        let connect = |options: SqliteConnectOptions| async move {
+            SqlitePoolOptions::new()
+                .max_connections(READ_CONNECTIONS)
+                .connect_with(options)
+                .await
+        };
+        let pool = if wal_empty {
+            connect(base().immutable(true)).await
+        } else {
+            let in_place = match connect(base()).await {
+                Ok(pool) => match sqlx::query("SELECT 1 FROM counters LIMIT 1")
+                    .execute(&pool)
+                    .await
+                {
+                    Ok(_) => Ok(pool),
+                    Err(e) => {
+                        pool.close().await;
+                        Err(e)
+                    }
+                },
+                Err(e) => Err(e),
+            };
+            match in_place {
+                Ok(pool) => Ok(pool),
+                Err(e) => {
+                    tracing::warn!(
+                        error = %e,
+                        "the store's WAL cannot be read without free space: serving the \
+                         database without its newest commits until space is freed"
+                    );
+                    connect(base().immutable(true)).await
+                }
+            }
+        }
+        .map_err(|e| refuse(format!("cannot open it read-only: {e}")))?;
+        let version = sql::schema_version(&mut Conn::SqlitePool(&pool))
+            .await
+            .map_err(|e| refuse(format!("cannot read it: {e}")))?;
+        if version != Self::SUPPORTED_SCHEMA {
+            return Err(refuse(format!(
+                "its schema version {version} is not this build's {}: it is migrated at \
+                 the next start with free space",
+                Self::SUPPORTED_SCHEMA
+            )));
+        }
+        Ok(Self {
+            writer: pool.clone(),
+            reader: pool,
+            turn: Arc::default(),
+            path,
+            dir: dir.to_path_buf(),
+        })
     }
 
     /// The store over an open writer pool, without any check (for the maintenance

@@ -6,7 +6,9 @@
 //! ([`StoreError::is_write_failure`]), stops accepting work: submissions, scene uploads
 //! and leases answer "unavailable" naming the error, `/healthz` reports unhealthy, and
 //! reads keep working (docs/store.md, "When a write fails while running"). The fault
-//! stays until the coordinator restarts, whose open probes a write again.
+//! stays until the coordinator restarts, whose open probes a write again; a fault of a
+//! full disk ([`WatchedStore::disk_full`]) is cured by the coordinator itself once space
+//! is freed (`crate::server`, docs/store.md "When the disk is full").
 
 use std::sync::{Arc, Mutex};
 
@@ -15,14 +17,16 @@ use tessera_api::{HistoryPoint, JobState};
 use tessera_farm::JobId;
 
 use super::{
-    FaultEvent, FaultFilter, JobQuery, JobRecord, NewJob, PreviousRun, QuarantineRecord, Store,
-    StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
+    FaultEvent, FaultFilter, JobQuery, JobRecord, NewJob, PreviousRun, QuarantineRecord,
+    SceneDeletion, Store, StoreError, StoreResult, TileCheckpoint, TileCheckpointRef, TileSummary,
 };
 
 /// A store wrapper that records the first write failure (see the module docs).
 pub struct WatchedStore {
     inner: Arc<dyn Store>,
     fault: Mutex<Option<String>>,
+    /// Whether the fault is a full disk (507, and cured by freeing space).
+    disk_full: std::sync::atomic::AtomicBool,
 }
 
 impl WatchedStore {
@@ -31,7 +35,32 @@ impl WatchedStore {
         Self {
             inner,
             fault: Mutex::new(None),
+            disk_full: std::sync::atomic::AtomicBool::new(false),
         }
+    }
+
+    /// Watches `inner`, failing from the start: a coordinator started on a full disk
+    /// over a read-only view of its store (`what` says why).
+    pub fn failing(inner: Arc<dyn Store>, what: String) -> Self {
+        let me = Self::new(inner);
+        if let Ok(mut f) = me.fault.lock() {
+            *f = Some(what);
+        }
+        me.mark_disk_full();
+        me
+    }
+
+    /// Whether the recorded fault is a full disk: a write failed with
+    /// [`StoreError::is_disk_full`], or [`WatchedStore::mark_disk_full`] was called.
+    pub fn disk_full(&self) -> bool {
+        self.fault().is_some() && self.disk_full.load(std::sync::atomic::Ordering::SeqCst)
+    }
+
+    /// Records that the fault is a full disk (found by probing the data directory when
+    /// the error itself did not say so, e.g. an I/O error extending a file).
+    pub fn mark_disk_full(&self) {
+        self.disk_full
+            .store(true, std::sync::atomic::Ordering::SeqCst);
     }
 
     /// The first write failure, as text, if a write failed.
@@ -53,6 +82,9 @@ impl WatchedStore {
                             "store write failed: no longer accepting work until restarted"
                         );
                         *f = Some(format!("{what}: {e}"));
+                        if e.is_disk_full() {
+                            self.mark_disk_full();
+                        }
                     }
                 }
             }
@@ -103,6 +135,23 @@ impl Store for WatchedStore {
 
     async fn scene_exists(&self, hash: &str) -> StoreResult<bool> {
         self.inner.scene_exists(hash).await
+    }
+
+    async fn scene_bytes(&self, owner: Option<&str>) -> StoreResult<u64> {
+        self.inner.scene_bytes(owner).await
+    }
+
+    async fn record_scene_upload(&self, hash: &str, owner: &str) -> StoreResult<()> {
+        let r = self.inner.record_scene_upload(hash, owner).await;
+        self.watch("recording a scene upload", r)
+    }
+
+    async fn delete_scene(&self, hash: &str) -> StoreResult<SceneDeletion> {
+        self.watch("deleting a scene", self.inner.delete_scene(hash).await)
+    }
+
+    async fn unused_scenes(&self, cutoff_unix_ms: u64, limit: u32) -> StoreResult<Vec<String>> {
+        self.inner.unused_scenes(cutoff_unix_ms, limit).await
     }
 
     async fn save_tiles(&self, tiles: &[TileCheckpointRef<'_>]) -> StoreResult<()> {
@@ -198,7 +247,11 @@ impl Store for WatchedStore {
 
     async fn ping(&self) -> StoreResult<()> {
         if let Some(f) = self.fault() {
-            return Err(StoreError::Failing(f));
+            return Err(if self.disk_full() {
+                StoreError::DiskFull(f)
+            } else {
+                StoreError::Failing(f)
+            });
         }
         self.inner.ping().await
     }

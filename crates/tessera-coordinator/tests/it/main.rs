@@ -11,6 +11,7 @@ mod http_limits;
 mod openapi;
 mod poison_scenes;
 mod resume_guard;
+mod scene_storage;
 mod serve;
 mod store;
 mod store_integrity;
