@@ -38,6 +38,15 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
+        if job.environment.is_some() {
+            // Workers do not receive the environment yet: a farm render would differ from
+            // `tessera render`'s, so the job is refused rather than rendered unlit.
+            return Err(CoordError::invalid_field(
+                "environment",
+                "the farm does not render environments yet; render the job with `tessera \
+                 render --environment` instead",
+            ));
+        }
         let scene = self.scene(&job.scene).await?;
         // Resolution also checks the adaptive settings against the plan (field `adaptive`).
         let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;
