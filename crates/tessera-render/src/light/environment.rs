@@ -106,8 +106,8 @@ impl Piecewise1D {
     fn new(func: Vec<f32>) -> Self {
         let n = func.len();
         let mut acc = vec![0.0f64; n + 1];
-        for i in 0..n {
-            acc[i + 1] = acc[i] + f64::from(func[i]) / n as f64;
+        for (i, &f) in func.iter().enumerate() {
+            acc[i + 1] = acc[i] + f64::from(f) / n as f64;
         }
         let integral = acc[n];
         let cdf = if integral > 0.0 {
