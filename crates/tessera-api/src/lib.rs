@@ -41,11 +41,11 @@ pub use status::{
     WorkerList, WorkerState,
 };
 pub use tessera_farm::job::{
-    resolve_resolution, AdaptiveMode, FrameRange, Integrator, IntegratorChoice, JobError,
-    JobSettings, MisHeuristic, RenderConfig, RenderRequest, ResolvedJob, SamplerKind, SceneRef,
-    Shutter, ValidatedJob, DEFAULT_CUTOFF_ALPHA, DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES,
-    DEFAULT_RR_DEPTH, DEFAULT_SPP, DEFAULT_TILE_SIZE, MAX_BUILTIN_NAME_CHARS, MAX_DEPTH_LIMIT,
-    MAX_FRAMES, MAX_NAME_CHARS, MAX_SPP,
+    resolve_resolution, AdaptiveMode, EnvironmentSettings, FrameRange, Integrator,
+    IntegratorChoice, JobError, JobSettings, MisHeuristic, RenderConfig, RenderRequest,
+    ResolvedJob, SamplerKind, SceneRef, Shutter, ValidatedJob, DEFAULT_CUTOFF_ALPHA,
+    DEFAULT_MAX_DEPTH, DEFAULT_MIN_PASSES, DEFAULT_RR_DEPTH, DEFAULT_SPP, DEFAULT_TILE_SIZE,
+    MAX_BUILTIN_NAME_CHARS, MAX_DEPTH_LIMIT, MAX_FRAMES, MAX_NAME_CHARS, MAX_SPP,
 };
 
 /// Path prefix of every API v1 route.

@@ -12,12 +12,13 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use tessera_farm::job::{
-    FrameRange, JobError, JobSettings, ResolvedJob, SceneRef, Shutter, StopVerdict, DEFAULT_FPS,
-    DEFAULT_MIN_PASSES,
+    EnvironmentSettings, FrameRange, JobError, JobSettings, ResolvedJob, SceneRef, Shutter,
+    StopVerdict, DEFAULT_FPS, DEFAULT_MIN_PASSES,
 };
 use tessera_farm::{FrameImage, FramePlan};
 use tessera_render::render::render_frame_counted;
 use tessera_render::scene::RenderScene;
+use tessera_scene::environment::SceneEnvironment;
 use tessera_scene::job::ResolveError;
 use tessera_scene::{Scene, SceneTime};
 
@@ -74,6 +75,18 @@ pub struct JobArgs {
     /// moves within it.
     #[arg(long, value_name = "OPEN,CLOSE", value_parser = parse_shutter, allow_hyphen_values = true)]
     pub shutter: Option<Shutter>,
+    /// Light from every direction rays leave the scene in: an equirectangular HDR image
+    /// (Radiance .hdr or OpenEXR, top row up) or a uniform radiance R,G,B in W/(m² sr),
+    /// e.g. --environment 1,1,1. Default: none (the scene's own lights only).
+    #[arg(long, value_name = "FILE|R,G,B")]
+    pub environment: Option<String>,
+    /// Factor on the environment's radiance.
+    #[arg(long, default_value_t = 1.0)]
+    pub environment_strength: f64,
+    /// Rotation of the environment image about the up axis, degrees (counter-clockwise
+    /// seen from above).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub environment_rotation: f64,
 }
 
 /// `OPEN,CLOSE` in frames, for `--shutter` (the range is checked with the job).
@@ -110,6 +123,9 @@ impl JobArgs {
             fps: DEFAULT_FPS,
             animation: None,
             shutter: None,
+            environment: None,
+            environment_strength: 1.0,
+            environment_rotation: 0.0,
         }
     }
 }
@@ -133,6 +149,12 @@ impl JobArgs {
         s.fps = self.fps;
         s.animation = self.animation.clone();
         s.shutter = self.shutter;
+        // The flag's text for now; [`environment_source`] puts a file's hash in its place.
+        s.environment = self.environment.as_ref().map(|e| EnvironmentSettings {
+            source: e.clone(),
+            strength: self.environment_strength,
+            rotation_degrees: self.environment_rotation,
+        });
         s.target_error = stop.target_error;
         s.adaptive = stop.adaptive.clone();
         s.time_limit_seconds = stop.time_limit;
@@ -247,6 +269,9 @@ fn flag(field: &str) -> &'static str {
         "fps" => "--fps",
         "animation" => "--animation",
         "shutter" => "--shutter",
+        "environment.source" => "--environment",
+        "environment.strength" => "--environment-strength",
+        "environment.rotation_degrees" => "--environment-rotation",
         _ => "setting",
     }
 }
@@ -274,8 +299,48 @@ fn job_error(e: JobError, settings: &JobSettings) -> anyhow::Error {
 /// and `tessera render --frame F` write the same header); the frame is then rendered from
 /// the scene at `frame / fps`.
 pub fn prepare(job: &JobArgs, stop: &StopArgs, frame: u32) -> Result<Prepared> {
-    let settings = job.settings(scene_ref(&job.scene)?, stop);
-    prepare_settings(settings, SceneSource::Path(&job.scene), frame)
+    let mut settings = job.settings(scene_ref(&job.scene)?, stop);
+    let image = environment_source(&mut settings)?;
+    prepare_settings_with(
+        settings,
+        SceneSource::Path(&job.scene),
+        image.as_deref(),
+        frame,
+    )
+}
+
+/// Whether `--environment`'s value is a colour `R,G,B` (three numbers) rather than a file.
+fn is_colour(value: &str) -> bool {
+    let parts: Vec<&str> = value.split(',').collect();
+    parts.len() == 3 && parts.iter().all(|p| p.trim().parse::<f64>().is_ok())
+}
+
+/// Replaces an environment image's file name in `settings` by the SHA-256 of its bytes
+/// (the reference the farm gives the same file once uploaded) and returns the bytes;
+/// colours stay as they are.
+pub fn environment_source(settings: &mut JobSettings) -> Result<Option<Vec<u8>>> {
+    let Some(env) = &mut settings.environment else {
+        return Ok(None);
+    };
+    if is_colour(&env.source) {
+        return Ok(None);
+    }
+    let path = env.source.clone();
+    let size = std::fs::metadata(&path)
+        .with_context(|| format!("reading environment {path}"))?
+        .len();
+    if size > tessera_scene::MAX_INPUT_BYTES {
+        bail!(
+            "environment {path}: {size} bytes is larger than the limit of {} bytes",
+            tessera_scene::MAX_INPUT_BYTES
+        );
+    }
+    let bytes = std::fs::read(&path).with_context(|| format!("reading environment {path}"))?;
+    env.source = Sha256::digest(&bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    Ok(Some(bytes))
 }
 
 /// Where [`prepare_settings`] reads a scene that is not built in.
@@ -291,8 +356,18 @@ pub enum SceneSource<'a> {
 /// [`prepare`] for settings that are already a [`JobSettings`] (a dry run's pilot reads
 /// them as JSON from the coordinator): the frame range is set to `frame` alone.
 pub fn prepare_settings(
+    settings: JobSettings,
+    source: SceneSource,
+    frame: u32,
+) -> Result<Prepared> {
+    prepare_settings_with(settings, source, None, frame)
+}
+
+/// [`prepare_settings`] with the bytes of the job's environment image, if it has one.
+pub fn prepare_settings_with(
     mut settings: JobSettings,
     source: SceneSource,
+    environment_image: Option<&[u8]>,
     frame: u32,
 ) -> Result<Prepared> {
     settings.frames = FrameRange {
@@ -305,6 +380,13 @@ pub fn prepare_settings(
         SceneSource::Path(path) => path.to_string(),
         SceneSource::Bytes(_) => js.source.to_string(),
     };
+    // Decoded once for every scene of the frame (shutter keys included).
+    let environment = validated
+        .environment
+        .as_ref()
+        .map(|e| SceneEnvironment::from_job(e, environment_image))
+        .transpose()
+        .context("loading the environment")?;
     let load = |time: &SceneTime| {
         match (&js.source, source) {
             // The farm's loader: it refuses a camera name for a built-in scene.
@@ -317,6 +399,12 @@ pub fn prepare_settings(
                 tessera_scene::job::load_job_scene_at(js, Some(bytes), time)
             }
         }
+        .map(|mut scene| {
+            if let Some(e) = &environment {
+                e.apply(&mut scene);
+            }
+            scene
+        })
         .with_context(|| format!("loading scene {name}"))
     };
     let at_zero = tessera_scene::job::resolution_time(js);
@@ -534,6 +622,13 @@ fn render_black(p: &Prepared, args: &RenderArgs) -> Result<()> {
         args.output.display()
     );
     print_totals(&plan, seconds, 0.0, 0.0);
+    if p.scene.environment.is_none() {
+        // Most downloaded models carry no light of their own.
+        println!(
+            "hint: light the scene with an environment: --environment FILE.hdr (or .exr, an \
+             equirectangular HDR image) or --environment 1,1,1 (a uniform white sky)"
+        );
+    }
     if let Some(map) = &args.spp_map {
         adaptive::write_spp_map(map, &image)?;
     }

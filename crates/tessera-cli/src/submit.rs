@@ -75,6 +75,14 @@ pub struct SubmitArgs {
 pub fn submit(args: SubmitArgs) -> Result<()> {
     let client =
         crate::common::api_client(&args.server, args.token.clone(), args.tls_ca.as_deref())?;
+    if args.job.environment.is_some() {
+        // The coordinator refuses such jobs too: its workers cannot light a scene with an
+        // environment yet, and a farm image must equal `tessera render`'s.
+        bail!(
+            "--environment: the farm does not render environments yet; render the job with \
+             `tessera render --environment` instead"
+        );
+    }
     let scene = scene_ref(&client, &args.job.scene)?;
     let mut s = args.job.settings(scene, &args.stop);
     s.frames = FrameRange {

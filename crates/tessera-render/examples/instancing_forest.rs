@@ -93,6 +93,7 @@ fn tree() -> Mesh {
         normals: Some(normals),
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices,
         material: 0,
     }
@@ -130,6 +131,7 @@ fn forest(trees: usize) -> Scene {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 2, 1], [0, 3, 2]],
         material: 1,
     };
@@ -157,6 +159,7 @@ fn forest(trees: usize) -> Scene {
             irradiance: Vec3::splat(3.0),
         }],
         environment: Some(Vec3::splat(0.3)),
+        environment_map: None,
         default_resolution: (64, 64),
         animated: false,
     }

@@ -19,7 +19,10 @@ use crate::geometry::{
 use crate::light::emission::{EmissionSample, WorldDisk};
 use crate::light::LightSample;
 use crate::light::{
-    environment::Environment, punctual::Punctual, sphere::SphereLight, triangle::TriangleLight,
+    environment::{EnvImage, Environment},
+    punctual::Punctual,
+    sphere::SphereLight,
+    triangle::TriangleLight,
     Light, LightSet,
 };
 use crate::math::gamma;
@@ -40,12 +43,14 @@ pub enum BuildError {
     ImageSize(u32, u32),
 }
 
-/// Per-mesh shading attributes (normals and texture coordinates by vertex, tangents by
-/// triangle corner).
+/// Per-mesh shading attributes (normals, texture coordinates and vertex colours by vertex,
+/// tangents by triangle corner).
 struct MeshShading {
     indices: Vec<[u32; 3]>,
     normals: Option<Vec<Vec3>>,
     uvs: Vec<Vec<Vec2>>,
+    /// glTF `COLOR_0`, linear RGBA; only meshes that have it pay for it.
+    colors: Option<Vec<Vec4>>,
     tangents: Option<Vec<[Vec4; 3]>>,
     material: u32,
 }
@@ -223,10 +228,12 @@ impl RenderScene {
             }));
         }
         if let Some(radiance) = scene.environment {
-            lights.push(Light::Environment(Environment {
-                radiance,
-                scene_radius: geometry.bounds_radius,
-            }));
+            let mut env = Environment::uniform(radiance, geometry.bounds_radius);
+            env.image = scene
+                .environment_map
+                .as_ref()
+                .map(|m| std::sync::Arc::new(EnvImage::new(m)));
+            lights.push(Light::Environment(env));
         }
         let meshes = scene
             .meshes
@@ -236,6 +243,7 @@ impl RenderScene {
                 indices: m.indices.clone(),
                 normals: m.normals.clone(),
                 uvs: m.uvs.clone(),
+                colors: m.colors.clone(),
                 tangents: m.tangents.clone(),
                 material: m.material,
             })
@@ -304,12 +312,13 @@ impl RenderScene {
         }
     }
 
-    /// The environment radiance, if the scene has one.
+    /// The environment's light index and the radiance it sends along `-dir` to a ray
+    /// leaving the scene in direction `dir`, if the scene has an environment.
     #[inline]
-    pub fn environment(&self) -> Option<(usize, Vec3)> {
+    pub fn environment(&self, dir: Vec3) -> Option<(usize, Vec3)> {
         let i = self.lights.environment? as usize;
         match &self.lights.lights[i] {
-            Light::Environment(e) => Some((i, e.radiance)),
+            Light::Environment(e) => Some((i, e.le(dir))),
             _ => None,
         }
     }
@@ -385,17 +394,29 @@ impl RenderScene {
         }
     }
 
-    /// Base-colour alpha (factor times texture) at a point of a triangle.
+    /// Base-colour alpha (factor times texture times vertex colour) at a point of a
+    /// triangle.
     fn alpha(&self, g: &GltfMaterial, mesh: u32, tri: u32, bary: Vec2) -> f32 {
         let m = &self.meshes[mesh as usize];
         alpha_at(
             &self.textures,
             &self.images,
             g,
-            &m.uvs,
+            (&m.uvs, m.colors.as_deref()),
             m.indices[tri as usize],
             bary,
         )
+    }
+
+    /// The vertex colour (glTF `COLOR_0`, RGBA) at `sp`, if its mesh has vertex colours.
+    #[inline]
+    fn vertex_color(&self, sp: &SurfacePoint) -> Option<Vec4> {
+        if sp.mesh == NO_MESH {
+            return None;
+        }
+        let m = &self.meshes[sp.mesh as usize];
+        let c = m.colors.as_deref()?;
+        Some(color_at(c, m.indices[sp.tri as usize], sp.bary))
     }
 
     /// Texture coordinates of set `set` at barycentrics `bary` of triangle `tri` of
@@ -686,7 +707,14 @@ impl RenderScene {
         let material = &self.materials[m.material as usize];
         let idx = m.indices[tri as usize];
         let bary = barycentrics(&l.p, p);
-        emission_variation(&self.textures, &self.images, material, &m.uvs, idx, bary)
+        emission_variation(
+            &self.textures,
+            &self.images,
+            material,
+            (&m.uvs, m.colors.as_deref()),
+            idx,
+            bary,
+        )
     }
 
     /// Samples light `li` as seen from `p_ref` (see [`Light::sample_li`]), with textured
@@ -789,8 +817,13 @@ impl RenderScene {
             };
         }
         let mr = self.tex(sp, &g.metallic_roughness_texture, false);
+        let mut base_color = g.base_color * self.tex(sp, &g.base_color_texture, true).truncate();
+        // glTF 2.0 "Metallic-Roughness Material": base colour = factor × texture × COLOR_0.
+        if let Some(c) = self.vertex_color(sp) {
+            base_color *= c.truncate();
+        }
         GltfParams {
-            base_color: g.base_color * self.tex(sp, &g.base_color_texture, true).truncate(),
+            base_color,
             metallic: g.metallic * mr.z,
             roughness: g.roughness * mr.y,
             ior: g.ior,
@@ -836,24 +869,40 @@ fn transform_point(inst: &InstanceRecord, p: Vec3, err: Vec3) -> (Vec3, Vec3) {
     (pw, (forward + back).into())
 }
 
-/// Base-colour alpha (factor times texture) at barycentrics `bary` of the triangle `idx`
-/// of a mesh with texture coordinates `uvs`.
+/// A mesh's per-vertex texture coordinates and vertex colours (if any).
+type VertexData<'a> = (&'a [Vec<Vec2>], Option<&'a [Vec4]>);
+
+/// Base-colour alpha (factor times texture times vertex colour alpha) at barycentrics
+/// `bary` of the triangle `idx` of a mesh with texture coordinates and vertex colours
+/// `(uvs, colors)`.
 #[inline]
 fn alpha_at(
     textures: &[Texture],
     images: &[Image],
     g: &GltfMaterial,
-    uvs: &[Vec<Vec2>],
+    (uvs, colors): VertexData<'_>,
     idx: [u32; 3],
     bary: Vec2,
 ) -> f32 {
-    match &g.base_color_texture {
+    let alpha = match &g.base_color_texture {
         Some(t) => {
             let uv = uv_at(uvs, idx, t.uv_set, bary);
             g.alpha * lookup(textures, images, t, uv, true).w
         }
         None => g.alpha,
+    };
+    match colors {
+        Some(c) => alpha * color_at(c, idx, bary).w,
+        None => alpha,
     }
+}
+
+/// The vertex colour at barycentrics `bary` of the triangle `idx`.
+#[inline]
+fn color_at(colors: &[Vec4], idx: [u32; 3], bary: Vec2) -> Vec4 {
+    (1.0 - bary.x - bary.y) * colors[idx[0] as usize]
+        + bary.x * colors[idx[1] as usize]
+        + bary.y * colors[idx[2] as usize]
 }
 
 /// How much of a material's emission factor leaves a point of a triangle: its emissive
@@ -862,7 +911,7 @@ fn emission_variation(
     textures: &[Texture],
     images: &[Image],
     material: &Material,
-    uvs: &[Vec<Vec2>],
+    (uvs, colors): VertexData<'_>,
     idx: [u32; 3],
     bary: Vec2,
 ) -> Vec3 {
@@ -872,7 +921,10 @@ fn emission_variation(
         scale *= lookup(textures, images, t, uv, true).truncate();
     }
     if let Some(g) = material.as_gltf() {
-        scale *= coverage(g.alpha_mode, alpha_at(textures, images, g, uvs, idx, bary));
+        scale *= coverage(
+            g.alpha_mode,
+            alpha_at(textures, images, g, (uvs, colors), idx, bary),
+        );
     }
     scale
 }
@@ -1014,7 +1066,8 @@ fn mean_emission_scale(
             let u = Vec2::new((i as f32 + 0.5) / N as f32, (j as f32 + 0.5) / N as f32);
             let (b0, b1) = crate::sampling::warp::square_to_uniform_triangle(u);
             let bary = Vec2::new(b1, 1.0 - b0 - b1);
-            sum += emission_variation(&scene.textures, &scene.images, mat, &mesh.uvs, *idx, bary);
+            let vertex = (mesh.uvs.as_slice(), mesh.colors.as_deref());
+            sum += emission_variation(&scene.textures, &scene.images, mat, vertex, *idx, bary);
         }
     }
     sum / (N * N) as f32
@@ -1060,6 +1113,7 @@ mod tests {
             ],
             normals: None,
             uvs: vec![vec![Vec2::ZERO, Vec2::X, Vec2::ONE, Vec2::Y]],
+            colors: None,
             tangents: Some(vec![[Vec4::new(1.0, 0.0, 0.0, 1.0); 3]; 2]),
             indices: vec![[0, 1, 2], [0, 2, 3]],
             material: 0,

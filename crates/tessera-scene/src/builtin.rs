@@ -64,6 +64,7 @@ fn quad(name: &str, material: u32, a: Vec3, b: Vec3, c: Vec3, d: Vec3) -> Mesh {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material,
     }
@@ -225,6 +226,7 @@ pub fn cornell_box() -> Scene {
         warnings: vec![],
         lights: vec![],
         environment: None,
+        environment_map: None,
         default_resolution: (512, 512),
         animated: false,
     }
@@ -329,6 +331,7 @@ pub fn veach_mis() -> Scene {
         warnings: vec![],
         lights: vec![],
         environment: None,
+        environment_map: None,
         default_resolution: (768, 512),
         animated: false,
     }
@@ -388,6 +391,7 @@ pub fn furnace() -> Scene {
         warnings: vec![],
         lights: vec![],
         environment: None,
+        environment_map: None,
         default_resolution: (128, 128),
         animated: false,
     }
@@ -453,6 +457,7 @@ pub fn caustic() -> Scene {
         warnings: vec![],
         lights: vec![],
         environment: Some(Vec3::splat(0.02)),
+        environment_map: None,
         default_resolution: (640, 480),
         animated: false,
     }

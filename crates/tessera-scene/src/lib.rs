@@ -31,10 +31,12 @@
 
 pub mod analysis;
 pub mod builtin;
+pub mod environment;
 pub mod gltf_import;
 pub mod job;
 pub mod material;
 
+pub use environment::EnvironmentMap;
 pub use gltf_import::SceneTime;
 pub use material::{
     AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture, TextureRef,
@@ -155,6 +157,10 @@ pub struct Mesh {
     /// Texture-coordinate sets by index (`uvs[n]` is `TEXCOORD_n`), each one per vertex
     /// or empty when the source lacks that set (it then reads as (0, 0)).
     pub uvs: Vec<Vec<Vec2>>,
+    /// Vertex colours (glTF `COLOR_0`) as linear RGBA, one per vertex, if the source had
+    /// them: they multiply a glTF material's base colour and alpha. `None` costs nothing
+    /// per vertex.
+    pub colors: Option<Vec<Vec4>>,
     /// World-space unit tangents with the bitangent sign in `w`, per triangle corner
     /// (`tangents[t][k]` belongs to vertex `indices[t][k]`): glTF `TANGENT`, or generated
     /// with MikkTSpace, whose tangents are defined per corner. Present when a normal map
@@ -360,8 +366,13 @@ pub struct Scene {
     pub warnings: Vec<String>,
     /// Punctual and directional lights.
     pub lights: Vec<PunctualLight>,
-    /// Uniform environment radiance seen by rays that leave the scene, W/(m² sr).
+    /// Environment radiance seen by rays that leave the scene, W/(m² sr): uniform, or,
+    /// with [`Scene::environment_map`], the factor (strength and tint) that multiplies
+    /// the image. `None`: no environment (the image is ignored).
     pub environment: Option<Vec3>,
+    /// An equirectangular image the environment radiance comes from (see
+    /// [`environment`]); `None` for a uniform environment.
+    pub environment_map: Option<EnvironmentMap>,
     /// Default image size for this scene (width, height).
     pub default_resolution: (u32, u32),
     /// Whether the scene changes with time: it was loaded from a glTF file whose playing
@@ -429,6 +440,7 @@ impl Scene {
                     .collect(),
                 normals,
                 uvs: proto.uvs.clone(),
+                colors: proto.colors.clone(),
                 tangents,
                 indices: proto
                     .indices
@@ -542,6 +554,14 @@ impl Scene {
                 {
                     return Err(format!(
                         "{kind} {i} ({}) has invalid texture coordinates TEXCOORD_{set}",
+                        m.name
+                    ));
+                }
+            }
+            if let Some(c) = &m.colors {
+                if c.len() != m.positions.len() || c.iter().any(|v| !v.is_finite()) {
+                    return Err(format!(
+                        "{kind} {i} ({}) has invalid vertex colours",
                         m.name
                     ));
                 }
@@ -725,6 +745,18 @@ impl Scene {
         if let Some(e) = self.environment {
             if !(e.is_finite() && e.min_element() >= 0.0) {
                 return Err("environment radiance is invalid".into());
+            }
+        }
+        if let Some(m) = &self.environment_map {
+            let n = u64::from(m.width) * u64::from(m.height);
+            if n == 0
+                || m.texels.len() as u64 != n
+                || !m.rotation.is_finite()
+                || m.texels
+                    .iter()
+                    .any(|t| !t.is_finite() || t.min_element() < 0.0)
+            {
+                return Err(format!("environment image {} is invalid", m.name));
             }
         }
         let (w, h) = self.default_resolution;

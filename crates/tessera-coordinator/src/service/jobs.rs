@@ -38,6 +38,15 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
+        if job.environment.is_some() {
+            // Workers do not receive the environment yet: a farm render would differ from
+            // `tessera render`'s, so the job is refused rather than rendered unlit.
+            return Err(CoordError::invalid_field(
+                "environment",
+                "the farm does not render environments yet; render the job with `tessera \
+                 render --environment` instead",
+            ));
+        }
         // Held until the job is stored: its scene cannot be deleted meanwhile.
         let _scene_kept = self.inner.scene_lock.read().await;
         let scene = self.scene(&job.scene).await?;

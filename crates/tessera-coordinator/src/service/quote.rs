@@ -87,6 +87,15 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
+        if job.environment.is_some() {
+            // Workers do not receive the environment yet: a farm render would differ from
+            // `tessera render`'s, so the job is refused rather than rendered unlit.
+            return Err(CoordError::invalid_field(
+                "environment",
+                "the farm does not render environments yet; render the job with `tessera \
+                 render --environment` instead",
+            ));
+        }
         let scene = self.scene(&job.scene).await?;
         let body = serde_json::to_vec(&settings).map_err(CoordError::internal)?;
         let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene.source);

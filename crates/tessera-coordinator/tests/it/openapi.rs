@@ -34,6 +34,11 @@ fn openapi_documents_exactly_the_job_settings_fields() {
     s.min_passes = 12;
     s.time_limit_seconds = Some(60.0);
     s.name = Some("n".into());
+    s.environment = Some(tessera_api::EnvironmentSettings {
+        source: "1,1,1".into(),
+        strength: 2.0,
+        rotation_degrees: 90.0,
+    });
     let sent: BTreeSet<String> = serde_json::to_value(&s)
         .unwrap()
         .as_object()

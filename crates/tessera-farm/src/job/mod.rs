@@ -46,6 +46,7 @@
 //! ```
 
 mod choice;
+mod environment;
 pub mod plan;
 mod resolve;
 mod scene;
@@ -54,6 +55,10 @@ mod settings;
 pub use choice::{
     AdaptiveMode, Integrator, IntegratorChoice, MisHeuristic, SamplerKind, SceneRef,
     DEFAULT_CUTOFF_ALPHA, MAX_BUILTIN_NAME_CHARS,
+};
+pub use environment::{
+    EnvironmentSettings, EnvironmentSource, JobEnvironment, MAX_ENVIRONMENT_RADIANCE,
+    MAX_ENVIRONMENT_STRENGTH,
 };
 pub use plan::{Effect, EffectKind, PilotVerdict, PlannedIntegrator, RenderPlan, TechniquePilot};
 pub use resolve::{ResolvedJob, SceneFacts, StopVerdict};

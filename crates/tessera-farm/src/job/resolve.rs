@@ -279,6 +279,10 @@ impl ResolvedJob {
         if let Some(s) = &job.scene.shutter {
             camera += &format!(",\"shutter\":[{},{}]", s.open, s.close);
         }
+        // Only when set, so jobs without one keep the header they always had.
+        if let Some(e) = &job.environment {
+            camera += &format!(",\"environment\":{}", e.metadata_json());
+        }
         // Only where it applies, so other jobs keep the header they always had.
         let caveat = self.error_estimate_caveat().map_or(String::new(), |c| {
             format!(",\"error_estimate_caveat\":{}", json_string(&c))

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::choice::{
     AdaptiveMode, Integrator, IntegratorChoice, MisHeuristic, SamplerKind, SceneRef,
 };
+use super::environment::{EnvironmentSettings, JobEnvironment};
 use super::scene::JobScene;
 use crate::adaptive::{adaptive_plan, AdaptiveSettings};
 use crate::plan::{
@@ -379,6 +380,10 @@ pub struct JobSettings {
     /// A label for people, at most 200 characters, no control characters.
     #[serde(default)]
     pub name: Option<String>,
+    /// Light from every direction rays leave the scene in: a uniform colour or an
+    /// uploaded HDR image, with strength and rotation. Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub environment: Option<EnvironmentSettings>,
 }
 
 impl JobSettings {
@@ -406,6 +411,7 @@ impl JobSettings {
             time_limit_seconds: None,
             tile_size: DEFAULT_TILE_SIZE,
             name: None,
+            environment: None,
         }
     }
 
@@ -508,6 +514,11 @@ impl JobSettings {
         if let Some(name) = &self.name {
             check_label("name", name, MAX_NAME_CHARS)?;
         }
+        let environment = self
+            .environment
+            .as_ref()
+            .map(EnvironmentSettings::validate)
+            .transpose()?;
         let job = ValidatedJob {
             scene: JobScene {
                 source: scene,
@@ -528,6 +539,7 @@ impl JobSettings {
             time_limit_seconds: self.time_limit_seconds,
             tile_size: self.tile_size,
             name: self.name.clone(),
+            environment,
         };
         if let (Some(w), Some(h)) = (job.width, job.height) {
             job.plan_for(job.render.integrator, w, h)?;
@@ -617,6 +629,8 @@ pub struct ValidatedJob {
     pub tile_size: u32,
     /// A label for people.
     pub name: Option<String>,
+    /// The environment lighting the scene, if any.
+    pub environment: Option<JobEnvironment>,
 }
 
 impl ValidatedJob {
@@ -709,6 +723,7 @@ impl ValidatedJob {
             time_limit_seconds: self.time_limit_seconds,
             tile_size: self.tile_size,
             name: self.name.clone(),
+            environment: self.environment.as_ref().map(JobEnvironment::to_settings),
         }
     }
 }

@@ -472,3 +472,53 @@ fn camera_and_min_passes() {
     let json = serde_json::to_value(base()).unwrap();
     assert!(json.get("camera").is_none() && json.get("min_passes").is_none());
 }
+
+#[test]
+fn environment_is_a_colour_or_an_image_hash_with_strength_and_rotation() {
+    assert!(base().validate().unwrap().environment.is_none());
+    let j = accepts(|s| {
+        s.environment = Some(EnvironmentSettings {
+            source: "0.5, 1, 2".into(),
+            strength: 2.0,
+            rotation_degrees: -90.0,
+        })
+    });
+    // The canonical form validates back to the same job.
+    assert_eq!(j.to_settings().validate().unwrap(), j);
+    let e = j.environment.unwrap();
+    assert_eq!(e.source, EnvironmentSource::Colour([0.5, 1.0, 2.0]));
+    assert_eq!(e.radiance(), [1.0, 2.0, 4.0]);
+    let j = accepts(|s| s.environment = Some(EnvironmentSettings::new(HASH.to_uppercase())));
+    let e = j.environment.unwrap();
+    assert_eq!(e.source, EnvironmentSource::Image(HASH.into()));
+    assert_eq!(e.radiance(), [1.0; 3]);
+    for bad in ["1,1", "a,b,c", "1,1,-1", "1,1,inf", "sky.hdr", ""] {
+        rejects("environment.source", |s| {
+            s.environment = Some(EnvironmentSettings::new(bad))
+        });
+    }
+    rejects("environment.strength", |s| {
+        s.environment = Some(EnvironmentSettings {
+            strength: -1.0,
+            ..EnvironmentSettings::new("1,1,1")
+        })
+    });
+    rejects("environment.rotation_degrees", |s| {
+        s.environment = Some(EnvironmentSettings {
+            rotation_degrees: 400.0,
+            ..EnvironmentSettings::new("1,1,1")
+        })
+    });
+    // Absent, it is not serialized (stored jobs keep their bytes); defaults are omitted.
+    assert!(!serde_json::to_string(&base())
+        .unwrap()
+        .contains("environment"));
+    let mut s = base();
+    s.environment = Some(EnvironmentSettings::new("1,1,1"));
+    let json = serde_json::to_string(&s).unwrap();
+    assert!(
+        json.ends_with(r#""environment":{"source":"1,1,1"}}"#),
+        "{json}"
+    );
+    assert_eq!(serde_json::from_str::<JobSettings>(&json).unwrap(), s);
+}

@@ -506,7 +506,7 @@ fn random_walk(
         // 1. Intersect; a camera ray that escapes sees the environment (a light vertex).
         let Some(hit) = scene.intersect_at(origin, dir, f32::INFINITY, ctx.time) else {
             if !importance {
-                if let Some((env, le)) = scene.environment() {
+                if let Some((env, le)) = scene.environment(dir) {
                     let mut v = Vertex::empty();
                     v.kind = Kind::Light;
                     v.infinite = true;

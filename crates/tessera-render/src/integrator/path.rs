@@ -71,7 +71,7 @@ pub fn radiance(
     loop {
         // 1. Intersect.
         let Some(hit) = scene.intersect_at(origin, dir, f32::INFINITY, time) else {
-            if let Some((env_index, le)) = scene.environment() {
+            if let Some((env_index, le)) = scene.environment(dir) {
                 let w = if prev_delta {
                     1.0
                 } else {

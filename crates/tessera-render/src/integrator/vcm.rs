@@ -697,7 +697,7 @@ fn camera_subpath(
             Step::Escaped => {
                 // The environment, as an emitter found by the camera subpath (no MIS
                 // update for a vertex at infinity).
-                if let Some((env, le)) = scene.environment() {
+                if let Some((env, le)) = scene.environment(w.dir) {
                     let weight = if w.depth == 0 {
                         1.0
                     } else {

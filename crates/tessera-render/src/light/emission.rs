@@ -194,17 +194,28 @@ impl Light {
                 pdf_pos: world.pdf_pos(),
                 pdf_dir: 1.0,
             },
-            Light::Environment(e) => {
-                // Light arrives from `-dir`, uniformly over the sphere.
-                let dir = -square_to_uniform_sphere(u_dir);
+            Light::Environment(ref e) => {
+                // Light arrives from `-dir`: uniformly over the sphere, or as the image's
+                // importance sampling draws it (the same density as next-event estimation).
+                let (dir, le, pdf_dir) = match &e.image {
+                    None => (
+                        -square_to_uniform_sphere(u_dir),
+                        e.radiance,
+                        uniform_sphere_pdf(),
+                    ),
+                    Some(_) => {
+                        let ls = e.sample_li(u_dir)?;
+                        (-ls.wi, ls.li, ls.pdf)
+                    }
+                };
                 EmissionSample {
                     p: world.point(dir, u_pos),
                     p_error: Vec3::ZERO,
                     n: Vec3::ZERO,
                     dir,
-                    le: e.radiance,
+                    le,
                     pdf_pos: world.pdf_pos(),
-                    pdf_dir: uniform_sphere_pdf(),
+                    pdf_dir,
                 }
             }
         };
@@ -247,7 +258,7 @@ impl Light {
                 (1.0, pdf)
             }
             Light::Punctual(Punctual::Directional { .. }) => (world.pdf_pos(), 1.0),
-            Light::Environment(_) => (world.pdf_pos(), uniform_sphere_pdf()),
+            Light::Environment(ref e) => (world.pdf_pos(), e.pdf_li(-w)),
         }
     }
 
@@ -329,10 +340,7 @@ mod tests {
     }
 
     fn environment() -> Light {
-        Light::Environment(Environment {
-            radiance: RADIANCE,
-            scene_radius: 3.0,
-        })
+        Light::Environment(Environment::uniform(RADIANCE, 3.0))
     }
 
     fn config(tests: usize) -> Chi2Config {

@@ -24,7 +24,7 @@
 //!
 //! Variants, one file each: [`triangle`] (emissive triangles: area lights), [`sphere`]
 //! (spherical lights, sampled by the cone they subtend), [`punctual`] (point, spot,
-//! directional), [`environment`] (uniform environment). [`emission`] samples rays leaving
+//! directional), [`environment`] (uniform or image environment). [`emission`] samples rays leaving
 //! each light, for the light subpaths of bidirectional path tracing.
 
 pub mod emission;
@@ -59,7 +59,7 @@ pub struct LightSample {
 }
 
 /// A light source. The closed list of emitters.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub enum Light {
     /// An emissive triangle.
     Triangle(triangle::TriangleLight),
@@ -67,7 +67,7 @@ pub enum Light {
     Sphere(sphere::SphereLight),
     /// A point, spot or directional light.
     Punctual(punctual::Punctual),
-    /// A uniform environment.
+    /// The environment: uniform or an image.
     Environment(environment::Environment),
 }
 

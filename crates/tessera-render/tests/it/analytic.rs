@@ -83,6 +83,7 @@ fn plane_under_sphere(r: f32, h: f32, radiance: f32, albedo: f32) -> Scene {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -105,6 +106,7 @@ fn plane_under_sphere(r: f32, h: f32, radiance: f32, albedo: f32) -> Scene {
         warnings: vec![],
         lights: vec![],
         environment: None,
+        environment_map: None,
         default_resolution: (8, 8),
         animated: false,
     }

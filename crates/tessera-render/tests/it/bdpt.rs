@@ -108,6 +108,7 @@ fn bdpt_agrees_with_path_under_directional_spot_and_environment_light() {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -143,6 +144,7 @@ fn bdpt_agrees_with_path_under_directional_spot_and_environment_light() {
             },
         ],
         environment: Some(Vec3::splat(0.3)),
+        environment_map: None,
         default_resolution: (24, 24),
         animated: false,
     };
@@ -206,6 +208,7 @@ fn point_light_caustic() -> Scene {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -229,6 +232,7 @@ fn point_light_caustic() -> Scene {
             intensity: Vec3::splat(10.0),
         }],
         environment: None,
+        environment_map: None,
         default_resolution: (32, 32),
         animated: false,
     }

@@ -458,3 +458,133 @@ fn a_textured_emitter_lights_like_the_untextured_emitter_of_its_lit_part() {
         }
     }
 }
+
+/// A `COLOR_0` accessor with the same colour at each of 4 vertices, as `component_type`
+/// (5126 float, 5121 unsigned byte, 5123 unsigned short; the integers normalized).
+fn vertex_colors(g: &mut Gen, rgba: [f32; 4], vec4: bool, component_type: u32) -> usize {
+    let n = if vec4 { 4 } else { 3 };
+    let mut bytes = Vec::new();
+    for _ in 0..4 {
+        for &c in &rgba[..n] {
+            match component_type {
+                5126 => bytes.extend_from_slice(&c.to_le_bytes()),
+                5121 => bytes.push((c * 255.0).round() as u8),
+                _ => bytes.extend_from_slice(&((c * 65535.0).round() as u16).to_le_bytes()),
+            }
+        }
+    }
+    let view = g.view(&bytes);
+    g.push(
+        "accessors",
+        json!({"bufferView": view, "componentType": component_type, "count": 4,
+            "type": if vec4 { "VEC4" } else { "VEC3" }, "normalized": component_type != 5126}),
+    )
+}
+
+/// glTF `COLOR_0` multiplies the base colour and its alpha (spec "Metallic-Roughness
+/// Material"): a Lambertian plane of base colour 0.8 with one vertex colour `c` at every
+/// vertex, lit head-on by a directional light of irradiance 1, has radiance exactly
+/// `0.8 c / π` (one delta light, nothing to bounce off), for float, normalized byte and
+/// normalized short colours, VEC3 and VEC4; under alpha MASK a vertex alpha below the
+/// cutoff cuts the plane out (black), above it keeps it.
+#[test]
+fn vertex_colours_multiply_base_colour_and_alpha() {
+    let scene = |rgba: [f32; 4], vec4: bool, ct: u32, mask: bool| {
+        let mut g = Gen::new();
+        g.uses("KHR_materials_specular");
+        g.uses("KHR_lights_punctual");
+        let mut m = json!({"pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.8, 0.8, 1.0],
+                "metallicFactor": 0.0},
+            "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}}});
+        if mask {
+            m["alphaMode"] = json!("MASK");
+        }
+        let mat = g.push("materials", m);
+        let corners = [[-1.0, -1.0], [2.0, -1.0], [2.0, 2.0], [-1.0, 2.0]];
+        let pos = g.positions(&corners.map(|[x, y]| [x, y, 0.0]));
+        let normal = g.vec3(&[[0.0, 0.0, 1.0]; 4]);
+        let color = vertex_colors(&mut g, rgba, vec4, ct);
+        let idx = g.indices_u16(&[0, 1, 2, 0, 2, 3]);
+        let mesh = g.push(
+            "meshes",
+            json!({"primitives": [{"attributes": {"POSITION": pos, "NORMAL": normal,
+                "COLOR_0": color}, "indices": idx, "material": mat}]}),
+        );
+        g.root(json!({"mesh": mesh}));
+        // 683 lux = 1 W/m²; the light's -Z travels straight down onto the plane.
+        let light = g.light(json!({"type": "directional", "intensity": 683.0}));
+        g.root(json!({"extensions": {"KHR_lights_punctual": {"light": light}}}));
+        camera(&mut g, 2.0);
+        load(&g)
+    };
+    let rgba = [0.2, 0.6, 1.0, 1.0];
+    for (ct, vec4) in [(5126, false), (5126, true), (5121, true), (5123, false)] {
+        let px = pixels(&scene(rgba, vec4, ct, false), 2, Integrator::Path);
+        // What the file holds after quantisation to the component type.
+        let q = |c: f32| match ct {
+            5121 => (c * 255.0).round() / 255.0,
+            5123 => (c * 65535.0).round() / 65535.0,
+            _ => c,
+        };
+        for p in &px {
+            for k in 0..3 {
+                let want = 0.8 * q(rgba[k]) / std::f32::consts::PI;
+                assert!(
+                    (p[k] - want).abs() < 1e-4 * want,
+                    "component type {ct} VEC{}: channel {k} {} vs {want}",
+                    if vec4 { 4 } else { 3 },
+                    p[k]
+                );
+            }
+        }
+    }
+    // MASK (cutoff 0.5): vertex alpha 0.2 lets every ray through, 0.8 keeps the plane.
+    for (alpha, visible) in [(0.2, false), (0.8, true)] {
+        let px = pixels(
+            &scene([1.0, 1.0, 1.0, alpha], true, 5121, true),
+            2,
+            Integrator::Path,
+        );
+        assert!(
+            px.iter().all(|p| (p[0] > 0.2) == visible),
+            "vertex alpha {alpha}: {:?}",
+            px[0]
+        );
+    }
+}
+
+/// Khronos' BoxVertexColors (tests/fixtures/khronos, CC0): `COLOR_0` is each vertex's
+/// position, so the cube is black at the origin's corner and white at (1, 1, 1). Under a
+/// white uniform environment its faces show those colours (the default material is a
+/// rough metal of base colour × vertex colour), not the plain grey it rendered as when
+/// vertex colours were ignored.
+#[test]
+fn khronos_box_vertex_colors_shows_its_colours() {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/fixtures/khronos/BoxVertexColors.gltf"
+    );
+    let mut scene = tessera_scene::load(path).unwrap();
+    let mesh = &scene.meshes[0];
+    let colors = mesh.colors.as_ref().expect("COLOR_0 is read");
+    for (c, p) in colors.iter().zip(&mesh.positions) {
+        assert!(
+            (c.truncate() - p.abs()).abs().max_element() < 1e-6 && c.w == 1.0,
+            "{c} at {p}"
+        );
+    }
+    scene.environment = Some(glam::Vec3::ONE);
+    let px = pixels(&scene, 16, Integrator::Path);
+    // Some pixel is strongly coloured: one channel well above another.
+    let chroma = px
+        .iter()
+        .map(|p| {
+            let (lo, hi) = (p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]));
+            hi - lo
+        })
+        .fold(0.0f32, f32::max);
+    assert!(
+        chroma > 0.3,
+        "the cube renders grey: largest channel spread {chroma}"
+    );
+}

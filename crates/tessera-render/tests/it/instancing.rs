@@ -47,6 +47,7 @@ fn lumpy_box() -> Mesh {
         normals: Some(c.iter().map(|p| p.normalize()).collect()),
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices,
         material: 1,
     }
@@ -83,6 +84,7 @@ fn instanced() -> Scene {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 2, 1], [0, 3, 2]],
         material: 0,
     };
@@ -111,6 +113,7 @@ fn instanced() -> Scene {
             intensity: Vec3::splat(30.0),
         }],
         environment: Some(Vec3::splat(0.2)),
+        environment_map: None,
         default_resolution: (32, 32),
         animated: false,
     }

@@ -11,6 +11,7 @@ mod blender_references;
 mod calibration;
 mod common;
 mod determinism;
+mod environment;
 mod gltf_materials;
 mod gltf_units;
 mod instancing;

@@ -90,6 +90,7 @@ fn plane_under_point_light() -> Scene {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material: 0,
     };
@@ -109,6 +110,7 @@ fn plane_under_point_light() -> Scene {
             intensity: Vec3::splat(5.0),
         }],
         environment: Some(Vec3::splat(0.1)),
+        environment_map: None,
         default_resolution: (32, 32),
         animated: false,
     }

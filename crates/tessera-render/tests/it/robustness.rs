@@ -47,6 +47,7 @@ fn scene(scale: f32, offset: Vec3) -> Scene {
             normals: None,
             uvs: vec![],
             tangents: None,
+            colors: None,
             indices,
             material: 0,
         }],
@@ -61,6 +62,7 @@ fn scene(scale: f32, offset: Vec3) -> Scene {
         warnings: vec![],
         lights: vec![],
         environment: None,
+        environment_map: None,
         default_resolution: (8, 8),
         animated: false,
     }

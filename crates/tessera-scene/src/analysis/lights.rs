@@ -33,6 +33,8 @@ pub(super) struct Lights<'a> {
     pub(super) directionals: usize,
     /// The environment radiance, if positive.
     pub(super) environment: Option<Vec3>,
+    /// The environment image's name and size, if the environment is an image.
+    pub(super) environment_image: Option<(String, u32, u32)>,
 }
 
 impl Lights<'_> {
@@ -89,6 +91,10 @@ pub(super) fn find(scene: &Scene) -> Lights<'_> {
         spots,
         directionals,
         environment: scene.environment.filter(|e| e.max_element() > 0.0),
+        environment_image: scene
+            .environment_map
+            .as_ref()
+            .map(|m| (m.name.clone(), m.width, m.height)),
     }
 }
 
@@ -193,13 +199,16 @@ pub(super) fn report(lights: &Lights, survey: &Survey, effects: &mut Vec<Effect>
         );
     }
     if let Some(e) = lights.environment {
-        push(
-            effects,
-            EffectKind::DirectEnvironment,
-            format!(
+        let what = match &lights.environment_image {
+            Some((name, w, h)) => format!(
+                "image environment {name} ({w}x{h}), strength ({}, {}, {})",
+                e.x, e.y, e.z
+            ),
+            None => format!(
                 "uniform environment, radiance ({}, {}, {}) W/(m^2 sr)",
                 e.x, e.y, e.z
             ),
-        );
+        };
+        push(effects, EffectKind::DirectEnvironment, what);
     }
 }

@@ -183,6 +183,42 @@ impl Importer<'_> {
         Ok(out)
     }
 
+    /// Reads a `COLOR_0` accessor as linear RGBA (spec "Meshes > Overview": VEC3 or VEC4,
+    /// float or normalized unsigned byte/short; a VEC3 colour has alpha 1).
+    pub(super) fn read_colors(&self, ai: usize, what: &str) -> Res<Vec<glam::Vec4>> {
+        let acc = self.root.accessors.get(ai);
+        let ct = acc.and_then(|a| match a.component_type {
+            Checked::Valid(GenericComponentType(ct)) => Some(ct),
+            Checked::Invalid => None,
+        });
+        let normalized = acc.is_some_and(|a| a.normalized);
+        match ct {
+            Some(ComponentType::F32) => {}
+            Some(ComponentType::U8 | ComponentType::U16) if normalized => {}
+            Some(_) => {
+                return self.err(format!(
+                    "accessor {ai} ({what}) must be float or normalized unsigned byte/short \
+                     colours"
+                ))
+            }
+            // Missing or invalid accessors are reported by the read below.
+            None => {}
+        }
+        let vec4 = acc.is_some_and(|a| a.type_ == Checked::Valid(Type::Vec4));
+        let colors = if vec4 {
+            self.read_floats::<4>(ai, what)?
+                .into_iter()
+                .map(glam::Vec4::from)
+                .collect()
+        } else {
+            self.read_floats::<3>(ai, what)?
+                .into_iter()
+                .map(|c| glam::Vec3::from(c).extend(1.0))
+                .collect()
+        };
+        Ok(colors)
+    }
+
     /// Reads an index accessor (unsigned scalar integers, spec "Meshes > Overview").
     pub(super) fn read_indices(&self, ai: usize, what: &str) -> Res<Vec<u32>> {
         let (bytes, ct, ncomp) = self.packed_accessor(ai, what)?;

@@ -23,6 +23,8 @@ pub(super) struct LocalPrimitive {
     pub(super) positions: Vec<Vec3>,
     pub(super) normals: Option<Vec<Vec3>>,
     uvs: Vec<Vec<Vec2>>,
+    /// `COLOR_0` as linear RGBA per vertex, when the primitive has it.
+    pub(super) colors: Option<Vec<Vec4>>,
     /// Per triangle corner, when the material has a normal map.
     pub(super) tangents: Option<Vec<[Vec4; 3]>>,
     pub(super) triangles: Vec<[u32; 3]>,
@@ -233,6 +235,21 @@ impl Importer<'_> {
             };
             uvs.push(v);
         }
+        // Spec "Meshes > Overview" and "Metallic-Roughness Material": COLOR_0 multiplies
+        // the base colour and its alpha.
+        let colors = match attribute(json::mesh::Semantic::Colors(0)) {
+            Some(a) => {
+                let v = self.read_colors(a.value(), &format!("{what} COLOR_0"))?;
+                if v.len() != n {
+                    return self.err(format!(
+                        "{what}: COLOR_0 has {} elements but POSITION has {n}",
+                        v.len()
+                    ));
+                }
+                Some(v)
+            }
+            None => None,
+        };
         let triangles = self.read_triangles(index_acc, n, &what)?;
         let tangents = match (normal_map, tangent_acc) {
             (None, _) => None,
@@ -260,6 +277,7 @@ impl Importer<'_> {
             positions,
             normals,
             uvs,
+            colors,
             tangents,
             triangles,
             material,
@@ -381,6 +399,7 @@ impl Importer<'_> {
             positions,
             normals,
             uvs: local.uvs.clone(),
+            colors: local.colors.clone(),
             tangents,
             indices: triangles,
             material: local.material,
@@ -389,10 +408,11 @@ impl Importer<'_> {
     }
 }
 
-/// Estimated output bytes of one copy of a primitive (positions, normals, one uv set and
-/// indices), for the import budget.
+/// Estimated output bytes of one copy of a primitive (positions, normals, one uv set,
+/// vertex colours and indices), for the import budget.
 fn primitive_bytes(local: &LocalPrimitive) -> u64 {
-    local.positions.len() as u64 * 32 + local.triangles.len() as u64 * 12
+    let colors = local.colors.as_ref().map_or(0, |c| c.len() as u64 * 16);
+    local.positions.len() as u64 * 32 + local.triangles.len() as u64 * 12 + colors
 }
 
 /// The object-space prototype of a primitive placed at several places. Normals are
@@ -409,6 +429,7 @@ fn object_space_mesh(local: &LocalPrimitive, name: String) -> Mesh {
         positions: local.positions.clone(),
         normals,
         uvs: local.uvs.clone(),
+        colors: local.colors.clone(),
         tangents: local.tangents.clone(),
         indices: local.triangles.clone(),
         material: local.material,

@@ -457,6 +457,7 @@ impl<'a> Importer<'a> {
             warnings: std::mem::take(&mut self.warnings),
             lights,
             environment: None,
+            environment_map: None,
             default_resolution,
             animated: !(self.pose.trs.is_empty() && self.pose.weights.is_empty()),
         };

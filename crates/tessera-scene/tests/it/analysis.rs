@@ -197,6 +197,7 @@ fn quad(material: u32, corners: [Vec3; 4]) -> Mesh {
         normals: None,
         uvs: vec![],
         tangents: None,
+        colors: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
         material,
     }
@@ -235,6 +236,7 @@ fn base_scene(materials: Vec<Material>, meshes: Vec<Mesh>) -> Scene {
         warnings: vec![],
         lights: vec![],
         environment: None,
+        environment_map: None,
         default_resolution: (64, 48),
         animated: false,
     }

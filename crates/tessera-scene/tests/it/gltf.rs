@@ -1,7 +1,7 @@
 //! glTF import tests: documents are generated programmatically (see `gltf_gen`) as `.gltf`
 //! with embedded base64 buffers, `.gltf` with external files, and `.glb`.
 
-use glam::{Vec2, Vec3};
+use glam::{Vec2, Vec3, Vec4};
 use serde_json::json;
 use std::f32::consts::{FRAC_1_SQRT_2, FRAC_PI_4};
 use std::path::{Path, PathBuf};
@@ -1205,4 +1205,60 @@ fn shipped_glass_spot_scene_loads() {
     assert!(s.triangle_count() > 500);
     assert!(s.meshes.iter().any(|m| m.normals.is_some()));
     assert_eq!(s.camera.name.as_deref(), Some("main"));
+}
+
+/// `COLOR_0` (spec "Meshes > Overview"): VEC3 or VEC4 of float, normalized unsigned byte
+/// or normalized unsigned short, read as linear RGBA (alpha 1 for VEC3), carried to the
+/// mesh; a primitive without it costs nothing; non-normalized integers are refused.
+#[test]
+fn vertex_colours_are_read_for_every_component_type() {
+    let with_colors = |bytes: Vec<u8>, ct: u32, ty: &str, normalized: bool| {
+        let mut g = basic();
+        let view = g.view(&bytes);
+        let acc = g.push(
+            "accessors",
+            json!({"bufferView": view, "componentType": ct, "count": 3, "type": ty,
+                "normalized": normalized}),
+        );
+        g.doc["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"] = json!(acc);
+        g
+    };
+    let floats: Vec<u8> = [0.25f32, 0.5, 1.0, 0.0, 0.125, 0.75, 1.0, 1.0, 0.0]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let bytes: Vec<u8> = vec![0, 51, 102, 255, 255, 0, 0, 128, 10, 20, 30, 40];
+    let shorts: Vec<u8> = [0u16, 65535, 32768, 13107, 1, 2, 3, 4, 5, 6, 7, 8]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let cases: [(Vec<u8>, u32, &str, Vec4); 3] = [
+        (floats, 5126, "VEC3", Vec4::new(0.25, 0.5, 1.0, 1.0)),
+        (
+            bytes,
+            5121,
+            "VEC4",
+            Vec4::new(0.0, 51.0 / 255.0, 102.0 / 255.0, 1.0),
+        ),
+        (
+            shorts,
+            5123,
+            "VEC4",
+            Vec4::new(0.0, 1.0, 32768.0 / 65535.0, 13107.0 / 65535.0),
+        ),
+    ];
+    for (bytes, ct, ty, first) in cases {
+        for s in load_both(&with_colors(bytes.clone(), ct, ty, ct != 5126)) {
+            let c = s.meshes[0].colors.as_ref().expect("vertex colours");
+            assert_eq!(c.len(), 3);
+            assert!(
+                (c[0] - first).abs().max_element() < 1e-6,
+                "{ct} {ty}: {:?}",
+                c[0]
+            );
+        }
+    }
+    assert!(load_both(&basic())[0].meshes[0].colors.is_none());
+    let err = error_of(load(&with_colors(vec![1; 12], 5121, "VEC4", false).gltf()));
+    assert_mentions(&err, &["COLOR_0", "normalized"]);
 }

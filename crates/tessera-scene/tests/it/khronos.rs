@@ -86,3 +86,16 @@ fn cameras_gltf_renders_from_its_perspective_camera() {
         "{eye}"
     );
 }
+
+#[test]
+fn box_vertex_colors_keeps_its_colours() {
+    // COLOR_0 is each vertex's position (glTF 2.0 §3.7.2.1: it multiplies the base colour).
+    let scene = load("BoxVertexColors", 0.0);
+    let mesh = &scene.meshes[0];
+    let colors = mesh.colors.as_ref().expect("COLOR_0 is imported");
+    assert_eq!(colors.len(), mesh.positions.len());
+    for (c, p) in colors.iter().zip(&mesh.positions) {
+        assert!((c.truncate() - (*p + glam::Vec3::ZERO)).abs().max_element() <= 1.0, "{c} {p}");
+    }
+    assert!(colors.iter().any(|c| c.x != c.y), "not grey");
+}

@@ -5,6 +5,7 @@
 
 mod analysis;
 mod animation;
+mod environment;
 mod fuzz_gltf;
 mod gltf;
 mod gltf_materials;
