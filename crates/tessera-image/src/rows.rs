@@ -190,9 +190,9 @@ fn headers(width: usize, height: usize, metadata: Option<&str>) -> Result<Header
 fn pooled_row(prev: Option<&[Pixel]>, cur: &[Pixel], next: Option<&[Pixel]>, out: &mut [[f32; 3]]) {
     let w = cur.len();
     let rows = [prev, Some(cur), next];
-    for x in 0..w {
-        out[x] = [0.0; 3];
-        if cur[x].passes < 2 {
+    for (x, (o, p)) in out.iter_mut().zip(cur).enumerate() {
+        *o = [0.0; 3];
+        if p.passes < 2 {
             continue;
         }
         let (mut sum, mut dof) = ([0.0f64; 3], 0.0f64);
@@ -208,8 +208,8 @@ fn pooled_row(prev: Option<&[Pixel]>, cur: &[Pixel], next: Option<&[Pixel]>, out
                 dof += n - 1.0;
             }
         }
-        let own = f64::from(cur[x].passes);
-        out[x] = sum.map(|s| (s / dof / own) as f32);
+        let own = f64::from(p.passes);
+        *o = sum.map(|s| (s / dof / own) as f32);
     }
 }
 

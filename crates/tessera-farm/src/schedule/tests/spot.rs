@@ -410,7 +410,10 @@ fn drive_as(
     }
     // What is still leased is delivered, so that a later drive finds no lease outstanding.
     for l in held {
-        let corrupts = workers.iter().find(|(w, _)| *w == l.worker).map(|(_, c)| *c);
+        let corrupts = workers
+            .iter()
+            .find(|(w, _)| *w == l.worker)
+            .map(|(_, c)| *c);
         let n = delivered.entry(l.worker).or_default();
         *n += 1;
         let r = match corrupts {
