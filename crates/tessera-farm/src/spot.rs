@@ -222,7 +222,7 @@ pub fn binomial_tail_bound(n: u64, c: u64, q: f64) -> f64 {
 /// comparison of copies finds.
 pub fn unit_is_outlier(merged: &[PixelStats], pass_means: &[[f32; 3]]) -> bool {
     let n = merged.len();
-    if n == 0 || pass_means.len() % n != 0 {
+    if n == 0 || !pass_means.len().is_multiple_of(n) {
         return false;
     }
     let passes = pass_means.len() / n;
