@@ -267,7 +267,7 @@ fn write_blocks<W: Write + Seek>(
             CHANNELS
                 .iter()
                 .position(|n| *n == name)
-                .ok_or_else(|| ImageError::MissingChannel(name))
+                .ok_or(ImageError::MissingChannel(name))
         })
         .collect::<Result<Vec<_>, _>>()?;
     let mut maker = BlockMaker {
