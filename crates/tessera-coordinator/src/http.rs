@@ -31,6 +31,7 @@ use tracing::Instrument;
 
 use crate::connections::ConnectionStats;
 use crate::error::CoordError;
+use crate::service::images::ImageBody;
 use crate::service::Coordinator;
 
 /// An [`ApiError`] as an HTTP response.
@@ -332,15 +333,37 @@ async fn job_image(
 ) -> HttpResult<Response> {
     let q: ImageQuery = parse_query(q)?;
     let id = parse_id(&id)?;
-    let bytes = core.image(id, q).await?;
-    let mut resp = (
-        [
-            (header::CONTENT_TYPE, q.format.content_type()),
-            (header::CACHE_CONTROL, "no-store"),
-        ],
-        axum::body::Bytes::from_owner(SharedBytes(bytes)),
-    )
-        .into_response();
+    let body = match core.image(id, q).await {
+        Ok(body) => body,
+        // Refused for lack of memory (the budget is held by merge state and other
+        // encodes): say when to come back.
+        Err(e @ CoordError::Unavailable(_)) => {
+            let mut resp = HttpError::from(e).into_response();
+            resp.headers_mut().insert(
+                header::RETRY_AFTER,
+                HeaderValue::from(crate::service::images::RETRY_AFTER_SECONDS),
+            );
+            return Ok(resp);
+        }
+        Err(e) => return Err(e.into()),
+    };
+    let headers = [
+        (header::CONTENT_TYPE, q.format.content_type()),
+        (header::CACHE_CONTROL, "no-store"),
+    ];
+    let mut resp = match body {
+        ImageBody::Whole(bytes) => {
+            (headers, axum::body::Bytes::from_owner(SharedBytes(bytes))).into_response()
+        }
+        ImageBody::Stream { len, chunks } => {
+            let body =
+                axum::body::Body::from_stream(tokio_stream::wrappers::ReceiverStream::new(chunks));
+            let mut resp = (headers, body).into_response();
+            resp.headers_mut()
+                .insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+            resp
+        }
+    };
     if q.format == ImageFormat::Exr {
         if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"job-{id}.exr\"")) {
             resp.headers_mut().insert(header::CONTENT_DISPOSITION, v);

@@ -19,13 +19,12 @@
 #![deny(missing_docs)]
 
 mod heatmap;
+pub mod rows;
 pub use heatmap::{encode_heat_map_png, heat_colour};
+pub use rows::{encode_exr_rows, exr_working_bytes, Exr, ExrStream, FrameRows, Pixel, UniformRows};
 
 use exr::meta::attribute::{AttributeValue, Text};
-use exr::prelude::{
-    read, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes,
-    ReadChannels, ReadLayers, WritableImage,
-};
+use exr::prelude::{read, ReadChannels, ReadLayers};
 use std::io::Cursor;
 use tessera_farm::FrameImage;
 
@@ -60,49 +59,18 @@ pub const METADATA_ATTRIBUTE: &str = "tessera";
 /// Encodes the frame as a multi-layer EXR file. `metadata` (e.g. the render settings and
 /// plan as JSON) is stored as one text attribute, [`METADATA_ATTRIBUTE`]: a single
 /// attribute, because the EXR writer stores extra attributes in hash-map order and more
-/// than one would make the bytes vary between runs.
+/// than one would make the bytes vary between runs. Encoded a block of rows at a time
+/// ([`rows::encode_exr_rows`]): the frame's layers are not copied into channels.
 pub fn encode_exr(img: &FrameImage, metadata: Option<&str>) -> Result<Vec<u8>, ImageError> {
-    let n = (img.width as usize) * (img.height as usize);
-    let pooled = img.interval_variance();
-    let chan = |name: &str, f: &dyn Fn(usize) -> f32| -> AnyChannel<FlatSamples> {
-        AnyChannel::new(name, FlatSamples::F32((0..n).map(f).collect()))
-    };
-    let channels = vec![
-        chan("R", &|i| img.mean[i][0]),
-        chan("G", &|i| img.mean[i][1]),
-        chan("B", &|i| img.mean[i][2]),
-        chan("variance.R", &|i| img.variance_of_mean[i][0]),
-        chan("variance.G", &|i| img.variance_of_mean[i][1]),
-        chan("variance.B", &|i| img.variance_of_mean[i][2]),
-        chan("pooled_variance.R", &|i| pooled[i][0]),
-        chan("pooled_variance.G", &|i| pooled[i][1]),
-        chan("pooled_variance.B", &|i| pooled[i][2]),
-        chan("relerr.Y", &|i| img.relative_error[i]),
-        chan("passes.Y", &|i| img.passes[i] as f32),
-        chan("samples.Y", &|i| img.samples[i] as f32),
-    ];
-    let mut attributes = LayerAttributes::named("tessera");
-    if let Some(m) = metadata {
-        let text = Text::new_or_none(m)
-            .ok_or_else(|| ImageError::Exr("metadata is not Latin-1 text".into()))?;
-        attributes
-            .other
-            .insert(Text::from(METADATA_ATTRIBUTE), AttributeValue::Text(text));
+    match rows::encode_exr_rows(img, metadata, usize::MAX)? {
+        rows::Exr::Whole(bytes) => Ok(bytes),
+        // Unreachable with no limit; written out rather than assumed.
+        rows::Exr::Stream(s) => {
+            let mut out = Vec::with_capacity(s.len() as usize);
+            s.write_to(img, &mut out)?;
+            Ok(out)
+        }
     }
-    let layer = Layer::new(
-        (img.width as usize, img.height as usize),
-        attributes,
-        Encoding::SMALL_LOSSLESS,
-        AnyChannels::sort(channels.into()),
-    );
-    let image = Image::from_layer(layer);
-    let mut out = Cursor::new(Vec::new());
-    image
-        .write()
-        .non_parallel()
-        .to_buffered(&mut out)
-        .map_err(|e| ImageError::Exr(e.to_string()))?;
-    Ok(out.into_inner())
 }
 
 /// The sRGB transfer function (IEC 61966-2-1) of a linear value in [0, 1].

@@ -8,11 +8,30 @@
 //! layers and the tile map are read under the farm lock; a frame in the store is
 //! restored, used and dropped. Encoded images are cached per frame and merge count, so
 //! pollers of an unchanged frame cost a map lookup, and at most [`HEAVY_REQUESTS`]
-//! requests restore or encode a frame at once, which bounds what image requests hold
-//! however many arrive.
+//! requests restore or encode a frame at once.
+//!
+//! Image encodes are counted in the memory budget (`--memory-budget`,
+//! [`tessera_farm::Scheduler::reserve_transient`]): before a request restores, snapshots
+//! or encodes a frame it reserves what that will hold ([`encode_bytes`]); a request that
+//! does not fit waits for another encode to end, and after [`BUDGET_WAIT`] is refused with
+//! 503 and `Retry-After` naming the budget. Waiting rather than refusing at once: encodes
+//! are short, and a download that waits a few seconds is better than one the client must
+//! retry. The EXR is encoded a block of 16 rows at a time ([`tessera_image::rows`]) from
+//! the frame's layers in place: a frame nothing was merged into costs a few rows, a frame
+//! restored from the store its merge state, a live frame a 36 B/px snapshot taken under
+//! the lock. An EXR larger than [`KEEP_WHOLE_BYTES`] is not kept: its header and offset
+//! table are, and the response body is streamed from a second pass of the encoder, 64 KiB
+//! at a time, so its bytes are never all in memory.
 
 use std::collections::HashMap;
+use std::io::Write;
 use std::sync::Arc;
+use std::time::Duration;
+
+use axum::body::Bytes;
+use tessera_farm::job::StopVerdict;
+use tessera_farm::{AdaptiveMode, PixelStats};
+use tessera_image::rows::{encode_exr_rows, exr_working_bytes, Exr, FrameRows, Pixel, UniformRows};
 
 use tessera_api::{
     FrameQuery, FrameRange, ImageFormat, ImageQuery, ResolvedJob, TileInfo, TileMap,
@@ -25,7 +44,6 @@ use super::resume::{resolve_stored, restore_frames};
 use super::Coordinator;
 use crate::error::{CoordError, CoordResult};
 use crate::state::{tile_error, Stop};
-use tessera_farm::job::StopVerdict;
 
 /// Image requests that may restore a frame from the store or encode one at the same
 /// time; the rest wait (and then usually find the image cached).
@@ -37,6 +55,32 @@ pub const IMAGE_CACHE_BYTES: usize = 64 << 20;
 /// put one encode per poller on the render's cores. Final images (a stopped job, a
 /// released frame) and EXR downloads are always current.
 pub const PREVIEW_MAX_AGE: std::time::Duration = std::time::Duration::from_millis(1000);
+
+/// How long an image request waits for room in the memory budget before it is refused
+/// (503, with [`RETRY_AFTER_SECONDS`]).
+pub const BUDGET_WAIT: Duration = Duration::from_secs(30);
+/// The `Retry-After` of an image request refused for lack of memory.
+pub const RETRY_AFTER_SECONDS: u64 = 5;
+/// The largest encoded EXR built whole in memory (and cached); larger ones are streamed.
+pub const KEEP_WHOLE_BYTES: usize = IMAGE_CACHE_BYTES / 4;
+/// A streamed body is sent in chunks of this many bytes ...
+const STREAM_CHUNK: usize = 64 << 10;
+/// ... with at most this many queued for a slow client.
+const STREAM_QUEUE: usize = 4;
+
+/// An image response body.
+pub enum ImageBody {
+    /// The whole file, shared with the image cache.
+    Whole(Arc<Vec<u8>>),
+    /// A file too large to keep, encoded while it is sent.
+    Stream {
+        /// Its length in bytes.
+        len: u64,
+        /// Its bytes in order; an error ends the body early (the encode failed or the
+        /// frame changed under it, which a snapshot rules out).
+        chunks: tokio::sync::mpsc::Receiver<std::io::Result<Bytes>>,
+    },
+}
 
 /// The merged state of a frame as a request sees it.
 enum Source<'a> {
@@ -100,6 +144,10 @@ type ImageKey = (JobId, u32, bool);
 pub(crate) struct ImageCache {
     entries: HashMap<ImageKey, Cached>,
     bytes: usize,
+    /// Woken when an encode gives its memory back.
+    room: Arc<tokio::sync::Notify>,
+    /// [`KEEP_WHOLE_BYTES`] unless a test sets another limit.
+    keep_whole: Option<usize>,
 }
 
 impl ImageCache {
@@ -279,8 +327,8 @@ impl Coordinator {
     }
 
     /// `GET /jobs/{id}/image`: the current merged image as PNG or EXR, from the cache
-    /// while the frame is unchanged.
-    pub async fn image(&self, id: JobId, q: ImageQuery) -> CoordResult<Arc<Vec<u8>>> {
+    /// while the frame is unchanged; the encode's memory is reserved in the budget first.
+    pub async fn image(&self, id: JobId, q: ImageQuery) -> CoordResult<ImageBody> {
         let exr = q.format == ImageFormat::Exr;
         let key = |m: &FrameMeta| (id, m.frame, exr);
         // The cheap question first: which version is current, and is it cached?
@@ -292,7 +340,7 @@ impl Coordinator {
         };
         if let Some((frame, v)) = probe {
             if let Some(hit) = self.cached(id, frame, exr, v) {
-                return Ok(hit);
+                return Ok(ImageBody::Whole(hit));
             }
         }
         // A bounded number of encodes at a time; a request that waited for one of them
@@ -305,30 +353,26 @@ impl Coordinator {
             .map_err(CoordError::internal)?;
         if let Some((frame, v)) = probe {
             if let Some(hit) = self.cached(id, frame, exr, v) {
-                return Ok(hit);
+                return Ok(ImageBody::Whole(hit));
             }
         }
-        let (meta, raw) = self
+        if exr {
+            return self.exr(id, q.frame).await;
+        }
+        let (kind, plan, adaptive) = self.frame_kind(id, q.frame).await?;
+        // A frame restored from the store is the dearest case; reserve for it unless the
+        // frame is in memory now (it can only move from memory to the store, not back).
+        let _reservation = self
+            .reserve(encode_bytes(&plan, false, kind, adaptive))
+            .await?;
+        let (meta, rgb) = self
             .with_frame(id, q.frame, true, move |src, m| {
-                let raw = if exr {
-                    Raw::Exr(frame_image(&src, &m.resolved.plan))
-                } else {
-                    Raw::Png(preview_rgb8(&src, &m.resolved.plan))
-                };
-                (m.clone(), raw)
+                (m.clone(), preview_rgb8(&src, &m.resolved.plan))
             })
             .await?;
         let plan = meta.resolved.plan;
-        let (stopped, resolved) = (meta.stopped, meta.resolved.clone());
-        let bytes = tokio::task::spawn_blocking(move || match raw {
-            Raw::Png(rgb) => tessera_image::encode_png_rgb8(plan.width, plan.height, &rgb),
-            Raw::Exr(img) => {
-                // The verdict of this frame's own image, as `tessera render` writes it.
-                let verdict =
-                    stopped.map(|s| StopVerdict::of_image(&resolved, &img, s == Stop::TimeLimit));
-                let metadata = resolved.metadata_json(verdict.as_ref());
-                tessera_image::encode_exr(&img, Some(&metadata))
-            }
+        let bytes = tokio::task::spawn_blocking(move || {
+            tessera_image::encode_png_rgb8(plan.width, plan.height, &rgb)
         })
         .await
         .map_err(CoordError::internal)?
@@ -337,7 +381,186 @@ impl Coordinator {
         if let Ok(mut c) = self.inner.images.lock() {
             c.put(key(&meta), meta.version, bytes.clone());
         }
-        Ok(bytes)
+        Ok(ImageBody::Whole(bytes))
+    }
+
+    /// The EXR of a frame: whole (and cached) up to [`KEEP_WHOLE_BYTES`], else streamed.
+    async fn exr(&self, id: JobId, frame: Option<u32>) -> CoordResult<ImageBody> {
+        // The frame can move between the kind the reservation was made for and the
+        // encode (a pending frame becomes live, a live one is released to the store):
+        // the encode then reserves again for what it finds.
+        let mut tries = 0;
+        let (reservation, meta, rows) = loop {
+            let (kind, plan, adaptive) = self.frame_kind(id, frame).await?;
+            let reservation = self
+                .reserve(encode_bytes(&plan, true, kind, adaptive))
+                .await?;
+            if let Some((meta, rows)) = self.exr_rows(id, frame, kind).await? {
+                break (reservation, meta, rows);
+            }
+            tries += 1;
+            if tries >= 4 {
+                let which =
+                    frame.map_or_else(|| "the first frame".into(), |f| format!("frame {f}"));
+                return Err(CoordError::Unavailable(format!(
+                    "{which} of job {id} keeps moving between memory and the store; retry \
+                     in {RETRY_AFTER_SECONDS} s"
+                )));
+            }
+        };
+        let key = (id, meta.frame, true);
+        let version = meta.version;
+        let keep = self
+            .inner
+            .images
+            .lock()
+            .ok()
+            .and_then(|c| c.keep_whole)
+            .unwrap_or(KEEP_WHOLE_BYTES);
+        let encoded = tokio::task::spawn_blocking(move || {
+            // The verdict of this frame's own image, as `tessera render` writes it.
+            let verdict = meta
+                .stopped
+                .map(|s| verdict(&meta.resolved, &rows, s == Stop::TimeLimit));
+            let metadata = meta.resolved.metadata_json(verdict.as_ref());
+            encode_exr_rows(&rows, Some(&metadata), keep).map(|e| (e, rows))
+        })
+        .await
+        .map_err(CoordError::internal)?
+        .map_err(CoordError::internal)?;
+        match encoded {
+            (Exr::Whole(bytes), _) => {
+                let bytes = Arc::new(bytes);
+                if let Ok(mut c) = self.inner.images.lock() {
+                    c.put(key, version, bytes.clone());
+                }
+                Ok(ImageBody::Whole(bytes))
+            }
+            (Exr::Stream(stream), rows) => {
+                let (tx, chunks) = tokio::sync::mpsc::channel(STREAM_QUEUE);
+                let len = stream.len();
+                // The second pass runs while the body is sent, holding the reservation
+                // (not the permit: a slow client must not hold up other downloads, and
+                // the memory is what the permit was protecting).
+                tokio::task::spawn_blocking(move || {
+                    let mut out = ChannelWriter {
+                        tx,
+                        buf: Vec::with_capacity(STREAM_CHUNK),
+                    };
+                    let written = stream.write_to(&rows, &mut out);
+                    // The memory is given back before the body ends (the sender goes
+                    // last), so a client that read the whole body finds it free.
+                    drop(rows);
+                    drop(reservation);
+                    if let Err(e) = written {
+                        tracing::warn!("streaming the EXR of job {id} failed: {e}");
+                        let _ = out
+                            .tx
+                            .blocking_send(Err(std::io::Error::other(e.to_string())));
+                    }
+                });
+                Ok(ImageBody::Stream { len, chunks })
+            }
+        }
+    }
+
+    /// Where a frame is, for its reservation: the frame's plan and whether its job is
+    /// adaptive.
+    async fn frame_kind(
+        &self,
+        id: JobId,
+        frame: Option<u32>,
+    ) -> CoordResult<(Kind, FramePlan, bool)> {
+        let located = self.locate(id, frame, |src, m| {
+            let kind = match src {
+                Source::Black | Source::Empty => Kind::Uniform,
+                Source::Adaptive(_) | Source::Merged(..) => Kind::Live,
+            };
+            (kind, m.resolved.plan, m.adaptive.is_some())
+        })?;
+        Ok(match located {
+            Some(Located::Done(v)) => v,
+            Some(Located::Store(m)) => (Kind::Store, m.resolved.plan, m.adaptive.is_some()),
+            None => {
+                let m = self.stored_meta(id, frame).await?;
+                (Kind::Store, m.resolved.plan, m.adaptive.is_some())
+            }
+        })
+    }
+
+    /// A frame's layers to encode, if reading them costs no more than `reserved` allows
+    /// (`None`: the frame moved; reserve again).
+    async fn exr_rows(
+        &self,
+        id: JobId,
+        frame: Option<u32>,
+        reserved: Kind,
+    ) -> CoordResult<Option<(FrameMeta, Rows)>> {
+        let located = self.locate(id, frame, move |src, m| {
+            let plan = &m.resolved.plan;
+            let rows = match src {
+                Source::Black => Rows::Uniform(uniform(plan, true)),
+                Source::Empty => Rows::Uniform(uniform(plan, false)),
+                // A snapshot, taken under the lock: the merges go on meanwhile.
+                _ if reserved < Kind::Live => return None,
+                Source::Adaptive(a) => Rows::Image(a.image()),
+                Source::Merged(acc, _) => Rows::Image(acc.image()),
+            };
+            Some((m.clone(), rows))
+        })?;
+        let meta = match located {
+            Some(Located::Done(v)) => return Ok(v),
+            _ if reserved < Kind::Store => return Ok(None),
+            Some(Located::Store(meta)) => *meta,
+            None => self.stored_meta(id, frame).await?,
+        };
+        let plan = meta.resolved.plan;
+        let rows = match self.restore_frame(id, &meta).await? {
+            StoredFrame::Black => Rows::Uniform(uniform(&plan, true)),
+            StoredFrame::Merged(acc) => Rows::Merged(plan, acc),
+            StoredFrame::Adaptive(a) => {
+                let traced = a
+                    .tiles()
+                    .iter()
+                    .map(|t| t.traced_passes().collect())
+                    .collect();
+                Rows::Adaptive(plan, a, traced)
+            }
+        };
+        Ok(Some((meta, rows)))
+    }
+
+    /// Reserves `bytes` of the memory budget for an encode, waiting up to [`BUDGET_WAIT`]
+    /// for other encodes to give theirs back.
+    async fn reserve(&self, bytes: u64) -> CoordResult<Reservation> {
+        let room = self
+            .inner
+            .images
+            .lock()
+            .map_err(|_| CoordError::poisoned())?
+            .room
+            .clone();
+        let deadline = tokio::time::Instant::now() + BUDGET_WAIT;
+        loop {
+            // Registered before the check, so a release between the two is not missed.
+            let notified = room.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            if self.lock()?.scheduler.reserve_transient(bytes) {
+                return Ok(Reservation {
+                    core: self.clone(),
+                    bytes,
+                });
+            }
+            if tokio::time::timeout_at(deadline, notified).await.is_err() {
+                return Err(CoordError::Unavailable(format!(
+                    "encoding this image needs {} MiB and the memory budget \
+                     (--memory-budget) is held by merge state and other image encodes; \
+                     retry in {RETRY_AFTER_SECONDS} s",
+                    bytes.div_ceil(1 << 20)
+                )));
+            }
+        }
     }
 
     fn cached(&self, id: JobId, frame: u32, exr: bool, version: u64) -> Option<Arc<Vec<u8>>> {
@@ -364,10 +587,251 @@ impl Coordinator {
     }
 }
 
-/// What an image request takes out of the lock to encode.
-enum Raw {
-    Png(Vec<u8>),
-    Exr(FrameImage),
+/// Where a frame is, cheapest to encode first.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Kind {
+    /// Black or nothing merged: every pixel the same, read from no memory.
+    Uniform,
+    /// In memory: snapshotted under the lock.
+    Live,
+    /// Restored from the store's checkpoints.
+    Store,
+}
+
+/// Bytes an image encode of a frame of `plan` holds at most, reserved in the memory
+/// budget before it starts. EXR: the row encoder's working set
+/// ([`exr_working_bytes`]) and the file while it is kept whole (at most
+/// [`KEEP_WHOLE_BYTES`]; 48 B per pixel bounds it, ZIP never grows a block). PNG: the 8-bit
+/// rows (3 B/px), the encoder's filtered copy and its compressed output (at most as much
+/// again each). Plus the frame itself: a live frame's 36 B/px snapshot (EXR; the PNG reads
+/// the means in place), a stored frame's restored merge state and the checkpoints it is
+/// read from (twice [`tessera_farm::frame_state_bytes`]), and an adaptive frame's traced
+/// passes (4 B/px).
+fn encode_bytes(plan: &FramePlan, exr: bool, kind: Kind, adaptive: bool) -> u64 {
+    let n = u64::from(plan.width) * u64::from(plan.height);
+    let slack = 64 << 10;
+    let encode = if exr {
+        exr_working_bytes(plan.width) + (n * 48 + slack).min(KEEP_WHOLE_BYTES as u64)
+    } else {
+        n * 9 + slack
+    };
+    encode
+        + match kind {
+            Kind::Uniform => 0,
+            Kind::Live if exr => n * 36,
+            Kind::Live => 0,
+            Kind::Store => {
+                2 * tessera_farm::frame_state_bytes(plan, adaptive)
+                    + if adaptive { n * 4 } else { 0 }
+            }
+        }
+}
+
+/// A share of the memory budget held by one encode, given back when dropped.
+struct Reservation {
+    core: Coordinator,
+    bytes: u64,
+}
+
+impl Drop for Reservation {
+    fn drop(&mut self) {
+        if let Ok(mut farm) = self.core.lock() {
+            farm.scheduler.release_transient(self.bytes);
+        }
+        if let Ok(c) = self.core.inner.images.lock() {
+            c.room.notify_waiters();
+        }
+    }
+}
+
+/// A blocking writer into a streamed response body, [`STREAM_CHUNK`] bytes a message; it
+/// fails once the client is gone, which ends the encode.
+struct ChannelWriter {
+    tx: tokio::sync::mpsc::Sender<std::io::Result<Bytes>>,
+    buf: Vec<u8>,
+}
+
+impl ChannelWriter {
+    fn send(&mut self) -> std::io::Result<()> {
+        if self.buf.is_empty() {
+            return Ok(());
+        }
+        let chunk = std::mem::replace(&mut self.buf, Vec::with_capacity(STREAM_CHUNK));
+        self.tx
+            .blocking_send(Ok(Bytes::from(chunk)))
+            .map_err(|_| std::io::Error::other("the client went away"))
+    }
+}
+
+impl Write for ChannelWriter {
+    fn write(&mut self, data: &[u8]) -> std::io::Result<usize> {
+        self.buf.extend_from_slice(data);
+        if self.buf.len() >= STREAM_CHUNK {
+            self.send()?;
+        }
+        Ok(data.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.send()
+    }
+}
+
+/// A frame's layers as the EXR encoder reads them.
+enum Rows {
+    /// Black or empty.
+    Uniform(UniformRows),
+    /// A snapshot of a live frame.
+    Image(FrameImage),
+    /// Merged passes restored from the store, read in place.
+    Merged(FramePlan, FrameAccumulator),
+    /// An adaptive frame restored from the store, with each tile's traced passes.
+    Adaptive(FramePlan, AdaptiveFrame, Vec<Vec<u32>>),
+}
+
+/// Every pixel of a black frame (all passes of zeros) or of one nothing was merged into.
+fn uniform(plan: &FramePlan, black: bool) -> UniformRows {
+    UniformRows {
+        width: plan.width,
+        height: plan.height,
+        pixel: if black {
+            Pixel {
+                passes: plan.passes,
+                samples: plan.spp(),
+                ..Pixel::default()
+            }
+        } else {
+            Pixel::default()
+        },
+    }
+}
+
+/// A pixel's layers from its statistics, as `FrameAccumulator::image` writes them.
+fn pixel_of(s: &PixelStats, samples: u32) -> Pixel {
+    let estimated = s.passes >= 2;
+    Pixel {
+        mean: s.mean.map(|m| m as f32),
+        variance_of_mean: if estimated {
+            s.variance_of_mean().map(|v| v as f32)
+        } else {
+            [0.0; 3]
+        },
+        passes: s.passes,
+        samples,
+        relative_error: if estimated {
+            s.relative_error() as f32
+        } else {
+            0.0
+        },
+    }
+}
+
+impl Rows {
+    /// The tile holding (`x`, `y`) and the pixel's index in it.
+    fn tile_of(plan: &FramePlan, x: u32, y: u32) -> (usize, u32, u32) {
+        // Tile 0 is a full tile in each direction the frame is at least a tile long;
+        // a frame shorter than a tile both ways is one tile.
+        let edge = plan.get_tile(0).map_or(1, |r| r.width.max(r.height).max(1));
+        let t = (y / edge) * plan.tiles_x() + x / edge;
+        (t as usize, x % edge, y % edge)
+    }
+
+    /// Pixel (`x`, `y`) of a frame restored from the store.
+    fn stored_pixel(&self, x: u32, y: u32) -> Pixel {
+        match self {
+            Rows::Merged(plan, acc) => {
+                let (t, lx, ly) = Self::tile_of(plan, x, y);
+                let tile = &acc.tiles()[t];
+                let rw = tile.rect().width.max(1);
+                let samples = tile.merged_passes().saturating_mul(plan.samples_per_pass);
+                pixel_of(&tile.pixels()[(ly * rw + lx) as usize], samples)
+            }
+            Rows::Adaptive(plan, a, traced) => {
+                let (t, lx, ly) = Self::tile_of(plan, x, y);
+                let tile = &a.tiles()[t];
+                let i = (ly * tile.rect().width.max(1) + lx) as usize;
+                let samples = traced[t][i].saturating_mul(plan.samples_per_pass);
+                pixel_of(&tile.pixels()[i], samples)
+            }
+            Rows::Uniform(u) => u.pixel,
+            Rows::Image(img) => img.pixel(x, y),
+        }
+    }
+}
+
+impl FrameRows for Rows {
+    fn width(&self) -> u32 {
+        match self {
+            Rows::Uniform(u) => u.width,
+            Rows::Image(img) => img.width,
+            Rows::Merged(plan, _) | Rows::Adaptive(plan, ..) => plan.width,
+        }
+    }
+    fn height(&self) -> u32 {
+        match self {
+            Rows::Uniform(u) => u.height,
+            Rows::Image(img) => img.height,
+            Rows::Merged(plan, _) | Rows::Adaptive(plan, ..) => plan.height,
+        }
+    }
+    fn pixel(&self, x: u32, y: u32) -> Pixel {
+        self.stored_pixel(x, y)
+    }
+    fn row(&self, y: u32, out: &mut Vec<Pixel>) {
+        out.clear();
+        match self {
+            Rows::Uniform(u) => out.resize(u.width as usize, u.pixel),
+            Rows::Image(img) => {
+                let w = img.width as usize;
+                out.extend((0..w).map(|x| img.pixel(x as u32, y)));
+            }
+            // Tile by tile along the row: each tile's row is contiguous.
+            Rows::Merged(plan, acc) => {
+                let mut x = 0;
+                while x < plan.width {
+                    let (t, _, ly) = Self::tile_of(plan, x, y);
+                    let tile = &acc.tiles()[t];
+                    let width = tile.rect().width.max(1);
+                    let samples = tile.merged_passes().saturating_mul(plan.samples_per_pass);
+                    let start = (ly * width) as usize;
+                    let row = &tile.pixels()[start..start + width as usize];
+                    out.extend(row.iter().map(|s| pixel_of(s, samples)));
+                    x += width;
+                }
+            }
+            Rows::Adaptive(plan, a, traced) => {
+                let mut x = 0;
+                while x < plan.width {
+                    let (t, _, ly) = Self::tile_of(plan, x, y);
+                    let tile = &a.tiles()[t];
+                    let width = tile.rect().width.max(1);
+                    let start = (ly * width) as usize;
+                    let row = &tile.pixels()[start..start + width as usize];
+                    let passes = &traced[t][start..start + width as usize];
+                    out.extend(
+                        row.iter()
+                            .zip(passes)
+                            .map(|(s, &p)| pixel_of(s, p.saturating_mul(plan.samples_per_pass))),
+                    );
+                    x += width;
+                }
+            }
+        }
+    }
+}
+
+/// The stop verdict a stopped job's EXR header states: [`StopVerdict::of_image`] of the
+/// frame's image, with the estimate read from the rows rather than a built image.
+fn verdict(resolved: &ResolvedJob, rows: &Rows, time_limit: bool) -> StopVerdict {
+    if let Rows::Image(img) = rows {
+        return StopVerdict::of_image(resolved, img, time_limit);
+    }
+    StopVerdict {
+        time_limit,
+        target: resolved.job.target_error,
+        estimate: tessera_image::rows::error_estimate(rows, resolved.error_estimator()),
+        spp: resolved.plan.spp(),
+        unbiased: resolved.job.adaptive == AdaptiveMode::Unbiased,
+    }
 }
 
 /// The frame's image layers.
@@ -495,6 +959,81 @@ fn frame_error(f: u32, frames: FrameRange) -> CoordError {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::service::CoordinatorConfig;
+    use tessera_api::JobSettings;
+
+    /// The bytes of an image response.
+    async fn body(b: ImageBody) -> Vec<u8> {
+        match b {
+            ImageBody::Whole(b) => b.to_vec(),
+            ImageBody::Stream { len, mut chunks } => {
+                let mut out = Vec::new();
+                while let Some(c) = chunks.recv().await {
+                    out.extend_from_slice(&c.unwrap());
+                }
+                assert_eq!(out.len() as u64, len);
+                out
+            }
+        }
+    }
+
+    /// Several concurrent EXR downloads of a large frame nothing was merged into (the
+    /// case that held 2.37 GB for one 8700x5800 EXR: the frame's layers, its channels
+    /// and the file were built whole) are encoded a block of rows at a time and streamed,
+    /// each reserving its working set in the memory budget: the budget's accounting never
+    /// exceeds it, requests that do not fit wait instead, and every download is the
+    /// whole-file encoding byte for byte.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn concurrent_exr_downloads_stay_inside_the_memory_budget() {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = CoordinatorConfig::new(dir.path());
+        let core = Coordinator::open(cfg).await.unwrap();
+        let mut job = JobSettings::new("builtin:cornell-box");
+        (job.width, job.height, job.spp) = (Some(1600), Some(1200), 4);
+        let (status, _) = core.submit(job, None).await.unwrap();
+        let id = status.id;
+        let q = ImageQuery {
+            format: ImageFormat::Exr,
+            frame: None,
+        };
+        let whole = body(core.image(id, q).await.unwrap()).await;
+        // From now on nothing is kept whole (or cached): every request streams.
+        {
+            let mut c = core.inner.images.lock().unwrap();
+            c.keep_whole = Some(0);
+            c.entries.clear();
+            c.bytes = 0;
+        }
+        let plan = {
+            let farm = core.lock().unwrap();
+            farm.runtime[&id].resolved.plan
+        };
+        let one = encode_bytes(&plan, true, Kind::Uniform, false);
+        // Room for two encodes at a time: six more requests must wait for room.
+        let budget = 2 * one + one / 2;
+        core.lock().unwrap().scheduler.set_memory_budget(budget);
+        let before = core.lock().unwrap().scheduler.memory_high_water();
+        let downloads: Vec<_> = (0..8)
+            .map(|_| {
+                let core = core.clone();
+                tokio::spawn(async move { body(core.image(id, q).await.unwrap()).await })
+            })
+            .collect();
+        for d in downloads {
+            assert!(
+                d.await.unwrap() == whole,
+                "a streamed EXR differs from the whole one"
+            );
+        }
+        let farm = core.lock().unwrap();
+        assert_eq!(farm.scheduler.transient_bytes(), 0, "a reservation leaked");
+        let high = farm.scheduler.memory_high_water().max(before);
+        assert!(high <= budget, "{high} > {budget}");
+        // The whole file of the old encoder held about 130 B per pixel at once, so the
+        // bound above is a real one: the frame's layers alone would not fit it.
+        let n = u64::from(plan.width) * u64::from(plan.height);
+        assert!(budget < n * 36, "{budget} vs {}", n * 36);
+    }
 
     #[test]
     fn running_previews_may_be_a_second_old_final_images_never() {

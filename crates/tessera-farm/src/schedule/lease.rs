@@ -67,6 +67,7 @@ impl Scheduler {
         if self.quarantined.contains(&worker) {
             return Vec::new();
         }
+        self.note_leasing(worker, alone);
         self.evict_finished_adaptive();
         let mut order: Vec<(i32, u64, JobId)> = self
             .jobs

@@ -4,6 +4,12 @@
 //! complete, checkpointed frame ([`Scheduler::release_frame`]), or when a finished
 //! adaptive job gives its frames back under pressure. A frame that does not fit waits;
 //! one frame is always allowed when nothing is resident, so no job waits forever.
+//!
+//! The same budget counts the transient memory of image encodes (the coordinator's
+//! `/image` downloads, [`Scheduler::reserve_transient`]): an encode reserves what it will
+//! hold before it holds it, and one that does not fit waits for another to finish. One
+//! encode is always allowed when no other runs, so a budget full of merge state cannot
+//! starve downloads: the coordinator then holds at most the budget plus one encode.
 
 use super::job::{FrameSlot, Job};
 use super::Scheduler;
@@ -17,6 +23,28 @@ use crate::plan::FramePlan;
 pub(super) struct Memory {
     pub(super) budget: u64,
     pub(super) resident: u64,
+    /// Reserved by running image encodes.
+    pub(super) transient: u64,
+    /// The largest `resident + transient` seen.
+    pub(super) high_water: u64,
+}
+
+impl Memory {
+    /// No budget, nothing held.
+    pub(super) fn unbounded() -> Self {
+        Self {
+            budget: u64::MAX,
+            resident: 0,
+            transient: 0,
+            high_water: 0,
+        }
+    }
+
+    fn note_high_water(&mut self) {
+        self.high_water = self
+            .high_water
+            .max(self.resident.saturating_add(self.transient));
+    }
 }
 
 /// Bytes of merge state one frame of `plan` holds in memory: a [`crate::PixelStats`] per
@@ -51,7 +79,10 @@ impl Job {
             Some(FrameSlot::Pending) => {}
             Some(FrameSlot::Released) | None => return false,
         }
-        if mem.resident.saturating_add(self.frame_bytes) > mem.budget && mem.resident > 0 {
+        // Encodes in progress count too (they end soon); a frame still goes when no
+        // merge state is resident, so no job waits forever.
+        let held = mem.resident.saturating_add(mem.transient);
+        if held.saturating_add(self.frame_bytes) > mem.budget && mem.resident > 0 {
             return false;
         }
         let frame = self.first_frame + k as u32;
@@ -64,6 +95,7 @@ impl Job {
         }
         self.frames[k] = FrameSlot::Live(Box::new(FrameAccumulator::for_frame(self.plan, frame)));
         mem.resident += self.frame_bytes;
+        mem.note_high_water();
         true
     }
 
@@ -89,6 +121,37 @@ impl Scheduler {
     /// Bytes of per-pixel merge state in memory, over all jobs.
     pub fn resident_bytes(&self) -> u64 {
         self.memory.resident
+    }
+
+    /// Reserves `bytes` of the budget for a transient image encode, if they fit beside the
+    /// merge state and the other encodes, or if no other encode holds a reservation (one
+    /// always proceeds); whether it was reserved. Give it back with
+    /// [`Scheduler::release_transient`].
+    pub fn reserve_transient(&mut self, bytes: u64) -> bool {
+        let m = &mut self.memory;
+        let held = m.resident.saturating_add(m.transient);
+        if m.transient > 0 && held.saturating_add(bytes) > m.budget {
+            return false;
+        }
+        m.transient = m.transient.saturating_add(bytes);
+        m.note_high_water();
+        true
+    }
+
+    /// Gives back a reservation of [`Scheduler::reserve_transient`].
+    pub fn release_transient(&mut self, bytes: u64) {
+        self.memory.transient = self.memory.transient.saturating_sub(bytes);
+    }
+
+    /// Bytes reserved by running image encodes.
+    pub fn transient_bytes(&self) -> u64 {
+        self.memory.transient
+    }
+
+    /// The most memory the budget has accounted for at once since the start: merge state
+    /// plus image encodes.
+    pub fn memory_high_water(&self) -> u64 {
+        self.memory.high_water
     }
 
     /// Drops a complete frame's merge state from memory, once the caller has made its

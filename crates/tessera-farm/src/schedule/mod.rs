@@ -196,6 +196,8 @@ pub struct Scheduler {
     quarantined: BTreeSet<WorkerId>,
     /// What spot checks found since the last [`Scheduler::take_spot_events`].
     spot_events: Vec<SpotEvent>,
+    /// Each worker's spot-check record, for its check rate ([`crate::spot::worker_check_rate`]).
+    records: BTreeMap<WorkerId, spot::WorkerRecord>,
 }
 
 impl Scheduler {
@@ -209,16 +211,14 @@ impl Scheduler {
             leases: BTreeMap::new(),
             next_expiry_ms: u64::MAX,
             lapsed: BTreeMap::new(),
-            memory: Memory {
-                budget: u64::MAX,
-                resident: 0,
-            },
+            memory: Memory::unbounded(),
             next_lease_id: first_lease_id + 1,
             next_seq: 0,
             previous_run_max_lease: first_lease_id,
             spot_fraction: 0.0,
             quarantined: BTreeSet::new(),
             spot_events: Vec::new(),
+            records: BTreeMap::new(),
         }
     }
 

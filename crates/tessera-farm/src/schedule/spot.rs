@@ -5,16 +5,31 @@
 //! quarantine revokes the worker's leases and drops every tile of a live frame it merged
 //! a unit into on its word alone, so the tile is merged again from other workers' copies.
 //!
-//! Which units are checked ([`crate::is_spot_checked`]) and what is reported
-//! ([`SpotEvent`]) are the leaf module [`crate::spot`].
+//! Which units are checked ([`crate::is_spot_checked`], [`crate::spot::worker_selects`],
+//! [`crate::spot::unit_is_outlier`]) and what is reported ([`SpotEvent`]) are the leaf
+//! module [`crate::spot`]; each worker's record of matching checks, which sets its check
+//! rate, is kept here ([`WorkerRecord`]).
 
 use super::job::{FrameSlot, Job};
 use super::{Scheduler, SubmitError, Submitted};
 use crate::ids::{JobId, WorkerId};
 use crate::merge::Offer;
+use crate::plan::WorkUnit;
 use crate::result::UnitResult;
-use crate::spot::{is_spot_checked, SpotEvent, SpotOutcome};
+use crate::spot::{is_spot_checked, unit_is_outlier, worker_selects, SpotEvent, SpotOutcome};
 use std::collections::BTreeSet;
+
+/// A worker's spot-check record: its copies that matched another worker's, which set the
+/// rate its units are checked at ([`crate::spot::worker_check_rate`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct WorkerRecord {
+    /// Checks its copy passed: another worker's copy had the same digest.
+    pub(super) verified: u64,
+    /// It leased last as the only worker sharing the queue: no one could verify its
+    /// copies, so they are not all checked (a farm of one worker renders each unit once;
+    /// the job-wide sample still re-renders some on the worker itself).
+    pub(super) alone: bool,
+}
 
 /// Copies of one spot-checked unit that are waiting for agreement, grouped by digest.
 #[derive(Debug, Default)]
@@ -234,6 +249,59 @@ impl Scheduler {
         self.spot_fraction
     }
 
+    /// Checks `worker` has passed (its copy matched another worker's): what its units'
+    /// check rate is set by ([`crate::spot::worker_check_rate`]). 0 for a worker never seen.
+    pub fn verified_checks(&self, worker: WorkerId) -> u64 {
+        self.records.get(&worker).map_or(0, |r| r.verified)
+    }
+
+    /// Notes how `worker` leases: alone (the only worker sharing the queue) or not.
+    pub(super) fn note_leasing(&mut self, worker: WorkerId, alone: bool) {
+        self.records.entry(worker).or_default().alone = alone;
+    }
+
+    /// Whether `worker`'s copy of unit `i` of `job_id` (a live frame `frame`), not merged
+    /// yet, is held for a comparison with another worker's: a unit with copies held
+    /// already, one of the job-wide sample ([`is_spot_checked`]), one of the worker's
+    /// own schedule ([`worker_selects`], not for a worker alone), or a statistical outlier
+    /// against its tile ([`unit_is_outlier`], not for adaptive jobs, whose passes are not
+    /// independent of the decision to render them). Spot checks disabled (fraction 0):
+    /// none.
+    pub(super) fn wants_check(
+        &self,
+        worker: WorkerId,
+        job_id: JobId,
+        i: u64,
+        frame: usize,
+        result: &UnitResult,
+    ) -> bool {
+        let f = self.spot_fraction;
+        let Some(job) = self.jobs.get(&job_id) else {
+            return false;
+        };
+        if f <= 0.0 || job.done.contains(&i) {
+            return false;
+        }
+        let unit: &WorkUnit = &result.unit;
+        if job.checks.contains_key(&i) || is_spot_checked(f, job_id, unit) {
+            return true;
+        }
+        let by_record = worker != WorkerId::MAX
+            && self
+                .records
+                .get(&worker)
+                .is_some_and(|r| !r.alone && worker_selects(r.verified, f, job_id, unit));
+        by_record
+            || (job.adaptive.is_none()
+                && match job.frames.get(frame) {
+                    Some(FrameSlot::Live(acc)) => acc
+                        .tiles()
+                        .get(unit.tile as usize)
+                        .is_some_and(|t| unit_is_outlier(t.pixels(), &result.pass_means)),
+                    _ => false,
+                })
+    }
+
     /// Whether `worker` is quarantined.
     pub fn is_quarantined(&self, worker: WorkerId) -> bool {
         self.quarantined.contains(&worker)
@@ -336,12 +404,15 @@ impl Scheduler {
     /// ([`SpotEvent::Reverified`]) are still compared. Its units the quarantine could not
     /// repair (in released frames or finished jobs, counted then in
     /// [`SpotEvent::Quarantined`]) are forgotten as its own, so a later quarantine of the
-    /// same worker neither counts them twice nor tries to repair what cannot be. Returns
+    /// same worker neither counts them twice nor tries to repair what cannot be. Its
+    /// check record starts again from nothing ([`crate::spot::BURN_IN_CHECKS`]). Returns
     /// false if it was not quarantined.
     pub fn lift_quarantine(&mut self, worker: WorkerId) -> bool {
         if !self.quarantined.remove(&worker) {
             return false;
         }
+        // Back on probation: all its units are checked again until it passes the burn-in.
+        self.records.remove(&worker);
         for job in self.jobs.values_mut() {
             job.unverified.retain(|_, (w, _)| *w != worker);
         }
@@ -368,6 +439,11 @@ impl Scheduler {
             .get_mut(&job_id)
             .ok_or(SubmitError::UnknownLease(lease_id))?;
         job.forget_lease(i, lease_id);
+        if !job.checks.contains_key(&i) && !is_spot_checked(self.spot_fraction, job_id, &unit) {
+            // Held by the worker's schedule or the outlier test: one more copy to render
+            // than the job-wide sample counted.
+            job.copies_total += 1;
+        }
         let check = job.checks.entry(i).or_default();
         let Some(fresh) = check.add(worker, lease_id, digest, result) else {
             return Ok(Submitted::Held);
@@ -436,6 +512,14 @@ impl Scheduler {
         if outcome == SpotOutcome::Alone {
             // Not verified by anyone else: repaired if its worker is found faulty later.
             job.unverified.insert(i, (agreed.workers[0], digest));
+        } else {
+            // Every worker whose copy is the agreed one passed a check.
+            let agreeing: BTreeSet<WorkerId> = agreed.workers.iter().copied().collect();
+            for w in agreeing {
+                if w != WorkerId::MAX {
+                    self.records.entry(w).or_default().verified += 1;
+                }
+            }
         }
         let reverified = job.reverified(job_id, i, agreed.digest);
         self.spot_events.push(SpotEvent::Checked {

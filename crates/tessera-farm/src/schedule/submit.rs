@@ -10,7 +10,6 @@ use crate::ids::{JobId, WorkerId};
 use crate::merge::{MergeError, Offer};
 use crate::plan::FramePlan;
 use crate::result::UnitResult;
-use crate::spot::is_spot_checked;
 
 /// `result` with the pixels outside the set its lease named set to 0, after checking it
 /// whole (a worker is still faulted for a NaN in a pixel it did not have to trace).
@@ -69,7 +68,6 @@ impl Scheduler {
         job_id: JobId,
         result: UnitResult,
     ) -> Result<Submitted, SubmitError> {
-        let spot_fraction = self.spot_fraction;
         let quarantined = self.quarantined.contains(&worker);
         let job = self
             .jobs
@@ -121,12 +119,17 @@ impl Scheduler {
             // It does not fit: the unit is leased again once it does.
             FrameSlot::Pending => return Err(SubmitError::NotResident(result.unit.frame)),
         }
-        let result = canonical_masked(result, wanted.as_ref(), &job.plan)?;
-        if !job.done.contains(&i) && is_spot_checked(spot_fraction, job_id, &result.unit) {
+        let plan = job.plan;
+        let result = canonical_masked(result, wanted.as_ref(), &plan)?;
+        if self.wants_check(worker, job_id, i, frame, &result) {
             // A live frame's accumulator has the job's plan.
-            result.validate(&job.plan).map_err(MergeError::from)?;
+            result.validate(&plan).map_err(MergeError::from)?;
             return self.hold_copy(worker, lease_id, job_id, i, result);
         }
+        let job = self
+            .jobs
+            .get_mut(&job_id)
+            .ok_or(SubmitError::UnknownLease(lease_id))?;
         let digest = result.digest();
         let outcome = job.offer(frame, result)?;
         // The unit is done: drop its lease (if the live lease is another worker's, that

@@ -56,6 +56,7 @@ fn quad(name: &str, y: f32, half: f32, material: u32) -> Mesh {
         uvs: vec![],
         tangents: None,
         indices: vec![[0, 1, 2], [0, 2, 3]],
+        colors: None,
         material,
     }
 }
@@ -97,6 +98,7 @@ pub fn pool() -> Scene {
             intensity: Vec3::splat(I as f32),
         }],
         environment: None,
+        environment_map: None,
         default_resolution: (24, 24),
         animated: false,
     }

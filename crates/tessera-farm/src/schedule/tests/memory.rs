@@ -229,3 +229,39 @@ fn finished_adaptive_jobs_make_room_for_waiting_ones() {
     assert_eq!(s.residency(1, 0), Some(Residency::Released));
     assert!(s.adaptive_frame(1, 0).is_none());
 }
+
+/// Image encodes share the budget with merge state: a reservation that does not fit
+/// beside the resident frames and the other encodes is refused (the caller waits), one
+/// encode always proceeds when no other runs, a live frame waits for room that encodes
+/// hold, and the high-water mark counts both.
+#[test]
+fn image_encodes_are_counted_in_the_memory_budget() {
+    let p = plan();
+    let frame = frame_state_bytes(&p, false);
+    let mut s = Scheduler::new(1000, 0);
+    s.set_memory_budget(2 * frame);
+    s.add_job(1, 0, p, 0..=1, 2);
+    assert!(!s.lease(1, 0, 1).is_empty());
+    assert_eq!(s.resident_bytes(), frame);
+    // Half a frame fits beside it, twice; a third does not.
+    assert!(s.reserve_transient(frame / 2));
+    assert!(s.reserve_transient(frame / 2));
+    assert!(!s.reserve_transient(frame / 2));
+    assert_eq!(s.transient_bytes(), frame);
+    assert_eq!(s.memory_high_water(), 2 * frame);
+    s.release_transient(frame / 2);
+    s.release_transient(frame / 2);
+    assert_eq!(s.transient_bytes(), 0);
+    // Alone, an encode larger than what is left still proceeds.
+    assert!(s.reserve_transient(3 * frame));
+    assert!(!s.reserve_transient(1));
+    s.release_transient(3 * frame);
+    // While encodes hold the room, the job's second frame waits for it.
+    assert!(s.reserve_transient(frame));
+    let leased: Vec<_> = s.lease(1, 0, 100);
+    assert!(
+        leased.iter().all(|l| l.unit.frame == 0),
+        "frame 1 went live"
+    );
+    s.release_transient(frame);
+}
