@@ -145,3 +145,38 @@ fn bad_arguments_are_reported_not_panicked() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_traversal_kernel_the_cpu_lacks_or_an_unknown_one_is_refused() {
+    let dir = temp_dir("cli", "isa");
+    let out = dir.join("x.exr");
+    let (ok, _, err) = output(
+        tessera()
+            .env("TESSERA_ISA", "avx1024")
+            .args(["render", "builtin:cornell-box", "--spp", "1", "-o"])
+            .arg(&out),
+    );
+    assert!(!ok);
+    assert!(err.contains("TESSERA_ISA=avx1024: unknown"), "{err}");
+    assert!(!out.exists());
+    // The scalar kernel exists on every CPU, and gives the same image as the default.
+    let (a, b) = (dir.join("a.exr"), dir.join("b.exr"));
+    render(&a, &[]);
+    output_ok(
+        tessera()
+            .env("TESSERA_ISA", "scalar")
+            .args([
+                "render",
+                "builtin:cornell-box",
+                "--width",
+                "64",
+                "--height",
+                "48",
+                "--spp",
+                "16",
+                "-o",
+            ])
+            .arg(&b),
+    );
+    assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+}

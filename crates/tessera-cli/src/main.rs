@@ -108,6 +108,19 @@ enum BenchCommand {
 
 fn main() {
     let cli = Cli::parse();
+    // The commands that trace rays check `TESSERA_ISA` (the traversal kernel,
+    // docs/ARCHITECTURE.md §2) before anything else: a kernel this CPU lacks, or a name
+    // that is none, is refused with the reason, never silently replaced.
+    let traces = !matches!(
+        cli.command,
+        Command::Submit(_) | Command::Status(_) | Command::Store(_) | Command::Coordinator(_)
+    );
+    if traces {
+        if let Err(e) = tessera_render::geometry::Isa::from_env() {
+            eprintln!("error: {e}");
+            std::process::exit(1);
+        }
+    }
     let result = match cli.command {
         Command::Render(args) => contained("rendering", || render::render(args)),
         Command::Bench(mut args) => match args.what.take() {

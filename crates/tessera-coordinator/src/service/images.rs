@@ -82,6 +82,15 @@ pub enum ImageBody {
     },
 }
 
+impl std::fmt::Debug for ImageBody {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ImageBody::Whole(bytes) => write!(f, "ImageBody::Whole({} bytes)", bytes.len()),
+            ImageBody::Stream { len, .. } => write!(f, "ImageBody::Stream({len} bytes)"),
+        }
+    }
+}
+
 /// The merged state of a frame as a request sees it.
 enum Source<'a> {
     /// A job the render plan found nothing to trace in: exactly black, all passes done.
@@ -831,6 +840,7 @@ fn verdict(resolved: &ResolvedJob, rows: &Rows, time_limit: bool) -> StopVerdict
         estimate: tessera_image::rows::error_estimate(rows, resolved.error_estimator()),
         spp: resolved.plan.spp(),
         unbiased: resolved.job.adaptive == AdaptiveMode::Unbiased,
+        unsampled: StopVerdict::unsampled_of(resolved),
     }
 }
 

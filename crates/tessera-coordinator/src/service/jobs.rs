@@ -516,12 +516,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             estimate: error,
             spp: plan.spp(),
             unbiased: rt.job().adaptive == tessera_farm::AdaptiveMode::Unbiased,
-            unsampled: !rt.resolved.black
-                && rt
-                    .resolved
-                    .render_plan
-                    .unsampled(rt.resolved.config.integrator)
-                    .is_some(),
+            unsampled: StopVerdict::unsampled_of(&rt.resolved),
         }),
         _ => None,
     };

@@ -149,8 +149,14 @@ impl StopVerdict {
             estimate: image.error_estimate(job.error_estimator()),
             spp: job.plan.spp(),
             unbiased: job.job.adaptive == crate::AdaptiveMode::Unbiased,
-            unsampled: !job.black && job.render_plan.unsampled(job.config.integrator).is_some(),
+            unsampled: Self::unsampled_of(job),
         }
+    }
+
+    /// Whether `job`'s integrator cannot sample a light path class its scene has (the
+    /// [`StopVerdict::unsampled`] of any verdict on it).
+    pub fn unsampled_of(job: &ResolvedJob) -> bool {
+        !job.black && job.render_plan.unsampled(job.config.integrator).is_some()
     }
 
     /// Whether a stored error estimate caveat marks a job whose integrator cannot sample a
