@@ -104,7 +104,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
             }
         }
     }
-    assert_eq!(compared, 24);
+    assert_eq!(compared, 30);
     let _ = std::fs::remove_dir_all(&dir);
 }
 

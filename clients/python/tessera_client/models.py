@@ -19,7 +19,7 @@ FINAL_STATES = ("done", "failed", "canceled")
 #: ``JobSettings.adaptive`` values.
 ADAPTIVE_MODES = ("off", "sequential", "unbiased")
 #: ``JobSettings.integrator`` values.
-INTEGRATORS = ("auto", "path", "direct", "bdpt")
+INTEGRATORS = ("auto", "path", "direct", "bdpt", "vcm")
 #: ``JobSettings.sampler`` values.
 SAMPLERS = ("sobol", "independent")
 #: ``Error.error.code`` values.
@@ -31,6 +31,7 @@ ERROR_CODES = (
     "not_found",
     "conflict",
     "too_large",
+    "insufficient_storage",
     "request_timeout",
     "internal",
     "unavailable",
@@ -85,6 +86,9 @@ class JobSettings:
     time_limit_seconds: Optional[float] = None
     tile_size: int = 32
     name: Optional[str] = None
+    #: ``{"source": "R,G,B" or an uploaded image's hash, "strength", "rotation_degrees"}``;
+    #: the coordinator refuses it until workers render environments (docs/api.md).
+    environment: Optional[Dict[str, Any]] = None
 
     def to_json(self) -> Dict[str, Any]:
         """The request body: every field that is set."""

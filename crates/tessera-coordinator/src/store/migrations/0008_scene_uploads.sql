@@ -1,4 +1,4 @@
--- Tessera store, schema version 7: who uploaded each scene and when it was last
+-- Tessera store, schema version 8: who uploaded each scene and when it was last
 -- uploaded, for the scene quotas (the bytes one API token's uploads hold) and the
 -- retention of unreferenced scenes (docs/store.md, "Scene storage"). Kept beside
 -- `scenes` rather than in it, so the scene rows stay as they were. One row per scene
