@@ -1,7 +1,7 @@
 //! Scene storage accounting and removal (docs/store.md, "Scene storage"): how many bytes
 //! the stored scenes hold (in all, and per uploader), who uploaded a scene and when, which
 //! jobs still need a scene, and deleting one. Kept apart from the scene rows' own
-//! statements (`sql.rs`): these read the `size` column and the `scene_uploads` table
+//! statements (`sql/`): these read the `size` column and the `scene_uploads` table
 //! (schema 7; PostgreSQL 6), never a scene's bytes.
 
 use tessera_farm::JobId;

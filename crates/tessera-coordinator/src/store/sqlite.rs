@@ -59,7 +59,7 @@ const READ_CONNECTIONS: u32 = 4;
 /// `BEGIN IMMEDIATE`; reads use a small pool of `query_only` connections and proceed
 /// concurrently with writes. One coordinator process per data directory.
 ///
-/// The statements are the shared SQL layer's (`store/sql.rs`), as for
+/// The statements are the shared SQL layer's (`store/sql/`), as for
 /// [`PostgresStore`](super::PostgresStore).
 ///
 /// Cloning is cheap and shares the connections.
