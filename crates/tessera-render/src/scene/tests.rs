@@ -1,0 +1,167 @@
+use super::*;
+use tessera_scene::{GltfMaterial, Mesh, NormalMap, Texels, Wrap};
+
+/// A unit quad facing +Z whose material reads `textures[k]` (1x1 images) in every
+/// slot, and the surface point at its centre.
+fn one_texel_scene(texels: &[[u8; 4]], material: GltfMaterial) -> (RenderScene, SurfacePoint) {
+    let mut scene = tessera_scene::builtin::cornell_box();
+    scene.meshes = vec![Mesh {
+        name: "quad".into(),
+        positions: vec![
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        ],
+        normals: None,
+        uvs: vec![vec![Vec2::ZERO, Vec2::X, Vec2::ONE, Vec2::Y]],
+        colors: None,
+        tangents: Some(vec![[Vec4::new(1.0, 0.0, 0.0, 1.0); 3]; 2]),
+        indices: vec![[0, 1, 2], [0, 2, 3]],
+        material: 0,
+    }];
+    scene.spheres.clear();
+    scene.materials = vec![Material::gltf("all slots", material)];
+    scene.images = texels
+        .iter()
+        .map(|t| Image {
+            width: 1,
+            height: 1,
+            texels: Texels::Rgba8(vec![*t]),
+        })
+        .collect();
+    scene.textures = (0..texels.len() as u32)
+        .map(|image| Texture {
+            image,
+            wrap_s: Wrap::Repeat,
+            wrap_t: Wrap::Repeat,
+            nearest: false,
+        })
+        .collect();
+    scene.validate().unwrap();
+    let rs = RenderScene::build(&scene, 4, 4).unwrap();
+    let origin = Vec3::new(0.6, 0.3, 1.0);
+    let hit = rs.intersect(origin, -Vec3::Z, f32::INFINITY).unwrap();
+    let sp = rs.surface(&hit, origin, -Vec3::Z);
+    (rs, sp)
+}
+
+#[test]
+fn every_texture_slot_scales_its_factor_by_its_channel() {
+    // Texture k holds distinct channel values; each slot must read the channel the
+    // glTF spec or its extension names, linear or sRGB as the slot is.
+    let texels = [
+        [188, 128, 64, 255], // 0: colour (sRGB)
+        [10, 51, 204, 255],  // 1: metallic-roughness: G roughness 0.2, B metal 0.8
+        [0, 0, 0, 102],      // 2: specular: A 0.4
+        [153, 0, 0, 255],    // 3: transmission / clearcoat: R 0.6
+        [0, 77, 0, 255],     // 4: clearcoat roughness: G 0.302
+        [0, 0, 0, 51],       // 5: sheen roughness: A 0.2
+    ];
+    let r = |t| Some(TextureRef::new(t));
+    let m = GltfMaterial {
+        base_color: Vec3::splat(0.5),
+        base_color_texture: r(0),
+        metallic: 0.5,
+        roughness: 0.5,
+        metallic_roughness_texture: r(1),
+        specular: 0.5,
+        specular_texture: r(2),
+        specular_color: Vec3::ONE,
+        specular_color_texture: r(0),
+        transmission: 0.5,
+        transmission_texture: r(3),
+        clearcoat: 0.5,
+        clearcoat_texture: r(3),
+        clearcoat_roughness: 0.5,
+        clearcoat_roughness_texture: r(4),
+        sheen_color: Vec3::splat(0.5),
+        sheen_color_texture: r(0),
+        sheen_roughness: 0.5,
+        sheen_roughness_texture: r(5),
+        ..GltfMaterial::default()
+    };
+    let (rs, sp) = one_texel_scene(&texels, m.clone());
+    let p = rs.gltf_params(&m, &sp);
+    let srgb = |v: u8| tessera_scene::material::srgb_to_linear(v as f64 / 255.0) as f32;
+    let colour = Vec3::new(srgb(188), srgb(128), srgb(64));
+    let close = |a: f32, b: f32| (a - b).abs() < 1e-5;
+    let close3 = |a: Vec3, b: Vec3| (a - b).abs().max_element() < 1e-5;
+    assert!(close3(p.base_color, 0.5 * colour), "{:?}", p.base_color);
+    assert!(close(p.metallic, 0.5 * 204.0 / 255.0), "{}", p.metallic);
+    assert!(close(p.roughness, 0.5 * 51.0 / 255.0), "{}", p.roughness);
+    assert!(close(p.specular, 0.5 * 102.0 / 255.0), "{}", p.specular);
+    assert!(close3(p.specular_color, colour));
+    assert!(close(p.transmission, 0.5 * 153.0 / 255.0));
+    assert!(close(p.clearcoat, 0.5 * 153.0 / 255.0));
+    assert!(close(p.clearcoat_roughness, 0.5 * 77.0 / 255.0));
+    assert!(close3(p.sheen_color, 0.5 * colour));
+    assert!(close(p.sheen_roughness, 0.5 * 51.0 / 255.0));
+    // Without textures the factors pass through unchanged.
+    let plain = GltfMaterial {
+        base_color: Vec3::splat(0.5),
+        ..GltfMaterial::default()
+    };
+    let q = rs.gltf_params(&plain, &sp);
+    assert_eq!(
+        (q.base_color, q.metallic, q.roughness),
+        (Vec3::splat(0.5), 1.0, 1.0)
+    );
+}
+
+#[test]
+fn the_normal_slot_is_linear_tangent_space() {
+    // A flat normal texel (128, 128, 255) leaves the normal (up to 8-bit rounding);
+    // (255, 128, 128) tilts it fully toward the tangent (+X). Read as sRGB, 128 would
+    // decode to 0.22 and tilt the flat texel by over 50 degrees.
+    let with = |_texture: u32| GltfMaterial {
+        normal_map: Some(NormalMap {
+            texture: TextureRef::new(0),
+            scale: 1.0,
+        }),
+        ..GltfMaterial::default()
+    };
+    let (_, sp) = one_texel_scene(&[[128, 128, 255, 255]], with(0));
+    assert!((sp.ns - Vec3::Z).length() < 1e-2, "{}", sp.ns);
+    let (_, sp) = one_texel_scene(&[[255, 128, 128, 255]], with(0));
+    assert!(sp.ns.x > 0.99, "{}", sp.ns);
+}
+
+/// The bent normal faces the view, from either side, by the threshold; normals that
+/// already do are left alone, and the turn stays in the plane of `n` and `ng`.
+#[test]
+fn bent_normals_face_every_view() {
+    let mut rng = crate::chi2::SplitMix64::new(0xbe47);
+    let mut unit = || {
+        crate::sampling::warp::square_to_uniform_sphere(Vec2::new(rng.next_f32(), rng.next_f32()))
+    };
+    let mut bent = 0;
+    for _ in 0..20_000 {
+        let ng = unit();
+        let (v, n) = (unit(), unit());
+        // A shading normal on the geometric normal's side, as the importer makes them.
+        let n = if n.dot(ng) < 0.0 { -n } else { n };
+        let side = if v.dot(ng) < 0.0 { -1.0 } else { 1.0 };
+        let out = view_facing_normal(ng, v, n);
+        assert!((out.length() - 1.0).abs() < 1e-4, "{out}");
+        let threshold = (0.9 * v.dot(ng) * side).min(0.01);
+        assert!(
+            out.dot(v) * side >= threshold - 1e-4 && out.dot(ng) > 0.0,
+            "ng {ng} v {v} n {n}: {out}"
+        );
+        if n.dot(v) * side >= threshold {
+            assert_eq!(out, n);
+        } else {
+            bent += 1;
+            assert!(
+                out.dot(n.cross(ng)).abs() < 1e-3,
+                "ng {ng} v {v} n {n}: {out}"
+            );
+            assert!(
+                out.dot(ng) >= n.dot(ng) - 1e-4,
+                "ng {ng} v {v} n {n}: {out}"
+            );
+        }
+    }
+    assert!(bent > 1000, "{bent}");
+}
