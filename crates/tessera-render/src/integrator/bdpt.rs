@@ -69,7 +69,7 @@
 //! Limits: subpaths have at most [`MAX_BDPT_DEPTH`] bounces (fixed-size vertex arrays on the
 //! stack: nothing is allocated per sample); deeper `max_depth` settings are clamped.
 
-use super::{accumulate, MisHeuristic, SampleStream};
+use super::{render_whole_frame, MisHeuristic, SampleStream, WholeFrame};
 use crate::bsdf::diffuse::Diffuse;
 use crate::bsdf::{Bsdf, Lobe};
 use crate::camera::CameraModel;
@@ -1028,93 +1028,65 @@ pub fn render_unit(
     unit: WorkUnit,
     wanted: impl Fn(usize, u32) -> bool,
 ) -> UnitResult {
-    let mut ctx = Ctx {
-        scene,
-        world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
-        time: 0.0,
-        camera: scene.camera,
-    };
-    let motion = scene.has_motion();
-    let rect = plan.tile(unit.tile);
-    let (tw, th) = (rect.width, rect.height);
-    let pixels = rect.pixel_count();
-    let spp = plan.samples_per_pass;
-    let lens = scene.camera.has_lens();
-    let light_seed = stream.seed ^ LIGHT_STREAM;
     let empty = Vertex::empty();
-    let mut scratch = Box::new(Scratch {
-        light: [empty; MAX_VERTICES],
-        cam: [empty; MAX_VERTICES],
-    });
-    let Scratch { light, cam } = &mut *scratch;
-    let mut sum = vec![[0.0f64; 3]; pixels];
-    let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
-    let mut rejected_samples = 0u64;
-    let kind = stream.sampler;
-    for pass in unit.first_pass..unit.first_pass + unit.pass_count {
-        sum.fill([0.0; 3]);
-        // Index within the tile of pixel (x, y), if it is in the tile.
-        let in_tile = |x: u32, y: u32| {
-            (x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th)
-                .then(|| ((y - rect.y0) * tw + (x - rect.x0)) as usize)
-        };
-        for y in 0..plan.height {
-            for x in 0..plan.width {
-                let pixel = y * plan.width + x;
-                let inside = in_tile(x, y);
-                let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
-                // A pixel the adaptive policy no longer wants traces no camera subpath (nor
-                // its connections, the bulk of the cost), but its light subpath still runs:
-                // its splats land on other pixels, which must get the same values as in a
-                // render of every pixel.
-                let traced = inside.filter(|&j| wanted(j, pass));
-                let mut cs =
-                    traced.map(|_| PixelSampler::new(kind, stream.seed, unit.frame, pixel, pass));
-                for i in 0..spp {
-                    ls.start_sample(i);
-                    if motion {
-                        // The sample's time, from the light stream's first dimension: every
-                        // pixel draws it, inside the tile or not, so the splats agree.
-                        ctx.time = ls.next_1d();
-                        ctx.camera = scene.camera_at(ctx.time);
-                    }
-                    let n_light = light_subpath(&ctx, st, light, &mut ls);
-                    let mut camera_l = Vec3::ZERO;
-                    if let Some(cs) = cs.as_mut() {
-                        cs.start_sample(i);
-                        let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
-                        let lens_u = if lens { cs.next_2d() } else { Vec2::ZERO };
-                        let n_cam = camera_subpath(&ctx, st, film, lens_u, cam, cs);
-                        camera_l = camera_techniques(&ctx, st, light, cam, n_light, n_cam, cs);
-                    }
-                    // Splats first, then the pixel's own estimate: a fixed order.
-                    splat_light_paths(&ctx, st, light, cam, n_light, &mut ls, &mut |r, l| {
-                        let px = (r.x as u32).min(plan.width - 1);
-                        let py = (r.y as u32).min(plan.height - 1);
-                        if let Some(j) = in_tile(px, py) {
-                            accumulate(&mut sum[j], l, &mut rejected_samples);
-                        }
-                    });
-                    if let Some(j) = traced {
-                        accumulate(&mut sum[j], camera_l, &mut rejected_samples);
-                    }
-                }
-            }
+    let mut technique = Bdpt {
+        ctx: Ctx {
+            scene,
+            world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
+            time: 0.0,
+            camera: scene.camera,
+        },
+        st,
+        motion: scene.has_motion(),
+        lens: scene.camera.has_lens(),
+        scratch: Box::new(Scratch {
+            light: [empty; MAX_VERTICES],
+            cam: [empty; MAX_VERTICES],
+        }),
+    };
+    let light_seed = stream.seed ^ LIGHT_STREAM;
+    render_whole_frame(&mut technique, light_seed, stream, plan, unit, wanted)
+}
+
+/// One unit's bidirectional path tracer: the scene data, the settings and the scratch
+/// subpaths, for [`render_whole_frame`].
+struct Bdpt<'a> {
+    ctx: Ctx<'a>,
+    st: &'a BdptSettings,
+    motion: bool,
+    lens: bool,
+    scratch: Box<Scratch>,
+}
+
+impl WholeFrame for Bdpt<'_> {
+    fn begin_pass(&mut self, _pass: u32) {}
+
+    fn sample(
+        &mut self,
+        x: u32,
+        y: u32,
+        ls: &mut PixelSampler,
+        cs: Option<&mut PixelSampler>,
+        splat: &mut impl FnMut(Vec2, Vec3),
+    ) -> Vec3 {
+        let (ctx, st) = (&mut self.ctx, self.st);
+        let Scratch { light, cam } = &mut *self.scratch;
+        if self.motion {
+            // The sample's time, from the light stream's first dimension: every pixel
+            // draws it, inside the tile or not, so the splats agree.
+            ctx.time = ls.next_1d();
+            ctx.camera = ctx.scene.camera_at(ctx.time);
         }
-        let inv = 1.0 / spp as f64;
-        pass_means.extend(sum.iter().map(|s| {
-            [
-                (s[0] * inv) as f32,
-                (s[1] * inv) as f32,
-                (s[2] * inv) as f32,
-            ]
-        }));
-    }
-    UnitResult {
-        unit,
-        width: tw,
-        height: th,
-        pass_means,
-        rejected_samples,
+        let n_light = light_subpath(ctx, st, light, ls);
+        let mut camera_l = Vec3::ZERO;
+        if let Some(cs) = cs {
+            let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
+            let lens_u = if self.lens { cs.next_2d() } else { Vec2::ZERO };
+            let n_cam = camera_subpath(ctx, st, film, lens_u, cam, cs);
+            camera_l = camera_techniques(ctx, st, light, cam, n_light, n_cam, cs);
+        }
+        // Splats first, then the pixel's own estimate: a fixed order.
+        splat_light_paths(ctx, st, light, cam, n_light, ls, splat);
+        camera_l
     }
 }

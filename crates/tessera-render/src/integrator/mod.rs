@@ -248,6 +248,105 @@ fn render_camera_samples(
     }
 }
 
+/// A technique whose light subpaths splat onto any pixel of the frame (bdpt, vcm): it
+/// renders whole-frame units through [`render_whole_frame`], which owns the pixel and
+/// sample loops and the order of the sums.
+pub(crate) trait WholeFrame {
+    /// Prepares pass `pass` before its first pixel (vcm builds the pass's photon map).
+    fn begin_pass(&mut self, pass: u32);
+
+    /// One sample of pixel `(x, y)`: the light subpath from `ls` and, where the pixel is
+    /// traced, the camera subpath from `cs` (both samplers already started at the sample).
+    /// Light-tracing contributions go to `splat(raster position, radiance)` in the order
+    /// they are made; returns the camera subpath's estimate (zero without `cs`).
+    fn sample(
+        &mut self,
+        x: u32,
+        y: u32,
+        ls: &mut PixelSampler,
+        cs: Option<&mut PixelSampler>,
+        splat: &mut impl FnMut(Vec2, Vec3),
+    ) -> Vec3;
+}
+
+/// The sample loop of whole-frame techniques (docs in [`bdpt`]'s module): for each pass,
+/// every pixel of the frame row-major traces `spp` light subpaths from the stream
+/// `light_seed`; tile pixels where `wanted(i, pass)` holds also trace camera subpaths.
+/// A sample's splats that land in the tile are summed first, then its camera estimate, in
+/// `f64`: that order is part of the determinism contract. Invalid contributions are
+/// dropped and counted in `rejected_samples`. An unwanted pixel's pass mean holds only the
+/// splats that landed in it.
+pub(crate) fn render_whole_frame(
+    technique: &mut impl WholeFrame,
+    light_seed: u64,
+    stream: SampleStream,
+    plan: &FramePlan,
+    unit: WorkUnit,
+    wanted: impl Fn(usize, u32) -> bool,
+) -> UnitResult {
+    let rect = plan.tile(unit.tile);
+    let (tw, th) = (rect.width, rect.height);
+    let pixels = rect.pixel_count();
+    let spp = plan.samples_per_pass;
+    let kind = stream.sampler;
+    let mut sum = vec![[0.0f64; 3]; pixels];
+    let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
+    let mut rejected_samples = 0u64;
+    // Index within the tile of pixel (x, y), if it is in the tile.
+    let in_tile = |x: u32, y: u32| {
+        (x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th)
+            .then(|| ((y - rect.y0) * tw + (x - rect.x0)) as usize)
+    };
+    for pass in unit.first_pass..unit.first_pass + unit.pass_count {
+        technique.begin_pass(pass);
+        sum.fill([0.0; 3]);
+        for y in 0..plan.height {
+            for x in 0..plan.width {
+                let pixel = y * plan.width + x;
+                let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
+                // A pixel the adaptive policy no longer wants traces no camera subpath (nor
+                // its connections, the bulk of the cost), but its light subpath still runs:
+                // its splats land on other pixels, which must get the same values as in a
+                // render of every pixel.
+                let traced = in_tile(x, y).filter(|&j| wanted(j, pass));
+                let mut cs =
+                    traced.map(|_| PixelSampler::new(kind, stream.seed, unit.frame, pixel, pass));
+                for i in 0..spp {
+                    ls.start_sample(i);
+                    if let Some(cs) = cs.as_mut() {
+                        cs.start_sample(i);
+                    }
+                    let camera_l = technique.sample(x, y, &mut ls, cs.as_mut(), &mut |r, l| {
+                        let px = (r.x as u32).min(plan.width - 1);
+                        let py = (r.y as u32).min(plan.height - 1);
+                        if let Some(j) = in_tile(px, py) {
+                            accumulate(&mut sum[j], l, &mut rejected_samples);
+                        }
+                    });
+                    if let Some(j) = traced {
+                        accumulate(&mut sum[j], camera_l, &mut rejected_samples);
+                    }
+                }
+            }
+        }
+        let inv = 1.0 / spp as f64;
+        pass_means.extend(sum.iter().map(|s| {
+            [
+                (s[0] * inv) as f32,
+                (s[1] * inv) as f32,
+                (s[2] * inv) as f32,
+            ]
+        }));
+    }
+    UnitResult {
+        unit,
+        width: tw,
+        height: th,
+        pass_means,
+        rejected_samples,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

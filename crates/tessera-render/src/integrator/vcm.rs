@@ -66,7 +66,7 @@
 //! Russian roulette is left out of the MIS densities, as in bdpt: every path's weights
 //! still sum to one, so the connection techniques stay unbiased.
 
-use super::{accumulate, MisHeuristic, SampleStream};
+use super::{render_whole_frame, MisHeuristic, SampleStream, WholeFrame};
 use crate::bsdf::diffuse::Diffuse;
 use crate::bsdf::{Bsdf, Lobe};
 use crate::camera::CameraModel;
@@ -74,7 +74,7 @@ use crate::geometry::NO_LIGHT;
 use crate::light::emission::WorldDisk;
 use crate::math::offset_ray_origin;
 use crate::sampling::warp::Frame;
-use crate::sampling::PixelSampler;
+use crate::sampling::{PixelSampler, SamplerKind};
 use crate::scene::RenderScene;
 use glam::{Vec2, Vec3};
 use std::f32::consts::PI;
@@ -861,56 +861,86 @@ pub fn render_unit(
     unit: WorkUnit,
     wanted: impl Fn(usize, u32) -> bool,
 ) -> UnitResult {
-    let mut ctx = Ctx {
-        scene,
-        world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
-        time: 0.0,
-        camera: scene.camera,
-    };
-    let motion = scene.has_motion();
-    let rect = plan.tile(unit.tile);
-    let (tw, th) = (rect.width, rect.height);
-    let pixels = rect.pixel_count();
-    let spp = plan.samples_per_pass;
-    let lens = scene.camera.has_lens();
-    let light_seed = stream.seed ^ LIGHT_STREAM;
-    let kind = stream.sampler;
-    let light_paths = plan.width as u64 * plan.height as u64 * spp as u64;
+    let light_paths = plan.width as u64 * plan.height as u64 * plan.samples_per_pass as u64;
     let empty = PathVertex::empty();
-    let mut scratch = Box::new(Scratch {
-        light: [empty; MAX_LIGHT_VERTICES],
-        slot: empty,
-        cam: empty,
-        photons: Vec::new(),
-        grid: HashGrid::default(),
-    });
-    let Scratch {
-        light,
-        slot,
-        cam,
-        photons,
-        grid,
-    } = &mut *scratch;
-    let mut sum = vec![[0.0f64; 3]; pixels];
-    let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
-    let mut rejected_samples = 0u64;
-    let in_tile = |x: u32, y: u32| {
-        (x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th)
-            .then(|| ((y - rect.y0) * tw + (x - rect.x0)) as usize)
+    let mut technique = Vcm {
+        ctx: Ctx {
+            scene,
+            world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
+            time: 0.0,
+            camera: scene.camera,
+        },
+        st,
+        c: PassConst::new(st, unit.first_pass, light_paths),
+        light_paths,
+        light_seed: stream.seed ^ LIGHT_STREAM,
+        frame: unit.frame,
+        pixels: plan.width * plan.height,
+        spp: plan.samples_per_pass,
+        kind: stream.sampler,
+        motion: scene.has_motion(),
+        lens: scene.camera.has_lens(),
+        scratch: Box::new(Scratch {
+            light: [empty; MAX_LIGHT_VERTICES],
+            slot: empty,
+            cam: empty,
+            photons: Vec::new(),
+            grid: HashGrid::default(),
+        }),
     };
-    for pass in unit.first_pass..unit.first_pass + unit.pass_count {
-        let c = PassConst::new(st, pass, light_paths);
-        // 1. The pass's photon map, from every sample's light subpath in a fixed order.
-        photons.clear();
-        for pixel in 0..plan.width * plan.height {
-            let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
-            for i in 0..spp {
+    let light_seed = technique.light_seed;
+    render_whole_frame(&mut technique, light_seed, stream, plan, unit, wanted)
+}
+
+/// One unit's vertex connection and merging: the scene data, the settings, the pass's
+/// constants and photon map, and the scratch subpaths, for [`render_whole_frame`].
+struct Vcm<'a> {
+    ctx: Ctx<'a>,
+    st: &'a VcmSettings,
+    /// The current pass's constants (its radius and MIS factors).
+    c: PassConst,
+    /// Light subpaths per pass: one per sample of every pixel of the frame.
+    light_paths: u64,
+    light_seed: u64,
+    frame: u32,
+    /// Pixels of the frame.
+    pixels: u32,
+    spp: u32,
+    kind: SamplerKind,
+    motion: bool,
+    lens: bool,
+    scratch: Box<Scratch>,
+}
+
+impl Vcm<'_> {
+    /// The sample's time (motion blur), from the light stream's first dimension, as bdpt
+    /// draws it.
+    fn draw_time(&mut self, ls: &mut PixelSampler) {
+        if self.motion {
+            self.ctx.time = ls.next_1d();
+            self.ctx.camera = self.ctx.scene.camera_at(self.ctx.time);
+        }
+    }
+}
+
+impl WholeFrame for Vcm<'_> {
+    /// The pass's photon map, from every sample's light subpath in a fixed order.
+    fn begin_pass(&mut self, pass: u32) {
+        let st = self.st;
+        self.c = PassConst::new(st, pass, self.light_paths);
+        self.scratch.photons.clear();
+        for pixel in 0..self.pixels {
+            let mut ls = PixelSampler::new(self.kind, self.light_seed, self.frame, pixel, pass);
+            for i in 0..self.spp {
                 ls.start_sample(i);
-                if motion {
-                    ctx.time = ls.next_1d();
-                    ctx.camera = scene.camera_at(ctx.time);
-                }
-                let n = light_subpath(&ctx, st, &c, light, slot, &mut ls);
+                self.draw_time(&mut ls);
+                let Scratch {
+                    light,
+                    slot,
+                    photons,
+                    ..
+                } = &mut *self.scratch;
+                let n = light_subpath(&self.ctx, st, &self.c, light, slot, &mut ls);
                 photons.extend(light[..n].iter().map(|v| Photon {
                     p: v.p,
                     wo: v.wo,
@@ -921,72 +951,50 @@ pub fn render_unit(
                 }));
             }
         }
+        let Scratch { photons, grid, .. } = &mut *self.scratch;
         grid.build(photons, st.radius(pass));
-        // 2. Camera subpaths, connections to their own light subpath (traced again from
-        //    the same stream), merges, and light tracing.
-        sum.fill([0.0; 3]);
-        for y in 0..plan.height {
-            for x in 0..plan.width {
-                let pixel = y * plan.width + x;
-                let inside = in_tile(x, y);
-                let mut ls = PixelSampler::new(kind, light_seed, unit.frame, pixel, pass);
-                let traced = inside.filter(|&j| wanted(j, pass));
-                let mut cs =
-                    traced.map(|_| PixelSampler::new(kind, stream.seed, unit.frame, pixel, pass));
-                for i in 0..spp {
-                    ls.start_sample(i);
-                    if motion {
-                        ctx.time = ls.next_1d();
-                        ctx.camera = scene.camera_at(ctx.time);
-                    }
-                    let n_light = light_subpath(&ctx, st, &c, light, slot, &mut ls);
-                    let mut camera_l = Vec3::ZERO;
-                    if let Some(cs) = cs.as_mut() {
-                        cs.start_sample(i);
-                        let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
-                        let lens_u = if lens { cs.next_2d() } else { Vec2::ZERO };
-                        camera_l = camera_subpath(
-                            &ctx,
-                            st,
-                            &c,
-                            film,
-                            lens_u,
-                            &light[..n_light],
-                            photons,
-                            grid,
-                            cam,
-                            cs,
-                        );
-                    }
-                    // Splats first, then the pixel's own estimate: a fixed order.
-                    splat_light_vertices(&ctx, &c, &light[..n_light], &mut ls, &mut |r, l| {
-                        let px = (r.x as u32).min(plan.width - 1);
-                        let py = (r.y as u32).min(plan.height - 1);
-                        if let Some(j) = in_tile(px, py) {
-                            accumulate(&mut sum[j], l, &mut rejected_samples);
-                        }
-                    });
-                    if let Some(j) = traced {
-                        accumulate(&mut sum[j], camera_l, &mut rejected_samples);
-                    }
-                }
-            }
-        }
-        let inv = 1.0 / spp as f64;
-        pass_means.extend(sum.iter().map(|s| {
-            [
-                (s[0] * inv) as f32,
-                (s[1] * inv) as f32,
-                (s[2] * inv) as f32,
-            ]
-        }));
     }
-    UnitResult {
-        unit,
-        width: tw,
-        height: th,
-        pass_means,
-        rejected_samples,
+
+    /// Camera subpaths, connections to their own light subpath (traced again from the
+    /// same stream), merges, and light tracing.
+    fn sample(
+        &mut self,
+        x: u32,
+        y: u32,
+        ls: &mut PixelSampler,
+        cs: Option<&mut PixelSampler>,
+        splat: &mut impl FnMut(Vec2, Vec3),
+    ) -> Vec3 {
+        self.draw_time(ls);
+        let (ctx, st, c) = (&self.ctx, self.st, &self.c);
+        let Scratch {
+            light,
+            slot,
+            cam,
+            photons,
+            grid,
+        } = &mut *self.scratch;
+        let n_light = light_subpath(ctx, st, c, light, slot, ls);
+        let mut camera_l = Vec3::ZERO;
+        if let Some(cs) = cs {
+            let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
+            let lens_u = if self.lens { cs.next_2d() } else { Vec2::ZERO };
+            camera_l = camera_subpath(
+                ctx,
+                st,
+                c,
+                film,
+                lens_u,
+                &light[..n_light],
+                photons,
+                grid,
+                cam,
+                cs,
+            );
+        }
+        // Splats first, then the pixel's own estimate: a fixed order.
+        splat_light_vertices(ctx, c, &light[..n_light], ls, splat);
+        camera_l
     }
 }
 
