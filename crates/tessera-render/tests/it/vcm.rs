@@ -397,12 +397,12 @@ fn vcm_agrees_with_path_on_the_cornell_box() {
 }
 
 /// Progressive photon mapping on the Cornell box: all of its light, direct included, is
-/// merged, so the blur's loss at the box's edges and corners is in every pass: a 3%
-/// allowance for the bias (the first radius is 1.5 / 24 of the scene's bounding radius,
-/// the blur of the walls' corners at that scale).
+/// merged, so the blur's loss at the box's edges and corners is in every pass: a 2%
+/// allowance for the bias (measured: -0.46% ± 1.2% at 32 passes; the first radius is
+/// 1.5 / 24 of the scene's bounding radius).
 #[test]
 fn ppm_agrees_with_path_on_the_cornell_box() {
-    agrees_with_path_on_the_cornell_box(Integrator::Ppm, 0.03);
+    agrees_with_path_on_the_cornell_box(Integrator::Ppm, 0.02);
 }
 
 fn agrees_with_path_on_the_cornell_box(integrator: Integrator, bias: f64) {
@@ -574,6 +574,73 @@ fn vcm_efficiency_table() {
              256 spp), 1/(MSE s) {:.4e}",
             mse.max(0.0).sqrt() / truth,
             1.0 / (mse.max(1e-30) * secs)
+        );
+    }
+}
+
+/// CPU seconds (user + system) this process has used so far, from `/proc/self/stat`
+/// (clock ticks of 1/100 s): the pool goal is stated in CPU time, which the shared
+/// machine's load does not inflate as it does wall time.
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    // Fields after the command name (which is in parentheses): utime and stime are the
+    // 12th and 13th of them.
+    let rest = stat.rsplit_once(')').map(|r| r.1).unwrap_or("");
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let tick = |i: usize| f.get(i).and_then(|s| s.parse::<f64>().ok()).unwrap_or(0.0);
+    (tick(11) + tick(12)) / 100.0
+}
+
+/// The pool goal (docs/benchmarks.md, "The SDS pool in one minute"): the pool at 256 x 256,
+/// max depth 3 (the closed form's `L S D S E`), rendered by ppm and vcm on 2 threads for
+/// `TESSERA_POOL_PASSES` passes (default 16) of `TESSERA_POOL_SPP` samples (default 1):
+/// CPU seconds, the measured relative RMS error per pixel against the closed form (box
+/// filtered), the image mean against the closed form's, and the reported estimate
+/// (`tessera_farm::image_relative_error`, the pass spread) over the measured error.
+/// A measurement, not an assertion; run with `--ignored --nocapture`.
+#[test]
+#[ignore = "a measurement: the pool goal's figures"]
+fn pool_goal_measurement() {
+    let env = |k: &str, d: u32| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
+    let passes = env("TESSERA_POOL_PASSES", 16);
+    let spp = env("TESSERA_POOL_SPP", 1);
+    let (w, h) = (256, 256);
+    let rs = RenderScene::build(&pool(), w, h).unwrap();
+    let table = Table::new(floor_irradiance);
+    let exact = expected_blocks(&rs, w, h, 1, |r| table.at(r));
+    let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
+    let plan = FramePlan::new(w, h, w, spp, passes).unwrap();
+    let which = std::env::var("TESSERA_POOL_INTEGRATORS").unwrap_or("ppm,vcm".into());
+    for name in which.split(',') {
+        let integrator: Integrator = name.parse().unwrap();
+        let s = settings(integrator, 11, 3);
+        let c0 = cpu_seconds();
+        let acc = render_frame(&rs, &s, &plan, 0, 2, |_, _| {});
+        let cpu = cpu_seconds() - c0;
+        let img = acc.image();
+        let n = exact.len() as f64;
+        let mut rel2 = 0.0;
+        for (p, e) in img.mean.iter().zip(&exact) {
+            rel2 += ((lum(*p) - e) / e).powi(2);
+        }
+        let measured = (rel2 / n).sqrt();
+        let estimate = tessera_farm::image_relative_error(w as usize, h as usize, |x, y| {
+            let i = y * w as usize + x;
+            Some((lum(img.mean[i]), lum(img.variance_of_mean[i])))
+        });
+        let mean = img.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
+        let truth = exact.iter().sum::<f64>() / n;
+        eprintln!(
+            "pool 256x256 {integrator}: {passes} passes x {spp} spp, {cpu:.1} CPU s; measured \
+             rel. RMS error {measured:.4}, estimate {estimate:.4} (ratio {:.2}); image mean \
+             {:+.2}% off the closed form",
+            estimate / measured,
+            100.0 * (mean / truth - 1.0)
         );
     }
 }
