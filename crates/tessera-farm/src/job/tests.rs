@@ -580,7 +580,8 @@ fn no_pixel_stops_converged_while_a_class_is_unsampled() {
         s.integrator = "bdpt".into();
         s.adaptive = mode.into();
         s.target_error = Some(0.05);
-        s.spp = 64;
+        // 32 whole-frame passes of 16: room for the decisions and the unbiased pilot.
+        s.spp = 512;
         let job = s.validate().unwrap();
         let r = job.resolve(facts, pool_plan()).unwrap();
         assert!(StopVerdict::unsampled_of(&r), "{mode}");
