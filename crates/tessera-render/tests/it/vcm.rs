@@ -593,7 +593,9 @@ fn cpu_seconds() -> f64 {
 
 /// The pool goal (docs/benchmarks.md, "The SDS pool in one minute"): the pool at 256 x 256,
 /// max depth 3 (the closed form's `L S D S E`), rendered by ppm and vcm on 2 threads for
-/// `TESSERA_POOL_PASSES` passes (default 16) of `TESSERA_POOL_SPP` samples (default 1):
+/// `TESSERA_POOL_PASSES` passes (default 16) of `TESSERA_POOL_SPP` samples (default 1),
+/// the first radius scaled by `TESSERA_POOL_RADIUS` (default 1) and the schedule's α
+/// `TESSERA_POOL_ALPHA` (default [`tessera_render::integrator::vcm::RADIUS_ALPHA`]):
 /// CPU seconds, the measured relative RMS error per pixel against the closed form (box
 /// filtered), the image mean against the closed form's, and the reported estimate
 /// (`tessera_farm::image_relative_error`, the pass spread) over the measured error.
@@ -607,7 +609,18 @@ fn pool_goal_measurement() {
             .and_then(|v| v.parse().ok())
             .unwrap_or(d)
     };
+    let envf = |k: &str, d: f32| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
     let passes = env("TESSERA_POOL_PASSES", 16);
+    let radius_scale = envf("TESSERA_POOL_RADIUS", 1.0);
+    let alpha = envf(
+        "TESSERA_POOL_ALPHA",
+        tessera_render::integrator::vcm::RADIUS_ALPHA,
+    );
     let spp = env("TESSERA_POOL_SPP", 1);
     let (w, h) = (256, 256);
     let rs = RenderScene::build(&pool(), w, h).unwrap();
@@ -619,9 +632,36 @@ fn pool_goal_measurement() {
     for name in which.split(',') {
         let integrator: Integrator = name.parse().unwrap();
         let s = settings(integrator, 11, 3);
+        let mut st = merge_settings(integrator, &s, &rs, w, h);
+        st.radius_1 *= radius_scale;
+        st.alpha = alpha;
+        let stream = tessera_render::integrator::SampleStream::of(&s);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
         let c0 = cpu_seconds();
-        let acc = render_frame(&rs, &s, &plan, 0, 2, |_, _| {});
+        let results: Vec<_> = pool.install(|| {
+            use rayon::prelude::*;
+            plan.units(0, 1)
+                .par_iter()
+                .map(|u| {
+                    tessera_render::integrator::vcm::render_unit(
+                        &rs,
+                        &st,
+                        stream,
+                        &plan,
+                        *u,
+                        |_, _| true,
+                    )
+                })
+                .collect()
+        });
         let cpu = cpu_seconds() - c0;
+        let mut acc = tessera_farm::FrameAccumulator::new(plan);
+        for r in results {
+            acc.offer(r).unwrap();
+        }
         let img = acc.image();
         let n = exact.len() as f64;
         let mut rel2 = 0.0;
@@ -636,9 +676,12 @@ fn pool_goal_measurement() {
         let mean = img.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
         let truth = exact.iter().sum::<f64>() / n;
         eprintln!(
-            "pool 256x256 {integrator}: {passes} passes x {spp} spp, {cpu:.1} CPU s; measured \
+            "pool 256x256 {integrator} (r_1 {:.4}, alpha {}): {passes} passes x {spp} spp, \
+             {cpu:.1} CPU s; measured \
              rel. RMS error {measured:.4}, estimate {estimate:.4} (ratio {:.2}); image mean \
              {:+.2}% off the closed form",
+            st.radius_1,
+            st.alpha,
             estimate / measured,
             100.0 * (mean / truth - 1.0)
         );
