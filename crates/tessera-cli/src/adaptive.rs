@@ -36,7 +36,9 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
     let plan = p.resolved.plan;
     // Without an adaptive mode the policy only measures the whole image's error between
     // rounds, for --target-error and --time-limit.
-    let settings = job.adaptive_settings().unwrap_or(AdaptiveSettings {
+    // The resolved job's settings: no pixel stops early where a light path class is
+    // unsampled.
+    let settings = p.resolved.adaptive_settings().unwrap_or(AdaptiveSettings {
         mode: AdaptiveMode::Off,
         target_error: job.target_error.unwrap_or(1.0),
         min_passes: job.min_passes,

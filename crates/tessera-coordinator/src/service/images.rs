@@ -294,7 +294,7 @@ impl Coordinator {
             return Err(frame_error(f, rec.frames));
         }
         let stored = resolve_stored(store, &self.inner.farm, &self.inner.technique, &rec).await?;
-        let adaptive = stored.resolved.job.adaptive_settings();
+        let adaptive = stored.resolved.adaptive_settings();
         Ok(FrameMeta {
             adaptive: adaptive.map(|a| a.for_units(rec.passes_per_unit)),
             resolved: stored.resolved,

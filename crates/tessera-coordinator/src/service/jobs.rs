@@ -103,7 +103,7 @@ impl Coordinator {
             let mut farm = self.lock()?;
             if !black {
                 let ppu = self.inner.cfg.passes_per_unit;
-                add_to_scheduler(&mut farm, id, job.priority, resolved.plan, &job, ppu)?;
+                add_to_scheduler(&mut farm, id, job.priority, &resolved, ppu)?;
                 farm.jobs.insert(id, JobEntry::of(&resolved));
             }
             let rt = JobRuntime::new(settings, resolved, JobState::Queued, created);
@@ -337,11 +337,13 @@ pub(crate) fn add_to_scheduler(
     farm: &mut Farm,
     id: JobId,
     priority: i32,
-    plan: FramePlan,
-    job: &ValidatedJob,
+    resolved: &ResolvedJob,
     passes_per_unit: u32,
 ) -> CoordResult<()> {
-    match job.adaptive_settings() {
+    let (plan, job) = (resolved.plan, &resolved.job);
+    // The resolved job's settings: no pixel stops early where a light path class is
+    // unsampled.
+    match resolved.adaptive_settings() {
         Some(a) => {
             farm.scheduler
                 .add_adaptive_job(id, priority, plan, job.frames.iter(), passes_per_unit, a)

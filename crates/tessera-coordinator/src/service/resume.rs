@@ -366,7 +366,7 @@ async fn resume_job(
     if resolved.plan != rec.plan {
         return Err("the stored frame plan differs from this build's plan".into());
     }
-    let adaptive = resolved.job.adaptive_settings();
+    let adaptive = resolved.adaptive_settings();
     let restored = match adaptive {
         Some(a) => match restore_adaptive(store, rec, a).await? {
             Some((r, finished)) => Restart::Adaptive(a, r, finished),
@@ -398,7 +398,7 @@ async fn resume_job(
                 "adaptive job checkpointed without its policy state (an older build): \
                  rendering it again from the first pass"
             );
-            add_to_scheduler(&mut farm, rec.id, rec.priority, plan, rt.job(), ppu)
+            add_to_scheduler(&mut farm, rec.id, rec.priority, &rt.resolved, ppu)
                 .map_err(|e| e.to_string())?;
         }
         Restart::Adaptive(settings, restored, finished) => {

@@ -116,6 +116,7 @@ string_serde!(SceneRef);
 /// | `direct` | direct lighting only: emission seen by the camera and light arriving at the first surface |
 /// | `bdpt` | bidirectional path tracing (Veach & Guibas 1995): caustics from small and delta lights |
 /// | `vcm` | vertex connection and merging (Georgiev et al. 2012): bdpt plus photon density estimation, for caustics seen through specular surfaces (biased, consistent) |
+/// | `ppm` | progressive photon mapping (Hachisuka & Jensen 2009; Knaus & Zwicker 2011): vcm's merging alone, at the first non-specular camera vertex (biased, consistent) |
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum Integrator {
     /// Path tracing with next-event estimation and MIS. The default.
@@ -129,16 +130,21 @@ pub enum Integrator {
     /// density estimation by MIS. Biased (merging blurs light over a radius that shrinks
     /// with the passes), consistent.
     Vcm,
+    /// Progressive photon mapping: vcm's photon map and radius schedule with merging as
+    /// the only technique, at the first non-specular vertex of the camera subpath. Biased
+    /// like vcm, consistent.
+    Ppm,
 }
 
 impl Integrator {
-    /// The string form: `"path"`, `"direct"`, `"bdpt"` or `"vcm"`.
+    /// The string form: `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"ppm"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Path => "path",
             Self::Direct => "direct",
             Self::Bdpt => "bdpt",
             Self::Vcm => "vcm",
+            Self::Ppm => "ppm",
         }
     }
 
@@ -146,7 +152,13 @@ impl Integrator {
     /// true value at any finite number of passes): vertex merging blurs light over its
     /// radius. The pass spread does not see such a bias.
     pub fn is_biased(self) -> bool {
-        self == Self::Vcm
+        self.merges()
+    }
+
+    /// Whether the integrator merges with a per-pass photon map (vcm, ppm): it renders
+    /// whole-frame units and holds the pass's photons in memory.
+    pub fn merges(self) -> bool {
+        matches!(self, Self::Vcm | Self::Ppm)
     }
 }
 
@@ -159,8 +171,9 @@ impl FromStr for Integrator {
             "direct" => Ok(Self::Direct),
             "bdpt" => Ok(Self::Bdpt),
             "vcm" => Ok(Self::Vcm),
+            "ppm" => Ok(Self::Ppm),
             _ => Err(format!(
-                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", got {s:?}"
+                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", got {s:?}"
             )),
         }
     }
@@ -194,8 +207,10 @@ impl IntegratorChoice {
     pub const BDPT: Self = Self::Fixed(Integrator::Bdpt);
     /// Vertex connection and merging.
     pub const VCM: Self = Self::Fixed(Integrator::Vcm);
+    /// Progressive photon mapping.
+    pub const PPM: Self = Self::Fixed(Integrator::Ppm);
 
-    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"` or `"vcm"`.
+    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"ppm"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Auto => "auto",
@@ -218,7 +233,7 @@ impl FromStr for IntegratorChoice {
             "auto" => Ok(Self::Auto),
             _ => s.parse().map(Self::Fixed).map_err(|_| {
                 format!(
-                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", got {s:?}"
+                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", got {s:?}"
                 )
             }),
         }
@@ -445,6 +460,7 @@ mod tests {
             Integrator::Direct,
             Integrator::Bdpt,
             Integrator::Vcm,
+            Integrator::Ppm,
         ] {
             assert_eq!(i.to_string().parse::<Integrator>(), Ok(i));
             let c = IntegratorChoice::from(i);

@@ -253,7 +253,7 @@ impl RenderPlan {
     /// Bidirectional path tracing reaches those caustics by light tracing.
     ///
     /// Before that, in this order: what `used` cannot sample at all
-    /// ([`RenderPlan::unsampled`]), and for a biased integrator (vcm) that its estimate
+    /// ([`RenderPlan::unsampled`]), and for a biased integrator (vcm, ppm) that its estimate
     /// has a bias the pass spread does not see. Joined by "; ".
     pub fn error_estimate_caveat(&self, used: Integrator) -> Option<String> {
         if self.integrator == PlannedIntegrator::Black {
@@ -269,7 +269,8 @@ impl RenderPlan {
                     .to_string(),
             );
         }
-        if used != Integrator::Bdpt && used != Integrator::Vcm {
+        // bdpt finds those caustics by light tracing, vcm and ppm by merging.
+        if used != Integrator::Bdpt && !used.merges() {
             if let Some(evidence) = self.evidence(EffectKind::DeltaLitCaustics) {
                 parts.push(format!(
                     "may be optimistic: {} reaches the scene's caustics of tiny or delta lights only \
@@ -290,7 +291,8 @@ impl RenderPlan {
     /// pass shows that it does. No render with such an integrator reports its target
     /// error reached ([`crate::job::StopVerdict::target_reached`]).
     pub fn unsampled(&self, used: Integrator) -> Option<String> {
-        if used == Integrator::Vcm || self.integrator == PlannedIntegrator::Black {
+        // Merging (vcm, ppm) samples L S+ D S+ E at the diffuse vertex.
+        if used.merges() || self.integrator == PlannedIntegrator::Black {
             return None;
         }
         let evidence = self.evidence(EffectKind::DeltaLitSds)?;
@@ -298,7 +300,7 @@ impl RenderPlan {
             "{UNSAMPLED_CAVEAT} every light path of this scene: {} has no technique for light \
              from a delta light that reaches the camera as L S+ D S+ E ({evidence}); that \
              light is missing from the image and from its error estimate, so no target error \
-             counts as reached; vcm samples it by vertex merging",
+             counts as reached; vcm and ppm sample it by vertex merging",
             used.as_str()
         ))
     }

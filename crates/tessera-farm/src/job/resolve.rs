@@ -228,6 +228,35 @@ impl StopVerdict {
 }
 
 impl ResolvedJob {
+    /// The adaptive policy's settings for this job ([`ValidatedJob::adaptive_settings`]),
+    /// except where its integrator cannot sample a light path class of the scene
+    /// ([`StopVerdict::unsampled_of`]): there the pixels that no pass lit (light the
+    /// technique cannot find) have an estimate of zero and would stop as converged at the
+    /// first decision, so no pixel may stop early: sequential decisions start after the
+    /// last pass (`min_passes` past the plan), and unbiased gives every pixel every fresh
+    /// pass (`min_fresh_passes` the plan's remainder). The job runs its whole budget (or
+    /// until its time limit), and its verdict says the target was not reached. Every
+    /// runner of the policy (`tessera render`, the scheduler, restores from checkpoints,
+    /// image encodes) must take the settings from here, so that they decide alike.
+    pub fn adaptive_settings(&self) -> Option<crate::adaptive::AdaptiveSettings> {
+        let a = self.job.adaptive_settings()?;
+        if !StopVerdict::unsampled_of(self) {
+            return Some(a);
+        }
+        let passes = self.plan.passes;
+        Some(match a.mode {
+            crate::AdaptiveMode::Sequential => crate::adaptive::AdaptiveSettings {
+                min_passes: passes.saturating_add(1).max(a.min_passes),
+                ..a
+            },
+            crate::AdaptiveMode::Unbiased => crate::adaptive::AdaptiveSettings {
+                min_fresh_passes: passes.saturating_sub(a.min_passes).max(a.min_fresh_passes),
+                ..a
+            },
+            crate::AdaptiveMode::Off => a,
+        })
+    }
+
     /// The render settings, the stopping settings and the render plan as one JSON object
     /// for the EXR header, with a stable key order, so that a farm render and a local
     /// render of the same job write byte-identical files. A black render (no light) has

@@ -159,7 +159,7 @@ fn enumerations() {
     for (field, good, bad) in [
         (
             "integrator",
-            &["auto", "path", "direct", "bdpt", "vcm"][..],
+            &["auto", "path", "direct", "bdpt", "vcm", "ppm"][..],
             &["", "Path", "pt", "photon"][..],
         ),
         (
@@ -521,4 +521,91 @@ fn environment_is_a_colour_or_an_image_hash_with_strength_and_rotation() {
         "{json}"
     );
     assert_eq!(serde_json::from_str::<JobSettings>(&json).unwrap(), s);
+}
+
+/// The render plan of a scene with a light path class no connection technique samples
+/// (the pool: `L S D S E` from a point light), as the analysis reports it.
+fn pool_plan() -> RenderPlan {
+    RenderPlan {
+        effects: vec![Effect {
+            kind: EffectKind::DeltaLitSds,
+            evidence: "1 delta light seen through material 1 'water'".into(),
+        }],
+        absent: vec![],
+        integrator: PlannedIntegrator::Vcm,
+        max_depth: 8,
+        rr_depth: 5,
+        lens_sampling: false,
+        reasons: vec!["vcm: L S+ D S+ E".into()],
+        overridden: None,
+        warnings: vec![],
+        technique_pilot: None,
+    }
+}
+
+/// Runs the adaptive policy `settings` of `plan` over passes whose every pixel is black
+/// (what bdpt renders of the pool's floor) and returns the fewest passes a pixel got.
+fn fewest_passes_of_black_passes(plan: crate::FramePlan, settings: crate::AdaptiveSettings) -> u32 {
+    let mut frame = crate::AdaptiveFrame::new(plan, 0, settings).unwrap();
+    while !frame.finished() {
+        let round = frame.next_round();
+        assert!(!round.is_empty(), "an unfinished policy with nothing to do");
+        for unit in round {
+            let rect = plan.tile(unit.tile);
+            let result = crate::UnitResult {
+                unit,
+                width: rect.width,
+                height: rect.height,
+                pass_means: vec![[0.0; 3]; rect.pixel_count() * unit.pass_count as usize],
+                rejected_samples: 0,
+            };
+            frame.offer(&result).unwrap();
+        }
+    }
+    frame.samples_per_pixel().1 / plan.samples_per_pass
+}
+
+/// No pixel stops as converged while the integrator cannot sample a light path class of
+/// the scene (`StopVerdict::unsampled`): the floor bdpt renders black has an estimate of
+/// zero, and the job's own adaptive settings stop it at the first decision (the test can
+/// fail), while the resolved job's run every pass, in both adaptive modes. vcm and ppm,
+/// which sample the class, keep the job's settings.
+#[test]
+fn no_pixel_stops_converged_while_a_class_is_unsampled() {
+    let facts = SceneFacts {
+        default_resolution: (16, 16),
+    };
+    for mode in ["sequential", "unbiased"] {
+        let mut s = base();
+        s.integrator = "bdpt".into();
+        s.adaptive = mode.into();
+        s.target_error = Some(0.05);
+        // 32 whole-frame passes of 16: room for the decisions and the unbiased pilot.
+        s.spp = 512;
+        let job = s.validate().unwrap();
+        let r = job.resolve(facts, pool_plan()).unwrap();
+        assert!(StopVerdict::unsampled_of(&r), "{mode}");
+        let all = r.plan.passes;
+        let raw = fewest_passes_of_black_passes(r.plan, job.adaptive_settings().unwrap());
+        assert!(
+            raw < all,
+            "{mode}: the job's settings stop black pixels ({raw} of {all})"
+        );
+        let held = fewest_passes_of_black_passes(r.plan, r.adaptive_settings().unwrap());
+        assert_eq!(
+            held, all,
+            "{mode}: a pixel stopped while a class is unsampled"
+        );
+        for integrator in ["vcm", "ppm"] {
+            s.integrator = integrator.into();
+            let job = s.validate().unwrap();
+            let r = job.resolve(facts, pool_plan()).unwrap();
+            assert!(!StopVerdict::unsampled_of(&r), "{integrator}");
+            assert_eq!(
+                r.adaptive_settings(),
+                job.adaptive_settings(),
+                "{integrator}"
+            );
+        }
+    }
 }

@@ -7,6 +7,7 @@
 //! | `direct` | direct lighting only: emission seen by the camera and light arriving at the first surface, one bounce, both techniques combined by MIS ([`path`] with a bounce limit of 1) |
 //! | `bdpt` | bidirectional path tracing: camera and light subpaths joined by every connection technique, light tracing splatted onto the film, power-heuristic MIS ([`bdpt`]) |
 //! | `vcm` | vertex connection and merging: bdpt's techniques plus merging with a per-pass photon map, all weighted by MIS; biased, consistent ([`vcm`]) |
+//! | `ppm` | progressive photon mapping: vcm's merging alone, at the first non-specular camera vertex; biased, consistent ([`vcm`]'s merge-only mode) |
 //!
 //! # The interface
 //!
@@ -148,8 +149,14 @@ pub fn render_unit_where(
         }
         // Light tracing splats and merging reads the whole pass's photon map: whole-frame
         // units as for bdpt, the photon map rebuilt per pass inside the unit.
-        Integrator::Vcm => {
-            let vcm = vcm::VcmSettings::new(
+        // ppm is vcm's merge-only mode: the same units and photon maps.
+        Integrator::Vcm | Integrator::Ppm => {
+            let new = if settings.integrator == Integrator::Ppm {
+                vcm::VcmSettings::ppm
+            } else {
+                vcm::VcmSettings::new
+            };
+            let vcm = new(
                 settings.mis,
                 settings.max_depth,
                 settings.rr_depth,
@@ -248,7 +255,8 @@ fn render_camera_samples(
     }
 }
 
-/// A technique whose light subpaths splat onto any pixel of the frame (bdpt, vcm): it
+/// A technique whose light subpaths splat onto any pixel of the frame (bdpt, vcm) or whose
+/// estimate reads the whole pass's photon map (vcm, ppm): it
 /// renders whole-frame units through [`render_whole_frame`], which owns the pixel and
 /// sample loops and the order of the sums.
 pub(crate) trait WholeFrame {

@@ -65,6 +65,22 @@
 //!
 //! Russian roulette is left out of the MIS densities, as in bdpt: every path's weights
 //! still sum to one, so the connection techniques stay unbiased.
+//!
+//! # Progressive photon mapping (`ppm`): the merge-only mode
+//!
+//! With [`VcmSettings::merge_only`] the same machinery is plain progressive photon
+//! mapping (Hachisuka & Jensen 2009, stochastic PPM's estimator with Knaus & Zwicker
+//! 2011's per-pass radius schedule above; Georgiev et al. 2012 section 5 and SmallVCM's
+//! `kPpm` mode): the light subpaths and the photon map are vcm's, but the camera subpath
+//! follows specular events only, counts the emission it finds on the way (weight one: no
+//! other technique of this mode samples such a path), and at its first non-specular
+//! vertex merges with every photon within `r` (weight one: merging is the only technique
+//! for every path through that vertex) and stops. No next-event estimation, connections
+//! or light tracing, so no splats: a pixel's value depends only on the pass's photon map
+//! and its own camera samples. The density estimate then carries all indirect *and*
+//! direct light, so its bias (the irradiance blurred over the disc) is in every pixel, not
+//! only where connections fail; ppm takes a larger first radius
+//! ([`PPM_RADIUS_PIXELS`]) for that reason: its variance is all merging's.
 
 use super::{render_whole_frame, MisHeuristic, SampleStream, WholeFrame};
 use crate::bsdf::diffuse::Diffuse;
@@ -92,6 +108,9 @@ const LIGHT_STREAM: u64 = 0x7663_6d5f_6c69_6768; // "vcm_ligh"
 pub const RADIUS_ALPHA: f32 = 0.75;
 /// `r_1` in units of the scene's bounding radius per pixel of the image's long side.
 pub const RADIUS_PIXELS: f32 = 1.5;
+/// [`RADIUS_PIXELS`] of progressive photon mapping ([`VcmSettings::ppm`]), where merging
+/// carries all the light.
+pub const PPM_RADIUS_PIXELS: f32 = 1.5;
 
 /// Settings of the vertex connection and merging integrator.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -106,6 +125,9 @@ pub struct VcmSettings {
     pub radius_1: f32,
     /// The radius schedule's α ([`RADIUS_ALPHA`]).
     pub alpha: f32,
+    /// Progressive photon mapping: merging at the first non-specular camera vertex is the
+    /// only technique (see the [module documentation](self)).
+    pub merge_only: bool,
 }
 
 impl VcmSettings {
@@ -127,6 +149,26 @@ impl VcmSettings {
             rr_depth,
             radius_1: (RADIUS_PIXELS * scene_radius / long).max(1e-7),
             alpha: RADIUS_ALPHA,
+            merge_only: false,
+        }
+    }
+
+    /// Progressive photon mapping's settings: [`VcmSettings::new`]'s with
+    /// [`VcmSettings::merge_only`] and `r_1 = PPM_RADIUS_PIXELS scene_radius / max(width,
+    /// height)`.
+    pub fn ppm(
+        mis: MisHeuristic,
+        max_depth: u32,
+        rr_depth: u32,
+        scene_radius: f32,
+        width: u32,
+        height: u32,
+    ) -> Self {
+        let long = width.max(height).max(1) as f32;
+        Self {
+            radius_1: (PPM_RADIUS_PIXELS * scene_radius / long).max(1e-7),
+            merge_only: true,
+            ..Self::new(mis, max_depth, rr_depth, scene_radius, width, height)
         }
     }
 
@@ -698,7 +740,7 @@ fn camera_subpath(
                 // The environment, as an emitter found by the camera subpath (no MIS
                 // update for a vertex at infinity).
                 if let Some((env, le)) = scene.environment(w.dir) {
-                    let weight = if w.depth == 0 {
+                    let weight = if w.depth == 0 || st.merge_only {
                         1.0
                     } else {
                         let pmf = scene.lights.pmf(env);
@@ -714,9 +756,10 @@ fn camera_subpath(
             }
         }
         let t = v.depth;
-        // Emission found by the camera subpath (technical report eqs. 42-43).
+        // Emission found by the camera subpath (technical report eqs. 42-43). In ppm every
+        // vertex before this one was specular, and only this technique samples the path.
         if v.le != Vec3::ZERO && t - 1 <= max_depth {
-            let weight = if t == 1 {
+            let weight = if t == 1 || st.merge_only {
                 1.0
             } else {
                 let li = v.light as usize;
@@ -730,6 +773,24 @@ fn camera_subpath(
         }
         if t > max_depth {
             break;
+        }
+        if st.merge_only {
+            if v.bsdf.has_non_delta() {
+                // Progressive photon mapping: the density estimate at the first
+                // non-specular vertex is the only technique for every path through it.
+                let mut sum = Vec3::ZERO;
+                grid.query(photons, v.p, |ph| {
+                    if ph.depth + t - 1 <= max_depth {
+                        sum += ctx.f(v, ph.wo, false) * ph.beta;
+                    }
+                });
+                total += v.beta * sum * c.norm;
+                break;
+            }
+            if !ctx.scatter(st, c, v, &mut w, sampler, false) {
+                break;
+            }
+            continue;
         }
         let u_light = sampler.next_1d();
         let u2 = sampler.next_2d();
@@ -974,7 +1035,13 @@ impl WholeFrame for Vcm<'_> {
             photons,
             grid,
         } = &mut *self.scratch;
-        let n_light = light_subpath(ctx, st, c, light, slot, ls);
+        // Progressive photon mapping neither connects nor light-traces: the sample's own
+        // light subpath is not needed again.
+        let n_light = if st.merge_only {
+            0
+        } else {
+            light_subpath(ctx, st, c, light, slot, ls)
+        };
         let mut camera_l = Vec3::ZERO;
         if let Some(cs) = cs {
             let film = Vec2::new(x as f32, y as f32) + cs.next_2d();

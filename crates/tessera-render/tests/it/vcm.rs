@@ -1,5 +1,6 @@
-//! Vertex connection and merging against a closed form, against path tracing, and against
-//! itself across thread counts.
+//! Vertex connection and merging, and progressive photon mapping (its merge-only mode),
+//! against a closed form, against path tracing, and against themselves across thread
+//! counts.
 //!
 //! Statistics as in `bdpt.rs`: light tracing and the shared photon map make the pixels of
 //! one pass correlated, so block means are formed per pass and their spread is taken
@@ -258,6 +259,28 @@ fn expected_blocks(
         .collect()
 }
 
+/// The merging settings `integrator` (vcm or ppm) renders with.
+fn merge_settings(
+    integrator: Integrator,
+    s: &RenderConfig,
+    rs: &RenderScene,
+    w: u32,
+    h: u32,
+) -> VcmSettings {
+    let new = match integrator {
+        Integrator::Ppm => VcmSettings::ppm,
+        _ => VcmSettings::new,
+    };
+    new(
+        s.mis,
+        s.max_depth,
+        s.rr_depth,
+        rs.geometry.bounds_radius,
+        w,
+        h,
+    )
+}
+
 /// The SDS pool against its closed form. Each 6 x 6 block's mean over 48 passes must be
 /// within `z σ + bias` of the closed form, where σ is the block's standard error from the
 /// spread of the passes, z the Bonferroni-corrected 1% critical value, and `bias` the
@@ -267,15 +290,26 @@ fn expected_blocks(
 /// the bias is only the kernel's.
 #[test]
 fn vcm_renders_the_pool_floor_to_its_closed_form() {
+    pool_floor_to_its_closed_form(Integrator::Vcm, 5);
+}
+
+/// As [`vcm_renders_the_pool_floor_to_its_closed_form`] for progressive photon mapping,
+/// where merging is the only technique.
+#[test]
+fn ppm_renders_the_pool_floor_to_its_closed_form() {
+    pool_floor_to_its_closed_form(Integrator::Ppm, 6);
+}
+
+fn pool_floor_to_its_closed_form(integrator: Integrator, seed: u64) {
     let scene = pool();
     let (w, h, block) = (24, 24, 6);
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let passes = 48;
     let plan = FramePlan::new(w, h, w, 8, passes).unwrap();
-    let s = settings(Integrator::Vcm, 5, 3);
+    let s = settings(integrator, seed, 3);
     let stats = block_stats(&block_passes(&rs, &s, &plan, block));
     let exact = expected_blocks(&rs, w, h, block, floor_irradiance);
-    let st = VcmSettings::new(s.mis, 3, 8, rs.geometry.bounds_radius, w, h);
+    let st = merge_settings(integrator, &s, &rs, w, h);
     let radii: Vec<f64> = (0..passes).map(|k| st.radius(k) as f64).collect();
     // The blur of each pass's radius, averaged over the passes, tabulated in r.
     let e = Table::new(floor_irradiance);
@@ -294,7 +328,7 @@ fn vcm_renders_the_pool_floor_to_its_closed_form() {
         let bias = (blurred[b] - exact[b]).abs();
         let rel = (mean - exact[b]) / exact[b];
         eprintln!(
-            "pool block {b}: vcm {mean:.5} ± {se:.5}, closed form {:.5} (blurred {:.5}, \
+            "pool block {b}: {integrator} {mean:.5} ± {se:.5}, closed form {:.5} (blurred {:.5}, \
              bias bound {bias:.5}), relative error {rel:+.4}",
             exact[b], blurred[b]
         );
@@ -314,7 +348,7 @@ fn vcm_renders_the_pool_floor_to_its_closed_form() {
     let mean: f64 = stats.iter().map(|s| s.0).sum::<f64>() / stats.len() as f64;
     let expect: f64 = exact.iter().sum::<f64>() / exact.len() as f64;
     eprintln!(
-        "pool image: vcm {mean:.5}, closed form {expect:.5} ({:+.3}%); worst block {:.3}%, \
+        "pool image: {integrator} {mean:.5}, closed form {expect:.5} ({:+.3}%); worst block {:.3}%, \
          worst |z| against the blurred form {worst_z:.2} (critical {crit:.2})",
         100.0 * (mean / expect - 1.0),
         100.0 * worst_rel
@@ -347,8 +381,10 @@ fn the_pool_is_invisible_to_path_and_bdpt_and_the_plan_picks_vcm() {
     assert_eq!(p.integrator, PlannedIntegrator::Vcm, "{}", p.summary());
     let caveat = p.error_estimate_caveat(Integrator::Bdpt).unwrap();
     assert!(caveat.starts_with("cannot sample"), "{caveat}");
-    let caveat = p.error_estimate_caveat(Integrator::Vcm).unwrap();
-    assert!(caveat.starts_with("biased"), "{caveat}");
+    for integrator in [Integrator::Vcm, Integrator::Ppm] {
+        let caveat = p.error_estimate_caveat(integrator).unwrap();
+        assert!(caveat.starts_with("biased"), "{integrator}: {caveat}");
+    }
 }
 
 /// Every technique weighted by MIS, merging's bias aside: vcm agrees with path tracing on
@@ -357,6 +393,19 @@ fn the_pool_is_invisible_to_path_and_bdpt_and_the_plan_picks_vcm() {
 /// bias at the corners.
 #[test]
 fn vcm_agrees_with_path_on_the_cornell_box() {
+    agrees_with_path_on_the_cornell_box(Integrator::Vcm, 0.01);
+}
+
+/// Progressive photon mapping on the Cornell box: all of its light, direct included, is
+/// merged, so the blur's loss at the box's edges and corners is in every pass: a 2%
+/// allowance for the bias (measured: -0.46% ± 1.2% at 32 passes; the first radius is
+/// 1.5 / 24 of the scene's bounding radius).
+#[test]
+fn ppm_agrees_with_path_on_the_cornell_box() {
+    agrees_with_path_on_the_cornell_box(Integrator::Ppm, 0.02);
+}
+
+fn agrees_with_path_on_the_cornell_box(integrator: Integrator, bias: f64) {
     let scene = tessera_scene::load("builtin:cornell-box").unwrap();
     let (w, h) = (24, 24);
     let rs = RenderScene::build(&scene, w, h).unwrap();
@@ -369,7 +418,7 @@ fn vcm_agrees_with_path_on_the_cornell_box() {
     };
     let vcm = block_stats(&whole(block_passes(
         &rs,
-        &settings(Integrator::Vcm, 21, 8),
+        &settings(integrator, 21, 8),
         &plan,
         4,
     )))[0];
@@ -381,15 +430,15 @@ fn vcm_agrees_with_path_on_the_cornell_box() {
     )))[0];
     let se = (vcm.1 + path.1).sqrt();
     eprintln!(
-        "cornell box: vcm {:.5} ± {:.5}, path {:.5} ± {:.5}",
+        "cornell box: {integrator} {:.5} ± {:.5}, path {:.5} ± {:.5}",
         vcm.0,
         vcm.1.sqrt(),
         path.0,
         path.1.sqrt()
     );
     assert!(
-        (vcm.0 - path.0).abs() <= z_critical(0.01, 1) * se + 0.01 * path.0,
-        "vcm {} vs path {}",
+        (vcm.0 - path.0).abs() <= z_critical(0.01, 1) * se + bias * path.0,
+        "{integrator} {} vs path {}",
         vcm.0,
         path.0
     );
@@ -399,12 +448,22 @@ fn vcm_agrees_with_path_on_the_cornell_box() {
 /// the unit, so thread counts and unit splits change nothing.
 #[test]
 fn vcm_is_bit_identical_across_threads_and_unit_splits() {
+    bit_identical_across_threads_and_unit_splits(Integrator::Vcm);
+}
+
+/// The same for progressive photon mapping.
+#[test]
+fn ppm_is_bit_identical_across_threads_and_unit_splits() {
+    bit_identical_across_threads_and_unit_splits(Integrator::Ppm);
+}
+
+fn bit_identical_across_threads_and_unit_splits(integrator: Integrator) {
     let scene = pool();
     let (w, h) = (16, 12);
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = FramePlan::new(w, h, w.max(h), 2, 4).unwrap();
     assert_eq!(plan.tile_count(), 1);
-    let s = settings(Integrator::Vcm, 9, 8);
+    let s = settings(integrator, 9, 8);
     let bits = |acc: &tessera_farm::FrameAccumulator| -> Vec<u32> {
         let img = acc.image();
         img.mean
@@ -431,7 +490,7 @@ fn vcm_is_bit_identical_across_threads_and_unit_splits() {
     assert!(one.image().mean.iter().any(|p| p[0] > 0.0), "a black image");
 }
 
-/// Efficiency `1 / (MSE x seconds)` of vcm, bdpt and path on the pool (against the closed
+/// Efficiency `1 / (MSE x seconds)` of vcm, ppm, bdpt and path on the pool (against the closed
 /// form, per pixel) and on `scenes/glass-spot.gltf` (against a vcm render with 4x the
 /// passes, its own variance subtracted). Prints a table; run with `--ignored --nocapture`.
 /// Wall time, so not an assertion.
@@ -450,7 +509,12 @@ fn vcm_efficiency_table() {
     let rs = RenderScene::build(&pool(), w, h).unwrap();
     let exact = expected_blocks(&rs, w, h, 1, floor_irradiance);
     let plan = FramePlan::new(w, h, w, 4, 16).unwrap();
-    for integrator in [Integrator::Vcm, Integrator::Bdpt, Integrator::Path] {
+    for integrator in [
+        Integrator::Vcm,
+        Integrator::Ppm,
+        Integrator::Bdpt,
+        Integrator::Path,
+    ] {
         let (img, secs) = time(&rs, &settings(integrator, 3, 3), &plan);
         let mse = img
             .mean
@@ -488,7 +552,12 @@ fn vcm_efficiency_table() {
         .sum::<f64>()
         / reference.mean.len() as f64;
     let plan = FramePlan::new(w, h, w, 4, 16).unwrap();
-    for integrator in [Integrator::Vcm, Integrator::Bdpt, Integrator::Path] {
+    for integrator in [
+        Integrator::Vcm,
+        Integrator::Ppm,
+        Integrator::Bdpt,
+        Integrator::Path,
+    ] {
         let (img, secs) = time(&rs, &settings(integrator, 4, 12), &plan);
         let n = img.mean.len() as f64;
         let mse = img
@@ -505,6 +574,116 @@ fn vcm_efficiency_table() {
              256 spp), 1/(MSE s) {:.4e}",
             mse.max(0.0).sqrt() / truth,
             1.0 / (mse.max(1e-30) * secs)
+        );
+    }
+}
+
+/// CPU seconds (user + system) this process has used so far, from `/proc/self/stat`
+/// (clock ticks of 1/100 s): the pool goal is stated in CPU time, which the shared
+/// machine's load does not inflate as it does wall time.
+fn cpu_seconds() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    // Fields after the command name (which is in parentheses): utime and stime are the
+    // 12th and 13th of them.
+    let rest = stat.rsplit_once(')').map(|r| r.1).unwrap_or("");
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let tick = |i: usize| f.get(i).and_then(|s| s.parse::<f64>().ok()).unwrap_or(0.0);
+    (tick(11) + tick(12)) / 100.0
+}
+
+/// The pool goal (docs/benchmarks.md, "The SDS pool in one minute"): the pool at 256 x 256,
+/// max depth 3 (the closed form's `L S D S E`), rendered by ppm and vcm on 2 threads for
+/// `TESSERA_POOL_PASSES` passes (default 16) of `TESSERA_POOL_SPP` samples (default 1),
+/// the first radius scaled by `TESSERA_POOL_RADIUS` (default 1) and the schedule's α
+/// `TESSERA_POOL_ALPHA` (default [`tessera_render::integrator::vcm::RADIUS_ALPHA`]):
+/// CPU seconds, the measured relative RMS error per pixel against the closed form (box
+/// filtered), the image mean against the closed form's, and the reported estimate
+/// (`tessera_farm::image_relative_error`, the pass spread) over the measured error.
+/// A measurement, not an assertion; run with `--ignored --nocapture`.
+#[test]
+#[ignore = "a measurement: the pool goal's figures"]
+fn pool_goal_measurement() {
+    let env = |k: &str, d: u32| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
+    let envf = |k: &str, d: f32| {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
+    let passes = env("TESSERA_POOL_PASSES", 16);
+    let radius_scale = envf("TESSERA_POOL_RADIUS", 1.0);
+    let alpha = envf(
+        "TESSERA_POOL_ALPHA",
+        tessera_render::integrator::vcm::RADIUS_ALPHA,
+    );
+    let spp = env("TESSERA_POOL_SPP", 1);
+    let (w, h) = (256, 256);
+    let rs = RenderScene::build(&pool(), w, h).unwrap();
+    let table = Table::new(floor_irradiance);
+    let exact = expected_blocks(&rs, w, h, 1, |r| table.at(r));
+    let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
+    let plan = FramePlan::new(w, h, w, spp, passes).unwrap();
+    let which = std::env::var("TESSERA_POOL_INTEGRATORS").unwrap_or("ppm,vcm".into());
+    for name in which.split(',') {
+        let integrator: Integrator = name.parse().unwrap();
+        let s = settings(integrator, 11, 3);
+        let mut st = merge_settings(integrator, &s, &rs, w, h);
+        st.radius_1 *= radius_scale;
+        st.alpha = alpha;
+        let stream = tessera_render::integrator::SampleStream::of(&s);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        let c0 = cpu_seconds();
+        let results: Vec<_> = pool.install(|| {
+            use rayon::prelude::*;
+            plan.units(0, 1)
+                .par_iter()
+                .map(|u| {
+                    tessera_render::integrator::vcm::render_unit(
+                        &rs,
+                        &st,
+                        stream,
+                        &plan,
+                        *u,
+                        |_, _| true,
+                    )
+                })
+                .collect()
+        });
+        let cpu = cpu_seconds() - c0;
+        let mut acc = tessera_farm::FrameAccumulator::new(plan);
+        for r in results {
+            acc.offer(r).unwrap();
+        }
+        let img = acc.image();
+        let n = exact.len() as f64;
+        let mut rel2 = 0.0;
+        for (p, e) in img.mean.iter().zip(&exact) {
+            rel2 += ((lum(*p) - e) / e).powi(2);
+        }
+        let measured = (rel2 / n).sqrt();
+        let estimate = tessera_farm::image_relative_error(w as usize, h as usize, |x, y| {
+            let i = y * w as usize + x;
+            Some((lum(img.mean[i]), lum(img.variance_of_mean[i])))
+        });
+        let mean = img.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
+        let truth = exact.iter().sum::<f64>() / n;
+        eprintln!(
+            "pool 256x256 {integrator} (r_1 {:.4}, alpha {}): {passes} passes x {spp} spp, \
+             {cpu:.1} CPU s; measured \
+             rel. RMS error {measured:.4}, estimate {estimate:.4} (ratio {:.2}); image mean \
+             {:+.2}% off the closed form",
+            st.radius_1,
+            st.alpha,
+            estimate / measured,
+            100.0 * (mean / truth - 1.0)
         );
     }
 }

@@ -621,3 +621,19 @@ fn pool_gltf_is_a_delta_lit_sds_scene_for_vcm() {
     assert!(plan.reasons.iter().any(|r| r.starts_with("vcm is biased")));
     assert!(plan.technique_pilot.is_none());
 }
+
+/// `scenes/mirror-caustic.gltf`: a point light's caustic under a glass ball, seen only in a
+/// mirror. The analysis finds `L S+ D S+ E` from a delta light through the mirror and
+/// plans vcm; bdpt would leave the caustic's reflection out and say so.
+#[test]
+fn mirror_caustic_gltf_is_a_delta_lit_sds_scene_for_vcm() {
+    let plan = plan_of(&scene_path("mirror-caustic.gltf"));
+    eprintln!("{}", plan.summary());
+    assert!(plan.has(DeltaLitCaustics) && plan.has(DeltaLitSds));
+    assert!(evidence(&plan, DeltaLitSds).contains("'mirror'"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
+    let caveat = plan
+        .error_estimate_caveat(tessera_farm::job::Integrator::Bdpt)
+        .unwrap();
+    assert!(caveat.starts_with("cannot sample"), "{caveat}");
+}
