@@ -12,8 +12,15 @@ use tessera_scene::Scene;
 
 const DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../tests/fixtures/khronos");
 
+/// `STEM.gltf` from the Khronos folder, or from `environment/` (variants made there).
 fn load(stem: &str) -> Scene {
-    tessera_scene::load(&format!("{DIR}/{stem}.gltf")).unwrap_or_else(|e| panic!("{stem}: {e}"))
+    let variant = format!("{DIR}/environment/{stem}.gltf");
+    let path = if std::path::Path::new(&variant).exists() {
+        variant
+    } else {
+        format!("{DIR}/{stem}.gltf")
+    };
+    tessera_scene::load(&path).unwrap_or_else(|e| panic!("{stem}: {e}"))
 }
 
 /// `scene` lit by environment `env`: `white` (uniform radiance 1) or `sky` (`sky.hdr`).
@@ -71,11 +78,14 @@ enum Judge {
     Near(f64, &'static str),
 }
 
-/// Why a rough metal lit by a non-uniform sky differs by a few per cent: at roughness 1
-/// both renderers restore the energy single scattering loses (they agree in the white
-/// furnace), but not into the same directions.
-const ROUGH_METAL: &str = "the energy restored to roughness-1 metal goes into other \
-     directions than Cycles' multiple-scattering GGX puts it";
+/// Why a rough metal lit by a non-uniform sky differs by several per cent. In the white
+/// furnace the two agree (0.2%), and a white rough dielectric under the same sky agrees
+/// to 0.6% (`CamerasDielectric`), so the environment is lit and sampled alike; but a white
+/// metal reflects the sky brighter than Cycles, increasingly with roughness (the
+/// `Cameras` quad, worst region: +4.9% at roughness 0.5, +7.5% at 0.75, +12.9% at 1;
+/// docs/conformance.md).
+const ROUGH_METAL: &str = "rough metal under a non-uniform sky: Tessera's lobe is not Cycles' \
+     multiple-scattering GGX (brighter, growing with roughness; see docs/conformance.md)";
 
 /// (model, environment, Tessera samples per pixel, judgement). Sizes are the references'.
 /// Every model here has no material: glTF's default one (white metal, roughness 1).
@@ -107,6 +117,8 @@ const COMPARISONS: &[(&str, &str, u32, Judge)] = &[
     ),
     // The quad faces 45 degrees up, into the bright sky: the largest difference.
     ("Cameras", "sky", 256, Judge::Near(0.16, ROUGH_METAL)),
+    // Cameras.gltf with a white rough dielectric (environment/CamerasDielectric.gltf).
+    ("CamerasDielectric", "sky", 256, Judge::Within(0.02)),
 ];
 
 #[test]
