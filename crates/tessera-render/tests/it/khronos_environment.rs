@@ -154,8 +154,8 @@ fn khronos_models_match_cycles_under_the_same_environment() {
         }
         let verdict = match judge {
             _ if failed => "FAIL".to_string(),
-            Judge::Within(t) => format!("ok (within {}%)", 100.0 * t),
-            Judge::Near(t, why) => format!("ok (within {}%): {why}", 100.0 * t),
+            Judge::Within(t) => format!("ok (within {:.0}%)", 100.0 * t),
+            Judge::Near(t, why) => format!("ok (within {:.0}%): {why}", 100.0 * t),
         };
         eprintln!(
             "{name:28} worst {:+.2}% ({}) {verdict}",
