@@ -15,6 +15,7 @@ mod environment;
 mod gltf_materials;
 mod gltf_units;
 mod instancing;
+mod khronos_environment;
 mod light_tree;
 mod many_nodes;
 mod motion_blur;
