@@ -356,6 +356,7 @@ impl From<Integrator> for v1::Integrator {
             Integrator::Direct => Self::Direct,
             Integrator::Bdpt => Self::Bdpt,
             Integrator::Vcm => Self::Vcm,
+            Integrator::Mlt => Self::Mlt,
         }
     }
 }
@@ -432,6 +433,7 @@ impl TryFrom<v1::RenderSettings> for RenderConfig {
             v1::Integrator::Direct => Integrator::Direct,
             v1::Integrator::Bdpt => Integrator::Bdpt,
             v1::Integrator::Vcm => Integrator::Vcm,
+            v1::Integrator::Mlt => Integrator::Mlt,
             v1::Integrator::Unspecified => unreachable!("rejected by enum_field"),
         };
         let mis = match enum_field("mis", s.mis, v1::MisHeuristic::Unspecified)? {

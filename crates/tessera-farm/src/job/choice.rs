@@ -116,6 +116,7 @@ string_serde!(SceneRef);
 /// | `direct` | direct lighting only: emission seen by the camera and light arriving at the first surface |
 /// | `bdpt` | bidirectional path tracing (Veach & Guibas 1995): caustics from small and delta lights |
 /// | `vcm` | vertex connection and merging (Georgiev et al. 2012): bdpt plus photon density estimation, for caustics seen through specular surfaces (biased, consistent) |
+/// | `mlt` | Metropolis light transport (multiplexed over bdpt's techniques, Hachisuka et al. 2014): for light that reaches what the camera sees through narrow openings |
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum Integrator {
     /// Path tracing with next-event estimation and MIS. The default.
@@ -129,16 +130,20 @@ pub enum Integrator {
     /// density estimation by MIS. Biased (merging blurs light over a radius that shrinks
     /// with the passes), consistent.
     Vcm,
+    /// Metropolis light transport: Markov chains in primary sample space over the
+    /// bidirectional techniques, each pass with its own chains and normalisation.
+    Mlt,
 }
 
 impl Integrator {
-    /// The string form: `"path"`, `"direct"`, `"bdpt"` or `"vcm"`.
+    /// The string form: `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"mlt"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Path => "path",
             Self::Direct => "direct",
             Self::Bdpt => "bdpt",
             Self::Vcm => "vcm",
+            Self::Mlt => "mlt",
         }
     }
 
@@ -159,8 +164,9 @@ impl FromStr for Integrator {
             "direct" => Ok(Self::Direct),
             "bdpt" => Ok(Self::Bdpt),
             "vcm" => Ok(Self::Vcm),
+            "mlt" => Ok(Self::Mlt),
             _ => Err(format!(
-                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", got {s:?}"
+                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", \"mlt\", got {s:?}"
             )),
         }
     }
@@ -194,8 +200,10 @@ impl IntegratorChoice {
     pub const BDPT: Self = Self::Fixed(Integrator::Bdpt);
     /// Vertex connection and merging.
     pub const VCM: Self = Self::Fixed(Integrator::Vcm);
+    /// Metropolis light transport.
+    pub const MLT: Self = Self::Fixed(Integrator::Mlt);
 
-    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"` or `"vcm"`.
+    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"mlt"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Auto => "auto",
@@ -218,7 +226,7 @@ impl FromStr for IntegratorChoice {
             "auto" => Ok(Self::Auto),
             _ => s.parse().map(Self::Fixed).map_err(|_| {
                 format!(
-                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", got {s:?}"
+                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", \"mlt\", got {s:?}"
                 )
             }),
         }
@@ -445,6 +453,7 @@ mod tests {
             Integrator::Direct,
             Integrator::Bdpt,
             Integrator::Vcm,
+            Integrator::Mlt,
         ] {
             assert_eq!(i.to_string().parse::<Integrator>(), Ok(i));
             let c = IntegratorChoice::from(i);

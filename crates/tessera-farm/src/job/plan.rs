@@ -269,7 +269,8 @@ impl RenderPlan {
                     .to_string(),
             );
         }
-        if used != Integrator::Bdpt && used != Integrator::Vcm {
+        // mlt's chains sample bdpt's techniques, light tracing included.
+        if used != Integrator::Bdpt && used != Integrator::Vcm && used != Integrator::Mlt {
             if let Some(evidence) = self.evidence(EffectKind::DeltaLitCaustics) {
                 parts.push(format!(
                     "may be optimistic: {} reaches the scene's caustics of tiny or delta lights only \

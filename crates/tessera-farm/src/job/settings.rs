@@ -323,7 +323,7 @@ pub struct JobSettings {
     /// Samples per pixel, 1..=1048576 (rounded up to whole passes). Default 64.
     #[serde(default = "default_spp")]
     pub spp: u32,
-    /// `"auto"` (default), `"path"`, `"direct"`, `"bdpt"` or `"vcm"`.
+    /// `"auto"` (default), `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"mlt"`.
     #[serde(default = "default_integrator")]
     pub integrator: String,
     /// `"balance"`, `"power"` (default), `"cutoff"`, `"cutoff:ALPHA"` or `"maximum"`.
@@ -636,9 +636,10 @@ pub struct ValidatedJob {
 impl ValidatedJob {
     /// The frame plan of this job for the image size `width` x `height` when it is
     /// rendered with `integrator` (`auto` plans like path tracing):
-    /// - `bdpt` and `vcm`: [`FramePlan::whole_frame`], one tile, because light tracing
-    ///   splats anywhere on the film (whether chosen by the plan or asked for, adaptive or
-    ///   not; vcm's photon map is rebuilt per pass inside the unit);
+    /// - `bdpt`, `vcm` and `mlt`: [`FramePlan::whole_frame`], one tile, because light
+    ///   tracing splats anywhere on the film (whether chosen by the plan or asked for,
+    ///   adaptive or not; vcm's photon map is rebuilt per pass inside the unit, mlt's
+    ///   Markov chains wander over the whole frame);
     /// - adaptive stopping: [`adaptive_plan`], many short passes, since decisions fall
     ///   between passes;
     /// - otherwise [`FramePlan::for_spp`] with this job's spp and tile size.
@@ -651,7 +652,10 @@ impl ValidatedJob {
         width: u32,
         height: u32,
     ) -> Result<FramePlan, JobError> {
-        let plan = if integrator == IntegratorChoice::BDPT || integrator == IntegratorChoice::VCM {
+        let plan = if integrator == IntegratorChoice::BDPT
+            || integrator == IntegratorChoice::VCM
+            || integrator == IntegratorChoice::MLT
+        {
             FramePlan::whole_frame(width, height, self.spp)
         } else if self.adaptive != AdaptiveMode::Off {
             adaptive_plan(width, height, self.spp, self.tile_size)

@@ -159,7 +159,7 @@ fn enumerations() {
     for (field, good, bad) in [
         (
             "integrator",
-            &["auto", "path", "direct", "bdpt", "vcm"][..],
+            &["auto", "path", "direct", "bdpt", "vcm", "mlt"][..],
             &["", "Path", "pt", "photon"][..],
         ),
         (

@@ -299,6 +299,7 @@ fn configs() -> Vec<RenderConfig> {
         Integrator::Direct,
         Integrator::Bdpt,
         Integrator::Vcm,
+        Integrator::Mlt,
     ] {
         for mis in [
             MisHeuristic::Balance,

@@ -17,6 +17,7 @@ mod gltf_units;
 mod instancing;
 mod light_tree;
 mod many_nodes;
+mod mlt;
 mod motion_blur;
 mod pilot;
 mod plan_equivalence;
