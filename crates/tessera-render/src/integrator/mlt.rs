@@ -4,17 +4,20 @@
 //! normalisation of Veach 1997, section 11.3).
 //!
 //! # What a sample is
-//! A state of the chain is a vector of uniform numbers (the *primary samples*) and a path
-//! depth `d`. The vector drives, in three streams so that a change of the technique does not
-//! shift the other numbers (Hachisuka et al. 2014, section 4.2), the choice of one bidirectional
-//! technique `(s, t)` with `s + t = d + 2` (uniformly among the `d + 2`), the film position
-//! and the camera subpath of exactly `t` vertices (camera stream), the light subpath of
-//! exactly `s` vertices (light stream) and the technique's own lens or light sample
-//! (connection stream; [`bdpt::technique`]). Its value `f` is that technique's MIS-weighted
-//! contribution times `d + 2`: summed over the techniques, the MIS weights of
-//! [`bdpt`] make this an unbiased estimate of the image, so `∫ f du` is the image's total
-//! (per unit film area) and a Metropolis chain with the target `c(f) = luminance(f)` spends
-//! its time where the image is bright, wherever the paths that carry that light are.
+//! A state of the chain is a vector of uniform numbers (the *primary samples*). It
+//! drives, in three streams so that a change of the technique does not shift the other
+//! numbers (Hachisuka et al. 2014, section 4.2): the path depth `d` (uniform in
+//! `0..=max_depth`), one bidirectional technique `(s, t)` with `s + t = d + 2` (uniform
+//! among the `d + 2`), the film position and the camera subpath of exactly `t` vertices
+//! (camera stream), the light subpath of exactly `s` vertices (light stream) and the
+//! technique's own lens or light sample (connection stream; [`bdpt::technique`]). Its value
+//! `f` is that technique's MIS-weighted contribution times `(max_depth + 1)(d + 2)`: summed
+//! over depths and techniques, the MIS weights of [`bdpt`] make this an unbiased estimate
+//! of the image, so `∫ f du` is the image's total (per unit film area) and a Metropolis
+//! chain with the target `c(f) = luminance(f)` spends its time where the image is bright,
+//! wherever the paths that carry that light are. The depth is a primary sample (pbrt-v4
+//! fixes a chain's depth at its start instead): one pass has few chains, and a fixed depth
+//! per chain would leave each depth's share of the pass to a handful of draws.
 //! Subpaths take no Russian roulette (their lengths are fixed by the state).
 //!
 //! # Mutations (Kelemen et al. 2002, section 4)
@@ -32,13 +35,13 @@
 //! # Passes are independent replicates (ARCHITECTURE.md §3)
 //! Pass `k` of frame `f` is a fresh, deterministic computation from `hash(seed, f, k)`:
 //!
-//! 1. **Bootstrap** (Veach 1997, section 11.3.1): `n_b` independent uniform vectors, each
-//!    evaluated at every depth `0..=max_depth`; `b = Σ c / n_b` estimates the normalisation
-//!    `∫ c(f) du` from this pass's own samples.
-//! 2. **Chains**: `n_c` independent chains, each starting at a bootstrap sample drawn with
-//!    probability proportional to its `c` (which removes start-up bias, Veach 1997, section
-//!    11.3.3, and fixes the chain's depth) and running its share of the pass's `W H S`
-//!    mutations (`S` the plan's samples per pass).
+//! 1. **Bootstrap** (Veach 1997, section 11.3.1): `n_b = W H S / 8` independent uniform
+//!    vectors; `b = Σ c / n_b` estimates the normalisation `∫ c(f) du` from this pass's own
+//!    samples.
+//! 2. **Chains**: `n_c` independent chains (one per 1024 mutations, 8 to 1024), each
+//!    starting at a bootstrap sample drawn with probability proportional to its `c` (which
+//!    removes start-up bias, Veach 1997, section 11.3.3) and running its share of the
+//!    pass's `W H S` mutations (`S` the plan's samples per pass).
 //! 3. The pass image is `b / S` times the recorded weights `f / c(f)` that landed in each
 //!    pixel: the histogram of a chain with stationary density `c / b` times `b` is the image.
 //!
@@ -51,7 +54,7 @@
 //! Like `bdpt` and `vcm`, `mlt` renders whole-frame units (`FramePlan::whole_frame`): a
 //! pass's chains wander over the whole image. A unit is (frame, pass range) and costs, per
 //! pass, `W H S` mutations (each one path of the chain's depth and one technique) plus the
-//! bootstrap's `n_b (max_depth + 1)` paths, about an eighth of the mutations. A unit's bytes
+//! bootstrap's `n_b` paths, an eighth of the mutations. A unit's bytes
 //! depend only on (scene, settings, seed, frame, passes): the same with any thread count and
 //! on any worker. A plan with smaller tiles renders each tile's pixels from the whole
 //! frame's chains (correct, `tile count` times the cost). The adaptive policy's `wanted`
@@ -73,17 +76,20 @@ use crate::scene::RenderScene;
 use glam::{Vec2, Vec3};
 use tessera_farm::{FramePlan, UnitResult, WorkUnit};
 
-/// Probability of a large step (an independent proposal); pbrt-v4's default.
+/// Probability of a large step (an independent proposal); pbrt-v4's default. On the
+/// door-ajar room 0.1 and 0.5 measured no better (docs/benchmarks.md, "Metropolis light
+/// transport").
 pub const LARGE_STEP_PROBABILITY: f64 = 0.3;
 /// Standard deviation of a small step's offset of each primary sample (Kelemen et al. use
-/// an exponential of similar width; pbrt-v4's default normal).
+/// an exponential of similar width; pbrt-v4's default normal). 0.05 measured the same
+/// within the noise of one run.
 pub const SIGMA: f64 = 0.01;
 /// Mutations per chain the pass aims at (`W H S / MUTATIONS_PER_CHAIN` chains, clamped to
 /// `MIN_CHAINS..=MAX_CHAINS`): long enough for small steps to explore, many enough that the
 /// depths and regions of the image are visited in proportion within one pass.
 const MUTATIONS_PER_CHAIN: u64 = 1024;
 /// Fewest chains per pass.
-const MIN_CHAINS: u64 = 16;
+const MIN_CHAINS: u64 = 8;
 /// Most chains per pass.
 const MAX_CHAINS: u64 = 1024;
 /// Bootstrap paths per mutation, as a divisor: `W H S / 8` paths over all depths.
@@ -366,15 +372,19 @@ struct Mlt<'a> {
     motion: bool,
     lens: bool,
     film: Vec2,
+    /// Path depths sampled: `0..=max_depth`.
+    depths: usize,
     scratch: Box<Scratch>,
 }
 
 impl Mlt<'_> {
-    /// The contribution of the state `samples` holds at path depth `depth`: the
-    /// technique's MIS-weighted estimate times the number of techniques, and the film
-    /// position it belongs to.
-    fn eval(&mut self, samples: &mut PrimarySamples, depth: usize) -> (Vec3, Vec2) {
+    /// The contribution of the state `samples` holds: the technique's MIS-weighted
+    /// estimate times the number of depths and of techniques, and the film position it
+    /// belongs to.
+    fn eval(&mut self, samples: &mut PrimarySamples) -> (Vec3, Vec2) {
         samples.start_stream(CAMERA_STREAM);
+        // The depth is a primary sample too (module documentation).
+        let depth = ((samples.next_1d() * self.depths as f32) as usize).min(self.depths - 1);
         let (s, t, n) = if depth == 0 {
             // Only (0, 2) sees an emitter directly: (1, 1) is not a bdpt technique.
             (0, 2, 1)
@@ -404,7 +414,7 @@ impl Mlt<'_> {
         }
         samples.start_stream(CONNECTION_STREAM);
         let (l, raster) = bdpt::technique(ctx, st, &mut self.scratch, s, t, samples);
-        (l * n as f32, raster.unwrap_or(film))
+        (l * (n * self.depths) as f32, raster.unwrap_or(film))
     }
 }
 
@@ -416,12 +426,12 @@ fn pass_seed(seed: u64, frame: u32, pass: u32) -> u64 {
     )
 }
 
-/// Chains and bootstrap size of a pass of `mutations` mutations at `depths` depths.
-fn pass_sizes(mutations: u64, depths: u64) -> (u64, u64) {
+/// Chains and bootstrap samples of a pass of `mutations` mutations.
+fn pass_sizes(mutations: u64) -> (u64, u64) {
     let chains = (mutations / MUTATIONS_PER_CHAIN)
         .clamp(MIN_CHAINS, MAX_CHAINS)
         .min(mutations.max(1));
-    let bootstrap = (mutations / (BOOTSTRAP_DIVISOR * depths)).max(chains);
+    let bootstrap = (mutations / BOOTSTRAP_DIVISOR).max(chains);
     (chains, bootstrap)
 }
 
@@ -441,13 +451,14 @@ pub fn render_unit(
     let spp = plan.samples_per_pass;
     let depths = settings.max_depth() as usize + 1;
     let mutations = w as u64 * h as u64 * spp as u64;
-    let (n_chains, n_bootstrap) = pass_sizes(mutations, depths as u64);
+    let (n_chains, n_bootstrap) = pass_sizes(mutations);
     let mut mlt = Mlt {
         ctx: Ctx::new(scene),
         st: settings.bdpt,
         motion: scene.has_motion(),
         lens: scene.camera.has_lens(),
         film: Vec2::new(w as f32, h as f32),
+        depths,
         scratch: Scratch::boxed(),
     };
     // Room for every number a walk of the deepest path asks (6 for the technique, time,
@@ -455,7 +466,7 @@ pub fn render_unit(
     // per mutation.
     let per_stream = 8 + 4 * (settings.max_depth() as usize + 2);
     let mut samples = PrimarySamples::new(STREAMS * per_stream, SIGMA, LARGE_STEP_PROBABILITY);
-    let mut cdf = vec![0.0f64; n_bootstrap as usize * depths];
+    let mut cdf = vec![0.0f64; n_bootstrap as usize];
     let mut sum = vec![[0.0f64; 3]; (w * h) as usize];
     let pixels = rect.pixel_count();
     let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
@@ -468,7 +479,7 @@ pub fn render_unit(
         let mut total = 0.0f64;
         for (i, entry) in cdf.iter_mut().enumerate() {
             samples.reset(boot_seed(i));
-            let (l, _) = mlt.eval(&mut samples, i % depths);
+            let (l, _) = mlt.eval(&mut samples);
             total += target(l, &mut rejected_samples);
             *entry = total;
         }
@@ -480,9 +491,8 @@ pub fn render_unit(
                 let u = rng.uniform() * total;
                 // The first entry whose running sum exceeds u: its own value is positive.
                 let i = cdf.partition_point(|&c| c <= u).min(cdf.len() - 1);
-                let depth = i % depths;
                 samples.reset(boot_seed(i));
-                let (l, p) = mlt.eval(&mut samples, depth);
+                let (l, p) = mlt.eval(&mut samples);
                 let start = State {
                     value: (l, p),
                     c: target(l, &mut 0),
@@ -494,7 +504,7 @@ pub fn render_unit(
                     share,
                     start,
                     |samples| {
-                        let (l, p) = mlt.eval(samples, depth);
+                        let (l, p) = mlt.eval(samples);
                         State {
                             value: (l, p),
                             c: target(l, &mut rejected_samples),
@@ -688,7 +698,7 @@ mod tests {
     #[test]
     fn pass_sizes_cover_every_mutation() {
         for m in [1u64, 15, 1000, 65_536, 10_000_000] {
-            let (c, b) = pass_sizes(m, 6);
+            let (c, b) = pass_sizes(m);
             assert!(c >= 1 && c <= m.max(1) && b >= c, "{m}: {c} {b}");
         }
     }

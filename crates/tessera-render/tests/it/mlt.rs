@@ -30,10 +30,10 @@ fn door_ajar() -> tessera_scene::Scene {
     .unwrap()
 }
 
-/// The furnace (a closed sphere of emission 1 and albedo 0.6, seen from inside) has the
+/// The furnace (a closed sphere of emission `E` and albedo `a`, seen from inside) has the
 /// radiance `E (1 - a^(D+1)) / (1 - a)` everywhere for paths of at most `D` bounces: every
-/// block of every pass, by z-tests at family-wise level 0.01 (Bonferroni), and the image
-/// mean within 1%.
+/// block and the whole image, by z-tests at family-wise level 0.01 (Bonferroni) with the
+/// spread across passes.
 #[test]
 fn mlt_furnace_matches_its_closed_form() {
     let scene = tessera_scene::load("builtin:furnace").unwrap();
@@ -41,47 +41,53 @@ fn mlt_furnace_matches_its_closed_form() {
     let depth = 6;
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = FramePlan::new(w, h, w, 4, 32).unwrap();
-    let stats = block_stats(&block_passes(
-        &rs,
-        &settings(Integrator::Mlt, 3, depth),
-        &plan,
-        4,
-    ));
+    let mut passes = block_passes(&rs, &settings(Integrator::Mlt, 3, depth), &plan, 4);
+    // The whole image as one more block.
+    for p in &mut passes {
+        let whole = p.iter().sum::<f64>() / p.len() as f64;
+        p.push(whole);
+    }
+    let stats = block_stats(&passes);
     let a = FURNACE_ALBEDO as f64;
     let expected = FURNACE_EMISSION as f64 * (1.0 - a.powi(depth as i32 + 1)) / (1.0 - a);
     let reference = vec![(expected, 0.0); stats.len()];
     let worst = assert_blocks_agree("furnace mlt vs closed form", &stats, &reference);
-    let mean = stats.iter().map(|b| b.0).sum::<f64>() / stats.len() as f64;
-    eprintln!("furnace mlt mean {mean:.5} (expected {expected:.5}), max |z| {worst:.2}");
-    assert!((mean - expected).abs() < 0.01 * expected);
+    let (mean, var) = stats[stats.len() - 1];
+    eprintln!(
+        "furnace mlt mean {mean:.5} ± {:.5} (expected {expected:.5}), max |z| {worst:.2}",
+        var.sqrt()
+    );
 }
 
 /// mlt and bdpt estimate the same image: on the Cornell box (area light, every technique
-/// in play) and on the door-ajar room (light only through the gap), block by block.
+/// in play; 16 blocks) and on the door-ajar room (light only through the gap; 4 blocks of
+/// 12 x 12 pixels: a small block that no chain of a pass visits is black in most passes
+/// and bright in a few, a spread too skewed for a z-test on 32 passes).
 #[test]
 fn mlt_agrees_with_bdpt_block_by_block() {
-    for (name, scene, (w, h), passes) in [
+    for (name, scene, (w, h), spp, block) in [
         (
             "cornell box",
             tessera_scene::load("builtin:cornell-box").unwrap(),
             (24, 24),
-            32,
+            8,
+            6,
         ),
-        ("door ajar", door_ajar(), (24, 24), 32),
+        ("door ajar", door_ajar(), (24, 24), 16, 12),
     ] {
         let rs = RenderScene::build(&scene, w, h).unwrap();
-        let plan = FramePlan::new(w, h, w, 8, passes).unwrap();
+        let plan = FramePlan::new(w, h, w, spp, 32).unwrap();
         let mlt = block_stats(&block_passes(
             &rs,
             &settings(Integrator::Mlt, 21, 5),
             &plan,
-            6,
+            block,
         ));
         let bdpt = block_stats(&block_passes(
             &rs,
             &settings(Integrator::Bdpt, 22, 5),
             &plan,
-            6,
+            block,
         ));
         assert!(mlt.iter().any(|b| b.0 > 0.0), "{name}: a black image");
         assert_blocks_agree(&format!("{name}: mlt vs bdpt"), &mlt, &bdpt);
@@ -142,26 +148,47 @@ fn mlt_efficiency_table() {
         (acc.image(), t.elapsed().as_secs_f64())
     };
     let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
-    let (w, h) = (64, 64);
+    let env = |k: &str, d: u32| -> u32 {
+        std::env::var(k)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(d)
+    };
+    let (w, h) = (env("MLT_SIZE", 32), env("MLT_SIZE", 32));
     let depth = 8;
     let rs = RenderScene::build(&door_ajar(), w, h).unwrap();
-    let ref_passes: u32 = std::env::var("MLT_REF_PASSES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(128);
-    let (reference, ref_secs) = time(
-        &rs,
-        &settings(Integrator::Bdpt, 99, depth),
-        &FramePlan::new(w, h, w, 8, ref_passes).unwrap(),
-    );
-    let n = reference.mean.len() as f64;
-    let ref_var: f64 = reference
-        .variance_of_mean
-        .iter()
-        .map(|v| lum(*v))
-        .sum::<f64>()
-        / n;
-    let truth = reference.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
+    let ref_passes = env("MLT_REF_PASSES", 256);
+    // The reference, optionally cached in the file MLT_REF_CACHE (luminance mean and
+    // variance of the mean per pixel, little-endian f64) between runs.
+    let cache = std::env::var("MLT_REF_CACHE").ok();
+    let cached = cache.as_ref().and_then(|p| std::fs::read(p).ok());
+    let (ref_mean, ref_varm, ref_secs): (Vec<f64>, Vec<f64>, f64) = match cached {
+        Some(bytes) if bytes.len() == (w * h * 16) as usize => {
+            let v: Vec<f64> = bytes
+                .chunks(8)
+                .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+                .collect();
+            let (m, var) = v.split_at((w * h) as usize);
+            (m.to_vec(), var.to_vec(), 0.0)
+        }
+        _ => {
+            let (img, secs) = time(
+                &rs,
+                &settings(Integrator::Bdpt, 99, depth),
+                &FramePlan::new(w, h, w, 8, ref_passes).unwrap(),
+            );
+            let m: Vec<f64> = img.mean.iter().map(|p| lum(*p)).collect();
+            let var: Vec<f64> = img.variance_of_mean.iter().map(|p| lum(*p)).collect();
+            if let Some(p) = &cache {
+                let bytes: Vec<u8> = m.iter().chain(&var).flat_map(|x| x.to_le_bytes()).collect();
+                std::fs::write(p, bytes).unwrap();
+            }
+            (m, var, secs)
+        }
+    };
+    let n = ref_mean.len() as f64;
+    let ref_var: f64 = ref_varm.iter().sum::<f64>() / n;
+    let truth = ref_mean.iter().sum::<f64>() / n;
     eprintln!(
         "door-ajar {w}x{h}: reference bdpt {} spp in {ref_secs:.1} s, mean {truth:.5}, its \
          rel. RMSE {:.4}",
@@ -169,21 +196,29 @@ fn mlt_efficiency_table() {
         ref_var.sqrt() / truth
     );
     let spp_per_pass = 8;
-    let passes: u32 = std::env::var("MLT_PASSES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(8);
+    let passes = env("MLT_PASSES", 16);
+    let only = std::env::var("MLT_ONLY").unwrap_or_default();
     let plan = FramePlan::new(w, h, w, spp_per_pass, passes).unwrap();
     let mut rows = Vec::new();
     for integrator in [Integrator::Path, Integrator::Bdpt, Integrator::Mlt] {
+        if !only.is_empty() && !only.contains(integrator.as_str()) {
+            continue;
+        }
         let mut s = settings(integrator, 4, depth);
         s.rr_depth = 5;
+        // mlt's chains grow with the samples per pass (MLT_SPP_PER_PASS, the same total).
+        let mlt_spp = env("MLT_SPP_PER_PASS", spp_per_pass);
+        let plan = if integrator == Integrator::Mlt {
+            FramePlan::new(w, h, w, mlt_spp, spp_per_pass * passes / mlt_spp).unwrap()
+        } else {
+            plan
+        };
         let (img, secs) = time(&rs, &s, &plan);
         let mse = img
             .mean
             .iter()
-            .zip(&reference.mean)
-            .map(|(p, r)| (lum(*p) - lum(*r)).powi(2))
+            .zip(&ref_mean)
+            .map(|(p, r)| (lum(*p) - r).powi(2))
             .sum::<f64>()
             / n
             - ref_var;
