@@ -204,7 +204,7 @@ fn mlt_efficiency_table() {
         if !only.is_empty() && !only.contains(integrator.as_str()) {
             continue;
         }
-        let mut s = settings(integrator, 4, depth);
+        let mut s = settings(integrator, u64::from(env("MLT_SEED", 4)), depth);
         s.rr_depth = 5;
         // mlt's chains grow with the samples per pass (MLT_SPP_PER_PASS, the same total).
         let mlt_spp = env("MLT_SPP_PER_PASS", spp_per_pass);
