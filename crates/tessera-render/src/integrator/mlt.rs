@@ -53,7 +53,7 @@
 //! # Units and the farm
 //! Like `bdpt` and `vcm`, `mlt` renders whole-frame units (`FramePlan::whole_frame`): a
 //! pass's chains wander over the whole image. A unit is (frame, pass range) and costs, per
-//! pass, `W H S` mutations (each one path of the chain's depth and one technique) plus the
+//! pass, `W H S` mutations (each one path and one of its techniques) plus the
 //! bootstrap's `n_b` paths, an eighth of the mutations. A unit's bytes
 //! depend only on (scene, settings, seed, frame, passes): the same with any thread count and
 //! on any worker. A plan with smaller tiles renders each tile's pixels from the whole
