@@ -1,5 +1,5 @@
 //! One job vocabulary, one resolution path (the redesign issue): for a table of settings
-//! — every integrator (auto, path, direct, bdpt, vcm, ppm) times every adaptive mode, on a
+//! — every integrator (auto, path, direct, bdpt, vcm, ppm, mlt) times every adaptive mode, on a
 //! tiled glTF scene and on a glTF scene whose plan renders one whole-frame tile (a spot
 //! light through glass, seen through the glass: vcm), each
 //! rendered from a named camera — `tessera render` and a farm job give byte-identical
@@ -64,7 +64,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
     for (file, camera, plan_is_bdpt) in scenes {
         let path = root.join(file);
         let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
-        for integrator in ["auto", "path", "direct", "bdpt", "vcm", "ppm"] {
+        for integrator in ["auto", "path", "direct", "bdpt", "vcm", "ppm", "mlt"] {
             for adaptive in ["off", "sequential", "unbiased"] {
                 let mut s = JobSettings::new(uploaded.hash.clone());
                 s.camera = Some(camera.into());
@@ -81,9 +81,9 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
                 let case = format!("{file} --integrator {integrator} --adaptive {adaptive}");
                 let st = client.submit(&s, None).unwrap();
                 let done = wait_done(&client, st.id);
-                // bdpt, vcm and ppm, chosen by the plan or asked for, render one
-                // whole-frame tile.
-                let bdpt = ["bdpt", "vcm", "ppm"].contains(&integrator)
+                // bdpt, vcm, ppm and mlt, chosen by the plan or asked for, render
+                // one whole-frame tile.
+                let bdpt = ["bdpt", "vcm", "ppm", "mlt"].contains(&integrator)
                     || (integrator == "auto" && plan_is_bdpt);
                 assert_eq!(done.tiles_total == 1, bdpt, "{case}: tiles");
                 // A done job with a target says whether it reached it.
@@ -104,7 +104,7 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
             }
         }
     }
-    assert_eq!(compared, 36);
+    assert_eq!(compared, 42);
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -42,7 +42,7 @@ pub struct JobArgs {
     /// Image height (default: the scene's).
     #[arg(long)]
     pub height: Option<u32>,
-    /// auto (follow the scene's render plan), path, direct, bdpt, vcm or ppm. An explicit integrator
+    /// auto (follow the scene's render plan), path, direct, bdpt, vcm, ppm or mlt. An explicit integrator
     /// overrides the plan and renders with the general configuration (max depth 16 unless
     /// --max-depth is given).
     #[arg(long, default_value = "auto")]

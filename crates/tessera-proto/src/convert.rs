@@ -357,6 +357,7 @@ impl From<Integrator> for v1::Integrator {
             Integrator::Bdpt => Self::Bdpt,
             Integrator::Vcm => Self::Vcm,
             Integrator::Ppm => Self::Ppm,
+            Integrator::Mlt => Self::Mlt,
         }
     }
 }
@@ -434,6 +435,7 @@ impl TryFrom<v1::RenderSettings> for RenderConfig {
             v1::Integrator::Bdpt => Integrator::Bdpt,
             v1::Integrator::Vcm => Integrator::Vcm,
             v1::Integrator::Ppm => Integrator::Ppm,
+            v1::Integrator::Mlt => Integrator::Mlt,
             v1::Integrator::Unspecified => unreachable!("rejected by enum_field"),
         };
         let mis = match enum_field("mis", s.mis, v1::MisHeuristic::Unspecified)? {

@@ -117,6 +117,7 @@ string_serde!(SceneRef);
 /// | `bdpt` | bidirectional path tracing (Veach & Guibas 1995): caustics from small and delta lights |
 /// | `vcm` | vertex connection and merging (Georgiev et al. 2012): bdpt plus photon density estimation, for caustics seen through specular surfaces (biased, consistent) |
 /// | `ppm` | progressive photon mapping (Hachisuka & Jensen 2009; Knaus & Zwicker 2011): vcm's merging alone, at the first non-specular camera vertex (biased, consistent) |
+/// | `mlt` | Metropolis light transport (multiplexed over bdpt's techniques, Hachisuka et al. 2014): for light that reaches what the camera sees through narrow openings |
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum Integrator {
     /// Path tracing with next-event estimation and MIS. The default.
@@ -134,10 +135,13 @@ pub enum Integrator {
     /// the only technique, at the first non-specular vertex of the camera subpath. Biased
     /// like vcm, consistent.
     Ppm,
+    /// Metropolis light transport: Markov chains in primary sample space over the
+    /// bidirectional techniques, each pass with its own chains and normalisation.
+    Mlt,
 }
 
 impl Integrator {
-    /// The string form: `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"ppm"`.
+    /// The string form: `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"` or `"mlt"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Path => "path",
@@ -145,6 +149,7 @@ impl Integrator {
             Self::Bdpt => "bdpt",
             Self::Vcm => "vcm",
             Self::Ppm => "ppm",
+            Self::Mlt => "mlt",
         }
     }
 
@@ -153,6 +158,13 @@ impl Integrator {
     /// radius. The pass spread does not see such a bias.
     pub fn is_biased(self) -> bool {
         self.merges()
+    }
+
+    /// Whether the integrator renders whole-frame units (one tile per pass): light tracing
+    /// splats onto any pixel (bdpt, vcm, mlt), merging reads the whole pass's photon map
+    /// (vcm, ppm), and mlt's Markov chains wander over the whole frame.
+    pub fn whole_frame(self) -> bool {
+        matches!(self, Self::Bdpt | Self::Vcm | Self::Ppm | Self::Mlt)
     }
 
     /// Whether the integrator merges with a per-pass photon map (vcm, ppm): it renders
@@ -172,8 +184,9 @@ impl FromStr for Integrator {
             "bdpt" => Ok(Self::Bdpt),
             "vcm" => Ok(Self::Vcm),
             "ppm" => Ok(Self::Ppm),
+            "mlt" => Ok(Self::Mlt),
             _ => Err(format!(
-                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", got {s:?}"
+                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", \"mlt\", got {s:?}"
             )),
         }
     }
@@ -209,8 +222,10 @@ impl IntegratorChoice {
     pub const VCM: Self = Self::Fixed(Integrator::Vcm);
     /// Progressive photon mapping.
     pub const PPM: Self = Self::Fixed(Integrator::Ppm);
+    /// Metropolis light transport.
+    pub const MLT: Self = Self::Fixed(Integrator::Mlt);
 
-    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"ppm"`.
+    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"` or `"mlt"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Auto => "auto",
@@ -233,7 +248,7 @@ impl FromStr for IntegratorChoice {
             "auto" => Ok(Self::Auto),
             _ => s.parse().map(Self::Fixed).map_err(|_| {
                 format!(
-                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", got {s:?}"
+                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", \"mlt\", got {s:?}"
                 )
             }),
         }
@@ -461,6 +476,7 @@ mod tests {
             Integrator::Bdpt,
             Integrator::Vcm,
             Integrator::Ppm,
+            Integrator::Mlt,
         ] {
             assert_eq!(i.to_string().parse::<Integrator>(), Ok(i));
             let c = IntegratorChoice::from(i);

@@ -269,8 +269,9 @@ impl RenderPlan {
                     .to_string(),
             );
         }
-        // bdpt finds those caustics by light tracing, vcm and ppm by merging.
-        if used != Integrator::Bdpt && !used.merges() {
+        // bdpt finds those caustics by light tracing, vcm and ppm by merging, and mlt's chains
+        // sample bdpt's techniques, light tracing included.
+        if used != Integrator::Bdpt && used != Integrator::Mlt && !used.merges() {
             if let Some(evidence) = self.evidence(EffectKind::DeltaLitCaustics) {
                 parts.push(format!(
                     "may be optimistic: {} reaches the scene's caustics of tiny or delta lights only \

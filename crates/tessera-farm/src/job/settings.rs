@@ -323,7 +323,7 @@ pub struct JobSettings {
     /// Samples per pixel, 1..=1048576 (rounded up to whole passes). Default 64.
     #[serde(default = "default_spp")]
     pub spp: u32,
-    /// `"auto"` (default), `"path"`, `"direct"`, `"bdpt"`, `"vcm"` or `"ppm"`.
+    /// `"auto"` (default), `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"` or `"mlt"`.
     #[serde(default = "default_integrator")]
     pub integrator: String,
     /// `"balance"`, `"power"` (default), `"cutoff"`, `"cutoff:ALPHA"` or `"maximum"`.
@@ -636,10 +636,10 @@ pub struct ValidatedJob {
 impl ValidatedJob {
     /// The frame plan of this job for the image size `width` x `height` when it is
     /// rendered with `integrator` (`auto` plans like path tracing):
-    /// - `bdpt`, `vcm` and `ppm`: [`FramePlan::whole_frame`], one tile, because light
-    ///   tracing splats anywhere on the film and merging reads the whole pass's photon map
-    ///   (whether chosen by the plan or asked for, adaptive or not; the photon map is
-    ///   rebuilt per pass inside the unit);
+    /// - `bdpt`, `vcm`, `ppm` and `mlt`: [`FramePlan::whole_frame`], one tile, because light
+    ///   tracing splats anywhere on the film, merging reads the whole pass's photon map and
+    ///   mlt's Markov chains wander over the whole frame (whether chosen by the plan or
+    ///   asked for, adaptive or not; the photon map is rebuilt per pass inside the unit);
     /// - adaptive stopping: [`adaptive_plan`], many short passes, since decisions fall
     ///   between passes;
     /// - otherwise [`FramePlan::for_spp`] with this job's spp and tile size.
@@ -653,7 +653,7 @@ impl ValidatedJob {
         height: u32,
     ) -> Result<FramePlan, JobError> {
         let whole_frame = match integrator {
-            IntegratorChoice::Fixed(i) => i == Integrator::Bdpt || i.merges(),
+            IntegratorChoice::Fixed(i) => i.whole_frame(),
             IntegratorChoice::Auto => false,
         };
         let plan = if whole_frame {

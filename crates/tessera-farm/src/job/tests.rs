@@ -159,7 +159,7 @@ fn enumerations() {
     for (field, good, bad) in [
         (
             "integrator",
-            &["auto", "path", "direct", "bdpt", "vcm", "ppm"][..],
+            &["auto", "path", "direct", "bdpt", "vcm", "ppm", "mlt"][..],
             &["", "Path", "pt", "photon"][..],
         ),
         (

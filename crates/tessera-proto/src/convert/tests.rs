@@ -300,6 +300,7 @@ fn configs() -> Vec<RenderConfig> {
         Integrator::Bdpt,
         Integrator::Vcm,
         Integrator::Ppm,
+        Integrator::Mlt,
     ] {
         for mis in [
             MisHeuristic::Balance,

@@ -69,7 +69,7 @@
 //! Limits: subpaths have at most [`MAX_BDPT_DEPTH`] bounces (fixed-size vertex arrays on the
 //! stack: nothing is allocated per sample); deeper `max_depth` settings are clamped.
 
-use super::{render_whole_frame, MisHeuristic, SampleStream, WholeFrame};
+use super::{render_whole_frame, MisHeuristic, SampleSource, SampleStream, WholeFrame};
 use crate::bsdf::diffuse::Diffuse;
 use crate::bsdf::{Bsdf, Lobe};
 use crate::camera::CameraModel;
@@ -86,7 +86,7 @@ use tessera_farm::{FramePlan, UnitResult, WorkUnit};
 /// Largest number of bounces of a bidirectional path; `max_depth` is clamped to it.
 pub const MAX_BDPT_DEPTH: u32 = 32;
 /// Vertices of a camera subpath: the camera, then up to `MAX_BDPT_DEPTH + 1` surfaces.
-const MAX_VERTICES: usize = MAX_BDPT_DEPTH as usize + 2;
+pub(super) const MAX_VERTICES: usize = MAX_BDPT_DEPTH as usize + 2;
 /// Mixed into the job seed for the light subpaths' sampler stream.
 const LIGHT_STREAM: u64 = 0x6c69_6768_745f_7061; // "light_pa"
 
@@ -128,7 +128,7 @@ enum Kind {
 
 /// One vertex of a subpath. `Copy` and fixed-size: subpaths are arrays on the stack.
 #[derive(Clone, Copy, Debug)]
-struct Vertex {
+pub(super) struct Vertex {
     kind: Kind,
     /// Position (for a light at infinity: unused).
     p: Vec3,
@@ -314,14 +314,32 @@ impl Vertex {
 }
 
 /// Scene data the vertex densities need.
-struct Ctx<'a> {
-    scene: &'a RenderScene,
-    world: WorldDisk,
+pub(super) struct Ctx<'a> {
+    pub(super) scene: &'a RenderScene,
+    pub(super) world: WorldDisk,
     /// The sample's shutter fraction (motion blur): both subpaths and every connection
     /// see the scene at this one time.
-    time: f32,
+    pub(super) time: f32,
     /// The camera at `time`.
-    camera: CameraModel,
+    pub(super) camera: CameraModel,
+}
+
+impl<'a> Ctx<'a> {
+    /// The context of `scene` at shutter time 0.
+    pub(super) fn new(scene: &'a RenderScene) -> Self {
+        Ctx {
+            scene,
+            world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
+            time: 0.0,
+            camera: scene.camera,
+        }
+    }
+
+    /// Moves the context to shutter fraction `time` (motion blur).
+    pub(super) fn set_time(&mut self, time: f32) {
+        self.time = time;
+        self.camera = self.scene.camera_at(time);
+    }
 }
 
 impl Ctx<'_> {
@@ -484,7 +502,7 @@ impl Ctx<'_> {
 /// `max_vertices` vertices, leaves the scene, is absorbed or stopped by Russian roulette.
 /// Returns the number of vertices. `pdf_dir` is the solid-angle density of `dir`.
 #[allow(clippy::too_many_arguments)]
-fn random_walk(
+fn random_walk<S: SampleSource>(
     ctx: &Ctx,
     s: &BdptSettings,
     path: &mut [Vertex; MAX_VERTICES],
@@ -494,7 +512,7 @@ fn random_walk(
     mut dir: Vec3,
     mut beta: Vec3,
     pdf_dir: f32,
-    sampler: &mut PixelSampler,
+    sampler: &mut S,
     importance: bool,
 ) -> usize {
     let scene = ctx.scene;
@@ -626,14 +644,16 @@ fn random_walk(
     n
 }
 
-/// Builds the camera subpath through film position `film`; returns its vertex count.
-fn camera_subpath(
+/// Builds the camera subpath through film position `film`, of at most `max` vertices (bdpt:
+/// `max_depth + 2`); returns its vertex count.
+pub(super) fn camera_subpath<S: SampleSource>(
     ctx: &Ctx,
     s: &BdptSettings,
     film: Vec2,
     lens_u: Vec2,
     path: &mut [Vertex; MAX_VERTICES],
-    sampler: &mut PixelSampler,
+    max: usize,
+    sampler: &mut S,
 ) -> usize {
     let camera = &ctx.camera;
     let (o, d) = camera.generate_ray(film, lens_u);
@@ -643,10 +663,9 @@ fn camera_subpath(
     v.beta = Vec3::ONE;
     path[0] = v;
     let pdf_dir = camera.pdf_dir(o, d);
-    if pdf_dir.is_nan() || pdf_dir <= 0.0 {
+    if pdf_dir.is_nan() || pdf_dir <= 0.0 || max <= 1 {
         return 1;
     }
-    let max = s.max_depth as usize + 2;
     random_walk(
         ctx,
         s,
@@ -662,12 +681,14 @@ fn camera_subpath(
     )
 }
 
-/// Builds the light subpath; returns its vertex count (0 without lights).
-fn light_subpath(
+/// Builds the light subpath of at most `max` vertices (bdpt: `max_depth + 1`); returns its
+/// vertex count (0 without lights).
+pub(super) fn light_subpath<S: SampleSource>(
     ctx: &Ctx,
     s: &BdptSettings,
     path: &mut [Vertex; MAX_VERTICES],
-    sampler: &mut PixelSampler,
+    max: usize,
+    sampler: &mut S,
 ) -> usize {
     let scene = ctx.scene;
     let u_light = sampler.next_1d();
@@ -707,7 +728,9 @@ fn light_subpath(
     } else {
         offset_ray_origin(es.p, es.p_error, es.n, es.dir)
     };
-    let max = s.max_depth as usize + 1;
+    if max <= 1 {
+        return 1;
+    }
     let n = random_walk(
         ctx, s, path, 1, max, origin, es.dir, beta, es.pdf_dir, sampler, true,
     );
@@ -878,35 +901,142 @@ fn splat_light_paths(
     sampler: &mut PixelSampler,
     splat: &mut impl FnMut(Vec2, Vec3),
 ) {
-    let camera = &ctx.camera;
     for s in 2..=n_light {
         let u = sampler.next_2d();
         if s - 1 > st.max_depth as usize {
             continue;
         }
-        let qs = light[s - 1];
-        if !qs.connectible() {
-            continue;
-        }
-        let Some(cs) = camera.sample_wi(qs.p, u) else {
-            continue;
-        };
-        let f = ctx.f(&qs, cs.wi, true);
-        let mut l = qs.beta * f * (cs.we / cs.pdf) * qs.ns.dot(cs.wi).abs();
-        if l == Vec3::ZERO
-            || !ctx.visible(qs.p, qs.p_error, qs.ng, cs.p_lens, Vec3::ZERO, Vec3::ZERO)
-        {
-            continue;
-        }
-        let mut c = Vertex::empty();
-        c.kind = Kind::Camera;
-        c.p = cs.p_lens;
-        c.beta = Vec3::splat(cs.we / cs.pdf);
-        l *= mis_weight(ctx, st, light, cam, Some(&c), s, 1);
-        if l != Vec3::ZERO {
-            splat(cs.raster, l);
+        if let Some((raster, l)) = light_tracing(ctx, st, light, cam, s, u) {
+            splat(raster, l);
         }
     }
+}
+
+/// Technique `(s, 1)`, `s >= 2`: `light[s-1]` connected to the lens point `u` samples; the
+/// MIS-weighted contribution and the film position it lands on, or `None` when it is zero.
+pub(super) fn light_tracing(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    light: &mut [Vertex; MAX_VERTICES],
+    cam: &mut [Vertex; MAX_VERTICES],
+    s: usize,
+    u: Vec2,
+) -> Option<(Vec2, Vec3)> {
+    let qs = light[s - 1];
+    if !qs.connectible() {
+        return None;
+    }
+    let cs = ctx.camera.sample_wi(qs.p, u)?;
+    let f = ctx.f(&qs, cs.wi, true);
+    let mut l = qs.beta * f * (cs.we / cs.pdf) * qs.ns.dot(cs.wi).abs();
+    if l == Vec3::ZERO || !ctx.visible(qs.p, qs.p_error, qs.ng, cs.p_lens, Vec3::ZERO, Vec3::ZERO) {
+        return None;
+    }
+    let mut c = Vertex::empty();
+    c.kind = Kind::Camera;
+    c.p = cs.p_lens;
+    c.beta = Vec3::splat(cs.we / cs.pdf);
+    l *= mis_weight(ctx, st, light, cam, Some(&c), s, 1);
+    (l != Vec3::ZERO).then_some((cs.raster, l))
+}
+
+/// Technique `(0, t)`, `t >= 2`: the camera subpath's own emission at `cam[t-1]`, MIS-weighted.
+pub(super) fn emission(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    light: &mut [Vertex; MAX_VERTICES],
+    cam: &mut [Vertex; MAX_VERTICES],
+    t: usize,
+) -> Vec3 {
+    let pt = &cam[t - 1];
+    if pt.is_light() && pt.le != Vec3::ZERO {
+        let l = pt.le * pt.beta;
+        let w = mis_weight(ctx, st, light, cam, None, 0, t);
+        l * w
+    } else {
+        Vec3::ZERO
+    }
+}
+
+/// Technique `(1, t)`, `t >= 2`: next-event estimation from `cam[t-1]` (a light chosen by
+/// `u_light`, a point on it by `u2`), MIS-weighted. The caller checks the depth and that
+/// `cam[t-1]` is a surface.
+pub(super) fn next_event(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    light: &mut [Vertex; MAX_VERTICES],
+    cam: &mut [Vertex; MAX_VERTICES],
+    t: usize,
+    u_light: f32,
+    u2: Vec2,
+) -> Vec3 {
+    let scene = ctx.scene;
+    let pt = &cam[t - 1];
+    if !pt.connectible() {
+        return Vec3::ZERO;
+    }
+    let Some((li, pmf)) = scene.lights.select(u_light) else {
+        return Vec3::ZERO;
+    };
+    let lt = &scene.lights.lights[li];
+    let Some(ls) = scene.sample_li(li, pt.p, u2) else {
+        return Vec3::ZERO;
+    };
+    let f = ctx.f(pt, ls.wi, false);
+    let l = pt.beta * f * ls.li * (pt.ns.dot(ls.wi).abs() / (ls.pdf * pmf));
+    let visible = l != Vec3::ZERO
+        && if ls.dist.is_finite() {
+            ctx.visible(pt.p, pt.p_error, pt.ng, ls.p, ls.p_error, ls.n)
+        } else {
+            let o = offset_ray_origin(pt.p, pt.p_error, pt.ng, ls.wi);
+            !scene.occluded_at(o, ls.wi, f32::INFINITY, ctx.time)
+        };
+    if !visible {
+        return Vec3::ZERO;
+    }
+    let mut v = Vertex::empty();
+    v.kind = Kind::Light;
+    v.p = ls.p;
+    v.p_error = ls.p_error;
+    v.ng = ls.n;
+    v.ns = ls.n;
+    v.light = li as u32;
+    v.infinite = !ls.dist.is_finite();
+    v.wo = -ls.wi;
+    v.delta_light = lt.is_delta();
+    v.beta = ls.li / (ls.pdf * pmf);
+    v.pdf_fwd = ctx.pdf_light_origin(&v, pt);
+    let w = mis_weight(ctx, st, light, cam, Some(&v), 1, t);
+    l * w
+}
+
+/// Technique `(s, t)`, `s, t >= 2`: `light[s-1]` joined to `cam[t-1]` by a shadow ray,
+/// MIS-weighted. The caller checks the depth.
+pub(super) fn connection(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    light: &mut [Vertex; MAX_VERTICES],
+    cam: &mut [Vertex; MAX_VERTICES],
+    s: usize,
+    t: usize,
+) -> Vec3 {
+    let (qs, pt) = (&light[s - 1], &cam[t - 1]);
+    if !qs.connectible() || !pt.connectible() {
+        return Vec3::ZERO;
+    }
+    let Some(d) = pt.dir_to(qs) else {
+        return Vec3::ZERO;
+    };
+    let l = qs.beta * ctx.f(qs, -d, true) * ctx.f(pt, d, false) * pt.beta;
+    if l == Vec3::ZERO {
+        return Vec3::ZERO;
+    }
+    let g = ctx.g(qs, pt);
+    if g == 0.0 {
+        return Vec3::ZERO;
+    }
+    let w = mis_weight(ctx, st, light, cam, None, s, t);
+    l * (g * w)
 }
 
 /// Techniques with `t >= 2`: the camera subpath's own emission (`s = 0`), next-event
@@ -920,56 +1050,25 @@ fn camera_techniques(
     n_cam: usize,
     sampler: &mut PixelSampler,
 ) -> Vec3 {
-    let scene = ctx.scene;
     let max_depth = st.max_depth as usize;
     let mut total = Vec3::ZERO;
     for t in 2..=n_cam {
-        // `pt` is cam[t - 1], borrowed afresh around each `mis_weight` (which edits the
-        // subpaths in place and restores them): a vertex is too large to copy per technique.
+        // The techniques borrow the subpaths afresh around each `mis_weight` (which edits
+        // them in place and restores them): a vertex is too large to copy per technique.
         // s = 0: the camera subpath found an emitter.
-        let pt = &cam[t - 1];
-        if pt.is_light() && pt.le != Vec3::ZERO {
-            let l = pt.le * pt.beta;
-            let w = mis_weight(ctx, st, light, cam, None, 0, t);
-            total += l * w;
+        if cam[t - 1].is_light() && cam[t - 1].le != Vec3::ZERO {
+            total += emission(ctx, st, light, cam, t);
         }
-        let pt = &cam[t - 1];
-        if pt.kind == Kind::Light {
+        if cam[t - 1].kind == Kind::Light {
             continue; // an escaped ray connects to nothing
         }
         // s = 1: sample a light from pt (next-event estimation).
         let u_light = sampler.next_1d();
         let u2 = sampler.next_2d();
-        if t - 1 <= max_depth && pt.connectible() {
-            if let Some((li, pmf)) = scene.lights.select(u_light) {
-                let lt = &scene.lights.lights[li];
-                if let Some(ls) = scene.sample_li(li, pt.p, u2) {
-                    let f = ctx.f(pt, ls.wi, false);
-                    let l = pt.beta * f * ls.li * (pt.ns.dot(ls.wi).abs() / (ls.pdf * pmf));
-                    let visible = l != Vec3::ZERO
-                        && if ls.dist.is_finite() {
-                            ctx.visible(pt.p, pt.p_error, pt.ng, ls.p, ls.p_error, ls.n)
-                        } else {
-                            let o = offset_ray_origin(pt.p, pt.p_error, pt.ng, ls.wi);
-                            !scene.occluded_at(o, ls.wi, f32::INFINITY, ctx.time)
-                        };
-                    if visible {
-                        let mut v = Vertex::empty();
-                        v.kind = Kind::Light;
-                        v.p = ls.p;
-                        v.p_error = ls.p_error;
-                        v.ng = ls.n;
-                        v.ns = ls.n;
-                        v.light = li as u32;
-                        v.infinite = !ls.dist.is_finite();
-                        v.wo = -ls.wi;
-                        v.delta_light = lt.is_delta();
-                        v.beta = ls.li / (ls.pdf * pmf);
-                        v.pdf_fwd = ctx.pdf_light_origin(&v, pt);
-                        let w = mis_weight(ctx, st, light, cam, Some(&v), 1, t);
-                        total += l * w;
-                    }
-                }
+        if t - 1 <= max_depth && cam[t - 1].connectible() {
+            let l = next_event(ctx, st, light, cam, t, u_light, u2);
+            if l != Vec3::ZERO {
+                total += l;
             }
         }
         // s >= 2: connect light[s-1] and cam[t-1].
@@ -980,32 +1079,65 @@ fn camera_techniques(
             if s + t - 2 > max_depth {
                 break;
             }
-            let (qs, pt) = (&light[s - 1], &cam[t - 1]);
-            if !qs.connectible() {
-                continue;
+            let l = connection(ctx, st, light, cam, s, t);
+            if l != Vec3::ZERO {
+                total += l;
             }
-            let Some(d) = pt.dir_to(qs) else {
-                continue;
-            };
-            let l = qs.beta * ctx.f(qs, -d, true) * ctx.f(pt, d, false) * pt.beta;
-            if l == Vec3::ZERO {
-                continue;
-            }
-            let g = ctx.g(qs, pt);
-            if g == 0.0 {
-                continue;
-            }
-            let w = mis_weight(ctx, st, light, cam, None, s, t);
-            total += l * (g * w);
         }
     }
     total
 }
 
 /// Per-unit scratch: the two subpaths (reused for every sample, never reallocated).
-struct Scratch {
-    light: [Vertex; MAX_VERTICES],
-    cam: [Vertex; MAX_VERTICES],
+pub(super) struct Scratch {
+    pub(super) light: [Vertex; MAX_VERTICES],
+    pub(super) cam: [Vertex; MAX_VERTICES],
+}
+
+impl Scratch {
+    /// Two empty subpaths, on the heap (they are large).
+    pub(super) fn boxed() -> Box<Self> {
+        let empty = Vertex::empty();
+        Box::new(Scratch {
+            light: [empty; MAX_VERTICES],
+            cam: [empty; MAX_VERTICES],
+        })
+    }
+}
+
+/// The one technique `(s, t)` on a light subpath of `s` and a camera subpath of `t >= 1`
+/// vertices (multiplexed MLT evaluates one technique per sample; Hachisuka, Kaplanyan &
+/// Dachsbacher 2014, section 4): its MIS-weighted contribution and, for light tracing
+/// (`t = 1`), the film position it lands on. Draws from `sampler` a 2D lens sample
+/// (`t = 1`) or a light choice and a 2D light sample (`s = 1`), nothing otherwise.
+pub(super) fn technique<S: SampleSource>(
+    ctx: &Ctx,
+    st: &BdptSettings,
+    scratch: &mut Scratch,
+    s: usize,
+    t: usize,
+    sampler: &mut S,
+) -> (Vec3, Option<Vec2>) {
+    let Scratch { light, cam } = scratch;
+    if t == 1 {
+        let u = sampler.next_2d();
+        return match light_tracing(ctx, st, light, cam, s, u) {
+            Some((raster, l)) => (l, Some(raster)),
+            None => (Vec3::ZERO, None),
+        };
+    }
+    if s == 0 {
+        return (emission(ctx, st, light, cam, t), None);
+    }
+    if cam[t - 1].kind == Kind::Light {
+        return (Vec3::ZERO, None); // an escaped ray connects to nothing
+    }
+    if s == 1 {
+        let u_light = sampler.next_1d();
+        let u2 = sampler.next_2d();
+        return (next_event(ctx, st, light, cam, t, u_light, u2), None);
+    }
+    (connection(ctx, st, light, cam, s, t), None)
 }
 
 /// Renders one work unit with bidirectional path tracing; see the [module
@@ -1028,21 +1160,12 @@ pub fn render_unit(
     unit: WorkUnit,
     wanted: impl Fn(usize, u32) -> bool,
 ) -> UnitResult {
-    let empty = Vertex::empty();
     let mut technique = Bdpt {
-        ctx: Ctx {
-            scene,
-            world: WorldDisk::new(scene.geometry.bounds_center, scene.geometry.bounds_radius),
-            time: 0.0,
-            camera: scene.camera,
-        },
+        ctx: Ctx::new(scene),
         st,
         motion: scene.has_motion(),
         lens: scene.camera.has_lens(),
-        scratch: Box::new(Scratch {
-            light: [empty; MAX_VERTICES],
-            cam: [empty; MAX_VERTICES],
-        }),
+        scratch: Scratch::boxed(),
     };
     let light_seed = stream.seed ^ LIGHT_STREAM;
     render_whole_frame(&mut technique, light_seed, stream, plan, unit, wanted)
@@ -1074,15 +1197,14 @@ impl WholeFrame for Bdpt<'_> {
         if self.motion {
             // The sample's time, from the light stream's first dimension: every pixel
             // draws it, inside the tile or not, so the splats agree.
-            ctx.time = ls.next_1d();
-            ctx.camera = ctx.scene.camera_at(ctx.time);
+            ctx.set_time(ls.next_1d());
         }
-        let n_light = light_subpath(ctx, st, light, ls);
+        let n_light = light_subpath(ctx, st, light, st.max_depth as usize + 1, ls);
         let mut camera_l = Vec3::ZERO;
         if let Some(cs) = cs {
             let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
             let lens_u = if self.lens { cs.next_2d() } else { Vec2::ZERO };
-            let n_cam = camera_subpath(ctx, st, film, lens_u, cam, cs);
+            let n_cam = camera_subpath(ctx, st, film, lens_u, cam, st.max_depth as usize + 2, cs);
             camera_l = camera_techniques(ctx, st, light, cam, n_light, n_cam, cs);
         }
         // Splats first, then the pixel's own estimate: a fixed order.

@@ -8,6 +8,7 @@
 //! | `bdpt` | bidirectional path tracing: camera and light subpaths joined by every connection technique, light tracing splatted onto the film, power-heuristic MIS ([`bdpt`]) |
 //! | `vcm` | vertex connection and merging: bdpt's techniques plus merging with a per-pass photon map, all weighted by MIS; biased, consistent ([`vcm`]) |
 //! | `ppm` | progressive photon mapping: vcm's merging alone, at the first non-specular camera vertex; biased, consistent ([`vcm`]'s merge-only mode) |
+//! | `mlt` | Metropolis light transport: Markov chains in primary sample space over bdpt's techniques, each pass with its own bootstrap normalisation and chains ([`mlt`]) |
 //!
 //! # The interface
 //!
@@ -59,6 +60,7 @@
 //!    unit splits comes from the contract and is checked by `tests/it/determinism.rs`.
 
 pub mod bdpt;
+pub mod mlt;
 pub mod path;
 pub mod vcm;
 
@@ -166,6 +168,12 @@ pub fn render_unit_where(
             );
             vcm::render_unit(scene, &vcm, stream, plan, unit, wanted)
         }
+        // Markov chains wander over the whole frame: whole-frame units as for bdpt, each
+        // pass with its own bootstrap and chains.
+        Integrator::Mlt => {
+            let mlt = mlt::MltSettings::new(settings.mis, settings.max_depth);
+            mlt::render_unit(scene, &mlt, stream, plan, unit, wanted)
+        }
     }
 }
 
@@ -252,6 +260,28 @@ fn render_camera_samples(
         height: rect.height,
         pass_means,
         rejected_samples,
+    }
+}
+
+/// Where a technique's random walks draw their numbers: a [`PixelSampler`] (the
+/// per-pixel randomized point sets) or a Markov chain's primary sample vector
+/// ([`mlt`]). Walks generic over it are monomorphic, so a `PixelSampler` caller's
+/// values are exactly those of a walk that took `&mut PixelSampler`.
+pub(crate) trait SampleSource {
+    /// The next 1D value of the sample, in `[0, 1)`.
+    fn next_1d(&mut self) -> f32;
+    /// The next 2D value of the sample, each component in `[0, 1)`.
+    fn next_2d(&mut self) -> Vec2;
+}
+
+impl SampleSource for PixelSampler {
+    #[inline]
+    fn next_1d(&mut self) -> f32 {
+        PixelSampler::next_1d(self)
+    }
+    #[inline]
+    fn next_2d(&mut self) -> Vec2 {
+        PixelSampler::next_2d(self)
     }
 }
 

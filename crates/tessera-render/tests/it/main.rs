@@ -18,6 +18,7 @@ mod instancing;
 mod khronos_environment;
 mod light_tree;
 mod many_nodes;
+mod mlt;
 mod motion_blur;
 mod pilot;
 mod plan_equivalence;
