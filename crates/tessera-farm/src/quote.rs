@@ -50,6 +50,12 @@
 //! interval uses `se(M)/(2M)` alike. The farm's figures take the spot checks' copies at
 //! the 2.5% and 97.5% quantiles of `K` for the interval's two ends.
 //!
+//! Where the pilot's pass values are heavy-tailed (rare paths: fireflies), the interval
+//! above understates the truth, because the law it extrapolates does not yet hold: the
+//! pilot's tails ([`Tails`], the statistics in its module documentation) widen the
+//! interval's high end, or make the quote "not predictable from the pilot"
+//! ([`TailClass`], with the reason in [`Quote::tail_note`]).
+//!
 //! What the interval does not cover: paths so rare that no pilot pass found them (a
 //! caustic the pilot missed makes every prediction optimistic; Jensen 2001, section 10.3,
 //! on what a pilot can miss), a machine whose load changes between the pilot and the job,
@@ -87,6 +93,9 @@
 //! ```
 
 use serde::{Deserialize, Serialize};
+
+mod tails;
+pub use tails::{TailClass, Tails};
 
 /// The errors a quote is given when the job names none: 10%, 5%, 2% and 1%.
 pub const DEFAULT_TARGETS: [f64; 4] = [0.10, 0.05, 0.02, 0.01];
@@ -137,6 +146,10 @@ pub struct PilotMeasurement {
     pub groups: Vec<PilotGroup>,
     /// The pilot's units, for the cost per pixel-pass and its spread.
     pub units: Vec<PilotUnit>,
+    /// The tails of the pilot's pass values ([`Tails::measure`]), when measured: whether
+    /// the quote stands, is widened or cannot be given ([`Tails::verdict`]).
+    #[serde(default)]
+    pub tails: Option<Tails>,
 }
 
 /// The job a quote is for.
@@ -254,6 +267,17 @@ pub struct Quote {
     pub targets: Vec<TargetQuote>,
     /// What the prediction assumes, for people.
     pub assumes: String,
+    /// The pilot's tail statistics, when measured.
+    #[serde(default)]
+    pub tails: Option<Tails>,
+    /// Whether the figures are a prediction ([`TailClass::Light`]), one with intervals
+    /// widened for a heavy tail, or not a prediction at all ([`TailClass::Unpredictable`]:
+    /// "not predictable from the pilot", the figures a lower bound).
+    #[serde(default)]
+    pub tail_class: TailClass,
+    /// Why, in words with the measured figures, unless [`TailClass::Light`].
+    #[serde(default)]
+    pub tail_note: Option<String>,
 }
 
 /// Why no quote can be made.
@@ -370,8 +394,22 @@ pub fn quote(
     check_inputs(pilot, job, targets)?;
     let fit = Fit::of(pilot);
     let pricing = Pricing::new(&fit, job);
+    let (tail_class, tail_note) = pilot
+        .tails
+        .map_or((TailClass::Light, None), |t| t.verdict());
+    // A heavy tail's extrapolation: the per-pass error growing like passes^gamma.
+    let gamma = match (tail_class, pilot.tails) {
+        (TailClass::Heavy, Some(t)) => Some(t.gamma()),
+        _ => None,
+    };
     let planned_n = f64::from(job.planned_passes);
-    let planned_error = Interval::lognormal(fit.error_after(planned_n), fit.rel_m / 2.0);
+    let mut planned_error = Interval::lognormal(fit.error_after(planned_n), fit.rel_m / 2.0);
+    if let Some(g) = gamma {
+        let m_high = fit.m * (Z95 * fit.rel_m).exp();
+        planned_error.high = planned_error
+            .high
+            .max((m_high * (planned_n / fit.p).powf(g - 1.0)).sqrt());
+    }
     let planned = pricing.cost(
         Interval {
             estimate: planned_n,
@@ -384,7 +422,13 @@ pub fn quote(
         .iter()
         .map(|&t| {
             let m_interval = Interval::lognormal(fit.m, fit.rel_m);
-            let passes = m_interval.map(|m| (m * fit.p / (t * t)).ceil().max(2.0));
+            let mut passes = m_interval.map(|m| (m * fit.p / (t * t)).ceil().max(2.0));
+            if let Some(g) = gamma {
+                // E(n)² = M (n / P)^(gamma - 1) = t²  =>  n = P (M / t²)^(1 / (1 - gamma));
+                // gamma < 1 for a heavy (not unpredictable) tail.
+                let n = fit.p * (m_interval.high / (t * t)).powf(1.0 / (1.0 - g));
+                passes.high = passes.high.max(n.ceil().max(2.0));
+            }
             let error = Interval::lognormal(fit.error_after(passes.estimate), fit.rel_m / 2.0);
             TargetQuote {
                 target: t,
@@ -408,6 +452,9 @@ pub fn quote(
                   frame; the error falls like 1/sqrt(passes); workers as fast as the pilot's, \
                   sharing out units of equal cost, the spot-checked ones twice"
             .into(),
+        tails: pilot.tails,
+        tail_class,
+        tail_note,
     })
 }
 
@@ -748,6 +795,7 @@ mod tests {
             passes,
             groups,
             units,
+            tails: None,
         }
     }
 
@@ -763,6 +811,7 @@ mod tests {
                 pixel_passes: 400,
                 worker_seconds: 4.0,
             }],
+            tails: None,
         };
         let q = quote(&pilot, &job(16), &[0.1, 0.4, 0.01]).unwrap();
         assert!((q.pilot_error - 0.4).abs() < 1e-12);
@@ -845,6 +894,7 @@ mod tests {
                 };
                 4
             ],
+            tails: None,
         };
         let job = QuoteJob {
             pixels_per_frame: 1024,
