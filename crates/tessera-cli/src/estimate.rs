@@ -244,6 +244,7 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         worker_threads: threads,
         spot_check_fraction: args.spot_check_fraction,
         passes_per_unit: 1,
+        stop_interval: stop_interval(args.stop.target_error, 1),
     };
     let out = run_pilot(&p, &run).map_err(|e| match e {
         PilotError::Target(m) => anyhow::anyhow!("--target-error: {m}"),
@@ -375,6 +376,11 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
         worker_threads: args.worker_threads,
         spot_check_fraction: args.spot_check_fraction,
         passes_per_unit: args.passes_per_unit,
+        // On the farm only an adaptive job stops at its target (`job_eta_seconds`).
+        stop_interval: stop_interval(
+            settings.target_error.filter(|_| settings.adaptive != "off"),
+            args.passes_per_unit,
+        ),
     };
     let out = run_pilot(&p, &run).map_err(|e| match e {
         PilotError::Target(m) => anyhow::anyhow!("invalid target_error: {m}"),
@@ -430,6 +436,23 @@ struct PilotRun {
     spot_check_fraction: f64,
     /// The farm's passes per work unit.
     passes_per_unit: u32,
+    /// Passes between a target-stopped job's checks ([`QuoteJob::stop_interval`]), 0 for a
+    /// job that runs its planned passes.
+    stop_interval: u32,
+}
+
+/// [`QuoteJob::stop_interval`] of a job: the adaptive policy's rounds (rounded up to the
+/// farm's units, as [`tessera_farm::AdaptiveSettings::for_units`] does) when it stops at
+/// a target error, else 0.
+fn stop_interval(target_error: Option<f64>, passes_per_unit: u32) -> u32 {
+    match target_error {
+        Some(_) => {
+            tessera_farm::AdaptiveSettings::default()
+                .for_units(passes_per_unit)
+                .interval
+        }
+        None => 0,
+    }
 }
 
 /// Why a pilot gave no quote.
@@ -550,6 +573,7 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
         tiles_per_frame: plan.tile_count(),
         passes_per_unit: run.passes_per_unit,
         spot_check_fraction: run.spot_check_fraction,
+        stop_interval: run.stop_interval,
     };
     out.quote = Some(quote(&pilot, &job, &run.targets).map_err(|e| match e {
         tessera_farm::quote::QuoteError::Field("target_error", m) => {

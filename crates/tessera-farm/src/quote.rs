@@ -84,6 +84,7 @@
 //!     tiles_per_frame: 64,
 //!     passes_per_unit: 1,
 //!     spot_check_fraction: 0.0,
+//!     stop_interval: 0,
 //! };
 //! let q = quote(&pilot, &job, &[0.05]).unwrap();
 //! // 0.2 after 4 passes: 0.1 after 16, 0.05 after 64.
@@ -176,6 +177,12 @@ pub struct QuoteJob {
     /// The fraction of units the farm renders a second time to compare the copies (spot
     /// checks, `tessera_farm::DEFAULT_SPOT_CHECK_FRACTION` by default; 0 for none).
     pub spot_check_fraction: f64,
+    /// Passes between the checks of a job that stops at its target error (the adaptive
+    /// policy's `interval`: a render stopping at a target checks its image after each round
+    /// of that many passes, so it stops at a multiple of it). A target's passes are rounded
+    /// up to it. 0 or 1: no rounding (a job that runs its planned passes).
+    #[serde(default)]
+    pub stop_interval: u32,
 }
 
 /// A predicted quantity and its 95% interval.
@@ -422,12 +429,16 @@ pub fn quote(
         .iter()
         .map(|&t| {
             let m_interval = Interval::lognormal(fit.m, fit.rel_m);
-            let mut passes = m_interval.map(|m| (m * fit.p / (t * t)).ceil().max(2.0));
+            // A render stopping at its target checks after rounds of `stop_interval`
+            // passes: it stops at the first multiple past the passes needed.
+            let step = f64::from(job.stop_interval.max(1));
+            let whole = |n: f64| ((n.ceil().max(2.0)) / step).ceil() * step;
+            let mut passes = m_interval.map(|m| whole(m * fit.p / (t * t)));
             if let Some(g) = gamma {
                 // E(n)² = M (n / P)^(gamma - 1) = t²  =>  n = P (M / t²)^(1 / (1 - gamma));
                 // gamma < 1 for a heavy (not unpredictable) tail.
                 let n = fit.p * (m_interval.high / (t * t)).powf(1.0 / (1.0 - g));
-                passes.high = passes.high.max(n.ceil().max(2.0));
+                passes.high = passes.high.max(whole(n));
             }
             let error = Interval::lognormal(fit.error_after(passes.estimate), fit.rel_m / 2.0);
             TargetQuote {
@@ -752,6 +763,7 @@ mod tests {
             tiles_per_frame: 256,
             passes_per_unit: 1,
             spot_check_fraction: 0.0,
+            stop_interval: 0,
         }
     }
 
@@ -906,6 +918,7 @@ mod tests {
             tiles_per_frame: 1,
             passes_per_unit: 1,
             spot_check_fraction: 0.0,
+            stop_interval: 0,
         };
         let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
         let c = quote(&pilot, &job, &[]).unwrap().planned;
@@ -963,6 +976,59 @@ mod tests {
         );
         let none = Copies::of(10.0, 0.0, 4.0);
         assert_eq!((none.high, none.mean_rounds), (0.0, 3.0));
+    }
+
+    /// A target-stopped render checks after rounds of `stop_interval` passes: the passes
+    /// a target needs round up to them. A heavy-tailed pilot widens the high end only; a
+    /// pilot too heavy to extrapolate says so and keeps the law's figures.
+    #[test]
+    fn stop_rounds_and_tails_shape_the_target_passes() {
+        let mut rng = Rng::new(0x0e57_1a7e);
+        let pilot = synthetic(&mut rng, 0.5, 1e-6, 4, 16);
+        let plain = quote(&pilot, &job(1 << 20), &[0.02]).unwrap();
+        let rounded = quote(
+            &pilot,
+            &QuoteJob {
+                stop_interval: 4,
+                ..job(1 << 20)
+            },
+            &[0.02],
+        )
+        .unwrap();
+        let (p, r) = (plain.targets[0].passes, rounded.targets[0].passes);
+        for (a, b) in [(p.low, r.low), (p.estimate, r.estimate), (p.high, r.high)] {
+            assert!(b % 4.0 == 0.0 && b >= a && b < a + 4.0, "{p:?} {r:?}");
+        }
+        assert_eq!(plain.tail_class, TailClass::Light);
+
+        let tails = |tail_index, variance_growth| Tails {
+            values: 32768,
+            tail_index: Some(tail_index),
+            hill_k: 181,
+            top_share: 0.3,
+            variance_growth: Some(variance_growth),
+        };
+        let with = |t| PilotMeasurement {
+            tails: Some(t),
+            ..pilot.clone()
+        };
+        let heavy = quote(&with(tails(3.0, 1.5)), &job(1 << 20), &[0.02]).unwrap();
+        assert_eq!(heavy.tail_class, TailClass::Heavy);
+        let h = heavy.targets[0].passes;
+        assert_eq!((h.low, h.estimate), (p.low, p.estimate));
+        // gamma = log2 1.5 = 0.585: n = P (M_high / t²)^(1 / 0.415), far above the law's.
+        assert!(h.high > 4.0 * p.high, "{h:?} {p:?}");
+        assert!(heavy.planned.error.high > plain.planned.error.high);
+        assert!(heavy.targets[0].cost.seconds.high > plain.targets[0].cost.seconds.high);
+
+        let wild = quote(&with(tails(1.4, 1.1)), &job(1 << 20), &[0.02]).unwrap();
+        assert_eq!(wild.tail_class, TailClass::Unpredictable);
+        assert!(wild
+            .tail_note
+            .as_deref()
+            .unwrap()
+            .starts_with("not predictable from the pilot"));
+        assert_eq!(wild.targets[0].passes, p);
     }
 
     #[test]
