@@ -73,6 +73,7 @@
 //!         PilotGroup { pixels: 1024, sum_sq_rel: 1024.0 * 0.04 },
 //!     ],
 //!     units: vec![PilotUnit { pixel_passes: 1024, worker_seconds: 0.01 }; 8],
+//!     tails: None,
 //! };
 //! let job = QuoteJob {
 //!     pixels_per_frame: 65536,
