@@ -72,9 +72,10 @@ def main():
                 pass
             time.sleep(0.1)
         for scene, flags in JOBS:
-            quote = json.loads(subprocess.run(
+            quoted = json.loads(subprocess.run(
                 [BIN, "estimate", scene, *flags, "--workers", str(WORKERS), "--threads", "1", "--json"],
-                check=True, capture_output=True, text=True).stdout)["quote"]["planned"]["seconds"]
+                check=True, capture_output=True, text=True).stdout)["quote"]
+            quote = dict(quoted["planned"]["seconds"], tail_class=quoted.get("tail_class", "light"))
             ref = scene
             if not scene.startswith("builtin:"):
                 with open(scene, "rb") as f:
@@ -111,6 +112,9 @@ def main():
             else:
                 cells.append("-")
         q = f"{quote['estimate']:.1f} [{quote['low']:.1f}, {quote['high']:.1f}] ({(quote['estimate'] - actual) / actual * 100:+.0f}%)"
+        # A heavy-tailed pilot widens the interval; an unpredictable one is a lower bound.
+        if quote["tail_class"] != "light":
+            q += f" {quote['tail_class']}"
         print(f"| {scene} | {' '.join(flags)} | {q} | {' | '.join(cells)} | {actual:.1f} {'' if state == 'done' else state} |")
 
 

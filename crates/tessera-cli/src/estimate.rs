@@ -15,7 +15,7 @@ use std::time::Instant;
 use tessera_farm::job::FrameRange;
 use tessera_farm::quote::{
     pilot_tiles, quote, Interval, PilotGroup, PilotMeasurement, PilotUnit, Quote, QuoteJob,
-    DEFAULT_TARGETS, PILOT_PASSES,
+    TailClass, Tails, DEFAULT_TARGETS, PILOT_PASSES,
 };
 use tessera_farm::{FrameAccumulator, FramePlan, WorkUnit};
 use tessera_render::render::render_unit;
@@ -244,6 +244,7 @@ pub fn estimate(args: EstimateArgs) -> Result<()> {
         worker_threads: threads,
         spot_check_fraction: args.spot_check_fraction,
         passes_per_unit: 1,
+        stop_interval: stop_interval(args.stop.target_error, 1),
     };
     let out = run_pilot(&p, &run).map_err(|e| match e {
         PilotError::Target(m) => anyhow::anyhow!("--target-error: {m}"),
@@ -375,6 +376,11 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
         worker_threads: args.worker_threads,
         spot_check_fraction: args.spot_check_fraction,
         passes_per_unit: args.passes_per_unit,
+        // On the farm only an adaptive job stops at its target (`job_eta_seconds`).
+        stop_interval: stop_interval(
+            settings.target_error.filter(|_| settings.adaptive != "off"),
+            args.passes_per_unit,
+        ),
     };
     let out = run_pilot(&p, &run).map_err(|e| match e {
         PilotError::Target(m) => anyhow::anyhow!("invalid target_error: {m}"),
@@ -430,6 +436,23 @@ struct PilotRun {
     spot_check_fraction: f64,
     /// The farm's passes per work unit.
     passes_per_unit: u32,
+    /// Passes between a target-stopped job's checks ([`QuoteJob::stop_interval`]), 0 for a
+    /// job that runs its planned passes.
+    stop_interval: u32,
+}
+
+/// [`QuoteJob::stop_interval`] of a job: the adaptive policy's rounds (rounded up to the
+/// farm's units, as [`tessera_farm::AdaptiveSettings::for_units`] does) when it stops at
+/// a target error, else 0.
+fn stop_interval(target_error: Option<f64>, passes_per_unit: u32) -> u32 {
+    match target_error {
+        Some(_) => {
+            tessera_farm::AdaptiveSettings::default()
+                .for_units(passes_per_unit)
+                .interval
+        }
+        None => 0,
+    }
 }
 
 /// Why a pilot gave no quote.
@@ -520,6 +543,7 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
     out.pilot_cpu_seconds = cpu;
     out.pilot_seconds = start.elapsed().as_secs_f64();
     out.pilot_tiles = tiles.len();
+    let tails = pilot_tails(&rendered);
     let mut acc = FrameAccumulator::for_frame(pilot_plan, frames.start);
     let mut pilot_units = Vec::with_capacity(rendered.len());
     for (result, seconds) in rendered {
@@ -537,6 +561,7 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
         passes: PILOT_PASSES,
         groups,
         units: pilot_units,
+        tails,
     };
     let job = QuoteJob {
         pixels_per_frame: u64::from(plan.width) * u64::from(plan.height),
@@ -548,6 +573,7 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
         tiles_per_frame: plan.tile_count(),
         passes_per_unit: run.passes_per_unit,
         spot_check_fraction: run.spot_check_fraction,
+        stop_interval: run.stop_interval,
     };
     out.quote = Some(quote(&pilot, &job, &run.targets).map_err(|e| match e {
         tessera_farm::quote::QuoteError::Field("target_error", m) => {
@@ -556,6 +582,34 @@ fn run_pilot(p: &Prepared, run: &PilotRun) -> Result<EstimateOutput, PilotError>
         e => PilotError::Other(anyhow::anyhow!(e)),
     })?);
     Ok(out)
+}
+
+/// The tails of the pilot's pass values ([`Tails::measure`]): every pilot pixel's
+/// luminance in each of its passes, gathered from the units (one pass of one tile each).
+fn pilot_tails(rendered: &[(tessera_farm::UnitResult, f64)]) -> Option<Tails> {
+    let passes = PILOT_PASSES as usize;
+    let lum = |c: &[f32; 3]| tessera_farm::luminance(c.map(f64::from));
+    let mut by_tile = std::collections::BTreeMap::<u32, Vec<f64>>::new();
+    for (r, _) in rendered {
+        let px = r.width as usize * r.height as usize;
+        let values = by_tile
+            .entry(r.unit.tile)
+            .or_insert_with(|| vec![0.0; px * passes]);
+        for p in 0..r.unit.pass_count as usize {
+            let pass = r.unit.first_pass as usize + p;
+            let Some(means) = r.pass_means.get(p * px..(p + 1) * px) else {
+                continue;
+            };
+            if pass >= passes || values.len() != px * passes {
+                continue;
+            }
+            for (i, c) in means.iter().enumerate() {
+                values[i * passes + pass] = lum(c);
+            }
+        }
+    }
+    let values: Vec<f64> = by_tile.into_values().flatten().collect();
+    Tails::measure(&values, passes)
 }
 
 /// The pilot's pixels in groups for the spread of the error: each pilot tile, or bands of
@@ -643,6 +697,11 @@ fn print_quote(o: &EstimateOutput, q: &Quote) {
             secs(&c.seconds)
         );
     };
+    if q.tail_class == TailClass::Unpredictable {
+        if let Some(note) = &q.tail_note {
+            println!("{note}");
+        }
+    }
     row(&format!("as planned ({} spp):", o.spp), &q.planned);
     for t in &q.targets {
         let note = if t.within_plan {
@@ -653,6 +712,11 @@ fn print_quote(o: &EstimateOutput, q: &Quote) {
         row(&format!("to reach error {}{note}:", t.target), &t.cost);
     }
     println!("intervals are 95%; assumes {}", q.assumes);
+    if q.tail_class == TailClass::Heavy {
+        if let Some(note) = &q.tail_note {
+            println!("{note}");
+        }
+    }
     if let Some(caveat) = &o.error_estimate_caveat {
         println!("error estimate caveat: the quoted errors {caveat}");
     }

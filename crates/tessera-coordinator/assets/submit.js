@@ -227,7 +227,10 @@ export function submitView() {
         h("tbody", {}, ...rows))),
       // The estimate's caveat (path-traced caustics of a tiny light, adaptive stopping on a
       // scene of rare paths): these errors may be low.
-      ...(q.error_estimate_caveat ? [h("p", { class: "hint caveat" }, `The quoted errors ${q.error_estimate_caveat}.`)] : []));
+      ...(q.error_estimate_caveat ? [h("p", { class: "hint caveat" }, `The quoted errors ${q.error_estimate_caveat}.`)] : []),
+      // The pilot's tails (tessera_farm::quote::Tails): rare paths make the figures a lower
+      // bound ("unpredictable") or widen the intervals ("heavy"); the note says why.
+      ...(q.quote.tail_note ? [h("p", { class: "hint caveat" }, q.quote.tail_note)] : []));
   }
 
   quoteButton.addEventListener("click", async () => {

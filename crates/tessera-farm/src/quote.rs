@@ -50,6 +50,12 @@
 //! interval uses `se(M)/(2M)` alike. The farm's figures take the spot checks' copies at
 //! the 2.5% and 97.5% quantiles of `K` for the interval's two ends.
 //!
+//! Where the pilot's pass values are heavy-tailed (rare paths: fireflies), the interval
+//! above understates the truth, because the law it extrapolates does not yet hold: the
+//! pilot's tails ([`Tails`], the statistics in its module documentation) widen the
+//! interval's high end, or make the quote "not predictable from the pilot"
+//! ([`TailClass`], with the reason in [`Quote::tail_note`]).
+//!
 //! What the interval does not cover: paths so rare that no pilot pass found them (a
 //! caustic the pilot missed makes every prediction optimistic; Jensen 2001, section 10.3,
 //! on what a pilot can miss), a machine whose load changes between the pilot and the job,
@@ -67,6 +73,7 @@
 //!         PilotGroup { pixels: 1024, sum_sq_rel: 1024.0 * 0.04 },
 //!     ],
 //!     units: vec![PilotUnit { pixel_passes: 1024, worker_seconds: 0.01 }; 8],
+//!     tails: None,
 //! };
 //! let job = QuoteJob {
 //!     pixels_per_frame: 65536,
@@ -78,6 +85,7 @@
 //!     tiles_per_frame: 64,
 //!     passes_per_unit: 1,
 //!     spot_check_fraction: 0.0,
+//!     stop_interval: 0,
 //! };
 //! let q = quote(&pilot, &job, &[0.05]).unwrap();
 //! // 0.2 after 4 passes: 0.1 after 16, 0.05 after 64.
@@ -87,6 +95,9 @@
 //! ```
 
 use serde::{Deserialize, Serialize};
+
+mod tails;
+pub use tails::{TailClass, Tails};
 
 /// The errors a quote is given when the job names none: 10%, 5%, 2% and 1%.
 pub const DEFAULT_TARGETS: [f64; 4] = [0.10, 0.05, 0.02, 0.01];
@@ -137,6 +148,10 @@ pub struct PilotMeasurement {
     pub groups: Vec<PilotGroup>,
     /// The pilot's units, for the cost per pixel-pass and its spread.
     pub units: Vec<PilotUnit>,
+    /// The tails of the pilot's pass values ([`Tails::measure`]), when measured: whether
+    /// the quote stands, is widened or cannot be given ([`Tails::verdict`]).
+    #[serde(default)]
+    pub tails: Option<Tails>,
 }
 
 /// The job a quote is for.
@@ -163,6 +178,12 @@ pub struct QuoteJob {
     /// The fraction of units the farm renders a second time to compare the copies (spot
     /// checks, `tessera_farm::DEFAULT_SPOT_CHECK_FRACTION` by default; 0 for none).
     pub spot_check_fraction: f64,
+    /// Passes between the checks of a job that stops at its target error (the adaptive
+    /// policy's `interval`: a render stopping at a target checks its image after each round
+    /// of that many passes, so it stops at a multiple of it). A target's passes are rounded
+    /// up to it. 0 or 1: no rounding (a job that runs its planned passes).
+    #[serde(default)]
+    pub stop_interval: u32,
 }
 
 /// A predicted quantity and its 95% interval.
@@ -254,6 +275,17 @@ pub struct Quote {
     pub targets: Vec<TargetQuote>,
     /// What the prediction assumes, for people.
     pub assumes: String,
+    /// The pilot's tail statistics, when measured.
+    #[serde(default)]
+    pub tails: Option<Tails>,
+    /// Whether the figures are a prediction ([`TailClass::Light`]), one with intervals
+    /// widened for a heavy tail, or not a prediction at all ([`TailClass::Unpredictable`]:
+    /// "not predictable from the pilot", the figures a lower bound).
+    #[serde(default)]
+    pub tail_class: TailClass,
+    /// Why, in words with the measured figures, unless [`TailClass::Light`].
+    #[serde(default)]
+    pub tail_note: Option<String>,
 }
 
 /// Why no quote can be made.
@@ -370,8 +402,22 @@ pub fn quote(
     check_inputs(pilot, job, targets)?;
     let fit = Fit::of(pilot);
     let pricing = Pricing::new(&fit, job);
+    let (tail_class, tail_note) = pilot
+        .tails
+        .map_or((TailClass::Light, None), |t| t.verdict());
+    // A heavy tail's extrapolation: the per-pass error growing like passes^gamma.
+    let gamma = match (tail_class, pilot.tails) {
+        (TailClass::Heavy, Some(t)) => Some(t.gamma()),
+        _ => None,
+    };
     let planned_n = f64::from(job.planned_passes);
-    let planned_error = Interval::lognormal(fit.error_after(planned_n), fit.rel_m / 2.0);
+    let mut planned_error = Interval::lognormal(fit.error_after(planned_n), fit.rel_m / 2.0);
+    if let Some(g) = gamma {
+        let m_high = fit.m * (Z95 * fit.rel_m).exp();
+        planned_error.high = planned_error
+            .high
+            .max((m_high * (planned_n / fit.p).powf(g - 1.0)).sqrt());
+    }
     let planned = pricing.cost(
         Interval {
             estimate: planned_n,
@@ -384,7 +430,17 @@ pub fn quote(
         .iter()
         .map(|&t| {
             let m_interval = Interval::lognormal(fit.m, fit.rel_m);
-            let passes = m_interval.map(|m| (m * fit.p / (t * t)).ceil().max(2.0));
+            // A render stopping at its target checks after rounds of `stop_interval`
+            // passes: it stops at the first multiple past the passes needed.
+            let step = f64::from(job.stop_interval.max(1));
+            let whole = |n: f64| ((n.ceil().max(2.0)) / step).ceil() * step;
+            let mut passes = m_interval.map(|m| whole(m * fit.p / (t * t)));
+            if let Some(g) = gamma {
+                // E(n)² = M (n / P)^(gamma - 1) = t²  =>  n = P (M / t²)^(1 / (1 - gamma));
+                // gamma < 1 for a heavy (not unpredictable) tail.
+                let n = fit.p * (m_interval.high / (t * t)).powf(1.0 / (1.0 - g));
+                passes.high = passes.high.max(whole(n));
+            }
             let error = Interval::lognormal(fit.error_after(passes.estimate), fit.rel_m / 2.0);
             TargetQuote {
                 target: t,
@@ -408,6 +464,9 @@ pub fn quote(
                   frame; the error falls like 1/sqrt(passes); workers as fast as the pilot's, \
                   sharing out units of equal cost, the spot-checked ones twice"
             .into(),
+        tails: pilot.tails,
+        tail_class,
+        tail_note,
     })
 }
 
@@ -705,6 +764,7 @@ mod tests {
             tiles_per_frame: 256,
             passes_per_unit: 1,
             spot_check_fraction: 0.0,
+            stop_interval: 0,
         }
     }
 
@@ -748,6 +808,7 @@ mod tests {
             passes,
             groups,
             units,
+            tails: None,
         }
     }
 
@@ -763,6 +824,7 @@ mod tests {
                 pixel_passes: 400,
                 worker_seconds: 4.0,
             }],
+            tails: None,
         };
         let q = quote(&pilot, &job(16), &[0.1, 0.4, 0.01]).unwrap();
         assert!((q.pilot_error - 0.4).abs() < 1e-12);
@@ -845,6 +907,7 @@ mod tests {
                 };
                 4
             ],
+            tails: None,
         };
         let job = QuoteJob {
             pixels_per_frame: 1024,
@@ -856,6 +919,7 @@ mod tests {
             tiles_per_frame: 1,
             passes_per_unit: 1,
             spot_check_fraction: 0.0,
+            stop_interval: 0,
         };
         let close = |a: f64, b: f64| (a - b).abs() < 1e-9;
         let c = quote(&pilot, &job, &[]).unwrap().planned;
@@ -913,6 +977,59 @@ mod tests {
         );
         let none = Copies::of(10.0, 0.0, 4.0);
         assert_eq!((none.high, none.mean_rounds), (0.0, 3.0));
+    }
+
+    /// A target-stopped render checks after rounds of `stop_interval` passes: the passes
+    /// a target needs round up to them. A heavy-tailed pilot widens the high end only; a
+    /// pilot too heavy to extrapolate says so and keeps the law's figures.
+    #[test]
+    fn stop_rounds_and_tails_shape_the_target_passes() {
+        let mut rng = Rng::new(0x0e57_1a7e);
+        let pilot = synthetic(&mut rng, 0.5, 1e-6, 4, 16);
+        let plain = quote(&pilot, &job(1 << 20), &[0.02]).unwrap();
+        let rounded = quote(
+            &pilot,
+            &QuoteJob {
+                stop_interval: 4,
+                ..job(1 << 20)
+            },
+            &[0.02],
+        )
+        .unwrap();
+        let (p, r) = (plain.targets[0].passes, rounded.targets[0].passes);
+        for (a, b) in [(p.low, r.low), (p.estimate, r.estimate), (p.high, r.high)] {
+            assert!(b % 4.0 == 0.0 && b >= a && b < a + 4.0, "{p:?} {r:?}");
+        }
+        assert_eq!(plain.tail_class, TailClass::Light);
+
+        let tails = |tail_index, variance_growth| Tails {
+            values: 32768,
+            tail_index: Some(tail_index),
+            hill_k: 181,
+            top_share: 0.3,
+            variance_growth: Some(variance_growth),
+        };
+        let with = |t| PilotMeasurement {
+            tails: Some(t),
+            ..pilot.clone()
+        };
+        let heavy = quote(&with(tails(3.0, 1.5)), &job(1 << 20), &[0.02]).unwrap();
+        assert_eq!(heavy.tail_class, TailClass::Heavy);
+        let h = heavy.targets[0].passes;
+        assert_eq!((h.low, h.estimate), (p.low, p.estimate));
+        // gamma = log2 1.5 = 0.585: n = P (M_high / t²)^(1 / 0.415), far above the law's.
+        assert!(h.high > 4.0 * p.high, "{h:?} {p:?}");
+        assert!(heavy.planned.error.high > plain.planned.error.high);
+        assert!(heavy.targets[0].cost.seconds.high > plain.targets[0].cost.seconds.high);
+
+        let wild = quote(&with(tails(1.4, 1.1)), &job(1 << 20), &[0.02]).unwrap();
+        assert_eq!(wild.tail_class, TailClass::Unpredictable);
+        assert!(wild
+            .tail_note
+            .as_deref()
+            .unwrap()
+            .starts_with("not predictable from the pilot"));
+        assert_eq!(wild.targets[0].passes, p);
     }
 
     #[test]
