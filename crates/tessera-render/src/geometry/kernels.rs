@@ -12,8 +12,10 @@
 //! - `scalar`: one child at a time, skipping unused slots (the reference);
 //! - `sse2`: all [`WIDTH`] children as plain array code LLVM vectorises with the
 //!   baseline x86-64 instruction set (4 lanes);
-//! - `avx2`, `avx512`: the same array code compiled inside `#[target_feature]` functions
-//!   (8 lanes; AVX-512's mask registers for the compares).
+//! - `avx2`, `avx512`: the box test written out with 8-lane AVX intrinsics (one register
+//!   per plane array; LLVM vectorised the array code only 4 lanes at a time), and the
+//!   traversal and triangle tests compiled inside `#[target_feature]` functions for
+//!   AVX2 or AVX-512 F.
 //!
 //! Traversal and triangle tests are the same code in every kernel (compiled per kernel
 //! too, so they use its registers), and the hit does not depend on the box test beyond
@@ -62,7 +64,12 @@ impl Isa {
             match self {
                 Isa::Scalar | Isa::Sse2 => true,
                 Isa::Avx2 => std::arch::is_x86_feature_detected!("avx2"),
-                Isa::Avx512 => std::arch::is_x86_feature_detected!("avx512f"),
+                // The AVX-512 kernel's box test is the AVX2 one (8 children fill one
+                // 256-bit register), so it needs both.
+                Isa::Avx512 => {
+                    std::arch::is_x86_feature_detected!("avx512f")
+                        && std::arch::is_x86_feature_detected!("avx2")
+                }
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
@@ -191,6 +198,20 @@ impl BoxTest for Lanes {
     }
 }
 
+/// Kernel `isa`'s box test of `node` alone (for the tests that compare kernels lane by
+/// lane); `isa` must be available.
+#[cfg(test)]
+pub(super) fn box_test(isa: Isa, node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32) {
+    match isa {
+        Isa::Scalar => Scalar::test(node, ray, limit),
+        Isa::Sse2 => Lanes::test(node, ray, limit),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 | Isa::Avx512 => x86::box_test(isa, node, ray, limit),
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => Scalar::test(node, ray, limit),
+    }
+}
+
 /// The nearest kept hit in `level` with `t < *best_t` (see [`wide::nearest`]), with
 /// kernel `isa`.
 #[inline(always)]
@@ -246,10 +267,82 @@ pub(super) fn any(
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code)]
 mod x86 {
-    use super::super::wide::{self, BoxRay, Level};
+    use super::super::wide::{self, far_scale, planes, BoxRay, BoxTest, Level, WideNode, WIDTH};
     use super::super::{Hit, TriangleRecord};
     use super::{Isa, Lanes};
     use glam::Vec3;
+    use std::arch::x86_64::{
+        _mm256_cmp_ps, _mm256_loadu_ps, _mm256_max_ps, _mm256_min_ps, _mm256_movemask_ps,
+        _mm256_mul_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_storeu_ps, _mm256_sub_ps,
+        _CMP_LE_OQ,
+    };
+
+    /// The box test of all [`WIDTH`] children in one 8-lane register per plane array:
+    /// the operations of [`super::Lanes`] in the same order, written out because LLVM
+    /// vectorises the array code only 4 lanes at a time. `_mm256_max_ps(a, e)` is
+    /// `if a > e { a } else { e }` and `_mm256_min_ps(b, x)` is `if b < x { b } else
+    /// { x }` exactly (the second operand on NaN), and `_CMP_LE_OQ` is `<=` (false on
+    /// NaN), so every lane computes the bits the scalar kernel does.
+    ///
+    /// Used only inside the `#[target_feature]` functions below, which run only after
+    /// `Isa::available` confirmed AVX2 (the AVX-512 kernel checks it too). `test` is not
+    /// itself a `#[target_feature]` function (those cannot be `#[inline(always)]`, and
+    /// LLVM left such a function uninlined in the walk); inlined into the kernels, its
+    /// intrinsics are inlined there.
+    struct Avx2Box;
+
+    impl BoxTest for Avx2Box {
+        #[inline(always)]
+        fn test(node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32) {
+            const _: () = assert!(WIDTH == 8, "the AVX2 box test covers exactly 8 children");
+            let mut dist = [0.0f32; WIDTH];
+            // SAFETY: this type is private to this module and its test is reached only
+            // from the kernels below (and `box_test`), which run only on a CPU with AVX2
+            // (see above). The plane arrays and `dist` are arrays of exactly 8 `f32`s:
+            // one unaligned 256-bit load or store each.
+            let mask = unsafe {
+                let mut entry = _mm256_setzero_ps();
+                let mut exit = _mm256_set1_ps(limit);
+                for axis in 0..3 {
+                    let (near, far) = planes(node, axis, ray.neg[axis]);
+                    let o = _mm256_set1_ps(ray.origin[axis]);
+                    let inv = _mm256_set1_ps(ray.inv[axis]);
+                    let a = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(near.as_ptr()), o), inv);
+                    entry = _mm256_max_ps(a, entry);
+                    let b = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(far.as_ptr()), o), inv);
+                    exit = _mm256_min_ps(b, exit);
+                }
+                let inside = _mm256_cmp_ps::<_CMP_LE_OQ>(
+                    entry,
+                    _mm256_mul_ps(exit, _mm256_set1_ps(far_scale())),
+                );
+                _mm256_storeu_ps(dist.as_mut_ptr(), entry);
+                _mm256_movemask_ps(inside) as u32
+            };
+            (dist, mask)
+        }
+    }
+
+    /// The AVX2 box test compiled for AVX2 (for the tests).
+    #[cfg(test)]
+    #[target_feature(enable = "avx2")]
+    fn box_test_avx2(node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32) {
+        Avx2Box::test(node, ray, limit)
+    }
+
+    /// The AVX2 box test for the tests, on a CPU that has `isa`.
+    #[cfg(test)]
+    pub(in super::super) fn box_test(
+        isa: Isa,
+        node: &WideNode,
+        ray: &BoxRay,
+        limit: f32,
+    ) -> ([f32; WIDTH], u32) {
+        assert!(isa.available(), "this CPU lacks {}", isa.name());
+        // SAFETY: every kernel that reaches here (AVX2, AVX-512) was just confirmed
+        // available, and each needs AVX2 (see `Isa::available`).
+        unsafe { box_test_avx2(node, ray, limit) }
+    }
 
     macro_rules! kernel {
         ($nearest:ident, $nearest_tf:ident, $any:ident, $any_tf:ident, $feature:literal, $isa:expr) => {
@@ -261,7 +354,7 @@ mod x86 {
                 intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
                 keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
             ) -> Option<Hit> {
-                wide::nearest::<Lanes>(level, ray, best_t, intersect, keep)
+                wide::nearest::<Avx2Box>(level, ray, best_t, intersect, keep)
             }
 
             #[target_feature(enable = $feature)]
@@ -272,7 +365,7 @@ mod x86 {
                 intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
                 keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
             ) -> bool {
-                wide::any::<Lanes>(level, ray, t_max, intersect, keep)
+                wide::any::<Avx2Box>(level, ray, t_max, intersect, keep)
             }
 
             #[inline(always)]

@@ -2,15 +2,20 @@
 //! [`WIDTH`] children whose boxes are stored as structure-of-arrays, so one box test
 //! covers every child with the ISA's widest vectors (the kernels are in `kernels`).
 //!
-//! **Collapse.** Greedy, by surface area (the simple variant of the collapse in Ylitie,
-//! Karras & Laine 2017, §3, without their dynamic programme): a wide node starts with its
-//! binary node's two children and repeatedly opens the interior child with the largest
-//! surface area (the one a ray is likeliest to enter, Wald, Benthin & Boulos 2008's SAH
-//! argument) into its two children until it has [`WIDTH`] children or none is interior.
-//! A child whose subtree holds at most [`LEAF_MAX`] triangles (or that is a binary leaf)
-//! becomes a leaf; any other child becomes a wide node in turn. Nodes are 64-byte
-//! aligned (one [`WideNode`] of 8 children is exactly four cache lines: the six bound
-//! arrays, then the child references).
+//! **Collapse.** Greedy, by the surface area heuristic (a simple variant of the collapse
+//! in Ylitie, Karras & Laine 2017, §3, without their dynamic programme): a wide node
+//! starts with its binary node's two children and repeatedly opens an interior child into
+//! its two children until it has [`WIDTH`] children or none is interior. A child whose
+//! subtree holds at most [`LEAF_MAX`] triangles (or that is a binary leaf) becomes a
+//! leaf; any other child becomes a wide node in turn. Children that would become wide
+//! nodes are opened first: each one left in place costs a node of its own (256 bytes and
+//! one more box test for every ray that enters it), while a slot costs the same used or
+//! empty, so only when none is left are leaf-sized children split to fill the free slots
+//! (smaller leaves: fewer triangle tests per entered leaf, in the SAH's terms, Wald,
+//! Benthin & Boulos 2008, §3). Within each class the child of largest surface area (the
+//! one a ray is likeliest to enter) goes first. Nodes are 64-byte aligned (one
+//! [`WideNode`] of 8 children is exactly four cache lines: the six bound arrays, then the
+//! child references).
 //!
 //! **Leaves** name the triangles' positions in the level's triangle array (obvhs' CWBVH
 //! leaf order, which [`super::triangle_key`] hashes, so keys and images do not change);
@@ -32,8 +37,10 @@ use obvhs::bvh2::Bvh2;
 /// Children per node.
 pub(super) const WIDTH: usize = 8;
 
-/// The most triangles a leaf made from a binary subtree holds.
-pub(super) const LEAF_MAX: u32 = 3;
+/// The most triangles a leaf made from a binary subtree holds. 4 rather than 3: on a
+/// 200,000-triangle terrain the same instructions per ray (-0.3%) and 11% less geometry
+/// (docs/benchmarks.md, "The wide BVH: an 8-lane AVX2 box test ...").
+pub(super) const LEAF_MAX: u32 = 4;
 
 /// Entries of the traversal stack kept on the machine stack; deeper trees (only the
 /// pathological inputs of `build`'s known limit) use a heap stack.
@@ -56,7 +63,8 @@ pub(super) struct WideNode {
 }
 
 impl WideNode {
-    const EMPTY: WideNode = WideNode {
+    /// A node with every slot unused.
+    pub(super) const EMPTY: WideNode = WideNode {
         lo: [[f32::INFINITY; WIDTH]; 3],
         hi: [[f32::NEG_INFINITY; WIDTH]; 3],
         child: [0; WIDTH],
@@ -178,17 +186,20 @@ impl WideBvh {
                 children.extend([c, c + 1]);
             }
             while children.len() < WIDTH {
-                // The interior child of largest surface area (the first on ties).
-                let mut open: Option<(usize, f32)> = None;
+                // The child to open: one that would become a wide node of its own if
+                // any, else one that would become a leaf; within each class the one of
+                // largest surface area (the first on ties). See the module docs.
+                let mut open: Option<(usize, bool, f32)> = None;
                 for (k, &c) in children.iter().enumerate() {
                     if !bn[c].is_leaf() {
+                        let big = under[c] > LEAF_MAX;
                         let area = bn[c].aabb().half_area();
-                        if open.is_none_or(|(_, a)| area > a) {
-                            open = Some((k, area));
+                        if open.is_none_or(|(_, b, a)| (big, area) > (b, a)) {
+                            open = Some((k, big, area));
                         }
                     }
                 }
-                let Some((k, _)) = open else { break };
+                let Some((k, _, _)) = open else { break };
                 let c = bn[children[k]].first_index as usize;
                 children[k] = c;
                 children.insert(k + 1, c + 1);
