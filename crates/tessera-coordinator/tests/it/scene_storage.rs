@@ -248,11 +248,12 @@ async fn environment_images_are_checked_at_upload_and_kept_while_a_job_needs_the
     assert_eq!(up.status, 201, "{}", up.body);
     assert_eq!(up.json()["triangles"], 0);
     let hash = up.json()["hash"].as_str().unwrap().to_string();
-    // A header promising more texels than a texture may have, and a file that is not an
-    // image at all: refused at upload (422), saying what is wrong.
+    // A header promising more texels than a texture may have, a truncated image and an
+    // OpenEXR magic number with nothing after it: refused at upload (400 invalid_scene),
+    // saying what is wrong.
     let huge = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 10000 +X 10000\n\0\0\0\0".to_vec();
     let a = request(addr, "POST", "/api/v1/scenes", None, &huge).await;
-    assert_eq!(a.status, 422, "{}", a.body);
+    assert_eq!(a.status, 400, "{}", a.body);
     let (code, msg) = a.error();
     assert_eq!(code, "invalid_scene");
     assert!(
@@ -262,11 +263,11 @@ async fn environment_images_are_checked_at_upload_and_kept_while_a_job_needs_the
     let mut broken = environment_image(1);
     broken.truncate(broken.len() - 40);
     let a = request(addr, "POST", "/api/v1/scenes", None, &broken).await;
-    assert_eq!(a.status, 422, "{}", a.body);
+    assert_eq!(a.status, 400, "{}", a.body);
     assert!(a.error().1.contains("Radiance"), "{}", a.body);
     let exr_magic = [0x76, 0x2f, 0x31, 0x01, 1, 2, 3, 4];
     let a = request(addr, "POST", "/api/v1/scenes", None, &exr_magic).await;
-    assert_eq!(a.status, 422, "{}", a.body);
+    assert_eq!(a.status, 400, "{}", a.body);
     assert!(a.error().1.contains("OpenEXR"), "{}", a.body);
     assert_eq!(
         core.store().scene_bytes(None).await.unwrap(),
@@ -277,7 +278,7 @@ async fn environment_images_are_checked_at_upload_and_kept_while_a_job_needs_the
     let unknown = "ab".repeat(32);
     job.environment = Some(tessera_api::EnvironmentSettings::new(unknown.clone()));
     let e = tessera_api::ApiError::from(core.submit(job.clone(), None).await.unwrap_err());
-    assert_eq!(e.status(), 422, "{e:?}");
+    assert_eq!(e.status(), 400, "{e:?}");
     assert!(
         e.message.contains("environment.source") && e.message.contains(&unknown),
         "{e:?}"
