@@ -492,6 +492,9 @@ fn dashboard_in_headless_chromium() {
     browser.type_into("#f-height", "64");
     browser.type_into("#f-spp", "16");
     browser.type_into("#f-name", "browser test");
+    // A dim uniform environment around the box: the form's lighting fields reach the
+    // quote and the job.
+    browser.type_into("#f-env-colour", "0.05,0.05,0.05");
     // The quote before submitting (a dry run): a table with the planned row and one row
     // per default target, each with a wall time; no job is created by it.
     browser.click("#f-quote");
@@ -606,6 +609,16 @@ fn dashboard_in_headless_chromium() {
         }
     });
     println!("plot: {plot}");
+    let settings = browser
+        .exec(
+            "return document.querySelector('.settings')?.textContent ?? '';",
+            json!([]),
+        )
+        .unwrap();
+    assert!(
+        settings.as_str().unwrap_or("").contains("0.05,0.05,0.05"),
+        "the job's settings do not name the environment: {settings}"
+    );
 
     // The heat map overlay draws from /tiles.
     browser.click("input[name^='overlay-'][value='error']");

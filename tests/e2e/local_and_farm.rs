@@ -302,3 +302,134 @@ fn a_motion_blurred_farm_job_equals_tessera_render_with_the_shutter() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Environment lighting on the farm: Khronos' BoxVertexColors, which has no light of its
+/// own (black without an environment), lit by a uniform colour and by an uploaded HDR
+/// image (strength and rotation set), with path tracing and bdpt: each farm EXR is
+/// byte-identical to `tessera render --environment` with the same settings, and its
+/// header and the job's plan name the environment. The image case with path tracing goes
+/// through `tessera submit --environment FILE`, which uploads the file.
+#[test]
+fn a_farm_job_lit_by_an_environment_equals_tessera_render_with_it() {
+    let dir = temp_dir("e2e", "environment-farm");
+    let (c, _ws, client) = two_worker_farm(&dir);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../tests/fixtures/khronos/BoxVertexColors.gltf");
+    let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
+    // A sky: bluish above, brown below, a bright patch low in the east.
+    let sky = tessera_testkit::gltf_gen::radiance_hdr(32, 16, |x, y| {
+        if (20..24).contains(&x) && (5..7).contains(&y) {
+            [40.0, 36.0, 30.0]
+        } else if y < 8 {
+            [0.4, 0.6, 1.0]
+        } else {
+            [0.3, 0.2, 0.15]
+        }
+    });
+    let sky_file = dir.join("sky.hdr");
+    std::fs::write(&sky_file, &sky).unwrap();
+    let sky_hash = client.upload_scene(&sky).unwrap().hash;
+    let sky_name = sky_file.to_str().unwrap();
+    let cases = [
+        ("0.6,0.7,0.9", "path"),
+        ("0.6,0.7,0.9", "bdpt"),
+        (sky_name, "path"),
+        (sky_name, "bdpt"),
+    ];
+    for (i, (env, integrator)) in cases.into_iter().enumerate() {
+        let image = env == sky_name;
+        let mut s = JobSettings::new(uploaded.hash.clone());
+        s.width = Some(20);
+        s.height = Some(16);
+        s.spp = 16;
+        s.seed = 11;
+        s.tile_size = 8;
+        s.integrator = integrator.into();
+        let (strength, rotation) = ("1.5", if image { "30" } else { "0" });
+        let mut e = tessera_api::EnvironmentSettings::new(if image { &sky_hash } else { env });
+        e.strength = 1.5;
+        e.rotation_degrees = if image { 30.0 } else { 0.0 };
+        s.environment = Some(e);
+        let case = format!("--environment {env} --integrator {integrator}");
+        let farm = if image && integrator == "path" {
+            let out = dir.join(format!("submit{i}.exr"));
+            output_ok(tessera().args([
+                "submit",
+                path.to_str().unwrap(),
+                "--server",
+                &c.http,
+                "--width",
+                "20",
+                "--height",
+                "16",
+                "--spp",
+                "16",
+                "--seed",
+                "11",
+                "--tile-size",
+                "8",
+                "--integrator",
+                integrator,
+                "--environment",
+                env,
+                "--environment-strength",
+                strength,
+                "--environment-rotation",
+                rotation,
+                "--wait",
+                "-o",
+                out.to_str().unwrap(),
+            ]));
+            std::fs::read(&out).unwrap()
+        } else {
+            let st = client.submit(&s, None).unwrap();
+            let done = wait_done(&client, st.id);
+            let plan = done
+                .plan
+                .as_ref()
+                .map(|p| p.to_string())
+                .unwrap_or_default();
+            assert!(plan.contains("environment"), "{case}: the plan {plan}");
+            client.image(st.id, "exr").unwrap()
+        };
+        let out = dir.join(format!("env{i}.exr"));
+        let local = local_render(
+            &path,
+            &s,
+            &out,
+            &[
+                "--environment",
+                env,
+                "--environment-strength",
+                strength,
+                "--environment-rotation",
+                rotation,
+            ],
+        );
+        assert!(
+            farm == local,
+            "{case}: the farm's EXR differs from tessera render's"
+        );
+        let named = if image {
+            sky_hash.as_str()
+        } else {
+            "[0.6,0.7,0.9]"
+        };
+        let header = b"\"environment\":{\"source\":";
+        assert!(
+            contains(&farm, header) && contains(&farm, named.as_bytes()),
+            "{case}: the EXR header does not name the environment"
+        );
+        // Lit: the scene has no light of its own, so an environment that did not reach
+        // the workers would leave it black.
+        let exr = read_exr(&out);
+        let red = exr.get("R").unwrap();
+        assert!(red.iter().any(|&v| v > 0.0), "{case}: the image is black");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Whether `needle` occurs in `hay`.
+fn contains(hay: &[u8], needle: &[u8]) -> bool {
+    hay.windows(needle.len()).any(|w| w == needle)
+}

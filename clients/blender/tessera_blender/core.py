@@ -118,6 +118,84 @@ def job_settings(scene):
     )
 
 
+#: The first bytes of the environment images the farm reads: Radiance RGBE, OpenEXR.
+_HDR_MAGIC = (b"#?", bytes([0x76, 0x2F, 0x31, 0x01]))
+
+
+def world_environment(scene):
+    """What lights the scene from around it, as the job's environment (glTF has no
+    world, so it does not travel with the export): ``None`` without a world (or a black
+    one); else ``(source, strength)``, ``source`` the bytes of the image of an Environment
+    Texture node feeding the world's Background (a Radiance ``.hdr`` or OpenEXR file), or
+    the Background's colour ``(r, g, b)`` (the world colour without nodes). Other nodes
+    between the texture and the Background, and a Mapping node's rotation, are not read."""
+    world = scene.world
+    if world is None:
+        return None
+    # Blender 5 always uses a world's nodes (and deprecates the switch); before it a
+    # world without them is its colour.
+    nodes_off = bpy.app.version < (5, 0, 0) and not world.use_nodes
+    if nodes_off or world.node_tree is None:
+        colour, strength = tuple(world.color), 1.0
+    else:
+        out = next(
+            (n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD" and n.is_active_output),
+            None,
+        ) or next((n for n in world.node_tree.nodes if n.type == "OUTPUT_WORLD"), None)
+        links = out.inputs["Surface"].links if out is not None else ()
+        if not links:
+            return None
+        bg = links[0].from_node
+        if bg.type != "BACKGROUND":
+            raise UserError(
+                f"the world's surface is a {bg.bl_label} node: the farm reads a Background node "
+                "(a colour, or an Environment Texture)"
+            )
+        strength = float(bg.inputs["Strength"].default_value)
+        colour_links = bg.inputs["Color"].links
+        if colour_links and colour_links[0].from_node.type == "TEX_ENVIRONMENT":
+            return _environment_image(colour_links[0].from_node.image), strength
+        if colour_links:
+            raise UserError(
+                f"the world's Background colour comes from a {colour_links[0].from_node.bl_label} "
+                "node: the farm reads an Environment Texture or a plain colour"
+            )
+        colour = tuple(bg.inputs["Color"].default_value)[:3]
+    if strength <= 0.0 or max(colour) <= 0.0:
+        return None
+    return tuple(float(c) for c in colour[:3]), strength
+
+
+def _environment_image(image):
+    """The bytes of an Environment Texture's image: packed, or its file."""
+    if image is None:
+        raise UserError("the world's Environment Texture has no image")
+    if image.packed_file is not None:
+        data = bytes(image.packed_file.data)
+    else:
+        path = bpy.path.abspath(image.filepath)
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+        except OSError as e:
+            raise UserError(f"reading the world's image {path}: {e.strerror or e}") from None
+    if not data.startswith(_HDR_MAGIC):
+        raise UserError(
+            f"the world's image {image.name} is not a Radiance .hdr or OpenEXR file: the farm "
+            "lights scenes with equirectangular HDR images"
+        )
+    return data
+
+
+def lit(c, settings, environment):
+    """``settings`` with the environment of :func:`world_environment` (its image uploaded
+    by ``c``); run with the request, off the interface's thread."""
+    if environment is not None:
+        source, strength = environment
+        settings.environment = c.environment(source, strength)
+    return settings
+
+
 def shutter(scene):
     """Blender's motion blur as the job's shutter, in frames around the frame: Cycles'
     shutter length and position (start, centre or end on the frame); ``None`` without

@@ -63,6 +63,7 @@ class TESSERA_OT_quote(bpy.types.Operator):
             s = core.job_settings(scene)
             c = core.client()
             _, data = core.export_scene(scene)
+            env = core.world_environment(scene)
         except (core.UserError, tc.TesseraError) as e:
             return _fail(self, scene, e)
         workers = self.workers or None
@@ -85,7 +86,7 @@ class TESSERA_OT_quote(bpy.types.Operator):
             core.set_message(sc, "")
             result["quote"] = q
 
-        core.run(lambda: c.quote_scene(data, s, workers), finish)
+        core.run(lambda: c.quote_scene(data, core.lit(c, s, env), workers), finish)
         if core.inline():
             if "error" in result:
                 return _fail(self, scene, result["error"])
@@ -116,6 +117,7 @@ class TESSERA_OT_submit(bpy.types.Operator):
             s = core.job_settings(scene)
             c = core.client()
             _, data = core.export_scene(scene)
+            env = core.world_environment(scene)
         except (core.UserError, tc.TesseraError) as e:
             return _fail(self, scene, e)
         pattern = core.output_pattern(scene)
@@ -123,7 +125,7 @@ class TESSERA_OT_submit(bpy.types.Operator):
             return _fail(self, scene, core.UserError(f"the output path {pattern} needs a run of # for the frame number"))
         scene_name, server = scene.name, c.server
         if self.wait:
-            return self._submit_and_wait(scene, c, data, s, pattern)
+            return self._submit_and_wait(scene, c, data, s, env, pattern)
         t.busy = True
         core.set_message(scene, "submitting...")
         result = {}
@@ -141,14 +143,14 @@ class TESSERA_OT_submit(bpy.types.Operator):
             core.set_message(sc, f"job {st.id} {st.state}")
             core.ensure_timer()
 
-        core.run(lambda: c.submit_scene(data, s), finish)
+        core.run(lambda: c.submit_scene(data, core.lit(c, s, env)), finish)
         if "error" in result:
             return _fail(self, scene, result["error"])
         return {"FINISHED"}
 
-    def _submit_and_wait(self, scene, c, data, s, pattern):
+    def _submit_and_wait(self, scene, c, data, s, env, pattern):
         try:
-            st = c.submit_scene(data, s)
+            st = c.submit_scene(data, core.lit(c, s, env))
         except tc.TesseraError as e:
             return _fail(self, scene, e)
         job = core.add_job(scene, st, pattern, c.server)

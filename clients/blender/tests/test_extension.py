@@ -78,6 +78,44 @@ def build_scene(out_pattern):
     return s
 
 
+def radiance_hdr(path, width=16, height=8):
+    """Writes a small equirectangular Radiance .hdr (flat RGBE scanlines): a blue sky over
+    brown ground."""
+    import math
+
+    out = bytearray(f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {height} +X {width}\n".encode())
+    for y in range(height):
+        for x in range(width):
+            c = (0.4 + x / 16, 0.6, 1.0) if y < height // 2 else (0.3, 0.2, 0.15)
+            mantissa, e = math.frexp(max(c))
+            scale = mantissa * 256.0 / max(c)
+            out += bytes([min(255, int(v * scale)) for v in c] + [e + 128])
+    with open(path, "wb") as f:
+        f.write(out)
+    return path
+
+
+def set_world(scene, colour=(0.2, 0.3, 0.4), strength=1.0, image=None):
+    """A world of nodes: a Background of ``colour``, or of an Environment Texture of the
+    image file ``image``, at ``strength``, into the World Output."""
+    w = bpy.data.worlds.new("Sky")
+    if bpy.app.version < (5, 0, 0):
+        w.use_nodes = True
+    nodes, links = w.node_tree.nodes, w.node_tree.links
+    nodes.clear()
+    bg = nodes.new("ShaderNodeBackground")
+    out = nodes.new("ShaderNodeOutputWorld")
+    links.new(bg.outputs["Background"], out.inputs["Surface"])
+    bg.inputs["Color"].default_value = (*colour, 1.0)
+    bg.inputs["Strength"].default_value = strength
+    if image is not None:
+        tex = nodes.new("ShaderNodeTexEnvironment")
+        tex.image = bpy.data.images.load(image)
+        links.new(tex.outputs["Color"], bg.inputs["Color"])
+    scene.world = w
+    return w
+
+
 def sha(path):
     with open(path, "rb") as f:
         return hashlib.sha256(f.read()).hexdigest()
@@ -161,6 +199,47 @@ class Extension(unittest.TestCase):
         s.tessera.frame_start, s.tessera.frame_end = 2, 1
         with self.assertRaises(core.UserError):
             core.job_settings(s)
+
+    def test_the_world_is_the_jobs_environment(self):
+        from tessera_blender import core
+
+        s = build_scene("/tmp/shots/shot_####.exr")
+        s.world = None
+        self.assertIsNone(core.world_environment(s))
+        set_world(s, colour=(0.25, 0.5, 0.75), strength=2.0)
+        self.assertEqual(core.world_environment(s), ((0.25, 0.5, 0.75), 2.0))
+        set_world(s, colour=(0.0, 0.0, 0.0))
+        self.assertIsNone(core.world_environment(s), "a black world lights nothing")
+        d = os.environ.get("TESSERA_TEST_DIR") or "/tmp"
+        hdr = radiance_hdr(os.path.join(d, "world-sky.hdr"))
+        set_world(s, strength=1.5, image=hdr)
+        with open(hdr, "rb") as f:
+            self.assertEqual(core.world_environment(s), (f.read(), 1.5))
+        png = os.path.join(d, "world-sky.png")
+        bpy.data.images.new("flat", 4, 2).save(filepath=png)
+        set_world(s, image=png)
+        with self.assertRaises(core.UserError) as e:
+            core.world_environment(s)
+        self.assertIn("not a Radiance .hdr or OpenEXR", str(e.exception))
+
+    @unittest.skipUnless(LIVE, "needs " + ", ".join(ENV))
+    def test_the_worlds_environment_texture_lights_the_farm_job_as_tessera_render(self):
+        d = os.path.join(os.environ["TESSERA_TEST_DIR"], "world")
+        os.makedirs(d, exist_ok=True)
+        s = build_scene(os.path.join(d, "world_####.exr"))
+        s.frame_start = s.frame_end = 1
+        hdr = radiance_hdr(os.path.join(d, "sky.hdr"))
+        set_world(s, strength=1.5, image=hdr)
+        self.assertEqual(bpy.ops.tessera.submit(wait=True), {"FINISHED"}, s.tessera.message)
+        farm = os.path.join(d, "world_0001.exr")
+        local = os.path.join(d, "local.exr")
+        subprocess.run(
+            [os.environ["TESSERA_BIN"], "render", s.tessera.last_export, "--camera", "Shot",
+             "--width", str(W), "--height", str(H), "--spp", str(SPP), "--seed", "3", "--fps", "24",
+             "--frame", "1", "--environment", hdr, "--environment-strength", "1.5", "-o", local],
+            check=True, capture_output=True,
+        )
+        self.assertEqual(sha(farm), sha(local), "the farm's frame under the world differs")
 
     @unittest.skipUnless(LIVE, "needs " + ", ".join(ENV))
     def test_three_frames_round_trip_byte_identical_to_tessera_render(self):

@@ -36,6 +36,10 @@ def _job_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--time-limit", type=float, help="seconds")
     p.add_argument("--priority", type=int, default=0)
     p.add_argument("--name")
+    p.add_argument("--environment", metavar="FILE|R,G,B",
+                   help="light the scene with an equirectangular .hdr/.exr image (uploaded) or a uniform colour")
+    p.add_argument("--environment-strength", type=float, default=1.0)
+    p.add_argument("--environment-rotation", type=float, default=0.0, help="degrees about the up axis")
 
 
 def _settings(a) -> JobSettings:
@@ -125,6 +129,8 @@ def _run(a) -> int:
     if a.cmd in ("submit", "quote"):
         s = _settings(a)
         data = _scene_bytes(a.scene)
+        if a.environment is not None:
+            s.environment = c.environment(a.environment, a.environment_strength, a.environment_rotation)
         if a.cmd == "quote":
             q = c.quote(s, a.workers) if data is None else c.quote_scene(data, s, a.workers)
             if a.json:

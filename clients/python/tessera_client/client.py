@@ -57,6 +57,22 @@ class ApiError(TesseraError):
         return f"{where}{self.message}{hint} [{self.status} {self.code}]"
 
 
+#: The first bytes of an OpenEXR file.
+_EXR_MAGIC = bytes([0x76, 0x2F, 0x31, 0x01])
+
+
+def _is_colour(value: str) -> bool:
+    """Whether ``value`` is ``R,G,B`` (three numbers) rather than a file name."""
+    parts = value.split(",")
+    if len(parts) != 3:
+        return False
+    try:
+        [float(p) for p in parts]
+    except ValueError:
+        return False
+    return True
+
+
 def sha256_hex(data: bytes) -> str:
     """The name the coordinator gives an uploaded scene: its SHA-256 in lower-case hex."""
     return hashlib.sha256(data).hexdigest()
@@ -162,6 +178,41 @@ class Client:
         return SceneUploaded.from_json(
             self._json_raw("POST", "/scenes", data, "application/octet-stream")
         )
+
+    def upload_environment(self, data: bytes) -> str:
+        """``POST /scenes`` with an environment image (an equirectangular Radiance
+        ``.hdr`` or OpenEXR file, which the coordinator decodes at upload); returns its
+        hash, the ``environment.source`` of jobs it lights."""
+        if not (data.startswith(b"#?") or data.startswith(_EXR_MAGIC)):
+            raise TesseraError(
+                "not a Radiance .hdr (#?RADIANCE) or OpenEXR file: an environment is an "
+                "equirectangular HDR image"
+            )
+        up = self.upload_scene(data)
+        if up.hash != sha256_hex(data):
+            raise TesseraError(
+                f"the coordinator named the image {up.hash}, not its SHA-256 {sha256_hex(data)}"
+            )
+        return up.hash
+
+    def environment(
+        self, source, strength: float = 1.0, rotation_degrees: float = 0.0
+    ) -> Dict[str, object]:
+        """The ``environment`` job setting: ``source`` is the bytes of an image (uploaded
+        with :meth:`upload_environment`), a path to one, or a colour ``"R,G,B"`` /
+        ``(r, g, b)`` of radiance in W/(m^2 sr); ``strength`` scales it and
+        ``rotation_degrees`` turns an image about the up axis."""
+        if isinstance(source, (tuple, list)):
+            source = ",".join(repr(float(v)) for v in source)
+        elif isinstance(source, str) and not _is_colour(source):
+            try:
+                with open(source, "rb") as f:
+                    source = f.read()
+            except OSError as e:
+                raise TesseraError(f"reading environment {source}: {e.strerror or e}") from None
+        if isinstance(source, (bytes, bytearray)):
+            source = self.upload_environment(bytes(source))
+        return {"source": source, "strength": float(strength), "rotation_degrees": float(rotation_degrees)}
 
     def _json_raw(self, method, path, body, content_type):
         raw = self._request(method, path, body, content_type)

@@ -86,8 +86,9 @@ class JobSettings:
     time_limit_seconds: Optional[float] = None
     tile_size: int = 32
     name: Optional[str] = None
-    #: ``{"source": "R,G,B" or an uploaded image's hash, "strength", "rotation_degrees"}``;
-    #: the coordinator refuses it until workers render environments (docs/api.md).
+    #: ``{"source": "R,G,B" or an uploaded .hdr/.exr image's hash, "strength",
+    #: "rotation_degrees"}`` (:meth:`Client.environment` builds it, uploading the image);
+    #: default none, the scene's own lights only (docs/scenes.md#environment-lighting).
     environment: Optional[Dict[str, Any]] = None
 
     def to_json(self) -> Dict[str, Any]:

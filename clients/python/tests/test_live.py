@@ -19,7 +19,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 PKG = os.path.dirname(HERE)
 sys.path.insert(0, PKG)
 
-from tessera_client import ApiError, Client, FrameRange, JobSettings, TransportError  # noqa: E402
+from tessera_client import ApiError, Client, FrameRange, JobSettings, TesseraError, TransportError  # noqa: E402
 
 REPO = os.path.abspath(os.path.join(HERE, "..", "..", ".."))
 ANIMATED = os.path.join(REPO, "tests", "fixtures", "animation", "anim_cube.glb")
@@ -56,6 +56,21 @@ def render_local(scene: str, out: str, frame: int, extra=()):
     )
     with open(out, "rb") as f:
         return f.read()
+
+
+def radiance_hdr(width: int, height: int, texel) -> bytes:
+    """A Radiance .hdr of flat RGBE scanlines, ``texel(x, y)`` the linear RGB of each."""
+    import math
+
+    out = bytearray(f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {height} +X {width}\n".encode())
+    for y in range(height):
+        for x in range(width):
+            c = texel(x, y)
+            m = max(c)
+            mantissa, e = math.frexp(m)
+            scale = mantissa * 256.0 / m
+            out += bytes([min(255, int(v * scale)) for v in c] + [e + 128])
+    return bytes(out)
 
 
 @unittest.skipUnless(LIVE, "needs TESSERA_SERVER, TESSERA_API_TOKEN, TESSERA_BIN and TESSERA_TEST_DIR")
@@ -97,6 +112,27 @@ class AgainstARealFarm(unittest.TestCase):
             self.assertEqual(hashlib.sha256(farm).hexdigest(), hashlib.sha256(local).hexdigest(),
                              f"frame {f}: the farm's EXR differs from tessera render's")
         self.assertEqual(self.c.wait(again.id, timeout=240).state, "done")
+
+    def test_an_environment_image_lights_the_farm_job_as_tessera_render(self):
+        sky = radiance_hdr(16, 8, lambda x, y: (0.5 + x / 4, 0.8, 1.0 if y < 4 else 0.3))
+        path = os.path.join(self.dir, "sky.hdr")
+        with open(path, "wb") as f:
+            f.write(sky)
+        with self.assertRaises(TesseraError):
+            self.c.upload_environment(b"P6 not an HDR image")
+        env = self.c.environment(path, strength=2.0, rotation_degrees=45.0)
+        self.assertEqual(env["source"], hashlib.sha256(sky).hexdigest())
+        s = small_job(name="py-environment", environment=env)
+        job = self.c.submit_scene(self.glb, s)
+        self.assertEqual(self.c.wait(job.id, timeout=240).state, "done")
+        self.assertEqual(self.c.job(job.id).settings.environment["source"], env["source"])
+        farm = self.c.image(job.id, "exr")
+        local = render_local(
+            ANIMATED, os.path.join(self.dir, "local_env.exr"), 0,
+            ["--environment", path, "--environment-strength", "2", "--environment-rotation", "45"],
+        )
+        self.assertEqual(hashlib.sha256(farm).hexdigest(), hashlib.sha256(local).hexdigest(),
+                         "the farm's EXR under the environment differs from tessera render's")
 
     def test_quote_names_targets_and_queues_nothing(self):
         before = [j.id for j in self.c.jobs(200)]

@@ -22,7 +22,7 @@ use tessera_render::render::render_unit;
 
 use sha2::{Digest, Sha256};
 
-use crate::render::{prepare, prepare_settings, JobArgs, Prepared, SceneSource, StopArgs};
+use crate::render::{prepare, prepare_settings_with, JobArgs, Prepared, SceneSource, StopArgs};
 
 /// `tessera estimate`'s arguments: the job flags of `tessera render` and `tessera submit`.
 #[derive(Args)]
@@ -268,6 +268,10 @@ pub struct PilotArgs {
     /// needed for a built-in scene.
     #[arg(long)]
     pub scene_file: Option<std::path::PathBuf>,
+    /// The uploaded environment image the job's `environment.source` names by hash (its
+    /// SHA-256 must be that hash); not needed for a uniform colour or no environment.
+    #[arg(long)]
+    pub environment_file: Option<std::path::PathBuf>,
     /// Workers the job will run on.
     #[arg(long, default_value_t = 1)]
     pub workers: u32,
@@ -301,7 +305,7 @@ const MAX_SETTINGS_BYTES: u64 = 1 << 20;
 pub fn pilot(args: PilotArgs) -> Result<()> {
     use std::io::Read;
     use tessera_api::FromJson;
-    use tessera_farm::job::{JobSettings, SceneRef};
+    use tessera_farm::job::{EnvironmentSource, JobSettings, SceneRef};
 
     if args.threads == 0 || args.threads > 4096 {
         bail!("--threads {} must be 1 to 4096", args.threads);
@@ -333,36 +337,34 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("invalid {}: {}", e.field, e.problem))?;
     let bytes = match (&validated.scene.source, &args.scene_file) {
         (SceneRef::Builtin(_), _) => None,
-        (SceneRef::Hash(h), Some(path)) => {
-            let bytes = std::fs::read(path)
-                .with_context(|| format!("reading scene file {}", path.display()))?;
-            let digest: String = Sha256::digest(&bytes)
-                .iter()
-                .map(|b| format!("{b:02x}"))
-                .collect();
-            if &digest != h {
-                bail!(
-                    "scene file {} has SHA-256 {digest}, not the job's scene {h}",
-                    path.display()
-                );
-            }
-            Some(bytes)
-        }
+        (SceneRef::Hash(h), Some(path)) => Some(read_hashed(path, h, "scene")?),
         (SceneRef::Hash(h), None) => bail!("the job names scene {h}: give --scene-file"),
+    };
+    let image = match (
+        validated.environment.as_ref().map(|e| &e.source),
+        &args.environment_file,
+    ) {
+        (Some(EnvironmentSource::Image(h)), Some(path)) => {
+            Some(read_hashed(path, h, "environment image")?)
+        }
+        (Some(EnvironmentSource::Image(h)), None) => {
+            bail!("the job names environment image {h}: give --environment-file")
+        }
+        _ => None,
     };
     if args.technique {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(args.threads)
             .build()
             .context("starting the pilot's threads")?;
-        return pool.install(|| technique(&validated, bytes.as_deref()));
+        return pool.install(|| technique(&validated, bytes.as_deref(), image.as_deref()));
     }
     let source = match &bytes {
         Some(b) => SceneSource::Bytes(b),
         None => SceneSource::Path(&settings.scene),
     };
     let frames = validated.frames;
-    let p = prepare_settings(settings.clone(), source, frames.start)?;
+    let p = prepare_settings_with(settings.clone(), source, image.as_deref(), frames.start)?;
     let run = PilotRun {
         scene: settings.scene.clone(),
         frames,
@@ -397,9 +399,19 @@ pub fn pilot(args: PilotArgs) -> Result<()> {
 /// [`tessera_render::pilot::verdict`]), so the verdict printed (a
 /// [`tessera_farm::job::PilotVerdict`] as JSON, or `null` when the job asks for none) is
 /// the one a local render reaches.
-fn technique(job: &tessera_farm::job::ValidatedJob, bytes: Option<&[u8]>) -> Result<()> {
+fn technique(
+    job: &tessera_farm::job::ValidatedJob,
+    bytes: Option<&[u8]>,
+    image: Option<&[u8]>,
+) -> Result<()> {
     let time = tessera_scene::job::resolution_time(&job.scene);
-    let scene = tessera_scene::job::load_job_scene_at(&job.scene, bytes, &time)?;
+    let mut scene = tessera_scene::job::load_job_scene_at(&job.scene, bytes, &time)?;
+    // Lit as `tessera render` lights it before resolving (`render::prepare_settings_with`).
+    if let Some(e) = &job.environment {
+        tessera_scene::environment::SceneEnvironment::from_job(e, image)
+            .context("loading the environment")?
+            .apply(&mut scene);
+    }
     let mut asked = None;
     let resolved = tessera_scene::job::resolve_job(job, &scene, |q| {
         let v = tessera_render::pilot::verdict(q);
@@ -418,6 +430,24 @@ fn technique(job: &tessera_farm::job::ValidatedJob, bytes: Option<&[u8]>) -> Res
         Err(e) => return Err(e.into()),
     }
     Ok(())
+}
+
+/// The bytes of `path`, which must hash (SHA-256) to `hash`: the coordinator's upload
+/// named `what`.
+fn read_hashed(path: &std::path::Path, hash: &str, what: &str) -> Result<Vec<u8>> {
+    let bytes =
+        std::fs::read(path).with_context(|| format!("reading {what} file {}", path.display()))?;
+    let digest: String = Sha256::digest(&bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    if digest != hash {
+        bail!(
+            "{what} file {} has SHA-256 {digest}, not the job's {what} {hash}",
+            path.display()
+        );
+    }
+    Ok(bytes)
 }
 
 /// What a pilot is for: the job beyond its resolved plan, and the machine it predicts.

@@ -343,7 +343,7 @@ pub fn environment_source(settings: &mut JobSettings) -> Result<Option<Vec<u8>>>
     Ok(Some(bytes))
 }
 
-/// Where [`prepare_settings`] reads a scene that is not built in.
+/// Where [`prepare_settings_with`] reads a scene that is not built in.
 #[derive(Clone, Copy)]
 pub enum SceneSource<'a> {
     /// A file named on the command line, which may refer to files beside it.
@@ -354,16 +354,8 @@ pub enum SceneSource<'a> {
 }
 
 /// [`prepare`] for settings that are already a [`JobSettings`] (a dry run's pilot reads
-/// them as JSON from the coordinator): the frame range is set to `frame` alone.
-pub fn prepare_settings(
-    settings: JobSettings,
-    source: SceneSource,
-    frame: u32,
-) -> Result<Prepared> {
-    prepare_settings_with(settings, source, None, frame)
-}
-
-/// [`prepare_settings`] with the bytes of the job's environment image, if it has one.
+/// them as JSON from the coordinator), with the bytes of the job's environment image if it
+/// has one: the frame range is set to `frame` alone.
 pub fn prepare_settings_with(
     mut settings: JobSettings,
     source: SceneSource,

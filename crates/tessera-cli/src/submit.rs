@@ -1,4 +1,5 @@
-//! `tessera submit`: uploads the scene if it is a file, submits the job built from
+//! `tessera submit`: uploads the scene if it is a file (and the `--environment` image if
+//! it is one), submits the job built from
 //! `tessera render`'s flags ([`JobArgs::settings`]), and with `--wait` follows it to the
 //! end and downloads the image.
 
@@ -7,7 +8,7 @@ use clap::Args;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tessera_api::client::Client;
-use tessera_api::{FrameRange, JobState, JobStatus};
+use tessera_api::{FrameRange, JobSettings, JobState, JobStatus};
 
 use crate::common::client_error;
 use crate::render::{JobArgs, StopArgs};
@@ -75,16 +76,9 @@ pub struct SubmitArgs {
 pub fn submit(args: SubmitArgs) -> Result<()> {
     let client =
         crate::common::api_client(&args.server, args.token.clone(), args.tls_ca.as_deref())?;
-    if args.job.environment.is_some() {
-        // The coordinator refuses such jobs too: its workers cannot light a scene with an
-        // environment yet, and a farm image must equal `tessera render`'s.
-        bail!(
-            "--environment: the farm does not render environments yet; render the job with \
-             `tessera render --environment` instead"
-        );
-    }
     let scene = scene_ref(&client, &args.job.scene)?;
     let mut s = args.job.settings(scene, &args.stop);
+    upload_environment(&client, &mut s)?;
     s.frames = FrameRange {
         start: args.frame_start,
         end: args.frame_end.unwrap_or(args.frame_start),
@@ -171,6 +165,26 @@ fn scene_ref(client: &Client, scene: &str) -> Result<String> {
         up.hash
     );
     Ok(up.hash)
+}
+
+/// Uploads `--environment`'s image, if it names a file, and puts its hash in `s` (the
+/// file's SHA-256, which is the upload's content address); a colour stays as it is.
+fn upload_environment(client: &Client, s: &mut JobSettings) -> Result<()> {
+    let file = s.environment.as_ref().map(|e| e.source.clone());
+    let Some(bytes) = crate::render::environment_source(s)? else {
+        return Ok(());
+    };
+    let up = client.upload_scene(&bytes).map_err(client_error)?;
+    println!(
+        "uploaded environment {} ({} bytes): {}",
+        file.unwrap_or_default(),
+        up.bytes,
+        up.hash
+    );
+    if let Some(e) = &mut s.environment {
+        e.source = up.hash;
+    }
+    Ok(())
 }
 
 /// Follows the job to its end, printing each new progress line to standard error and the

@@ -3,6 +3,8 @@
 // (POST /api/v1/jobs with an idempotency key, so a double click submits once). "Quote"
 // asks for a dry run first (POST /api/v1/jobs?dry_run=true): the predicted time and
 // worker-seconds to reach 10%, 5%, 2% and 1% error (or the target), shown before you submit.
+// The lighting: an environment image (.hdr/.exr, uploaded like a scene; the job names its
+// hash) or a uniform colour, with a strength and a rotation; empty: the scene's lights only.
 
 import { api, idempotencyKey } from "./api.js";
 import { h, int } from "./util.js";
@@ -39,6 +41,10 @@ export function submitView() {
   const shutterOpen = h("input", { type: "number", id: "f-shutter-open", name: "shutter", min: -1, max: 1, step: "any", placeholder: "none", inputmode: "decimal" });
   const shutterClose = h("input", { type: "number", id: "f-shutter-close", name: "shutter-close", min: -1, max: 1, step: "any", placeholder: "none", inputmode: "decimal" });
   const name = h("input", { type: "text", id: "f-name", name: "name", maxlength: 200, autocomplete: "off", placeholder: "optional label" });
+  const envFile = h("input", { type: "file", id: "f-env-file", name: "environment", accept: ".hdr,.exr,image/vnd.radiance,image/x-exr" });
+  const envColour = h("input", { type: "text", id: "f-env-colour", name: "environment", autocomplete: "off", placeholder: "none, e.g. 1,1,1" });
+  const envStrength = h("input", { type: "number", id: "f-env-strength", name: "environment.strength", min: 0, step: "any", placeholder: "1", inputmode: "decimal" });
+  const envRotation = h("input", { type: "number", id: "f-env-rotation", name: "environment.rotation_degrees", min: -360, max: 360, step: "any", placeholder: "0", inputmode: "decimal" });
   const submit = h("button", { type: "submit", id: "f-submit", class: "primary" }, "Submit job");
   const quoteButton = h("button", { type: "button", id: "f-quote" }, "Quote");
   const status = h("div", { id: "submit-status", class: "form-status", role: "alert", "aria-live": "assertive" });
@@ -51,6 +57,7 @@ export function submitView() {
   const fields = {
     scene: builtin, width, height, spp, target_error: target, adaptive, priority,
     time_limit_seconds: timeLimit, name, frames: frameEnd, fps, animation, shutter: shutterOpen,
+    environment: envColour,
   };
 
   const form = h("form", { id: "submit-form", class: "submit-form", novalidate: true },
@@ -71,6 +78,10 @@ export function submitView() {
       row("Animation", animation, "Name or index of one animation; empty: all of them play."),
       h("div", { class: "form-pair" }, row("Shutter opens (frames)", shutterOpen), row("Shutter closes (frames)", shutterClose)),
       h("p", { class: "hint" }, "Motion blur: when the shutter opens and closes relative to each frame, e.g. -0.25 and 0.25. Empty: no blur.")),
+    h("fieldset", {}, h("legend", {}, "Lighting"),
+      row("Environment image", envFile, "An equirectangular .hdr or .exr that lights the scene from every direction (uploaded like a scene)."),
+      row("Or a uniform colour", envColour, "Radiance R,G,B, e.g. 1,1,1 for a white sky. Empty and no image: the scene's own lights only."),
+      h("div", { class: "form-pair" }, row("Strength", envStrength), row("Rotation (degrees)", envRotation))),
     h("fieldset", {}, h("legend", {}, "Scheduling"),
       row("Priority", priority, "Higher runs first."),
       row("Name", name)),
@@ -89,7 +100,7 @@ export function submitView() {
   }
 
   function clearErrors() {
-    for (const input of [...Object.values(fields), file, frameStart, shutterClose]) input.removeAttribute("aria-invalid");
+    for (const input of [...Object.values(fields), file, frameStart, shutterClose, envFile, envStrength, envRotation]) input.removeAttribute("aria-invalid");
     status.replaceChildren();
     status.className = "form-status";
   }
@@ -97,7 +108,11 @@ export function submitView() {
   function showError(message, fieldName) {
     status.className = "form-status error";
     status.replaceChildren(h("p", {}, message));
-    const input = fieldName === "scene" && srcUpload.checked ? file : fields[fieldName?.split(".")[0]];
+    const input = fieldName === "scene" && srcUpload.checked ? file
+      : fieldName === "environment.strength" ? envStrength
+      : fieldName === "environment.rotation_degrees" ? envRotation
+      : fieldName?.startsWith("environment") && envFile.files?.length ? envFile
+      : fields[fieldName?.split(".")[0]];
     if (input) {
       input.setAttribute("aria-invalid", "true");
       input.setAttribute("aria-errormessage", status.id);
@@ -149,6 +164,17 @@ export function submitView() {
       if ((open === null) !== (close === null)) throw Object.assign(new Error("shutter: give both when it opens and when it closes, or neither"), { field: "shutter" });
       if (open !== null) settings.shutter = [open, close];
       if (settings.spp === null) throw Object.assign(new Error("spp: required"), { field: "spp" });
+      const strength = floatOrNull(envStrength, "environment.strength");
+      const rotation = floatOrNull(envRotation, "environment.rotation_degrees");
+      const colour = envColour.value.trim();
+      const image = envFile.files && envFile.files[0];
+      if (colour && image) throw Object.assign(new Error("environment: choose an image or a colour, not both"), { field: "environment" });
+      if (colour || image) {
+        // An image's source is its hash, set once it is uploaded (environmentReady).
+        settings.environment = { source: colour, strength: strength ?? 1, rotation_degrees: rotation ?? 0 };
+      } else if (strength !== null || rotation !== null) {
+        throw Object.assign(new Error("environment: a strength or rotation needs an image or a colour"), { field: "environment" });
+      }
     } catch (e) {
       showError(e.message, e.field);
       return null;
@@ -191,6 +217,33 @@ export function submitView() {
       `Uploaded: ${int(up.triangles)} triangles, ${up.meshes} meshes, ${up.materials} materials, ${up.lights} lights.`));
     uploaded = { file: f, hash: up.hash };
     settings.scene = up.hash;
+    return true;
+  }
+
+  // The uploaded environment image's hash, for the same reason.
+  let uploadedEnv = null;
+
+  // Sets settings.environment.source to the chosen image's hash (uploading it if
+  // needed); false after showing what went wrong.
+  async function environmentReady(settings) {
+    const f = envFile.files && envFile.files[0];
+    if (!settings.environment || !f) return true;
+    if (uploadedEnv && uploadedEnv.file === f) {
+      settings.environment.source = uploadedEnv.hash;
+      return true;
+    }
+    status.className = "form-status";
+    status.replaceChildren(h("p", {}, `Uploading ${f.name} (${int(f.size)} bytes)…`));
+    let up;
+    try {
+      up = await api.uploadScene(await f.arrayBuffer(), "application/octet-stream");
+    } catch (e) {
+      showError(`The environment image was not accepted: ${e.message}`, "environment");
+      return false;
+    }
+    status.replaceChildren();
+    uploadedEnv = { file: f, hash: up.hash };
+    settings.environment.source = up.hash;
     return true;
   }
 
@@ -240,7 +293,7 @@ export function submitView() {
     if (!settings) return;
     quoteButton.disabled = true;
     try {
-      if (!(await sceneReady(settings))) return;
+      if (!(await sceneReady(settings)) || !(await environmentReady(settings))) return;
       quoteEl.replaceChildren(h("p", {}, "Rendering a short pilot…"));
       showQuote(await api.quote(settings));
     } catch (e) {
@@ -258,7 +311,7 @@ export function submitView() {
     if (!settings) return;
     submit.disabled = true;
     try {
-      if (!(await sceneReady(settings))) return;
+      if (!(await sceneReady(settings)) || !(await environmentReady(settings))) return;
       const job = await api.submit(settings, key);
       key = idempotencyKey();
       location.hash = `#/jobs/${job.id}`;

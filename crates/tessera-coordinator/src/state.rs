@@ -76,6 +76,8 @@ pub struct JobEntry {
     pub settings: RenderConfig,
     /// Frame plan.
     pub plan: FramePlan,
+    /// The environment lighting the scene, if any.
+    pub environment: Option<tessera_farm::job::JobEnvironment>,
 }
 
 impl JobEntry {
@@ -86,6 +88,7 @@ impl JobEntry {
             scene: job.scene.clone(),
             settings: resolved.config,
             plan: resolved.plan,
+            environment: job.environment.clone(),
         }
     }
 }

@@ -3,8 +3,9 @@
 use std::fmt;
 
 use tessera_farm::job::{
-    Integrator, JobScene, MisHeuristic, RenderConfig, SamplerKind, SceneRef, Shutter, DEFAULT_FPS,
-    MAX_ANIMATION_CHARS, MAX_CAMERA_CHARS, MAX_FPS,
+    EnvironmentSource, Integrator, JobEnvironment, JobScene, MisHeuristic, RenderConfig,
+    SamplerKind, SceneRef, Shutter, DEFAULT_FPS, MAX_ANIMATION_CHARS, MAX_CAMERA_CHARS,
+    MAX_ENVIRONMENT_RADIANCE, MAX_ENVIRONMENT_STRENGTH, MAX_FPS,
 };
 use tessera_farm::{
     FramePlan, PixelRuns, PlanError, UnitResult, WorkUnit, MAX_DIMENSION, MAX_PASSES,
@@ -501,6 +502,8 @@ pub struct LeasedUnit {
     /// The lease's seal (`Lease.fence`): opaque to the worker, which sends it back with
     /// the result (`SubmitResultRequest.fence`). At most [`MAX_FENCE_BYTES`].
     pub fence: Vec<u8>,
+    /// The job's environment (`Lease.environment`); `None`: the scene's own lights only.
+    pub environment: Option<JobEnvironment>,
 }
 
 /// The longest `Lease.fence` / `SubmitResultRequest.fence` accepted: the coordinator's
@@ -526,6 +529,7 @@ impl From<&LeasedUnit> for v1::Lease {
             unit: Some((&l.unit).into()),
             wanted: l.wanted.as_ref().map(|w| v1::PixelRuns { runs: w.flat() }),
             fence: l.fence.clone(),
+            environment: l.environment.as_ref().map(Into::into),
         }
     }
 }
@@ -625,6 +629,11 @@ impl TryFrom<v1::Lease> for LeasedUnit {
                 ),
             ));
         }
+        let environment = l
+            .environment
+            .map(JobEnvironment::try_from)
+            .transpose()
+            .map_err(|e| e.within("environment"))?;
         Ok(Self {
             lease_id: l.lease_id,
             deadline_unix_ms: l.deadline_unix_ms,
@@ -641,6 +650,81 @@ impl TryFrom<v1::Lease> for LeasedUnit {
             unit,
             wanted,
             fence: l.fence,
+            environment,
+        })
+    }
+}
+
+impl From<&JobEnvironment> for v1::Environment {
+    fn from(e: &JobEnvironment) -> Self {
+        let (image_hash, colour) = match &e.source {
+            EnvironmentSource::Colour(c) => (String::new(), c.to_vec()),
+            EnvironmentSource::Image(h) => (h.clone(), Vec::new()),
+        };
+        Self {
+            image_hash,
+            colour,
+            strength: e.strength,
+            rotation_degrees: e.rotation_degrees,
+        }
+    }
+}
+
+impl TryFrom<v1::Environment> for JobEnvironment {
+    type Error = ProtoError;
+
+    /// Checks the ranges the job setting is validated with; the floats cross the wire
+    /// as they are, so the worker lights the scene with exactly the job's values.
+    fn try_from(e: v1::Environment) -> Result<Self, ProtoError> {
+        let source = if e.image_hash.is_empty() {
+            let ok = |c: &f32| c.is_finite() && (0.0..=MAX_ENVIRONMENT_RADIANCE as f32).contains(c);
+            match e.colour[..] {
+                [r, g, b] if [r, g, b].iter().all(ok) => EnvironmentSource::Colour([r, g, b]),
+                _ => {
+                    return Err(ProtoError::new(
+                        "colour",
+                        format_args!(
+                            "must be 3 values in [0, {MAX_ENVIRONMENT_RADIANCE}] without an \
+                             image_hash, got {:?}",
+                            e.colour
+                        ),
+                    ))
+                }
+            }
+        } else {
+            let h = &e.image_hash;
+            if h.len() != 64 || !h.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f')) {
+                return Err(ProtoError::new(
+                    "image_hash",
+                    "must be 64 lowercase hex digits",
+                ));
+            }
+            if !e.colour.is_empty() {
+                return Err(ProtoError::new(
+                    "colour",
+                    "must be empty with an image_hash",
+                ));
+            }
+            EnvironmentSource::Image(h.clone())
+        };
+        let s = e.strength;
+        if !(s.is_finite() && (0.0..=MAX_ENVIRONMENT_STRENGTH as f32).contains(&s)) {
+            return Err(ProtoError::new(
+                "strength",
+                format_args!("must be in [0, {MAX_ENVIRONMENT_STRENGTH}], got {s}"),
+            ));
+        }
+        let r = e.rotation_degrees;
+        if !(r.is_finite() && r.abs() <= 360.0) {
+            return Err(ProtoError::new(
+                "rotation_degrees",
+                format_args!("must be in [-360, 360], got {r}"),
+            ));
+        }
+        Ok(Self {
+            source,
+            strength: s,
+            rotation_degrees: r,
         })
     }
 }

@@ -272,6 +272,41 @@ pub fn base64(bytes: &[u8]) -> String {
     out
 }
 
+/// Encodes a Radiance `.hdr` (RGBE) image of `width` x `height` texels, row by row from
+/// the top, each texel `radiance(x, y)` (linear RGB, non-negative), in flat scanlines
+/// (no run-length encoding): the environment images of the lighting tests. Keep the
+/// channels of a texel within a factor of about 100 of each other, so no texel encodes
+/// as the old format's run marker (1, 1, 1, e).
+pub fn radiance_hdr(width: u32, height: u32, radiance: impl Fn(u32, u32) -> [f32; 3]) -> Vec<u8> {
+    let mut out =
+        format!("#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {height} +X {width}\n").into_bytes();
+    for y in 0..height {
+        for x in 0..width {
+            let c = radiance(x, y);
+            let m = c[0].max(c[1]).max(c[2]);
+            if m < 1e-32 {
+                out.extend_from_slice(&[0, 0, 0, 0]);
+                continue;
+            }
+            // m = mantissa * 2^e with the mantissa in [0.5, 1) (C's frexp).
+            let mut e = m.log2().floor() as i32 + 1;
+            let mut mantissa = m / 2f32.powi(e);
+            while mantissa >= 1.0 {
+                mantissa /= 2.0;
+                e += 1;
+            }
+            while mantissa < 0.5 {
+                mantissa *= 2.0;
+                e -= 1;
+            }
+            let scale = mantissa * 256.0 / m;
+            let byte = |v: f32| (v * scale).clamp(0.0, 255.0) as u8;
+            out.extend_from_slice(&[byte(c[0]), byte(c[1]), byte(c[2]), (e + 128) as u8]);
+        }
+    }
+    out
+}
+
 /// Encodes an 8-bit RGB PNG.
 pub fn png_rgb8(width: u32, height: u32, rgb: &[u8]) -> Vec<u8> {
     png8(width, height, rgb, png::ColorType::Rgb)

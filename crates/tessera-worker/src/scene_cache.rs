@@ -1,15 +1,22 @@
 //! Scenes fetched by content hash, parsed and built once and kept for the next units
 //! (a worker pays for a scene once however many units of it it renders), and the time a
 //! lease's scene is loaded at.
+//!
+//! A lease's environment lights the scene as `tessera render --environment` lights it:
+//! decoded from the image fetched by its hash (checked, like a scene) and applied to the
+//! scene and to every shutter key before the build. Scenes are cached under their
+//! environment too, since the same scene under another light is another render scene.
 
 use crate::connect::Client;
 use sha2::{Digest, Sha256};
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex};
 use tessera_farm::job::SceneRef;
+use tessera_farm::job::{EnvironmentSource, JobEnvironment};
 use tessera_proto::v1;
 use tessera_proto::LeasedUnit;
 use tessera_render::scene::RenderScene;
+use tessera_scene::environment::SceneEnvironment;
 use tessera_scene::Scene;
 
 /// Scenes and their built forms, by scene reference and camera (`SCENE#CAMERA`).
@@ -24,7 +31,13 @@ pub(crate) struct SceneCache {
     /// Keys of `scenes` and `animated`, oldest first: a worker that serves job after job
     /// keeps the last [`SCENE_CACHE`] of them, not every scene it ever saw.
     order: VecDeque<String>,
+    /// Decoded environments by [`JobEnvironment::metadata_json`], newest last; a few at
+    /// most (a decoded 8K image is hundreds of megabytes).
+    environments: Vec<(String, Arc<SceneEnvironment>)>,
 }
+
+/// Decoded environments kept.
+const ENVIRONMENT_CACHE: usize = 2;
 
 /// Built render scenes kept (each holds a BVH: the largest thing a worker keeps).
 const BUILT_CACHE: usize = 4;
@@ -60,9 +73,14 @@ pub(crate) async fn scene_for(
     l: &LeasedUnit,
 ) -> Result<Arc<RenderScene>, String> {
     let (js, plan, frame) = (&l.scene, &l.plan, l.unit.frame);
-    let key = js.parse_key();
+    // Under another environment the same scene is another scene.
+    let lit = |k: String| match &l.environment {
+        None => k,
+        Some(e) => format!("{k}|environment:{}", e.metadata_json()),
+    };
+    let key = lit(js.parse_key());
     let time = tessera_scene::job::frame_time(js, frame);
-    let timed_key = js.frame_key(frame);
+    let timed_key = lit(js.frame_key(frame));
     let lock = || cache.lock().map_err(|_| "scene cache poisoned".to_string());
     let built_key = {
         let c = lock()?;
@@ -84,6 +102,10 @@ pub(crate) async fn scene_for(
         let c = lock()?;
         (c.scenes.get(&key).cloned(), c.animated.get(&key).cloned())
     };
+    let environment = match &l.environment {
+        Some(e) => Some(environment_for(client, cache, e).await?),
+        None => None,
+    };
     let (parsed, built_key) = match cached {
         Some(s) => (s, built_key),
         None => {
@@ -94,8 +116,9 @@ pub(crate) async fn scene_for(
             };
             // The same loader as the coordinator's, so both see the same scene.
             let (js2, b2, t) = (js.clone(), bytes.clone(), time.clone());
+            let env2 = environment.clone();
             let parsed = tokio::task::spawn_blocking(move || {
-                tessera_scene::job::load_job_scene_at(&js2, b2.as_deref().map(Vec::as_slice), &t)
+                load_lit(&js2, b2.as_deref().map(Vec::as_slice), &t, env2.as_deref())
             })
             .await
             .map_err(|e| e.to_string())?
@@ -126,7 +149,12 @@ pub(crate) async fn scene_for(
     let js2 = js.clone();
     let built = tokio::task::spawn_blocking(move || {
         let keys = tessera_scene::job::shutter_scenes(&times, &parsed, |t| {
-            tessera_scene::job::load_job_scene_at(&js2, raw.as_deref().map(Vec::as_slice), t)
+            load_lit(
+                &js2,
+                raw.as_deref().map(Vec::as_slice),
+                t,
+                environment.as_deref(),
+            )
         })
         .map_err(|e| e.to_string())?;
         RenderScene::build_in_motion(&parsed, &keys, w, h).map_err(|e| e.to_string())
@@ -140,6 +168,54 @@ pub(crate) async fn scene_for(
         c.built.remove(0);
     }
     Ok(built)
+}
+
+/// The farm's scene loader, then the environment applied (replacing any the scene had),
+/// in the order `tessera render` applies it.
+fn load_lit(
+    js: &tessera_farm::job::JobScene,
+    bytes: Option<&[u8]>,
+    time: &tessera_scene::SceneTime,
+    environment: Option<&SceneEnvironment>,
+) -> Result<Scene, tessera_scene::SceneError> {
+    let mut scene = tessera_scene::job::load_job_scene_at(js, bytes, time)?;
+    if let Some(e) = environment {
+        e.apply(&mut scene);
+    }
+    Ok(scene)
+}
+
+/// A lease's environment decoded, from the cache or now: an image is fetched by its hash
+/// with FetchScene (the coordinator serves environment images as it serves scenes) and
+/// checked against the hash before it is decoded.
+async fn environment_for(
+    client: &mut Client,
+    cache: &Arc<Mutex<SceneCache>>,
+    env: &JobEnvironment,
+) -> Result<Arc<SceneEnvironment>, String> {
+    let key = env.metadata_json();
+    let lock = || cache.lock().map_err(|_| "scene cache poisoned".to_string());
+    if let Some((_, e)) = lock()?.environments.iter().find(|(k, _)| *k == key) {
+        return Ok(e.clone());
+    }
+    let bytes = match &env.source {
+        EnvironmentSource::Colour(_) => None,
+        EnvironmentSource::Image(hash) => Some(fetch_scene(client, hash).await?),
+    };
+    let env2 = env.clone();
+    let decoded = tokio::task::spawn_blocking(move || {
+        SceneEnvironment::from_job(&env2, bytes.as_deref()).map_err(|e| e.to_string())
+    })
+    .await
+    .map_err(|e| e.to_string())??;
+    let decoded = Arc::new(decoded);
+    let mut c = lock()?;
+    c.environments.retain(|(k, _)| *k != key);
+    c.environments.push((key, decoded.clone()));
+    if c.environments.len() > ENVIRONMENT_CACHE {
+        c.environments.remove(0);
+    }
+    Ok(decoded)
 }
 
 /// Fetches a scene's bytes by content hash and checks them against it.

@@ -39,12 +39,13 @@ pub(crate) enum ChildError {
 struct TempScene(PathBuf);
 
 impl TempScene {
-    /// Writes `bytes` to a new file in the system's temporary directory.
-    fn write(bytes: &[u8]) -> std::io::Result<Self> {
+    /// Writes `bytes` to a new file in the system's temporary directory, its name ending
+    /// in `suffix` (the pilot reads files by their contents, not their names).
+    fn write(bytes: &[u8], suffix: &str) -> std::io::Result<Self> {
         static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let path = std::env::temp_dir().join(format!(
-            "tessera-pilot-{}-{}-{n}.glb",
+            "tessera-pilot-{}-{}-{n}{suffix}",
             std::process::id(),
             now_ms()
         ));
@@ -64,26 +65,38 @@ impl Drop for TempScene {
     }
 }
 
-/// Runs `program pilot ARGS [--scene-file F]` with `body` (the job's settings as JSON) on
-/// its standard input and returns its standard output; `scene` is the uploaded scene's
-/// bytes (`None` for a built-in scene), written to a temporary file for it.
+/// Writes `bytes` (if any) to a temporary file for a pilot, off the async runtime's
+/// threads (up to MAX_SCENE_BYTES of file I/O); `what` names it in errors.
+async fn temp_file(
+    bytes: Option<Arc<Vec<u8>>>,
+    suffix: &'static str,
+    what: &str,
+) -> Result<Option<TempScene>, ChildError> {
+    let Some(b) = bytes else {
+        return Ok(None);
+    };
+    let f = tokio::task::spawn_blocking(move || TempScene::write(&b, suffix))
+        .await
+        .map_err(|e| ChildError::Io(e.to_string()))?
+        .map_err(|e| ChildError::Io(format!("writing the pilot's {what}: {e}")))?;
+    Ok(Some(f))
+}
+
+/// Runs `program pilot ARGS [--scene-file F] [--environment-file E]` with `body` (the
+/// job's settings as JSON) on its standard input and returns its standard output; `scene`
+/// is the uploaded scene's bytes (`None` for a built-in scene) and `environment` the
+/// job's environment image's (`None` without one), each written to a temporary file for
+/// it.
 pub(crate) async fn run_pilot(
     program: &Path,
     args: &[String],
     scene: Option<Arc<Vec<u8>>>,
+    environment: Option<Arc<Vec<u8>>>,
     body: Vec<u8>,
     timeout: Duration,
 ) -> Result<Vec<u8>, ChildError> {
-    let scene_file = match scene {
-        None => None,
-        // Up to MAX_SCENE_BYTES of file I/O: off the async runtime's threads.
-        Some(b) => Some(
-            tokio::task::spawn_blocking(move || TempScene::write(&b))
-                .await
-                .map_err(|e| ChildError::Io(e.to_string()))?
-                .map_err(|e| ChildError::Io(format!("writing the pilot's scene: {e}")))?,
-        ),
-    };
+    let scene_file = temp_file(scene, ".glb", "scene").await?;
+    let environment_file = temp_file(environment, ".env", "environment image").await?;
     let mut cmd = tokio::process::Command::new(program);
     cmd.arg("pilot")
         .args(args)
@@ -93,6 +106,9 @@ pub(crate) async fn run_pilot(
         .kill_on_drop(true);
     if let Some(f) = &scene_file {
         cmd.arg("--scene-file").arg(&f.0);
+    }
+    if let Some(f) = &environment_file {
+        cmd.arg("--environment-file").arg(&f.0);
     }
     let run = async {
         let mut child = cmd.spawn().map_err(|e| {

@@ -25,7 +25,7 @@ impl Coordinator {
     /// new.
     pub async fn submit(
         &self,
-        settings: JobSettings,
+        mut settings: JobSettings,
         idempotency_key: Option<String>,
     ) -> CoordResult<(JobStatus, bool)> {
         self.accepting_work()?;
@@ -38,25 +38,18 @@ impl Coordinator {
             }
         }
         let job = settings.validate()?;
-        if job.environment.is_some() {
-            // Workers do not receive the environment yet: a farm render would differ from
-            // `tessera render`'s, so the job is refused rather than rendered unlit.
-            return Err(CoordError::invalid_field(
-                "environment",
-                "the farm does not render environments yet; render the job with `tessera \
-                 render --environment` instead",
-            ));
-        }
-        // Held until the job is stored: its scene cannot be deleted meanwhile.
+        canonical_environment(&mut settings, &job);
+        // Held until the job is stored: its scene and environment image cannot be deleted
+        // meanwhile.
         let _scene_kept = self.inner.scene_lock.read().await;
-        let scene = self.scene(&job.scene).await?;
+        let (scene, environment) = self.lit_scene(&job).await?;
         // Resolution also checks the adaptive settings against the plan (field `adaptive`).
         let settings_json = serde_json::to_string(&settings).map_err(CoordError::internal)?;
         let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene.source);
         let resolved = self
             .inner
             .technique
-            .resolve(&job, settings_json.as_bytes(), scene, bytes)
+            .resolve(&job, settings_json.as_bytes(), scene, bytes, environment)
             .await?;
         self.check_memory(&job, &resolved)?;
         let created = now_ms();
@@ -572,6 +565,18 @@ pub(crate) fn bytes(n: u64) -> String {
         format!("{n} B")
     } else {
         format!("{v:.1} {}", UNITS[u])
+    }
+}
+
+/// Writes an environment image's hash in the settings as validation reads it (lower case,
+/// trimmed), so the stored settings name the stored file exactly: the store finds the
+/// unfinished jobs that need an image by that text (`store::scene_quota`).
+pub(crate) fn canonical_environment(settings: &mut JobSettings, job: &ValidatedJob) {
+    use tessera_farm::job::EnvironmentSource;
+    if let (Some(e), Some(raw)) = (&job.environment, settings.environment.as_mut()) {
+        if let EnvironmentSource::Image(h) = &e.source {
+            raw.source = h.clone();
+        }
     }
 }
 

@@ -86,23 +86,16 @@ impl Coordinator {
                 ));
             }
         }
+        let mut settings = settings;
         let job = settings.validate()?;
-        if job.environment.is_some() {
-            // Workers do not receive the environment yet: a farm render would differ from
-            // `tessera render`'s, so the job is refused rather than rendered unlit.
-            return Err(CoordError::invalid_field(
-                "environment",
-                "the farm does not render environments yet; render the job with `tessera \
-                 render --environment` instead",
-            ));
-        }
-        let scene = self.scene(&job.scene).await?;
+        super::jobs::canonical_environment(&mut settings, &job);
+        let (scene, environment) = self.lit_scene(&job).await?;
         let body = serde_json::to_vec(&settings).map_err(CoordError::internal)?;
         let bytes = super::resume::scene_bytes(&self.inner.farm, &job.scene.source);
         let resolved = self
             .inner
             .technique
-            .resolve(&job, &body, scene, bytes)
+            .resolve(&job, &body, scene, bytes, environment.clone())
             .await?;
         // A quote for a job the coordinator would refuse would mislead.
         self.check_memory(&job, &resolved)?;
@@ -176,7 +169,7 @@ impl Coordinator {
         ];
         let timeout = Duration::from_millis(self.inner.cfg.pilot_timeout_ms.max(1));
         let started = std::time::Instant::now();
-        let out = match run_pilot(&program, &args, scene_bytes, body, timeout).await {
+        let out = match run_pilot(&program, &args, scene_bytes, environment, body, timeout).await {
             Ok(out) => out,
             Err(ChildError::Io(e)) => return Err(CoordError::internal(e)),
             Err(ChildError::Timeout(t)) => {

@@ -17,7 +17,7 @@ use tessera_farm::{
 };
 
 use super::jobs::add_to_scheduler;
-use super::scenes::{load_scene, SceneLoadError};
+use super::scenes::{load_lit_scene, SceneLoadError};
 use super::technique::TechniquePilots;
 use crate::error::CoordError;
 use crate::state::{now_ms, tile_error, Farm, JobEntry, JobRuntime, Stop, TileRejected};
@@ -80,7 +80,7 @@ impl From<StoredJobError> for CoordError {
 }
 
 /// The stored job -> resolved job chain: parse the stored settings, validate them, load
-/// the scene, resolve (the same resolution as `POST /jobs` and `tessera render`,
+/// the scene (lit by the job's environment), resolve (the same resolution as `POST /jobs` and `tessera render`,
 /// ARCHITECTURE.md §1).
 pub(crate) async fn resolve_stored(
     store: &dyn Store,
@@ -91,10 +91,16 @@ pub(crate) async fn resolve_stored(
     let settings: JobSettings = serde_json::from_str(&rec.settings_json)
         .map_err(|error| StoredJobError::Unreadable { job: rec.id, error })?;
     let job = settings.validate()?;
-    let scene = load_scene(store, farm, &job.scene).await?;
+    let (scene, environment) = load_lit_scene(store, farm, &job).await?;
     let bytes = scene_bytes(farm, &job.scene.source);
     let resolved = pilots
-        .resolve(&job, rec.settings_json.as_bytes(), scene, bytes)
+        .resolve(
+            &job,
+            rec.settings_json.as_bytes(),
+            scene,
+            bytes,
+            environment,
+        )
         .await?;
     Ok(StoredJob { settings, resolved })
 }

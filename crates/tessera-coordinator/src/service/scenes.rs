@@ -1,5 +1,11 @@
 //! Scenes: uploads (ARCHITECTURE.md §9, step 1) and loading a job's scene for submission,
-//! resume and images (step 4).
+//! resume and images (step 4), lit by the job's environment.
+//!
+//! Environment images (Radiance `.hdr`, OpenEXR) are uploaded, stored, counted against the
+//! quotas and deleted exactly as scenes are: one content-addressed store, told apart by
+//! the files' magic numbers. An image is decoded at upload (its texel count checked from
+//! the header first, as textures are), so a broken or oversized one is refused then, not
+//! when a job names it.
 //!
 //! Uploaded bytes are kept in the farm's cache by content hash, because workers fetch
 //! them from there (`FetchScene`); a scene missing from the cache is read from the store.
@@ -16,7 +22,8 @@ use std::sync::{Arc, Mutex};
 
 use sha2::{Digest, Sha256};
 use tessera_api::{SceneRef, SceneUploaded};
-use tessera_farm::job::JobScene;
+use tessera_farm::job::{EnvironmentSource, JobEnvironment, JobScene, ValidatedJob};
+use tessera_scene::environment::{decode_environment, SceneEnvironment};
 use tessera_scene::job::{load_job_scene_at, resolution_time};
 use tessera_scene::Scene;
 
@@ -46,6 +53,12 @@ pub enum SceneLoadError {
     /// The coordinator failed (a poisoned lock, a panicked parser).
     #[error("{0}")]
     Internal(String),
+    /// No uploaded file has the hash the job's `environment.source` names.
+    #[error("environment image {0} is missing from the store")]
+    EnvironmentMissing(String),
+    /// The environment image does not decode.
+    #[error("{0}")]
+    EnvironmentInvalid(String),
 }
 
 impl From<SceneLoadError> for CoordError {
@@ -58,8 +71,98 @@ impl From<SceneLoadError> for CoordError {
             SceneLoadError::Invalid(e) => CoordError::invalid_field("scene", e),
             SceneLoadError::Store(e) => CoordError::Store(e),
             SceneLoadError::Internal(e) => CoordError::Internal(e),
+            SceneLoadError::EnvironmentMissing(h) => CoordError::invalid_field(
+                "environment.source",
+                format!(
+                    "no uploaded environment image has hash {h}: POST the .hdr or .exr file \
+                     to /api/v1/scenes first"
+                ),
+            ),
+            SceneLoadError::EnvironmentInvalid(e) => {
+                CoordError::invalid_field("environment.source", e)
+            }
         }
     }
+}
+
+/// Whether `bytes` begin like an environment image: Radiance RGBE (`#?`) or OpenEXR (its
+/// magic number), the two formats [`decode_environment`] reads. A glTF file begins with
+/// `glTF` or `{`.
+pub(crate) fn is_environment_image(bytes: &[u8]) -> bool {
+    bytes.starts_with(b"#?") || bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01])
+}
+
+/// The bytes of the uploaded file `hash`: from the farm's cache, else from the store
+/// (then cached, since workers fetch them from there with FetchScene). `None` when no
+/// upload has this hash.
+async fn uploaded_bytes(
+    store: &dyn Store,
+    farm: &Mutex<Farm>,
+    hash: &str,
+) -> Result<Option<Arc<Vec<u8>>>, SceneLoadError> {
+    let poisoned = || SceneLoadError::Internal("farm state poisoned".into());
+    let cached = farm
+        .lock()
+        .map_err(|_| poisoned())?
+        .scenes
+        .get(hash)
+        .cloned();
+    let b = match cached {
+        Some(b) => b,
+        None => match store.get_scene(hash).await? {
+            Some(b) => Arc::new(b),
+            None => return Ok(None),
+        },
+    };
+    farm.lock()
+        .map_err(|_| poisoned())?
+        .scenes
+        .insert(hash.to_string(), b.clone());
+    Ok(Some(b))
+}
+
+/// A job's environment, decoded as `tessera render --environment` decodes it
+/// ([`SceneEnvironment::from_job`]), with the bytes of its image (`None` for a colour),
+/// which stay in the farm's cache for the workers. Decoding runs on a blocking thread.
+pub(crate) async fn load_environment(
+    store: &dyn Store,
+    farm: &Mutex<Farm>,
+    env: &JobEnvironment,
+) -> Result<(SceneEnvironment, Option<Arc<Vec<u8>>>), SceneLoadError> {
+    let bytes = match &env.source {
+        EnvironmentSource::Colour(_) => None,
+        EnvironmentSource::Image(h) => Some(
+            uploaded_bytes(store, farm, h)
+                .await?
+                .ok_or_else(|| SceneLoadError::EnvironmentMissing(h.clone()))?,
+        ),
+    };
+    let (env, b) = (env.clone(), bytes.clone());
+    let decoded = tokio::task::spawn_blocking(move || {
+        SceneEnvironment::from_job(&env, b.as_deref().map(Vec::as_slice))
+    })
+    .await
+    .map_err(|e| SceneLoadError::Internal(e.to_string()))?
+    .map_err(|e| SceneLoadError::EnvironmentInvalid(e.to_string()))?;
+    Ok((decoded, bytes))
+}
+
+/// A job's scene as it is resolved: [`load_scene`], lit by the job's environment if it
+/// has one (as `tessera render` lights it before resolving, so the plan, the technique
+/// pilot and a black-image verdict agree with a local render); also the environment
+/// image's bytes, for a pilot child.
+pub(crate) async fn load_lit_scene(
+    store: &dyn Store,
+    farm: &Mutex<Farm>,
+    job: &ValidatedJob,
+) -> Result<(Scene, Option<Arc<Vec<u8>>>), SceneLoadError> {
+    let mut scene = load_scene(store, farm, &job.scene).await?;
+    let Some(env) = &job.environment else {
+        return Ok((scene, None));
+    };
+    let (decoded, bytes) = load_environment(store, farm, env).await?;
+    decoded.apply(&mut scene);
+    Ok((scene, bytes))
 }
 
 /// Builds a job's scene: a built-in one, or an uploaded one from the farm's cache or the
@@ -73,25 +176,12 @@ pub(crate) async fn load_scene(
     farm: &Mutex<Farm>,
     scene: &JobScene,
 ) -> Result<Scene, SceneLoadError> {
-    let poisoned = || SceneLoadError::Internal("farm state poisoned".into());
     let bytes = match &scene.source {
-        SceneRef::Hash(h) => {
-            let cached = farm.lock().map_err(|_| poisoned())?.scenes.get(h).cloned();
-            let b = match cached {
-                Some(b) => b,
-                None => Arc::new(
-                    store
-                        .get_scene(h)
-                        .await?
-                        .ok_or_else(|| SceneLoadError::Missing(h.clone()))?,
-                ),
-            };
-            farm.lock()
-                .map_err(|_| poisoned())?
-                .scenes
-                .insert(h.clone(), b.clone());
-            Some(b)
-        }
+        SceneRef::Hash(h) => Some(
+            uploaded_bytes(store, farm, h)
+                .await?
+                .ok_or_else(|| SceneLoadError::Missing(h.clone()))?,
+        ),
         SceneRef::Builtin(_) => None,
     };
     let scene = scene.clone();
@@ -108,9 +198,11 @@ pub(crate) async fn load_scene(
 }
 
 impl Coordinator {
-    /// Stores an uploaded scene (a .glb or a self-contained .gltf) after checking that it
-    /// loads; returns its content hash and statistics. The upload counts as the anonymous
-    /// client's ([`Coordinator::upload_scene_as`]).
+    /// Stores an uploaded scene (a .glb or a self-contained .gltf) or environment image (a
+    /// Radiance .hdr or an OpenEXR file, by its magic number) after checking that it loads;
+    /// returns its content hash and statistics (an image has no triangles, meshes,
+    /// materials or lights). The upload counts as the anonymous client's
+    /// ([`Coordinator::upload_scene_as`]).
     pub async fn upload_scene(&self, bytes: Vec<u8>) -> CoordResult<SceneUploaded> {
         self.upload_scene_as(bytes, &crate::auth::client_name(None))
             .await
@@ -141,8 +233,16 @@ impl Coordinator {
         let bytes = Arc::new(bytes);
         let b2 = bytes.clone();
         let name = format!("scene {hash}");
+        let environment = is_environment_image(&bytes);
+        let image_name = format!("image {hash}");
+        // Decoded in full, as a job would decode it: the texel limit is checked from the
+        // header before anything is allocated, and a truncated or corrupt file fails here.
         let scene = tokio::task::spawn_blocking(move || {
-            tessera_scene::gltf_import::load_slice(&b2, &name, None, None)
+            if environment {
+                decode_environment(&b2, &image_name).map(|_| None)
+            } else {
+                tessera_scene::gltf_import::load_slice(&b2, &name, None, None).map(Some)
+            }
         })
         .await
         .map_err(CoordError::internal)?
@@ -161,13 +261,21 @@ impl Coordinator {
         let out = SceneUploaded {
             hash: hash.clone(),
             bytes: bytes.len() as u64,
-            triangles: scene.triangle_count() as u64,
+            triangles: scene.as_ref().map_or(0, |s| s.triangle_count() as u64),
             // Meshes as placed: world-space meshes plus instances of stored prototypes.
-            meshes: (scene.meshes.len() + scene.instances.len()) as u32,
-            materials: scene.materials.len() as u32,
-            lights: light_count(&scene),
+            meshes: scene
+                .as_ref()
+                .map_or(0, |s| (s.meshes.len() + s.instances.len()) as u32),
+            materials: scene.as_ref().map_or(0, |s| s.materials.len() as u32),
+            lights: scene.as_ref().map_or(0, light_count),
         };
-        tracing::info!(scene = %hash, bytes = bytes.len(), client, "scene uploaded");
+        tracing::info!(
+            scene = %hash,
+            bytes = bytes.len(),
+            client,
+            environment,
+            "scene uploaded"
+        );
         self.lock()?.scenes.insert(hash, bytes);
         Ok(out)
     }
@@ -275,9 +383,13 @@ impl Coordinator {
         Ok(deleted)
     }
 
-    /// A job's scene, loaded by [`load_scene`]; errors name the `scene` field.
-    pub(crate) async fn scene(&self, scene: &JobScene) -> CoordResult<Scene> {
-        Ok(load_scene(&*self.inner.store, &self.inner.farm, scene).await?)
+    /// A job's scene lit by its environment, and the environment image's bytes
+    /// ([`load_lit_scene`]); errors name `scene` or `environment.source`.
+    pub(crate) async fn lit_scene(
+        &self,
+        job: &ValidatedJob,
+    ) -> CoordResult<(Scene, Option<Arc<Vec<u8>>>)> {
+        Ok(load_lit_scene(&*self.inner.store, &self.inner.farm, job).await?)
     }
 
     /// The bytes of an uploaded scene, for a worker's FetchScene.

@@ -51,7 +51,8 @@ impl TechniquePilots {
     /// Resolves `job` against `scene` on the one resolve path
     /// ([`tessera_scene::job::resolve_job`], as `tessera render` does in process), with a
     /// child process as the technique pilot where the plan asks for one (given
-    /// `settings_json` and the uploaded scene's `scene_bytes`). The analysis is CPU work
+    /// `settings_json`, the uploaded scene's `scene_bytes` and the environment image's
+    /// `environment_bytes`; `scene` is lit by the environment already). The analysis is CPU work
     /// on a scene of any size, so it runs on a blocking thread, which waits for the child
     /// on the runtime.
     pub(crate) async fn resolve(
@@ -60,6 +61,7 @@ impl TechniquePilots {
         settings_json: &[u8],
         scene: Scene,
         scene_bytes: Option<Arc<Vec<u8>>>,
+        environment_bytes: Option<Arc<Vec<u8>>>,
     ) -> Result<ResolvedJob, ResolveError> {
         let this = self.clone();
         let job = job.clone();
@@ -67,7 +69,12 @@ impl TechniquePilots {
         let runtime = tokio::runtime::Handle::current();
         tokio::task::spawn_blocking(move || {
             resolve_job(&job, &scene, |q| {
-                runtime.block_on(this.verdict(q, settings_json, scene_bytes))
+                runtime.block_on(this.verdict(
+                    q,
+                    settings_json.clone(),
+                    scene_bytes.clone(),
+                    environment_bytes.clone(),
+                ))
             })
         })
         .await
@@ -80,11 +87,15 @@ impl TechniquePilots {
         q: &PilotQuestion<'_>,
         settings_json: Vec<u8>,
         scene_bytes: Option<Arc<Vec<u8>>>,
+        environment_bytes: Option<Arc<Vec<u8>>>,
     ) -> Result<PilotVerdict, String> {
         let Some(program) = &self.program else {
             return no_pilot("this coordinator has no pilot program")(q);
         };
-        let key = q.key();
+        // The question's key names the scene, not the light around it: the environment
+        // (its image's hash, strength and rotation) changes what the pilot measures.
+        let environment = q.job.environment.as_ref().map(|e| e.metadata_json());
+        let key = format!("{}|{}", q.key(), environment.unwrap_or_default());
         if let Some(v) = self.cached(&key) {
             return Ok(v);
         }
@@ -94,15 +105,22 @@ impl TechniquePilots {
             return Ok(v);
         }
         let args = ["--technique".to_string(), "--threads".into(), "1".into()];
-        let out = run_pilot(program, &args, scene_bytes, settings_json, self.timeout)
-            .await
-            .map_err(|e| match e {
-                ChildError::Io(e) => e,
-                ChildError::Timeout(t) => {
-                    format!("it did not finish within {} s", t.as_secs_f64())
-                }
-                ChildError::Failed { status, message } => format!("{status}: {message}"),
-            })?;
+        let out = run_pilot(
+            program,
+            &args,
+            scene_bytes,
+            environment_bytes,
+            settings_json,
+            self.timeout,
+        )
+        .await
+        .map_err(|e| match e {
+            ChildError::Io(e) => e,
+            ChildError::Timeout(t) => {
+                format!("it did not finish within {} s", t.as_secs_f64())
+            }
+            ChildError::Failed { status, message } => format!("{status}: {message}"),
+        })?;
         let v: PilotVerdict = serde_json::from_slice(&out)
             .map_err(|e| format!("its answer is not a verdict: {e}"))?;
         tracing::info!(scene = %q.job.scene.source, path_wins = v.path_wins, "technique pilot");

@@ -345,6 +345,7 @@ impl Coordinator {
                         unit: l.unit,
                         // Adaptive jobs: only the pixels still wanted (ARCHITECTURE.md §3).
                         wanted: farm.scheduler.wanted_pixels(l.job, &l.unit),
+                        environment: job.environment.clone(),
                     })
                 })
                 .collect();

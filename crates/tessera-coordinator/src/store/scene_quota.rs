@@ -63,15 +63,26 @@ pub(super) async fn record_scene_upload<B: SqlBackend>(
     b.finish_write(w, false).await
 }
 
-/// Deletes the scene `hash` unless an unfinished job needs it (checked in the same
-/// transaction, so a job cannot be stored against it meanwhile).
+/// The SQL condition that a row of `jobs` (as `table`) names the stored file `hash` (an
+/// SQL expression) as its environment image: the coordinator stores an image source as
+/// its lower-case hash (`service::jobs::canonical_environment`), so the settings' JSON
+/// holds it verbatim. A hash is hex, without `LIKE`'s wildcards.
+fn names_environment(table: &str, hash: &str) -> String {
+    format!("{table}settings_json LIKE '%\"environment\":{{\"source\":\"' || {hash} || '\"%'")
+}
+
+/// Deletes the scene or environment image `hash` unless an unfinished job needs it as its
+/// scene or its environment (checked in the same transaction, so a job cannot be stored
+/// against it meanwhile).
 pub(super) async fn delete_scene<B: SqlBackend>(b: &B, hash: &str) -> StoreResult<SceneDeletion> {
     let mut w = b.begin_write().await?;
     let rows = w
         .conn()
         .fetch_all(
             stmt(format!(
-                "SELECT id FROM jobs WHERE scene_ref = $1 AND state IN {UNFINISHED} ORDER BY id"
+                "SELECT id FROM jobs WHERE (scene_ref = $1 OR {}) \
+                 AND state IN {UNFINISHED} ORDER BY id",
+                names_environment("", "$1")
             ))
             .bind(hash),
         )
@@ -119,10 +130,11 @@ pub(super) async fn unused_scenes<B: SqlBackend>(
                 "SELECT s.hash AS hash FROM scenes s \
                  LEFT JOIN scene_uploads u ON u.hash = s.hash \
                  WHERE s.stored_unix_ms < $1 AND COALESCE(u.uploaded_unix_ms, 0) < $1 \
-                 AND NOT EXISTS (SELECT 1 FROM jobs j WHERE j.scene_ref = s.hash \
+                 AND NOT EXISTS (SELECT 1 FROM jobs j WHERE (j.scene_ref = s.hash OR {}) \
                      AND (j.state IN {UNFINISHED} \
                           OR COALESCE(j.finished_unix_ms, j.created_unix_ms) >= $1)) \
-                 ORDER BY s.stored_unix_ms, s.hash LIMIT $2"
+                 ORDER BY s.stored_unix_ms, s.hash LIMIT $2",
+                names_environment("j.", "s.hash")
             ))
             .bind(cutoff)
             .bind(i64::from(limit)),

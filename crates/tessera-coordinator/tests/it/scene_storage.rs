@@ -232,6 +232,87 @@ async fn a_scene_is_deleted_only_once_no_unfinished_job_needs_it() {
     let _ = stop.send(());
 }
 
+/// A small equirectangular Radiance image, distinct for each `i`.
+fn environment_image(i: u32) -> Vec<u8> {
+    tessera_testkit::gltf_gen::radiance_hdr(8, 4, |x, y| {
+        [1.0 + (x + i) as f32, 0.5 + y as f32, 0.75]
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn environment_images_are_checked_at_upload_and_kept_while_a_job_needs_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let (addr, core, stop) = start(CoordinatorConfig::new(dir.path())).await;
+    // An image is stored like a scene, with no triangles.
+    let up = request(addr, "POST", "/api/v1/scenes", None, &environment_image(0)).await;
+    assert_eq!(up.status, 201, "{}", up.body);
+    assert_eq!(up.json()["triangles"], 0);
+    let hash = up.json()["hash"].as_str().unwrap().to_string();
+    // A header promising more texels than a texture may have, a truncated image and an
+    // OpenEXR magic number with nothing after it: refused at upload (400 invalid_scene),
+    // saying what is wrong.
+    let huge = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 10000 +X 10000\n\0\0\0\0".to_vec();
+    let a = request(addr, "POST", "/api/v1/scenes", None, &huge).await;
+    assert_eq!(a.status, 400, "{}", a.body);
+    let (code, msg) = a.error();
+    assert_eq!(code, "invalid_scene");
+    assert!(
+        msg.contains("100000000 texels") && msg.contains("limit"),
+        "{msg}"
+    );
+    let mut broken = environment_image(1);
+    broken.truncate(broken.len() - 40);
+    let a = request(addr, "POST", "/api/v1/scenes", None, &broken).await;
+    assert_eq!(a.status, 400, "{}", a.body);
+    assert!(a.error().1.contains("Radiance"), "{}", a.body);
+    let exr_magic = [0x76, 0x2f, 0x31, 0x01, 1, 2, 3, 4];
+    let a = request(addr, "POST", "/api/v1/scenes", None, &exr_magic).await;
+    assert_eq!(a.status, 400, "{}", a.body);
+    assert!(a.error().1.contains("OpenEXR"), "{}", a.body);
+    assert_eq!(
+        core.store().scene_bytes(None).await.unwrap(),
+        environment_image(0).len() as u64
+    );
+    // A job naming an image nobody uploaded is refused at submission, naming the field.
+    let mut job = small_job("builtin:cornell-box");
+    let unknown = "ab".repeat(32);
+    job.environment = Some(tessera_api::EnvironmentSettings::new(unknown.clone()));
+    let e = tessera_api::ApiError::from(core.submit(job.clone(), None).await.unwrap_err());
+    assert_eq!(e.status(), 400, "{e:?}");
+    assert!(
+        e.message.contains("environment.source") && e.message.contains(&unknown),
+        "{e:?}"
+    );
+    // Named in capitals, the image is the same upload: the job is queued, and deleting
+    // the image is refused while the job needs it.
+    job.environment = Some(tessera_api::EnvironmentSettings::new(hash.to_uppercase()));
+    let (queued, _) = core.submit(job, None).await.unwrap();
+    assert_eq!(
+        queued.settings.environment.as_ref().unwrap().source,
+        hash,
+        "the stored settings name the image as it is stored"
+    );
+    let path = format!("/api/v1/scenes/{hash}");
+    let a = request(addr, "DELETE", &path, None, b"").await;
+    assert_eq!(a.status, 409, "{}", a.body);
+    assert!(
+        a.error().1.contains(&format!("jobs {}", queued.id)),
+        "{}",
+        a.body
+    );
+    // Retention keeps it too.
+    let later = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64
+        + 1_000;
+    assert_eq!(core.retain_scenes(later).await.unwrap(), 0);
+    core.cancel(queued.id).await.unwrap();
+    let a = request(addr, "DELETE", &path, None, b"").await;
+    assert_eq!(a.status, 204, "{}", a.body);
+    let _ = stop.send(());
+}
+
 #[tokio::test]
 async fn retention_deletes_unused_scenes_and_keeps_those_jobs_need() {
     let dir = tempfile::tempdir().unwrap();

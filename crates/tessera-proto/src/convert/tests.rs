@@ -403,6 +403,11 @@ fn leased() -> LeasedUnit {
         // Pixels in blobs: the set an adaptive lease carries.
         wanted: Some(PixelRuns::from_fn(n, |i| (i / 7) % 3 != 1)),
         fence: vec![7; 32],
+        environment: Some(JobEnvironment {
+            source: EnvironmentSource::Image(HASH.into()),
+            strength: 2.5,
+            rotation_degrees: -90.0,
+        }),
     }
 }
 
@@ -419,6 +424,12 @@ fn lease_round_trip() {
             ..leased().scene
         },
         wanted: None,
+        // Not every float is a short decimal: the wire carries them exactly.
+        environment: Some(JobEnvironment {
+            source: EnvironmentSource::Colour([0.1, 1.0 / 3.0, 0.0]),
+            strength: 0.7,
+            rotation_degrees: 12.345,
+        }),
         ..leased()
     };
     let w = v1::Lease::from(l.clone());
@@ -590,5 +601,48 @@ fn generated_service_metadata() {
     assert_eq!(
         <crate::WorkerServiceServer<Nop> as NamedService>::NAME,
         crate::SERVICE_NAME
+    );
+}
+
+#[test]
+fn a_lease_without_an_environment_has_none_and_a_bad_one_is_refused_by_field() {
+    let l = LeasedUnit {
+        environment: None,
+        ..leased()
+    };
+    let w = wire(&v1::Lease::from(&l));
+    assert!(w.environment.is_none());
+    assert_eq!(LeasedUnit::try_from(w).unwrap(), l);
+    let bad = |f: fn(&mut v1::Environment), field: &str| {
+        let mut w = v1::Lease::from(leased());
+        f(w.environment.as_mut().unwrap());
+        let e = LeasedUnit::try_from(w).unwrap_err();
+        assert_eq!(e.field, field, "{e}");
+    };
+    bad(|e| e.image_hash = "ABC".into(), "environment.image_hash");
+    bad(
+        |e| e.image_hash = HASH.to_uppercase(),
+        "environment.image_hash",
+    );
+    bad(|e| e.colour = vec![1.0; 3], "environment.colour");
+    bad(
+        |e| {
+            e.image_hash.clear();
+            e.colour = vec![1.0, 1.0];
+        },
+        "environment.colour",
+    );
+    bad(
+        |e| {
+            e.image_hash.clear();
+            e.colour = vec![1.0, f32::NAN, 1.0];
+        },
+        "environment.colour",
+    );
+    bad(|e| e.strength = -1.0, "environment.strength");
+    bad(|e| e.strength = f32::INFINITY, "environment.strength");
+    bad(
+        |e| e.rotation_degrees = 361.0,
+        "environment.rotation_degrees",
     );
 }
