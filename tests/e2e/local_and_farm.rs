@@ -10,8 +10,8 @@ use crate::common;
 
 use std::path::Path;
 
-use common::farm::{start_coordinator, start_worker, wait_done, Coord};
-use common::{output_ok, read_exr, run, temp_dir, tessera, Proc};
+use common::farm::{spawn_worker, start_coordinator, start_worker, wait_done, Coord};
+use common::{output, output_ok, poll, read_exr, run, temp_dir, tessera, Proc};
 use tessera_api::client::Client;
 use tessera_api::JobSettings;
 
@@ -432,4 +432,99 @@ fn a_farm_job_lit_by_an_environment_equals_tessera_render_with_it() {
 /// Whether `needle` occurs in `hay`.
 fn contains(hay: &[u8], needle: &[u8]) -> bool {
     hay.windows(needle.len()).any(|w| w == needle)
+}
+
+/// The determinism contract across traversal kernels (ARCHITECTURE.md §2): two workers
+/// forced to different kernels (`TESSERA_ISA=scalar` and the widest this CPU has) share
+/// every job, and the farm's EXR equals `tessera render`'s (default kernel) byte for
+/// byte, on the Cornell box and on a glTF scene of a few thousand triangles, with and
+/// without adaptive stopping. On a CPU with only the scalar kernel both workers run it,
+/// which the test says.
+#[test]
+fn workers_on_different_kernels_write_tessera_renders_exr() {
+    use tessera_render::geometry::Isa;
+    let dir = temp_dir("e2e", "kernels");
+    // A kernel the CPU lacks (or no kernel at all) is refused at start, so the workers
+    // below really run the kernels they name.
+    let (ok, _, err) = output(tessera().env("TESSERA_ISA", "avx1024").args([
+        "worker",
+        "--coordinator",
+        "http://127.0.0.1:9",
+    ]));
+    assert!(!ok && err.contains("TESSERA_ISA=avx1024: unknown"), "{err}");
+    let wide = Isa::best();
+    if wide == Isa::Scalar {
+        eprintln!("this CPU has only the scalar kernel: both workers run it");
+    }
+    let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
+    let _ws: Vec<Proc> = [Isa::Scalar, wide]
+        .into_iter()
+        .enumerate()
+        .map(|(i, isa)| {
+            let mut cmd = tessera();
+            cmd.env("TESSERA_ISA", isa.name());
+            spawn_worker(cmd, &[&c.grpc], &format!("w{i}-{}", isa.name()), &[], None)
+        })
+        .collect();
+    let client = Client::new(&c.http, None);
+    poll(
+        "both workers registered",
+        std::time::Duration::from_secs(60),
+        || client.workers().is_ok_and(|w| w.workers.len() == 2),
+    );
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes");
+    let file = root.join("indirect-room.gltf");
+    let uploaded = client.upload_scene(&std::fs::read(&file).unwrap()).unwrap();
+    let mut compared = 0;
+    for (scene, path) in [
+        ("builtin:cornell-box".to_string(), None),
+        (uploaded.hash.clone(), Some(file.as_path())),
+    ] {
+        for adaptive in ["off", "sequential"] {
+            let mut s = JobSettings::new(scene.clone());
+            s.width = Some(32);
+            s.height = Some(24);
+            s.spp = 64;
+            s.seed = 7;
+            s.tile_size = 8;
+            s.adaptive = adaptive.into();
+            if adaptive != "off" {
+                s.target_error = Some(0.2);
+            }
+            let st = client.submit(&s, None).unwrap();
+            wait_done(&client, st.id);
+            let farm = client.image(st.id, "exr").unwrap();
+            let out = dir.join(format!("{compared}.exr"));
+            let local = match path {
+                Some(path) => local_render(path, &s, &out, &[]),
+                None => {
+                    let mut cmd = tessera();
+                    cmd.args(["render", &s.scene, "--width", "32", "--height", "24"])
+                        .args(["--spp", "64", "--seed", "7", "--tile-size", "8"])
+                        .args(["--adaptive", adaptive]);
+                    if adaptive != "off" {
+                        cmd.args(["--target-error", "0.2"]);
+                    }
+                    output_ok(cmd.arg("-o").arg(&out));
+                    std::fs::read(&out).unwrap()
+                }
+            };
+            assert!(
+                farm == local,
+                "{scene} --adaptive {adaptive}: the farm's EXR (workers on scalar and {}) \
+                 differs from tessera render's",
+                wide.name()
+            );
+            compared += 1;
+        }
+    }
+    assert_eq!(compared, 4);
+    // Both kernels took part: 4 jobs of 12 tiles (and their passes) over two workers
+    // that each take one unit at a time.
+    let w = client.workers().unwrap().workers;
+    assert!(
+        w.iter().all(|w| w.units_done > 0),
+        "a worker rendered nothing, so the kernels were not mixed: {w:?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -59,6 +59,22 @@ pub fn api_client(
 
 /// CPU seconds (user + system) of process `pid` so far, from `/proc/PID/stat` (fields 14
 /// and 15, in the kernel's USER_HZ ticks, 100 per second on Linux); 0 where unavailable.
+/// The peak resident memory of this process so far in bytes (`VmHWM` of
+/// /proc/self/status, what `/usr/bin/time -v` reports as "Maximum resident set size"),
+/// or `None` where /proc does not say.
+pub(crate) fn peak_resident_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: u64 = line
+        .trim_start_matches("VmHWM:")
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .ok()?;
+    Some(kib * 1024)
+}
+
 pub(crate) fn cpu_seconds(pid: &str) -> f64 {
     let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
         return 0.0;

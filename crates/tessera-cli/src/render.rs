@@ -435,6 +435,23 @@ pub fn prepare_settings_with(
     })
 }
 
+impl Prepared {
+    /// Frees what the render scene holds its own copy of (meshes, prototypes and their
+    /// instances, textures, images), keeping what the summaries read (the name, the
+    /// environment): a large scene is not held twice while it renders.
+    pub fn release_scene_data(&mut self) {
+        if self.render_scene.is_none() {
+            return;
+        }
+        let s = &mut self.scene;
+        s.meshes = Vec::new();
+        s.prototypes = Vec::new();
+        s.instances = Vec::new();
+        s.textures = Vec::new();
+        s.images = Vec::new();
+    }
+}
+
 fn check_output(path: &Path) -> Result<()> {
     let ext = path
         .extension()
@@ -458,12 +475,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if let Some(path) = &args.spp_map {
         adaptive::check_png("--spp-map", path)?;
     }
-    let p = prepare(&args.job, &args.stop, args.frame)?;
+    let mut p = prepare(&args.job, &args.stop, args.frame)?;
     print!("{}", p.resolved.render_plan.summary());
     print_scene_line(&p);
     if p.resolved.black {
         return render_black(&p, &args);
     }
+    p.release_scene_data();
     if p.resolved.job.stops_early() {
         return adaptive::render(&p, &args);
     }
@@ -532,20 +550,34 @@ pub fn render(args: RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// `scene: T triangles, built in S s, B MiB of geometry (b bytes per triangle)`: what a
-/// large scene costs before the first ray (the large-scene figures in docs/benchmarks.md come from it).
+/// `scene: T triangles, built in S s, B MiB of geometry (b bytes per stored triangle)`
+/// and `build: peak memory P MiB (p bytes per stored triangle), C CPU seconds loading and
+/// building`, the process's peak resident memory and CPU time up to the end of the build
+/// (scene decoding and BVH temporaries included): what a large scene costs before the
+/// first ray (the large-scene figures in
+/// docs/benchmarks.md come from them).
 fn print_scene_line(p: &Prepared) {
     let Some(rs) = &p.render_scene else {
         return;
     };
     let triangles = p.scene.triangle_count();
+    let stored = p.scene.stored_triangle_count().max(1) as f64;
     let bytes = rs.geometry.bytes();
     println!(
         "scene: {triangles} triangles, built in {:.3} s, {:.1} MiB of geometry ({:.0} bytes per stored triangle)",
         p.build_seconds,
         bytes as f64 / (1024.0 * 1024.0),
-        bytes as f64 / p.scene.stored_triangle_count().max(1) as f64
+        bytes as f64 / stored
     );
+    if let Some(peak) = crate::common::peak_resident_bytes() {
+        // CPU seconds beside the wall-clock build time: what a loaded machine can trust.
+        println!(
+            "build: peak memory {:.1} MiB ({:.0} bytes per stored triangle), {:.2} CPU seconds loading and building",
+            peak as f64 / (1024.0 * 1024.0),
+            peak as f64 / stored,
+            crate::common::cpu_seconds("self")
+        );
+    }
     if let Some(s) = p.resolved.job.scene.shutter {
         println!(
             "motion blur: shutter [{}, {}] frames: {}",

@@ -44,6 +44,19 @@
 //! identical quads is not affected in the first place: its Morton order makes pairs
 //! mutual; 524,288 such triangles build in 1 s either way.)
 //!
+//! **Memory.** A large scene's peak memory is its BVH build, so the triangle build holds
+//! as little beside obvhs' own arrays as it can (figures for a 2M-triangle terrain in
+//! docs/benchmarks.md, "Memory and scale"). The triangles are read from the scene by
+//! index (`Geometry::build_instanced_of`), not gathered into an array of records first;
+//! their boxes go straight into PLOC's leaf nodes, which PLOC then works on
+//! ([`leaves_bvh2`]), instead of into an array of boxes that obvhs copies into leaves and
+//! an array of obvhs triangles before it; the reinsertion's parent maps are freed once it
+//! is done; the leaf order that numbers the triangles is computed without the CWBVH and
+//! its cost table of 112 bytes per triangle ([`cwbvh_order`]); the records are made in
+//! leaf order once the binary tree is gone. obvhs' binary nodes are its 32-byte ones
+//! (the `small_bvh2_node` feature: the same trees, primitive count and index kept in the
+//! boxes' padding). None of this changes a tree or an image.
+//!
 //! **Stack.** All builds run on a thread of their own with a stack of
 //! [`BUILD_STACK_BYTES`] ([`on_build_stack`]), so obvhs' recursions never depend on the
 //! stack of the caller (workers build inside tokio's `spawn_blocking` threads, 2 MiB).
@@ -55,8 +68,30 @@ use obvhs::bvh2::Bvh2;
 use obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh;
 use obvhs::cwbvh::CwBvh;
 use obvhs::ploc::PlocBuilder;
+use obvhs::ploc::PlocSearchDistance;
+#[cfg(test)]
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
+
+/// A primitive's box as the builds below read it: a box itself, or a PLOC leaf holding
+/// one (so the triangle build needs no array of boxes beside its leaves).
+trait HasBox {
+    fn bbox(&self) -> Aabb;
+}
+
+impl HasBox for Aabb {
+    #[inline(always)]
+    fn bbox(&self) -> Aabb {
+        *self
+    }
+}
+
+impl HasBox for Bvh2Node {
+    #[inline(always)]
+    fn bbox(&self) -> Aabb {
+        *self.aabb()
+    }
+}
 
 /// Stack size of the thread every BVH build runs on (see
 /// [`super::Geometry::build_instanced`] and [`super::MotionTriangles::new`]). obvhs' CWBVH
@@ -148,25 +183,83 @@ const fn params() -> BvhBuildParams {
 /// A binary BVH over `triangles`: obvhs' triangle builder (PLOC, then reinsertion) for
 /// ordinary input, the clustered build when centres crowd (see the module docs). It is
 /// the tree `obvhs::cwbvh::builder::build_cwbvh_from_tris` converts (without pre-splits),
-/// so [`to_cwbvh`] of it is the CWBVH that call returns.
+/// so [`to_cwbvh`] of it is the CWBVH that call returns. (The renderer builds from
+/// leaves, [`leaves_bvh2`]; the tests compare against obvhs through this.)
+#[cfg(test)]
 pub(super) fn triangles_bvh2(triangles: &[Triangle], stats: &mut BvhBuildStats) -> Bvh2 {
-    let boxes: Vec<Aabb> = triangles.iter().map(Triangle::aabb).collect();
-    match crowded_cells(&boxes, stats) {
-        None if tied_extents(&boxes, stats) => tie_broken_bvh2(&boxes, stats),
+    leaves_bvh2(
+        triangles
+            .iter()
+            .enumerate()
+            .map(|(i, t)| Bvh2Node::new(t.aabb(), 1, i as u32))
+            .collect(),
+        stats,
+    )
+}
+
+/// [`triangles_bvh2`] given PLOC's leaves: `leaves[i]` holds primitive `i`'s box, with
+/// one primitive, `i`. The leaves become PLOC's working array, so the build holds no
+/// other copy of the boxes (see "Memory" in the module docs); the tree is the one
+/// `PlocBuilder::build` makes of the same boxes, node for node.
+pub(super) fn leaves_bvh2(leaves: Vec<Bvh2Node>, stats: &mut BvhBuildStats) -> Bvh2 {
+    let mut bvh2 = match crowded_cells(&leaves, stats) {
+        None if tied_extents(&leaves, stats) => tie_broken_bvh2(&leaves, stats),
         None => {
             let p = params();
-            let mut bvh2 = PlocBuilder::with_capacity(triangles.len()).build(
-                p.ploc_search_distance,
-                triangles,
-                (0..triangles.len() as u32).collect::<Vec<_>>(),
-                p.sort_precision,
-                p.search_depth_threshold,
-            );
+            let mut bvh2 = ploc_from_leaves(leaves, &p);
             ReinsertionOptimizer::default().run(&mut bvh2, p.reinsertion_batch_ratio, None);
             bvh2
         }
-        Some(cells) => clustered_bvh2(&boxes, &cells, stats),
+        Some(cells) => clustered_bvh2(&leaves, &cells, stats),
+    };
+    // The reinsertion's maps (parents, primitives to nodes, 12 bytes a primitive) are
+    // not read again: free them before the order and the collapse.
+    bvh2.parents = Vec::new();
+    bvh2.primitives_to_nodes = Vec::new();
+    bvh2
+}
+
+/// PLOC over `leaves` (leaf `i` holding primitive `i`) with the parameters `p`: what
+/// `PlocBuilder::build` does with the leaves' boxes and the identity as indices (it sets
+/// the tree's primitive indices, makes one leaf node per box and sums the boxes into the
+/// scene's box in index order, then merges), without the slice of boxes it would read.
+fn ploc_from_leaves(leaves: Vec<Bvh2Node>, p: &BvhBuildParams) -> Bvh2 {
+    let n = leaves.len();
+    let mut bvh2 = Bvh2::default();
+    bvh2.reset_for_reuse(n, Some((0..n as u32).collect()));
+    if n == 0 {
+        return bvh2;
     }
+    let mut total = Aabb::empty();
+    for leaf in &leaves {
+        let b = leaf.aabb();
+        total.extend(b.min);
+        total.extend(b.max);
+    }
+    let mut builder = PlocBuilder::new();
+    builder.current_nodes = leaves;
+    let (precision, depth) = (p.sort_precision, p.search_depth_threshold);
+    match p.ploc_search_distance {
+        PlocSearchDistance::Minimum => {
+            builder.build_ploc_from_leaves::<1, false>(&mut bvh2, total, precision, depth)
+        }
+        PlocSearchDistance::VeryLow => {
+            builder.build_ploc_from_leaves::<2, false>(&mut bvh2, total, precision, depth)
+        }
+        PlocSearchDistance::Low => {
+            builder.build_ploc_from_leaves::<6, false>(&mut bvh2, total, precision, depth)
+        }
+        PlocSearchDistance::Medium => {
+            builder.build_ploc_from_leaves::<14, false>(&mut bvh2, total, precision, depth)
+        }
+        PlocSearchDistance::High => {
+            builder.build_ploc_from_leaves::<24, false>(&mut bvh2, total, precision, depth)
+        }
+        PlocSearchDistance::VeryHigh => {
+            builder.build_ploc_from_leaves::<32, false>(&mut bvh2, total, precision, depth)
+        }
+    }
+    bvh2
 }
 
 /// A CWBVH over `boxes` (instances' world bounds, moving triangles' swept bounds): obvhs'
@@ -195,7 +288,7 @@ fn ceil_log2(n: usize) -> u64 {
 /// The centre cell of every box, as `(cell, index)` sorted, when some cell holds
 /// [`CLUSTER_MIN`] boxes or more; `None` otherwise (the ordinary path). Counts the
 /// primitives and the grouping work in `stats`.
-fn crowded_cells(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Option<Vec<(u64, u32)>> {
+fn crowded_cells<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> Option<Vec<(u64, u32)>> {
     let n = boxes.len();
     stats.bvhs += 1;
     stats.primitives += n as u64;
@@ -206,6 +299,7 @@ fn crowded_cells(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Option<Vec<(u64, 
     }
     let mut total = Aabb::empty();
     for b in boxes {
+        let b = b.bbox();
         total.extend(b.min);
         total.extend(b.max);
     }
@@ -224,7 +318,7 @@ fn crowded_cells(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Option<Vec<(u64, 
         .iter()
         .enumerate()
         .map(|(i, b)| {
-            let c = b.center().as_dvec3();
+            let c = b.bbox().center().as_dvec3();
             let key = (quantise(c.x, lo.x, extent.x) << (2 * CELL_BITS))
                 | (quantise(c.y, lo.y, extent.y) << CELL_BITS)
                 | quantise(c.z, lo.z, extent.z);
@@ -246,7 +340,7 @@ fn crowded_cells(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Option<Vec<(u64, 
 /// Whether [`TIE_MIN`] or more of `boxes` have bit-identical extents (the input that
 /// ties PLOC's costs without crowding a cell; see the module docs). Counts its sort in
 /// `stats.work`.
-fn tied_extents(boxes: &[Aabb], stats: &mut BvhBuildStats) -> bool {
+fn tied_extents<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> bool {
     let n = boxes.len();
     if n < TIE_MIN {
         return false;
@@ -254,7 +348,10 @@ fn tied_extents(boxes: &[Aabb], stats: &mut BvhBuildStats) -> bool {
     stats.work += n as u64 * ceil_log2(n) + n as u64;
     let mut extents: Vec<[u32; 3]> = boxes
         .iter()
-        .map(|b| (b.max - b.min).to_array().map(f32::to_bits))
+        .map(|b| {
+            let b = b.bbox();
+            (b.max - b.min).to_array().map(f32::to_bits)
+        })
         .collect();
     extents.sort_unstable();
     extents
@@ -285,11 +382,12 @@ pub(super) fn tie_break_pad(b: &Aabb, i: u32) -> f32 {
 
 /// PLOC over `boxes` each widened by [`tie_break_pad`], then obvhs' reinsertion, as in
 /// its own builder (see the module docs).
-fn tie_broken_bvh2(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Bvh2 {
+fn tie_broken_bvh2<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> Bvh2 {
     let padded: Vec<Aabb> = boxes
         .iter()
         .enumerate()
         .map(|(i, b)| {
+            let b = &b.bbox();
             let d = glam::Vec3A::splat(tie_break_pad(b, i as u32));
             Aabb::new(b.min - d, b.max + d)
         })
@@ -324,7 +422,7 @@ fn tie_broken_bvh2(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Bvh2 {
 
 /// The clustered build (see the module docs) over `boxes`, given every box's centre cell
 /// as `(cell, index)` sorted by cell.
-fn clustered_bvh2(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStats) -> Bvh2 {
+fn clustered_bvh2<B: HasBox>(boxes: &[B], cells: &[(u64, u32)], stats: &mut BvhBuildStats) -> Bvh2 {
     // Items for PLOC: every crowded cell as one (its members a range of `members`), every
     // other primitive on its own.
     let mut members: Vec<u32> = Vec::with_capacity(boxes.len());
@@ -336,7 +434,7 @@ fn clustered_bvh2(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStat
             let mut bounds = Aabb::empty();
             for &(_, i) in run {
                 members.push(i);
-                bounds = bounds.union(&boxes[i as usize]);
+                bounds = bounds.union(&boxes[i as usize].bbox());
             }
             items.push((start, members.len() as u32));
             item_boxes.push(bounds);
@@ -346,7 +444,7 @@ fn clustered_bvh2(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStat
             for &(_, i) in run {
                 items.push((members.len() as u32, members.len() as u32 + 1));
                 members.push(i);
-                item_boxes.push(boxes[i as usize]);
+                item_boxes.push(boxes[i as usize].bbox());
             }
         }
     }
@@ -408,14 +506,14 @@ fn clustered_bvh2(boxes: &[Aabb], cells: &[(u64, u32)], stats: &mut BvhBuildStat
 /// splits along the widest axis of the members' centres, or, where the centres coincide,
 /// in the order given. Leaves hold one primitive each. Returns the tree's depth (0 for a
 /// single leaf) and adds one to `work` per member per level.
-fn median_subtree(
+fn median_subtree<B: HasBox>(
     members: &mut [u32],
-    boxes: &[Aabb],
+    boxes: &[B],
     nodes: &mut Vec<Bvh2Node>,
     slot: usize,
     work: &mut u64,
 ) -> u32 {
-    let centre = |i: u32| boxes[i as usize].center();
+    let centre = |i: u32| boxes[i as usize].bbox().center();
     let mut max_depth = 0;
     let mut stack: Vec<(usize, usize, usize, u32)> = vec![(0, members.len(), slot, 0)];
     while let Some((start, end, slot, depth)) = stack.pop() {
@@ -423,13 +521,13 @@ fn median_subtree(
         let range = &mut members[start..end];
         *work += range.len() as u64;
         if let [only] = range {
-            nodes[slot] = Bvh2Node::new(boxes[*only as usize], 1, *only);
+            nodes[slot] = Bvh2Node::new(boxes[*only as usize].bbox(), 1, *only);
             continue;
         }
         let mut bounds = Aabb::empty();
         let mut centres = Aabb::empty();
         for &m in range.iter() {
-            bounds = bounds.union(&boxes[m as usize]);
+            bounds = bounds.union(&boxes[m as usize].bbox());
             centres.extend(centre(m));
         }
         let spread = centres.max - centres.min;
@@ -454,4 +552,255 @@ fn median_subtree(
         stack.push((start + mid, end, first + 1, depth + 1));
     }
     max_depth
+}
+
+/// The order in which [`to_cwbvh`] of `bvh2` lists the primitives (its
+/// `primitive_indices`), computed without the CWBVH: what the triangle build keeps of the
+/// conversion (the leaf order that numbers triangles, see `triangle_bvh`).
+///
+/// obvhs' conversion (`Bvh2Converter`, after Ylitie, Karras & Laine 2017, §4, "cost
+/// table" and "child ordering") fills a table of 7 decisions of 8 bytes for every binary
+/// node (112 bytes per primitive) and builds the 80-byte CWBVH nodes; this is the same
+/// dynamic programme with the same floating-point operations in the same order, but its
+/// costs live on the recursion's stack (a node's costs are only read by its parent) and
+/// each decision is one byte (kind, and which split of the child budget goes left and
+/// right), 7 bytes per internal node; a leaf's decisions are all "leaf" and are not
+/// stored. The walk that lists the primitives is the conversion's own: each node's
+/// children gathered by the decisions, ordered by the greedy octant assignment, leaves
+/// listed in slot order as they are met and internal children visited afterwards.
+/// The tests check the order against obvhs' on ordinary, clustered and tie-broken trees.
+pub(super) fn cwbvh_order(bvh2: &Bvh2) -> Vec<u32> {
+    if bvh2.nodes.is_empty() {
+        return Vec::new();
+    }
+    let max_prims_per_leaf = params().max_prims_per_leaf.clamp(1, 3);
+    let mut order = CwbvhOrder {
+        bvh2,
+        decisions: vec![[0u8; 7]; bvh2.nodes.len()],
+        primitives: Vec::with_capacity(bvh2.primitive_indices.len()),
+    };
+    order.cost(0, max_prims_per_leaf);
+    order.convert(0);
+    order.primitives
+}
+
+/// A decision's kind, as obvhs' `DecisionKind`.
+const KIND_LEAF: u8 = 0;
+const KIND_INTERNAL: u8 = 1;
+const KIND_DISTRIBUTE: u8 = 2;
+/// obvhs' "no split" marker (`u8::MAX`), stored in 3 bits as 7.
+const SPLIT_NONE: u8 = 7;
+/// obvhs' `PRIM_COST`: the SAH cost of a primitive relative to a node.
+const PRIM_COST: f32 = 0.3;
+
+/// The state of [`cwbvh_order`]: per binary node 7 decisions of one byte each
+/// (kind in bits 6-7, left split in bits 3-5, right split in bits 0-2).
+struct CwbvhOrder<'a> {
+    bvh2: &'a Bvh2,
+    decisions: Vec<[u8; 7]>,
+    primitives: Vec<u32>,
+}
+
+/// One decision: kind, and the child budgets of its left and right subtrees.
+#[derive(Clone, Copy)]
+struct Decision {
+    cost: f32,
+    kind: u8,
+    left: u8,
+    right: u8,
+}
+
+impl CwbvhOrder<'_> {
+    /// obvhs' `calculate_cost_impl`: fills `node`'s decisions and returns its 7 costs
+    /// and its primitive count.
+    fn cost(&mut self, node_index: usize, max_prims_per_leaf: u32) -> ([f32; 7], u32) {
+        let node = &self.bvh2.nodes[node_index];
+        let half_area = node.aabb().half_area();
+        let first_index = node.first_index as usize;
+        let prim_count = node.prim_count;
+        if prim_count != 0 {
+            // Leaves hold one primitive (PLOC's and our grafted trees' alike).
+            assert!(prim_count == 1, "leaves must hold one primitive");
+            let cost_leaf = half_area * (prim_count as f32) * PRIM_COST;
+            return ([cost_leaf; 7], prim_count);
+        }
+        let (left, n_left) = self.cost(first_index, max_prims_per_leaf);
+        let (right, n_right) = self.cost(first_index + 1, max_prims_per_leaf);
+        let num_primitives = n_left + n_right;
+        let mut d = [Decision {
+            cost: 0.0,
+            kind: KIND_DISTRIBUTE,
+            left: 0,
+            right: 0,
+        }; 7];
+        {
+            let cost_leaf = if num_primitives <= max_prims_per_leaf {
+                (num_primitives as f32) * half_area * PRIM_COST
+            } else {
+                f32::INFINITY
+            };
+            let mut cost_distribute = f32::INFINITY;
+            let (mut dl, mut dr) = (u8::MAX, u8::MAX);
+            for k in 0..7 {
+                let c = left[k] + right[6 - k];
+                if c < cost_distribute {
+                    cost_distribute = c;
+                    dl = k as u8;
+                    dr = 6 - k as u8;
+                }
+            }
+            let cost_internal = cost_distribute + half_area;
+            if cost_leaf < cost_internal {
+                d[0].kind = KIND_LEAF;
+                d[0].cost = cost_leaf;
+            } else {
+                d[0].kind = KIND_INTERNAL;
+                d[0].cost = cost_internal;
+            }
+            d[0].left = dl;
+            d[0].right = dr;
+        }
+        for i in 1..7 {
+            let mut cost_distribute = d[i - 1].cost;
+            let (mut dl, mut dr) = (u8::MAX, u8::MAX);
+            for k in 0..i {
+                let c = left[k] + right[i - k - 1];
+                if c < cost_distribute {
+                    cost_distribute = c;
+                    dl = k as u8;
+                    dr = i as u8 - k as u8 - 1;
+                }
+            }
+            d[i].cost = cost_distribute;
+            if dl != u8::MAX {
+                d[i].kind = KIND_DISTRIBUTE;
+                d[i].left = dl;
+                d[i].right = dr;
+            } else {
+                d[i] = d[i - 1];
+            }
+        }
+        let pack = |s: u8| if s == u8::MAX { SPLIT_NONE } else { s };
+        self.decisions[node_index] = d.map(|d| (d.kind << 6) | (pack(d.left) << 3) | pack(d.right));
+        (d.map(|d| d.cost), num_primitives)
+    }
+
+    /// Decision `flat` of obvhs' table (`node * 7 + i`): kind, left split, right split.
+    fn decision(&self, flat: usize) -> (u8, usize, usize) {
+        let (node, i) = (flat / 7, flat % 7);
+        if self.bvh2.nodes[node].is_leaf() {
+            return (KIND_LEAF, 0, 0);
+        }
+        let b = self.decisions[node][i];
+        let unpack = |s: u8| {
+            if s == SPLIT_NONE {
+                u8::MAX as usize
+            } else {
+                s as usize
+            }
+        };
+        (b >> 6, unpack((b >> 3) & 7), unpack(b & 7))
+    }
+
+    /// obvhs' `get_children`.
+    fn children(&self, node_index: usize, children: &mut [u32; 8], count: &mut usize, i: usize) {
+        let node = &self.bvh2.nodes[node_index];
+        if node.is_leaf() {
+            children[*count] = node_index as u32;
+            *count += 1;
+            return;
+        }
+        let (_, left, right) = self.decision(node_index * 7 + i);
+        let first = node.first_index as usize;
+        for (child, split) in [(first, left), (first + 1, right)] {
+            if self.decision(child * 7 + split).0 == KIND_DISTRIBUTE {
+                self.children(child, children, count, split);
+            } else {
+                children[*count] = child as u32;
+                *count += 1;
+            }
+        }
+    }
+
+    /// obvhs' `order_children`: the children's greedy assignment to the 8 octant slots.
+    fn order_children(&self, node_index: usize, children: &mut [u32; 8], count: usize) {
+        let p = self.bvh2.nodes[node_index].aabb().center();
+        let mut cost = [[f32::MAX; 8]; 8];
+        for (s, d) in (0..8usize).map(|s| {
+            (
+                s,
+                glam::Vec3A::new(
+                    if s & 0b100 != 0 { -1.0 } else { 1.0 },
+                    if s & 0b010 != 0 { -1.0 } else { 1.0 },
+                    if s & 0b001 != 0 { -1.0 } else { 1.0 },
+                ),
+            )
+        }) {
+            for c in 0..count {
+                let v = self.bvh2.nodes[children[c] as usize].aabb().center() - p;
+                cost[c][s] = d.dot(v);
+            }
+        }
+        let mut assignment = [usize::MAX; 8];
+        let mut slot_filled = [false; 8];
+        loop {
+            let mut min_cost = f32::MAX;
+            let (mut min_slot, mut min_index) = (usize::MAX, usize::MAX);
+            for c in 0..count {
+                if assignment[c] == usize::MAX {
+                    for (s, &filled) in slot_filled.iter().enumerate() {
+                        if !filled && cost[c][s] < min_cost {
+                            min_cost = cost[c][s];
+                            min_slot = s;
+                            min_index = c;
+                        }
+                    }
+                }
+            }
+            if min_slot == usize::MAX {
+                break;
+            }
+            slot_filled[min_slot] = true;
+            assignment[min_index] = min_slot;
+        }
+        let original = std::mem::replace(children, [u32::MAX; 8]);
+        for i in 0..count {
+            children[assignment[i]] = original[i];
+        }
+    }
+
+    /// obvhs' `convert_to_cwbvh_impl`, keeping only the primitive order.
+    fn convert(&mut self, node_index: usize) {
+        let mut children = [u32::MAX; 8];
+        let mut count = 0;
+        self.children(node_index, &mut children, &mut count, 0);
+        self.order_children(node_index, &mut children, count);
+        let mut internal = [false; 8];
+        for (slot, &child) in children.iter().enumerate() {
+            if child == u32::MAX {
+                continue;
+            }
+            match self.decision(child as usize * 7).0 {
+                KIND_LEAF => self.list_primitives(child as usize),
+                _ => internal[slot] = true,
+            }
+        }
+        for (slot, &child) in children.iter().enumerate() {
+            if child != u32::MAX && internal[slot] {
+                self.convert(child as usize);
+            }
+        }
+    }
+
+    /// obvhs' `count_primitives`: the primitives under `node_index`, left before right.
+    fn list_primitives(&mut self, node_index: usize) {
+        let node = self.bvh2.nodes[node_index];
+        if node.is_leaf() {
+            self.primitives
+                .push(self.bvh2.primitive_indices[node.first_index as usize]);
+            return;
+        }
+        self.list_primitives(node.first_index as usize);
+        self.list_primitives(node.first_index as usize + 1);
+    }
 }

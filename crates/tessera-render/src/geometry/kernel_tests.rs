@@ -416,6 +416,9 @@ fn every_kernel_renders_the_builtin_scenes_and_a_large_one_bit_identically() {
     }
     scenes.push(("cornell-box with a terrain".into(), big));
 
+    for isa in Isa::ALL.into_iter().filter(|i| !i.available()) {
+        eprintln!("skipping the {} kernel: this CPU lacks it", isa.name());
+    }
     let (w, h) = (40, 30);
     let plan = FramePlan::for_spp(w, h, 8, 16).unwrap();
     let settings = RenderConfig {

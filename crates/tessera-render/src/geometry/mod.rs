@@ -59,7 +59,9 @@ mod wide;
 pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN, TIE_MIN};
 pub use kernels::Isa;
 pub use moving::{shutter_segment, MotionTriangles};
-use traversal::{bvh_bytes, traversal_ray, traversal_t, triangle_bvh, TriangleLevel};
+use traversal::{
+    bvh_bytes, traversal_ray, traversal_t, triangle_bvh, triangle_bvh_of, TriangleLevel,
+};
 pub use watertight::intersect_sphere;
 use wide::WideBvh;
 
@@ -230,14 +232,38 @@ impl Geometry {
         prototypes: Vec<Vec<TriangleRecord>>,
         instances: &[(u32, Affine3A)],
     ) -> Self {
+        Self::build_instanced_of(
+            triangles.len(),
+            |i| triangles[i],
+            spheres,
+            prototypes,
+            instances,
+        )
+    }
+
+    /// [`Geometry::build_instanced`] with the world-space triangles given as `count`
+    /// records `record(0..count)` (the order of a `Vec` the other builders take), which
+    /// it reads twice instead of holding them all: once for the BVH's boxes and once, in
+    /// leaf order, for the records it keeps. A scene of millions of triangles is then
+    /// held once, as the geometry, not also as an array in scene order (see "Memory" in
+    /// the `build` module docs). `record` must give the same record for an index each time.
+    pub fn build_instanced_of(
+        count: usize,
+        record: impl Fn(usize) -> TriangleRecord + Sync,
+        spheres: Vec<SphereRecord>,
+        prototypes: Vec<Vec<TriangleRecord>>,
+        instances: &[(u32, Affine3A)],
+    ) -> Self {
+        let record = &record;
         build::on_build_stack(move || {
-            Self::build_on_this_thread(triangles, spheres, prototypes, instances)
+            Self::build_on_this_thread(count, record, spheres, prototypes, instances)
         })
     }
 
-    /// [`Geometry::build_instanced`] on the calling thread.
+    /// [`Geometry::build_instanced_of`] on the calling thread.
     fn build_on_this_thread(
-        triangles: Vec<TriangleRecord>,
+        count: usize,
+        record: &impl Fn(usize) -> TriangleRecord,
         spheres: Vec<SphereRecord>,
         prototypes: Vec<Vec<TriangleRecord>>,
         instances: &[(u32, Affine3A)],
@@ -245,14 +271,13 @@ impl Geometry {
         let mut build_stats = BvhBuildStats::default();
         let mut lo = Vec3::splat(f32::INFINITY);
         let mut hi = Vec3::splat(f32::NEG_INFINITY);
-        for t in &triangles {
-            for p in t.p {
+        for i in 0..count {
+            for p in record(i).p {
                 lo = lo.min(p);
                 hi = hi.max(p);
             }
         }
-        let (bvh, ordered, _) = triangle_bvh(&triangles, &mut build_stats);
-        drop(triangles);
+        let (bvh, ordered, _) = triangle_bvh_of(count, record, &mut build_stats);
         let prototypes: Vec<Prototype> = prototypes
             .iter()
             .map(|tris| {

@@ -323,3 +323,144 @@ fn tie_break_margins_are_small_positive_and_deterministic() {
     let point = obvhs::aabb::Aabb::new(glam::Vec3A::splat(-8.0), glam::Vec3A::splat(-8.0));
     assert!(build::tie_break_pad(&point, 0) > 0.0);
 }
+
+/// The triangle build hands PLOC its leaves directly (no array of boxes beside them, see
+/// "Memory" in `build`): the tree must be the one obvhs' own `PlocBuilder::build` and
+/// reinsertion make of the same boxes, node for node, or the leaf order, the keys and so
+/// the images would change.
+#[test]
+fn ploc_on_leaves_makes_obvhs_own_tree_node_for_node() {
+    use obvhs::bvh2::reinsertion::ReinsertionOptimizer;
+    use obvhs::ploc::PlocBuilder;
+    for (n, seed) in [(1usize, 1u64), (2, 2), (37, 3), (4096, 4), (60_000, 5)] {
+        let tris: Vec<obvhs::triangle::Triangle> = scattered(n, seed)
+            .iter()
+            .map(|t| obvhs::triangle::Triangle {
+                v0: t.p[0].into(),
+                v1: t.p[1].into(),
+                v2: t.p[2].into(),
+            })
+            .collect();
+        let ours = build::triangles_bvh2(&tris, &mut BvhBuildStats::default());
+        let p = obvhs::BvhBuildParams::medium_build();
+        let mut theirs = PlocBuilder::with_capacity(n).build(
+            p.ploc_search_distance,
+            &tris,
+            (0..n as u32).collect(),
+            p.sort_precision,
+            p.search_depth_threshold,
+        );
+        ReinsertionOptimizer::default().run(&mut theirs, p.reinsertion_batch_ratio, None);
+        let bits = |b: &obvhs::bvh2::Bvh2| -> Vec<[u32; 8]> {
+            b.nodes
+                .iter()
+                .map(|node| {
+                    let (lo, hi) = (node.aabb().min, node.aabb().max);
+                    [
+                        lo.x.to_bits(),
+                        lo.y.to_bits(),
+                        lo.z.to_bits(),
+                        hi.x.to_bits(),
+                        hi.y.to_bits(),
+                        hi.z.to_bits(),
+                        node.prim_count,
+                        node.first_index,
+                    ]
+                })
+                .collect()
+        };
+        assert_eq!(bits(&ours), bits(&theirs), "{n} triangles: nodes");
+        assert_eq!(
+            ours.primitive_indices, theirs.primitive_indices,
+            "{n} triangles: leaf indices"
+        );
+    }
+}
+
+/// [`Geometry::build_instanced_of`] reads the triangles through a function instead of a
+/// `Vec`: the same records in the same leaf order as [`Geometry::build`], the same
+/// bounds, the same hits.
+#[test]
+fn triangles_read_through_a_function_build_the_same_geometry() {
+    let tris = scattered(3000, 11);
+    let spheres = vec![SphereRecord {
+        center: Vec3::new(2.0, 0.5, 0.5),
+        radius: 0.25,
+        material: 0,
+        light: NO_LIGHT,
+    }];
+    let a = Geometry::build(tris.clone(), spheres.clone());
+    let reads = std::sync::atomic::AtomicUsize::new(0);
+    let b = Geometry::build_instanced_of(
+        tris.len(),
+        |i| {
+            reads.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            tris[i]
+        },
+        spheres,
+        Vec::new(),
+        &[],
+    );
+    // Each record is read a bounded number of times (bounds, boxes, leaf order).
+    assert_eq!(reads.into_inner(), 3 * tris.len());
+    assert_eq!(a.triangles.len(), b.triangles.len());
+    for (x, y) in a.triangles.iter().zip(&b.triangles) {
+        assert_eq!((x.p, x.index), (y.p, y.index));
+    }
+    assert_eq!(a.bounds_center, b.bounds_center);
+    assert_eq!(a.bounds_radius.to_bits(), b.bounds_radius.to_bits());
+    assert_eq!(a.bytes(), b.bytes());
+    let mut s = 99u64;
+    for _ in 0..2000 {
+        let o = Vec3::new(lcg(&mut s), lcg(&mut s), -1.0);
+        let d = (Vec3::new(lcg(&mut s), lcg(&mut s), 1.0) - o).normalize();
+        let (ha, hb) = (
+            a.intersect(o, d, f32::INFINITY),
+            b.intersect(o, d, f32::INFINITY),
+        );
+        assert_eq!(
+            ha.map(|h| h.t.to_bits()),
+            hb.map(|h| h.t.to_bits()),
+            "{o} {d}"
+        );
+    }
+}
+
+/// [`build::cwbvh_order`] lists the primitives in the order of obvhs' CWBVH of the same
+/// binary tree (`to_cwbvh(..).primitive_indices`), which numbers the triangles: on
+/// ordinary trees of several sizes, a clustered one (coincident triangles beside
+/// scattered ones) and a tie-broken one (an evenly spaced row).
+#[test]
+fn the_compact_leaf_order_is_obvhs_cwbvh_order() {
+    let coincident = {
+        let mut t = scattered(3000, 21);
+        let p = [Vec3::ZERO, Vec3::X, Vec3::Y];
+        t.extend((0..500u32).map(|i| record(p, 3000 + i)));
+        t
+    };
+    let inputs = [
+        ("one", scattered(1, 1)),
+        ("two", scattered(2, 2)),
+        ("three", scattered(3, 3)),
+        ("a hundred", scattered(100, 4)),
+        ("scattered", scattered(20_000, 5)),
+        ("coincident", coincident),
+        ("an even row", even_row(TIE_MIN + 7)),
+    ];
+    for (name, tris) in inputs {
+        let tris: Vec<obvhs::triangle::Triangle> = tris
+            .iter()
+            .map(|t| obvhs::triangle::Triangle {
+                v0: t.p[0].into(),
+                v1: t.p[1].into(),
+                v2: t.p[2].into(),
+            })
+            .collect();
+        let mut stats = BvhBuildStats::default();
+        let bvh2 = build::triangles_bvh2(&tris, &mut stats);
+        let ours = build::cwbvh_order(&bvh2);
+        let theirs = build::to_cwbvh(&bvh2).primitive_indices;
+        assert_eq!(ours.len(), tris.len(), "{name}");
+        assert_eq!(ours, theirs, "{name}: {stats:?}");
+    }
+}

@@ -9,6 +9,7 @@ use super::wide::{Level, WideBvh};
 use super::{Hit, TriangleRecord, TRAVERSAL_SHIFT};
 use glam::{Vec3, Vec3A};
 use obvhs::aabb::Aabb;
+use obvhs::bvh2::node::Bvh2Node;
 use obvhs::cwbvh::CwBvh;
 use obvhs::ray::Ray;
 
@@ -96,33 +97,50 @@ pub(super) fn traversal_t(t: f32) -> f32 {
 
 /// The wide BVH over `triangles`, the triangles in obvhs' CWBVH leaf order (the order
 /// [`super::triangle_key`] has always numbered them by, so keys and images do not
-/// change), and their bounds. The binary tree is built once; the CWBVH is made only for
-/// its order and dropped.
+/// change), and their bounds. The binary tree is built once; of obvhs' CWBVH only its
+/// order is computed ([`build::cwbvh_order`]).
 pub(super) fn triangle_bvh(
     triangles: &[TriangleRecord],
     stats: &mut BvhBuildStats,
 ) -> (WideBvh, Vec<TriangleRecord>, Aabb) {
-    if triangles.is_empty() {
+    triangle_bvh_of(triangles.len(), &|i| triangles[i], stats)
+}
+
+/// [`triangle_bvh`] over the `count` triangles `record(0..count)`, read twice (once for
+/// the boxes, once in leaf order for the records kept) instead of from a slice: the
+/// caller needs no array of every triangle beside the one in leaf order, and the records
+/// are made only once the binary tree's temporaries are freed.
+pub(super) fn triangle_bvh_of(
+    count: usize,
+    record: &impl Fn(usize) -> TriangleRecord,
+    stats: &mut BvhBuildStats,
+) -> (WideBvh, Vec<TriangleRecord>, Aabb) {
+    if count == 0 {
         return (WideBvh::default(), Vec::new(), Aabb::empty());
     }
-    let tris: Vec<obvhs::triangle::Triangle> = triangles
-        .iter()
-        .map(|t| obvhs::triangle::Triangle {
-            v0: t.p[0].into(),
-            v1: t.p[1].into(),
-            v2: t.p[2].into(),
+    // The boxes obvhs' triangle builder would compute (`Triangle::aabb`), as PLOC leaves.
+    let leaves: Vec<Bvh2Node> = (0..count)
+        .map(|i| {
+            let p = record(i).p;
+            let t = obvhs::triangle::Triangle {
+                v0: p[0].into(),
+                v1: p[1].into(),
+                v2: p[2].into(),
+            };
+            Bvh2Node::new(t.aabb(), 1, i as u32)
         })
         .collect();
-    let bvh2 = build::triangles_bvh2(&tris, stats);
-    drop(tris);
-    let order = build::to_cwbvh(&bvh2).primitive_indices;
-    let mut position = vec![0u32; triangles.len()];
+    let bvh2 = build::leaves_bvh2(leaves, stats);
+    let order = build::cwbvh_order(&bvh2);
+    let mut position = vec![0u32; count];
     for (k, &i) in order.iter().enumerate() {
         position[i as usize] = k as u32;
     }
-    let ordered = order.iter().map(|&i| triangles[i as usize]).collect();
     let bounds = *bvh2.nodes[0].aabb();
-    (WideBvh::collapse(&bvh2, &position), ordered, bounds)
+    let wide = WideBvh::collapse(&bvh2, &position);
+    drop((bvh2, position));
+    let ordered = order.iter().map(|&i| record(i as usize)).collect();
+    (wide, ordered, bounds)
 }
 
 /// Bytes of a BVH's nodes and leaf index array.

@@ -25,38 +25,59 @@ impl RenderScene {
         }
         let split = MotionSplit::new(scene, keys, width, height);
         let mut lights: Vec<Light> = Vec::new();
-        let mut triangles = Vec::with_capacity(scene.triangle_count());
+        // The world-space triangles are not gathered into an array here: the geometry
+        // reads each one from the scene by its index in mesh order (twice: for the BVH's
+        // boxes, then in leaf order for the records it keeps), so a large scene is held
+        // once as its meshes and once as the geometry, never also as an array of records
+        // in scene order (see "Memory" in `geometry::build`). What a record needs beyond
+        // the mesh is its light, numbered here in the same order as always.
+        let mut starts: Vec<(usize, u32)> = Vec::new();
+        let mut count = 0usize;
+        let mut mesh_lights: Vec<Option<Vec<u32>>> = vec![None; scene.meshes.len()];
         for (mi, mesh) in scene.meshes.iter().enumerate() {
-            if split.moving_meshes[mi] {
+            if split.moving_meshes[mi] || mesh.indices.is_empty() {
                 continue;
             }
+            starts.push((count, mi as u32));
+            count += mesh.indices.len();
             let mat = &scene.materials[mesh.material as usize];
+            if !mat.is_emissive() {
+                continue;
+            }
             let varies = mat.emissive_texture().is_some() || mat.has_alpha();
+            let mut per_triangle = Vec::with_capacity(mesh.indices.len());
             for (ti, idx) in mesh.indices.iter().enumerate() {
                 let p = idx.map(|i| mesh.positions[i as usize]);
                 let mut light = NO_LIGHT;
-                if mat.is_emissive() {
-                    if let Some(mut l) = TriangleLight::new(p, mat.emission, mat.double_sided) {
-                        if varies {
-                            // Light selection by power: the texture's mean over the
-                            // triangle (selection only shapes variance; the emitted
-                            // radiance is evaluated exactly where a point is sampled).
-                            l.power_scale = mean_emission_scale(scene, mat, mesh, idx);
-                            l.shading = Some((mi as u32, ti as u32));
-                        }
-                        light = lights.len() as u32;
-                        lights.push(Light::Triangle(l));
+                if let Some(mut l) = TriangleLight::new(p, mat.emission, mat.double_sided) {
+                    if varies {
+                        // Light selection by power: the texture's mean over the
+                        // triangle (selection only shapes variance; the emitted
+                        // radiance is evaluated exactly where a point is sampled).
+                        l.power_scale = mean_emission_scale(scene, mat, mesh, idx);
+                        l.shading = Some((mi as u32, ti as u32));
                     }
+                    light = lights.len() as u32;
+                    lights.push(Light::Triangle(l));
                 }
-                triangles.push(TriangleRecord {
-                    p,
-                    mesh: mi as u32,
-                    index: ti as u32,
-                    material: mesh.material,
-                    light,
-                });
+                per_triangle.push(light);
             }
+            mesh_lights[mi] = Some(per_triangle);
         }
+        let record = |i: usize| {
+            let (start, mi) = starts[starts.partition_point(|&(s, _)| s <= i) - 1];
+            let mesh = &scene.meshes[mi as usize];
+            let ti = i - start;
+            TriangleRecord {
+                p: mesh.indices[ti].map(|v| mesh.positions[v as usize]),
+                mesh: mi,
+                index: ti as u32,
+                material: mesh.material,
+                light: mesh_lights[mi as usize]
+                    .as_ref()
+                    .map_or(NO_LIGHT, |l| l[ti]),
+            }
+        };
         let mut spheres = Vec::with_capacity(scene.spheres.len());
         for s in &scene.spheres {
             let mat = &scene.materials[s.material as usize];
@@ -102,7 +123,8 @@ impl RenderScene {
             .filter(|(_, &moving)| !moving)
             .map(|(i, _)| (i.prototype, i.world_from_object))
             .collect();
-        let mut geometry = Geometry::build_instanced(triangles, spheres, prototypes, &instances);
+        let mut geometry =
+            Geometry::build_instanced_of(count, record, spheres, prototypes, &instances);
         let MotionSplit {
             triangles: moving,
             camera: camera_keys,

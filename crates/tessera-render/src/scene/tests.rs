@@ -165,3 +165,56 @@ fn bent_normals_face_every_view() {
     }
     assert!(bent > 1000, "{bent}");
 }
+
+/// The render scene reads its world-space triangles from the meshes by index (no array
+/// of records in scene order): every record names its mesh and triangle, with that
+/// triangle's vertices, across empty and emissive meshes, and the triangle lights are
+/// numbered in mesh order, one per emitting triangle, each with its record's vertices.
+#[test]
+fn triangle_records_and_lights_follow_the_meshes() {
+    let mut scene = tessera_scene::builtin::cornell_box();
+    let mut empty = scene.meshes[0].clone();
+    empty.indices.clear();
+    scene.meshes.insert(1, empty.clone());
+    scene.meshes.push(empty);
+    let rs = RenderScene::build(&scene, 16, 16).unwrap();
+    let g = &rs.geometry;
+    assert_eq!(g.triangles.len(), scene.stored_triangle_count());
+    let mut seen = std::collections::HashSet::new();
+    let mut lit = 0;
+    for r in &g.triangles {
+        let mesh = &scene.meshes[r.mesh as usize];
+        let idx = mesh.indices[r.index as usize];
+        assert_eq!(r.p, idx.map(|v| mesh.positions[v as usize]));
+        assert_eq!(r.material, mesh.material);
+        assert!(
+            seen.insert((r.mesh, r.index)),
+            "{} {} twice",
+            r.mesh,
+            r.index
+        );
+        if r.light != NO_LIGHT {
+            lit += 1;
+            match &rs.lights.lights[r.light as usize] {
+                Light::Triangle(l) => assert_eq!(l.p, r.p),
+                _ => panic!("record {} {} names a non-triangle light", r.mesh, r.index),
+            }
+        }
+    }
+    let triangle_lights = rs
+        .lights
+        .lights
+        .iter()
+        .filter(|l| matches!(l, Light::Triangle(_)))
+        .count();
+    assert!(triangle_lights > 0);
+    assert_eq!(lit, triangle_lights);
+    // Numbered in mesh order: the lights' vertices in order are the emitting records'
+    // in (mesh, triangle) order.
+    let mut emitting: Vec<&TriangleRecord> =
+        g.triangles.iter().filter(|r| r.light != NO_LIGHT).collect();
+    emitting.sort_by_key(|r| (r.mesh, r.index));
+    for (k, r) in emitting.iter().enumerate() {
+        assert_eq!(r.light as usize, k);
+    }
+}
