@@ -168,8 +168,19 @@ impl WideBvh {
                 stack.push((n.first_index as usize + 1, false));
             }
         }
+        // Every wide node but the root stands for a distinct binary interior node with more
+        // than a leaf's triangles under it, so their count bounds the nodes. Reserving it
+        // up front keeps the array from doubling (two copies at once at the build's memory
+        // peak); pages never written are never resident, and the shrink at the end returns
+        // the rest.
+        let bound = 1
+            + (0..bn.len())
+                .filter(|&i| !bn[i].is_leaf() && under[i] > LEAF_MAX)
+                .count();
+        let mut nodes = Vec::with_capacity(bound);
+        nodes.push(WideNode::EMPTY);
         let mut out = WideBvh {
-            nodes: vec![WideNode::EMPTY],
+            nodes,
             prims: Vec::with_capacity(position.len()),
             stack_need: 0,
         };
@@ -250,6 +261,7 @@ impl WideBvh {
             need[i] = inner.len().max(inner.len().saturating_sub(1) + below);
         }
         out.stack_need = need[0] + 1;
+        out.nodes.shrink_to_fit();
         out
     }
 
