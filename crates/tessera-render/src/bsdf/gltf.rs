@@ -96,6 +96,10 @@ pub struct GltfParams {
     pub sheen_color: Vec3,
     /// Perceptual sheen roughness, default 0.
     pub sheen_roughness: f32,
+    /// Gain of the Lambertian base, default 1: `2 / (1 + ns·ng)` under a normal map, which
+    /// returns the part of its cosine lobe about the shading normal that falls below the
+    /// geometric surface (docs/rendering.md, "Normal maps at grazing angles").
+    pub diffuse_gain: f32,
 }
 
 impl Default for GltfParams {
@@ -114,6 +118,7 @@ impl Default for GltfParams {
             clearcoat_roughness: 0.0,
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
+            diffuse_gain: 1.0,
         }
     }
 }
@@ -137,7 +142,9 @@ pub fn gltf_bsdf_at(p: &GltfParams, wo_z: f32) -> Bsdf {
     if !layered {
         let no_spec = g.f0 == Vec3::ZERO && g.f90 == 0.0;
         if g.metal == 0.0 && g.transmit == 0.0 && no_spec {
-            return Bsdf::single(Lobe::Diffuse(Diffuse { albedo: g.base }));
+            return Bsdf::single(Lobe::Diffuse(Diffuse {
+                albedo: g.base * g.diffuse_gain,
+            }));
         }
         if g.transmit == 1.0 && g.smooth {
             return Bsdf::single(Lobe::Glass(g.glass()));
@@ -164,6 +171,8 @@ const COAT_F0: f32 = 0.04;
 #[derive(Clone, Copy, Debug)]
 pub struct GltfLobe {
     base: Vec3,
+    /// [`GltfParams::diffuse_gain`] (one without a normal map).
+    diffuse_gain: f32,
     /// GGX alpha of the metal, specular and transmission, at least [`MIN_ALPHA`].
     alpha: f32,
     /// Weights of the metal, the opaque dielectric and the transmissive dielectric.
@@ -282,6 +291,7 @@ impl GltfLobe {
         let sheen_r = sheen.alpha.sqrt();
         let mut lobe = GltfLobe {
             base,
+            diffuse_gain: p.diffuse_gain.max(0.0),
             alpha,
             metal,
             opaque,
@@ -459,7 +469,7 @@ impl GltfLobe {
             let eo = Vec3::ONE - self.spec_albedo_wo(wo);
             let ei = Vec3::ONE - self.spec_albedo(wi.z);
             let scale = (eo * ei / self.one_minus_e_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
-            let diffuse = self.base * scale * (FRAC_1_PI * wi.z);
+            let diffuse = self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
             f += self.opaque * (spec + diffuse);
         }
         f
@@ -483,7 +493,7 @@ impl GltfLobe {
             let eo = (Vec3::ONE - self.spec_albedo_wo(wo)) * self.layers_scale(wo.z);
             let ei = (Vec3::ONE - self.spec_albedo(wi.z)) * self.layers_scale(wi.z);
             let scale = (eo * ei / self.layered_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
-            diffuse = self.opaque * self.base * scale * (FRAC_1_PI * wi.z);
+            diffuse = self.opaque * self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
         }
         (sharp, diffuse)
     }
@@ -543,7 +553,10 @@ impl GltfLobe {
         if self.opaque > 0.0 {
             let e = spec_albedo;
             w[SPEC] = under * self.opaque * e.max_element();
-            w[DIFFUSE] += under * self.opaque * (self.base * (Vec3::ONE - e)).max_element();
+            w[DIFFUSE] += under
+                * self.opaque
+                * (self.base * (Vec3::ONE - e)).max_element()
+                * self.diffuse_gain;
         }
         w[GLASS] = under * self.transmit;
         let total: f32 = w.iter().sum();
