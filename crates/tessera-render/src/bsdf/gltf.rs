@@ -98,7 +98,7 @@ pub struct GltfParams {
     pub sheen_roughness: f32,
     /// Gain of the Lambertian base, default 1: `2 / (1 + ns·ng)` under a normal map, which
     /// returns the part of its cosine lobe about the shading normal that falls below the
-    /// geometric surface (docs/rendering.md, "Normal maps at grazing angles").
+    /// geometric surface (docs/rendering.md, "Normal maps and energy").
     pub diffuse_gain: f32,
 }
 

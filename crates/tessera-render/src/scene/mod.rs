@@ -841,7 +841,7 @@ fn normal_mapped(n: Vec3, ng: Vec3, tangent: Vec3, sign: f32, texel: Vec4, scale
 /// tilted plane is `(1 + cos θ) / 2`), whatever the view. The gain returns exactly that,
 /// so a white normal-mapped Lambertian surface keeps all the light in a white furnace (it
 /// kept 95.5% with a strong map); it depends on the shading point alone, so the lobe stays
-/// reciprocal (docs/rendering.md, "Normal maps at grazing angles", has the measurements).
+/// reciprocal (docs/rendering.md, "Normal maps and energy", has the measurements).
 #[inline]
 pub(crate) fn normal_map_diffuse_gain(ns: Vec3, ng: Vec3) -> f32 {
     2.0 / (1.0 + ns.dot(ng).abs().min(1.0))

@@ -235,7 +235,7 @@ fn normal_mapped_lambertian_white_furnace() {
             let mut rims = [(0.0f64, 0); 2];
             for tilt in [20.0f32, 35.0, 50.0] {
                 for k in 0..6 {
-                    let n = dir(tilt, k as f32 * 1.047 + 0.3);
+                    let n = dir(tilt, k as f32 * 1.05 + 0.3);
                     for j in 0..8 {
                         let mu = ((j as f32 + 0.5) / 8.0).sqrt();
                         let v = dir(mu.acos().to_degrees(), j as f32 * 0.9);
