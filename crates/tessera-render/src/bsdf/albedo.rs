@@ -7,6 +7,7 @@
 //! | [`ggx_albedo`] | `E(μ, α) = f0 A(μ, α) + f90 B(μ, α)`: the GGX reflection albedo with Schlick's Fresnel `f0 + (f90 - f0)(1 - wo·h)^5` (linear in `f0` and `f90`, so two tables serve every colour) |
 //! | [`ggx_albedo_average`] | `E_avg(α) = 2 ∫ E(μ) μ dμ`, the cosine-weighted hemispherical average, as `(A_avg, B_avg)` |
 //! | [`sheen_albedo`] | `E(μ, r)` of the Charlie sheen lobe of KHR_materials_sheen as published, sheen colour 1 |
+//! | [`sheen_layer_albedo`] | `E'(μ, r)` of the sheen lobe Tessera renders ([`super::sheen::Sheen::eval`], the published lobe divided by `max(1, E(μo), E(μi))`), sheen colour 1: what the sheen layer reflects, hence what it withholds from the base |
 //! | [`dielectric_albedo`] | `E(μ, α, η)`: the reflected plus transmitted power of the single-scattering rough dielectric, for `η` in `[1, 3]` and `1/η` (`dielectric_albedo.bin`), with its average [`dielectric_albedo_average`], for the multiple-scattering compensation of [`super::dielectric`] |
 //!
 //! The tables are computed by fixed quadrature and committed (`albedo_tables.bin` and
@@ -165,6 +166,19 @@ fn ggx_albedo_quadrature(mu: f32, alpha: f32) -> (f32, f32) {
 /// plane of incidence).
 #[cfg(test)]
 fn sheen_albedo_quadrature(mu: f32, r: f32) -> f32 {
+    sheen_quadrature(mu, r, sheen::Sheen::eval_raw)
+}
+
+/// `E'` of the rendered sheen lobe ([`sheen::Sheen::eval`], normalised by the committed
+/// `E` table) at one `(μ, r)`, by the quadrature of [`sheen_albedo_quadrature`].
+#[cfg(test)]
+fn sheen_layer_albedo_quadrature(mu: f32, r: f32) -> f32 {
+    sheen_quadrature(mu, r, sheen::Sheen::eval)
+}
+
+/// `∫ f cos dω` of the sheen lobe `eval` (colour 1) at one `(μ, r)`.
+#[cfg(test)]
+fn sheen_quadrature(mu: f32, r: f32, eval: fn(&sheen::Sheen, Vec3, Vec3) -> Vec3) -> f32 {
     const N_T: usize = 96;
     const N_PHI: usize = 48;
     let mu = mu.max(MU_MIN);
@@ -178,7 +192,7 @@ fn sheen_albedo_quadrature(mu: f32, r: f32) -> f32 {
         for j in 0..N_PHI {
             let phi = std::f32::consts::PI * (j as f32 + 0.5) / N_PHI as f32;
             let wi = Vec3::new(sin_i * phi.cos(), sin_i * phi.sin(), mu_i);
-            sum += (lobe.eval_raw(wo, wi).x * 2.0 * t) as f64;
+            sum += (eval(&lobe, wo, wi).x * 2.0 * t) as f64;
         }
     }
     // dt dφ = (1 / N_T)(π / N_PHI), times 2 for the other half of the circle.
@@ -192,9 +206,12 @@ struct GgxTables {
     b_avg: [f32; N_R],
 }
 
-/// The committed tables: `A`, `B` and the sheen `E`, each `N_MU` rows of `N_R` values,
-/// little-endian binary32 (written by `write_albedo_tables`).
-static COMMITTED: &[u8; 3 * TABLE_BYTES] = include_bytes!("albedo_tables.bin");
+/// The committed tables: `A`, `B`, the sheen `E` and the rendered sheen's `E'`, each
+/// `N_MU` rows of `N_R` values, little-endian binary32 (written by `write_albedo_tables`).
+static COMMITTED: &[u8; N_TABLES * TABLE_BYTES] = include_bytes!("albedo_tables.bin");
+
+/// Tables in `albedo_tables.bin`.
+const N_TABLES: usize = 4;
 
 /// Bytes of one table in `albedo_tables.bin`.
 const TABLE_BYTES: usize = 4 * N_MU * N_R;
@@ -202,7 +219,7 @@ const TABLE_BYTES: usize = 4 * N_MU * N_R;
 /// The values of a table, row by row.
 type Values = [[f32; N_R]; N_MU];
 
-/// Table `k` (0: A, 1: B, 2: sheen) of the committed file.
+/// Table `k` (0: A, 1: B, 2: sheen `E`, 3: sheen `E'`) of the committed file.
 fn committed(k: usize) -> Values {
     let bytes = &COMMITTED[k * TABLE_BYTES..(k + 1) * TABLE_BYTES];
     let mut v = [[0.0; N_R]; N_MU];
@@ -236,13 +253,13 @@ fn ggx_quadrature_tables() -> (Values, Values) {
     (a, b)
 }
 
-/// The sheen table by quadrature, rows in parallel.
+/// The sheen table of `albedo` (a quadrature at one `(μ, r)`), rows in parallel.
 #[cfg(test)]
-fn sheen_quadrature_table() -> Values {
+fn sheen_quadrature_table(albedo: fn(f32, f32) -> f32) -> Values {
     let r_min = sheen::MIN_SHEEN_ROUGHNESS;
     let rows: Vec<[f32; N_R]> = (0..N_MU)
         .into_par_iter()
-        .map(|i| std::array::from_fn(|j| sheen_albedo_quadrature(mu_node(i), r_node(r_min, j))))
+        .map(|i| std::array::from_fn(|j| albedo(mu_node(i), r_node(r_min, j))))
         .collect();
     let mut v = [[0.0; N_R]; N_MU];
     for (i, row) in rows.into_iter().enumerate() {
@@ -277,6 +294,14 @@ fn sheen_table() -> &'static Table {
     })
 }
 
+fn sheen_layer_table() -> &'static Table {
+    static TABLE: OnceLock<Table> = OnceLock::new();
+    TABLE.get_or_init(|| Table {
+        v: committed(3),
+        r_min: sheen::MIN_SHEEN_ROUGHNESS,
+    })
+}
+
 /// `(A, B)` with `E = f0 A + f90 B` the albedo of GGX reflection with Schlick's Fresnel at
 /// `μ = cos θo` and GGX `alpha`.
 #[inline]
@@ -304,6 +329,16 @@ pub fn ggx_albedo_average(alpha: f32) -> (f32, f32) {
 #[inline]
 pub fn sheen_albedo(mu: f32, r: f32) -> f32 {
     sheen_table().lookup(mu, r)
+}
+
+/// The albedo of the sheen lobe as rendered ([`super::sheen::Sheen::eval`], colour 1,
+/// perceptual roughness `r`) at `μ = cos θo`, at most one. Below [`sheen_albedo`] wherever
+/// the normalisation acts (smooth sheens, toward grazing `μo` or `μi`): the layering must
+/// scale the base by what this lobe withholds, not by what the published one would (at
+/// roughness 0.1 that lost 7% of a white furnace).
+#[inline]
+pub fn sheen_layer_albedo(mu: f32, r: f32) -> f32 {
+    sheen_layer_table().lookup(mu, r)
 }
 
 // ---------------------------------------------------------------------------------------
@@ -498,13 +533,24 @@ pub(crate) fn sheen_albedo_reference(mu: f32, r: f32) -> f32 {
 }
 
 #[cfg(test)]
+pub(crate) fn sheen_layer_albedo_reference(mu: f32, r: f32) -> f32 {
+    sheen_layer_albedo_quadrature(mu, r)
+}
+
+#[cfg(test)]
 mod committed_tests {
     use super::*;
 
-    /// The three tables by quadrature, in the committed file's order.
-    fn computed() -> [Values; 3] {
+    /// The tables by quadrature, in the committed file's order (`E'` is normalised by the
+    /// committed `E`, as the renderer's sheen lobe is).
+    fn computed() -> [Values; N_TABLES] {
         let (a, b) = ggx_quadrature_tables();
-        [a, b, sheen_quadrature_table()]
+        [
+            a,
+            b,
+            sheen_quadrature_table(sheen_albedo_quadrature),
+            sheen_quadrature_table(sheen_layer_albedo_quadrature),
+        ]
     }
 
     /// The committed rough dielectric table is what the quadrature gives, within rounding.
@@ -548,7 +594,7 @@ mod committed_tests {
     #[test]
     #[ignore = "writes src/bsdf/*.bin; run by hand after changing the quadrature"]
     fn write_albedo_tables() {
-        let mut bytes = Vec::with_capacity(3 * TABLE_BYTES);
+        let mut bytes = Vec::with_capacity(N_TABLES * TABLE_BYTES);
         for table in computed() {
             for v in table.as_flattened() {
                 bytes.extend_from_slice(&v.to_le_bytes());

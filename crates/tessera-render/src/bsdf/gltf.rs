@@ -21,7 +21,10 @@
 //! | `f_sheen` | Charlie sheen ([`super::sheen::Sheen`]), `g_sh = min(1 - max(sheen_color) E_sh(μo), same at μi)` |
 //! | `f_cc` | GGX reflection, `f0 = 0.04` (ior 1.5), `f90 = 1`, own roughness, `g_cc = min(1 - clearcoat E_cc(μo), same at μi)` |
 //!
-//! `E` are the layers' directional albedos ([`super::albedo`]).
+//! `E` are the layers' directional albedos ([`super::albedo`]); the sheen's is that of the
+//! lobe as rendered ([`super::albedo::sheen_layer_albedo`]), which the normalisation of
+//! [`super::sheen::Sheen::eval`] puts below the published lobe's, so that the base gets
+//! what the sheen does not reflect.
 //!
 //! # Energy and reciprocity
 //! The Lambertian base under the specular layer gets exactly the energy the layer does
@@ -44,6 +47,10 @@
 //! that the layers and the specular layer do not reflect (`bsdf::tests` has a white
 //! furnace per layer). For transmission, only the outside direction meets
 //! the layers: the factor is `1 - E(μ_outside)` (reciprocal in the generalised sense).
+//! Light leaving a smooth interface from inside is reflected back inside by the layers in
+//! the part they do not let out (`GltfLobe::sample_smooth_exit`), so that a coated glass
+//! keeps its energy; a rough interface still loses that part (returning it would need
+//! the inside's exit distribution tabulated per coat and interface roughness).
 //!
 //! # Sides
 //! Without transmission the material is opaque and two-sided (the mixture mirrors the
@@ -51,7 +58,7 @@
 //! inside the interface is seen with `1/η` (total internal reflection included) and the
 //! opaque parts (metal, specular, diffuse) are two-sided as before.
 
-use super::albedo::{ggx_albedo, ggx_albedo_average, sheen_albedo};
+use super::albedo::{ggx_albedo, ggx_albedo_average, sheen_layer_albedo};
 use super::dielectric::RoughDielectric;
 use super::diffuse::Diffuse;
 use super::microfacet::{g2, half_vector, vndf_reflection_pdf, Conductor, MIN_ALPHA};
@@ -89,6 +96,10 @@ pub struct GltfParams {
     pub sheen_color: Vec3,
     /// Perceptual sheen roughness, default 0.
     pub sheen_roughness: f32,
+    /// Gain of the Lambertian base, default 1: `2 / (1 + ns·ng)` under a normal map, which
+    /// returns the part of its cosine lobe about the shading normal that falls below the
+    /// geometric surface (docs/rendering.md, "Normal maps and energy").
+    pub diffuse_gain: f32,
 }
 
 impl Default for GltfParams {
@@ -107,6 +118,7 @@ impl Default for GltfParams {
             clearcoat_roughness: 0.0,
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
+            diffuse_gain: 1.0,
         }
     }
 }
@@ -130,7 +142,9 @@ pub fn gltf_bsdf_at(p: &GltfParams, wo_z: f32) -> Bsdf {
     if !layered {
         let no_spec = g.f0 == Vec3::ZERO && g.f90 == 0.0;
         if g.metal == 0.0 && g.transmit == 0.0 && no_spec {
-            return Bsdf::single(Lobe::Diffuse(Diffuse { albedo: g.base }));
+            return Bsdf::single(Lobe::Diffuse(Diffuse {
+                albedo: g.base * g.diffuse_gain,
+            }));
         }
         if g.transmit == 1.0 && g.smooth {
             return Bsdf::single(Lobe::Glass(g.glass()));
@@ -157,6 +171,8 @@ const COAT_F0: f32 = 0.04;
 #[derive(Clone, Copy, Debug)]
 pub struct GltfLobe {
     base: Vec3,
+    /// [`GltfParams::diffuse_gain`] (one without a normal map).
+    diffuse_gain: f32,
     /// GGX alpha of the metal, specular and transmission, at least [`MIN_ALPHA`].
     alpha: f32,
     /// Weights of the metal, the opaque dielectric and the transmissive dielectric.
@@ -275,6 +291,7 @@ impl GltfLobe {
         let sheen_r = sheen.alpha.sqrt();
         let mut lobe = GltfLobe {
             base,
+            diffuse_gain: p.diffuse_gain.max(0.0),
             alpha,
             metal,
             opaque,
@@ -428,13 +445,14 @@ impl GltfLobe {
         (1.0 - self.clearcoat * (COAT_F0 * a + b)).max(0.0)
     }
 
-    /// `1 - max(sheen_color) E_sheen(μ)`.
+    /// `1 - max(sheen_color) E_sheen(μ)`, `E_sheen` the albedo of the sheen lobe as rendered
+    /// (normalised, [`sheen_layer_albedo`]).
     #[inline]
     fn sheen_scale(&self, mu: f32) -> f32 {
         if self.sheen_max == 0.0 {
             return 1.0;
         }
-        (1.0 - self.sheen_max * sheen_albedo(mu, self.sheen_r).min(1.0)).max(0.0)
+        (1.0 - self.sheen_max * sheen_layer_albedo(mu, self.sheen_r).min(1.0)).max(0.0)
     }
 
     /// Metal, specular layer and diffuse base, `wo` and `wi` in the upper hemisphere.
@@ -451,7 +469,7 @@ impl GltfLobe {
             let eo = Vec3::ONE - self.spec_albedo_wo(wo);
             let ei = Vec3::ONE - self.spec_albedo(wi.z);
             let scale = (eo * ei / self.one_minus_e_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
-            let diffuse = self.base * scale * (FRAC_1_PI * wi.z);
+            let diffuse = self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
             f += self.opaque * (spec + diffuse);
         }
         f
@@ -475,7 +493,7 @@ impl GltfLobe {
             let eo = (Vec3::ONE - self.spec_albedo_wo(wo)) * self.layers_scale(wo.z);
             let ei = (Vec3::ONE - self.spec_albedo(wi.z)) * self.layers_scale(wi.z);
             let scale = (eo * ei / self.layered_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
-            diffuse = self.opaque * self.base * scale * (FRAC_1_PI * wi.z);
+            diffuse = self.opaque * self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
         }
         (sharp, diffuse)
     }
@@ -520,7 +538,7 @@ impl GltfLobe {
                 under = self.coat_scale(mu);
             }
             if self.sheen_max > 0.0 {
-                w[SHEEN] = under * self.sheen_max * sheen_albedo(mu, self.sheen_r).min(1.0);
+                w[SHEEN] = under * self.sheen_max * sheen_layer_albedo(mu, self.sheen_r).min(1.0);
                 under *= self.sheen_scale(mu);
             }
         }
@@ -535,7 +553,10 @@ impl GltfLobe {
         if self.opaque > 0.0 {
             let e = spec_albedo;
             w[SPEC] = under * self.opaque * e.max_element();
-            w[DIFFUSE] += under * self.opaque * (self.base * (Vec3::ONE - e)).max_element();
+            w[DIFFUSE] += under
+                * self.opaque
+                * (self.base * (Vec3::ONE - e)).max_element()
+                * self.diffuse_gain;
         }
         w[GLASS] = under * self.transmit;
         let total: f32 = w.iter().sum();
@@ -621,6 +642,47 @@ impl GltfLobe {
         p
     }
 
+    /// The smooth interface under a clearcoat or a sheen, met from inside (`wo.z < 0`),
+    /// chosen with probability `w_glass`. Light refracted outward crosses the layers with
+    /// `T(μt) = coat_scale(μt) sheen_scale(μt)` (`μt` the outside cosine), as light entering
+    /// does, so that the transmission stays reciprocal; the rest, `(1 - F)(1 - T)`, is what
+    /// the layers reflect back, and returns inside along the interface's mirror direction
+    /// (a smooth coat over a smooth interface reflects specularly; a rough one's spread is
+    /// neglected). Without it a coated glass sphere lost `1 - T` at every exit: 18% of a
+    /// white furnace. Reflection `F + (1 - F)(1 - T)`, refraction `(1 - F) T`: one in all.
+    fn sample_smooth_exit(&self, wo: Vec3, u1: f32, w_glass: f32) -> Option<BsdfSample> {
+        let glass = self.glass();
+        let f = super::fresnel_dielectric(wo.z, glass.eta);
+        let mirror = Vec3::new(-wo.x, -wo.y, wo.z);
+        // The refracted direction's outside cosine (none under total internal reflection).
+        let inv = glass.eta;
+        let sin2_t = (1.0 - wo.z * wo.z).max(0.0) * inv * inv;
+        let (p_reflect, refracted) = if f >= 1.0 || sin2_t >= 1.0 {
+            (1.0, None)
+        } else {
+            let cos_t = (1.0 - sin2_t).sqrt();
+            let t = self.coat_scale(cos_t) * self.sheen_scale(cos_t);
+            let wi = Vec3::new(-wo.x * inv, -wo.y * inv, cos_t);
+            (1.0 - (1.0 - f) * t, Some(wi))
+        };
+        let scale = self.transmit / w_glass;
+        match refracted {
+            Some(wi) if u1 >= p_reflect => Some(BsdfSample {
+                // Radiance leaving the denser side: `(η_i/η_t)² = η²`, as `Glass::sample`.
+                wi,
+                weight: glass.tint * (inv * inv) * scale,
+                pdf: w_glass * (1.0 - p_reflect),
+                delta: true,
+            }),
+            _ => Some(BsdfSample {
+                wi: mirror,
+                weight: Vec3::splat(scale),
+                pdf: w_glass * p_reflect,
+                delta: true,
+            }),
+        }
+    }
+
     /// Samples a component by `u1` (rescaled and reused by the component), then its
     /// direction by `u2`.
     #[inline]
@@ -643,6 +705,9 @@ impl GltfLobe {
         let flip = wo.z < 0.0;
         let wo_up = flip_z(wo, flip);
         let wi = match k {
+            GLASS if self.smooth && wo.z < 0.0 && self.layered() => {
+                return self.sample_smooth_exit(wo, u1, w[GLASS]);
+            }
             GLASS if self.smooth => {
                 let (wi, weight, p) = self.glass().sample(wo, u1)?;
                 // The layers on the outside scale the interface: reflection at wo's

@@ -217,4 +217,107 @@ fn triangle_records_and_lights_follow_the_meshes() {
     for (k, r) in emitting.iter().enumerate() {
         assert_eq!(r.light as usize, k);
     }
+
+/// The scattered fraction of a white furnace seen along `v` by the glTF material `p` at a
+/// point of geometric normal `+Z` and normal-mapped shading normal `n`, as the integrators
+/// see it: the normal bent for the view, directions below the geometric surface rejected.
+/// With `compensate`, the Lambertian base has [`normal_map_diffuse_gain`].
+fn normal_mapped_albedo(
+    p: GltfParams,
+    n: Vec3,
+    v: Vec3,
+    compensate: bool,
+    rng: &mut crate::chi2::SplitMix64,
+) -> f64 {
+    let ng = Vec3::Z;
+    let ns = view_facing_normal(ng, v, n);
+    let p = GltfParams {
+        diffuse_gain: if compensate {
+            normal_map_diffuse_gain(ns, ng)
+        } else {
+            1.0
+        },
+        ..p
+    };
+    let bsdf = crate::bsdf::gltf::gltf_bsdf_at(&p, v.dot(ns));
+    let frame = crate::sampling::warp::Frame::from_normal(ns);
+    let wo = frame.to_local(v);
+    let n_samples = 20_000;
+    let mut sum = 0.0f64;
+    for _ in 0..n_samples {
+        let u = Vec2::new(rng.next_f32(), rng.next_f32());
+        if let Some(s) = bsdf.sample(wo, rng.next_f32(), u) {
+            if frame.to_world(s.wi).dot(ng).signum() == s.wi.z.signum() {
+                sum += s.weight.x as f64;
+            }
+        }
+    }
+    sum / n_samples as f64
+}
+
+/// A white Lambertian surface under a strong normal map (shading normals tilted 20° to
+/// 50° from the geometric one, every azimuth) keeps all the light in a white furnace,
+/// within 1% on average over the views (cosine-weighted, as a plane seen from everywhere)
+/// and 3% at grazing views (85° and 89°). Without the gain it keeps `(1 + cos θ) / 2`
+/// whatever the view: 90.7% on average over these tilts.
+#[test]
+fn normal_mapped_lambertian_white_furnace() {
+    let mut rng = crate::chi2::SplitMix64::new(0x4e44);
+    let lambert = GltfParams {
+        metallic: 0.0,
+        specular: 0.0,
+        ..GltfParams::default()
+    };
+    let plastic = GltfParams {
+        metallic: 0.0,
+        roughness: 0.5,
+        ..GltfParams::default()
+    };
+    let dir = |theta: f32, phi: f32| {
+        let (s, c) = theta.to_radians().sin_cos();
+        Vec3::new(s * phi.cos(), s * phi.sin(), c)
+    };
+    let mut failures = Vec::new();
+    for (name, p, check) in [
+        ("lambertian", lambert, true),
+        ("plastic r 0.5", plastic, false),
+    ] {
+        for compensate in [false, true] {
+            let (mut avg, mut count) = (0.0, 0);
+            let mut rims = [(0.0f64, 0); 2];
+            for tilt in [20.0f32, 35.0, 50.0] {
+                for k in 0..6 {
+                    let n = dir(tilt, k as f32 * 1.05 + 0.3);
+                    for j in 0..8 {
+                        let mu = ((j as f32 + 0.5) / 8.0).sqrt();
+                        let v = dir(mu.acos().to_degrees(), j as f32 * 0.9);
+                        avg += normal_mapped_albedo(p, n, v, compensate, &mut rng);
+                        count += 1;
+                    }
+                    for (r, theta) in [85.0, 89.0].into_iter().enumerate() {
+                        let v = dir(theta, k as f32 * 0.7 + 1.1);
+                        rims[r].0 += normal_mapped_albedo(p, n, v, compensate, &mut rng);
+                        rims[r].1 += 1;
+                    }
+                }
+            }
+            let avg = avg / count as f64;
+            let rims = rims.map(|(s, c)| s / c as f64);
+            eprintln!(
+                "normal-mapped {name} furnace (gain {compensate}): average {avg:.4}, 85° {:.4}, 89° {:.4}",
+                rims[0], rims[1]
+            );
+            if check && compensate {
+                // Each estimate averages 20 000 samples of weight in [0, 2]: far below 1%.
+                if (avg - 1.0).abs() > 0.01 || rims.iter().any(|r| (r - 1.0).abs() > 0.03) {
+                    failures.push(format!("{name}: {avg} {rims:?}"));
+                }
+            }
+            if check && !compensate {
+                // The uncompensated lobe does lose energy (the test can fail).
+                assert!(avg < 0.98, "{avg}");
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{failures:?}");
 }

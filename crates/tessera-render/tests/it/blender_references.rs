@@ -65,8 +65,9 @@ const FIXTURES: &[(&str, u32, Judge)] = &[
         64,
         Judge::Report(
             "Cycles darkens normal-mapped Lambert surfaces: at a quarter of this amplitude it \
-             is 4.4% below the analytic max(0, n'.l) answer that Tessera meets to 0.1% \
-             (see gltf_materials.rs for the analytic test)",
+             is 4.4% below the analytic max(0, n'.l) answer; Tessera meets that answer times \
+             its energy compensation 2/(1 + n'.n) to 0.1% (see gltf_materials.rs for the \
+             analytic test), so it is brighter than Cycles by that factor too",
         ),
     ),
     ("wrap_modes", 64, Judge::Within(0.02)),
@@ -204,7 +205,8 @@ fn blender_fixtures_match_their_cycles_references() {
 /// 141 such pixels at 256 spp (139 with bdpt), and the floor's regions from 9.4% darker
 /// than Cycles to 7.1% brighter.
 /// Turning the normal just enough to face the view (`scene::view_facing_normal`)
-/// leaves none; the floor regions then agree with Cycles like the rest of the room.
+/// leaves none; the floor regions then agree with Cycles like the rest of the room, but
+/// for the normal map's energy compensation.
 #[test]
 fn room_floor_has_no_black_holes_at_grazing_views() {
     use tessera_render::integrator::Integrator;
@@ -247,16 +249,20 @@ fn room_floor_has_no_black_holes_at_grazing_views() {
             // see it from the other side): only the holes are judged.
             continue;
         }
-        // Each floor region within 10% of Cycles, and all of them within 10% of each
-        // other (before: -9.4% to +7.1%; the remaining offset is Cycles' own darkening of
-        // normal-mapped Lambert surfaces, see the `normal_map` fixture).
+        // Each floor region within 16% of Cycles, and all of them within 13% of each
+        // other (before the bend: -9.4% to +7.1%). The offset is Cycles' own darkening of
+        // normal-mapped Lambert surfaces (see the `normal_map` fixture) plus Tessera's
+        // energy compensation of them, `2 / (1 + ns·ng)` on the Lambertian base, which
+        // Cycles does not have and which varies with the floor's tilts: +1.4% to +8.6%
+        // without it, +3.2% to +14.9% with it (docs/rendering.md, "Normal maps and
+        // energy").
         let (lo, hi) = rel
             .iter()
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &r| {
                 (lo.min(r), hi.max(r))
             });
         assert!(
-            lo > -0.1 && hi < 0.1 && hi - lo < 0.1,
+            lo > -0.1 && hi < 0.16 && hi - lo < 0.13,
             "{integrator:?}: floor regions {lo:+.3} to {hi:+.3} off Cycles"
         );
     }

@@ -298,8 +298,9 @@ fn shadow_rays_pass_blended_surfaces_with_probability_one_minus_alpha() {
 
 /// A Lambertian plane (albedo 0.8) with a constant tangent-space normal map under a
 /// directional light grazing from +Y at 75° from the normal. The pixel is
-/// `0.8/π · E · max(0, n'·l)` with the mapped normal n' exactly (one delta light, nothing
-/// to bounce off). Green up the image tilts n' toward +Y (the image's top is +Y here, as
+/// `0.8/π · E · max(0, n'·l) · 2/(1 + n'·n)` with the mapped normal n' exactly (one delta
+/// light, nothing to bounce off; the last factor is the normal map's energy compensation,
+/// `scene::normal_map_diffuse_gain`). Green up the image tilts n' toward +Y (the image's top is +Y here, as
 /// TEXCOORD_0 = (x, 1 - y) puts it), brightening the plane; green down darkens it. This
 /// pins the MikkTSpace handedness that Blender and Cycles use.
 #[test]
@@ -333,7 +334,8 @@ fn normal_map_tilts_the_shading_normal_with_the_right_handedness() {
         let n = [dec(128) * scale as f64, dec(green) * scale as f64, dec(230)];
         let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
         let cos = (n[1] * l[1] + n[2] * l[2]) / len + n[0] * l[0] / len;
-        let expected = 0.8 / std::f64::consts::PI * cos.max(0.0);
+        let gain = 2.0 / (1.0 + n[2] / len);
+        let expected = 0.8 / std::f64::consts::PI * cos.max(0.0) * gain;
         for p in &px {
             assert!(
                 ((p[0] as f64) - expected).abs() < 1e-4 * expected.max(1e-3),
