@@ -217,6 +217,7 @@ fn triangle_records_and_lights_follow_the_meshes() {
     for (k, r) in emitting.iter().enumerate() {
         assert_eq!(r.light as usize, k);
     }
+}
 
 /// The scattered fraction of a white furnace seen along `v` by the glTF material `p` at a
 /// point of geometric normal `+Z` and normal-mapped shading normal `n`, as the integrators
