@@ -1,4 +1,4 @@
-//! One job vocabulary, one resolution path (the redesign issue): for a table of settings
+//! One job vocabulary, one resolution path: for a table of settings
 //! — every integrator (auto, path, direct, bdpt, vcm, ppm, mlt) times every adaptive mode, on a
 //! tiled glTF scene and on a glTF scene whose plan renders one whole-frame tile (a spot
 //! light through glass, seen through the glass: vcm), each
