@@ -552,7 +552,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
 
 /// `scene: T triangles, built in S s, B MiB of geometry (b bytes per stored triangle)`
 /// and `build: peak memory P MiB (p bytes per stored triangle), C CPU seconds loading and
-/// building`, the process's peak resident memory and CPU time up to the end of the build
+/// building` (per triangle from 10,000 stored triangles), the process's peak resident memory and CPU time up to the end of the build
 /// (scene decoding and BVH temporaries included): what a large scene costs before the
 /// first ray (the large-scene figures in
 /// docs/benchmarks.md come from them).
@@ -570,11 +570,18 @@ fn print_scene_line(p: &Prepared) {
         bytes as f64 / stored
     );
     if let Some(peak) = crate::common::peak_resident_bytes() {
+        // Per triangle only where triangles make the peak: below PER_TRIANGLE_FROM the
+        // process's own few MiB (code, threads, the film) would dominate the quotient.
+        const PER_TRIANGLE_FROM: f64 = 10_000.0;
+        let per_triangle = if stored >= PER_TRIANGLE_FROM {
+            format!(" ({:.0} bytes per stored triangle)", peak as f64 / stored)
+        } else {
+            String::new()
+        };
         // CPU seconds beside the wall-clock build time: what a loaded machine can trust.
         println!(
-            "build: peak memory {:.1} MiB ({:.0} bytes per stored triangle), {:.2} CPU seconds loading and building",
+            "build: peak memory {:.1} MiB{per_triangle}, {:.2} CPU seconds loading and building",
             peak as f64 / (1024.0 * 1024.0),
-            peak as f64 / stored,
             crate::common::cpu_seconds("self")
         );
     }
