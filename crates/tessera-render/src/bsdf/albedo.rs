@@ -7,7 +7,7 @@
 //! | [`ggx_albedo`] | `E(μ, α) = f0 A(μ, α) + f90 B(μ, α)`: the GGX reflection albedo with Schlick's Fresnel `f0 + (f90 - f0)(1 - wo·h)^5` (linear in `f0` and `f90`, so two tables serve every colour) |
 //! | [`ggx_albedo_average`] | `E_avg(α) = 2 ∫ E(μ) μ dμ`, the cosine-weighted hemispherical average, as `(A_avg, B_avg)` |
 //! | [`sheen_albedo`] | `E(μ, r)` of the Charlie sheen lobe of KHR_materials_sheen as published, sheen colour 1 |
-//! | [`sheen_layer_albedo`] | `E'(μ, r)` of the sheen lobe Tessera renders ([`super::sheen::Sheen::eval`], the published lobe divided by `max(1, E(μo), E(μi))`), sheen colour 1: what the sheen layer reflects, hence what it withholds from the base |
+//! | [`sheen_layer_albedo`] | `E'(μ, r)` of the sheen lobe Tessera renders (`sheen::Sheen::eval`, the published lobe divided by `max(1, E(μo), E(μi))`), sheen colour 1: what the sheen layer reflects, hence what it withholds from the base |
 //! | [`dielectric_albedo`] | `E(μ, α, η)`: the reflected plus transmitted power of the single-scattering rough dielectric, for `η` in `[1, 3]` and `1/η` (`dielectric_albedo.bin`), with its average [`dielectric_albedo_average`], for the multiple-scattering compensation of [`super::dielectric`] |
 //!
 //! The tables are computed by fixed quadrature and committed (`albedo_tables.bin` and
@@ -331,7 +331,7 @@ pub fn sheen_albedo(mu: f32, r: f32) -> f32 {
     sheen_table().lookup(mu, r)
 }
 
-/// The albedo of the sheen lobe as rendered ([`super::sheen::Sheen::eval`], colour 1,
+/// The albedo of the sheen lobe as rendered (`sheen::Sheen::eval`, colour 1,
 /// perceptual roughness `r`) at `μ = cos θo`, at most one. Below [`sheen_albedo`] wherever
 /// the normalisation acts (smooth sheens, toward grazing `μo` or `μi`): the layering must
 /// scale the base by what this lobe withholds, not by what the published one would (at

@@ -23,7 +23,7 @@
 //!
 //! `E` are the layers' directional albedos ([`super::albedo`]); the sheen's is that of the
 //! lobe as rendered ([`super::albedo::sheen_layer_albedo`]), which the normalisation of
-//! [`super::sheen::Sheen::eval`] puts below the published lobe's, so that the base gets
+//! `sheen::Sheen::eval` puts below the published lobe's, so that the base gets
 //! what the sheen does not reflect.
 //!
 //! # Energy and reciprocity

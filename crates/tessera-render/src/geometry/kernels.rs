@@ -10,7 +10,7 @@
 //! kernels differ only in how many children one instruction covers:
 //!
 //! - `scalar`: one child at a time, skipping unused slots (the reference);
-//! - `sse2`: all [`WIDTH`] children as plain array code LLVM vectorises with the
+//! - `sse2`: all `WIDTH` children as plain array code LLVM vectorises with the
 //!   baseline x86-64 instruction set (4 lanes);
 //! - `avx2`, `avx512`: the box test written out with 8-lane AVX intrinsics (one register
 //!   per plane array; LLVM vectorised the array code only 4 lanes at a time), and the

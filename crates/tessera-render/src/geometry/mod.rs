@@ -368,7 +368,7 @@ impl Geometry {
     }
 
     /// The kernel that tests the wide BVHs' boxes ([`kernels::active`] unless
-    /// [`Geometry::with_isa`] chose another).
+    /// `Geometry::with_isa` chose another).
     pub fn isa(&self) -> Isa {
         self.isa
     }

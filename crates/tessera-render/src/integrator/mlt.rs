@@ -10,7 +10,7 @@
 //! `0..=max_depth`), one bidirectional technique `(s, t)` with `s + t = d + 2` (uniform
 //! among the `d + 2`), the film position and the camera subpath of exactly `t` vertices
 //! (camera stream), the light subpath of exactly `s` vertices (light stream) and the
-//! technique's own lens or light sample (connection stream; [`bdpt::technique`]). Its value
+//! technique's own lens or light sample (connection stream; `bdpt::technique`). Its value
 //! `f` is that technique's MIS-weighted contribution times `(max_depth + 1)(d + 2)`: summed
 //! over depths and techniques, the MIS weights of [`bdpt`] make this an unbiased estimate
 //! of the image, so `∫ f du` is the image's total (per unit film area) and a Metropolis

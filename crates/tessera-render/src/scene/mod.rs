@@ -274,7 +274,7 @@ impl RenderScene {
 
     /// Surface data at a hit of the ray `origin + t dir`: position with its error bound,
     /// normals (interpolated, then perturbed by a glTF normal map and kept facing the view
-    /// `-dir`, see [`view_facing_normal`]), texture coordinates.
+    /// `-dir`, see `view_facing_normal`), texture coordinates.
     #[inline]
     pub fn surface(&self, hit: &Hit, origin: Vec3, dir: Vec3) -> SurfacePoint {
         let mut sp = self.surface_unbent(hit, origin, dir);
