@@ -130,6 +130,13 @@ pub struct VcmSettings {
     pub merge_only: bool,
 }
 
+/// The first pass's merging radius, `r_1 = pixels scene_radius / max(width, height)`: about
+/// `pixels` pixels wide at the scene's scale.
+fn first_radius(pixels: f32, scene_radius: f32, width: u32, height: u32) -> f32 {
+    let long = width.max(height).max(1) as f32;
+    (pixels * scene_radius / long).max(1e-7)
+}
+
 impl VcmSettings {
     /// Settings for a `width` x `height` image of a scene of bounding radius
     /// `scene_radius`: `r_1 = RADIUS_PIXELS scene_radius / max(width, height)`, α =
@@ -142,12 +149,11 @@ impl VcmSettings {
         width: u32,
         height: u32,
     ) -> Self {
-        let long = width.max(height).max(1) as f32;
         Self {
             mis,
             max_depth: max_depth.clamp(1, MAX_VCM_DEPTH),
             rr_depth,
-            radius_1: (RADIUS_PIXELS * scene_radius / long).max(1e-7),
+            radius_1: first_radius(RADIUS_PIXELS, scene_radius, width, height),
             alpha: RADIUS_ALPHA,
             merge_only: false,
         }
@@ -164,9 +170,8 @@ impl VcmSettings {
         width: u32,
         height: u32,
     ) -> Self {
-        let long = width.max(height).max(1) as f32;
         Self {
-            radius_1: (PPM_RADIUS_PIXELS * scene_radius / long).max(1e-7),
+            radius_1: first_radius(PPM_RADIUS_PIXELS, scene_radius, width, height),
             merge_only: true,
             ..Self::new(mis, max_depth, rr_depth, scene_radius, width, height)
         }

@@ -286,16 +286,7 @@ fn bdpt_renders_a_point_light_caustic_that_path_tracing_misses() {
     assert!(e_path < 0.05 * e_bdpt, "path {e_path} vs bdpt {e_bdpt}");
 }
 
-fn bits(acc: &FrameAccumulator) -> Vec<u32> {
-    let img = acc.image();
-    let mut out = Vec::new();
-    for i in 0..img.mean.len() {
-        out.extend(img.mean[i].map(f32::to_bits));
-        out.extend(img.variance_of_mean[i].map(f32::to_bits));
-        out.push(img.passes[i]);
-    }
-    out
-}
+use super::common::frame_bits as bits;
 
 #[test]
 fn bdpt_is_deterministic_across_threads_splits_and_reruns() {

@@ -224,3 +224,16 @@ pub fn reference_config() -> RenderConfig {
         ..RenderConfig::default()
     }
 }
+
+/// Every bit of a frame's result, pixel by pixel: the mean, the variance of the mean and
+/// the pass count. Two renders are the same render when these are equal.
+pub fn frame_bits(acc: &FrameAccumulator) -> Vec<u32> {
+    let img = acc.image();
+    let mut out = Vec::new();
+    for i in 0..img.mean.len() {
+        out.extend(img.mean[i].map(f32::to_bits));
+        out.extend(img.variance_of_mean[i].map(f32::to_bits));
+        out.push(img.passes[i]);
+    }
+    out
+}

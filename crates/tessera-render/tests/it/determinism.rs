@@ -6,16 +6,7 @@ use tessera_farm::{FrameAccumulator, FramePlan};
 use tessera_render::render::{render_frame, render_unit, RenderConfig};
 use tessera_render::scene::RenderScene;
 
-fn bits(acc: &FrameAccumulator) -> Vec<u32> {
-    let img = acc.image();
-    let mut out = Vec::new();
-    for i in 0..img.mean.len() {
-        out.extend(img.mean[i].map(f32::to_bits));
-        out.extend(img.variance_of_mean[i].map(f32::to_bits));
-        out.push(img.passes[i]);
-    }
-    out
-}
+use super::common::frame_bits as bits;
 
 #[test]
 fn thread_count_and_unit_split_do_not_change_a_bit() {

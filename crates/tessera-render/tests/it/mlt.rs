@@ -104,19 +104,7 @@ fn mlt_is_bit_identical_across_threads_and_unit_splits() {
     let plan = FramePlan::new(w, h, w.max(h), 2, 4).unwrap();
     assert_eq!(plan.tile_count(), 1);
     let s = settings(Integrator::Mlt, 9, 6);
-    let bits = |acc: &tessera_farm::FrameAccumulator| -> Vec<u32> {
-        let img = acc.image();
-        img.mean
-            .iter()
-            .zip(&img.variance_of_mean)
-            .flat_map(|(m, v)| {
-                m.iter()
-                    .chain(v.iter())
-                    .map(|x| x.to_bits())
-                    .collect::<Vec<_>>()
-            })
-            .collect()
-    };
+    let bits = super::common::frame_bits;
     let one = render_frame(&rs, &s, &plan, 0, 1, |_, _| {});
     let two = render_frame(&rs, &s, &plan, 0, 2, |_, _| {});
     assert!(bits(&one) == bits(&two), "2 threads differ from 1");
