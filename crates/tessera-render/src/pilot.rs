@@ -1,5 +1,5 @@
-//! The technique pilot: the cheaper of path tracing and bdpt for the same error, measured
-//! (ARCHITECTURE.md §4).
+//! The technique pilot: the cheapest of path tracing, bdpt and Metropolis light transport
+//! for the same error, measured (ARCHITECTURE.md §4).
 //!
 //! The scene analysis picks bdpt for caustics lit by delta or tiny lights. With a delta
 //! light (point, spot, directional) path tracing cannot find such a caustic at all, so
@@ -12,10 +12,11 @@
 //!
 //! # The measurement
 //!
-//! Both techniques render the same small frame ([`PILOT_LONG_SIDE`] pixels on the long
+//! The techniques render the same small frame ([`PILOT_LONG_SIDE`] pixels on the long
 //! side, the job's aspect ratio and camera) with [`PILOT_PASSES`] passes of
-//! [`PILOT_SAMPLES_PER_PASS`] samples, the plan's depths and the job's MIS and sampler,
-//! from a fixed seed. Each is scored by its efficiency (Veach & Guibas 1995, section 2:
+//! [`PILOT_SAMPLES_PER_PASS`] samples (mlt: as many mutations per pixel), the plan's depths
+//! and the job's MIS and sampler, from a fixed seed. mlt samples every path bdpt does
+//! (its chains run over bdpt's techniques), so where bdpt is correct it is too. Each is scored by its efficiency (Veach & Guibas 1995, section 2:
 //! `1 / (variance x cost)`): its pilot image's mean squared relative error times its cost.
 //!
 //! Both techniques estimate the same image, and the pilot uses that twice. A pixel's
@@ -30,9 +31,10 @@
 //! machine's load: it is the number of rays traced (closest hits and shadow rays,
 //! [`crate::scene::rays_traced`]), bdpt's weighted by [`BDPT_RAY_COST`], its measured time
 //! per ray relative to path tracing's (its rays also pay for MIS weights over every
-//! connection and for splatting). Every input is deterministic, so the choice is a pure
-//! function of the scene and the job: `tessera render`, the coordinator at submission and
-//! at every restart all choose alike, and a farm render stays byte-identical to a local one.
+//! connection and for splatting), mlt's by [`MLT_RAY_COST`]. Every input is
+//! deterministic, so the choice is a pure function of the scene and the job: `tessera
+//! render`, the coordinator at submission and at every restart all choose alike, and a farm
+//! render stays byte-identical to a local one.
 //!
 //! # What it cannot see
 //!
@@ -42,7 +44,10 @@
 //! section 10.3, on what a pilot can miss). That bias favours path tracing, whose
 //! caustics are the rare paths, so path tracing must win by [`PATH_MARGIN`], with its
 //! error spread over the image rather than carried by a few pixels ([`MIN_PATH_SPREAD`]),
-//! to be chosen. Either choice is unbiased: a wrong one costs time, never correctness.
+//! to be chosen. mlt's chains can miss light in every pass as path tracing's passes can,
+//! so mlt is held to the same rules against the better of the other two, and its error is
+//! not taken below what the difference of its image to bdpt's shows. Every choice is
+//! unbiased: a wrong one costs time, never correctness.
 
 use crate::integrator::{render_unit, RenderConfig};
 use crate::scene::{rays_traced, RenderScene};

@@ -552,6 +552,34 @@ mod tests {
         );
     }
 
+    /// mlt won: it renders, bdpt's reasons stay after the verdict (its chains sample
+    /// bdpt's techniques), and a second verdict changes nothing. A verdict written before
+    /// the pilot measured mlt (no `mlt_wins` in its JSON) reads as bdpt or path.
+    #[test]
+    fn settling_on_metropolis_keeps_bdpts_reasons() {
+        let mut plan = provisional();
+        plan.settle_metropolis("pilot: mlt".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Mlt);
+        assert_eq!(plan.integrator.as_str(), "mlt");
+        assert_eq!(
+            plan.reasons,
+            [
+                "pilot: mlt",
+                "bdpt: tiny lights",
+                "bdpt light-traces onto the film",
+                "max depth 12"
+            ]
+        );
+        assert!(plan.technique_pilot.is_none());
+        plan.settle_metropolis("again".into());
+        plan.settle_technique(true, "again".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Mlt);
+        assert_eq!(plan.reasons.len(), 4);
+
+        let old: PilotVerdict = serde_json::from_str(r#"{"path_wins":true,"reason":"r"}"#).unwrap();
+        assert!(old.path_wins && !old.mlt_wins);
+    }
+
     #[test]
     fn the_caveat_names_caustics_of_tiny_lights_rendered_without_bdpt() {
         let mut plan = provisional();
