@@ -1,5 +1,5 @@
-//! The technique pilot: the cheaper of path tracing and bdpt for the same error, measured
-//! (ARCHITECTURE.md §4).
+//! The technique pilot: the cheapest of path tracing, bdpt and Metropolis light transport
+//! for the same error, measured (ARCHITECTURE.md §4).
 //!
 //! The scene analysis picks bdpt for caustics lit by delta or tiny lights. With a delta
 //! light (point, spot, directional) path tracing cannot find such a caustic at all, so
@@ -12,10 +12,11 @@
 //!
 //! # The measurement
 //!
-//! Both techniques render the same small frame ([`PILOT_LONG_SIDE`] pixels on the long
+//! The techniques render the same small frame ([`PILOT_LONG_SIDE`] pixels on the long
 //! side, the job's aspect ratio and camera) with [`PILOT_PASSES`] passes of
-//! [`PILOT_SAMPLES_PER_PASS`] samples, the plan's depths and the job's MIS and sampler,
-//! from a fixed seed. Each is scored by its efficiency (Veach & Guibas 1995, section 2:
+//! [`PILOT_SAMPLES_PER_PASS`] samples (mlt: as many mutations per pixel), the plan's depths
+//! and the job's MIS and sampler, from a fixed seed. mlt samples every path bdpt does
+//! (its chains run over bdpt's techniques), so where bdpt is correct it is too. Each is scored by its efficiency (Veach & Guibas 1995, section 2:
 //! `1 / (variance x cost)`): its pilot image's mean squared relative error times its cost.
 //!
 //! Both techniques estimate the same image, and the pilot uses that twice. A pixel's
@@ -30,9 +31,10 @@
 //! machine's load: it is the number of rays traced (closest hits and shadow rays,
 //! [`crate::scene::rays_traced`]), bdpt's weighted by [`BDPT_RAY_COST`], its measured time
 //! per ray relative to path tracing's (its rays also pay for MIS weights over every
-//! connection and for splatting). Every input is deterministic, so the choice is a pure
-//! function of the scene and the job: `tessera render`, the coordinator at submission and
-//! at every restart all choose alike, and a farm render stays byte-identical to a local one.
+//! connection and for splatting), mlt's by [`MLT_RAY_COST`]. Every input is
+//! deterministic, so the choice is a pure function of the scene and the job: `tessera
+//! render`, the coordinator at submission and at every restart all choose alike, and a farm
+//! render stays byte-identical to a local one.
 //!
 //! # What it cannot see
 //!
@@ -42,12 +44,15 @@
 //! section 10.3, on what a pilot can miss). That bias favours path tracing, whose
 //! caustics are the rare paths, so path tracing must win by [`PATH_MARGIN`], with its
 //! error spread over the image rather than carried by a few pixels ([`MIN_PATH_SPREAD`]),
-//! to be chosen. Either choice is unbiased: a wrong one costs time, never correctness.
+//! to be chosen. mlt's chains can miss light in every pass as path tracing's passes can,
+//! so mlt is held to the same rules against the better of the other two, and its error is
+//! not taken below what the difference of its image to bdpt's shows. Every choice is
+//! unbiased: a wrong one costs time, never correctness.
 
 use crate::integrator::{render_unit, RenderConfig};
 use crate::scene::{rays_traced, RenderScene};
 use rayon::prelude::*;
-use tessera_farm::job::{Integrator, PilotVerdict, RenderPlan, ValidatedJob};
+use tessera_farm::job::{Integrator, PilotVerdict, PlannedIntegrator, RenderPlan, ValidatedJob};
 use tessera_farm::{FrameAccumulator, FramePlan};
 use tessera_scene::job::PilotQuestion;
 use tessera_scene::Scene;
@@ -64,6 +69,11 @@ pub const PILOT_SEED: u64 = 0x0070_696c_6f74;
 /// Time per ray of bdpt relative to path tracing, measured with `tessera bench-plan`
 /// (docs/benchmarks.md, "Technique pilot"): the cost of a bdpt ray in path-tracing rays.
 pub const BDPT_RAY_COST: f64 = 1.45;
+/// Time per ray of mlt relative to path tracing: on the door-ajar room mlt's ray took 1.19x
+/// bdpt's (CPU seconds per ray, docs/benchmarks.md, "Metropolis light transport"), times
+/// [`BDPT_RAY_COST`]. A mutation evaluates one bidirectional technique with its MIS weight
+/// over all of them, and the bootstrap evaluates all of them.
+pub const MLT_RAY_COST: f64 = 1.7;
 /// Path tracing is chosen only when its measured efficiency is at least this many times
 /// bdpt's, since the pilot's error estimate flatters it (module documentation).
 pub const PATH_MARGIN: f64 = 1.5;
@@ -107,36 +117,61 @@ pub struct TechniqueVerdict {
     pub path: TechniqueMeasurement,
     /// Bdpt's pilot.
     pub bdpt: TechniqueMeasurement,
+    /// Metropolis light transport's pilot (multiplexed over bdpt's techniques, so it
+    /// samples every path bdpt does).
+    pub mlt: TechniqueMeasurement,
     /// Pilot frame size.
     pub size: (u32, u32),
 }
 
 impl TechniqueVerdict {
-    /// Whether path tracing is chosen: its efficiency is at least [`PATH_MARGIN`] times
+    /// Whether path tracing beats bdpt: its efficiency is at least [`PATH_MARGIN`] times
     /// bdpt's and its error is spread over at least [`MIN_PATH_SPREAD`] of the pixels. A
     /// technique whose pilot shows no error (a black pilot) counts as free of error, so
     /// path tracing, the simpler, wins a tie of zeros.
+    fn path_beats_bdpt(&self) -> bool {
+        beats(&self.path, &self.bdpt, false)
+    }
+
+    /// The technique chosen: the better of path tracing and bdpt as above, unless mlt beats
+    /// that one by the same rules ([`PATH_MARGIN`] and [`MIN_PATH_SPREAD`]: its pilot, whose
+    /// chains may miss light in every pass, flatters it as path tracing's does), strictly,
+    /// so that a tie goes to the simpler technique.
+    pub fn choice(&self) -> PlannedIntegrator {
+        let (base, base_m) = if self.path_beats_bdpt() {
+            (PlannedIntegrator::Path, &self.path)
+        } else {
+            (PlannedIntegrator::Bdpt, &self.bdpt)
+        };
+        if beats(&self.mlt, base_m, true) {
+            PlannedIntegrator::Mlt
+        } else {
+            base
+        }
+    }
+
+    /// Whether path tracing is chosen ([`TechniqueVerdict::choice`]).
     pub fn path_wins(&self) -> bool {
-        let (p, b) = (&self.path, &self.bdpt);
-        // Compare error² x cost without dividing, so zero errors compare too.
-        p.error * p.error * p.cost * PATH_MARGIN <= b.error * b.error * b.cost
-            && p.spread >= MIN_PATH_SPREAD
+        self.choice() == PlannedIntegrator::Path
     }
 
     /// The reason the plan records, with the measured efficiencies.
     pub fn reason(&self) -> String {
-        let (p, b) = (&self.path, &self.bdpt);
-        let ratio = if p.efficiency().is_finite() && b.efficiency() > 0.0 {
-            format!("{:.2}x", p.efficiency() / b.efficiency())
-        } else {
-            "n/a".into()
+        let (p, b, m) = (&self.path, &self.bdpt, &self.mlt);
+        let ratio = |x: &TechniqueMeasurement| {
+            if x.efficiency().is_finite() && b.efficiency() > 0.0 {
+                format!("{:.2}x", x.efficiency() / b.efficiency())
+            } else {
+                "n/a".into()
+            }
         };
         format!(
             "technique pilot ({}x{}, {PILOT_PASSES} passes of {PILOT_SAMPLES_PER_PASS} \
              samples each): path error {:.4} for {} rays (spread {:.3}), bdpt error {:.4} for \
-             {} rays (x{BDPT_RAY_COST} per ray, spread {:.3}); efficiency 1/(error^2 x cost) path {:.4}, bdpt {:.4} \
-             (path/bdpt {ratio}; path needs {PATH_MARGIN}x and a spread of \
-             {MIN_PATH_SPREAD}): {} chosen",
+             {} rays (x{BDPT_RAY_COST} per ray, spread {:.3}), mlt error {:.4} for {} rays \
+             (x{MLT_RAY_COST} per ray, spread {:.3}); efficiency 1/(error^2 x cost) path {:.4}, \
+             bdpt {:.4}, mlt {:.4} (path/bdpt {}, mlt/bdpt {}; path or mlt needs \
+             {PATH_MARGIN}x and a spread of {MIN_PATH_SPREAD}): {} chosen",
             self.size.0,
             self.size.1,
             p.error,
@@ -145,11 +180,29 @@ impl TechniqueVerdict {
             b.error,
             b.rays,
             b.spread,
+            m.error,
+            m.rays,
+            m.spread,
             p.efficiency(),
             b.efficiency(),
-            if self.path_wins() { "path" } else { "bdpt" }
+            m.efficiency(),
+            ratio(p),
+            ratio(m),
+            self.choice()
         )
     }
+}
+
+/// Whether `a` beats `b` by the pilot's rules: `a`'s efficiency at least [`PATH_MARGIN`]
+/// times `b`'s (more than, if `strict`) and its error spread over at least
+/// [`MIN_PATH_SPREAD`] of the pixels. Compares error² x cost without dividing, so zero
+/// errors compare too.
+fn beats(a: &TechniqueMeasurement, b: &TechniqueMeasurement, strict: bool) -> bool {
+    let (lhs, rhs) = (
+        a.error * a.error * a.cost * PATH_MARGIN,
+        b.error * b.error * b.cost,
+    );
+    (if strict { lhs < rhs } else { lhs <= rhs }) && a.spread >= MIN_PATH_SPREAD
 }
 
 /// The pilot frame for a `width x height` job: [`PILOT_LONG_SIDE`] on the long side, the
@@ -220,27 +273,38 @@ fn measure(scene: &RenderScene, config: &RenderConfig, plan: &FramePlan) -> Raw 
 /// `S_path` shows nothing, but its image lacks the caustic bdpt's has, and `D` sees that.
 /// Not the other way round: bdpt, built for these paths, is the one whose estimate is
 /// trusted here, and `D - S_path` would charge path tracing's missed caustic to bdpt.
-fn on_one_scale(path: Raw, bdpt: Raw) -> (TechniqueMeasurement, TechniqueMeasurement) {
-    let n = path.mean.len().min(bdpt.mean.len());
+fn on_one_scale(
+    path: Raw,
+    bdpt: Raw,
+    mlt: Raw,
+) -> (
+    TechniqueMeasurement,
+    TechniqueMeasurement,
+    TechniqueMeasurement,
+) {
+    let n = path.mean.len().min(bdpt.mean.len()).min(mlt.mean.len());
     let pooled: Vec<f64> = (0..n)
         .map(|i| 0.5 * (path.mean[i] + bdpt.mean[i]))
         .collect();
     let image_mean = pooled.iter().sum::<f64>() / n.max(1) as f64;
     let floor = DARK_FLOOR * image_mean;
-    let (mut s_path, mut s_bdpt, mut d) = (0.0, 0.0, 0.0);
-    let (mut q_path, mut q_bdpt) = (0.0, 0.0);
+    let (mut s_path, mut s_bdpt, mut s_mlt, mut d, mut d_mlt) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    let (mut q_path, mut q_bdpt, mut q_mlt) = (0.0, 0.0, 0.0);
     for (i, &mean) in pooled.iter().enumerate() {
         let scale = mean.max(floor);
         if scale > 0.0 {
             let s2 = scale * scale;
-            let (vp, vb) = (
+            let (vp, vb, vm) = (
                 path.variance[i].max(0.0) / s2,
                 bdpt.variance[i].max(0.0) / s2,
+                mlt.variance[i].max(0.0) / s2,
             );
-            (s_path, s_bdpt) = (s_path + vp, s_bdpt + vb);
-            (q_path, q_bdpt) = (q_path + vp * vp, q_bdpt + vb * vb);
+            (s_path, s_bdpt, s_mlt) = (s_path + vp, s_bdpt + vb, s_mlt + vm);
+            (q_path, q_bdpt, q_mlt) = (q_path + vp * vp, q_bdpt + vb * vb, q_mlt + vm * vm);
             let diff = path.mean[i] - bdpt.mean[i];
             d += diff * diff / s2;
+            let diff = mlt.mean[i] - bdpt.mean[i];
+            d_mlt += diff * diff / s2;
         }
     }
     let spread = |s: f64, q: f64| {
@@ -256,9 +320,12 @@ fn on_one_scale(path: Raw, bdpt: Raw) -> (TechniqueMeasurement, TechniqueMeasure
         cost: r.rays as f64 * ray_cost,
         spread: spread(own, q),
     };
+    // mlt's chains, like path tracing's passes, can miss light in every pass: its error is
+    // not taken below what the difference to bdpt's image shows either.
     (
         of(&path, s_path, q_path, d - s_bdpt, 1.0),
         of(&bdpt, s_bdpt, q_bdpt, 0.0, BDPT_RAY_COST),
+        of(&mlt, s_mlt, q_mlt, d_mlt - s_bdpt, MLT_RAY_COST),
     )
 }
 
@@ -288,11 +355,17 @@ pub fn run(
         max_depth: job.render.max_depth.unwrap_or(plan.max_depth),
         rr_depth: plan.rr_depth,
     };
-    let (path, bdpt) = on_one_scale(
+    let (path, bdpt, mlt) = on_one_scale(
         measure(&rs, &config(Integrator::Path), &frame),
         measure(&rs, &config(Integrator::Bdpt), &frame),
+        measure(&rs, &config(Integrator::Mlt), &frame),
     );
-    Ok(TechniqueVerdict { path, bdpt, size })
+    Ok(TechniqueVerdict {
+        path,
+        bdpt,
+        mlt,
+        size,
+    })
 }
 
 /// The technique pilot's verdict for `question` ([`tessera_scene::job::resolve_job`]
@@ -306,8 +379,10 @@ pub fn verdict(question: &PilotQuestion<'_>) -> Result<PilotVerdict, String> {
         question.plan,
         question.resolution(),
     )?;
+    let choice = v.choice();
     Ok(PilotVerdict {
-        path_wins: v.path_wins(),
+        path_wins: choice == PlannedIntegrator::Path,
+        mlt_wins: choice == PlannedIntegrator::Mlt,
         reason: v.reason(),
     })
 }
@@ -330,7 +405,10 @@ mod tests {
     fn a_missed_caustic_counts_against_path_tracing() {
         let path = raw(&[1.0, 1.0, 0.0, 1.0], &[0.01, 0.01, 0.0, 0.01], 100);
         let bdpt = raw(&[1.0, 1.0, 4.0, 1.0], &[0.01, 0.01, 0.04, 0.01], 100);
-        let (p, b) = on_one_scale(path, bdpt);
+        let mlt = raw(&[1.0, 1.0, 4.0, 1.0], &[0.01, 0.01, 0.04, 0.01], 100);
+        let (p, b, m) = on_one_scale(path, bdpt, mlt);
+        // mlt's image is bdpt's: its own variance is its error, at bdpt's cost per ray.
+        assert_eq!((m.error, m.cost), (b.error, b.cost));
         // Pooled means 1, 1, 2, 1: the difference 4² / 2² = 4 dominates path's 0.03.
         let d = 4.0;
         let s_b = 0.01 * 3.0 + 0.04 / 4.0;
@@ -343,9 +421,12 @@ mod tests {
         let v = TechniqueVerdict {
             path: p,
             bdpt: b,
+            mlt: m,
             size: (2, 2),
         };
         assert!(!v.path_wins(), "{}", v.reason());
+        // A tie with bdpt goes to bdpt.
+        assert_eq!(v.choice(), PlannedIntegrator::Bdpt, "{}", v.reason());
     }
 
     /// Path tracing cheaper and its error spread evenly: chosen. The same figures with the
@@ -367,6 +448,7 @@ mod tests {
         let v = |path| TechniqueVerdict {
             path,
             bdpt,
+            mlt: TechniqueMeasurement { error: 1.0, ..bdpt },
             size: (4, 4),
         };
         assert!(v(even).path_wins());
@@ -380,5 +462,39 @@ mod tests {
             ..even
         })
         .path_wins());
+    }
+
+    /// mlt is chosen when it beats the better of path tracing and bdpt by the margin with
+    /// its error spread; not on a tie, and not with its error in a few pixels.
+    #[test]
+    fn mlt_needs_the_margin_and_the_spread_over_the_better_of_the_others() {
+        let m = |error: f64, cost: f64, spread: f64| TechniqueMeasurement {
+            error,
+            rays: cost as u64,
+            cost,
+            spread,
+        };
+        let v = |path, bdpt, mlt| TechniqueVerdict {
+            path,
+            bdpt,
+            mlt,
+            size: (4, 4),
+        };
+        let (path, bdpt) = (m(0.2, 100.0, 0.9), m(0.1, 200.0, 0.9));
+        // bdpt is the better of the two (2x path); mlt at 1.6x bdpt wins.
+        let mlt = m(0.1, 200.0 / 1.6, 0.9);
+        assert_eq!(v(path, bdpt, mlt).choice(), PlannedIntegrator::Mlt);
+        assert!(v(path, bdpt, mlt).reason().ends_with("mlt chosen"));
+        // Exactly the margin: a tie goes to the simpler technique.
+        let tie = m(0.1, 200.0 / PATH_MARGIN, 0.9);
+        assert_eq!(v(path, bdpt, tie).choice(), PlannedIntegrator::Bdpt);
+        // The error carried by a few pixels: not.
+        let few = m(0.1, 200.0 / 1.6, 0.05);
+        assert_eq!(v(path, bdpt, few).choice(), PlannedIntegrator::Bdpt);
+        // Against path tracing when path wins: mlt must beat path, not bdpt.
+        let (path, bdpt) = (m(0.1, 100.0, 0.9), m(0.1, 200.0, 0.9));
+        assert_eq!(v(path, bdpt, mlt).choice(), PlannedIntegrator::Path);
+        let fast = m(0.1, 100.0 / 1.6, 0.9);
+        assert_eq!(v(path, bdpt, fast).choice(), PlannedIntegrator::Mlt);
     }
 }

@@ -176,7 +176,11 @@ pub fn resolve_job(
             plan: &plan,
         })
         .map_err(ResolveError::Pilot)?;
-        plan.settle_technique(verdict.path_wins, verdict.reason);
+        if verdict.mlt_wins {
+            plan.settle_metropolis(verdict.reason);
+        } else {
+            plan.settle_technique(verdict.path_wins, verdict.reason);
+        }
     }
     let facts = SceneFacts {
         default_resolution: scene.default_resolution,
@@ -192,6 +196,7 @@ pub fn no_pilot(why: &str) -> impl FnOnce(&PilotQuestion<'_>) -> Result<PilotVer
     move |_| {
         Ok(PilotVerdict {
             path_wins: false,
+            mlt_wins: false,
             reason: format!("technique pilot not run ({why}): bdpt, the analysis's choice"),
         })
     }

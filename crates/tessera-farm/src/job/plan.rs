@@ -135,6 +135,10 @@ pub enum PlannedIntegrator {
     /// Vertex connection and merging (for caustics of delta lights seen through specular
     /// surfaces, [`EffectKind::DeltaLitSds`]).
     Vcm,
+    /// Multiplexed Metropolis light transport over bdpt's techniques: never the
+    /// analysis's own choice, only the technique pilot's, where it measured mlt the most
+    /// efficient ([`PilotVerdict::mlt_wins`]).
+    Mlt,
 }
 
 impl PlannedIntegrator {
@@ -146,6 +150,7 @@ impl PlannedIntegrator {
             Self::Path => "path",
             Self::Bdpt => "bdpt",
             Self::Vcm => "vcm",
+            Self::Mlt => "mlt",
         }
     }
 }
@@ -201,8 +206,13 @@ pub struct TechniquePilot {
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PilotVerdict {
-    /// Path tracing wins (otherwise bdpt, the analysis's choice, stays).
+    /// Path tracing wins (otherwise bdpt, the analysis's choice, stays, unless
+    /// [`PilotVerdict::mlt_wins`]).
     pub path_wins: bool,
+    /// Metropolis light transport wins over both (then `path_wins` is false). Absent in
+    /// the JSON of a pilot that did not measure it: false.
+    #[serde(default)]
+    pub mlt_wins: bool,
     /// The plan's first reason: what was measured, or why nothing was.
     pub reason: String,
 }
@@ -239,6 +249,17 @@ impl RenderPlan {
             self.integrator = PlannedIntegrator::Path;
             self.reasons.splice(0..n, pilot.path_reasons);
         }
+        self.reasons.insert(0, verdict);
+    }
+
+    /// Settles a provisional choice by a pilot that measured Metropolis light transport the
+    /// most efficient: mlt, whose chains sample bdpt's techniques, so the reasons given for
+    /// bdpt stay, after `verdict`. Does nothing on a plan without a pilot.
+    pub fn settle_metropolis(&mut self, verdict: String) {
+        if self.technique_pilot.take().is_none() {
+            return;
+        }
+        self.integrator = PlannedIntegrator::Mlt;
         self.reasons.insert(0, verdict);
     }
 
@@ -529,6 +550,34 @@ mod tests {
                 "max depth 12"
             ]
         );
+    }
+
+    /// mlt won: it renders, bdpt's reasons stay after the verdict (its chains sample
+    /// bdpt's techniques), and a second verdict changes nothing. A verdict written before
+    /// the pilot measured mlt (no `mlt_wins` in its JSON) reads as bdpt or path.
+    #[test]
+    fn settling_on_metropolis_keeps_bdpts_reasons() {
+        let mut plan = provisional();
+        plan.settle_metropolis("pilot: mlt".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Mlt);
+        assert_eq!(plan.integrator.as_str(), "mlt");
+        assert_eq!(
+            plan.reasons,
+            [
+                "pilot: mlt",
+                "bdpt: tiny lights",
+                "bdpt light-traces onto the film",
+                "max depth 12"
+            ]
+        );
+        assert!(plan.technique_pilot.is_none());
+        plan.settle_metropolis("again".into());
+        plan.settle_technique(true, "again".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Mlt);
+        assert_eq!(plan.reasons.len(), 4);
+
+        let old: PilotVerdict = serde_json::from_str(r#"{"path_wins":true,"reason":"r"}"#).unwrap();
+        assert!(old.path_wins && !old.mlt_wins);
     }
 
     #[test]

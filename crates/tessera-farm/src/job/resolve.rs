@@ -73,6 +73,9 @@ impl ValidatedJob {
                 PlannedIntegrator::Vcm => {
                     (Integrator::Vcm, render_plan.max_depth, render_plan.rr_depth)
                 }
+                PlannedIntegrator::Mlt => {
+                    (Integrator::Mlt, render_plan.max_depth, render_plan.rr_depth)
+                }
             },
             IntegratorChoice::Fixed(i) => {
                 forced.push(format!("--integrator {i}"));

@@ -9,7 +9,9 @@
 //! numbers (Hachisuka et al. 2014, section 4.2): the path depth `d` (uniform in
 //! `0..=max_depth`), one bidirectional technique `(s, t)` with `s + t = d + 2` (uniform
 //! among the `d + 2`), the film position and the camera subpath of exactly `t` vertices
-//! (camera stream), the light subpath of exactly `s` vertices (light stream) and the
+//! (camera stream, which reads the technique's number at depth 0 too, so that the numbers
+//! after it sit at the same place at every depth), the light subpath of exactly `s`
+//! vertices (light stream) and the
 //! technique's own lens or light sample (connection stream; `bdpt::technique`). Its value
 //! `f` is that technique's MIS-weighted contribution times `(max_depth + 1)(d + 2)`: summed
 //! over depths and techniques, the MIS weights of [`bdpt`] make this an unbiased estimate
@@ -35,12 +37,22 @@
 //! # Passes are independent replicates (ARCHITECTURE.md §3)
 //! Pass `k` of frame `f` is a fresh, deterministic computation from `hash(seed, f, k)`:
 //!
-//! 1. **Bootstrap** (Veach 1997, section 11.3.1): `n_b = W H S / 8` independent uniform
-//!    vectors; `b = Σ c / n_b` estimates the normalisation `∫ c(f) du` from this pass's own
-//!    samples.
-//! 2. **Chains**: `n_c` independent chains (one per 1024 mutations, 8 to 1024), each
-//!    starting at a bootstrap sample drawn with probability proportional to its `c` (which
-//!    removes start-up bias, Veach 1997, section 11.3.3) and running its share of the
+//! 1. **Bootstrap** (Veach 1997, section 11.3.1): `n_b = W H S / 32` independent uniform
+//!    vectors, each evaluated at *every* depth and technique (`eval_all`: the subpaths
+//!    traced once at full length, each technique reading the prefix of the numbers it
+//!    would read alone, so each is exactly a state of the chain with the depth and technique
+//!    numbers anywhere in their cells). The vector's candidates are the `(max_depth + 1)
+//!    (d + 2)` cells of the depth and technique numbers, one uniform sample in each, a
+//!    stratified bootstrap; a candidate's weight `c / q` is its MIS-weighted contribution's
+//!    luminance, so `b = Σ / n_b` is the mean luminance of bdpt-like samples with all
+//!    techniques and estimates `∫ c(f) du`. A vector that evaluates one technique sees a
+//!    door-ajar room's light through the gap a few times per pass; this sees it in every
+//!    technique that carries it (docs/benchmarks.md, "Metropolis light transport").
+//! 2. **Chains**: `n_c` independent chains (one per 256 mutations, at least 8), each
+//!    starting at a bootstrap candidate drawn with probability proportional to its weight
+//!    (importance resampling, which removes start-up bias, Veach 1997, section 11.3.3: a
+//!    vector in proportion to its total, then its depth and technique in proportion to their
+//!    share, and the two numbers uniform in their cells) and running its share of the
 //!    pass's `W H S` mutations (`S` the plan's samples per pass).
 //! 3. The pass image is `b / S` times the recorded weights `f / c(f)` that landed in each
 //!    pixel: the histogram of a chain with stationary density `c / b` times `b` is the image.
@@ -54,7 +66,8 @@
 //! Like `bdpt` and `vcm`, `mlt` renders whole-frame units (`FramePlan::whole_frame`): a
 //! pass's chains wander over the whole image. A unit is (frame, pass range) and costs, per
 //! pass, `W H S` mutations (each one path and one of its techniques) plus the
-//! bootstrap's `n_b` paths, an eighth of the mutations. A unit's bytes
+//! bootstrap's `n_b` vectors (a 32nd of the mutations, each at every technique) and one
+//! more evaluation of a vector per chain start. A unit's bytes
 //! depend only on (scene, settings, seed, frame, passes): the same with any thread count and
 //! on any worker. A plan with smaller tiles renders each tile's pixels from the whole
 //! frame's chains (correct, `tile count` times the cost). The adaptive policy's `wanted`
@@ -77,23 +90,27 @@ use glam::{Vec2, Vec3};
 use tessera_farm::{FramePlan, UnitResult, WorkUnit};
 
 /// Probability of a large step (an independent proposal); pbrt-v4's default. On the
-/// door-ajar room 0.1 and 0.5 measured no better (docs/benchmarks.md, "Metropolis light
-/// transport").
+/// door-ajar room 0.1 and 0.5 measured no better, with either bootstrap (docs/benchmarks.md,
+/// "Metropolis light transport").
 pub const LARGE_STEP_PROBABILITY: f64 = 0.3;
 /// Standard deviation of a small step's offset of each primary sample (Kelemen et al. use
-/// an exponential of similar width; pbrt-v4's default normal). 0.05 measured the same
-/// within the noise of one run.
+/// an exponential of similar width; pbrt-v4's default normal). 0.03 measured the same on
+/// the door-ajar room, 0.003 worse.
 pub const SIGMA: f64 = 0.01;
 /// Mutations per chain the pass aims at (`W H S / MUTATIONS_PER_CHAIN` chains, clamped to
 /// `MIN_CHAINS..=MAX_CHAINS`): long enough for small steps to explore, many enough that the
-/// depths and regions of the image are visited in proportion within one pass.
-const MUTATIONS_PER_CHAIN: u64 = 1024;
+/// depths and regions of the image are visited in proportion within one pass. On the
+/// door-ajar room 256 measured best of 64, 128, 256, 1024 and 4096 (docs/benchmarks.md):
+/// a pass's image is a sum of the chains' neighbourhoods, so more, shorter chains cover it
+/// more evenly, until each start's bootstrap path costs more than its chain explores.
+const MUTATIONS_PER_CHAIN: u64 = 256;
 /// Fewest chains per pass.
 const MIN_CHAINS: u64 = 8;
-/// Most chains per pass.
-const MAX_CHAINS: u64 = 1024;
-/// Bootstrap paths per mutation, as a divisor: `W H S / 8` paths over all depths.
-const BOOTSTRAP_DIVISOR: u64 = 8;
+/// Most chains per pass (a start costs one bootstrap evaluation, like a bdpt sample).
+const MAX_CHAINS: u64 = 1 << 16;
+/// Bootstrap vectors per mutation, as a divisor: `W H S / 32` vectors, each evaluated at
+/// every depth and technique (about a bdpt sample's cost). 16 measured no better, 64 worse.
+const BOOTSTRAP_DIVISOR: u64 = 32;
 /// Mixed into the job seed for the chains' random numbers.
 const MLT_STREAM: u64 = 0x6d6c_745f_6368_6169; // "mlt_chai"
 /// Tags the bootstrap and chain seeds of a pass apart.
@@ -214,6 +231,14 @@ impl PrimarySamples {
     /// a bootstrap sample takes its own numbers from there on).
     pub(crate) fn reseed(&mut self, seed: u64) {
         self.rng = Rng(seed);
+    }
+
+    /// Sets number `index` of stream `stream` (which must exist) to `value`, as part of
+    /// the current state.
+    pub(crate) fn set(&mut self, stream: usize, index: usize, value: f64) {
+        let xi = &mut self.x[stream + STREAMS * index];
+        xi.value = value;
+        xi.backup = value;
     }
 
     /// A uniform number from the chain's generator (the acceptance coin).
@@ -385,12 +410,16 @@ impl Mlt<'_> {
         samples.start_stream(CAMERA_STREAM);
         // The depth is a primary sample too (module documentation).
         let depth = ((samples.next_1d() * self.depths as f32) as usize).min(self.depths - 1);
+        // The technique's number is read at every depth, so that the numbers after it
+        // sit at the same place whatever the depth (the bootstrap evaluates every depth
+        // and technique of one vector, `eval_all`).
+        let u_technique = samples.next_1d();
         let (s, t, n) = if depth == 0 {
             // Only (0, 2) sees an emitter directly: (1, 1) is not a bdpt technique.
             (0, 2, 1)
         } else {
             let n = depth + 2;
-            let s = ((samples.next_1d() * n as f32) as usize).min(n - 1);
+            let s = ((u_technique * n as f32) as usize).min(n - 1);
             (s, n - s, n)
         };
         if self.motion {
@@ -415,6 +444,81 @@ impl Mlt<'_> {
         samples.start_stream(CONNECTION_STREAM);
         let (l, raster) = bdpt::technique(ctx, st, &mut self.scratch, s, t, samples);
         (l * (n * self.depths) as f32, raster.unwrap_or(film))
+    }
+}
+
+impl Mlt<'_> {
+    /// Every depth's and technique's MIS-weighted contribution of the numbers `samples`
+    /// holds, as `(depth, s, luminance)` for those with a positive luminance, into `out`;
+    /// returns their sum. The subpaths are traced once, at full length, and each technique
+    /// reads a prefix of them: the same numbers `eval` reads for that depth and technique.
+    fn eval_all(
+        &mut self,
+        samples: &mut PrimarySamples,
+        out: &mut Vec<(usize, usize, f64)>,
+    ) -> f64 {
+        out.clear();
+        samples.start_stream(CAMERA_STREAM);
+        samples.next_1d(); // depth
+        samples.next_1d(); // technique
+        if self.motion {
+            self.ctx.set_time(samples.next_1d());
+        }
+        let film = samples.next_2d() * self.film;
+        let lens_u = if self.lens {
+            samples.next_2d()
+        } else {
+            Vec2::ZERO
+        };
+        let max_depth = self.depths - 1;
+        let (ctx, st) = (&self.ctx, &self.st);
+        let n_cam = bdpt::camera_subpath(
+            ctx,
+            st,
+            film,
+            lens_u,
+            &mut self.scratch.cam,
+            max_depth + 2,
+            samples,
+        );
+        samples.start_stream(LIGHT_STREAM);
+        let n_light = if max_depth + 1 >= 2 {
+            bdpt::light_subpath(ctx, st, &mut self.scratch.light, max_depth + 1, samples)
+        } else {
+            0
+        };
+        let mut total = 0.0;
+        for depth in 0..=max_depth {
+            let n = depth + 2;
+            let techniques = if depth == 0 { 0..1 } else { 0..n };
+            for s in techniques {
+                let t = n - s;
+                if t > n_cam || (s >= 2 && s > n_light) {
+                    continue;
+                }
+                samples.start_stream(CONNECTION_STREAM);
+                let (l, _) = bdpt::technique(ctx, st, &mut self.scratch, s, t, samples);
+                let c = target(l, &mut 0);
+                if c > 0.0 && c.is_finite() {
+                    total += c;
+                    out.push((depth, s, c));
+                }
+            }
+        }
+        total
+    }
+}
+
+/// A number in `[0, 1)` that `eval` maps to cell `k` of `n` (as `(u as f32 * n as f32)
+/// as usize`), uniform over the numbers that do: drawn in the cell and redrawn when the
+/// rounding to `f32` puts it in a neighbour.
+fn uniform_in_cell(rng: &mut Rng, k: usize, n: usize) -> f64 {
+    loop {
+        let v = (k as f64 + rng.uniform()) / n as f64;
+        let f = (v as f32).min(ONE_MINUS_EPSILON);
+        if ((f * n as f32) as usize).min(n - 1) == k {
+            return v;
+        }
     }
 }
 
@@ -467,6 +571,7 @@ pub fn render_unit(
     let per_stream = 8 + 4 * (settings.max_depth() as usize + 2);
     let mut samples = PrimarySamples::new(STREAMS * per_stream, SIGMA, LARGE_STEP_PROBABILITY);
     let mut cdf = vec![0.0f64; n_bootstrap as usize];
+    let mut found = Vec::new();
     let mut sum = vec![[0.0f64; 3]; (w * h) as usize];
     let pixels = rect.pixel_count();
     let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
@@ -479,8 +584,7 @@ pub fn render_unit(
         let mut total = 0.0f64;
         for (i, entry) in cdf.iter_mut().enumerate() {
             samples.reset(boot_seed(i));
-            let (l, _) = mlt.eval(&mut samples);
-            total += target(l, &mut rejected_samples);
+            total += mlt.eval_all(&mut samples, &mut found);
             *entry = total;
         }
         let b = total / n_bootstrap as f64;
@@ -492,6 +596,22 @@ pub fn render_unit(
                 // The first entry whose running sum exceeds u: its own value is positive.
                 let i = cdf.partition_point(|&c| c <= u).min(cdf.len() - 1);
                 samples.reset(boot_seed(i));
+                // Its depth and technique in proportion to their contribution, with
+                // numbers in their cells that select them (module documentation).
+                let all = mlt.eval_all(&mut samples, &mut found);
+                let mut u = rng.uniform() * all;
+                let mut pick = found[found.len() - 1];
+                for &e in &found {
+                    if u < e.2 {
+                        pick = e;
+                        break;
+                    }
+                    u -= e.2;
+                }
+                let (d, s_pick, _) = pick;
+                samples.set(CAMERA_STREAM, 0, uniform_in_cell(&mut rng, d, depths));
+                let n = if d == 0 { 1 } else { d + 2 };
+                samples.set(CAMERA_STREAM, 1, uniform_in_cell(&mut rng, s_pick, n));
                 let (l, p) = mlt.eval(&mut samples);
                 let start = State {
                     value: (l, p),
@@ -701,5 +821,58 @@ mod tests {
             let (c, b) = pass_sizes(m);
             assert!(c >= 1 && c <= m.max(1) && b >= c, "{m}: {c} {b}");
         }
+    }
+
+    /// The bootstrap's `eval_all` gives, for every depth and technique, exactly what
+    /// `eval` gives for the state with the depth and technique numbers in that cell (the
+    /// prefix reading of the subpaths), and nothing for the cells it leaves out: on the
+    /// Cornell box (an area light, so every technique carries light), over many vectors.
+    #[test]
+    fn eval_all_gives_each_technique_as_eval_does() {
+        let scene = tessera_scene::load("builtin:cornell-box").unwrap();
+        let (w, h) = (16u32, 16u32);
+        let rs = RenderScene::build(&scene, w, h).unwrap();
+        let settings = MltSettings::new(MisHeuristic::Power, 5);
+        let depths = settings.max_depth() as usize + 1;
+        let mut mlt = Mlt {
+            ctx: Ctx::new(&rs),
+            st: settings.bdpt,
+            motion: rs.has_motion(),
+            lens: rs.camera.has_lens(),
+            film: Vec2::new(w as f32, h as f32),
+            depths,
+            scratch: Scratch::boxed(),
+        };
+        let mut samples = PrimarySamples::new(64, SIGMA, LARGE_STEP_PROBABILITY);
+        let mut found = Vec::new();
+        let mut rng = Rng(17);
+        let (mut checked, mut nonzero) = (0, 0);
+        for seed in 0..300u64 {
+            samples.reset(seed);
+            let total = mlt.eval_all(&mut samples, &mut found);
+            let sum: f64 = found.iter().map(|e| e.2).sum();
+            assert!((total - sum).abs() <= 1e-12 * total.max(1.0));
+            let all = found.clone();
+            for d in 0..depths {
+                let n = if d == 0 { 1 } else { d + 2 };
+                for s in 0..n {
+                    samples.set(CAMERA_STREAM, 0, uniform_in_cell(&mut rng, d, depths));
+                    samples.set(CAMERA_STREAM, 1, uniform_in_cell(&mut rng, s, n));
+                    let (l, _) = mlt.eval(&mut samples);
+                    let c = target(l, &mut 0) / (n * depths) as f64;
+                    let want = all
+                        .iter()
+                        .find(|e| e.0 == d && e.1 == s)
+                        .map_or(0.0, |e| e.2);
+                    assert!(
+                        (c - want).abs() <= 1e-5 * want.max(1e-12),
+                        "seed {seed}, depth {d}, s {s}: eval {c}, eval_all {want}"
+                    );
+                    checked += 1;
+                    nonzero += usize::from(want > 0.0);
+                }
+            }
+        }
+        assert!(nonzero > checked / 20, "{nonzero} of {checked} carry light");
     }
 }

@@ -9,7 +9,7 @@ use crate::common::{assert_blocks_agree, block_passes, block_stats};
 use tessera_farm::FramePlan;
 use tessera_render::integrator::Integrator;
 use tessera_render::render::{render_frame, render_unit, RenderConfig};
-use tessera_render::scene::RenderScene;
+use tessera_render::scene::{rays_traced, RenderScene};
 use tessera_scene::builtin::{FURNACE_ALBEDO, FURNACE_EMISSION};
 
 fn settings(integrator: Integrator, seed: u64, max_depth: u32) -> RenderConfig {
@@ -130,10 +130,36 @@ fn mlt_is_bit_identical_across_threads_and_unit_splits() {
 #[ignore = "a measurement: prints the efficiency table"]
 fn mlt_efficiency_table() {
     use std::time::Instant;
+    // Seconds of CPU the process spent (both threads), from /proc/self/stat: on a shared
+    // machine less disturbed by the load than wall time. MLT_WALL=1 takes wall time.
+    let cpu = || -> Option<f64> {
+        let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+        let after = stat.rsplit(')').next().unwrap_or("");
+        let f: Vec<f64> = after
+            .split_whitespace()
+            .skip(11)
+            .take(2)
+            .filter_map(|v| v.parse().ok())
+            .collect();
+        (f.len() == 2).then(|| f.iter().sum::<f64>() / 100.0)
+    };
+    let wall = std::env::var("MLT_WALL").is_ok();
+    // One thread, the units rendered on this one in order, so that its ray counter
+    // (`rays_traced`) brackets the render: CPU seconds per ray give each technique's cost
+    // per ray, the pilot's `BDPT_RAY_COST` and `MLT_RAY_COST`.
+    let rays = std::cell::Cell::new(0u64);
     let time = |rs: &RenderScene, s: &RenderConfig, plan: &FramePlan| {
-        let t = Instant::now();
-        let acc = render_frame(rs, s, plan, 0, 2, |_, _| {});
-        (acc.image(), t.elapsed().as_secs_f64())
+        let (t, c, r) = (Instant::now(), cpu(), rays_traced());
+        let mut acc = tessera_farm::FrameAccumulator::new(*plan);
+        for u in plan.units(0, 1) {
+            acc.offer(render_unit(rs, s, plan, u)).unwrap();
+        }
+        rays.set(rays_traced() - r);
+        let secs = match (wall, c, cpu()) {
+            (false, Some(c0), Some(c1)) => c1 - c0,
+            _ => t.elapsed().as_secs_f64(),
+        };
+        (acc.image(), secs)
     };
     let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
     let env = |k: &str, d: u32| -> u32 {
@@ -215,9 +241,11 @@ fn mlt_efficiency_table() {
         rows.push((integrator, eff));
         eprintln!(
             "door-ajar {w}x{h}, {} spp, {integrator}: {secs:.2} s, mean {mean:.5}, rel. RMSE \
-             {:.4}, 1/(MSE s) {eff:.4e}",
+             {:.4}, 1/(MSE s) {eff:.4e}, {} rays, {:.1} ns per ray",
             spp_per_pass * passes,
             mse.max(0.0).sqrt() / truth,
+            rays.get(),
+            secs * 1e9 / rays.get().max(1) as f64,
         );
     }
     let path = rows[0].1;

@@ -24,6 +24,7 @@ fn planned(scene: &Scene) -> (RenderConfig, PlannedIntegrator) {
         PlannedIntegrator::Path => (Integrator::Path, plan.max_depth),
         PlannedIntegrator::Bdpt => (Integrator::Bdpt, plan.max_depth),
         PlannedIntegrator::Vcm => (Integrator::Vcm, plan.max_depth),
+        PlannedIntegrator::Mlt => (Integrator::Mlt, plan.max_depth),
         PlannedIntegrator::Black => (Integrator::Direct, 1),
     };
     (

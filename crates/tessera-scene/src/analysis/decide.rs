@@ -204,7 +204,10 @@ fn depths(
             reasons.push("max depth 1: one scattering event".into());
             (1, DEFAULT_RR_DEPTH)
         }
-        PlannedIntegrator::Path | PlannedIntegrator::Bdpt | PlannedIntegrator::Vcm => {
+        PlannedIntegrator::Path
+        | PlannedIntegrator::Bdpt
+        | PlannedIntegrator::Vcm
+        | PlannedIntegrator::Mlt => {
             let closed_bright = transport.indirect_diffuse
                 && mean_albedo > BRIGHT_ALBEDO
                 && enclosure >= CLOSED_FRACTION;
