@@ -9,10 +9,11 @@
 //! | [`sheen_albedo`] | `E(μ, r)` of the Charlie sheen lobe of KHR_materials_sheen as published, sheen colour 1 |
 //! | [`sheen_layer_albedo`] | `E'(μ, r)` of the sheen lobe Tessera renders (`sheen::Sheen::eval`, the published lobe divided by `max(1, E(μo), E(μi))`), sheen colour 1: what the sheen layer reflects, hence what it withholds from the base |
 //! | [`anisotropic_ggx_albedo`] | `(A, B)` of [`ggx_albedo`] for the anisotropic GGX of KHR_materials_anisotropy, over `(μ, φ, r, t)`: `φ` the azimuth of `wo` from the anisotropy direction, `r` the perceptual roughness across it and `t = strength²` (`anisotropic_albedo.bin`), with its hemispherical average [`anisotropic_ggx_albedo_average`] |
+//! | [`coat_loss`] | `D(μ, r_base, r_coat)`: what a white GGX base under a clearcoat loses to the coat's reciprocal `min` scaling (`coat_loss.bin`), with its average [`coat_loss_average`], for the compensation of [`super::gltf`] |
 //! | [`dielectric_albedo`] | `E(μ, α, η)`: the reflected plus transmitted power of the single-scattering rough dielectric, for `η` in `[1, 3]` and `1/η` (`dielectric_albedo.bin`), with its average [`dielectric_albedo_average`], for the multiple-scattering compensation of [`super::dielectric`] |
 //!
 //! The tables are computed by fixed quadrature and committed (`albedo_tables.bin`,
-//! `dielectric_albedo.bin` and `anisotropic_albedo.bin`, read
+//! `dielectric_albedo.bin`, `anisotropic_albedo.bin` and `coat_loss.bin`, read
 //! once per process): computing them at start-up took 0.6 s for the GGX tables and
 //! 0.75 s for the sheen table at opt-level 3 on a busy two-core machine, paid by every
 //! `tessera render`, worker and pilot process that met a glTF material (0.93 G of the
@@ -733,6 +734,152 @@ pub(crate) fn anisotropic_albedo_reference(w: Vec3, alpha: f32, t: f32) -> (f32,
     anisotropic_albedo_quadrature(w.z.abs(), phi, alpha, t)
 }
 
+// ---------------------------------------------------------------------------------------
+// A rough base under a clearcoat
+// ---------------------------------------------------------------------------------------
+
+/// Clearcoat's Fresnel reflectance at normal incidence (ior 1.5), `f0` of its albedo
+/// `E_cc = COAT_F0 A + B`.
+pub const COAT_F0: f32 = 0.04;
+
+/// Nodes of the coat-loss table along `sqrt(μ)`.
+const C_MU: usize = 32;
+/// Nodes along the base's and the coat's perceptual roughness, each uniform in
+/// `[sqrt(MIN_ALPHA), 1]`.
+const C_R: usize = 16;
+/// Entries of the coat-loss table.
+const C_SIZE: usize = C_R * C_R * C_MU;
+/// Quadrature points per side of the unit square, per coat-loss entry.
+#[cfg(test)]
+const C_QUAD: usize = 32;
+
+/// The committed coat-loss table `D(μ, r_base, r_coat)`, `r_coat` slowest and `μ`
+/// fastest, little-endian binary32 (written by `write_coat_loss_table`).
+static COMMITTED_COAT_LOSS: &[u8; 4 * C_SIZE] = include_bytes!("coat_loss.bin");
+
+/// The coat-loss table with its cosine-weighted averages per `(r_coat, r_base)`.
+struct CoatLossTable {
+    v: Vec<f32>,
+    avg: Vec<f32>,
+}
+
+#[inline]
+fn c_index(k: usize, j: usize, i: usize) -> usize {
+    (k * C_R + j) * C_MU + i
+}
+
+/// The clearcoat's albedo `E_cc(μ) = COAT_F0 A + B` at GGX `alpha_cc`.
+#[inline]
+pub fn coat_albedo(mu: f32, alpha_cc: f32) -> f32 {
+    let (a, b) = ggx_albedo(mu, alpha_cc);
+    COAT_F0 * a + b
+}
+
+/// `D(μ)` at one `(μ, α_base, α_coat)` by the midpoint rule on the base's visible-normal
+/// warp (white, `F = 1`).
+#[cfg(test)]
+fn coat_loss_quadrature(mu: f32, alpha: f32, alpha_cc: f32) -> f32 {
+    let mu = mu.max(MU_MIN);
+    let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
+    let g1 = ggx_g1(wo, alpha);
+    let e_o = coat_albedo(mu, alpha_cc);
+    let mut sum = 0.0f64;
+    for i in 0..C_QUAD {
+        for j in 0..C_QUAD {
+            let u = Vec2::new(
+                (i as f32 + 0.5) / C_QUAD as f32,
+                (j as f32 + 0.5) / C_QUAD as f32,
+            );
+            let h = sample_ggx_vndf(wo, alpha, u);
+            let wi = crate::math::reflect(wo, h);
+            if wi.z <= 0.0 {
+                continue;
+            }
+            let g2 = 1.0 / (1.0 + ggx_lambda(wo, alpha) + ggx_lambda(wi, alpha));
+            let gap = (coat_albedo(wi.z, alpha_cc) - e_o).max(0.0);
+            sum += (g2 / g1 * gap) as f64;
+        }
+    }
+    (sum / (C_QUAD * C_QUAD) as f64) as f32
+}
+
+/// The coat-loss table by quadrature, in the committed file's order.
+#[cfg(test)]
+fn coat_loss_quadrature_table() -> Vec<f32> {
+    let r_min = MIN_ALPHA.sqrt();
+    let r = move |j: usize| r_min + (1.0 - r_min) * node(j, C_R);
+    (0..C_R * C_R)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            let (k, j) = (row / C_R, row % C_R);
+            let (alpha, alpha_cc) = ((r(j) * r(j)).max(MIN_ALPHA), (r(k) * r(k)).max(MIN_ALPHA));
+            (0..C_MU).map(move |i| coat_loss_quadrature(mu_node_of(i, C_MU), alpha, alpha_cc))
+        })
+        .collect()
+}
+
+fn coat_loss_table() -> &'static CoatLossTable {
+    static TABLE: OnceLock<CoatLossTable> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        let v: Vec<f32> = COMMITTED_COAT_LOSS
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        let mut avg = Vec::with_capacity(C_R * C_R);
+        for k in 0..C_R {
+            for j in 0..C_R {
+                let column: [f32; C_MU] = std::array::from_fn(|i| v[c_index(k, j, i)]);
+                avg.push(sqrt_mu_average(&column));
+            }
+        }
+        CoatLossTable { v, avg }
+    })
+}
+
+/// Cells and fractions of `(α_base, α_coat)` in the coat-loss table.
+#[inline]
+fn c_locate(alpha: f32, alpha_cc: f32) -> ((usize, f32), (usize, f32)) {
+    let r_min = MIN_ALPHA.sqrt();
+    let at = |a: f32| Table::locate((a.max(0.0).sqrt() - r_min) / (1.0 - r_min), C_R);
+    (at(alpha), at(alpha_cc))
+}
+
+/// `D(μ) = ∫ max(0, E_cc(μi) - E_cc(μ)) f(wo, wi) cos θi dωi`: what a white GGX base of
+/// `alpha` under a clearcoat of `alpha_cc` (factor one) loses at `μ = cos θo` when the
+/// coat scales it by the reciprocal `min(1 - E_cc(μo), 1 - E_cc(μi))` rather than by
+/// `1 - E_cc(μo)` (the gap is linear in the clearcoat factor). Trilinear in
+/// `(sqrt(μ), r_base, r_coat)`.
+#[inline]
+pub fn coat_loss(mu: f32, alpha: f32, alpha_cc: f32) -> f32 {
+    let t = coat_loss_table();
+    let (i, s) = Table::locate(mu.max(0.0).sqrt(), C_MU);
+    let ((j, u), (k, w)) = c_locate(alpha, alpha_cc);
+    let bilinear = |k: usize| {
+        let at = |j: usize, i: usize| t.v[c_index(k, j, i)];
+        let a = at(j, i) + (at(j, i + 1) - at(j, i)) * s;
+        let b = at(j + 1, i) + (at(j + 1, i + 1) - at(j + 1, i)) * s;
+        a + (b - a) * u
+    };
+    let (lo, hi) = (bilinear(k), bilinear(k + 1));
+    lo + (hi - lo) * w
+}
+
+/// `2 ∫ D(μ) μ dμ` of the interpolated [`coat_loss`].
+#[inline]
+pub fn coat_loss_average(alpha: f32, alpha_cc: f32) -> f32 {
+    let t = coat_loss_table();
+    let ((j, u), (k, w)) = c_locate(alpha, alpha_cc);
+    let at = |k: usize, j: usize| t.avg[k * C_R + j];
+    let lo = at(k, j) + (at(k, j + 1) - at(k, j)) * u;
+    let hi = at(k + 1, j) + (at(k + 1, j + 1) - at(k + 1, j)) * u;
+    lo + (hi - lo) * w
+}
+
+#[cfg(test)]
+pub(crate) fn coat_loss_reference(mu: f32, alpha: f32, alpha_cc: f32) -> f32 {
+    coat_loss_quadrature(mu, alpha, alpha_cc)
+}
+
 #[cfg(test)]
 pub(crate) fn dielectric_albedo_reference(mu: f32, alpha: f32, eta: f32) -> f32 {
     dielectric_albedo_quadrature(mu, alpha, eta)
@@ -834,6 +981,31 @@ mod committed_tests {
         let bytes: Vec<u8> = a.iter().chain(&b).flat_map(|v| v.to_le_bytes()).collect();
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
         std::fs::write(dir.join("anisotropic_albedo.bin"), bytes).unwrap();
+    }
+
+    /// Writes `coat_loss.bin` from the quadrature (run by hand).
+    #[test]
+    #[ignore = "writes src/bsdf/coat_loss.bin; run by hand after changing the quadrature"]
+    fn write_coat_loss_table() {
+        let bytes: Vec<u8> = coat_loss_quadrature_table()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
+        std::fs::write(dir.join("coat_loss.bin"), bytes).unwrap();
+    }
+
+    /// The committed coat-loss table is what the quadrature gives, within rounding.
+    #[test]
+    fn committed_coat_loss_table_is_the_quadrature() {
+        let table = coat_loss_quadrature_table();
+        for (n, (c, s)) in table.iter().zip(&coat_loss_table().v).enumerate() {
+            assert!(
+                (c - s).abs() <= 1e-5,
+                "coat-loss entry {n}: quadrature {c}, committed {s}; regenerate with \
+                 `cargo test -p tessera-render --lib write_coat_loss_table -- --ignored`"
+            );
+        }
     }
 
     /// The committed anisotropic GGX tables are what the quadrature gives, within rounding.

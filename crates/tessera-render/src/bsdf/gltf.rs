@@ -70,7 +70,8 @@
 
 use super::albedo::{
     anisotropic_alphas, anisotropic_ggx_albedo, anisotropic_ggx_albedo_average,
-    anisotropic_ggx_albedo_azimuthal, ggx_albedo, ggx_albedo_average, sheen_layer_albedo,
+    anisotropic_ggx_albedo_azimuthal, coat_loss, coat_loss_average, ggx_albedo, ggx_albedo_average,
+    sheen_layer_albedo, COAT_F0,
 };
 use super::dielectric::RoughDielectric;
 use super::diffuse::Diffuse;
@@ -185,9 +186,6 @@ const SPEC: usize = 3;
 const DIFFUSE: usize = 4;
 const GLASS: usize = 5;
 
-/// Clearcoat's Fresnel reflectance at normal incidence (ior 1.5).
-const COAT_F0: f32 = 0.04;
-
 /// The layered glTF lobe (see the module documentation); build it with [`gltf_bsdf`].
 #[derive(Clone, Copy, Debug)]
 pub struct GltfLobe {
@@ -219,6 +217,17 @@ pub struct GltfLobe {
     /// Kulla–Conty multiple scattering of the metal: `F_ms / (π (1 - E1_avg))` per
     /// channel (zero without metal).
     ms_scale: Vec3,
+    /// Under a clearcoat, the metal's multiple scattering in the layers' reciprocal form
+    /// `F_ms (1 - E1(μo)) T(μo) (1 - E1(μi)) T(μi) / (π 2 ∫ (1 - E1) T μ dμ)`: this is the
+    /// `F_ms / (π ...)` factor (zero without a coated metal).
+    ms_coated: Vec3,
+    /// Under a clearcoat, what the metal's single scattering loses to the coat's `min`
+    /// factor, returned as `coat_metal D(μo) D(μi) cos θi` with `D` = [`coat_loss`]: this
+    /// is `metal clearcoat F_avg / (π D_avg)` (zero without a coated metal).
+    coat_metal: Vec3,
+    /// The GGX alpha the coat-loss table is looked up at (the metal's; the root mean
+    /// square of the two for an anisotropic one).
+    alpha_loss: f32,
     /// Relative index of refraction of the transmissive part.
     eta: f32,
     /// Transmission through a smooth interface (a delta component).
@@ -347,6 +356,9 @@ impl GltfLobe {
             one_minus_e_avg,
             layered_avg: Vec3::ONE,
             ms_scale,
+            ms_coated: Vec3::ZERO,
+            coat_metal: Vec3::ZERO,
+            alpha_loss: alpha,
             eta: ior,
             smooth: alpha_raw < MIN_ALPHA || ior - 1.0 < 1e-3,
             clearcoat: c01(p.clearcoat),
@@ -359,7 +371,54 @@ impl GltfLobe {
         if lobe.layered() && lobe.opaque > 0.0 {
             lobe.layered_avg = lobe.layered_average();
         }
+        if lobe.clearcoat > 0.0 && metal > 0.0 {
+            lobe.coat_the_metal();
+        }
         lobe
+    }
+
+    /// The clearcoat's scaling of a metal: its multiple scattering in the layers'
+    /// reciprocal form (a cosine-like lobe: the `min` factor lost 2-4% of it, as it did
+    /// of a Lambertian base), and the compensation of what the `min` factor takes from its
+    /// single scattering, which is sharp: `D(μ)` per unit clearcoat factor, tabulated
+    /// ([`coat_loss`]), returned as the reciprocal lobe `D(μo) D(μi) / (π D_avg)` (Kulla &
+    /// Conty 2017's form for lost energy). A white metal under a coat then reflects
+    /// `E_cc(μo) + (1 - E_cc(μo))` up to the tables.
+    fn coat_the_metal(&mut self) {
+        // F_ms / π(1 - E1_avg) is ms_scale; F_ms / (π L) with L = 2 ∫ (1 - E1) T μ dμ.
+        let e_avg_loss = {
+            let (a, b) = if self.anisotropic() {
+                anisotropic_ggx_albedo_average(self.alpha, self.aniso_t)
+            } else {
+                ggx_albedo_average(self.alpha)
+            };
+            (1.0 - (a + b).clamp(0.0, 1.0 - 1e-4)).max(1e-4)
+        };
+        const N: usize = 32;
+        let mut l = 0.0;
+        for k in 0..N {
+            let x = (k as f32 + 0.5) / N as f32;
+            let mu = x * x;
+            l += self.ms_loss_azimuthal(mu) * self.layers_scale(mu) * (4.0 * x * x * x / N as f32);
+        }
+        self.ms_coated = self.ms_scale * (e_avg_loss / l.max(1e-6));
+        let (ax, ay) = anisotropic_alphas(self.alpha, self.aniso_t);
+        self.alpha_loss = ((ax * ax + ay * ay) / 2.0).sqrt();
+        let d_avg = coat_loss_average(self.alpha_loss, self.alpha_cc);
+        if d_avg > 1e-6 {
+            let f_avg = self.base + (Vec3::ONE - self.base) / 21.0;
+            self.coat_metal = f_avg * (self.metal * self.clearcoat * FRAC_1_PI / d_avg);
+        }
+    }
+
+    /// `1 - E1(μ)` of [`GltfLobe::ms_loss`] averaged over the azimuth.
+    fn ms_loss_azimuthal(&self, mu: f32) -> f32 {
+        let (a, b) = if self.anisotropic() {
+            anisotropic_ggx_albedo_azimuthal(mu, self.alpha, self.aniso_t)
+        } else {
+            ggx_albedo(mu, self.alpha)
+        };
+        (1.0 - a - b).max(0.0)
     }
 
     /// True if a clearcoat or a sheen lies over the base.
@@ -626,19 +685,36 @@ impl GltfLobe {
     /// sheen do not reflect (`T` is [`GltfLobe::layers_scale`]).
     fn layered_opaque_eval(&self, wo: Vec3, wi: Vec3) -> (Vec3, Vec3) {
         let mut sharp = Vec3::ZERO;
-        if self.metal > 0.0 {
-            let ms = self.ms_scale * (self.ms_loss_wo(wo) * self.ms_loss(wi) * wi.z);
-            sharp += self.metal * (self.metal_single(wo, wi) + ms);
-        }
         let mut diffuse = Vec3::ZERO;
+        if self.metal > 0.0 {
+            sharp += self.metal * self.metal_single(wo, wi);
+            let loss = self.ms_loss_wo(wo) * self.ms_loss(wi) * wi.z;
+            if self.ms_coated == Vec3::ZERO {
+                sharp += self.metal * self.ms_scale * loss;
+            } else {
+                let t = self.layers_scale(wo.z) * self.layers_scale(wi.z);
+                diffuse += self.metal * self.ms_coated * (loss * t);
+            }
+        }
         if self.opaque > 0.0 {
             sharp += self.opaque * self.base_reflection(wo, wi, self.f0, self.f90);
             let eo = (Vec3::ONE - self.spec_albedo_wo(wo)) * self.layers_scale(wo.z);
             let ei = (Vec3::ONE - self.spec_albedo(wi)) * self.layers_scale(wi.z);
             let scale = (eo * ei / self.layered_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
-            diffuse = self.opaque * self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
+            diffuse += self.opaque * self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
         }
         (sharp, diffuse)
+    }
+
+    /// The coated metal's compensation `coat_metal D(μo) D(μi) μi` (see
+    /// [`GltfLobe::coat_the_metal`]), both directions outside.
+    #[inline]
+    fn coat_compensation(&self, mo: f32, mi: f32) -> Vec3 {
+        if self.coat_metal == Vec3::ZERO {
+            return Vec3::ZERO;
+        }
+        let d = |mu| coat_loss(mu, self.alpha_loss, self.alpha_cc);
+        self.coat_metal * (d(mo) * d(mi) * mi)
     }
 
     /// Component selection probabilities at `wo` (estimates of their albedos), in the
@@ -689,6 +765,13 @@ impl GltfLobe {
         if self.metal > 0.0 {
             let f = fresnel_schlick(self.base, mu).max_element();
             w[METAL] = under * self.metal * f.max(0.05);
+            if outside && self.coat_metal != Vec3::ZERO {
+                // The coat compensation is cosine-like too; its albedo is
+                // coat_metal π D_avg D(μo).
+                let d_avg = coat_loss_average(self.alpha_loss, self.alpha_cc);
+                let d = coat_loss(mu, self.alpha_loss, self.alpha_cc);
+                w[DIFFUSE] += self.coat_metal.max_element() * std::f32::consts::PI * d_avg * d;
+            }
             // The multiple-scattering lobe is cosine-like: sampled with the diffuse one.
             // Its albedo is ms_scale π (1 - E1(μo)) (1 - E1_avg) <= F_ms (1 - E1(μo)).
             let ms = self.ms_scale.max_element() * std::f32::consts::PI * ms_loss;
@@ -741,7 +824,7 @@ impl GltfLobe {
                     let coat = ggx_reflection(wo, wi, self.alpha_cc, Vec3::splat(COAT_F0), 1.0);
                     f = self.clearcoat * coat + g_cc * f;
                 }
-                f + diffuse
+                f + diffuse + self.coat_compensation(mo, mi)
             }
             // Inside a transmissive material: the opaque parts are two-sided.
             (false, false) => {

@@ -190,9 +190,11 @@ impl RenderScene {
                     .as_gltf()
                     .and_then(|g| g.anisotropy)
                     .is_some_and(|a| a.strength > 0.0);
+                // The glTF importer flattens anisotropic meshes, so only a moving one (whose
+                // tangents turn within the shutter) lacks world-space tangents here.
                 if anisotropic && m.tangents.is_some() && !world_tangents {
                     motion_warnings.push(format!(
-                        "material '{}': KHR_materials_anisotropy on an instanced or moving \
+                        "material '{}': KHR_materials_anisotropy on a moving or instanced \
                          mesh is rendered isotropic (its tangents are not carried to the hit)",
                         scene.materials[m.material as usize].name
                     ));
