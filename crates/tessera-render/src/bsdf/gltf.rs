@@ -532,14 +532,14 @@ impl GltfLobe {
 
     /// `w` in the frame whose `+x` is the anisotropy direction (a rotation about `z`).
     #[inline]
-    fn to_aligned(&self, w: Vec3) -> Vec3 {
+    fn aligned(&self, w: Vec3) -> Vec3 {
         let (c, s) = (self.aniso_dir.x, self.aniso_dir.y);
         Vec3::new(c * w.x + s * w.y, c * w.y - s * w.x, w.z)
     }
 
-    /// The inverse of [`GltfLobe::to_aligned`].
+    /// The inverse of [`GltfLobe::aligned`].
     #[inline]
-    fn from_aligned(&self, w: Vec3) -> Vec3 {
+    fn unaligned(&self, w: Vec3) -> Vec3 {
         let (c, s) = (self.aniso_dir.x, self.aniso_dir.y);
         Vec3::new(c * w.x - s * w.y, s * w.x + c * w.y, w.z)
     }
@@ -557,7 +557,7 @@ impl GltfLobe {
     fn base_reflection(&self, wo: Vec3, wi: Vec3, f0: Vec3, f90: f32) -> Vec3 {
         if self.anisotropic() {
             self.aniso_ggx()
-                .reflection(self.to_aligned(wo), self.to_aligned(wi), f0, f90)
+                .reflection(self.aligned(wo), self.aligned(wi), f0, f90)
         } else {
             ggx_reflection(wo, wi, self.alpha, f0, f90)
         }
@@ -578,7 +578,7 @@ impl GltfLobe {
     fn base_pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
         if self.anisotropic() {
             self.aniso_ggx()
-                .reflection_pdf(self.to_aligned(wo), self.to_aligned(wi))
+                .reflection_pdf(self.aligned(wo), self.aligned(wi))
         } else {
             ggx_pdf(wo, wi, self.alpha)
         }
@@ -588,7 +588,7 @@ impl GltfLobe {
     #[inline]
     fn base_sample(&self, wo: Vec3, u: Vec2) -> Vec3 {
         let h = if self.anisotropic() {
-            self.from_aligned(self.aniso_ggx().sample_vndf(self.to_aligned(wo), u))
+            self.unaligned(self.aniso_ggx().sample_vndf(self.aligned(wo), u))
         } else {
             sample_ggx_vndf(wo, self.alpha, u)
         };
@@ -600,7 +600,7 @@ impl GltfLobe {
     #[inline]
     fn ggx_table(&self, w: Vec3) -> (f32, f32) {
         if self.anisotropic() {
-            anisotropic_ggx_albedo(self.to_aligned(w), self.alpha, self.aniso_t)
+            anisotropic_ggx_albedo(self.aligned(w), self.alpha, self.aniso_t)
         } else {
             ggx_albedo(w.z.abs(), self.alpha)
         }
