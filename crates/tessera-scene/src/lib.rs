@@ -39,8 +39,8 @@ pub mod material;
 pub use environment::EnvironmentMap;
 pub use gltf_import::SceneTime;
 pub use material::{
-    AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture, TextureRef,
-    UvTransform, Volume, Wrap,
+    AlphaMode, Anisotropy, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture,
+    TextureRef, UvTransform, Volume, Wrap,
 };
 
 use glam::{Affine3A, Mat4, Vec2, Vec3, Vec4};

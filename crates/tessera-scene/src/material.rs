@@ -223,6 +223,22 @@ pub struct NormalMap {
     pub scale: f32,
 }
 
+/// KHR_materials_anisotropy: the GGX roughness of the metal and the specular layer
+/// stretched along a direction of the tangent frame (the mesh's `TANGENT`, or MikkTSpace
+/// tangents of the texture coordinates when it has none).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Anisotropy {
+    /// `anisotropyStrength` in [0, 1]: the alpha along the direction is
+    /// `mix(α, 1, strength²)`, across it `α`.
+    pub strength: f32,
+    /// `anisotropyRotation`: radians counter-clockwise from the tangent toward the
+    /// bitangent.
+    pub rotation: f32,
+    /// `anisotropyTexture` (linear): the direction in RG (`2 rg - 1` in the tangent
+    /// frame, then rotated by `rotation`), a factor on the strength in B.
+    pub texture: Option<TextureRef>,
+}
+
 /// Beer–Lambert absorption inside a transmissive volume (KHR_materials_volume).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Volume {
@@ -291,6 +307,8 @@ pub struct GltfMaterial {
     /// KHR_materials_unlit: the surface does not scatter; it emits its base colour
     /// (the importer moves the base colour into the emission).
     pub unlit: bool,
+    /// KHR_materials_anisotropy, if the material has it.
+    pub anisotropy: Option<Anisotropy>,
 }
 
 impl Default for GltfMaterial {
@@ -322,6 +340,7 @@ impl Default for GltfMaterial {
             sheen_roughness: 0.0,
             sheen_roughness_texture: None,
             unlit: false,
+            anisotropy: None,
         }
     }
 }
@@ -341,6 +360,7 @@ impl GltfMaterial {
             self.clearcoat_roughness_texture.as_ref(),
             self.sheen_color_texture.as_ref(),
             self.sheen_roughness_texture.as_ref(),
+            self.anisotropy.as_ref().and_then(|a| a.texture.as_ref()),
         ]
         .into_iter()
         .flatten()

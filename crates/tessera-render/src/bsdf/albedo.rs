@@ -8,10 +8,12 @@
 //! | [`ggx_albedo_average`] | `E_avg(α) = 2 ∫ E(μ) μ dμ`, the cosine-weighted hemispherical average, as `(A_avg, B_avg)` |
 //! | [`sheen_albedo`] | `E(μ, r)` of the Charlie sheen lobe of KHR_materials_sheen as published, sheen colour 1 |
 //! | [`sheen_layer_albedo`] | `E'(μ, r)` of the sheen lobe Tessera renders (`sheen::Sheen::eval`, the published lobe divided by `max(1, E(μo), E(μi))`), sheen colour 1: what the sheen layer reflects, hence what it withholds from the base |
+//! | [`anisotropic_ggx_albedo`] | `(A, B)` of [`ggx_albedo`] for the anisotropic GGX of KHR_materials_anisotropy, over `(μ, φ, r, t)`: `φ` the azimuth of `wo` from the anisotropy direction, `r` the perceptual roughness across it and `t = strength²` (`anisotropic_albedo.bin`), with its hemispherical average [`anisotropic_ggx_albedo_average`] |
+//! | [`coat_loss`] | `D(μ, r_base, r_coat)`: what a white GGX base under a clearcoat loses to the coat's reciprocal `min` scaling (`coat_loss.bin`), with its average [`coat_loss_average`], for the compensation of [`super::gltf`] |
 //! | [`dielectric_albedo`] | `E(μ, α, η)`: the reflected plus transmitted power of the single-scattering rough dielectric, for `η` in `[1, 3]` and `1/η` (`dielectric_albedo.bin`), with its average [`dielectric_albedo_average`], for the multiple-scattering compensation of [`super::dielectric`] |
 //!
-//! The tables are computed by fixed quadrature and committed (`albedo_tables.bin` and
-//! `dielectric_albedo.bin`, read
+//! The tables are computed by fixed quadrature and committed (`albedo_tables.bin`,
+//! `dielectric_albedo.bin`, `anisotropic_albedo.bin` and `coat_loss.bin`, read
 //! once per process): computing them at start-up took 0.6 s for the GGX tables and
 //! 0.75 s for the sheen table at opt-level 3 on a busy two-core machine, paid by every
 //! `tessera render`, worker and pilot process that met a glTF material (0.93 G of the
@@ -37,7 +39,8 @@ use super::sheen;
 #[cfg(test)]
 use crate::sampling::warp::{ggx_g1, ggx_lambda, sample_ggx_vndf};
 #[cfg(test)]
-use glam::{Vec2, Vec3};
+use glam::Vec2;
+use glam::Vec3;
 #[cfg(test)]
 use rayon::prelude::*;
 use std::sync::OnceLock;
@@ -517,6 +520,366 @@ pub fn dielectric_albedo_average(alpha: f32, eta: f32) -> f32 {
     lo + (hi - lo) * w
 }
 
+// ---------------------------------------------------------------------------------------
+// Anisotropic GGX tables (KHR_materials_anisotropy)
+// ---------------------------------------------------------------------------------------
+
+/// Nodes of the anisotropic GGX tables along `sqrt(μ)`.
+const A_MU: usize = 24;
+/// Nodes along the azimuth of `wo` from the anisotropy direction, uniform in `[0, π/2]`
+/// (the albedo is even in `φ` and in `π - φ`).
+const A_PHI: usize = 9;
+/// Nodes along the perceptual roughness `r` of the bitangent direction, uniform in
+/// `[sqrt(MIN_ALPHA), 1]`.
+const A_R: usize = 12;
+/// Nodes along `t = strength²`, uniform in `[0, 1]`: the tangent's alpha is
+/// `α_t = α + (1 - α) t` (the extension's `mix(α, 1, strength²)`).
+const A_T: usize = 8;
+/// Entries of one anisotropic table.
+const A_SIZE: usize = A_T * A_R * A_PHI * A_MU;
+/// Quadrature points per side of the unit square, per anisotropic table entry.
+#[cfg(test)]
+const A_QUAD: usize = 32;
+
+/// The committed anisotropic GGX tables `A` then `B` (as [`ggx_albedo`]'s, for the
+/// anisotropic distribution), each `A_T × A_R × A_PHI × A_MU` values, `t` slowest and `μ`
+/// fastest, little-endian binary32 (written by `write_albedo_tables`).
+static COMMITTED_ANISOTROPIC: &[u8; 8 * A_SIZE] = include_bytes!("anisotropic_albedo.bin");
+
+/// The anisotropic tables with their cosine-weighted hemispherical averages per `(t, r)`.
+struct AnisotropicTables {
+    a: Vec<f32>,
+    b: Vec<f32>,
+    /// `(A_avg, B_avg)` per `(t, r)`, `t` slowest.
+    avg: Vec<(f32, f32)>,
+}
+
+#[inline]
+fn a_index(k: usize, j: usize, p: usize, i: usize) -> usize {
+    ((k * A_R + j) * A_PHI + p) * A_MU + i
+}
+
+/// The anisotropic GGX of table coordinates `(α, t)`: `(α_t, α_b)`.
+#[inline]
+pub fn anisotropic_alphas(alpha: f32, t: f32) -> (f32, f32) {
+    (alpha + (1.0 - alpha) * t, alpha)
+}
+
+/// `(A, B)` at one `(μ, φ, α, t)` by the midpoint rule on the anisotropic visible-normal
+/// warp (as [`ggx_albedo_quadrature`]).
+#[cfg(test)]
+fn anisotropic_albedo_quadrature(mu: f32, phi: f32, alpha: f32, t: f32) -> (f32, f32) {
+    let mu = mu.max(MU_MIN);
+    let s = (1.0 - mu * mu).max(0.0).sqrt();
+    let wo = Vec3::new(s * phi.cos(), s * phi.sin(), mu);
+    let (ax, ay) = anisotropic_alphas(alpha, t);
+    let ggx = super::microfacet::AnisoGgx { ax, ay };
+    let g1 = 1.0 / (1.0 + ggx.lambda(wo));
+    let (mut a, mut b) = (0.0f64, 0.0f64);
+    for i in 0..A_QUAD {
+        for j in 0..A_QUAD {
+            let u = Vec2::new(
+                (i as f32 + 0.5) / A_QUAD as f32,
+                (j as f32 + 0.5) / A_QUAD as f32,
+            );
+            let h = ggx.sample_vndf(wo, u);
+            let wi = crate::math::reflect(wo, h);
+            if wi.z <= 0.0 {
+                continue;
+            }
+            let w = (ggx.g2(wo, wi) / g1) as f64;
+            let m = (1.0 - wo.dot(h).clamp(0.0, 1.0)).powi(5) as f64;
+            a += w * (1.0 - m);
+            b += w * m;
+        }
+    }
+    let n = (A_QUAD * A_QUAD) as f64;
+    ((a / n) as f32, (b / n) as f32)
+}
+
+/// The azimuth of node `p`.
+#[cfg(test)]
+fn a_phi_node(p: usize) -> f32 {
+    std::f32::consts::FRAC_PI_2 * node(p, A_PHI)
+}
+
+/// The anisotropic tables `(A, B)` by quadrature, in the committed file's order.
+#[cfg(test)]
+fn anisotropic_quadrature_tables() -> (Vec<f32>, Vec<f32>) {
+    let r_min = MIN_ALPHA.sqrt();
+    let entries: Vec<(f32, f32)> = (0..A_T * A_R * A_PHI)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            let (k, j, p) = (row / (A_R * A_PHI), (row / A_PHI) % A_R, row % A_PHI);
+            let r = r_min + (1.0 - r_min) * node(j, A_R);
+            let alpha = (r * r).max(MIN_ALPHA);
+            (0..A_MU).map(move |i| {
+                anisotropic_albedo_quadrature(
+                    mu_node_of(i, A_MU),
+                    a_phi_node(p),
+                    alpha,
+                    node(k, A_T),
+                )
+            })
+        })
+        .collect();
+    entries.into_iter().unzip()
+}
+
+fn anisotropic_tables() -> &'static AnisotropicTables {
+    static TABLES: OnceLock<AnisotropicTables> = OnceLock::new();
+    TABLES.get_or_init(|| {
+        let read = |bytes: &[u8]| -> Vec<f32> {
+            bytes
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect()
+        };
+        let a = read(&COMMITTED_ANISOTROPIC[..4 * A_SIZE]);
+        let b = read(&COMMITTED_ANISOTROPIC[4 * A_SIZE..]);
+        // The average over the hemisphere of the interpolated table: exact in `μ` per
+        // azimuth node (`sqrt_mu_average`), then the trapezoid rule in `φ`, exact for the
+        // linear interpolation between the azimuth nodes.
+        let average = |v: &[f32], k: usize, j: usize| {
+            let mut sum = 0.0;
+            for p in 0..A_PHI {
+                let column: [f32; A_MU] = std::array::from_fn(|i| v[a_index(k, j, p, i)]);
+                let w = if p == 0 || p == A_PHI - 1 { 0.5 } else { 1.0 };
+                sum += w * sqrt_mu_average(&column);
+            }
+            sum / (A_PHI - 1) as f32
+        };
+        let mut avg = Vec::with_capacity(A_T * A_R);
+        for k in 0..A_T {
+            for j in 0..A_R {
+                avg.push((average(&a, k, j), average(&b, k, j)));
+            }
+        }
+        AnisotropicTables { a, b, avg }
+    })
+}
+
+/// Cells and fractions of `(α, t)` in the anisotropic tables.
+#[inline]
+fn a_locate(alpha: f32, t: f32) -> ((usize, f32), (usize, f32)) {
+    let r_min = MIN_ALPHA.sqrt();
+    let r = alpha.max(0.0).sqrt();
+    (
+        Table::locate((r - r_min) / (1.0 - r_min), A_R),
+        Table::locate(t, A_T),
+    )
+}
+
+/// `(A, B)` with `E = f0 A + f90 B` the albedo of anisotropic GGX reflection (Schlick's
+/// Fresnel) seen from `w`, given in the frame whose `+x` is the anisotropy direction:
+/// `α_t = α + (1 - α) t` along `+x`, `α` along `+y` ([`anisotropic_alphas`]).
+/// Quadrilinear in `(sqrt(μ), φ, r, t)`, `φ` the azimuth folded into `[0, π/2]`.
+#[inline]
+pub fn anisotropic_ggx_albedo(w: Vec3, alpha: f32, t: f32) -> (f32, f32) {
+    let tables = anisotropic_tables();
+    let (i, s) = Table::locate(w.z.abs().sqrt(), A_MU);
+    let phi = w.y.abs().atan2(w.x.abs());
+    let (p, v) = Table::locate(phi * std::f32::consts::FRAC_2_PI, A_PHI);
+    let ((j, u), (k, x)) = a_locate(alpha, t);
+    let interpolate = |tab: &[f32]| {
+        let mut out = 0.0;
+        for (dk, wk) in [(0, 1.0 - x), (1, x)] {
+            for (dj, wj) in [(0, 1.0 - u), (1, u)] {
+                for (dp, wp) in [(0, 1.0 - v), (1, v)] {
+                    let lo = tab[a_index(k + dk, j + dj, p + dp, i)];
+                    let hi = tab[a_index(k + dk, j + dj, p + dp, i + 1)];
+                    out += wk * wj * wp * (lo + (hi - lo) * s);
+                }
+            }
+        }
+        out
+    };
+    (interpolate(&tables.a), interpolate(&tables.b))
+}
+
+/// `(A_avg, B_avg)`: the cosine-weighted hemispherical averages (over `μ` and the azimuth)
+/// of the interpolated [`anisotropic_ggx_albedo`] at `(α, t)`.
+#[inline]
+pub fn anisotropic_ggx_albedo_average(alpha: f32, t: f32) -> (f32, f32) {
+    let tables = anisotropic_tables();
+    let ((j, u), (k, x)) = a_locate(alpha, t);
+    let at = |k: usize, j: usize| tables.avg[k * A_R + j];
+    let lerp =
+        |a: (f32, f32), b: (f32, f32), f: f32| (a.0 + (b.0 - a.0) * f, a.1 + (b.1 - a.1) * f);
+    let lo = lerp(at(k, j), at(k, j + 1), u);
+    let hi = lerp(at(k + 1, j), at(k + 1, j + 1), u);
+    lerp(lo, hi, x)
+}
+
+/// `(A, B)` of [`anisotropic_ggx_albedo`] at `μ` averaged over the azimuth (the trapezoid
+/// rule on the azimuth nodes, exact for the interpolation).
+pub fn anisotropic_ggx_albedo_azimuthal(mu: f32, alpha: f32, t: f32) -> (f32, f32) {
+    let (mut a, mut b) = (0.0, 0.0);
+    let s = (1.0 - mu * mu).max(0.0).sqrt();
+    for p in 0..A_PHI {
+        let phi = std::f32::consts::FRAC_PI_2 * p as f32 / (A_PHI - 1) as f32;
+        let (ea, eb) =
+            anisotropic_ggx_albedo(Vec3::new(s * phi.cos(), s * phi.sin(), mu), alpha, t);
+        let w = if p == 0 || p == A_PHI - 1 { 0.5 } else { 1.0 };
+        a += w * ea;
+        b += w * eb;
+    }
+    let n = (A_PHI - 1) as f32;
+    (a / n, b / n)
+}
+
+#[cfg(test)]
+pub(crate) fn anisotropic_albedo_reference(w: Vec3, alpha: f32, t: f32) -> (f32, f32) {
+    let phi = w.y.abs().atan2(w.x.abs());
+    anisotropic_albedo_quadrature(w.z.abs(), phi, alpha, t)
+}
+
+// ---------------------------------------------------------------------------------------
+// A rough base under a clearcoat
+// ---------------------------------------------------------------------------------------
+
+/// Clearcoat's Fresnel reflectance at normal incidence (ior 1.5), `f0` of its albedo
+/// `E_cc = COAT_F0 A + B`.
+pub const COAT_F0: f32 = 0.04;
+
+/// Nodes of the coat-loss table along `sqrt(μ)`.
+const C_MU: usize = 32;
+/// Nodes along the base's and the coat's perceptual roughness, each uniform in
+/// `[sqrt(MIN_ALPHA), 1]`.
+const C_R: usize = 16;
+/// Entries of the coat-loss table.
+const C_SIZE: usize = C_R * C_R * C_MU;
+/// Quadrature points per side of the unit square, per coat-loss entry.
+#[cfg(test)]
+const C_QUAD: usize = 32;
+
+/// The committed coat-loss table `D(μ, r_base, r_coat)`, `r_coat` slowest and `μ`
+/// fastest, little-endian binary32 (written by `write_coat_loss_table`).
+static COMMITTED_COAT_LOSS: &[u8; 4 * C_SIZE] = include_bytes!("coat_loss.bin");
+
+/// The coat-loss table with its cosine-weighted averages per `(r_coat, r_base)`.
+struct CoatLossTable {
+    v: Vec<f32>,
+    avg: Vec<f32>,
+}
+
+#[inline]
+fn c_index(k: usize, j: usize, i: usize) -> usize {
+    (k * C_R + j) * C_MU + i
+}
+
+/// The clearcoat's albedo `E_cc(μ) = COAT_F0 A + B` at GGX `alpha_cc`.
+#[inline]
+pub fn coat_albedo(mu: f32, alpha_cc: f32) -> f32 {
+    let (a, b) = ggx_albedo(mu, alpha_cc);
+    COAT_F0 * a + b
+}
+
+/// `D(μ)` at one `(μ, α_base, α_coat)` by the midpoint rule on the base's visible-normal
+/// warp (white, `F = 1`).
+#[cfg(test)]
+fn coat_loss_quadrature(mu: f32, alpha: f32, alpha_cc: f32) -> f32 {
+    let mu = mu.max(MU_MIN);
+    let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
+    let g1 = ggx_g1(wo, alpha);
+    let e_o = coat_albedo(mu, alpha_cc);
+    let mut sum = 0.0f64;
+    for i in 0..C_QUAD {
+        for j in 0..C_QUAD {
+            let u = Vec2::new(
+                (i as f32 + 0.5) / C_QUAD as f32,
+                (j as f32 + 0.5) / C_QUAD as f32,
+            );
+            let h = sample_ggx_vndf(wo, alpha, u);
+            let wi = crate::math::reflect(wo, h);
+            if wi.z <= 0.0 {
+                continue;
+            }
+            let g2 = 1.0 / (1.0 + ggx_lambda(wo, alpha) + ggx_lambda(wi, alpha));
+            let gap = (coat_albedo(wi.z, alpha_cc) - e_o).max(0.0);
+            sum += (g2 / g1 * gap) as f64;
+        }
+    }
+    (sum / (C_QUAD * C_QUAD) as f64) as f32
+}
+
+/// The coat-loss table by quadrature, in the committed file's order.
+#[cfg(test)]
+fn coat_loss_quadrature_table() -> Vec<f32> {
+    let r_min = MIN_ALPHA.sqrt();
+    let r = move |j: usize| r_min + (1.0 - r_min) * node(j, C_R);
+    (0..C_R * C_R)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            let (k, j) = (row / C_R, row % C_R);
+            let (alpha, alpha_cc) = ((r(j) * r(j)).max(MIN_ALPHA), (r(k) * r(k)).max(MIN_ALPHA));
+            (0..C_MU).map(move |i| coat_loss_quadrature(mu_node_of(i, C_MU), alpha, alpha_cc))
+        })
+        .collect()
+}
+
+fn coat_loss_table() -> &'static CoatLossTable {
+    static TABLE: OnceLock<CoatLossTable> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        let v: Vec<f32> = COMMITTED_COAT_LOSS
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        let mut avg = Vec::with_capacity(C_R * C_R);
+        for k in 0..C_R {
+            for j in 0..C_R {
+                let column: [f32; C_MU] = std::array::from_fn(|i| v[c_index(k, j, i)]);
+                avg.push(sqrt_mu_average(&column));
+            }
+        }
+        CoatLossTable { v, avg }
+    })
+}
+
+/// Cells and fractions of `(α_base, α_coat)` in the coat-loss table.
+#[inline]
+fn c_locate(alpha: f32, alpha_cc: f32) -> ((usize, f32), (usize, f32)) {
+    let r_min = MIN_ALPHA.sqrt();
+    let at = |a: f32| Table::locate((a.max(0.0).sqrt() - r_min) / (1.0 - r_min), C_R);
+    (at(alpha), at(alpha_cc))
+}
+
+/// `D(μ) = ∫ max(0, E_cc(μi) - E_cc(μ)) f(wo, wi) cos θi dωi`: what a white GGX base of
+/// `alpha` under a clearcoat of `alpha_cc` (factor one) loses at `μ = cos θo` when the
+/// coat scales it by the reciprocal `min(1 - E_cc(μo), 1 - E_cc(μi))` rather than by
+/// `1 - E_cc(μo)` (the gap is linear in the clearcoat factor). Trilinear in
+/// `(sqrt(μ), r_base, r_coat)`.
+#[inline]
+pub fn coat_loss(mu: f32, alpha: f32, alpha_cc: f32) -> f32 {
+    let t = coat_loss_table();
+    let (i, s) = Table::locate(mu.max(0.0).sqrt(), C_MU);
+    let ((j, u), (k, w)) = c_locate(alpha, alpha_cc);
+    let bilinear = |k: usize| {
+        let at = |j: usize, i: usize| t.v[c_index(k, j, i)];
+        let a = at(j, i) + (at(j, i + 1) - at(j, i)) * s;
+        let b = at(j + 1, i) + (at(j + 1, i + 1) - at(j + 1, i)) * s;
+        a + (b - a) * u
+    };
+    let (lo, hi) = (bilinear(k), bilinear(k + 1));
+    lo + (hi - lo) * w
+}
+
+/// `2 ∫ D(μ) μ dμ` of the interpolated [`coat_loss`].
+#[inline]
+pub fn coat_loss_average(alpha: f32, alpha_cc: f32) -> f32 {
+    let t = coat_loss_table();
+    let ((j, u), (k, w)) = c_locate(alpha, alpha_cc);
+    let at = |k: usize, j: usize| t.avg[k * C_R + j];
+    let lo = at(k, j) + (at(k, j + 1) - at(k, j)) * u;
+    let hi = at(k + 1, j) + (at(k + 1, j + 1) - at(k + 1, j)) * u;
+    lo + (hi - lo) * w
+}
+
+#[cfg(test)]
+pub(crate) fn coat_loss_reference(mu: f32, alpha: f32, alpha_cc: f32) -> f32 {
+    coat_loss_quadrature(mu, alpha, alpha_cc)
+}
+
 #[cfg(test)]
 pub(crate) fn dielectric_albedo_reference(mu: f32, alpha: f32, eta: f32) -> f32 {
     dielectric_albedo_quadrature(mu, alpha, eta)
@@ -563,7 +926,7 @@ mod committed_tests {
             assert!(
                 (c - s).abs() <= 1e-5,
                 "dielectric entry {n}: quadrature {c}, committed {s}; regenerate with \
-                 `cargo test -p tessera-render --lib write_albedo_tables -- --ignored`"
+                 `cargo test -p tessera-render --lib write_anisotropic_table -- --ignored`"
             );
         }
     }
@@ -607,5 +970,55 @@ mod committed_tests {
             .flat_map(|v| v.to_le_bytes())
             .collect();
         std::fs::write(dir.join("dielectric_albedo.bin"), bytes).unwrap();
+    }
+
+    /// Writes `anisotropic_albedo.bin` from the quadrature (run by hand; separate from
+    /// `write_albedo_tables` so that the other tables keep the bits they were written with).
+    #[test]
+    #[ignore = "writes src/bsdf/anisotropic_albedo.bin; run by hand after changing the quadrature"]
+    fn write_anisotropic_table() {
+        let (a, b) = anisotropic_quadrature_tables();
+        let bytes: Vec<u8> = a.iter().chain(&b).flat_map(|v| v.to_le_bytes()).collect();
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
+        std::fs::write(dir.join("anisotropic_albedo.bin"), bytes).unwrap();
+    }
+
+    /// Writes `coat_loss.bin` from the quadrature (run by hand).
+    #[test]
+    #[ignore = "writes src/bsdf/coat_loss.bin; run by hand after changing the quadrature"]
+    fn write_coat_loss_table() {
+        let bytes: Vec<u8> = coat_loss_quadrature_table()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
+        std::fs::write(dir.join("coat_loss.bin"), bytes).unwrap();
+    }
+
+    /// The committed coat-loss table is what the quadrature gives, within rounding.
+    #[test]
+    fn committed_coat_loss_table_is_the_quadrature() {
+        let table = coat_loss_quadrature_table();
+        for (n, (c, s)) in table.iter().zip(&coat_loss_table().v).enumerate() {
+            assert!(
+                (c - s).abs() <= 1e-5,
+                "coat-loss entry {n}: quadrature {c}, committed {s}; regenerate with \
+                 `cargo test -p tessera-render --lib write_coat_loss_table -- --ignored`"
+            );
+        }
+    }
+
+    /// The committed anisotropic GGX tables are what the quadrature gives, within rounding.
+    #[test]
+    fn committed_anisotropic_tables_are_the_quadrature() {
+        let (a, b) = anisotropic_quadrature_tables();
+        let t = anisotropic_tables();
+        for (n, (c, s)) in a.iter().chain(&b).zip(t.a.iter().chain(&t.b)).enumerate() {
+            assert!(
+                (c - s).abs() <= 1e-5,
+                "anisotropic entry {n}: quadrature {c}, committed {s}; regenerate with \
+                 `cargo test -p tessera-render --lib write_anisotropic_table -- --ignored`"
+            );
+        }
     }
 }

@@ -1,5 +1,6 @@
 //! The glTF 2.0 metallic-roughness material with KHR_materials_ior, _specular,
-//! _transmission, _clearcoat and _sheen, as one layered, energy-conserving lobe.
+//! _transmission, _clearcoat, _sheen and _anisotropy, as one layered, energy-conserving
+//! lobe.
 //!
 //! The caller (the scene) applies textures and fills a [`GltfParams`] per hit;
 //! [`gltf_bsdf`] turns it into a [`Bsdf`]. The structure is the glTF 2.0 spec's appendix B
@@ -20,6 +21,15 @@
 //! | `f_glass` | the dielectric interface of KHR_materials_transmission (solid, refracting, exact Fresnel, tinted by the base colour): [`super::dielectric::RoughDielectric`], or the delta [`super::specular::Glass`] when `roughness² < MIN_ALPHA` or `ior = 1` |
 //! | `f_sheen` | Charlie sheen ([`super::sheen::Sheen`]), `g_sh = min(1 - max(sheen_color) E_sh(μo), same at μi)` |
 //! | `f_cc` | GGX reflection, `f0 = 0.04` (ior 1.5), `f90 = 1`, own roughness, `g_cc = min(1 - clearcoat E_cc(μo), same at μi)` |
+//!
+//! KHR_materials_anisotropy stretches the GGX of `metal` and `f_spec` (the extension's
+//! specular BRDF; the transmission and the clearcoat stay isotropic): `α_t = mix(α, 1,
+//! strength²)` along [`GltfParams::anisotropy_direction`], `α` across it
+//! ([`super::microfacet::AnisoGgx`], sampled from its visible normals, Heitz 2018). Its
+//! albedos, for the metal's multiple scattering and the diffuse base's scaling, come from
+//! the anisotropic tables at each direction's azimuth from the anisotropy direction
+//! ([`super::albedo::anisotropic_ggx_albedo`]), so both keep their energy (white furnaces
+//! in `bsdf::tests`); strength 0 is the isotropic lobe to the bit.
 //!
 //! `E` are the layers' directional albedos ([`super::albedo`]); the sheen's is that of the
 //! lobe as rendered ([`super::albedo::sheen_layer_albedo`]), which the normalisation of
@@ -58,10 +68,14 @@
 //! inside the interface is seen with `1/η` (total internal reflection included) and the
 //! opaque parts (metal, specular, diffuse) are two-sided as before.
 
-use super::albedo::{ggx_albedo, ggx_albedo_average, sheen_layer_albedo};
+use super::albedo::{
+    anisotropic_alphas, anisotropic_ggx_albedo, anisotropic_ggx_albedo_average,
+    anisotropic_ggx_albedo_azimuthal, coat_loss, coat_loss_average, ggx_albedo, ggx_albedo_average,
+    sheen_layer_albedo, COAT_F0,
+};
 use super::dielectric::RoughDielectric;
 use super::diffuse::Diffuse;
-use super::microfacet::{g2, half_vector, vndf_reflection_pdf, Conductor, MIN_ALPHA};
+use super::microfacet::{g2, half_vector, vndf_reflection_pdf, AnisoGgx, Conductor, MIN_ALPHA};
 use super::sheen::Sheen;
 use super::specular::Glass;
 use super::{flip_z, fresnel_schlick, Bsdf, BsdfSample, Lobe};
@@ -100,6 +114,12 @@ pub struct GltfParams {
     /// returns the part of its cosine lobe about the shading normal that falls below the
     /// geometric surface (docs/rendering.md, "Normal maps and energy").
     pub diffuse_gain: f32,
+    /// KHR_materials_anisotropy strength in [0, 1], default 0 (isotropic): the GGX alpha
+    /// along [`GltfParams::anisotropy_direction`] is `mix(α, 1, strength²)`, across it `α`.
+    pub anisotropy: f32,
+    /// The anisotropy direction in the local shading frame (`x`, `y` of a unit tangent
+    /// vector; `+z` is the shading normal), default `+x`.
+    pub anisotropy_direction: Vec2,
 }
 
 impl Default for GltfParams {
@@ -119,6 +139,8 @@ impl Default for GltfParams {
             sheen_color: Vec3::ZERO,
             sheen_roughness: 0.0,
             diffuse_gain: 1.0,
+            anisotropy: 0.0,
+            anisotropy_direction: Vec2::X,
         }
     }
 }
@@ -164,17 +186,21 @@ const SPEC: usize = 3;
 const DIFFUSE: usize = 4;
 const GLASS: usize = 5;
 
-/// Clearcoat's Fresnel reflectance at normal incidence (ior 1.5).
-const COAT_F0: f32 = 0.04;
-
 /// The layered glTF lobe (see the module documentation); build it with [`gltf_bsdf`].
 #[derive(Clone, Copy, Debug)]
 pub struct GltfLobe {
     base: Vec3,
     /// [`GltfParams::diffuse_gain`] (one without a normal map).
     diffuse_gain: f32,
-    /// GGX alpha of the metal, specular and transmission, at least [`MIN_ALPHA`].
+    /// GGX alpha of the metal, specular and transmission, at least [`MIN_ALPHA`] (across
+    /// the anisotropy direction, for an anisotropic lobe).
     alpha: f32,
+    /// `t = strength²` of KHR_materials_anisotropy, zero for an isotropic lobe: the metal's
+    /// and the specular layer's GGX has `α_t = α + (1 - α) t` along [`GltfLobe::aniso_dir`]
+    /// (the transmission stays isotropic).
+    aniso_t: f32,
+    /// The anisotropy direction `(cos φ, sin φ)` in the local frame.
+    aniso_dir: Vec2,
     /// Weights of the metal, the opaque dielectric and the transmissive dielectric.
     metal: f32,
     opaque: f32,
@@ -191,6 +217,17 @@ pub struct GltfLobe {
     /// Kulla–Conty multiple scattering of the metal: `F_ms / (π (1 - E1_avg))` per
     /// channel (zero without metal).
     ms_scale: Vec3,
+    /// Under a clearcoat, the metal's multiple scattering in the layers' reciprocal form
+    /// `F_ms (1 - E1(μo)) T(μo) (1 - E1(μi)) T(μi) / (π 2 ∫ (1 - E1) T μ dμ)`: this is the
+    /// `F_ms / (π ...)` factor (zero without a coated metal).
+    ms_coated: Vec3,
+    /// Under a clearcoat, what the metal's single scattering loses to the coat's `min`
+    /// factor, returned as `coat_metal D(μo) D(μi) cos θi` with `D` = [`coat_loss`]: this
+    /// is `metal clearcoat F_avg / (π D_avg)` (zero without a coated metal).
+    coat_metal: Vec3,
+    /// The GGX alpha the coat-loss table is looked up at (the metal's; the root mean
+    /// square of the two for an anisotropic one).
+    alpha_loss: f32,
     /// Relative index of refraction of the transmissive part.
     eta: f32,
     /// Transmission through a smooth interface (a delta component).
@@ -266,9 +303,25 @@ impl GltfLobe {
         let f0 = (r0 * p.specular_color.max(Vec3::ZERO)).min(Vec3::ONE) * specular;
         let f90 = if ior > 1.0 { specular } else { 0.0 };
         let opaque = (1.0 - metal) * (1.0 - transmission);
+        // Anisotropy only where it changes the lobe: a strength of zero, or a roughness of
+        // one (`mix(1, 1, t) = 1`), is the isotropic lobe to the bit.
+        let strength = c01(p.anisotropy);
+        let aniso_dir = p.anisotropy_direction.try_normalize();
+        let aniso_t = match aniso_dir {
+            Some(_) if alpha < 1.0 && (metal > 0.0 || opaque > 0.0) => strength * strength,
+            _ => 0.0,
+        };
+        let aniso_dir = aniso_dir.unwrap_or(Vec2::X);
+        let albedo_average = |alpha: f32| {
+            if aniso_t > 0.0 {
+                anisotropic_ggx_albedo_average(alpha, aniso_t)
+            } else {
+                ggx_albedo_average(alpha)
+            }
+        };
         // The tables are only touched when a specular layer lies over a diffuse base.
         let one_minus_e_avg = if opaque > 0.0 && (f0 != Vec3::ZERO || f90 > 0.0) {
-            let (a_avg, b_avg) = ggx_albedo_average(alpha);
+            let (a_avg, b_avg) = albedo_average(alpha);
             (Vec3::ONE - (f0 * a_avg + Vec3::splat(f90 * b_avg))).max(Vec3::ZERO)
         } else {
             Vec3::ONE
@@ -277,7 +330,7 @@ impl GltfLobe {
         // with F = 1, returned as a lobe shaped like (1 - E1(μo))(1 - E1(μi)) and coloured
         // by the average Fresnel's geometric series F_ms.
         let ms_scale = if metal > 0.0 {
-            let (a_avg, b_avg) = ggx_albedo_average(alpha);
+            let (a_avg, b_avg) = albedo_average(alpha);
             let e_avg = (a_avg + b_avg).clamp(0.0, 1.0 - 1e-4);
             let f_avg = base + (Vec3::ONE - base) / 21.0;
             let f_ms = f_avg * f_avg * e_avg / (Vec3::ONE - f_avg * (1.0 - e_avg));
@@ -293,6 +346,8 @@ impl GltfLobe {
             base,
             diffuse_gain: p.diffuse_gain.max(0.0),
             alpha,
+            aniso_t,
+            aniso_dir,
             metal,
             opaque,
             transmit: (1.0 - metal) * transmission,
@@ -301,6 +356,9 @@ impl GltfLobe {
             one_minus_e_avg,
             layered_avg: Vec3::ONE,
             ms_scale,
+            ms_coated: Vec3::ZERO,
+            coat_metal: Vec3::ZERO,
+            alpha_loss: alpha,
             eta: ior,
             smooth: alpha_raw < MIN_ALPHA || ior - 1.0 < 1e-3,
             clearcoat: c01(p.clearcoat),
@@ -313,7 +371,54 @@ impl GltfLobe {
         if lobe.layered() && lobe.opaque > 0.0 {
             lobe.layered_avg = lobe.layered_average();
         }
+        if lobe.clearcoat > 0.0 && metal > 0.0 {
+            lobe.coat_the_metal();
+        }
         lobe
+    }
+
+    /// The clearcoat's scaling of a metal: its multiple scattering in the layers'
+    /// reciprocal form (a cosine-like lobe: the `min` factor lost 2-4% of it, as it did
+    /// of a Lambertian base), and the compensation of what the `min` factor takes from its
+    /// single scattering, which is sharp: `D(μ)` per unit clearcoat factor, tabulated
+    /// ([`coat_loss`]), returned as the reciprocal lobe `D(μo) D(μi) / (π D_avg)` (Kulla &
+    /// Conty 2017's form for lost energy). A white metal under a coat then reflects
+    /// `E_cc(μo) + (1 - E_cc(μo))` up to the tables.
+    fn coat_the_metal(&mut self) {
+        // F_ms / π(1 - E1_avg) is ms_scale; F_ms / (π L) with L = 2 ∫ (1 - E1) T μ dμ.
+        let e_avg_loss = {
+            let (a, b) = if self.anisotropic() {
+                anisotropic_ggx_albedo_average(self.alpha, self.aniso_t)
+            } else {
+                ggx_albedo_average(self.alpha)
+            };
+            (1.0 - (a + b).clamp(0.0, 1.0 - 1e-4)).max(1e-4)
+        };
+        const N: usize = 32;
+        let mut l = 0.0;
+        for k in 0..N {
+            let x = (k as f32 + 0.5) / N as f32;
+            let mu = x * x;
+            l += self.ms_loss_azimuthal(mu) * self.layers_scale(mu) * (4.0 * x * x * x / N as f32);
+        }
+        self.ms_coated = self.ms_scale * (e_avg_loss / l.max(1e-6));
+        let (ax, ay) = anisotropic_alphas(self.alpha, self.aniso_t);
+        self.alpha_loss = ((ax * ax + ay * ay) / 2.0).sqrt();
+        let d_avg = coat_loss_average(self.alpha_loss, self.alpha_cc);
+        if d_avg > 1e-6 {
+            let f_avg = self.base + (Vec3::ONE - self.base) / 21.0;
+            self.coat_metal = f_avg * (self.metal * self.clearcoat * FRAC_1_PI / d_avg);
+        }
+    }
+
+    /// `1 - E1(μ)` of [`GltfLobe::ms_loss`] averaged over the azimuth.
+    fn ms_loss_azimuthal(&self, mu: f32) -> f32 {
+        let (a, b) = if self.anisotropic() {
+            anisotropic_ggx_albedo_azimuthal(mu, self.alpha, self.aniso_t)
+        } else {
+            ggx_albedo(mu, self.alpha)
+        };
+        (1.0 - a - b).max(0.0)
     }
 
     /// True if a clearcoat or a sheen lies over the base.
@@ -337,7 +442,7 @@ impl GltfLobe {
         for k in 0..N {
             let x = (k as f32 + 0.5) / N as f32;
             let mu = x * x;
-            let t = (Vec3::ONE - self.spec_albedo(mu)) * self.layers_scale(mu);
+            let t = (Vec3::ONE - self.spec_albedo_azimuthal(mu)) * self.layers_scale(mu);
             sum += t * (4.0 * x * x * x / N as f32);
         }
         sum
@@ -347,10 +452,11 @@ impl GltfLobe {
     /// `wo` of the same `z` (see [`WoTerms`]); calls with another `wo` compute their own.
     #[inline]
     pub(crate) fn prepare(&mut self, wo_z: f32) {
-        if wo_z.is_nan() {
+        // An anisotropic lobe's albedos depend on the azimuth of `wo` too: not prepared.
+        if wo_z.is_nan() || self.anisotropic() {
             return;
         }
-        let (spec_albedo, ms_loss) = self.albedos(wo_z.abs());
+        let (spec_albedo, ms_loss) = self.albedos(Vec3::new(0.0, 0.0, wo_z.abs()));
         self.at_wo = WoTerms {
             z: wo_z,
             spec_albedo,
@@ -364,7 +470,7 @@ impl GltfLobe {
         if wo.z == self.at_wo.z {
             self.at_wo.spec_albedo
         } else {
-            self.spec_albedo(wo.z)
+            self.spec_albedo(wo)
         }
     }
 
@@ -374,7 +480,7 @@ impl GltfLobe {
         if wo.z == self.at_wo.z {
             self.at_wo.ms_loss
         } else {
-            self.ms_loss(wo.z)
+            self.ms_loss(wo)
         }
     }
 
@@ -418,20 +524,116 @@ impl GltfLobe {
         }
     }
 
-    /// The specular layer's albedo `E(μ)` per channel.
+    /// True if the metal's and the specular layer's GGX is anisotropic.
     #[inline]
-    fn spec_albedo(&self, mu: f32) -> Vec3 {
+    fn anisotropic(&self) -> bool {
+        self.aniso_t > 0.0
+    }
+
+    /// `w` in the frame whose `+x` is the anisotropy direction (a rotation about `z`).
+    #[inline]
+    fn aligned(&self, w: Vec3) -> Vec3 {
+        let (c, s) = (self.aniso_dir.x, self.aniso_dir.y);
+        Vec3::new(c * w.x + s * w.y, c * w.y - s * w.x, w.z)
+    }
+
+    /// The inverse of [`GltfLobe::aligned`].
+    #[inline]
+    fn unaligned(&self, w: Vec3) -> Vec3 {
+        let (c, s) = (self.aniso_dir.x, self.aniso_dir.y);
+        Vec3::new(c * w.x - s * w.y, s * w.x + c * w.y, w.z)
+    }
+
+    /// The anisotropic GGX of the metal and the specular layer, in the aligned frame.
+    #[inline]
+    fn aniso_ggx(&self) -> AnisoGgx {
+        let (ax, ay) = anisotropic_alphas(self.alpha, self.aniso_t);
+        AnisoGgx { ax, ay }
+    }
+
+    /// GGX reflection at the base roughness (the metal's and the specular layer's), with
+    /// Schlick's Fresnel from `f0` to `f90`, times `cos θi`.
+    #[inline]
+    fn base_reflection(&self, wo: Vec3, wi: Vec3, f0: Vec3, f90: f32) -> Vec3 {
+        if self.anisotropic() {
+            self.aniso_ggx()
+                .reflection(self.aligned(wo), self.aligned(wi), f0, f90)
+        } else {
+            ggx_reflection(wo, wi, self.alpha, f0, f90)
+        }
+    }
+
+    /// Single-scattering GGX of the metal (Schlick's Fresnel from the base colour).
+    #[inline]
+    fn metal_single(&self, wo: Vec3, wi: Vec3) -> Vec3 {
+        if self.anisotropic() {
+            self.base_reflection(wo, wi, self.base, 1.0)
+        } else {
+            self.conductor().eval(wo, wi)
+        }
+    }
+
+    /// Density of sampling `wi` by reflecting `wo` about a visible normal of the base GGX.
+    #[inline]
+    fn base_pdf(&self, wo: Vec3, wi: Vec3) -> f32 {
+        if self.anisotropic() {
+            self.aniso_ggx()
+                .reflection_pdf(self.aligned(wo), self.aligned(wi))
+        } else {
+            ggx_pdf(wo, wi, self.alpha)
+        }
+    }
+
+    /// Reflects `wo` (upper hemisphere) about a visible normal of the base GGX drawn by `u`.
+    #[inline]
+    fn base_sample(&self, wo: Vec3, u: Vec2) -> Vec3 {
+        let h = if self.anisotropic() {
+            self.unaligned(self.aniso_ggx().sample_vndf(self.aligned(wo), u))
+        } else {
+            sample_ggx_vndf(wo, self.alpha, u)
+        };
+        crate::math::reflect(wo, h)
+    }
+
+    /// `(A, B)` of the base GGX seen from `w` ([`ggx_albedo`], or
+    /// [`anisotropic_ggx_albedo`] at `w`'s azimuth from the anisotropy direction).
+    #[inline]
+    fn ggx_table(&self, w: Vec3) -> (f32, f32) {
+        if self.anisotropic() {
+            anisotropic_ggx_albedo(self.aligned(w), self.alpha, self.aniso_t)
+        } else {
+            ggx_albedo(w.z.abs(), self.alpha)
+        }
+    }
+
+    /// The specular layer's albedo `E(w)` per channel (a function of `μ = |w.z|` alone
+    /// for an isotropic lobe).
+    #[inline]
+    fn spec_albedo(&self, w: Vec3) -> Vec3 {
         if self.f90 == 0.0 && self.f0 == Vec3::ZERO {
             return Vec3::ZERO;
         }
-        let (a, b) = ggx_albedo(mu, self.alpha);
+        let (a, b) = self.ggx_table(w);
         self.f0 * a + Vec3::splat(self.f90 * b)
     }
 
-    /// `1 - E1(μ)`: what single-scattering GGX at the metal's roughness loses at `μ`.
+    /// [`GltfLobe::spec_albedo`] at `μ` averaged over the azimuth.
     #[inline]
-    fn ms_loss(&self, mu: f32) -> f32 {
-        let (a, b) = ggx_albedo(mu, self.alpha);
+    fn spec_albedo_azimuthal(&self, mu: f32) -> Vec3 {
+        if !self.anisotropic() {
+            return self.spec_albedo(Vec3::new(0.0, 0.0, mu));
+        }
+        if self.f90 == 0.0 && self.f0 == Vec3::ZERO {
+            return Vec3::ZERO;
+        }
+        let (a, b) = anisotropic_ggx_albedo_azimuthal(mu, self.alpha, self.aniso_t);
+        self.f0 * a + Vec3::splat(self.f90 * b)
+    }
+
+    /// `1 - E1(w)`: what single-scattering GGX at the metal's roughness loses seen from `w`.
+    #[inline]
+    fn ms_loss(&self, w: Vec3) -> f32 {
+        let (a, b) = self.ggx_table(w);
         (1.0 - a - b).max(0.0)
     }
 
@@ -459,15 +661,15 @@ impl GltfLobe {
     fn opaque_eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         let mut f = Vec3::ZERO;
         if self.metal > 0.0 {
-            let ms = self.ms_scale * (self.ms_loss_wo(wo) * self.ms_loss(wi.z) * wi.z);
-            f += self.metal * (self.conductor().eval(wo, wi) + ms);
+            let ms = self.ms_scale * (self.ms_loss_wo(wo) * self.ms_loss(wi) * wi.z);
+            f += self.metal * (self.metal_single(wo, wi) + ms);
         }
         if self.opaque > 0.0 {
-            let spec = ggx_reflection(wo, wi, self.alpha, self.f0, self.f90);
+            let spec = self.base_reflection(wo, wi, self.f0, self.f90);
             // Kulla & Conty 2017: the base receives what the layer does not reflect, in
             // the reciprocal form (1 - E(μo))(1 - E(μi)) / (1 - E_avg).
             let eo = Vec3::ONE - self.spec_albedo_wo(wo);
-            let ei = Vec3::ONE - self.spec_albedo(wi.z);
+            let ei = Vec3::ONE - self.spec_albedo(wi);
             let scale = (eo * ei / self.one_minus_e_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
             let diffuse = self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
             f += self.opaque * (spec + diffuse);
@@ -483,19 +685,36 @@ impl GltfLobe {
     /// sheen do not reflect (`T` is [`GltfLobe::layers_scale`]).
     fn layered_opaque_eval(&self, wo: Vec3, wi: Vec3) -> (Vec3, Vec3) {
         let mut sharp = Vec3::ZERO;
-        if self.metal > 0.0 {
-            let ms = self.ms_scale * (self.ms_loss_wo(wo) * self.ms_loss(wi.z) * wi.z);
-            sharp += self.metal * (self.conductor().eval(wo, wi) + ms);
-        }
         let mut diffuse = Vec3::ZERO;
+        if self.metal > 0.0 {
+            sharp += self.metal * self.metal_single(wo, wi);
+            let loss = self.ms_loss_wo(wo) * self.ms_loss(wi) * wi.z;
+            if self.ms_coated == Vec3::ZERO {
+                sharp += self.metal * self.ms_scale * loss;
+            } else {
+                let t = self.layers_scale(wo.z) * self.layers_scale(wi.z);
+                diffuse += self.metal * self.ms_coated * (loss * t);
+            }
+        }
         if self.opaque > 0.0 {
-            sharp += self.opaque * ggx_reflection(wo, wi, self.alpha, self.f0, self.f90);
+            sharp += self.opaque * self.base_reflection(wo, wi, self.f0, self.f90);
             let eo = (Vec3::ONE - self.spec_albedo_wo(wo)) * self.layers_scale(wo.z);
-            let ei = (Vec3::ONE - self.spec_albedo(wi.z)) * self.layers_scale(wi.z);
+            let ei = (Vec3::ONE - self.spec_albedo(wi)) * self.layers_scale(wi.z);
             let scale = (eo * ei / self.layered_avg.max(Vec3::splat(1e-6))).max(Vec3::ZERO);
-            diffuse = self.opaque * self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
+            diffuse += self.opaque * self.base * scale * (self.diffuse_gain * FRAC_1_PI * wi.z);
         }
         (sharp, diffuse)
+    }
+
+    /// The coated metal's compensation `coat_metal D(μo) D(μi) μi` (see
+    /// [`GltfLobe::coat_the_metal`]), both directions outside.
+    #[inline]
+    fn coat_compensation(&self, mo: f32, mi: f32) -> Vec3 {
+        if self.coat_metal == Vec3::ZERO {
+            return Vec3::ZERO;
+        }
+        let d = |mu| coat_loss(mu, self.alpha_loss, self.alpha_cc);
+        self.coat_metal * (d(mo) * d(mi) * mi)
     }
 
     /// Component selection probabilities at `wo` (estimates of their albedos), in the
@@ -505,21 +724,22 @@ impl GltfLobe {
         if wo.z == self.at_wo.z {
             self.select_with(wo, self.at_wo.spec_albedo, self.at_wo.ms_loss)
         } else {
-            let (e, ms) = self.albedos(wo.z.abs());
+            let (e, ms) = self.albedos(wo);
             self.select_with(wo, e, ms)
         }
     }
 
-    /// The specular layer's albedo and the metal's loss at `mu`, where the lobe has them.
+    /// The specular layer's albedo and the metal's loss seen from `w`, where the lobe has
+    /// them.
     #[inline]
-    fn albedos(&self, mu: f32) -> (Vec3, f32) {
+    fn albedos(&self, w: Vec3) -> (Vec3, f32) {
         let e = if self.opaque > 0.0 {
-            self.spec_albedo(mu)
+            self.spec_albedo(w)
         } else {
             Vec3::ZERO
         };
         let ms = if self.metal > 0.0 {
-            self.ms_loss(mu)
+            self.ms_loss(w)
         } else {
             0.0
         };
@@ -545,6 +765,13 @@ impl GltfLobe {
         if self.metal > 0.0 {
             let f = fresnel_schlick(self.base, mu).max_element();
             w[METAL] = under * self.metal * f.max(0.05);
+            if outside && self.coat_metal != Vec3::ZERO {
+                // The coat compensation is cosine-like too; its albedo is
+                // coat_metal π D_avg D(μo).
+                let d_avg = coat_loss_average(self.alpha_loss, self.alpha_cc);
+                let d = coat_loss(mu, self.alpha_loss, self.alpha_cc);
+                w[DIFFUSE] += self.coat_metal.max_element() * std::f32::consts::PI * d_avg * d;
+            }
             // The multiple-scattering lobe is cosine-like: sampled with the diffuse one.
             // Its albedo is ms_scale π (1 - E1(μo)) (1 - E1_avg) <= F_ms (1 - E1(μo)).
             let ms = self.ms_scale.max_element() * std::f32::consts::PI * ms_loss;
@@ -597,7 +824,7 @@ impl GltfLobe {
                     let coat = ggx_reflection(wo, wi, self.alpha_cc, Vec3::splat(COAT_F0), 1.0);
                     f = self.clearcoat * coat + g_cc * f;
                 }
-                f + diffuse
+                f + diffuse + self.coat_compensation(mo, mi)
             }
             // Inside a transmissive material: the opaque parts are two-sided.
             (false, false) => {
@@ -634,7 +861,7 @@ impl GltfLobe {
         let flip = wo.z < 0.0;
         let (wo, wi) = (flip_z(wo, flip), flip_z(wi, flip));
         let cos = cosine_hemisphere_pdf(wi.z);
-        let ggx = ggx_pdf(wo, wi, self.alpha);
+        let ggx = self.base_pdf(wo, wi);
         let mut p = glass + (w[METAL] + w[SPEC]) * ggx + (w[DIFFUSE] + w[SHEEN]) * cos;
         if w[COAT] > 0.0 {
             p += w[COAT] * ggx_pdf(wo, wi, self.alpha_cc);
@@ -730,7 +957,7 @@ impl GltfLobe {
             }
             GLASS => self.rough_glass().sample(wo, u1, u2)?.0,
             COAT => crate::math::reflect(wo_up, sample_ggx_vndf(wo_up, self.alpha_cc, u2)),
-            METAL | SPEC => crate::math::reflect(wo_up, sample_ggx_vndf(wo_up, self.alpha, u2)),
+            METAL | SPEC => self.base_sample(wo_up, u2),
             _ => square_to_cosine_hemisphere(u2),
         };
         let wi = if k == GLASS { wi } else { flip_z(wi, flip) };

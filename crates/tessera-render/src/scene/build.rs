@@ -178,17 +178,36 @@ impl RenderScene {
                 .map(|m| std::sync::Arc::new(EnvImage::new(m)));
             lights.push(Light::Environment(env));
         }
+        let mut motion_warnings = motion_warnings;
         let meshes = scene
             .meshes
             .iter()
             .chain(&scene.prototypes)
-            .map(|m| MeshShading {
-                indices: m.indices.clone(),
-                normals: m.normals.clone(),
-                uvs: m.uvs.clone(),
-                colors: m.colors.clone(),
-                tangents: m.tangents.clone(),
-                material: m.material,
+            .enumerate()
+            .map(|(mi, m)| {
+                let world_tangents = mi < scene.meshes.len() && !split.moving_meshes[mi];
+                let anisotropic = scene.materials[m.material as usize]
+                    .as_gltf()
+                    .and_then(|g| g.anisotropy)
+                    .is_some_and(|a| a.strength > 0.0);
+                // The glTF importer flattens anisotropic meshes, so only a moving one (whose
+                // tangents turn within the shutter) lacks world-space tangents here.
+                if anisotropic && m.tangents.is_some() && !world_tangents {
+                    motion_warnings.push(format!(
+                        "material '{}': KHR_materials_anisotropy on a moving or instanced \
+                         mesh is rendered isotropic (its tangents are not carried to the hit)",
+                        scene.materials[m.material as usize].name
+                    ));
+                }
+                MeshShading {
+                    indices: m.indices.clone(),
+                    normals: m.normals.clone(),
+                    uvs: m.uvs.clone(),
+                    colors: m.colors.clone(),
+                    tangents: m.tangents.clone(),
+                    world_tangents,
+                    material: m.material,
+                }
             })
             .collect();
         let alpha_tested: Vec<bool> = scene.materials.iter().map(Material::has_alpha).collect();

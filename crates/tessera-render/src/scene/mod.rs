@@ -27,6 +27,7 @@ use crate::light::{
 };
 use crate::math::gamma;
 use crate::motion::{CameraKeys, MotionShading, MotionSplit};
+use crate::sampling::warp::Frame;
 use crate::sampling::{hash_combine, hash_u64};
 use crate::texture;
 mod build;
@@ -54,6 +55,11 @@ struct MeshShading {
     /// glTF `COLOR_0`, linear RGBA; only meshes that have it pay for it.
     colors: Option<Vec<Vec4>>,
     tangents: Option<Vec<[Vec4; 3]>>,
+    /// The tangents are in world space: the mesh is neither an instance's prototype
+    /// (object space) nor moving. Only then can KHR_materials_anisotropy find its
+    /// direction at a hit (the surface point does not carry the tangent); elsewhere it is
+    /// rendered isotropic, with a warning.
+    world_tangents: bool,
     material: u32,
 }
 
@@ -637,6 +643,7 @@ impl RenderScene {
         }
         let mr = self.tex(sp, &g.metallic_roughness_texture, false);
         let mut base_color = g.base_color * self.tex(sp, &g.base_color_texture, true).truncate();
+        let (anisotropy, anisotropy_direction) = self.anisotropy(g, sp);
         // glTF 2.0 "Metallic-Roughness Material": base colour = factor × texture × COLOR_0.
         if let Some(c) = self.vertex_color(sp) {
             base_color *= c.truncate();
@@ -660,7 +667,50 @@ impl RenderScene {
             } else {
                 1.0
             },
+            anisotropy,
+            anisotropy_direction,
         }
+    }
+
+    /// KHR_materials_anisotropy at `sp`: the strength and the direction in the local
+    /// shading frame (`Frame::from_normal(ns)`, the integrators' frame). The extension's
+    /// direction is `(cos, sin)` of `anisotropyRotation`, or the texture's `2 rg - 1`
+    /// rotated by it (its B channel scaling the strength), in the frame of the mesh's
+    /// tangent and bitangent `w cross(n, t)`, here made orthogonal to the shading normal.
+    /// `(0, +x)`, isotropic, without the extension or a tangent frame.
+    fn anisotropy(&self, g: &GltfMaterial, sp: &SurfacePoint) -> (f32, Vec2) {
+        const ISOTROPIC: (f32, Vec2) = (0.0, Vec2::X);
+        let Some(a) = &g.anisotropy else {
+            return ISOTROPIC;
+        };
+        let Some(mesh) = self.meshes.get(sp.mesh as usize) else {
+            return ISOTROPIC;
+        };
+        let (true, Some(tangents)) = (mesh.world_tangents, &mesh.tangents) else {
+            return ISOTROPIC;
+        };
+        let c = tangents[sp.tri as usize];
+        let (b1, b2) = (sp.bary.x, sp.bary.y);
+        let tangent = (c[0] * (1.0 - b1 - b2) + c[1] * b1 + c[2] * b2).truncate();
+        let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
+        let n = sp.ns;
+        let Some(t) = (tangent - n * n.dot(tangent)).try_normalize() else {
+            return ISOTROPIC;
+        };
+        let b = n.cross(t) * sign;
+        let (sin, cos) = a.rotation.sin_cos();
+        let (mut strength, mut dir) = (a.strength, Vec2::new(cos, sin));
+        if a.texture.is_some() {
+            let texel = self.tex(sp, &a.texture, false);
+            let d = Vec2::new(2.0 * texel.x - 1.0, 2.0 * texel.y - 1.0)
+                .try_normalize()
+                .unwrap_or(Vec2::X);
+            dir = Vec2::new(cos * d.x - sin * d.y, sin * d.x + cos * d.y);
+            strength *= texel.z;
+        }
+        let world = t * dir.x + b * dir.y;
+        let frame = Frame::from_normal(n);
+        (strength, Vec2::new(world.dot(frame.s), world.dot(frame.t)))
     }
 }
 

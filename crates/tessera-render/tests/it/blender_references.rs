@@ -90,6 +90,17 @@ const FIXTURES: &[(&str, u32, Judge)] = &[
         256,
         Judge::Report("Cycles' sheen is not the extension's Charlie sheen"),
     ),
+    (
+        "anisotropy",
+        256,
+        Judge::Report(
+            "Blender's importer puts anisotropyStrength straight into the Principled BSDF's \
+             Anisotropic input, whose stretch of roughness 0.25 stays within a few times \
+             alpha; the extension's mix(alpha, 1, strength^2) makes alpha along the tangent \
+             0.66 for strength 0.8, so Tessera's highlight is far wider along the sphere \
+             (r11 +83%, r12 -10%; ignoring the extension: r11 -13%, r12 +4%)",
+        ),
+    ),
     ("specular_color", 256, Judge::Within(0.02)),
     ("emissive_strength", 64, Judge::Within(0.02)),
     (
@@ -113,7 +124,13 @@ const FIXTURES: &[(&str, u32, Judge)] = &[
 fn blender_fixtures_match_their_cycles_references() {
     let config = reference_config();
     let mut failures = Vec::new();
-    for &(name, spp, judge) in FIXTURES {
+    // TESSERA_FIXTURES=a,b renders only those fixtures (to look at one by hand).
+    let only = std::env::var("TESSERA_FIXTURES").ok();
+    let chosen = |name: &str| {
+        only.as_deref()
+            .is_none_or(|o| o.split(',').any(|n| n == name))
+    };
+    for &(name, spp, judge) in FIXTURES.iter().filter(|f| chosen(f.0)) {
         let reference = std::fs::read(format!("{DIR}/{name}.cycles.exr"))
             .unwrap_or_else(|e| panic!("{name}.cycles.exr: {e}"));
         let reference = tessera_image::read_exr(&reference).unwrap();

@@ -1,6 +1,6 @@
 //! The glTF extensions Tessera reads: which ones a file may require, the untyped ones
-//! (the `gltf` crate has no types for KHR_materials_clearcoat, KHR_materials_sheen and
-//! EXT_mesh_gpu_instancing; they arrive as JSON in its `others` maps), and the warnings for
+//! (the `gltf` crate has no types for KHR_materials_clearcoat, KHR_materials_sheen,
+//! KHR_materials_anisotropy and EXT_mesh_gpu_instancing; they arrive as JSON in its `others` maps), and the warnings for
 //! optional extensions that are ignored.
 
 use super::{Importer, Res};
@@ -14,6 +14,7 @@ use serde_json::{Map, Value};
 /// list these in `extensionsRequired`.
 pub const SUPPORTED_EXTENSIONS: &[&str] = &[
     "KHR_lights_punctual",
+    "KHR_materials_anisotropy",
     "KHR_materials_clearcoat",
     "KHR_materials_emissive_strength",
     "KHR_materials_ior",
@@ -55,6 +56,18 @@ pub(super) struct Sheen {
     pub(super) sheen_roughness_texture: Option<json::texture::Info>,
 }
 
+/// KHR_materials_anisotropy (Khronos extension specification).
+#[derive(Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub(super) struct Anisotropy {
+    #[serde(default)]
+    pub(super) anisotropy_strength: f32,
+    #[serde(default)]
+    pub(super) anisotropy_rotation: f32,
+    #[serde(default)]
+    pub(super) anisotropy_texture: Option<json::texture::Info>,
+}
+
 /// EXT_mesh_gpu_instancing: accessors of per-instance TRS.
 #[derive(Deserialize)]
 struct GpuInstancing {
@@ -77,6 +90,11 @@ fn typed<T: for<'de> Deserialize<'de>>(
 /// The material's KHR_materials_clearcoat, if present.
 pub(super) fn clearcoat(others: &Map<String, Value>) -> Result<Option<Clearcoat>, String> {
     typed(others, "KHR_materials_clearcoat")
+}
+
+/// The material's KHR_materials_anisotropy, if present.
+pub(super) fn anisotropy(others: &Map<String, Value>) -> Result<Option<Anisotropy>, String> {
+    typed(others, "KHR_materials_anisotropy")
 }
 
 /// The material's KHR_materials_sheen, if present.

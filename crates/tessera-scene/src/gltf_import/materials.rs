@@ -1,11 +1,11 @@
 //! Step 3, materials and textures (spec "Materials", "Metallic-Roughness Material",
 //! "Default Material", "Textures", "Samplers", "Images", and the material extensions).
 
-use super::extensions::{clearcoat, sheen};
+use super::extensions::{anisotropy, clearcoat, sheen};
 use super::{Importer, Res};
 use crate::material::{
-    AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture, TextureRef,
-    UvTransform, Volume, Wrap,
+    AlphaMode, Anisotropy, GltfMaterial, Image, Material, MaterialKind, NormalMap, Texels, Texture,
+    TextureRef, UvTransform, Volume, Wrap,
 };
 use crate::{MAX_IMAGE_TEXELS, MAX_SCENE_TEXELS};
 use glam::{Vec2, Vec3};
@@ -130,6 +130,22 @@ impl Importer<'_> {
                     &c.clearcoat_roughness_texture,
                     &slot("clearcoatRoughnessTexture"),
                 )?;
+            }
+            if let Some(a) =
+                anisotropy(&ext.others).map_err(|e| self.gerr(format!("{name}: {e}")))?
+            {
+                let (strength, rotation) = (a.anisotropy_strength, a.anisotropy_rotation);
+                if !(0.0..=1.0).contains(&strength) || !rotation.is_finite() {
+                    return self.err(format!(
+                        "{name}: KHR_materials_anisotropy needs anisotropyStrength in [0, 1] \
+                         and a finite anisotropyRotation (got {strength}, {rotation})"
+                    ));
+                }
+                g_mat.anisotropy = Some(Anisotropy {
+                    strength,
+                    rotation,
+                    texture: self.info(&a.anisotropy_texture, &slot("anisotropyTexture"))?,
+                });
             }
             if let Some(s) = sheen(&ext.others).map_err(|e| self.gerr(format!("{name}: {e}")))? {
                 g_mat.sheen_color = Vec3::from(s.sheen_color_factor);

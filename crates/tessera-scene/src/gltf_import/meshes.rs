@@ -113,7 +113,13 @@ impl Importer<'_> {
                     self.flatten_primitive(ni, mi, pi, &world, &deformed, &mut geometry.meshes)?;
                     continue;
                 }
-                if !shared || emissive || !invertible {
+                // KHR_materials_anisotropy needs the world-space tangent at a hit, which
+                // only flattened meshes keep (as emissive ones need world-space triangles).
+                let anisotropic = materials
+                    .get(local.material as usize)
+                    .and_then(Material::as_gltf)
+                    .is_some_and(|g| g.anisotropy.is_some());
+                if !shared || emissive || !invertible || anisotropic {
                     self.flatten_primitive(ni, mi, pi, &pl.world, &local, &mut geometry.meshes)?;
                     continue;
                 }
@@ -184,17 +190,28 @@ impl Importer<'_> {
                 self.root.materials.len() as u32
             }
         };
-        let uv_sets = prim
+        let mut uv_sets = prim
             .material
             .and_then(|m| self.material_uv_sets.get(m.value()).copied())
             .unwrap_or(0);
-        let normal_map = prim
+        let json_material = prim
             .material
-            .and_then(|m| self.root.materials.get(m.value()))
-            .and_then(|m| m.normal_texture.as_ref())
-            .map(|n| n.tex_coord);
-        let normal_acc = attribute(json::mesh::Semantic::Normals);
+            .and_then(|m| self.root.materials.get(m.value()));
+        // KHR_materials_anisotropy: the direction lives in the tangent frame (spec of the
+        // extension: TANGENT, or tangents computed as for a normal map, from TEXCOORD_0
+        // when there is no normal map).
+        let anisotropic = json_material
+            .and_then(|m| m.extensions.as_ref())
+            .is_some_and(|e| e.others.contains_key("KHR_materials_anisotropy"));
         let tangent_acc = attribute(json::mesh::Semantic::Tangents);
+        let normal_map = json_material
+            .and_then(|m| m.normal_texture.as_ref())
+            .map(|n| n.tex_coord)
+            .or(anisotropic.then_some(0));
+        if anisotropic && tangent_acc.is_none() {
+            uv_sets = uv_sets.max(normal_map.unwrap_or(0) + 1);
+        }
+        let normal_acc = attribute(json::mesh::Semantic::Normals);
         let index_acc = prim.indices;
 
         let positions: Vec<Vec3> = self
@@ -270,6 +287,12 @@ impl Importer<'_> {
             }
             (Some(set), None) => {
                 let uv = uvs.get(set as usize).filter(|u| !u.is_empty());
+                if uv.is_none() && anisotropic {
+                    self.warnings.push(format!(
+                        "{what}: KHR_materials_anisotropy without TANGENT or TEXCOORD_{set} \
+                         has no tangent frame; it is rendered isotropic"
+                    ));
+                }
                 uv.map(|uv| mikktspace(&positions, normals.as_deref(), uv, &triangles))
             }
         };

@@ -55,7 +55,9 @@
 //!   `attenuationDistance` become a Beer–Lambert absorption coefficient
 //!   `σ = -ln(colour) / distance`; `thicknessFactor` and its texture are a real-time
 //!   stand-in for the geometry and are not used), `KHR_materials_clearcoat`,
-//!   `KHR_materials_sheen` (factors and textures), `KHR_materials_emissive_strength` and
+//!   `KHR_materials_sheen` (factors and textures), `KHR_materials_anisotropy`
+//!   (`anisotropyStrength`, `anisotropyRotation`, `anisotropyTexture` with the direction
+//!   in RG and a strength factor in B), `KHR_materials_emissive_strength` and
 //!   `KHR_materials_unlit` (the base colour, textured, becomes the emission, and the
 //!   surface scatters nothing). Primitives without a material use the default material
 //!   (base colour 1, metallic 1, roughness 1).
@@ -71,7 +73,8 @@
 //! - **Tangents**: `TANGENT` when the primitive has it, else MikkTSpace (Mikkelsen 2008,
 //!   the `bevy_mikktspace` crate, a safe port of the reference code) per triangle corner,
 //!   fed with `(u, 1 - v)` so that, as in Blender, the bitangent `cross(n, t) w` points up
-//!   the image (the normal map's +Y, green). Only primitives with a normal map get them.
+//!   the image (the normal map's +Y, green). Only primitives with a normal map or
+//!   KHR_materials_anisotropy get them (the latter from `TEXCOORD_0` without a normal map).
 //! - **Extensions** ([`SUPPORTED_EXTENSIONS`]): a file whose `extensionsRequired` names
 //!   anything else is refused with the names; an unknown extension that is only used
 //!   becomes a warning in [`Scene::warnings`], which the render plan repeats.

@@ -480,3 +480,107 @@ fn ten_thousand_gpu_instances_load_within_the_budget() {
     assert_eq!(s.stored_triangle_count(), 33_282);
     assert_eq!(s.triangle_count(), 33_282 * 10_000);
 }
+
+/// KHR_materials_anisotropy (which Blender 4.2+ writes for an anisotropic Principled
+/// BSDF): strength, rotation and texture are read, the extension is no longer warned about,
+/// and a primitive without a normal map gets MikkTSpace tangents from TEXCOORD_0, whose
+/// frame the direction lives in.
+#[test]
+fn anisotropy_is_read_with_a_tangent_frame() {
+    let mut g = Gen::new();
+    g.uses("KHR_materials_anisotropy");
+    let t = texture(&mut g, None);
+    let material = g.push(
+        "materials",
+        json!({"pbrMetallicRoughness": {"roughnessFactor": 0.3},
+            "extensions": {"KHR_materials_anisotropy": {"anisotropyStrength": 0.6,
+                "anisotropyRotation": 1.5, "anisotropyTexture": {"index": t}}}}),
+    );
+    let m = quad(&mut g, material);
+    g.root(json!({"mesh": m}));
+    let s = load(&g.glb()).unwrap();
+    assert!(
+        !s.warnings.iter().any(|w| w.contains("anisotropy")),
+        "{:?}",
+        s.warnings
+    );
+    let a = s.materials[0].as_gltf().unwrap().anisotropy.unwrap();
+    assert_eq!((a.strength, a.rotation), (0.6, 1.5));
+    assert_eq!(a.texture.map(|t| t.uv_set), Some(0));
+    // The quad's TEXCOORD_0 is (x, 1 - y): MikkTSpace's tangent runs along +x.
+    let tangents = s.meshes[0]
+        .tangents
+        .as_ref()
+        .expect("tangents for anisotropy");
+    for corner in tangents.iter().flatten() {
+        assert!((corner.truncate() - Vec3::X).length() < 1e-4, "{corner}");
+    }
+
+    // Defaults: strength 0, rotation 0, no texture; a bad strength is refused by name.
+    for (ext, ok) in [
+        (json!({}), true),
+        (json!({"anisotropyStrength": 1.5}), false),
+    ] {
+        let mut g = Gen::new();
+        g.uses("KHR_materials_anisotropy");
+        let material = g.push(
+            "materials",
+            json!({"extensions": {"KHR_materials_anisotropy": ext}}),
+        );
+        let m = quad(&mut g, material);
+        g.root(json!({"mesh": m}));
+        match load(&g.glb()) {
+            Ok(s) => {
+                assert!(ok);
+                let a = s.materials[0].as_gltf().unwrap().anisotropy.unwrap();
+                assert_eq!((a.strength, a.rotation, a.texture), (0.0, 0.0, None));
+            }
+            Err(e) => {
+                assert!(!ok);
+                assert!(e.to_string().contains("anisotropyStrength"), "{e}");
+            }
+        }
+    }
+}
+
+/// Blender's anisotropic metal (tests/fixtures/blender/anisotropy.glb, made by
+/// make_fixtures.py): the extension as Blender writes it, without TANGENT, on a UV sphere.
+#[test]
+fn blender_anisotropy_fixture_imports() {
+    let path = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../tests/fixtures/blender/anisotropy.glb"
+    );
+    let s = tessera_scene::load(path).unwrap();
+    assert!(
+        !s.warnings.iter().any(|w| w.contains("anisotropy")),
+        "{:?}",
+        s.warnings
+    );
+    let sphere = s
+        .meshes
+        .iter()
+        .find(|m| {
+            s.materials[m.material as usize]
+                .as_gltf()
+                .is_some_and(|g| g.anisotropy.is_some())
+        })
+        .expect("the brushed sphere");
+    let a = s.materials[sphere.material as usize]
+        .as_gltf()
+        .unwrap()
+        .anisotropy
+        .unwrap();
+    assert!((a.strength - 0.8).abs() < 1e-6, "{a:?}");
+    let tangents = sphere.tangents.as_ref().expect("generated tangents");
+    assert_eq!(tangents.len(), sphere.indices.len());
+    // Tangents are unit and orthogonal to the vertex normals (MikkTSpace's frame).
+    let normals = sphere.normals.as_ref().unwrap();
+    for (tri, corners) in sphere.indices.iter().zip(tangents) {
+        for (v, t) in tri.iter().zip(corners) {
+            let n = normals[*v as usize];
+            assert!((t.truncate().length() - 1.0).abs() < 1e-3);
+            assert!(n.dot(t.truncate()).abs() < 1e-2, "{n} {t}");
+        }
+    }
+}
