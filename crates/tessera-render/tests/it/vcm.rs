@@ -271,14 +271,43 @@ fn merge_settings(
         Integrator::Ppm => VcmSettings::ppm,
         _ => VcmSettings::new,
     };
-    new(
-        s.mis,
-        s.max_depth,
-        s.rr_depth,
-        rs.geometry.bounds_radius,
-        w,
-        h,
-    )
+    new(s.mis, s.max_depth, s.rr_depth, rs, w, h)
+}
+
+/// The first radius's footprint survey on the pool (`vcm::pixel_footprint`): the camera
+/// looks straight down from [`H_CAM`] above the water, so a pixel's cone at the floor,
+/// through the flat surface, is `ℓ sqrt(Ω)` with `ℓ` about `H_CAM + D` (the unfolded
+/// length; the median ray is 8 degrees off the axis, 1% off the axis's value) and `Ω = A /
+/// (W H)`, `A` the film's area at distance 1. The settings take 16 of them at 256 x 256;
+/// at 24 x 24, 16 footprints would be most of the view and the scene cap holds instead.
+#[test]
+fn the_first_radius_is_pixel_footprints_on_the_pool() {
+    use tessera_render::integrator::vcm::{pixel_footprint, RADIUS_FOOTPRINTS, RADIUS_MAX_SCENE};
+    let (w, h) = (256, 256);
+    let rs = RenderScene::build(&pool(), w, h).unwrap();
+    let f = pixel_footprint(&rs, w, h, 3).unwrap() as f64;
+    let tan = (10f64).to_radians().tan();
+    let expect = (H_CAM + D) * (4.0 * tan * tan / (w * h) as f64).sqrt();
+    eprintln!("pool footprint at 256 x 256: {f:.6} m, expected about {expect:.6} m");
+    assert!((f / expect - 1.0).abs() < 0.03, "{f} vs {expect}");
+    let s = settings(Integrator::Vcm, 1, 3);
+    let st = merge_settings(Integrator::Vcm, &s, &rs, w, h);
+    assert!((st.radius_1 as f64 / (RADIUS_FOOTPRINTS as f64 * f) - 1.0).abs() < 1e-5);
+    let small = RenderScene::build(&pool(), 24, 24).unwrap();
+    let st = merge_settings(Integrator::Ppm, &s, &small, 24, 24);
+    let cap = RADIUS_MAX_SCENE * small.geometry.bounds_radius;
+    assert_eq!(st.radius_1, cap);
+    // The survey needs a surface that merges: the camera looking away from everything
+    // finds none (and the settings fall back to the scene-fraction rule).
+    let mut away = pool();
+    away.camera = look_at_camera(
+        Vec3::new(0.0, 3.0, 0.0),
+        Vec3::new(0.0, 10.0, 0.0),
+        Vec3::Z,
+        20.0,
+    );
+    let rs = RenderScene::build(&away, w, h).unwrap();
+    assert_eq!(pixel_footprint(&rs, w, h, 3), None);
 }
 
 /// The SDS pool against its closed form. Each 6 x 6 block's mean over 48 passes must be
@@ -616,6 +645,7 @@ fn pool_goal_measurement() {
     let exact = expected_blocks(&rs, w, h, 1, |r| table.at(r));
     let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
     let plan = FramePlan::new(w, h, w, spp, passes).unwrap();
+    let footprint = tessera_render::integrator::vcm::pixel_footprint(&rs, w, h, 3).unwrap();
     let which = std::env::var("TESSERA_POOL_INTEGRATORS").unwrap_or("ppm,vcm".into());
     for name in which.split(',') {
         let integrator: Integrator = name.parse().unwrap();
@@ -664,11 +694,12 @@ fn pool_goal_measurement() {
         let mean = img.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
         let truth = exact.iter().sum::<f64>() / n;
         eprintln!(
-            "pool 256x256 {integrator} (r_1 {:.4}, alpha {}): {passes} passes x {spp} spp, \
-             {cpu:.1} CPU s; measured \
+            "pool 256x256 {integrator} (r_1 {:.4} = {:.1} footprints, alpha {}): {passes} passes x \
+             {spp} spp, {cpu:.1} CPU s; measured \
              rel. RMS error {measured:.4}, estimate {estimate:.4} (ratio {:.2}); image mean \
              {:+.2}% off the closed form",
             st.radius_1,
+            st.radius_1 / footprint,
             st.alpha,
             estimate / measured,
             100.0 * (mean / truth - 1.0)
