@@ -48,10 +48,12 @@
 //! radius from its footprint. A disc of a fixed number of footprints holds the same number
 //! of photons whatever the resolution (`N = W H S` grows as the footprint's area
 //! shrinks), so a pass's noise per pixel does not depend on the image size; a fraction of
-//! the scene (SmallVCM's and Georgiev et al.'s rule, Tessera's before 2026-12-06) gave 5
-//! pixels on the pool floor, which the camera sees a fifth of the scene across, and 0.75 on
-//! the Cornell box, which it sees whole. `r_1` is at most [`RADIUS_MAX_SCENE`] of the
-//! scene's bounding radius (at small images 16 footprints are much of the view), and
+//! the scene (SmallVCM's and Georgiev et al.'s rule, Tessera's before 2026-12-06) gave 4.85
+//! footprints on the pool floor, which the camera sees a fifth of the scene across, and
+//! 0.97 on the Cornell box, which it sees whole, at any image size; 20 footprints meet the
+//! pool's goal of 2% in 120 CPU-seconds at 256 x 256 with vcm and ppm
+//! (docs/benchmarks.md, "The first radius from the camera's pixel footprint"). `r_1` is at most [`RADIUS_MAX_SCENE`] of the
+//! scene's bounding radius (at small images 20 footprints are much of the view), and
 //! where no survey ray reaches a surface that merges it is [`RADIUS_PIXELS`] scene radii
 //! over the image's long side. The survey is a pure function of the scene, the camera and
 //! the image size, so every worker computes the same radius. The
@@ -119,11 +121,11 @@ const LIGHT_STREAM: u64 = 0x7663_6d5f_6c69_6768; // "vcm_ligh"
 /// between variance (α → 1) and bias (α → 0) reduction.
 pub const RADIUS_ALPHA: f32 = 0.75;
 /// `r_1` in pixel footprints ([`pixel_footprint`]) of vertex connection and merging.
-pub const RADIUS_FOOTPRINTS: f32 = 16.0;
+pub const RADIUS_FOOTPRINTS: f32 = 20.0;
 /// [`RADIUS_FOOTPRINTS`] of progressive photon mapping ([`VcmSettings::ppm`]).
-pub const PPM_RADIUS_FOOTPRINTS: f32 = 16.0;
+pub const PPM_RADIUS_FOOTPRINTS: f32 = 20.0;
 /// The largest `r_1`, as a fraction of the scene's bounding radius: the footprint rule's
-/// disc must not blur a small image's scene away (at 24 x 24 pixels 16 footprints are
+/// disc must not blur a small image's scene away (at 24 x 24 pixels 20 footprints are
 /// most of the view).
 pub const RADIUS_MAX_SCENE: f32 = 1.0 / 16.0;
 /// `r_1` in units of the scene's bounding radius per pixel of the image's long side, where
