@@ -92,9 +92,9 @@
 //! or light tracing, so no splats: a pixel's value depends only on the pass's photon map
 //! and its own camera samples. The density estimate then carries all indirect *and*
 //! direct light, so its bias (the irradiance blurred over the disc) is in every pixel, not
-//! only where connections fail. Its first radius is [`PPM_RADIUS_FOOTPRINTS`] pixel
-//! footprints, chosen on the pool as vcm's was (docs/benchmarks.md, "The SDS pool in one
-//! minute").
+//! only where connections fail. Its first radius is vcm's: on the pool, where merging is
+//! the only technique either has, the same multiple of the footprint served both
+//! (docs/benchmarks.md, "The first radius from the camera's pixel footprint").
 
 use super::{render_whole_frame, MisHeuristic, SampleStream, WholeFrame};
 use crate::bsdf::diffuse::Diffuse;
@@ -120,10 +120,11 @@ const LIGHT_STREAM: u64 = 0x7663_6d5f_6c69_6768; // "vcm_ligh"
 /// `r_1 (k + 1)^((α - 1) / 2)`. 0.75 is SmallVCM's default and Knaus & Zwicker's choice
 /// between variance (α → 1) and bias (α → 0) reduction.
 pub const RADIUS_ALPHA: f32 = 0.75;
-/// `r_1` in pixel footprints ([`pixel_footprint`]) of vertex connection and merging.
+/// `r_1` in pixel footprints ([`pixel_footprint`]), of vertex connection and merging and
+/// of progressive photon mapping alike: the smallest round multiple that meets the pool's
+/// goal with both (docs/benchmarks.md, "The first radius from the camera's pixel
+/// footprint").
 pub const RADIUS_FOOTPRINTS: f32 = 20.0;
-/// [`RADIUS_FOOTPRINTS`] of progressive photon mapping ([`VcmSettings::ppm`]).
-pub const PPM_RADIUS_FOOTPRINTS: f32 = 20.0;
 /// The largest `r_1`, as a fraction of the scene's bounding radius: the footprint rule's
 /// disc must not blur a small image's scene away (at 24 x 24 pixels 20 footprints are
 /// most of the view).
@@ -250,20 +251,25 @@ impl VcmSettings {
         width: u32,
         height: u32,
     ) -> Self {
-        Self::with_footprints(
-            RADIUS_FOOTPRINTS,
+        let max_depth = max_depth.clamp(1, MAX_VCM_DEPTH);
+        let footprint = pixel_footprint(scene, width, height, max_depth);
+        Self {
             mis,
             max_depth,
             rr_depth,
-            scene,
-            width,
-            height,
-        )
+            radius_1: first_radius(
+                footprint,
+                RADIUS_FOOTPRINTS,
+                scene.geometry.bounds_radius,
+                width.max(height),
+            ),
+            alpha: RADIUS_ALPHA,
+            merge_only: false,
+        }
     }
 
-    /// Progressive photon mapping's settings: [`VcmSettings::new`]'s with
-    /// [`VcmSettings::merge_only`] and `r_1` = [`PPM_RADIUS_FOOTPRINTS`] pixel footprints
-    /// (at most [`RADIUS_MAX_SCENE`] of the scene's bounding radius).
+    /// Progressive photon mapping's settings: [`VcmSettings::new`]'s (the same first
+    /// radius) with [`VcmSettings::merge_only`].
     pub fn ppm(
         mis: MisHeuristic,
         max_depth: u32,
@@ -274,41 +280,7 @@ impl VcmSettings {
     ) -> Self {
         Self {
             merge_only: true,
-            ..Self::with_footprints(
-                PPM_RADIUS_FOOTPRINTS,
-                mis,
-                max_depth,
-                rr_depth,
-                scene,
-                width,
-                height,
-            )
-        }
-    }
-
-    fn with_footprints(
-        footprints: f32,
-        mis: MisHeuristic,
-        max_depth: u32,
-        rr_depth: u32,
-        scene: &RenderScene,
-        width: u32,
-        height: u32,
-    ) -> Self {
-        let max_depth = max_depth.clamp(1, MAX_VCM_DEPTH);
-        let footprint = pixel_footprint(scene, width, height, max_depth);
-        Self {
-            mis,
-            max_depth,
-            rr_depth,
-            radius_1: first_radius(
-                footprint,
-                footprints,
-                scene.geometry.bounds_radius,
-                width.max(height),
-            ),
-            alpha: RADIUS_ALPHA,
-            merge_only: false,
+            ..Self::new(mis, max_depth, rr_depth, scene, width, height)
         }
     }
 

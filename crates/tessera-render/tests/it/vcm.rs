@@ -503,7 +503,7 @@ fn vcm_agrees_with_path_on_the_cornell_box() {
 /// Progressive photon mapping on the Cornell box: all of its light, direct included, is
 /// merged, so the blur's loss at the box's edges and corners is in every pass: a 2%
 /// allowance for the bias (measured: -0.46% ± 1.2% at 32 passes; the first radius is
-/// 1.5 / 24 of the scene's bounding radius).
+/// the scene cap, a sixteenth of the scene's bounding radius, at 24 x 24).
 #[test]
 fn ppm_agrees_with_path_on_the_cornell_box() {
     agrees_with_path_on_the_cornell_box(Integrator::Ppm, 0.02);
