@@ -156,9 +156,9 @@ pub struct VcmSettings {
 /// The median pixel footprint of the camera paths' first merge vertices, in world units:
 /// the width `ℓ sqrt(Ω)` of a pixel's cone of directions (solid angle `Ω`, from
 /// [`CameraModel::pdf_dir`]) at the unfolded length `ℓ` of the camera path to its first
-/// non-specular vertex. The survey traces [`FOOTPRINT_GRID`]² rays through pixel centres
-/// spread evenly over the `width` x `height` image, at time 0 and through the lens's
-/// centre, and follows specular events by their most likely branch (the lobe and
+/// non-specular vertex. The survey traces 16 x 16 rays (`FOOTPRINT_GRID`) through pixel
+/// centres spread evenly over the `width` x `height` image, at time 0 and through the
+/// lens's centre, and follows specular events by their most likely branch (the lobe and
 /// direction chosen with every random number at 0.5), for at most `max_depth` bounces:
 /// a pure function of the scene and the camera, so every worker computes the same radius.
 /// The cone's width ignores how curved specular surfaces widen or narrow it (a flat
