@@ -162,7 +162,7 @@ pub fn render_unit_where(
                 settings.mis,
                 settings.max_depth,
                 settings.rr_depth,
-                scene.geometry.bounds_radius,
+                scene,
                 plan.width,
                 plan.height,
             );

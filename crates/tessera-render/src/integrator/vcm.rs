@@ -41,14 +41,30 @@
 //!
 //! `r_k = r_1 (k + 1)^((α - 1) / 2)` for pass `k` (numbered from 0), α = [`RADIUS_ALPHA`],
 //!
-//! and `r_1` = [`RADIUS_PIXELS`] times the scene's bounding radius divided by the image's
-//! long side: about 0.003 of the scene radius at 512 pixels, the default of SmallVCM, and
-//! proportionally larger at smaller images, where a pixel covers more of the scene. The
-//! schedule is indexed by the pass number, not by the unit, so every split of the passes
-//! into units sees the same radii. Passes remain independent replicates (each has its own
-//! photon map), but not identically distributed: their bias shrinks with `k`, and the
-//! pass spread does not see the bias that the passes share. The plan, the job status and
-//! the EXR header say so (`tessera_farm::job::RenderPlan::error_estimate_caveat`).
+//! and `r_1` = [`RADIUS_FOOTPRINTS`] *pixel footprints*: the width of a pixel's cone of
+//! directions at the camera path's first merge vertex ([`pixel_footprint`]: the median
+//! over a fixed grid of camera rays, following specular surfaces to the first
+//! non-specular one), after Hachisuka & Jensen 2009, section 4, who start each pixel's
+//! radius from its footprint. A disc of a fixed number of footprints holds the same number
+//! of photons whatever the resolution (`N = W H S` grows as the footprint's area
+//! shrinks), so a pass's noise per pixel does not depend on the image size; a fraction of
+//! the scene (SmallVCM's and Georgiev et al.'s rule, Tessera's before 2026-12-06) gave 4.85
+//! footprints on the pool floor, which the camera sees a fifth of the scene across, and
+//! 0.97 on the Cornell box, which it sees whole, at any image size; 20 footprints meet the
+//! pool's goal of 2% in 120 CPU-seconds at 256 x 256 with vcm and ppm
+//! (docs/benchmarks.md, "The first radius from the camera's pixel footprint"). `r_1` is
+//! at most [`RADIUS_MAX_SCENE`] of the scene's bounding radius (at small images 20
+//! footprints are much of the view), and where no survey ray reaches a surface that
+//! merges it is [`RADIUS_PIXELS`] scene radii over the image's long side. The survey is a
+//! pure function of the scene, the camera and the image size, so every worker computes
+//! the same radius. The schedule is indexed by the pass number, not by the unit, so every
+//! split of the passes into units sees the same radii. Passes remain independent
+//! replicates (each has its own photon map), but not identically distributed: their bias
+//! shrinks with `k`, and the pass spread does not see the bias that the passes share. The
+//! plan, the job status and the EXR header say so
+//! (`tessera_farm::job::RenderPlan::error_estimate_caveat`). On a smooth field (the pool)
+//! the spread alone is calibrated; where merging blurs a sharp caustic it is far from it
+//! (0.03-0.07 of the measured error on the glass caustic at 32 x 32, the same document).
 //!
 //! # Determinism and the farm (ARCHITECTURE.md §2)
 //!
@@ -79,8 +95,9 @@
 //! or light tracing, so no splats: a pixel's value depends only on the pass's photon map
 //! and its own camera samples. The density estimate then carries all indirect *and*
 //! direct light, so its bias (the irradiance blurred over the disc) is in every pixel, not
-//! only where connections fail; ppm takes a larger first radius
-//! ([`PPM_RADIUS_PIXELS`]) for that reason: its variance is all merging's.
+//! only where connections fail. Its first radius is vcm's: on the pool, where merging is
+//! the only technique either has, the same multiple of the footprint served both
+//! (docs/benchmarks.md, "The first radius from the camera's pixel footprint").
 
 use super::{render_whole_frame, MisHeuristic, SampleStream, WholeFrame};
 use crate::bsdf::diffuse::Diffuse;
@@ -106,11 +123,20 @@ const LIGHT_STREAM: u64 = 0x7663_6d5f_6c69_6768; // "vcm_ligh"
 /// `r_1 (k + 1)^((α - 1) / 2)`. 0.75 is SmallVCM's default and Knaus & Zwicker's choice
 /// between variance (α → 1) and bias (α → 0) reduction.
 pub const RADIUS_ALPHA: f32 = 0.75;
-/// `r_1` in units of the scene's bounding radius per pixel of the image's long side.
+/// `r_1` in pixel footprints ([`pixel_footprint`]), of vertex connection and merging and
+/// of progressive photon mapping alike: the smallest round multiple that meets the pool's
+/// goal with both (docs/benchmarks.md, "The first radius from the camera's pixel
+/// footprint").
+pub const RADIUS_FOOTPRINTS: f32 = 20.0;
+/// The largest `r_1`, as a fraction of the scene's bounding radius: the footprint rule's
+/// disc must not blur a small image's scene away (at 24 x 24 pixels 20 footprints are
+/// most of the view).
+pub const RADIUS_MAX_SCENE: f32 = 1.0 / 16.0;
+/// `r_1` in units of the scene's bounding radius per pixel of the image's long side, where
+/// no camera ray of the footprint survey reaches a surface that merges (SmallVCM's rule).
 pub const RADIUS_PIXELS: f32 = 1.5;
-/// [`RADIUS_PIXELS`] of progressive photon mapping ([`VcmSettings::ppm`]), where merging
-/// carries all the light.
-pub const PPM_RADIUS_PIXELS: f32 = 1.5;
+/// Camera rays of the footprint survey per image side ([`pixel_footprint`]).
+const FOOTPRINT_GRID: u32 = 16;
 
 /// Settings of the vertex connection and merging integrator.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -130,50 +156,134 @@ pub struct VcmSettings {
     pub merge_only: bool,
 }
 
-/// The first pass's merging radius, `r_1 = pixels scene_radius / max(width, height)`: about
-/// `pixels` pixels wide at the scene's scale.
-fn first_radius(pixels: f32, scene_radius: f32, width: u32, height: u32) -> f32 {
-    let long = width.max(height).max(1) as f32;
-    (pixels * scene_radius / long).max(1e-7)
+/// The median pixel footprint of the camera paths' first merge vertices, in world units:
+/// the width `ℓ sqrt(Ω)` of a pixel's cone of directions (solid angle `Ω`, from
+/// [`CameraModel::pdf_dir`]) at the unfolded length `ℓ` of the camera path to its first
+/// non-specular vertex. The survey traces 16 x 16 rays (`FOOTPRINT_GRID`) through pixel
+/// centres spread evenly over the `width` x `height` image, at time 0 and through the
+/// lens's centre, and follows specular events by their most likely branch (the lobe and
+/// direction chosen with every random number at 0.5), for at most `max_depth` bounces:
+/// a pure function of the scene and the camera, so every worker computes the same radius.
+/// The cone's width ignores how curved specular surfaces widen or narrow it (a flat
+/// interface of index `n` narrows the part of the path beyond it by up to `n`): a survey
+/// of the merge scale, not a ray differential. Hachisuka & Jensen 2009, section 4, start
+/// each hit point's radius from its pixel's footprint; here one radius serves the whole
+/// pass (the hash grid's cell and the MIS pseudo-density `η = π r² N` are per pass), so
+/// the median stands for the image. `None` when no survey ray reaches a non-specular
+/// surface.
+pub fn pixel_footprint(
+    scene: &RenderScene,
+    width: u32,
+    height: u32,
+    max_depth: u32,
+) -> Option<f32> {
+    let camera = &scene.camera;
+    let (w, h) = (width.max(1) as f32, height.max(1) as f32);
+    let mut found = Vec::with_capacity((FOOTPRINT_GRID * FOOTPRINT_GRID) as usize);
+    for j in 0..FOOTPRINT_GRID {
+        for i in 0..FOOTPRINT_GRID {
+            let film = Vec2::new(
+                (i as f32 + 0.5) / FOOTPRINT_GRID as f32 * w,
+                (j as f32 + 0.5) / FOOTPRINT_GRID as f32 * h,
+            );
+            let (mut origin, mut dir) = camera.generate_ray(film, Vec2::splat(0.5));
+            // `pdf_dir` is the density of directions over the whole image: one pixel's
+            // solid angle is `1 / (pdf_dir W H)`.
+            let pdf = camera.pdf_dir(origin, dir);
+            if !(pdf > 0.0 && pdf.is_finite()) {
+                continue;
+            }
+            let cone = (1.0 / (pdf * w * h)).sqrt();
+            let mut length = 0.0f32;
+            for _ in 0..max_depth.max(1) {
+                let Some(hit) = scene.intersect_at(origin, dir, f32::INFINITY, 0.0) else {
+                    break;
+                };
+                let sp = scene.surface(&hit, origin, dir);
+                length += hit.t;
+                let bsdf = scene.bsdf(&sp, -dir);
+                if bsdf.has_non_delta() {
+                    let f = length * cone;
+                    if f.is_finite() && f > 0.0 {
+                        found.push(f);
+                    }
+                    break;
+                }
+                let frame = Frame::from_normal(sp.ns);
+                let Some(bs) = bsdf.sample(frame.to_local(-dir), 0.5, Vec2::splat(0.5)) else {
+                    break;
+                };
+                let wi = frame.to_world(bs.wi);
+                origin = offset_ray_origin(sp.p, sp.p_error, sp.ng, wi);
+                dir = wi;
+            }
+        }
+    }
+    if found.is_empty() {
+        return None;
+    }
+    found.sort_by(f32::total_cmp);
+    Some(found[found.len() / 2])
+}
+
+/// The first pass's merging radius: `footprints` pixel footprints ([`pixel_footprint`]),
+/// at most [`RADIUS_MAX_SCENE`] of the scene's bounding radius; [`RADIUS_PIXELS`] scene
+/// radii over the image's long side where the survey finds no merge vertex.
+fn first_radius(footprint: Option<f32>, footprints: f32, scene_radius: f32, long: u32) -> f32 {
+    let r = match footprint {
+        Some(f) => (footprints * f).min(RADIUS_MAX_SCENE * scene_radius),
+        None => RADIUS_PIXELS * scene_radius / long.max(1) as f32,
+    };
+    if r.is_finite() {
+        r.max(1e-7)
+    } else {
+        1e-7
+    }
 }
 
 impl VcmSettings {
-    /// Settings for a `width` x `height` image of a scene of bounding radius
-    /// `scene_radius`: `r_1 = RADIUS_PIXELS scene_radius / max(width, height)`, α =
-    /// [`RADIUS_ALPHA`], `max_depth` clamped to `1..=MAX_VCM_DEPTH`.
+    /// Settings for a `width` x `height` image of `scene`: `r_1` =
+    /// [`RADIUS_FOOTPRINTS`] pixel footprints ([`pixel_footprint`]), at most
+    /// [`RADIUS_MAX_SCENE`] of the scene's bounding radius, α = [`RADIUS_ALPHA`],
+    /// `max_depth` clamped to `1..=MAX_VCM_DEPTH`.
     pub fn new(
         mis: MisHeuristic,
         max_depth: u32,
         rr_depth: u32,
-        scene_radius: f32,
+        scene: &RenderScene,
         width: u32,
         height: u32,
     ) -> Self {
+        let max_depth = max_depth.clamp(1, MAX_VCM_DEPTH);
+        let footprint = pixel_footprint(scene, width, height, max_depth);
         Self {
             mis,
-            max_depth: max_depth.clamp(1, MAX_VCM_DEPTH),
+            max_depth,
             rr_depth,
-            radius_1: first_radius(RADIUS_PIXELS, scene_radius, width, height),
+            radius_1: first_radius(
+                footprint,
+                RADIUS_FOOTPRINTS,
+                scene.geometry.bounds_radius,
+                width.max(height),
+            ),
             alpha: RADIUS_ALPHA,
             merge_only: false,
         }
     }
 
-    /// Progressive photon mapping's settings: [`VcmSettings::new`]'s with
-    /// [`VcmSettings::merge_only`] and `r_1 = PPM_RADIUS_PIXELS scene_radius / max(width,
-    /// height)`.
+    /// Progressive photon mapping's settings: [`VcmSettings::new`]'s (the same first
+    /// radius) with [`VcmSettings::merge_only`].
     pub fn ppm(
         mis: MisHeuristic,
         max_depth: u32,
         rr_depth: u32,
-        scene_radius: f32,
+        scene: &RenderScene,
         width: u32,
         height: u32,
     ) -> Self {
         Self {
-            radius_1: first_radius(PPM_RADIUS_PIXELS, scene_radius, width, height),
             merge_only: true,
-            ..Self::new(mis, max_depth, rr_depth, scene_radius, width, height)
+            ..Self::new(mis, max_depth, rr_depth, scene, width, height)
         }
     }
 
@@ -1140,10 +1250,30 @@ mod tests {
 
     #[test]
     fn radius_follows_the_schedule() {
-        let st = VcmSettings::new(MisHeuristic::Power, 8, 3, 2.0, 256, 128);
-        assert!((st.radius(0) - 1.5 * 2.0 / 256.0).abs() < 1e-7);
+        let st = VcmSettings {
+            mis: MisHeuristic::Power,
+            max_depth: 8,
+            rr_depth: 3,
+            radius_1: 0.02,
+            alpha: RADIUS_ALPHA,
+            merge_only: false,
+        };
+        assert_eq!(st.radius(0), 0.02);
         let expect = st.radius(0) * 4f32.powf(-0.125);
         assert!((st.radius(3) - expect).abs() < 1e-7);
         assert!(st.radius(100) < st.radius(10));
+    }
+
+    /// The first radius: the footprints where the survey found one, capped at
+    /// [`RADIUS_MAX_SCENE`] of the scene; the scene-fraction rule where it found none.
+    #[test]
+    fn first_radius_is_footprints_capped_by_the_scene() {
+        assert!((first_radius(Some(0.001), 16.0, 10.0, 256) - 0.016).abs() < 1e-7);
+        assert!((first_radius(Some(0.1), 16.0, 10.0, 256) - 10.0 / 16.0).abs() < 1e-6);
+        assert!((first_radius(None, 16.0, 2.0, 256) - 1.5 * 2.0 / 256.0).abs() < 1e-7);
+        assert_eq!(
+            first_radius(Some(f32::INFINITY), 16.0, f32::INFINITY, 1),
+            1e-7
+        );
     }
 }

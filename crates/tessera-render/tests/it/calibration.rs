@@ -643,18 +643,27 @@ fn calibration_suite_glossy_highlight() {
 /// and with the pixels' own `rel`, the range of one render's ratio, and the first seed's
 /// coverages.
 #[test]
-#[ignore = "prints the calibration table (about 5 minutes)"]
+#[ignore = "prints the calibration table (about 5 minutes; `TESSERA_CALIBRATION_SCENES` and `TESSERA_CALIBRATION_INTEGRATORS` select rows)"]
 fn calibration_suite_table() {
     eprintln!("| scene | spp (passes) | estimated / measured, robust (one render: min-max) | own `rel` | measured error (min-max) | own 2-sigma coverage (t predicts) | pooled 3x3 coverage |");
     eprintln!("|---|---|---|---|---|---|---|");
     let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
-    // The suite path-traced, and the caustic again with the plan's bdpt.
+    let integrators = std::env::var("TESSERA_CALIBRATION_INTEGRATORS").unwrap_or_default();
+    // The suite path-traced, and the caustic again with the plan's bdpt and with the
+    // merging techniques (whose bias the pass spread does not see).
     let rows = SUITE
         .iter()
         .map(|&(name, scene)| (name, scene, Integrator::Path))
-        .chain([("caustic", "builtin:caustic", Integrator::Bdpt)]);
+        .chain([
+            ("caustic", "builtin:caustic", Integrator::Bdpt),
+            ("caustic", "builtin:caustic", Integrator::Vcm),
+            ("caustic", "builtin:caustic", Integrator::Ppm),
+        ]);
     for (name, scene, integrator) in rows {
         if !only.is_empty() && !only.split(',').any(|s| s == name) {
+            continue;
+        }
+        if !integrators.is_empty() && !integrators.split(',').any(|s| s == integrator.as_str()) {
             continue;
         }
         let label = match integrator {
