@@ -402,9 +402,20 @@ struct Calibration {
 }
 
 fn calibrate(name: &str, scene: &str, spp: u32, seed: u64, integrator: Integrator) -> Calibration {
+    let plan = FramePlan::for_spp(W, H, spp, 8).unwrap();
+    calibrate_plan(name, scene, plan, seed, integrator)
+}
+
+/// [`calibrate`] with a given plan (its pass count chosen by the caller).
+fn calibrate_plan(
+    name: &str,
+    scene: &str,
+    plan: FramePlan,
+    seed: u64,
+    integrator: Integrator,
+) -> Calibration {
     let r = suite_reference(name);
     let rs = suite_scene(scene);
-    let plan = FramePlan::for_spp(W, H, spp, 8).unwrap();
     let settings = RenderConfig {
         integrator,
         ..suite_settings(seed)
@@ -685,6 +696,73 @@ fn calibration_suite_table() {
                 100.0 * t_coverage(c.dof),
                 100.0 * c.coverage_pooled,
             );
+        }
+    }
+}
+
+/// The pass counts compared by [`pass_count_table`], at each of [`PASS_COUNT_BUDGETS`].
+const PASS_COUNTS: [u32; 2] = [4, 2];
+/// The budgets of [`pass_count_table`].
+const PASS_COUNT_BUDGETS: [u32; 3] = [16, 64, 256];
+
+/// The measurement behind the plan's pass count at low spp (docs/benchmarks.md,
+/// "Sampling structure"): the suite's scenes at 16, 64 and 256 spp, each budget as 4 and as
+/// 2 passes, 8 seeds each: the estimated over measured image error (root mean square over
+/// the seeds of each, with one render's range), the measured error, and the own and 3x3
+/// pooled 2-sigma coverages as the mean over the seeds with their range; beside the
+/// pooled coverage what Student's t predicts for `9 (K - 1)` degrees of freedom, its most.
+#[test]
+#[ignore = "prints the pass-count table (about 3 minutes)"]
+fn pass_count_table() {
+    eprintln!("| scene | spp | passes x samples | estimated / measured (one render: min-max) | measured error | own coverage, mean (min-max; t predicts) | pooled 3x3 coverage, mean (min-max; t_9(K-1)) | first seed pooled |");
+    eprintln!("|---|---|---|---|---|---|---|---|");
+    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
+    let rows = SUITE
+        .iter()
+        .map(|&(name, scene)| (name, scene, Integrator::Path))
+        .chain([("caustic", "builtin:caustic", Integrator::Bdpt)]);
+    for (name, scene, integrator) in rows {
+        if !only.is_empty() && !only.split(',').any(|s| s == name) {
+            continue;
+        }
+        let label = match integrator {
+            Integrator::Path => name.to_string(),
+            other => format!("{name} ({})", other.as_str()),
+        };
+        for spp in PASS_COUNT_BUDGETS {
+            for passes in PASS_COUNTS {
+                let plan = FramePlan::new(W, H, 8, spp / passes, passes).unwrap();
+                let cs: Vec<Calibration> = (8..16)
+                    .map(|seed| calibrate_plan(name, scene, plan, seed, integrator))
+                    .collect();
+                let n = cs.len() as f64;
+                let sum2 =
+                    |f: fn(&Calibration) -> f64| cs.iter().map(|c| f(c).powi(2)).sum::<f64>();
+                let mean = |f: fn(&Calibration) -> f64| cs.iter().map(f).sum::<f64>() / n;
+                let range = |f: fn(&Calibration) -> f64| {
+                    cs.iter()
+                        .map(f)
+                        .fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)))
+                };
+                let (rlo, rhi) = range(|c| c.ratio);
+                let (olo, ohi) = range(|c| c.coverage);
+                let (plo, phi) = range(|c| c.coverage_pooled);
+                eprintln!(
+                    "| {label} | {spp} | {passes} x {} | {:.3} ({rlo:.3}-{rhi:.3}) | {:.4} | {:.2}% ({:.2}-{:.2}%; {:.2}%) | {:.2}% ({:.2}-{:.2}%; {:.2}%) | {:.2}% |",
+                    spp / passes,
+                    (sum2(|c| c.estimated) / sum2(|c| c.measured)).sqrt(),
+                    (sum2(|c| c.measured) / n).sqrt(),
+                    100.0 * mean(|c| c.coverage),
+                    100.0 * olo,
+                    100.0 * ohi,
+                    100.0 * t_coverage(passes - 1),
+                    100.0 * mean(|c| c.coverage_pooled),
+                    100.0 * plo,
+                    100.0 * phi,
+                    100.0 * t_coverage(9 * (passes - 1)),
+                    100.0 * cs[0].coverage_pooled,
+                );
+            }
         }
     }
 }
