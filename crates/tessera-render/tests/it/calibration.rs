@@ -728,6 +728,33 @@ fn calibration_suite_glossy_highlight() {
     );
 }
 
+/// The rows of the printed tables: the suite path-traced, and the caustic again with the
+/// plan's bdpt, as `(name, scene, integrator, label)`; only the scenes named in
+/// `TESSERA_CALIBRATION_SCENES` (comma-separated) when it is set.
+fn table_rows() -> Vec<(&'static str, &'static str, Integrator, String)> {
+    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
+    SUITE
+        .iter()
+        .map(|&(name, scene)| (name, scene, Integrator::Path))
+        .chain([("caustic", "builtin:caustic", Integrator::Bdpt)])
+        .filter(|(name, ..)| only.is_empty() || only.split(',').any(|s| s == *name))
+        .map(|(name, scene, integrator)| {
+            let label = match integrator {
+                Integrator::Path => name.to_string(),
+                other => format!("{name} ({})", other.as_str()),
+            };
+            (name, scene, integrator, label)
+        })
+        .collect()
+}
+
+/// The smallest and largest of `f` over `cs`.
+fn range(cs: &[Calibration], f: fn(&Calibration) -> f64) -> (f64, f64) {
+    cs.iter()
+        .map(f)
+        .fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)))
+}
+
 /// The suite's table for docs/benchmarks.md: per scene and budget, the estimated over
 /// measured image error (root mean square over 8 seeds of each), with the robust scale
 /// and with the pixels' own `rel`, the range of one render's ratio, and the first seed's
@@ -737,32 +764,14 @@ fn calibration_suite_glossy_highlight() {
 fn calibration_suite_table() {
     eprintln!("| scene | spp (passes) | estimated / measured, robust (one render: min-max) | own `rel` | measured error (min-max) | own 2-sigma coverage (t predicts) | pooled 3x3 coverage |");
     eprintln!("|---|---|---|---|---|---|---|");
-    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
-    // The suite path-traced, and the caustic again with the plan's bdpt.
-    let rows = SUITE
-        .iter()
-        .map(|&(name, scene)| (name, scene, Integrator::Path))
-        .chain([("caustic", "builtin:caustic", Integrator::Bdpt)]);
-    for (name, scene, integrator) in rows {
-        if !only.is_empty() && !only.split(',').any(|s| s == name) {
-            continue;
-        }
-        let label = match integrator {
-            Integrator::Path => name.to_string(),
-            other => format!("{name} ({})", other.as_str()),
-        };
+    for (name, scene, integrator, label) in table_rows() {
         for spp in BUDGETS {
             let cs: Vec<Calibration> = (8..16)
                 .map(|seed| calibrate(name, scene, spp, seed, integrator))
                 .collect();
             let sum = |f: fn(&Calibration) -> f64| cs.iter().map(|c| f(c).powi(2)).sum::<f64>();
-            let range = |f: fn(&Calibration) -> f64| {
-                cs.iter()
-                    .map(f)
-                    .fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)))
-            };
-            let (rlo, rhi) = range(|c| c.ratio);
-            let (mlo, mhi) = range(|c| c.measured);
+            let (rlo, rhi) = range(&cs, |c| c.ratio);
+            let (mlo, mhi) = range(&cs, |c| c.measured);
             let m2 = sum(|c| c.measured);
             let c = &cs[0];
             eprintln!(
@@ -798,19 +807,7 @@ const PASS_COUNT_BUDGETS: [u32; 3] = [16, 64, 256];
 fn pass_count_table() {
     eprintln!("| scene | spp | passes x samples | estimated / measured (one render: min-max) | measured error | own coverage, mean (min-max; t predicts) | pooled 3x3 coverage, mean (min-max; t_9(K-1)) | first seed pooled | pooled 5x5, mean | pooled 3x3 at the t quantile, mean |");
     eprintln!("|---|---|---|---|---|---|---|---|---|---|");
-    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
-    let rows = SUITE
-        .iter()
-        .map(|&(name, scene)| (name, scene, Integrator::Path))
-        .chain([("caustic", "builtin:caustic", Integrator::Bdpt)]);
-    for (name, scene, integrator) in rows {
-        if !only.is_empty() && !only.split(',').any(|s| s == name) {
-            continue;
-        }
-        let label = match integrator {
-            Integrator::Path => name.to_string(),
-            other => format!("{name} ({})", other.as_str()),
-        };
+    for (name, scene, integrator, label) in table_rows() {
         for spp in PASS_COUNT_BUDGETS {
             for passes in PASS_COUNTS {
                 let plan = FramePlan::new(W, H, 8, spp / passes, passes).unwrap();
@@ -821,14 +818,9 @@ fn pass_count_table() {
                 let sum2 =
                     |f: fn(&Calibration) -> f64| cs.iter().map(|c| f(c).powi(2)).sum::<f64>();
                 let mean = |f: fn(&Calibration) -> f64| cs.iter().map(f).sum::<f64>() / n;
-                let range = |f: fn(&Calibration) -> f64| {
-                    cs.iter()
-                        .map(f)
-                        .fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)))
-                };
-                let (rlo, rhi) = range(|c| c.ratio);
-                let (olo, ohi) = range(|c| c.coverage);
-                let (plo, phi) = range(|c| c.coverage_pooled);
+                let (rlo, rhi) = range(&cs, |c| c.ratio);
+                let (olo, ohi) = range(&cs, |c| c.coverage);
+                let (plo, phi) = range(&cs, |c| c.coverage_pooled);
                 eprintln!(
                     "| {label} | {spp} | {passes} x {} | {:.3} ({rlo:.3}-{rhi:.3}) | {:.4} | {:.2}% ({:.2}-{:.2}%; {:.2}%) | {:.2}% ({:.2}-{:.2}%; {:.2}%) | {:.2}% | {:.2}% | {:.2}% |",
                     spp / passes,
