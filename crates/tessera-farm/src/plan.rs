@@ -39,8 +39,8 @@ pub const WHOLE_FRAME_MAX_SAMPLES_PER_PASS: u32 = 16;
 ///
 /// Not 2, though 2 passes keep more of each pixel's net: the 3x3-pooled intervals then
 /// have at most 9 degrees of freedom and `mean +- 2 sqrt(pooled_variance)` covers 92%
-/// (Student's t for 9), not the 93-96% the calibration suite holds them to, for 4-16% less
-/// variance at 16-64 spp on diffuse scenes (`docs/benchmarks.md`, "Sampling structure",
+/// (Student's t for 9), not the 93-96% the calibration suite holds them to, for 4-21% less
+/// variance at 16-64 spp (`docs/benchmarks.md`, "Sampling structure",
 /// 2026-12-06).
 pub const TARGET_MIN_PASSES: u32 = 4;
 
