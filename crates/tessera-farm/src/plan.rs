@@ -36,6 +36,12 @@ pub const WHOLE_FRAME_MAX_SAMPLES_PER_PASS: u32 = 16;
 /// Minimum number of passes [`FramePlan::for_spp`] aims for when the requested spp allows it:
 /// 4 replicates, so 3 degrees of freedom for each pixel's variance and an unbiased image
 /// error estimate (ARCHITECTURE.md §3).
+///
+/// Not 2, though 2 passes keep more of each pixel's net: the 3x3-pooled intervals then
+/// have at most 9 degrees of freedom and `mean +- 2 sqrt(pooled_variance)` covers 92%
+/// (Student's t for 9), not the 93-96% the calibration suite holds them to, for 4-21% less
+/// variance at 16-64 spp (`docs/benchmarks.md`, "Sampling structure",
+/// 2026-12-06).
 pub const TARGET_MIN_PASSES: u32 = 4;
 
 /// Why a frame plan was rejected.

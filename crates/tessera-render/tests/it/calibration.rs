@@ -390,6 +390,11 @@ struct Calibration {
     coverage: f64,
     /// The same with [`FrameImage::interval_variance`] (3x3 pooled).
     coverage_pooled: f64,
+    /// The same with the per-pass variance pooled over 5x5 pixels ([`pooled_variance`]).
+    coverage_pooled_5x5: f64,
+    /// The 3x3-pooled interval widened to Student's t quantile for its pooled degrees of
+    /// freedom ([`t_quantile`]): what a 95.45% interval from the pooled variance would cover.
+    coverage_pooled_t: f64,
     /// Estimated over measured image error.
     ratio: f64,
     estimated: f64,
@@ -402,27 +407,52 @@ struct Calibration {
 }
 
 fn calibrate(name: &str, scene: &str, spp: u32, seed: u64, integrator: Integrator) -> Calibration {
+    let plan = FramePlan::for_spp(W, H, spp, 8).unwrap();
+    calibrate_plan(name, scene, plan, seed, integrator)
+}
+
+/// [`calibrate`] with a given plan (its pass count chosen by the caller).
+fn calibrate_plan(
+    name: &str,
+    scene: &str,
+    plan: FramePlan,
+    seed: u64,
+    integrator: Integrator,
+) -> Calibration {
     let r = suite_reference(name);
     let rs = suite_scene(scene);
-    let plan = FramePlan::for_spp(W, H, spp, 8).unwrap();
     let settings = RenderConfig {
         integrator,
         ..suite_settings(seed)
     };
     let img = render_frame(&rs, &settings, &plan, 0, 0, |_, _| {}).image();
     let pooled = img.interval_variance();
+    let pooled_3x3 = pooled_variance(&img, 1);
+    let pooled_5x5 = pooled_variance(&img, 2);
+    let mut quantiles = std::collections::HashMap::new();
     let (mut inside, mut inside_pooled, mut counted) = (0usize, 0usize, 0usize);
+    let (mut inside_5x5, mut inside_t) = (0usize, 0usize);
     for (p, pooled) in pooled.iter().enumerate() {
+        let dof = pooled_3x3[p].1;
+        let q = *quantiles.entry(dof).or_insert_with(|| t_quantile(dof));
         for (c, &pooled) in pooled.iter().enumerate() {
             let vr = f64::from(r.variance_of_mean[p][c]);
             let v = f64::from(img.variance_of_mean[p][c]);
             if v + vr == 0.0 {
                 continue;
             }
+            // The helper reproduces the library's 3x3 pooling (to f32 rounding).
+            let own = pooled_3x3[p].0[c];
+            assert!(
+                (own - f64::from(pooled)).abs() <= 1e-5 * own.max(1e-30),
+                "pixel {p}: {own} against interval_variance {pooled}"
+            );
             let d = (f64::from(img.mean[p][c]) - f64::from(r.mean[p][c])).abs();
             counted += 1;
             inside += usize::from(d <= 2.0 * (v + vr).sqrt());
             inside_pooled += usize::from(d <= 2.0 * (f64::from(pooled) + vr).sqrt());
+            inside_5x5 += usize::from(d <= 2.0 * (pooled_5x5[p].0[c] + vr).sqrt());
+            inside_t += usize::from(d <= q * (f64::from(pooled) + vr).sqrt());
         }
     }
     let estimated = img.error_estimate(ErrorEstimator::Robust).unwrap();
@@ -437,6 +467,8 @@ fn calibrate(name: &str, scene: &str, spp: u32, seed: u64, integrator: Integrato
     Calibration {
         coverage: inside as f64 / counted as f64,
         coverage_pooled: inside_pooled as f64 / counted as f64,
+        coverage_pooled_5x5: inside_5x5 as f64 / counted as f64,
+        coverage_pooled_t: inside_t as f64 / counted as f64,
         ratio: estimated / measured,
         estimated,
         own_estimated,
@@ -445,11 +477,69 @@ fn calibrate(name: &str, scene: &str, spp: u32, seed: u64, integrator: Integrato
     }
 }
 
+/// Each pixel's per-pass variance pooled over its `(2 radius + 1)^2` neighbourhood,
+/// weighted by degrees of freedom and divided by its own pass count, with the pooled
+/// degrees of freedom: [`FrameImage::interval_variance`] for radius 1, which the library
+/// fixes (the EXR's `pooled_variance.*`); other radii are what [`pass_count_table`] asks
+/// of a wider interval at 2 passes.
+fn pooled_variance(img: &FrameImage, radius: usize) -> Vec<([f64; 3], u32)> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    let mut out = vec![([0.0; 3], 0); w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let own = f64::from(img.passes[y * w + x]);
+            if own < 2.0 {
+                continue;
+            }
+            let (mut sum, mut dof) = ([0.0f64; 3], 0u32);
+            for qy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
+                for qx in x.saturating_sub(radius)..(x + radius + 1).min(w) {
+                    let q = qy * w + qx;
+                    let n = img.passes[q];
+                    if n < 2 {
+                        continue;
+                    }
+                    let nf = f64::from(n);
+                    for (c, s) in sum.iter_mut().enumerate() {
+                        *s += (nf - 1.0) * nf * f64::from(img.variance_of_mean[q][c]);
+                    }
+                    dof += n - 1;
+                }
+            }
+            out[y * w + x] = (sum.map(|s| s / f64::from(dof) / own), dof);
+        }
+    }
+    out
+}
+
+/// The half-width `x` (in standard errors) at which Student's t for `dof` degrees of
+/// freedom covers what the normal 2-sigma interval does, `P(|T| <= x) = P(|Z| <= 2) =
+/// 0.9545`: 2.32 for 9, 2.10 for 27 (bisection on [`t_probability`]).
+fn t_quantile(dof: u32) -> f64 {
+    const NORMAL_2_SIGMA: f64 = 0.954_499_736_103_642;
+    let (mut lo, mut hi) = (2.0, 30.0);
+    for _ in 0..50 {
+        let mid = 0.5 * (lo + hi);
+        if t_probability(dof, mid) < NORMAL_2_SIGMA {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
 /// Student's t probability `P(|T| <= 2)` for `dof` degrees of freedom (the coverage a
-/// pixel's own 2-sigma interval should have). With `t = sqrt(v) tan θ` the t density
-/// becomes proportional to `cos^(v-1) θ` on `[0, π/2)`, so the probability is a ratio of
-/// two integrals of it (Simpson's rule), and no normalising Gamma functions are needed.
+/// pixel's own 2-sigma interval should have); see [`t_probability`].
 fn t_coverage(dof: u32) -> f64 {
+    t_probability(dof, 2.0)
+}
+
+/// Student's t probability `P(|T| <= x)` for `dof` degrees of freedom. With
+/// `t = sqrt(v) tan θ` the t density becomes proportional to `cos^(v-1) θ` on `[0, π/2)`,
+/// so the probability is a ratio of two integrals of it (Simpson's rule), and no
+/// normalising Gamma functions are needed.
+fn t_probability(dof: u32, x: f64) -> f64 {
     let v = f64::from(dof);
     let integral = |end: f64| {
         let n = 2000;
@@ -461,7 +551,7 @@ fn t_coverage(dof: u32) -> f64 {
         }
         sum * h / 3.0
     };
-    integral((2.0 / v.sqrt()).atan()) / integral(std::f64::consts::FRAC_PI_2)
+    integral((x / v.sqrt()).atan()) / integral(std::f64::consts::FRAC_PI_2)
 }
 
 /// Seeds of the suite's renders at each budget. The image estimate is held to the
@@ -638,6 +728,43 @@ fn calibration_suite_glossy_highlight() {
     );
 }
 
+/// The rows of the printed tables: the suite path-traced, and the caustic again with the
+/// plan's bdpt and with the merging techniques (whose bias the pass spread does not see),
+/// as `(name, scene, integrator, label)`; only the scenes named in
+/// `TESSERA_CALIBRATION_SCENES` and the integrators named in
+/// `TESSERA_CALIBRATION_INTEGRATORS` (comma-separated) when they are set.
+fn table_rows() -> Vec<(&'static str, &'static str, Integrator, String)> {
+    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
+    let integrators = std::env::var("TESSERA_CALIBRATION_INTEGRATORS").unwrap_or_default();
+    SUITE
+        .iter()
+        .map(|&(name, scene)| (name, scene, Integrator::Path))
+        .chain([
+            ("caustic", "builtin:caustic", Integrator::Bdpt),
+            ("caustic", "builtin:caustic", Integrator::Vcm),
+            ("caustic", "builtin:caustic", Integrator::Ppm),
+        ])
+        .filter(|(name, ..)| only.is_empty() || only.split(',').any(|s| s == *name))
+        .filter(|(_, _, integrator)| {
+            integrators.is_empty() || integrators.split(',').any(|s| s == integrator.as_str())
+        })
+        .map(|(name, scene, integrator)| {
+            let label = match integrator {
+                Integrator::Path => name.to_string(),
+                other => format!("{name} ({})", other.as_str()),
+            };
+            (name, scene, integrator, label)
+        })
+        .collect()
+}
+
+/// The smallest and largest of `f` over `cs`.
+fn range(cs: &[Calibration], f: fn(&Calibration) -> f64) -> (f64, f64) {
+    cs.iter()
+        .map(f)
+        .fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)))
+}
+
 /// The suite's table for docs/benchmarks.md: per scene and budget, the estimated over
 /// measured image error (root mean square over 8 seeds of each), with the robust scale
 /// and with the pixels' own `rel`, the range of one render's ratio, and the first seed's
@@ -647,41 +774,14 @@ fn calibration_suite_glossy_highlight() {
 fn calibration_suite_table() {
     eprintln!("| scene | spp (passes) | estimated / measured, robust (one render: min-max) | own `rel` | measured error (min-max) | own 2-sigma coverage (t predicts) | pooled 3x3 coverage |");
     eprintln!("|---|---|---|---|---|---|---|");
-    let only = std::env::var("TESSERA_CALIBRATION_SCENES").unwrap_or_default();
-    let integrators = std::env::var("TESSERA_CALIBRATION_INTEGRATORS").unwrap_or_default();
-    // The suite path-traced, and the caustic again with the plan's bdpt and with the
-    // merging techniques (whose bias the pass spread does not see).
-    let rows = SUITE
-        .iter()
-        .map(|&(name, scene)| (name, scene, Integrator::Path))
-        .chain([
-            ("caustic", "builtin:caustic", Integrator::Bdpt),
-            ("caustic", "builtin:caustic", Integrator::Vcm),
-            ("caustic", "builtin:caustic", Integrator::Ppm),
-        ]);
-    for (name, scene, integrator) in rows {
-        if !only.is_empty() && !only.split(',').any(|s| s == name) {
-            continue;
-        }
-        if !integrators.is_empty() && !integrators.split(',').any(|s| s == integrator.as_str()) {
-            continue;
-        }
-        let label = match integrator {
-            Integrator::Path => name.to_string(),
-            other => format!("{name} ({})", other.as_str()),
-        };
+    for (name, scene, integrator, label) in table_rows() {
         for spp in BUDGETS {
             let cs: Vec<Calibration> = (8..16)
                 .map(|seed| calibrate(name, scene, spp, seed, integrator))
                 .collect();
             let sum = |f: fn(&Calibration) -> f64| cs.iter().map(|c| f(c).powi(2)).sum::<f64>();
-            let range = |f: fn(&Calibration) -> f64| {
-                cs.iter()
-                    .map(f)
-                    .fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)))
-            };
-            let (rlo, rhi) = range(|c| c.ratio);
-            let (mlo, mhi) = range(|c| c.measured);
+            let (rlo, rhi) = range(&cs, |c| c.ratio);
+            let (mlo, mhi) = range(&cs, |c| c.measured);
             let m2 = sum(|c| c.measured);
             let c = &cs[0];
             eprintln!(
@@ -698,12 +798,72 @@ fn calibration_suite_table() {
     }
 }
 
+/// The pass counts compared by [`pass_count_table`], at each of [`PASS_COUNT_BUDGETS`].
+const PASS_COUNTS: [u32; 2] = [4, 2];
+/// The budgets of [`pass_count_table`].
+const PASS_COUNT_BUDGETS: [u32; 3] = [16, 64, 256];
+
+/// The measurement behind the plan's pass count at low spp (docs/benchmarks.md,
+/// "Sampling structure"): the suite's scenes at 16, 64 and 256 spp, each budget as 4 and as
+/// 2 passes, 8 seeds each: the estimated over measured image error (root mean square over
+/// the seeds of each, with one render's range), the measured error, and the own and 3x3
+/// pooled 2-sigma coverages as the mean over the seeds with their range; beside the
+/// pooled coverage what Student's t predicts for `9 (K - 1)` degrees of freedom, its most;
+/// then the coverage of two wider intervals from the same passes (the mean over the
+/// seeds): the per-pass variance pooled over 5x5 pixels, and the 3x3-pooled interval at
+/// Student's t quantile for its pooled degrees of freedom instead of 2.
+#[test]
+#[ignore = "prints the pass-count table (about 3 minutes)"]
+fn pass_count_table() {
+    eprintln!("| scene | spp | passes x samples | estimated / measured (one render: min-max) | measured error | own coverage, mean (min-max; t predicts) | pooled 3x3 coverage, mean (min-max; t_9(K-1)) | first seed pooled | pooled 5x5, mean | pooled 3x3 at the t quantile, mean |");
+    eprintln!("|---|---|---|---|---|---|---|---|---|---|");
+    for (name, scene, integrator, label) in table_rows() {
+        for spp in PASS_COUNT_BUDGETS {
+            for passes in PASS_COUNTS {
+                let plan = FramePlan::new(W, H, 8, spp / passes, passes).unwrap();
+                let cs: Vec<Calibration> = (8..16)
+                    .map(|seed| calibrate_plan(name, scene, plan, seed, integrator))
+                    .collect();
+                let n = cs.len() as f64;
+                let sum2 =
+                    |f: fn(&Calibration) -> f64| cs.iter().map(|c| f(c).powi(2)).sum::<f64>();
+                let mean = |f: fn(&Calibration) -> f64| cs.iter().map(f).sum::<f64>() / n;
+                let (rlo, rhi) = range(&cs, |c| c.ratio);
+                let (olo, ohi) = range(&cs, |c| c.coverage);
+                let (plo, phi) = range(&cs, |c| c.coverage_pooled);
+                eprintln!(
+                    "| {label} | {spp} | {passes} x {} | {:.3} ({rlo:.3}-{rhi:.3}) | {:.4} | {:.2}% ({:.2}-{:.2}%; {:.2}%) | {:.2}% ({:.2}-{:.2}%; {:.2}%) | {:.2}% | {:.2}% | {:.2}% |",
+                    spp / passes,
+                    (sum2(|c| c.estimated) / sum2(|c| c.measured)).sqrt(),
+                    (sum2(|c| c.measured) / n).sqrt(),
+                    100.0 * mean(|c| c.coverage),
+                    100.0 * olo,
+                    100.0 * ohi,
+                    100.0 * t_coverage(passes - 1),
+                    100.0 * mean(|c| c.coverage_pooled),
+                    100.0 * plo,
+                    100.0 * phi,
+                    100.0 * t_coverage(9 * (passes - 1)),
+                    100.0 * cs[0].coverage_pooled,
+                    100.0 * mean(|c| c.coverage_pooled_5x5),
+                    100.0 * mean(|c| c.coverage_pooled_t),
+                );
+            }
+        }
+    }
+}
+
 #[test]
 fn t_coverage_matches_tables() {
     // P(|T| <= 2): 3 dof 0.8607, 15 dof 0.9361, large dof -> 0.9545.
     assert!((t_coverage(3) - 0.8607).abs() < 1e-3, "{}", t_coverage(3));
     assert!((t_coverage(15) - 0.9361).abs() < 1e-3, "{}", t_coverage(15));
     assert!((t_coverage(10_000) - 0.9545).abs() < 1e-3);
+    // The 97.725% quantiles: tan(0.47725 π) = 13.968 for 1 dof, 3.307 for 3, 2.320 for 9.
+    assert!((t_quantile(1) - 13.968).abs() < 1e-2, "{}", t_quantile(1));
+    assert!((t_quantile(3) - 3.307).abs() < 1e-3, "{}", t_quantile(3));
+    assert!((t_quantile(9) - 2.320).abs() < 1e-3, "{}", t_quantile(9));
+    assert!((t_quantile(10_000) - 2.0).abs() < 1e-3);
 }
 
 /// Estimated over measured image error of unbiased adaptive renders of a reference's scene
