@@ -593,7 +593,7 @@ fn instances_give_the_brute_force_nearest_hit_on_every_kernel() {
         ));
     }
     assert!(
-        hits > 1000 && twins > 500,
+        hits > 1000 && twins > 300,
         "{hits} hits, {twins} on the copies"
     );
     for isa in available_kernels() {
@@ -712,7 +712,9 @@ fn near_hits_and_negative_zero_directions_through_instances_and_motion() {
     for scale in [1e-4f32, 1e-2, 1.0] {
         // The quad placed twice (so the top level has a node to prune), and once more
         // as a triangle pair that slides a little along x over the shutter.
-        let place = Vec3::new(3.0, -2.0, 0.5) * scale;
+        // Moved in x and y only, so the surface stays at z = 0 and the origin's z is
+        // the distance exactly (as in the test above).
+        let place = Vec3::new(3.0, -2.0, 0.0) * scale;
         let far = Affine3A::from_translation(Vec3::new(50.0, 0.0, 0.0) * scale);
         let instanced = Geometry::build_instanced(
             Vec::new(),
