@@ -1,5 +1,7 @@
-//! Building the `obvhs` CWBVHs: robust against coincident primitives, and on a stack of
-//! known size.
+//! Building obvhs' binary BVHs, which `wide` collapses into the BVHs the renderer walks
+//! (triangles, the top level over instances, the motion segments), and the CWBVH leaf
+//! order that numbers triangles and instances: robust against coincident primitives, and
+//! on a stack of known size.
 //!
 //! **Why coincident primitives are quadratic in obvhs 0.4.0.** Its PLOC builder sorts the
 //! primitives by the Morton code of their box centres, then repeatedly pairs every node
