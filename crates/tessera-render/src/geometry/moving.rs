@@ -222,15 +222,18 @@ where
     #[inline(always)]
     fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool {
         let first = first as usize;
-        self.motion.bvhs[self.segment].prims[first..first + count as usize]
-            .iter()
-            .any(|&r| {
-                let p = self.motion.positions_in(r as usize, self.segment, self.u);
-                (self.intersect)(&p, t_max).is_some_and(|(_, _, b1, b2)| {
-                    let key = triangle_key(MOTION_KEY_INSTANCE, r);
-                    (self.keep)(&self.motion.records[r as usize], key, b1, b2)
-                })
-            })
+        // A loop rather than `Iterator::any`, which LLVM may leave uninlined, outside
+        // the kernel's `#[target_feature]` function.
+        for &r in &self.motion.bvhs[self.segment].prims[first..first + count as usize] {
+            let p = self.motion.positions_in(r as usize, self.segment, self.u);
+            if let Some((_, _, b1, b2)) = (self.intersect)(&p, t_max) {
+                let key = triangle_key(MOTION_KEY_INSTANCE, r);
+                if (self.keep)(&self.motion.records[r as usize], key, b1, b2) {
+                    return true;
+                }
+            }
+        }
+        false
     }
 }
 

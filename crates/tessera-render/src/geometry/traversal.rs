@@ -115,10 +115,12 @@ where
     #[inline(always)]
     fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool {
         let first = first as usize;
-        self.prims[first..first + count as usize].iter().any(|&id| {
+        // A loop rather than `Iterator::any`, which LLVM left uninlined, outside the
+        // kernel's `#[target_feature]` function (callgrind: 9% of an instanced render).
+        for &id in &self.prims[first..first + count as usize] {
             let (proto, o, d) = self.object_ray(id);
             let ray = super::wide::BoxRay::new(o, d);
-            with_watertight_ray!(o, d, |wt| {
+            let hit = with_watertight_ray!(o, d, |wt| {
                 let level = Level {
                     bvh: &proto.bvh,
                     triangles: &proto.triangles,
@@ -127,8 +129,12 @@ where
                     keep: self.keep,
                 };
                 super::wide::any::<K, _>(&proto.bvh, &ray, &level, t_max)
-            })
-        })
+            });
+            if hit {
+                return true;
+            }
+        }
+        false
     }
 }
 

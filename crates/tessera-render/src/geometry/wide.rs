@@ -423,15 +423,18 @@ where
 
     #[inline(always)]
     fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool {
+        // A loop rather than `Iterator::any`, which LLVM may leave uninlined, outside
+        // the kernel's `#[target_feature]` function.
         let first = first as usize;
-        self.bvh.prims[first..first + count as usize]
-            .iter()
-            .any(|&id| {
-                let tri = &self.triangles[id as usize];
-                (self.intersect)(&tri.p, t_max).is_some_and(|(_, _, b1, b2)| {
-                    (self.keep)(tri, triangle_key(self.instance, id), b1, b2)
-                })
-            })
+        for &id in &self.bvh.prims[first..first + count as usize] {
+            let tri = &self.triangles[id as usize];
+            if let Some((_, _, b1, b2)) = (self.intersect)(&tri.p, t_max) {
+                if (self.keep)(tri, triangle_key(self.instance, id), b1, b2) {
+                    return true;
+                }
+            }
+        }
+        false
     }
 }
 
