@@ -1,5 +1,7 @@
-//! Building the `obvhs` CWBVHs: robust against coincident primitives, and on a stack of
-//! known size.
+//! Building obvhs' binary BVHs, which `wide` collapses into the BVHs the renderer walks
+//! (triangles, the top level over instances, the motion segments), and the CWBVH leaf
+//! order that numbers triangles and instances: robust against coincident primitives, and
+//! on a stack of known size.
 //!
 //! **Why coincident primitives are quadratic in obvhs 0.4.0.** Its PLOC builder sorts the
 //! primitives by the Morton code of their box centres, then repeatedly pairs every node
@@ -65,8 +67,8 @@ use obvhs::aabb::Aabb;
 use obvhs::bvh2::node::Bvh2Node;
 use obvhs::bvh2::reinsertion::ReinsertionOptimizer;
 use obvhs::bvh2::Bvh2;
+#[cfg(test)]
 use obvhs::cwbvh::bvh2_to_cwbvh::bvh2_to_cwbvh;
-use obvhs::cwbvh::CwBvh;
 use obvhs::ploc::PlocBuilder;
 use obvhs::ploc::PlocSearchDistance;
 #[cfg(test)]
@@ -262,21 +264,55 @@ fn ploc_from_leaves(leaves: Vec<Bvh2Node>, p: &BvhBuildParams) -> Bvh2 {
     bvh2
 }
 
-/// A CWBVH over `boxes` (instances' world bounds, moving triangles' swept bounds): obvhs'
-/// builder for ordinary input, the clustered build when centres crowd.
-pub(super) fn boxes_cwbvh(boxes: &[Aabb], stats: &mut BvhBuildStats) -> CwBvh {
-    match crowded_cells(boxes, stats) {
-        None if tied_extents(boxes, stats) => to_cwbvh(&tie_broken_bvh2(boxes, stats)),
-        None => {
-            let mut build_time = std::time::Duration::ZERO;
-            obvhs::cwbvh::builder::build_cwbvh(boxes, params(), &mut build_time)
-        }
-        Some(cells) => to_cwbvh(&clustered_bvh2(boxes, &cells, stats)),
+/// A binary BVH over `boxes` (instances' world bounds, moving triangles' swept
+/// bounds): the tree obvhs' `build_cwbvh` of the same boxes converts (PLOC, then
+/// reinsertion) for ordinary input, the clustered or tie-broken build otherwise, as for
+/// triangles ([`leaves_bvh2`]).
+pub(super) fn boxes_bvh2(boxes: &[Aabb], stats: &mut BvhBuildStats) -> Bvh2 {
+    leaves_bvh2(
+        boxes
+            .iter()
+            .enumerate()
+            .map(|(i, b)| Bvh2Node::new(*b, 1, i as u32))
+            .collect(),
+        stats,
+    )
+}
+
+/// Replaces the box of every leaf of `bvh2` by `widen(primitive, box)` for each of its
+/// primitives (unioned), and every interior box by the union of its children's, bottom
+/// up: the tree stays nested (each box contains its children's) whatever `widen` does,
+/// and its shape, so the order that numbers the primitives, does not change.
+pub(super) fn widen_boxes(bvh2: &mut Bvh2, widen: impl Fn(u32, Aabb) -> Aabb) {
+    if bvh2.nodes.is_empty() {
+        return;
+    }
+    let mut stack: Vec<(usize, bool)> = vec![(0, false)];
+    while let Some((i, done)) = stack.pop() {
+        let node = bvh2.nodes[i];
+        let first = node.first_index as usize;
+        let bounds = if node.is_leaf() {
+            let mut b = Aabb::empty();
+            for &p in &bvh2.primitive_indices[first..first + node.prim_count as usize] {
+                b = b.union(&widen(p, *node.aabb()));
+            }
+            b
+        } else if done {
+            bvh2.nodes[first].aabb().union(bvh2.nodes[first + 1].aabb())
+        } else {
+            stack.push((i, true));
+            stack.push((first, false));
+            stack.push((first + 1, false));
+            continue;
+        };
+        bvh2.nodes[i] = Bvh2Node::new(bounds, node.prim_count, node.first_index);
     }
 }
 
-/// obvhs' CWBVH of a binary BVH, with the leaf size its builders use.
-pub(super) fn to_cwbvh(bvh2: &Bvh2) -> CwBvh {
+/// obvhs' CWBVH of a binary BVH, with the leaf size its builders use (the reference the
+/// tests compare the leaf order with).
+#[cfg(test)]
+pub(super) fn to_cwbvh(bvh2: &Bvh2) -> obvhs::cwbvh::CwBvh {
     bvh2_to_cwbvh(bvh2, params().max_prims_per_leaf.clamp(1, 3), true, false)
 }
 

@@ -19,14 +19,17 @@
 //!
 //! Traversal and triangle tests are the same code in every kernel (compiled per kernel
 //! too, so they use its registers), and the hit does not depend on the box test beyond
-//! its being conservative (see `wide`), so images are bit-identical across kernels.
+//! its being conservative (see `wide`), so images are bit-identical across kernels. The
+//! top level over instances and the motion segments go through the same kernels: a leaf
+//! holding instances walks each one's prototype with the kernel's box test, inside the
+//! kernel's `#[target_feature]` function.
 //!
 //! `TESSERA_ISA=scalar|sse2|avx2|avx512` forces a kernel; [`Isa::from_env`] refuses a
 //! value this CPU cannot run, with a message naming what it lacks.
 
-use super::wide::{self, far_scale, planes, BoxRay, BoxTest, Level, WideNode, WIDTH};
-use super::Hit;
-use super::TriangleRecord;
+use super::wide::{
+    self, far_scale, planes, BoxRay, BoxTest, Leaves, Nearest, WideBvh, WideNode, WIDTH,
+};
 use glam::Vec3;
 use std::sync::OnceLock;
 
@@ -212,53 +215,52 @@ pub(super) fn box_test(isa: Isa, node: &WideNode, ray: &BoxRay, limit: f32) -> (
     }
 }
 
-/// The nearest kept hit in `level` with `t < *best_t` (see [`wide::nearest`]), with
-/// kernel `isa`.
+/// Offers every hit of the ray `origin + t dir` in `bvh`'s leaves to `best` (see
+/// [`wide::nearest`]), with kernel `isa`'s box test, for the walk and for any walk the
+/// leaves start in turn (an instance's prototype).
 #[inline(always)]
-pub(super) fn nearest(
+pub(super) fn nearest<L: Leaves>(
     isa: Isa,
-    level: &Level<'_>,
+    bvh: &WideBvh,
     origin: Vec3,
     dir: Vec3,
-    best_t: &mut f32,
-    intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-) -> Option<Hit> {
+    leaves: &L,
+    best: &mut Nearest,
+) {
     let ray = BoxRay::new(origin, dir);
     match isa {
-        Isa::Scalar => wide::nearest::<Scalar>(level, &ray, best_t, intersect, keep),
-        Isa::Sse2 => wide::nearest::<Lanes>(level, &ray, best_t, intersect, keep),
+        Isa::Scalar => wide::nearest::<Scalar, L>(bvh, &ray, leaves, best),
+        Isa::Sse2 => wide::nearest::<Lanes, L>(bvh, &ray, leaves, best),
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => x86::nearest_avx2(level, &ray, best_t, intersect, keep),
+        Isa::Avx2 => x86::nearest_avx2(bvh, &ray, leaves, best),
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx512 => x86::nearest_avx512(level, &ray, best_t, intersect, keep),
+        Isa::Avx512 => x86::nearest_avx512(bvh, &ray, leaves, best),
         #[cfg(not(target_arch = "x86_64"))]
-        _ => wide::nearest::<Scalar>(level, &ray, best_t, intersect, keep),
+        _ => wide::nearest::<Scalar, L>(bvh, &ray, leaves, best),
     }
 }
 
-/// Whether any kept hit in `level` has `t < t_max` (see [`wide::any`]), with kernel
-/// `isa`.
+/// Whether any kept hit of the ray in `bvh`'s leaves has `t < t_max` (see
+/// [`wide::any`]), with kernel `isa`.
 #[inline(always)]
-pub(super) fn any(
+pub(super) fn any<L: Leaves>(
     isa: Isa,
-    level: &Level<'_>,
+    bvh: &WideBvh,
     origin: Vec3,
     dir: Vec3,
+    leaves: &L,
     t_max: f32,
-    intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> bool {
     let ray = BoxRay::new(origin, dir);
     match isa {
-        Isa::Scalar => wide::any::<Scalar>(level, &ray, t_max, intersect, keep),
-        Isa::Sse2 => wide::any::<Lanes>(level, &ray, t_max, intersect, keep),
+        Isa::Scalar => wide::any::<Scalar, L>(bvh, &ray, leaves, t_max),
+        Isa::Sse2 => wide::any::<Lanes, L>(bvh, &ray, leaves, t_max),
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => x86::any_avx2(level, &ray, t_max, intersect, keep),
+        Isa::Avx2 => x86::any_avx2(bvh, &ray, leaves, t_max),
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx512 => x86::any_avx512(level, &ray, t_max, intersect, keep),
+        Isa::Avx512 => x86::any_avx512(bvh, &ray, leaves, t_max),
         #[cfg(not(target_arch = "x86_64"))]
-        _ => wide::any::<Scalar>(level, &ray, t_max, intersect, keep),
+        _ => wide::any::<Scalar, L>(bvh, &ray, leaves, t_max),
     }
 }
 
@@ -267,10 +269,10 @@ pub(super) fn any(
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code)]
 mod x86 {
-    use super::super::wide::{self, far_scale, planes, BoxRay, BoxTest, Level, WideNode, WIDTH};
-    use super::super::{Hit, TriangleRecord};
+    use super::super::wide::{
+        self, far_scale, planes, BoxRay, BoxTest, Leaves, Nearest, WideBvh, WideNode, WIDTH,
+    };
     use super::{Isa, Lanes};
-    use glam::Vec3;
     use std::arch::x86_64::{
         _mm256_cmp_ps, _mm256_loadu_ps, _mm256_max_ps, _mm256_min_ps, _mm256_movemask_ps,
         _mm256_mul_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_storeu_ps, _mm256_sub_ps,
@@ -347,57 +349,43 @@ mod x86 {
     macro_rules! kernel {
         ($nearest:ident, $nearest_tf:ident, $any:ident, $any_tf:ident, $feature:literal, $isa:expr) => {
             #[target_feature(enable = $feature)]
-            fn $nearest_tf(
-                level: &Level<'_>,
-                ray: &BoxRay,
-                best_t: &mut f32,
-                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-            ) -> Option<Hit> {
-                wide::nearest::<Avx2Box>(level, ray, best_t, intersect, keep)
+            fn $nearest_tf<L: Leaves>(bvh: &WideBvh, ray: &BoxRay, leaves: &L, best: &mut Nearest) {
+                wide::nearest::<Avx2Box, L>(bvh, ray, leaves, best)
             }
 
             #[target_feature(enable = $feature)]
-            fn $any_tf(
-                level: &Level<'_>,
-                ray: &BoxRay,
-                t_max: f32,
-                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-            ) -> bool {
-                wide::any::<Avx2Box>(level, ray, t_max, intersect, keep)
+            fn $any_tf<L: Leaves>(bvh: &WideBvh, ray: &BoxRay, leaves: &L, t_max: f32) -> bool {
+                wide::any::<Avx2Box, L>(bvh, ray, leaves, t_max)
             }
 
             #[inline(always)]
-            pub(in super::super) fn $nearest(
-                level: &Level<'_>,
+            pub(in super::super) fn $nearest<L: Leaves>(
+                bvh: &WideBvh,
                 ray: &BoxRay,
-                best_t: &mut f32,
-                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-            ) -> Option<Hit> {
+                leaves: &L,
+                best: &mut Nearest,
+            ) {
                 if !$isa.available() {
-                    return wide::nearest::<Lanes>(level, ray, best_t, intersect, keep);
+                    return wide::nearest::<Lanes, L>(bvh, ray, leaves, best);
                 }
                 // SAFETY: `Isa::available` just confirmed with `is_x86_feature_detected!`
                 // that this CPU has the feature the function is compiled for.
-                unsafe { $nearest_tf(level, ray, best_t, intersect, keep) }
+                unsafe { $nearest_tf(bvh, ray, leaves, best) }
             }
 
             #[inline(always)]
-            pub(in super::super) fn $any(
-                level: &Level<'_>,
+            pub(in super::super) fn $any<L: Leaves>(
+                bvh: &WideBvh,
                 ray: &BoxRay,
+                leaves: &L,
                 t_max: f32,
-                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-                keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
             ) -> bool {
                 if !$isa.available() {
-                    return wide::any::<Lanes>(level, ray, t_max, intersect, keep);
+                    return wide::any::<Lanes, L>(bvh, ray, leaves, t_max);
                 }
                 // SAFETY: `Isa::available` just confirmed with `is_x86_feature_detected!`
                 // that this CPU has the feature the function is compiled for.
-                unsafe { $any_tf(level, ray, t_max, intersect, keep) }
+                unsafe { $any_tf(bvh, ray, leaves, t_max) }
             }
         };
     }

@@ -10,43 +10,54 @@
 //! BVHs", section 7.3). At an instance leaf the ray is carried into object space by the
 //! inverse affine transform, origin and direction, the direction *not* renormalised, so
 //! the ray parameter `t` means the same point in both spaces and the nearest hit over
-//! all instances is the one with the smallest `t`. The watertight test and the shift
-//! trick below then run unchanged in object space. A scene without instances skips the
-//! top level with one branch per ray.
+//! all instances is the one with the smallest `t`. The watertight test then runs
+//! unchanged in object space. The instances' world bounds (the prototype's box
+//! transformed corner by corner) are widened by the rounding bound of that transform
+//! (pbrt 3rd ed. §3.9.3), so the top level prunes conservatively for the corners as
+//! computed. A scene without instances skips the top level with one branch per ray.
 //!
-//! The top level over instances and the motion segments are still obvhs CWBVHs traversed
-//! by obvhs; its defects below are worked around there. Our wide BVH has none of them (it
-//! honours every distance from 0, and picks slab planes by the direction's sign bit), and
-//! tests triangles with the same watertight test.
+//! **One walk, every kernel.** Every BVH the renderer walks is ours: obvhs builds the
+//! binary trees (see `build`) and `wide` collapses them into wide BVHs whose boxes the
+//! SIMD kernels of [`kernels`] test; the walk is generic over what a leaf holds
+//! (`wide::Leaves`): triangles, instances (the top level: at an instance the ray goes to
+//! object space and the prototype's BVH is walked with the same kernel) or moving
+//! triangles (one BVH per shutter segment, see `moving`). Our walk honours every distance
+//! from 0 and picks slab planes by the direction's sign bit, so the defects of obvhs 0.4's
+//! own CWBVH traversal, which the renderer once worked around, do not arise: it clamped
+//! a child's entry distance at a hard-coded `1e-4` (a box within `1e-4` of the origin was
+//! never entered: the renderer traversed with a ray shifted back by `1e-3`), and picked
+//! the octant by `d < 0` while inverting `-0.0` to `-1/ε` (a ray exactly along `-Z`
+//! tested the wrong slabs: the renderer added `+0.0`). Tests keep both cases, for
+//! triangles, instances and moving triangles, on every kernel.
 //!
-//! Two defects of obvhs 0.4.0 are kept out of our images here:
+//! **Which hit is nearest** is decided by a total order, not by the visit order, so that
+//! every kernel gives the same hit bit for bit (ARCHITECTURE.md §2). The levels are
+//! searched in turn, world-space triangles, instances, moving triangles, spheres, each
+//! below the previous levels' nearest `t`, and a level's hit replaces theirs only when
+//! strictly nearer (on an exact tie the earlier level's hit stays). Within a level the hit is the lexicographic minimum of `(t, key)` over every
+//! hit the watertight test accepts (`wide::Nearest`), the key being [`triangle_key`]:
+//! the triangle index among world-space triangles, `(instance, triangle index)` among
+//! instances (the instance first), the record index among moving triangles. Spheres are
+//! tested in index order, and one replaces the best only when strictly nearer.
 //!
-//! 1. **Near hits.** Its CWBVH node test clamps a child's entry distance at a hard-coded
-//!    `1e-4` and ignores `Ray::tmin`, so a child box lying entirely within `1e-4` of the ray
-//!    origin is never visited and nearby hits are lost (small-scale scenes break). We traverse
-//!    with a *shifted* ray whose origin lies [`TRAVERSAL_SHIFT`] behind the real origin, so
-//!    every real hit is at least that far along the traversal ray, beyond the clamp. The
-//!    triangles themselves are intersected with the *unshifted* ray, so no precision is
-//!    lost; only the pruning distance handed back to obvhs is expressed in the shifted
-//!    parameterisation (rounded up, so pruning stays conservative).
-//! 2. **Watertightness.** Its Möller–Trumbore test can let rays slip through shared edges.
-//!    We use the watertight test of Woop, Benthin & Wald (JCGT 2013) in pbrt's formulation
-//!    (3rd ed. §3.6.2), with the fallback to double precision on exact zero edge functions
-//!    and pbrt's conservative bound that rejects hits whose `t` is not provably positive.
+//! Triangles are tested with the watertight test of Woop, Benthin & Wald (JCGT 2013) in
+//! pbrt's formulation (3rd ed. §3.6.2), with the fallback to double precision on exact
+//! zero edge functions and pbrt's conservative bound that rejects hits whose `t` is not
+//! provably positive (obvhs' Möller–Trumbore test could let rays slip through shared
+//! edges).
 //!
 //! Every hit carries a floating-point error bound on its position (pbrt §3.9) so that rays
 //! leaving it can be offset robustly by [`crate::math::offset_ray_origin`].
 //!
 //! The code is split by concern: `watertight` holds the ray–triangle and ray–sphere
-//! tests, `traversal` the walk through one BVH of triangles, `wide` our wide BVH and its
-//! traversal, [`kernels`] its box tests per instruction set, `moving` the triangles that
-//! move within the shutter, and `build` the construction of every BVH (robust against
-//! coincident primitives, on a thread with a stack of known size).
+//! tests, `traversal` the levels of triangles and of instances and the wide BVHs' build
+//! from obvhs' trees, `wide` our wide BVH and its walk, [`kernels`] its box tests per
+//! instruction set, `moving` the triangles that move within the shutter, and `build`
+//! the construction of every binary tree (robust against coincident primitives, on a
+//! thread with a stack of known size).
 
 use crate::math::gamma;
 use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A};
-use obvhs::cwbvh::CwBvh;
-use obvhs::ray::RayHit;
 
 #[macro_use]
 mod watertight;
@@ -59,15 +70,9 @@ mod wide;
 pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN, TIE_MIN};
 pub use kernels::Isa;
 pub use moving::{shutter_segment, MotionTriangles};
-use traversal::{
-    bvh_bytes, traversal_ray, traversal_t, triangle_bvh, triangle_bvh_of, TriangleLevel,
-};
+use traversal::{leaf_order, triangle_bvh, triangle_bvh_of, InstanceLeaves, TriangleLevel};
 pub use watertight::intersect_sphere;
-use wide::WideBvh;
-
-/// How far behind the real origin the BVH traversal ray starts (see the module docs). It
-/// must exceed obvhs' internal clamp of `1e-4` on node entry distances.
-pub const TRAVERSAL_SHIFT: f32 = 1e-3;
+use wide::{Nearest, WideBvh};
 
 /// Sentinel for "not a light".
 pub const NO_LIGHT: u32 = u32::MAX;
@@ -195,8 +200,9 @@ pub struct Geometry {
     pub triangles: Vec<TriangleRecord>,
     /// Meshes stored once, each with its bottom-level BVH.
     pub prototypes: Vec<Prototype>,
-    /// The top level: a BVH over the instances' world bounds.
-    tlas: CwBvh,
+    /// The top level: a wide BVH over the instances' world bounds, its leaves naming
+    /// positions in [`Geometry::instances`].
+    tlas: WideBvh,
     /// Instances in the order the top-level leaves refer to them.
     pub instances: Vec<InstanceRecord>,
     /// Analytic spheres (tested linearly: scenes have few).
@@ -318,11 +324,20 @@ impl Geometry {
             })
             .collect();
         let (tlas, instances) = if instances.is_empty() {
-            (CwBvh::default(), Vec::new())
+            (WideBvh::default(), Vec::new())
         } else {
-            let tlas = build::boxes_cwbvh(&world_bounds, &mut build_stats);
-            let records = tlas
-                .primitive_indices
+            // The tree over the boxes as computed (the one obvhs built before, so the
+            // instances keep their numbers, which keys and images depend on), then each
+            // box widened by its transform's rounding bound.
+            let mut bvh2 = build::boxes_bvh2(&world_bounds, &mut build_stats);
+            let (order, position) = leaf_order(&bvh2);
+            build::widen_boxes(&mut bvh2, |i, b| {
+                let (_, proto, m) = instances[i as usize];
+                let pad = Vec3A::from(transform_error(&m, &prototypes[proto as usize].bounds));
+                obvhs::aabb::Aabb::new(b.min - pad, b.max + pad)
+            });
+            let tlas = WideBvh::collapse(&bvh2, &position);
+            let records = order
                 .iter()
                 .map(|&i| {
                     let (index, prototype, m) = instances[i as usize];
@@ -422,13 +437,13 @@ impl Geometry {
         self.bvh.bytes()
             + std::mem::size_of_val(self.triangles.as_slice())
             + self.prototypes.iter().map(Prototype::bytes).sum::<usize>()
-            + bvh_bytes(&self.tlas)
+            + self.tlas.bytes()
             + std::mem::size_of_val(self.instances.as_slice())
             + self.motion.as_ref().map_or(0, MotionTriangles::bytes)
     }
 
-    /// The nearest hit along `origin + t dir` with `0 < t < t_max`. `dir` need not be
-    /// normalised, but the shift trick assumes it has unit length within a few percent.
+    /// The nearest hit along `origin + t dir` with `0 < t < t_max` (`dir` need not be
+    /// normalised; on ties see the module docs).
     #[inline]
     pub fn intersect(&self, origin: Vec3, dir: Vec3, t_max: f32) -> Option<Hit> {
         self.intersect_where(origin, dir, t_max, 0.0, |_, _, _, _| true)
@@ -450,29 +465,33 @@ impl Geometry {
     ) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
-        if !self.triangles.is_empty() {
-            if let Some(h) = self.world_level().nearest(origin, dir, &mut best_t, &keep) {
-                best = Some(h);
+        // Each level searches below the nearest `t` of the levels before it, and its hit
+        // replaces theirs only when strictly nearer (the triangle test compares `t` with
+        // its bound in a scaled form, which may admit an equal `t`): on equal `t` the
+        // earlier level's hit stays (see the module docs).
+        let take = |n: Nearest, best: &mut Option<Hit>, best_t: &mut f32| {
+            if let Some(h) = n.hit {
+                if best.is_none() || h.t < *best_t {
+                    *best_t = h.t;
+                    *best = Some(h);
+                }
             }
+        };
+        if !self.triangles.is_empty() {
+            let mut n = Nearest::new(best_t);
+            self.world_level().nearest(origin, dir, &mut n, &keep);
+            take(n, &mut best, &mut best_t);
         }
         if !self.instances.is_empty() {
-            let ray = traversal_ray(origin, dir, best_t);
-            let mut hit = RayHit::none();
-            self.tlas.ray_traverse(ray, &mut hit, |_, id| {
-                let (level, o, d) = self.instance_level(id, origin, dir);
-                match level.nearest(o, d, &mut best_t, &keep) {
-                    Some(h) => {
-                        best = Some(h);
-                        traversal_t(h.t)
-                    }
-                    None => f32::INFINITY,
-                }
-            });
+            let mut n = Nearest::new(best_t);
+            let leaves = self.instance_leaves(origin, dir, &keep);
+            kernels::nearest(self.isa, &self.tlas, origin, dir, &leaves, &mut n);
+            take(n, &mut best, &mut best_t);
         }
         if let Some(m) = &self.motion {
-            if let Some(h) = m.nearest(origin, dir, &mut best_t, time, &keep) {
-                best = Some(h);
-            }
+            let mut n = Nearest::new(best_t);
+            m.nearest(self.isa, origin, dir, &mut n, time, &keep);
+            take(n, &mut best, &mut best_t);
         }
         for (i, s) in self.spheres.iter().enumerate() {
             if let Some(t) = intersect_sphere(s.center, s.radius, origin, dir, best_t) {
@@ -511,22 +530,14 @@ impl Geometry {
             return true;
         }
         if let Some(m) = &self.motion {
-            if m.any(origin, dir, t_max, time, &keep) {
+            if m.any(self.isa, origin, dir, t_max, time, &keep) {
                 return true;
             }
         }
-        if self.instances.is_empty() {
-            return false;
+        !self.instances.is_empty() && {
+            let leaves = self.instance_leaves(origin, dir, &keep);
+            kernels::any(self.isa, &self.tlas, origin, dir, &leaves, t_max)
         }
-        let ray = traversal_ray(origin, dir, t_max);
-        !self.tlas.ray_traverse_miss(ray, |_, id| {
-            let (level, o, d) = self.instance_level(id, origin, dir);
-            if level.any(o, d, t_max, &keep) {
-                0.0
-            } else {
-                f32::INFINITY
-            }
-        })
     }
 }
 
@@ -542,27 +553,37 @@ impl Geometry {
         }
     }
 
-    /// Instance `id`'s prototype as a traversal level, with the ray in its object space
-    /// (the direction unnormalised, so `t` is shared with the world ray).
+    /// The top level's leaves for the world ray `origin + t dir`.
     #[inline(always)]
-    fn instance_level(
-        &self,
-        id: usize,
+    fn instance_leaves<'g, F>(
+        &'g self,
         origin: Vec3,
         dir: Vec3,
-    ) -> (TriangleLevel<'_>, Vec3, Vec3) {
-        let inst = &self.instances[id];
-        let proto = &self.prototypes[inst.prototype as usize];
-        let level = TriangleLevel {
-            bvh: &proto.bvh,
-            triangles: &proto.triangles,
-            instance: id as u32,
-            isa: self.isa,
-        };
-        let o = inst.object_from_world.transform_point3(origin);
-        let d = inst.object_from_world.transform_vector3(dir);
-        (level, o, d)
+        keep: &'g F,
+    ) -> InstanceLeaves<'g, F> {
+        InstanceLeaves {
+            prims: &self.tlas.prims,
+            instances: &self.instances,
+            prototypes: &self.prototypes,
+            origin,
+            dir,
+            keep,
+        }
     }
+}
+
+/// Per axis, a bound on the rounding error of `m` applied to any corner of `b`:
+/// `|m_i0 x| + |m_i1 y| + |m_i2 z| + |t_i|` times `γ(3)` (pbrt 3rd ed. §3.9.3, the error
+/// of transforming a point), with each coordinate at its largest magnitude over the box;
+/// `γ(4)` rather than `γ(3)` because the sum is rounded too.
+fn transform_error(m: &Affine3A, b: &obvhs::aabb::Aabb) -> Vec3 {
+    let c = b.min.abs().max(b.max.abs());
+    let a = Mat3A::from_cols(
+        m.matrix3.x_axis.abs(),
+        m.matrix3.y_axis.abs(),
+        m.matrix3.z_axis.abs(),
+    );
+    Vec3::from(a * c + m.translation.abs()) * gamma(4)
 }
 
 /// Identifies a triangle for the filter of [`Geometry::intersect_where`] (and for hashing

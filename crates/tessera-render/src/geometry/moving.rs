@@ -1,11 +1,12 @@
 //! Triangles that move within the shutter (motion blur): one BVH per shutter segment.
 
 use super::build::{self, BvhBuildStats};
-use super::traversal::{bvh_bytes, traversal_ray, traversal_t};
+use super::kernels::{self, Isa};
+use super::wide::{BoxTest, Leaves, Nearest, WideBvh};
 use super::{triangle_key, Hit, Primitive, TriangleRecord, NO_INSTANCE};
+use crate::math::gamma;
 use glam::{Vec3, Vec3A};
-use obvhs::cwbvh::CwBvh;
-use obvhs::ray::RayHit;
+use obvhs::aabb::Aabb;
 
 /// Key for [`triangle_key`] of moving triangles: an instance number no instance has.
 const MOTION_KEY_INSTANCE: u32 = NO_INSTANCE - 1;
@@ -23,15 +24,16 @@ const MOTION_KEY_INSTANCE: u32 = NO_INSTANCE - 1;
 /// Each of the `K` segments has its own BVH over the union of every triangle's bounds at
 /// the segment's two keys. Linear interpolation keeps each vertex inside the segment of
 /// its two key positions, so the union box bounds the triangle at every time of the
-/// segment: the BVH prunes conservatively and no hit is lost. A ray at time τ traverses
-/// segment `⌊τ K⌋` and intersects each leaf triangle at its interpolated position with the
-/// same watertight test as static ones.
+/// segment: the BVH prunes conservatively and no hit is lost (each box is widened by the
+/// rounding bound of the interpolation, [`lerp_error`], so that holds for the positions
+/// as computed too). A ray at time τ walks segment `⌊τ K⌋`'s wide BVH with the kernel's
+/// box test, like static triangles (see `wide`), and intersects each leaf triangle at
+/// its interpolated position with the same watertight test. The nearest hit is the
+/// lexicographic minimum of `(t, record index)`, whatever the visit order or kernel.
 pub struct MotionTriangles {
     segments: u32,
-    /// One BVH per segment.
-    bvhs: Vec<CwBvh>,
-    /// Per segment: the record index of each BVH leaf primitive.
-    orders: Vec<Vec<u32>>,
+    /// One wide BVH per segment; its leaves name record indices.
+    bvhs: Vec<WideBvh>,
     /// Mesh, triangle, material and light of each moving triangle; `p` holds its
     /// positions at τ = 0.
     pub records: Vec<TriangleRecord>,
@@ -54,31 +56,36 @@ impl MotionTriangles {
             "one position per record and key"
         );
         let mut build_stats = BvhBuildStats::default();
-        let (bvhs, orders) = build::on_build_stack(|| {
+        let bvhs = build::on_build_stack(|| {
             (0..segments as usize)
                 .map(|s| {
                     if records.is_empty() {
-                        return (CwBvh::default(), Vec::new());
+                        return WideBvh::default();
                     }
-                    let bounds: Vec<obvhs::aabb::Aabb> = (0..records.len())
+                    let boxes: Vec<Aabb> = (0..records.len())
                         .map(|r| {
-                            let mut b = obvhs::aabb::Aabb::empty();
+                            let mut b = Aabb::empty();
                             for p in keys[r * n + s].iter().chain(&keys[r * n + s + 1]) {
                                 b.extend(Vec3A::from(*p));
                             }
                             b
                         })
                         .collect();
-                    let bvh = build::boxes_cwbvh(&bounds, &mut build_stats);
-                    let order = bvh.primitive_indices.clone();
-                    (bvh, order)
+                    // The tree is built over the exact boxes (so ties among them are
+                    // recognised as such, see `build`), then widened.
+                    let mut bvh2 = build::boxes_bvh2(&boxes, &mut build_stats);
+                    build::widen_boxes(&mut bvh2, |_, b| {
+                        let pad = Vec3A::from(lerp_error(b.min.into(), b.max.into()));
+                        Aabb::new(b.min - pad, b.max + pad)
+                    });
+                    let identity: Vec<u32> = (0..records.len() as u32).collect();
+                    WideBvh::collapse(&bvh2, &identity)
                 })
-                .unzip()
+                .collect()
         });
         Self {
             segments,
             bvhs,
-            orders,
             records,
             keys,
             build_stats,
@@ -111,77 +118,43 @@ impl MotionTriangles {
         lerp_corners(&self.keys[r * n + s], &self.keys[r * n + s + 1], u)
     }
 
-    /// Whether `keep` accepts the hit at barycentrics `(b1, b2)` of record `r`.
-    #[inline(always)]
-    fn kept(
-        &self,
-        keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-        r: usize,
-        b1: f32,
-        b2: f32,
-    ) -> bool {
-        keep(
-            &self.records[r],
-            triangle_key(MOTION_KEY_INSTANCE, r as u32),
-            b1,
-            b2,
-        )
-    }
-
-    /// Bytes of the BVHs, leaf orders, records and key positions.
+    /// Bytes of the BVHs, records and key positions.
     pub fn bytes(&self) -> usize {
-        self.bvhs.iter().map(bvh_bytes).sum::<usize>()
-            + self.orders.iter().map(|o| o.len() * 4).sum::<usize>()
+        self.bvhs.iter().map(WideBvh::bytes).sum::<usize>()
             + std::mem::size_of_val(self.records.as_slice())
             + std::mem::size_of_val(self.keys.as_slice())
     }
 
-    /// The nearest kept hit at `time` with `t < *best_t`; lowers `*best_t` to it.
+    /// Offers every kept hit at `time` to `best` (see [`Nearest`]), with kernel `isa`.
     #[inline]
     pub(super) fn nearest(
         &self,
+        isa: Isa,
         origin: Vec3,
         dir: Vec3,
-        best_t: &mut f32,
+        best: &mut Nearest,
         time: f32,
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-    ) -> Option<Hit> {
+    ) {
         let (s, u) = self.segment_of(time);
-        let ray = traversal_ray(origin, dir, *best_t);
-        let mut hit = RayHit::none();
-        let mut best = None;
-        let order = &self.orders[s];
-        with_watertight_ray!(origin, dir, |wt| self.bvhs[s].ray_traverse(
-            ray,
-            &mut hit,
-            |_, id| {
-                let r = order[id] as usize;
-                let p = self.positions_in(r, s, u);
-                match wt.intersect(&p, *best_t) {
-                    Some((t, _b0, b1, b2)) if self.kept(keep, r, b1, b2) => {
-                        *best_t = t;
-                        best = Some(Hit {
-                            t,
-                            primitive: Primitive::Moving {
-                                index: r as u32,
-                                b1,
-                                b2,
-                                time,
-                            },
-                        });
-                        traversal_t(t)
-                    }
-                    _ => f32::INFINITY,
-                }
-            }
-        ));
-        best
+        with_watertight_ray!(origin, dir, |wt| {
+            let leaves = MovingLeaves {
+                motion: self,
+                segment: s,
+                u,
+                time,
+                intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+                keep,
+            };
+            kernels::nearest(isa, &self.bvhs[s], origin, dir, &leaves, best)
+        })
     }
 
-    /// Whether any kept hit at `time` has `t < t_max`.
+    /// Whether any kept hit at `time` has `t < t_max`, with kernel `isa`.
     #[inline]
     pub(super) fn any(
         &self,
+        isa: Isa,
         origin: Vec3,
         dir: Vec3,
         t_max: f32,
@@ -189,20 +162,88 @@ impl MotionTriangles {
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> bool {
         let (s, u) = self.segment_of(time);
-        let ray = traversal_ray(origin, dir, t_max);
-        let order = &self.orders[s];
-        !with_watertight_ray!(origin, dir, |wt| self.bvhs[s].ray_traverse_miss(
-            ray,
-            |_, id| {
-                let r = order[id] as usize;
-                let p = self.positions_in(r, s, u);
-                match wt.intersect(&p, t_max) {
-                    Some((_, _, b1, b2)) if self.kept(keep, r, b1, b2) => 0.0,
-                    _ => f32::INFINITY,
+        with_watertight_ray!(origin, dir, |wt| {
+            let leaves = MovingLeaves {
+                motion: self,
+                segment: s,
+                u,
+                time,
+                intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+                keep,
+            };
+            kernels::any(isa, &self.bvhs[s], origin, dir, &leaves, t_max)
+        })
+    }
+}
+
+/// The leaves of one segment's BVH for a ray at `time` (fraction `u` of the segment):
+/// each entry is a record, tested where it stands then.
+struct MovingLeaves<'g, I, F> {
+    motion: &'g MotionTriangles,
+    segment: usize,
+    u: f32,
+    time: f32,
+    intersect: &'g I,
+    keep: &'g F,
+}
+
+impl<I, F> Leaves for MovingLeaves<'_, I, F>
+where
+    I: Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+    F: Fn(&TriangleRecord, u64, f32, f32) -> bool,
+{
+    #[inline(always)]
+    fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
+        let first = first as usize;
+        for &r in &self.motion.bvhs[self.segment].prims[first..first + count as usize] {
+            let p = self.motion.positions_in(r as usize, self.segment, self.u);
+            let Some((t, _, b1, b2)) = (self.intersect)(&p, best.bound()) else {
+                continue;
+            };
+            let key = triangle_key(MOTION_KEY_INSTANCE, r);
+            if !best.beats(t, key) || !(self.keep)(&self.motion.records[r as usize], key, b1, b2) {
+                continue;
+            }
+            best.set(
+                Hit {
+                    t,
+                    primitive: Primitive::Moving {
+                        index: r,
+                        b1,
+                        b2,
+                        time: self.time,
+                    },
+                },
+                key,
+            );
+        }
+    }
+
+    #[inline(always)]
+    fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool {
+        let first = first as usize;
+        // A loop rather than `Iterator::any`, which LLVM may leave uninlined, outside
+        // the kernel's `#[target_feature]` function.
+        for &r in &self.motion.bvhs[self.segment].prims[first..first + count as usize] {
+            let p = self.motion.positions_in(r as usize, self.segment, self.u);
+            if let Some((_, _, b1, b2)) = (self.intersect)(&p, t_max) {
+                let key = triangle_key(MOTION_KEY_INSTANCE, r);
+                if (self.keep)(&self.motion.records[r as usize], key, b1, b2) {
+                    return true;
                 }
             }
-        ))
+        }
+        false
     }
+}
+
+/// A bound on the rounding error of [`lerp_corners`] for a coordinate between `lo` and
+/// `hi`, per axis: `a + (b - a) u` is three roundings, so it lies within
+/// `γ(3) (|a| + |b|)` of the exact value (pbrt 3rd ed. §3.9.1-3.9.2), and `|a|, |b| <=
+/// max(|lo|, |hi|)`.
+#[inline]
+fn lerp_error(lo: Vec3, hi: Vec3) -> Vec3 {
+    lo.abs().max(hi.abs()) * (2.0 * gamma(3))
 }
 
 /// Which of `segments` equal segments of the shutter holds shutter fraction `time`

@@ -464,3 +464,341 @@ fn the_compact_leaf_order_is_obvhs_cwbvh_order() {
         assert_eq!(ours, theirs, "{name}: {stats:?}");
     }
 }
+
+/// Every kernel this CPU runs.
+fn available_kernels() -> Vec<Isa> {
+    Isa::ALL.into_iter().filter(|i| i.available()).collect()
+}
+
+/// A hit as bits: `t`, what was hit (kind, index, instance), barycentrics.
+fn bits_of(h: Option<Hit>) -> Option<(u32, u32, u32, u32, u32, u32)> {
+    h.map(|h| {
+        let (kind, index, instance, b1, b2) = match h.primitive {
+            Primitive::Triangle {
+                index,
+                instance,
+                b1,
+                b2,
+            } => (0, index, instance, b1, b2),
+            Primitive::Moving { index, b1, b2, .. } => (1, index, 0, b1, b2),
+            Primitive::Sphere { index } => (2, index, 0, 0.0, 0.0),
+        };
+        (
+            h.t.to_bits(),
+            kind,
+            index,
+            instance,
+            b1.to_bits(),
+            b2.to_bits(),
+        )
+    })
+}
+
+/// A random rotation, non-uniform scale (mirrored when `mirror`) and translation.
+fn random_transform(s: &mut u64, mirror: bool) -> Affine3A {
+    let axis = Vec3::new(lcg(s) - 0.5, lcg(s) - 0.5, lcg(s) - 0.5).normalize_or(Vec3::Y);
+    let rotation = glam::Quat::from_axis_angle(axis, 6.0 * lcg(s));
+    let mut scale = Vec3::new(0.5 + lcg(s), 0.5 + lcg(s), 0.5 + lcg(s));
+    if mirror {
+        scale.x = -scale.x;
+    }
+    let t = Vec3::new(8.0 * lcg(s) - 4.0, 8.0 * lcg(s) - 4.0, 8.0 * lcg(s) - 4.0);
+    Affine3A::from_scale_rotation_translation(scale, rotation, t)
+}
+
+/// The nearest hit over every instance by testing every triangle of each, with the
+/// object-space ray the geometry computes: the lexicographic minimum of
+/// `(t, instance, triangle)` (the rule in the module docs).
+fn instances_brute_force(g: &Geometry, origin: Vec3, dir: Vec3) -> Option<(f32, u32, u32)> {
+    let mut best: Option<(f32, u32, u32)> = None;
+    for (id, inst) in g.instances.iter().enumerate() {
+        let o = inst.object_from_world.transform_point3(origin);
+        let d = inst.object_from_world.transform_vector3(dir);
+        let tris = &g.prototypes[inst.prototype as usize].triangles;
+        with_watertight_ray!(o, d, |wt| {
+            for (i, tri) in tris.iter().enumerate() {
+                if let Some((t, ..)) = wt.intersect(&tri.p, f32::INFINITY) {
+                    let cand = (t, id as u32, i as u32);
+                    if best.is_none_or(|b| (cand.0, cand.1, cand.2) < (b.0, b.1, b.2)) {
+                        best = Some(cand);
+                    }
+                }
+            }
+        });
+    }
+    best
+}
+
+#[test]
+fn instances_give_the_brute_force_nearest_hit_on_every_kernel() {
+    // 300 placements of two prototypes (rotated, scaled, some mirrored), eight of them
+    // at one place (their hits tie: the lowest instance must win), no world triangles.
+    let mut s = 41u64;
+    let small: Vec<TriangleRecord> = scattered(60, 3)
+        .into_iter()
+        .map(|mut t| {
+            t.p = t.p.map(|p| p - Vec3::splat(0.5));
+            t
+        })
+        .collect();
+    let prototypes = vec![small, quad_tris(0.4)];
+    let mut instances: Vec<(u32, Affine3A)> = (0..292)
+        .map(|k| (k % 2, random_transform(&mut s, k % 5 == 0)))
+        .collect();
+    let twin = random_transform(&mut s, false);
+    instances.extend((0..8).map(|_| (1, twin)));
+    let mut g = Geometry::build_instanced(Vec::new(), Vec::new(), prototypes, &instances);
+    assert_eq!(g.instances.len(), 300);
+    let rays: Vec<(Vec3, Vec3)> = (0..3000)
+        .map(|k| {
+            let o = Vec3::new(14.0 * lcg(&mut s) - 7.0, 14.0 * lcg(&mut s) - 7.0, 9.0);
+            // A third aimed at the coincident copies, the others anywhere below.
+            let target = if k % 3 == 0 {
+                twin.transform_point3(Vec3::new(
+                    0.7 * lcg(&mut s) - 0.35,
+                    0.7 * lcg(&mut s) - 0.35,
+                    0.0,
+                ))
+            } else {
+                Vec3::new(10.0 * lcg(&mut s) - 5.0, 10.0 * lcg(&mut s) - 5.0, -5.0)
+            };
+            (o, (target - o).normalize())
+        })
+        .collect();
+    let mut reference = Vec::new();
+    let (mut hits, mut twins) = (0, 0);
+    for (k, &(o, d)) in rays.iter().enumerate() {
+        let want = instances_brute_force(&g, o, d);
+        let got = g.intersect(o, d, f32::INFINITY);
+        let got_key = got.map(|h| match h.primitive {
+            Primitive::Triangle {
+                index, instance, ..
+            } => (h.t, instance, index),
+            _ => panic!("only instances here"),
+        });
+        assert_eq!(
+            got_key.map(|(t, i, j)| (t.to_bits(), i, j)),
+            want.map(|(t, i, j)| (t.to_bits(), i, j)),
+            "ray {k}"
+        );
+        hits += usize::from(want.is_some());
+        twins += usize::from(
+            want.is_some_and(|(_, i, _)| g.instances[i as usize].world_from_object == twin),
+        );
+        let t = got.map_or(30.0, |h| h.t);
+        reference.push((
+            bits_of(got),
+            g.occluded(o, d, t * 0.999),
+            g.occluded(o, d, t * 1.001),
+        ));
+    }
+    assert!(
+        hits > 1000 && twins > 300,
+        "{hits} hits, {twins} on the copies"
+    );
+    for isa in available_kernels() {
+        g.set_isa(isa).unwrap();
+        for (k, &(o, d)) in rays.iter().enumerate() {
+            let got = g.intersect(o, d, f32::INFINITY);
+            let t = got.map_or(30.0, |h| h.t);
+            let answer = (
+                bits_of(got),
+                g.occluded(o, d, t * 0.999),
+                g.occluded(o, d, t * 1.001),
+            );
+            assert_eq!(answer, reference[k], "{}: ray {k}", isa.name());
+            assert!(!answer.1, "{}: ray {k} occluded before its hit", isa.name());
+            assert_eq!(answer.2, got.is_some(), "{}: ray {k}", isa.name());
+        }
+    }
+}
+
+#[test]
+fn moving_triangles_give_the_brute_force_nearest_hit_on_every_kernel() {
+    // 400 triangles moving along random paths over 3 segments, four of them identical
+    // (their hits tie: the lowest record must win).
+    let mut s = 17u64;
+    let segments = 3u32;
+    let mut records = Vec::new();
+    let mut keys = Vec::new();
+    for (i, r) in scattered(400, 23).into_iter().enumerate() {
+        let twin = i % 100 == 7;
+        let mut p = if twin {
+            [Vec3::ZERO, Vec3::X, Vec3::Y]
+        } else {
+            r.p
+        };
+        records.push(record(p, i as u32));
+        for _ in 0..=segments {
+            keys.push(p);
+            if !twin {
+                let step = Vec3::new(lcg(&mut s) - 0.5, lcg(&mut s) - 0.5, lcg(&mut s) - 0.5);
+                p = p.map(|v| v + 0.3 * step);
+            }
+        }
+    }
+    let motion = MotionTriangles::new(records, keys, segments);
+    let mut g = Geometry::build(Vec::new(), Vec::new()).with_motion(motion);
+    let m = g.motion.as_ref().unwrap();
+    let rays: Vec<(Vec3, Vec3, f32)> = (0..3000)
+        .map(|k| {
+            let o = Vec3::new(3.0 * lcg(&mut s) - 1.0, 3.0 * lcg(&mut s) - 1.0, 4.0);
+            let target = if k % 4 == 0 {
+                Vec3::new(0.3 * lcg(&mut s), 0.3 * lcg(&mut s), 0.0)
+            } else {
+                Vec3::new(2.0 * lcg(&mut s) - 0.5, 2.0 * lcg(&mut s) - 0.5, 0.5)
+            };
+            // Key times (segment ends) among the random ones.
+            let time = if k % 10 == 0 {
+                (k % 4) as f32 / 3.0
+            } else {
+                lcg(&mut s)
+            };
+            (o, (target - o).normalize(), time)
+        })
+        .collect();
+    let brute = |o: Vec3, d: Vec3, time: f32| {
+        let mut best: Option<(f32, u32)> = None;
+        with_watertight_ray!(o, d, |wt| {
+            for r in 0..m.records.len() {
+                if let Some((t, ..)) = wt.intersect(&m.positions_at(r, time), f32::INFINITY) {
+                    if best.is_none_or(|b| (t, r as u32) < b) {
+                        best = Some((t, r as u32));
+                    }
+                }
+            }
+        });
+        best
+    };
+    let mut reference = Vec::new();
+    let (mut hits, mut twins) = (0, 0);
+    for (k, &(o, d, time)) in rays.iter().enumerate() {
+        let want = brute(o, d, time);
+        let got = g.intersect_where(o, d, f32::INFINITY, time, |_, _, _, _| true);
+        let got_key = got.map(|h| match h.primitive {
+            Primitive::Moving { index, .. } => (h.t.to_bits(), index),
+            _ => panic!("only moving triangles here"),
+        });
+        assert_eq!(got_key, want.map(|(t, r)| (t.to_bits(), r)), "ray {k}");
+        hits += usize::from(want.is_some());
+        twins += usize::from(want.is_some_and(|(_, r)| r % 100 == 7));
+        let t = got.map_or(30.0, |h| h.t);
+        let occ = |t_max: f32| g.occluded_where(o, d, t_max, time, |_, _, _, _| true);
+        reference.push((bits_of(got), occ(t * 0.999), occ(t * 1.001)));
+    }
+    assert!(
+        hits > 500 && twins > 100,
+        "{hits} hits, {twins} on the copies"
+    );
+    for isa in available_kernels() {
+        g.set_isa(isa).unwrap();
+        for (k, &(o, d, time)) in rays.iter().enumerate() {
+            let got = g.intersect_where(o, d, f32::INFINITY, time, |_, _, _, _| true);
+            let t = got.map_or(30.0, |h| h.t);
+            let occ = |t_max: f32| g.occluded_where(o, d, t_max, time, |_, _, _, _| true);
+            let answer = (bits_of(got), occ(t * 0.999), occ(t * 1.001));
+            assert_eq!(answer, reference[k], "{}: ray {k}", isa.name());
+            assert!(!answer.1, "{}: ray {k} occluded before its hit", isa.name());
+            assert_eq!(answer.2, got.is_some(), "{}: ray {k}", isa.name());
+        }
+    }
+}
+
+/// The cases obvhs 0.4's own traversal got wrong, now through our kernels for instances
+/// and moving triangles too: a hit (so a box) within its `1e-4` clamp of the origin, and
+/// directions with `-0.0` components (`-Vec3::Z` is `(-0.0, -0.0, -1.0)`).
+#[test]
+fn near_hits_and_negative_zero_directions_through_instances_and_motion() {
+    for scale in [1e-4f32, 1e-2, 1.0] {
+        // The quad placed twice (so the top level has a node to prune), and once more
+        // as a triangle pair that slides a little along x over the shutter.
+        // Moved in x and y only, so the surface stays at z = 0 and the origin's z is
+        // the distance exactly (as in the test above).
+        let place = Vec3::new(3.0, -2.0, 0.0) * scale;
+        let far = Affine3A::from_translation(Vec3::new(50.0, 0.0, 0.0) * scale);
+        let instanced = Geometry::build_instanced(
+            Vec::new(),
+            Vec::new(),
+            vec![quad_tris(scale)],
+            &[(0, Affine3A::from_translation(place)), (0, far)],
+        );
+        let quad = quad_tris(scale);
+        let keys: Vec<[Vec3; 3]> = quad
+            .iter()
+            .flat_map(|t| {
+                [0.0, 0.1].map(|dx| t.p.map(|p| p + place + Vec3::new(dx * scale, 0.0, 0.0)))
+            })
+            .collect();
+        let moving = Geometry::build(Vec::new(), Vec::new())
+            .with_motion(MotionTriangles::new(quad, keys, 1));
+        for (name, mut g) in [("instance", instanced), ("moving", moving)] {
+            for isa in available_kernels() {
+                g.set_isa(isa).unwrap();
+                for dist in [1e-7f32, 1e-6, 1e-5, 5e-5, 9e-5] {
+                    let d = dist * scale.max(1e-3);
+                    let origin = place + Vec3::new(0.1 * scale, 0.2 * scale, d);
+                    for dir in [-Vec3::Z, Vec3::new(0.0, 0.0, -1.0)] {
+                        let at = |t_max: f32| {
+                            g.intersect_where(origin, dir, t_max, 0.5, |_, _, _, _| true)
+                        };
+                        let what = format!("{name}, {}, distance {d} scale {scale}", isa.name());
+                        let hit = at(f32::INFINITY).unwrap_or_else(|| panic!("missed: {what}"));
+                        assert!((hit.t - d).abs() <= d * 1e-3, "t {} vs {d}: {what}", hit.t);
+                        assert!(g.occluded_where(origin, dir, 1.0, 0.5, |_, _, _, _| true));
+                        // t_max just before the surface: no hit.
+                        assert!(at(d * 0.5).is_none(), "{what}");
+                        assert!(!g.occluded_where(origin, dir, d * 0.5, 0.5, |_, _, _, _| true));
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn on_equal_t_the_earlier_level_wins_and_the_filter_sees_past_it() {
+    // One quad as a world-space pair, as two instances of a prototype at the identity
+    // (their rays are the world ray bit for bit) and as moving triangles that stand
+    // still: every hit ties. World first, then the lower instance, then the moving one.
+    let quad = quad_tris(1.0);
+    let keys: Vec<[Vec3; 3]> = quad.iter().flat_map(|t| [t.p, t.p]).collect();
+    let mut g = Geometry::build_instanced(
+        quad.clone(),
+        Vec::new(),
+        vec![quad.clone()],
+        &[(0, Affine3A::IDENTITY), (0, Affine3A::IDENTITY)],
+    )
+    .with_motion(MotionTriangles::new(quad, keys, 1));
+    let (o, d) = (Vec3::new(0.3, -0.2, 2.0), -Vec3::Z);
+    for isa in available_kernels() {
+        g.set_isa(isa).unwrap();
+        let mut rejected: Vec<u64> = Vec::new();
+        let mut seen = Vec::new();
+        loop {
+            let hit = g.intersect_where(o, d, f32::INFINITY, 0.3, |_, key, _, _| {
+                !rejected.contains(&key)
+            });
+            let Some(hit) = hit else { break };
+            assert!((hit.t - 2.0).abs() < 1e-6, "{}", isa.name());
+            let key = match hit.primitive {
+                Primitive::Triangle {
+                    index, instance, ..
+                } => triangle_key(instance, index),
+                Primitive::Moving { index, .. } => triangle_key(NO_INSTANCE - 1, index),
+                Primitive::Sphere { .. } => unreachable!(),
+            };
+            seen.push(match hit.primitive {
+                Primitive::Triangle { instance, .. } => instance,
+                _ => u32::MAX - 1,
+            });
+            rejected.push(key);
+        }
+        // The ray meets one triangle of each copy: world, instance 0, instance 1, moving.
+        assert_eq!(
+            seen,
+            vec![NO_INSTANCE, 0, 1, u32::MAX - 1],
+            "{}: the order hits were taken in",
+            isa.name()
+        );
+    }
+}

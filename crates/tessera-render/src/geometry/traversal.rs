@@ -1,17 +1,13 @@
-//! The walk through one BVH of triangles (our wide BVH, see `wide`), and the ray handed
-//! to obvhs for the BVHs it still traverses, the top level over instances and the motion
-//! segments (see the module docs of `geometry` for the shift and the defects it works
-//! around).
+//! The walks through the wide BVHs (see `wide`) of one level of triangles and of the top
+//! level over instances, and the construction of a wide BVH from obvhs' binary tree.
 
 use super::build::{self, BvhBuildStats};
 use super::kernels::{self, Isa};
-use super::wide::{Level, WideBvh};
-use super::{Hit, TriangleRecord, TRAVERSAL_SHIFT};
-use glam::{Vec3, Vec3A};
+use super::wide::{BoxTest, Leaves, Level, Nearest, WideBvh};
+use super::{InstanceRecord, Prototype, TriangleRecord};
+use glam::Vec3;
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::node::Bvh2Node;
-use obvhs::cwbvh::CwBvh;
-use obvhs::ray::Ray;
 
 /// One BVH of triangles (the world-space one, or a prototype's in object space) with the
 /// instance its hits report, and the kernel that tests its boxes.
@@ -23,29 +19,25 @@ pub(super) struct TriangleLevel<'g> {
 }
 
 impl TriangleLevel<'_> {
-    /// The nearest kept hit of `origin + t dir` with `t < *best_t`; lowers `*best_t` to it.
+    /// Offers every kept hit of `origin + t dir` to `best` (see [`Nearest`]).
     #[inline(always)]
     pub(super) fn nearest(
         &self,
         origin: Vec3,
         dir: Vec3,
-        best_t: &mut f32,
+        best: &mut Nearest,
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-    ) -> Option<Hit> {
-        let level = Level {
-            bvh: self.bvh,
-            triangles: self.triangles,
-            instance: self.instance,
-        };
-        with_watertight_ray!(origin, dir, |wt| kernels::nearest(
-            self.isa,
-            &level,
-            origin,
-            dir,
-            best_t,
-            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
-            keep
-        ))
+    ) {
+        with_watertight_ray!(origin, dir, |wt| {
+            let level = Level {
+                bvh: self.bvh,
+                triangles: self.triangles,
+                instance: self.instance,
+                intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+                keep,
+            };
+            kernels::nearest(self.isa, self.bvh, origin, dir, &level, best)
+        })
     }
 
     /// Whether any kept hit of `origin + t dir` has `t < t_max`.
@@ -57,42 +49,93 @@ impl TriangleLevel<'_> {
         t_max: f32,
         keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
     ) -> bool {
-        let level = Level {
-            bvh: self.bvh,
-            triangles: self.triangles,
-            instance: self.instance,
-        };
-        with_watertight_ray!(origin, dir, |wt| kernels::any(
-            self.isa,
-            &level,
-            origin,
-            dir,
-            t_max,
-            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
-            keep
-        ))
+        with_watertight_ray!(origin, dir, |wt| {
+            let level = Level {
+                bvh: self.bvh,
+                triangles: self.triangles,
+                instance: self.instance,
+                intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+                keep,
+            };
+            kernels::any(self.isa, self.bvh, origin, dir, &level, t_max)
+        })
     }
 }
 
-/// The ray handed to obvhs for `origin + t dir`, `t < t_max`: shifted back by
-/// [`TRAVERSAL_SHIFT`] (see the module docs), its end rounded up so pruning is
-/// conservative.
-#[inline(always)]
-pub(super) fn traversal_ray(origin: Vec3, dir: Vec3, t_max: f32) -> Ray {
-    let shifted_origin = Vec3A::from(origin - dir * TRAVERSAL_SHIFT);
-    let traversal_max = if t_max.is_finite() {
-        traversal_t(t_max)
-    } else {
-        t_max
-    };
-    Ray::new(shifted_origin, traversal_dir(dir), 0.0, traversal_max)
+/// The leaves of the top level: each entry is an instance (an index into
+/// `Geometry::instances`). At a leaf the world ray is carried into the instance's object
+/// space and the prototype's BVH is walked with the same box test, so the whole two-level
+/// walk runs inside one kernel.
+pub(super) struct InstanceLeaves<'g, F> {
+    /// The top level's leaf contents.
+    pub(super) prims: &'g [u32],
+    pub(super) instances: &'g [InstanceRecord],
+    pub(super) prototypes: &'g [Prototype],
+    /// The world-space ray.
+    pub(super) origin: Vec3,
+    pub(super) dir: Vec3,
+    pub(super) keep: &'g F,
 }
 
-/// The traversal ray's parameter of the real ray's `t`, rounded up so pruning is
-/// conservative.
-#[inline(always)]
-pub(super) fn traversal_t(t: f32) -> f32 {
-    (t + TRAVERSAL_SHIFT) * (1.0 + 1e-5)
+impl<F> InstanceLeaves<'_, F> {
+    /// Instance `id`'s prototype and the ray in its object space (the direction
+    /// unnormalised, so `t` is shared with the world ray).
+    #[inline(always)]
+    fn object_ray(&self, id: u32) -> (&Prototype, Vec3, Vec3) {
+        let inst = &self.instances[id as usize];
+        let o = inst.object_from_world.transform_point3(self.origin);
+        let d = inst.object_from_world.transform_vector3(self.dir);
+        (&self.prototypes[inst.prototype as usize], o, d)
+    }
+}
+
+impl<F> Leaves for InstanceLeaves<'_, F>
+where
+    F: Fn(&TriangleRecord, u64, f32, f32) -> bool,
+{
+    #[inline(always)]
+    fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
+        let first = first as usize;
+        for &id in &self.prims[first..first + count as usize] {
+            let (proto, o, d) = self.object_ray(id);
+            let ray = super::wide::BoxRay::new(o, d);
+            with_watertight_ray!(o, d, |wt| {
+                let level = Level {
+                    bvh: &proto.bvh,
+                    triangles: &proto.triangles,
+                    instance: id,
+                    intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+                    keep: self.keep,
+                };
+                super::wide::nearest::<K, _>(&proto.bvh, &ray, &level, best)
+            })
+        }
+    }
+
+    #[inline(always)]
+    fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool {
+        let first = first as usize;
+        // A loop rather than `Iterator::any`, which LLVM left uninlined, outside the
+        // kernel's `#[target_feature]` function (callgrind: 9% of an instanced render).
+        for &id in &self.prims[first..first + count as usize] {
+            let (proto, o, d) = self.object_ray(id);
+            let ray = super::wide::BoxRay::new(o, d);
+            let hit = with_watertight_ray!(o, d, |wt| {
+                let level = Level {
+                    bvh: &proto.bvh,
+                    triangles: &proto.triangles,
+                    instance: id,
+                    intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+                    keep: self.keep,
+                };
+                super::wide::any::<K, _>(&proto.bvh, &ray, &level, t_max)
+            });
+            if hit {
+                return true;
+            }
+        }
+        false
+    }
 }
 
 /// The wide BVH over `triangles`, the triangles in obvhs' CWBVH leaf order (the order
@@ -131,11 +174,7 @@ pub(super) fn triangle_bvh_of(
         })
         .collect();
     let bvh2 = build::leaves_bvh2(leaves, stats);
-    let order = build::cwbvh_order(&bvh2);
-    let mut position = vec![0u32; count];
-    for (k, &i) in order.iter().enumerate() {
-        position[i as usize] = k as u32;
-    }
+    let (order, position) = leaf_order(&bvh2);
     let bounds = *bvh2.nodes[0].aabb();
     let wide = WideBvh::collapse(&bvh2, &position);
     drop((bvh2, position));
@@ -143,17 +182,48 @@ pub(super) fn triangle_bvh_of(
     (wide, ordered, bounds)
 }
 
-/// Bytes of a BVH's nodes and leaf index array.
-pub(super) fn bvh_bytes(bvh: &CwBvh) -> usize {
-    std::mem::size_of_val(bvh.nodes.as_slice())
-        + std::mem::size_of_val(bvh.primitive_indices.as_slice())
+/// obvhs' CWBVH leaf order of `bvh2`'s primitives, the order a level stores them in
+/// (`order[k]` is the primitive stored at `k`), and its inverse (`position[i]` is where
+/// primitive `i` is stored, what the wide leaves name).
+pub(super) fn leaf_order(bvh2: &obvhs::bvh2::Bvh2) -> (Vec<u32>, Vec<u32>) {
+    let order = build::cwbvh_order(bvh2);
+    let mut position = vec![0u32; order.len()];
+    for (k, &i) in order.iter().enumerate() {
+        position[i as usize] = k as u32;
+    }
+    (order, position)
 }
 
-/// The direction handed to obvhs. A third defect of obvhs 0.4.0: `safe_inverse(-0.0)` is
-/// `-1/ε` while the CWBVH picks the ray octant by `d < 0` (false for `-0.0`), so a ray with
-/// a negative-zero component (e.g. exactly along `-Z`) tests the wrong slab planes and
-/// misses. Adding `+0.0` turns `-0.0` into `+0.0` and leaves every other value unchanged.
-#[inline]
-pub(super) fn traversal_dir(dir: Vec3) -> Vec3A {
-    Vec3A::from(dir + Vec3::ZERO)
+/// The ray obvhs' CWBVH traversal was handed for `origin + t dir`, `t < t_max`, when it
+/// still traversed the renderer's BVHs: shifted back by [`TRAVERSAL_SHIFT`] past its
+/// hard-coded `1e-4` clamp on node entry distances, its end rounded up so pruning is
+/// conservative. Only the tests that compare our traversal with obvhs' still use it.
+#[cfg(test)]
+#[inline(always)]
+pub(super) fn traversal_ray(origin: Vec3, dir: Vec3, t_max: f32) -> obvhs::ray::Ray {
+    let shifted_origin = glam::Vec3A::from(origin - dir * TRAVERSAL_SHIFT);
+    let traversal_max = if t_max.is_finite() {
+        traversal_t(t_max)
+    } else {
+        t_max
+    };
+    // `+ 0.0` turns `-0.0` into `+0.0`: obvhs 0.4 picks the ray octant by `d < 0` but
+    // inverts `-0.0` to `-1/ε`, so a negative-zero component tests the wrong slabs.
+    obvhs::ray::Ray::new(
+        shifted_origin,
+        glam::Vec3A::from(dir + Vec3::ZERO),
+        0.0,
+        traversal_max,
+    )
+}
+
+/// How far behind the real origin [`traversal_ray`] starts: beyond obvhs' clamp of `1e-4`.
+#[cfg(test)]
+pub(super) const TRAVERSAL_SHIFT: f32 = 1e-3;
+
+/// The parameter along [`traversal_ray`] of the real ray's `t`, rounded up.
+#[cfg(test)]
+#[inline(always)]
+pub(super) fn traversal_t(t: f32) -> f32 {
+    (t + TRAVERSAL_SHIFT) * (1.0 + 1e-5)
 }

@@ -22,11 +22,13 @@
 //! the triangles themselves are tested by `watertight`'s scalar test, unchanged.
 //!
 //! **The hit is independent of the visit order.** A triangle hit replaces the best one
-//! when its `t` is smaller, or equal with a smaller triangle index; boxes are pruned only
+//! when its `t` is smaller, or equal with a smaller key (the triangle index in a level of
+//! world-space triangles; see [`Nearest`] and the `geometry` module docs for instances
+//! and moving triangles, whose leaves the same walk serves); boxes are pruned only
 //! beyond the best `t` plus a relative margin ([`box_limit`]) far wider than the rounding
 //! of the box and triangle tests, and the box test is conservative (Ize 2013, via pbrt
 //! 3rd ed. §3.9.2: the far distance is scaled by `1 + 2 γ(3)`). So the nearest hit is the
-//! lexicographic minimum of `(t, index)` over every hit the watertight test accepts,
+//! lexicographic minimum of `(t, key)` over every hit the watertight test accepts,
 //! whatever order the children are visited in and whatever kernel tests the boxes: every
 //! kernel gives the same hit, bit for bit (ARCHITECTURE.md §2).
 
@@ -308,32 +310,148 @@ fn nearest_first(mut mask: u32, dist: &[f32; WIDTH]) -> ([u8; WIDTH], usize) {
     (order, n)
 }
 
-/// The triangles of one level with the test each needs.
-pub(super) struct Level<'g> {
+/// The nearest hit found so far in one level of the scene (the world-space triangles, the
+/// instances, the moving triangles), and the rule that replaces it: a hit replaces the
+/// best one when its `t` is smaller, or equal with a smaller key ([`super::triangle_key`]
+/// of the triangle, which orders instances before their triangles). So the level's
+/// nearest hit is the lexicographic minimum of `(t, key)` over every hit the triangle
+/// test accepts, whatever the visit order (see the module docs).
+pub(super) struct Nearest {
+    /// The level's exclusive bound on `t` (the ray's end, or an earlier level's hit).
+    t_max: f32,
+    /// The best hit's `t`, or `t_max` while there is none: what the walk prunes by.
+    pub(super) t: f32,
+    /// The best hit's key.
+    key: u64,
+    /// The best hit.
+    pub(super) hit: Option<Hit>,
+}
+
+impl Nearest {
+    /// No hit yet, below `t_max`.
+    #[inline(always)]
+    pub(super) fn new(t_max: f32) -> Self {
+        Self {
+            t_max,
+            t: t_max,
+            key: u64::MAX,
+            hit: None,
+        }
+    }
+
+    /// The bound to hand the triangle test: the level's own while there is no hit, else
+    /// the best `t` widened by [`box_limit`] so that ties reach [`Nearest::offer`], which
+    /// decides them exactly.
+    #[inline(always)]
+    pub(super) fn bound(&self) -> f32 {
+        if self.hit.is_some() {
+            box_limit(self.t).min(self.t_max)
+        } else {
+            self.t_max
+        }
+    }
+
+    /// Whether a hit at `t` with key `key` would replace the best one.
+    #[inline(always)]
+    pub(super) fn beats(&self, t: f32, key: u64) -> bool {
+        self.hit.is_none() || t < self.t || (t == self.t && key < self.key)
+    }
+
+    /// Makes `hit` (which [`Nearest::beats`] the best) the best.
+    #[inline(always)]
+    pub(super) fn set(&mut self, hit: Hit, key: u64) {
+        self.t = hit.t;
+        self.key = key;
+        self.hit = Some(hit);
+    }
+}
+
+/// What the leaves of a wide BVH hold and how a ray meets them. The walks below are
+/// generic over it, so one walk, compiled into every kernel, serves triangles, instances
+/// (whose leaves walk a prototype's BVH in turn, with the same box test `K`) and moving
+/// triangles.
+pub(super) trait Leaves {
+    /// Offers every hit in the leaf `(first, count)` of a node (its `child` and `count`)
+    /// to `best`.
+    fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest);
+
+    /// Whether the leaf `(first, count)` holds a kept hit with `t < t_max`.
+    fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool;
+}
+
+/// The triangles of one level with the test each needs: `intersect(p, t_max)` is the
+/// watertight test of the ray, `keep` the filter of `Geometry::intersect_where`.
+pub(super) struct Level<'g, I, F> {
     pub(super) bvh: &'g WideBvh,
     pub(super) triangles: &'g [TriangleRecord],
     pub(super) instance: u32,
+    pub(super) intersect: &'g I,
+    pub(super) keep: &'g F,
 }
 
-/// The nearest kept hit of the ray with `t < *best_t` (the lexicographic minimum of
-/// `(t, index)`, see the module docs); lowers `*best_t` to it. `intersect(p, t_max)` is
-/// the watertight test of the ray.
+impl<I, F> Leaves for Level<'_, I, F>
+where
+    I: Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
+    F: Fn(&TriangleRecord, u64, f32, f32) -> bool,
+{
+    #[inline(always)]
+    fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
+        let first = first as usize;
+        for &id in &self.bvh.prims[first..first + count as usize] {
+            let tri = &self.triangles[id as usize];
+            let Some((t, _, b1, b2)) = (self.intersect)(&tri.p, best.bound()) else {
+                continue;
+            };
+            let key = triangle_key(self.instance, id);
+            if !best.beats(t, key) || !(self.keep)(tri, key, b1, b2) {
+                continue;
+            }
+            best.set(
+                Hit {
+                    t,
+                    primitive: Primitive::Triangle {
+                        index: id,
+                        instance: self.instance,
+                        b1,
+                        b2,
+                    },
+                },
+                key,
+            );
+        }
+    }
+
+    #[inline(always)]
+    fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool {
+        // A loop rather than `Iterator::any`, which LLVM may leave uninlined, outside
+        // the kernel's `#[target_feature]` function.
+        let first = first as usize;
+        for &id in &self.bvh.prims[first..first + count as usize] {
+            let tri = &self.triangles[id as usize];
+            if let Some((_, _, b1, b2)) = (self.intersect)(&tri.p, t_max) {
+                if (self.keep)(tri, triangle_key(self.instance, id), b1, b2) {
+                    return true;
+                }
+            }
+        }
+        false
+    }
+}
+
+/// Offers every hit of the ray in `bvh`'s leaves to `best` (the lexicographic minimum of
+/// `(t, key)`, see [`Nearest`]), visiting children nearest first and pruning boxes
+/// beyond [`box_limit`] of the best `t`.
 #[inline(always)]
-pub(super) fn nearest<K: BoxTest>(
-    level: &Level<'_>,
+pub(super) fn nearest<K: BoxTest, L: Leaves>(
+    bvh: &WideBvh,
     ray: &BoxRay,
-    best_t: &mut f32,
-    intersect: &impl Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
-) -> Option<Hit> {
-    let bvh = level.bvh;
+    leaves: &L,
+    best: &mut Nearest,
+) {
     // A ray with a NaN or infinite coordinate hits nothing (and would enter unused slots).
     if bvh.nodes.is_empty() || !ray.is_finite() {
-        return None;
+        return;
     }
-    let t_max = *best_t;
-    let mut best: Option<Hit> = None;
-    let mut best_index = u32::MAX;
     let (mut inline, mut heap) = ([(0u32, 0f32); STACK_INLINE], Vec::new());
     let stack = stack_for(bvh, &mut inline, &mut heap);
     stack[0] = (0, 0.0);
@@ -341,48 +459,16 @@ pub(super) fn nearest<K: BoxTest>(
     while sp > 0 {
         sp -= 1;
         let (ni, entry) = stack[sp];
-        if entry > box_limit(*best_t) {
+        if entry > box_limit(best.t) {
             continue;
         }
         let node = &bvh.nodes[ni as usize];
-        let (dist, mask) = K::test(node, ray, box_limit(*best_t));
+        let (dist, mask) = K::test(node, ray, box_limit(best.t));
         let (order, n) = nearest_first(mask, &dist);
         for &c in &order[..n] {
             let c = c as usize;
-            let count = node.count[c];
-            if count == 0 {
-                continue;
-            }
-            let first = node.child[c] as usize;
-            for &id in &bvh.prims[first..first + count as usize] {
-                let tri = &level.triangles[id as usize];
-                // The test's own bound admits ties with the best hit (see
-                // `box_limit`); the comparison below decides them exactly.
-                let bound = if best.is_some() {
-                    box_limit(*best_t).min(t_max)
-                } else {
-                    t_max
-                };
-                let Some((t, _, b1, b2)) = intersect(&tri.p, bound) else {
-                    continue;
-                };
-                if best.is_some() && !(t < *best_t || (t == *best_t && id < best_index)) {
-                    continue;
-                }
-                if !keep(tri, triangle_key(level.instance, id), b1, b2) {
-                    continue;
-                }
-                *best_t = t;
-                best_index = id;
-                best = Some(Hit {
-                    t,
-                    primitive: Primitive::Triangle {
-                        index: id,
-                        instance: level.instance,
-                        b1,
-                        b2,
-                    },
-                });
+            if node.count[c] != 0 {
+                leaves.nearest::<K>(node.child[c], node.count[c], best);
             }
         }
         for &c in order[..n].iter().rev() {
@@ -393,20 +479,17 @@ pub(super) fn nearest<K: BoxTest>(
             }
         }
     }
-    best
 }
 
-/// Whether any kept hit of the ray has `t < t_max` (shadow rays: the first one found
-/// ends the walk).
+/// Whether any kept hit of the ray in `bvh`'s leaves has `t < t_max` (shadow rays: the
+/// first one found ends the walk).
 #[inline(always)]
-pub(super) fn any<K: BoxTest>(
-    level: &Level<'_>,
+pub(super) fn any<K: BoxTest, L: Leaves>(
+    bvh: &WideBvh,
     ray: &BoxRay,
+    leaves: &L,
     t_max: f32,
-    intersect: &impl Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> bool {
-    let bvh = level.bvh;
     if bvh.nodes.is_empty() || !ray.is_finite() {
         return false;
     }
@@ -422,20 +505,11 @@ pub(super) fn any<K: BoxTest>(
         while mask != 0 {
             let c = mask.trailing_zeros() as usize;
             mask &= mask - 1;
-            let count = node.count[c];
-            if count == 0 {
+            if node.count[c] == 0 {
                 stack[sp] = (node.child[c], 0.0);
                 sp += 1;
-                continue;
-            }
-            let first = node.child[c] as usize;
-            for &id in &bvh.prims[first..first + count as usize] {
-                let tri = &level.triangles[id as usize];
-                if let Some((_, _, b1, b2)) = intersect(&tri.p, t_max) {
-                    if keep(tri, triangle_key(level.instance, id), b1, b2) {
-                        return true;
-                    }
-                }
+            } else if leaves.any::<K>(node.child[c], node.count[c], t_max) {
+                return true;
             }
         }
     }

@@ -348,3 +348,30 @@ fn the_triangle_filter_sees_which_instance_was_hit() {
         .geometry
         .occluded_where(o, d, f32::INFINITY, 0.0, |_, key, _, _| key >> 32 == 0));
 }
+
+/// The determinism contract across traversal kernels (ARCHITECTURE.md §2) for the two
+/// levels: the instanced scene (top level and prototype walked inside one kernel)
+/// renders to the same bits with every kernel this CPU has.
+#[test]
+fn every_kernel_renders_the_instanced_scene_bit_identically() {
+    use tessera_farm::FramePlan;
+    use tessera_render::geometry::Isa;
+    use tessera_render::render::render_frame;
+    let (w, h) = (32, 24);
+    let mut rs = RenderScene::build(&instanced(), w, h).unwrap();
+    assert_eq!(rs.geometry.instances.len(), transforms().len());
+    let plan = FramePlan::for_spp(w, h, 16, 16).unwrap();
+    let settings = RenderConfig {
+        seed: 9,
+        ..RenderConfig::default()
+    };
+    let mut reference = None;
+    for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
+        rs.geometry.set_isa(isa).unwrap();
+        let bits = crate::common::frame_bits(&render_frame(&rs, &settings, &plan, 0, 0, |_, _| {}));
+        match &reference {
+            None => reference = Some(bits),
+            Some(r) => assert!(*r == bits, "{} differs from scalar", isa.name()),
+        }
+    }
+}

@@ -209,3 +209,36 @@ fn a_shutter_over_a_still_moment_draws_no_time() {
     assert!(moving.has_motion());
     assert!(moving.moving_triangles() > 0);
 }
+
+/// The determinism contract across traversal kernels (ARCHITECTURE.md §2) for moving
+/// triangles: the blurred frame 12 (sphere and cube walked through the motion segments'
+/// wide BVHs) renders to the same bits with every kernel this CPU has.
+#[test]
+fn every_kernel_renders_the_blurred_frame_bit_identically() {
+    use tessera_render::geometry::Isa;
+    let file = "motion/motion_ball.glb";
+    let shutter = Shutter {
+        open: -0.5,
+        close: 0.5,
+    };
+    let mut rs =
+        RenderScene::build_in_motion(&load(file, 12.0), &keys(file, 12, shutter), 32, 24).unwrap();
+    assert!(rs.moving_triangles() > 2000);
+    let plan = FramePlan::for_spp(rs.width, rs.height, 16, 16).unwrap();
+    let mut reference = None;
+    for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
+        rs.geometry.set_isa(isa).unwrap();
+        let bits = crate::common::frame_bits(&render_frame(
+            &rs,
+            &reference_config(),
+            &plan,
+            0,
+            0,
+            |_, _| {},
+        ));
+        match &reference {
+            None => reference = Some(bits),
+            Some(r) => assert!(*r == bits, "{} differs from scalar", isa.name()),
+        }
+    }
+}
