@@ -276,6 +276,130 @@ fn every_box_kernel_computes_the_scalar_kernels_bits_lane_by_lane() {
     assert!(entered > 5_000, "{entered} boxes entered");
 }
 
+/// A pool of triangles for the pack tests: random ones, degenerate ones (a repeated
+/// vertex, collinear vertices, a point), and a grid of unit squares in `z = 0` split
+/// along their diagonals, whose shared edges and vertices the rays below cross exactly
+/// (edge functions exactly zero: the double-precision fallback).
+fn pack_pool(s: &mut u64) -> Vec<[Vec3; 3]> {
+    let mut pool = Vec::new();
+    for _ in 0..40 {
+        let mut r = || Vec3::new(lcg(s), lcg(s), lcg(s)) * 2.0 - 1.0;
+        let (a, b, c) = (r(), r(), r());
+        pool.extend([[a, b, c], [a, a, b], [a, b, a + 0.5 * (b - a)], [c, c, c]]);
+    }
+    for i in -1..1 {
+        for j in -1..1 {
+            let (x, y) = (i as f32, j as f32);
+            let v = |dx: f32, dy: f32| Vec3::new(x + dx, y + dy, 0.0);
+            pool.push([v(0.0, 0.0), v(1.0, 0.0), v(1.0, 1.0)]);
+            pool.push([v(0.0, 0.0), v(1.0, 1.0), v(0.0, 1.0)]);
+        }
+    }
+    // Edge-on to rays in the plane y = 0.25.
+    pool.push([
+        Vec3::new(-1.0, 0.25, -1.0),
+        Vec3::new(1.0, 0.25, -1.0),
+        Vec3::new(0.0, 0.25, 1.0),
+    ]);
+    pool
+}
+
+#[test]
+fn every_kernel_computes_the_scalar_tests_bits_for_triangle_packs() {
+    use super::kernels::pack_test;
+    use super::wide::{TrianglePack, PACK};
+    let mut s = 23u64;
+    let pool = pack_pool(&mut s);
+    let (mut hits, mut edge_hits, mut compared) = (0u32, 0u32, 0u32);
+    for k in 0..6_000usize {
+        // Rays: random, along an axis with `+-0` components, and straight down onto the
+        // grid's shared edges and vertices (coordinates multiples of 0.5).
+        let (o, d, on_edge) = match k % 4 {
+            0 | 1 => {
+                let o = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 4.0 - 2.0;
+                let aim = Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) * 2.0 - 1.0;
+                (o, aim - o, false)
+            }
+            2 => {
+                let o = Vec3::new(
+                    (lcg(&mut s) * 4.0).floor() * 0.5 - 1.0,
+                    (lcg(&mut s) * 4.0).floor() * 0.5 - 1.0,
+                    1.0 + lcg(&mut s),
+                );
+                let d = if k % 8 == 2 {
+                    Vec3::new(0.0, -0.0, -1.0)
+                } else {
+                    Vec3::new(-0.0, 0.0, -2.0)
+                };
+                (o, d, true)
+            }
+            _ => {
+                let o = Vec3::new(-1.5, 0.25, 2.0 * lcg(&mut s) - 1.0);
+                (o, Vec3::new(1.0, -0.0, 0.0), false)
+            }
+        };
+        let t_max = match k % 3 {
+            0 => f32::INFINITY,
+            _ => 4.0 * lcg(&mut s),
+        };
+        let lanes = 1 + k % PACK;
+        // Rays onto the grid meet packs of its triangles (the last 9 of the pool).
+        let from = if on_edge {
+            &pool[pool.len() - 9..]
+        } else {
+            &pool[..]
+        };
+        let tris: Vec<[Vec3; 3]> = (0..PACK)
+            .map(|_| from[(lcg(&mut s) * from.len() as f32) as usize % from.len()])
+            .collect();
+        let mut pack = TrianglePack {
+            p: [[[0.0; PACK]; 3]; 3],
+            id: [0; PACK],
+        };
+        for (lane, t) in tris.iter().enumerate() {
+            for v in 0..3 {
+                for axis in 0..3 {
+                    pack.p[v][axis][lane] = t[v][axis];
+                }
+            }
+        }
+        with_watertight_ray!(o, d, |wt| {
+            let reference: Vec<_> = tris[..lanes]
+                .iter()
+                .map(|p| wt.intersect(p, t_max))
+                .collect();
+            hits += reference.iter().flatten().count() as u32;
+            if on_edge {
+                edge_hits += reference.iter().flatten().count() as u32;
+            }
+            for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
+                let got = pack_test(isa, &wt, &pack, lanes, t_max);
+                compared += 1;
+                assert_eq!(
+                    got.mask >> lanes,
+                    0,
+                    "{}: ray {k}, lanes beyond",
+                    isa.name()
+                );
+                for (lane, r) in reference.iter().enumerate() {
+                    let g = (got.mask >> lane & 1 == 1)
+                        .then(|| (got.t[lane], got.b1[lane], got.b2[lane]))
+                        .map(|(t, b1, b2)| (t.to_bits(), b1.to_bits(), b2.to_bits()));
+                    let r = r.map(|(t, _, b1, b2)| (t.to_bits(), b1.to_bits(), b2.to_bits()));
+                    assert_eq!(g, r, "{}: ray {k} ({o}, {d}), lane {lane}", isa.name());
+                }
+            }
+        });
+    }
+    // Not vacuous: a fair share of hits (about 2,000 with this seed), on the shared
+    // edges too.
+    assert!(
+        hits > 1_000 && edge_hits > 200,
+        "{hits} hits, {edge_hits} on edges"
+    );
+    assert!(compared >= 6_000);
+}
+
 #[test]
 fn equal_hit_distances_go_to_the_lower_triangle_index() {
     // Eight copies of one triangle: every ray that hits hits all of them at the same t,

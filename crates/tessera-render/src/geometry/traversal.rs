@@ -38,13 +38,7 @@ impl TriangleLevel<'_> {
             instance: self.instance,
         };
         with_watertight_ray!(origin, dir, |wt| kernels::nearest(
-            self.isa,
-            &level,
-            origin,
-            dir,
-            best_t,
-            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
-            keep
+            self.isa, &level, origin, dir, best_t, &wt, keep
         ))
     }
 
@@ -63,13 +57,7 @@ impl TriangleLevel<'_> {
             instance: self.instance,
         };
         with_watertight_ray!(origin, dir, |wt| kernels::any(
-            self.isa,
-            &level,
-            origin,
-            dir,
-            t_max,
-            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
-            keep
+            self.isa, &level, origin, dir, t_max, &wt, keep
         ))
     }
 }
@@ -137,9 +125,10 @@ pub(super) fn triangle_bvh_of(
         position[i as usize] = k as u32;
     }
     let bounds = *bvh2.nodes[0].aabb();
-    let wide = WideBvh::collapse(&bvh2, &position);
+    let mut wide = WideBvh::collapse(&bvh2, &position);
     drop((bvh2, position));
-    let ordered = order.iter().map(|&i| record(i as usize)).collect();
+    let ordered: Vec<TriangleRecord> = order.iter().map(|&i| record(i as usize)).collect();
+    wide.pack(&ordered);
     (wide, ordered, bounds)
 }
 
