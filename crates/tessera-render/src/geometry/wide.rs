@@ -19,12 +19,13 @@
 //!
 //! **Leaves** name the triangles' positions in the level's triangle array (obvhs' CWBVH
 //! leaf order, which [`super::triangle_key`] hashes, so keys and images do not change).
-//! [`WideBvh::pack`] then copies each leaf's vertices into [`TrianglePack`]s, lane by
-//! lane, so one SIMD pass of the watertight test covers a leaf, and a ray entering a
-//! leaf reads one contiguous pack instead of a triangle record per triangle, scattered
-//! over the triangle array (docs/benchmarks.md, "Leaves as packs"). The pack test
-//! computes the scalar test's operations lane by lane (`watertight`), so the hits are the
-//! same bits.
+//! [`WideBvh::pack`] then copies each leaf's vertex coordinates beside them, coordinate
+//! by coordinate (structure of arrays, no padding: 36 bytes per triangle), so one SIMD
+//! pass of the watertight test covers up to [`PACK`] triangles of a leaf
+//! ([`TrianglePack`]), and a ray entering a leaf reads one contiguous block instead of a
+//! triangle record per triangle, scattered over the triangle array (docs/benchmarks.md,
+//! "Leaves as packs"). The pack test computes the scalar test's operations lane by lane
+//! (`watertight`), so the hits are the same bits.
 //!
 //! **The hit is independent of the visit order.** A triangle hit replaces the best one
 //! when its `t` is smaller, or equal with a smaller triangle index; boxes are pruned only
@@ -66,8 +67,7 @@ pub(super) struct WideNode {
     pub(super) lo: [[f32; WIDTH]; 3],
     /// Upper bounds, per axis, per child.
     pub(super) hi: [[f32; WIDTH]; 3],
-    /// An interior child's node index, or a leaf's first entry in [`WideBvh::prims`]
-    /// (after [`WideBvh::pack`], its first pack in [`WideBvh::packs`]).
+    /// An interior child's node index, or a leaf's first entry in [`WideBvh::prims`].
     pub(super) child: [u32; WIDTH],
     /// 0 for an interior child (or an unused slot), else the leaf's triangle count.
     pub(super) count: [u32; WIDTH],
@@ -83,9 +83,10 @@ impl WideNode {
     };
 }
 
-/// Up to [`PACK`] triangles of one leaf, stored lane by lane for the watertight test
-/// (`watertight::WatertightRay::intersect_pack`). Lanes past the leaf's triangles
-/// repeat its first triangle and are masked off by the leaf's count. 160 bytes.
+/// Up to [`PACK`] triangles of one leaf, lane by lane, as the watertight test reads them
+/// (`watertight::WatertightRay::intersect_pack`): loaded from [`WideBvh::coords`] by
+/// [`WideBvh::leaf_pack`]. Lanes past the leaf's triangles hold whatever follows them
+/// and are masked off by the leaf's count.
 #[repr(C, align(32))]
 #[derive(Clone, Copy, Debug)]
 pub(super) struct TrianglePack {
@@ -167,12 +168,13 @@ impl<F: Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>> TriangleTest 
 #[derive(Default)]
 pub(super) struct WideBvh {
     pub(super) nodes: Vec<WideNode>,
-    /// Leaf contents as [`WideBvh::collapse`] makes them: positions in the level's
-    /// triangle array. Emptied by [`WideBvh::pack`], which moves them into `packs`.
+    /// Leaf contents: positions in the level's triangle array.
     pub(super) prims: Vec<u32>,
-    /// Leaf contents as the walks read them: a leaf's triangles in
-    /// `ceil(count / PACK)` consecutive packs from its child reference.
-    pub(super) packs: Vec<TrianglePack>,
+    /// The leaves' vertex coordinates (filled by [`WideBvh::pack`]): the leaf of `n`
+    /// triangles from `prims[f]` has coordinate `r = 3 vertex + axis` of its triangles
+    /// at `coords[9 f + r n..][..n]`, and [`PACK`]` - 1` zeros end the array so that
+    /// every row can be read [`PACK`] lanes at a time.
+    pub(super) coords: Vec<f32>,
     /// The most traversal stack entries any ray can need.
     stack_need: usize,
 }
@@ -282,7 +284,7 @@ impl WideBvh {
         let mut out = WideBvh {
             nodes,
             prims: Vec::with_capacity(position.len()),
-            packs: Vec::new(),
+            coords: Vec::new(),
             stack_need: 0,
         };
         // (binary node, wide node it fills)
@@ -366,53 +368,49 @@ impl WideBvh {
         out
     }
 
-    /// Copies every leaf's triangles into packs (see [`TrianglePack`]), node by node so a
-    /// node's leaves are near one another, points the leaves at their packs and frees
-    /// the position list. `triangles` is the level's triangle array.
+    /// Copies every leaf's vertex coordinates into [`WideBvh::coords`]. `triangles` is
+    /// the level's triangle array.
     pub(super) fn pack(&mut self, triangles: &[TriangleRecord]) {
-        let leaves: usize = self
-            .nodes
-            .iter()
-            .flat_map(|n| n.count)
-            .map(|c| (c as usize).div_ceil(PACK))
-            .sum();
-        let mut packs = Vec::with_capacity(leaves);
-        for node in &mut self.nodes {
-            for slot in 0..WIDTH {
-                let count = node.count[slot] as usize;
+        let mut coords = vec![0.0f32; 9 * self.prims.len() + PACK - 1];
+        for node in &self.nodes {
+            for (&first, &count) in node.child.iter().zip(&node.count) {
+                let (first, count) = (first as usize, count as usize);
                 if count == 0 {
                     continue;
                 }
-                let first = node.child[slot] as usize;
-                node.child[slot] = packs.len() as u32;
-                for ids in self.prims[first..first + count].chunks(PACK) {
-                    let mut pack = TrianglePack {
-                        p: [[[0.0; PACK]; 3]; 3],
-                        id: [ids[0]; PACK],
-                    };
-                    for lane in 0..PACK {
-                        let id = ids[lane.min(ids.len() - 1)];
-                        pack.id[lane] = id;
-                        let tri = &triangles[id as usize];
-                        for v in 0..3 {
-                            for axis in 0..3 {
-                                pack.p[v][axis][lane] = tri.p[v][axis];
-                            }
-                        }
+                for (j, &id) in self.prims[first..first + count].iter().enumerate() {
+                    let p = &triangles[id as usize].p;
+                    for r in 0..9 {
+                        coords[9 * first + r * count + j] = p[r / 3][r % 3];
                     }
-                    packs.push(pack);
                 }
             }
         }
-        self.packs = packs;
-        self.prims = Vec::new();
+        self.coords = coords;
+    }
+
+    /// Lanes `k PACK..` of the leaf of `count` triangles from `prims[first]`.
+    #[inline(always)]
+    pub(super) fn leaf_pack(&self, first: usize, count: usize, k: usize) -> TrianglePack {
+        let base = 9 * first + k * PACK;
+        let last = (count - k * PACK).min(PACK) - 1;
+        let row = |r: usize| {
+            let mut lanes = [0.0f32; PACK];
+            let s = base + r * count;
+            lanes.copy_from_slice(&self.coords[s..s + PACK]);
+            lanes
+        };
+        TrianglePack {
+            p: [0, 1, 2].map(|v| [0, 1, 2].map(|axis| row(3 * v + axis))),
+            id: std::array::from_fn(|l| self.prims[first + k * PACK + l.min(last)]),
+        }
     }
 
     /// Bytes of the nodes and leaf contents.
     pub(super) fn bytes(&self) -> usize {
         std::mem::size_of_val(self.nodes.as_slice())
             + std::mem::size_of_val(self.prims.as_slice())
-            + std::mem::size_of_val(self.packs.as_slice())
+            + std::mem::size_of_val(self.coords.as_slice())
     }
 }
 
@@ -521,10 +519,8 @@ pub(super) fn nearest<K: BoxTest>(
                 continue;
             }
             let (first, count) = (node.child[c] as usize, count as usize);
-            for (k, pack) in bvh.packs[first..first + count.div_ceil(PACK)]
-                .iter()
-                .enumerate()
-            {
+            for k in 0..count.div_ceil(PACK) {
+                let pack = &bvh.leaf_pack(first, count, k);
                 // The test's own bound admits ties with the best hit (see
                 // `box_limit`); the comparison below decides them exactly.
                 let bound = if best.is_some() {
@@ -604,10 +600,8 @@ pub(super) fn any<K: BoxTest>(
                 continue;
             }
             let (first, count) = (node.child[c] as usize, count as usize);
-            for (k, pack) in bvh.packs[first..first + count.div_ceil(PACK)]
-                .iter()
-                .enumerate()
-            {
+            for k in 0..count.div_ceil(PACK) {
+                let pack = &bvh.leaf_pack(first, count, k);
                 let hits = leaf_hits::<K>(intersect, pack, (count - k * PACK).min(PACK), t_max);
                 let mut mask = hits.mask;
                 while mask != 0 {
