@@ -352,17 +352,10 @@ fn every_kernel_computes_the_scalar_tests_bits_for_triangle_packs() {
         let tris: Vec<[Vec3; 3]> = (0..PACK)
             .map(|_| from[(lcg(&mut s) * from.len() as f32) as usize % from.len()])
             .collect();
-        let mut pack = TrianglePack {
-            p: [[[0.0; PACK]; 3]; 3],
+        let pack = TrianglePack {
+            p: [0, 1, 2].map(|v| [0, 1, 2].map(|axis| std::array::from_fn(|l| tris[l][v][axis]))),
             id: [0; PACK],
         };
-        for (lane, t) in tris.iter().enumerate() {
-            for v in 0..3 {
-                for axis in 0..3 {
-                    pack.p[v][axis][lane] = t[v][axis];
-                }
-            }
-        }
         with_watertight_ray!(o, d, |wt| {
             let reference: Vec<_> = tris[..lanes]
                 .iter()
