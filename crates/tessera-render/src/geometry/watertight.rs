@@ -146,10 +146,18 @@ impl<const KZ: usize> WatertightRay<KZ> {
     }
 }
 
-/// `[f(0), .., f(PACK - 1)]`: one operation on every lane (the loops LLVM vectorises).
+/// `[f(0), .., f(PACK - 1)]`: one operation on every lane (the lanes LLVM vectorises).
+/// Written out: `std::array::from_fn` and `array::map` were left as calls in the
+/// kernels (callgrind, docs/benchmarks.md "Leaves as packs").
 #[inline(always)]
-fn each<T>(f: impl FnMut(usize) -> T) -> [T; PACK] {
-    std::array::from_fn(f)
+fn each<T>(mut f: impl FnMut(usize) -> T) -> [T; PACK] {
+    [f(0), f(1), f(2), f(3)]
+}
+
+/// `[f(0), f(1), f(2)]`, per vertex or axis (written out, see [`each`]).
+#[inline(always)]
+pub(super) fn three<T>(mut f: impl FnMut(usize) -> T) -> [T; 3] {
+    [f(0), f(1), f(2)]
 }
 
 /// `if a > b { a } else { b }`: glam's `max_element` of a `Vec3` is
@@ -179,17 +187,15 @@ impl<const KZ: usize> WatertightRay<KZ> {
         let (kx, ky) = ((KZ + 1) % 3, (KZ + 2) % 3);
         let (o, p) = (self.origin, &pack.p);
         // tr(p[v]), then `p.x += sx * p.z`, `p.y += sy * p.z`.
-        let z: [[f32; PACK]; 3] = [0, 1, 2].map(|v| each(|l| p[v][KZ][l] - o.z));
-        let x: [[f32; PACK]; 3] =
-            [0, 1, 2].map(|v| each(|l| (p[v][kx][l] - o.x) + self.sx * z[v][l]));
-        let y: [[f32; PACK]; 3] =
-            [0, 1, 2].map(|v| each(|l| (p[v][ky][l] - o.y) + self.sy * z[v][l]));
+        let z: [[f32; PACK]; 3] = three(|v| each(|l| p[v][KZ][l] - o.z));
+        let x: [[f32; PACK]; 3] = three(|v| each(|l| (p[v][kx][l] - o.x) + self.sx * z[v][l]));
+        let y: [[f32; PACK]; 3] = three(|v| each(|l| (p[v][ky][l] - o.y) + self.sy * z[v][l]));
         let e0 = each(|l| x[1][l] * y[2][l] - y[1][l] * x[2][l]);
         let e1 = each(|l| x[2][l] * y[0][l] - y[2][l] * x[0][l]);
         let e2 = each(|l| x[0][l] * y[1][l] - y[0][l] * x[1][l]);
         let det = each(|l| e0[l] + e1[l] + e2[l]);
         // `p.z *= sz`.
-        let z: [[f32; PACK]; 3] = z.map(|zv| each(|l| zv[l] * self.sz));
+        let z: [[f32; PACK]; 3] = three(|v| each(|l| z[v][l] * self.sz));
         let t_scaled = each(|l| e0[l] * z[0][l] + e1[l] * z[1][l] + e2[l] * z[2][l]);
         let inv_det = each(|l| 1.0 / det[l]);
         let t = each(|l| t_scaled[l] * inv_det[l]);

@@ -102,7 +102,7 @@ impl TrianglePack {
     #[inline(always)]
     pub(super) fn triangle(&self, lane: usize) -> [glam::Vec3; 3] {
         let p = &self.p;
-        [0, 1, 2].map(|v| glam::Vec3::new(p[v][0][lane], p[v][1][lane], p[v][2][lane]))
+        super::watertight::three(|v| glam::Vec3::new(p[v][0][lane], p[v][1][lane], p[v][2][lane]))
     }
 }
 
@@ -400,9 +400,11 @@ impl WideBvh {
             lanes.copy_from_slice(&self.coords[s..s + PACK]);
             lanes
         };
+        use super::watertight::three;
+        let id = |l: usize| self.prims[first + k * PACK + l.min(last)];
         TrianglePack {
-            p: [0, 1, 2].map(|v| [0, 1, 2].map(|axis| row(3 * v + axis))),
-            id: std::array::from_fn(|l| self.prims[first + k * PACK + l.min(last)]),
+            p: three(|v| three(|axis| row(3 * v + axis))),
+            id: [id(0), id(1), id(2), id(3)],
         }
     }
 
