@@ -17,18 +17,14 @@
 //!   traversal and triangle tests compiled inside `#[target_feature]` functions for
 //!   AVX2 or AVX-512 F.
 //!
-//! Traversal is the same code in every kernel (compiled per kernel too, so it uses its
-//! registers), and the hit does not depend on the box test beyond its being conservative
-//! (see `wide`). A leaf's triangles are tested one by one with the scalar watertight
-//! test in the scalar kernel, and all at once with the pack test (4 lanes, the scalar
-//! test's operations per lane, `watertight::WatertightRay::intersect_pack`) in the
-//! others, which gives the scalar test's bits. So images are bit-identical across
-//! kernels.
+//! Traversal and triangle tests are the same code in every kernel (compiled per kernel
+//! too, so they use its registers), and the hit does not depend on the box test beyond
+//! its being conservative (see `wide`), so images are bit-identical across kernels.
 //!
 //! `TESSERA_ISA=scalar|sse2|avx2|avx512` forces a kernel; [`Isa::from_env`] refuses a
 //! value this CPU cannot run, with a message naming what it lacks.
 
-use super::wide::{self, far_scale, planes, BoxRay, BoxTest, Level, TriangleTest, WideNode, WIDTH};
+use super::wide::{self, far_scale, planes, BoxRay, BoxTest, Level, WideNode, WIDTH};
 use super::Hit;
 use super::TriangleRecord;
 use glam::Vec3;
@@ -143,8 +139,6 @@ pub fn active() -> Isa {
 pub(super) struct Scalar;
 
 impl BoxTest for Scalar {
-    const PACKED: bool = false;
-
     // Lanes are indexed by child on purpose: the same index walks six arrays.
     #[allow(clippy::needless_range_loop)]
     #[inline(always)]
@@ -218,26 +212,6 @@ pub(super) fn box_test(isa: Isa, node: &WideNode, ray: &BoxRay, limit: f32) -> (
     }
 }
 
-/// Kernel `isa`'s test of the first `lanes` triangles of `pack` (for the tests that
-/// compare kernels lane by lane); `isa` must be available.
-#[cfg(test)]
-pub(super) fn pack_test<const KZ: usize>(
-    isa: Isa,
-    ray: &super::watertight::WatertightRay<KZ>,
-    pack: &wide::TrianglePack,
-    lanes: usize,
-    t_max: f32,
-) -> wide::PackHits {
-    match isa {
-        Isa::Scalar => wide::one_by_one(ray, pack, lanes, t_max),
-        Isa::Sse2 => ray.intersect_pack(pack, lanes, t_max),
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 | Isa::Avx512 => x86::pack_test(isa, ray, pack, lanes, t_max),
-        #[cfg(not(target_arch = "x86_64"))]
-        _ => wide::one_by_one(ray, pack, lanes, t_max),
-    }
-}
-
 /// The nearest kept hit in `level` with `t < *best_t` (see [`wide::nearest`]), with
 /// kernel `isa`.
 #[inline(always)]
@@ -247,7 +221,7 @@ pub(super) fn nearest(
     origin: Vec3,
     dir: Vec3,
     best_t: &mut f32,
-    intersect: &impl TriangleTest,
+    intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
     keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> Option<Hit> {
     let ray = BoxRay::new(origin, dir);
@@ -272,7 +246,7 @@ pub(super) fn any(
     origin: Vec3,
     dir: Vec3,
     t_max: f32,
-    intersect: &impl TriangleTest,
+    intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
     keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> bool {
     let ray = BoxRay::new(origin, dir);
@@ -293,11 +267,10 @@ pub(super) fn any(
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code)]
 mod x86 {
-    use super::super::wide::{
-        self, far_scale, planes, BoxRay, BoxTest, Level, TriangleTest, WideNode, WIDTH,
-    };
+    use super::super::wide::{self, far_scale, planes, BoxRay, BoxTest, Level, WideNode, WIDTH};
     use super::super::{Hit, TriangleRecord};
     use super::{Isa, Lanes};
+    use glam::Vec3;
     use std::arch::x86_64::{
         _mm256_cmp_ps, _mm256_loadu_ps, _mm256_max_ps, _mm256_min_ps, _mm256_movemask_ps,
         _mm256_mul_ps, _mm256_set1_ps, _mm256_setzero_ps, _mm256_storeu_ps, _mm256_sub_ps,
@@ -371,51 +344,6 @@ mod x86 {
         unsafe { box_test_avx2(node, ray, limit) }
     }
 
-    /// The pack test compiled for AVX2 (for the tests).
-    #[cfg(test)]
-    #[target_feature(enable = "avx2")]
-    fn pack_test_avx2<const KZ: usize>(
-        ray: &super::super::watertight::WatertightRay<KZ>,
-        pack: &wide::TrianglePack,
-        lanes: usize,
-        t_max: f32,
-    ) -> wide::PackHits {
-        ray.intersect_pack(pack, lanes, t_max)
-    }
-
-    /// The pack test compiled for AVX-512 F (for the tests).
-    #[cfg(test)]
-    #[target_feature(enable = "avx512f")]
-    fn pack_test_avx512<const KZ: usize>(
-        ray: &super::super::watertight::WatertightRay<KZ>,
-        pack: &wide::TrianglePack,
-        lanes: usize,
-        t_max: f32,
-    ) -> wide::PackHits {
-        ray.intersect_pack(pack, lanes, t_max)
-    }
-
-    /// The pack test of the AVX2 or AVX-512 kernel for the tests, on a CPU that has `isa`.
-    #[cfg(test)]
-    pub(in super::super) fn pack_test<const KZ: usize>(
-        isa: Isa,
-        ray: &super::super::watertight::WatertightRay<KZ>,
-        pack: &wide::TrianglePack,
-        lanes: usize,
-        t_max: f32,
-    ) -> wide::PackHits {
-        assert!(isa.available(), "this CPU lacks {}", isa.name());
-        // SAFETY: `isa` was just confirmed available, and each function runs only with
-        // the feature of its kernel.
-        unsafe {
-            if isa == Isa::Avx512 {
-                pack_test_avx512(ray, pack, lanes, t_max)
-            } else {
-                pack_test_avx2(ray, pack, lanes, t_max)
-            }
-        }
-    }
-
     macro_rules! kernel {
         ($nearest:ident, $nearest_tf:ident, $any:ident, $any_tf:ident, $feature:literal, $isa:expr) => {
             #[target_feature(enable = $feature)]
@@ -423,7 +351,7 @@ mod x86 {
                 level: &Level<'_>,
                 ray: &BoxRay,
                 best_t: &mut f32,
-                intersect: &impl TriangleTest,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
                 keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
             ) -> Option<Hit> {
                 wide::nearest::<Avx2Box>(level, ray, best_t, intersect, keep)
@@ -434,7 +362,7 @@ mod x86 {
                 level: &Level<'_>,
                 ray: &BoxRay,
                 t_max: f32,
-                intersect: &impl TriangleTest,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
                 keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
             ) -> bool {
                 wide::any::<Avx2Box>(level, ray, t_max, intersect, keep)
@@ -445,7 +373,7 @@ mod x86 {
                 level: &Level<'_>,
                 ray: &BoxRay,
                 best_t: &mut f32,
-                intersect: &impl TriangleTest,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
                 keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
             ) -> Option<Hit> {
                 if !$isa.available() {
@@ -461,7 +389,7 @@ mod x86 {
                 level: &Level<'_>,
                 ray: &BoxRay,
                 t_max: f32,
-                intersect: &impl TriangleTest,
+                intersect: &impl Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
                 keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
             ) -> bool {
                 if !$isa.available() {

@@ -38,7 +38,13 @@ impl TriangleLevel<'_> {
             instance: self.instance,
         };
         with_watertight_ray!(origin, dir, |wt| kernels::nearest(
-            self.isa, &level, origin, dir, best_t, &wt, keep
+            self.isa,
+            &level,
+            origin,
+            dir,
+            best_t,
+            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+            keep
         ))
     }
 
@@ -57,7 +63,13 @@ impl TriangleLevel<'_> {
             instance: self.instance,
         };
         with_watertight_ray!(origin, dir, |wt| kernels::any(
-            self.isa, &level, origin, dir, t_max, &wt, keep
+            self.isa,
+            &level,
+            origin,
+            dir,
+            t_max,
+            &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
+            keep
         ))
     }
 }
@@ -125,10 +137,9 @@ pub(super) fn triangle_bvh_of(
         position[i as usize] = k as u32;
     }
     let bounds = *bvh2.nodes[0].aabb();
-    let mut wide = WideBvh::collapse(&bvh2, &position);
+    let wide = WideBvh::collapse(&bvh2, &position);
     drop((bvh2, position));
-    let ordered: Vec<TriangleRecord> = order.iter().map(|&i| record(i as usize)).collect();
-    wide.pack(&ordered);
+    let ordered = order.iter().map(|&i| record(i as usize)).collect();
     (wide, ordered, bounds)
 }
 

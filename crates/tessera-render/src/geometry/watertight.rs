@@ -1,8 +1,6 @@
 //! The watertight ray–triangle test (Woop, Benthin & Wald, JCGT 2013, in pbrt's
-//! formulation), for one triangle and for a pack of a leaf's triangles at once, and the
-//! ray–sphere test.
+//! formulation) and the ray–sphere test.
 
-use super::wide::{PackHits, TrianglePack, TriangleTest, PACK};
 use crate::math::gamma;
 use glam::{Vec3, Vec3A, Vec3Swizzles};
 
@@ -143,122 +141,6 @@ impl<const KZ: usize> WatertightRay<KZ> {
             return None;
         }
         Some((t, e0 * inv_det, e1 * inv_det, e2 * inv_det))
-    }
-}
-
-/// `[f(0), .., f(PACK - 1)]`: one operation on every lane (the lanes LLVM vectorises).
-/// Written out: `std::array::from_fn` and `array::map` were left as calls in the
-/// kernels (callgrind, docs/benchmarks.md "Leaves as packs").
-#[inline(always)]
-fn each<T>(mut f: impl FnMut(usize) -> T) -> [T; PACK] {
-    [f(0), f(1), f(2), f(3)]
-}
-
-/// `[f(0), f(1), f(2)]`, per vertex or axis (written out, see [`each`]).
-#[inline(always)]
-pub(super) fn three<T>(mut f: impl FnMut(usize) -> T) -> [T; 3] {
-    [f(0), f(1), f(2)]
-}
-
-/// `if a > b { a } else { b }`: glam's `max_element` of a `Vec3` is
-/// `max(x, max(y, z))` with this `max`.
-#[inline(always)]
-fn max(a: f32, b: f32) -> f32 {
-    if a > b {
-        a
-    } else {
-        b
-    }
-}
-
-impl<const KZ: usize> WatertightRay<KZ> {
-    /// [`WatertightRay::intersect`] of the first `lanes` triangles of `pack`, every lane
-    /// at once: per lane the same IEEE operations in the same order as the scalar test
-    /// (each line below is the scalar line it mirrors; no fused multiply-add, no
-    /// approximate reciprocal), so a lane's hit is the scalar test's, bit for bit. The
-    /// scalar test's early returns become a mask: its conditions are pure functions of
-    /// values computed the same way, so testing all of them gives its verdict. A lane
-    /// with an edge function exactly zero needs the scalar test's double-precision
-    /// fallback, and is redone by the scalar test (rare: a ray through an edge or vertex
-    /// in single precision).
-    #[inline(always)]
-    pub(super) fn intersect_pack(&self, pack: &TrianglePack, lanes: usize, t_max: f32) -> PackHits {
-        // The permutation of `permute`: x <- kx, y <- ky, z <- KZ.
-        let (kx, ky) = ((KZ + 1) % 3, (KZ + 2) % 3);
-        let (o, p) = (self.origin, &pack.p);
-        // tr(p[v]), then `p.x += sx * p.z`, `p.y += sy * p.z`.
-        let z: [[f32; PACK]; 3] = three(|v| each(|l| p[v][KZ][l] - o.z));
-        let x: [[f32; PACK]; 3] = three(|v| each(|l| (p[v][kx][l] - o.x) + self.sx * z[v][l]));
-        let y: [[f32; PACK]; 3] = three(|v| each(|l| (p[v][ky][l] - o.y) + self.sy * z[v][l]));
-        let e0 = each(|l| x[1][l] * y[2][l] - y[1][l] * x[2][l]);
-        let e1 = each(|l| x[2][l] * y[0][l] - y[2][l] * x[0][l]);
-        let e2 = each(|l| x[0][l] * y[1][l] - y[0][l] * x[1][l]);
-        let det = each(|l| e0[l] + e1[l] + e2[l]);
-        // `p.z *= sz`.
-        let z: [[f32; PACK]; 3] = three(|v| each(|l| z[v][l] * self.sz));
-        let t_scaled = each(|l| e0[l] * z[0][l] + e1[l] * z[1][l] + e2[l] * z[2][l]);
-        let inv_det = each(|l| 1.0 / det[l]);
-        let t = each(|l| t_scaled[l] * inv_det[l]);
-        let max_zt = each(|l| max(z[0][l].abs(), max(z[1][l].abs(), z[2][l].abs())));
-        let delta_z = each(|l| gamma(3) * max_zt[l]);
-        let max_xt = each(|l| max(x[0][l].abs(), max(x[1][l].abs(), x[2][l].abs())));
-        let max_yt = each(|l| max(y[0][l].abs(), max(y[1][l].abs(), y[2][l].abs())));
-        let delta_x = each(|l| gamma(5) * (max_xt[l] + max_zt[l]));
-        let delta_y = each(|l| gamma(5) * (max_yt[l] + max_zt[l]));
-        let delta_e = each(|l| {
-            2.0 * (gamma(2) * max_xt[l] * max_yt[l]
-                + delta_y[l] * max_xt[l]
-                + delta_x[l] * max_yt[l])
-        });
-        let max_e = each(|l| max(e0[l].abs(), max(e1[l].abs(), e2[l].abs())));
-        let delta_t = each(|l| {
-            3.0 * (gamma(3) * max_e[l] * max_zt[l] + delta_e[l] * max_zt[l] + delta_z[l] * max_e[l])
-                * inv_det[l].abs()
-        });
-        let mut hits = PackHits {
-            mask: 0,
-            t,
-            b1: each(|l| e1[l] * inv_det[l]),
-            b2: each(|l| e2[l] * inv_det[l]),
-        };
-        let mut fallback = 0u32;
-        for l in 0..PACK {
-            let (e0, e1, e2, det, ts) = (e0[l], e1[l], e2[l], det[l], t_scaled[l]);
-            let zero = e0 == 0.0 || e1 == 0.0 || e2 == 0.0;
-            let miss = ((e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0))
-                || det == 0.0
-                || (det < 0.0 && (ts >= 0.0 || ts < t_max * det))
-                || (det > 0.0 && (ts <= 0.0 || ts > t_max * det))
-                || t[l] <= delta_t[l];
-            fallback |= u32::from(zero) << l;
-            hits.mask |= u32::from(!zero && !miss) << l;
-        }
-        let valid = (1u32 << lanes) - 1;
-        hits.mask &= valid;
-        let mut fallback = fallback & valid;
-        while fallback != 0 {
-            let l = fallback.trailing_zeros() as usize;
-            fallback &= fallback - 1;
-            if let Some((t, _, b1, b2)) = self.intersect(&pack.triangle(l), t_max) {
-                hits.mask |= 1 << l;
-                hits.t[l] = t;
-                hits.b1[l] = b1;
-                hits.b2[l] = b2;
-            }
-        }
-        hits
-    }
-}
-
-impl<const KZ: usize> TriangleTest for WatertightRay<KZ> {
-    #[inline(always)]
-    fn triangle(&self, p: &[Vec3; 3], t_max: f32) -> Option<(f32, f32, f32, f32)> {
-        self.intersect(p, t_max)
-    }
-
-    #[inline(always)]
-    fn pack(&self, pack: &TrianglePack, lanes: usize, t_max: f32) -> PackHits {
-        self.intersect_pack(pack, lanes, t_max)
     }
 }
 

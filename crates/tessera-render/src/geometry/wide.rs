@@ -18,14 +18,8 @@
 //! child references).
 //!
 //! **Leaves** name the triangles' positions in the level's triangle array (obvhs' CWBVH
-//! leaf order, which [`super::triangle_key`] hashes, so keys and images do not change).
-//! [`WideBvh::pack`] then copies each leaf's vertex coordinates beside them, coordinate
-//! by coordinate (structure of arrays, no padding: 36 bytes per triangle), so one SIMD
-//! pass of the watertight test covers up to [`PACK`] triangles of a leaf
-//! ([`TrianglePack`]), and a ray entering a leaf reads one contiguous block instead of a
-//! triangle record per triangle, scattered over the triangle array (docs/benchmarks.md,
-//! "Leaves as packs"). The pack test computes the scalar test's operations lane by lane
-//! (`watertight`), so the hits are the same bits.
+//! leaf order, which [`super::triangle_key`] hashes, so keys and images do not change);
+//! the triangles themselves are tested by `watertight`'s scalar test, unchanged.
 //!
 //! **The hit is independent of the visit order.** A triangle hit replaces the best one
 //! when its `t` is smaller, or equal with a smaller triangle index; boxes are pruned only
@@ -47,11 +41,6 @@ pub(super) const WIDTH: usize = 8;
 /// 200,000-triangle terrain the same instructions per ray (-0.3%) and 11% less geometry
 /// (docs/benchmarks.md, "The wide BVH: an 8-lane AVX2 box test ...").
 pub(super) const LEAF_MAX: u32 = 4;
-
-/// Triangles per [`TrianglePack`]: a leaf's worth, one SSE register (4 lanes of `f32`)
-/// per coordinate array. The AVX kernels test a pack with the same 4 lanes (VEX-encoded):
-/// a leaf holds at most [`LEAF_MAX`] triangles, so 8 lanes would be half empty.
-pub(super) const PACK: usize = 4;
 
 /// Entries of the traversal stack kept on the machine stack; deeper trees (only the
 /// pathological inputs of `build`'s known limit) use a heap stack.
@@ -83,98 +72,12 @@ impl WideNode {
     };
 }
 
-/// Up to [`PACK`] triangles of one leaf, lane by lane, as the watertight test reads them
-/// (`watertight::WatertightRay::intersect_pack`): loaded from [`WideBvh::coords`] by
-/// [`WideBvh::leaf_pack`]. Lanes past the leaf's triangles hold whatever follows them
-/// and are masked off by the leaf's count.
-#[repr(C, align(32))]
-#[derive(Clone, Copy, Debug)]
-pub(super) struct TrianglePack {
-    /// Vertex positions, `p[vertex][axis][lane]`: the same `f32`s as the triangle
-    /// records.
-    pub(super) p: [[[f32; PACK]; 3]; 3],
-    /// Each lane's position in the level's triangle array.
-    pub(super) id: [u32; PACK],
-}
-
-impl TrianglePack {
-    /// Lane `lane`'s vertices, bit for bit those of its triangle record.
-    #[inline(always)]
-    pub(super) fn triangle(&self, lane: usize) -> [glam::Vec3; 3] {
-        let p = &self.p;
-        super::watertight::three(|v| glam::Vec3::new(p[v][0][lane], p[v][1][lane], p[v][2][lane]))
-    }
-}
-
-/// What a pack test found: a bit per lane hit, and each hit lane's `t` and barycentrics
-/// of vertices 1 and 2 (the other lanes' values are meaningless).
-#[derive(Clone, Copy, Debug)]
-pub(super) struct PackHits {
-    pub(super) mask: u32,
-    pub(super) t: [f32; PACK],
-    pub(super) b1: [f32; PACK],
-    pub(super) b2: [f32; PACK],
-}
-
-/// The watertight test of one ray against a triangle or a pack of them.
-pub(super) trait TriangleTest {
-    /// `(t, b0, b1, b2)` of a hit of the triangle `p` with `t < t_max`, or `None`.
-    fn triangle(&self, p: &[glam::Vec3; 3], t_max: f32) -> Option<(f32, f32, f32, f32)>;
-
-    /// The hits among the first `lanes` triangles of `pack` with `t < t_max`, each
-    /// exactly as [`TriangleTest::triangle`] finds it. This one tests lane by lane; the
-    /// watertight ray overrides it with the test of every lane at once.
-    #[inline(always)]
-    fn pack(&self, pack: &TrianglePack, lanes: usize, t_max: f32) -> PackHits {
-        one_by_one(self, pack, lanes, t_max)
-    }
-}
-
-/// [`TriangleTest::pack`] lane by lane with the scalar test: the reference, and the
-/// scalar kernel's pack test.
-#[inline(always)]
-pub(super) fn one_by_one<T: TriangleTest + ?Sized>(
-    test: &T,
-    pack: &TrianglePack,
-    lanes: usize,
-    t_max: f32,
-) -> PackHits {
-    let mut hits = PackHits {
-        mask: 0,
-        t: [0.0; PACK],
-        b1: [0.0; PACK],
-        b2: [0.0; PACK],
-    };
-    for lane in 0..lanes {
-        if let Some((t, _, b1, b2)) = test.triangle(&pack.triangle(lane), t_max) {
-            hits.mask |= 1 << lane;
-            hits.t[lane] = t;
-            hits.b1[lane] = b1;
-            hits.b2[lane] = b2;
-        }
-    }
-    hits
-}
-
-/// A closure `(p, t_max) -> hit` is a triangle test whose packs are tested lane by lane.
-impl<F: Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>> TriangleTest for F {
-    #[inline(always)]
-    fn triangle(&self, p: &[glam::Vec3; 3], t_max: f32) -> Option<(f32, f32, f32, f32)> {
-        self(p, t_max)
-    }
-}
-
 /// A wide BVH over one level's triangles (root at node 0; no nodes for no triangles).
 #[derive(Default)]
 pub(super) struct WideBvh {
     pub(super) nodes: Vec<WideNode>,
     /// Leaf contents: positions in the level's triangle array.
     pub(super) prims: Vec<u32>,
-    /// The leaves' vertex coordinates (filled by [`WideBvh::pack`]): the leaf of `n`
-    /// triangles from `prims[f]` has coordinate `r = 3 vertex + axis` of its triangles
-    /// at `coords[9 f + r n..][..n]`, and [`PACK`]` - 1` zeros end the array so that
-    /// every row can be read [`PACK`] lanes at a time.
-    pub(super) coords: Vec<f32>,
     /// The most traversal stack entries any ray can need.
     stack_need: usize,
 }
@@ -226,11 +129,6 @@ pub(super) fn box_limit(t: f32) -> f32 {
 
 /// How a box test is computed: the kernels (`kernels`) implement it.
 pub(super) trait BoxTest {
-    /// Whether the kernel tests a leaf's triangles with the pack test
-    /// ([`TriangleTest::pack`], every lane at once) rather than one by one with the
-    /// scalar test (the scalar kernel: the reference). The hits are the same bits.
-    const PACKED: bool = true;
-
     /// Entry distances of every child of `node` and the bit mask of those the ray enters
     /// at or before `limit`.
     fn test(node: &WideNode, ray: &BoxRay, limit: f32) -> ([f32; WIDTH], u32);
@@ -284,7 +182,6 @@ impl WideBvh {
         let mut out = WideBvh {
             nodes,
             prims: Vec::with_capacity(position.len()),
-            coords: Vec::new(),
             stack_need: 0,
         };
         // (binary node, wide node it fills)
@@ -368,51 +265,9 @@ impl WideBvh {
         out
     }
 
-    /// Copies every leaf's vertex coordinates into [`WideBvh::coords`]. `triangles` is
-    /// the level's triangle array.
-    pub(super) fn pack(&mut self, triangles: &[TriangleRecord]) {
-        let mut coords = vec![0.0f32; 9 * self.prims.len() + PACK - 1];
-        for node in &self.nodes {
-            for (&first, &count) in node.child.iter().zip(&node.count) {
-                let (first, count) = (first as usize, count as usize);
-                if count == 0 {
-                    continue;
-                }
-                for (j, &id) in self.prims[first..first + count].iter().enumerate() {
-                    let p = &triangles[id as usize].p;
-                    for r in 0..9 {
-                        coords[9 * first + r * count + j] = p[r / 3][r % 3];
-                    }
-                }
-            }
-        }
-        self.coords = coords;
-    }
-
-    /// Lanes `k PACK..` of the leaf of `count` triangles from `prims[first]`.
-    #[inline(always)]
-    pub(super) fn leaf_pack(&self, first: usize, count: usize, k: usize) -> TrianglePack {
-        let base = 9 * first + k * PACK;
-        let last = (count - k * PACK).min(PACK) - 1;
-        let row = |r: usize| {
-            let mut lanes = [0.0f32; PACK];
-            let s = base + r * count;
-            lanes.copy_from_slice(&self.coords[s..s + PACK]);
-            lanes
-        };
-        use super::watertight::three;
-        let id = |l: usize| self.prims[first + k * PACK + l.min(last)];
-        TrianglePack {
-            p: three(|v| three(|axis| row(3 * v + axis))),
-            id: [id(0), id(1), id(2), id(3)],
-        }
-    }
-
     /// Bytes of the nodes and leaf contents.
     pub(super) fn bytes(&self) -> usize {
-        std::mem::size_of_val(self.nodes.as_slice())
-            + std::mem::size_of_val(self.prims.as_slice())
-            + std::mem::size_of_val(self.coords.as_slice())
+        std::mem::size_of_val(self.nodes.as_slice()) + std::mem::size_of_val(self.prims.as_slice())
     }
 }
 
@@ -460,37 +315,15 @@ pub(super) struct Level<'g> {
     pub(super) instance: u32,
 }
 
-/// The hits among a leaf's `lanes` triangles in `pack` with `t < t_max`, with kernel
-/// `K`'s choice of pack test.
-#[inline(always)]
-fn leaf_hits<K: BoxTest>(
-    intersect: &impl TriangleTest,
-    pack: &TrianglePack,
-    lanes: usize,
-    t_max: f32,
-) -> PackHits {
-    if K::PACKED {
-        intersect.pack(pack, lanes, t_max)
-    } else {
-        one_by_one(intersect, pack, lanes, t_max)
-    }
-}
-
 /// The nearest kept hit of the ray with `t < *best_t` (the lexicographic minimum of
-/// `(t, index)`, see the module docs); lowers `*best_t` to it. `intersect` is the
-/// watertight test of the ray.
-///
-/// A leaf's pack is tested once, with the bound at entry to the leaf, where testing its
-/// triangles one by one lowers the bound after each hit: a triangle the lower bound
-/// would reject has `t` beyond the best hit's by the margin of [`box_limit`], so the
-/// comparison with the best hit rejects it before `keep` sees it, and `keep` is called
-/// for the same hits in the same order.
+/// `(t, index)`, see the module docs); lowers `*best_t` to it. `intersect(p, t_max)` is
+/// the watertight test of the ray.
 #[inline(always)]
 pub(super) fn nearest<K: BoxTest>(
     level: &Level<'_>,
     ray: &BoxRay,
     best_t: &mut f32,
-    intersect: &impl TriangleTest,
+    intersect: &impl Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
     keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> Option<Hit> {
     let bvh = level.bvh;
@@ -520,9 +353,9 @@ pub(super) fn nearest<K: BoxTest>(
             if count == 0 {
                 continue;
             }
-            let (first, count) = (node.child[c] as usize, count as usize);
-            for k in 0..count.div_ceil(PACK) {
-                let pack = &bvh.leaf_pack(first, count, k);
+            let first = node.child[c] as usize;
+            for &id in &bvh.prims[first..first + count as usize] {
+                let tri = &level.triangles[id as usize];
                 // The test's own bound admits ties with the best hit (see
                 // `box_limit`); the comparison below decides them exactly.
                 let bound = if best.is_some() {
@@ -530,32 +363,26 @@ pub(super) fn nearest<K: BoxTest>(
                 } else {
                     t_max
                 };
-                let hits = leaf_hits::<K>(intersect, pack, (count - k * PACK).min(PACK), bound);
-                let mut mask = hits.mask;
-                while mask != 0 {
-                    let lane = mask.trailing_zeros() as usize;
-                    mask &= mask - 1;
-                    let (id, t) = (pack.id[lane], hits.t[lane]);
-                    if best.is_some() && !(t < *best_t || (t == *best_t && id < best_index)) {
-                        continue;
-                    }
-                    let (b1, b2) = (hits.b1[lane], hits.b2[lane]);
-                    let tri = &level.triangles[id as usize];
-                    if !keep(tri, triangle_key(level.instance, id), b1, b2) {
-                        continue;
-                    }
-                    *best_t = t;
-                    best_index = id;
-                    best = Some(Hit {
-                        t,
-                        primitive: Primitive::Triangle {
-                            index: id,
-                            instance: level.instance,
-                            b1,
-                            b2,
-                        },
-                    });
+                let Some((t, _, b1, b2)) = intersect(&tri.p, bound) else {
+                    continue;
+                };
+                if best.is_some() && !(t < *best_t || (t == *best_t && id < best_index)) {
+                    continue;
                 }
+                if !keep(tri, triangle_key(level.instance, id), b1, b2) {
+                    continue;
+                }
+                *best_t = t;
+                best_index = id;
+                best = Some(Hit {
+                    t,
+                    primitive: Primitive::Triangle {
+                        index: id,
+                        instance: level.instance,
+                        b1,
+                        b2,
+                    },
+                });
             }
         }
         for &c in order[..n].iter().rev() {
@@ -576,7 +403,7 @@ pub(super) fn any<K: BoxTest>(
     level: &Level<'_>,
     ray: &BoxRay,
     t_max: f32,
-    intersect: &impl TriangleTest,
+    intersect: &impl Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
     keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
 ) -> bool {
     let bvh = level.bvh;
@@ -601,22 +428,11 @@ pub(super) fn any<K: BoxTest>(
                 sp += 1;
                 continue;
             }
-            let (first, count) = (node.child[c] as usize, count as usize);
-            for k in 0..count.div_ceil(PACK) {
-                let pack = &bvh.leaf_pack(first, count, k);
-                let hits = leaf_hits::<K>(intersect, pack, (count - k * PACK).min(PACK), t_max);
-                let mut mask = hits.mask;
-                while mask != 0 {
-                    let lane = mask.trailing_zeros() as usize;
-                    mask &= mask - 1;
-                    let id = pack.id[lane];
-                    let tri = &level.triangles[id as usize];
-                    if keep(
-                        tri,
-                        triangle_key(level.instance, id),
-                        hits.b1[lane],
-                        hits.b2[lane],
-                    ) {
+            let first = node.child[c] as usize;
+            for &id in &bvh.prims[first..first + count as usize] {
+                let tri = &level.triangles[id as usize];
+                if let Some((_, _, b1, b2)) = intersect(&tri.p, t_max) {
+                    if keep(tri, triangle_key(level.instance, id), b1, b2) {
                         return true;
                     }
                 }
