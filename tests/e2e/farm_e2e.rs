@@ -405,8 +405,10 @@ fn a_restarted_adaptive_animation_holds_only_its_frame_in_progress() {
 fn a_time_limit_stop_is_still_named_after_a_restart() {
     let dir = temp_dir("e2e", "time-limit-restart");
     let data = dir.join("data");
-    let (http, grpc) = free_addresses();
-    let mut c = start_coordinator(&data, &http, &grpc, &[]);
+    // Ports chosen by the system at each start: the restarted coordinator needs the same
+    // store, not the same addresses, and a port picked in advance could be taken by a test
+    // running beside this one in the moment between the stop and the restart.
+    let mut c = start_coordinator(&data, "127.0.0.1:0", "127.0.0.1:0", &[]);
     let _w = start_worker(&c.grpc, "w1", &[]);
     let client = Client::new(&c.http, None);
     let mut s = job(16, 16, 1 << 20);
@@ -424,7 +426,7 @@ fn a_time_limit_stop_is_still_named_after_a_restart() {
         "EXR header before the restart"
     );
     c.proc.stop();
-    let c2 = start_coordinator(&data, &http, &grpc, &[]);
+    let c2 = start_coordinator(&data, "127.0.0.1:0", "127.0.0.1:0", &[]);
     let client = Client::new(&c2.http, None);
     let after = client.job(id).unwrap();
     assert_eq!(after.state, tessera_api::JobState::Done);

@@ -407,8 +407,9 @@ mod tests {
         let bdpt = raw(&[1.0, 1.0, 4.0, 1.0], &[0.01, 0.01, 0.04, 0.01], 100);
         let mlt = raw(&[1.0, 1.0, 4.0, 1.0], &[0.01, 0.01, 0.04, 0.01], 100);
         let (p, b, m) = on_one_scale(path, bdpt, mlt);
-        // mlt's image is bdpt's: its own variance is its error, at bdpt's cost per ray.
-        assert_eq!((m.error, m.cost), (b.error, b.cost));
+        // mlt's image is bdpt's: its own variance is its error; its rays cost mlt's.
+        assert_eq!(m.error, b.error);
+        assert_eq!(m.cost, 100.0 * MLT_RAY_COST);
         // Pooled means 1, 1, 2, 1: the difference 4² / 2² = 4 dominates path's 0.03.
         let d = 4.0;
         let s_b = 0.01 * 3.0 + 0.04 / 4.0;
