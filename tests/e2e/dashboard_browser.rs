@@ -26,7 +26,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use common::{tessera, OnDrop, Proc};
+use common::{free_port, tessera, OnDrop, Proc};
 use serde_json::{json, Value};
 
 const CHROMIUM: &str = "/usr/bin/chromium";
@@ -399,24 +399,36 @@ struct Chrome {
     _driver: Proc,
 }
 
-/// The browser tests run one at a time: chromedriver's `--port=0` does not take an
-/// ephemeral port from the system (two drivers started together collide), and two
-/// Chromiums at once are more than a 2-core CI machine should carry.
+/// The browser tests run one at a time: two Chromiums at once are more than a 2-core CI
+/// machine should carry.
 static ONE_BROWSER: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 fn chrome(tag: &str, tmp: &Path) -> Chrome {
     let artifacts = artifacts_dir();
     let driver_log = artifacts.join(format!("{tag}-chromedriver.log"));
-    let mut driver = Proc::spawn(
-        &format!("{tag} chromedriver"),
-        Command::new(CHROMEDRIVER)
-            .args(["--port=0", &format!("--log-path={}", driver_log.display())]),
-        Some(&artifacts.join(format!("{tag}-chromedriver.stderr.log"))),
-    )
-    .on_drop(OnDrop::Stop)
-    .diagnostics(&driver_log);
-    let port = driver.wait_line("was started successfully on port");
-    let port = port.trim_end_matches('.');
+    // A port the system gave out a moment ago: chromedriver's own `--port=0` picks a random
+    // port without asking the system, and exits ("IPv4 port not available") when a test
+    // beside this one holds it. Another test can still take this one before chromedriver
+    // binds it, so a driver that exits before it starts is started again on a new port.
+    let mut attempts = Vec::new();
+    let (driver, port) = loop {
+        let port = free_port();
+        let mut driver = Proc::spawn(
+            &format!("{tag} chromedriver"),
+            Command::new(CHROMEDRIVER).args([
+                format!("--port={port}"),
+                format!("--log-path={}", driver_log.display()),
+            ]),
+            Some(&artifacts.join(format!("{tag}-chromedriver.stderr.log"))),
+        )
+        .on_drop(OnDrop::Stop)
+        .diagnostics(&driver_log);
+        match driver.try_wait_lines(&["was started successfully on port"]) {
+            Ok(_) => break (driver, port),
+            Err(e) if attempts.len() < 4 => attempts.push(e),
+            Err(e) => panic!("chromedriver did not start in 5 attempts: {attempts:#?}\n{e}"),
+        }
+    };
     let browser = Browser::start(format!("127.0.0.1:{port}"), &tmp.join("chrome"));
     Chrome {
         browser,

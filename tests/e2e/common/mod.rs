@@ -232,6 +232,13 @@ impl Proc {
     /// order; returns the trimmed text after each marker, in the order of `markers`.
     /// Fails the test if the process exits first or [`LINE_TIMEOUT`] passes.
     pub fn wait_lines(&mut self, markers: &[&str]) -> Vec<String> {
+        self.try_wait_lines(markers)
+            .unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// [`Proc::wait_lines`], but a process that exits first is an `Err` saying so (with its
+    /// stderr), for a caller that can start it again; running out of time still fails.
+    pub fn try_wait_lines(&mut self, markers: &[&str]) -> Result<Vec<String>, String> {
         let deadline = Instant::now() + LINE_TIMEOUT;
         let mut found: Vec<Option<String>> = vec![None; markers.len()];
         while found.iter().any(Option::is_none) {
@@ -247,19 +254,19 @@ impl Proc {
                 Err(mpsc::RecvTimeoutError::Timeout) => {}
                 Err(mpsc::RecvTimeoutError::Disconnected) => {
                     let status = self.child.as_mut().and_then(|c| c.wait().ok());
-                    panic!(
+                    return Err(format!(
                         "{} exited ({status:?}) before printing {markers:?}; stderr:\n{}",
                         self.name,
                         self.log_text()
-                    );
+                    ));
                 }
             }
             if let Some(Ok(Some(status))) = self.child.as_mut().map(Child::try_wait) {
-                panic!(
+                return Err(format!(
                     "{} exited ({status}) before printing {markers:?}; stderr:\n{}",
                     self.name,
                     self.log_text()
-                );
+                ));
             }
             assert!(
                 Instant::now() < deadline,
@@ -268,7 +275,7 @@ impl Proc {
                 self.log_text()
             );
         }
-        found.into_iter().map(Option::unwrap).collect()
+        Ok(found.into_iter().map(Option::unwrap).collect())
     }
 
     /// SIGKILL, and waits for the process to be gone.
