@@ -25,7 +25,7 @@ const MOTION_KEY_INSTANCE: u32 = NO_INSTANCE - 1;
 /// the segment's two keys. Linear interpolation keeps each vertex inside the segment of
 /// its two key positions, so the union box bounds the triangle at every time of the
 /// segment: the BVH prunes conservatively and no hit is lost (each box is widened by the
-/// rounding bound of the interpolation, [`lerp_error`], so that holds for the positions
+/// rounding bound of the interpolation, `lerp_error`, so that holds for the positions
 /// as computed too). A ray at time τ walks segment `⌊τ K⌋`'s wide BVH with the kernel's
 /// box test, like static triangles (see `wide`), and intersects each leaf triangle at
 /// its interpolated position with the same watertight test. The nearest hit is the
