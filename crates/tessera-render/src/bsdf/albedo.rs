@@ -1092,8 +1092,8 @@ fn g_trilinear(at: impl Fn(usize, usize, usize) -> f32, cell: [(usize, f32); 3])
 /// compensation of [`super::dielectric::RoughDielectric`]), the part a clearcoat of
 /// `alpha_cc` (factor one) reflects back inside, `E_cc` at each direction's outside
 /// cosine. [`super::gltf`] returns it inside as a lobe (it is linear in the clearcoat
-/// factor). Quadrilinear in (the coordinate of [`g_mu_coordinate`], `r`, `sqrt(η - 1)`,
-/// `r_coat`).
+/// factor). Quadrilinear in `(x, r, sqrt(η - 1), r_coat)`, `x` linear in `μ` from 0 to
+/// 1/2 below the critical cosine `sqrt(1 - 1/η²)` and from 1/2 to 1 above it.
 #[inline]
 pub fn coat_glass_loss(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
     let t = coat_glass_table();
