@@ -10,10 +10,12 @@
 //! | [`sheen_layer_albedo`] | `E'(μ, r)` of the sheen lobe Tessera renders (`sheen::Sheen::eval`, the published lobe divided by `max(1, E(μo), E(μi))`), sheen colour 1: what the sheen layer reflects, hence what it withholds from the base |
 //! | [`anisotropic_ggx_albedo`] | `(A, B)` of [`ggx_albedo`] for the anisotropic GGX of KHR_materials_anisotropy, over `(μ, φ, r, t)`: `φ` the azimuth of `wo` from the anisotropy direction, `r` the perceptual roughness across it and `t = strength²` (`anisotropic_albedo.bin`), with its hemispherical average [`anisotropic_ggx_albedo_average`] |
 //! | [`coat_loss`] | `D(μ, r_base, r_coat)`: what a white GGX base under a clearcoat loses to the coat's reciprocal `min` scaling (`coat_loss.bin`), with its average [`coat_loss_average`], for the compensation of [`super::gltf`] |
+//! | [`coat_glass_loss`] | `G(μ, r, η, r_coat)`: of the power a white rough dielectric interface met from inside at `μ` sends out, the part a clearcoat (factor one) reflects back inside (`coat_glass_loss.bin`), with its average [`coat_glass_loss_average`], for the inside lobe of a coated rough glass in [`super::gltf`] |
 //! | [`dielectric_albedo`] | `E(μ, α, η)`: the reflected plus transmitted power of the single-scattering rough dielectric, for `η` in `[1, 3]` and `1/η` (`dielectric_albedo.bin`), with its average [`dielectric_albedo_average`], for the multiple-scattering compensation of [`super::dielectric`] |
 //!
 //! The tables are computed by fixed quadrature and committed (`albedo_tables.bin`,
-//! `dielectric_albedo.bin`, `anisotropic_albedo.bin` and `coat_loss.bin`, read
+//! `dielectric_albedo.bin`, `anisotropic_albedo.bin`, `coat_loss.bin` and
+//! `coat_glass_loss.bin`, read
 //! once per process): computing them at start-up took 0.6 s for the GGX tables and
 //! 0.75 s for the sheen table at opt-level 3 on a busy two-core machine, paid by every
 //! `tessera render`, worker and pilot process that met a glTF material (0.93 G of the
@@ -22,7 +24,9 @@
 //! `committed_tables_are_the_quadrature` (and `committed_dielectric_table_is_the_quadrature`)
 //! recomputes them; `cargo test -p tessera-render
 //! --lib write_albedo_tables -- --ignored` writes the file again after a change to the
-//! quadrature or the node layout (both files). The dielectric table by the midpoint rule on
+//! quadrature or the node layout (both files); `write_coat_glass_table` writes
+//! `coat_glass_loss.bin`, which integrates the GGX and dielectric tables (regenerate it
+//! after them). The dielectric table by the midpoint rule on
 //! the visible-normal warp with both Fresnel branches of each microfacet
 //! (`RoughDielectric::single_scattering_energy`), trilinear in `(sqrt(μ), r, sqrt(η - 1))`. The GGX
 //! integrals by the midpoint rule on the square of the
@@ -117,7 +121,7 @@ fn sqrt_mu_average(column: &[f32]) -> f32 {
     sum as f32
 }
 
-#[cfg(test)]
+/// Node `i` of `n` uniform in [0, 1].
 fn node(i: usize, n: usize) -> f32 {
     i as f32 / (n - 1) as f32
 }
@@ -395,14 +399,18 @@ fn d_side(eta: f32) -> (usize, f32) {
 /// The roughness of the dielectric table's node `j`.
 #[cfg(test)]
 fn d_r_node(j: usize) -> f32 {
-    let r_min = MIN_ALPHA.sqrt();
-    r_min + (1.0 - r_min) * node(j, D_R)
+    r_node_of(j, D_R)
 }
 
 /// The relative index of the dielectric table's node `k` (before the side's inversion).
 #[cfg(test)]
 fn d_eta_node(k: usize) -> f32 {
-    1.0 + (DIELECTRIC_ETA_MAX - 1.0) * node(k, D_ETA).powi(2)
+    eta_node_of(k, D_ETA)
+}
+
+/// The relative index of node `k` of `n` uniform in `sqrt((η - 1) / (DIELECTRIC_ETA_MAX - 1))`.
+fn eta_node_of(k: usize, n: usize) -> f32 {
+    1.0 + (DIELECTRIC_ETA_MAX - 1.0) * node(k, n).powi(2)
 }
 
 /// The energy albedo of the single-scattering rough dielectric at one `(μ, α, η)` by the
@@ -875,6 +883,244 @@ pub fn coat_loss_average(alpha: f32, alpha_cc: f32) -> f32 {
     lo + (hi - lo) * w
 }
 
+// ---------------------------------------------------------------------------------------
+// A clearcoat over rough glass, seen from inside
+// ---------------------------------------------------------------------------------------
+
+/// Nodes of the coated-glass table along the inside cosine `μ`, uniform in the coordinate
+/// of [`g_mu_coordinate`]; an odd count puts the critical cosine on a node.
+const G_MU: usize = 33;
+/// Nodes along the interface's perceptual roughness, uniform in `[sqrt(MIN_ALPHA), 1]`.
+const G_R: usize = 12;
+/// Nodes along the relative index, uniform in `sqrt((η - 1) / (DIELECTRIC_ETA_MAX - 1))`
+/// as the dielectric table's; an odd count puts the glTF default `η = 1.5` on a node.
+const G_ETA: usize = 13;
+/// Nodes along the coat's perceptual roughness, uniform in `[sqrt(MIN_ALPHA), 1]`.
+const G_RC: usize = 8;
+/// Entries of the coated-glass table.
+const G_SIZE: usize = G_RC * G_ETA * G_R * G_MU;
+/// Quadrature points per side of the unit square (visible normals), per entry.
+#[cfg(test)]
+const G_QUAD: usize = 32;
+/// Midpoint nodes in `sqrt(μi)` of the compensation's transmitted part, per entry.
+#[cfg(test)]
+const G_MS: usize = 64;
+
+/// The committed coated-glass table `G(μ, r, η, r_coat)`, `r_coat` slowest, then `η`,
+/// `r`, and `μ` fastest, little-endian binary32 (written by `write_coat_glass_table`).
+static COMMITTED_COAT_GLASS: &[u8; 4 * G_SIZE] = include_bytes!("coat_glass_loss.bin");
+
+/// The coated-glass table with its cosine-weighted averages per `(r_coat, η, r)`.
+struct CoatGlassTable {
+    v: Vec<f32>,
+    avg: Vec<f32>,
+}
+
+#[inline]
+fn g_index(k: usize, e: usize, j: usize, i: usize) -> usize {
+    ((k * G_ETA + e) * G_R + j) * G_MU + i
+}
+
+/// The critical cosine `sqrt(1 - 1/η²)` inside a medium of relative index `η`: below
+/// it a smooth interface reflects everything.
+#[inline]
+fn critical_cosine(eta: f32) -> f32 {
+    (1.0 - 1.0 / (eta * eta)).max(0.0).sqrt()
+}
+
+/// The coated-glass table's coordinate of the inside cosine `μ`: linear in `μ` from 0 to
+/// 1/2 below the critical cosine `mu_c`, and from 1/2 to 1 above it. `G` rises sharply
+/// past `mu_c` (light leaving at grazing angles, which the coat reflects most), for a
+/// smooth interface within a few degrees: aligning that edge across the indices keeps the
+/// interpolation in `η` from blending two edges apart (with nodes in `sqrt(μ)`, the table
+/// was off by 0.1 beside the edge at `r` 0.16, `η` 1.2), and puts half the nodes on the
+/// transmitting side.
+#[inline]
+fn g_mu_coordinate(mu: f32, mu_c: f32) -> f32 {
+    let mu = mu.clamp(0.0, 1.0);
+    if mu < mu_c {
+        0.5 * mu / mu_c
+    } else {
+        0.5 + 0.5 * (mu - mu_c) / (1.0 - mu_c).max(1e-6)
+    }
+}
+
+/// The inverse of [`g_mu_coordinate`]: `μ` at the coordinate `x`.
+fn g_mu_at(x: f32, mu_c: f32) -> f32 {
+    if x <= 0.5 {
+        mu_c * 2.0 * x
+    } else {
+        mu_c + (1.0 - mu_c) * (2.0 * x - 1.0)
+    }
+}
+
+/// `2 ∫ G(μ) μ dμ` of values `G` at the nodes `μ` (increasing), exactly for their linear
+/// interpolation in `μ`.
+fn mu_linear_average(mu: &[f32], g: &[f32]) -> f32 {
+    let mut sum = 0.0f64;
+    for (m, v) in mu.windows(2).zip(g.windows(2)) {
+        let (m0, dm) = (m[0] as f64, (m[1] - m[0]) as f64);
+        let (g0, dg) = (v[0] as f64, (v[1] - v[0]) as f64);
+        // ∫ 2 (m0 + dm t)(g0 + dg t) dm dt over t in [0, 1].
+        sum += 2.0 * dm * (m0 * g0 + (m0 * dg + dm * g0) / 2.0 + dm * dg / 3.0);
+    }
+    sum as f32
+}
+
+/// The perceptual roughness of node `j` of `n` uniform in `[sqrt(MIN_ALPHA), 1]`.
+#[cfg(test)]
+fn r_node_of(j: usize, n: usize) -> f32 {
+    let r_min = MIN_ALPHA.sqrt();
+    r_min + (1.0 - r_min) * node(j, n)
+}
+
+/// `G(μ)` at one `(μ, α, η, α_coat)`: the power the interface seen from inside at `μ`
+/// sends out (single scattering by the midpoint rule on the visible-normal warp, as the
+/// dielectric table; the compensation's transmitted part, which depends on `μi` alone,
+/// by the midpoint rule in `sqrt(μi)`), each direction weighted by the coat's albedo
+/// `E_cc(μi)` at its outside cosine.
+#[cfg(test)]
+fn coat_glass_loss_quadrature(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
+    let mu = mu.max(MU_MIN);
+    // The interface seen from inside: the frame mirrored so that the inside is `+z`.
+    let inside = super::dielectric::RoughDielectric {
+        eta: 1.0 / eta,
+        alpha,
+        tint: Vec3::ONE,
+    };
+    let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
+    let coat = |wi: Vec3| coat_albedo(wi.z.abs(), alpha_cc);
+    let mut single = 0.0f64;
+    for i in 0..G_QUAD {
+        for j in 0..G_QUAD {
+            let u = Vec2::new(
+                (i as f32 + 0.5) / G_QUAD as f32,
+                (j as f32 + 0.5) / G_QUAD as f32,
+            );
+            single += inside.single_scattering_energy_with(wo, u, |_| 0.0, coat) as f64;
+        }
+    }
+    // `∫ f_ms E_cc dωi = 2π ∫ f_ms(μi) E_cc(μi) dμi`, `dμi = 2x dx` with `x = sqrt(μi)`.
+    let mut multiple = 0.0f64;
+    for k in 0..G_MS {
+        let x = (k as f64 + 0.5) / G_MS as f64;
+        let mu_i = (x * x) as f32;
+        let wi = Vec3::new((1.0 - mu_i * mu_i).max(0.0).sqrt(), 0.0, -mu_i);
+        if let Some(f) = inside.eval_multiple(wo, wi) {
+            multiple += (f.x * coat_albedo(mu_i, alpha_cc)) as f64 * 2.0 * x / G_MS as f64;
+        }
+    }
+    // Power, not radiance: the radiance BTDF's `1/η²` (`η = 1/eta` seen from inside) undone.
+    let power = 2.0 * std::f64::consts::PI * multiple / (eta as f64 * eta as f64);
+    (single / (G_QUAD * G_QUAD) as f64 + power) as f32
+}
+
+/// The coated-glass table by quadrature, in the committed file's order, rows in parallel.
+#[cfg(test)]
+fn coat_glass_loss_quadrature_table() -> Vec<f32> {
+    (0..G_RC * G_ETA * G_R)
+        .into_par_iter()
+        .flat_map_iter(|row| {
+            let (k, e, j) = (row / (G_ETA * G_R), (row / G_R) % G_ETA, row % G_R);
+            let eta = eta_node_of(e, G_ETA);
+            let (r, rc) = (r_node_of(j, G_R), r_node_of(k, G_RC));
+            let (alpha, alpha_cc) = ((r * r).max(MIN_ALPHA), (rc * rc).max(MIN_ALPHA));
+            let mu_c = critical_cosine(eta);
+            (0..G_MU).map(move |i| {
+                let mu = g_mu_at(node(i, G_MU), mu_c);
+                coat_glass_loss_quadrature(mu, alpha, eta, alpha_cc)
+            })
+        })
+        .collect()
+}
+
+fn coat_glass_table() -> &'static CoatGlassTable {
+    static TABLE: OnceLock<CoatGlassTable> = OnceLock::new();
+    TABLE.get_or_init(|| {
+        let v: Vec<f32> = COMMITTED_COAT_GLASS
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        let mut avg = Vec::with_capacity(G_RC * G_ETA * G_R);
+        for k in 0..G_RC {
+            for e in 0..G_ETA {
+                let mu_c = critical_cosine(eta_node_of(e, G_ETA));
+                let mu: [f32; G_MU] = std::array::from_fn(|i| g_mu_at(node(i, G_MU), mu_c));
+                for j in 0..G_R {
+                    let column: [f32; G_MU] = std::array::from_fn(|i| v[g_index(k, e, j, i)]);
+                    avg.push(mu_linear_average(&mu, &column));
+                }
+            }
+        }
+        CoatGlassTable { v, avg }
+    })
+}
+
+/// Cells and fractions of `(α, η, α_coat)` in the coated-glass table (`η` beyond
+/// [`DIELECTRIC_ETA_MAX`] is looked up there).
+#[inline]
+fn g_locate(alpha: f32, eta: f32, alpha_cc: f32) -> [(usize, f32); 3] {
+    let r_min = MIN_ALPHA.sqrt();
+    let r = |a: f32| (a.max(0.0).sqrt() - r_min) / (1.0 - r_min);
+    let t = ((eta.min(DIELECTRIC_ETA_MAX) - 1.0) / (DIELECTRIC_ETA_MAX - 1.0))
+        .max(0.0)
+        .sqrt();
+    [
+        Table::locate(r(alpha), G_R),
+        Table::locate(t, G_ETA),
+        Table::locate(r(alpha_cc), G_RC),
+    ]
+}
+
+/// Trilinear interpolation of `at(k, e, j)` in the cell `[(j, u), (e, v), (k, w)]` of
+/// [`g_locate`].
+#[inline]
+fn g_trilinear(at: impl Fn(usize, usize, usize) -> f32, cell: [(usize, f32); 3]) -> f32 {
+    let [(j, u), (e, v), (k, w)] = cell;
+    let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+    let plane = |k: usize| {
+        let lo = lerp(at(k, e, j), at(k, e, j + 1), u);
+        let hi = lerp(at(k, e + 1, j), at(k, e + 1, j + 1), u);
+        lerp(lo, hi, v)
+    };
+    lerp(plane(k), plane(k + 1), w)
+}
+
+/// `G(μ) = ∫_outside E_cc(μi) dP(wi)`: of the power that a white rough dielectric
+/// interface of `alpha` and relative index `eta >= 1` (inside over outside) sends out
+/// when met from inside at `μ = |cos θo|` (single scattering and the multiple-scattering
+/// compensation of [`super::dielectric::RoughDielectric`]), the part a clearcoat of
+/// `alpha_cc` (factor one) reflects back inside, `E_cc` at each direction's outside
+/// cosine. [`super::gltf`] returns it inside as a lobe (it is linear in the clearcoat
+/// factor). Quadrilinear in `(x, r, sqrt(η - 1), r_coat)`, `x` linear in `μ` from 0 to
+/// 1/2 below the critical cosine `sqrt(1 - 1/η²)` and from 1/2 to 1 above it.
+#[inline]
+pub fn coat_glass_loss(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
+    let t = coat_glass_table();
+    let mu_c = critical_cosine(eta.clamp(1.0, DIELECTRIC_ETA_MAX));
+    let (i, s) = Table::locate(g_mu_coordinate(mu, mu_c), G_MU);
+    let at = |k: usize, e: usize, j: usize| {
+        let a = t.v[g_index(k, e, j, i)];
+        a + (t.v[g_index(k, e, j, i + 1)] - a) * s
+    };
+    g_trilinear(at, g_locate(alpha, eta, alpha_cc))
+}
+
+/// `2 ∫ G(μ) μ dμ` of [`coat_glass_loss`]: the trilinear interpolation of the nodes'
+/// averages, exact at the index nodes (between them, the `μ` coordinate of the lookup
+/// differs from the nodes', a difference of order the interpolation's own).
+#[inline]
+pub fn coat_glass_loss_average(alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
+    let t = coat_glass_table();
+    let at = |k: usize, e: usize, j: usize| t.avg[(k * G_ETA + e) * G_R + j];
+    g_trilinear(at, g_locate(alpha, eta, alpha_cc))
+}
+
+#[cfg(test)]
+pub(crate) fn coat_glass_loss_reference(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
+    coat_glass_loss_quadrature(mu, alpha, eta, alpha_cc)
+}
+
 #[cfg(test)]
 pub(crate) fn coat_loss_reference(mu: f32, alpha: f32, alpha_cc: f32) -> f32 {
     coat_loss_quadrature(mu, alpha, alpha_cc)
@@ -1004,6 +1250,33 @@ mod committed_tests {
                 (c - s).abs() <= 1e-5,
                 "coat-loss entry {n}: quadrature {c}, committed {s}; regenerate with \
                  `cargo test -p tessera-render --lib write_coat_loss_table -- --ignored`"
+            );
+        }
+    }
+
+    /// Writes `coat_glass_loss.bin` from the quadrature (run by hand; it depends on the
+    /// GGX and dielectric tables, so it is written after them).
+    #[test]
+    #[ignore = "writes src/bsdf/coat_glass_loss.bin; run by hand after changing the quadrature"]
+    fn write_coat_glass_table() {
+        let bytes: Vec<u8> = coat_glass_loss_quadrature_table()
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
+        std::fs::write(dir.join("coat_glass_loss.bin"), bytes).unwrap();
+    }
+
+    /// The committed coated-glass table is what the quadrature gives, within rounding.
+    #[test]
+    fn committed_coat_glass_table_is_the_quadrature() {
+        let table = coat_glass_loss_quadrature_table();
+        assert_eq!(table.len(), coat_glass_table().v.len());
+        for (n, (c, s)) in table.iter().zip(&coat_glass_table().v).enumerate() {
+            assert!(
+                (c - s).abs() <= 1e-5,
+                "coated-glass entry {n}: quadrature {c}, committed {s}; regenerate with \
+                 `cargo test -p tessera-render --lib write_coat_glass_table -- --ignored`"
             );
         }
     }

@@ -204,6 +204,21 @@ impl RoughDielectric {
     /// hold ([`super::albedo`]).
     #[cfg(test)]
     pub(crate) fn single_scattering_energy(&self, wo_up: Vec3, u: Vec2) -> f32 {
+        self.single_scattering_energy_with(wo_up, u, |_| 1.0, |_| 1.0)
+    }
+
+    /// [`RoughDielectric::single_scattering_energy`] with the reflected and the refracted
+    /// power weighted by `reflected(wi)` and `refracted(wi)` (for the clearcoat's loss over
+    /// rough glass, [`super::albedo::coat_glass_loss`], which weights the light leaving
+    /// the interface by what the coat reflects back).
+    #[cfg(test)]
+    pub(crate) fn single_scattering_energy_with(
+        &self,
+        wo_up: Vec3,
+        u: Vec2,
+        reflected: impl Fn(Vec3) -> f32,
+        refracted: impl Fn(Vec3) -> f32,
+    ) -> f32 {
         let h = sample_ggx_vndf(wo_up, self.alpha, u);
         let oh = wo_up.dot(h);
         let g1 = crate::sampling::warp::ggx_g1(wo_up, self.alpha);
@@ -215,7 +230,14 @@ impl RoughDielectric {
             if p <= 0.0 {
                 return 0.0;
             }
-            Self::scatter(wo_up, h, self.eta, reflect).map_or(0.0, |wi| p * self.g2(wo_up, wi) / g1)
+            Self::scatter(wo_up, h, self.eta, reflect).map_or(0.0, |wi| {
+                let weight = if reflect {
+                    reflected(wi)
+                } else {
+                    refracted(wi)
+                };
+                p * self.g2(wo_up, wi) / g1 * weight
+            })
         };
         part(true, f) + part(false, 1.0 - f)
     }
@@ -259,23 +281,32 @@ impl RoughDielectric {
     /// `f(wo, wi) |cos θi|`: single scattering plus the multiple-scattering compensation.
     pub(crate) fn eval(&self, wo: Vec3, wi: Vec3) -> Vec3 {
         let single = self.eval_single(wo, wi);
+        match self.eval_multiple(wo, wi) {
+            Some(ms) => single + ms,
+            None => single,
+        }
+    }
+
+    /// `f_ms(wo, wi) |cos θi|`, the multiple-scattering compensation alone; `None` where it
+    /// is zero (a direction in the plane, or nothing lost at `wo`).
+    pub(crate) fn eval_multiple(&self, wo: Vec3, wi: Vec3) -> Option<Vec3> {
         if wo.z == 0.0 || wi.z == 0.0 {
-            return single;
+            return None;
         }
         let (_, eta) = self.side(wo);
         let c = self.compensation(wo.z.abs(), eta);
         if c.loss_o == 0.0 {
-            return single;
+            return None;
         }
         let (mu_i, same) = (wi.z.abs(), wo.z * wi.z > 0.0);
         let eta_i = if same { eta } else { 1.0 / eta };
         let loss_i = (1.0 - dielectric_albedo(mu_i, self.alpha, eta_i)).max(0.0);
         let ms = c.loss_o * loss_i * mu_i;
-        if same {
-            single + Vec3::splat(c.same * ms)
+        Some(if same {
+            Vec3::splat(c.same * ms)
         } else {
-            single + self.tint * (c.cross * ms)
-        }
+            self.tint * (c.cross * ms)
+        })
     }
 
     /// Solid-angle density of [`RoughDielectric::sample`].

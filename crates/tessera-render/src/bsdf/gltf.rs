@@ -59,8 +59,11 @@
 //! the layers: the factor is `1 - E(μ_outside)` (reciprocal in the generalised sense).
 //! Light leaving a smooth interface from inside is reflected back inside by the layers in
 //! the part they do not let out (`GltfLobe::sample_smooth_exit`), so that a coated glass
-//! keeps its energy; a rough interface still loses that part (returning it would need
-//! the inside's exit distribution tabulated per coat and interface roughness).
+//! keeps its energy; over a rough interface, what the clearcoat reflects back of the
+//! light leaving it is tabulated per inside angle, interface and coat roughness and index
+//! ([`super::albedo::coat_glass_loss`]) and returned inside as a reciprocal Kulla–Conty
+//! lobe (`GltfLobe::coat_the_glass`). A sheen over rough glass still loses its part
+//! there (3% of a white furnace seen from inside; it is not tabulated).
 //!
 //! # Sides
 //! Without transmission the material is opaque and two-sided (the mixture mirrors the
@@ -70,8 +73,8 @@
 
 use super::albedo::{
     anisotropic_alphas, anisotropic_ggx_albedo, anisotropic_ggx_albedo_average,
-    anisotropic_ggx_albedo_azimuthal, coat_loss, coat_loss_average, ggx_albedo, ggx_albedo_average,
-    sheen_layer_albedo, COAT_F0,
+    anisotropic_ggx_albedo_azimuthal, coat_glass_loss, coat_glass_loss_average, coat_loss,
+    coat_loss_average, ggx_albedo, ggx_albedo_average, sheen_layer_albedo, COAT_F0,
 };
 use super::dielectric::RoughDielectric;
 use super::diffuse::Diffuse;
@@ -228,6 +231,11 @@ pub struct GltfLobe {
     /// The GGX alpha the coat-loss table is looked up at (the metal's; the root mean
     /// square of the two for an anisotropic one).
     alpha_loss: f32,
+    /// Under a clearcoat, rough transmission met from inside: what the coat reflects back
+    /// of the light the interface sends out, returned inside as the lobe
+    /// `coat_glass G(μo) G(μi) cos θi` with `G` = [`coat_glass_loss`]; this is
+    /// `transmit clearcoat / (π G_avg)` (zero without a coated rough transmission).
+    coat_glass: f32,
     /// Relative index of refraction of the transmissive part.
     eta: f32,
     /// Transmission through a smooth interface (a delta component).
@@ -359,6 +367,7 @@ impl GltfLobe {
             ms_coated: Vec3::ZERO,
             coat_metal: Vec3::ZERO,
             alpha_loss: alpha,
+            coat_glass: 0.0,
             eta: ior,
             smooth: alpha_raw < MIN_ALPHA || ior - 1.0 < 1e-3,
             clearcoat: c01(p.clearcoat),
@@ -374,7 +383,33 @@ impl GltfLobe {
         if lobe.clearcoat > 0.0 && metal > 0.0 {
             lobe.coat_the_metal();
         }
+        if lobe.clearcoat > 0.0 && lobe.transmit > 0.0 && !lobe.smooth {
+            lobe.coat_the_glass();
+        }
         lobe
+    }
+
+    /// The clearcoat over rough transmission, seen from inside: light the interface sends
+    /// out crosses the coat with `T(μt) = 1 - clearcoat E_cc(μt)` (as light entering
+    /// does, so that the transmission stays reciprocal), and the rest, `clearcoat G(μo)`
+    /// at the inside cosine `μo` ([`coat_glass_loss`]), is what the coat reflects back.
+    /// It returns inside as Kulla & Conty 2017's reciprocal lobe for lost energy,
+    /// `clearcoat G(μo) G(μi) / (π G_avg)` per unit transmission, whose albedo is
+    /// `clearcoat G(μo)`: a white coated rough glass then keeps its energy from inside,
+    /// as [`GltfLobe::sample_smooth_exit`] does for a smooth interface. Both directions
+    /// are inside, so the lobe is symmetric (no `η²`: it never crosses the interface) and
+    /// untinted, as the smooth exit's reflection.
+    fn coat_the_glass(&mut self) {
+        let g_avg = coat_glass_loss_average(self.alpha, self.eta, self.alpha_cc);
+        if g_avg > 1e-6 {
+            self.coat_glass = self.transmit * self.clearcoat * FRAC_1_PI / g_avg;
+        }
+    }
+
+    /// `G(μ)` of [`GltfLobe::coat_the_glass`] at this lobe's roughness, index and coat.
+    #[inline]
+    fn coat_glass_loss(&self, mu: f32) -> f32 {
+        coat_glass_loss(mu, self.alpha, self.eta, self.alpha_cc)
     }
 
     /// The clearcoat's scaling of a metal: its multiple scattering in the layers'
@@ -785,6 +820,11 @@ impl GltfLobe {
                 * (self.base * (Vec3::ONE - e)).max_element()
                 * self.diffuse_gain;
         }
+        if !outside && self.coat_glass > 0.0 {
+            // The coat's return inside is cosine-like; its albedo is
+            // transmit clearcoat G(μo).
+            w[DIFFUSE] += self.transmit * self.clearcoat * self.coat_glass_loss(mu);
+        }
         w[GLASS] = under * self.transmit;
         let total: f32 = w.iter().sum();
         if total > 0.0 {
@@ -831,7 +871,13 @@ impl GltfLobe {
                 if !self.transmits() {
                     return Vec3::ZERO;
                 }
-                self.opaque_eval(flip_z(wo, true), flip_z(wi, true)) + glass(wo, wi)
+                let f = self.opaque_eval(flip_z(wo, true), flip_z(wi, true)) + glass(wo, wi);
+                if self.coat_glass == 0.0 {
+                    return f;
+                }
+                let (mo, mi) = (-wo.z, -wi.z);
+                let back = self.coat_glass_loss(mo) * self.coat_glass_loss(mi) * mi;
+                f + Vec3::splat(self.coat_glass * back)
             }
             (o, _) => {
                 let out = if o { wo.z } else { wi.z };

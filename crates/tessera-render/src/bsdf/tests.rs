@@ -238,6 +238,19 @@ fn everything() -> GltfParams {
     }
 }
 
+/// White glass (ior 1.5) of perceptual roughness `r` under a clearcoat of factor `cc` and
+/// roughness `cr`.
+fn coated_rough_glass(r: f32, cc: f32, cr: f32) -> GltfParams {
+    GltfParams {
+        metallic: 0.0,
+        roughness: r,
+        transmission: 1.0,
+        clearcoat: cc,
+        clearcoat_roughness: cr,
+        ..GltfParams::default()
+    }
+}
+
 /// Every non-delta BSDF of the tests, at every incident angle.
 fn cases() -> Vec<Case> {
     let mut cases = Vec::new();
@@ -455,6 +468,19 @@ fn cases() -> Vec<Case> {
                 Some(ggx_cap(0.3)),
             )
             .with_transmission(1.5, 0.3),
+        );
+    }
+    // Coated rough glass from inside: the coat's return is a cosine-like lobe inside.
+    for theta in [30.0, 60.0] {
+        let p = coated_rough_glass(0.5, 1.0, 0.2);
+        cases.push(
+            Case::new(
+                format!("gltf clearcoat over rough glass wo below {theta}"),
+                Bsdf::single(gltf_lobe(p)),
+                dir(theta, true),
+                Some(ggx_cap(0.25)),
+            )
+            .with_transmission(p.ior, 0.25),
         );
     }
     cases.push(
@@ -1438,6 +1464,14 @@ fn reflection_lobes_are_reciprocal() {
                 ..anisotropic(1.0, -0.4).with_base(Vec3::splat(0.8))
             })),
         ),
+        // Both directions inside: the coat's return over rough glass is symmetric. (Last,
+        // so that the lobes above see the pairs they always saw; rough, since the rough
+        // glass's own reflection inside, near total internal reflection, is the lobe whose
+        // f32 half vectors come closest to the tolerance.)
+        (
+            "gltf clearcoat over rough glass",
+            Bsdf::single(gltf_lobe(coated_rough_glass(0.7, 0.8, 0.3))),
+        ),
     ];
     let mut rng = SplitMix64::new(0x4ec1);
     let mut failures = Vec::new();
@@ -1668,6 +1702,13 @@ fn transmission_is_reciprocal_up_to_eta_squared() {
         ("rough glass 0.1", Bsdf::single(rough_glass(eta, 0.1))),
         ("rough glass 0.5", Bsdf::single(rough_glass(eta, 0.5))),
         ("gltf everything", Bsdf::single(gltf_lobe(everything()))),
+        (
+            "gltf clearcoat over rough glass",
+            Bsdf::single(gltf_lobe(GltfParams {
+                ior: eta,
+                ..coated_rough_glass(0.5, 0.8, 0.3)
+            })),
+        ),
     ];
     let index = |w: Vec3| if w.z > 0.0 { 1.0 } else { eta };
     let mut rng = SplitMix64::new(0x7eed);
@@ -2520,30 +2561,99 @@ fn clearcoat_over_metal_white_furnace() {
     assert_white_furnace("clearcoat over anisotropic metal", &b, 0xc0a8);
 }
 
-/// Diagnostic (run by hand): the white furnace of coated rough glass, the energy the
-/// coat still loses at a rough interface met from inside.
+// ---------------------------------------------------------------------------------------
+// Rough glass under a clearcoat
+// ---------------------------------------------------------------------------------------
+
 #[test]
-#[ignore = "diagnostic: prints the coated rough glass furnace"]
-fn clearcoat_over_rough_glass_furnace_profile() {
+fn coat_glass_loss_table_is_close_to_the_quadrature() {
+    use super::albedo::{coat_glass_loss, coat_glass_loss_reference};
+    let mut rng = SplitMix64::new(0xc0a9);
+    let mut worst = (0.0f32, String::new());
+    for _ in 0..150 {
+        let mu = rng.next_f32().max(0.02);
+        let (r, rc) = (rng.next_f32(), rng.next_f32());
+        let eta = 1.05 + 1.45 * rng.next_f32();
+        let alpha = (r * r).max(super::microfacet::MIN_ALPHA);
+        let alpha_cc = (rc * rc).max(super::microfacet::MIN_ALPHA);
+        let (t, q) = (
+            coat_glass_loss(mu, alpha, eta, alpha_cc),
+            coat_glass_loss_reference(mu, alpha, eta, alpha_cc),
+        );
+        if (t - q).abs() > worst.0 {
+            worst = (
+                (t - q).abs(),
+                format!("mu {mu} r {r} eta {eta} rc {rc}: {t} vs {q}"),
+            );
+        }
+    }
+    eprintln!("coated-glass table interpolation: worst {}", worst.1);
+    // The worst entries lie just past the critical angle of nearly smooth interfaces,
+    // where `G` peaks within a few degrees (0.021 at r 0.16, η 1.2 when written): an
+    // error of `G` is the furnace's error at that angle, held to the rim's 3%.
+    assert!(worst.0 < 3e-2, "{}", worst.1);
+}
+
+#[test]
+fn clearcoat_over_rough_glass_white_furnace() {
+    // Seen from inside, the coat reflects back part of the light a rough interface sends
+    // out; it was lost (0.962-0.968 on average, 0.908 at one inside angle) before the
+    // coated-glass table returned it inside. Every one of the eight angles of the average
+    // is held to the rim's 3% as well.
+    let mut params = Vec::new();
     for r in [0.3, 0.7] {
-        for cr in [0.0, 0.3] {
-            let b = gltf_bsdf(&GltfParams {
-                metallic: 0.0,
-                roughness: r,
-                transmission: 1.0,
-                clearcoat: 1.0,
-                clearcoat_roughness: cr,
-                ..GltfParams::default()
-            });
-            let mut rng = SplitMix64::new(0x91a55);
-            for below in [false, true] {
-                let [avg, rim85, rim89] = furnace_profile(&b, below, &mut rng);
-                eprintln!(
-                    "coated rough glass r {r} coat r {cr} inside {below}: average {:.4} ± {:.4}, \
-                     85° {:.4}, 89° {:.4}",
-                    avg.0, avg.1, rim85.0, rim89.0
-                );
+        for (cc, cr) in [(1.0, 0.0), (1.0, 0.3), (0.5, 0.6)] {
+            let name = format!("clearcoat {cc} r {cr} over rough glass r {r}");
+            params.push((name, coated_rough_glass(r, cc, cr)));
+        }
+    }
+    // Water (between the table's index nodes) and a half-transmissive plastic.
+    let water = GltfParams {
+        ior: 1.33,
+        ..coated_rough_glass(0.5, 1.0, 0.2)
+    };
+    params.push(("clearcoat over rough water r 0.5".into(), water));
+    let half = GltfParams {
+        transmission: 0.5,
+        ..coated_rough_glass(0.4, 1.0, 0.1)
+    };
+    params.push(("clearcoat over half-transmissive r 0.4".into(), half));
+    let mut rng = SplitMix64::new(0xc1ea6);
+    let mut failures = Vec::new();
+    for (name, p) in &params {
+        let b = gltf_bsdf(p);
+        assert_white_furnace(name, &b, 0xc1ea6);
+        for k in 0..8 {
+            let mu = ((k as f32 + 0.5) / 8.0).sqrt();
+            let (m, se) = power_albedo(&b, dir(mu.acos().to_degrees(), true), 40_000, &mut rng);
+            let (m, se) = (m.max_element(), se.max_element());
+            if (m - 1.0).abs() > 0.03 + 3.0 * se {
+                failures.push(format!("{name} inside at mu {mu}: {m} ± {se}"));
             }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// Diagnostic (run by hand): the white furnace of a sheen over rough glass, whose part
+/// the sheen reflects back of the light leaving the interface is still lost from inside.
+#[test]
+#[ignore = "diagnostic: prints the furnace of a sheen over rough glass"]
+fn sheen_over_rough_glass_furnace_profile() {
+    for r in [0.3, 0.7] {
+        let b = gltf_bsdf(&GltfParams {
+            sheen_color: Vec3::ONE,
+            sheen_roughness: 0.3,
+            ..coated_rough_glass(r, 0.0, 0.0)
+        });
+        let mut rng = SplitMix64::new(0x5ee6);
+        for below in [false, true] {
+            let [avg, rim85, rim89] = furnace_profile(&b, below, &mut rng);
+            eprintln!(
+                "sheen over rough glass r {r} inside {below}: average {:.4} ± {:.4}, \
+                 85° {:.4}, 89° {:.4}",
+                avg.0, avg.1, rim85.0, rim89.0
+            );
         }
     }
 }
