@@ -959,11 +959,7 @@ mod tests {
         // (2.4288 for 7, 2.2549 for 11, 2.2313 for 12).
         let widen = |dof: u64| (crate::interval_quantile(dof) / 2.0).powi(2);
         // Pixel 0 pools 0, 1, 4 (3 has 1 pass): dof 1 + 4 + 2, sum 1*2 + 4*1 + 2*0.
-        assert!(
-            close(iv[0][0], (6.0 / 7.0) / 2.0 * widen(7)),
-            "{:?}",
-            iv[0]
-        );
+        assert!(close(iv[0][0], (6.0 / 7.0) / 2.0 * widen(7)), "{:?}", iv[0]);
         assert!((widen(7) - (2.4288051304035685f64 / 2.0).powi(2)).abs() < 1e-15);
         // Pixel 1 pools all but 3: dof 1 + 4 + 3 + 2 + 2, sum 2 + 4 + 3*2 + 0 + 0.
         assert!(
