@@ -90,10 +90,9 @@ pub use ids::{JobId, WorkerId};
 pub use mask::{MaskError, PixelRuns};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
 pub use plan::{
-    FramePlan, PlanError, TileRect, WorkUnit, LOW_SPP, LOW_SPP_MIN_PASSES,
-    MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION, MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS,
-    MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS, MIN_TILE_SIZE, TARGET_MIN_PASSES,
-    WHOLE_FRAME_MAX_SAMPLES_PER_PASS,
+    FramePlan, PlanError, TileRect, WorkUnit, MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION,
+    MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS, MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS,
+    MIN_TILE_SIZE, TARGET_MIN_PASSES, WHOLE_FRAME_MAX_SAMPLES_PER_PASS,
 };
 pub use result::{ResultError, UnitResult, MAX_PASS_MEAN};
 pub use schedule::{

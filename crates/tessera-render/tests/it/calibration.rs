@@ -24,7 +24,7 @@
 //! reference's own variance so that it estimates the test render's error alone:
 //! `measured² = mean_p ((lum m - lum r)² - v_r,lum) / (lum r + eps)²`.
 //!
-//! The suite is six path-traced scenes at 64, 256 and 1024 spp (2 x 32, 4 x 64, 16 x 64),
+//! The suite is six path-traced scenes at 64, 256 and 1024 spp (4 x 16, 4 x 64, 16 x 64),
 //! each rendered
 //! with four seeds. Where rare bright paths carry the error (veach-mis with its glossy
 //! caustics, the glass caustic, a small light in a glossy floor), one render's measured
@@ -139,14 +139,15 @@ fn coverage_and_error_ratio(scene: &str, plan: FramePlan, seed: u64) -> (f64, f6
     (fraction, estimated / measured)
 }
 
-/// The default plan at 64 spp (`FramePlan::for_spp`: 2 passes of 32, so 1 degree of
-/// freedom per pixel), and 4 passes of 16 (3), keep a calibrated error estimate. The
+/// The default plan at 64 spp (`FramePlan::for_spp`: 4 passes of 16, so 3 degrees of
+/// freedom per pixel), and 2 passes of 32 (1), keep a calibrated error estimate. The
 /// image error, an average of unbiased per-pixel variance estimates, is within 25% of the
 /// measured one as with 64 passes; a single pixel's 2-sigma interval covers with
 /// Student's t probability for `K - 1` degrees of freedom, P(|t_1| <= 2) = 0.705 and
 /// P(|t_3| <= 2) = 0.861 (Owen 2001, section 6.7), not 0.95, and must lie within
 /// -0.065..=+0.05 of it (short passes are skewed, which pulls the coverage a little below
-/// t: 83% was measured at 128x128 with 4 passes, docs/benchmarks.md). A variance estimate
+/// t: 83% was measured at 128x128 with 4 passes, docs/benchmarks.md; 84.3% and 71.8% here
+/// on 2026-12-06). A variance estimate
 /// that ignored the correlation of its passes would fail: the plain estimate over
 /// consecutive blocks of one scrambled net (measured with 8 to 64 blocks) covers above t,
 /// 90-96%, and overestimates the image error by 5-15%.
@@ -154,8 +155,8 @@ fn coverage_and_error_ratio(scene: &str, plan: FramePlan, seed: u64) -> (f64, f6
 fn default_plan_at_64_spp_keeps_the_estimate_calibrated() {
     let scene = "builtin:cornell-box";
     let plan = FramePlan::for_spp(W, H, 64, 8).unwrap();
-    assert_eq!((plan.samples_per_pass, plan.passes), (32, 2));
-    for plan in [plan, FramePlan::new(W, H, 8, 16, 4).unwrap()] {
+    assert_eq!((plan.samples_per_pass, plan.passes), (16, 4));
+    for plan in [plan, FramePlan::new(W, H, 8, 32, 2).unwrap()] {
         let (fraction, ratio) = coverage_and_error_ratio(scene, plan, 7);
         let t = t_coverage(plan.passes - 1);
         assert!(
@@ -251,8 +252,7 @@ const SUITE: [(&str, &str); 6] = [
     ("indirect-room", "scenes/indirect-room.gltf"),
 ];
 
-/// Budgets of the suite, path-traced each planned by `FramePlan::for_spp` (2 x 32, 4 x 64,
-/// 16 x 64; see [`suite_plan`]).
+/// Budgets of the suite, each planned by `FramePlan::for_spp` (4 x 16, 4 x 64, 16 x 64).
 const BUDGETS: [u32; 3] = [64, 256, 1024];
 
 /// Reference passes: 256, of 64 samples with seed 1000 (the caustic: of 1,024 with bdpt,
@@ -418,20 +418,9 @@ struct Calibration {
     dof: u32,
 }
 
-/// The suite's plan of `spp` for `integrator`: path tracing as `tessera render` plans it
-/// (`FramePlan::for_spp`, 2 passes below 256 spp); the whole-frame techniques (bdpt and
-/// the merging ones) with the pass counts they keep (`FramePlan::whole_frame`'s rule, at
-/// least 4 passes), in the suite's tiles of 8 and at most 64 samples per pass.
-fn suite_plan(spp: u32, integrator: Integrator) -> FramePlan {
-    if integrator == Integrator::Path {
-        return FramePlan::for_spp(W, H, spp, 8).unwrap();
-    }
-    let per_pass = (spp / tessera_farm::TARGET_MIN_PASSES).clamp(1, 64);
-    FramePlan::new(W, H, 8, per_pass, spp.div_ceil(per_pass)).unwrap()
-}
-
 fn calibrate(name: &str, scene: &str, spp: u32, seed: u64, integrator: Integrator) -> Calibration {
-    calibrate_plan(name, scene, suite_plan(spp, integrator), seed, integrator)
+    let plan = FramePlan::for_spp(W, H, spp, 8).unwrap();
+    calibrate_plan(name, scene, plan, seed, integrator)
 }
 
 /// [`calibrate`] with a given plan (its pass count chosen by the caller).
