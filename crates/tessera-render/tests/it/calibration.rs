@@ -13,8 +13,8 @@
 //! Statistics of the coverage check: for pixel p with K passes, mean m, estimated
 //! variance of the mean v, and reference r with its own variance of the mean v_r,
 //! `z = (m - r) / sqrt(v + v_r)` is approximately Student-t with K - 1 degrees of
-//! freedom, so P(|z| <= 2) is 0.705 at K = 2, 0.861 at K = 4 and 0.936 at K = 16 (the
-//! default plan at 64, 256 and 1024 spp). The pixels' intervals
+//! freedom, so P(|z| <= 2) is 0.705 at K = 2, 0.861 at K = 4 (the default plan at 64
+//! and 256 spp) and 0.936 at K = 16 (1024 spp). The pixels' intervals
 //! (`FrameImage::interval_variance`) pool the per-pass variance over 3x3 pixels, up to
 //! 9 (K - 1) degrees of freedom, and widen it for Student's t quantile of the pooled
 //! degrees of freedom (`tessera_farm::interval_quantile`), so P(|z| <= 2) should be 0.9545
