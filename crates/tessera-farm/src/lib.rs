@@ -103,8 +103,9 @@ pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,
 };
 pub use stats::{
-    image_relative_error, image_relative_error_pooled, luminance, robust_scale, ErrorEstimator,
-    PixelStats, ERROR_ESTIMATOR, ERROR_ESTIMATOR_POOLED, LUMINANCE_WEIGHTS, REL_EPS,
+    image_relative_error, image_relative_error_pooled, interval_quantile, luminance,
+    pooled_interval_variance, robust_scale, ErrorEstimator, PixelStats, ERROR_ESTIMATOR,
+    ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE, LUMINANCE_WEIGHTS, REL_EPS,
 };
 
 #[cfg(test)]

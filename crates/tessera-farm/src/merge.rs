@@ -507,21 +507,28 @@ impl FrameImage {
         }
     }
 
-    /// The variance of each pixel's mean for its confidence interval: the per-pass variance
-    /// pooled over the pixel's 3x3 neighbourhood (the neighbours inside the image with at
-    /// least 2 passes, each weighted by its degrees of freedom `n_q - 1`), divided by the
-    /// pixel's own pass count. 0 where the pixel has fewer than 2 passes.
+    /// The variance of each pixel's mean for its confidence interval, such that
+    /// `mean +- 2 sqrt(interval_variance)` covers [`crate::INTERVAL_COVERAGE`] (95.45%):
+    /// the per-pass variance pooled over the pixel's 3x3 neighbourhood (the neighbours
+    /// inside the image with at least 2 passes, each weighted by its degrees of freedom
+    /// `n_q - 1`), divided by the pixel's own pass count, and widened by `(q / 2)^2` for
+    /// Student's t quantile `q` of the pooled degrees of freedom `sum (n_q - 1)`
+    /// ([`crate::interval_quantile`]: 2.32 for 9, 2.10 for 27; see
+    /// [`crate::pooled_interval_variance`]). 0 where the pixel has fewer than 2
+    /// passes.
     ///
-    /// Why: a pixel's own variance estimate has only `K - 1` degrees of freedom, so
+    /// Why pooled: a pixel's own variance estimate has only `K - 1` degrees of freedom, so
     /// `mean +- 2 sqrt(variance_of_mean)` covers its true value with Student's t
-    /// probability, 86% at the default plan's `K = 4` (ARCHITECTURE.md §3). The per-sample
+    /// probability, 86% at `K = 4` and 70% at `K = 2` (ARCHITECTURE.md §3). The per-sample
     /// variance changes slowly across the image, and the passes of different pixels are
-    /// independent, so pooling 9 pixels gives up to `9 (K - 1)` degrees of freedom and
-    /// brings the 2-sigma coverage to 93-96% on the calibration suite
+    /// independent, so pooling 9 pixels gives up to `9 (K - 1)` degrees of freedom, at the
+    /// price of a bias at sharp changes of the variance (an emitter's silhouette), where
+    /// pixels on the quiet side get a wider interval and pixels on the noisy side a
+    /// narrower one. Why widened: even 9 (K - 1) degrees of freedom leave the 2-sigma
+    /// interval short of 95.45% (92.3% at `K = 2`, 94.4% at `K = 4`); at t's quantile it
+    /// covers 93-96% on the calibration suite at 2 passes as at 4
     /// (`crates/tessera-render/tests/it/calibration.rs`, `docs/benchmarks.md` "Calibration
-    /// suite"), at the price of a bias at sharp changes of the variance (an emitter's
-    /// silhouette), where pixels on the quiet side get a wider interval and pixels on the
-    /// noisy side a narrower one. The image error estimate keeps the pixels' own
+    /// suite", "Sampling structure"). The image error estimate keeps the pixels' own
     /// estimates: pooling would spread an emitter edge's variance over its dark
     /// neighbours, whose relative error it would inflate.
     pub fn interval_variance(&self) -> Vec<[f32; 3]> {
@@ -549,7 +556,7 @@ impl FrameImage {
                     }
                 }
                 let own = f64::from(self.passes[p]);
-                out[p] = sum.map(|s| (s / dof / own) as f32);
+                out[p] = crate::pooled_interval_variance(sum, dof, own);
             }
         }
         out
@@ -930,7 +937,8 @@ mod tests {
     /// - tile 1 gets 1 pass: excluded.
     ///
     /// The interval variance pools the per-pass variance `n v` of the 3x3 neighbours with
-    /// at least 2 passes, weighted by `n - 1`, and divides by the pixel's own `n`. A 3 x 2
+    /// at least 2 passes, weighted by `n - 1`, divides by the pixel's own `n` and widens
+    /// by `(q / 2)^2` for the t quantile of the pooled degrees of freedom. A 3 x 2
     /// image (row-major): pixel 0 has 2 passes and v = 1 (per-pass variance 2), pixel 1 has
     /// 5 passes and v = 0.2 (per-pass 1), pixel 2 has 4 passes and v = 0.5 (per-pass 2),
     /// pixel 3 has 1 pass, pixels 4 and 5 have 3 passes and v = 0.
@@ -947,21 +955,38 @@ mod tests {
         };
         let iv = img.interval_variance();
         let close = |a: f32, b: f64| (f64::from(a) - b).abs() <= 1e-6 * b.max(1e-30);
+        // Widened by (q / 2)^2 for Student's t quantile q of the pooled degrees of freedom
+        // (2.4288 for 7, 2.2549 for 11, 2.2313 for 12).
+        let widen = |dof: u64| (crate::interval_quantile(dof) / 2.0).powi(2);
         // Pixel 0 pools 0, 1, 4 (3 has 1 pass): dof 1 + 4 + 2, sum 1*2 + 4*1 + 2*0.
-        assert!(close(iv[0][0], (6.0 / 7.0) / 2.0), "{:?}", iv[0]);
+        assert!(close(iv[0][0], (6.0 / 7.0) / 2.0 * widen(7)), "{:?}", iv[0]);
+        assert!((widen(7) - (2.4288051304035685f64 / 2.0).powi(2)).abs() < 1e-15);
         // Pixel 1 pools all but 3: dof 1 + 4 + 3 + 2 + 2, sum 2 + 4 + 3*2 + 0 + 0.
-        assert!(close(iv[1][2], (12.0 / 12.0) / 5.0), "{:?}", iv[1]);
+        assert!(
+            close(iv[1][2], (12.0 / 12.0) / 5.0 * widen(12)),
+            "{:?}",
+            iv[1]
+        );
         // Pixel 3 has no estimate of its own.
         assert_eq!(iv[3], [0.0; 3]);
         // Pixel 5 pools 1, 2, 4, 5: dof 4 + 3 + 2 + 2, sum 4 + 6.
-        assert!(close(iv[5][1], (10.0 / 11.0) / 3.0), "{:?}", iv[5]);
-        // A constant per-pass variance pools to itself.
+        assert!(
+            close(iv[5][1], (10.0 / 11.0) / 3.0 * widen(11)),
+            "{:?}",
+            iv[5]
+        );
+        // A constant per-pass variance pools to itself, widened for the neighbourhood's
+        // degrees of freedom: 4 pixels of 3 in the corners (12), 6 in the middle column (18).
         let flat = FrameImage {
             variance_of_mean: vec![[0.25; 3]; 6],
             passes: vec![4; 6],
             ..img
         };
-        assert!(flat.interval_variance().iter().all(|v| *v == [0.25; 3]));
+        for (p, v) in flat.interval_variance().iter().enumerate() {
+            let dof = if p % 3 == 1 { 18 } else { 12 };
+            assert!(close(v[0], 0.25 * widen(dof)), "pixel {p}: {v:?}");
+            assert!(v[0] == v[1] && v[1] == v[2]);
+        }
     }
 
     /// image error = sqrt((rel0^2 + rel1^2) / 4).

@@ -37,11 +37,13 @@ pub const WHOLE_FRAME_MAX_SAMPLES_PER_PASS: u32 = 16;
 /// 4 replicates, so 3 degrees of freedom for each pixel's variance and an unbiased image
 /// error estimate (ARCHITECTURE.md §3).
 ///
-/// Not 2, though 2 passes keep more of each pixel's net: the 3x3-pooled intervals then
-/// have at most 9 degrees of freedom and `mean +- 2 sqrt(pooled_variance)` covers 92%
-/// (Student's t for 9), not the 93-96% the calibration suite holds them to, for 4-21% less
-/// variance at 16-64 spp (`docs/benchmarks.md`, "Sampling structure",
-/// 2026-12-06).
+/// Not 2, though 2 passes keep more of each pixel's net (6-21% less variance at 16-64
+/// spp): the pixels' intervals, at Student's t quantile for what they pool
+/// ([`crate::FrameImage::interval_variance`]), stay calibrated at 2 passes, but the image
+/// error estimate turns optimistic where rare bright paths carry the error, the robust
+/// scale's floor `m - se` being the smaller pass itself (veach-mis at 64 spp: 0.88 of the
+/// measured error over 8 seeds against 1.03 at 4 passes, 0.79 over the calibration suite's
+/// 4 seeds, below its 0.8; `docs/benchmarks.md`, "Sampling structure", 2026-12-06).
 pub const TARGET_MIN_PASSES: u32 = 4;
 
 /// Why a frame plan was rejected.

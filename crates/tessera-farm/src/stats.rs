@@ -261,6 +261,86 @@ pub(crate) fn image_relative_error_of_tiles<'a>(
     })
 }
 
+/// The coverage every per-pixel interval aims for, `P(|Z| <= 2) = 0.9545`: the normal
+/// 2-sigma interval's, so that a pixel whose variance has many degrees of freedom keeps
+/// `mean +- 2 sqrt(variance)` (ARCHITECTURE.md §3).
+pub const INTERVAL_COVERAGE: f64 = 0.954_499_736_103_641_6;
+
+/// Student's t quantiles `q` with `P(|T| <= q) =` [`INTERVAL_COVERAGE`] for 1 to 32 degrees
+/// of freedom, computed to 40 digits with mpmath (the regularized incomplete beta
+/// function, Abramowitz & Stegun 1964, 26.7.1) and rounded to f64.
+const INTERVAL_QUANTILES: [f64; 32] = [
+    13.967730199244548,
+    4.526536687430165,
+    3.306822175005652,
+    2.869309414628827,
+    2.648649430702703,
+    2.5165240556531185,
+    2.4288051304035685,
+    2.3664157840419837,
+    2.319805898259143,
+    2.2836782024779305,
+    2.2548626967799055,
+    2.231348094024051,
+    2.211797543352617,
+    2.1952881909318083,
+    2.1811626350751743,
+    2.1689399911863836,
+    2.158260432909182,
+    2.1488493882329394,
+    2.1404937230531993,
+    2.1330254804541875,
+    2.126310521380297,
+    2.1202404265211148,
+    2.1147266175578676,
+    2.1096960195183114,
+    2.1050878128603885,
+    2.1008509688651746,
+    2.0969423565481864,
+    2.0933252722843507,
+    2.0899682860171875,
+    2.086844327310369,
+    2.0839299550417882,
+    2.0812047690983384,
+];
+
+/// The half-width, in estimated standard errors, of an interval covering
+/// [`INTERVAL_COVERAGE`] under Student's t with `dof` degrees of freedom: 13.97 for 1,
+/// 2.32 for 9, 2.10 for 27, towards 2 for many. `f64::INFINITY` for 0 (no estimate).
+///
+/// An exact table up to 32 degrees of freedom; beyond, the Cornish-Fisher expansion of the
+/// t quantile in powers of `1 / dof` to the fourth (Abramowitz & Stegun 1964, 26.7.5) at
+/// `z = 2`, whose coefficients are exact rationals: off by less than 3e-8 at 33 and
+/// shrinking like `dof^-5`, below the f32 rounding of the layers it scales. Only `+`, `*`
+/// and `/`, no library functions, so every machine computes the same bits (ARCHITECTURE.md
+/// §2).
+pub fn interval_quantile(dof: u64) -> f64 {
+    match dof {
+        0 => f64::INFINITY,
+        d if d <= INTERVAL_QUANTILES.len() as u64 => INTERVAL_QUANTILES[d as usize - 1],
+        d => {
+            // A&S 26.7.5's g_1..g_4 at z = 2: 10/4, 294/96, 1098/384, 169950/92160.
+            const G: [f64; 4] = [2.5, 3.0625, 2.859375, 169_950.0 / 92_160.0];
+            let v = 1.0 / d as f64;
+            2.0 + v * (G[0] + v * (G[1] + v * (G[2] + v * G[3])))
+        }
+    }
+}
+
+/// A pixel's interval variance from its 3x3 pool ([`crate::FrameImage::interval_variance`],
+/// ARCHITECTURE.md §3): `sum` the per-pass variances weighted by their degrees of freedom,
+/// `dof` their total, `own` the pixel's passes. The pooled variance of the mean
+/// `sum / dof / own`, widened by `(q / 2)^2` for the t quantile `q` of `dof`
+/// ([`interval_quantile`]) so that `mean +- 2 sqrt(interval variance)` covers
+/// [`INTERVAL_COVERAGE`]. One function for the image and the streaming EXR writer, so both
+/// give the same bits.
+pub fn pooled_interval_variance(sum: [f64; 3], dof: f64, own: f64) -> [f32; 3] {
+    // dof is a sum of whole pass counts minus one each, exact in f64.
+    let half = 0.5 * interval_quantile(dof as u64);
+    let widen = half * half;
+    sum.map(|s| (s / dof / own * widen) as f32)
+}
+
 /// Luminance weights of linear Rec. 709 / sRGB primaries.
 pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
 
@@ -353,6 +433,43 @@ mod tests {
 
     fn rel_close(a: f64, b: f64, tol: f64) -> bool {
         (a - b).abs() <= tol * a.abs().max(b.abs()).max(f64::MIN_POSITIVE)
+    }
+
+    /// The interval quantiles against closed forms and tabulated values. For 1 degree of
+    /// freedom t is Cauchy, `q = tan(pi P / 2)`; for 2, `P(|T| <= x) = x / sqrt(2 + x^2)`,
+    /// so `q = P sqrt(2 / (1 - P^2))`. Beyond the table, the expansion against quantiles
+    /// computed to 40 digits with mpmath (`findroot` on the regularized incomplete beta),
+    /// within 3e-8; at the join it continues the table's decrease.
+    #[test]
+    fn interval_quantile_matches_tables() {
+        let p = INTERVAL_COVERAGE;
+        assert!(rel_close(
+            interval_quantile(1),
+            (std::f64::consts::FRAC_PI_2 * p).tan(),
+            1e-12
+        ));
+        assert!(rel_close(
+            interval_quantile(2),
+            p * (2.0 / (1.0 - p * p)).sqrt(),
+            1e-12
+        ));
+        for (dof, q) in [
+            (33, 2.078_650_932_879_389_4),
+            (40, 2.064_459_469_246_798_6),
+            (48, 2.053_438_749_432_929_4),
+            (64, 2.039_821_199_050_100_3),
+            (100, 2.025_309_127_903_459_4),
+            (135, 2.018_687_724_669_141_5),
+            (1000, 2.002_503_065_361_22),
+            (1_000_000, 2.000_002_500_003_062_3),
+        ] {
+            let got = interval_quantile(dof);
+            assert!((got - q).abs() < 3e-8, "dof {dof}: {got} against {q}");
+        }
+        let q: Vec<f64> = (1..=40).map(interval_quantile).collect();
+        assert!(q.windows(2).all(|w| w[1] < w[0]), "{q:?}");
+        assert!(interval_quantile(u64::MAX) >= 2.0);
+        assert_eq!(interval_quantile(0), f64::INFINITY);
     }
 
     /// The robust scale of a firefly, a highlight and a dark pixel next to a bright one.

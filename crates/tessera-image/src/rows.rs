@@ -209,7 +209,7 @@ fn pooled_row(prev: Option<&[Pixel]>, cur: &[Pixel], next: Option<&[Pixel]>, out
             }
         }
         let own = f64::from(p.passes);
-        *o = sum.map(|s| (s / dof / own) as f32);
+        *o = tessera_farm::pooled_interval_variance(sum, dof, own);
     }
 }
 
