@@ -113,7 +113,7 @@ pub(super) fn plan(
 /// The reason for bdpt where the lights reach little of what the camera sees.
 fn through_an_opening(survey: &DirectSurvey) -> String {
     format!(
-        "bdpt: the lights reach {:.0}% of the surfaces the camera sees directly ({} of {} \
+        "bdpt: the lights reach {:.1}% of the surfaces the camera sees directly ({} of {} \
          surveyed camera hits on diffuse or glossy surfaces or emitters see a light, from a \
          {DIRECT_SURVEY_GRID}x{DIRECT_SURVEY_GRID} grid of rays; below {:.0}%): the image is \
          lit through an opening, by paths a path tracer completes only after finding the \
