@@ -19,12 +19,16 @@
 //! direction of each directional light; five directions about the normal for the
 //! environment) until one is unoccluded. Every surface blocks a shadow ray (glass too, as
 //! it blocks a path tracer's connections). The rays are traced in a small bounding volume
-//! hierarchy built here, on the scene's triangles and spheres.
+//! hierarchy (obvhs') over the scene's triangles and spheres.
 
 use super::survey::Survey;
 use super::{DIRECT_SURVEY_GRID, DIRECT_SURVEY_MAX_PRIMITIVES};
 use crate::PunctualLight;
 use glam::{Vec2, Vec3};
+use obvhs::aabb::Aabb;
+use obvhs::bvh2::Bvh2;
+use obvhs::ploc::{PlocBuilder, SortPrecision};
+use obvhs::ray::{Ray, RayHit};
 
 /// What the survey found.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -62,10 +66,6 @@ struct Prim {
 }
 
 impl Prim {
-    fn centroid(&self) -> Vec3 {
-        0.5 * (self.lo + self.hi)
-    }
-
     /// Distance along `d` (unit) from `o` to the first hit in `(t_min, t_max)`.
     fn hit(&self, o: Vec3, d: Vec3, t_min: f32, t_max: f32) -> Option<f32> {
         match self.shape {
@@ -115,115 +115,69 @@ impl Prim {
     }
 }
 
-/// A node: a leaf holds `prims[start..start + count]`; an inner node (`count == 0`) has
-/// its first child next to it and its second at `second`.
-struct Node {
-    lo: Vec3,
-    hi: Vec3,
-    start: u32,
-    count: u32,
-    second: u32,
-}
-
-/// A bounding volume hierarchy split at the median centroid of the longest axis.
+/// The survey's primitives in obvhs' binary BVH (built by PLOC, as the render scene's),
+/// with its traversal: a survey ray needs no more than that.
 struct Bvh {
     prims: Vec<Prim>,
-    nodes: Vec<Node>,
+    tree: Bvh2,
 }
 
-const LEAF_SIZE: usize = 4;
-
 impl Bvh {
-    fn new(mut prims: Vec<Prim>) -> Self {
-        let mut nodes = Vec::with_capacity(2 * prims.len() / LEAF_SIZE + 1);
-        if !prims.is_empty() {
-            let n = prims.len();
-            build(&mut prims, 0, n, &mut nodes);
+    fn new(prims: Vec<Prim>) -> Self {
+        let boxes: Vec<Aabb> = prims
+            .iter()
+            .map(|p| Aabb::new(p.lo.into(), p.hi.into()))
+            .collect();
+        let mut tree = Bvh2::default();
+        if !boxes.is_empty() {
+            let indices = (0..boxes.len() as u32).collect();
+            PlocBuilder::new().build_ploc::<1, Aabb>(
+                &mut tree,
+                &boxes,
+                indices,
+                SortPrecision::U64,
+                0,
+            );
         }
-        Self { prims, nodes }
+        Self { prims, tree }
     }
 
     /// The first hit along `d` from `o` in `(t_min, t_max)`: distance and primitive.
     /// With `any`, the first hit found (a shadow ray needs no more).
-    fn trace(
-        &self,
-        o: Vec3,
-        d: Vec3,
-        t_min: f32,
-        mut t_max: f32,
-        any: bool,
-    ) -> Option<(f32, usize)> {
-        if self.nodes.is_empty() {
+    fn trace(&self, o: Vec3, d: Vec3, t_min: f32, t_max: f32, any: bool) -> Option<(f32, usize)> {
+        if self.tree.nodes.is_empty() {
             return None;
         }
-        let inv = Vec3::ONE / d;
-        let mut best = None;
-        let mut stack = vec![0u32];
-        while let Some(i) = stack.pop() {
-            let node = &self.nodes[i as usize];
-            // Slab test; NaN (0 x inf) compares false and keeps the box.
-            let (a, b) = ((node.lo - o) * inv, (node.hi - o) * inv);
-            let (near, far) = (a.min(b).max_element(), a.max(b).min_element());
-            if near > far || far < t_min || near > t_max {
-                continue;
-            }
-            if node.count > 0 {
-                let range = node.start as usize..(node.start + node.count) as usize;
-                for (k, prim) in self.prims[range.clone()].iter().enumerate() {
-                    if let Some(t) = prim.hit(o, d, t_min, t_max) {
-                        t_max = t;
-                        best = Some((t, range.start + k));
-                        if any {
-                            return best;
-                        }
+        let ray = Ray::new(o.into(), d.into(), t_min, t_max);
+        let prim = |id: usize| self.tree.primitive_indices[id] as usize;
+        if any {
+            let mut found = None;
+            let missed = self.tree.ray_traverse_miss(ray, |ray, id| {
+                let k = prim(id);
+                match self.prims[k].hit(o, d, t_min, ray.tmax) {
+                    Some(t) => {
+                        found = Some((t, k));
+                        t
                     }
+                    None => f32::INFINITY,
                 }
-            } else {
-                stack.push(node.second);
-                stack.push(i + 1);
-            }
+            });
+            return if missed { None } else { found };
         }
+        let mut best = None;
+        let mut hit = RayHit::none();
+        self.tree.ray_traverse(ray, &mut hit, |ray, id| {
+            let k = prim(id);
+            match self.prims[k].hit(o, d, t_min, ray.tmax) {
+                Some(t) => {
+                    best = Some((t, k));
+                    t
+                }
+                None => f32::INFINITY,
+            }
+        });
         best
     }
-}
-
-/// Builds the subtree of `prims[start..end]` into `nodes`; returns its index.
-fn build(prims: &mut [Prim], start: usize, end: usize, nodes: &mut Vec<Node>) -> u32 {
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    let (mut clo, mut chi) = (lo, hi);
-    for p in &prims[start..end] {
-        (lo, hi) = (lo.min(p.lo), hi.max(p.hi));
-        (clo, chi) = (clo.min(p.centroid()), chi.max(p.centroid()));
-    }
-    let index = nodes.len() as u32;
-    nodes.push(Node {
-        lo,
-        hi,
-        start: start as u32,
-        count: (end - start) as u32,
-        second: 0,
-    });
-    if end - start <= LEAF_SIZE {
-        return index;
-    }
-    let extent = chi - clo;
-    let axis = if extent.x >= extent.y && extent.x >= extent.z {
-        0
-    } else if extent.y >= extent.z {
-        1
-    } else {
-        2
-    };
-    let mid = (start + end) / 2;
-    prims[start..end].select_nth_unstable_by(mid - start, |a, b| {
-        a.centroid()[axis].total_cmp(&b.centroid()[axis])
-    });
-    build(prims, start, mid, nodes);
-    let second = build(prims, mid, end, nodes);
-    let node = &mut nodes[index as usize];
-    node.count = 0;
-    node.second = second;
-    index
 }
 
 /// Where a shadow ray goes.
