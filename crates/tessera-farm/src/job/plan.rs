@@ -184,8 +184,9 @@ pub struct RenderPlan {
     /// What the scene loader ignored (e.g. unsupported optional glTF extensions).
     pub warnings: Vec<String>,
     /// Set when the analysis chose bdpt but path tracing is as correct (the caustics' only
-    /// lights are tiny finite ones, which BSDF sampling can hit): the choice waits for a
-    /// measured pilot of both (`tessera_render::pilot`), which settles it with
+    /// lights are tiny finite ones, which BSDF sampling can hit, or the scene is lit
+    /// through an opening, where the lights reach little of what the camera sees): the
+    /// choice waits for a measured pilot of both (`tessera_render::pilot`), which settles it with
     /// [`RenderPlan::settle_technique`]. Not in [`RenderPlan::to_json`]: the verdict is.
     pub technique_pilot: Option<TechniquePilot>,
 }
@@ -197,6 +198,11 @@ pub struct TechniquePilot {
     pub bdpt_reasons: usize,
     /// The reasons that replace them if path tracing wins.
     pub path_reasons: Vec<String>,
+    /// The question was asked because the scene is lit through an opening (the lights
+    /// reach little of what the camera sees), not for tiny-light caustics: the pilot then
+    /// scores each technique's squared error relative to the image's mean luminance (the
+    /// efficiency `1 / (MSE x cost)`), not per pixel (`tessera_render::pilot`).
+    pub lit_through_opening: bool,
 }
 
 /// The technique pilot's answer ([`RenderPlan::settle_technique`]): whether path tracing
@@ -519,6 +525,7 @@ mod tests {
             technique_pilot: Some(TechniquePilot {
                 bdpt_reasons: 2,
                 path_reasons: vec!["path tracing: refraction".into()],
+                lit_through_opening: false,
             }),
         }
     }

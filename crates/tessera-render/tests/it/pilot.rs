@@ -139,6 +139,52 @@ fn a_failed_pilot_refuses_the_job_and_an_explicit_integrator_never_asks() {
     assert_eq!(r.config.integrator, Integrator::Bdpt);
 }
 
+/// Veach's door-ajar room is lit through an opening (the lights reach 0.4% of what the
+/// camera sees): the analysis leaves the choice to the pilot, which scores errors against
+/// the image's mean there and keeps bdpt, the better of bdpt and path tracing by the
+/// measured efficiency `1 / (MSE x s)` (docs/benchmarks.md, "Metropolis light
+/// transport"); per-pixel relative errors chose path tracing.
+#[test]
+fn the_door_ajar_room_asks_the_pilot_and_keeps_bdpt() {
+    let scene = tessera_scene::load(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../scenes/door-ajar.gltf"
+    ))
+    .unwrap();
+    let plan = tessera_scene::analysis::analyse(&scene);
+    assert_eq!(
+        plan.integrator,
+        PlannedIntegrator::Bdpt,
+        "{:?}",
+        plan.reasons
+    );
+    assert!(
+        plan.technique_pilot
+            .as_ref()
+            .is_some_and(|t| t.lit_through_opening),
+        "{:?}",
+        plan.reasons
+    );
+    assert!(
+        plan.reasons[0].contains("lit through an opening"),
+        "{}",
+        plan.reasons[0]
+    );
+    let j = job(r#"{"scene":"builtin:cornell-box","width":64,"height":64,"spp":16}"#);
+    let r = resolve_job(&j, &scene).unwrap();
+    let first = &r.render_plan.reasons[0];
+    println!("{first}");
+    assert!(first.contains("relative to the image's mean"), "{first}");
+    assert_eq!(r.config.integrator, Integrator::Bdpt, "{first}");
+    assert!(r.plan.is_whole_frame());
+    // The scenes asked before keep their per-pixel scoring.
+    let caustic =
+        tessera_scene::analysis::analyse(&tessera_scene::load("builtin:caustic").unwrap());
+    assert!(caustic
+        .technique_pilot
+        .is_some_and(|t| !t.lit_through_opening));
+}
+
 /// Veach's door-ajar room (a point light, the seen room lit only through a gap), where
 /// path tracing, bdpt and mlt can all sample every path: the pilot's choice is the measured
 /// best of the three, or the measured best failed the margin or the spread the pilot asks

@@ -1,12 +1,13 @@
 //! Step 6: the plan decision (the module documentation's "Integrator" and "Depth" rules):
 //! the integrator, its path depth and Russian-roulette depth, and the reasons for them.
 
+use super::direct::DirectSurvey;
 use super::lights::Lights;
 use super::transport::Transport;
 use super::{
     Effect, EffectKind, PlannedIntegrator, RenderPlan, TechniquePilot, BRIGHT_ALBEDO,
-    CLOSED_FRACTION, CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, OPEN_SCENE_RR_DEPTH,
-    REFRACTION_DEPTH,
+    CLOSED_FRACTION, CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, DIRECT_LIT_FRACTION,
+    DIRECT_SURVEY_GRID, OPEN_SCENE_RR_DEPTH, REFRACTION_DEPTH,
 };
 use crate::Camera;
 
@@ -18,22 +19,42 @@ pub(super) fn plan(
     transport: &Transport,
     lens_sampling: bool,
     mut effects: Vec<Effect>,
+    direct: impl FnOnce() -> Option<DirectSurvey>,
 ) -> RenderPlan {
     let mut reasons: Vec<String> = Vec::new();
-    let integrator = choose_integrator(lights, transport, &mut reasons);
+    let mut integrator = choose_integrator(lights, transport, &mut reasons);
     // Tiny finite lights: path tracing is correct too, and which technique is more
     // efficient (Veach & Guibas 1995, section 2: 1 / (variance x time)) depends on the
     // scene (their section 4.3 compares the two at equal time), so a measured pilot
     // decides; the reasons given for bdpt are swapped for path tracing's if it wins.
-    let technique_pilot =
-        (integrator == PlannedIntegrator::Bdpt && transport.tiny_lit_only).then(|| {
+    let mut technique_pilot = (integrator == PlannedIntegrator::Bdpt && transport.tiny_lit_only)
+        .then(|| {
             let mut path_reasons = Vec::new();
             path_reasons_into(transport, &mut path_reasons);
             TechniquePilot {
                 bdpt_reasons: reasons.len(),
                 path_reasons,
+                lit_through_opening: false,
             }
         });
+    // Light through an opening: the same question where the lights reach little of what
+    // the camera sees (the survey runs only for a path-traced plan, the one it may change).
+    if integrator == PlannedIntegrator::Path {
+        if let Some(survey) = direct().filter(|d| d.fraction() < DIRECT_LIT_FRACTION) {
+            let path_reasons = std::mem::take(&mut reasons);
+            reasons.push(through_an_opening(&survey));
+            reasons.push(
+                "bdpt light-traces onto the film: one whole-frame tile, units split by passes"
+                    .into(),
+            );
+            integrator = PlannedIntegrator::Bdpt;
+            technique_pilot = Some(TechniquePilot {
+                bdpt_reasons: reasons.len(),
+                path_reasons,
+                lit_through_opening: true,
+            });
+        }
+    }
     let (max_depth, rr_depth) = depths(integrator, transport, &mut reasons);
     if integrator != PlannedIntegrator::Black {
         reasons.push(if lens_sampling {
@@ -87,6 +108,22 @@ pub(super) fn plan(
         warnings: Vec::new(),
         technique_pilot,
     }
+}
+
+/// The reason for bdpt where the lights reach little of what the camera sees.
+fn through_an_opening(survey: &DirectSurvey) -> String {
+    format!(
+        "bdpt: the lights reach {:.1}% of the surfaces the camera sees directly ({} of {} \
+         surveyed camera hits on diffuse or glossy surfaces or emitters see a light, from a \
+         {DIRECT_SURVEY_GRID}x{DIRECT_SURVEY_GRID} grid of rays; below {:.0}%): the image is \
+         lit through an opening, by paths a path tracer completes only after finding the \
+         opening by BSDF sampling and bdpt's light subpaths start through it (Veach's door \
+         ajar); path tracing is as correct, so the technique pilot decides",
+        100.0 * survey.fraction(),
+        survey.lit,
+        survey.surfaces,
+        100.0 * DIRECT_LIT_FRACTION
+    )
 }
 
 /// Black, direct, VCM, BDPT or path tracing, with the reason.
