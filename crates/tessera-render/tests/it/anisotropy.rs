@@ -4,6 +4,7 @@
 //! its frame at the ray's time.
 
 use crate::common::{assert_blocks_agree, block_passes, block_stats, z_critical, Rng};
+use crate::instancing::lumpy_box;
 use glam::{Affine3A, Quat, Vec3};
 use tessera_farm::FramePlan;
 use tessera_render::geometry::{Hit, Primitive, SurfacePoint, NO_INSTANCE};
@@ -14,52 +15,29 @@ use tessera_render::scene::RenderScene;
 use tessera_scene::builtin::look_at_camera;
 use tessera_scene::{Anisotropy, GltfMaterial, Instance, Material, Mesh, PunctualLight, Scene};
 
-/// A closed box of 12 triangles with smooth normals (so the shading normal varies over a
-/// face) and, per face, one tangent along its first edge, with a bitangent sign that
-/// alternates between faces: the frame the anisotropy direction lives in.
+/// [`lumpy_box`] (smooth normals, so the shading normal varies over a face) with, per face,
+/// one tangent along its first edge and a bitangent sign that alternates between faces:
+/// the frame the anisotropy direction lives in.
 fn brushed_box() -> Mesh {
-    let c = [
-        [-0.5, -0.5, -0.5],
-        [0.5, -0.5, -0.5],
-        [0.5, 0.5, -0.5],
-        [-0.5, 0.5, -0.5],
-        [-0.5, -0.5, 0.5],
-        [0.5, -0.5, 0.5],
-        [0.5, 0.5, 0.5],
-        [-0.5, 0.5, 0.5],
-    ]
-    .map(Vec3::from);
-    let quads = [
-        [0, 3, 2, 1],
-        [4, 5, 6, 7],
-        [0, 1, 5, 4],
-        [2, 3, 7, 6],
-        [1, 2, 6, 5],
-        [0, 4, 7, 3],
-    ];
-    let (mut indices, mut tangents) = (Vec::new(), Vec::new());
-    for (f, q) in quads.iter().enumerate() {
-        // Equal corner tangents within a triangle: interpolating then transforming (an
-        // instance) and transforming each corner then interpolating (a flattened copy)
-        // give the same direction even under non-uniform scale.
-        let t = (c[q[1]] - c[q[0]])
-            .normalize()
-            .extend(if f % 2 == 0 { 1.0 } else { -1.0 });
-        indices.push([q[0] as u32, q[1] as u32, q[2] as u32]);
-        indices.push([q[0] as u32, q[2] as u32, q[3] as u32]);
-        tangents.push([t; 3]);
-        tangents.push([t; 3]);
-    }
-    Mesh {
-        name: "brushed box".into(),
-        positions: c.to_vec(),
-        normals: Some(c.iter().map(|p| p.normalize()).collect()),
-        uvs: vec![],
-        colors: None,
-        tangents: Some(tangents),
-        indices,
-        material: 1,
-    }
+    let mut mesh = lumpy_box();
+    let tangents = mesh
+        .indices
+        .chunks(2)
+        .enumerate()
+        .flat_map(|(f, quad)| {
+            // Equal corner tangents within a triangle: interpolating then transforming
+            // (an instance) and transforming each corner then interpolating (a flattened
+            // copy) give the same direction even under non-uniform scale.
+            let [a, b, _] = quad[0].map(|i| mesh.positions[i as usize]);
+            let t = (b - a)
+                .normalize()
+                .extend(if f % 2 == 0 { 1.0 } else { -1.0 });
+            [[t; 3]; 2]
+        })
+        .collect();
+    mesh.name = "brushed box".into();
+    mesh.tangents = Some(tangents);
+    mesh
 }
 
 /// Brushed metal: anisotropyStrength 0.8 turned by 0.4 rad from the tangent, roughness
