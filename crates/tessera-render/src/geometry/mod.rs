@@ -57,7 +57,7 @@
 //! thread with a stack of known size).
 
 use crate::math::gamma;
-use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A};
+use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A, Vec4};
 
 #[macro_use]
 mod watertight;
@@ -622,6 +622,13 @@ pub struct SurfacePoint {
     pub material: u32,
     /// Light index or [`NO_LIGHT`].
     pub light: u32,
+    /// The shading tangent in world space (`xyz`: the mesh's corner tangents interpolated
+    /// at `bary`, carried by the instance's transform or taken at the ray's time for a
+    /// moving mesh; neither unit nor orthogonal to `ns`) and the bitangent sign (`w`,
+    /// ±1, flipped by a mirroring instance): the frame of the normal map and of
+    /// KHR_materials_anisotropy. Filled only where the material uses a tangent frame and
+    /// the mesh has tangents, zero elsewhere, so other materials pay one store for it.
+    pub tangent: Vec4,
 }
 
 /// Position on a triangle from barycentrics, with pbrt's error bound (§3.9.4).

@@ -178,39 +178,29 @@ impl RenderScene {
                 .map(|m| std::sync::Arc::new(EnvImage::new(m)));
             lights.push(Light::Environment(env));
         }
-        let mut motion_warnings = motion_warnings;
         let meshes = scene
             .meshes
             .iter()
             .chain(&scene.prototypes)
-            .enumerate()
-            .map(|(mi, m)| {
-                let world_tangents = mi < scene.meshes.len() && !split.moving_meshes[mi];
-                let anisotropic = scene.materials[m.material as usize]
-                    .as_gltf()
-                    .and_then(|g| g.anisotropy)
-                    .is_some_and(|a| a.strength > 0.0);
-                // The glTF importer flattens anisotropic meshes, so only a moving one (whose
-                // tangents turn within the shutter) lacks world-space tangents here.
-                if anisotropic && m.tangents.is_some() && !world_tangents {
-                    motion_warnings.push(format!(
-                        "material '{}': KHR_materials_anisotropy on a moving or instanced \
-                         mesh is rendered isotropic (its tangents are not carried to the hit)",
-                        scene.materials[m.material as usize].name
-                    ));
-                }
-                MeshShading {
-                    indices: m.indices.clone(),
-                    normals: m.normals.clone(),
-                    uvs: m.uvs.clone(),
-                    colors: m.colors.clone(),
-                    tangents: m.tangents.clone(),
-                    world_tangents,
-                    material: m.material,
-                }
+            .map(|m| MeshShading {
+                indices: m.indices.clone(),
+                normals: m.normals.clone(),
+                uvs: m.uvs.clone(),
+                colors: m.colors.clone(),
+                tangents: m.tangents.clone(),
+                material: m.material,
             })
             .collect();
         let alpha_tested: Vec<bool> = scene.materials.iter().map(Material::has_alpha).collect();
+        let uses_tangents = scene
+            .materials
+            .iter()
+            .map(|m| {
+                m.as_gltf().is_some_and(|g| {
+                    g.normal_map.is_some() || g.anisotropy.is_some_and(|a| a.strength > 0.0)
+                })
+            })
+            .collect();
         Ok(Self {
             geometry,
             meshes,
@@ -219,6 +209,7 @@ impl RenderScene {
             images: scene.images.clone(),
             any_alpha: alpha_tested.iter().any(|&a| a),
             alpha_tested,
+            uses_tangents,
             lights: LightSet::new(lights),
             camera: CameraModel::new(&scene.camera, width, height),
             width,

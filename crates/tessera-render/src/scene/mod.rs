@@ -54,12 +54,9 @@ struct MeshShading {
     uvs: Vec<Vec<Vec2>>,
     /// glTF `COLOR_0`, linear RGBA; only meshes that have it pay for it.
     colors: Option<Vec<Vec4>>,
+    /// In world space, or in object space for an instance's prototype (carried to world
+    /// space at each hit, [`SurfacePoint::tangent`]).
     tangents: Option<Vec<[Vec4; 3]>>,
-    /// The tangents are in world space: the mesh is neither an instance's prototype
-    /// (object space) nor moving. Only then can KHR_materials_anisotropy find its
-    /// direction at a hit (the surface point does not carry the tangent); elsewhere it is
-    /// rendered isotropic, with a warning.
-    world_tangents: bool,
     material: u32,
 }
 
@@ -75,6 +72,10 @@ pub struct RenderScene {
     alpha_tested: Vec<bool>,
     /// Whether any material is alpha-tested (else intersection skips the filter).
     any_alpha: bool,
+    /// Per material: it shades in a tangent frame (a normal map, or KHR_materials_anisotropy
+    /// of nonzero strength), so a hit on it interpolates the tangent
+    /// ([`SurfacePoint::tangent`]); every other hit skips that work.
+    uses_tangents: Vec<bool>,
     /// Lights with their selection distribution.
     pub lights: LightSet,
     /// The camera for the image size.
@@ -333,6 +334,7 @@ impl RenderScene {
                     bary: Vec2::ZERO,
                     material: s.material,
                     light: s.light,
+                    tangent: Vec4::ZERO,
                 }
             }
         }
@@ -377,7 +379,7 @@ impl RenderScene {
             }
         });
         let mut sp = self.shaded_point(tri, p, p_error, ng, normals, b1, b2);
-        if let (Some(nm), Some(t)) = (self.normal_map(tri.material), &mesh.tangents) {
+        if let (true, Some(t)) = (self.uses_tangents[tri.material as usize], &mesh.tangents) {
             let c = t[tri.index as usize];
             let mut tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
             let mut sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
@@ -385,7 +387,7 @@ impl RenderScene {
                 tangent = inst.world_from_object.transform_vector3(tangent);
                 sign *= inst.handedness;
             }
-            self.apply_normal_map(&mut sp, nm, tangent, sign);
+            self.set_tangent(&mut sp, tangent, sign);
         }
         sp
     }
@@ -427,6 +429,7 @@ impl RenderScene {
             bary,
             material: tri.material,
             light: tri.light,
+            tangent: Vec4::ZERO,
         }
     }
 
@@ -436,6 +439,17 @@ impl RenderScene {
         self.materials[material as usize]
             .as_gltf()
             .and_then(|g| g.normal_map.as_ref())
+    }
+
+    /// Gives `sp` its world-space `tangent` and bitangent `sign`, and perturbs its shading
+    /// normal by the material's normal map (if any) in that frame: one frame for the normal
+    /// map and the anisotropy's direction ([`RenderScene::anisotropy`]).
+    #[inline(always)]
+    fn set_tangent(&self, sp: &mut SurfacePoint, tangent: Vec3, sign: f32) {
+        sp.tangent = tangent.extend(sign);
+        if let Some(nm) = self.normal_map(sp.material) {
+            self.apply_normal_map(sp, nm, tangent, sign);
+        }
     }
 
     /// Perturbs `sp.ns` by the normal map `nm` in the tangent frame of `tangent` and
@@ -469,11 +483,11 @@ impl RenderScene {
             ng = -ng;
         }
         let mut sp = self.shaded_point(tri, p, p_error, ng, shading.normals_at(r, s, u), b1, b2);
-        if let Some(nm) = self.normal_map(tri.material) {
+        if self.uses_tangents[tri.material as usize] {
             if let Some(c) = shading.tangents_at(r, s, u) {
                 let tangent = (c[0] * b0 + c[1] * b1 + c[2] * b2).truncate();
                 let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
-                self.apply_normal_map(&mut sp, nm, tangent, sign);
+                self.set_tangent(&mut sp, tangent, sign);
             }
         }
         sp
@@ -675,24 +689,17 @@ impl RenderScene {
     /// KHR_materials_anisotropy at `sp`: the strength and the direction in the local
     /// shading frame (`Frame::from_normal(ns)`, the integrators' frame). The extension's
     /// direction is `(cos, sin)` of `anisotropyRotation`, or the texture's `2 rg - 1`
-    /// rotated by it (its B channel scaling the strength), in the frame of the mesh's
-    /// tangent and bitangent `w cross(n, t)`, here made orthogonal to the shading normal.
-    /// `(0, +x)`, isotropic, without the extension or a tangent frame.
+    /// rotated by it (its B channel scaling the strength), in the frame of the hit's
+    /// tangent and bitangent `w cross(n, t)` ([`SurfacePoint::tangent`], the normal map's
+    /// frame, on instances and moving meshes as on world-space ones), here made orthogonal
+    /// to the shading normal. `(0, +x)`, isotropic, without the extension or a tangent.
     fn anisotropy(&self, g: &GltfMaterial, sp: &SurfacePoint) -> (f32, Vec2) {
         const ISOTROPIC: (f32, Vec2) = (0.0, Vec2::X);
         let Some(a) = &g.anisotropy else {
             return ISOTROPIC;
         };
-        let Some(mesh) = self.meshes.get(sp.mesh as usize) else {
-            return ISOTROPIC;
-        };
-        let (true, Some(tangents)) = (mesh.world_tangents, &mesh.tangents) else {
-            return ISOTROPIC;
-        };
-        let c = tangents[sp.tri as usize];
-        let (b1, b2) = (sp.bary.x, sp.bary.y);
-        let tangent = (c[0] * (1.0 - b1 - b2) + c[1] * b1 + c[2] * b2).truncate();
-        let sign = if c[0].w < 0.0 { -1.0 } else { 1.0 };
+        let tangent = sp.tangent.truncate();
+        let sign = if sp.tangent.w < 0.0 { -1.0 } else { 1.0 };
         let n = sp.ns;
         let Some(t) = (tangent - n * n.dot(tangent)).try_normalize() else {
             return ISOTROPIC;

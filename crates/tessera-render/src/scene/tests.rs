@@ -365,4 +365,8 @@ fn anisotropy_direction_lies_in_the_tangent_frame() {
     let plain = GltfMaterial::default();
     let (rs, sp) = one_texel_scene(&[], plain.clone());
     assert_eq!(rs.gltf_params(&plain, &sp).anisotropy, 0.0);
+    // The hit carries the tangent only for a material that shades in a tangent frame.
+    assert_eq!(sp.tangent, Vec4::ZERO);
+    let (_, sp) = one_texel_scene(&[], rotated);
+    assert_eq!(sp.tangent, Vec4::new(1.0, 0.0, 0.0, 1.0));
 }

@@ -16,7 +16,7 @@ use tessera_scene::{Instance, Material, Mesh, PunctualLight, Scene};
 
 /// A closed, convex box (12 triangles, counter-clockwise seen from outside), with smooth
 /// normals so normal transformation is exercised; instances make it irregular.
-fn lumpy_box() -> Mesh {
+pub(crate) fn lumpy_box() -> Mesh {
     let c = [
         [-0.5, -0.5, -0.5],
         [0.5, -0.5, -0.5],

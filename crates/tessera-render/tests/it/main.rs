@@ -6,6 +6,7 @@
 //! CPU seconds, which tests running beside it in one process would inflate.
 
 mod analytic;
+mod anisotropy;
 mod bdpt;
 mod blender_references;
 mod calibration;

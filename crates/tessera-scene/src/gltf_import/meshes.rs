@@ -113,13 +113,7 @@ impl Importer<'_> {
                     self.flatten_primitive(ni, mi, pi, &world, &deformed, &mut geometry.meshes)?;
                     continue;
                 }
-                // KHR_materials_anisotropy needs the world-space tangent at a hit, which
-                // only flattened meshes keep (as emissive ones need world-space triangles).
-                let anisotropic = materials
-                    .get(local.material as usize)
-                    .and_then(Material::as_gltf)
-                    .is_some_and(|g| g.anisotropy.is_some());
-                if !shared || emissive || !invertible || anisotropic {
+                if !shared || emissive || !invertible {
                     self.flatten_primitive(ni, mi, pi, &pl.world, &local, &mut geometry.meshes)?;
                     continue;
                 }

@@ -543,6 +543,29 @@ fn anisotropy_is_read_with_a_tangent_frame() {
     }
 }
 
+/// An anisotropic mesh placed twice is stored once, as any mesh is: the renderer carries
+/// the object-space tangents to each hit through the instance's transform.
+#[test]
+fn an_anisotropic_mesh_placed_twice_is_instanced() {
+    let mut g = Gen::new();
+    g.uses("KHR_materials_anisotropy");
+    let material = g.push(
+        "materials",
+        json!({"extensions": {"KHR_materials_anisotropy": {"anisotropyStrength": 0.7}}}),
+    );
+    let m = quad(&mut g, material);
+    g.root(json!({"mesh": m}));
+    let h = std::f32::consts::FRAC_1_SQRT_2;
+    g.root(json!({"mesh": m, "translation": [3.0, 0.0, 0.0], "rotation": [0.0, 0.0, h, h]}));
+    let s = load(&g.glb()).unwrap();
+    assert!(s.meshes.is_empty());
+    assert_eq!((s.prototypes.len(), s.instances.len()), (1, 2));
+    let tangents = s.prototypes[0].tangents.as_ref().expect("tangents");
+    for corner in tangents.iter().flatten() {
+        assert!((corner.truncate() - Vec3::X).length() < 1e-4, "{corner}");
+    }
+}
+
 /// Blender's anisotropic metal (tests/fixtures/blender/anisotropy.glb, made by
 /// make_fixtures.py): the extension as Blender writes it, without TANGENT, on a UV sphere.
 #[test]
