@@ -334,6 +334,7 @@ impl TryFrom<&v1::SubmitResultRequest> for UnitResult {
             height: r.height,
             pass_means: unflatten(&r.pass_means),
             rejected_samples: r.rejected_samples,
+            bias: None,
         })
     }
 }

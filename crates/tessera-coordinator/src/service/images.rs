@@ -731,6 +731,7 @@ fn pixel_of(s: &PixelStats, samples: u32) -> Pixel {
         } else {
             0.0
         },
+        bias: [0.0; 2],
     }
 }
 

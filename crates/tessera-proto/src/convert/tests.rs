@@ -29,6 +29,7 @@ fn result(unit: WorkUnit) -> UnitResult {
         height: rect.height,
         pass_means,
         rejected_samples: u64::from(unit.first_pass) * 1000 + 7,
+        bias: None,
     }
 }
 
@@ -167,6 +168,7 @@ fn pass_means_are_packed_on_the_wire() {
         height: 4,
         pass_means: vec![[1.0, 2.0, 3.0]; 16],
         rejected_samples: 0,
+        bias: None,
     };
     let bytes = v1::SubmitResultRequest::from_result(1, 1, &r, 0.0).encode_to_vec();
     // 48 floats of 4 bytes plus a few bytes of tags and lengths (unpacked would add a
@@ -199,6 +201,7 @@ fn pass_means_bytes_are_the_packed_floats_of_older_workers() {
     // (`rejected_samples` came later than these fields; the old message has none.)
     let r = UnitResult {
         rejected_samples: 0,
+        bias: None,
         ..result(plan().units(1, 2)[1])
     };
     let old = PackedFloatsRequest {
