@@ -618,6 +618,7 @@ fn faulty_results_are_rejected_and_the_image_is_unaffected() {
                     rejected_samples: 0,
                     traced_pixel_passes: 0,
                     fence: l.fence.clone(),
+                    bias: Vec::new(),
                 })
                 .await
                 .unwrap()

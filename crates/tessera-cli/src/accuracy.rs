@@ -179,6 +179,7 @@ fn load_reference(path: &Path, width: u32, height: u32) -> Result<FrameImage> {
         passes: vec![0; n],
         samples: vec![0; n],
         relative_error: vec![0.0; n],
+        bias: None,
     })
 }
 
@@ -753,6 +754,7 @@ mod tests {
             passes: vec![1],
             samples: vec![1],
             relative_error: vec![0.0],
+            bias: None,
         };
         let (rmse, rel) = measure(&img(1.1, 0.0), &img(1.0, 0.0));
         assert!((rmse - 0.1).abs() < 1e-6);

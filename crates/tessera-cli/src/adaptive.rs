@@ -121,7 +121,7 @@ pub fn render(p: &Prepared, args: &RenderArgs) -> Result<()> {
     println!(
         "estimated relative error: {:.4} (estimator: {})",
         out.frame.image_error(),
-        p.resolved.error_estimator().name()
+        p.resolved.error_estimator_name()
     );
     crate::render::print_caveat(&p.resolved);
     println!(

@@ -287,6 +287,7 @@ async fn simulate(
                     rejected_samples: 0,
                     traced_pixel_passes: 0,
                     fence: lease.fence.clone(),
+                    bias: Vec::new(),
                 })
                 .await?
                 .into_inner();

@@ -532,7 +532,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
         c.mis,
         args.output.display()
     );
-    print_totals(&plan, seconds, acc.image_error(), paths / seconds);
+    print_totals(
+        &plan,
+        seconds,
+        acc.image_error(),
+        paths / seconds,
+        &p.resolved.error_estimator_name(),
+    );
     print_caveat(&p.resolved);
     // CPU time of all render threads: what a comparison on a loaded machine can trust
     // (bench/compare divides noise by it), at the 10 ms resolution of /proc.
@@ -598,8 +604,15 @@ fn print_scene_line(p: &Prepared) {
     }
 }
 
-/// The summary lines every render without adaptive stopping ends with (scripts read them).
-fn print_totals(plan: &FramePlan, seconds: f64, error: f64, paths_per_second: f64) {
+/// The summary lines every render without adaptive stopping ends with (scripts read them);
+/// `estimator` names the error estimate ([`tessera_farm::job::ResolvedJob::error_estimator_name`]).
+fn print_totals(
+    plan: &FramePlan,
+    seconds: f64,
+    error: f64,
+    paths_per_second: f64,
+    estimator: &str,
+) {
     println!(
         "samples per pixel: {} ({} passes of {})",
         plan.spp(),
@@ -607,10 +620,7 @@ fn print_totals(plan: &FramePlan, seconds: f64, error: f64, paths_per_second: f6
         plan.samples_per_pass
     );
     println!("seconds: {seconds:.3}");
-    println!(
-        "estimated relative error: {error:.4} (estimator: {})",
-        tessera_farm::ERROR_ESTIMATOR
-    );
+    println!("estimated relative error: {error:.4} (estimator: {estimator})");
     println!("paths per second: {paths_per_second:.0}");
 }
 
@@ -652,7 +662,7 @@ fn render_black(p: &Prepared, args: &RenderArgs) -> Result<()> {
         plan.height,
         args.output.display()
     );
-    print_totals(&plan, seconds, 0.0, 0.0);
+    print_totals(&plan, seconds, 0.0, 0.0, tessera_farm::ERROR_ESTIMATOR);
     if p.scene.environment.is_none() {
         // Most downloaded models carry no light of their own.
         println!(

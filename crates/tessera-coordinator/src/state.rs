@@ -578,15 +578,32 @@ impl TileRejected {
 }
 
 /// A tile's (sum of squared relative errors, pixel count), zero below two passes (a
-/// variance needs two replicates, ARCHITECTURE.md §3).
+/// variance needs two replicates, ARCHITECTURE.md §3). A tile with bias statistics (vcm,
+/// ppm) adds its pixels' squared bias over the bias-corrected mean, as
+/// `tessera_farm::image_relative_error_biased` does (the pixel's own mean standing for
+/// its neighbourhood's), the bias sum clamped at 0 per tile.
 pub(crate) fn tile_error(tile: &TileAccumulator) -> (f64, u64) {
     if tile.merged_passes() < 2 {
         return (0.0, 0);
     }
     let mut sum = 0.0;
-    for p in tile.pixels() {
-        let r = p.relative_error();
-        sum += r * r;
+    let Some(bias) = tile.bias() else {
+        for p in tile.pixels() {
+            let r = p.relative_error();
+            sum += r * r;
+        }
+        return (sum, tile.pixels().len() as u64);
+    };
+    let mut bias_sum = 0.0;
+    for (p, b) in tile.pixels().iter().zip(bias) {
+        let (m, v) = (p.mean_lum, p.lum_variance_of_mean());
+        let (bm, bv) = (b.mean, b.variance_of_mean());
+        let s = tessera_farm::bias_scale(m, v, m, bm, bv);
+        sum += v.max(0.0) / (s * s);
+        bias_sum += tessera_farm::bias_squared(bm, bv) / (s * s);
+    }
+    if bias_sum.is_finite() {
+        sum += bias_sum.max(0.0);
     }
     (sum, tile.pixels().len() as u64)
 }

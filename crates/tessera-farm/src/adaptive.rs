@@ -71,7 +71,7 @@
 //!     for unit in units {
 //!         let rect = plan.tile(unit.tile);
 //!         let pass_means = vec![[0.5f32; 3]; rect.pixel_count() * unit.pass_count as usize];
-//!         let r = UnitResult { unit, width: rect.width, height: rect.height, pass_means, rejected_samples: 0 };
+//!         let r = UnitResult { unit, width: rect.width, height: rect.height, pass_means, rejected_samples: 0, bias: None };
 //!         frame.offer(&r)?;
 //!     }
 //! }
@@ -952,6 +952,7 @@ impl AdaptiveFrame {
             passes: vec![0; n],
             samples: vec![0; n],
             relative_error: vec![0.0; n],
+            bias: None,
         };
         let spp = self.plan.samples_per_pass;
         for tile in &self.tiles {

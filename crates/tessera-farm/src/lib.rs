@@ -52,7 +52,7 @@
 //!         pass_means.extend(std::iter::repeat([v, v, v]).take(rect.pixel_count()));
 //!     }
 //!     let result =
-//!         UnitResult { unit, width: rect.width, height: rect.height, pass_means, rejected_samples: 0 };
+//!         UnitResult { unit, width: rect.width, height: rect.height, pass_means, rejected_samples: 0, bias: None };
 //!     let again = result.clone();
 //!     frame.offer(result)?;
 //!     // A second copy of the same work is recognised and not merged.
@@ -103,8 +103,9 @@ pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,
 };
 pub use stats::{
-    image_relative_error, image_relative_error_pooled, interval_quantile, luminance,
-    pooled_interval_variance, robust_scale, ErrorEstimator, PixelStats, ERROR_ESTIMATOR,
+    bias_scale, bias_squared, image_relative_error, image_relative_error_biased,
+    image_relative_error_pooled, interval_quantile, luminance, pooled_interval_variance,
+    robust_scale, BiasStats, ErrorEstimator, PixelStats, BIAS_TERM, ERROR_ESTIMATOR,
     ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE, LUMINANCE_WEIGHTS, REL_EPS,
 };
 

@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::plan::{FramePlan, PlanError, TileRect};
 use crate::result::{ResultError, UnitResult};
-use crate::stats::PixelStats;
+use crate::stats::{BiasStats, PixelStats};
 
 /// What [`TileAccumulator::offer`] / [`FrameAccumulator::offer`] did with a result.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -59,13 +59,17 @@ pub enum MergeError {
     },
 }
 
+/// A buffered unit's pass means and bias channel ([`UnitResult::bias`]).
+type Pending = (Vec<[f32; 3]>, Option<Vec<f32>>);
+
 /// Bookkeeping for one accepted unit of a tile.
 #[derive(Debug, Clone)]
 struct UnitRecord {
     pass_count: u32,
     digest: u64,
-    /// The pass means while the unit waits for earlier passes; `None` once merged.
-    pending: Option<Vec<[f32; 3]>>,
+    /// The pass means and the bias channel while the unit waits for earlier passes;
+    /// `None` once merged.
+    pending: Option<Pending>,
 }
 
 /// The merged state of one tile: its pixels' statistics over passes `0..merged_passes`,
@@ -81,6 +85,9 @@ pub struct TileAccumulator {
     rect: TileRect,
     pixels: Vec<PixelStats>,
     merged_passes: u32,
+    /// The statistics of the bias channel ([`UnitResult::bias`]), per pixel: `Some` only
+    /// while every merged unit carried one (vcm and ppm), from the first pass on.
+    bias: Option<Vec<BiasStats>>,
     /// Accepted units keyed by first pass; their ranges never overlap, and those below
     /// `merged_passes` tile `0..merged_passes` exactly.
     units: BTreeMap<u32, UnitRecord>,
@@ -93,6 +100,7 @@ impl TileAccumulator {
             rect,
             pixels: vec![PixelStats::default(); rect.pixel_count()],
             merged_passes: 0,
+            bias: None,
             units: BTreeMap::new(),
         }
     }
@@ -142,7 +150,7 @@ impl TileAccumulator {
                 UnitRecord {
                     pass_count: count,
                     digest,
-                    pending: Some(result.pass_means),
+                    pending: Some((result.pass_means, result.bias)),
                 },
             );
             return Ok(Offer::Buffered);
@@ -155,15 +163,15 @@ impl TileAccumulator {
                 pending: None,
             },
         );
-        self.fold(&result.pass_means, count);
+        self.fold(&result.pass_means, result.bias.as_deref(), count);
         let mut passes_merged = count;
         // Release buffered units that are now contiguous.
         while let Some(rec) = self.units.get_mut(&self.merged_passes) {
-            let Some(means) = rec.pending.take() else {
+            let Some((means, bias)) = rec.pending.take() else {
                 break;
             };
             let n = rec.pass_count;
-            self.fold(&means, n);
+            self.fold(&means, bias.as_deref(), n);
             passes_merged = passes_merged.saturating_add(n);
         }
         Ok(Offer::Merged { passes_merged })
@@ -180,8 +188,11 @@ impl TileAccumulator {
     }
 
     /// Folds `pass_count` passes of validated means (pass-major) into the statistics, pass
-    /// by pass, and advances `merged_passes`.
-    fn fold(&mut self, means: &[[f32; 3]], pass_count: u32) {
+    /// by pass, and advances `merged_passes`. The bias channel is kept only while every
+    /// unit from pass 0 on carries one: a unit without it (a technique or a worker that
+    /// does not send it) drops the tile's bias statistics for good, and the estimate falls
+    /// back to the pass spread alone rather than mixing passes with and without it.
+    fn fold(&mut self, means: &[[f32; 3]], bias: Option<&[f32]>, pass_count: u32) {
         let n = self.pixels.len();
         if n > 0 {
             for pass in means.chunks_exact(n) {
@@ -189,6 +200,25 @@ impl TileAccumulator {
                     stats.push(rgb);
                 }
             }
+        }
+        match (bias, self.bias.as_mut()) {
+            (Some(b), None) if self.merged_passes == 0 && n > 0 => {
+                let mut stats = vec![BiasStats::default(); n];
+                for pass in b.chunks_exact(n) {
+                    for (s, &v) in stats.iter_mut().zip(pass) {
+                        s.push(v);
+                    }
+                }
+                self.bias = Some(stats);
+            }
+            (Some(b), Some(stats)) if n > 0 => {
+                for pass in b.chunks_exact(n) {
+                    for (s, &v) in stats.iter_mut().zip(pass) {
+                        s.push(v);
+                    }
+                }
+            }
+            _ => self.bias = None,
         }
         self.merged_passes = self.merged_passes.saturating_add(pass_count);
     }
@@ -201,6 +231,31 @@ impl TileAccumulator {
     /// Per-pixel statistics, row-major within the tile.
     pub fn pixels(&self) -> &[PixelStats] {
         &self.pixels
+    }
+
+    /// Per-pixel statistics of the bias channel ([`UnitResult::bias`]), row-major within
+    /// the tile, when every merged unit carried one.
+    pub fn bias(&self) -> Option<&[BiasStats]> {
+        self.bias.as_deref()
+    }
+
+    /// Restores the bias statistics of a tile rebuilt by [`TileAccumulator::restore`]
+    /// from a checkpoint that holds them; refuses statistics of another pixel count or
+    /// of other passes than the tile's.
+    pub fn restore_bias(&mut self, bias: Vec<BiasStats>) -> Result<(), String> {
+        if bias.len() != self.pixels.len()
+            || bias
+                .iter()
+                .zip(&self.pixels)
+                .any(|(b, p)| b.passes != p.passes)
+        {
+            return Err(format!(
+                "tile {}: the checkpoint's bias statistics do not match its pixels",
+                self.rect.index
+            ));
+        }
+        self.bias = Some(bias);
+        Ok(())
     }
 
     /// The tile.
@@ -280,6 +335,7 @@ impl TileAccumulator {
             rect,
             pixels,
             merged_passes,
+            bias: None,
             units: map,
         })
     }
@@ -426,6 +482,11 @@ impl FrameAccumulator {
             passes: vec![0; n],
             samples: vec![0; n],
             relative_error: vec![0.0; n],
+            bias: self
+                .tiles
+                .iter()
+                .all(|t| t.bias().is_some())
+                .then(|| vec![[0.0; 2]; n]),
         };
         for tile in &self.tiles {
             let r = tile.rect();
@@ -449,6 +510,19 @@ impl FrameAccumulator {
                     img.samples[p] = samples;
                 }
             }
+            if let (Some(layer), Some(bias)) = (img.bias.as_mut(), tile.bias()) {
+                for (row, stats) in bias.chunks_exact(r.width.max(1) as usize).enumerate() {
+                    let start = (r.y0 as usize + row) * w + r.x0 as usize;
+                    for (i, b) in stats.iter().enumerate() {
+                        let v = if b.passes >= 2 {
+                            b.variance_of_mean() as f32
+                        } else {
+                            0.0
+                        };
+                        layer[start + i] = [b.mean as f32, v];
+                    }
+                }
+            }
         }
         img
     }
@@ -458,10 +532,11 @@ impl FrameAccumulator {
     /// pixels with fewer have no error estimate and are excluded. 0 if no pixel has 2
     /// passes. Never NaN.
     pub fn image_error(&self) -> f64 {
-        crate::stats::image_relative_error_of_tiles(
+        crate::stats::image_error_of_tiles_with_bias(
             &self.plan,
             crate::ErrorEstimator::Robust,
             |t| self.tiles.get(t).map(TileAccumulator::pixels),
+            |t| self.tiles.get(t).and_then(TileAccumulator::bias),
         )
     }
 }
@@ -486,8 +561,17 @@ pub struct FrameImage {
     /// Merged samples per pixel, `passes * samples_per_pass`.
     pub samples: Vec<u32>,
     /// Relative error per pixel, see [`PixelStats::relative_error`] (0 with fewer than 2
-    /// passes).
+    /// passes): the pass spread's alone.
     pub relative_error: Vec<f32>,
+    /// The bias layers of a biased render (vcm, ppm; `None` for every other technique):
+    /// per pixel, the mean of its passes' bias estimates (signed luminance,
+    /// [`UnitResult::bias`]) and the estimated variance of that mean (0 with fewer than
+    /// 2 passes). A pixel's error estimate is `sqrt(v + max(0, b² - v_b))`, with `v` the
+    /// luminance variance of its mean ([`crate::bias_squared`]), over
+    /// [`crate::bias_scale`] for the relative error; the EXR's `bias.Y` and
+    /// `bias.variance.Y`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bias: Option<Vec<[f32; 2]>>,
 }
 
 impl FrameImage {
@@ -504,6 +588,7 @@ impl FrameImage {
             passes: vec![plan.passes; n],
             samples: vec![plan.spp(); n],
             relative_error: vec![0.0; n],
+            bias: None,
         }
     }
 
@@ -568,7 +653,9 @@ impl FrameImage {
     /// `relative_error * (lum(mean) + REL_EPS)` and its passes), or `None` while a pixel
     /// has fewer than 2 passes (it has no estimate, so no claim about the image can be
     /// made). Computed from the written layers, so every renderer of the same image (local
-    /// or farm, live or restored from checkpoints) gets the same number.
+    /// or farm, live or restored from checkpoints) gets the same number. With bias layers
+    /// ([`FrameImage::bias`]) it is [`crate::image_relative_error_biased`] whatever the
+    /// estimator.
     pub fn error_estimate(&self, estimator: crate::ErrorEstimator) -> Option<f64> {
         if self.passes.is_empty() || self.passes.iter().any(|&p| p < 2) {
             return None;
@@ -580,7 +667,14 @@ impl FrameImage {
             let se = f64::from(*self.relative_error.get(p)?) * (m.max(0.0) + crate::REL_EPS);
             Some((m, se * se, *self.passes.get(p)?))
         };
-        let e = estimator.image_error(w, h, pixel);
+        let e = match &self.bias {
+            Some(bias) => crate::image_relative_error_biased(w, h, |x, y| {
+                let (m, v, _) = pixel(x, y)?;
+                let [b, vb] = *bias.get(y * w + x)?;
+                Some((m, v, f64::from(b), f64::from(vb)))
+            }),
+            None => estimator.image_error(w, h, pixel),
+        };
         e.is_finite().then_some(e)
     }
 }
@@ -613,6 +707,7 @@ mod tests {
             height: rect.height,
             pass_means,
             rejected_samples: 0,
+            bias: None,
         }
     }
 
@@ -667,6 +762,82 @@ mod tests {
             u64::from(plan.tile_count()) * u64::from(plan.passes)
         );
         acc
+    }
+
+    /// A result with a bias channel: the pass mean's luminance minus 0.5, a signed value
+    /// that depends on (tile, pass, pixel) only.
+    fn render_biased(plan: &FramePlan, unit: WorkUnit) -> UnitResult {
+        let mut r = render(plan, unit);
+        r.bias = Some(
+            r.pass_means
+                .iter()
+                .map(|m| (crate::luminance(m.map(f64::from)) - 0.5) as f32)
+                .collect(),
+        );
+        r
+    }
+
+    /// The bias channel merges like the pass means: bit-identical across unit splits and
+    /// arrival orders, Welford over the passes in order, into the image's bias layers and
+    /// its estimate (which grows by the bias); a unit without the channel drops it.
+    #[test]
+    fn bias_channel_merges_in_pass_order_and_needs_every_unit() {
+        let plan = plan();
+        let merge = |per: u32, seed: Option<u64>, plain_unit: Option<usize>| {
+            let mut units = plan.units(0, per);
+            if let Some(seed) = seed {
+                Rng::new(seed).shuffle(&mut units);
+            }
+            let mut acc = FrameAccumulator::new(plan);
+            for (i, u) in units.into_iter().enumerate() {
+                let r = if Some(i) == plain_unit {
+                    render(&plan, u)
+                } else {
+                    render_biased(&plan, u)
+                };
+                acc.offer(r).unwrap();
+            }
+            acc
+        };
+        let reference = merge(1, None, None);
+        let img = reference.image();
+        let layer = img.bias.clone().expect("every unit carried bias");
+        for (per, seed) in [(4, Some(1)), (5, Some(2)), (12, None)] {
+            let acc = merge(per, seed, None);
+            let other = acc.image().bias.unwrap();
+            assert!(
+                other
+                    .iter()
+                    .flatten()
+                    .zip(layer.iter().flatten())
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "per {per}"
+            );
+            assert_eq!(
+                acc.image_error().to_bits(),
+                reference.image_error().to_bits()
+            );
+        }
+        // Tile 14's pixel 3 against a Welford run over its passes.
+        let mut b = BiasStats::default();
+        for pass in 0..plan.passes {
+            b.push((crate::luminance(pass_mean(14, pass, 3).map(f64::from)) - 0.5) as f32);
+        }
+        assert_eq!(reference.tile(14).unwrap().bias().unwrap()[3], b);
+        // The estimate adds the bias: the same passes without the channel estimate less.
+        let plain = merge_all(&plan, 1, None);
+        assert!(reference.image_error() > plain.image_error());
+        assert_eq!(plain.image().bias, None);
+        let plain_image = plain.image();
+        let spread = plain_image
+            .error_estimate(crate::ErrorEstimator::Robust)
+            .unwrap();
+        let with = img.error_estimate(crate::ErrorEstimator::Robust).unwrap();
+        assert!(with > spread, "{with} vs {spread}");
+        // One unit without the channel: no bias layers at all, the spread's estimate.
+        let mixed = merge(1, Some(3), Some(7));
+        assert_eq!(mixed.image().bias, None);
+        assert_eq!(mixed.image_error().to_bits(), plain.image_error().to_bits());
     }
 
     #[test]
@@ -907,6 +1078,7 @@ mod tests {
             height: rect.height,
             pass_means: vec![rgb; unit.pass_count as usize * rect.pixel_count()],
             rejected_samples: 0,
+            bias: None,
         }
     }
 
@@ -952,6 +1124,7 @@ mod tests {
             passes: vec![2, 5, 4, 1, 3, 3],
             samples: vec![0; 6],
             relative_error: vec![0.0; 6],
+            bias: None,
         };
         let iv = img.interval_variance();
         let close = |a: f32, b: f64| (f64::from(a) - b).abs() <= 1e-6 * b.max(1e-30);
@@ -1006,6 +1179,7 @@ mod tests {
             height: 1,
             pass_means: px.to_vec(),
             rejected_samples: 0,
+            bias: None,
         };
         let z = [0.0; 3];
         acc.offer(result(unit(0, 0), [[1.0, 0.0, 0.0], [2.0; 3], z, z]))
@@ -1068,6 +1242,7 @@ mod tests {
                 height: rect.height,
                 pass_means,
                 rejected_samples: 0,
+                bias: None,
             };
             assert_eq!(acc.offer(r), Ok(Offer::Merged { passes_merged: 1 }));
         }

@@ -27,6 +27,18 @@ pub struct UnitResult {
     /// results, where it reads as 0.
     #[serde(default)]
     pub rejected_samples: u64,
+    /// The renderer's per-pass estimate of its own bias, for techniques that are biased
+    /// (vertex merging: vcm and ppm), `None` for every unbiased one: one signed luminance
+    /// per pass and pixel, laid out as `pass_means`
+    /// (`bias[p * width * height + y * width + x]`). Each is the leading term of the
+    /// expected error of that pass mean
+    /// (`E[pass mean] - true value`, Hachisuka, Jarosz & Jensen 2010, section 4), itself a
+    /// noisy, unbiased estimate of it, so the merge keeps its spread beside its mean
+    /// (ARCHITECTURE.md §3, "Biased techniques: the bias term"). Absent from the serialized form and from
+    /// [`UnitResult::digest`] when `None`, so unbiased results keep their bytes and
+    /// digests.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bias: Option<Vec<f32>>,
 }
 
 /// Why a unit result was rejected. Messages name the offending field and value.
@@ -135,6 +147,28 @@ pub enum ResultError {
         /// The offending value.
         value: f32,
     },
+    /// The bias channel's length differs from `pass_means`'.
+    #[error("tile {tile}: bias has {len} values, expected {expected} (one per pass mean)")]
+    BiasLength {
+        /// Tile index.
+        tile: u32,
+        /// Actual length.
+        len: usize,
+        /// The length of `pass_means`.
+        expected: usize,
+    },
+    /// A bias value is NaN, infinite or larger in magnitude than [`MAX_PASS_MEAN`].
+    #[error("bias[{index}] is {value}, not finite within +-{MAX_PASS_MEAN:e} (pixel {pixel} in pass {pass})")]
+    BiasValue {
+        /// Index into `bias`.
+        index: usize,
+        /// Pixel index within the tile (row-major).
+        pixel: usize,
+        /// Absolute pass index.
+        pass: u64,
+        /// The offending value.
+        value: f32,
+    },
 }
 
 /// The largest pass mean a result may carry. A pass mean is an average of radiance
@@ -223,6 +257,29 @@ impl UnitResult {
 
     fn validate_values(&self, rect: &TileRect) -> Result<(), ResultError> {
         let pixels = rect.pixel_count().max(1);
+        if let Some(bias) = &self.bias {
+            if bias.len() != self.pass_means.len() {
+                return Err(ResultError::BiasLength {
+                    tile: rect.index,
+                    len: bias.len(),
+                    expected: self.pass_means.len(),
+                });
+            }
+            // Signed (a blur lowers peaks and raises valleys), but bounded like the pass
+            // means, so that its square stays finite in the merged statistics.
+            if let Some((index, &value)) = bias
+                .iter()
+                .enumerate()
+                .find(|(_, v)| !(v.is_finite() && v.abs() <= MAX_PASS_MEAN))
+            {
+                return Err(ResultError::BiasValue {
+                    index,
+                    pixel: index % pixels,
+                    pass: u64::from(self.unit.first_pass) + (index / pixels) as u64,
+                    value,
+                });
+            }
+        }
         for (index, rgb) in self.pass_means.iter().enumerate() {
             for (channel, &value) in rgb.iter().enumerate() {
                 // `!(value >= 0.0)` also catches NaN; finiteness is reported first.
@@ -265,8 +322,10 @@ impl UnitResult {
     ///
     /// FNV-1a (64-bit) over the little-endian bytes of `frame, tile, first_pass,
     /// pass_count, width, height` (u32 each), the length of `pass_means` (u64), then the
-    /// exact bits of every value (`f32::to_bits`, channel by channel). Stable across
-    /// platforms and versions; `0.0` and `-0.0` differ.
+    /// exact bits of every value (`f32::to_bits`, channel by channel); with a bias channel
+    /// ([`UnitResult::bias`]), then its length (u64) and the bits of its values. Stable
+    /// across platforms and versions; `0.0` and `-0.0` differ. A result without a bias
+    /// channel has the digest it had before the channel existed.
     pub fn digest(&self) -> u64 {
         let mut h = Fnv1a::new();
         for v in [
@@ -282,6 +341,12 @@ impl UnitResult {
         h.write(&(self.pass_means.len() as u64).to_le_bytes());
         for rgb in &self.pass_means {
             for v in rgb {
+                h.write(&v.to_bits().to_le_bytes());
+            }
+        }
+        if let Some(bias) = &self.bias {
+            h.write(&(bias.len() as u64).to_le_bytes());
+            for v in bias {
                 h.write(&v.to_bits().to_le_bytes());
             }
         }
@@ -335,6 +400,7 @@ mod tests {
             height: rect.height,
             pass_means: (0..n).map(|i| [i as f32, 0.5, 0.25]).collect(),
             rejected_samples: 0,
+            bias: None,
         }
     }
 
@@ -463,5 +529,39 @@ mod tests {
         m.rejected_samples = 12;
         assert_eq!(r.digest(), m.digest());
         m.validate(&p).unwrap();
+    }
+
+    /// The bias channel: checked for length and finiteness (negative values are valid),
+    /// part of the digest only when present.
+    #[test]
+    fn bias_channel_is_validated_and_digested() {
+        let p = plan();
+        let r = result(&p, 4, 2, 3);
+        let plain = r.digest();
+        let mut b = r.clone();
+        b.bias = Some(vec![-0.25; r.pass_means.len()]);
+        b.validate(&p).unwrap();
+        assert_ne!(b.digest(), plain);
+        let mut c = b.clone();
+        c.bias.as_mut().unwrap()[3] = -0.5;
+        assert_ne!(c.digest(), b.digest());
+        c.bias.as_mut().unwrap()[3] = f32::NAN;
+        assert!(matches!(
+            c.validate(&p),
+            Err(ResultError::BiasValue { index: 3, .. })
+        ));
+        c.bias.as_mut().unwrap()[3] = -2.0 * MAX_PASS_MEAN;
+        assert!(c.validate(&p).is_err());
+        c.bias.as_mut().unwrap().pop();
+        assert!(matches!(
+            c.validate(&p),
+            Err(ResultError::BiasLength { .. })
+        ));
+        // Absent: the serialized form has no field, and old serialized results read.
+        let json = serde_json::to_string(&r).unwrap();
+        assert!(!json.contains("bias"), "{json}");
+        let back: UnitResult = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, r);
+        assert_eq!(back.digest(), plain);
     }
 }

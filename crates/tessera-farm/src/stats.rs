@@ -341,6 +341,169 @@ pub fn pooled_interval_variance(sum: [f64; 3], dof: f64, own: f64) -> [f32; 3] {
     sum.map(|s| (s / dof / own * widen) as f32)
 }
 
+/// [`image_relative_error_of_tiles`] of a frame whose tiles may carry bias statistics:
+/// `bias(t)` gives tile `t`'s, and where every tile has them the estimate is
+/// [`image_relative_error_biased`]. Pixels with fewer than 2 passes have no estimate.
+pub(crate) fn image_error_of_tiles_with_bias<'a>(
+    plan: &crate::FramePlan,
+    estimator: ErrorEstimator,
+    tile: impl Fn(usize) -> Option<&'a [PixelStats]>,
+    bias: impl Fn(usize) -> Option<&'a [BiasStats]>,
+) -> f64 {
+    let tiles = plan.tile_count() as usize;
+    if tiles == 0 || (0..tiles).any(|t| bias(t).is_none()) {
+        return image_relative_error_of_tiles(plan, estimator, tile);
+    }
+    let (width, height) = (plan.width as usize, plan.height as usize);
+    let edge = plan.tile_size.max(1) as usize;
+    let tiles_x = plan.tiles_x() as usize;
+    image_relative_error_biased(width, height, |x, y| {
+        let (lx, ly) = (x % edge, y % edge);
+        let tile_width = edge.min(width - (x - lx));
+        let t = (y / edge) * tiles_x + x / edge;
+        let i = ly * tile_width + lx;
+        let s = tile(t)?.get(i)?;
+        let b = bias(t)?.get(i)?;
+        (s.passes >= 2).then(|| {
+            (
+                s.mean_lum,
+                s.lum_variance_of_mean(),
+                b.mean,
+                b.variance_of_mean(),
+            )
+        })
+    })
+}
+
+/// Appended (after "; ") to the error estimator's name ([`ErrorEstimator::name`]) in the
+/// EXR header, the job status and `tessera render`'s summary when the render carries a
+/// bias channel ([`crate::UnitResult::bias`]: vcm and ppm): its estimate is
+/// [`image_relative_error_biased`].
+pub const BIAS_TERM: &str = "plus the merging bias estimated from the photons (Hachisuka, Jarosz & Jensen 2010), over the bias-corrected mean";
+
+/// The unbiased estimate of a pixel's squared bias from its bias layers: `b² - v_b`, where
+/// `b` is the mean of its passes' bias estimates and `v_b` the estimated variance of that
+/// mean. Each pass's estimate is noisy (on a smooth field its variance is about three times
+/// the pass mean's own, the weights `6 d²/r² - 3` having mean square 3), so `b²` alone
+/// would charge that noise as bias: `E[b²] = bias² + Var(b)`. Not clamped, and may be
+/// negative: the image estimate sums it over pixels before clamping
+/// ([`image_relative_error_biased`]), so that the noise cancels instead of piling up as
+/// `max(0, ·)` per pixel would make it. 0 with fewer than 2 passes (no spread to
+/// subtract).
+#[inline]
+pub fn bias_squared(mean: f64, variance_of_mean: f64) -> f64 {
+    if variance_of_mean.is_finite() {
+        mean * mean - variance_of_mean
+    } else {
+        0.0
+    }
+}
+
+/// The luminance scale of a biased render's pixel: `min(robust_scale(m, v, m_3x3),
+/// max(m - b, 0) + sqrt(v_b) + REL_EPS)`, where `b` is the pixel's mean bias estimate and
+/// `v_b` its estimated variance ([`BiasStats`]).
+///
+/// Why: the relative error divides by the pixel's true value, and where merging blurs a
+/// bright caustic into a dark shadow the pixel's mean is mostly bias (0.8 where the truth
+/// is 0.03 on `builtin:caustic` at 32 x 32): divided by its own mean, an exact bias would
+/// count as a relative error of 1 where it is 20, and the image estimate was 0.12 of the
+/// measured error with the bias term (docs/benchmarks.md, "The merging bias term"). `m -
+/// b` is the bias-corrected mean; one standard error of the correction keeps the noise of
+/// `b` from dragging the scale to `REL_EPS` (without it the estimate was 3 times the
+/// measured error). Never above the robust scale, so a negative `b` does not lower the
+/// estimate.
+#[inline]
+pub fn bias_scale(
+    mean_lum: f64,
+    lum_variance_of_mean: f64,
+    neighbourhood_mean: f64,
+    bias: f64,
+    bias_variance_of_mean: f64,
+) -> f64 {
+    let robust = robust_scale(mean_lum, lum_variance_of_mean, neighbourhood_mean);
+    if !(bias.is_finite() && bias_variance_of_mean.is_finite()) {
+        return robust;
+    }
+    let corrected = (mean_lum - bias).max(0.0) + bias_variance_of_mean.max(0.0).sqrt() + REL_EPS;
+    robust.min(corrected)
+}
+
+/// The image relative error estimate of a biased render (vcm, ppm; ARCHITECTURE.md §3):
+/// the mean squared error is the variance plus the squared bias, so the estimate is
+/// `sqrt((Σ v / s² + max(0, Σ bias² / s²)) / n)` over the `n` pixels with an estimate,
+/// where `v` is the estimated variance of a pixel's mean from the pass spread, `bias²`
+/// its [`bias_squared`] (summed over the pixels before the clamp, so the noise of the
+/// per-pixel estimates cancels) and `s` its [`bias_scale`]. `pixel(x, y)` gives the mean
+/// luminance `m`, its variance `v`, the mean bias estimate `b` and its variance `v_b`, or
+/// `None` for a pixel with fewer than 2 passes. 0 when no pixel has an estimate; never
+/// NaN. Used whatever the [`ErrorEstimator`] when a render carries bias layers.
+pub fn image_relative_error_biased(
+    width: usize,
+    height: usize,
+    pixel: impl Fn(usize, usize) -> Option<(f64, f64, f64, f64)>,
+) -> f64 {
+    let (mut spread, mut bias, mut count) = (0.0f64, 0.0f64, 0u64);
+    for y in 0..height {
+        for x in 0..width {
+            let Some((m, v, b, vb)) = pixel(x, y) else {
+                continue;
+            };
+            let (mut nsum, mut n) = (0.0f64, 0u32);
+            for qy in y.saturating_sub(1)..(y + 2).min(height) {
+                for qx in x.saturating_sub(1)..(x + 2).min(width) {
+                    if let Some(q) = pixel(qx, qy) {
+                        nsum += q.0;
+                        n += 1;
+                    }
+                }
+            }
+            let s = bias_scale(m, v, nsum / f64::from(n.max(1)), b, vb);
+            spread += v.max(0.0) / (s * s);
+            bias += bias_squared(b, vb) / (s * s);
+            count += 1;
+        }
+    }
+    if !bias.is_finite() {
+        bias = 0.0;
+    }
+    root_mean(spread + bias.max(0.0), count)
+}
+
+/// Running statistics of one pixel's per-pass bias estimates ([`crate::UnitResult::bias`]):
+/// Welford updates in f64, like [`PixelStats`], merged in pass order.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct BiasStats {
+    /// Number of passes pushed.
+    pub passes: u32,
+    /// Mean of the passes' bias estimates (signed luminance).
+    pub mean: f64,
+    /// Sum of squared deviations from the mean.
+    pub m2: f64,
+}
+
+impl BiasStats {
+    /// Adds one pass's bias estimate.
+    #[inline]
+    pub fn push(&mut self, b: f32) {
+        self.passes = self.passes.saturating_add(1);
+        let n = f64::from(self.passes);
+        let x = f64::from(b);
+        let d = x - self.mean;
+        self.mean += d / n;
+        self.m2 += d * (x - self.mean);
+    }
+
+    /// Estimated variance of the mean, `m2 / (n (n - 1))`; `f64::INFINITY` with fewer than
+    /// 2 passes.
+    pub fn variance_of_mean(&self) -> f64 {
+        if self.passes < 2 {
+            return f64::INFINITY;
+        }
+        let n = f64::from(self.passes);
+        self.m2 / (n * (n - 1.0))
+    }
+}
+
 /// Luminance weights of linear Rec. 709 / sRGB primaries.
 pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
 
@@ -746,5 +909,67 @@ mod tests {
         let frac = covered as f64 / r;
         let band = 3.0 * (p * (1.0 - p) / r).sqrt();
         assert!((frac - p).abs() <= band, "coverage {frac} vs {p} +- {band}");
+    }
+
+    /// The squared bias estimate is unbiased where the per-pass estimates are pure noise
+    /// (their mean over many pixels is near 0, where `mean²` alone would be `Var`), and
+    /// recovers a constant bias; the image estimate adds it to the spread's over the
+    /// bias-corrected scale.
+    #[test]
+    fn bias_squared_removes_the_noise_and_keeps_the_bias() {
+        let mut rng = Rng::new(40);
+        let (pixels, k) = (4000, 4);
+        for (bias, sigma) in [(0.0f64, 1.0f64), (0.5, 1.0), (2.0, 0.5)] {
+            let mut sum = 0.0;
+            let mut naive = 0.0;
+            for _ in 0..pixels {
+                let mut b = BiasStats::default();
+                for _ in 0..k {
+                    b.push((bias + sigma * rng.normal()) as f32);
+                }
+                sum += bias_squared(b.mean, b.variance_of_mean());
+                naive += b.mean * b.mean;
+            }
+            let got = sum / pixels as f64;
+            // Var(mean) = sigma² / k; the estimate's spread over pixels is about
+            // sqrt(2 (sigma²/k)² (1 + 1/(k-1)) + 4 bias² sigma²/k) / sqrt(pixels).
+            let v = sigma * sigma / k as f64;
+            let se = ((2.0 * v * v * (1.0 + 1.0 / (k as f64 - 1.0)) + 4.0 * bias * bias * v)
+                / pixels as f64)
+                .sqrt();
+            assert!(
+                (got - bias * bias).abs() < 4.0 * se,
+                "bias {bias}: {got} +- {se}"
+            );
+            assert!((naive / pixels as f64 - bias * bias - v).abs() < 4.0 * se + 0.02);
+        }
+        assert_eq!(bias_squared(3.0, f64::INFINITY), 0.0);
+        // Flat 2x2 image of mean 1 - REL_EPS, no variance, no bias: the scale is 1 and
+        // the estimate the spread's.
+        let flat = |b: f64, vb: f64| {
+            image_relative_error_biased(2, 2, move |_, _| Some((1.0 - REL_EPS, 0.09, b, vb)))
+        };
+        let robust = image_relative_error(2, 2, |_, _| Some((1.0 - REL_EPS, 0.09)));
+        assert!((flat(0.0, 0.0) - robust).abs() < 1e-12);
+        // A bias of 0.5 with no noise: the scale falls to the corrected mean 0.5 - REL_EPS
+        // + REL_EPS, and the error is sqrt(0.09 + 0.25) / 0.5.
+        assert!((flat(0.5, 0.0) - (0.34f64).sqrt() / 0.5).abs() < 1e-12);
+        // A negative bias never raises the scale above the robust one.
+        assert!(flat(-0.5, 0.0) >= robust);
+        // Pure noise in the bias (b² < v_b) never lowers the spread's part: the bias sum
+        // is clamped at 0 (the scale may still fall by the noise's standard error).
+        assert!(flat(0.1, 0.04) >= robust);
+        assert_eq!(image_relative_error_biased(2, 2, |_, _| None), 0.0);
+        // The scale: the corrected mean plus the correction's standard error, at most
+        // the robust scale.
+        assert!((bias_scale(1.0, 0.0, 1.0, 0.7, 0.01) - (0.3 + 0.1 + REL_EPS)).abs() < 1e-12);
+        assert_eq!(
+            bias_scale(1.0, 0.0, 1.0, -0.7, 0.0),
+            robust_scale(1.0, 0.0, 1.0)
+        );
+        assert_eq!(
+            bias_scale(1.0, 0.0, 1.0, 2.0, f64::INFINITY),
+            robust_scale(1.0, 0.0, 1.0)
+        );
     }
 }

@@ -14,6 +14,7 @@
 //! | `relerr.Y` | estimated relative standard error of the pixel's luminance |
 //! | `passes.Y` | number of passes merged |
 //! | `samples.Y` | samples per pixel traced (for adaptive renders, including a discarded unbiased pilot: where the effort went) |
+//! | `bias.Y`, `bias.variance.Y` | only in biased renders (vcm, ppm): the mean of the passes' estimates of the merging bias (signed luminance, [`tessera_farm::FrameImage::bias`]) and the variance of that mean; the pixel's error estimate is `sqrt(v + max(0, bias.Y² - bias.variance.Y))`, with `v` the luminance variance of its mean, and its relative error divides it by the bias-corrected mean ([`tessera_farm::bias_scale`]) |
 //!
 //! PNG: the beauty clamped to [0, 1] and encoded with the sRGB transfer function, 8 bits.
 #![deny(missing_docs)]

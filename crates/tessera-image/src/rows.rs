@@ -28,7 +28,7 @@ use tessera_farm::FrameImage;
 
 use crate::{ImageError, METADATA_ATTRIBUTE};
 
-/// The layers of one pixel as [`FrameImage`] holds them (36 bytes).
+/// The layers of one pixel as [`FrameImage`] holds them (44 bytes).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Pixel {
     /// Mean radiance.
@@ -41,6 +41,9 @@ pub struct Pixel {
     pub samples: u32,
     /// Relative error (0 with fewer than 2 passes).
     pub relative_error: f32,
+    /// The bias layers ([`FrameImage::bias`]): the mean bias estimate and its variance of
+    /// the mean; zero when the frame has none ([`FrameRows::has_bias`]).
+    pub bias: [f32; 2],
 }
 
 /// A frame's pixel layers, read a row or a pixel at a time: a [`FrameImage`], or a
@@ -53,6 +56,12 @@ pub trait FrameRows {
     fn height(&self) -> u32;
     /// Pixel (`x`, `y`), inside the frame.
     fn pixel(&self, x: u32, y: u32) -> Pixel;
+    /// Whether the frame has bias layers (a biased render, [`FrameImage::bias`]): the EXR
+    /// then has the channels `bias.Y` and `bias.variance.Y`, and the error estimate adds
+    /// the bias. False by default.
+    fn has_bias(&self) -> bool {
+        false
+    }
     /// Row `y` into `out` (cleared first); the default reads it pixel by pixel.
     fn row(&self, y: u32, out: &mut Vec<Pixel>) {
         out.clear();
@@ -75,7 +84,11 @@ impl FrameRows for FrameImage {
             passes: self.passes[p],
             samples: self.samples[p],
             relative_error: self.relative_error[p],
+            bias: self.bias.as_ref().map_or([0.0; 2], |b| b[p]),
         }
+    }
+    fn has_bias(&self) -> bool {
+        self.bias.is_some()
     }
 }
 
@@ -126,12 +139,21 @@ pub fn error_estimate(
         let se = f64::from(p.relative_error) * (m.max(0.0) + tessera_farm::REL_EPS);
         Some((m, se * se, p.passes))
     };
-    let e = estimator.image_error(w as usize, h as usize, pixel);
+    let e = if rows.has_bias() {
+        tessera_farm::image_relative_error_biased(w as usize, h as usize, |x, y| {
+            let (m, v, _) = pixel(x, y)?;
+            let [b, vb] = rows.pixel(x as u32, y as u32).bias;
+            Some((m, v, f64::from(b), f64::from(vb)))
+        })
+    } else {
+        estimator.image_error(w as usize, h as usize, pixel)
+    };
     e.is_finite().then_some(e)
 }
 
-/// The EXR channels, each a function of a pixel and its pooled variance.
-const CHANNELS: [&str; 12] = [
+/// The EXR channels, each a function of a pixel and its pooled variance; the last
+/// [`BIAS_CHANNELS`] only in the files of frames with bias layers ([`FrameRows::has_bias`]).
+const CHANNELS: [&str; 14] = [
     "R",
     "G",
     "B",
@@ -144,7 +166,12 @@ const CHANNELS: [&str; 12] = [
     "relerr.Y",
     "passes.Y",
     "samples.Y",
+    "bias.Y",
+    "bias.variance.Y",
 ];
+
+/// The bias channels at the end of [`CHANNELS`].
+const BIAS_CHANNELS: usize = 2;
 
 /// Channel `c` (an index into [`CHANNELS`]) of a pixel with pooled variance `pooled`.
 fn channel_value(c: usize, p: &Pixel, pooled: &[f32; 3]) -> f32 {
@@ -154,14 +181,26 @@ fn channel_value(c: usize, p: &Pixel, pooled: &[f32; 3]) -> f32 {
         6..=8 => pooled[c - 6],
         9 => p.relative_error,
         10 => p.passes as f32,
-        _ => p.samples as f32,
+        11 => p.samples as f32,
+        12 => p.bias[0],
+        _ => p.bias[1],
     }
 }
 
 /// The headers [`crate::encode_exr`] writes for a `width` x `height` frame: inferred by
 /// the exr crate from the same layer description, with no pixel data.
-fn headers(width: usize, height: usize, metadata: Option<&str>) -> Result<Headers, ImageError> {
-    let channels: Vec<AnyChannel<FlatSamples>> = CHANNELS
+fn headers(
+    width: usize,
+    height: usize,
+    metadata: Option<&str>,
+    bias: bool,
+) -> Result<Headers, ImageError> {
+    let used = if bias {
+        CHANNELS.len()
+    } else {
+        CHANNELS.len() - BIAS_CHANNELS
+    };
+    let channels: Vec<AnyChannel<FlatSamples>> = CHANNELS[..used]
         .iter()
         .map(|name| AnyChannel::new(*name, FlatSamples::F32(Vec::new())))
         .collect();
@@ -286,11 +325,12 @@ fn write_blocks<W: Write + Seek>(
 }
 
 /// Bytes the encoder holds besides the kept file, for a frame `width` pixels wide: the
-/// row window (18 rows of 36 B pixels), the uncompressed block (16 rows of 48 B) and the
-/// ZIP compressor's copies of it (at most three more), with 64 KiB of slack.
+/// row window (18 rows of 44 B pixels), the uncompressed block (16 rows of at most 56 B:
+/// 14 channels with the bias layers) and the ZIP compressor's copies of it (at most three
+/// more), with 64 KiB of slack.
 pub fn exr_working_bytes(width: u32) -> u64 {
     let w = u64::from(width);
-    18 * w * 36 + 4 * 16 * w * 48 + (64 << 10)
+    18 * w * 44 + 4 * 16 * w * 56 + (64 << 10)
 }
 
 /// An encoded EXR: whole, or its header and offset table with the rest still to write.
@@ -329,6 +369,7 @@ impl ExrStream {
             rows.width() as usize,
             rows.height() as usize,
             self.metadata.as_deref(),
+            rows.has_bias(),
         )?;
         let mut sink = StreamSink {
             out: &mut *out,
@@ -355,7 +396,12 @@ pub fn encode_exr_rows(
     metadata: Option<&str>,
     keep: usize,
 ) -> Result<Exr, ImageError> {
-    let headers = headers(rows.width() as usize, rows.height() as usize, metadata)?;
+    let headers = headers(
+        rows.width() as usize,
+        rows.height() as usize,
+        metadata,
+        rows.has_bias(),
+    )?;
     let chunks: usize = headers.iter().map(|h| h.chunk_count).sum();
     // The header and offset table are always kept: a few KiB of text and 8 B per 16 rows.
     let minimum = 8 * chunks + metadata.map_or(0, str::len) + (64 << 10);
@@ -498,6 +544,7 @@ mod tests {
             passes: Vec::new(),
             samples: Vec::new(),
             relative_error: Vec::new(),
+            bias: None,
         };
         for _ in 0..n {
             let passes = (r.next() % 6) as u32;
@@ -540,6 +587,11 @@ mod tests {
             chan("passes.Y", &|i| img.passes[i] as f32),
             chan("samples.Y", &|i| img.samples[i] as f32),
         ];
+        let mut channels = channels;
+        if let Some(b) = &img.bias {
+            channels.push(chan("bias.Y", &|i| b[i][0]));
+            channels.push(chan("bias.variance.Y", &|i| b[i][1]));
+        }
         let mut attributes = LayerAttributes::named("tessera");
         if let Some(m) = metadata {
             attributes.other.insert(
@@ -631,6 +683,39 @@ mod tests {
             assert!(want.is_some());
             assert_eq!(error_estimate(&img, e), want);
         }
+    }
+
+    /// A biased render's bias layers: the channels `bias.Y` and `bias.variance.Y`, whole
+    /// and streamed, read back as written; the estimate from the rows is the image's,
+    /// and larger than the same image's without them.
+    #[test]
+    fn bias_layers_are_written_and_estimated() {
+        let mut img = image(40, 30, 9);
+        img.passes.iter_mut().for_each(|p| *p = (*p).max(2));
+        let plain = img.error_estimate(tessera_farm::ErrorEstimator::Robust);
+        img.bias = Some(
+            (0..img.mean.len())
+                .map(|i| [0.3 * (i % 7) as f32 - 0.9, 1e-3 * (i % 3) as f32])
+                .collect(),
+        );
+        let want = reference(&img, Some("{}"));
+        assert_eq!(streamed(&img, Some("{}"), usize::MAX).0, want);
+        assert_eq!(streamed(&img, Some("{}"), 0).0, want);
+        let back = crate::read_exr(&want).unwrap();
+        let layer = back.get("bias.Y").unwrap();
+        let bias = img.bias.as_ref().unwrap();
+        assert!(layer.iter().zip(bias).all(|(a, b)| *a == b[0]));
+        assert!(back.get("bias.variance.Y").is_ok());
+        let with = img.error_estimate(tessera_farm::ErrorEstimator::Robust);
+        assert_eq!(
+            error_estimate(&img, tessera_farm::ErrorEstimator::Robust),
+            with
+        );
+        assert!(with.unwrap() > plain.unwrap());
+        // Without bias layers the file has no such channels.
+        img.bias = None;
+        let back = crate::read_exr(&reference(&img, None)).unwrap();
+        assert!(back.get("bias.Y").is_err());
     }
 
     #[test]

@@ -214,6 +214,7 @@ impl v1::SubmitResultRequest {
             rejected_samples: result.rejected_samples,
             traced_pixel_passes: 0,
             fence: Vec::new(),
+            bias: result.bias.as_deref().map_or_else(Vec::new, means_to_bytes),
         }
     }
 
@@ -259,6 +260,19 @@ impl v1::SubmitResultRequest {
             ));
         }
         let cells = u64::from(unit.pass_count) * u64::from(self.width) * u64::from(self.height);
+        if !self.bias.is_empty() && self.bias.len() as u64 != 4 * cells {
+            return Err(ProtoError::new(
+                "bias",
+                format_args!(
+                    "has {} bytes, expected none or 4 x {} passes x {} x {} pixels = {}",
+                    self.bias.len(),
+                    unit.pass_count,
+                    self.width,
+                    self.height,
+                    4 * cells
+                ),
+            ));
+        }
         if self.traced_pixel_passes > cells {
             return Err(ProtoError::new(
                 "traced_pixel_passes",
@@ -323,7 +337,8 @@ impl TryFrom<&v1::SubmitResultRequest> for UnitResult {
 
     /// Checks the message's own consistency: the unit (as for [`WorkUnit`]), `width` and
     /// `height` in 1..=256, `pass_means` holding exactly `3 * pass_count * width * height`
-    /// values, `render_seconds` finite and non-negative. The values themselves (finite,
+    /// values, `bias` empty or holding `pass_count * width * height` values,
+    /// `render_seconds` finite and non-negative. The values themselves (finite,
     /// non-negative) and the fit to the plan are checked by `UnitResult::validate`, which
     /// the merge runs before anything is merged.
     fn try_from(r: &v1::SubmitResultRequest) -> Result<Self, ProtoError> {
@@ -334,6 +349,7 @@ impl TryFrom<&v1::SubmitResultRequest> for UnitResult {
             height: r.height,
             pass_means: unflatten(&r.pass_means),
             rejected_samples: r.rejected_samples,
+            bias: (!r.bias.is_empty()).then(|| means_from_bytes(&r.bias)),
         })
     }
 }

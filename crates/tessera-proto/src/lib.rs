@@ -29,7 +29,7 @@
 //! assert_eq!(FramePlan::try_from(wire)?, plan);
 //!
 //! let unit = plan.units(0, 1)[0];
-//! let result = UnitResult { unit, width: 32, height: 32, pass_means: vec![[0.5; 3]; 32 * 32], rejected_samples: 0 };
+//! let result = UnitResult { unit, width: 32, height: 32, pass_means: vec![[0.5; 3]; 32 * 32], rejected_samples: 0, bias: None };
 //! let request = v1::SubmitResultRequest::from_result(7, 99, &result, 0.25);
 //! assert_eq!(request.means().len(), 3 * 32 * 32);
 //! assert_eq!(UnitResult::try_from(request)?, result);

@@ -152,6 +152,7 @@ mod tests {
             height: 1,
             pass_means: vec![[0.0; 3], [0.5, 0.25, 0.125], [1.0; 3]],
             rejected_samples: 0,
+            bias: None,
         };
         let before = r.clone();
         corrupt(&mut r);

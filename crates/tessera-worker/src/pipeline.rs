@@ -450,6 +450,7 @@ mod tests {
             height: 1,
             pass_means: vec![[0.5; 3]],
             rejected_samples: 0,
+            bias: None,
         }
     }
 

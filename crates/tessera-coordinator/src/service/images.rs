@@ -30,7 +30,7 @@ use std::time::Duration;
 
 use axum::body::Bytes;
 use tessera_farm::job::StopVerdict;
-use tessera_farm::{AdaptiveMode, PixelStats};
+use tessera_farm::{AdaptiveMode, BiasStats, PixelStats};
 use tessera_image::rows::{encode_exr_rows, exr_working_bytes, Exr, FrameRows, Pixel, UniformRows};
 
 use tessera_api::{
@@ -526,7 +526,10 @@ impl Coordinator {
         let plan = meta.resolved.plan;
         let rows = match self.restore_frame(id, &meta).await? {
             StoredFrame::Black => Rows::Uniform(uniform(&plan, true)),
-            StoredFrame::Merged(acc) => Rows::Merged(plan, acc),
+            StoredFrame::Merged(acc) => {
+                let biased = acc.tiles().iter().all(|t| t.bias().is_some());
+                Rows::Merged(plan, acc, biased)
+            }
             StoredFrame::Adaptive(a) => {
                 let traced = a
                     .tiles()
@@ -691,8 +694,9 @@ enum Rows {
     Uniform(UniformRows),
     /// A snapshot of a live frame.
     Image(FrameImage),
-    /// Merged passes restored from the store, read in place.
-    Merged(FramePlan, FrameAccumulator),
+    /// Merged passes restored from the store, read in place, and whether every tile kept
+    /// its bias statistics (the frame then has bias layers, as `FrameAccumulator::image`).
+    Merged(FramePlan, FrameAccumulator, bool),
     /// An adaptive frame restored from the store, with each tile's traced passes.
     Adaptive(FramePlan, AdaptiveFrame, Vec<Vec<u32>>),
 }
@@ -714,6 +718,17 @@ fn uniform(plan: &FramePlan, black: bool) -> UniformRows {
     }
 }
 
+/// A pixel's bias layers from its bias statistics, as `FrameAccumulator::image` writes
+/// them.
+fn bias_of(b: &BiasStats) -> [f32; 2] {
+    let v = if b.passes >= 2 {
+        b.variance_of_mean() as f32
+    } else {
+        0.0
+    };
+    [b.mean as f32, v]
+}
+
 /// A pixel's layers from its statistics, as `FrameAccumulator::image` writes them.
 fn pixel_of(s: &PixelStats, samples: u32) -> Pixel {
     let estimated = s.passes >= 2;
@@ -731,6 +746,7 @@ fn pixel_of(s: &PixelStats, samples: u32) -> Pixel {
         } else {
             0.0
         },
+        bias: [0.0; 2],
     }
 }
 
@@ -747,12 +763,17 @@ impl Rows {
     /// Pixel (`x`, `y`) of a frame restored from the store.
     fn stored_pixel(&self, x: u32, y: u32) -> Pixel {
         match self {
-            Rows::Merged(plan, acc) => {
+            Rows::Merged(plan, acc, biased) => {
                 let (t, lx, ly) = Self::tile_of(plan, x, y);
                 let tile = &acc.tiles()[t];
                 let rw = tile.rect().width.max(1);
                 let samples = tile.merged_passes().saturating_mul(plan.samples_per_pass);
-                pixel_of(&tile.pixels()[(ly * rw + lx) as usize], samples)
+                let i = (ly * rw + lx) as usize;
+                let mut p = pixel_of(&tile.pixels()[i], samples);
+                if *biased {
+                    p.bias = tile.bias().map_or([0.0; 2], |b| bias_of(&b[i]));
+                }
+                p
             }
             Rows::Adaptive(plan, a, traced) => {
                 let (t, lx, ly) = Self::tile_of(plan, x, y);
@@ -772,18 +793,26 @@ impl FrameRows for Rows {
         match self {
             Rows::Uniform(u) => u.width,
             Rows::Image(img) => img.width,
-            Rows::Merged(plan, _) | Rows::Adaptive(plan, ..) => plan.width,
+            Rows::Merged(plan, ..) | Rows::Adaptive(plan, ..) => plan.width,
         }
     }
     fn height(&self) -> u32 {
         match self {
             Rows::Uniform(u) => u.height,
             Rows::Image(img) => img.height,
-            Rows::Merged(plan, _) | Rows::Adaptive(plan, ..) => plan.height,
+            Rows::Merged(plan, ..) | Rows::Adaptive(plan, ..) => plan.height,
         }
     }
     fn pixel(&self, x: u32, y: u32) -> Pixel {
         self.stored_pixel(x, y)
+    }
+    fn has_bias(&self) -> bool {
+        match self {
+            Rows::Image(img) => img.has_bias(),
+            // Only where every tile kept its bias statistics, as `FrameAccumulator::image`.
+            Rows::Merged(_, _, biased) => *biased,
+            Rows::Uniform(_) | Rows::Adaptive(..) => false,
+        }
     }
     fn row(&self, y: u32, out: &mut Vec<Pixel>) {
         out.clear();
@@ -794,7 +823,7 @@ impl FrameRows for Rows {
                 out.extend((0..w).map(|x| img.pixel(x as u32, y)));
             }
             // Tile by tile along the row: each tile's row is contiguous.
-            Rows::Merged(plan, acc) => {
+            Rows::Merged(plan, acc, biased) => {
                 let mut x = 0;
                 while x < plan.width {
                     let (t, _, ly) = Self::tile_of(plan, x, y);
@@ -804,6 +833,13 @@ impl FrameRows for Rows {
                     let start = (ly * width) as usize;
                     let row = &tile.pixels()[start..start + width as usize];
                     out.extend(row.iter().map(|s| pixel_of(s, samples)));
+                    if let (true, Some(bias)) = (*biased, tile.bias()) {
+                        let n = out.len();
+                        let bias = &bias[start..start + width as usize];
+                        for (p, b) in out[n - width as usize..].iter_mut().zip(bias) {
+                            p.bias = bias_of(b);
+                        }
+                    }
                     x += width;
                 }
             }

@@ -533,7 +533,7 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             None => spp_so_far(&rt.resolved, passes_done, rt.job().frames.count()),
         },
         error_estimate: error,
-        error_estimator: Some(rt.resolved.error_estimator().name().to_string()),
+        error_estimator: Some(rt.resolved.error_estimator_name()),
         error_estimate_caveat: rt.resolved.error_estimate_caveat(),
         target_error: rt.job().target_error,
         target_reached: verdict.and_then(|v| v.target_reached()),

@@ -612,6 +612,7 @@ fn checkpoint_of(
             .collect(),
         rejected_samples,
         adaptive,
+        bias: tile.bias().map(<[_]>::to_vec),
     }
 }
 

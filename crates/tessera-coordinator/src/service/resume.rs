@@ -291,8 +291,11 @@ pub(crate) fn restore_frames(
             .iter()
             .map(|u| (u.first_pass, u.pass_count, u.digest))
             .collect();
-        let tile =
+        let mut tile =
             tessera_farm::TileAccumulator::restore(rect, cp.merged_passes, cp.pixels, &units)?;
+        if let Some(bias) = cp.bias {
+            tile.restore_bias(bias)?;
+        }
         accs[fi].restore_tile(tile)?;
     }
     Ok(Restored {

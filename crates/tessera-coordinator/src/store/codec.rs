@@ -2,7 +2,7 @@
 //! validation against a job's plan. Pure functions, shared by every store implementation.
 
 use tessera_api::FrameRange;
-use tessera_farm::{AdaptivePixel, AdaptiveTileCheckpoint, FramePlan, PixelStats};
+use tessera_farm::{AdaptivePixel, AdaptiveTileCheckpoint, BiasStats, FramePlan, PixelStats};
 
 use super::{UnitDigest, CHECKPOINT_FORMAT_VERSION};
 
@@ -10,6 +10,8 @@ use super::{UnitDigest, CHECKPOINT_FORMAT_VERSION};
 const HEADER_BYTES: usize = 5;
 /// Bytes per pixel in the statistics blob: `passes` (u32) and 8 f64.
 pub(crate) const PIXEL_BYTES: usize = 4 + 8 * 8;
+/// Bytes per pixel of the bias records after the statistics: `passes` (u32) and 2 f64.
+pub(crate) const BIAS_BYTES: usize = 4 + 2 * 8;
 /// Bytes per unit in the digest blob: `first_pass`, `pass_count` (u32) and `digest` (u64).
 pub(crate) const UNIT_BYTES: usize = 4 + 4 + 8;
 
@@ -120,17 +122,30 @@ pub(crate) fn check_adaptive(
     Ok(())
 }
 
-/// Encodes per-pixel statistics. The caller guarantees `pixels.len() <= u32::MAX` (a tile
-/// has at most 256 x 256 pixels).
-pub(crate) fn encode_stats(pixels: &[PixelStats]) -> Vec<u8> {
-    let mut out = vec![0u8; HEADER_BYTES + PIXEL_BYTES * pixels.len()];
+/// Encodes per-pixel statistics, followed by the bias records when the tile has a bias
+/// channel (`bias`, one per pixel). The caller guarantees `pixels.len() <= u32::MAX` (a
+/// tile has at most 256 x 256 pixels).
+pub(crate) fn encode_stats(pixels: &[PixelStats], bias: Option<&[BiasStats]>) -> Vec<u8> {
+    let body = PIXEL_BYTES * pixels.len();
+    let extra = bias.map_or(0, |b| BIAS_BYTES * b.len());
+    let mut out = vec![0u8; HEADER_BYTES + body + extra];
     out[0] = CHECKPOINT_FORMAT_VERSION;
     out[1..HEADER_BYTES].copy_from_slice(&(pixels.len() as u32).to_le_bytes());
-    for (record, p) in out[HEADER_BYTES..]
+    for (record, p) in out[HEADER_BYTES..HEADER_BYTES + body]
         .chunks_exact_mut(PIXEL_BYTES)
         .zip(pixels)
     {
         write_stats(record, p);
+    }
+    if let Some(bias) = bias {
+        for (record, b) in out[HEADER_BYTES + body..]
+            .chunks_exact_mut(BIAS_BYTES)
+            .zip(bias)
+        {
+            record[..4].copy_from_slice(&b.passes.to_le_bytes());
+            record[4..12].copy_from_slice(&b.mean.to_bits().to_le_bytes());
+            record[12..20].copy_from_slice(&b.m2.to_bits().to_le_bytes());
+        }
     }
     out
 }
@@ -187,10 +202,64 @@ fn u64_at(b: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(a)
 }
 
-/// Decodes per-pixel statistics; the error says what is wrong.
-pub(crate) fn decode_stats(blob: &[u8]) -> Result<Vec<PixelStats>, String> {
+/// Statistics decoded from a blob: the pixels' and, for a tile with a bias channel, the
+/// bias records.
+pub(crate) type DecodedStats = (Vec<PixelStats>, Option<Vec<BiasStats>>);
+
+/// Decodes per-pixel statistics and the bias records when the blob has them (its length
+/// says: `PIXEL_BYTES` per pixel, or `PIXEL_BYTES + BIAS_BYTES`); the error says what is
+/// wrong.
+pub(crate) fn decode_stats(blob: &[u8]) -> Result<DecodedStats, String> {
+    let count = blob
+        .get(1..HEADER_BYTES)
+        .map_or(0, |c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]) as usize);
+    let with_bias = HEADER_BYTES + (PIXEL_BYTES + BIAS_BYTES) * count;
+    if count > 0 && blob.len() == with_bias {
+        let body = &blob[HEADER_BYTES..];
+        let split = PIXEL_BYTES * count;
+        let pixels = records(&blob[..HEADER_BYTES + split], "statistics", PIXEL_BYTES)?
+            .chunks_exact(PIXEL_BYTES)
+            .map(get_stats)
+            .collect();
+        let bias = body[split..]
+            .chunks_exact(BIAS_BYTES)
+            .map(|r| BiasStats {
+                passes: u32_at(r, 0),
+                mean: f64::from_bits(u64_at(r, 4)),
+                m2: f64::from_bits(u64_at(r, 12)),
+            })
+            .collect();
+        return Ok((pixels, Some(bias)));
+    }
     let body = records(blob, "statistics", PIXEL_BYTES)?;
-    Ok(body.chunks_exact(PIXEL_BYTES).map(get_stats).collect())
+    Ok((
+        body.chunks_exact(PIXEL_BYTES).map(get_stats).collect(),
+        None,
+    ))
+}
+
+/// Checks a tile's bias records against its pixels: one per pixel, the same passes, finite
+/// values.
+pub(crate) fn check_bias(pixels: &[PixelStats], bias: &[BiasStats]) -> Result<(), String> {
+    if bias.len() != pixels.len() {
+        return Err(format!(
+            "{} bias records for {} pixels",
+            bias.len(),
+            pixels.len()
+        ));
+    }
+    for (i, (b, p)) in bias.iter().zip(pixels).enumerate() {
+        if b.passes != p.passes {
+            return Err(format!(
+                "pixel {i}'s bias record has {} passes, its statistics {}",
+                b.passes, p.passes
+            ));
+        }
+        if !(b.mean.is_finite() && b.m2.is_finite()) {
+            return Err(format!("pixel {i}'s bias record is not finite"));
+        }
+    }
+    Ok(())
 }
 
 /// Decodes unit digests; the error says what is wrong.
@@ -303,10 +372,10 @@ mod tests {
         px[3].mean[1] = f64::from_bits(0x3ff0_0000_0000_0001);
         px[4].m2_lum = -0.0;
         px[5].mean_lum = f64::MIN_POSITIVE / 4.0; // subnormal
-        let blob = encode_stats(&px);
+        let blob = encode_stats(&px, None);
         assert_eq!(blob.len(), HEADER_BYTES + 17 * PIXEL_BYTES);
         assert_eq!(blob[0], 1);
-        let back = decode_stats(&blob).unwrap();
+        let back = decode_stats(&blob).unwrap().0;
         assert_eq!(back.len(), px.len());
         for (a, b) in px.iter().zip(&back) {
             assert_eq!(a.passes, b.passes);
@@ -320,7 +389,7 @@ mod tests {
             };
             assert_eq!(bits(a), bits(b));
         }
-        assert_eq!(decode_stats(&encode_stats(&[])).unwrap(), vec![]);
+        assert_eq!(decode_stats(&encode_stats(&[], None)).unwrap().0, vec![]);
     }
 
     #[test]
@@ -369,7 +438,7 @@ mod tests {
             mean: [1.0, 0.0, 0.0],
             ..Default::default()
         };
-        let blob = encode_stats(&[p]);
+        let blob = encode_stats(&[p], None);
         assert_eq!(&blob[..9], &[1, 1, 0, 0, 0, 4, 3, 2, 1]);
         assert_eq!(&blob[9..17], &1.0f64.to_bits().to_le_bytes());
         let u = encode_units(&[UnitDigest {
@@ -385,7 +454,7 @@ mod tests {
 
     #[test]
     fn malformed_blobs_are_errors() {
-        let blob = encode_stats(&stats(4));
+        let blob = encode_stats(&stats(4), None);
         for cut in [0, 1, 4, 5, 6, blob.len() - 1] {
             let e = decode_stats(&blob[..cut]).unwrap_err();
             assert!(!e.is_empty());
@@ -447,5 +516,35 @@ mod tests {
         assert!(ok(2, 0, 3, &nan, &[u(0, 3)])
             .unwrap_err()
             .contains("pixel 5"));
+    }
+
+    /// A tile with a bias channel: its records follow the pixels' and round-trip bit for
+    /// bit; the blob of a tile without one is unchanged; records that disagree with the
+    /// pixels are refused.
+    #[test]
+    fn bias_records_round_trip_after_the_statistics() {
+        let px = stats(5);
+        let bias: Vec<BiasStats> = px
+            .iter()
+            .enumerate()
+            .map(|(i, p)| BiasStats {
+                passes: p.passes,
+                mean: -0.25 * i as f64,
+                m2: 0.5 + i as f64,
+            })
+            .collect();
+        let plain = encode_stats(&px, None);
+        let blob = encode_stats(&px, Some(&bias));
+        assert_eq!(&blob[..plain.len()], &plain[..]);
+        assert_eq!(blob.len(), plain.len() + BIAS_BYTES * px.len());
+        let (back, back_bias) = decode_stats(&blob).unwrap();
+        assert_eq!(back, px);
+        assert_eq!(back_bias.as_deref(), Some(&bias[..]));
+        assert_eq!(decode_stats(&plain).unwrap().1, None);
+        check_bias(&px, &bias).unwrap();
+        let mut wrong = bias.clone();
+        wrong[2].passes += 1;
+        assert!(check_bias(&px, &wrong).unwrap_err().contains("pixel 2"));
+        assert!(check_bias(&px, &bias[1..]).is_err());
     }
 }

@@ -32,6 +32,10 @@
 //! | 1     | format version, `1` |
 //! | 4     | pixel count `n` (u32) |
 //! | 68 n  | per pixel, row-major within the tile: `passes` (u32), then `mean[0..3]`, `m2[0..3]`, `mean_lum`, `m2_lum` (8 f64, IEEE 754 bits) |
+//! | 20 n  | only for a tile with a bias channel (vcm, ppm; `TileCheckpoint::bias`): per pixel, `passes` (u32), then the bias estimates' `mean` and `m2` (2 f64; [`tessera_farm::BiasStats`]) |
+//!
+//! A blob without the bias records is byte for byte what it was before they existed; a
+//! coordinator that predates them refuses a blob with them (its length does not match).
 //!
 //! The unit digest blob:
 //!
@@ -86,7 +90,7 @@ pub use watch::WatchedStore;
 
 use async_trait::async_trait;
 use tessera_api::{FrameRange, HistoryPoint, JobState};
-use tessera_farm::{AdaptiveTileCheckpoint, FramePlan, JobId, PixelStats};
+use tessera_farm::{AdaptiveTileCheckpoint, BiasStats, FramePlan, JobId, PixelStats};
 
 /// Current version of the tile checkpoint blob formats (the leading byte of each blob).
 pub const CHECKPOINT_FORMAT_VERSION: u8 = 1;
@@ -553,6 +557,9 @@ pub struct TileCheckpointRef<'a> {
     pub rejected_samples: u64,
     /// Adaptive jobs: the policy's state after the same merge; `None` for other jobs.
     pub adaptive: Option<&'a AdaptiveTileCheckpoint>,
+    /// Biased techniques (vcm, ppm): the bias channel's per-pixel statistics
+    /// (`TileAccumulator::bias`), stored after the pixels' records; `None` for other jobs.
+    pub bias: Option<&'a [BiasStats]>,
 }
 
 /// What a status needs of a tile checkpoint, without its pixels.
@@ -589,6 +596,9 @@ pub struct TileCheckpoint {
     /// Adaptive jobs: the policy's state after the same merge; `None` for other jobs and
     /// for checkpoints stored before schema version 4.
     pub adaptive: Option<AdaptiveTileCheckpoint>,
+    /// Biased techniques: the bias channel's per-pixel statistics; `None` for other jobs
+    /// and for checkpoints stored before the channel existed.
+    pub bias: Option<Vec<BiasStats>>,
 }
 
 impl TileCheckpoint {
@@ -603,6 +613,7 @@ impl TileCheckpoint {
             units: &self.units,
             rejected_samples: self.rejected_samples,
             adaptive: self.adaptive.as_ref(),
+            bias: self.bias.as_deref(),
         }
     }
 }

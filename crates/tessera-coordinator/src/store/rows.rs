@@ -285,7 +285,7 @@ pub(super) fn tile_from_parts(
     adaptive: Option<&[u8]>,
 ) -> StoreResult<super::TileCheckpoint> {
     use super::codec::{
-        check_adaptive, check_checkpoint, decode_adaptive, decode_stats, decode_units,
+        check_adaptive, check_bias, check_checkpoint, decode_adaptive, decode_stats, decode_units,
     };
     let place = || format!("tiles of job {job}");
     let frame: u32 = int_col(row, "frame", &place)?;
@@ -298,7 +298,10 @@ pub(super) fn tile_from_parts(
     };
     let merged_passes: u32 = int_col(row, "merged_passes", &place)?;
     let rejected_samples: u64 = int_col(row, "rejected_samples", &place)?;
-    let pixels = decode_stats(stats).map_err(corrupt)?;
+    let (pixels, bias) = decode_stats(stats).map_err(corrupt)?;
+    if let Some(b) = &bias {
+        check_bias(&pixels, b).map_err(corrupt)?;
+    }
     let unit_blob = units;
     let units = decode_units(units).map_err(corrupt)?;
     check_checkpoint(plan, frames, frame, tile, merged_passes, &pixels, &units).map_err(corrupt)?;
@@ -332,6 +335,7 @@ pub(super) fn tile_from_parts(
         units,
         rejected_samples,
         adaptive,
+        bias,
     })
 }
 

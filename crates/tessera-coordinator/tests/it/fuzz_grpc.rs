@@ -214,6 +214,7 @@ async fn mutated_worker_results_are_refused_counted_and_lose_nothing() {
                 rejected_samples: 0,
                 traced_pixel_passes: 0,
                 fence: lease.fence.clone(),
+                bias: Vec::new(),
             };
             let mut delivered = false;
             for _ in 0..MUTANTS_PER_UNIT {
@@ -455,6 +456,7 @@ async fn byte_mutated_worker_messages_never_panic_and_the_job_completes() {
                 rejected_samples: 0,
                 traced_pixel_passes: 0,
                 fence: lease.fence.clone(),
+                bias: Vec::new(),
             };
             for _ in 0..4 {
                 match mutated(&mut rng, &good) {
@@ -544,6 +546,7 @@ async fn byte_mutated_worker_messages_never_panic_and_the_job_completes() {
                     rejected_samples: 0,
                     traced_pixel_passes: 0,
                     fence: lease.fence.clone(),
+                    bias: Vec::new(),
                 };
                 let a = svc
                     .submit_result(signed(result, session))

@@ -380,6 +380,7 @@ fn delivery(
             height: rect.height,
             pass_means,
             rejected_samples: 0,
+            bias: None,
         }),
         render_seconds: 0.01,
         traced_pixel_passes: 0,

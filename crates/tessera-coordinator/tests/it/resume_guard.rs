@@ -76,6 +76,7 @@ async fn checkpoint_passes(dir: &Path, job: JobId, passes: u32) {
             units: &units,
             rejected_samples: 0,
             adaptive: None,
+            bias: None,
         },
     )
     .await

@@ -263,6 +263,7 @@ fn checkpoint(job: JobId, frame: u32, tile: u32, unit_passes: &[u32]) -> TileChe
         // Any count round-trips; a distinct one per tile catches mixed-up rows.
         rejected_samples: u64::from(tile) * 1000 + u64::from(merged),
         adaptive: None,
+        bias: None,
     }
 }
 
@@ -713,6 +714,7 @@ async fn tile_checkpoints_round_trip_and_upsert(f: &Fixture) {
         units: vec![],
         rejected_samples: 0,
         adaptive: None,
+        bias: None,
     };
     store.save_tile(empty.as_ref()).await.unwrap();
     let loaded = store.load_tiles(job, Some(4)).await.unwrap();

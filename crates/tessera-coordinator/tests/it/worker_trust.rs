@@ -116,6 +116,7 @@ fn result(worker: u64, l: &v1::Lease, v: f32, fence: Vec<u8>) -> v1::SubmitResul
         rejected_samples: 0,
         traced_pixel_passes: 0,
         fence,
+        bias: Vec::new(),
     }
 }
 

@@ -29,6 +29,7 @@ fn result_from(rect: TileRect, u: WorkUnit, f: &dyn Fn(u32, usize) -> f32) -> Un
         height: rect.height,
         pass_means,
         rejected_samples: 0,
+        bias: None,
     }
 }
 
@@ -387,6 +388,7 @@ fn heavy_tailed_tile(settings: AdaptiveSettings, rng: &mut Rng, plan: &FramePlan
             height: rect.height,
             pass_means: std::mem::take(&mut means),
             rejected_samples: 0,
+            bias: None,
         };
         t.offer(&r);
         means = r.pass_means;

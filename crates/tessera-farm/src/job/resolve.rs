@@ -338,7 +338,7 @@ impl ResolvedJob {
             c.seed,
             c.max_depth,
             c.rr_depth,
-            json_string(self.error_estimator().name()),
+            json_string(&self.error_estimator_name()),
             self.render_plan.to_json()
         );
         out
@@ -348,6 +348,27 @@ impl ResolvedJob {
     /// its adaptive mode).
     pub fn error_estimator(&self) -> crate::ErrorEstimator {
         crate::ErrorEstimator::for_mode(self.job.adaptive)
+    }
+
+    /// Whether this job's image carries bias layers and its estimate the bias term
+    /// ([`crate::UnitResult::bias`], [`crate::image_relative_error_biased`]): a biased integrator (vcm, ppm)
+    /// without adaptive stopping (the adaptive merge keeps no bias channel yet).
+    pub fn estimates_bias(&self) -> bool {
+        !self.black
+            && self.config.integrator.is_biased()
+            && self.job.adaptive == super::choice::AdaptiveMode::Off
+    }
+
+    /// The name of this job's error estimate, as the EXR header (`error_estimator`), the
+    /// job status and `tessera render` give it: [`crate::ErrorEstimator::name`], followed
+    /// by "; " and [`crate::BIAS_TERM`] when [`ResolvedJob::estimates_bias`].
+    pub fn error_estimator_name(&self) -> String {
+        let name = self.error_estimator().name();
+        if self.estimates_bias() {
+            format!("{name}; {}", crate::BIAS_TERM)
+        } else {
+            name.to_string()
+        }
     }
 
     /// Why this job's error estimate may be optimistic, or `None`: for the integrator it

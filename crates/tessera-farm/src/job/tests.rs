@@ -558,6 +558,7 @@ fn fewest_passes_of_black_passes(plan: crate::FramePlan, settings: crate::Adapti
                 height: rect.height,
                 pass_means: vec![[0.0; 3]; rect.pixel_count() * unit.pass_count as usize],
                 rejected_samples: 0,
+                bias: None,
             };
             frame.offer(&result).unwrap();
         }

@@ -29,6 +29,7 @@ fn result(unit: WorkUnit) -> UnitResult {
         height: rect.height,
         pass_means,
         rejected_samples: u64::from(unit.first_pass) * 1000 + 7,
+        bias: None,
     }
 }
 
@@ -167,6 +168,7 @@ fn pass_means_are_packed_on_the_wire() {
         height: 4,
         pass_means: vec![[1.0, 2.0, 3.0]; 16],
         rejected_samples: 0,
+        bias: None,
     };
     let bytes = v1::SubmitResultRequest::from_result(1, 1, &r, 0.0).encode_to_vec();
     // 48 floats of 4 bytes plus a few bytes of tags and lengths (unpacked would add a
@@ -199,6 +201,7 @@ fn pass_means_bytes_are_the_packed_floats_of_older_workers() {
     // (`rejected_samples` came later than these fields; the old message has none.)
     let r = UnitResult {
         rejected_samples: 0,
+        bias: None,
         ..result(plan().units(1, 2)[1])
     };
     let old = PackedFloatsRequest {
@@ -645,4 +648,28 @@ fn a_lease_without_an_environment_has_none_and_a_bad_one_is_refused_by_field() {
         |e| e.rotation_degrees = 361.0,
         "environment.rotation_degrees",
     );
+}
+
+/// The bias channel: a biased result round-trips bit for bit; an unbiased one sends no
+/// bias bytes (its message is what it was before the field existed) and a message without
+/// them decodes to no channel; a channel of the wrong length is refused, naming `bias`.
+#[test]
+fn bias_channel_round_trips_and_is_absent_when_empty() {
+    let plain = result(plan().units(0, 2)[0]);
+    let m = v1::SubmitResultRequest::from_result(1, 2, &plain, 0.5);
+    assert!(m.bias.is_empty());
+    assert_eq!(UnitResult::try_from(wire(&m)).unwrap(), plain);
+    let n = plain.pass_means.len();
+    let biased = UnitResult {
+        bias: Some((0..n).map(|i| i as f32 * -0.125 + 0.5).collect()),
+        ..plain.clone()
+    };
+    let m = v1::SubmitResultRequest::from_result(1, 2, &biased, 0.5);
+    assert_eq!(m.bias.len(), 4 * n);
+    let back = UnitResult::try_from(wire(&m)).unwrap();
+    assert_eq!(back, biased);
+    assert_eq!(back.digest(), biased.digest());
+    let mut short = m.clone();
+    short.bias.truncate(4 * n - 4);
+    assert_eq!(UnitResult::try_from(&short).unwrap_err().field, "bias");
 }

@@ -658,6 +658,7 @@ pub fn render_unit(
         height: rect.height,
         pass_means,
         rejected_samples,
+        bias: None,
     }
 }
 

@@ -260,6 +260,7 @@ fn render_camera_samples(
         height: rect.height,
         pass_means,
         rejected_samples,
+        bias: None,
     }
 }
 
@@ -305,6 +306,18 @@ pub(crate) trait WholeFrame {
         cs: Option<&mut PixelSampler>,
         splat: &mut impl FnMut(Vec2, Vec3),
     ) -> Vec3;
+
+    /// Whether the technique is biased and estimates its bias per sample (vertex merging,
+    /// [`vcm`]): the unit then carries [`UnitResult::bias`]. False by default.
+    fn estimates_bias(&self) -> bool {
+        false
+    }
+
+    /// The bias estimate (luminance, signed) of the camera estimate the last
+    /// [`WholeFrame::sample`] returned; 0 by default.
+    fn sample_bias(&self) -> f64 {
+        0.0
+    }
 }
 
 /// The sample loop of whole-frame techniques (docs in [`bdpt`]'s module): for each pass,
@@ -330,6 +343,11 @@ pub(crate) fn render_whole_frame(
     let mut sum = vec![[0.0f64; 3]; pixels];
     let mut pass_means = Vec::with_capacity(pixels * unit.pass_count as usize);
     let mut rejected_samples = 0u64;
+    // The bias channel: per tile pixel, the sum of its camera samples' bias estimates,
+    // beside (never inside) the radiance sums, so the pass means keep their bits.
+    let biased = technique.estimates_bias();
+    let mut bias_sum = vec![0.0f64; if biased { pixels } else { 0 }];
+    let mut bias = biased.then(|| Vec::with_capacity(pixels * unit.pass_count as usize));
     // Index within the tile of pixel (x, y), if it is in the tile.
     let in_tile = |x: u32, y: u32| {
         (x >= rect.x0 && x < rect.x0 + tw && y >= rect.y0 && y < rect.y0 + th)
@@ -338,6 +356,7 @@ pub(crate) fn render_whole_frame(
     for pass in unit.first_pass..unit.first_pass + unit.pass_count {
         technique.begin_pass(pass);
         sum.fill([0.0; 3]);
+        bias_sum.fill(0.0);
         for y in 0..plan.height {
             for x in 0..plan.width {
                 let pixel = y * plan.width + x;
@@ -362,7 +381,14 @@ pub(crate) fn render_whole_frame(
                         }
                     });
                     if let Some(j) = traced {
-                        accumulate(&mut sum[j], camera_l, &mut rejected_samples);
+                        // A rejected sample counts as black: its bias estimate is dropped
+                        // with it.
+                        if accumulate(&mut sum[j], camera_l, &mut rejected_samples) && biased {
+                            let b = technique.sample_bias();
+                            if b.is_finite() {
+                                bias_sum[j] += b;
+                            }
+                        }
                     }
                 }
             }
@@ -375,6 +401,14 @@ pub(crate) fn render_whole_frame(
                 (s[2] * inv) as f32,
             ]
         }));
+        if let Some(bias) = bias.as_mut() {
+            let bound = f64::from(tessera_farm::MAX_PASS_MEAN);
+            bias.extend(
+                bias_sum
+                    .iter()
+                    .map(|b| (b * inv).clamp(-bound, bound) as f32),
+            );
+        }
     }
     UnitResult {
         unit,
@@ -382,6 +416,7 @@ pub(crate) fn render_whole_frame(
         height: th,
         pass_means,
         rejected_samples,
+        bias,
     }
 }
 

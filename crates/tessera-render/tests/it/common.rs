@@ -234,6 +234,9 @@ pub fn frame_bits(acc: &FrameAccumulator) -> Vec<u32> {
         out.extend(img.mean[i].map(f32::to_bits));
         out.extend(img.variance_of_mean[i].map(f32::to_bits));
         out.push(img.passes[i]);
+        if let Some(b) = &img.bias {
+            out.extend(b[i].map(f32::to_bits));
+        }
     }
     out
 }

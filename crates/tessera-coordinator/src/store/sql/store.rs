@@ -261,7 +261,7 @@ impl<B: SqlBackend> Store for B {
                 }
             };
             check_tile_to_save(&plan, frames, t)?;
-            let (stats, units) = (encode_stats(t.pixels), encode_units(t.units));
+            let (stats, units) = (encode_stats(t.pixels, t.bias), encode_units(t.units));
             let adaptive = t.adaptive.map(encode_adaptive);
             let sum = TileSum {
                 job: to_i64(t.job, "job id")?,

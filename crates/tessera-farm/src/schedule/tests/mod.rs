@@ -29,6 +29,7 @@ fn result(plan: &FramePlan, unit: WorkUnit, value: f32) -> UnitResult {
         height: rect.height,
         pass_means,
         rejected_samples: 0,
+        bias: None,
     }
 }
 
@@ -65,6 +66,7 @@ fn noisy_result(plan: &FramePlan, unit: WorkUnit) -> UnitResult {
         height: rect.height,
         pass_means,
         rejected_samples: 0,
+        bias: None,
     }
 }
 

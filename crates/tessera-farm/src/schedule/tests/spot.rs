@@ -21,6 +21,7 @@ fn honest(plan: &FramePlan, unit: WorkUnit) -> UnitResult {
         height: rect.height,
         pass_means,
         rejected_samples: 0,
+        bias: None,
     }
 }
 

@@ -64,7 +64,48 @@
 //! plan, the job status and the EXR header say so
 //! (`tessera_farm::job::RenderPlan::error_estimate_caveat`). On a smooth field (the pool)
 //! the spread alone is calibrated; where merging blurs a sharp caustic it is far from it
-//! (0.03-0.07 of the measured error on the glass caustic at 32 x 32, the same document).
+//! (0.03-0.07 of the measured error on the glass caustic at 32 x 32, the same document),
+//! so every pass also estimates its bias (below).
+//!
+//! # The bias estimate
+//!
+//! Each sample estimates the bias of its merges, and the unit carries the pixels' pass
+//! means of it as [`UnitResult::bias`] (signed luminance); the merged image's error
+//! estimate is then `sqrt(variance from the pass spread + bias²)` (ARCHITECTURE.md §3).
+//! After Hachisuka, Jarosz & Jensen 2010 ("A progressive error estimation framework for
+//! photon density estimation", section 4: the bias of a kernel estimate is `r²/2 · k₂ ·
+//! ΔL` to leading order, `k₂` the kernel's second moment per axis, the Laplacian `ΔL`
+//! estimated from the same photons), derived here for the constant kernel merging uses.
+//! Let `L(y)` be the density merging estimates (a photon's contribution per unit area)
+//! on the surface around the camera vertex `x`, and `E_k = ∫_disc L(x + y) dy / (π r²)`
+//! the expected merge of pass `k` (radius `r`). With `L(x + y) = L + ∇L·y + ½ yᵀ H y +
+//! O(|y|³)` the odd terms vanish over the disc and `E[y_i y_j] = δ_ij r²/4`, so
+//!
+//! `bias_k = E_k - L(x) ≈ (r²/8) ΔL(x)`.
+//!
+//! Weighting each merged photon at distance `d` by `g(d) = 6 d²/r² - 3` instead of 1
+//! estimates exactly that term: `u = d²/r²` is uniform over the disc, so the weight has
+//! mean `6 · ½ - 3 = 0` (the constant term `L` drops out) and `∫ g |y|² dy / (π r²) =
+//! r² (6/3 - 3/2) = r²/2`, so `∫ g y_i² dy / (π r²) = r²/4` per axis and the weighted
+//! merge has expectation `½ Σ_i H_ii r²/4 = (r²/8) ΔL` (check: for `L = |y|²`, `ΔL = 4`, the blur's bias is the mean of `|y|²`
+//! over the disc, `r²/2`, and the weighted merge gives `∫ (6|y|²/r² - 3)|y|² / (π r²) =
+//! r²/2`). It is the least-variance weight of the form `a + b d²` with these two moments
+//! (Lagrange), and costs one multiply-add per merged photon. It is a merge's own
+//! contribution (MIS weight included) times `g`, so it follows merging's share of the
+//! image (all of it in ppm, where connections fail in vcm). Where `L` has an edge the
+//! Taylor series fails, but the weighted merge is still `∫ g L / (π r²)`: of the edge's
+//! sign, zero with the edge through `x`, and up to 3 times the blur where the edge is near
+//! the rim; the measured calibration is in docs/benchmarks.md ("The merging bias term").
+//!
+//! **Signed, not squared.** The per-pass estimate is noisy: on a smooth field its variance
+//! is about `E[g²] = 3` times the merge's own. A squared value per pass would add that
+//! noise as bias in every pass. Signed, the passes' estimates average (their mean
+//! estimates the merged image's bias, the mean of the passes' biases), and their spread
+//! gives the noise of that mean, which the estimate subtracts:
+//! `bias² ≈ b̄² - Var(b̄)` (`tessera_farm::bias_squared`), summed over pixels before it is
+//! clamped at 0 (`tessera_farm::image_relative_error_biased`). It is computed beside the radiance
+//! sums, never inside them: the images are bit-identical to those without it, and it is
+//! as deterministic as they are.
 //!
 //! # Determinism and the farm (ARCHITECTURE.md §2)
 //!
@@ -716,7 +757,8 @@ fn splat_light_vertices(
 
 /// The camera subpath of one sample with every technique at its vertices: emission,
 /// next-event estimation, connections to `light` (the sample's own light subpath) and
-/// merging with the pass's photons. Returns the sample's radiance estimate.
+/// merging with the pass's photons. Returns the sample's radiance estimate, and adds the
+/// bias estimate of its merges to `bias` (the module documentation, "The bias estimate").
 #[allow(clippy::too_many_arguments)]
 fn camera_subpath(
     ctx: &Ctx,
@@ -729,9 +771,14 @@ fn camera_subpath(
     grid: &HashGrid,
     v: &mut PathVertex,
     sampler: &mut PixelSampler,
+    bias: &mut Vec3,
 ) -> Vec3 {
     let scene = ctx.scene;
     let max_depth = st.max_depth;
+    // The bias weight of a merge at squared distance d² is `6 d²/r² - 3` (the module
+    // documentation, "The bias estimate").
+    let inv_r2 = 1.0 / grid.r2;
+    let weight = |d2: f32| 6.0 * d2 * inv_r2 - 3.0;
     let (o, d) = ctx.camera.generate_ray(film, lens_u);
     let pdf_dir = ctx.camera.pdf_dir(o, d);
     if pdf_dir.is_nan() || pdf_dir <= 0.0 {
@@ -797,12 +844,16 @@ fn camera_subpath(
                 // Progressive photon mapping: the density estimate at the first
                 // non-specular vertex is the only technique for every path through it.
                 let mut sum = Vec3::ZERO;
+                let mut bsum = Vec3::ZERO;
                 grid.query(photons, v.p, |ph| {
                     if ph.depth + t - 1 <= max_depth {
-                        sum += ctx.f(v, ph.wo, false) * ph.beta;
+                        let m = ctx.f(v, ph.wo, false) * ph.beta;
+                        sum += m;
+                        bsum += m * weight((ph.p - v.p).length_squared());
                     }
                 });
                 total += v.beta * sum * c.norm;
+                *bias += v.beta * bsum * c.norm;
                 break;
             }
             if !ctx.scatter(st, c, v, &mut w, sampler, false) {
@@ -823,6 +874,7 @@ fn camera_subpath(
             }
             // Merging with the pass's photons (eqs. 38-39).
             let mut sum = Vec3::ZERO;
+            let mut bsum = Vec3::ZERO;
             grid.query(photons, v.p, |ph| {
                 if ph.depth + t - 1 > max_depth {
                     return;
@@ -834,9 +886,12 @@ fn camera_subpath(
                 let (dir_pdf, rev_pdf) = ctx.pdfs(v, ph.wo);
                 let w_light = ph.d_vcm * c.vc + ph.d_vm * c.mis(dir_pdf);
                 let w_camera = v.d_vcm * c.vc + v.d_vm * c.mis(rev_pdf);
-                sum += fc * ph.beta / (w_light + 1.0 + w_camera);
+                let m = fc * ph.beta / (w_light + 1.0 + w_camera);
+                sum += m;
+                bsum += m * weight((ph.p - v.p).length_squared());
             });
             total += v.beta * sum * c.norm;
+            *bias += v.beta * bsum * c.norm;
         }
         if !ctx.scatter(st, c, v, &mut w, sampler, false) {
             break;
@@ -959,6 +1014,7 @@ pub fn render_unit(
         kind: stream.sampler,
         motion: scene.has_motion(),
         lens: scene.camera.has_lens(),
+        last_bias: 0.0,
         scratch: Box::new(Scratch {
             light: [empty; MAX_LIGHT_VERTICES],
             slot: empty,
@@ -989,6 +1045,8 @@ struct Vcm<'a> {
     motion: bool,
     lens: bool,
     scratch: Box<Scratch>,
+    /// The bias estimate (luminance) of the last sample's camera estimate.
+    last_bias: f64,
 }
 
 impl Vcm<'_> {
@@ -1061,6 +1119,7 @@ impl WholeFrame for Vcm<'_> {
             light_subpath(ctx, st, c, light, slot, ls)
         };
         let mut camera_l = Vec3::ZERO;
+        let mut bias = Vec3::ZERO;
         if let Some(cs) = cs {
             let film = Vec2::new(x as f32, y as f32) + cs.next_2d();
             let lens_u = if self.lens { cs.next_2d() } else { Vec2::ZERO };
@@ -1075,11 +1134,22 @@ impl WholeFrame for Vcm<'_> {
                 grid,
                 cam,
                 cs,
+                &mut bias,
             );
         }
+        self.last_bias = tessera_farm::luminance(bias.to_array().map(f64::from));
         // Splats first, then the pixel's own estimate: a fixed order.
         splat_light_vertices(ctx, c, &light[..n_light], ls, splat);
         camera_l
+    }
+
+    /// Merging is biased: every sample estimates its merges' bias.
+    fn estimates_bias(&self) -> bool {
+        true
+    }
+
+    fn sample_bias(&self) -> f64 {
+        self.last_bias
     }
 }
 
