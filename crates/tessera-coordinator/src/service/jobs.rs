@@ -211,7 +211,32 @@ impl Coordinator {
             unbiased: mode == tessera_farm::AdaptiveMode::Unbiased,
             unsampled: StopVerdict::caveat_says_unsampled(rec.error_estimate_caveat.as_deref()),
         });
-        let estimator = tessera_farm::ErrorEstimator::for_mode(mode);
+        let render_plan: Option<serde_json::Value> = rec
+            .render_plan_json
+            .as_deref()
+            .and_then(|j| serde_json::from_str(j).ok());
+        // The name the live status gave (`ResolvedJob::error_estimator_name`): a merging
+        // integrator's uniform render adds its bias term.
+        let biased = match settings
+            .integrator
+            .parse::<tessera_farm::job::IntegratorChoice>()
+        {
+            Ok(tessera_farm::job::IntegratorChoice::Fixed(i)) => i.is_biased(),
+            _ => render_plan.as_ref().is_some_and(|p| {
+                p.get("integrator").and_then(|i| i.as_str())
+                    == Some(tessera_farm::job::PlannedIntegrator::Vcm.as_str())
+            }),
+        };
+        let black = render_plan.as_ref().is_some_and(|p| {
+            p.get("integrator").and_then(|i| i.as_str())
+                == Some(tessera_farm::job::PlannedIntegrator::Black.as_str())
+        });
+        let estimator = tessera_farm::ErrorEstimator::for_mode(mode).name();
+        let estimator = if biased && !black && mode == tessera_farm::AdaptiveMode::Off {
+            format!("{estimator}; {}", tessera_farm::BIAS_TERM)
+        } else {
+            estimator.to_string()
+        };
         Ok(JobStatus {
             id: rec.id,
             name: rec.name.clone(),
@@ -235,7 +260,7 @@ impl Coordinator {
             passes_done,
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
             error_estimate: history.last().and_then(|h| h.error_estimate),
-            error_estimator: Some(estimator.name().to_string()),
+            error_estimator: Some(estimator),
             // Both as accepted (store schema 6); absent for jobs stored by older builds.
             error_estimate_caveat: rec.error_estimate_caveat.clone(),
             target_reached: verdict.and_then(|v| v.target_reached()),
@@ -250,10 +275,7 @@ impl Coordinator {
             rejected_samples,
             // A done job's message is why it stopped (above), not an error.
             error: rec.error.clone().filter(|_| stop.is_none()),
-            plan: rec
-                .render_plan_json
-                .as_deref()
-                .and_then(|j| serde_json::from_str(j).ok()),
+            plan: render_plan,
         })
     }
 

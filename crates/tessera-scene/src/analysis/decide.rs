@@ -170,7 +170,7 @@ fn choose_integrator(
         );
         reasons.push(
             "vcm is biased: merging blurs light over a radius that shrinks with the passes \
-             (consistent); the error estimate does not see that bias"
+             (consistent); a uniform render's error estimate adds an estimate of that bias (Hachisuka, Jarosz & Jensen 2010), an adaptive one's does not"
                 .into(),
         );
         reasons.push(
