@@ -12,8 +12,8 @@
 //! triangle count times [`SahCost::prim`]; then the wide nodes are made top down by the
 //! decisions ([`plan`]). Unlike the greedy collapse it replaced (open the child of
 //! largest area until the node is full, as tinybvh's `MBVH::ConvertFrom` does; leaves of
-//! at most 4 triangles), it makes a small subtree a leaf of up to 8 triangles instead of
-//! an under-full node, and splits a node's slots by what they save
+//! at most 4 triangles), it makes a small subtree a leaf instead of an under-full node
+//! where that is cheaper, and shares a node's slots out by what they save
 //! (docs/benchmarks.md, "The SAH collapse"). Nodes are 64-byte aligned (one
 //! [`WideNode`] of 8 children is exactly four cache lines: the six bound arrays, then the
 //! child references).
