@@ -802,3 +802,250 @@ fn on_equal_t_the_earlier_level_wins_and_the_filter_sees_past_it() {
         );
     }
 }
+
+/// The binary tree obvhs builds over `tris` (as the renderer's build does).
+fn bvh2_of(tris: &[TriangleRecord]) -> obvhs::bvh2::Bvh2 {
+    let tris: Vec<obvhs::triangle::Triangle> = tris
+        .iter()
+        .map(|t| obvhs::triangle::Triangle {
+            v0: t.p[0].into(),
+            v1: t.p[1].into(),
+            v2: t.p[2].into(),
+        })
+        .collect();
+    build::triangles_bvh2(&tris, &mut BvhBuildStats::default())
+}
+
+/// Half the surface area of the box `lo..hi`, in `f64`.
+fn half_area64(lo: [f32; 3], hi: [f32; 3]) -> f64 {
+    let d = [0, 1, 2].map(|a| f64::from(hi[a]) - f64::from(lo[a]));
+    d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+}
+
+/// The SAH cost of a wide BVH as `wide::SahCost` charges it, read from its nodes: each
+/// node the half area of its children's union, each leaf its half area times its count
+/// times `cost.prim`.
+fn wide_cost(bvh: &wide::WideBvh, cost: wide::SahCost) -> f64 {
+    let mut total = 0.0;
+    for node in &bvh.nodes {
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for k in 0..wide::WIDTH {
+            if node.lo[0][k] > node.hi[0][k] {
+                continue;
+            }
+            let (l, h) = (
+                [0, 1, 2].map(|a| node.lo[a][k]),
+                [0, 1, 2].map(|a| node.hi[a][k]),
+            );
+            for a in 0..3 {
+                lo[a] = lo[a].min(l[a]);
+                hi[a] = hi[a].max(h[a]);
+            }
+            if node.count[k] != 0 {
+                total += half_area64(l, h) * f64::from(node.count[k]) * f64::from(cost.prim);
+            }
+        }
+        total += half_area64(lo, hi);
+    }
+    total
+}
+
+/// Every way to cover the subtree of binary node `c` by at most `max` subtrees (`c`
+/// itself, or a cover of its left subtree beside one of its right).
+fn covers(bn: &[obvhs::bvh2::node::Bvh2Node], c: usize, max: usize) -> Vec<Vec<usize>> {
+    let mut out = vec![vec![c]];
+    if !bn[c].is_leaf() && max >= 2 {
+        let first = bn[c].first_index as usize;
+        for a in covers(bn, first, max - 1) {
+            for b in covers(bn, first + 1, max - a.len()) {
+                out.push([a.clone(), b].concat());
+            }
+        }
+    }
+    out
+}
+
+/// The cheapest SAH cost of binary node `c` as one child (a leaf when allowed, else a
+/// wide node over the best cover of its two subtrees), by trying every cover.
+fn exhaustive_cost(bvh2: &obvhs::bvh2::Bvh2, c: usize, cost: wide::SahCost) -> f64 {
+    let bn = &bvh2.nodes;
+    let n = &bn[c];
+    let b = n.aabb();
+    let area = half_area64(b.min.to_array(), b.max.to_array());
+    let count = {
+        let (mut count, mut stack) = (0, vec![c]);
+        while let Some(i) = stack.pop() {
+            if bn[i].is_leaf() {
+                count += bn[i].prim_count;
+            } else {
+                stack.extend([bn[i].first_index as usize, bn[i].first_index as usize + 1]);
+            }
+        }
+        count
+    };
+    let leaf = area * f64::from(count) * f64::from(cost.prim);
+    if n.is_leaf() {
+        return leaf;
+    }
+    let first = n.first_index as usize;
+    let mut best = f64::INFINITY;
+    for a in covers(bn, first, wide::WIDTH - 1) {
+        for b in covers(bn, first + 1, wide::WIDTH - a.len()) {
+            let sum: f64 = a
+                .iter()
+                .chain(&b)
+                .map(|&m| exhaustive_cost(bvh2, m, cost))
+                .sum();
+            best = best.min(sum);
+        }
+    }
+    let inner = area + best;
+    // The root is always a wide node.
+    if c != 0 && count <= cost.leaf_max {
+        inner.min(leaf)
+    } else {
+        inner
+    }
+}
+
+/// The SAH collapse (Ylitie, Karras & Laine 2017, §3) finds the cheapest wide tree: on
+/// small trees its cost equals the minimum over every way of collapsing them, tried
+/// exhaustively, for leaf limits and primitive costs that favour leaves, nodes or both.
+#[test]
+fn the_sah_collapse_is_the_cheapest_collapse() {
+    let costs = [
+        wide::SahCost::TRIANGLES,
+        wide::SahCost {
+            leaf_max: 2,
+            prim: 0.3,
+        },
+        wide::SahCost {
+            leaf_max: 4,
+            prim: 3.0,
+        },
+        wide::SahCost {
+            leaf_max: 16,
+            prim: 0.05,
+        },
+    ];
+    let mut checked = 0;
+    for seed in 0..6u64 {
+        for n in [2, 3, 6, 10, 13] {
+            let tris = scattered(n, 100 + seed);
+            let bvh2 = bvh2_of(&tris);
+            let identity: Vec<u32> = (0..n as u32).collect();
+            for cost in costs {
+                let wide = wide::WideBvh::collapse_with(&bvh2, &identity, cost);
+                let ours = wide_cost(&wide, cost);
+                let best = exhaustive_cost(&bvh2, 0, cost);
+                assert!(
+                    (ours - best).abs() <= 1e-5 * best,
+                    "seed {seed}, {n} triangles, {cost:?}: collapse {ours}, cheapest {best}"
+                );
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 6 * 5 * 4);
+}
+
+/// The SAH collapse of a larger tree is a well-formed wide BVH: every triangle in exactly
+/// one leaf, leaves within the limit, every node reached once, and at least as cheap as
+/// wide nodes made greedily by opening the largest child (tinybvh's and our earlier
+/// collapse), which it must be as the optimum.
+#[test]
+fn the_sah_collapse_covers_every_triangle_once_within_the_limits() {
+    let n = 4000;
+    let tris = scattered(n, 77);
+    let bvh2 = bvh2_of(&tris);
+    let identity: Vec<u32> = (0..n as u32).collect();
+    for cost in [
+        wide::SahCost::TRIANGLES,
+        wide::SahCost {
+            leaf_max: 3,
+            prim: 1.0,
+        },
+    ] {
+        let wide = wide::WideBvh::collapse_with(&bvh2, &identity, cost);
+        let mut prims = wide.prims.clone();
+        prims.sort_unstable();
+        assert_eq!(prims, identity, "{cost:?}");
+        let mut reached = vec![0u32; wide.nodes.len()];
+        reached[0] = 1;
+        let mut leaf_total = 0;
+        for node in &wide.nodes {
+            for k in 0..wide::WIDTH {
+                if node.lo[0][k] > node.hi[0][k] {
+                    continue;
+                }
+                if node.count[k] == 0 {
+                    reached[node.child[k] as usize] += 1;
+                } else {
+                    assert!(node.count[k] <= cost.leaf_max, "{cost:?}");
+                    leaf_total += node.count[k];
+                }
+            }
+        }
+        assert_eq!(leaf_total as usize, n);
+        assert!(reached.iter().all(|&r| r == 1), "{cost:?}");
+        // A greedy collapse of the same tree with the same leaf limit.
+        let greedy = greedy_cost(&bvh2, cost);
+        let ours = wide_cost(&wide, cost);
+        assert!(
+            ours <= greedy * (1.0 + 1e-6),
+            "{cost:?}: {ours} against {greedy}"
+        );
+    }
+}
+
+/// The SAH cost of the greedy collapse: each wide node opens its child of largest area
+/// (interior children whose subtree exceeds the leaf limit first) until it has
+/// `wide::WIDTH` children; a child within the limit is a leaf.
+fn greedy_cost(bvh2: &obvhs::bvh2::Bvh2, cost: wide::SahCost) -> f64 {
+    let bn = &bvh2.nodes;
+    // Triangles under each node, children first (obvhs does not promise children after
+    // their parents).
+    let mut under = vec![0u32; bn.len()];
+    let mut stack = vec![(0usize, false)];
+    while let Some((i, done)) = stack.pop() {
+        let c = bn[i].first_index as usize;
+        if bn[i].is_leaf() {
+            under[i] = bn[i].prim_count;
+        } else if done {
+            under[i] = under[c] + under[c + 1];
+        } else {
+            stack.extend([(i, true), (c, false), (c + 1, false)]);
+        }
+    }
+    let area = |i: usize| {
+        let b = bn[i].aabb();
+        half_area64(b.min.to_array(), b.max.to_array())
+    };
+    let mut total = 0.0;
+    let mut work = vec![0usize];
+    while let Some(b) = work.pop() {
+        total += area(b);
+        let first = bn[b].first_index as usize;
+        let mut children = vec![first, first + 1];
+        while children.len() < wide::WIDTH {
+            let open = (0..children.len())
+                .filter(|&k| !bn[children[k]].is_leaf())
+                .max_by(|&x, &y| {
+                    let key = |k: usize| (under[children[k]] > cost.leaf_max, area(children[k]));
+                    key(x).partial_cmp(&key(y)).unwrap()
+                });
+            let Some(k) = open else { break };
+            let c = bn[children[k]].first_index as usize;
+            children[k] = c;
+            children.insert(k + 1, c + 1);
+        }
+        for c in children {
+            if bn[c].is_leaf() || under[c] <= cost.leaf_max {
+                total += area(c) * f64::from(under[c]) * f64::from(cost.prim);
+            } else {
+                work.push(c);
+            }
+        }
+    }
+    total
+}

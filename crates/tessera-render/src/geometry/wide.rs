@@ -2,18 +2,19 @@
 //! [`WIDTH`] children whose boxes are stored as structure-of-arrays, so one box test
 //! covers every child with the ISA's widest vectors (the kernels are in `kernels`).
 //!
-//! **Collapse.** Greedy, by the surface area heuristic (a simple variant of the collapse
-//! in Ylitie, Karras & Laine 2017, §3, without their dynamic programme): a wide node
-//! starts with its binary node's two children and repeatedly opens an interior child into
-//! its two children until it has [`WIDTH`] children or none is interior. A child whose
-//! subtree holds at most [`LEAF_MAX`] triangles (or that is a binary leaf) becomes a
-//! leaf; any other child becomes a wide node in turn. Children that would become wide
-//! nodes are opened first: each one left in place costs a node of its own (256 bytes and
-//! one more box test for every ray that enters it), while a slot costs the same used or
-//! empty, so only when none is left are leaf-sized children split to fill the free slots
-//! (smaller leaves: fewer triangle tests per entered leaf, in the SAH's terms, Wald,
-//! Benthin & Boulos 2008, §3). Within each class the child of largest surface area (the
-//! one a ray is likeliest to enter) goes first. Nodes are 64-byte aligned (one
+//! **Collapse.** By the surface area heuristic, with the dynamic programme of Ylitie,
+//! Karras & Laine 2017, §3 (the SAH for wide nodes: Wald, Benthin & Boulos 2008, §3):
+//! bottom up over obvhs' binary tree, every binary node gets the cheapest way to stand
+//! for its subtree within a budget of 1 to [`WIDTH`] children of its parent: as one child
+//! (a leaf of up to [`SahCost::leaf_max`] triangles, or a wide node of its own), or
+//! distributed into its two subtrees' children. A wide node costs its box's half area
+//! (each ray entering it tests all its children's boxes), a leaf its half area times its
+//! triangle count times [`SahCost::prim`]; then the wide nodes are made top down by the
+//! decisions ([`plan`]). Unlike the greedy collapse it replaced (open the child of
+//! largest area until the node is full, as tinybvh's `MBVH::ConvertFrom` does; leaves of
+//! at most 4 triangles), it makes a small subtree a leaf instead of an under-full node
+//! where that is cheaper, and shares a node's slots out by what they save
+//! (docs/benchmarks.md, "The SAH collapse"). Nodes are 64-byte aligned (one
 //! [`WideNode`] of 8 children is exactly four cache lines: the six bound arrays, then the
 //! child references).
 //!
@@ -38,11 +39,6 @@ use obvhs::bvh2::Bvh2;
 
 /// Children per node.
 pub(super) const WIDTH: usize = 8;
-
-/// The most triangles a leaf made from a binary subtree holds. 4 rather than 3: on a
-/// 200,000-triangle terrain the same instructions per ray (-0.3%) and 11% less geometry
-/// (docs/benchmarks.md, "The wide BVH: an 8-lane AVX2 box test ...").
-pub(super) const LEAF_MAX: u32 = 4;
 
 /// Entries of the traversal stack kept on the machine stack; deeper trees (only the
 /// pathological inputs of `build`'s known limit) use a heap stack.
@@ -147,83 +143,188 @@ pub(super) fn planes(node: &WideNode, axis: usize, neg: bool) -> (&[f32; WIDTH],
     }
 }
 
-impl WideBvh {
-    /// The wide BVH of `bvh2` (non-empty), whose primitive `i` is at `position[i]` in the
-    /// level's triangle array.
-    #[allow(clippy::needless_range_loop)] // axes index the node's arrays and the box's
-    pub(super) fn collapse(bvh2: &Bvh2, position: &[u32]) -> Self {
-        let bn = &bvh2.nodes;
-        // Triangles under every binary node, children before parents by an explicit
-        // post-order walk (obvhs does not promise children after parents).
-        let mut under = vec![0u32; bn.len()];
-        let mut stack: Vec<(usize, bool)> = vec![(0, false)];
-        while let Some((i, done)) = stack.pop() {
-            let n = &bn[i];
-            if n.is_leaf() {
-                under[i] = n.prim_count;
-            } else if done {
-                let c = n.first_index as usize;
-                under[i] = under[c] + under[c + 1];
+/// What the collapse's surface area heuristic charges (Ylitie, Karras & Laine 2017, §3;
+/// the SAH for wide nodes as in Wald, Benthin & Boulos 2008, §3): a wide node costs its
+/// box's half area times 1 (one box test of every child for each ray that enters it), a
+/// leaf its half area times its primitive count times [`SahCost::prim`] (one test of each
+/// primitive for each ray that enters it).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct SahCost {
+    /// The most primitives a leaf made from a binary subtree holds (a binary leaf of more
+    /// stays one leaf: obvhs' and our builds make leaves of one primitive).
+    pub(super) leaf_max: u32,
+    /// The cost of one primitive's test relative to one node's box test.
+    pub(super) prim: f32,
+}
+
+impl SahCost {
+    /// Triangles (and moving triangles): the scalar watertight test of one triangle
+    /// against the box test of a node's eight children.
+    pub(super) const TRIANGLES: SahCost = SahCost {
+        leaf_max: 8,
+        prim: 0.3,
+    };
+}
+
+/// The collapse's decisions for one binary node: nibble `i - 1` for a budget of `i`
+/// children (`1..=WIDTH`). Budget 1: 0 makes the node a leaf, `k` a wide node whose
+/// children are its left subtree's with a budget of `k` and its right subtree's with
+/// `WIDTH - k`. Budget `i >= 2`: 0 leaves the node one child (as decided for budget 1),
+/// `k` distributes it into its left subtree's children with a budget of `k` and its right
+/// subtree's with `i - k`. Four bytes per binary node, what the greedy collapse held
+/// (each node's triangle count).
+type Plan = u32;
+const _: () = assert!(
+    WIDTH <= 8,
+    "a plan holds budgets of at most 8 in 4-bit fields"
+);
+
+/// The nibble of `plan` for a budget of `budget` children.
+#[inline(always)]
+fn decision(plan: Plan, budget: usize) -> usize {
+    ((plan >> (4 * (budget - 1))) & 15) as usize
+}
+
+/// The collapse's dynamic programme (Ylitie, Karras & Laine 2017, §3, their cost
+/// function with [`SahCost`]): for every binary node and every budget `i` of children
+/// it may take in its parent, the cheapest way to cover its subtree, bottom up. With
+/// `C(n, i)` the cost of node `n` within a budget of `i`,
+/// `C(n, 1) = min(leaf, A(n) + D(n, WIDTH))` (a leaf only up to `leaf_max` primitives),
+/// `C(n, i) = min(C(n, 1), D(n, i))` for `i >= 2`, and `D(n, i)` the cheapest split
+/// `C(left, k) + C(right, i - k)`. Returns the plans, and how many binary nodes would
+/// become wide nodes if reached (a bound on the wide nodes besides the root). The costs
+/// live on a stack as deep as the tree (a node's are read only by its parent); the plans
+/// take four bytes per binary node.
+fn plan(bvh2: &Bvh2, cost: SahCost) -> (Vec<Plan>, usize) {
+    let bn = &bvh2.nodes;
+    let mut plans: Vec<Plan> = vec![0; bn.len()];
+    let mut internal = 0;
+    // Each visited subtree's costs for budgets 1..=WIDTH and its primitive count.
+    let mut values: Vec<([f32; WIDTH], u32)> = Vec::new();
+    let mut stack: Vec<(usize, bool)> = vec![(0, false)];
+    while let Some((i, done)) = stack.pop() {
+        let n = &bn[i];
+        let area = n.aabb().half_area();
+        if n.is_leaf() {
+            let leaf = area * n.prim_count as f32 * cost.prim;
+            values.push(([leaf; WIDTH], n.prim_count));
+            continue;
+        }
+        let first = n.first_index as usize;
+        if !done {
+            // Left first, so its values lie below the right's.
+            stack.extend([(i, true), (first + 1, false), (first, false)]);
+            continue;
+        }
+        let (right, count_right) = values.pop().expect("right subtree visited");
+        let (left, count_left) = values.pop().expect("left subtree visited");
+        let count = count_left.saturating_add(count_right);
+        // The cheapest split of a budget of `i` (at least 2) between the subtrees; the
+        // first on ties, and `k = 1` when every sum is NaN, so a split always exists.
+        let split = |i: usize| {
+            let mut best = (left[0] + right[i - 2], 1);
+            for k in 2..i {
+                let c = left[k - 1] + right[i - k - 1];
+                if c < best.0 {
+                    best = (c, k);
+                }
+            }
+            best
+        };
+        let mut costs = [0f32; WIDTH];
+        let mut p: Plan = 0;
+        let (distribute, k) = split(WIDTH);
+        let inner = area + distribute;
+        let leaf = area * count as f32 * cost.prim;
+        // The root is always a wide node (the walk starts at one), so its plan for a
+        // budget of 1 is always the wide node's split.
+        if i != 0 && count <= cost.leaf_max && leaf <= inner {
+            costs[0] = leaf;
+        } else {
+            costs[0] = inner;
+            p |= k as Plan;
+            internal += 1;
+        }
+        for budget in 2..=WIDTH {
+            let (c, k) = split(budget);
+            if c < costs[0] {
+                costs[budget - 1] = c;
+                p |= (k as Plan) << (4 * (budget - 1));
             } else {
-                stack.push((i, true));
-                stack.push((n.first_index as usize, false));
-                stack.push((n.first_index as usize + 1, false));
+                costs[budget - 1] = costs[0];
             }
         }
-        // Every wide node but the root stands for a distinct binary interior node with more
-        // than a leaf's triangles under it, so their count bounds the nodes. Reserving it
-        // up front keeps the array from doubling (two copies at once at the build's memory
-        // peak); pages never written are never resident, and the shrink at the end returns
-        // the rest.
-        let bound = 1
-            + (0..bn.len())
-                .filter(|&i| !bn[i].is_leaf() && under[i] > LEAF_MAX)
-                .count();
-        let mut nodes = Vec::with_capacity(bound);
+        plans[i] = p;
+        values.push((costs, count));
+    }
+    (plans, internal)
+}
+
+impl WideBvh {
+    /// The wide BVH of `bvh2` (non-empty), whose primitive `i` is at `position[i]` in the
+    /// level's triangle array, collapsed by the SAH with [`SahCost::TRIANGLES`] (every
+    /// level: triangles, moving triangles and the top level over instances).
+    pub(super) fn collapse(bvh2: &Bvh2, position: &[u32]) -> Self {
+        Self::collapse_with(bvh2, position, SahCost::TRIANGLES)
+    }
+
+    /// [`WideBvh::collapse`] with the costs `cost` (see the module docs).
+    #[allow(clippy::needless_range_loop)] // axes index the node's arrays and the box's
+    pub(super) fn collapse_with(bvh2: &Bvh2, position: &[u32], cost: SahCost) -> Self {
+        let bn = &bvh2.nodes;
+        let (plans, internal) = plan(bvh2, cost);
+        // Every wide node but the root stands for a distinct binary node planned as one,
+        // so their count bounds the nodes. Reserving it up front keeps the array from
+        // doubling (two copies at once at the build's memory peak); pages never written
+        // are never resident, and the shrink at the end returns the rest.
+        let mut nodes = Vec::with_capacity(1 + internal);
         nodes.push(WideNode::EMPTY);
         let mut out = WideBvh {
             nodes,
             prims: Vec::with_capacity(position.len()),
             stack_need: 0,
         };
-        // (binary node, wide node it fills)
+        // A child is a leaf when its plan for a budget of 1 is (binary leaves included).
+        let is_leaf = |c: usize| decision(plans[c], 1) == 0;
+        // (binary node, wide node it fills); a root that is a binary leaf is the root
+        // node's only child.
         let mut work: Vec<(usize, usize)> = vec![(0, 0)];
         let mut children: Vec<usize> = Vec::with_capacity(WIDTH);
+        let mut gather: Vec<(usize, usize)> = Vec::with_capacity(2 * WIDTH);
         let mut leaf_walk: Vec<usize> = Vec::new();
         while let Some((b, w)) = work.pop() {
             children.clear();
-            if bn[b].is_leaf() {
+            if is_leaf(b) {
                 children.push(b);
             } else {
-                let c = bn[b].first_index as usize;
-                children.extend([c, c + 1]);
-            }
-            while children.len() < WIDTH {
-                // The child to open: one that would become a wide node of its own if
-                // any, else one that would become a leaf; within each class the one of
-                // largest surface area (the first on ties). See the module docs.
-                let mut open: Option<(usize, bool, f32)> = None;
-                for (k, &c) in children.iter().enumerate() {
-                    if !bn[c].is_leaf() {
-                        let big = under[c] > LEAF_MAX;
-                        let area = bn[c].aabb().half_area();
-                        if open.is_none_or(|(_, b, a)| (big, area) > (b, a)) {
-                            open = Some((k, big, area));
-                        }
+                // The plan's children, left to right: each (subtree, budget) stays one
+                // child or is distributed between its subtrees.
+                let k = decision(plans[b], 1);
+                let first = bn[b].first_index as usize;
+                gather.clear();
+                gather.extend([(first + 1, WIDTH - k), (first, k)]);
+                while let Some((c, budget)) = gather.pop() {
+                    let k = if budget >= 2 && !bn[c].is_leaf() {
+                        decision(plans[c], budget)
+                    } else {
+                        0
+                    };
+                    if k == 0 {
+                        children.push(c);
+                    } else {
+                        let first = bn[c].first_index as usize;
+                        gather.extend([(first + 1, budget - k), (first, k)]);
                     }
                 }
-                let Some((k, _, _)) = open else { break };
-                let c = bn[children[k]].first_index as usize;
-                children[k] = c;
-                children.insert(k + 1, c + 1);
             }
+            debug_assert!(children.len() <= WIDTH);
             for (slot, &c) in children.iter().enumerate() {
                 let bb = bn[c].aabb();
                 for axis in 0..3 {
                     out.nodes[w].lo[axis][slot] = bb.min[axis];
                     out.nodes[w].hi[axis][slot] = bb.max[axis];
                 }
-                if bn[c].is_leaf() || under[c] <= LEAF_MAX {
+                if is_leaf(c) {
                     let first = out.prims.len() as u32;
                     leaf_walk.clear();
                     leaf_walk.push(c);
