@@ -11,11 +11,12 @@
 //! | [`anisotropic_ggx_albedo`] | `(A, B)` of [`ggx_albedo`] for the anisotropic GGX of KHR_materials_anisotropy, over `(μ, φ, r, t)`: `φ` the azimuth of `wo` from the anisotropy direction, `r` the perceptual roughness across it and `t = strength²` (`anisotropic_albedo.bin`), with its hemispherical average [`anisotropic_ggx_albedo_average`] |
 //! | [`coat_loss`] | `D(μ, r_base, r_coat)`: what a white GGX base under a clearcoat loses to the coat's reciprocal `min` scaling (`coat_loss.bin`), with its average [`coat_loss_average`], for the compensation of [`super::gltf`] |
 //! | [`coat_glass_loss`] | `G(μ, r, η, r_coat)`: of the power a white rough dielectric interface met from inside at `μ` sends out, the part a clearcoat (factor one) reflects back inside (`coat_glass_loss.bin`), with its average [`coat_glass_loss_average`], for the inside lobe of a coated rough glass in [`super::gltf`] |
+//! | [`sheen_glass_loss`] | `(G_sh, H)(μ, r, η, r_sheen)`: [`coat_glass_loss`] with the sheen's layer albedo in place of the coat's, and the same times the largest coat albedo, bounding a coat and a sheen's overlap (`sheen_glass_loss.bin`), with their averages [`sheen_glass_loss_average`], for the inside lobe of a rough glass under a sheen in [`super::gltf`] |
 //! | [`dielectric_albedo`] | `E(μ, α, η)`: the reflected plus transmitted power of the single-scattering rough dielectric, for `η` in `[1, 3]` and `1/η` (`dielectric_albedo.bin`), with its average [`dielectric_albedo_average`], for the multiple-scattering compensation of [`super::dielectric`] |
 //!
 //! The tables are computed by fixed quadrature and committed (`albedo_tables.bin`,
-//! `dielectric_albedo.bin`, `anisotropic_albedo.bin`, `coat_loss.bin` and
-//! `coat_glass_loss.bin`, read
+//! `dielectric_albedo.bin`, `anisotropic_albedo.bin`, `coat_loss.bin`,
+//! `coat_glass_loss.bin` and `sheen_glass_loss.bin`, read
 //! once per process): computing them at start-up took 0.6 s for the GGX tables and
 //! 0.75 s for the sheen table at opt-level 3 on a busy two-core machine, paid by every
 //! `tessera render`, worker and pilot process that met a glTF material (0.93 G of the
@@ -26,7 +27,8 @@
 //! --lib write_albedo_tables -- --ignored` writes the file again after a change to the
 //! quadrature or the node layout (both files); `write_coat_glass_table` writes
 //! `coat_glass_loss.bin`, which integrates the GGX and dielectric tables (regenerate it
-//! after them). The dielectric table by the midpoint rule on
+//! after them), and `write_sheen_glass_table` `sheen_glass_loss.bin` (after the sheen
+//! table too). The dielectric table by the midpoint rule on
 //! the visible-normal warp with both Fresnel branches of each microfacet
 //! (`RoughDielectric::single_scattering_energy`), trilinear in `(sqrt(μ), r, sqrt(η - 1))`. The GGX
 //! integrals by the midpoint rule on the square of the
@@ -884,7 +886,7 @@ pub fn coat_loss_average(alpha: f32, alpha_cc: f32) -> f32 {
 }
 
 // ---------------------------------------------------------------------------------------
-// A clearcoat over rough glass, seen from inside
+// A clearcoat or a sheen over rough glass, seen from inside
 // ---------------------------------------------------------------------------------------
 
 /// Nodes of the coated-glass table along the inside cosine `μ`, uniform in the coordinate
@@ -895,9 +897,10 @@ const G_R: usize = 12;
 /// Nodes along the relative index, uniform in `sqrt((η - 1) / (DIELECTRIC_ETA_MAX - 1))`
 /// as the dielectric table's; an odd count puts the glTF default `η = 1.5` on a node.
 const G_ETA: usize = 13;
-/// Nodes along the coat's perceptual roughness, uniform in `[sqrt(MIN_ALPHA), 1]`.
+/// Nodes along the layer's perceptual roughness, uniform in `[r_min, 1]` (the coat's
+/// `sqrt(MIN_ALPHA)`, the sheen's [`sheen::MIN_SHEEN_ROUGHNESS`]).
 const G_RC: usize = 8;
-/// Entries of the coated-glass table.
+/// Entries of the coated-glass table (and of each of the sheen's two).
 const G_SIZE: usize = G_RC * G_ETA * G_R * G_MU;
 /// Quadrature points per side of the unit square (visible normals), per entry.
 #[cfg(test)]
@@ -910,8 +913,14 @@ const G_MS: usize = 64;
 /// `r`, and `μ` fastest, little-endian binary32 (written by `write_coat_glass_table`).
 static COMMITTED_COAT_GLASS: &[u8; 4 * G_SIZE] = include_bytes!("coat_glass_loss.bin");
 
-/// The coated-glass table with its cosine-weighted averages per `(r_coat, η, r)`.
-struct CoatGlassTable {
+/// The committed sheen-over-glass tables in the coated-glass table's layout, the sheen's
+/// perceptual roughness in place of the coat's: `G_sh` then `H` of
+/// [`sheen_glass_loss`] (written by `write_sheen_glass_table`).
+static COMMITTED_SHEEN_GLASS: &[u8; 8 * G_SIZE] = include_bytes!("sheen_glass_loss.bin");
+
+/// A glass-loss table (the coat's `G`, the sheen's `G_sh` or `H`) with its
+/// cosine-weighted averages per `(r_layer, η, r)`.
+struct GlassLossTable {
     v: Vec<f32>,
     avg: Vec<f32>,
 }
@@ -974,13 +983,19 @@ fn r_node_of(j: usize, n: usize) -> f32 {
     r_min + (1.0 - r_min) * node(j, n)
 }
 
-/// `G(μ)` at one `(μ, α, η, α_coat)`: the power the interface seen from inside at `μ`
-/// sends out (single scattering by the midpoint rule on the visible-normal warp, as the
-/// dielectric table; the compensation's transmitted part, which depends on `μi` alone,
-/// by the midpoint rule in `sqrt(μi)`), each direction weighted by the coat's albedo
-/// `E_cc(μi)` at its outside cosine.
+/// `G(μ)` at one `(μ, α, η, α_coat)`: [`glass_loss_quadrature`] with the coat's albedo.
 #[cfg(test)]
 fn coat_glass_loss_quadrature(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
+    glass_loss_quadrature(mu, alpha, eta, |mu_t| coat_albedo(mu_t, alpha_cc))
+}
+
+/// The power the interface of `(α, η)` seen from inside at `μ` sends out (single
+/// scattering by the midpoint rule on the visible-normal warp, as the dielectric table;
+/// the compensation's transmitted part, which depends on `μi` alone, by the midpoint
+/// rule in `sqrt(μi)`), each direction weighted by a layer's albedo `layer(μi)` at its
+/// outside cosine: what that layer reflects back inside.
+#[cfg(test)]
+fn glass_loss_quadrature(mu: f32, alpha: f32, eta: f32, layer: impl Fn(f32) -> f32) -> f32 {
     let mu = mu.max(MU_MIN);
     // The interface seen from inside: the frame mirrored so that the inside is `+z`.
     let inside = super::dielectric::RoughDielectric {
@@ -989,7 +1004,7 @@ fn coat_glass_loss_quadrature(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f
         tint: Vec3::ONE,
     };
     let wo = Vec3::new((1.0 - mu * mu).max(0.0).sqrt(), 0.0, mu);
-    let coat = |wi: Vec3| coat_albedo(wi.z.abs(), alpha_cc);
+    let coat = |wi: Vec3| layer(wi.z.abs());
     let mut single = 0.0f64;
     for i in 0..G_QUAD {
         for j in 0..G_QUAD {
@@ -1007,7 +1022,7 @@ fn coat_glass_loss_quadrature(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f
         let mu_i = (x * x) as f32;
         let wi = Vec3::new((1.0 - mu_i * mu_i).max(0.0).sqrt(), 0.0, -mu_i);
         if let Some(f) = inside.eval_multiple(wo, wi) {
-            multiple += (f.x * coat_albedo(mu_i, alpha_cc)) as f64 * 2.0 * x / G_MS as f64;
+            multiple += (f.x * layer(mu_i)) as f64 * 2.0 * x / G_MS as f64;
         }
     }
     // Power, not radiance: the radiance BTDF's `1/η²` (`η = 1/eta` seen from inside) undone.
@@ -1015,29 +1030,83 @@ fn coat_glass_loss_quadrature(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f
     (single / (G_QUAD * G_QUAD) as f64 + power) as f32
 }
 
-/// The coated-glass table by quadrature, in the committed file's order, rows in parallel.
+/// The coated-glass table by quadrature, in the committed file's order.
 #[cfg(test)]
 fn coat_glass_loss_quadrature_table() -> Vec<f32> {
+    glass_loss_quadrature_table(MIN_ALPHA.sqrt(), |mu_t, rc| {
+        coat_albedo(mu_t, (rc * rc).max(MIN_ALPHA))
+    })
+}
+
+/// The sheen-over-glass tables by quadrature, in the committed file's order: `G_sh`
+/// (the sheen's layer albedo as [`super::gltf`] scales by it, capped at one) then `H`
+/// (times the envelope of the coat's albedo, [`coat_albedo_envelope`]).
+#[cfg(test)]
+fn sheen_glass_loss_quadrature_tables() -> Vec<f32> {
+    let r_min = sheen::MIN_SHEEN_ROUGHNESS;
+    let e_sh = |mu_t: f32, r: f32| sheen_layer_albedo(mu_t, r).min(1.0);
+    let mut v = glass_loss_quadrature_table(r_min, e_sh);
+    v.extend(glass_loss_quadrature_table(r_min, |mu_t, r| {
+        e_sh(mu_t, r) * coat_albedo_envelope(mu_t)
+    }));
+    v
+}
+
+/// The largest clearcoat albedo at `μ` over all coat roughnesses: the maximum over the
+/// GGX table's roughness nodes, which bounds [`coat_albedo`] everywhere, as its lookup is
+/// linear in the roughness between nodes.
+#[cfg(test)]
+fn coat_albedo_envelope(mu: f32) -> f32 {
+    let r_min = MIN_ALPHA.sqrt();
+    (0..N_R)
+        .map(|j| {
+            let r = r_min + (1.0 - r_min) * node(j, N_R);
+            coat_albedo(mu, r * r)
+        })
+        .fold(0.0, f32::max)
+}
+
+/// A glass-loss table by quadrature in the coated-glass layout, rows in parallel:
+/// [`glass_loss_quadrature`] with the layer albedo `layer(μt, r_layer)`, `r_layer` on
+/// [`G_RC`] nodes uniform in `[r_min, 1]`.
+#[cfg(test)]
+fn glass_loss_quadrature_table(r_min: f32, layer: impl Fn(f32, f32) -> f32 + Sync) -> Vec<f32> {
     (0..G_RC * G_ETA * G_R)
         .into_par_iter()
         .flat_map_iter(|row| {
             let (k, e, j) = (row / (G_ETA * G_R), (row / G_R) % G_ETA, row % G_R);
             let eta = eta_node_of(e, G_ETA);
-            let (r, rc) = (r_node_of(j, G_R), r_node_of(k, G_RC));
-            let (alpha, alpha_cc) = ((r * r).max(MIN_ALPHA), (rc * rc).max(MIN_ALPHA));
+            let r = r_node_of(j, G_R);
+            let r_layer = r_min + (1.0 - r_min) * node(k, G_RC);
+            let alpha = (r * r).max(MIN_ALPHA);
             let mu_c = critical_cosine(eta);
+            let layer = &layer;
             (0..G_MU).map(move |i| {
                 let mu = g_mu_at(node(i, G_MU), mu_c);
-                coat_glass_loss_quadrature(mu, alpha, eta, alpha_cc)
+                glass_loss_quadrature(mu, alpha, eta, |mu_t| layer(mu_t, r_layer))
             })
         })
         .collect()
 }
 
-fn coat_glass_table() -> &'static CoatGlassTable {
-    static TABLE: OnceLock<CoatGlassTable> = OnceLock::new();
-    TABLE.get_or_init(|| {
-        let v: Vec<f32> = COMMITTED_COAT_GLASS
+fn coat_glass_table() -> &'static GlassLossTable {
+    static TABLE: OnceLock<GlassLossTable> = OnceLock::new();
+    TABLE.get_or_init(|| GlassLossTable::read(COMMITTED_COAT_GLASS))
+}
+
+/// The sheen-over-glass tables `G_sh` and `H` of [`sheen_glass_loss`].
+fn sheen_glass_tables() -> &'static [GlassLossTable; 2] {
+    static TABLES: OnceLock<[GlassLossTable; 2]> = OnceLock::new();
+    TABLES.get_or_init(|| {
+        let (g, h) = COMMITTED_SHEEN_GLASS.split_at(4 * G_SIZE);
+        [GlassLossTable::read(g), GlassLossTable::read(h)]
+    })
+}
+
+impl GlassLossTable {
+    /// The table from its committed little-endian bytes, with its averages.
+    fn read(bytes: &[u8]) -> GlassLossTable {
+        let v: Vec<f32> = bytes
             .chunks_exact(4)
             .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
             .collect();
@@ -1052,23 +1121,46 @@ fn coat_glass_table() -> &'static CoatGlassTable {
                 }
             }
         }
-        CoatGlassTable { v, avg }
-    })
+        GlassLossTable { v, avg }
+    }
+
+    /// The interpolation at `μ` in the cell of [`g_locate`].
+    #[inline]
+    fn lookup(&self, mu: f32, eta: f32, cell: [(usize, f32); 3]) -> f32 {
+        let mu_c = critical_cosine(eta.clamp(1.0, DIELECTRIC_ETA_MAX));
+        let (i, s) = Table::locate(g_mu_coordinate(mu, mu_c), G_MU);
+        let at = |k: usize, e: usize, j: usize| {
+            let a = self.v[g_index(k, e, j, i)];
+            a + (self.v[g_index(k, e, j, i + 1)] - a) * s
+        };
+        g_trilinear(at, cell)
+    }
+
+    /// The interpolation of the nodes' averages in the cell of [`g_locate`].
+    #[inline]
+    fn average(&self, cell: [(usize, f32); 3]) -> f32 {
+        g_trilinear(|k, e, j| self.avg[(k * G_ETA + e) * G_R + j], cell)
+    }
 }
 
-/// Cells and fractions of `(α, η, α_coat)` in the coated-glass table (`η` beyond
-/// [`DIELECTRIC_ETA_MAX`] is looked up there).
+/// The coat's GGX `α` as the coordinate in [0, 1] of its perceptual roughness.
 #[inline]
-fn g_locate(alpha: f32, eta: f32, alpha_cc: f32) -> [(usize, f32); 3] {
+fn alpha_coordinate(alpha: f32) -> f32 {
     let r_min = MIN_ALPHA.sqrt();
-    let r = |a: f32| (a.max(0.0).sqrt() - r_min) / (1.0 - r_min);
+    (alpha.max(0.0).sqrt() - r_min) / (1.0 - r_min)
+}
+
+/// Cells and fractions of `(α, η)` and of the layer's roughness coordinate `x_layer` in
+/// [0, 1] in a glass-loss table (`η` beyond [`DIELECTRIC_ETA_MAX`] is looked up there).
+#[inline]
+fn g_locate(alpha: f32, eta: f32, x_layer: f32) -> [(usize, f32); 3] {
     let t = ((eta.min(DIELECTRIC_ETA_MAX) - 1.0) / (DIELECTRIC_ETA_MAX - 1.0))
         .max(0.0)
         .sqrt();
     [
-        Table::locate(r(alpha), G_R),
+        Table::locate(alpha_coordinate(alpha), G_R),
         Table::locate(t, G_ETA),
-        Table::locate(r(alpha_cc), G_RC),
+        Table::locate(x_layer, G_RC),
     ]
 }
 
@@ -1096,14 +1188,8 @@ fn g_trilinear(at: impl Fn(usize, usize, usize) -> f32, cell: [(usize, f32); 3])
 /// 1/2 below the critical cosine `sqrt(1 - 1/η²)` and from 1/2 to 1 above it.
 #[inline]
 pub fn coat_glass_loss(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
-    let t = coat_glass_table();
-    let mu_c = critical_cosine(eta.clamp(1.0, DIELECTRIC_ETA_MAX));
-    let (i, s) = Table::locate(g_mu_coordinate(mu, mu_c), G_MU);
-    let at = |k: usize, e: usize, j: usize| {
-        let a = t.v[g_index(k, e, j, i)];
-        a + (t.v[g_index(k, e, j, i + 1)] - a) * s
-    };
-    g_trilinear(at, g_locate(alpha, eta, alpha_cc))
+    let cell = g_locate(alpha, eta, alpha_coordinate(alpha_cc));
+    coat_glass_table().lookup(mu, eta, cell)
 }
 
 /// `2 ∫ G(μ) μ dμ` of [`coat_glass_loss`]: the trilinear interpolation of the nodes'
@@ -1111,9 +1197,47 @@ pub fn coat_glass_loss(mu: f32, alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
 /// differs from the nodes', a difference of order the interpolation's own).
 #[inline]
 pub fn coat_glass_loss_average(alpha: f32, eta: f32, alpha_cc: f32) -> f32 {
-    let t = coat_glass_table();
-    let at = |k: usize, e: usize, j: usize| t.avg[(k * G_ETA + e) * G_R + j];
-    g_trilinear(at, g_locate(alpha, eta, alpha_cc))
+    coat_glass_table().average(g_locate(alpha, eta, alpha_coordinate(alpha_cc)))
+}
+
+/// The cell of a sheen of perceptual roughness `sheen_r` in the sheen-over-glass tables.
+#[inline]
+fn sheen_glass_cell(alpha: f32, eta: f32, sheen_r: f32) -> [(usize, f32); 3] {
+    let r_min = sheen::MIN_SHEEN_ROUGHNESS;
+    g_locate(alpha, eta, (sheen_r - r_min) / (1.0 - r_min))
+}
+
+/// `(G_sh(μ), H(μ))` for a sheen of perceptual roughness `sheen_r` over the white rough
+/// dielectric interface of [`coat_glass_loss`], met from inside at `μ`:
+/// `G_sh = ∫_outside E_sh(μi) dP(wi)` is the part of the power the interface sends out
+/// that the sheen (colour one) reflects back inside, `E_sh` = [`sheen_layer_albedo`]
+/// (at most one) at each direction's outside cosine, as [`coat_glass_loss`] with the
+/// sheen's layer albedo in place of the coat's. `H = ∫_outside E_sh(μi) Ê_cc(μi) dP(wi)`,
+/// `Ê_cc` the largest clearcoat albedo over all coat roughnesses, bounds the overlap
+/// `∫ E_sh E_cc dP` of a sheen under a clearcoat of any roughness, for [`super::gltf`]'s
+/// return of a coat and a sheen together. Quadrilinear as [`coat_glass_loss`], with the
+/// sheen's roughness uniform in `[MIN_SHEEN_ROUGHNESS, 1]` (`sheen_glass_loss.bin`).
+#[inline]
+pub fn sheen_glass_loss(mu: f32, alpha: f32, eta: f32, sheen_r: f32) -> (f32, f32) {
+    let cell = sheen_glass_cell(alpha, eta, sheen_r);
+    let [g, h] = sheen_glass_tables();
+    (g.lookup(mu, eta, cell), h.lookup(mu, eta, cell))
+}
+
+/// `2 ∫ G_sh(μ) μ dμ` and `2 ∫ H(μ) μ dμ` of [`sheen_glass_loss`], as
+/// [`coat_glass_loss_average`].
+#[inline]
+pub fn sheen_glass_loss_average(alpha: f32, eta: f32, sheen_r: f32) -> (f32, f32) {
+    let cell = sheen_glass_cell(alpha, eta, sheen_r);
+    let [g, h] = sheen_glass_tables();
+    (g.average(cell), h.average(cell))
+}
+
+#[cfg(test)]
+pub(crate) fn sheen_glass_loss_reference(mu: f32, alpha: f32, eta: f32, sheen_r: f32) -> f32 {
+    glass_loss_quadrature(mu, alpha, eta, |mu_t| {
+        sheen_layer_albedo(mu_t, sheen_r).min(1.0)
+    })
 }
 
 #[cfg(test)]
@@ -1254,31 +1378,65 @@ mod committed_tests {
         }
     }
 
+    /// Writes a glass-loss table file of `src/bsdf` from its quadrature.
+    fn write_glass_table(file: &str, table: &[f32]) {
+        let bytes: Vec<u8> = table.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
+        std::fs::write(dir.join(file), bytes).unwrap();
+    }
+
+    /// The committed glass-loss `tables` are what the quadrature gives, within rounding.
+    fn assert_glass_tables_are(file: &str, writer: &str, quadrature: &[f32], tables: &[&[f32]]) {
+        let committed: Vec<f32> = tables.concat();
+        assert_eq!(quadrature.len(), committed.len());
+        for (n, (c, s)) in quadrature.iter().zip(&committed).enumerate() {
+            assert!(
+                (c - s).abs() <= 1e-5,
+                "{file} entry {n}: quadrature {c}, committed {s}; regenerate with \
+                 `cargo test -p tessera-render --lib {writer} -- --ignored`"
+            );
+        }
+    }
+
     /// Writes `coat_glass_loss.bin` from the quadrature (run by hand; it depends on the
     /// GGX and dielectric tables, so it is written after them).
     #[test]
     #[ignore = "writes src/bsdf/coat_glass_loss.bin; run by hand after changing the quadrature"]
     fn write_coat_glass_table() {
-        let bytes: Vec<u8> = coat_glass_loss_quadrature_table()
-            .iter()
-            .flat_map(|v| v.to_le_bytes())
-            .collect();
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/bsdf");
-        std::fs::write(dir.join("coat_glass_loss.bin"), bytes).unwrap();
+        write_glass_table("coat_glass_loss.bin", &coat_glass_loss_quadrature_table());
+    }
+
+    /// Writes `sheen_glass_loss.bin` from the quadrature (run by hand; it depends on the
+    /// GGX, sheen and dielectric tables, so it is written after them).
+    #[test]
+    #[ignore = "writes src/bsdf/sheen_glass_loss.bin; run by hand after changing the quadrature"]
+    fn write_sheen_glass_table() {
+        write_glass_table(
+            "sheen_glass_loss.bin",
+            &sheen_glass_loss_quadrature_tables(),
+        );
     }
 
     /// The committed coated-glass table is what the quadrature gives, within rounding.
     #[test]
     fn committed_coat_glass_table_is_the_quadrature() {
-        let table = coat_glass_loss_quadrature_table();
-        assert_eq!(table.len(), coat_glass_table().v.len());
-        for (n, (c, s)) in table.iter().zip(&coat_glass_table().v).enumerate() {
-            assert!(
-                (c - s).abs() <= 1e-5,
-                "coated-glass entry {n}: quadrature {c}, committed {s}; regenerate with \
-                 `cargo test -p tessera-render --lib write_coat_glass_table -- --ignored`"
-            );
-        }
+        let v = &coat_glass_table().v;
+        let quadrature = coat_glass_loss_quadrature_table();
+        assert_glass_tables_are(
+            "coat_glass_loss.bin",
+            "write_coat_glass_table",
+            &quadrature,
+            &[v],
+        );
+    }
+
+    /// The committed sheen-over-glass tables are what the quadrature gives, within rounding.
+    #[test]
+    fn committed_sheen_glass_tables_are_the_quadrature() {
+        let [g, h] = sheen_glass_tables();
+        let quadrature = sheen_glass_loss_quadrature_tables();
+        let (file, writer) = ("sheen_glass_loss.bin", "write_sheen_glass_table");
+        assert_glass_tables_are(file, writer, &quadrature, &[&g.v, &h.v]);
     }
 
     /// The committed anisotropic GGX tables are what the quadrature gives, within rounding.

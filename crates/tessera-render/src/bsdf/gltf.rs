@@ -62,8 +62,9 @@
 //! keeps its energy; over a rough interface, what the clearcoat reflects back of the
 //! light leaving it is tabulated per inside angle, interface and coat roughness and index
 //! ([`super::albedo::coat_glass_loss`]) and returned inside as a reciprocal Kulla–Conty
-//! lobe (`GltfLobe::coat_the_glass`). A sheen over rough glass still loses its part
-//! there (3% of a white furnace seen from inside; it is not tabulated).
+//! lobe (`GltfLobe::coat_the_glass`); a sheen's part likewise
+//! ([`super::albedo::sheen_glass_loss`]), and a coat and a sheen together return no more
+//! than the two layers reflect.
 //!
 //! # Sides
 //! Without transmission the material is opaque and two-sided (the mixture mirrors the
@@ -74,7 +75,8 @@
 use super::albedo::{
     anisotropic_alphas, anisotropic_ggx_albedo, anisotropic_ggx_albedo_average,
     anisotropic_ggx_albedo_azimuthal, coat_glass_loss, coat_glass_loss_average, coat_loss,
-    coat_loss_average, ggx_albedo, ggx_albedo_average, sheen_layer_albedo, COAT_F0,
+    coat_loss_average, ggx_albedo, ggx_albedo_average, sheen_glass_loss, sheen_glass_loss_average,
+    sheen_layer_albedo, COAT_F0,
 };
 use super::dielectric::RoughDielectric;
 use super::diffuse::Diffuse;
@@ -231,11 +233,15 @@ pub struct GltfLobe {
     /// The GGX alpha the coat-loss table is looked up at (the metal's; the root mean
     /// square of the two for an anisotropic one).
     alpha_loss: f32,
-    /// Under a clearcoat, rough transmission met from inside: what the coat reflects back
-    /// of the light the interface sends out, returned inside as the lobe
-    /// `coat_glass G(μo) G(μi) cos θi` with `G` = [`coat_glass_loss`]; this is
-    /// `transmit clearcoat / (π G_avg)` (zero without a coated rough transmission).
+    /// Under a clearcoat or a sheen, rough transmission met from inside: what the layers
+    /// reflect back of the light the interface sends out, `R(μ) = glass_gain ℓ(μ)`
+    /// ([`GltfLobe::glass_loss`] is `ℓ`), returned inside as the lobe
+    /// `coat_glass ℓ(μo) ℓ(μi) cos θi`; this is `transmit glass_gain / (π ℓ_avg)` (zero
+    /// without a layered rough transmission).
     coat_glass: f32,
+    /// `R / ℓ`: the clearcoat factor under a clearcoat alone (`ℓ` = [`coat_glass_loss`]),
+    /// one with a sheen (`ℓ = R`, see [`GltfLobe::coat_the_glass`]).
+    glass_gain: f32,
     /// Relative index of refraction of the transmissive part.
     eta: f32,
     /// Transmission through a smooth interface (a delta component).
@@ -368,6 +374,7 @@ impl GltfLobe {
             coat_metal: Vec3::ZERO,
             alpha_loss: alpha,
             coat_glass: 0.0,
+            glass_gain: 0.0,
             eta: ior,
             smooth: alpha_raw < MIN_ALPHA || ior - 1.0 < 1e-3,
             clearcoat: c01(p.clearcoat),
@@ -383,7 +390,7 @@ impl GltfLobe {
         if lobe.clearcoat > 0.0 && metal > 0.0 {
             lobe.coat_the_metal();
         }
-        if lobe.clearcoat > 0.0 && lobe.transmit > 0.0 && !lobe.smooth {
+        if lobe.layered() && lobe.transmit > 0.0 && !lobe.smooth {
             lobe.coat_the_glass();
         }
         lobe
@@ -399,17 +406,56 @@ impl GltfLobe {
     /// as [`GltfLobe::sample_smooth_exit`] does for a smooth interface. Both directions
     /// are inside, so the lobe is symmetric (no `η²`: it never crosses the interface) and
     /// untinted, as the smooth exit's reflection.
+    ///
+    /// A sheen (weight `s = max(sheen_color)`) crosses with `1 - s E_sh(μt)` and
+    /// reflects back `s G_sh(μo)` ([`sheen_glass_loss`]), returned the same way. Under
+    /// both, the light crosses with `(1 - c E_cc)(1 - s E_sh)`, so the layers reflect back
+    /// `c E_cc + s E_sh - c s E_cc E_sh` of each exit direction: the two returns
+    /// `c G + s G_sh` count the product term's share `c s ∫ E_cc E_sh dP` twice. It
+    /// depends on both roughnesses and is not tabulated; `H(μo)` of [`sheen_glass_loss`]
+    /// bounds it from above (the sheen weighted by the largest coat albedo at each
+    /// angle), so the lobe returns `R = c G + s G_sh - c s H`, never more than the
+    /// layers reflect (white glass stays at or below one) and at least `c G` (as
+    /// `H <= G_sh`). The lobe is linear in `R`'s average, so `R_avg` is the same
+    /// combination of the tables' averages.
     fn coat_the_glass(&mut self) {
-        let g_avg = coat_glass_loss_average(self.alpha, self.eta, self.alpha_cc);
-        if g_avg > 1e-6 {
-            self.coat_glass = self.transmit * self.clearcoat * FRAC_1_PI / g_avg;
+        if self.sheen_max == 0.0 {
+            // A clearcoat alone: `ℓ = G`, `R = c G`.
+            let g_avg = coat_glass_loss_average(self.alpha, self.eta, self.alpha_cc);
+            if g_avg > 1e-6 {
+                self.glass_gain = self.clearcoat;
+                self.coat_glass = self.transmit * self.clearcoat * FRAC_1_PI / g_avg;
+            }
+            return;
+        }
+        let (c, s) = (self.clearcoat, self.sheen_max);
+        let (sh_avg, h_avg) = sheen_glass_loss_average(self.alpha, self.eta, self.sheen_r);
+        let mut r_avg = s * sh_avg;
+        if c > 0.0 {
+            r_avg +=
+                c * coat_glass_loss_average(self.alpha, self.eta, self.alpha_cc) - c * s * h_avg;
+        }
+        if r_avg > 1e-6 {
+            self.glass_gain = 1.0;
+            self.coat_glass = self.transmit * FRAC_1_PI / r_avg;
         }
     }
 
-    /// `G(μ)` of [`GltfLobe::coat_the_glass`] at this lobe's roughness, index and coat.
+    /// `ℓ(μ)` of [`GltfLobe::coat_the_glass`] at this lobe's roughness, index and layers:
+    /// `G(μ)` under a clearcoat alone, `R(μ) = c G + s G_sh - c s H` with a sheen.
     #[inline]
-    fn coat_glass_loss(&self, mu: f32) -> f32 {
-        coat_glass_loss(mu, self.alpha, self.eta, self.alpha_cc)
+    fn glass_loss(&self, mu: f32) -> f32 {
+        let coat = |mu| coat_glass_loss(mu, self.alpha, self.eta, self.alpha_cc);
+        if self.sheen_max == 0.0 {
+            return coat(mu);
+        }
+        let (c, s) = (self.clearcoat, self.sheen_max);
+        let (g_sh, h) = sheen_glass_loss(mu, self.alpha, self.eta, self.sheen_r);
+        let mut r = s * g_sh;
+        if c > 0.0 {
+            r += c * coat(mu) - c * s * h;
+        }
+        r.max(0.0)
     }
 
     /// The clearcoat's scaling of a metal: its multiple scattering in the layers'
@@ -821,9 +867,8 @@ impl GltfLobe {
                 * self.diffuse_gain;
         }
         if !outside && self.coat_glass > 0.0 {
-            // The coat's return inside is cosine-like; its albedo is
-            // transmit clearcoat G(μo).
-            w[DIFFUSE] += self.transmit * self.clearcoat * self.coat_glass_loss(mu);
+            // The layers' return inside is cosine-like; its albedo is transmit R(μo).
+            w[DIFFUSE] += self.transmit * self.glass_gain * self.glass_loss(mu);
         }
         w[GLASS] = under * self.transmit;
         let total: f32 = w.iter().sum();
@@ -876,7 +921,7 @@ impl GltfLobe {
                     return f;
                 }
                 let (mo, mi) = (-wo.z, -wi.z);
-                let back = self.coat_glass_loss(mo) * self.coat_glass_loss(mi) * mi;
+                let back = self.glass_loss(mo) * self.glass_loss(mi) * mi;
                 f + Vec3::splat(self.coat_glass * back)
             }
             (o, _) => {
