@@ -641,7 +641,9 @@ impl ValidatedJob {
     ///   mlt's Markov chains wander over the whole frame (whether chosen by the plan or
     ///   asked for, adaptive or not; the photon map is rebuilt per pass inside the unit);
     /// - adaptive stopping: [`adaptive_plan`], many short passes, since decisions fall
-    ///   between passes;
+    ///   between passes (for the whole-frame techniques too, with the one whole-frame tile:
+    ///   unbiased stopping needs a pilot of 8 passes and fresh ones after it, which
+    ///   [`FramePlan::whole_frame`]'s 4 passes of 16 at 64 spp do not leave room for);
     /// - otherwise [`FramePlan::for_spp`] with this job's spp and tile size.
     ///
     /// Failures are errors of `width`, `height`, `tile_size` or `spp` (the last when the
@@ -656,7 +658,10 @@ impl ValidatedJob {
             IntegratorChoice::Fixed(i) => i.whole_frame(),
             IntegratorChoice::Auto => false,
         };
-        let plan = if whole_frame {
+        let plan = if whole_frame && self.adaptive != AdaptiveMode::Off {
+            let tile = width.max(height).max(crate::plan::MIN_TILE_SIZE);
+            adaptive_plan(width, height, self.spp, tile)
+        } else if whole_frame {
             FramePlan::whole_frame(width, height, self.spp)
         } else if self.adaptive != AdaptiveMode::Off {
             adaptive_plan(width, height, self.spp, self.tile_size)

@@ -610,3 +610,27 @@ fn no_pixel_stops_converged_while_a_class_is_unsampled() {
         }
     }
 }
+
+#[test]
+fn adaptive_whole_frame_plans_have_room_for_the_unbiased_pilot() {
+    // bdpt (and vcm, ppm, mlt) render one whole-frame tile; under adaptive stopping they
+    // take the adaptive plan's short passes, so unbiased stopping's pilot of 8 passes and
+    // its fresh passes fit a budget of 64 spp (4 passes of 16 would be refused).
+    let mut s = base();
+    s.integrator = "bdpt".into();
+    s.adaptive = "unbiased".into();
+    s.target_error = Some(0.1);
+    let j = s.validate().unwrap();
+    let p = j.plan_for(j.render.integrator, 640, 480).unwrap();
+    assert_eq!((p.tile_count(), p.tile_size), (1, 640));
+    assert_eq!((p.samples_per_pass, p.passes), (2, 32));
+    j.adaptive_settings()
+        .unwrap()
+        .validate(p.passes)
+        .expect("the unbiased pilot fits");
+    // Without adaptive stopping the whole-frame plan keeps its few large passes.
+    let mut u = j.clone();
+    u.adaptive = AdaptiveMode::Off;
+    let p = u.plan_for(u.render.integrator, 640, 480).unwrap();
+    assert_eq!((p.samples_per_pass, p.passes), (16, 4));
+}
