@@ -282,10 +282,35 @@ impl PrimarySamples {
         self.begin_iteration(large);
     }
 
-    /// Whether the next proposal is a large step (probability `p_large`), drawn before it
-    /// begins so that the current state can be read again first (`read_current`).
+    /// Whether the next proposal is a large step (probability `p_large`).
     pub(crate) fn large_step_coin(&mut self) -> bool {
         self.rng.uniform() < self.p_large
+    }
+
+    /// A seed for another vector, from the chain's generator.
+    pub(crate) fn next_seed(&mut self) -> u64 {
+        self.rng.next_u64()
+    }
+
+    /// Makes the numbers of `proposal` (a vector `reset` and read in its own iteration 0,
+    /// an independence proposal) the state, as an accepted large step: numbers it never
+    /// read are redrawn when first asked for, uniform and independent, as a large step's.
+    pub(crate) fn adopt(&mut self, proposal: &PrimarySamples) {
+        self.iteration += 1;
+        let it = self.iteration;
+        self.last_large_step = it;
+        for (i, p) in proposal.x.iter().enumerate() {
+            let number = PrimarySample {
+                value: p.value,
+                modified: it,
+                backup: p.value,
+                modified_backup: it,
+            };
+            match self.x.get_mut(i) {
+                Some(xi) => *xi = number,
+                None => self.x.push(number),
+            }
+        }
     }
 
     /// Starts the next proposal, a large step if `large`.
@@ -303,15 +328,6 @@ impl PrimarySamples {
         let r = read(self);
         self.current_only = false;
         r
-    }
-
-    /// Sets number `index` of stream `stream`, which the proposal in flight has read, to
-    /// `value` in the proposal only (a rejection restores the current state's number).
-    pub(crate) fn set_proposed(&mut self, stream: usize, index: usize, value: f64) {
-        let it = self.iteration;
-        let xi = &mut self.x[stream + STREAMS * index];
-        debug_assert_eq!(xi.modified, it, "only numbers the proposal has read");
-        xi.value = value;
     }
 
     /// A number uniform among those that select cell `k` of `n` (`uniform_in_cell`), from
@@ -436,10 +452,10 @@ pub(crate) trait Chain<T> {
     fn total(&mut self, _samples: &mut PrimarySamples) -> f64 {
         unreachable!("only chains with independence steps")
     }
-    /// An independence proposal from the fresh numbers of a large step: the state of the
-    /// cell picked in proportion to its value and `E(y)`; `E(y) = 0` when no cell carries
-    /// anything (the proposal is then rejected).
-    fn propose(&mut self, _samples: &mut PrimarySamples) -> (State<T>, f64) {
+    /// An independence proposal from `fresh` (a vector just `reset`, uniform): the state
+    /// of the cell picked in proportion to its value (`propose_cell`) and `E(y)`; `E(y) =
+    /// 0` when no cell carries anything (the proposal is then rejected).
+    fn propose(&mut self, _fresh: &mut PrimarySamples) -> (State<T>, f64) {
         unreachable!("only chains with independence steps")
     }
     /// Receives a state with its expected-value weight.
@@ -498,8 +514,10 @@ pub(crate) fn run_chain<T: Copy>(
 /// chain with [`Chain::independent`], independence proposals of density `q(y) = c(y) /
 /// E(y)` (module documentation), accepted with `min(1, E(y) / E(x))` (Tierney 1994,
 /// "Markov chains for exploring posterior distributions", the independence chain; Veach
-/// 1997, section 11.4): `E(x)` is cached and read again from the
-/// current state only after an accepted small step has moved it. Both kernels keep the
+/// 1997, section 11.4). The proposal is a vector of its own, so a rejection leaves the
+/// state as it was, and `E(x)` is asked for only when `E(y) > 0`: it is cached, and read
+/// again from the current state only after an accepted small step has moved it (on the
+/// door-ajar room most fresh vectors carry nothing). Both kernels keep the
 /// target `c`, so their mixture does. Each step records the proposal and the current state
 /// with the expected-value weights `a / c'` and `(1 - a) / c` (Veach 1997, section
 /// 11.5.1). Returns the final state.
@@ -511,23 +529,26 @@ pub(crate) fn run_chain_with<T: Copy>(
     chain: &mut impl Chain<T>,
 ) -> State<T> {
     let independent = chain.independent();
+    let mut fresh = PrimarySamples::new(samples.x.capacity(), samples.sigma, samples.p_large);
     for _ in 0..mutations {
         let large = samples.large_step_coin();
         if large && independent {
-            let e_x = match current_total {
-                Some(e) => e,
-                None => samples.read_current(|s| chain.total(s)),
-            };
-            current_total = Some(e_x);
-            samples.begin_iteration(true);
-            let (proposal, e_y) = chain.propose(samples);
+            fresh.reset(samples.next_seed());
+            let (proposal, e_y) = chain.propose(&mut fresh);
             let valid = e_y.is_finite() && e_y > 0.0 && proposal.c.is_finite() && proposal.c > 0.0;
             let accept = if !valid {
                 0.0
-            } else if e_x > 0.0 {
-                (e_y / e_x).min(1.0)
             } else {
-                1.0
+                let e_x = match current_total {
+                    Some(e) => e,
+                    None => samples.read_current(|s| chain.total(s)),
+                };
+                current_total = Some(e_x);
+                if e_x > 0.0 {
+                    (e_y / e_x).min(1.0)
+                } else {
+                    1.0
+                }
             };
             if accept > 0.0 && !chain.record_cells(accept / e_y) {
                 chain.record(proposal.value, accept / proposal.c);
@@ -538,9 +559,7 @@ pub(crate) fn run_chain_with<T: Copy>(
             if samples.uniform() < accept {
                 current = proposal;
                 current_total = Some(e_y);
-                samples.accept();
-            } else {
-                samples.reject();
+                samples.adopt(&fresh);
             }
             continue;
         }
@@ -568,17 +587,17 @@ pub(crate) fn run_chain_with<T: Copy>(
     current
 }
 
-/// Picks one of `cells` (the all-cell evaluation of the numbers of a proposal in flight, as
-/// `eval_all` gives them, summing to `total > 0`) in proportion to its value and sets the
-/// proposal's depth and technique numbers uniformly in its cell (`depths` depths): the
+/// Picks one of `cells` (the all-cell evaluation of the numbers `fresh` holds, as
+/// `eval_all` gives them, summing to `total > 0`) in proportion to its value and sets
+/// `fresh`'s depth and technique numbers uniformly in its cell (`depths` depths): the
 /// independence proposal's cell. Returns the picked index.
 pub(crate) fn propose_cell(
-    samples: &mut PrimarySamples,
+    fresh: &mut PrimarySamples,
     cells: &[Cell],
     total: f64,
     depths: usize,
 ) -> usize {
-    let mut u = samples.uniform() * total;
+    let mut u = fresh.uniform() * total;
     let mut pick = cells.len() - 1;
     for (i, e) in cells.iter().enumerate() {
         if u < e.c {
@@ -588,11 +607,11 @@ pub(crate) fn propose_cell(
         u -= e.c;
     }
     let (d, s) = (cells[pick].depth, cells[pick].s);
-    let d_value = samples.uniform_in_cell(d, depths);
-    samples.set_proposed(CAMERA_STREAM, 0, d_value);
+    let d_value = fresh.uniform_in_cell(d, depths);
+    fresh.set(CAMERA_STREAM, 0, d_value);
     let n = techniques(d);
-    let s_value = samples.uniform_in_cell(s, n);
-    samples.set_proposed(CAMERA_STREAM, 1, s_value);
+    let s_value = fresh.uniform_in_cell(s, n);
+    fresh.set(CAMERA_STREAM, 1, s_value);
     pick
 }
 
@@ -758,6 +777,8 @@ struct MltChain<'m, 'a> {
     mlt: &'m mut Mlt<'a>,
     /// The cells of the last independence proposal (`eval_all`).
     cells: &'m mut Vec<Cell>,
+    /// The current state's cells, for its `E(x)` only.
+    current_cells: Vec<Cell>,
     sum: &'m mut [[f64; 3]],
     width: u32,
     height: u32,
@@ -790,11 +811,11 @@ impl Chain<(Vec3, Vec2)> for MltChain<'_, '_> {
     }
 
     fn total(&mut self, samples: &mut PrimarySamples) -> f64 {
-        self.mlt.eval_all(samples, self.cells)
+        self.mlt.eval_all(samples, &mut self.current_cells)
     }
 
-    fn propose(&mut self, samples: &mut PrimarySamples) -> (State<(Vec3, Vec2)>, f64) {
-        let e = self.mlt.eval_all(samples, self.cells);
+    fn propose(&mut self, fresh: &mut PrimarySamples) -> (State<(Vec3, Vec2)>, f64) {
+        let e = self.mlt.eval_all(fresh, self.cells);
         if !(e > 0.0 && e.is_finite()) {
             let none = State {
                 value: (Vec3::ZERO, Vec2::ZERO),
@@ -802,7 +823,7 @@ impl Chain<(Vec3, Vec2)> for MltChain<'_, '_> {
             };
             return (none, 0.0);
         }
-        let cell = self.cells[propose_cell(samples, self.cells, e, self.mlt.depths)];
+        let cell = self.cells[propose_cell(fresh, self.cells, e, self.mlt.depths)];
         // `eval`'s value of the state: the cell's contribution times the cell count.
         let l = cell.l * (techniques(cell.depth) * self.mlt.depths) as f32;
         let state = State {
@@ -948,6 +969,7 @@ pub fn render_unit(
                     &mut MltChain {
                         mlt: &mut mlt,
                         cells: &mut found,
+                        current_cells: Vec::new(),
                         sum: &mut sum,
                         width: w,
                         height: h,
@@ -1216,10 +1238,10 @@ mod tests {
             }
         }
 
-        fn propose(&mut self, samples: &mut PrimarySamples) -> (State<(usize, Vec2)>, f64) {
-            let e = self.total(samples);
+        fn propose(&mut self, fresh: &mut PrimarySamples) -> (State<(usize, Vec2)>, f64) {
+            let e = self.total(fresh);
             let sum = self.cells.iter().map(|c| c.c).sum();
-            let i = propose_cell(samples, &self.cells, sum, TOY_DEPTHS);
+            let i = propose_cell(fresh, &self.cells, sum, TOY_DEPTHS);
             let cell = self.cells[i];
             let state = State {
                 value: (Self::index(cell.depth, cell.s), cell.raster),
