@@ -22,35 +22,17 @@
 //! per chain would leave each depth's share of the pass to a handful of draws.
 //! Subpaths take no Russian roulette (their lengths are fixed by the state).
 //!
-//! # Mutations
-//! Each step is a *small step* (Kelemen et al. 2002, section 4: every number moved by a
-//! normal offset of deviation [`SIGMA`], wrapped onto `[0, 1)`; symmetric, accepted with
-//! `min(1, c(y) / c(x))`) or, with probability [`LARGE_STEP_PROBABILITY`], a *large step*:
-//! an independence proposal over the all-technique evaluation. It draws every number anew,
-//! uniform (a vector `u`), evaluates every depth and technique of `u` (`eval_all`, the
-//! bootstrap's evaluation: cell `k`'s MIS-weighted luminance `e_k(u)`, their total `E(u)`),
-//! picks a cell in proportion to `e_k(u)` and sets the depth and technique numbers
-//! uniformly in it. The other numbers are `u`'s, and `E` does not read the depth and
-//! technique numbers, so the proposal `y` has the density `q(y) = (e_k / E) (D + 1) n_d`
-//! in primary sample space (`D + 1` depths, `n_d` techniques at depth `d`: `d + 2`, and 1
-//! at depth 0 where only `(0, 2)` exists; the cell is `1 / ((D + 1) n_d)` of the two
-//! numbers), which is `c(y) / E(y)` since `eval` multiplies the cell's contribution by the
-//! same count. The independence sampler's acceptance (Tierney 1994, "Markov chains for
-//! exploring posterior distributions", the independence chain; Veach 1997, section 11.4)
-//! is then `min(1, c(y) q(x) / (c(x) q(y))) = min(1, E(y) / E(x))`: the all-technique
-//! totals of the two vectors, far smoother than one technique's value, so a chain leaves
-//! its neighbourhood for wherever bdpt would find light, the light through a door ajar
-//! included. `E(x)` is kept from the step that reached `x` and read again (one more
-//! `eval_all` of the current state) only after a small step moved it. Each kernel keeps
-//! `c` (detailed balance), so their mixture does.
-//!
-//! Numbers are mutated lazily when the walk asks for them (the small steps a number
-//! missed add up to one normal offset of deviation `SIGMA sqrt(n)`), which is the same
-//! distribution as mutating every number every step. The chain records both the proposal
-//! and the current state with their expected weights (Veach 1997, section 11.5.1,
-//! "expected values"), which costs nothing and removes the variance of the accept/reject
-//! coin; an independence proposal records every cell of its vector, the expectation of its
-//! record over the pick (`SPLAT_EVERY_CELL`).
+//! # Mutations (Kelemen et al. 2002, section 4)
+//! Each step is a *large step* (probability [`LARGE_STEP_PROBABILITY`]: every number drawn
+//! anew, uniform, an independence sampler) or a *small step* (every number moved by a
+//! normal offset of deviation [`SIGMA`], wrapped onto `[0, 1)`). Both proposals are
+//! symmetric, so the acceptance `min(1, c(f') / c(f))` satisfies detailed balance with
+//! respect to `c`. Numbers are mutated lazily when the walk asks for them (the small steps
+//! a number missed add up to one normal offset of deviation `SIGMA sqrt(n)`), which is the
+//! same distribution as mutating every number every step. The chain records both the
+//! proposal and the current state with their expected weights (Veach 1997, section
+//! 11.5.1, "expected values"), which costs nothing and removes the variance of the
+//! accept/reject coin.
 //!
 //! # Passes are independent replicates (ARCHITECTURE.md §3)
 //! Pass `k` of frame `f` is a fresh, deterministic computation from `hash(seed, f, k)`:
@@ -83,10 +65,9 @@
 //! # Units and the farm
 //! Like `bdpt` and `vcm`, `mlt` renders whole-frame units (`FramePlan::whole_frame`): a
 //! pass's chains wander over the whole image. A unit is (frame, pass range) and costs, per
-//! pass, `W H S` mutations (a small step one path and one of its techniques, a large step
-//! one vector at every technique and, after an accepted small step, the current state's
-//! too) plus the bootstrap's `n_b` vectors (a 32nd of the mutations, each at every
-//! technique) and one more evaluation of a vector per chain start. A unit's bytes
+//! pass, `W H S` mutations (each one path and one of its techniques) plus the
+//! bootstrap's `n_b` vectors (a 32nd of the mutations, each at every technique) and one
+//! more evaluation of a vector per chain start. A unit's bytes
 //! depend only on (scene, settings, seed, frame, passes): the same with any thread count and
 //! on any worker. A plan with smaller tiles renders each tile's pixels from the whole
 //! frame's chains (correct, `tile count` times the cost). The adaptive policy's `wanted`
@@ -108,10 +89,9 @@ use crate::scene::RenderScene;
 use glam::{Vec2, Vec3};
 use tessera_farm::{FramePlan, UnitResult, WorkUnit};
 
-/// Probability of a large step (an independence proposal over the all-technique
-/// evaluation); pbrt-v4's default for its uniform large step. With the uniform step, 0.1 and
-/// 0.5 measured no better on the door-ajar room (docs/benchmarks.md, "Metropolis light
-/// transport").
+/// Probability of a large step (an independent proposal); pbrt-v4's default. On the
+/// door-ajar room 0.1 and 0.5 measured no better, with either bootstrap (docs/benchmarks.md,
+/// "Metropolis light transport").
 pub const LARGE_STEP_PROBABILITY: f64 = 0.3;
 /// Standard deviation of a small step's offset of each primary sample (Kelemen et al. use
 /// an exponential of similar width; pbrt-v4's default normal). 0.03 measured the same on
@@ -131,11 +111,6 @@ const MAX_CHAINS: u64 = 1 << 16;
 /// Bootstrap vectors per mutation, as a divisor: `W H S / 32` vectors, each evaluated at
 /// every depth and technique (about a bdpt sample's cost). 16 measured no better, 64 worse.
 const BOOTSTRAP_DIVISOR: u64 = 32;
-/// An independence proposal records every cell of its vector, each with its own
-/// contribution and the weight `a / E(y)`, rather than the picked cell's with `a / c(y)`:
-/// the expectation of the latter over the pick (Rao-Blackwell), the same mean with less
-/// variance, at the cost of a splat per cell.
-const SPLAT_EVERY_CELL: bool = true;
 /// Mixed into the job seed for the chains' random numbers.
 const MLT_STREAM: u64 = 0x6d6c_745f_6368_6169; // "mlt_chai"
 /// Tags the bootstrap and chain seeds of a pass apart.
@@ -218,9 +193,6 @@ pub(crate) struct PrimarySamples {
     index: usize,
     sigma: f64,
     p_large: f64,
-    /// Reading the current state again (no proposal in flight): numbers are brought up to
-    /// date and not mutated (`read_current`).
-    current_only: bool,
 }
 
 /// Largest `f32` below one: the numbers handed to the walks stay in `[0, 1)`.
@@ -240,7 +212,6 @@ impl PrimarySamples {
             index: 0,
             sigma,
             p_large,
-            current_only: false,
         }
     }
 
@@ -276,64 +247,9 @@ impl PrimarySamples {
     }
 
     /// Starts the next proposal: a large step with probability `p_large`.
-    #[cfg(test)]
     pub(crate) fn start_iteration(&mut self) {
-        let large = self.large_step_coin();
-        self.begin_iteration(large);
-    }
-
-    /// Whether the next proposal is a large step (probability `p_large`).
-    pub(crate) fn large_step_coin(&mut self) -> bool {
-        self.rng.uniform() < self.p_large
-    }
-
-    /// A seed for another vector, from the chain's generator.
-    pub(crate) fn next_seed(&mut self) -> u64 {
-        self.rng.next_u64()
-    }
-
-    /// Makes the numbers of `proposal` (a vector `reset` and read in its own iteration 0,
-    /// an independence proposal) the state, as an accepted large step: numbers it never
-    /// read are redrawn when first asked for, uniform and independent, as a large step's.
-    pub(crate) fn adopt(&mut self, proposal: &PrimarySamples) {
         self.iteration += 1;
-        let it = self.iteration;
-        self.last_large_step = it;
-        for (i, p) in proposal.x.iter().enumerate() {
-            let number = PrimarySample {
-                value: p.value,
-                modified: it,
-                backup: p.value,
-                modified_backup: it,
-            };
-            match self.x.get_mut(i) {
-                Some(xi) => *xi = number,
-                None => self.x.push(number),
-            }
-        }
-    }
-
-    /// Starts the next proposal, a large step if `large`.
-    pub(crate) fn begin_iteration(&mut self, large: bool) {
-        self.iteration += 1;
-        self.large_step = large;
-    }
-
-    /// Runs `read` on the current state with no proposal in flight: the numbers it asks for
-    /// are brought up to date with the steps they missed (lazily, as a proposal would) and
-    /// are not mutated, so they are the current state's own. The independence step needs the
-    /// current state's all-technique total over numbers its own technique never read.
-    pub(crate) fn read_current<R>(&mut self, read: impl FnOnce(&mut Self) -> R) -> R {
-        self.current_only = true;
-        let r = read(self);
-        self.current_only = false;
-        r
-    }
-
-    /// A number uniform among those that select cell `k` of `n` (`uniform_in_cell`), from
-    /// the chain's generator.
-    pub(crate) fn uniform_in_cell(&mut self, k: usize, n: usize) -> f64 {
-        uniform_in_cell(&mut self.rng, k, n)
+        self.large_step = self.rng.uniform() < self.p_large;
     }
 
     /// Restarts the walk's reading at stream `stream`.
@@ -389,18 +305,6 @@ impl PrimarySamples {
             xi.value = self.rng.uniform();
             xi.modified = last_large;
         }
-        if self.current_only {
-            // The current state's number: only the small steps it missed since.
-            let n = it - xi.modified;
-            if n > 0 {
-                let v = xi.value + self.rng.normal() * sigma * (n as f64).sqrt();
-                xi.value = v - v.floor();
-            }
-            xi.modified = it;
-            xi.backup = xi.value;
-            xi.modified_backup = it;
-            return xi.value;
-        }
         xi.backup = xi.value;
         xi.modified_backup = xi.modified;
         if large {
@@ -439,205 +343,40 @@ pub(crate) struct State<T> {
     pub(crate) c: f64,
 }
 
-/// What a chain samples, for [`run_chain_with`]: the proposals' evaluation and the records.
-pub(crate) trait Chain<T> {
-    /// The state the numbers of a small step (or of Kelemen's uniform large step) give.
-    fn eval(&mut self, samples: &mut PrimarySamples) -> State<T>;
-    /// Whether large steps are independence proposals over every cell of the depth and
-    /// technique numbers (`total`, `propose`) rather than Kelemen's uniform ones (`eval`).
-    fn independent(&self) -> bool {
-        false
-    }
-    /// `E(x)`, the all-cell total of the state `samples` holds (independence steps only).
-    fn total(&mut self, _samples: &mut PrimarySamples) -> f64 {
-        unreachable!("only chains with independence steps")
-    }
-    /// An independence proposal from `fresh` (a vector just `reset`, uniform): the state
-    /// of the cell picked in proportion to its value (`propose_cell`) and `E(y)`; `E(y) =
-    /// 0` when no cell carries anything (the proposal is then rejected).
-    fn propose(&mut self, _fresh: &mut PrimarySamples) -> (State<T>, f64) {
-        unreachable!("only chains with independence steps")
-    }
-    /// Receives a state with its expected-value weight.
-    fn record(&mut self, value: T, weight: f64);
-    /// Receives every cell of the last independence proposal, each with its own
-    /// (unmultiplied) contribution and the weight `weight`; `false` if the chain records
-    /// only the picked state (`record`).
-    fn record_cells(&mut self, _weight: f64) -> bool {
-        false
-    }
-}
-
-/// A chain from two closures: Kelemen's uniform large steps.
-#[cfg(test)]
-struct Closures<E, R>(E, R);
-
-#[cfg(test)]
-impl<T, E, R> Chain<T> for Closures<E, R>
-where
-    E: FnMut(&mut PrimarySamples) -> State<T>,
-    R: FnMut(T, f64),
-{
-    fn eval(&mut self, samples: &mut PrimarySamples) -> State<T> {
-        (self.0)(samples)
-    }
-    fn record(&mut self, value: T, weight: f64) {
-        (self.1)(value, weight)
-    }
-}
-
-/// Runs `mutations` Metropolis steps from `current` (whose numbers `samples` holds) with
-/// Kelemen's uniform large steps: `eval` evaluates the proposal the mutated numbers give,
-/// and `record(value, weight)` receives each step's proposal and current state with their
-/// expected-value weights `a / c'` and `(1 - a) / c` (a the acceptance). A proposal with
-/// `c` not finite and positive is never accepted. Returns the final state.
-#[cfg(test)]
+/// Runs `mutations` Metropolis steps from `current` (whose numbers `samples` holds):
+/// `eval` evaluates the proposal the mutated numbers give, and `record(value, weight)`
+/// receives each step's proposal and current state with their expected-value weights
+/// `a / c'` and `(1 - a) / c` (a the acceptance). A proposal with `c` not finite and
+/// positive is never accepted. Returns the final state.
 pub(crate) fn run_chain<T: Copy>(
     samples: &mut PrimarySamples,
     mutations: u64,
-    current: State<T>,
-    eval: impl FnMut(&mut PrimarySamples) -> State<T>,
-    record: impl FnMut(T, f64),
-) -> State<T> {
-    run_chain_with(
-        samples,
-        mutations,
-        current,
-        None,
-        &mut Closures(eval, record),
-    )
-}
-
-/// Runs `mutations` Metropolis steps of `chain` from `current` (whose numbers `samples`
-/// holds; `current_total` its `E(x)` if known). Small steps are symmetric, accepted with
-/// `min(1, c' / c)`. Large steps are Kelemen's uniform ones (the same acceptance) or, for a
-/// chain with [`Chain::independent`], independence proposals of density `q(y) = c(y) /
-/// E(y)` (module documentation), accepted with `min(1, E(y) / E(x))` (Tierney 1994,
-/// "Markov chains for exploring posterior distributions", the independence chain; Veach
-/// 1997, section 11.4). The proposal is a vector of its own, so a rejection leaves the
-/// state as it was, and `E(x)` is asked for only when `E(y) > 0`: it is cached, and read
-/// again from the current state only after an accepted small step has moved it (on the
-/// door-ajar room most fresh vectors carry nothing). Both kernels keep the
-/// target `c`, so their mixture does. Each step records the proposal and the current state
-/// with the expected-value weights `a / c'` and `(1 - a) / c` (Veach 1997, section
-/// 11.5.1). Returns the final state.
-pub(crate) fn run_chain_with<T: Copy>(
-    samples: &mut PrimarySamples,
-    mutations: u64,
     mut current: State<T>,
-    mut current_total: Option<f64>,
-    chain: &mut impl Chain<T>,
+    mut eval: impl FnMut(&mut PrimarySamples) -> State<T>,
+    mut record: impl FnMut(T, f64),
 ) -> State<T> {
-    let independent = chain.independent();
-    let mut fresh = PrimarySamples::new(samples.x.capacity(), samples.sigma, samples.p_large);
     for _ in 0..mutations {
-        let large = samples.large_step_coin();
-        if large && independent {
-            fresh.reset(samples.next_seed());
-            let (proposal, e_y) = chain.propose(&mut fresh);
-            let valid = e_y.is_finite() && e_y > 0.0 && proposal.c.is_finite() && proposal.c > 0.0;
-            let accept = if !valid {
-                0.0
-            } else {
-                let e_x = match current_total {
-                    Some(e) => e,
-                    None => samples.read_current(|s| chain.total(s)),
-                };
-                current_total = Some(e_x);
-                if e_x > 0.0 {
-                    (e_y / e_x).min(1.0)
-                } else {
-                    1.0
-                }
-            };
-            if accept > 0.0 && !chain.record_cells(accept / e_y) {
-                chain.record(proposal.value, accept / proposal.c);
-            }
-            if accept < 1.0 {
-                chain.record(current.value, (1.0 - accept) / current.c);
-            }
-            if samples.uniform() < accept {
-                current = proposal;
-                current_total = Some(e_y);
-                samples.adopt(&fresh);
-            }
-            continue;
-        }
-        samples.begin_iteration(large);
-        let proposal = chain.eval(samples);
+        samples.start_iteration();
+        let proposal = eval(samples);
         let accept = if proposal.c.is_finite() && proposal.c > 0.0 {
             (proposal.c / current.c).min(1.0)
         } else {
             0.0
         };
         if accept > 0.0 {
-            chain.record(proposal.value, accept / proposal.c);
+            record(proposal.value, accept / proposal.c);
         }
         if accept < 1.0 {
-            chain.record(current.value, (1.0 - accept) / current.c);
+            record(current.value, (1.0 - accept) / current.c);
         }
         if samples.uniform() < accept {
             current = proposal;
-            current_total = None;
             samples.accept();
         } else {
             samples.reject();
         }
     }
     current
-}
-
-/// Picks one of `cells` (the all-cell evaluation of the numbers `fresh` holds, as
-/// `eval_all` gives them, summing to `total > 0`) in proportion to its value and sets
-/// `fresh`'s depth and technique numbers uniformly in its cell (`depths` depths): the
-/// independence proposal's cell. Returns the picked index.
-pub(crate) fn propose_cell(
-    fresh: &mut PrimarySamples,
-    cells: &[Cell],
-    total: f64,
-    depths: usize,
-) -> usize {
-    let mut u = fresh.uniform() * total;
-    let mut pick = cells.len() - 1;
-    for (i, e) in cells.iter().enumerate() {
-        if u < e.c {
-            pick = i;
-            break;
-        }
-        u -= e.c;
-    }
-    let (d, s) = (cells[pick].depth, cells[pick].s);
-    let d_value = fresh.uniform_in_cell(d, depths);
-    fresh.set(CAMERA_STREAM, 0, d_value);
-    let n = techniques(d);
-    let s_value = fresh.uniform_in_cell(s, n);
-    fresh.set(CAMERA_STREAM, 1, s_value);
-    pick
-}
-
-/// The bidirectional techniques of depth `d`, the cells of the technique number: `d + 2`,
-/// and one at depth 0 (only `(0, 2)` sees an emitter directly).
-fn techniques(d: usize) -> usize {
-    if d == 0 {
-        1
-    } else {
-        d + 2
-    }
-}
-
-/// One depth and technique of a vector's all-cell evaluation (`eval_all`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct Cell {
-    /// Path depth.
-    pub(crate) depth: usize,
-    /// Light subpath vertices of the technique.
-    pub(crate) s: usize,
-    /// Luminance of the MIS-weighted contribution `l` (positive).
-    pub(crate) c: f64,
-    /// The MIS-weighted contribution, not multiplied by the cell count.
-    pub(crate) l: Vec3,
-    /// Where it lands on the film.
-    pub(crate) raster: Vec2,
 }
 
 /// The target value of a contribution: its luminance if it is valid radiance, else zero
@@ -710,10 +449,14 @@ impl Mlt<'_> {
 
 impl Mlt<'_> {
     /// Every depth's and technique's MIS-weighted contribution of the numbers `samples`
-    /// holds, as a [`Cell`] for each with a positive luminance, into `out`; returns the sum
-    /// of their luminances, `E(u)`. The subpaths are traced once, at full length, and each technique
+    /// holds, as `(depth, s, luminance)` for those with a positive luminance, into `out`;
+    /// returns their sum. The subpaths are traced once, at full length, and each technique
     /// reads a prefix of them: the same numbers `eval` reads for that depth and technique.
-    fn eval_all(&mut self, samples: &mut PrimarySamples, out: &mut Vec<Cell>) -> f64 {
+    fn eval_all(
+        &mut self,
+        samples: &mut PrimarySamples,
+        out: &mut Vec<(usize, usize, f64)>,
+    ) -> f64 {
         out.clear();
         samples.start_stream(CAMERA_STREAM);
         samples.next_1d(); // depth
@@ -754,98 +497,15 @@ impl Mlt<'_> {
                     continue;
                 }
                 samples.start_stream(CONNECTION_STREAM);
-                let (l, raster) = bdpt::technique(ctx, st, &mut self.scratch, s, t, samples);
+                let (l, _) = bdpt::technique(ctx, st, &mut self.scratch, s, t, samples);
                 let c = target(l, &mut 0);
                 if c > 0.0 && c.is_finite() {
                     total += c;
-                    out.push(Cell {
-                        depth,
-                        s,
-                        c,
-                        l,
-                        raster: raster.unwrap_or(film),
-                    });
+                    out.push((depth, s, c));
                 }
             }
         }
         total
-    }
-}
-
-/// The renderer's chain: `Mlt`'s evaluations, the records splatted onto the pass's sums.
-struct MltChain<'m, 'a> {
-    mlt: &'m mut Mlt<'a>,
-    /// The cells of the last independence proposal (`eval_all`).
-    cells: &'m mut Vec<Cell>,
-    /// The current state's cells, for its `E(x)` only.
-    current_cells: Vec<Cell>,
-    sum: &'m mut [[f64; 3]],
-    width: u32,
-    height: u32,
-    rejected: &'m mut u64,
-}
-
-impl MltChain<'_, '_> {
-    fn splat(&mut self, l: Vec3, p: Vec2, weight: f64) {
-        let px = (p.x as u32).min(self.width - 1);
-        let py = (p.y as u32).min(self.height - 1);
-        accumulate(
-            &mut self.sum[(py * self.width + px) as usize],
-            l * weight as f32,
-            &mut 0,
-        );
-    }
-}
-
-impl Chain<(Vec3, Vec2)> for MltChain<'_, '_> {
-    fn eval(&mut self, samples: &mut PrimarySamples) -> State<(Vec3, Vec2)> {
-        let (l, p) = self.mlt.eval(samples);
-        State {
-            value: (l, p),
-            c: target(l, self.rejected),
-        }
-    }
-
-    fn independent(&self) -> bool {
-        true
-    }
-
-    fn total(&mut self, samples: &mut PrimarySamples) -> f64 {
-        self.mlt.eval_all(samples, &mut self.current_cells)
-    }
-
-    fn propose(&mut self, fresh: &mut PrimarySamples) -> (State<(Vec3, Vec2)>, f64) {
-        let e = self.mlt.eval_all(fresh, self.cells);
-        if !(e > 0.0 && e.is_finite()) {
-            let none = State {
-                value: (Vec3::ZERO, Vec2::ZERO),
-                c: 0.0,
-            };
-            return (none, 0.0);
-        }
-        let cell = self.cells[propose_cell(fresh, self.cells, e, self.mlt.depths)];
-        // `eval`'s value of the state: the cell's contribution times the cell count.
-        let l = cell.l * (techniques(cell.depth) * self.mlt.depths) as f32;
-        let state = State {
-            value: (l, cell.raster),
-            c: target(l, self.rejected),
-        };
-        (state, e)
-    }
-
-    fn record(&mut self, (l, p): (Vec3, Vec2), weight: f64) {
-        self.splat(l, p, weight);
-    }
-
-    fn record_cells(&mut self, weight: f64) -> bool {
-        if !SPLAT_EVERY_CELL {
-            return false;
-        }
-        for i in 0..self.cells.len() {
-            let cell = self.cells[i];
-            self.splat(cell.l, cell.raster, weight);
-        }
-        true
     }
 }
 
@@ -942,15 +602,15 @@ pub fn render_unit(
                 let mut u = rng.uniform() * all;
                 let mut pick = found[found.len() - 1];
                 for &e in &found {
-                    if u < e.c {
+                    if u < e.2 {
                         pick = e;
                         break;
                     }
-                    u -= e.c;
+                    u -= e.2;
                 }
-                let (d, s_pick) = (pick.depth, pick.s);
+                let (d, s_pick, _) = pick;
                 samples.set(CAMERA_STREAM, 0, uniform_in_cell(&mut rng, d, depths));
-                let n = techniques(d);
+                let n = if d == 0 { 1 } else { d + 2 };
                 samples.set(CAMERA_STREAM, 1, uniform_in_cell(&mut rng, s_pick, n));
                 let (l, p) = mlt.eval(&mut samples);
                 let start = State {
@@ -959,21 +619,22 @@ pub fn render_unit(
                 };
                 samples.reseed(rng.next_u64());
                 let share = mutations / n_chains + u64::from(chain < mutations % n_chains);
-                // `E(x)` of the start is its vector's total: the depth and technique
-                // numbers do not enter it.
-                run_chain_with(
+                run_chain(
                     &mut samples,
                     share,
                     start,
-                    Some(all),
-                    &mut MltChain {
-                        mlt: &mut mlt,
-                        cells: &mut found,
-                        current_cells: Vec::new(),
-                        sum: &mut sum,
-                        width: w,
-                        height: h,
-                        rejected: &mut rejected_samples,
+                    |samples| {
+                        let (l, p) = mlt.eval(samples);
+                        State {
+                            value: (l, p),
+                            c: target(l, &mut rejected_samples),
+                        }
+                    },
+                    |(l, p), weight| {
+                        let px = (p.x as u32).min(w - 1);
+                        let py = (p.y as u32).min(h - 1);
+                        let l = l * weight as f32;
+                        accumulate(&mut sum[(py * w + px) as usize], l, &mut 0);
                     },
                 );
             }
@@ -1140,214 +801,6 @@ mod tests {
         assert!(chi2_survival(stat, BINS * BINS - 1) < 1e-6, "chi2 {stat}");
     }
 
-    /// Depths of the toy of the renderer's primary sample space: 1 + 3 + 4 = 8 cells of
-    /// the depth and technique numbers, as `eval` maps them.
-    const TOY_DEPTHS: usize = 3;
-
-    /// Cell `k`'s value `e_k(v, w)` in the toy: a bump at its own place over a floor,
-    /// zero for odd cells at `v.x >= 0.75`, and for the cells with `s >= 1` a factor in
-    /// `w` (a number `eval` reads only for them, as a light subpath's), whose mean is 1.
-    fn toy_e(k: usize, s: usize, v: Vec2, w: f32) -> f64 {
-        const WEIGHT: [f64; 8] = [1.0, 3.0, 0.5, 2.0, 1.0, 4.0, 0.3, 1.5];
-        if k % 2 == 1 && v.x >= 0.75 {
-            return 0.0;
-        }
-        let centre = Vec2::new(
-            (k as f32 * 0.37 + 0.1).fract(),
-            (k as f32 * 0.61 + 0.3).fract(),
-        );
-        let bump = (-(v - centre).length_squared() as f64 / 0.02).exp();
-        let light = if s >= 1 { 0.5 + w as f64 } else { 1.0 };
-        WEIGHT[k] * (0.15 + 3.0 * bump) * light
-    }
-
-    /// The toy's cells in order, `(depth, s)`.
-    fn toy_cells() -> Vec<(usize, usize)> {
-        (0..TOY_DEPTHS)
-            .flat_map(|d| (0..techniques(d)).map(move |s| (d, s)))
-            .collect()
-    }
-
-    /// The toy chain: states `(cell, v)` with `c = e_k(v, w) (D + 1) n_d`, as `eval`'s
-    /// value is the cell's contribution times the cell count. `lie` makes its independence
-    /// step ignore `E` (every valid proposal accepted): a wrong kernel the test must catch.
-    struct Toy {
-        cells: Vec<Cell>,
-        lie: bool,
-    }
-
-    impl Toy {
-        /// Reads the depth, technique, `v` (and `w` for `s >= 1`): `eval`'s order.
-        fn read(samples: &mut PrimarySamples) -> (usize, usize, Vec2) {
-            samples.start_stream(CAMERA_STREAM);
-            let d = ((samples.next_1d() * TOY_DEPTHS as f32) as usize).min(TOY_DEPTHS - 1);
-            let n = techniques(d);
-            let s = ((samples.next_1d() * n as f32) as usize).min(n - 1);
-            (d, s, samples.next_2d())
-        }
-
-        fn index(d: usize, s: usize) -> usize {
-            toy_cells().iter().position(|&c| c == (d, s)).unwrap()
-        }
-    }
-
-    impl Chain<(usize, Vec2)> for Toy {
-        fn eval(&mut self, samples: &mut PrimarySamples) -> State<(usize, Vec2)> {
-            let (d, s, v) = Self::read(samples);
-            let w = if s >= 1 {
-                samples.start_stream(LIGHT_STREAM);
-                samples.next_1d()
-            } else {
-                0.0
-            };
-            let k = Self::index(d, s);
-            State {
-                value: (k, v),
-                c: toy_e(k, s, v, w) * (TOY_DEPTHS * techniques(d)) as f64,
-            }
-        }
-
-        fn independent(&self) -> bool {
-            true
-        }
-
-        fn total(&mut self, samples: &mut PrimarySamples) -> f64 {
-            // As `eval_all`: every number any cell reads, whatever the cell.
-            let (_, _, v) = Self::read(samples);
-            samples.start_stream(LIGHT_STREAM);
-            let w = samples.next_1d();
-            self.cells.clear();
-            let mut total = 0.0;
-            for (k, (depth, s)) in toy_cells().into_iter().enumerate() {
-                let c = toy_e(k, s, v, w);
-                if c > 0.0 {
-                    total += c;
-                    self.cells.push(Cell {
-                        depth,
-                        s,
-                        c,
-                        l: Vec3::splat(c as f32),
-                        raster: v,
-                    });
-                }
-            }
-            if self.lie {
-                1.0
-            } else {
-                total
-            }
-        }
-
-        fn propose(&mut self, fresh: &mut PrimarySamples) -> (State<(usize, Vec2)>, f64) {
-            let e = self.total(fresh);
-            let sum = self.cells.iter().map(|c| c.c).sum();
-            let i = propose_cell(fresh, &self.cells, sum, TOY_DEPTHS);
-            let cell = self.cells[i];
-            let state = State {
-                value: (Self::index(cell.depth, cell.s), cell.raster),
-                c: cell.c * (TOY_DEPTHS * techniques(cell.depth)) as f64,
-            };
-            (state, e)
-        }
-
-        fn record(&mut self, _: (usize, Vec2), _: f64) {}
-    }
-
-    /// Probabilities of the bins (cell, 4 x 4 bins of `v`) under the toy's target: the
-    /// cell's share of the depth and technique numbers is `1 / ((D + 1) n_d)`, so a bin's
-    /// mass is the integral of `e_k` over it (`w` integrates to 1).
-    fn toy_probabilities() -> Vec<f64> {
-        let sub = 40;
-        let cells = toy_cells();
-        let mut p = vec![0.0; cells.len() * 16];
-        for (k, &(_, s)) in cells.iter().enumerate() {
-            for i in 0..4 * sub {
-                for j in 0..4 * sub {
-                    let v = Vec2::new(
-                        ((i as f64 + 0.5) / (4 * sub) as f64) as f32,
-                        ((j as f64 + 0.5) / (4 * sub) as f64) as f32,
-                    );
-                    p[k * 16 + (i / sub) * 4 + j / sub] += toy_e(k, s, v, 0.5);
-                }
-            }
-        }
-        let total: f64 = p.iter().sum();
-        p.iter().map(|v| v / total).collect()
-    }
-
-    /// Chi-squared statistic and p-value of the end states of `chains` toy chains started
-    /// in the target (rejection sampling), `steps` steps each; the bins the target leaves
-    /// empty must stay empty.
-    fn toy_chains(p_large: f64, lie: bool, chains: usize, steps: u64) -> (f64, f64) {
-        let probabilities = toy_probabilities();
-        let c_max = 4.0 * 3.15 * 1.5 * (TOY_DEPTHS * 4) as f64;
-        let mut counts = vec![0u64; probabilities.len()];
-        let mut samples = PrimarySamples::new(16, 0.1, p_large);
-        let mut toy = Toy {
-            cells: Vec::new(),
-            lie,
-        };
-        let mut seeds = Rng(0x1de9_5eed);
-        for chain in 0..chains {
-            let start = loop {
-                samples.reset(seeds.next_u64());
-                let s = toy.eval(&mut samples);
-                if samples.uniform() * c_max < s.c {
-                    break s;
-                }
-            };
-            // `E(x)` unknown at the start: the first independence step reads it from the
-            // current state, numbers its cell never read included.
-            let end = run_chain_with(&mut samples, steps, start, None, &mut toy);
-            if chain % 16 == 0 {
-                // The state the chain reports is the one its numbers give.
-                let again = samples.read_current(|s| toy.eval(s));
-                assert_eq!(again.value, end.value);
-                assert!((again.c - end.c).abs() <= 1e-9 * end.c);
-            }
-            let (k, v) = end.value;
-            let i = ((v.x * 4.0) as usize).min(3);
-            let j = ((v.y * 4.0) as usize).min(3);
-            counts[k * 16 + i * 4 + j] += 1;
-        }
-        let mut stat = 0.0;
-        let mut bins = 0;
-        for (&o, &p) in counts.iter().zip(&probabilities) {
-            if p == 0.0 {
-                assert_eq!(o, 0, "a chain reached a state of zero value");
-                continue;
-            }
-            let e = p * chains as f64;
-            stat += (o as f64 - e).powi(2) / e;
-            bins += 1;
-        }
-        (stat, chi2_survival(stat, bins - 1))
-    }
-
-    /// Detailed balance of the independence step over the all-cell evaluation, alone and
-    /// mixed with small steps: chains started in the target stay in it (chi-squared over
-    /// 112 bins of the cell and `v`, 20,000 chains of 30 steps, two tests at a family-wise
-    /// level of 0.001, Šidák).
-    #[test]
-    fn independence_steps_keep_the_target_distribution() {
-        let alpha = 1.0 - (1.0 - 0.001f64).powf(0.5);
-        for p_large in [1.0, LARGE_STEP_PROBABILITY] {
-            let (stat, p_value) = toy_chains(p_large, false, 20_000, 30);
-            assert!(
-                p_value > alpha,
-                "p_large {p_large}: chi2 {stat:.1}, p = {p_value:.2e}"
-            );
-        }
-    }
-
-    /// The same test fails for an independence step that ignores `E(y) / E(x)`: its chains
-    /// drift to the proposal's density `c / E`.
-    #[test]
-    fn an_independence_step_without_its_acceptance_fails_the_test() {
-        let (stat, p_value) = toy_chains(1.0, true, 20_000, 30);
-        assert!(p_value < 1e-6, "chi2 {stat:.1}, p = {p_value:.2e}");
-    }
-
     #[test]
     fn a_rejected_step_restores_the_numbers() {
         let mut s = PrimarySamples::new(8, 0.1, 0.0);
@@ -1398,7 +851,7 @@ mod tests {
         for seed in 0..300u64 {
             samples.reset(seed);
             let total = mlt.eval_all(&mut samples, &mut found);
-            let sum: f64 = found.iter().map(|e| e.c).sum();
+            let sum: f64 = found.iter().map(|e| e.2).sum();
             assert!((total - sum).abs() <= 1e-12 * total.max(1.0));
             let all = found.clone();
             for d in 0..depths {
@@ -1406,21 +859,16 @@ mod tests {
                 for s in 0..n {
                     samples.set(CAMERA_STREAM, 0, uniform_in_cell(&mut rng, d, depths));
                     samples.set(CAMERA_STREAM, 1, uniform_in_cell(&mut rng, s, n));
-                    let (l, raster) = mlt.eval(&mut samples);
+                    let (l, _) = mlt.eval(&mut samples);
                     let c = target(l, &mut 0) / (n * depths) as f64;
-                    let cell = all.iter().find(|e| e.depth == d && e.s == s);
-                    let want = cell.map_or(0.0, |e| e.c);
+                    let want = all
+                        .iter()
+                        .find(|e| e.0 == d && e.1 == s)
+                        .map_or(0.0, |e| e.2);
                     assert!(
                         (c - want).abs() <= 1e-5 * want.max(1e-12),
                         "seed {seed}, depth {d}, s {s}: eval {c}, eval_all {want}"
                     );
-                    // The independence proposal's state is the cell's contribution times
-                    // the cell count, where `eval` puts it.
-                    if let Some(e) = cell {
-                        let scaled = e.l * (techniques(d) * depths) as f32;
-                        assert!((scaled - l).abs().max_element() <= 1e-5 * l.max_element());
-                        assert_eq!(e.raster, raster, "seed {seed}, depth {d}, s {s}");
-                    }
                     checked += 1;
                     nonzero += usize::from(want > 0.0);
                 }
