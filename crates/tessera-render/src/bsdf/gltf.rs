@@ -199,15 +199,19 @@ impl GltfBsdf {
     /// (`GltfLobe::prepare`).
     #[inline]
     pub fn prepared(&self, wo_z: f32) -> Bsdf {
-        match self.0 {
-            Lobe::Gltf(mut g) => {
+        match &self.0 {
+            Lobe::Gltf(g) => {
+                let mut g = *g;
                 // `Bsdf` hands an opaque lobe `wo` mirrored to the upper hemisphere
                 // (`flip_z`).
                 let flip = !g.transmits() && wo_z < 0.0;
                 g.prepare(if flip { -wo_z } else { wo_z });
                 Bsdf::single(Lobe::Gltf(g))
             }
-            lobe => Bsdf::single(lobe),
+            // The small variant by name, so that only its fields are copied, not the
+            // whole enum (about 240 bytes).
+            Lobe::Diffuse(d) => Bsdf::single(Lobe::Diffuse(*d)),
+            lobe => Bsdf::single(*lobe),
         }
     }
 }

@@ -1425,16 +1425,31 @@ fn the_bounding_sphere_never_decides_against_the_exact_rule() {
     // some of them are sampled by solid angle.
     let shapes = [
         [Vec3::ZERO, Vec3::X, Vec3::new(0.5, 0.866, 0.0)],
-        [Vec3::ZERO, Vec3::new(3.0, 0.0, 0.0), Vec3::new(1.5, 0.1, 0.0)],
-        [Vec3::ZERO, Vec3::new(1.0, 0.0, 0.0), Vec3::new(0.5, 1e-3, 0.0)],
-        [Vec3::new(1.0, 2.0, 3.0), Vec3::new(1.2, 2.0, 3.1), Vec3::new(1.0, 2.3, 2.9)],
+        [
+            Vec3::ZERO,
+            Vec3::new(3.0, 0.0, 0.0),
+            Vec3::new(1.5, 0.1, 0.0),
+        ],
+        [
+            Vec3::ZERO,
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.5, 1e-3, 0.0),
+        ],
+        [
+            Vec3::new(1.0, 2.0, 3.0),
+            Vec3::new(1.2, 2.0, 3.1),
+            Vec3::new(1.0, 2.3, 2.9),
+        ],
     ];
     let mut rng = SplitMix64::new(0xb0b);
     let (mut spherical, mut exact_calls) = (0u32, 0u32);
     for p in shapes {
         let light = TriangleLight::new(p, Vec3::ONE, true).unwrap();
         let c = (p[0] + p[1] + p[2]) / 3.0;
-        let r = (p[0] - c).length().max((p[1] - c).length()).max((p[2] - c).length());
+        let r = (p[0] - c)
+            .length()
+            .max((p[1] - c).length())
+            .max((p[2] - c).length());
         for _ in 0..200_000 {
             let dir = Vec3::new(
                 rng.next_f32() - 0.5,

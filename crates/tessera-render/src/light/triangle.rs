@@ -48,8 +48,8 @@ pub const MIN_SPHERICAL_SOLID_ANGLE: f64 = 2.0;
 /// `r² / d²` below which a bounding sphere of radius `r` at distance `d` subtends less
 /// than [`MIN_SPHERICAL_SOLID_ANGLE`]: `1 - (1 - 2 / 2π)² = 0.5336` lowered by 6% for
 /// margin. (The bound `2π r² / d²` of the solid angle, halved for margin, skipped the
-/// exact angle only below 0.159: on the Cornell box a quarter of the light samples then
-/// computed it in f64, docs/benchmarks.md "Raw speed", 2026-12-06 evening.)
+/// exact angle only below 0.159: on the Cornell box one light sample in ten then computed
+/// it in f64, docs/benchmarks.md "Raw speed", 2026-12-06 evening.)
 const SPHERE_BOUND_RATIO: f32 = 0.5;
 const _: () = assert!(
     (SPHERE_BOUND_RATIO as f64)
