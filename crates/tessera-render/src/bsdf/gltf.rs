@@ -164,23 +164,56 @@ pub fn gltf_bsdf(p: &GltfParams) -> Bsdf {
 /// results are bit-identical, and calls with another `wo` stay correct). NaN prepares
 /// nothing.
 pub fn gltf_bsdf_at(p: &GltfParams, wo_z: f32) -> Bsdf {
-    let mut g = GltfLobe::new(p);
+    gltf_lobe(p).prepared(wo_z)
+}
+
+/// The lobe [`gltf_bsdf`] is made of, not yet prepared for an outgoing direction: a
+/// material whose parameters do not vary over its surface has one lobe everywhere, which
+/// the render scene builds once ([`GltfBsdf::prepared`] then gives what
+/// [`gltf_bsdf_at`] would, bit for bit).
+pub fn gltf_lobe(p: &GltfParams) -> GltfBsdf {
+    let g = GltfLobe::new(p);
     let layered = g.clearcoat > 0.0 || g.sheen_max > 0.0;
     if !layered {
         let no_spec = g.f0 == Vec3::ZERO && g.f90 == 0.0;
         if g.metal == 0.0 && g.transmit == 0.0 && no_spec {
-            return Bsdf::single(Lobe::Diffuse(Diffuse {
+            return GltfBsdf(Lobe::Diffuse(Diffuse {
                 albedo: g.base * g.diffuse_gain,
             }));
         }
         if g.transmit == 1.0 && g.smooth {
-            return Bsdf::single(Lobe::Glass(g.glass()));
+            return GltfBsdf(Lobe::Glass(g.glass()));
         }
     }
-    // `Bsdf` hands an opaque lobe `wo` mirrored to the upper hemisphere (`flip_z`).
-    let flip = !g.transmits() && wo_z < 0.0;
-    g.prepare(if flip { -wo_z } else { wo_z });
-    Bsdf::single(Lobe::Gltf(g))
+    GltfBsdf(Lobe::Gltf(g))
+}
+
+/// A glTF material's lobe at a point ([`gltf_lobe`]): a Lambertian or smooth-glass lobe
+/// where the material reduces to one, else the layered lobe, unprepared.
+#[derive(Clone, Copy, Debug)]
+pub struct GltfBsdf(Lobe);
+
+impl GltfBsdf {
+    /// The BSDF for the outgoing direction of local `z` coordinate `wo_z` (NaN prepares
+    /// nothing): the layered lobe looks up its albedo tables at `wo` once
+    /// (`GltfLobe::prepare`).
+    #[inline]
+    pub fn prepared(&self, wo_z: f32) -> Bsdf {
+        match &self.0 {
+            Lobe::Gltf(g) => {
+                let mut g = *g;
+                // `Bsdf` hands an opaque lobe `wo` mirrored to the upper hemisphere
+                // (`flip_z`).
+                let flip = !g.transmits() && wo_z < 0.0;
+                g.prepare(if flip { -wo_z } else { wo_z });
+                Bsdf::single(Lobe::Gltf(g))
+            }
+            // The small variant by name, so that only its fields are copied, not the
+            // whole enum (about 240 bytes).
+            Lobe::Diffuse(d) => Bsdf::single(Lobe::Diffuse(*d)),
+            lobe => Bsdf::single(*lobe),
+        }
+    }
 }
 
 /// Indices of the components in [`GltfLobe::select`].

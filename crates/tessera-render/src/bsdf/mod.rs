@@ -164,10 +164,16 @@ impl Bsdf {
     #[inline]
     pub fn single(lobe: Lobe) -> Self {
         // The unused slots hold the smallest variant: writing `[lobe; 3]` would copy the
-        // largest lobe (the layered glTF one, about 100 bytes) three times per hit.
-        const EMPTY: Lobe = Lobe::Diffuse(diffuse::Diffuse { albedo: Vec3::ZERO });
+        // largest lobe (the layered glTF one, about 240 bytes) three times per hit. Written
+        // out rather than as a `const`: a constant of the enum is copied whole (a memset
+        // of both slots and a copy of the whole array, about 180 instructions per hit),
+        // while the expression writes only its tag and albedo.
         Self {
-            lobes: [lobe, EMPTY, EMPTY],
+            lobes: [
+                lobe,
+                Lobe::Diffuse(diffuse::Diffuse { albedo: Vec3::ZERO }),
+                Lobe::Diffuse(diffuse::Diffuse { albedo: Vec3::ZERO }),
+            ],
             weights: [1.0, 0.0, 0.0],
             count: 1,
         }

@@ -123,9 +123,13 @@ pub fn radiance(
         } else {
             sp.ns
         };
-        let u_light = sampler.next_1d();
-        let u_light2 = sampler.next_2d();
-        if bsdf.has_non_delta() {
+        // The light sample's two dimensions are consumed at every vertex, drawn only where
+        // they are used (a purely specular vertex skips them): the same later samples.
+        if !bsdf.has_non_delta() {
+            sampler.skip(2);
+        } else {
+            let u_light = sampler.next_1d();
+            let u_light2 = sampler.next_2d();
             if let Some((li, pmf)) = scene.lights.select_at(u_light, sp.p, n_select) {
                 if let Some(ls) = scene.sample_li(li, sp.p, u_light2) {
                     let wi = frame.to_local(ls.wi);
@@ -188,9 +192,12 @@ pub fn radiance(
         dir = wi_world;
         depth += 1;
 
-        // 5. Russian roulette.
-        let u_rr = sampler.next_1d();
-        if depth >= s.rr_depth {
+        // 5. Russian roulette. Its dimension is consumed at every vertex, drawn only once
+        // roulette has started.
+        if depth < s.rr_depth {
+            sampler.skip(1);
+        } else {
+            let u_rr = sampler.next_1d();
             let survive = (beta.max_element() * eta_scale).min(RR_MAX_SURVIVAL);
             if u_rr >= survive {
                 break;

@@ -1414,3 +1414,55 @@ fn image_environment_sample_pdf_equals_pdf_li_and_radiance_equals_le() {
         "∫ L dω: {got} vs {want}"
     );
 }
+
+#[test]
+fn the_bounding_sphere_never_decides_against_the_exact_rule() {
+    // The early out of the solid-angle rule skips the exact angle only where it is below
+    // the threshold: over points from inside the bounding sphere to far outside it, around
+    // triangles of several shapes (equilateral, long and thin, nearly degenerate), the
+    // rule with the early out gives the same answer and the same angle as without. The
+    // points concentrate where the bound is tight (a few radii from the centroid), and
+    // some of them are sampled by solid angle.
+    let shapes = [
+        [Vec3::ZERO, Vec3::X, Vec3::new(0.5, 0.866, 0.0)],
+        [
+            Vec3::ZERO,
+            Vec3::new(3.0, 0.0, 0.0),
+            Vec3::new(1.5, 0.1, 0.0),
+        ],
+        [
+            Vec3::ZERO,
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(0.5, 1e-3, 0.0),
+        ],
+        [
+            Vec3::new(1.0, 2.0, 3.0),
+            Vec3::new(1.2, 2.0, 3.1),
+            Vec3::new(1.0, 2.3, 2.9),
+        ],
+    ];
+    let mut rng = SplitMix64::new(0xb0b);
+    let (mut spherical, mut exact_calls) = (0u32, 0u32);
+    for p in shapes {
+        let light = TriangleLight::new(p, Vec3::ONE, true).unwrap();
+        let c = (p[0] + p[1] + p[2]) / 3.0;
+        let r = (p[0] - c)
+            .length()
+            .max((p[1] - c).length())
+            .max((p[2] - c).length());
+        for _ in 0..200_000 {
+            let dir = Vec3::new(
+                rng.next_f32() - 0.5,
+                rng.next_f32() - 0.5,
+                rng.next_f32() - 0.5,
+            )
+            .normalize_or(Vec3::Z);
+            let q = c + dir * r * (0.05 + 3.0 * rng.next_f32());
+            let exact = light.exact_spherical_solid_angle(q);
+            assert_eq!(light.spherical_solid_angle(q), exact, "{q}");
+            spherical += exact.is_some() as u32;
+            exact_calls += 1;
+        }
+    }
+    assert!(spherical > 1000, "{spherical} of {exact_calls}");
+}

@@ -45,6 +45,19 @@ use std::f32::consts::PI;
 /// left to the points very close to a large emitter, where area sampling's variance grows
 /// without bound.
 pub const MIN_SPHERICAL_SOLID_ANGLE: f64 = 2.0;
+/// `r² / d²` below which a bounding sphere of radius `r` at distance `d` subtends less
+/// than [`MIN_SPHERICAL_SOLID_ANGLE`]: `1 - (1 - 2 / 2π)² = 0.5336` lowered by 6% for
+/// margin. (The bound `2π r² / d²` of the solid angle, halved for margin, skipped the
+/// exact angle only below 0.159: on the Cornell box one light sample in ten then computed
+/// it in f64, docs/benchmarks.md "Raw speed", 2026-12-06 evening.)
+const SPHERE_BOUND_RATIO: f32 = 0.5;
+const _: () = assert!(
+    (SPHERE_BOUND_RATIO as f64)
+        < 1.0
+            - (1.0 - MIN_SPHERICAL_SOLID_ANGLE / std::f64::consts::TAU)
+                * (1.0 - MIN_SPHERICAL_SOLID_ANGLE / std::f64::consts::TAU)
+);
+
 /// Largest solid angle (sr) sampled by the spherical-triangle warp (pbrt-v4's threshold,
 /// just under 2π): beyond it the point is almost on the triangle and the warp is
 /// ill-conditioned.
@@ -130,14 +143,22 @@ impl TriangleLight {
     #[inline]
     fn spherical(&self, p_ref: Vec3) -> Option<(f64, [DVec3; 3])> {
         // A cheap upper bound first: the triangle lies in the sphere about its centroid
-        // through its farthest vertex, which subtends `2π (1 - cos θ) <= 2π r² / d²`.
-        // Only when even twice that is below the threshold is the exact angle skipped, so
-        // the rule is the exact one.
+        // through its farthest vertex, which subtends `2π (1 - cos θ)` with
+        // `cos θ = sqrt(1 - r² / d²)`; it is below the threshold `Ω_min` exactly when
+        // `r² / d² < 1 - (1 - Ω_min / 2π)²` (0.534 for 2 sr). The exact angle is skipped
+        // only below `SPHERE_BOUND_RATIO`, a margin far wider than the rounding of either
+        // side, so the rule is the exact one.
         let r2 = self.bound_r2;
         let d2 = (self.centroid - p_ref).length_squared();
-        if d2 > r2 && 4.0 * PI * r2 < MIN_SPHERICAL_SOLID_ANGLE as f32 * d2 {
+        if d2 > r2 && r2 < SPHERE_BOUND_RATIO * d2 {
             return None;
         }
+        self.spherical_exact(p_ref)
+    }
+
+    /// [`TriangleLight::spherical`] without its early out: the rule itself.
+    #[inline]
+    fn spherical_exact(&self, p_ref: Vec3) -> Option<(f64, [DVec3; 3])> {
         let o = p_ref.as_dvec3();
         let [a, b, c] = self.p.map(|v| (v.as_dvec3() - o).normalize_or_zero());
         let num = a.dot(b.cross(c)).abs();
@@ -146,6 +167,13 @@ impl TriangleLight {
         (omega.is_finite()
             && (MIN_SPHERICAL_SOLID_ANGLE..=MAX_SPHERICAL_SOLID_ANGLE).contains(&omega))
         .then_some((omega, [a, b, c]))
+    }
+
+    /// The rule's solid angle from `p_ref` computed without the bounding sphere's early
+    /// out, for the test that the early out never changes the rule.
+    #[cfg(test)]
+    pub(crate) fn exact_spherical_solid_angle(&self, p_ref: Vec3) -> Option<f64> {
+        self.spherical_exact(p_ref).map(|(omega, _)| omega)
     }
 
     pub(crate) fn sample_li(&self, p_ref: Vec3, u: Vec2) -> Option<LightSample> {

@@ -38,9 +38,18 @@ const INV_2_POW_24: f32 = 1.0 / 16_777_216.0;
 /// An `f32` has a 24-bit significand, so every multiple of `2^-24` below one is exactly
 /// representable and the largest result is `1 - 2^-24 < 1`. (Converting all 32 bits could
 /// round up to exactly `1.0`.)
+#[cfg(test)]
 #[inline]
 fn to_unit_f32(bits: u32) -> f32 {
-    (bits >> 8) as f32 * INV_2_POW_24
+    unit_f32_of_top24(bits >> 8)
+}
+
+/// `top24 * 2^-24`: a sample value from the top 24 bits of its 0.32 fixed-point word,
+/// already shifted down (the sampler reverses only those bits). Every multiple of `2^-24`
+/// below one is an exact `f32`, so the largest value is `1 - 2^-24 < 1`.
+#[inline]
+fn unit_f32_of_top24(top24: u32) -> f32 {
+    top24 as f32 * INV_2_POW_24
 }
 
 /// The 64-bit finalizer of SplitMix64 (Steele, Lea & Flood 2014; "variant 13" constants by
@@ -144,14 +153,19 @@ impl PixelSampler {
     /// Next 1D value of the current sample, in `[0, 1)` (at most `1 - 2^-24`).
     pub fn next_1d(&mut self) -> f32 {
         let d = self.take_dimension();
-        let bits = match self.kind {
+        let top24 = match self.kind {
             SamplerKind::Sobol if d < SOBOL_DIMENSIONS => {
                 let s = self.cached_scramble(d);
-                sobol::shuffled_scrambled_sobol_1d(self.index_reversed, s.shuffle, s.x)
+                // `to_unit_f32` of the reversed word keeps its top 24 bits: reverse just those.
+                sobol::reverse_bits_top24(sobol::scrambled_sobol_1d_unreversed(
+                    self.index_reversed,
+                    s.shuffle,
+                    s.x,
+                ))
             }
-            _ => (self.random_bits(d) >> 32) as u32,
+            _ => ((self.random_bits(d) >> 32) as u32) >> 8,
         };
-        to_unit_f32(bits)
+        unit_f32_of_top24(top24)
     }
 
     /// Next 2D value of the current sample, each component in `[0, 1)`.
@@ -159,14 +173,28 @@ impl PixelSampler {
         let d = self.take_dimension();
         let (x, y) = match self.kind {
             SamplerKind::Sobol if d < SOBOL_DIMENSIONS => {
-                sobol::shuffled_scrambled_sobol_2d(self.index_reversed, self.cached_scramble(d))
+                let (x, y) = sobol::scrambled_sobol_2d_unreversed(
+                    self.index_reversed,
+                    self.cached_scramble(d),
+                );
+                (sobol::reverse_bits_top24(x), sobol::reverse_bits_top24(y))
             }
             _ => {
                 let h = self.random_bits(d);
-                ((h >> 32) as u32, h as u32)
+                (((h >> 32) as u32) >> 8, (h as u32) >> 8)
             }
         };
-        Vec2::new(to_unit_f32(x), to_unit_f32(y))
+        Vec2::new(unit_f32_of_top24(x), unit_f32_of_top24(y))
+    }
+
+    /// Passes over the next `n` dimension indices of the current sample without computing
+    /// their values, as if they were drawn and discarded: the values drawn after it are
+    /// the same (each depends on its dimension index alone), and the draws it saves cost
+    /// about a hundred instructions each. For a technique that consumes a fixed set of
+    /// dimensions per path vertex but does not need all of them at every vertex.
+    #[inline]
+    pub fn skip(&mut self, n: u32) {
+        self.dimension = self.dimension.wrapping_add(n);
     }
 
     #[inline]
@@ -432,6 +460,29 @@ mod tests {
     fn pixel_sampler_fits_on_the_stack_without_heap() {
         // 64 cached scramble seeds plus counters: stack-only, no allocation per pixel.
         assert!(std::mem::size_of::<PixelSampler>() <= 1024);
+    }
+
+    #[test]
+    fn skipped_dimensions_leave_the_later_values_alone() {
+        // Drawing and discarding 1D and 2D values is the same as skipping them: the values
+        // after agree bit for bit, in the Sobol' sets and in the hashed padding.
+        for kind in KINDS {
+            let mut drawn = PixelSampler::new(kind, 3, 1, 40, 2);
+            let mut skipped = drawn.clone();
+            for i in 0..4 {
+                drawn.start_sample(i);
+                skipped.start_sample(i);
+                for k in 0..40 {
+                    if k % 3 == 0 {
+                        drawn.next_1d();
+                        drawn.next_2d();
+                        skipped.skip(2);
+                    }
+                    assert_eq!(drawn.next_2d(), skipped.next_2d(), "{kind} {i} {k}");
+                    assert_eq!(drawn.next_1d(), skipped.next_1d(), "{kind} {i} {k}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -124,6 +124,46 @@ fn sobol_dim1_reference(index: u32) -> u32 {
     x
 }
 
+/// `REVERSED_BYTES[k][v]`: the byte value `v` bit-reversed and placed where byte `k` of a
+/// `u32` lands when the word is bit-reversed (byte `3 - k`).
+const REVERSED_BYTES: [[u32; 256]; 4] = {
+    let mut t = [[0u32; 256]; 4];
+    let mut k = 0;
+    while k < 4 {
+        let mut v = 0;
+        while v < 256 {
+            t[k][v] = ((v as u8).reverse_bits() as u32) << (24 - 8 * k);
+            v += 1;
+        }
+        k += 1;
+    }
+    t
+};
+
+/// `x.reverse_bits()` from byte tables. x86-64 has no bit-reverse instruction: the
+/// compiler's byte swap and three mask-and-shift rounds take about twenty instructions,
+/// four table look-ups about a dozen, and a sample's values reverse two or three words
+/// each (docs/benchmarks.md, "Raw speed", 2026-12-06 evening).
+#[inline]
+pub(crate) fn reverse_bits(x: u32) -> u32 {
+    let [b0, b1, b2, b3] = x.to_le_bytes();
+    REVERSED_BYTES[0][b0 as usize]
+        | REVERSED_BYTES[1][b1 as usize]
+        | REVERSED_BYTES[2][b2 as usize]
+        | REVERSED_BYTES[3][b3 as usize]
+}
+
+/// `x.reverse_bits() >> 8`: the top 24 bits of the reversal, which are all a sample
+/// value keeps (`super::unit_f32_of_top24`); three look-ups, byte 3 of `x` would land below them.
+#[inline]
+pub(crate) fn reverse_bits_top24(x: u32) -> u32 {
+    let [b0, b1, b2, _] = x.to_le_bytes();
+    (REVERSED_BYTES[0][b0 as usize]
+        | REVERSED_BYTES[1][b1 as usize]
+        | REVERSED_BYTES[2][b2 as usize])
+        >> 8
+}
+
 /// Laine–Karras style hash permutation on a bit-reversed integer, with Vegdahl's improved
 /// constants ("Building a better LK hash", 2021, as used by Blender Cycles).
 ///
@@ -170,27 +210,44 @@ pub(crate) struct Scramble {
 /// consecutive sequence indices: the Owen scramble of the index permutes its low `m` bits
 /// among themselves and maps the (all-zero) high bits to a seed-dependent constant. Such a
 /// block of a (0,2)-sequence is a (0,m,2)-net.
+#[cfg(test)]
 #[inline]
 pub(crate) fn shuffled_scrambled_sobol_2d(index_reversed: u32, s: Scramble) -> (u32, u32) {
+    let (x, y) = scrambled_sobol_2d_unreversed(index_reversed, s);
+    (reverse_bits(x), reverse_bits(y))
+}
+
+/// [`shuffled_scrambled_sobol_2d`] before its two final bit reversals, which the sampler
+/// takes by [`reverse_bits_top24`] (the bits a sample value keeps).
+#[inline]
+pub(crate) fn scrambled_sobol_2d_unreversed(index_reversed: u32, s: Scramble) -> (u32, u32) {
     // nested_uniform_scramble(index, shuffle), its first reversal done by the caller.
-    let i = laine_karras_permutation(index_reversed, s.shuffle).reverse_bits();
+    let i = reverse_bits(laine_karras_permutation(index_reversed, s.shuffle));
     // nested_uniform_scramble(v, seed) = rev(LK(rev(v), seed)); with dimension 0 being
     // rev(i) and dimension 1 read from bit-reversed tables, the inner reversals cancel
     // (x86 has no bit-reverse instruction, so this saves three of seven).
     (
-        laine_karras_permutation(i, s.x).reverse_bits(),
-        laine_karras_permutation(sobol_dim1_reversed(i), s.y).reverse_bits(),
+        laine_karras_permutation(i, s.x),
+        laine_karras_permutation(sobol_dim1_reversed(i), s.y),
     )
 }
 
 /// Point `index` of a shuffled, Owen-scrambled 1D Sobol' (van der Corput) set, in 0.32
 /// fixed point, given `index_reversed = index.reverse_bits()`; any `2^m` consecutive
 /// shuffled indices starting at 0 are stratified into `2^m` equal intervals.
+#[cfg(test)]
 #[inline]
 pub(crate) fn shuffled_scrambled_sobol_1d(index_reversed: u32, shuffle: u32, seed: u32) -> u32 {
-    let i = laine_karras_permutation(index_reversed, shuffle).reverse_bits();
+    reverse_bits(scrambled_sobol_1d_unreversed(index_reversed, shuffle, seed))
+}
+
+/// [`shuffled_scrambled_sobol_1d`] before its final bit reversal (see
+/// [`scrambled_sobol_2d_unreversed`]).
+#[inline]
+pub(crate) fn scrambled_sobol_1d_unreversed(index_reversed: u32, shuffle: u32, seed: u32) -> u32 {
+    let i = reverse_bits(laine_karras_permutation(index_reversed, shuffle));
     // As in the 2D case: rev(LK(rev(rev(i)))) = rev(LK(i)).
-    laine_karras_permutation(i, seed).reverse_bits()
+    laine_karras_permutation(i, seed)
 }
 
 #[cfg(test)]
@@ -218,6 +275,21 @@ mod tests {
                 shuffled_scrambled_sobol_1d(reversed, s.shuffle, s.x),
                 textbook.0
             );
+        }
+    }
+
+    #[test]
+    fn table_reversal_is_the_bit_reversal() {
+        let mut x = 0x0bad_cafeu32;
+        for i in 0..100_000u32 {
+            x = x.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
+            for v in [i, x, !i, i << 16] {
+                assert_eq!(reverse_bits(v), v.reverse_bits(), "{v:#x}");
+                assert_eq!(reverse_bits_top24(v), v.reverse_bits() >> 8, "{v:#x}");
+            }
+        }
+        for v in [0, 1, u32::MAX, 0x8000_0000] {
+            assert_eq!(reverse_bits(v), v.reverse_bits());
         }
     }
 

@@ -201,7 +201,7 @@ impl RenderScene {
                 })
             })
             .collect();
-        Ok(Self {
+        let mut render = Self {
             geometry,
             meshes,
             materials: scene.materials.clone(),
@@ -210,6 +210,7 @@ impl RenderScene {
             any_alpha: alpha_tested.iter().any(|&a| a),
             alpha_tested,
             uses_tangents,
+            constant_gltf: Vec::new(),
             lights: LightSet::new(lights),
             camera: CameraModel::new(&scene.camera, width, height),
             width,
@@ -217,7 +218,13 @@ impl RenderScene {
             motion_shading,
             camera_keys,
             motion_warnings,
-        })
+        };
+        render.constant_gltf = render
+            .materials
+            .iter()
+            .map(|m| m.as_gltf().and_then(|g| render.constant_gltf_lobe(g)))
+            .collect();
+        Ok(render)
     }
 }
 

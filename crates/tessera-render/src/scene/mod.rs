@@ -5,7 +5,7 @@
 use crate::bsdf::{
     dielectric::RoughDielectric,
     diffuse::Diffuse,
-    gltf::{gltf_bsdf_at, GltfParams},
+    gltf::{gltf_bsdf_at, gltf_lobe, GltfBsdf, GltfParams},
     microfacet::{Conductor, MIN_ALPHA},
     phong::Phong,
     specular::{Glass, Mirror},
@@ -76,6 +76,10 @@ pub struct RenderScene {
     /// of nonzero strength), so a hit on it interpolates the tangent
     /// ([`SurfacePoint::tangent`]); every other hit skips that work.
     uses_tangents: Vec<bool>,
+    /// Per material: the lobe of a glTF material whose parameters are the same at every
+    /// point ([`RenderScene::constant_gltf_lobe`]), built once instead of at every hit
+    /// (where the mesh has no vertex colours); `None` for the others.
+    constant_gltf: Vec<Option<GltfBsdf>>,
     /// Lights with their selection distribution.
     pub lights: LightSet,
     /// The camera for the image size.
@@ -638,8 +642,57 @@ impl RenderScene {
                 }
             }
             // `wo.dot(ns)` is `Frame::from_normal(ns).to_local(wo).z` to the bit.
-            MaterialKind::Gltf(g) => gltf_bsdf_at(&self.gltf_params(g, sp), wo.dot(sp.ns)),
+            MaterialKind::Gltf(g) => match &self.constant_gltf[sp.material as usize] {
+                // The lobe `gltf_params` would give here, built once: vertex colours are
+                // the one input besides the material's that can still vary.
+                Some(lobe) if self.vertex_color_free(sp) => lobe.prepared(wo.dot(sp.ns)),
+                _ => gltf_bsdf_at(&self.gltf_params(g, sp), wo.dot(sp.ns)),
+            },
         }
+    }
+
+    /// Whether the mesh of `sp` has no vertex colours (a sphere has none).
+    #[inline]
+    fn vertex_color_free(&self, sp: &SurfacePoint) -> bool {
+        sp.mesh == NO_MESH || self.meshes[sp.mesh as usize].colors.is_none()
+    }
+
+    /// The lobe of the glTF material `g` if its [`RenderScene::gltf_params`] are the same
+    /// at every point of a mesh without vertex colours: unlit, or with no texture, no
+    /// normal map (which sets the diffuse gain per point) and no anisotropy (whose
+    /// direction follows the tangent). Those are computed once, here, by the very function
+    /// a hit would call (a missing texture reads as one, `x * 1.0 == x`).
+    fn constant_gltf_lobe(&self, g: &GltfMaterial) -> Option<GltfBsdf> {
+        let textured = [
+            &g.base_color_texture,
+            &g.metallic_roughness_texture,
+            &g.specular_texture,
+            &g.specular_color_texture,
+            &g.transmission_texture,
+            &g.clearcoat_texture,
+            &g.clearcoat_roughness_texture,
+            &g.sheen_color_texture,
+            &g.sheen_roughness_texture,
+        ]
+        .iter()
+        .any(|t| t.is_some());
+        if !g.unlit && (textured || g.normal_map.is_some() || g.anisotropy.is_some()) {
+            return None;
+        }
+        let anywhere = SurfacePoint {
+            p: Vec3::ZERO,
+            p_error: Vec3::ZERO,
+            ng: Vec3::Z,
+            ns: Vec3::Z,
+            uv: Vec2::ZERO,
+            mesh: NO_MESH,
+            tri: 0,
+            bary: Vec2::ZERO,
+            material: 0,
+            light: NO_LIGHT,
+            tangent: Vec4::ZERO,
+        };
+        Some(gltf_lobe(&self.gltf_params(g, &anywhere)))
     }
 
     /// The glTF material's parameters at `sp`: every factor times its texture (glTF 2.0
