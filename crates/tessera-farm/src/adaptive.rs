@@ -54,6 +54,17 @@
 //! [`AdaptiveTile::wants`] reads is final, which makes the leased set a pure function of
 //! the job.
 //!
+//! # The bias channel of biased techniques
+//!
+//! Vertex merging (vcm, ppm) sends each pass's estimate of its own bias beside the pass
+//! means ([`UnitResult::bias`], ARCHITECTURE.md §3, "Biased techniques: the bias term").
+//! A tile keeps it as [`crate::BiasStats`] per pixel over exactly the passes the pixel's
+//! radiance statistics keep (pushed with them; discarded with the unbiased pilot), so
+//! [`AdaptiveFrame::image`] has bias layers and [`AdaptiveFrame::image_error`] adds the
+//! bias term as a uniform render does ([`crate::ErrorEstimator::image_error_biased`]).
+//! As in [`crate::TileAccumulator`], the channel lasts only while every unit from pass 0 on
+//! carries one. Decisions read the radiance statistics alone, as for every technique.
+//!
 //! # Example
 //!
 //! ```
