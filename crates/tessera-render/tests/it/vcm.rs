@@ -689,15 +689,15 @@ fn caustic_estimate_with_the_bias_term_is_calibrated() {
 /// 32 x 32, `tessera render --adaptive unbiased|sequential --target-error 0.1 --spp 4096
 /// --max-depth 8` (its plan: passes of 16 samples), seeds 8-11, the estimate over the
 /// error measured against the suite's converged reference, root mean square over the
-/// seeds, must be within 0.5-2 for both techniques and both modes. The pass spread alone
-/// was 0.02-0.08 there (docs/benchmarks.md, "The merging bias term under adaptive
-/// stopping"), so the test fails without the term; the frame's own estimate (status,
-/// summary) must be the written image's.
+/// seeds, must be within the issue's 0.8-1.25 for both techniques and both modes
+/// (measured 0.92-0.96). The pass spread alone was 0.02-0.08 there (docs/benchmarks.md,
+/// "The merging bias term under adaptive stopping"), so the test fails without the term;
+/// the frame's own estimate (status, summary) must be the written image's.
 #[test]
 fn adaptive_caustic_estimate_with_the_bias_term_is_calibrated() {
     for (integrator, mode, (ratio, spread)) in adaptive_caustic_ratios(&[8, 9, 10, 11]) {
         assert!(
-            (0.5..=2.0).contains(&ratio),
+            (0.8..=1.25).contains(&ratio),
             "{integrator} {mode}: estimate / measured {ratio} (spread alone {spread})"
         );
         assert!(spread < 0.2, "{integrator} {mode}: spread alone {spread}");
