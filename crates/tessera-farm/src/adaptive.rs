@@ -63,7 +63,10 @@
 //! [`AdaptiveFrame::image`] has bias layers and [`AdaptiveFrame::image_error`] adds the
 //! bias term as a uniform render does ([`crate::ErrorEstimator::image_error_biased`]).
 //! As in [`crate::TileAccumulator`], the channel lasts only while every unit from pass 0 on
-//! carries one. Decisions read the radiance statistics alone, as for every technique.
+//! carries one. Decisions read the radiance statistics alone, as for every technique. The
+//! tile's checkpoint carries the channel ([`AdaptiveTileCheckpoint::bias`]), so a frame
+//! restored from the store (after a restart, or a finished frame's image) keeps it; one
+//! restored from a checkpoint without it estimates from the pass spread alone.
 //!
 //! # Example
 //!
@@ -584,28 +587,6 @@ impl AdaptiveTile {
         self.bias.as_deref()
     }
 
-    /// Restores the bias statistics of a tile rebuilt by [`AdaptiveTile::restore`] from a
-    /// checkpoint that holds them ([`AdaptiveTile::bias`] of the checkpointed tile; the
-    /// [`AdaptiveTileCheckpoint`] does not carry them). Refuses statistics of another
-    /// pixel count or of other passes than the pixels' kept ones.
-    pub fn restore_bias(&mut self, bias: Vec<BiasStats>) -> Result<(), AdaptiveRestoreError> {
-        let finite = bias.iter().all(|b| b.mean.is_finite() && b.m2.is_finite());
-        if !finite
-            || bias.len() != self.stats.len()
-            || bias
-                .iter()
-                .zip(&self.stats)
-                .any(|(b, s)| b.passes != s.passes)
-        {
-            return Err(AdaptiveRestoreError {
-                tile: self.rect.index,
-                reason: "the bias statistics do not match the pixels' kept passes".into(),
-            });
-        }
-        self.bias = Some(bias);
-        Ok(())
-    }
-
     /// Passes each pixel used, including a discarded pilot (row-major), as an iterator.
     pub fn traced_passes(&self) -> impl Iterator<Item = u32> + '_ {
         self.state.iter().map(|s| s.traced)
@@ -651,6 +632,12 @@ pub struct AdaptiveTileCheckpoint {
     pub consumed_passes: u32,
     /// Per pixel, row-major within the tile.
     pub pixels: Vec<AdaptivePixel>,
+    /// Biased techniques (vcm, ppm): the bias channel's statistics per pixel over the same
+    /// passes as each pixel's kept statistics ([`AdaptiveTile::bias`]); `None` for every
+    /// other technique, for a tile whose channel ended, and for checkpoints stored before
+    /// the channel existed (the restored tile then estimates from the pass spread alone).
+    #[serde(default)]
+    pub bias: Option<Vec<BiasStats>>,
 }
 
 /// Why an [`AdaptiveTileCheckpoint`] cannot be restored (a damaged or foreign store row).
@@ -679,6 +666,7 @@ impl AdaptiveTile {
                     traced: st.traced,
                 })
                 .collect(),
+            bias: self.bias.clone(),
         }
     }
 
@@ -687,7 +675,8 @@ impl AdaptiveTile {
     /// a checkpoint that no run of the policy could have produced is refused rather than
     /// trusted: the pixel count, the consumed passes, every stop at a decision boundary
     /// already passed, the unbiased fresh counts present exactly once the pilot is over
-    /// and within the plan, traced counts within the consumed passes, finite statistics.
+    /// and within the plan, traced counts within the consumed passes, finite statistics,
+    /// and bias statistics (if any) finite and over the same passes as each pixel's.
     pub fn restore(
         rect: TileRect,
         settings: AdaptiveSettings,
@@ -750,6 +739,23 @@ impl AdaptiveTile {
                 needed: p.needed,
                 traced: p.traced,
             };
+        }
+        if let Some(bias) = &cp.bias {
+            let finite = bias.iter().all(|b| b.mean.is_finite() && b.m2.is_finite());
+            let same_passes = bias.len() == tile.stats.len()
+                && bias
+                    .iter()
+                    .zip(&tile.stats)
+                    .all(|(b, s)| b.passes == s.passes);
+            if !(finite && same_passes) {
+                return Err(err(format!(
+                    "{} bias records for {} pixels, over the pixels' kept passes: \
+                     {same_passes}, finite: {finite}",
+                    bias.len(),
+                    tile.stats.len()
+                )));
+            }
+            tile.bias = Some(bias.clone());
         }
         tile.next_pass = consumed;
         tile.end = decided.then_some(end);
@@ -958,23 +964,6 @@ impl AdaptiveFrame {
     /// The state of one tile.
     pub fn tile(&self, index: u32) -> Option<&AdaptiveTile> {
         self.tiles.get(index as usize)
-    }
-
-    /// Restores tile `index`'s bias statistics after [`AdaptiveFrame::restore`]
-    /// ([`AdaptiveTile::restore_bias`]): a frame restored without them estimates from the
-    /// pass spread alone.
-    pub fn restore_bias(
-        &mut self,
-        index: u32,
-        bias: Vec<BiasStats>,
-    ) -> Result<(), AdaptiveRestoreError> {
-        match self.tiles.get_mut(index as usize) {
-            Some(t) => t.restore_bias(bias),
-            None => Err(AdaptiveRestoreError {
-                tile: index,
-                reason: format!("no such tile in a plan of {}", self.tiles.len()),
-            }),
-        }
     }
 
     /// All tiles in order.

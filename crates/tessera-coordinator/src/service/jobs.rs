@@ -216,7 +216,7 @@ impl Coordinator {
             .as_deref()
             .and_then(|j| serde_json::from_str(j).ok());
         // The name the live status gave (`ResolvedJob::error_estimator_name`): a merging
-        // integrator's uniform render adds its bias term.
+        // integrator's render adds its bias term, uniform or adaptive.
         let biased = match settings
             .integrator
             .parse::<tessera_farm::job::IntegratorChoice>()
@@ -232,7 +232,7 @@ impl Coordinator {
                 == Some(tessera_farm::job::PlannedIntegrator::Black.as_str())
         });
         let estimator = tessera_farm::ErrorEstimator::for_mode(mode).name();
-        let estimator = if biased && !black && mode == tessera_farm::AdaptiveMode::Off {
+        let estimator = if biased && !black {
             format!("{estimator}; {}", tessera_farm::BIAS_TERM)
         } else {
             estimator.to_string()

@@ -661,41 +661,73 @@ fn a_unit_without_a_bias_channel_ends_it() {
     assert_eq!(frame.image_error().to_bits(), plain.image_error().to_bits());
 }
 
-/// A frame restored from its tiles' checkpoints and their bias statistics continues bit
-/// for bit; statistics of other passes are refused.
+/// A frame restored from its tiles' checkpoints, which carry the bias statistics,
+/// continues bit for bit; a checkpoint without them (stored before the channel existed)
+/// restores a frame that estimates from the pass spread alone; statistics of other passes
+/// are refused.
 #[test]
 fn restored_bias_statistics_continue_bit_identically() {
     let plan = FramePlan::new(16, 8, 8, 1, 40).unwrap();
-    let settings = unb(0.1);
-    let offer = |frame: &mut AdaptiveFrame, units: &[WorkUnit]| {
-        for &u in units {
-            let rect = plan.tile(u.tile);
-            let r = biased_result_from(rect, u, &|p, i| noisy(u.tile, p, i), &|p, i| {
-                bias_of(u.tile, p, i)
-            });
-            frame.offer(&r).unwrap();
-        }
-    };
-    let units = plan.units(0, 4);
-    let (before, after) = units.split_at(units.len() / 2);
-    let mut whole = AdaptiveFrame::new(plan, 0, settings).unwrap();
-    offer(&mut whole, &units);
-    let mut half = AdaptiveFrame::new(plan, 0, settings).unwrap();
-    offer(&mut half, before);
-    let cps: Vec<_> = half.tiles().iter().map(|t| Some(t.checkpoint())).collect();
-    let mut restored = AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap();
-    for (i, t) in half.tiles().iter().enumerate() {
-        restored
-            .restore_bias(i as u32, t.bias().unwrap().to_vec())
-            .unwrap();
+    for settings in [unb(0.1), seq(0.1)] {
+        let offer = |frame: &mut AdaptiveFrame, units: &[WorkUnit]| {
+            for &u in units {
+                let rect = plan.tile(u.tile);
+                let r = biased_result_from(rect, u, &|p, i| noisy(u.tile, p, i), &|p, i| {
+                    bias_of(u.tile, p, i)
+                });
+                frame.offer(&r).unwrap();
+            }
+        };
+        let units = plan.units(0, 4);
+        let (before, after) = units.split_at(units.len() / 2);
+        let mut whole = AdaptiveFrame::new(plan, 0, settings).unwrap();
+        offer(&mut whole, &units);
+        let mut half = AdaptiveFrame::new(plan, 0, settings).unwrap();
+        offer(&mut half, before);
+        let cps: Vec<_> = half.tiles().iter().map(|t| Some(t.checkpoint())).collect();
+        assert!(cps.iter().flatten().all(|c| c.bias.is_some()));
+        let mut restored = AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap();
+        offer(&mut restored, after);
+        assert_eq!(restored.image(), whole.image(), "{settings:?}");
+        assert!(whole.image().bias.is_some());
+        assert_eq!(
+            restored.image_error().to_bits(),
+            whole.image_error().to_bits()
+        );
+        // The checkpoint of the finished frame restores its image, bias layers included.
+        let done: Vec<_> = whole.tiles().iter().map(|t| Some(t.checkpoint())).collect();
+        let rebuilt = AdaptiveFrame::restore(plan, 0, settings, &done).unwrap();
+        assert_eq!(rebuilt.image(), whole.image(), "{settings:?}");
+        // Without the bias statistics: the same radiance, no bias layers, the spread-only
+        // estimate.
+        let old: Vec<_> = done
+            .iter()
+            .map(|c| {
+                c.clone()
+                    .map(|c| AdaptiveTileCheckpoint { bias: None, ..c })
+            })
+            .collect();
+        let spread_only = AdaptiveFrame::restore(plan, 0, settings, &old).unwrap();
+        let img = spread_only.image();
+        assert!(img.bias.is_none());
+        assert_eq!(img.mean, whole.image().mean);
+        assert!(spread_only.image_error() < whole.image_error());
+        // Bias statistics of other passes than the pixels', of another pixel count, or
+        // not finite, are refused.
+        let bad = |edit: &dyn Fn(&mut Vec<crate::BiasStats>)| {
+            let mut cps = cps.clone();
+            if let Some(Some(c)) = cps.first_mut() {
+                edit(c.bias.as_mut().unwrap());
+            }
+            AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap_err()
+        };
+        let e = bad(&|b| b[3].passes += 1);
+        assert!(e.reason.contains("bias records"), "{e}");
+        let e = bad(&|b| {
+            b.pop();
+        });
+        assert!(e.reason.contains("bias records"), "{e}");
+        let e = bad(&|b| b[0].m2 = f64::NAN);
+        assert!(e.reason.contains("finite: false"), "{e}");
     }
-    offer(&mut restored, after);
-    assert_eq!(restored.image(), whole.image());
-    assert!(whole.image().bias.is_some());
-    // Bias statistics of other passes than the pixels' are refused.
-    let mut wrong = half.tile(0).unwrap().bias().unwrap().to_vec();
-    wrong[3].passes += 1;
-    let mut again = AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap();
-    assert!(again.restore_bias(0, wrong).is_err());
-    assert!(again.restore_bias(9, Vec::new()).is_err());
 }
