@@ -96,8 +96,8 @@ pub use plan::{
 };
 pub use result::{ResultError, UnitResult, MAX_PASS_MEAN};
 pub use schedule::{
-    frame_state_bytes, tail_share, Lease, Progress, Residency, Resumed, ResumedAdaptive, Scheduler,
-    SubmitError, Submitted, EXACT_SPOT_COUNT,
+    frame_state_bytes, frame_state_bytes_with_bias, tail_share, Lease, Progress, Residency,
+    Resumed, ResumedAdaptive, Scheduler, SubmitError, Submitted, EXACT_SPOT_COUNT,
 };
 pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,
