@@ -3,7 +3,8 @@
 //! tiled glTF scene and on a glTF scene whose plan renders one whole-frame tile (a spot
 //! light through glass, seen through the glass: vcm), each
 //! rendered from a named camera — `tessera render` and a farm job give byte-identical
-//! EXRs, headers included (ARCHITECTURE.md §2). And every frame of an animated multi-frame
+//! EXRs, headers included (ARCHITECTURE.md §2), vcm's and ppm's with their bias layers
+//! under every adaptive mode. And every frame of an animated multi-frame
 //! job is byte-identical to `tessera render --frame F`.
 
 use crate::common;
@@ -100,6 +101,13 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
                     farm == local,
                     "{case}: the farm's EXR differs from tessera render's"
                 );
+                // Vertex merging carries its bias layers in every adaptive mode (the
+                // adaptive policy keeps each pixel's bias statistics), so the comparison
+                // covers them.
+                if ["vcm", "ppm"].contains(&integrator) {
+                    let exr = tessera_image::read_exr(&local).unwrap();
+                    assert!(exr.get("bias.Y").is_ok(), "{case}: no bias layers");
+                }
                 compared += 1;
             }
         }

@@ -54,6 +54,20 @@
 //! [`AdaptiveTile::wants`] reads is final, which makes the leased set a pure function of
 //! the job.
 //!
+//! # The bias channel of biased techniques
+//!
+//! Vertex merging (vcm, ppm) sends each pass's estimate of its own bias beside the pass
+//! means ([`UnitResult::bias`], ARCHITECTURE.md §3, "Biased techniques: the bias term").
+//! A tile keeps it as [`crate::BiasStats`] per pixel over exactly the passes the pixel's
+//! radiance statistics keep (pushed with them; discarded with the unbiased pilot), so
+//! [`AdaptiveFrame::image`] has bias layers and [`AdaptiveFrame::image_error`] adds the
+//! bias term as a uniform render does ([`crate::ErrorEstimator::image_error_biased`]).
+//! As in [`crate::TileAccumulator`], the channel lasts only while every unit from pass 0 on
+//! carries one. Decisions read the radiance statistics alone, as for every technique. The
+//! tile's checkpoint carries the channel ([`AdaptiveTileCheckpoint::bias`]), so a frame
+//! restored from the store (after a restart, or a finished frame's image) keeps it; one
+//! restored from a checkpoint without it estimates from the pass spread alone.
+//!
 //! # Example
 //!
 //! ```
@@ -89,7 +103,7 @@ use crate::mask::PixelRuns;
 use crate::merge::{FrameImage, MergeError};
 use crate::plan::{FramePlan, PlanError, TileRect, WorkUnit};
 use crate::result::UnitResult;
-use crate::stats::{PixelStats, REL_EPS};
+use crate::stats::{BiasStats, PixelStats, REL_EPS};
 
 /// Parameters of the adaptive policy. The plan's pass count is the upper bound.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -285,13 +299,23 @@ pub struct AdaptiveTile {
     next_pass: u32,
     stats: Vec<PixelStats>,
     state: Vec<PixelState>,
-    /// Results that arrived before their turn: first pass -> (pass count, pass means).
-    pending: BTreeMap<u32, (u32, Vec<[f32; 3]>)>,
+    /// Results that arrived before their turn: first pass -> (pass count, pass means,
+    /// bias channel).
+    pending: BTreeMap<u32, PendingUnit>,
     /// Scratch for decisions (converged flags), kept to avoid reallocating.
     scratch: Vec<bool>,
     /// Unbiased: one past the last pass any pixel needs, once the pilot has decided.
     end: Option<u32>,
+    /// Statistics of the bias channel ([`UnitResult::bias`], vcm and ppm) over the same
+    /// passes as `stats`, pixel by pixel: `Some` only while every consumed unit from pass
+    /// 0 on carried one (as [`crate::TileAccumulator`] keeps it), and discarded with the
+    /// unbiased pilot like the pixels' own statistics.
+    #[serde(default)]
+    bias: Option<Vec<BiasStats>>,
 }
+
+/// A unit buffered until its passes' turn: (pass count, pass means, bias channel).
+type PendingUnit = (u32, Vec<[f32; 3]>, Option<Vec<f32>>);
 
 impl AdaptiveTile {
     /// The state of tile `rect` for a plan with `max_passes` passes. The settings must have
@@ -308,6 +332,7 @@ impl AdaptiveTile {
             pending: BTreeMap::new(),
             scratch: vec![false; n],
             end: None,
+            bias: None,
         }
     }
 
@@ -412,21 +437,34 @@ impl AdaptiveTile {
             return;
         }
         let first = result.unit.first_pass;
+        // A bias channel of the wrong length (a result that skipped validation) counts as
+        // none.
+        let bias = result
+            .bias
+            .as_ref()
+            .filter(|b| b.len() == result.pass_means.len());
         if first > self.next_pass {
-            self.pending
-                .insert(first, (result.unit.pass_count, result.pass_means.clone()));
+            self.pending.insert(
+                first,
+                (
+                    result.unit.pass_count,
+                    result.pass_means.clone(),
+                    bias.cloned(),
+                ),
+            );
             return;
         }
-        self.consume(first, &result.pass_means);
-        while let Some((count, means)) = self.pending.remove(&self.next_pass) {
+        self.consume(first, &result.pass_means, bias.map(Vec::as_slice));
+        while let Some((count, means, bias)) = self.pending.remove(&self.next_pass) {
             debug_assert_eq!(means.len(), n * count as usize);
             let first = self.next_pass;
-            self.consume(first, &means);
+            self.consume(first, &means, bias.as_deref());
         }
     }
 
-    /// Consumes passes `first..` (pass-major means), skipping any already consumed.
-    fn consume(&mut self, first: u32, means: &[[f32; 3]]) {
+    /// Consumes passes `first..` (pass-major means and, where the unit carries one, its
+    /// bias channel of the same layout), skipping any already consumed.
+    fn consume(&mut self, first: u32, means: &[[f32; 3]], bias: Option<&[f32]>) {
         let n = self.stats.len();
         for (k, pass_means) in means.chunks_exact(n).enumerate() {
             let pass = first.saturating_add(k as u32);
@@ -436,10 +474,23 @@ impl AdaptiveTile {
             if self.finished() {
                 break;
             }
+            // The bias channel starts with pass 0 and ends for good at the first pass
+            // without one: the estimate then falls back to the pass spread alone rather
+            // than mixing passes with and without it (as `TileAccumulator` does).
+            let pass_bias = bias.and_then(|b| b.get(k * n..(k + 1) * n));
+            match pass_bias {
+                Some(_) if pass == 0 => self.bias = Some(vec![BiasStats::default(); n]),
+                None => self.bias = None,
+                Some(_) => {}
+            }
             for (i, &rgb) in pass_means.iter().enumerate() {
                 if self.wants(i, pass) {
                     self.stats[i].push(rgb);
                     self.state[i].traced += 1;
+                    // Over the passes the pixel keeps, exactly as its radiance statistics.
+                    if let (Some(stats), Some(b)) = (self.bias.as_mut(), pass_bias) {
+                        stats[i].push(b[i]);
+                    }
                 }
             }
             self.next_pass = pass + 1;
@@ -513,8 +564,12 @@ impl AdaptiveTile {
                     st.needed = needed;
                     end = end.max(pilot.saturating_add(needed));
                 }
-                // Kirk & Arvo: the pilot is thrown away; only fresh passes count.
+                // Kirk & Arvo: the pilot is thrown away; only fresh passes count, for the
+                // bias channel as for the radiance.
                 self.stats.fill(PixelStats::default());
+                if let Some(bias) = self.bias.as_mut() {
+                    bias.fill(BiasStats::default());
+                }
                 self.end = Some(end);
             }
         }
@@ -523,6 +578,13 @@ impl AdaptiveTile {
     /// Per-pixel statistics of the passes each pixel keeps (row-major).
     pub fn pixels(&self) -> &[PixelStats] {
         &self.stats
+    }
+
+    /// Per-pixel statistics of the bias channel ([`UnitResult::bias`]: vcm and ppm) over
+    /// the same passes as [`AdaptiveTile::pixels`] (row-major), when every consumed unit
+    /// carried one.
+    pub fn bias(&self) -> Option<&[BiasStats]> {
+        self.bias.as_deref()
     }
 
     /// Passes each pixel used, including a discarded pilot (row-major), as an iterator.
@@ -570,6 +632,12 @@ pub struct AdaptiveTileCheckpoint {
     pub consumed_passes: u32,
     /// Per pixel, row-major within the tile.
     pub pixels: Vec<AdaptivePixel>,
+    /// Biased techniques (vcm, ppm): the bias channel's statistics per pixel over the same
+    /// passes as each pixel's kept statistics ([`AdaptiveTile::bias`]); `None` for every
+    /// other technique, for a tile whose channel ended, and for checkpoints stored before
+    /// the channel existed (the restored tile then estimates from the pass spread alone).
+    #[serde(default)]
+    pub bias: Option<Vec<BiasStats>>,
 }
 
 /// Why an [`AdaptiveTileCheckpoint`] cannot be restored (a damaged or foreign store row).
@@ -598,6 +666,7 @@ impl AdaptiveTile {
                     traced: st.traced,
                 })
                 .collect(),
+            bias: self.bias.clone(),
         }
     }
 
@@ -606,7 +675,8 @@ impl AdaptiveTile {
     /// a checkpoint that no run of the policy could have produced is refused rather than
     /// trusted: the pixel count, the consumed passes, every stop at a decision boundary
     /// already passed, the unbiased fresh counts present exactly once the pilot is over
-    /// and within the plan, traced counts within the consumed passes, finite statistics.
+    /// and within the plan, traced counts within the consumed passes, finite statistics,
+    /// and bias statistics (if any) finite and over the same passes as each pixel's.
     pub fn restore(
         rect: TileRect,
         settings: AdaptiveSettings,
@@ -669,6 +739,23 @@ impl AdaptiveTile {
                 needed: p.needed,
                 traced: p.traced,
             };
+        }
+        if let Some(bias) = &cp.bias {
+            let finite = bias.iter().all(|b| b.mean.is_finite() && b.m2.is_finite());
+            let same_passes = bias.len() == tile.stats.len()
+                && bias
+                    .iter()
+                    .zip(&tile.stats)
+                    .all(|(b, s)| b.passes == s.passes);
+            if !(finite && same_passes) {
+                return Err(err(format!(
+                    "{} bias records for {} pixels, over the pixels' kept passes: \
+                     {same_passes}, finite: {finite}",
+                    bias.len(),
+                    tile.stats.len()
+                )));
+            }
+            tile.bias = Some(bias.clone());
         }
         tile.next_pass = consumed;
         tile.end = decided.then_some(end);
@@ -940,7 +1027,9 @@ impl AdaptiveFrame {
     /// The image layers. `passes` counts the passes forming each pixel's estimate;
     /// `samples` counts the samples traced for it (`samples_per_pass` times the passes it
     /// used, including a discarded unbiased pilot), so the samples layer shows where the
-    /// effort went.
+    /// effort went. The bias layers ([`FrameImage::bias`]; vcm and ppm) are over the same
+    /// passes as the mean, where every tile kept its bias channel
+    /// ([`AdaptiveTile::bias`]).
     pub fn image(&self) -> FrameImage {
         let (w, h) = (self.plan.width as usize, self.plan.height as usize);
         let n = w * h;
@@ -952,7 +1041,11 @@ impl AdaptiveFrame {
             passes: vec![0; n],
             samples: vec![0; n],
             relative_error: vec![0.0; n],
-            bias: None,
+            bias: self
+                .tiles
+                .iter()
+                .all(|t| t.bias().is_some())
+                .then(|| vec![[0.0; 2]; n]),
         };
         let spp = self.plan.samples_per_pass;
         for tile in &self.tiles {
@@ -968,6 +1061,18 @@ impl AdaptiveFrame {
                 img.passes[p] = s.passes;
                 img.samples[p] = traced.saturating_mul(spp);
             }
+            if let (Some(layer), Some(bias)) = (img.bias.as_mut(), tile.bias()) {
+                for (i, b) in bias.iter().enumerate() {
+                    let p = (r.y0 as usize + i / rw) * w + r.x0 as usize + i % rw;
+                    // As `FrameAccumulator::image` writes them.
+                    let v = if b.passes >= 2 {
+                        b.variance_of_mean() as f32
+                    } else {
+                        0.0
+                    };
+                    layer[p] = [b.mean as f32, v];
+                }
+            }
         }
         img
     }
@@ -975,12 +1080,17 @@ impl AdaptiveFrame {
     /// Image relative error estimate (ARCHITECTURE.md §3; the mode's
     /// [`crate::ErrorEstimator`]: [`crate::image_relative_error_pooled`] for unbiased,
     /// [`crate::image_relative_error`] otherwise) over the pixels with at least 2 passes in
-    /// their estimate; 0 if there are none.
+    /// their estimate; 0 if there are none. Where every tile kept a bias channel (vcm,
+    /// ppm) the merging bias term is added
+    /// ([`crate::ErrorEstimator::image_error_biased`]), as for a uniform render.
     pub fn image_error(&self) -> f64 {
         let estimator = crate::ErrorEstimator::for_mode(self.settings.mode);
-        crate::stats::image_relative_error_of_tiles(&self.plan, estimator, |t| {
-            self.tiles.get(t).map(AdaptiveTile::pixels)
-        })
+        crate::stats::image_error_of_tiles_with_bias(
+            &self.plan,
+            estimator,
+            |t| self.tiles.get(t).map(AdaptiveTile::pixels),
+            |t| self.tiles.get(t).and_then(AdaptiveTile::bias),
+        )
     }
 
     /// Whether every pixel has at least 2 passes in its estimate, i.e. an error estimate.

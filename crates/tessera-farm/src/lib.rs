@@ -96,17 +96,17 @@ pub use plan::{
 };
 pub use result::{ResultError, UnitResult, MAX_PASS_MEAN};
 pub use schedule::{
-    frame_state_bytes, tail_share, Lease, Progress, Residency, Resumed, ResumedAdaptive, Scheduler,
-    SubmitError, Submitted, EXACT_SPOT_COUNT,
+    frame_state_bytes, frame_state_bytes_with_bias, tail_share, Lease, Progress, Residency,
+    Resumed, ResumedAdaptive, Scheduler, SubmitError, Submitted, EXACT_SPOT_COUNT,
 };
 pub use spot::{
     is_spot_checked, unit_selected, SpotEvent, SpotOutcome, DEFAULT_SPOT_CHECK_FRACTION,
 };
 pub use stats::{
     bias_scale, bias_squared, image_relative_error, image_relative_error_biased,
-    image_relative_error_pooled, interval_quantile, luminance, pooled_interval_variance,
-    robust_scale, BiasStats, ErrorEstimator, PixelStats, BIAS_TERM, ERROR_ESTIMATOR,
-    ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE, LUMINANCE_WEIGHTS, REL_EPS,
+    image_relative_error_pooled, image_relative_error_pooled_biased, interval_quantile, luminance,
+    pooled_interval_variance, robust_scale, BiasStats, ErrorEstimator, PixelStats, BIAS_TERM,
+    ERROR_ESTIMATOR, ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE, LUMINANCE_WEIGHTS, REL_EPS,
 };
 
 #[cfg(test)]

@@ -654,8 +654,10 @@ impl FrameImage {
     /// has fewer than 2 passes (it has no estimate, so no claim about the image can be
     /// made). Computed from the written layers, so every renderer of the same image (local
     /// or farm, live or restored from checkpoints) gets the same number. With bias layers
-    /// ([`FrameImage::bias`]) it is [`crate::image_relative_error_biased`] whatever the
-    /// estimator.
+    /// ([`FrameImage::bias`]) it is the estimator's
+    /// [`crate::ErrorEstimator::image_error_biased`]: [`crate::image_relative_error_biased`]
+    /// for the robust one, [`crate::image_relative_error_pooled_biased`] for the pooled one
+    /// (unbiased adaptive renders of vcm and ppm).
     pub fn error_estimate(&self, estimator: crate::ErrorEstimator) -> Option<f64> {
         if self.passes.is_empty() || self.passes.iter().any(|&p| p < 2) {
             return None;
@@ -668,10 +670,10 @@ impl FrameImage {
             Some((m, se * se, *self.passes.get(p)?))
         };
         let e = match &self.bias {
-            Some(bias) => crate::image_relative_error_biased(w, h, |x, y| {
-                let (m, v, _) = pixel(x, y)?;
+            Some(bias) => estimator.image_error_biased(w, h, |x, y| {
+                let (m, v, k) = pixel(x, y)?;
                 let [b, vb] = *bias.get(y * w + x)?;
-                Some((m, v, f64::from(b), f64::from(vb)))
+                Some((m, v, k, f64::from(b), f64::from(vb)))
             }),
             None => estimator.image_error(w, h, pixel),
         };

@@ -74,6 +74,27 @@ impl ErrorEstimator {
             Self::PooledPerPass => image_relative_error_pooled(width, height, pixel),
         }
     }
+
+    /// This estimate of a biased render (vcm, ppm: one with bias layers) with the
+    /// merging bias term added: [`image_relative_error_biased`] for
+    /// [`ErrorEstimator::Robust`], [`image_relative_error_pooled_biased`] for
+    /// [`ErrorEstimator::PooledPerPass`]. `pixel(x, y)` gives a pixel's mean luminance
+    /// `m`, the estimated variance of that mean `v`, its passes `k`, the mean of its passes'
+    /// bias estimates `b` and that mean's estimated variance `v_b`, or `None` for a pixel
+    /// with fewer than 2 passes.
+    pub fn image_error_biased(
+        self,
+        width: usize,
+        height: usize,
+        pixel: impl Fn(usize, usize) -> Option<(f64, f64, u32, f64, f64)>,
+    ) -> f64 {
+        match self {
+            Self::Robust => image_relative_error_biased(width, height, |x, y| {
+                pixel(x, y).map(|(m, v, _, b, vb)| (m, v, b, vb))
+            }),
+            Self::PooledPerPass => image_relative_error_pooled_biased(width, height, pixel),
+        }
+    }
 }
 
 /// The luminance scale a pixel's standard error is divided by in the image error
@@ -343,7 +364,8 @@ pub fn pooled_interval_variance(sum: [f64; 3], dof: f64, own: f64) -> [f32; 3] {
 
 /// [`image_relative_error_of_tiles`] of a frame whose tiles may carry bias statistics:
 /// `bias(t)` gives tile `t`'s, and where every tile has them the estimate is
-/// [`image_relative_error_biased`]. Pixels with fewer than 2 passes have no estimate.
+/// [`ErrorEstimator::image_error_biased`] ([`image_relative_error_biased`] for
+/// [`ErrorEstimator::Robust`]). Pixels with fewer than 2 passes have no estimate.
 pub(crate) fn image_error_of_tiles_with_bias<'a>(
     plan: &crate::FramePlan,
     estimator: ErrorEstimator,
@@ -357,7 +379,7 @@ pub(crate) fn image_error_of_tiles_with_bias<'a>(
     let (width, height) = (plan.width as usize, plan.height as usize);
     let edge = plan.tile_size.max(1) as usize;
     let tiles_x = plan.tiles_x() as usize;
-    image_relative_error_biased(width, height, |x, y| {
+    estimator.image_error_biased(width, height, |x, y| {
         let (lx, ly) = (x % edge, y % edge);
         let tile_width = edge.min(width - (x - lx));
         let t = (y / edge) * tiles_x + x / edge;
@@ -368,6 +390,7 @@ pub(crate) fn image_error_of_tiles_with_bias<'a>(
             (
                 s.mean_lum,
                 s.lum_variance_of_mean(),
+                s.passes,
                 b.mean,
                 b.variance_of_mean(),
             )
@@ -460,6 +483,82 @@ pub fn image_relative_error_biased(
             let s = bias_scale(m, v, nsum / f64::from(n.max(1)), b, vb);
             spread += v.max(0.0) / (s * s);
             bias += bias_squared(b, vb) / (s * s);
+            count += 1;
+        }
+    }
+    if !bias.is_finite() {
+        bias = 0.0;
+    }
+    root_mean(spread + bias.max(0.0), count)
+}
+
+/// The image relative error estimate of an unbiased adaptive render of a biased technique
+/// (vcm, ppm; ARCHITECTURE.md §3): [`image_relative_error_pooled`]'s spread term and
+/// [`image_relative_error_biased`]'s bias term, both over the pixel's [`bias_scale`]:
+/// `sqrt((Σ q_3x3 / k + max(0, Σ bias² / s²)) / n)`, where `q = k v / s²` is a pixel's
+/// per-pass relative variance, `q_3x3` its mean over the 3x3 neighbourhood (the neighbours
+/// with an estimate, the pixel included), `k` the pixel's passes and `bias²` its
+/// [`bias_squared`]. `pixel(x, y)` gives `(m, v, k, b, v_b)` as for
+/// [`ErrorEstimator::image_error_biased`], or `None` for a pixel with fewer than 2 passes.
+/// 0 when no pixel has an estimate; never NaN.
+///
+/// Why both: the fresh passes of Kirk & Arvo's two-stage scheme follow a pilot that may
+/// have missed rare bright paths, which the pooled spread answers
+/// ([`image_relative_error_pooled`]); the merging bias is shared by every pass, which no
+/// spread sees, and the bias term answers it as in a uniform render. The bias term is a
+/// pixel's own, not pooled: it is an estimate of that pixel's squared bias, already
+/// unbiased (`b² - v_b`), and summed over the pixels before the clamp.
+pub fn image_relative_error_pooled_biased(
+    width: usize,
+    height: usize,
+    pixel: impl Fn(usize, usize) -> Option<(f64, f64, u32, f64, f64)>,
+) -> f64 {
+    // Rows y - 1, y and y + 1 of (q, bias² / s²), in a ring, as
+    // `image_relative_error_pooled` keeps them: nothing frame-sized is allocated.
+    let mut rows: [Vec<Option<(f64, f64)>>; 3] = Default::default();
+    let terms_row = |y: usize, out: &mut Vec<Option<(f64, f64)>>| {
+        out.clear();
+        out.extend((0..width).map(|x| {
+            let (m, v, k, b, vb) = pixel(x, y)?;
+            let (mut nsum, mut n) = (0.0f64, 0u32);
+            for qy in y.saturating_sub(1)..(y + 2).min(height) {
+                for qx in x.saturating_sub(1)..(x + 2).min(width) {
+                    if let Some(q) = pixel(qx, qy) {
+                        nsum += q.0;
+                        n += 1;
+                    }
+                }
+            }
+            let s = bias_scale(m, v, nsum / f64::from(n.max(1)), b, vb);
+            let s2 = s * s;
+            Some((v.max(0.0) / s2 * f64::from(k), bias_squared(b, vb) / s2))
+        }));
+    };
+    let (mut spread, mut bias, mut count) = (0.0f64, 0.0f64, 0u64);
+    for y in 0..height {
+        if y == 0 {
+            terms_row(0, &mut rows[0]);
+        }
+        if y + 1 < height {
+            terms_row(y + 1, &mut rows[(y + 1) % 3]);
+        }
+        for x in 0..width {
+            let Some((_, _, k, _, _)) = pixel(x, y) else {
+                continue;
+            };
+            let (mut qsum, mut n) = (0.0f64, 0u32);
+            let columns = x.saturating_sub(1)..(x + 2).min(width);
+            for qy in y.saturating_sub(1)..(y + 2).min(height) {
+                for (q, _) in rows[qy % 3][columns.clone()].iter().flatten() {
+                    qsum += q;
+                    n += 1;
+                }
+            }
+            // n >= 1: the pixel itself has an estimate.
+            spread += qsum / f64::from(n) / f64::from(k.max(1));
+            if let Some((_, b)) = rows[y % 3][x] {
+                bias += b;
+            }
             count += 1;
         }
     }
@@ -909,6 +1008,63 @@ mod tests {
         let frac = covered as f64 / r;
         let band = 3.0 * (p * (1.0 - p) / r).sqrt();
         assert!((frac - p).abs() <= band, "coverage {frac} vs {p} +- {band}");
+    }
+
+    /// The unbiased adaptive estimate of a biased render: the pooled spread of
+    /// `image_relative_error_pooled` plus the bias term of `image_relative_error_biased`.
+    #[test]
+    fn pooled_biased_estimate_is_the_pooled_spread_plus_the_bias_term() {
+        let (w, h) = (7usize, 5usize);
+        let mean = |x: usize, y: usize| 0.2 + 0.1 * ((x * 3 + y * 5) % 7) as f64;
+        let var = |x: usize, y: usize| 1e-3 * ((x + 2 * y) % 4) as f64;
+        let k = |x: usize, y: usize| 2 + ((x * y) % 5) as u32;
+        // Without bias it is the pooled estimate.
+        let pooled =
+            image_relative_error_pooled(w, h, |x, y| Some((mean(x, y), var(x, y), k(x, y))));
+        let no_bias = image_relative_error_pooled_biased(w, h, |x, y| {
+            Some((mean(x, y), var(x, y), k(x, y), 0.0, 0.0))
+        });
+        assert!(
+            (no_bias / pooled - 1.0).abs() < 1e-12,
+            "{no_bias} vs {pooled}"
+        );
+        // A flat image with equal pass counts: pooling changes nothing, so it is the
+        // robust biased estimate, bias term included.
+        let flat = |b: f64, vb: f64| {
+            (
+                image_relative_error_pooled_biased(w, h, move |_, _| Some((0.5, 4e-3, 4, b, vb))),
+                image_relative_error_biased(w, h, move |_, _| Some((0.5, 4e-3, b, vb))),
+            )
+        };
+        for (b, vb) in [(0.0, 0.0), (0.2, 1e-3), (-0.1, 0.0), (0.05, 0.01)] {
+            let (p, r) = flat(b, vb);
+            assert!((p / r - 1.0).abs() < 1e-12, "b {b}: {p} vs {r}");
+        }
+        assert!(flat(0.2, 1e-3).0 > flat(0.0, 0.0).0);
+        // A negative bias leaves the scale the robust one, so the bias term is the same
+        // sum in both, added to the pooled spread in one and the own spread in the other.
+        let px = |x: usize, y: usize| Some((mean(x, y), var(x, y), k(x, y), -0.1, 1e-4));
+        let pooled = image_relative_error_pooled_biased(w, h, px);
+        let own = image_relative_error_biased(w, h, |x, y| px(x, y).map(|p| (p.0, p.1, p.3, p.4)));
+        let own_spread = image_relative_error(w, h, |x, y| px(x, y).map(|p| (p.0, p.1)));
+        let pooled_spread =
+            image_relative_error_pooled(w, h, |x, y| px(x, y).map(|p| (p.0, p.1, p.2)));
+        assert!(
+            (pooled_spread / own_spread - 1.0).abs() > 1e-3,
+            "pooling changed nothing"
+        );
+        let term = |e: f64, spread: f64| e * e - spread * spread;
+        assert!(term(own, own_spread) > 0.0);
+        assert!(
+            (term(pooled, pooled_spread) / term(own, own_spread) - 1.0).abs() < 1e-9,
+            "{pooled} {pooled_spread} {own} {own_spread}"
+        );
+        assert_eq!(image_relative_error_pooled_biased(3, 3, |_, _| None), 0.0);
+        // The estimator dispatches to the two.
+        let e = ErrorEstimator::PooledPerPass.image_error_biased(w, h, px);
+        assert_eq!(e.to_bits(), pooled.to_bits());
+        let e = ErrorEstimator::Robust.image_error_biased(w, h, px);
+        assert_eq!(e.to_bits(), own.to_bits());
     }
 
     /// The squared bias estimate is unbiased where the per-pass estimates are pure noise

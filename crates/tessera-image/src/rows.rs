@@ -139,11 +139,13 @@ pub fn error_estimate(
         let se = f64::from(p.relative_error) * (m.max(0.0) + tessera_farm::REL_EPS);
         Some((m, se * se, p.passes))
     };
+    // As `FrameImage::error_estimate`: the estimator's own biased form, so an unbiased
+    // adaptive render of vcm or ppm pools its spread here as it does there.
     let e = if rows.has_bias() {
-        tessera_farm::image_relative_error_biased(w as usize, h as usize, |x, y| {
-            let (m, v, _) = pixel(x, y)?;
+        estimator.image_error_biased(w as usize, h as usize, |x, y| {
+            let (m, v, k) = pixel(x, y)?;
             let [b, vb] = rows.pixel(x as u32, y as u32).bias;
-            Some((m, v, f64::from(b), f64::from(vb)))
+            Some((m, v, k, f64::from(b), f64::from(vb)))
         })
     } else {
         estimator.image_error(w as usize, h as usize, pixel)
@@ -712,6 +714,14 @@ mod tests {
             with
         );
         assert!(with.unwrap() > plain.unwrap());
+        // The pooled estimator (unbiased adaptive renders of vcm and ppm) adds the term to
+        // its pooled spread, from the rows as from the image.
+        let pooled = img.error_estimate(tessera_farm::ErrorEstimator::PooledPerPass);
+        assert_eq!(
+            error_estimate(&img, tessera_farm::ErrorEstimator::PooledPerPass),
+            pooled
+        );
+        assert_ne!(pooled, with);
         // Without bias layers the file has no such channels.
         img.bias = None;
         let back = crate::read_exr(&reference(&img, None)).unwrap();

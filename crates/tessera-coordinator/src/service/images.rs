@@ -530,14 +530,7 @@ impl Coordinator {
                 let biased = acc.tiles().iter().all(|t| t.bias().is_some());
                 Rows::Merged(plan, acc, biased)
             }
-            StoredFrame::Adaptive(a) => {
-                let traced = a
-                    .tiles()
-                    .iter()
-                    .map(|t| t.traced_passes().collect())
-                    .collect();
-                Rows::Adaptive(plan, a, traced)
-            }
+            StoredFrame::Adaptive(a) => Rows::adaptive(plan, a),
         };
         Ok(Some((meta, rows)))
     }
@@ -697,8 +690,10 @@ enum Rows {
     /// Merged passes restored from the store, read in place, and whether every tile kept
     /// its bias statistics (the frame then has bias layers, as `FrameAccumulator::image`).
     Merged(FramePlan, FrameAccumulator, bool),
-    /// An adaptive frame restored from the store, with each tile's traced passes.
-    Adaptive(FramePlan, AdaptiveFrame, Vec<Vec<u32>>),
+    /// An adaptive frame restored from the store, with each tile's traced passes, and
+    /// whether every tile kept its bias statistics (the frame then has bias layers, as
+    /// `AdaptiveFrame::image`).
+    Adaptive(FramePlan, AdaptiveFrame, Vec<Vec<u32>>, bool),
 }
 
 /// Every pixel of a black frame (all passes of zeros) or of one nothing was merged into.
@@ -729,6 +724,14 @@ fn bias_of(b: &BiasStats) -> [f32; 2] {
     [b.mean as f32, v]
 }
 
+/// The bias layers of the last `bias.len()` pixels of `out` (the tile's row just added).
+fn set_bias(out: &mut [Pixel], bias: &[BiasStats]) {
+    let n = out.len();
+    for (p, b) in out[n - bias.len()..].iter_mut().zip(bias) {
+        p.bias = bias_of(b);
+    }
+}
+
 /// A pixel's layers from its statistics, as `FrameAccumulator::image` writes them.
 fn pixel_of(s: &PixelStats, samples: u32) -> Pixel {
     let estimated = s.passes >= 2;
@@ -751,6 +754,17 @@ fn pixel_of(s: &PixelStats, samples: u32) -> Pixel {
 }
 
 impl Rows {
+    /// The rows of an adaptive frame restored from the store.
+    fn adaptive(plan: FramePlan, a: AdaptiveFrame) -> Self {
+        let traced = a
+            .tiles()
+            .iter()
+            .map(|t| t.traced_passes().collect())
+            .collect();
+        let biased = a.tiles().iter().all(|t| t.bias().is_some());
+        Rows::Adaptive(plan, a, traced, biased)
+    }
+
     /// The tile holding (`x`, `y`) and the pixel's index in it.
     fn tile_of(plan: &FramePlan, x: u32, y: u32) -> (usize, u32, u32) {
         // Tile 0 is a full tile in each direction the frame is at least a tile long;
@@ -775,12 +789,16 @@ impl Rows {
                 }
                 p
             }
-            Rows::Adaptive(plan, a, traced) => {
+            Rows::Adaptive(plan, a, traced, biased) => {
                 let (t, lx, ly) = Self::tile_of(plan, x, y);
                 let tile = &a.tiles()[t];
                 let i = (ly * tile.rect().width.max(1) + lx) as usize;
                 let samples = traced[t][i].saturating_mul(plan.samples_per_pass);
-                pixel_of(&tile.pixels()[i], samples)
+                let mut p = pixel_of(&tile.pixels()[i], samples);
+                if *biased {
+                    p.bias = tile.bias().map_or([0.0; 2], |b| bias_of(&b[i]));
+                }
+                p
             }
             Rows::Uniform(u) => u.pixel,
             Rows::Image(img) => img.pixel(x, y),
@@ -809,9 +827,10 @@ impl FrameRows for Rows {
     fn has_bias(&self) -> bool {
         match self {
             Rows::Image(img) => img.has_bias(),
-            // Only where every tile kept its bias statistics, as `FrameAccumulator::image`.
-            Rows::Merged(_, _, biased) => *biased,
-            Rows::Uniform(_) | Rows::Adaptive(..) => false,
+            // Only where every tile kept its bias statistics, as `FrameAccumulator::image`
+            // and `AdaptiveFrame::image`.
+            Rows::Merged(_, _, biased) | Rows::Adaptive(_, _, _, biased) => *biased,
+            Rows::Uniform(_) => false,
         }
     }
     fn row(&self, y: u32, out: &mut Vec<Pixel>) {
@@ -834,16 +853,12 @@ impl FrameRows for Rows {
                     let row = &tile.pixels()[start..start + width as usize];
                     out.extend(row.iter().map(|s| pixel_of(s, samples)));
                     if let (true, Some(bias)) = (*biased, tile.bias()) {
-                        let n = out.len();
-                        let bias = &bias[start..start + width as usize];
-                        for (p, b) in out[n - width as usize..].iter_mut().zip(bias) {
-                            p.bias = bias_of(b);
-                        }
+                        set_bias(out, &bias[start..start + width as usize]);
                     }
                     x += width;
                 }
             }
-            Rows::Adaptive(plan, a, traced) => {
+            Rows::Adaptive(plan, a, traced, biased) => {
                 let mut x = 0;
                 while x < plan.width {
                     let (t, _, ly) = Self::tile_of(plan, x, y);
@@ -857,6 +872,9 @@ impl FrameRows for Rows {
                             .zip(passes)
                             .map(|(s, &p)| pixel_of(s, p.saturating_mul(plan.samples_per_pass))),
                     );
+                    if let (true, Some(bias)) = (*biased, tile.bias()) {
+                        set_bias(out, &bias[start..start + width as usize]);
+                    }
                     x += width;
                 }
             }
@@ -1079,6 +1097,76 @@ mod tests {
         // bound above is a real one: the frame's layers alone would not fit it.
         let n = u64::from(plan.width) * u64::from(plan.height);
         assert!(budget < n * 36, "{budget} vs {}", n * 36);
+    }
+
+    /// An adaptive frame of a biased technique (vcm, ppm) rebuilt from its tiles'
+    /// checkpoints, as a finished frame's image is served from the store, encodes the
+    /// EXR its live image does, bias layers included, and states the same estimate (the
+    /// bias term added: above the pass spread alone), in both adaptive modes.
+    #[test]
+    fn a_stored_adaptive_frame_keeps_its_bias_layers_and_estimate() {
+        use tessera_farm::{ErrorEstimator, UnitResult};
+        // A reproducible value in [0, 1) for (pass, pixel, salt) (splitmix64).
+        let value = |pass: u32, i: usize, salt: u64| {
+            let mut x = ((u64::from(pass) << 32) ^ (i as u64) ^ (salt << 56))
+                .wrapping_add(0x9e37_79b9_7f4a_7c15);
+            x = (x ^ (x >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            x = (x ^ (x >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            ((x ^ (x >> 31)) >> 11) as f32 / (1u64 << 53) as f32
+        };
+        let plan = FramePlan::new(12, 10, 8, 1, 24).unwrap();
+        for mode in [AdaptiveMode::Sequential, AdaptiveMode::Unbiased] {
+            let settings = AdaptiveSettings {
+                mode,
+                target_error: 0.05,
+                ..Default::default()
+            };
+            let mut live = AdaptiveFrame::new(plan, 0, settings).unwrap();
+            for u in plan.units(0, 4) {
+                let rect = plan.get_tile(u.tile).unwrap();
+                let n = rect.pixel_count();
+                let (mut pass_means, mut bias) = (Vec::new(), Vec::new());
+                for pass in u.first_pass..u.first_pass + u.pass_count {
+                    for i in 0..n {
+                        let v = 0.2 + value(pass, i, u64::from(u.tile));
+                        pass_means.push([v, 0.5 * v, 0.25 * v]);
+                        bias.push(0.3 * value(pass, i, 100 + u64::from(u.tile)) - 0.05);
+                    }
+                }
+                let r = UnitResult {
+                    unit: u,
+                    width: rect.width,
+                    height: rect.height,
+                    pass_means,
+                    rejected_samples: 0,
+                    bias: Some(bias),
+                };
+                live.offer(&r).unwrap();
+            }
+            let cps: Vec<_> = live.tiles().iter().map(|t| Some(t.checkpoint())).collect();
+            let stored = AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap();
+            let rows = Rows::adaptive(plan, stored);
+            let image = live.image();
+            assert!(image.has_bias() && rows.has_bias(), "{mode:?}");
+            let exr = |r: &dyn FrameRows| match encode_exr_rows(r, None, usize::MAX).unwrap() {
+                Exr::Whole(b) => b,
+                Exr::Stream(_) => unreachable!("no limit"),
+            };
+            assert!(
+                exr(&rows) == exr(&image),
+                "{mode:?}: the stored frame's EXR differs from the live one's"
+            );
+            let estimator = ErrorEstimator::for_mode(mode);
+            let estimate = tessera_image::rows::error_estimate(&rows, estimator);
+            assert!(estimate.is_some(), "{mode:?}");
+            assert_eq!(estimate, image.error_estimate(estimator), "{mode:?}");
+            let spread = FrameImage {
+                bias: None,
+                ..image.clone()
+            }
+            .error_estimate(estimator);
+            assert!(estimate > spread, "{mode:?}: {estimate:?} vs {spread:?}");
+        }
     }
 
     #[test]

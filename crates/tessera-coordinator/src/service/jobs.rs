@@ -10,7 +10,7 @@ use tessera_api::{
 };
 use tessera_farm::job::StopVerdict;
 use tessera_farm::quote::{job_eta_seconds, JobProgress};
-use tessera_farm::{frame_state_bytes, FramePlan, JobId, Progress, WorkerId};
+use tessera_farm::{frame_state_bytes_with_bias, FramePlan, JobId, Progress, WorkerId};
 
 use super::{Coordinator, MAX_PAGE};
 use crate::error::{CoordError, CoordResult};
@@ -125,7 +125,8 @@ impl Coordinator {
             return Ok(());
         }
         let adaptive = job.adaptive_settings().is_some();
-        let per_frame = frame_state_bytes(&resolved.plan, adaptive);
+        let per_frame =
+            frame_state_bytes_with_bias(&resolved.plan, adaptive, resolved.estimates_bias());
         let needed = per_frame;
         let budget = self.inner.cfg.memory_budget;
         if needed <= budget {
@@ -216,7 +217,7 @@ impl Coordinator {
             .as_deref()
             .and_then(|j| serde_json::from_str(j).ok());
         // The name the live status gave (`ResolvedJob::error_estimator_name`): a merging
-        // integrator's uniform render adds its bias term.
+        // integrator's render adds its bias term, uniform or adaptive.
         let biased = match settings
             .integrator
             .parse::<tessera_farm::job::IntegratorChoice>()
@@ -232,7 +233,7 @@ impl Coordinator {
                 == Some(tessera_farm::job::PlannedIntegrator::Black.as_str())
         });
         let estimator = tessera_farm::ErrorEstimator::for_mode(mode).name();
-        let estimator = if biased && !black && mode == tessera_farm::AdaptiveMode::Off {
+        let estimator = if biased && !black {
             format!("{estimator}; {}", tessera_farm::BIAS_TERM)
         } else {
             estimator.to_string()
@@ -367,6 +368,10 @@ pub(crate) fn add_to_scheduler(
         None => farm
             .scheduler
             .add_job(id, priority, plan, job.frames.iter(), passes_per_unit),
+    }
+    // vcm and ppm keep the merging-bias channel beside the pixels' statistics.
+    if resolved.estimates_bias() {
+        farm.scheduler.count_bias_channel(id);
     }
     Ok(())
 }

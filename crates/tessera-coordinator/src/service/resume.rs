@@ -452,6 +452,11 @@ async fn resume_job(
                 .add_resumed_job(rec.id, rec.priority, plan, resumed, ppu)?;
         }
     }
+    // vcm and ppm keep the merging-bias channel beside the pixels' statistics (the
+    // restored frames are charged for it; a job started over was counted already).
+    if rt.resolved.estimates_bias() {
+        farm.scheduler.count_bias_channel(rec.id);
+    }
     farm.jobs.insert(rec.id, JobEntry::of(&rt.resolved));
     rt.started_unix_ms = rec.started_unix_ms;
     rt.faults = faults;

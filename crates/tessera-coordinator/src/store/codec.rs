@@ -39,6 +39,36 @@ fn write_stats(record: &mut [u8], p: &PixelStats) {
     }
 }
 
+/// One pixel's bias record into `record` (`BIAS_BYTES` long).
+fn write_bias(record: &mut [u8], b: &BiasStats) {
+    record[..4].copy_from_slice(&b.passes.to_le_bytes());
+    record[4..12].copy_from_slice(&b.mean.to_bits().to_le_bytes());
+    record[12..20].copy_from_slice(&b.m2.to_bits().to_le_bytes());
+}
+
+fn get_bias(r: &[u8]) -> BiasStats {
+    BiasStats {
+        passes: u32_at(r, 0),
+        mean: f64::from_bits(u64_at(r, 4)),
+        m2: f64::from_bits(u64_at(r, 12)),
+    }
+}
+
+/// The number of records a blob's header announces (0 if it is too short to have one).
+fn announced(blob: &[u8]) -> usize {
+    blob.get(1..HEADER_BYTES)
+        .map_or(0, |c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]) as usize)
+}
+
+/// Whether a blob of `len` bytes holds, after `fixed` bytes, `count` records of `record`
+/// bytes each followed by as many bias records (rather than the records alone).
+fn has_bias_trailer(len: usize, fixed: usize, count: usize, record: usize) -> bool {
+    let with_bias = (count as u64)
+        .checked_mul((record + BIAS_BYTES) as u64)
+        .and_then(|b| b.checked_add(fixed as u64));
+    count > 0 && with_bias == Some(len as u64)
+}
+
 fn get_stats(r: &[u8]) -> PixelStats {
     let f = |i: usize| f64::from_bits(u64_at(r, 4 + 8 * i));
     PixelStats {
@@ -51,9 +81,13 @@ fn get_stats(r: &[u8]) -> PixelStats {
 }
 
 /// Encodes the adaptive policy state of a tile (format in the [module docs](super)): the
-/// header, `consumed_passes` (u32), then one record per pixel.
+/// header, `consumed_passes` (u32), then one record per pixel, then for a tile with a bias
+/// channel (vcm, ppm; [`AdaptiveTileCheckpoint::bias`]) one bias record per pixel, as
+/// after the statistics blob's records.
 pub(crate) fn encode_adaptive(cp: &AdaptiveTileCheckpoint) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER_BYTES + 4 + ADAPTIVE_PIXEL_BYTES * cp.pixels.len());
+    let extra = cp.bias.as_ref().map_or(0, |b| BIAS_BYTES * b.len());
+    let mut out =
+        Vec::with_capacity(HEADER_BYTES + 4 + ADAPTIVE_PIXEL_BYTES * cp.pixels.len() + extra);
     out.push(CHECKPOINT_FORMAT_VERSION);
     out.extend_from_slice(&(cp.pixels.len() as u32).to_le_bytes());
     out.extend_from_slice(&cp.consumed_passes.to_le_bytes());
@@ -63,13 +97,29 @@ pub(crate) fn encode_adaptive(cp: &AdaptiveTileCheckpoint) -> Vec<u8> {
             out.extend_from_slice(&v.to_le_bytes());
         }
     }
+    for b in cp.bias.iter().flatten() {
+        let mut record = [0u8; BIAS_BYTES];
+        write_bias(&mut record, b);
+        out.extend_from_slice(&record);
+    }
     out
 }
 
-/// Decodes the adaptive policy state of a tile; the error says what is wrong. Only the
-/// layout is checked here: whether the state is one the job's policy could have reached
-/// is [`tessera_farm::AdaptiveTile::restore`]'s to say, with the settings at hand.
+/// Decodes the adaptive policy state of a tile, with its bias records when the blob has
+/// them (its length says, as for [`decode_stats`]: a blob written before they existed has
+/// none); the error says what is wrong. Only the layout is checked here: whether the state
+/// is one the job's policy could have reached is [`tessera_farm::AdaptiveTile::restore`]'s
+/// to say, with the settings at hand.
 pub(crate) fn decode_adaptive(blob: &[u8]) -> Result<AdaptiveTileCheckpoint, String> {
+    let count = announced(blob);
+    let (blob, bias) =
+        if has_bias_trailer(blob.len(), HEADER_BYTES + 4, count, ADAPTIVE_PIXEL_BYTES) {
+            let (records, trailer) = blob.split_at(blob.len() - BIAS_BYTES * count);
+            let bias = trailer.chunks_exact(BIAS_BYTES).map(get_bias).collect();
+            (records, Some(bias))
+        } else {
+            (blob, None)
+        };
     let Some((consumed, rest)) = blob
         .get(HEADER_BYTES..)
         .and_then(|b| b.split_first_chunk::<4>())
@@ -96,11 +146,12 @@ pub(crate) fn decode_adaptive(blob: &[u8]) -> Result<AdaptiveTileCheckpoint, Str
                 traced: u32_at(r, PIXEL_BYTES + 8),
             })
             .collect(),
+        bias,
     })
 }
 
 /// Checks an adaptive policy state against its tile: one record per pixel, no more
-/// passes consumed than the plan has.
+/// passes consumed than the plan has, bias records (if any) as [`check_bias`] wants them.
 pub(crate) fn check_adaptive(
     plan: &FramePlan,
     tile: u32,
@@ -119,7 +170,10 @@ pub(crate) fn check_adaptive(
             cp.consumed_passes, plan.passes
         ));
     }
-    Ok(())
+    match &cp.bias {
+        Some(bias) => check_bias_of(cp.pixels.iter().map(|p| p.stats.passes), bias),
+        None => Ok(()),
+    }
 }
 
 /// Encodes per-pixel statistics, followed by the bias records when the tile has a bias
@@ -142,9 +196,7 @@ pub(crate) fn encode_stats(pixels: &[PixelStats], bias: Option<&[BiasStats]>) ->
             .chunks_exact_mut(BIAS_BYTES)
             .zip(bias)
         {
-            record[..4].copy_from_slice(&b.passes.to_le_bytes());
-            record[4..12].copy_from_slice(&b.mean.to_bits().to_le_bytes());
-            record[12..20].copy_from_slice(&b.m2.to_bits().to_le_bytes());
+            write_bias(record, b);
         }
     }
     out
@@ -210,11 +262,8 @@ pub(crate) type DecodedStats = (Vec<PixelStats>, Option<Vec<BiasStats>>);
 /// says: `PIXEL_BYTES` per pixel, or `PIXEL_BYTES + BIAS_BYTES`); the error says what is
 /// wrong.
 pub(crate) fn decode_stats(blob: &[u8]) -> Result<DecodedStats, String> {
-    let count = blob
-        .get(1..HEADER_BYTES)
-        .map_or(0, |c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]) as usize);
-    let with_bias = HEADER_BYTES + (PIXEL_BYTES + BIAS_BYTES) * count;
-    if count > 0 && blob.len() == with_bias {
+    let count = announced(blob);
+    if has_bias_trailer(blob.len(), HEADER_BYTES, count, PIXEL_BYTES) {
         let body = &blob[HEADER_BYTES..];
         let split = PIXEL_BYTES * count;
         let pixels = records(&blob[..HEADER_BYTES + split], "statistics", PIXEL_BYTES)?
@@ -223,11 +272,7 @@ pub(crate) fn decode_stats(blob: &[u8]) -> Result<DecodedStats, String> {
             .collect();
         let bias = body[split..]
             .chunks_exact(BIAS_BYTES)
-            .map(|r| BiasStats {
-                passes: u32_at(r, 0),
-                mean: f64::from_bits(u64_at(r, 4)),
-                m2: f64::from_bits(u64_at(r, 12)),
-            })
+            .map(get_bias)
             .collect();
         return Ok((pixels, Some(bias)));
     }
@@ -241,18 +286,26 @@ pub(crate) fn decode_stats(blob: &[u8]) -> Result<DecodedStats, String> {
 /// Checks a tile's bias records against its pixels: one per pixel, the same passes, finite
 /// values.
 pub(crate) fn check_bias(pixels: &[PixelStats], bias: &[BiasStats]) -> Result<(), String> {
-    if bias.len() != pixels.len() {
+    check_bias_of(pixels.iter().map(|p| p.passes), bias)
+}
+
+/// [`check_bias`] against the pixels' pass counts `passes` (one per pixel).
+fn check_bias_of(
+    passes: impl ExactSizeIterator<Item = u32>,
+    bias: &[BiasStats],
+) -> Result<(), String> {
+    if bias.len() != passes.len() {
         return Err(format!(
             "{} bias records for {} pixels",
             bias.len(),
-            pixels.len()
+            passes.len()
         ));
     }
-    for (i, (b, p)) in bias.iter().zip(pixels).enumerate() {
-        if b.passes != p.passes {
+    for (i, (b, p)) in bias.iter().zip(passes).enumerate() {
+        if b.passes != p {
             return Err(format!(
-                "pixel {i}'s bias record has {} passes, its statistics {}",
-                b.passes, p.passes
+                "pixel {i}'s bias record has {} passes, its statistics {p}",
+                b.passes
             ));
         }
         if !(b.mean.is_finite() && b.m2.is_finite()) {
@@ -406,6 +459,7 @@ mod tests {
                     traced: 12 - i as u32,
                 })
                 .collect(),
+            bias: None,
         };
         let blob = encode_adaptive(&cp);
         assert_eq!(blob.len(), HEADER_BYTES + 4 + 5 * ADAPTIVE_PIXEL_BYTES);
@@ -413,6 +467,7 @@ mod tests {
         let empty = AdaptiveTileCheckpoint {
             consumed_passes: 0,
             pixels: vec![],
+            bias: None,
         };
         assert_eq!(decode_adaptive(&encode_adaptive(&empty)).unwrap(), empty);
         // Truncated, padded, another version.
@@ -546,5 +601,85 @@ mod tests {
         wrong[2].passes += 1;
         assert!(check_bias(&px, &wrong).unwrap_err().contains("pixel 2"));
         assert!(check_bias(&px, &bias[1..]).is_err());
+    }
+
+    /// An adaptive policy state with bias records (vcm, ppm): they follow the pixels'
+    /// records and round-trip bit for bit; the blob without them is unchanged (a blob
+    /// stored before they existed decodes as before, without bias); records that disagree
+    /// with the pixels are refused; a damaged length is still an error.
+    #[test]
+    fn adaptive_bias_records_round_trip_after_the_pixels() {
+        let pixels: Vec<AdaptivePixel> = stats(5)
+            .into_iter()
+            .map(|stats| AdaptivePixel {
+                stats,
+                stopped_at: 0,
+                needed: 2,
+                traced: 11,
+            })
+            .collect();
+        let bias: Vec<BiasStats> = pixels
+            .iter()
+            .enumerate()
+            .map(|(i, p)| BiasStats {
+                passes: p.stats.passes,
+                mean: -0.125 * i as f64 + f64::from_bits(0x3ff0_0000_0000_0001),
+                m2: 0.75 + i as f64,
+            })
+            .collect();
+        let plain = AdaptiveTileCheckpoint {
+            consumed_passes: 11,
+            pixels,
+            bias: None,
+        };
+        let cp = AdaptiveTileCheckpoint {
+            bias: Some(bias.clone()),
+            ..plain.clone()
+        };
+        let plain_blob = encode_adaptive(&plain);
+        let blob = encode_adaptive(&cp);
+        assert_eq!(&blob[..plain_blob.len()], &plain_blob[..]);
+        assert_eq!(blob.len(), plain_blob.len() + 5 * BIAS_BYTES);
+        // The trailer's records are the statistics blob's.
+        let px: Vec<PixelStats> = cp.pixels.iter().map(|p| p.stats).collect();
+        let stats_blob = encode_stats(&px, Some(&bias));
+        assert_eq!(
+            &blob[plain_blob.len()..],
+            &stats_blob[stats_blob.len() - 5 * BIAS_BYTES..]
+        );
+        let back = decode_adaptive(&blob).unwrap();
+        assert_eq!(back, cp);
+        let bits = |b: &[BiasStats]| -> Vec<(u32, u64, u64)> {
+            b.iter()
+                .map(|b| (b.passes, b.mean.to_bits(), b.m2.to_bits()))
+                .collect()
+        };
+        assert_eq!(bits(back.bias.as_deref().unwrap()), bits(&bias));
+        assert_eq!(decode_adaptive(&plain_blob).unwrap(), plain);
+        let plan = FramePlan::new(5, 1, 8, 1, 16).unwrap();
+        check_adaptive(&plan, 0, &cp).unwrap();
+        let mut wrong = cp.clone();
+        if let Some(b) = wrong.bias.as_mut() {
+            b[1].passes += 1;
+        }
+        let e = check_adaptive(&plan, 0, &wrong).unwrap_err();
+        assert!(e.contains("pixel 1's bias record"), "{e}");
+        let mut short = cp.clone();
+        if let Some(b) = short.bias.as_mut() {
+            b.pop();
+        }
+        let e = check_adaptive(&plan, 0, &short).unwrap_err();
+        assert!(e.contains("4 bias records for 5 pixels"), "{e}");
+        let mut nan = cp;
+        if let Some(b) = nan.bias.as_mut() {
+            b[4].m2 = f64::INFINITY;
+        }
+        let e = check_adaptive(&plan, 0, &nan).unwrap_err();
+        assert!(e.contains("not finite"), "{e}");
+        // Neither a whole record nor a whole trailer: refused.
+        for bad in [&blob[..blob.len() - 1], &blob[..blob.len() - BIAS_BYTES]] {
+            let e = decode_adaptive(bad).unwrap_err();
+            assert!(e.contains("announces 5 records"), "{e}");
+        }
     }
 }

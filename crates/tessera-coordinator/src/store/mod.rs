@@ -56,6 +56,11 @@
 //! | 4     | pixel count `n` (u32) |
 //! | 4     | passes consumed by the policy (u32) |
 //! | 80 n  | per pixel, row-major within the tile: its kept statistics as in the statistics blob (68 bytes), then `stopped_at`, `needed`, `traced` (u32; [`tessera_farm::AdaptivePixel`]) |
+//! | 20 n  | only for a tile with a bias channel (vcm, ppm; [`tessera_farm::AdaptiveTileCheckpoint::bias`]): per pixel, the bias records of the passes it keeps, laid out as in the statistics blob |
+//!
+//! As for the statistics blob, a policy blob without the bias records is what it was
+//! before they existed (it restores a tile that estimates from the pass spread alone), and
+//! a coordinator that predates them refuses one with them.
 //!
 //! f64 values are stored by their bits, so a round trip is bit-exact. Decoding checks the
 //! version, the lengths, that the pixel count matches the tile of the job's plan, that

@@ -15,7 +15,9 @@ use tessera_coordinator::store::{
     QuarantineRecord, SqliteStore, Store, StoreError, StoreUrl, TileCheckpoint, UnitDigest,
     DATABASE_FILE,
 };
-use tessera_farm::{AdaptivePixel, AdaptiveTileCheckpoint, FramePlan, JobId, PixelStats};
+use tessera_farm::{
+    AdaptivePixel, AdaptiveTileCheckpoint, BiasStats, FramePlan, JobId, PixelStats,
+};
 
 use tessera_testkit::postgres;
 
@@ -325,13 +327,15 @@ fn with_policy(mut c: TileCheckpoint) -> TileCheckpoint {
                 traced: c.merged_passes,
             })
             .collect(),
+        bias: None,
     });
     c
 }
 
 /// An adaptive job's tile keeps its policy state beside its merged passes,
-/// bit-exact; a checkpoint without one reads back without one (and clears it on upsert);
-/// a state of the wrong size is refused when saved and a damaged one when loaded.
+/// bit-exact, with the bias records of vcm and ppm when it has them; a checkpoint without
+/// one reads back without one (and clears it on upsert); a state of the wrong size is
+/// refused when saved and a damaged one when loaded.
 async fn adaptive_policy_state_round_trips(f: &Fixture) {
     let store = f.open().await;
     let (job, _) = store.insert_job(new_job(1, None)).await.unwrap();
@@ -345,6 +349,30 @@ async fn adaptive_policy_state_round_trips(f: &Fixture) {
     assert!(store.load_tiles(job, Some(3)).await.unwrap()[0]
         .adaptive
         .is_none());
+
+    let mut biased = t.clone();
+    if let Some(a) = biased.adaptive.as_mut() {
+        let bias = a.pixels.iter().enumerate().map(|(i, p)| BiasStats {
+            passes: p.stats.passes,
+            mean: 0.01 * i as f64 - 0.02,
+            m2: 0.5 + i as f64,
+        });
+        a.bias = Some(bias.collect());
+    }
+    store.save_tile(biased.as_ref()).await.unwrap();
+    let loaded = store.load_tiles(job, Some(3)).await.unwrap();
+    assert!(loaded[0]
+        .adaptive
+        .as_ref()
+        .is_some_and(|a| a.bias.is_some()));
+    assert_eq!(loaded[0].adaptive, biased.adaptive);
+    let mut wrong = biased.clone();
+    if let Some(b) = wrong.adaptive.as_mut().and_then(|a| a.bias.as_mut()) {
+        b[0].passes += 1;
+    }
+    let e = store.save_tile(wrong.as_ref()).await.unwrap_err();
+    assert!(e.to_string().contains("pixel 0's bias record"), "{e}");
+    store.save_tile(plain.as_ref()).await.unwrap();
 
     let mut short = t.clone();
     if let Some(a) = short.adaptive.as_mut() {

@@ -508,3 +508,226 @@ fn checkpointed_policy_state_resumes_bit_identically() {
         assert!(AdaptiveFrame::restore(plan, 0, settings, &[None]).is_err());
     }
 }
+
+/// [`result_from`] with a bias channel: pixel `i`'s bias estimate in pass `p` is
+/// `g(p, i)`.
+fn biased_result_from(
+    rect: TileRect,
+    u: WorkUnit,
+    f: &dyn Fn(u32, usize) -> f32,
+    g: &dyn Fn(u32, usize) -> f32,
+) -> UnitResult {
+    let mut r = result_from(rect, u, f);
+    let mut bias = Vec::new();
+    for pass in u.first_pass..u.first_pass + u.pass_count {
+        bias.extend((0..rect.pixel_count()).map(|i| g(pass, i)));
+    }
+    r.bias = Some(bias);
+    r
+}
+
+/// A signed, reproducible bias estimate, different for every (pass, pixel).
+fn bias_of(tile: u32, pass: u32, pixel: usize) -> f32 {
+    let mut rng =
+        Rng::new(0xb1a5 ^ (u64::from(tile) << 40) ^ (u64::from(pass) << 20) ^ pixel as u64);
+    (rng.uniform() - 0.3) as f32
+}
+
+/// Without adaptive stopping every pixel keeps every pass, so the bias channel's
+/// statistics are those of the plain merge, bit for bit.
+#[test]
+fn off_keeps_the_plain_merges_bias_channel() {
+    let plan = FramePlan::new(13, 9, 8, 2, 10).unwrap();
+    let rect = plan.tile(1);
+    let mut plain = TileAccumulator::new(rect);
+    let mut off = AdaptiveTile::new(rect, AdaptiveSettings::default(), plan.passes);
+    let mut units: Vec<WorkUnit> = (0..5).map(|c| unit(1, 2 * c, 2)).collect();
+    Rng::new(4).shuffle(&mut units);
+    for u in units {
+        let r = biased_result_from(rect, u, &|p, i| noisy(1, p, i), &|p, i| bias_of(1, p, i));
+        off.offer(&r);
+        plain.offer(r).unwrap();
+    }
+    assert!(off.finished());
+    assert_eq!(off.bias(), plain.bias());
+    assert!(off.bias().is_some());
+}
+
+/// Each pixel's bias statistics are over exactly the passes its radiance statistics keep:
+/// for unbiased, the fresh passes after the discarded pilot; for sequential, the passes
+/// before it stopped. Checked against the mean of those passes' bias values computed
+/// here, and bit-identical for any unit split and arrival order.
+#[test]
+fn the_bias_channel_follows_the_passes_each_pixel_keeps() {
+    let plan = FramePlan::new(20, 12, 8, 1, 64).unwrap();
+    for settings in [seq(0.15), unb(0.15)] {
+        let run = |per: u32, seed: Option<u64>| {
+            let mut frame = AdaptiveFrame::new(plan, 0, settings).unwrap();
+            let mut units = plan.units(0, per);
+            if let Some(s) = seed {
+                Rng::new(s).shuffle(&mut units);
+            }
+            for u in units {
+                let rect = plan.tile(u.tile);
+                let r = biased_result_from(rect, u, &|p, i| noisy(u.tile, p, i), &|p, i| {
+                    bias_of(u.tile, p, i)
+                });
+                frame.offer(&r).unwrap();
+            }
+            assert!(frame.finished());
+            frame
+        };
+        let frame = run(1, None);
+        let mut kept_fewer = false;
+        for tile in frame.tiles() {
+            let t = tile.rect().index;
+            let bias = tile.bias().expect("every unit carried a bias channel");
+            let fresh: Vec<u32> = tile.fresh_passes_needed().collect();
+            for (i, (b, s)) in bias.iter().zip(tile.pixels()).enumerate() {
+                assert_eq!(b.passes, s.passes, "{settings:?} tile {t} pixel {i}");
+                // The passes the pixel keeps: unbiased from the pilot's end, sequential
+                // from pass 0.
+                let first = match settings.mode {
+                    AdaptiveMode::Unbiased => {
+                        assert_eq!(s.passes, fresh[i]);
+                        settings.min_passes
+                    }
+                    _ => 0,
+                };
+                let want: f64 = (first..first + s.passes)
+                    .map(|p| f64::from(bias_of(t, p, i)))
+                    .sum::<f64>()
+                    / f64::from(s.passes);
+                assert!((b.mean - want).abs() < 1e-12, "{b:?} {want}");
+                kept_fewer |= s.passes < plan.passes;
+            }
+        }
+        assert!(kept_fewer, "{settings:?}: the policy stopped nothing");
+        let img = frame.image();
+        let layer = img.bias.as_ref().expect("bias layers");
+        let reference = run(1, None).image();
+        for (per, seed) in [(4, Some(1)), (3, Some(2)), (64, None)] {
+            let other = run(per, seed);
+            let o = other.image();
+            let bits = |l: &[[f32; 2]]| l.iter().flatten().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert!(
+                bits(o.bias.as_ref().unwrap()) == bits(layer),
+                "{settings:?} per {per}"
+            );
+            assert_eq!(other.image_error().to_bits(), frame.image_error().to_bits());
+        }
+        assert_eq!(reference, img);
+        // The estimate adds the bias term: above the same frame's spread alone, and the
+        // image's own estimate from its layers agrees to f32 rounding.
+        let estimator = crate::ErrorEstimator::for_mode(settings.mode);
+        let spread = FrameImage {
+            bias: None,
+            ..img.clone()
+        }
+        .error_estimate(estimator)
+        .unwrap();
+        let with = img.error_estimate(estimator).unwrap();
+        assert!(with > 1.2 * spread, "{settings:?}: {with} vs {spread}");
+        assert!(
+            (frame.image_error() / with - 1.0).abs() < 1e-4,
+            "{settings:?}: {} vs {with}",
+            frame.image_error()
+        );
+    }
+}
+
+/// A unit without a bias channel (a technique or a worker that does not send one) ends
+/// the tile's channel for good, as in the plain merge; results without one leave the
+/// image as it always was.
+#[test]
+fn a_unit_without_a_bias_channel_ends_it() {
+    let plan = FramePlan::new(8, 8, 8, 1, 32).unwrap();
+    let rect = plan.tile(0);
+    let mut frame = AdaptiveFrame::new(plan, 0, unb(0.1)).unwrap();
+    let mut plain = AdaptiveFrame::new(plan, 0, unb(0.1)).unwrap();
+    for u in plan.units(0, 4) {
+        let f = |p, i| noisy(0, p, i);
+        let r = if u.first_pass == 4 {
+            result_from(rect, u, &f)
+        } else {
+            biased_result_from(rect, u, &f, &|p, i| bias_of(0, p, i))
+        };
+        frame.offer(&r).unwrap();
+        plain.offer(&result_from(rect, u, &f)).unwrap();
+        assert_eq!(frame.tile(0).unwrap().bias().is_some(), u.first_pass < 4);
+    }
+    assert!(frame.image().bias.is_none());
+    assert_eq!(frame.image(), plain.image());
+    assert_eq!(frame.image_error().to_bits(), plain.image_error().to_bits());
+}
+
+/// A frame restored from its tiles' checkpoints, which carry the bias statistics,
+/// continues bit for bit; a checkpoint without them (stored before the channel existed)
+/// restores a frame that estimates from the pass spread alone; statistics of other passes
+/// are refused.
+#[test]
+fn restored_bias_statistics_continue_bit_identically() {
+    let plan = FramePlan::new(16, 8, 8, 1, 40).unwrap();
+    for settings in [unb(0.1), seq(0.1)] {
+        let offer = |frame: &mut AdaptiveFrame, units: &[WorkUnit]| {
+            for &u in units {
+                let rect = plan.tile(u.tile);
+                let r = biased_result_from(rect, u, &|p, i| noisy(u.tile, p, i), &|p, i| {
+                    bias_of(u.tile, p, i)
+                });
+                frame.offer(&r).unwrap();
+            }
+        };
+        let units = plan.units(0, 4);
+        let (before, after) = units.split_at(units.len() / 2);
+        let mut whole = AdaptiveFrame::new(plan, 0, settings).unwrap();
+        offer(&mut whole, &units);
+        let mut half = AdaptiveFrame::new(plan, 0, settings).unwrap();
+        offer(&mut half, before);
+        let cps: Vec<_> = half.tiles().iter().map(|t| Some(t.checkpoint())).collect();
+        assert!(cps.iter().flatten().all(|c| c.bias.is_some()));
+        let mut restored = AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap();
+        offer(&mut restored, after);
+        assert_eq!(restored.image(), whole.image(), "{settings:?}");
+        assert!(whole.image().bias.is_some());
+        assert_eq!(
+            restored.image_error().to_bits(),
+            whole.image_error().to_bits()
+        );
+        // The checkpoint of the finished frame restores its image, bias layers included.
+        let done: Vec<_> = whole.tiles().iter().map(|t| Some(t.checkpoint())).collect();
+        let rebuilt = AdaptiveFrame::restore(plan, 0, settings, &done).unwrap();
+        assert_eq!(rebuilt.image(), whole.image(), "{settings:?}");
+        // Without the bias statistics: the same radiance, no bias layers, the spread-only
+        // estimate.
+        let old: Vec<_> = done
+            .iter()
+            .map(|c| {
+                c.clone()
+                    .map(|c| AdaptiveTileCheckpoint { bias: None, ..c })
+            })
+            .collect();
+        let spread_only = AdaptiveFrame::restore(plan, 0, settings, &old).unwrap();
+        let img = spread_only.image();
+        assert!(img.bias.is_none());
+        assert_eq!(img.mean, whole.image().mean);
+        assert!(spread_only.image_error() < whole.image_error());
+        // Bias statistics of other passes than the pixels', of another pixel count, or
+        // not finite, are refused.
+        let bad = |edit: &dyn Fn(&mut Vec<crate::BiasStats>)| {
+            let mut cps = cps.clone();
+            if let Some(Some(c)) = cps.first_mut() {
+                edit(c.bias.as_mut().unwrap());
+            }
+            AdaptiveFrame::restore(plan, 0, settings, &cps).unwrap_err()
+        };
+        let e = bad(&|b| b[3].passes += 1);
+        assert!(e.reason.contains("bias records"), "{e}");
+        let e = bad(&|b| {
+            b.pop();
+        });
+        assert!(e.reason.contains("bias records"), "{e}");
+        let e = bad(&|b| b[0].m2 = f64::NAN);
+        assert!(e.reason.contains("finite: false"), "{e}");
+    }
+}

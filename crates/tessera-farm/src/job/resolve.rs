@@ -351,12 +351,12 @@ impl ResolvedJob {
     }
 
     /// Whether this job's image carries bias layers and its estimate the bias term
-    /// ([`crate::UnitResult::bias`], [`crate::image_relative_error_biased`]): a biased integrator (vcm, ppm)
-    /// without adaptive stopping (the adaptive merge keeps no bias channel yet).
+    /// ([`crate::UnitResult::bias`], [`crate::ErrorEstimator::image_error_biased`]): a
+    /// biased integrator (vcm, ppm), with or without adaptive stopping (the adaptive
+    /// policy keeps each pixel's bias statistics over the passes it keeps,
+    /// [`crate::AdaptiveTile::bias`]).
     pub fn estimates_bias(&self) -> bool {
-        !self.black
-            && self.config.integrator.is_biased()
-            && self.job.adaptive == super::choice::AdaptiveMode::Off
+        !self.black && self.config.integrator.is_biased()
     }
 
     /// The name of this job's error estimate, as the EXR header (`error_estimator`), the

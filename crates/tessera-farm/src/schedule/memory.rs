@@ -59,6 +59,19 @@ pub fn frame_state_bytes(plan: &FramePlan, adaptive: bool) -> u64 {
     u64::from(plan.width) * u64::from(plan.height) * per_pixel
 }
 
+/// Bytes of one pixel's merging-bias statistics ([`crate::BiasStats`]).
+const BIAS_BYTES_PER_PIXEL: u64 = std::mem::size_of::<crate::BiasStats>() as u64;
+
+/// [`frame_state_bytes`] of a job whose frames may also keep the merging-bias channel of
+/// vcm and ppm (`biased`; [`crate::UnitResult::bias`]): a [`crate::BiasStats`] per pixel in
+/// the accumulator ([`crate::TileAccumulator::bias`]) and, for adaptive jobs, another in
+/// the policy's state over the passes each pixel keeps ([`crate::AdaptiveTile::bias`]).
+pub fn frame_state_bytes_with_bias(plan: &FramePlan, adaptive: bool, biased: bool) -> u64 {
+    let copies = if biased { 1 + u64::from(adaptive) } else { 0 };
+    frame_state_bytes(plan, adaptive)
+        + u64::from(plan.width) * u64::from(plan.height) * copies * BIAS_BYTES_PER_PIXEL
+}
+
 /// Where a frame's merge state is ([`Scheduler::residency`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Residency {
@@ -121,6 +134,24 @@ impl Scheduler {
     /// Bytes of per-pixel merge state in memory, over all jobs.
     pub fn resident_bytes(&self) -> u64 {
         self.memory.resident
+    }
+
+    /// Counts the merging-bias channel of a biased technique (vcm, ppm) in the memory of
+    /// every frame of job `job_id` ([`frame_state_bytes_with_bias`]): for the caller to
+    /// call once it added the job, since the scheduler does not know the technique. Frames
+    /// already live (a resumed job's) are charged the difference; calling it again changes
+    /// nothing.
+    pub fn count_bias_channel(&mut self, job_id: JobId) {
+        let Some(job) = self.jobs.get_mut(&job_id) else {
+            return;
+        };
+        let bytes = frame_state_bytes_with_bias(&job.plan, job.adaptive.is_some(), true);
+        let before = job.resident_bytes();
+        job.frame_bytes = bytes;
+        let after = job.resident_bytes();
+        let m = &mut self.memory;
+        m.resident = m.resident.saturating_sub(before).saturating_add(after);
+        m.note_high_water();
     }
 
     /// Reserves `bytes` of the budget for a transient image encode, if they fit beside the

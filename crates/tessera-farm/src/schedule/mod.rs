@@ -76,7 +76,7 @@ mod submit;
 mod tests;
 
 pub use lease::tail_share;
-pub use memory::{frame_state_bytes, Residency};
+pub use memory::{frame_state_bytes, frame_state_bytes_with_bias, Residency};
 pub use resume::{Resumed, ResumedAdaptive};
 pub use spot::EXACT_SPOT_COUNT;
 

@@ -11,8 +11,9 @@ use crate::merge::{MergeError, Offer};
 use crate::plan::FramePlan;
 use crate::result::UnitResult;
 
-/// `result` with the pixels outside the set its lease named set to 0, after checking it
-/// whole (a worker is still faulted for a NaN in a pixel it did not have to trace).
+/// `result` with the pixels outside the set its lease named set to 0 (their pass means
+/// and, for vcm and ppm, their bias channel), after checking it whole (a worker is still
+/// faulted for a NaN in a pixel it did not have to trace).
 ///
 /// Why: a worker that traces only the named pixels reports 0 for the others, but one
 /// that predates `Lease.wanted` reports real values there, and bdpt reports the splats
@@ -34,6 +35,13 @@ fn canonical_masked(
     for (k, m) in result.pass_means.iter_mut().enumerate() {
         if !wanted.contains(k % n) {
             *m = [0.0; 3];
+        }
+    }
+    // The bias channel is digested too: a worker that traced every pixel reports bias
+    // estimates where one that traced only the named pixels reports 0.
+    for (k, b) in result.bias.iter_mut().flatten().enumerate() {
+        if !wanted.contains(k % n) {
+            *b = 0.0;
         }
     }
     Ok(result)

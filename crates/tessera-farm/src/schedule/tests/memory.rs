@@ -4,7 +4,9 @@ use super::{plan, result};
 use crate::adaptive::AdaptiveFrame;
 use crate::merge::FrameAccumulator;
 use crate::plan::FramePlan;
-use crate::schedule::{frame_state_bytes, Residency, Scheduler, Submitted};
+use crate::schedule::{
+    frame_state_bytes, frame_state_bytes_with_bias, Residency, Scheduler, Submitted,
+};
 
 #[test]
 fn frames_wait_for_the_memory_budget_and_release_it_when_complete() {
@@ -264,4 +266,62 @@ fn image_encodes_are_counted_in_the_memory_budget() {
         "frame 1 went live"
     );
     s.release_transient(frame);
+}
+
+/// The frames of a vcm or ppm job also hold the merging-bias channel, 24 B per pixel in
+/// the accumulator and as much again in an adaptive policy's state: counted once the
+/// caller says so, for frames made live later and for one already live, and given back
+/// in full when the frame is released.
+#[test]
+fn the_bias_channel_of_a_biased_technique_is_counted() {
+    use crate::adaptive::AdaptiveSettings;
+    let p = plan();
+    let n = 40 * 30;
+    for adaptive in [false, true] {
+        let plain = frame_state_bytes(&p, adaptive);
+        assert_eq!(frame_state_bytes_with_bias(&p, adaptive, false), plain);
+        let biased = frame_state_bytes_with_bias(&p, adaptive, true);
+        assert_eq!(biased, plain + n * if adaptive { 48 } else { 24 });
+        let add = |s: &mut Scheduler, id| {
+            if adaptive {
+                s.add_adaptive_job(id, 0, p, 0..=0, 2, AdaptiveSettings::default())
+                    .unwrap();
+            } else {
+                s.add_job(id, 0, p, 0..=0, 2);
+            }
+        };
+        let mut s = Scheduler::new(1000, 0);
+        // Counted before its frame is live.
+        add(&mut s, 1);
+        s.count_bias_channel(1);
+        let mut leases = s.lease(1, 0, 100);
+        assert!(!leases.is_empty());
+        assert_eq!(s.resident_bytes(), biased, "adaptive {adaptive}");
+        // Counted after (a resumed job's live frames): the difference is charged once.
+        add(&mut s, 2);
+        let more = s.lease(1, 0, 100);
+        assert!(more.iter().any(|l| l.job == 2));
+        leases.extend(more);
+        assert_eq!(s.resident_bytes(), biased + plain);
+        s.count_bias_channel(2);
+        s.count_bias_channel(2);
+        assert_eq!(s.resident_bytes(), 2 * biased, "adaptive {adaptive}");
+        // Released in full.
+        for _ in 0..100 {
+            if leases.is_empty() {
+                break;
+            }
+            for l in &leases {
+                assert_eq!(
+                    s.submit(l.lease_id, l.job, result(&p, l.unit, 0.5)),
+                    Ok(Submitted::Accepted)
+                );
+            }
+            leases = s.lease(1, 0, 100);
+        }
+        for id in [1, 2] {
+            assert!(s.release_frame(id, 0), "adaptive {adaptive}: job {id}");
+        }
+        assert_eq!(s.resident_bytes(), 0, "adaptive {adaptive}");
+    }
 }
