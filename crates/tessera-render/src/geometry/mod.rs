@@ -127,17 +127,11 @@ pub struct TriangleAttributes {
 
 /// One level's triangles (the world-space ones, or a prototype's) stored in the leaf
 /// order of the level's wide BVH, so that a leaf is a contiguous range of them, and split
-/// by who reads what: the corners, all the watertight test reads (Woop, Benthin & Wald
-/// 2013, §3), as three indices into an array of distinct vertex positions, the
-/// attributes and the triangle's number in other arrays, read only at a hit. A leaf's
-/// triangles are then adjacent 12-byte index triples instead of 52-byte records reached
-/// through an index array (docs/benchmarks.md, "Leaf-ordered triangles").
-///
-/// **Vertices** are shared between the triangles whose corners have the same bits (a
-/// mesh's vertex is one position whatever the number of triangles around it: about one
-/// per two triangles on a terrain), numbered in order of first use along the stored
-/// order so that a leaf's vertices lie near each other. The test reads the same floats
-/// as from a copy per triangle, so its results do not change.
+/// by who reads what: the positions, all the watertight test reads (Woop, Benthin & Wald
+/// 2013, §3), in one array, the attributes and the triangle's number in a second and
+/// third, read only at a hit. A leaf's triangles are then adjacent 36-byte records instead
+/// of 52-byte ones reached through an index array (docs/benchmarks.md, "Leaf-ordered
+/// triangles").
 ///
 /// **Numbers.** Stored triangle `s` keeps the number it had when the triangles were
 /// stored in obvhs' CWBVH leaf order ([`Triangles::id`]): ties between equal hit
@@ -146,74 +140,27 @@ pub struct TriangleAttributes {
 /// names the stored position `s`.
 #[derive(Default)]
 pub struct Triangles {
-    /// The corners of triangle `s`, in leaf order, as indices into `vertices`.
-    corners: Vec<[u32; 3]>,
-    /// Distinct corner positions (by their bits), in order of first use.
-    vertices: Vec<Vec3>,
+    /// The corners of triangle `s`, in leaf order.
+    positions: Vec<[Vec3; 3]>,
     /// Its mesh, index, material and light.
     attributes: Vec<TriangleAttributes>,
     /// Its number for [`triangle_key`].
     ids: Vec<u32>,
 }
 
-/// A hash of a vertex's bits for [`Triangles::gather`]'s look-up of shared vertices: a
-/// multiplicative mix per 32-bit word (the scheme of rustc's FxHasher) with a final
-/// fold of the high bits, far cheaper than the standard library's SipHash on millions of
-/// vertices, and never fed untrusted keys in a way that matters (the worst case is a
-/// slower build).
-#[derive(Default)]
-struct VertexHasher(u64);
-
-impl std::hash::Hasher for VertexHasher {
-    #[inline]
-    fn write(&mut self, bytes: &[u8]) {
-        for w in bytes.chunks(4) {
-            let mut b = [0u8; 4];
-            b[..w.len()].copy_from_slice(w);
-            self.write_u32(u32::from_le_bytes(b));
-        }
-    }
-
-    #[inline]
-    fn write_u32(&mut self, x: u32) {
-        self.0 = (self.0.rotate_left(5) ^ u64::from(x)).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-
-    #[inline]
-    fn finish(&self) -> u64 {
-        self.0 ^ (self.0 >> 29)
-    }
-}
-
 impl Triangles {
     /// The triangles `record(ids[s])` in the order of `ids` (a level's leaf order), each
-    /// numbered `ids[s]`, their corners shared by bits.
+    /// numbered `ids[s]`.
     fn gather(ids: Vec<u32>, record: impl Fn(u32) -> TriangleRecord) -> Self {
-        let mut corners = Vec::with_capacity(ids.len());
+        let mut positions = Vec::with_capacity(ids.len());
         let mut attributes = Vec::with_capacity(ids.len());
-        let mut vertices: Vec<Vec3> = Vec::new();
-        let mut seen: std::collections::HashMap<
-            [u32; 3],
-            u32,
-            std::hash::BuildHasherDefault<VertexHasher>,
-        > = Default::default();
         for &id in &ids {
             let r = record(id);
-            corners.push(r.p.map(|v| {
-                *seen
-                    .entry(v.to_array().map(f32::to_bits))
-                    .or_insert_with(|| {
-                        vertices.push(v);
-                        (vertices.len() - 1) as u32
-                    })
-            }));
+            positions.push(r.p);
             attributes.push(r.attributes());
         }
-        drop(seen);
-        vertices.shrink_to_fit();
         Self {
-            corners,
-            vertices,
+            positions,
             attributes,
             ids,
         }
@@ -222,31 +169,25 @@ impl Triangles {
     /// Number of triangles.
     #[inline(always)]
     pub fn len(&self) -> usize {
-        self.corners.len()
+        self.positions.len()
     }
 
     /// Whether there are none.
     #[inline(always)]
     pub fn is_empty(&self) -> bool {
-        self.corners.is_empty()
+        self.positions.is_empty()
     }
 
     /// The corners of stored triangle `s`.
     #[inline(always)]
     pub fn positions(&self, s: usize) -> [Vec3; 3] {
-        self.at(&self.corners[s])
+        self.positions[s]
     }
 
-    /// The vertex indices of the stored triangles `range`, what a leaf's walk reads.
+    /// The corners of the stored triangles `range`, what a leaf's walk reads.
     #[inline(always)]
-    pub(super) fn corners_in(&self, range: std::ops::Range<usize>) -> &[[u32; 3]] {
-        &self.corners[range]
-    }
-
-    /// The positions of the vertices `c`.
-    #[inline(always)]
-    pub(super) fn at(&self, c: &[u32; 3]) -> [Vec3; 3] {
-        c.map(|i| self.vertices[i as usize])
+    pub(super) fn positions_in(&self, range: std::ops::Range<usize>) -> &[[Vec3; 3]] {
+        &self.positions[range]
     }
 
     /// The attributes of stored triangle `s`.
@@ -278,10 +219,9 @@ impl Triangles {
         (0..self.len()).map(|s| self.record(s))
     }
 
-    /// Bytes of the four arrays, from their lengths.
+    /// Bytes of the three arrays, from their lengths.
     pub fn bytes(&self) -> usize {
-        std::mem::size_of_val(self.corners.as_slice())
-            + std::mem::size_of_val(self.vertices.as_slice())
+        std::mem::size_of_val(self.positions.as_slice())
             + std::mem::size_of_val(self.attributes.as_slice())
             + std::mem::size_of_val(self.ids.as_slice())
     }

@@ -490,8 +490,8 @@ pub(super) trait Leaves {
 /// The triangles of one level with the test each needs: `intersect(p, t_max)` is the
 /// watertight test of the ray, `keep` the filter of `Geometry::intersect_where`. A leaf
 /// `(first, count)` is the stored triangles `first..first + count` (see [`Triangles`]):
-/// the walk reads their vertex indices, adjacent in one array, and the vertices, and a
-/// hit's number and attributes only once the test accepts it.
+/// the walk reads their positions, adjacent in one array, and a hit's number and
+/// attributes only once the test accepts it.
 pub(super) struct Level<'g, I, F> {
     pub(super) triangles: &'g Triangles,
     pub(super) instance: u32,
@@ -507,10 +507,9 @@ where
     #[inline(always)]
     fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
         let first = first as usize;
-        let leaf = self.triangles.corners_in(first..first + count as usize);
-        for (s, c) in (first..).zip(leaf) {
-            let p = self.triangles.at(c);
-            let Some((t, _, b1, b2)) = (self.intersect)(&p, best.bound()) else {
+        let leaf = self.triangles.positions_in(first..first + count as usize);
+        for (s, p) in (first..).zip(leaf) {
+            let Some((t, _, b1, b2)) = (self.intersect)(p, best.bound()) else {
                 continue;
             };
             let key = triangle_key(self.instance, self.triangles.id(s));
@@ -537,9 +536,9 @@ where
         // A loop rather than `Iterator::any`, which LLVM may leave uninlined, outside
         // the kernel's `#[target_feature]` function.
         let first = first as usize;
-        let leaf = self.triangles.corners_in(first..first + count as usize);
-        for (s, c) in (first..).zip(leaf) {
-            if let Some((_, _, b1, b2)) = (self.intersect)(&self.triangles.at(c), t_max) {
+        let leaf = self.triangles.positions_in(first..first + count as usize);
+        for (s, p) in (first..).zip(leaf) {
+            if let Some((_, _, b1, b2)) = (self.intersect)(p, t_max) {
                 let key = triangle_key(self.instance, self.triangles.id(s));
                 if (self.keep)(self.triangles.attributes(s), key, b1, b2) {
                     return true;
