@@ -36,8 +36,10 @@
 //! below the previous levels' nearest `t`, and a level's hit replaces theirs only when
 //! strictly nearer (on an exact tie the earlier level's hit stays). Within a level the hit is the lexicographic minimum of `(t, key)` over every
 //! hit the watertight test accepts (`wide::Nearest`), the key being [`triangle_key`]:
-//! the triangle index among world-space triangles, `(instance, triangle index)` among
-//! instances (the instance first), the record index among moving triangles. Spheres are
+//! the triangle's number ([`Triangles::id`]: its place in obvhs' CWBVH leaf order, kept
+//! beside the triangles stored in the wide BVH's own) among world-space triangles,
+//! `(instance, number)` among instances (the instance first), the record index among
+//! moving triangles. Spheres are
 //! tested in index order, and one replaces the best only when strictly nearer.
 //!
 //! Triangles are tested with the watertight test of Woop, Benthin & Wald (JCGT 2013) in

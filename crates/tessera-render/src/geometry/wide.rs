@@ -28,7 +28,7 @@
 //! unchanged.
 //!
 //! **The hit is independent of the visit order.** A triangle hit replaces the best one
-//! when its `t` is smaller, or equal with a smaller key (the triangle index in a level of
+//! when its `t` is smaller, or equal with a smaller key (the triangle number in a level of
 //! world-space triangles; see [`Nearest`] and the `geometry` module docs for instances
 //! and moving triangles, whose leaves the same walk serves); boxes are pruned only
 //! beyond the best `t` plus a relative margin ([`box_limit`]) far wider than the rounding
