@@ -36,8 +36,10 @@
 //! below the previous levels' nearest `t`, and a level's hit replaces theirs only when
 //! strictly nearer (on an exact tie the earlier level's hit stays). Within a level the hit is the lexicographic minimum of `(t, key)` over every
 //! hit the watertight test accepts (`wide::Nearest`), the key being [`triangle_key`]:
-//! the triangle index among world-space triangles, `(instance, triangle index)` among
-//! instances (the instance first), the record index among moving triangles. Spheres are
+//! the triangle's number ([`Triangles::id`]: its place in obvhs' CWBVH leaf order, kept
+//! beside the triangles stored in the wide BVH's own) among world-space triangles,
+//! `(instance, number)` among instances (the instance first), the record index among
+//! moving triangles. Spheres are
 //! tested in index order, and one replaces the best only when strictly nearer.
 //!
 //! Triangles are tested with the watertight test of Woop, Benthin & Wald (JCGT 2013) in
@@ -98,6 +100,135 @@ pub struct TriangleRecord {
     pub light: u32,
 }
 
+impl TriangleRecord {
+    /// What shading and the alpha filter read of the triangle (everything but `p`).
+    #[inline(always)]
+    pub fn attributes(&self) -> TriangleAttributes {
+        TriangleAttributes {
+            mesh: self.mesh,
+            index: self.index,
+            material: self.material,
+            light: self.light,
+        }
+    }
+}
+
+/// What a stored triangle carries beside its positions: read after the walk (shading)
+/// or when the watertight test accepts a hit (the alpha filter), never for a test.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TriangleAttributes {
+    /// Index of the mesh in the scene.
+    pub mesh: u32,
+    /// Index of the triangle within its mesh (for normals and texture coordinates).
+    pub index: u32,
+    /// Material index.
+    pub material: u32,
+    /// Index in the light list if the triangle emits, else [`NO_LIGHT`].
+    pub light: u32,
+}
+
+/// One level's triangles (the world-space ones, or a prototype's) stored in the leaf
+/// order of the level's wide BVH, so that a leaf is a contiguous range of them, and split
+/// by who reads what: the positions, all the watertight test reads (Woop, Benthin & Wald
+/// 2013, §3), in one array, the attributes and the triangle's number in a second and
+/// third, read only at a hit. A leaf's triangles are then adjacent 36-byte records instead
+/// of 52-byte ones reached through an index array (docs/benchmarks.md, "Leaf-ordered
+/// triangles").
+///
+/// **Numbers.** Stored triangle `s` keeps the number it had when the triangles were
+/// stored in obvhs' CWBVH leaf order ([`Triangles::id`]): ties between equal hit
+/// distances go to the lower number and the alpha filter hashes it
+/// ([`triangle_key`]), so hits and images are those of that order. [`Primitive::Triangle`]
+/// names the stored position `s`.
+#[derive(Default)]
+pub struct Triangles {
+    /// The corners of triangle `s`, in leaf order.
+    positions: Vec<[Vec3; 3]>,
+    /// Its mesh, index, material and light.
+    attributes: Vec<TriangleAttributes>,
+    /// Its number for [`triangle_key`].
+    ids: Vec<u32>,
+}
+
+impl Triangles {
+    /// The triangles `record(ids[s])` in the order of `ids` (a level's leaf order), each
+    /// numbered `ids[s]`.
+    fn gather(ids: Vec<u32>, record: impl Fn(u32) -> TriangleRecord) -> Self {
+        let mut positions = Vec::with_capacity(ids.len());
+        let mut attributes = Vec::with_capacity(ids.len());
+        for &id in &ids {
+            let r = record(id);
+            positions.push(r.p);
+            attributes.push(r.attributes());
+        }
+        Self {
+            positions,
+            attributes,
+            ids,
+        }
+    }
+
+    /// Number of triangles.
+    #[inline(always)]
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// Whether there are none.
+    #[inline(always)]
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// The corners of stored triangle `s`.
+    #[inline(always)]
+    pub fn positions(&self, s: usize) -> [Vec3; 3] {
+        self.positions[s]
+    }
+
+    /// The corners of the stored triangles `range`, what a leaf's walk reads.
+    #[inline(always)]
+    pub(super) fn positions_in(&self, range: std::ops::Range<usize>) -> &[[Vec3; 3]] {
+        &self.positions[range]
+    }
+
+    /// The attributes of stored triangle `s`.
+    #[inline(always)]
+    pub fn attributes(&self, s: usize) -> &TriangleAttributes {
+        &self.attributes[s]
+    }
+
+    /// The number of stored triangle `s` (see the type's docs).
+    #[inline(always)]
+    pub fn id(&self, s: usize) -> u32 {
+        self.ids[s]
+    }
+
+    /// Stored triangle `s` as a record.
+    pub fn record(&self, s: usize) -> TriangleRecord {
+        let a = self.attributes[s];
+        TriangleRecord {
+            p: self.positions(s),
+            mesh: a.mesh,
+            index: a.index,
+            material: a.material,
+            light: a.light,
+        }
+    }
+
+    /// Every stored triangle as a record, in stored order.
+    pub fn iter(&self) -> impl Iterator<Item = TriangleRecord> + '_ {
+        (0..self.len()).map(|s| self.record(s))
+    }
+
+    /// Bytes of the three arrays, from their lengths.
+    pub fn bytes(&self) -> usize {
+        std::mem::size_of_val(self.positions.as_slice())
+            + std::mem::size_of_val(self.attributes.as_slice())
+            + std::mem::size_of_val(self.ids.as_slice())
+    }
+}
+
 /// An analytic sphere.
 #[derive(Clone, Copy, Debug)]
 pub struct SphereRecord {
@@ -114,10 +245,11 @@ pub struct SphereRecord {
 /// What a ray hit.
 #[derive(Clone, Copy, Debug)]
 pub enum Primitive {
-    /// A triangle: index into [`Geometry::triangles`] (or, for an instance, into its
-    /// prototype's [`Prototype::triangles`]) and barycentrics of vertices 1 and 2.
+    /// A triangle: its stored position in [`Geometry::triangles`] (or, for an instance,
+    /// in its prototype's [`Prototype::triangles`]) and barycentrics of vertices 1 and 2.
     Triangle {
-        /// Index into the BVH-ordered triangle array.
+        /// Position in the level's leaf-ordered [`Triangles`] (not its number for
+        /// [`triangle_key`], which is [`Triangles::id`] of it).
         index: u32,
         /// Index into [`Geometry::instances`], or [`NO_INSTANCE`] for a world-space
         /// triangle.
@@ -163,14 +295,14 @@ pub struct Prototype {
     bvh: WideBvh,
     /// Bounds of the object-space triangles.
     bounds: obvhs::aabb::Aabb,
-    /// Object-space triangles in the order the BVH leaves refer to them.
-    pub triangles: Vec<TriangleRecord>,
+    /// Object-space triangles in the BVH's leaf order.
+    pub triangles: Triangles,
 }
 
 impl Prototype {
-    /// Bytes of the BVH nodes and triangle records.
+    /// Bytes of the BVH nodes and triangles.
     pub fn bytes(&self) -> usize {
-        self.bvh.bytes() + std::mem::size_of_val(self.triangles.as_slice())
+        self.bvh.bytes() + self.triangles.bytes()
     }
 }
 
@@ -196,8 +328,8 @@ pub struct InstanceRecord {
 /// Scene geometry with its acceleration structure.
 pub struct Geometry {
     bvh: WideBvh,
-    /// Triangles in the order the BVH leaves refer to them.
-    pub triangles: Vec<TriangleRecord>,
+    /// World-space triangles in the BVH's leaf order.
+    pub triangles: Triangles,
     /// Meshes stored once, each with its bottom-level BVH.
     pub prototypes: Vec<Prototype>,
     /// The top level: a wide BVH over the instances' world bounds, its leaves naming
@@ -283,7 +415,7 @@ impl Geometry {
                 hi = hi.max(p);
             }
         }
-        let (bvh, ordered, _) = triangle_bvh_of(count, record, &mut build_stats);
+        let (bvh, triangles, _) = triangle_bvh_of(count, record, &mut build_stats);
         let prototypes: Vec<Prototype> = prototypes
             .iter()
             .map(|tris| {
@@ -369,7 +501,7 @@ impl Geometry {
         };
         Self {
             bvh,
-            triangles: ordered,
+            triangles,
             prototypes,
             tlas,
             instances,
@@ -430,12 +562,12 @@ impl Geometry {
         self
     }
 
-    /// Bytes of the acceleration structures and triangle records (BVH nodes, leaf index
-    /// arrays, triangles, instances), from their lengths: what the geometry costs in
+    /// Bytes of the acceleration structures and triangles (BVH nodes, leaf index arrays,
+    /// triangles, instances), from their lengths: what the geometry costs in
     /// memory, for comparing instancing with flattening.
     pub fn bytes(&self) -> usize {
         self.bvh.bytes()
-            + std::mem::size_of_val(self.triangles.as_slice())
+            + self.triangles.bytes()
             + self.prototypes.iter().map(Prototype::bytes).sum::<usize>()
             + self.tlas.bytes()
             + std::mem::size_of_val(self.instances.as_slice())
@@ -449,8 +581,8 @@ impl Geometry {
         self.intersect_where(origin, dir, t_max, 0.0, |_, _, _, _| true)
     }
 
-    /// [`Geometry::intersect`] counting only the triangle hits `keep(record, key, b1, b2)`
-    /// accepts (alpha-tested surfaces pass rays through where `keep` says so); `key`
+    /// [`Geometry::intersect`] counting only the triangle hits `keep(attributes, key, b1,
+    /// b2)` accepts (alpha-tested surfaces pass rays through where `keep` says so); `key`
     /// identifies the triangle (see [`triangle_key`]). Rejected hits do not shorten the
     /// ray, so the traversal goes on past them. `time` is the ray's shutter fraction in
     /// `[0, 1]`: moving triangles ([`Geometry::motion`]) are intersected where they stand
@@ -461,7 +593,7 @@ impl Geometry {
         dir: Vec3,
         t_max: f32,
         time: f32,
-        keep: impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+        keep: impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
     ) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
@@ -519,7 +651,7 @@ impl Geometry {
         dir: Vec3,
         t_max: f32,
         time: f32,
-        keep: impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+        keep: impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
     ) -> bool {
         for s in &self.spheres {
             if intersect_sphere(s.center, s.radius, origin, dir, t_max).is_some() {

@@ -404,8 +404,10 @@ fn triangles_read_through_a_function_build_the_same_geometry() {
     // Each record is read a bounded number of times (bounds, boxes, leaf order).
     assert_eq!(reads.into_inner(), 3 * tris.len());
     assert_eq!(a.triangles.len(), b.triangles.len());
-    for (x, y) in a.triangles.iter().zip(&b.triangles) {
+    for s in 0..a.triangles.len() {
+        let (x, y) = (a.triangles.record(s), b.triangles.record(s));
         assert_eq!((x.p, x.index), (y.p, y.index));
+        assert_eq!(a.triangles.id(s), b.triangles.id(s));
     }
     assert_eq!(a.bounds_center, b.bounds_center);
     assert_eq!(a.bounds_radius.to_bits(), b.bounds_radius.to_bits());
@@ -508,9 +510,10 @@ fn random_transform(s: &mut u64, mirror: bool) -> Affine3A {
 
 /// The nearest hit over every instance by testing every triangle of each, with the
 /// object-space ray the geometry computes: the lexicographic minimum of
-/// `(t, instance, triangle)` (the rule in the module docs).
+/// `(t, instance, triangle number)` (the rule in the module docs), as `(t, instance,
+/// stored position)`.
 fn instances_brute_force(g: &Geometry, origin: Vec3, dir: Vec3) -> Option<(f32, u32, u32)> {
-    let mut best: Option<(f32, u32, u32)> = None;
+    let mut best: Option<(f32, u32, u32, u32)> = None;
     for (id, inst) in g.instances.iter().enumerate() {
         let o = inst.object_from_world.transform_point3(origin);
         let d = inst.object_from_world.transform_vector3(dir);
@@ -518,7 +521,7 @@ fn instances_brute_force(g: &Geometry, origin: Vec3, dir: Vec3) -> Option<(f32, 
         with_watertight_ray!(o, d, |wt| {
             for (i, tri) in tris.iter().enumerate() {
                 if let Some((t, ..)) = wt.intersect(&tri.p, f32::INFINITY) {
-                    let cand = (t, id as u32, i as u32);
+                    let cand = (t, id as u32, tris.id(i), i as u32);
                     if best.is_none_or(|b| (cand.0, cand.1, cand.2) < (b.0, b.1, b.2)) {
                         best = Some(cand);
                     }
@@ -526,7 +529,7 @@ fn instances_brute_force(g: &Geometry, origin: Vec3, dir: Vec3) -> Option<(f32, 
             }
         });
     }
-    best
+    best.map(|(t, instance, _, i)| (t, instance, i))
 }
 
 #[test]

@@ -4,7 +4,7 @@
 use super::build::{self, BvhBuildStats};
 use super::kernels::{self, Isa};
 use super::wide::{BoxTest, Leaves, Level, Nearest, WideBvh};
-use super::{InstanceRecord, Prototype, TriangleRecord};
+use super::{InstanceRecord, Prototype, TriangleAttributes, TriangleRecord, Triangles};
 use glam::Vec3;
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::node::Bvh2Node;
@@ -13,7 +13,7 @@ use obvhs::bvh2::node::Bvh2Node;
 /// instance its hits report, and the kernel that tests its boxes.
 pub(super) struct TriangleLevel<'g> {
     pub(super) bvh: &'g WideBvh,
-    pub(super) triangles: &'g [TriangleRecord],
+    pub(super) triangles: &'g Triangles,
     pub(super) instance: u32,
     pub(super) isa: Isa,
 }
@@ -26,11 +26,10 @@ impl TriangleLevel<'_> {
         origin: Vec3,
         dir: Vec3,
         best: &mut Nearest,
-        keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+        keep: &impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
     ) {
         with_watertight_ray!(origin, dir, |wt| {
             let level = Level {
-                bvh: self.bvh,
                 triangles: self.triangles,
                 instance: self.instance,
                 intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
@@ -47,11 +46,10 @@ impl TriangleLevel<'_> {
         origin: Vec3,
         dir: Vec3,
         t_max: f32,
-        keep: &impl Fn(&TriangleRecord, u64, f32, f32) -> bool,
+        keep: &impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
     ) -> bool {
         with_watertight_ray!(origin, dir, |wt| {
             let level = Level {
-                bvh: self.bvh,
                 triangles: self.triangles,
                 instance: self.instance,
                 intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
@@ -91,7 +89,7 @@ impl<F> InstanceLeaves<'_, F> {
 
 impl<F> Leaves for InstanceLeaves<'_, F>
 where
-    F: Fn(&TriangleRecord, u64, f32, f32) -> bool,
+    F: Fn(&TriangleAttributes, u64, f32, f32) -> bool,
 {
     #[inline(always)]
     fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
@@ -101,7 +99,6 @@ where
             let ray = super::wide::BoxRay::new(o, d);
             with_watertight_ray!(o, d, |wt| {
                 let level = Level {
-                    bvh: &proto.bvh,
                     triangles: &proto.triangles,
                     instance: id,
                     intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
@@ -122,7 +119,6 @@ where
             let ray = super::wide::BoxRay::new(o, d);
             let hit = with_watertight_ray!(o, d, |wt| {
                 let level = Level {
-                    bvh: &proto.bvh,
                     triangles: &proto.triangles,
                     instance: id,
                     intersect: &|p: &[Vec3; 3], t_max: f32| wt.intersect(p, t_max),
@@ -138,28 +134,29 @@ where
     }
 }
 
-/// The wide BVH over `triangles`, the triangles in obvhs' CWBVH leaf order (the order
-/// [`super::triangle_key`] has always numbered them by, so keys and images do not
-/// change), and their bounds. The binary tree is built once; of obvhs' CWBVH only its
-/// order is computed ([`build::cwbvh_order`]).
+/// The wide BVH over `triangles`, the triangles stored in its leaf order and numbered
+/// by obvhs' CWBVH leaf order (the order [`super::triangle_key`] has always numbered
+/// them by, so keys and images do not change; see [`Triangles`]), and their bounds. The
+/// binary tree is built once; of obvhs' CWBVH only its order is computed
+/// ([`build::cwbvh_order`]).
 pub(super) fn triangle_bvh(
     triangles: &[TriangleRecord],
     stats: &mut BvhBuildStats,
-) -> (WideBvh, Vec<TriangleRecord>, Aabb) {
+) -> (WideBvh, Triangles, Aabb) {
     triangle_bvh_of(triangles.len(), &|i| triangles[i], stats)
 }
 
 /// [`triangle_bvh`] over the `count` triangles `record(0..count)`, read twice (once for
-/// the boxes, once in leaf order for the records kept) instead of from a slice: the
-/// caller needs no array of every triangle beside the one in leaf order, and the records
-/// are made only once the binary tree's temporaries are freed.
+/// the boxes, once in leaf order for the triangles kept) instead of from a slice: the
+/// caller needs no array of every triangle beside the stored ones, and those are made
+/// only once the binary tree's temporaries are freed.
 pub(super) fn triangle_bvh_of(
     count: usize,
     record: &impl Fn(usize) -> TriangleRecord,
     stats: &mut BvhBuildStats,
-) -> (WideBvh, Vec<TriangleRecord>, Aabb) {
+) -> (WideBvh, Triangles, Aabb) {
     if count == 0 {
-        return (WideBvh::default(), Vec::new(), Aabb::empty());
+        return (WideBvh::default(), Triangles::default(), Aabb::empty());
     }
     // The boxes obvhs' triangle builder would compute (`Triangle::aabb`), as PLOC leaves.
     let leaves: Vec<Bvh2Node> = (0..count)
@@ -176,10 +173,13 @@ pub(super) fn triangle_bvh_of(
     let bvh2 = build::leaves_bvh2(leaves, stats);
     let (order, position) = leaf_order(&bvh2);
     let bounds = *bvh2.nodes[0].aabb();
-    let wide = WideBvh::collapse(&bvh2, &position);
+    let mut wide = WideBvh::collapse(&bvh2, &position);
     drop((bvh2, position));
-    let ordered = order.iter().map(|&i| record(i as usize)).collect();
-    (wide, ordered, bounds)
+    // The leaves' entries, CWBVH positions leaf after leaf, become the stored order and
+    // the triangles' numbers; the leaves' ranges then index the stored triangles.
+    let ids = std::mem::take(&mut wide.prims);
+    let triangles = Triangles::gather(ids, |id| record(order[id as usize] as usize));
+    (wide, triangles, bounds)
 }
 
 /// obvhs' CWBVH leaf order of `bvh2`'s primitives, the order a level stores them in

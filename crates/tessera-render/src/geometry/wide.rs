@@ -18,12 +18,17 @@
 //! [`WideNode`] of 8 children is exactly four cache lines: the six bound arrays, then the
 //! child references).
 //!
-//! **Leaves** name the triangles' positions in the level's triangle array (obvhs' CWBVH
-//! leaf order, which [`super::triangle_key`] hashes, so keys and images do not change);
-//! the triangles themselves are tested by `watertight`'s scalar test, unchanged.
+//! **Leaves** are ranges `(first, count)` of [`WideBvh::prims`], the leaf contents in the
+//! order the collapse emits them. For instances and moving triangles the entries name
+//! instances and records; a level of triangles takes them over as its triangles' numbers
+//! and stores the triangles in that order ([`Triangles`]), so a leaf is the range of
+//! stored triangles itself and no index array is walked. The numbers are the triangles'
+//! positions in obvhs' CWBVH leaf order, which [`super::triangle_key`] hashes, so keys
+//! and images do not change; the triangles are tested by `watertight`'s scalar test,
+//! unchanged.
 //!
 //! **The hit is independent of the visit order.** A triangle hit replaces the best one
-//! when its `t` is smaller, or equal with a smaller key (the triangle index in a level of
+//! when its `t` is smaller, or equal with a smaller key (the triangle number in a level of
 //! world-space triangles; see [`Nearest`] and the `geometry` module docs for instances
 //! and moving triangles, whose leaves the same walk serves); boxes are pruned only
 //! beyond the best `t` plus a relative margin ([`box_limit`]) far wider than the rounding
@@ -33,7 +38,7 @@
 //! whatever order the children are visited in and whatever kernel tests the boxes: every
 //! kernel gives the same hit, bit for bit (ARCHITECTURE.md §2).
 
-use super::{triangle_key, Hit, Primitive, TriangleRecord};
+use super::{triangle_key, Hit, Primitive, TriangleAttributes, Triangles};
 use crate::math::gamma;
 use obvhs::bvh2::Bvh2;
 
@@ -54,7 +59,8 @@ pub(super) struct WideNode {
     pub(super) lo: [[f32; WIDTH]; 3],
     /// Upper bounds, per axis, per child.
     pub(super) hi: [[f32; WIDTH]; 3],
-    /// An interior child's node index, or a leaf's first entry in [`WideBvh::prims`].
+    /// An interior child's node index, or a leaf's first entry in [`WideBvh::prims`] (of
+    /// a level of triangles: its first stored triangle, see [`Triangles`]).
     pub(super) child: [u32; WIDTH],
     /// 0 for an interior child (or an unused slot), else the leaf's triangle count.
     pub(super) count: [u32; WIDTH],
@@ -74,7 +80,8 @@ impl WideNode {
 #[derive(Default)]
 pub(super) struct WideBvh {
     pub(super) nodes: Vec<WideNode>,
-    /// Leaf contents: positions in the level's triangle array.
+    /// Leaf contents, leaf after leaf: instances, moving triangles' records, or the
+    /// numbers of a level's triangles (empty once [`Triangles`] has taken them over).
     pub(super) prims: Vec<u32>,
     /// The most traversal stack entries any ray can need.
     stack_need: usize,
@@ -481,10 +488,12 @@ pub(super) trait Leaves {
 }
 
 /// The triangles of one level with the test each needs: `intersect(p, t_max)` is the
-/// watertight test of the ray, `keep` the filter of `Geometry::intersect_where`.
+/// watertight test of the ray, `keep` the filter of `Geometry::intersect_where`. A leaf
+/// `(first, count)` is the stored triangles `first..first + count` (see [`Triangles`]):
+/// the walk reads their positions, adjacent in one array, and a hit's number and
+/// attributes only once the test accepts it.
 pub(super) struct Level<'g, I, F> {
-    pub(super) bvh: &'g WideBvh,
-    pub(super) triangles: &'g [TriangleRecord],
+    pub(super) triangles: &'g Triangles,
     pub(super) instance: u32,
     pub(super) intersect: &'g I,
     pub(super) keep: &'g F,
@@ -493,25 +502,25 @@ pub(super) struct Level<'g, I, F> {
 impl<I, F> Leaves for Level<'_, I, F>
 where
     I: Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    F: Fn(&TriangleRecord, u64, f32, f32) -> bool,
+    F: Fn(&TriangleAttributes, u64, f32, f32) -> bool,
 {
     #[inline(always)]
     fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
         let first = first as usize;
-        for &id in &self.bvh.prims[first..first + count as usize] {
-            let tri = &self.triangles[id as usize];
-            let Some((t, _, b1, b2)) = (self.intersect)(&tri.p, best.bound()) else {
+        let leaf = self.triangles.positions_in(first..first + count as usize);
+        for (s, p) in (first..).zip(leaf) {
+            let Some((t, _, b1, b2)) = (self.intersect)(p, best.bound()) else {
                 continue;
             };
-            let key = triangle_key(self.instance, id);
-            if !best.beats(t, key) || !(self.keep)(tri, key, b1, b2) {
+            let key = triangle_key(self.instance, self.triangles.id(s));
+            if !best.beats(t, key) || !(self.keep)(self.triangles.attributes(s), key, b1, b2) {
                 continue;
             }
             best.set(
                 Hit {
                     t,
                     primitive: Primitive::Triangle {
-                        index: id,
+                        index: s as u32,
                         instance: self.instance,
                         b1,
                         b2,
@@ -527,10 +536,11 @@ where
         // A loop rather than `Iterator::any`, which LLVM may leave uninlined, outside
         // the kernel's `#[target_feature]` function.
         let first = first as usize;
-        for &id in &self.bvh.prims[first..first + count as usize] {
-            let tri = &self.triangles[id as usize];
-            if let Some((_, _, b1, b2)) = (self.intersect)(&tri.p, t_max) {
-                if (self.keep)(tri, triangle_key(self.instance, id), b1, b2) {
+        let leaf = self.triangles.positions_in(first..first + count as usize);
+        for (s, p) in (first..).zip(leaf) {
+            if let Some((_, _, b1, b2)) = (self.intersect)(p, t_max) {
+                let key = triangle_key(self.instance, self.triangles.id(s));
+                if (self.keep)(self.triangles.attributes(s), key, b1, b2) {
                     return true;
                 }
             }

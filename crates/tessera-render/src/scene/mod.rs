@@ -14,7 +14,7 @@ use crate::bsdf::{
 use crate::camera::CameraModel;
 use crate::geometry::{
     sphere_point, triangle_point, Geometry, Hit, InstanceRecord, Primitive, SphereRecord,
-    SurfacePoint, TriangleRecord, NO_INSTANCE, NO_LIGHT, NO_MESH,
+    SurfacePoint, TriangleAttributes, TriangleRecord, Triangles, NO_INSTANCE, NO_LIGHT, NO_MESH,
 };
 use crate::light::emission::{EmissionSample, WorldDisk};
 use crate::light::LightSample;
@@ -209,7 +209,14 @@ impl RenderScene {
     /// rather than the sampler, as pbrt-v4 does for alpha (Pharr, Jakob & Humphreys,
     /// 4th ed., section 7.1.1): deterministic, and the same for every ray that is the same
     /// ray, so shadow rays and camera rays agree.
-    fn transparent_at(&self, tri: &TriangleRecord, id: u64, b1: f32, b2: f32, key: u64) -> bool {
+    fn transparent_at(
+        &self,
+        tri: &TriangleAttributes,
+        id: u64,
+        b1: f32,
+        b2: f32,
+        key: u64,
+    ) -> bool {
         let Some(g) = self.materials[tri.material as usize].as_gltf() else {
             return false;
         };
@@ -306,12 +313,11 @@ impl RenderScene {
                 b2,
             } => {
                 if instance == NO_INSTANCE {
-                    let tri = &self.geometry.triangles[index as usize];
-                    self.triangle_surface(tri, b1, b2, None)
+                    self.triangle_surface(&self.geometry.triangles, index, b1, b2, None)
                 } else {
                     let inst = &self.geometry.instances[instance as usize];
                     let proto = &self.geometry.prototypes[inst.prototype as usize];
-                    self.triangle_surface(&proto.triangles[index as usize], b1, b2, Some(inst))
+                    self.triangle_surface(&proto.triangles, index, b1, b2, Some(inst))
                 }
             }
             Primitive::Moving {
@@ -344,23 +350,26 @@ impl RenderScene {
         }
     }
 
-    /// Surface data at barycentrics `(b1, b2)` of `tri`, which is in world space, or in
-    /// object space of the instance `inst`. For an instance the position and its error
+    /// Surface data at barycentrics `(b1, b2)` of stored triangle `index` of `level`, which
+    /// is in world space, or in object space of the instance `inst`. For an instance the position and its error
     /// bound are carried to world space (see [`transform_point`]), normals by the inverse
     /// transpose and tangents by the linear part, the bitangent sign flipped when the
     /// instance mirrors, so the result equals that of a flattened copy up to rounding.
     #[inline(always)]
     fn triangle_surface(
         &self,
-        tri: &TriangleRecord,
+        level: &Triangles,
+        index: u32,
         b1: f32,
         b2: f32,
         inst: Option<&InstanceRecord>,
     ) -> SurfacePoint {
         let b0 = 1.0 - b1 - b2;
-        let (mut p, mut p_error) = triangle_point(&tri.p, b0, b1, b2);
-        let mut ng = (tri.p[1] - tri.p[0])
-            .cross(tri.p[2] - tri.p[0])
+        let corners = level.positions(index as usize);
+        let tri = level.attributes(index as usize);
+        let (mut p, mut p_error) = triangle_point(&corners, b0, b1, b2);
+        let mut ng = (corners[1] - corners[0])
+            .cross(corners[2] - corners[0])
             .normalize_or(Vec3::Z);
         if let Some(inst) = inst {
             (p, p_error) = transform_point(inst, p, p_error);
@@ -404,7 +413,7 @@ impl RenderScene {
     #[inline(always)]
     fn shaded_point(
         &self,
-        tri: &TriangleRecord,
+        tri: &TriangleAttributes,
         p: Vec3,
         p_error: Vec3,
         ng: Vec3,
@@ -477,7 +486,7 @@ impl RenderScene {
             .motion_shading
             .as_ref()
             .expect("moving triangles have their shading");
-        let tri = &motion.records[r];
+        let tri = &motion.records[r].attributes();
         let p3 = motion.positions_at(r, time);
         let (s, u) = motion.segment_of(time);
         let b0 = 1.0 - b1 - b2;

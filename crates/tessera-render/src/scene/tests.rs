@@ -182,7 +182,7 @@ fn triangle_records_and_lights_follow_the_meshes() {
     assert_eq!(g.triangles.len(), scene.stored_triangle_count());
     let mut seen = std::collections::HashSet::new();
     let mut lit = 0;
-    for r in &g.triangles {
+    for r in g.triangles.iter() {
         let mesh = &scene.meshes[r.mesh as usize];
         let idx = mesh.indices[r.index as usize];
         assert_eq!(r.p, idx.map(|v| mesh.positions[v as usize]));
@@ -211,7 +211,7 @@ fn triangle_records_and_lights_follow_the_meshes() {
     assert_eq!(lit, triangle_lights);
     // Numbered in mesh order: the lights' vertices in order are the emitting records'
     // in (mesh, triangle) order.
-    let mut emitting: Vec<&TriangleRecord> =
+    let mut emitting: Vec<TriangleRecord> =
         g.triangles.iter().filter(|r| r.light != NO_LIGHT).collect();
     emitting.sort_by_key(|r| (r.mesh, r.index));
     for (k, r) in emitting.iter().enumerate() {

@@ -188,7 +188,9 @@ fn instanced_rays_hit_the_triangles_a_flattened_copy_does() {
         {
             if instance != NO_INSTANCE {
                 let rec = &ri.geometry.instances[instance as usize];
-                let tri = &ri.geometry.prototypes[rec.prototype as usize].triangles[index as usize];
+                let tri = ri.geometry.prototypes[rec.prototype as usize]
+                    .triangles
+                    .record(index as usize);
                 let (b1, b2) = (f64::from(b1), f64::from(b2));
                 let b0 = 1.0 - b1 - b2;
                 let p = tri.p.map(|v| v.as_dvec3());
