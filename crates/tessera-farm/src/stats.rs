@@ -232,19 +232,35 @@ fn robust_relative_variance(
     v: f64,
     mean_at: impl Fn(usize, usize) -> Option<f64>,
 ) -> f64 {
-    let (mut nsum, mut n) = (0.0f64, 0u32);
+    let m_3x3 = neighbourhood_mean(width, height, x, y, |qx, qy| {
+        mean_at(qx, qy).map(|qm| qm.max(0.0))
+    });
+    // The square of `sqrt(v) / scale`, in that order: the estimate's bits stay those of
+    // the relative error it always summed.
+    let rel = v.max(0.0).sqrt() / robust_scale(m, v, m_3x3);
+    rel * rel
+}
+
+/// The mean of `value` over the 3x3 neighbourhood of `(x, y)` (the neighbours with a
+/// value, the pixel included; 0 when none has one), summed row by row: the local image
+/// level the robust and bias scales compare a pixel's own mean with.
+fn neighbourhood_mean(
+    width: usize,
+    height: usize,
+    x: usize,
+    y: usize,
+    value: impl Fn(usize, usize) -> Option<f64>,
+) -> f64 {
+    let (mut sum, mut n) = (0.0f64, 0u32);
     for qy in y.saturating_sub(1)..(y + 2).min(height) {
         for qx in x.saturating_sub(1)..(x + 2).min(width) {
-            if let Some(qm) = mean_at(qx, qy) {
-                nsum += qm.max(0.0);
+            if let Some(q) = value(qx, qy) {
+                sum += q;
                 n += 1;
             }
         }
     }
-    // The square of `sqrt(v) / scale`, in that order: the estimate's bits stay those of
-    // the relative error it always summed.
-    let rel = v.max(0.0).sqrt() / robust_scale(m, v, nsum / f64::from(n.max(1)));
-    rel * rel
+    sum / f64::from(n.max(1))
 }
 
 /// `sqrt(sum / count)`, 0 for no pixels or a non-finite result.
@@ -471,16 +487,9 @@ pub fn image_relative_error_biased(
             let Some((m, v, b, vb)) = pixel(x, y) else {
                 continue;
             };
-            let (mut nsum, mut n) = (0.0f64, 0u32);
-            for qy in y.saturating_sub(1)..(y + 2).min(height) {
-                for qx in x.saturating_sub(1)..(x + 2).min(width) {
-                    if let Some(q) = pixel(qx, qy) {
-                        nsum += q.0;
-                        n += 1;
-                    }
-                }
-            }
-            let s = bias_scale(m, v, nsum / f64::from(n.max(1)), b, vb);
+            let m_3x3 =
+                neighbourhood_mean(width, height, x, y, |qx, qy| pixel(qx, qy).map(|q| q.0));
+            let s = bias_scale(m, v, m_3x3, b, vb);
             spread += v.max(0.0) / (s * s);
             bias += bias_squared(b, vb) / (s * s);
             count += 1;
@@ -520,16 +529,9 @@ pub fn image_relative_error_pooled_biased(
         out.clear();
         out.extend((0..width).map(|x| {
             let (m, v, k, b, vb) = pixel(x, y)?;
-            let (mut nsum, mut n) = (0.0f64, 0u32);
-            for qy in y.saturating_sub(1)..(y + 2).min(height) {
-                for qx in x.saturating_sub(1)..(x + 2).min(width) {
-                    if let Some(q) = pixel(qx, qy) {
-                        nsum += q.0;
-                        n += 1;
-                    }
-                }
-            }
-            let s = bias_scale(m, v, nsum / f64::from(n.max(1)), b, vb);
+            let m_3x3 =
+                neighbourhood_mean(width, height, x, y, |qx, qy| pixel(qx, qy).map(|q| q.0));
+            let s = bias_scale(m, v, m_3x3, b, vb);
             let s2 = s * s;
             Some((v.max(0.0) / s2 * f64::from(k), bias_squared(b, vb) / s2))
         }));
