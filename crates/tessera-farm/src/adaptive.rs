@@ -1064,13 +1064,7 @@ impl AdaptiveFrame {
             if let (Some(layer), Some(bias)) = (img.bias.as_mut(), tile.bias()) {
                 for (i, b) in bias.iter().enumerate() {
                     let p = (r.y0 as usize + i / rw) * w + r.x0 as usize + i % rw;
-                    // As `FrameAccumulator::image` writes them.
-                    let v = if b.passes >= 2 {
-                        b.variance_of_mean() as f32
-                    } else {
-                        0.0
-                    };
-                    layer[p] = [b.mean as f32, v];
+                    layer[p] = b.layers();
                 }
             }
         }

@@ -514,12 +514,7 @@ impl FrameAccumulator {
                 for (row, stats) in bias.chunks_exact(r.width.max(1) as usize).enumerate() {
                     let start = (r.y0 as usize + row) * w + r.x0 as usize;
                     for (i, b) in stats.iter().enumerate() {
-                        let v = if b.passes >= 2 {
-                            b.variance_of_mean() as f32
-                        } else {
-                            0.0
-                        };
-                        layer[start + i] = [b.mean as f32, v];
+                        layer[start + i] = b.layers();
                     }
                 }
             }

@@ -603,6 +603,18 @@ impl BiasStats {
         let n = f64::from(self.passes);
         self.m2 / (n * (n - 1.0))
     }
+
+    /// The pixel's `bias.Y` and `bias.variance.Y` layer values: the mean and the variance of
+    /// the mean, 0 for the variance with fewer than 2 passes (an EXR layer holds no
+    /// infinity). Every image of a biased render writes them so: uniform, adaptive, stored.
+    pub fn layers(&self) -> [f32; 2] {
+        let v = if self.passes >= 2 {
+            self.variance_of_mean() as f32
+        } else {
+            0.0
+        };
+        [self.mean as f32, v]
+    }
 }
 
 /// Luminance weights of linear Rec. 709 / sRGB primaries.

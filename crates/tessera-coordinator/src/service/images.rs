@@ -713,22 +713,11 @@ fn uniform(plan: &FramePlan, black: bool) -> UniformRows {
     }
 }
 
-/// A pixel's bias layers from its bias statistics, as `FrameAccumulator::image` writes
-/// them.
-fn bias_of(b: &BiasStats) -> [f32; 2] {
-    let v = if b.passes >= 2 {
-        b.variance_of_mean() as f32
-    } else {
-        0.0
-    };
-    [b.mean as f32, v]
-}
-
 /// The bias layers of the last `bias.len()` pixels of `out` (the tile's row just added).
 fn set_bias(out: &mut [Pixel], bias: &[BiasStats]) {
     let n = out.len();
     for (p, b) in out[n - bias.len()..].iter_mut().zip(bias) {
-        p.bias = bias_of(b);
+        p.bias = b.layers();
     }
 }
 
@@ -785,7 +774,7 @@ impl Rows {
                 let i = (ly * rw + lx) as usize;
                 let mut p = pixel_of(&tile.pixels()[i], samples);
                 if *biased {
-                    p.bias = tile.bias().map_or([0.0; 2], |b| bias_of(&b[i]));
+                    p.bias = tile.bias().map_or([0.0; 2], |b| b[i].layers());
                 }
                 p
             }
@@ -796,7 +785,7 @@ impl Rows {
                 let samples = traced[t][i].saturating_mul(plan.samples_per_pass);
                 let mut p = pixel_of(&tile.pixels()[i], samples);
                 if *biased {
-                    p.bias = tile.bias().map_or([0.0; 2], |b| bias_of(&b[i]));
+                    p.bias = tile.bias().map_or([0.0; 2], |b| b[i].layers());
                 }
                 p
             }

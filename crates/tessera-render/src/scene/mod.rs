@@ -667,25 +667,13 @@ impl RenderScene {
     }
 
     /// The lobe of the glTF material `g` if its [`RenderScene::gltf_params`] are the same
-    /// at every point of a mesh without vertex colours: unlit, or with no texture, no
-    /// normal map (which sets the diffuse gain per point) and no anisotropy (whose
-    /// direction follows the tangent). Those are computed once, here, by the very function
-    /// a hit would call (a missing texture reads as one, `x * 1.0 == x`).
+    /// at every point of a mesh without vertex colours: unlit, or with no texture at all
+    /// ([`GltfMaterial::textures`], so a texture slot added there is never missed; the
+    /// normal map sets the diffuse gain per point) and no anisotropy (whose direction
+    /// follows the tangent). Those are computed once, here, by the very function a hit
+    /// would call (a missing texture reads as one, `x * 1.0 == x`).
     fn constant_gltf_lobe(&self, g: &GltfMaterial) -> Option<GltfBsdf> {
-        let textured = [
-            &g.base_color_texture,
-            &g.metallic_roughness_texture,
-            &g.specular_texture,
-            &g.specular_color_texture,
-            &g.transmission_texture,
-            &g.clearcoat_texture,
-            &g.clearcoat_roughness_texture,
-            &g.sheen_color_texture,
-            &g.sheen_roughness_texture,
-        ]
-        .iter()
-        .any(|t| t.is_some());
-        if !g.unlit && (textured || g.normal_map.is_some() || g.anisotropy.is_some()) {
+        if !g.unlit && (g.textures().next().is_some() || g.anisotropy.is_some()) {
             return None;
         }
         let anywhere = SurfacePoint {
