@@ -4,7 +4,7 @@
 //! its frame at the ray's time.
 
 use crate::common::{assert_blocks_agree, block_passes, block_stats, z_critical, Rng};
-use crate::instancing::lumpy_box;
+use crate::instancing::{floor, lumpy_box};
 use glam::{Affine3A, Quat, Vec3};
 use tessera_farm::FramePlan;
 use tessera_render::geometry::{Hit, Primitive, SurfacePoint, NO_INSTANCE};
@@ -79,21 +79,7 @@ fn transforms() -> Vec<Affine3A> {
 /// A grey floor and nine instances of [`brushed_box`] of anisotropy `strength`, lit by a
 /// point light and a dim environment.
 fn instanced(strength: f32) -> Scene {
-    let floor = Mesh {
-        name: "floor".into(),
-        positions: vec![
-            Vec3::new(-4.0, 0.0, -4.0),
-            Vec3::new(4.0, 0.0, -4.0),
-            Vec3::new(4.0, 0.0, 4.0),
-            Vec3::new(-4.0, 0.0, 4.0),
-        ],
-        normals: None,
-        uvs: vec![],
-        colors: None,
-        tangents: None,
-        indices: vec![[0, 2, 1], [0, 3, 2]],
-        material: 0,
-    };
+    let floor = floor(4.0);
     Scene {
         name: "brushed boxes".into(),
         camera: look_at_camera(

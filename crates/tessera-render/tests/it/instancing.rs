@@ -71,15 +71,15 @@ fn transforms() -> Vec<Affine3A> {
         .collect()
 }
 
-/// A floor and 16 instances of [`lumpy_box`], lit by a point light and an environment.
-fn instanced() -> Scene {
-    let floor = Mesh {
+/// A square floor of material 0 at `y = 0`, `half` on each side of the origin, facing up.
+pub(crate) fn floor(half: f32) -> Mesh {
+    Mesh {
         name: "floor".into(),
         positions: vec![
-            Vec3::new(-5.0, 0.0, -5.0),
-            Vec3::new(5.0, 0.0, -5.0),
-            Vec3::new(5.0, 0.0, 5.0),
-            Vec3::new(-5.0, 0.0, 5.0),
+            Vec3::new(-half, 0.0, -half),
+            Vec3::new(half, 0.0, -half),
+            Vec3::new(half, 0.0, half),
+            Vec3::new(-half, 0.0, half),
         ],
         normals: None,
         uvs: vec![],
@@ -87,7 +87,12 @@ fn instanced() -> Scene {
         colors: None,
         indices: vec![[0, 2, 1], [0, 3, 2]],
         material: 0,
-    };
+    }
+}
+
+/// A floor and 16 instances of [`lumpy_box`], lit by a point light and an environment.
+fn instanced() -> Scene {
+    let floor = floor(5.0);
     Scene {
         name: "instanced boxes".into(),
         camera: look_at_camera(Vec3::new(0.0, 6.0, 9.0), Vec3::ZERO, Vec3::Y, 45.0),

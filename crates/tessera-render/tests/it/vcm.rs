@@ -658,12 +658,7 @@ fn caustic_estimate_with_the_bias_term_is_calibrated() {
             let estimate = img
                 .error_estimate(tessera_farm::ErrorEstimator::Robust)
                 .unwrap();
-            let spread = FrameImage {
-                bias: None,
-                ..img.clone()
-            }
-            .error_estimate(tessera_farm::ErrorEstimator::Robust)
-            .unwrap();
+            let spread = spread_alone(&img, tessera_farm::ErrorEstimator::Robust);
             let measured = measured_against(&img, &reference);
             eprintln!(
                 "caustic 32x32 {integrator} seed {seed}: estimate {estimate:.4} (spread alone \
@@ -739,12 +734,7 @@ fn adaptive_caustic_ratios(seeds: &[u64]) -> Vec<(Integrator, AdaptiveMode, (f64
                     "{integrator} {mode}: the frame says {}, its image {estimate}",
                     out.frame.image_error()
                 );
-                let spread = FrameImage {
-                    bias: None,
-                    ..img.clone()
-                }
-                .error_estimate(estimator)
-                .unwrap();
+                let spread = spread_alone(&img, estimator);
                 let measured = measured_against(&img, &reference);
                 let (mean_spp, _, _) = out.frame.samples_per_pixel();
                 eprintln!(
@@ -823,12 +813,7 @@ fn caustic_bias_term_table() {
                     let estimate = img
                         .error_estimate(tessera_farm::ErrorEstimator::Robust)
                         .unwrap();
-                    let spread = FrameImage {
-                        bias: None,
-                        ..img.clone()
-                    }
-                    .error_estimate(tessera_farm::ErrorEstimator::Robust)
-                    .unwrap();
+                    let spread = spread_alone(&img, tessera_farm::ErrorEstimator::Robust);
                     rows.push((estimate, spread, measured_against(&img, &reference)));
                 }
                 let rms = |f: fn(&(f64, f64, f64)) -> f64| {
@@ -877,6 +862,17 @@ fn caustic_reference() -> Vec<(f64, f64)> {
             )
         })
         .collect()
+}
+
+/// The image's error estimate from the pass spread alone: its bias layers dropped, so
+/// what the bias term adds can be seen beside it.
+fn spread_alone(img: &FrameImage, estimator: tessera_farm::ErrorEstimator) -> f64 {
+    FrameImage {
+        bias: None,
+        ..img.clone()
+    }
+    .error_estimate(estimator)
+    .unwrap()
 }
 
 /// The calibration suite's measured error: the RMS over pixels of the luminance error
