@@ -210,8 +210,10 @@ fn a_worker_cut_off_past_its_lease_is_re_leased_and_its_late_results_are_compare
 fn a_slow_lossy_link_still_gives_the_local_image() {
     let Some(h) = hosts("lossy") else { return };
     let dir = temp_dir("netns", "lossy");
-    // 16 tiles x 4 passes: 64 units, each crossing the bad link twice.
-    let mut s = cornell_job(64, 64, 256);
+    // 16 tiles x 4 passes: 64 units, each crossing the bad link twice. 1024 samples per
+    // pixel keep the healthy worker busy for seconds, long enough for the degraded one
+    // (whose every request may wait out a retransmission) to take some of the job.
+    let mut s = cornell_job(64, 64, 1024);
     s.tile_size = 16;
     let reference = local_render(&dir, &s);
     let how = h
@@ -221,7 +223,15 @@ fn a_slow_lossy_link_still_gives_the_local_image() {
     let (c, _workers) = farm(&h, &dir, &[]);
     let http = &c.http;
     let id = Hosts::within(&h.coordinator, || {
-        Client::new(http, None).submit(&s, None).unwrap().id
+        let client = Client::new(http, None);
+        // The job is submitted once both workers have registered: w0 registers across the
+        // bad link (a lost SYN waits a second to be sent again), and a job submitted
+        // before could be rendered by w1 alone, which proves nothing about the link.
+        poll("both workers to register", TIMEOUT, || {
+            let w = client.workers().unwrap().workers;
+            w.len() == 2
+        });
+        client.submit(&s, None).unwrap().id
     });
     let metrics = finish(&c, &h, &s, id, &reference);
     let stats = h.degradation_stats(0);
