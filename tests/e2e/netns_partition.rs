@@ -210,9 +210,9 @@ fn a_worker_cut_off_past_its_lease_is_re_leased_and_its_late_results_are_compare
 fn a_slow_lossy_link_still_gives_the_local_image() {
     let Some(h) = hosts("lossy") else { return };
     let dir = temp_dir("netns", "lossy");
-    // 16 tiles x 4 passes: 64 units, each crossing the bad link twice. 1024 samples per
-    // pixel keep the healthy worker busy for seconds, long enough for the degraded one
-    // (whose every request may wait out a retransmission) to take some of the job.
+    // 16 tiles x 16 passes of 64: 256 units, each crossing the bad link twice. 1024
+    // samples per pixel keep the healthy worker busy for seconds, long enough for the
+    // degraded one (whose every request may wait out a retransmission) to take some.
     let mut s = cornell_job(64, 64, 1024);
     s.tile_size = 16;
     let reference = local_render(&dir, &s);
