@@ -416,6 +416,10 @@ struct Calibration {
     measured: f64,
     /// Degrees of freedom of a pixel's own estimate, `K - 1`.
     dof: u32,
+    /// The image estimates of [`level_estimates`].
+    levels: [f64; LEVELS],
+    /// Pixels with at least one counted channel (the own coverage's independent units).
+    pixels: usize,
 }
 
 fn calibrate(name: &str, scene: &str, spp: u32, seed: u64, integrator: Integrator) -> Calibration {
@@ -442,16 +446,18 @@ fn calibrate_plan(
     let pooled_3x3 = pooled_variance(&img, 1);
     let pooled_5x5 = pooled_variance(&img, 2);
     let (mut inside, mut inside_pooled, mut counted) = (0usize, 0usize, 0usize);
-    let (mut inside_5x5, mut inside_2sigma) = (0usize, 0usize);
+    let (mut inside_5x5, mut inside_2sigma, mut pixels) = (0usize, 0usize, 0usize);
     for (p, pooled) in pooled.iter().enumerate() {
         // The library's widening for the pooled degrees of freedom.
         let widen = (tessera_farm::interval_quantile(u64::from(pooled_3x3[p].1)) / 2.0).powi(2);
+        let mut counted_here = false;
         for (c, &pooled) in pooled.iter().enumerate() {
             let vr = f64::from(r.variance_of_mean[p][c]);
             let v = f64::from(img.variance_of_mean[p][c]);
             if v + vr == 0.0 {
                 continue;
             }
+            counted_here = true;
             // The helper reproduces the library's 3x3 pooling (to f32 rounding).
             let own = pooled_3x3[p].0[c];
             assert!(
@@ -465,6 +471,7 @@ fn calibrate_plan(
             inside_2sigma += usize::from(d <= 2.0 * (own + vr).sqrt());
             inside_5x5 += usize::from(d <= 2.0 * (pooled_5x5[p].0[c] + vr).sqrt());
         }
+        pixels += usize::from(counted_here);
     }
     let estimated = img.error_estimate(ErrorEstimator::Robust).unwrap();
     let own_estimated = (img
@@ -485,6 +492,158 @@ fn calibrate_plan(
         own_estimated,
         measured,
         dof: plan.passes - 1,
+        levels: level_estimates(&img),
+        pixels,
+    }
+}
+
+/// The image estimates [`level_table`] compares, in the order of [`LEVEL_NAMES`].
+const LEVELS: usize = 5;
+/// Column names of [`level_table`]: the two library estimators, then the robust
+/// estimate with neighbourhood levels that leave the pixel out ([`level_estimates`]).
+const LEVEL_NAMES: [&str; LEVELS] = [
+    "robust (level m_3x3)",
+    "pooled per pass (m_3x3)",
+    "level m_8",
+    "level max(m_8, m / 9)",
+    "pooled per pass, max(m_8, m / 9)",
+];
+
+/// Image estimates of `img` (every pixel with at least 2 passes) with other neighbourhood
+/// levels in the robust scale: the library's robust and pooled per-pass estimates, and the
+/// same with `m_3x3` (the 3x3 mean, the pixel included) replaced by the mean of the
+/// pixel's neighbours without it, `m_8`, alone and floored at `m / 9`.
+///
+/// Why leave the pixel out: a pixel whose pass caught a rare bright path raises `m_3x3` by
+/// a ninth of its own catch, so the scale it is divided by grows with its own error and
+/// its relative error is understated; the neighbours' passes are independent of its own,
+/// so `m_8` is not. The floor `m / 9` is what `m_3x3` gave where every neighbour is black:
+/// with it the scale is never above the library's (the estimate never lower) and a
+/// pixel's relative error never above 9 times its own `rel`.
+fn level_estimates(img: &FrameImage) -> [f64; LEVELS] {
+    let (w, h) = (img.width as usize, img.height as usize);
+    let px: Vec<(f64, f64, f64)> = (0..w * h)
+        .map(|p| {
+            let m = lum(img.mean[p]);
+            let se = f64::from(img.relative_error[p]) * (m.max(0.0) + REL_EPS);
+            (m, se * se, f64::from(img.passes[p]))
+        })
+        .collect();
+    let around = |x: usize, y: usize| {
+        let rows = y.saturating_sub(1)..(y + 2).min(h);
+        rows.flat_map(move |qy| (x.saturating_sub(1)..(x + 2).min(w)).map(move |qx| qy * w + qx))
+    };
+    let m8: Vec<f64> = (0..w * h)
+        .map(|p| {
+            let (sum, n) = around(p % w, p / w)
+                .filter(|&q| q != p)
+                .fold((0.0, 0.0), |(s, n), q| (s + px[q].0.max(0.0), n + 1.0));
+            sum / f64::max(n, 1.0)
+        })
+        .collect();
+    let rel2 = |p: usize, level: f64| {
+        let (m, v, _) = px[p];
+        (v.sqrt() / tessera_farm::robust_scale(m, v, level)).powi(2)
+    };
+    let floored = |p: usize| m8[p].max(px[p].0.max(0.0) / 9.0);
+    let rms = |f: &dyn Fn(usize) -> f64| ((0..w * h).map(f).sum::<f64>() / (w * h) as f64).sqrt();
+    // Per-pass relative variance with the floored level, pooled over 3x3 as
+    // `image_relative_error_pooled` pools it.
+    let q: Vec<f64> = (0..w * h).map(|p| px[p].2 * rel2(p, floored(p))).collect();
+    let pooled = |p: usize| {
+        let (sum, n) = around(p % w, p / w).fold((0.0, 0.0), |(s, n), r| (s + q[r], n + 1.0));
+        sum / n / px[p].2
+    };
+    [
+        img.error_estimate(ErrorEstimator::Robust).unwrap(),
+        img.error_estimate(ErrorEstimator::PooledPerPass).unwrap(),
+        rms(&|p| rel2(p, m8[p])),
+        rms(&|p| rel2(p, floored(p))),
+        rms(&pooled),
+    ]
+}
+
+/// How far above Student's t prediction `t` a pixel's own 2-sigma coverage of one render
+/// may lie: 3 standard deviations of a coverage fraction over `pixels` independent pixels,
+/// `3 sqrt(t (1 - t) / pixels)`.
+///
+/// Why this bounds the spread: different pixels' passes are independent (their scrambles
+/// are seeded per pixel, ARCHITECTURE.md §3), and a pixel's three channels, which share its
+/// samples, cover together at worst (their mean indicator then has the variance
+/// `p (1 - p)` of one); pixels covering with different probabilities `p_i` of mean `t`
+/// have `Σ p_i (1 - p_i) <= n t (1 - t)` (concavity). So the fraction's standard
+/// deviation is at most `sqrt(t (1 - t) / n)`: 1.43% at `K = 2` (t_1: 70.48%), 1.08% at
+/// `K = 4` and 0.77% at `K = 16` over 1024 pixels, whence a tolerance of 4.3%, 3.2% and
+/// 2.3% (a fixed 3% held 4 passes and was exceeded by one degree of freedom's spread).
+/// Measured over seeds 8-15 on the path-traced suite (`level_table`): 0.5-1.9% at `K = 2`,
+/// 0.5-1.6% at `K = 4`, within the bound's sampling error for 8 seeds. Not for light
+/// tracing: bdpt's light subpaths splat onto many pixels, which correlates them (2.0-2.1%
+/// on the caustic); the suite checks bdpt at 4 or more passes.
+fn own_coverage_tolerance(t: f64, pixels: usize) -> f64 {
+    3.0 * (t * (1.0 - t) / pixels.max(1) as f64).sqrt()
+}
+
+/// The plans of [`level_table`], `(spp, passes)`: the pass-count table's budgets as 4 and 2
+/// passes, and the suite's 1024 spp as `FramePlan::for_spp` plans it.
+const LEVEL_PLANS: [(u32, u32); 7] = [
+    (16, 4),
+    (16, 2),
+    (64, 4),
+    (64, 2),
+    (256, 4),
+    (256, 2),
+    (1024, 16),
+];
+
+/// The measurement behind the robust scale's level at 2 passes (docs/benchmarks.md,
+/// "Sampling structure", 2026-12-06 evening): per scene and plan, each estimate of
+/// [`level_estimates`] over the measured image error, root mean square over seeds 8-15
+/// and, in brackets, over the suite's seeds 8-11; then a pixel's own 2-sigma coverage
+/// over the 8 seeds (mean, standard deviation, range), what Student's t for `K - 1`
+/// predicts, and [`own_coverage_tolerance`] for the first seed's counted pixels.
+/// `TESSERA_CALIBRATION_SPP` (comma-separated) selects plans by spp.
+#[test]
+#[ignore = "prints the level table (about 6 minutes; `TESSERA_CALIBRATION_SCENES`, `TESSERA_CALIBRATION_INTEGRATORS` and `TESSERA_CALIBRATION_SPP` select rows)"]
+fn level_table() {
+    let only_spp = std::env::var("TESSERA_CALIBRATION_SPP").unwrap_or_default();
+    eprintln!(
+        "| scene | spp | K x S | {} | own coverage, mean | sd | min-max | t | tolerance |",
+        LEVEL_NAMES.join(" | ")
+    );
+    for (name, scene, integrator, label) in table_rows() {
+        for (spp, passes) in LEVEL_PLANS {
+            if !only_spp.is_empty() && !only_spp.split(',').any(|s| s == spp.to_string()) {
+                continue;
+            }
+            let plan = FramePlan::new(W, H, 8, spp / passes, passes).unwrap();
+            let cs: Vec<Calibration> = (8..16)
+                .map(|seed| calibrate_plan(name, scene, plan, seed, integrator))
+                .collect();
+            let ratio = |cs: &[Calibration], i: usize| {
+                let e2: f64 = cs.iter().map(|c| c.levels[i].powi(2)).sum();
+                let m2: f64 = cs.iter().map(|c| c.measured.powi(2)).sum();
+                (e2 / m2).sqrt()
+            };
+            let ratios: Vec<String> = (0..LEVELS)
+                .map(|i| format!("{:.3} ({:.3})", ratio(&cs, i), ratio(&cs[..4], i)))
+                .collect();
+            let n = cs.len() as f64;
+            let mean = cs.iter().map(|c| c.coverage).sum::<f64>() / n;
+            let var = cs.iter().map(|c| (c.coverage - mean).powi(2)).sum::<f64>() / (n - 1.0);
+            let (lo, hi) = range(&cs, |c| c.coverage);
+            let t = t_coverage(passes - 1);
+            eprintln!(
+                "| {label} | {spp} | {passes} x {} | {} | {:.2}% | {:.2}% | {:.2}-{:.2}% | {:.2}% | {:.2}% |",
+                spp / passes,
+                ratios.join(" | "),
+                100.0 * mean,
+                100.0 * var.sqrt(),
+                100.0 * lo,
+                100.0 * hi,
+                100.0 * t,
+                100.0 * own_coverage_tolerance(t, cs[0].pixels),
+            );
+        }
     }
 }
 
@@ -573,8 +732,9 @@ const CALIBRATED: [(f64, f64); 3] = [(0.8, 1.25); 3];
 
 /// The suite's check of one scene at the three budgets: for the first seed, the
 /// 3x3-pooled interval covers within `min_pooled..=0.97`, and a pixel's own interval
-/// covers at most what Student's t for `K - 1` degrees of freedom predicts (plus 0.03),
-/// and at most 0.15 less (short passes are skewed: a pixel whose passes missed rare bright
+/// covers at most what Student's t for `K - 1` degrees of freedom predicts (plus three
+/// standard deviations of a coverage fraction, [`own_coverage_tolerance`]: correlated
+/// passes would cover more), and at most 0.15 less (short passes are skewed: a pixel whose passes missed rare bright
 /// paths has both a low mean and a low variance, 74% against t's 86% at 64 spp on the
 /// caustic and the indirect room); over all seeds, the image estimate is within its range
 /// of the measured error.
@@ -607,9 +767,10 @@ fn suite_check(name: &str, expect: Expect) {
                 "{name} {spp} spp: pooled coverage {}",
                 c.coverage_pooled
             );
+            let above = own_coverage_tolerance(t, c.pixels);
             assert!(
-                (t - 0.15..=t + 0.03).contains(&c.coverage),
-                "{name} {spp} spp: own coverage {} against t {t}",
+                (t - 0.15..=t + above).contains(&c.coverage),
+                "{name} {spp} spp: own coverage {} against t {t} (at most {above} above)",
                 c.coverage
             );
         }
@@ -881,7 +1042,7 @@ fn adaptive_calibration(name: &str, target: f64, seeds: &[u64]) -> (f64, f64) {
     let r = suite_reference_sized(name, edge, edge);
     let rs = suite_scene_sized(scene, edge, edge);
     let plan = tessera_farm::adaptive_plan(edge, edge, 16384, 32).unwrap();
-    let (mut pooled2, mut plain2, mut measured2) = (0.0, 0.0, 0.0);
+    let (mut pooled2, mut plain2, mut measured2, mut level2) = (0.0, 0.0, 0.0, 0.0);
     for &seed in seeds {
         let s = AdaptiveSettings {
             mode: AdaptiveMode::Unbiased,
@@ -904,14 +1065,22 @@ fn adaptive_calibration(name: &str, target: f64, seeds: &[u64]) -> (f64, f64) {
         );
         let plain = img.error_estimate(ErrorEstimator::Robust).unwrap();
         let measured = measured_error(&img, &r);
+        // The pooled estimate with the level that leaves the pixel out (`level_table`).
+        let level = level_estimates(&img)[LEVELS - 1];
         eprintln!(
             "adaptive calibration {name} unbiased {target} seed {seed}: pooled {pooled:.4}, \
-             plain {plain:.4}, measured {measured:.4}"
+             plain {plain:.4}, pooled with max(m_8, m / 9) {level:.4}, measured {measured:.4}"
         );
+        level2 += level * level;
         pooled2 += pooled * pooled;
         plain2 += plain * plain;
         measured2 += measured * measured;
     }
+    eprintln!(
+        "adaptive calibration {name} unbiased {target}: pooled with max(m_8, m / 9) {:.3} of \
+         the measured error",
+        (level2 / measured2).sqrt()
+    );
     ((pooled2 / measured2).sqrt(), (plain2 / measured2).sqrt())
 }
 
