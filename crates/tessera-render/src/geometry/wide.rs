@@ -38,7 +38,7 @@
 //! whatever order the children are visited in and whatever kernel tests the boxes: every
 //! kernel gives the same hit, bit for bit (ARCHITECTURE.md §2).
 
-use super::{triangle_key, Hit, Primitive, TriangleAttributes, Triangles};
+use super::{triangle_key, Hit, HitTriangle, Primitive, Triangles};
 use crate::math::gamma;
 use obvhs::bvh2::Bvh2;
 
@@ -502,7 +502,7 @@ pub(super) struct Level<'g, I, F> {
 impl<I, F> Leaves for Level<'_, I, F>
 where
     I: Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    F: Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+    F: Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
 {
     #[inline(always)]
     fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
@@ -513,7 +513,9 @@ where
                 continue;
             };
             let key = triangle_key(self.instance, self.triangles.id(s));
-            if !best.beats(t, key) || !(self.keep)(self.triangles.attributes(s), key, b1, b2) {
+            if !best.beats(t, key)
+                || !(self.keep)(HitTriangle::Stored(self.triangles, s), key, b1, b2)
+            {
                 continue;
             }
             best.set(
@@ -540,7 +542,7 @@ where
         for (s, p) in (first..).zip(leaf) {
             if let Some((_, _, b1, b2)) = (self.intersect)(p, t_max) {
                 let key = triangle_key(self.instance, self.triangles.id(s));
-                if (self.keep)(self.triangles.attributes(s), key, b1, b2) {
+                if (self.keep)(HitTriangle::Stored(self.triangles, s), key, b1, b2) {
                     return true;
                 }
             }
