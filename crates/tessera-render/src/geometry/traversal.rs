@@ -109,6 +109,13 @@ where
         }
     }
 
+    /// The top level's own stack: each instance's prototype is walked, with the
+    /// triangles' stack, inside this walk.
+    #[inline(always)]
+    fn stack() -> &'static std::thread::LocalKey<std::cell::Cell<Vec<(u32, f32)>>> {
+        &super::wide::TOP_STACK
+    }
+
     #[inline(always)]
     fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool {
         let first = first as usize;
