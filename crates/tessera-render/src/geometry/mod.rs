@@ -147,8 +147,10 @@ pub struct TriangleAttributes {
 /// give the attributes of every place: within a run the mesh and material are the same
 /// and the index and light count up by one with the place. A mesh is one run (an
 /// emissive mesh one more for each degenerate triangle, which is no light), so the runs
-/// are a handful for a scene and [`Triangles::attributes`] is a short binary search, done
-/// after the walk or when the alpha filter asks, never for a box or triangle test
+/// are a handful for a scene, and [`Triangles::attributes`] finds a place's run by a
+/// table of blocks of places (usually one read, else a binary search over the runs of
+/// one block), after the walk or when the alpha filter asks, never for a box or
+/// triangle test
 /// (docs/benchmarks.md, "Attributes from the triangle's place").
 #[derive(Default)]
 pub struct Triangles {
@@ -161,6 +163,13 @@ pub struct Triangles {
     places: Vec<u32>,
     /// The attributes of the places, run by run, in order of their first place.
     runs: Vec<AttributeRun>,
+    /// Per block of `1 << block_shift` places, the run holding the block's first place,
+    /// and one entry more (the last run): a place's run is among
+    /// `runs[blocks[b]..=blocks[b + 1]]` of its block `b`, usually the first, so the
+    /// look-up after a hit is a table read and not a binary search over every run.
+    blocks: Vec<u32>,
+    /// The places per block, as a power of two: about two blocks a run.
+    block_shift: u32,
 }
 
 /// Consecutive places of a level's build order (see [`Triangles`]) whose attributes are
@@ -230,11 +239,30 @@ impl Triangles {
         let positions = places.iter().map(|&i| position(i as usize)).collect();
         let mut runs = runs.0;
         runs.shrink_to_fit();
+        // The fewest places per block that leave at most two blocks a run.
+        let count = order.len() as u64;
+        let mut block_shift = 0;
+        while (count >> block_shift) + 1 > 2 * runs.len() as u64 {
+            block_shift += 1;
+        }
+        let block_count = (count >> block_shift) as usize + 1;
+        let mut blocks = Vec::with_capacity(block_count + 1);
+        let mut r = 0;
+        for b in 0..block_count {
+            let first = (b as u64) << block_shift;
+            while r + 1 < runs.len() && u64::from(runs[r + 1].start) <= first {
+                r += 1;
+            }
+            blocks.push(r as u32);
+        }
+        blocks.push(runs.len().saturating_sub(1) as u32);
         Self {
             positions,
             ids,
             places,
             runs,
+            blocks,
+            block_shift,
         }
     }
 
@@ -267,9 +295,16 @@ impl Triangles {
     #[inline(always)]
     pub fn attributes(&self, s: usize) -> TriangleAttributes {
         let place = self.places[s];
-        // The first run starts at place 0, so the run holding `place` is the last one
-        // starting at or before it.
-        let r = &self.runs[self.runs.partition_point(|r| r.start <= place) - 1];
+        let b = (place >> self.block_shift) as usize;
+        let (lo, hi) = (self.blocks[b] as usize, self.blocks[b + 1] as usize);
+        // The run holding `place` is the last one starting at or before it; the block's
+        // first run starts at or before the block, so it is at least that one.
+        let r = if lo == hi || self.runs[lo + 1].start > place {
+            &self.runs[lo]
+        } else {
+            let within = &self.runs[lo + 1..=hi];
+            &within[within.partition_point(|r| r.start <= place) - 1]
+        };
         r.at(place - r.start)
     }
 
@@ -307,6 +342,7 @@ impl Triangles {
             + std::mem::size_of_val(self.ids.as_slice())
             + std::mem::size_of_val(self.places.as_slice())
             + std::mem::size_of_val(self.runs.as_slice())
+            + std::mem::size_of_val(self.blocks.as_slice())
     }
 }
 
