@@ -130,41 +130,139 @@ pub struct TriangleAttributes {
 /// One level's triangles (the world-space ones, or a prototype's) stored in the leaf
 /// order of the level's wide BVH, so that a leaf is a contiguous range of them, and split
 /// by who reads what: the positions, all the watertight test reads (Woop, Benthin & Wald
-/// 2013, §3), in one array, the attributes and the triangle's number in a second and
-/// third, read only at a hit. A leaf's triangles are then adjacent 36-byte records instead
-/// of 52-byte ones reached through an index array (docs/benchmarks.md, "Leaf-ordered
-/// triangles").
+/// 2013, §3), in one array, and two numbers per triangle read only at a hit. A leaf's
+/// triangles are then adjacent 36-byte records instead of 52-byte ones reached through
+/// an index array (docs/benchmarks.md, "Leaf-ordered triangles").
 ///
 /// **Numbers.** Stored triangle `s` keeps the number it had when the triangles were
 /// stored in obvhs' CWBVH leaf order ([`Triangles::id`]): ties between equal hit
 /// distances go to the lower number and the alpha filter hashes it
 /// ([`triangle_key`]), so hits and images are those of that order. [`Primitive::Triangle`]
 /// names the stored position `s`.
+///
+/// **Attributes without an array of them.** The mesh, index, material and light of a
+/// triangle are not stored per triangle (16 bytes each): the level keeps, per stored
+/// triangle, its place in the order the level was built from (4 bytes: a scene's meshes
+/// one after the other, each triangle in its mesh's order), and [`AttributeRun`]s that
+/// give the attributes of every place: within a run the mesh and material are the same
+/// and the index and light count up by one with the place. A mesh is one run (an
+/// emissive mesh one more for each degenerate triangle, which is no light), so the runs
+/// are a handful for a scene, and [`Triangles::attributes`] finds a place's run by a
+/// table of blocks of places (usually one read, else a binary search over the runs of
+/// one block), after the walk or when the alpha filter asks, never for a box or
+/// triangle test
+/// (docs/benchmarks.md, "Attributes from the triangle's place").
 #[derive(Default)]
 pub struct Triangles {
     /// The corners of triangle `s`, in leaf order.
     positions: Vec<[Vec3; 3]>,
-    /// Its mesh, index, material and light.
-    attributes: Vec<TriangleAttributes>,
     /// Its number for [`triangle_key`].
     ids: Vec<u32>,
+    /// Its place in the level's build order, which [`Triangles::runs`] map to its
+    /// attributes.
+    places: Vec<u32>,
+    /// The attributes of the places, run by run, in order of their first place.
+    runs: Vec<AttributeRun>,
+    /// Per block of `1 << block_shift` places, the run holding the block's first place,
+    /// and one entry more (the last run): a place's run is among
+    /// `runs[blocks[b]..=blocks[b + 1]]` of its block `b`, usually the first, so the
+    /// look-up after a hit is a table read and not a binary search over every run.
+    blocks: Vec<u32>,
+    /// The places per block, as a power of two: about two blocks a run.
+    block_shift: u32,
+}
+
+/// Consecutive places of a level's build order (see [`Triangles`]) whose attributes are
+/// `first` at place `start` and follow from it by [`AttributeRun::at`] at the places after.
+#[derive(Clone, Copy, Debug)]
+struct AttributeRun {
+    /// The first place of the run.
+    start: u32,
+    /// The attributes at `start`.
+    first: TriangleAttributes,
+}
+
+impl AttributeRun {
+    /// The attributes `k` places after the run's start: the same mesh and material, the
+    /// index and (if the first place is a light) the light `k` further on. Wrapping
+    /// additions, so the run's extent is decided by comparing this with the input
+    /// ([`AttributeRuns::push`]) and no input can make it differ from what was given.
+    #[inline(always)]
+    fn at(&self, k: u32) -> TriangleAttributes {
+        let a = self.first;
+        TriangleAttributes {
+            mesh: a.mesh,
+            index: a.index.wrapping_add(k),
+            material: a.material,
+            light: if a.light == NO_LIGHT {
+                NO_LIGHT
+            } else {
+                a.light.wrapping_add(k)
+            },
+        }
+    }
+}
+
+/// The runs of a level's build order, made place by place (in order) while the boxes
+/// are read.
+#[derive(Default)]
+pub(super) struct AttributeRuns(Vec<AttributeRun>);
+
+impl AttributeRuns {
+    /// Adds place `place` (one after the last added) with attributes `a`: the last run
+    /// goes on if it gives `a` there, else a run starts.
+    #[inline]
+    pub(super) fn push(&mut self, place: u32, a: TriangleAttributes) {
+        if let Some(r) = self.0.last() {
+            if r.at(place - r.start) == a {
+                return;
+            }
+        }
+        self.0.push(AttributeRun {
+            start: place,
+            first: a,
+        });
+    }
 }
 
 impl Triangles {
-    /// The triangles `record(ids[s])` in the order of `ids` (a level's leaf order), each
-    /// numbered `ids[s]`.
-    fn gather(ids: Vec<u32>, record: impl Fn(u32) -> TriangleRecord) -> Self {
-        let mut positions = Vec::with_capacity(ids.len());
-        let mut attributes = Vec::with_capacity(ids.len());
-        for &id in &ids {
-            let r = record(id);
-            positions.push(r.p);
-            attributes.push(r.attributes());
+    /// The triangles at places `order[ids[s]]` of the level's build order, stored in the
+    /// order of `ids` (the level's leaf order) and numbered `ids[s]`; `position(place)`
+    /// gives a place's corners and `runs` every place's attributes.
+    pub(super) fn gather(
+        ids: Vec<u32>,
+        order: &[u32],
+        runs: AttributeRuns,
+        position: impl Fn(usize) -> [Vec3; 3],
+    ) -> Self {
+        let places: Vec<u32> = ids.iter().map(|&id| order[id as usize]).collect();
+        let positions = places.iter().map(|&i| position(i as usize)).collect();
+        let mut runs = runs.0;
+        runs.shrink_to_fit();
+        // The fewest places per block that leave at most two blocks a run.
+        let count = order.len() as u64;
+        let mut block_shift = 0;
+        while (count >> block_shift) + 1 > 2 * runs.len() as u64 {
+            block_shift += 1;
         }
+        let block_count = (count >> block_shift) as usize + 1;
+        let mut blocks = Vec::with_capacity(block_count + 1);
+        let mut r = 0;
+        for b in 0..block_count {
+            let first = (b as u64) << block_shift;
+            while r + 1 < runs.len() && u64::from(runs[r + 1].start) <= first {
+                r += 1;
+            }
+            blocks.push(r as u32);
+        }
+        blocks.push(runs.len().saturating_sub(1) as u32);
         Self {
             positions,
-            attributes,
             ids,
+            places,
+            runs,
+            blocks,
+            block_shift,
         }
     }
 
@@ -192,10 +290,22 @@ impl Triangles {
         &self.positions[range]
     }
 
-    /// The attributes of stored triangle `s`.
+    /// The attributes of stored triangle `s`, from its place and the run that holds it
+    /// (see the type's docs).
     #[inline(always)]
-    pub fn attributes(&self, s: usize) -> &TriangleAttributes {
-        &self.attributes[s]
+    pub fn attributes(&self, s: usize) -> TriangleAttributes {
+        let place = self.places[s];
+        let b = (place >> self.block_shift) as usize;
+        let (lo, hi) = (self.blocks[b] as usize, self.blocks[b + 1] as usize);
+        // The run holding `place` is the last one starting at or before it; the block's
+        // first run starts at or before the block, so it is at least that one.
+        let r = if lo == hi || self.runs[lo + 1].start > place {
+            &self.runs[lo]
+        } else {
+            let within = &self.runs[lo + 1..=hi];
+            &within[within.partition_point(|r| r.start <= place) - 1]
+        };
+        r.at(place - r.start)
     }
 
     /// The number of stored triangle `s` (see the type's docs).
@@ -206,7 +316,7 @@ impl Triangles {
 
     /// Stored triangle `s` as a record.
     pub fn record(&self, s: usize) -> TriangleRecord {
-        let a = self.attributes[s];
+        let a = self.attributes(s);
         TriangleRecord {
             p: self.positions(s),
             mesh: a.mesh,
@@ -221,11 +331,40 @@ impl Triangles {
         (0..self.len()).map(|s| self.record(s))
     }
 
-    /// Bytes of the three arrays, from their lengths.
+    /// Number of attribute runs (see the type's docs).
+    pub fn runs(&self) -> usize {
+        self.runs.len()
+    }
+
+    /// Bytes of the arrays, from their lengths.
     pub fn bytes(&self) -> usize {
         std::mem::size_of_val(self.positions.as_slice())
-            + std::mem::size_of_val(self.attributes.as_slice())
             + std::mem::size_of_val(self.ids.as_slice())
+            + std::mem::size_of_val(self.places.as_slice())
+            + std::mem::size_of_val(self.runs.as_slice())
+            + std::mem::size_of_val(self.blocks.as_slice())
+    }
+}
+
+/// A triangle the watertight test accepted, as the filter of
+/// [`Geometry::intersect_where`] sees it: its attributes are worked out only if the
+/// filter asks for them, so a filter that keeps every hit costs the walk no look-up.
+#[derive(Clone, Copy)]
+pub enum HitTriangle<'a> {
+    /// Stored triangle `s` of a level.
+    Stored(&'a Triangles, usize),
+    /// A moving triangle's record.
+    Record(&'a TriangleRecord),
+}
+
+impl HitTriangle<'_> {
+    /// The triangle's mesh, index, material and light.
+    #[inline(always)]
+    pub fn attributes(self) -> TriangleAttributes {
+        match self {
+            HitTriangle::Stored(t, s) => t.attributes(s),
+            HitTriangle::Record(r) => r.attributes(),
+        }
     }
 }
 
@@ -581,7 +720,7 @@ impl Geometry {
         self.intersect_where(origin, dir, t_max, 0.0, |_, _, _, _| true)
     }
 
-    /// [`Geometry::intersect`] counting only the triangle hits `keep(attributes, key, b1,
+    /// [`Geometry::intersect`] counting only the triangle hits `keep(triangle, key, b1,
     /// b2)` accepts (alpha-tested surfaces pass rays through where `keep` says so); `key`
     /// identifies the triangle (see [`triangle_key`]). Rejected hits do not shorten the
     /// ray, so the traversal goes on past them. `time` is the ray's shutter fraction in
@@ -593,7 +732,7 @@ impl Geometry {
         dir: Vec3,
         t_max: f32,
         time: f32,
-        keep: impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+        keep: impl Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
     ) -> Option<Hit> {
         let mut best: Option<Hit> = None;
         let mut best_t = t_max;
@@ -651,7 +790,7 @@ impl Geometry {
         dir: Vec3,
         t_max: f32,
         time: f32,
-        keep: impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+        keep: impl Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
     ) -> bool {
         for s in &self.spheres {
             if intersect_sphere(s.center, s.radius, origin, dir, t_max).is_some() {

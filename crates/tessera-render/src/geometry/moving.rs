@@ -3,7 +3,7 @@
 use super::build::{self, BvhBuildStats};
 use super::kernels::{self, Isa};
 use super::wide::{BoxTest, Leaves, Nearest, WideBvh};
-use super::{triangle_key, Hit, Primitive, TriangleAttributes, TriangleRecord, NO_INSTANCE};
+use super::{triangle_key, Hit, HitTriangle, Primitive, TriangleRecord, NO_INSTANCE};
 use crate::math::gamma;
 use glam::{Vec3, Vec3A};
 use obvhs::aabb::Aabb;
@@ -134,7 +134,7 @@ impl MotionTriangles {
         dir: Vec3,
         best: &mut Nearest,
         time: f32,
-        keep: &impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+        keep: &impl Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
     ) {
         let (s, u) = self.segment_of(time);
         with_watertight_ray!(origin, dir, |wt| {
@@ -159,7 +159,7 @@ impl MotionTriangles {
         dir: Vec3,
         t_max: f32,
         time: f32,
-        keep: &impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+        keep: &impl Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
     ) -> bool {
         let (s, u) = self.segment_of(time);
         with_watertight_ray!(origin, dir, |wt| {
@@ -190,7 +190,7 @@ struct MovingLeaves<'g, I, F> {
 impl<I, F> Leaves for MovingLeaves<'_, I, F>
 where
     I: Fn(&[Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    F: Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+    F: Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
 {
     #[inline(always)]
     fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
@@ -202,7 +202,12 @@ where
             };
             let key = triangle_key(MOTION_KEY_INSTANCE, r);
             if !best.beats(t, key)
-                || !(self.keep)(&self.motion.records[r as usize].attributes(), key, b1, b2)
+                || !(self.keep)(
+                    HitTriangle::Record(&self.motion.records[r as usize]),
+                    key,
+                    b1,
+                    b2,
+                )
             {
                 continue;
             }
@@ -230,7 +235,12 @@ where
             let p = self.motion.positions_in(r as usize, self.segment, self.u);
             if let Some((_, _, b1, b2)) = (self.intersect)(&p, t_max) {
                 let key = triangle_key(MOTION_KEY_INSTANCE, r);
-                if (self.keep)(&self.motion.records[r as usize].attributes(), key, b1, b2) {
+                if (self.keep)(
+                    HitTriangle::Record(&self.motion.records[r as usize]),
+                    key,
+                    b1,
+                    b2,
+                ) {
                     return true;
                 }
             }

@@ -180,6 +180,75 @@ fn scattered(n: usize, seed: u64) -> Vec<TriangleRecord> {
         .collect()
 }
 
+/// Every stored triangle's attributes, worked out from its place and the level's runs,
+/// are those of the record it was built from, whatever the records say: meshes of
+/// consecutive triangles (one run each), emissive meshes with a triangle that is no light
+/// in the middle, attributes that jump from triangle to triangle, and indices and lights
+/// next to `u32::MAX`, where the run's additions wrap.
+#[test]
+fn stored_attributes_are_the_records_given() {
+    let mut tris = scattered(4000, 23);
+    let mut s = 5u64;
+    let mut light = 0u32;
+    for (i, r) in tris.iter_mut().enumerate() {
+        let (block, k) = (i / 500, (i % 500) as u32);
+        (r.mesh, r.index, r.material, r.light) = match block {
+            // Plain meshes, one run each.
+            0 | 1 => (block as u32, k, 3, NO_LIGHT),
+            // An emissive mesh whose triangle 200 is no light (degenerate): the lights
+            // after it are numbered on without a gap.
+            2 => (2, k, 4, if k == 200 { NO_LIGHT } else { light }),
+            // Everything drawn at random.
+            3 => (
+                (lcg(&mut s) * 7.0) as u32,
+                (lcg(&mut s) * 1e6) as u32,
+                (lcg(&mut s) * 5.0) as u32,
+                if lcg(&mut s) < 0.5 {
+                    NO_LIGHT
+                } else {
+                    (lcg(&mut s) * 1e6) as u32
+                },
+            ),
+            // Counting up past `u32::MAX - 1`; the light reaches `NO_LIGHT`'s bits.
+            4 => (9, (u32::MAX - 250).wrapping_add(k), 1, NO_LIGHT),
+            5 => (10, k, 1, (u32::MAX - 499).wrapping_add(k)),
+            // One triangle per mesh.
+            _ => (100 + i as u32, 0, i as u32 % 3, NO_LIGHT),
+        };
+        if block == 2 && k != 200 {
+            light += 1;
+        }
+    }
+    let by_position: std::collections::HashMap<[u32; 9], TriangleRecord> =
+        tris.iter().map(|r| (bits(&r.p), *r)).collect();
+    assert_eq!(
+        by_position.len(),
+        tris.len(),
+        "positions identify the records"
+    );
+    let g = Geometry::build(tris.clone(), vec![]);
+    assert_eq!(g.triangles.len(), tris.len());
+    let mut seen = std::collections::HashSet::new();
+    for got in g.triangles.iter() {
+        let want = by_position[&bits(&got.p)];
+        assert_eq!(got.attributes(), want.attributes(), "{:?}", got.p);
+        assert!(seen.insert(bits(&got.p)));
+    }
+    // The plain and wrapping meshes are a run each, the emissive one three (before, at
+    // and after its dark triangle), the random block and the one-triangle meshes a run a
+    // triangle: 2 + 3 + 500 + 2 + 1000.
+    assert_eq!(g.triangles.runs(), 1507);
+    let uniform = Geometry::build(scattered(4000, 23), vec![]);
+    assert_eq!(uniform.triangles.runs(), 1);
+    // Per triangle: 36 bytes of corners, the number and the place; the one run is noise.
+    assert!(uniform.triangles.bytes() - 4000 * 44 < 64);
+}
+
+fn bits(p: &[Vec3; 3]) -> [u32; 9] {
+    let f = p.map(|v| v.to_array()).concat();
+    std::array::from_fn(|i| f[i].to_bits())
+}
+
 #[test]
 fn ordinary_geometry_takes_the_unclustered_path() {
     let geo = Geometry::build(scattered(5000, 7), vec![]);

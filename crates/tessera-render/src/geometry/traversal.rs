@@ -4,7 +4,7 @@
 use super::build::{self, BvhBuildStats};
 use super::kernels::{self, Isa};
 use super::wide::{BoxTest, Leaves, Level, Nearest, WideBvh};
-use super::{InstanceRecord, Prototype, TriangleAttributes, TriangleRecord, Triangles};
+use super::{AttributeRuns, HitTriangle, InstanceRecord, Prototype, TriangleRecord, Triangles};
 use glam::Vec3;
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::node::Bvh2Node;
@@ -26,7 +26,7 @@ impl TriangleLevel<'_> {
         origin: Vec3,
         dir: Vec3,
         best: &mut Nearest,
-        keep: &impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+        keep: &impl Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
     ) {
         with_watertight_ray!(origin, dir, |wt| {
             let level = Level {
@@ -46,7 +46,7 @@ impl TriangleLevel<'_> {
         origin: Vec3,
         dir: Vec3,
         t_max: f32,
-        keep: &impl Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+        keep: &impl Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
     ) -> bool {
         with_watertight_ray!(origin, dir, |wt| {
             let level = Level {
@@ -89,7 +89,7 @@ impl<F> InstanceLeaves<'_, F> {
 
 impl<F> Leaves for InstanceLeaves<'_, F>
 where
-    F: Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+    F: Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
 {
     #[inline(always)]
     fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
@@ -107,6 +107,13 @@ where
                 super::wide::nearest::<K, _>(&proto.bvh, &ray, &level, best)
             })
         }
+    }
+
+    /// The top level's own stack: each instance's prototype is walked, with the
+    /// triangles' stack, inside this walk.
+    #[inline(always)]
+    fn stack() -> &'static std::thread::LocalKey<std::cell::Cell<Vec<(u32, f32)>>> {
+        &super::wide::TOP_STACK
     }
 
     #[inline(always)]
@@ -158,10 +165,14 @@ pub(super) fn triangle_bvh_of(
     if count == 0 {
         return (WideBvh::default(), Triangles::default(), Aabb::empty());
     }
-    // The boxes obvhs' triangle builder would compute (`Triangle::aabb`), as PLOC leaves.
+    // The boxes obvhs' triangle builder would compute (`Triangle::aabb`), as PLOC leaves,
+    // and the attributes of every place, as runs (see `Triangles`).
+    let mut runs = AttributeRuns::default();
     let leaves: Vec<Bvh2Node> = (0..count)
         .map(|i| {
-            let p = record(i).p;
+            let r = record(i);
+            runs.push(i as u32, r.attributes());
+            let p = r.p;
             let t = obvhs::triangle::Triangle {
                 v0: p[0].into(),
                 v1: p[1].into(),
@@ -178,7 +189,7 @@ pub(super) fn triangle_bvh_of(
     // The leaves' entries, CWBVH positions leaf after leaf, become the stored order and
     // the triangles' numbers; the leaves' ranges then index the stored triangles.
     let ids = std::mem::take(&mut wide.prims);
-    let triangles = Triangles::gather(ids, |id| record(order[id as usize] as usize));
+    let triangles = Triangles::gather(ids, &order, runs, |i| record(i).p);
     (wide, triangles, bounds)
 }
 

@@ -38,16 +38,27 @@
 //! whatever order the children are visited in and whatever kernel tests the boxes: every
 //! kernel gives the same hit, bit for bit (ARCHITECTURE.md §2).
 
-use super::{triangle_key, Hit, Primitive, TriangleAttributes, Triangles};
+use super::{triangle_key, Hit, HitTriangle, Primitive, Triangles};
 use crate::math::gamma;
 use obvhs::bvh2::Bvh2;
+use std::cell::Cell;
+use std::thread::LocalKey;
 
 /// Children per node.
 pub(super) const WIDTH: usize = 8;
 
-/// Entries of the traversal stack kept on the machine stack; deeper trees (only the
-/// pathological inputs of `build`'s known limit) use a heap stack.
-const STACK_INLINE: usize = 96;
+thread_local! {
+    /// The traversal stack of this thread's walks over triangles (world-space,
+    /// prototypes' and moving ones), reused from ray to ray: a stack made for each ray
+    /// has to be written whole before use (`unsafe_code` is denied, so no
+    /// `MaybeUninit`), and zeroing 96 entries cost 63 instructions a ray, 3.3% of a
+    /// Cornell box path (docs/benchmarks.md, "Where a path's instructions go").
+    /// [`Leaves::stack`] says which stack a walk takes.
+    static LEVEL_STACK: Cell<Vec<(u32, f32)>> = const { Cell::new(Vec::new()) };
+    /// The top level's stack: a walk over instances walks each prototype's BVH inside
+    /// its own, with [`LEVEL_STACK`].
+    pub(super) static TOP_STACK: Cell<Vec<(u32, f32)>> = const { Cell::new(Vec::new()) };
+}
 
 /// One node: the bounds of its children as structure-of-arrays (`lo[axis][child]`), and
 /// what each child is. An unused slot has an empty box (`lo = +inf`, `hi = -inf`), which
@@ -381,21 +392,18 @@ impl WideBvh {
     }
 }
 
-/// A traversal stack large enough for `bvh`: `inline` for every ordinary tree, `heap`
-/// (grown here) for the pathological deep ones. A slice rather than a closure, so the
-/// walk is inlined into each kernel's `#[target_feature]` function.
+/// This thread's stack `key` taken out of it, at least as long as `bvh` can need
+/// (grown once per thread to the deepest tree walked): the walk indexes a slice of it,
+/// inlined into each kernel's `#[target_feature]` function (`LocalKey::with` would put
+/// it in a closure), and gives it back with `key.set`. Taken rather than borrowed, so a
+/// walk that did not give it back (a panic) leaves an empty stack, not a locked one.
 #[inline(always)]
-fn stack_for<'s>(
-    bvh: &WideBvh,
-    inline: &'s mut [(u32, f32); STACK_INLINE],
-    heap: &'s mut Vec<(u32, f32)>,
-) -> &'s mut [(u32, f32)] {
-    if bvh.stack_need <= STACK_INLINE {
-        inline
-    } else {
-        heap.resize(bvh.stack_need, (0, 0.0));
-        heap
+fn take_stack(key: &'static LocalKey<Cell<Vec<(u32, f32)>>>, bvh: &WideBvh) -> Vec<(u32, f32)> {
+    let mut stack = key.take();
+    if stack.len() < bvh.stack_need {
+        stack.resize(bvh.stack_need, (0, 0.0));
     }
+    stack
 }
 
 /// The entries of the children in `mask` sorted nearest first by `dist` (insertion
@@ -485,6 +493,13 @@ pub(super) trait Leaves {
 
     /// Whether the leaf `(first, count)` holds a kept hit with `t < t_max`.
     fn any<K: BoxTest>(&self, first: u32, count: u32, t_max: f32) -> bool;
+
+    /// The thread's traversal stack for a walk over these leaves (see [`LEVEL_STACK`]):
+    /// leaves that walk other BVHs inside the walk take another.
+    #[inline(always)]
+    fn stack() -> &'static LocalKey<Cell<Vec<(u32, f32)>>> {
+        &LEVEL_STACK
+    }
 }
 
 /// The triangles of one level with the test each needs: `intersect(p, t_max)` is the
@@ -502,7 +517,7 @@ pub(super) struct Level<'g, I, F> {
 impl<I, F> Leaves for Level<'_, I, F>
 where
     I: Fn(&[glam::Vec3; 3], f32) -> Option<(f32, f32, f32, f32)>,
-    F: Fn(&TriangleAttributes, u64, f32, f32) -> bool,
+    F: Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
 {
     #[inline(always)]
     fn nearest<K: BoxTest>(&self, first: u32, count: u32, best: &mut Nearest) {
@@ -513,7 +528,9 @@ where
                 continue;
             };
             let key = triangle_key(self.instance, self.triangles.id(s));
-            if !best.beats(t, key) || !(self.keep)(self.triangles.attributes(s), key, b1, b2) {
+            if !best.beats(t, key)
+                || !(self.keep)(HitTriangle::Stored(self.triangles, s), key, b1, b2)
+            {
                 continue;
             }
             best.set(
@@ -540,7 +557,7 @@ where
         for (s, p) in (first..).zip(leaf) {
             if let Some((_, _, b1, b2)) = (self.intersect)(p, t_max) {
                 let key = triangle_key(self.instance, self.triangles.id(s));
-                if (self.keep)(self.triangles.attributes(s), key, b1, b2) {
+                if (self.keep)(HitTriangle::Stored(self.triangles, s), key, b1, b2) {
                     return true;
                 }
             }
@@ -563,8 +580,7 @@ pub(super) fn nearest<K: BoxTest, L: Leaves>(
     if bvh.nodes.is_empty() || !ray.is_finite() {
         return;
     }
-    let (mut inline, mut heap) = ([(0u32, 0f32); STACK_INLINE], Vec::new());
-    let stack = stack_for(bvh, &mut inline, &mut heap);
+    let mut stack = take_stack(L::stack(), bvh);
     stack[0] = (0, 0.0);
     let mut sp = 1;
     while sp > 0 {
@@ -590,6 +606,7 @@ pub(super) fn nearest<K: BoxTest, L: Leaves>(
             }
         }
     }
+    L::stack().set(stack);
 }
 
 /// Whether any kept hit of the ray in `bvh`'s leaves has `t < t_max` (shadow rays: the
@@ -605,8 +622,22 @@ pub(super) fn any<K: BoxTest, L: Leaves>(
         return false;
     }
     let limit = box_limit(t_max);
-    let (mut inline, mut heap) = ([(0u32, 0f32); STACK_INLINE], Vec::new());
-    let stack = stack_for(bvh, &mut inline, &mut heap);
+    let mut stack = take_stack(L::stack(), bvh);
+    let hit = any_below::<K, L>(bvh, ray, leaves, t_max, limit, &mut stack);
+    L::stack().set(stack);
+    hit
+}
+
+/// The walk of [`any`] with `stack` (at least `bvh`'s `stack_need` entries long).
+#[inline(always)]
+fn any_below<K: BoxTest, L: Leaves>(
+    bvh: &WideBvh,
+    ray: &BoxRay,
+    leaves: &L,
+    t_max: f32,
+    limit: f32,
+    stack: &mut [(u32, f32)],
+) -> bool {
     stack[0] = (0, 0.0);
     let mut sp = 1;
     while sp > 0 {

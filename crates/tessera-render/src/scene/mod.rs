@@ -173,8 +173,9 @@ impl RenderScene {
         let key = ray_key(origin, dir);
         self.geometry
             .intersect_where(origin, dir, t_max, time, |tri, id, b1, b2| {
+                let tri = tri.attributes();
                 !self.alpha_tested[tri.material as usize]
-                    || !self.transparent_at(tri, id, b1, b2, key)
+                    || !self.transparent_at(&tri, id, b1, b2, key)
             })
     }
 
@@ -197,8 +198,9 @@ impl RenderScene {
         let key = ray_key(origin, dir);
         self.geometry
             .occluded_where(origin, dir, t_max, time, |tri, id, b1, b2| {
+                let tri = tri.attributes();
                 !self.alpha_tested[tri.material as usize]
-                    || !self.transparent_at(tri, id, b1, b2, key)
+                    || !self.transparent_at(&tri, id, b1, b2, key)
             })
     }
 
@@ -366,7 +368,7 @@ impl RenderScene {
     ) -> SurfacePoint {
         let b0 = 1.0 - b1 - b2;
         let corners = level.positions(index as usize);
-        let tri = level.attributes(index as usize);
+        let tri = &level.attributes(index as usize);
         let (mut p, mut p_error) = triangle_point(&corners, b0, b1, b2);
         let mut ng = (corners[1] - corners[0])
             .cross(corners[2] - corners[0])

@@ -180,6 +180,14 @@ fn triangle_records_and_lights_follow_the_meshes() {
     let rs = RenderScene::build(&scene, 16, 16).unwrap();
     let g = &rs.geometry;
     assert_eq!(g.triangles.len(), scene.stored_triangle_count());
+    // The attributes are worked out from runs, one per mesh with triangles here (no
+    // emissive triangle of the box is degenerate), not stored per triangle.
+    let nonempty = scene
+        .meshes
+        .iter()
+        .filter(|m| !m.indices.is_empty())
+        .count();
+    assert_eq!(g.triangles.runs(), nonempty);
     let mut seen = std::collections::HashSet::new();
     let mut lit = 0;
     for r in g.triangles.iter() {
