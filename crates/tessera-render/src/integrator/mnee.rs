@@ -27,9 +27,9 @@
 //! its predecessor through the moved point (Zeltner, Georgiev & Jakob 2020, "Specular
 //! Manifold Sampling", §4.2 and §5.2): the solver needs nothing of the geometry but the
 //! renderer's ray casts and shading points, so it works on triangle meshes and spheres
-//! alike. The constraint Jacobian is formed by central differences of that
+//! alike. The constraint Jacobian is formed by finite differences of that
 //! parametrisation (the shading normals' derivatives are not stored by the geometry), in
-//! `f64`. A step that fails to project, or does not reduce the constraint's norm, is
+//! `f64`: forward differences for Newton's steps, central ones for the geometry term. A step that fails to project, or does not reduce the constraint's norm, is
 //! halved.
 //!
 //! On convergence the contribution is, for an area light sampled with area density
@@ -352,14 +352,17 @@ fn step_of(x: Vec3, chain: &Chain, i: usize, y: Vec3) -> f32 {
     (1e-3 * seg).max(2e-5 * (1.0 + p.abs().max_element()))
 }
 
-/// `∂C/∂X`: column `2i + j` is the derivative by vertex `i`'s tangent coordinate `j`
-/// (central differences, each side projected from the vertex's predecessor).
+/// `∂C/∂X`: column `2i + j` is the derivative by vertex `i`'s tangent coordinate `j`, each
+/// moved point projected from the vertex's predecessor. `central` takes central
+/// differences (for the geometry term, error `O(h²)`); otherwise forward differences from
+/// the chain's own constraints `c` (half the ray casts, enough for Newton's direction).
 fn jacobian(
     scene: &RenderScene,
     x: &Anchor,
     chain: &Chain,
     y: Vec3,
     time: f32,
+    c: Option<&[f64; 2 * MAX_CHAIN]>,
 ) -> Option<[[f64; 2 * MAX_CHAIN]; 2 * MAX_CHAIN]> {
     let n = 2 * chain.len;
     let mut a = [[0.0; 2 * MAX_CHAIN]; 2 * MAX_CHAIN];
@@ -372,14 +375,18 @@ fn jacobian(
         let frame = Frame::from_normal(chain.v[i].sp.ns);
         let h = step_of(x.p, chain, i, y);
         for (j, e) in [frame.s, frame.t].into_iter().enumerate() {
-            let mut side = [[0.0; 2 * MAX_CHAIN]; 2];
-            for (k, sign) in [1.0f32, -1.0].into_iter().enumerate() {
-                let mut moved = *chain;
-                moved.v[i] = project(scene, &from, chain.v[i].sp.p + sign * h * e, time)?;
-                side[k] = constraints(x.p, &moved, y)?;
-            }
+            let mut moved = *chain;
+            moved.v[i] = project(scene, &from, chain.v[i].sp.p + h * e, time)?;
+            let plus = constraints(x.p, &moved, y)?;
+            let (minus, span) = match c {
+                Some(c) => (*c, h as f64),
+                None => {
+                    moved.v[i] = project(scene, &from, chain.v[i].sp.p - h * e, time)?;
+                    (constraints(x.p, &moved, y)?, 2.0 * h as f64)
+                }
+            };
             for r in 0..n {
-                a[r][2 * i + j] = (side[0][r] - side[1][r]) / (2.0 * h as f64);
+                a[r][2 * i + j] = (plus[r] - minus[r]) / span;
             }
         }
     }
@@ -387,7 +394,9 @@ fn jacobian(
 }
 
 /// Solves `a m = b` for the `cols` right-hand sides of `b` (Gaussian elimination with
-/// partial pivoting on the leading `n x n` block). `None` if `a` is singular.
+/// partial pivoting on the leading `n x n` block). `None` if `a` is singular. Index loops:
+/// the rows and columns of two arrays move together, as in the textbook elimination.
+#[allow(clippy::needless_range_loop)]
 fn solve<const C: usize>(
     mut a: [[f64; 2 * MAX_CHAIN]; 2 * MAX_CHAIN],
     mut b: [[f64; C]; 2 * MAX_CHAIN],
@@ -397,7 +406,7 @@ fn solve<const C: usize>(
         .iter()
         .flat_map(|r| r[..n].iter())
         .fold(0.0f64, |m, v| m.max(v.abs()));
-    if !(scale > 0.0) || !scale.is_finite() {
+    if scale.is_nan() || scale <= 0.0 || scale.is_infinite() {
         return None;
     }
     for col in 0..n {
@@ -439,7 +448,7 @@ fn newton(scene: &RenderScene, x: &Anchor, mut chain: Chain, y: Vec3, time: f32)
         if c[..n].iter().all(|v| v.abs() < TOLERANCE) {
             return Some(chain);
         }
-        let a = jacobian(scene, x, &chain, y, time)?;
+        let a = jacobian(scene, x, &chain, y, time, Some(&c))?;
         let mut rhs = [[0.0; 1]; 2 * MAX_CHAIN];
         for r in 0..n {
             rhs[r][0] = -c[r];
@@ -501,7 +510,7 @@ fn geometry_term(
     time: f32,
 ) -> Option<f32> {
     let n = 2 * chain.len;
-    let a = jacobian(scene, x, chain, y, time)?;
+    let a = jacobian(scene, x, chain, y, time, None)?;
     let frame = Frame::from_normal(n_y);
     let last = chain.v[chain.len - 1].sp.p;
     let h = 1e-3 * (y - last).length().max(1e-6);

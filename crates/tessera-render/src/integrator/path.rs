@@ -190,6 +190,9 @@ fn radiance_with<const MNEE: bool>(
             let u_light = sampler.next_1d();
             let u_light2 = sampler.next_2d();
             if let Some((li, pmf)) = scene.lights.select_at(u_light, sp.p, n_select) {
+                // Whether the shadow ray found the light unblocked: then the straight
+                // segment crosses no specular surface and MNEE has no seed chain.
+                let mut nee_visible = false;
                 if let Some(ls) = scene.sample_li(li, sp.p, u_light2) {
                     let wi = frame.to_local(ls.wi);
                     // Reject light arriving through the geometric surface (shading-normal leak).
@@ -205,6 +208,7 @@ fn radiance_with<const MNEE: bool>(
                         } else {
                             !scene.occluded_at(o, ls.wi, f32::INFINITY, time)
                         };
+                        nee_visible = visible;
                         if visible {
                             let p_light = pmf * ls.pdf;
                             let w = if ls.delta {
@@ -217,7 +221,7 @@ fn radiance_with<const MNEE: bool>(
                     }
                 }
                 // Light through specular chains, from the same light sample dimensions.
-                if MNEE && depth + 2 <= max_depth {
+                if MNEE && !nee_visible && depth + 2 <= max_depth {
                     let max_chain = ((max_depth - depth - 1) as usize).min(mnee::MAX_CHAIN);
                     l += beta
                         * mnee::estimate(
