@@ -18,6 +18,11 @@
 //!
 //! Steps, as labelled below: 1 intersect, 2 emission (MIS with NEE of the previous
 //! vertex), 3 direct light by NEE, 4 BSDF sample, 5 Russian roulette.
+//!
+//! [`radiance_mnee`] adds manifold next-event estimation at step 3 ([`super::mnee`]:
+//! light through chains of smooth specular surfaces) and at step 2 drops the emission of
+//! BSDF-sampled paths that MNEE would have found. It is a separate monomorphisation of the
+//! same loop, so [`radiance`]'s code and images are those of the path tracer without it.
 
 use super::{mnee, MisHeuristic};
 use crate::math::offset_ray_origin;
