@@ -78,6 +78,12 @@ use glam::{DVec3, Vec2, Vec3};
 /// interfaces, or one flat water surface).
 pub const MAX_CHAIN: usize = 2;
 
+/// MNEE only at the camera path's first non-specular vertex (the caustic seen directly
+/// or through glass), not at the vertices of indirect light: there a caustic's
+/// contribution is small against the solver's cost (docs/benchmarks.md, "Manifold
+/// next-event estimation"). BSDF sampling keeps the paths MNEE does not try.
+pub const FIRST_VERTEX_ONLY: bool = true;
+
 /// Newton iterations before the solver gives up.
 const MAX_ITERATIONS: u32 = 20;
 

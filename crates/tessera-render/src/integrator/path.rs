@@ -103,6 +103,9 @@ fn radiance_with<const MNEE: bool>(
 ) -> Vec3 {
     // MNEE's claim on the path so far (`None`: no MNEE connection can produce it).
     let mut mnee_origin: Option<MneeOrigin> = None;
+    // Whether the path has passed a non-specular vertex: MNEE runs at the first one only
+    // (see `mnee::FIRST_VERTEX_ONLY`).
+    let mut past_first = false;
     let max_depth = s.max_depth;
     let mut l = Vec3::ZERO;
     let mut beta = Vec3::ONE;
@@ -179,6 +182,14 @@ fn radiance_with<const MNEE: bool>(
         let bsdf = scene.bsdf(&sp, wo_world);
         let frame = Frame::from_normal(sp.ns);
         let wo = frame.to_local(wo_world);
+        // MNEE at this vertex: a non-specular one with room for a chain of one.
+        let mnee_here = MNEE
+            && bsdf.has_non_delta()
+            && !(mnee::FIRST_VERTEX_ONLY && past_first)
+            && depth + 2 <= max_depth;
+        if MNEE && bsdf.has_non_delta() {
+            past_first = true;
+        }
 
         // 3. Next-event estimation: a light chosen by the light hierarchy for this point.
         // Transmissive surfaces pass no normal, so that lights behind them count.
@@ -226,7 +237,7 @@ fn radiance_with<const MNEE: bool>(
                     }
                 }
                 // Light through specular chains, from the same light sample dimensions.
-                if MNEE && !nee_visible && depth + 2 <= max_depth {
+                if mnee_here && !nee_visible {
                     let max_chain = ((max_depth - depth - 1) as usize).min(mnee::MAX_CHAIN);
                     l += beta
                         * mnee::estimate(
@@ -253,7 +264,7 @@ fn radiance_with<const MNEE: bool>(
         if MNEE {
             mnee_origin = if !bs.delta {
                 // A new origin: MNEE at this vertex covers chains of up to `max_chain`.
-                (depth + 2 <= max_depth).then(|| MneeOrigin {
+                mnee_here.then(|| MneeOrigin {
                     x: mnee::Anchor::of(&sp),
                     n_select,
                     max_chain: ((max_depth - depth - 1) as usize).min(mnee::MAX_CHAIN),
