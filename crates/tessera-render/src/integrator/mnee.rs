@@ -85,10 +85,10 @@ pub const MAX_CHAIN: usize = 2;
 pub const FIRST_VERTEX_ONLY: bool = true;
 
 /// Newton iterations before the solver gives up.
-const MAX_ITERATIONS: u32 = 10;
+const MAX_ITERATIONS: u32 = 6;
 
 /// Step halvings per Newton iteration before the solver gives up.
-const MAX_HALVINGS: u32 = 4;
+const MAX_HALVINGS: u32 = 2;
 
 /// Converged when every constraint component (the tangential part of a unit half-vector,
 /// about an angle in radians) is below this: well above what `f32` positions resolve
