@@ -70,11 +70,7 @@ fn passes(
         .units(0, 1)
         .par_iter()
         .map(|u| {
-            let r = if mnee {
-                render_unit_path_mnee(rs, s, plan, *u)
-            } else {
-                render_unit(rs, s, plan, *u)
-            };
+            let r = unit(rs, s, plan, *u, mnee);
             let mut sums = vec![0.0f64; (bx * by) as usize];
             let mut counts = vec![0u32; (bx * by) as usize];
             for y in 0..plan.height {
@@ -95,6 +91,21 @@ fn passes(
         .collect();
     out.sort_by_key(|p| p.0);
     out.into_iter().map(|p| p.1).collect()
+}
+
+/// One unit of path tracing with (`mnee`) or without MNEE.
+fn unit(
+    rs: &RenderScene,
+    s: &RenderConfig,
+    plan: &FramePlan,
+    u: tessera_farm::WorkUnit,
+    mnee: bool,
+) -> tessera_farm::UnitResult {
+    if mnee {
+        render_unit_path_mnee(rs, s, plan, u)
+    } else {
+        render_unit(rs, s, plan, u)
+    }
 }
 
 fn settings(seed: u64, max_depth: u32) -> RenderConfig {
@@ -323,11 +334,7 @@ fn frame(rs: &RenderScene, s: &RenderConfig, plan: &FramePlan, mnee: bool) -> Ve
         .units(0, plan.passes)
         .par_iter()
         .map(|u| {
-            let r = if mnee {
-                render_unit_path_mnee(rs, s, plan, *u)
-            } else {
-                render_unit(rs, s, plan, *u)
-            };
+            let r = unit(rs, s, plan, *u, mnee);
             (*u, r)
         })
         .collect();
