@@ -61,6 +61,7 @@
 
 pub mod bdpt;
 pub mod mlt;
+pub mod mnee;
 pub mod path;
 pub mod vcm;
 
@@ -175,6 +176,33 @@ pub fn render_unit_where(
             mlt::render_unit(scene, &mlt, stream, plan, unit, wanted)
         }
     }
+}
+
+/// Renders one work unit with path tracing plus manifold next-event estimation
+/// ([`path::radiance_mnee`]): `settings` as for [`Integrator::Path`] (its integrator
+/// field is not read). Not yet selectable through the job contract; the plan's caustic
+/// class will choose it once measured to pay (docs/benchmarks.md, "Manifold next-event
+/// estimation").
+pub fn render_unit_path_mnee(
+    scene: &RenderScene,
+    settings: &RenderConfig,
+    plan: &FramePlan,
+    unit: WorkUnit,
+) -> UnitResult {
+    let stream = SampleStream::of(settings);
+    let path = path::PathSettings {
+        mis: settings.mis,
+        max_depth: settings.max_depth,
+        rr_depth: settings.rr_depth,
+    };
+    render_camera_samples(
+        scene,
+        stream,
+        plan,
+        unit,
+        |_, _| true,
+        |o, d, time, sampler| path::radiance_mnee(scene, &path, o, d, time, sampler),
+    )
 }
 
 /// Adds the sample `l` to a pixel's sum if it is valid radiance (finite, every channel

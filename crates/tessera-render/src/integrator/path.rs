@@ -18,8 +18,13 @@
 //!
 //! Steps, as labelled below: 1 intersect, 2 emission (MIS with NEE of the previous
 //! vertex), 3 direct light by NEE, 4 BSDF sample, 5 Russian roulette.
+//!
+//! [`radiance_mnee`] adds manifold next-event estimation at step 3 ([`super::mnee`]:
+//! light through chains of smooth specular surfaces) and at step 2 drops the emission of
+//! BSDF-sampled paths that MNEE would have found. It is a separate monomorphisation of the
+//! same loop, so [`radiance`]'s code and images are those of the path tracer without it.
 
-use super::MisHeuristic;
+use super::{mnee, MisHeuristic};
 use crate::math::offset_ray_origin;
 use crate::sampling::warp::Frame;
 use crate::sampling::PixelSampler;
@@ -50,11 +55,57 @@ pub struct PathSettings {
 pub fn radiance(
     scene: &RenderScene,
     s: &PathSettings,
+    origin: Vec3,
+    dir: Vec3,
+    time: f32,
+    sampler: &mut PixelSampler,
+) -> Vec3 {
+    radiance_with::<false>(scene, s, origin, dir, time, sampler)
+}
+
+/// [`radiance`] with manifold next-event estimation ([`super::mnee`]) at every
+/// non-specular vertex: light from point and emissive-triangle lights through chains of
+/// up to [`mnee::MAX_CHAIN`] specular vertices, and BSDF-sampled paths that MNEE would
+/// have found left to it. The same sampler dimensions as [`radiance`] (MNEE reuses the
+/// next-event estimation's light sample), so the two differ only by the caustics.
+pub fn radiance_mnee(
+    scene: &RenderScene,
+    s: &PathSettings,
+    origin: Vec3,
+    dir: Vec3,
+    time: f32,
+    sampler: &mut PixelSampler,
+) -> Vec3 {
+    radiance_with::<true>(scene, s, origin, dir, time, sampler)
+}
+
+/// Where MNEE could have started the path being traced: the last non-specular vertex, its
+/// light selection normal and longest chain, and the specular vertices since.
+#[derive(Clone, Copy)]
+struct MneeOrigin {
+    x: mnee::Anchor,
+    n_select: Vec3,
+    max_chain: usize,
+    chain: [Vec3; mnee::MAX_CHAIN],
+    len: usize,
+}
+
+/// The path tracer; `MNEE` adds manifold next-event estimation (a separate
+/// monomorphisation, so the plain path tracer's code and images do not change).
+#[inline(always)]
+fn radiance_with<const MNEE: bool>(
+    scene: &RenderScene,
+    s: &PathSettings,
     mut origin: Vec3,
     mut dir: Vec3,
     time: f32,
     sampler: &mut PixelSampler,
 ) -> Vec3 {
+    // MNEE's claim on the path so far (`None`: no MNEE connection can produce it).
+    let mut mnee_origin: Option<MneeOrigin> = None;
+    // Whether the path has passed a non-specular vertex: MNEE runs at the first one only
+    // (see `mnee::FIRST_VERTEX_ONLY`).
+    let mut past_first = false;
     let max_depth = s.max_depth;
     let mut l = Vec3::ZERO;
     let mut beta = Vec3::ONE;
@@ -97,7 +148,23 @@ pub fn radiance(
         if sp.light != crate::geometry::NO_LIGHT {
             let le = scene.emitted(&sp, wo_world);
             if le != Vec3::ZERO {
-                let w = if prev_delta {
+                let claimed = MNEE
+                    && prev_delta
+                    && mnee_origin.is_some_and(|m| {
+                        m.len > 0
+                            && mnee::claims(
+                                scene,
+                                &m.x,
+                                m.n_select,
+                                m.max_chain,
+                                &m.chain[..m.len],
+                                &sp,
+                                time,
+                            )
+                    });
+                let w = if claimed {
+                    0.0
+                } else if prev_delta {
                     1.0
                 } else {
                     let li = sp.light as usize;
@@ -115,6 +182,14 @@ pub fn radiance(
         let bsdf = scene.bsdf(&sp, wo_world);
         let frame = Frame::from_normal(sp.ns);
         let wo = frame.to_local(wo_world);
+        // MNEE at this vertex: a non-specular one with room for a chain of one.
+        let mnee_here = MNEE
+            && bsdf.has_non_delta()
+            && !(mnee::FIRST_VERTEX_ONLY && past_first)
+            && depth + 2 <= max_depth;
+        if MNEE && bsdf.has_non_delta() {
+            past_first = true;
+        }
 
         // 3. Next-event estimation: a light chosen by the light hierarchy for this point.
         // Transmissive surfaces pass no normal, so that lights behind them count.
@@ -131,6 +206,9 @@ pub fn radiance(
             let u_light = sampler.next_1d();
             let u_light2 = sampler.next_2d();
             if let Some((li, pmf)) = scene.lights.select_at(u_light, sp.p, n_select) {
+                // Whether the shadow ray found the light unblocked: then the straight
+                // segment crosses no specular surface and MNEE has no seed chain.
+                let mut nee_visible = false;
                 if let Some(ls) = scene.sample_li(li, sp.p, u_light2) {
                     let wi = frame.to_local(ls.wi);
                     // Reject light arriving through the geometric surface (shading-normal leak).
@@ -146,6 +224,7 @@ pub fn radiance(
                         } else {
                             !scene.occluded_at(o, ls.wi, f32::INFINITY, time)
                         };
+                        nee_visible = visible;
                         if visible {
                             let p_light = pmf * ls.pdf;
                             let w = if ls.delta {
@@ -156,6 +235,14 @@ pub fn radiance(
                             l += beta * f * ls.li * (w / p_light);
                         }
                     }
+                }
+                // Light through specular chains, from the same light sample dimensions.
+                if mnee_here && !nee_visible {
+                    let max_chain = ((max_depth - depth - 1) as usize).min(mnee::MAX_CHAIN);
+                    l += beta
+                        * mnee::estimate(
+                            scene, &sp, &bsdf, &frame, wo, li, pmf, u_light2, time, max_chain,
+                        );
                 }
             }
         }
@@ -173,6 +260,30 @@ pub fn radiance(
         beta *= bs.weight;
         if !beta.is_finite() || beta == Vec3::ZERO {
             break;
+        }
+        if MNEE {
+            mnee_origin = if !bs.delta {
+                // A new origin: MNEE at this vertex covers chains of up to `max_chain`.
+                mnee_here.then(|| MneeOrigin {
+                    x: mnee::Anchor::of(&sp),
+                    n_select,
+                    max_chain: ((max_depth - depth - 1) as usize).min(mnee::MAX_CHAIN),
+                    chain: [Vec3::ZERO; mnee::MAX_CHAIN],
+                    len: 0,
+                })
+            } else if bsdf.has_non_delta() {
+                // A delta sample of a mixed material: MNEE chains hold only purely
+                // specular vertices.
+                None
+            } else {
+                mnee_origin.and_then(|mut m| {
+                    (m.len < m.max_chain).then(|| {
+                        m.chain[m.len] = sp.p;
+                        m.len += 1;
+                        m
+                    })
+                })
+            };
         }
         if bs.wi.z * wo.z < 0.0 {
             if let Some(eta) = bsdf.glass_eta() {

@@ -97,6 +97,31 @@ impl Punctual {
         }
     }
 
+    /// The position of a point or spot light and its radiant intensity (W/sr) in the unit
+    /// direction `w` leaving it; `None` for a directional light, which has no position.
+    /// Manifold next-event estimation needs the intensity along the direction the light
+    /// leaves by through a refracting chain, which is not the straight line to the
+    /// shading point that [`Punctual::sample_li`] assumes.
+    pub fn intensity_toward(&self, w: Vec3) -> Option<(Vec3, Vec3)> {
+        match *self {
+            Punctual::Point {
+                position,
+                intensity,
+            } => Some((position, intensity)),
+            Punctual::Spot {
+                position,
+                axis,
+                intensity,
+                cos_inner,
+                cos_outer,
+            } => Some((
+                position,
+                intensity * spot_falloff(w.dot(axis), cos_inner, cos_outer),
+            )),
+            Punctual::Directional { .. } => None,
+        }
+    }
+
     pub(crate) fn sample_li(&self, p_ref: Vec3) -> Option<LightSample> {
         match *self {
             Punctual::Point {

@@ -20,6 +20,7 @@ mod khronos_environment;
 mod light_tree;
 mod many_nodes;
 mod mlt;
+mod mnee;
 mod motion_blur;
 mod pilot;
 mod plan_equivalence;

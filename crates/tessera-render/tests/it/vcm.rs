@@ -30,7 +30,7 @@ const H: f64 = 1.0;
 const D: f64 = 0.5;
 /// Horizontal offset of the light from the camera's axis (so that its mirror image in the
 /// water is outside the view: `L S E` from a point light to a pinhole has no technique).
-const X_LIGHT: f64 = 1.0;
+pub(crate) const X_LIGHT: f64 = 1.0;
 /// Height of the camera above the water surface.
 const H_CAM: f64 = 2.0;
 /// Albedo of the floor.
@@ -132,7 +132,7 @@ fn fresnel(cos_i: f64, n: f64) -> f64 {
 ///
 /// (the refraction's compression of the solid angle: `dθ₂/dθ₁ = cos θ₁ / (n cos θ₂)`), and
 /// at `r = 0` the limit `I T(0) / (h + d/n)²` (the light's apparent distance).
-fn floor_irradiance(r: f64) -> f64 {
+pub(crate) fn floor_irradiance(r: f64) -> f64 {
     if r < 1e-9 {
         return I * (1.0 - fresnel(1.0, N)) / (H + D / N).powi(2);
     }
@@ -228,7 +228,7 @@ fn pool_radiance(origin: Vec3, dir: Vec3, irradiance: impl Fn(f64) -> f64) -> f6
 
 /// The expected value of each `block x block` block: the closed form averaged over a
 /// 4 x 4 grid of film points per pixel (the box filter), for `irradiance`.
-fn expected_blocks(
+pub(crate) fn expected_blocks(
     rs: &RenderScene,
     w: u32,
     h: u32,
