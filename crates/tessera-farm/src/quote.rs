@@ -119,6 +119,17 @@ pub const PILOT_MIN_TILES: u32 = 8;
 /// The z value of a two-sided 95% interval.
 const Z95: f64 = 1.96;
 
+/// Above this relative standard error of the pilot's mean squared error `M` (over its
+/// groups of pixels), a heavy-tailed pilot ([`TailClass::Heavy`]) is not predictable.
+/// Where the pass values' tail index is below 4, their fourth moment, and so the spread of
+/// `M` over groups, has no dependable estimate; when even the measured spread puts `M`
+/// within a factor `exp(1.96 x 0.5)` = 2.7 either way, the extrapolated passes (a power
+/// above 1 of `M`) span more than 10x and the pilot has not sized the error. Measured
+/// (docs/benchmarks.md, "Quotes where paths are rare"): the bdpt caustic at 32x32, 0.55,
+/// was quoted [8, 96] passes for 5% and took 80 and 640; the glossy highlight at 32x32,
+/// 0.34, was covered at 5% and 2%; veach-mis at 64x64, 0.12, covered.
+pub const REL_M_UNPREDICTABLE: f64 = 0.5;
+
 /// A group of pilot pixels whose error is summed: a tile, or a band of a whole-frame tile.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PilotGroup {
@@ -402,9 +413,24 @@ pub fn quote(
     check_inputs(pilot, job, targets)?;
     let fit = Fit::of(pilot);
     let pricing = Pricing::new(&fit, job);
-    let (tail_class, tail_note) = pilot
+    let (mut tail_class, mut tail_note) = pilot
         .tails
         .map_or((TailClass::Light, None), |t| t.verdict());
+    if let (TailClass::Heavy, Some(t)) = (tail_class, pilot.tails) {
+        // A heavy tail and a pilot error that its groups barely agree on (module
+        // documentation, "The interval"): the widened interval would rest on a spread
+        // the tail makes unreliable.
+        if fit.rel_m > REL_M_UNPREDICTABLE {
+            tail_class = TailClass::Unpredictable;
+            tail_note = Some(t.unpredictable_note(&format!(
+                "the pass values are heavy-tailed and the pilot's groups of pixels disagree \
+                 on its error (relative standard error {:.2} of the mean squared error, \
+                 above {REL_M_UNPREDICTABLE}), so neither the error nor its spread can be \
+                 extrapolated",
+                fit.rel_m
+            )));
+        }
+    }
     // A heavy tail's extrapolation: the per-pass error growing like passes^gamma.
     let gamma = match (tail_class, pilot.tails) {
         (TailClass::Heavy, Some(t)) => Some(t.gamma()),
@@ -1030,6 +1056,77 @@ mod tests {
             .unwrap()
             .starts_with("not predictable from the pilot"));
         assert_eq!(wild.targets[0].passes, p);
+    }
+
+    /// A heavy-tailed pilot whose groups disagree on its error is not predictable: the
+    /// bdpt caustic at 32x32 (tail index 2.83, 40% of the squared error in the brightest
+    /// 1%, growth 1.23, the error's relative standard error 0.55 over its two bands) was
+    /// classed heavy and quoted [8, 96] passes for 5%, and its renders took 80 and 640.
+    /// The same tails with groups that agree (0.34, the glossy highlight's at 32x32,
+    /// covered) stay heavy, and light tails are not judged by the spread at all.
+    #[test]
+    fn heavy_tails_with_an_unsettled_error_are_not_predictable() {
+        let caustic = Tails {
+            values: 4096,
+            tail_index: Some(2.83),
+            hill_k: 64,
+            top_share: 0.40,
+            variance_growth: Some(1.23),
+        };
+        assert_eq!(caustic.verdict().0, TailClass::Heavy);
+        // Two groups of 512 pixels with per-pixel squared errors a and b: the ratio
+        // estimate's relative standard error is |a - b| / (a + b).
+        let pilot = |rel: f64, tails| PilotMeasurement {
+            passes: 4,
+            groups: [1.0 + rel, 1.0 - rel]
+                .map(|f| PilotGroup {
+                    pixels: 512,
+                    sum_sq_rel: 512.0 * 0.0078 * f,
+                })
+                .to_vec(),
+            units: vec![
+                PilotUnit {
+                    pixel_passes: 1024,
+                    worker_seconds: 0.01,
+                };
+                4
+            ],
+            tails,
+        };
+        let job = QuoteJob {
+            pixels_per_frame: 1024,
+            frames: 1,
+            planned_passes: 1 << 16,
+            samples_per_pass: 16,
+            workers: 1,
+            setup_seconds: 0.0,
+            tiles_per_frame: 1,
+            passes_per_unit: 1,
+            spot_check_fraction: 0.0,
+            stop_interval: 4,
+        };
+        let unsettled = quote(&pilot(0.55, Some(caustic)), &job, &[0.05]).unwrap();
+        assert!((unsettled.relative_standard_error - 0.55).abs() < 1e-9);
+        assert_eq!(unsettled.tail_class, TailClass::Unpredictable);
+        let note = unsettled.tail_note.as_deref().unwrap();
+        assert!(
+            note.starts_with("not predictable from the pilot") && note.contains("groups"),
+            "{note}"
+        );
+        // Its figures are the law's, a lower bound: not widened by the tail.
+        let law = quote(&pilot(0.55, None), &job, &[0.05]).unwrap();
+        assert_eq!(unsettled.targets[0].passes, law.targets[0].passes);
+
+        let settled = quote(&pilot(0.34, Some(caustic)), &job, &[0.05]).unwrap();
+        assert_eq!(settled.tail_class, TailClass::Heavy);
+        let light = Tails {
+            tail_index: Some(8.0),
+            top_share: 0.1,
+            variance_growth: Some(1.0),
+            ..caustic
+        };
+        let light = quote(&pilot(0.55, Some(light)), &job, &[0.05]).unwrap();
+        assert_eq!(light.tail_class, TailClass::Light);
     }
 
     #[test]
