@@ -54,7 +54,8 @@
 //! above understates the truth, because the law it extrapolates does not yet hold: the
 //! pilot's tails ([`Tails`], the statistics in its module documentation) widen the
 //! interval's high end, or make the quote "not predictable from the pilot"
-//! ([`TailClass`], with the reason in [`Quote::tail_note`]).
+//! ([`TailClass`], with the reason in [`Quote::tail_note`]); so does a heavy tail with
+//! an `M` whose relative standard error exceeds [`REL_M_UNPREDICTABLE`].
 //!
 //! What the interval does not cover: paths so rare that no pilot pass found them (a
 //! caustic the pilot missed makes every prediction optimistic; Jensen 2001, section 10.3,

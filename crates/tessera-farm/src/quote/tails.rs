@@ -59,6 +59,10 @@
 //!   but its spread does not shrink like `1/sqrt(n)`).
 //! - [`TailClass::Light`]: the quote stands as the module documentation derives it.
 //!
+//! [`crate::quote::quote`] also makes a heavy verdict unpredictable when the pilot's
+//! groups of pixels disagree on its error ([`crate::quote::REL_M_UNPREDICTABLE`]): the
+//! statistics here see the pass values, not how the error spreads over the frame.
+//!
 //! The thresholds are where these statistics sit on the calibration scenes
 //! (docs/benchmarks.md, "Quotes where paths are rare"); the pilot is deterministic, so a
 //! scene's class does not depend on the machine.
