@@ -17,7 +17,8 @@
 //! E(n) = sqrt(M · P / n),   M = mean over pilot pixels of rel², P = pilot passes
 //! ```
 //!
-//! and reaching a target `t` takes `n(t) = ceil(M · P / t²)` passes (at least 2, the fewest
+//! (`M` is the square of that estimate of the pilot, [`pilot_groups`]: a render stopping
+//! at a target stops on it), and reaching a target `t` takes `n(t) = ceil(M · P / t²)` passes (at least 2, the fewest
 //! with an error estimate). The cost of a pass is measured per pixel: `C` worker-seconds per
 //! pixel-pass, the pilot's worker-seconds over its pixel-passes, so a frame of `W · H`
 //! pixels costs `n · C · W · H` worker-seconds and the job `frames` times that.
