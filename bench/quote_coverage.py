@@ -19,6 +19,7 @@ Usage:
   bench/quote_coverage.py BINARY [--only NAME[,NAME]] [--targets 0.05,0.02] [--seeds 10]
       [--out FILE] [--lock FILE]
   bench/quote_coverage.py --table [--out FILE]
+  bench/quote_coverage.py --requote BINARY [--out FILE]   (a changed quote, the same renders)
 
 Python 3 standard library only. Not a test: it measures the clock; its figures go to
 docs/benchmarks.md ("Quotes and ETA").
@@ -121,6 +122,16 @@ def fmt(i, digits=2):
     return f"{i['estimate']:.{digits}f} [{i['low']:.{digits}f}, {i['high']:.{digits}f}]"
 
 
+def spp_counts(rs):
+    """The renders' spp as `value xcount`, a render cut by its time limit marked `+`."""
+    counts = {}
+    for r in rs:
+        key = f"{r['spp']:g}" + ("" if r["stopped"] == "target error reached" else "+")
+        counts[key] = counts.get(key, 0) + 1
+    return ", ".join(f"{k} x{n}" if n > 1 else k for k, n in
+                     sorted(counts.items(), key=lambda kv: float(kv[0].rstrip("+"))))
+
+
 def table(path):
     quotes, renders = {}, {}
     for line in open(path):
@@ -132,7 +143,7 @@ def table(path):
         else:
             renders.setdefault(key, []).append(r)
     print("| scene (technique, size) | target | alpha / share / g | class | quote: s [95%] "
-          "(spp) | actual CPU s per seed (spp) | covered |")
+          "(spp) | actual CPU s, fewest-most (spp x renders) | covered |")
     print("|---|---|---|---|---|---|---|")
     for key, q in quotes.items():
         rs = renders.get(key, [])
@@ -150,11 +161,61 @@ def table(path):
         else:
             ok = sum(s["low"] <= r["cpu"] <= s["high"] for r in rs)
             covered = f"{ok}/{len(rs)}"
-        actual = ", ".join(
-            f"{r['cpu']:.2f}" + ("" if r["stopped"] == "target error reached" else " (cut)")
-            + f" ({r['spp']:g})" for r in rs)
+        cpus = sorted(r["cpu"] for r in rs)
+        actual = (f"{cpus[0]:.2f}-{cpus[-1]:.2f} ({spp_counts(rs)})" if rs else "-")
         print(f"| {q['name']} ({q['integrator']}, {size}) | {q['target']:g} | {tl} | {cls} | "
               f"{fmt(s)} ({fmt(q['spp'], 0)}) | {actual} | {covered} |")
+
+
+def requote(binary, path):
+    """Quotes every scene and target of `path` again with `binary` (a build whose quote
+    changed but whose renders did not: renders are bit-identical across builds) and judges
+    the recorded renders against the new quote's spp interval. The pilot is deterministic,
+    so a debug build gives the release build's class and spp; its seconds are a debug
+    build's, so the seconds are derived: the recorded quote's seconds per spp at each end
+    times the new spp."""
+    quotes, renders = {}, {}
+    for line in open(path):
+        r = json.loads(line)
+        key = (r["name"], r["target"])
+        if r["kind"] == "quote":
+            quotes[key] = r
+            renders[key] = []
+        else:
+            renders.setdefault(key, []).append(r)
+    print("| scene (technique, size) | target | class | quote: spp [95%] | seconds (derived) "
+          "| renders' spp | covered |")
+    print("|---|---|---|---|---|---|---|")
+    os.chdir(ROOT)
+    for (name, target), old in quotes.items():
+        job = [old["scene"], *old["flags"], *COMMON, "--target-error", str(target)]
+        q = json.loads(subprocess.run([binary, "estimate", *job, "--json"], check=True,
+                                      capture_output=True, text=True).stdout)["quote"]
+        spp = q["targets"][0]["cost"]["spp"]
+        rs = renders.get((name, target), [])
+        done = [r for r in rs if r["stopped"] == "target error reached"]
+        cut = [r for r in rs if r["stopped"] != "target error reached"]
+        # The old quote's seconds per spp at each end (its release build's cost per
+        # pixel-pass) times the new spp: what the release build of the new quote says, up
+        # to the spot checks' rounding.
+        setup = old["setup_seconds"]
+        secs = {k: setup + (old["seconds"][k] - setup) * spp[k] / old["spp"][k]
+                for k in ("estimate", "low", "high")}
+        if q["tail_class"] == "unpredictable":
+            ok = sum(r["spp"] >= spp["estimate"] for r in rs)
+            covered = f"{ok}/{len(rs)} at or above the bound"
+        else:
+            ok = sum(spp["low"] <= r["spp"] <= spp["high"] for r in done)
+            ok_s = sum(secs["low"] <= r["cpu"] <= secs["high"] for r in done)
+            covered = f"{ok}/{len(rs)} by spp, {ok_s}/{len(rs)} by CPU s" + (
+                f" ({len(cut)} cut)" if cut else "")
+        seen = spp_counts(rs)
+        size = "x".join(old["flags"][i + 1] for i in (0, 2))
+        cls = old["tail_class"] + (" -> " + q["tail_class"]
+                                   if q["tail_class"] != old["tail_class"] else "")
+        print(f"| {name} ({old['integrator']}, {size}) | {target:g} | {cls} | "
+              f"{fmt(spp, 0)} (was {fmt(old['spp'], 0)}) | {fmt(secs)} | {seen} | {covered} |",
+              flush=True)
 
 
 def main():
@@ -167,9 +228,12 @@ def main():
     ap.add_argument("--out", default=os.path.join(ROOT, "out", "quote_coverage.jsonl"))
     ap.add_argument("--lock", default="/work/notes/heavy.lock")
     ap.add_argument("--table", action="store_true")
+    ap.add_argument("--requote", metavar="BINARY")
     a = ap.parse_args()
     if a.table:
         return table(a.out)
+    if a.requote:
+        return requote(a.requote, a.out)
     if not a.binary:
         raise SystemExit("give the tessera binary")
     os.makedirs(os.path.dirname(a.out), exist_ok=True)
