@@ -127,9 +127,9 @@ const Z95: f64 = 1.96;
 /// `M` over groups, has no dependable estimate; when even the measured spread puts `M`
 /// within a factor `exp(1.96 x 0.5)` = 2.7 either way, the extrapolated passes (a power
 /// above 1 of `M`) span more than 10x and the pilot has not sized the error. Measured
-/// (docs/benchmarks.md, "Quotes where paths are rare"): the bdpt caustic at 32x32, 0.55,
-/// was quoted [8, 96] passes for 5% and took 80 and 640; the glossy highlight at 32x32,
-/// 0.34, was covered at 5% and 2%; veach-mis at 64x64, 0.12, covered.
+/// (docs/benchmarks.md, "Quotes at 5% and 2% on the calibration suite"): the bdpt caustic
+/// at 32x32, 0.55, was quoted [8, 96] passes for 5% and took 80 to 640; the glossy
+/// highlight at 32x32, 0.35, and veach-mis at 64x64, 0.12, are covered at 5% and 2%.
 pub const REL_M_UNPREDICTABLE: f64 = 0.5;
 
 /// A group of pilot pixels whose error is summed: a tile, or a band of a whole-frame tile.

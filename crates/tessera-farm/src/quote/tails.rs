@@ -64,8 +64,10 @@
 //! statistics here see the pass values, not how the error spreads over the frame.
 //!
 //! The thresholds are where these statistics sit on the calibration scenes
-//! (docs/benchmarks.md, "Quotes where paths are rare"); the pilot is deterministic, so a
-//! scene's class does not depend on the machine.
+//! (docs/benchmarks.md, "Quotes where paths are rare" and "Quotes at 5% and 2% on the
+//! calibration suite"); the pilot is deterministic, so a scene's class does not depend on
+//! the machine, but it does on the pixels' size: a larger pixel averages its rare paths
+//! over more area.
 
 use serde::{Deserialize, Serialize};
 
