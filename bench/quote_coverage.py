@@ -132,6 +132,26 @@ def spp_counts(rs):
                      sorted(counts.items(), key=lambda kv: float(kv[0].rstrip("+"))))
 
 
+def interval_verdict(rs, i, key):
+    """Renders inside an interval of `key`: a cut render past its high end missed it, one
+    cut inside it says nothing."""
+    done = [r for r in rs if r["stopped"] == "target error reached"]
+    ok = sum(i["low"] <= r[key] <= i["high"] for r in done)
+    left = sum(r[key] <= i["high"] for r in rs if r not in done)
+    return f"{ok}/{len(rs)}" + (f" ({left} cut inside it)" if left else "")
+
+
+def bound_verdict(rs, above):
+    """How renders bear on a lower bound: a render at or above it (finished or cut) agrees,
+    a finished one below it contradicts it, a cut one below it says nothing."""
+    done = [r["stopped"] == "target error reached" for r in rs]
+    ok = sum(above(r) for r in rs)
+    bad = sum(not above(r) and d for r, d in zip(rs, done))
+    left = len(rs) - ok - bad
+    return f"{ok}/{len(rs)} at or above the bound" + (f", {bad} below" if bad else "") + (
+        f", {left} cut below it" if left else "")
+
+
 def table(path):
     quotes, renders = {}, {}
     for line in open(path):
@@ -156,11 +176,9 @@ def table(path):
         size = "x".join(q["flags"][i + 1] for i in (0, 2))
         cls = q["tail_class"]
         if cls == "unpredictable":
-            ok = sum(r["cpu"] >= s["estimate"] for r in rs)
-            covered = f"{ok}/{len(rs)} at or above the bound"
+            covered = bound_verdict(rs, lambda r: r["cpu"] >= s["estimate"])
         else:
-            ok = sum(s["low"] <= r["cpu"] <= s["high"] for r in rs)
-            covered = f"{ok}/{len(rs)}"
+            covered = interval_verdict(rs, s, "cpu")
         cpus = sorted(r["cpu"] for r in rs)
         actual = (f"{cpus[0]:.2f}-{cpus[-1]:.2f} ({spp_counts(rs)})" if rs else "-")
         print(f"| {q['name']} ({q['integrator']}, {size}) | {q['target']:g} | {tl} | {cls} | "
@@ -193,8 +211,6 @@ def requote(binary, path):
                                       capture_output=True, text=True).stdout)["quote"]
         spp = q["targets"][0]["cost"]["spp"]
         rs = renders.get((name, target), [])
-        done = [r for r in rs if r["stopped"] == "target error reached"]
-        cut = [r for r in rs if r["stopped"] != "target error reached"]
         # The old quote's seconds per spp at each end (its release build's cost per
         # pixel-pass) times the new spp: what the release build of the new quote says, up
         # to the spot checks' rounding.
@@ -202,13 +218,10 @@ def requote(binary, path):
         secs = {k: setup + (old["seconds"][k] - setup) * spp[k] / old["spp"][k]
                 for k in ("estimate", "low", "high")}
         if q["tail_class"] == "unpredictable":
-            ok = sum(r["spp"] >= spp["estimate"] for r in rs)
-            covered = f"{ok}/{len(rs)} at or above the bound"
+            covered = bound_verdict(rs, lambda r: r["spp"] >= spp["estimate"])
         else:
-            ok = sum(spp["low"] <= r["spp"] <= spp["high"] for r in done)
-            ok_s = sum(secs["low"] <= r["cpu"] <= secs["high"] for r in done)
-            covered = f"{ok}/{len(rs)} by spp, {ok_s}/{len(rs)} by CPU s" + (
-                f" ({len(cut)} cut)" if cut else "")
+            covered = (interval_verdict(rs, spp, "spp") + " by spp; "
+                       + interval_verdict(rs, secs, "cpu") + " by CPU s (derived)")
         seen = spp_counts(rs)
         size = "x".join(old["flags"][i + 1] for i in (0, 2))
         cls = old["tail_class"] + (" -> " + q["tail_class"]
