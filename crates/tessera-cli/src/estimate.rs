@@ -14,7 +14,7 @@ use clap::Args;
 use std::time::Instant;
 use tessera_farm::job::FrameRange;
 use tessera_farm::quote::{
-    pilot_tiles, quote, Interval, PilotGroup, PilotMeasurement, PilotUnit, Quote, QuoteJob,
+    pilot_groups, pilot_tiles, quote, Interval, PilotMeasurement, PilotUnit, Quote, QuoteJob,
     TailClass, Tails, DEFAULT_TARGETS, PILOT_PASSES,
 };
 use tessera_farm::{FrameAccumulator, FramePlan, WorkUnit};
@@ -640,27 +640,6 @@ fn pilot_tails(rendered: &[(tessera_farm::UnitResult, f64)]) -> Option<Tails> {
     }
     let values: Vec<f64> = by_tile.into_values().flatten().collect();
     Tails::measure(&values, passes)
-}
-
-/// The pilot's pixels in groups for the spread of the error: each pilot tile, or bands of
-/// 16 rows of a whole-frame tile (bdpt), whose single group would have no spread.
-fn pilot_groups(acc: &FrameAccumulator, tiles: &[u32]) -> Vec<PilotGroup> {
-    let mut groups = Vec::new();
-    for &t in tiles {
-        let Some(tile) = acc.tile(t) else { continue };
-        let band = if tiles.len() == 1 {
-            tile.rect().width.max(1) as usize * 16
-        } else {
-            tile.pixels().len().max(1)
-        };
-        for chunk in tile.pixels().chunks(band) {
-            groups.push(PilotGroup {
-                pixels: chunk.len() as u64,
-                sum_sq_rel: chunk.iter().map(|s| s.relative_error().powi(2)).sum(),
-            });
-        }
-    }
-    groups
 }
 
 fn secs(i: &Interval) -> String {

@@ -59,9 +59,15 @@
 //!   but its spread does not shrink like `1/sqrt(n)`).
 //! - [`TailClass::Light`]: the quote stands as the module documentation derives it.
 //!
+//! [`crate::quote::quote`] also makes a heavy verdict unpredictable when the pilot's
+//! groups of pixels disagree on its error ([`crate::quote::REL_M_UNPREDICTABLE`]): the
+//! statistics here see the pass values, not how the error spreads over the frame.
+//!
 //! The thresholds are where these statistics sit on the calibration scenes
-//! (docs/benchmarks.md, "Quotes where paths are rare"); the pilot is deterministic, so a
-//! scene's class does not depend on the machine.
+//! (docs/benchmarks.md, "Quotes where paths are rare" and "Quotes at 5% and 2% on the
+//! calibration suite"); the pilot is deterministic, so a scene's class does not depend on
+//! the machine, but it does on the pixels' size: a larger pixel averages its rare paths
+//! over more area.
 
 use serde::{Deserialize, Serialize};
 
@@ -193,9 +199,9 @@ impl Tails {
         from_growth.max(from_index).max(0.0)
     }
 
-    /// The class and, unless light, the reason in words with the figures.
-    pub fn verdict(&self) -> (TailClass, Option<String>) {
-        let figures = format!(
+    /// The statistics in words, for a quote's note.
+    fn figures(&self) -> String {
+        format!(
             "tail index {} (Hill, k = {}), {:.0}% of the squared error in the brightest 1% \
              of {} pass values, per-pass error x{} from half the pilot's passes to all",
             self.tail_index.map_or("n/a".into(), |a| format!("{a:.2}")),
@@ -204,7 +210,23 @@ impl Tails {
             self.values,
             self.variance_growth
                 .map_or("n/a".into(), |g| format!("{g:.2}")),
-        );
+        )
+    }
+
+    /// The note of a quote that is not predictable from its pilot, for the reason `why`,
+    /// with the figures.
+    pub fn unpredictable_note(&self, why: &str) -> String {
+        format!(
+            "not predictable from the pilot: {why}, the mark of rare paths (fireflies) a \
+             short pilot cannot size; the figures below are what the pilot's 1/sqrt(passes) \
+             law says, a lower bound ({})",
+            self.figures()
+        )
+    }
+
+    /// The class and, unless light, the reason in words with the figures.
+    pub fn verdict(&self) -> (TailClass, Option<String>) {
+        let figures = self.figures();
         let alpha = self.tail_index.unwrap_or(f64::INFINITY);
         let growth = self.variance_growth.unwrap_or(1.0);
         if alpha < ALPHA_UNPREDICTABLE || growth >= GROWTH_UNPREDICTABLE {
@@ -214,14 +236,7 @@ impl Tails {
             } else {
                 "the error estimate grew with the pilot's passes instead of falling"
             };
-            return (
-                TailClass::Unpredictable,
-                Some(format!(
-                    "not predictable from the pilot: {why}, the mark of rare paths (fireflies) \
-                     a short pilot cannot size; the figures below are what the pilot's \
-                     1/sqrt(passes) law says, a lower bound ({figures})"
-                )),
-            );
+            return (TailClass::Unpredictable, Some(self.unpredictable_note(why)));
         }
         if alpha < ALPHA_HEAVY || growth > GROWTH_HEAVY || self.top_share > SHARE_HEAVY {
             return (
