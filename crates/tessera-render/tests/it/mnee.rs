@@ -6,7 +6,7 @@
 //! when MNEE finds them.
 
 use crate::common::{block_stats, z_critical};
-use crate::vcm::{expected_blocks, floor_irradiance, pool, X_LIGHT};
+use crate::vcm::{expected_blocks, floor_irradiance, pool, pool_errors, X_LIGHT};
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use tessera_farm::FramePlan;
@@ -366,7 +366,6 @@ fn pool_goal() {
     let (w, h) = (256, 256);
     let rs = RenderScene::build(&pool(), w, h).unwrap();
     let exact = expected_blocks(&rs, w, h, 1, floor_irradiance);
-    let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
     let plan = FramePlan::new(w, h, 32, 1, passes).unwrap();
     let s = settings(11, 3);
     let threads = rayon::ThreadPoolBuilder::new()
@@ -381,27 +380,11 @@ fn pool_goal() {
             .collect()
     });
     let cpu = cpu_seconds() - c0;
-    let mut acc = tessera_farm::FrameAccumulator::new(plan);
-    for r in results {
-        acc.offer(r).unwrap();
-    }
-    let img = acc.image();
-    let n = exact.len() as f64;
-    let (mut rel2, mut sum, mut sum_exact) = (0.0, 0.0, 0.0);
-    for (p, e) in img.mean.iter().zip(&exact) {
-        rel2 += ((lum(*p) - e) / e).powi(2);
-        sum += lum(*p);
-        sum_exact += e;
-    }
-    let measured = (rel2 / n).sqrt();
-    let estimate = tessera_farm::image_relative_error(w as usize, h as usize, |x, y| {
-        let i = y * w as usize + x;
-        Some((lum(img.mean[i]), lum(img.variance_of_mean[i])))
-    });
+    let (measured, estimate, offset) = pool_errors(plan, results, &exact);
     eprintln!(
         "pool, path+MNEE, {passes} passes of 1 spp: {cpu:.2} CPU s, measured {measured:.4}, \
          estimate {estimate:?}, image mean vs closed form {:+.3}%",
-        100.0 * (sum / sum_exact - 1.0)
+        100.0 * offset
     );
 }
 

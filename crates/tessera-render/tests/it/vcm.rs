@@ -226,6 +226,36 @@ fn pool_radiance(origin: Vec3, dir: Vec3, irradiance: impl Fn(f64) -> f64) -> f6
     (1.0 - fresnel(cos_c, N)) * RHO * irradiance(r) / (std::f64::consts::PI * N * N)
 }
 
+/// The pool render's errors against the closed form `exact` (per pixel, luminance): the
+/// measured relative RMS error, the image estimate a render reports (the pass spread,
+/// `tessera_farm::image_relative_error`), and the image mean's relative offset. The pool
+/// goal measurements of every technique share it.
+pub(crate) fn pool_errors(
+    plan: FramePlan,
+    results: Vec<tessera_farm::UnitResult>,
+    exact: &[f64],
+) -> (f64, f64, f64) {
+    let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
+    let (w, h) = (plan.width as usize, plan.height as usize);
+    let mut acc = tessera_farm::FrameAccumulator::new(plan);
+    for r in results {
+        acc.offer(r).unwrap();
+    }
+    let img = acc.image();
+    let n = exact.len() as f64;
+    let (mut rel2, mut sum, mut sum_exact) = (0.0, 0.0, 0.0);
+    for (p, e) in img.mean.iter().zip(exact) {
+        rel2 += ((lum(*p) - e) / e).powi(2);
+        sum += lum(*p);
+        sum_exact += e;
+    }
+    let estimate = tessera_farm::image_relative_error(w, h, |x, y| {
+        let i = y * w + x;
+        Some((lum(img.mean[i]), lum(img.variance_of_mean[i])))
+    });
+    ((rel2 / n).sqrt(), estimate, sum / sum_exact - 1.0)
+}
+
 /// The expected value of each `block x block` block: the closed form averaged over a
 /// 4 x 4 grid of film points per pixel (the box filter), for `irradiance`.
 pub(crate) fn expected_blocks(
@@ -1060,7 +1090,6 @@ fn pool_goal_measurement() {
     let rs = RenderScene::build(&pool(), w, h).unwrap();
     let table = Table::new(floor_irradiance);
     let exact = expected_blocks(&rs, w, h, 1, |r| table.at(r));
-    let lum = |p: [f32; 3]| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64;
     let plan = FramePlan::new(w, h, w, spp, passes).unwrap();
     let footprint = tessera_render::integrator::vcm::pixel_footprint(&rs, w, h, 3).unwrap();
     let which = std::env::var("TESSERA_POOL_INTEGRATORS").unwrap_or("ppm,vcm".into());
@@ -1093,23 +1122,7 @@ fn pool_goal_measurement() {
                 .collect()
         });
         let cpu = cpu_seconds() - c0;
-        let mut acc = tessera_farm::FrameAccumulator::new(plan);
-        for r in results {
-            acc.offer(r).unwrap();
-        }
-        let img = acc.image();
-        let n = exact.len() as f64;
-        let mut rel2 = 0.0;
-        for (p, e) in img.mean.iter().zip(&exact) {
-            rel2 += ((lum(*p) - e) / e).powi(2);
-        }
-        let measured = (rel2 / n).sqrt();
-        let estimate = tessera_farm::image_relative_error(w as usize, h as usize, |x, y| {
-            let i = y * w as usize + x;
-            Some((lum(img.mean[i]), lum(img.variance_of_mean[i])))
-        });
-        let mean = img.mean.iter().map(|p| lum(*p)).sum::<f64>() / n;
-        let truth = exact.iter().sum::<f64>() / n;
+        let (measured, estimate, offset) = pool_errors(plan, results, &exact);
         eprintln!(
             "pool 256x256 {integrator} (r_1 {:.4} = {:.1} footprints, alpha {}): {passes} passes x \
              {spp} spp, {cpu:.1} CPU s; measured \
@@ -1119,7 +1132,7 @@ fn pool_goal_measurement() {
             st.radius_1 / footprint,
             st.alpha,
             estimate / measured,
-            100.0 * (mean / truth - 1.0)
+            100.0 * offset
         );
     }
 }
