@@ -105,8 +105,9 @@ pub use spot::{
 pub use stats::{
     bias_scale, bias_squared, image_relative_error, image_relative_error_biased,
     image_relative_error_pooled, image_relative_error_pooled_biased, interval_quantile, luminance,
-    pooled_interval_variance, robust_scale, BiasStats, ErrorEstimator, PixelStats, BIAS_TERM,
-    ERROR_ESTIMATOR, ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE, LUMINANCE_WEIGHTS, REL_EPS,
+    neighbours_level, pooled_interval_variance, robust_scale, BiasStats, ErrorEstimator,
+    PixelStats, BIAS_TERM, ERROR_ESTIMATOR, ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE,
+    LUMINANCE_WEIGHTS, REL_EPS,
 };
 
 #[cfg(test)]

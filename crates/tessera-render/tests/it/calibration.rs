@@ -499,26 +499,29 @@ fn calibrate_plan(
 
 /// The image estimates [`level_table`] compares, in the order of [`LEVEL_NAMES`].
 const LEVELS: usize = 5;
-/// Column names of [`level_table`]: the two library estimators, then the robust
-/// estimate with neighbourhood levels that leave the pixel out ([`level_estimates`]).
+/// Column names of [`level_table`]: the two library estimators (level `max(m_8, m / 9)`,
+/// `tessera_farm::neighbours_level`), then the robust estimate with other neighbourhood
+/// levels ([`level_estimates`]), the 3x3 mean with the pixel being the library's before
+/// the neighbours' level.
 const LEVEL_NAMES: [&str; LEVELS] = [
-    "robust (level m_3x3)",
-    "pooled per pass (m_3x3)",
+    "robust (level max(m_8, m / 9))",
+    "pooled per pass (max(m_8, m / 9))",
+    "level m_3x3",
     "level m_8",
-    "level max(m_8, m / 9)",
-    "pooled per pass, max(m_8, m / 9)",
+    "pooled per pass, m_3x3",
 ];
 
 /// Image estimates of `img` (every pixel with at least 2 passes) with other neighbourhood
-/// levels in the robust scale: the library's robust and pooled per-pass estimates, and the
-/// same with `m_3x3` (the 3x3 mean, the pixel included) replaced by the mean of the
-/// pixel's neighbours without it, `m_8`, alone and floored at `m / 9`.
+/// levels in the robust scale: the library's robust and pooled per-pass estimates (level
+/// `max(m_8, m / 9)`), the robust estimate with `m_3x3` (the 3x3 mean, the pixel
+/// included: the library's level before) and with `m_8` (the mean of the pixel's
+/// neighbours without it) unfloored, and the pooled estimate with `m_3x3`.
 ///
 /// Why leave the pixel out: a pixel whose pass caught a rare bright path raises `m_3x3` by
 /// a ninth of its own catch, so the scale it is divided by grows with its own error and
 /// its relative error is understated; the neighbours' passes are independent of its own,
 /// so `m_8` is not. The floor `m / 9` is what `m_3x3` gave where every neighbour is black:
-/// with it the scale is never above the library's (the estimate never lower) and a
+/// with it the scale is never above `m_3x3`'s (the estimate never lower) and a
 /// pixel's relative error never above 9 times its own `rel`.
 fn level_estimates(img: &FrameImage) -> [f64; LEVELS] {
     let (w, h) = (img.width as usize, img.height as usize);
@@ -545,11 +548,17 @@ fn level_estimates(img: &FrameImage) -> [f64; LEVELS] {
         let (m, v, _) = px[p];
         (v.sqrt() / tessera_farm::robust_scale(m, v, level)).powi(2)
     };
-    let floored = |p: usize| m8[p].max(px[p].0.max(0.0) / 9.0);
+    let m3: Vec<f64> = (0..w * h)
+        .map(|p| {
+            let (sum, n) =
+                around(p % w, p / w).fold((0.0, 0.0), |(s, n), q| (s + px[q].0.max(0.0), n + 1.0));
+            sum / n
+        })
+        .collect();
     let rms = |f: &dyn Fn(usize) -> f64| ((0..w * h).map(f).sum::<f64>() / (w * h) as f64).sqrt();
-    // Per-pass relative variance with the floored level, pooled over 3x3 as
+    // Per-pass relative variance with the 3x3 level, pooled over 3x3 as
     // `image_relative_error_pooled` pools it.
-    let q: Vec<f64> = (0..w * h).map(|p| px[p].2 * rel2(p, floored(p))).collect();
+    let q: Vec<f64> = (0..w * h).map(|p| px[p].2 * rel2(p, m3[p])).collect();
     let pooled = |p: usize| {
         let (sum, n) = around(p % w, p / w).fold((0.0, 0.0), |(s, n), r| (s + q[r], n + 1.0));
         sum / n / px[p].2
@@ -557,8 +566,8 @@ fn level_estimates(img: &FrameImage) -> [f64; LEVELS] {
     [
         img.error_estimate(ErrorEstimator::Robust).unwrap(),
         img.error_estimate(ErrorEstimator::PooledPerPass).unwrap(),
+        rms(&|p| rel2(p, m3[p])),
         rms(&|p| rel2(p, m8[p])),
-        rms(&|p| rel2(p, floored(p))),
         rms(&pooled),
     ]
 }
@@ -1065,11 +1074,11 @@ fn adaptive_calibration(name: &str, target: f64, seeds: &[u64]) -> (f64, f64) {
         );
         let plain = img.error_estimate(ErrorEstimator::Robust).unwrap();
         let measured = measured_error(&img, &r);
-        // The pooled estimate with the level that leaves the pixel out (`level_table`).
+        // The pooled estimate with the library's level before, the 3x3 mean (`level_table`).
         let level = level_estimates(&img)[LEVELS - 1];
         eprintln!(
             "adaptive calibration {name} unbiased {target} seed {seed}: pooled {pooled:.4}, \
-             plain {plain:.4}, pooled with max(m_8, m / 9) {level:.4}, measured {measured:.4}"
+             plain {plain:.4}, pooled with m_3x3 {level:.4}, measured {measured:.4}"
         );
         level2 += level * level;
         pooled2 += pooled * pooled;
@@ -1077,8 +1086,8 @@ fn adaptive_calibration(name: &str, target: f64, seeds: &[u64]) -> (f64, f64) {
         measured2 += measured * measured;
     }
     eprintln!(
-        "adaptive calibration {name} unbiased {target}: pooled with max(m_8, m / 9) {:.3} of \
-         the measured error",
+        "adaptive calibration {name} unbiased {target}: pooled with m_3x3 {:.3} of the \
+         measured error",
         (level2 / measured2).sqrt()
     );
     ((pooled2 / measured2).sqrt(), (plain2 / measured2).sqrt())
