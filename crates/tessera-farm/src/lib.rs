@@ -35,12 +35,12 @@
 //! ```
 //! use tessera_farm::{FrameAccumulator, FramePlan, Offer, UnitResult};
 //!
-//! // 40x30 pixels, 16-pixel tiles, 64 spp: 4 passes of 16 samples.
+//! // 40x30 pixels, 16-pixel tiles, 64 spp: 2 passes of 32 samples.
 //! let plan = FramePlan::for_spp(40, 30, 64, 16)?;
-//! assert_eq!((plan.samples_per_pass, plan.passes, plan.tile_count()), (16, 4, 6));
+//! assert_eq!((plan.samples_per_pass, plan.passes, plan.tile_count()), (32, 2, 6));
 //!
 //! let mut frame = FrameAccumulator::new(plan);
-//! // Two passes per unit; results may arrive in any order.
+//! // Two passes per unit (one unit per tile here); results may arrive in any order.
 //! let mut units = plan.units(0, 2);
 //! units.reverse();
 //! for unit in units {
@@ -61,8 +61,8 @@
 //! assert!(frame.complete());
 //! let image = frame.image();
 //! assert_eq!(image.samples[0], 64);
-//! // The mean of passes 0..4: 0.5 + (0 + 1 + 2 + 3) / 400.
-//! assert!((image.mean[0][0] - 0.515).abs() < 1e-6);
+//! // The mean of passes 0..2: 0.5 + (0 + 1) / 200.
+//! assert!((image.mean[0][0] - 0.505).abs() < 1e-6);
 //! assert!(frame.image_error() > 0.0);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
@@ -90,9 +90,10 @@ pub use ids::{JobId, WorkerId};
 pub use mask::{MaskError, PixelRuns};
 pub use merge::{FrameAccumulator, FrameImage, MergeError, Offer, TileAccumulator};
 pub use plan::{
-    FramePlan, PlanError, TileRect, WorkUnit, MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION,
-    MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS, MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS,
-    MIN_TILE_SIZE, TARGET_MIN_PASSES, WHOLE_FRAME_MAX_SAMPLES_PER_PASS,
+    FramePlan, PlanError, TileRect, WorkUnit, LOW_SPP, LOW_SPP_MIN_PASSES,
+    MAX_AUTO_SAMPLES_PER_PASS, MAX_DIMENSION, MAX_FRAME_SAMPLES, MAX_PASSES, MAX_SAMPLES_PER_PASS,
+    MAX_TILE_SIZE, MAX_WHOLE_FRAME_PIXELS, MIN_TILE_SIZE, TARGET_MIN_PASSES,
+    WHOLE_FRAME_MAX_SAMPLES_PER_PASS,
 };
 pub use result::{ResultError, UnitResult, MAX_PASS_MEAN};
 pub use schedule::{
@@ -105,8 +106,9 @@ pub use spot::{
 pub use stats::{
     bias_scale, bias_squared, image_relative_error, image_relative_error_biased,
     image_relative_error_pooled, image_relative_error_pooled_biased, interval_quantile, luminance,
-    pooled_interval_variance, robust_scale, BiasStats, ErrorEstimator, PixelStats, BIAS_TERM,
-    ERROR_ESTIMATOR, ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE, LUMINANCE_WEIGHTS, REL_EPS,
+    neighbours_level, pooled_interval_variance, robust_scale, BiasStats, ErrorEstimator,
+    PixelStats, BIAS_TERM, ERROR_ESTIMATOR, ERROR_ESTIMATOR_POOLED, INTERVAL_COVERAGE,
+    LUMINANCE_WEIGHTS, REL_EPS,
 };
 
 #[cfg(test)]

@@ -33,18 +33,31 @@ pub const MAX_AUTO_SAMPLES_PER_PASS: u32 = 64;
 /// (`docs/deploy.md`): whole-frame units are no longer than before the larger
 /// [`MAX_AUTO_SAMPLES_PER_PASS`].
 pub const WHOLE_FRAME_MAX_SAMPLES_PER_PASS: u32 = 16;
-/// Minimum number of passes [`FramePlan::for_spp`] aims for when the requested spp allows it:
-/// 4 replicates, so 3 degrees of freedom for each pixel's variance and an unbiased image
-/// error estimate (ARCHITECTURE.md §3).
-///
-/// Not 2, though 2 passes keep more of each pixel's net (6-21% less variance at 16-64
-/// spp): the pixels' intervals, at Student's t quantile for what they pool
-/// ([`crate::FrameImage::interval_variance`]), stay calibrated at 2 passes, but the image
-/// error estimate turns optimistic where rare bright paths carry the error, the robust
-/// scale's floor `m - se` being the smaller pass itself (veach-mis at 64 spp: 0.88 of the
-/// measured error over 8 seeds against 1.03 at 4 passes, 0.79 over the calibration suite's
-/// 4 seeds, below its 0.8; `docs/benchmarks.md`, "Sampling structure", 2026-12-06).
+/// Minimum number of passes [`FramePlan::for_spp`] aims for outside [`LOW_SPP`], and
+/// [`FramePlan::whole_frame`] at every spp: 4 replicates, so 3 degrees of freedom for
+/// each pixel's own variance (ARCHITECTURE.md §3).
 pub const TARGET_MIN_PASSES: u32 = 4;
+/// Minimum number of passes [`FramePlan::for_spp`] aims for at [`LOW_SPP`] samples per
+/// pixel: 2, the fewest that estimate a variance, so that each pass keeps more of its
+/// scrambled net (Owen 2001, section 6.7).
+///
+/// Measured (`docs/benchmarks.md`, "Sampling structure", 2026-12-06 and its evening): 2
+/// passes of `N / 2` have 6-21% less variance than 4 of `N / 4` at 16-64 spp (bench/compare
+/// at 64 spp: the Cornell box 0.90, veach-mis 0.81, the glass ball 0.92 of the 4-pass
+/// variance; the 2M-triangle scene 0.86 at 16 spp); the pixels' intervals pool their
+/// variance over 3x3 pixels (up to 9 degrees of freedom at `K = 2`) at Student's t
+/// quantile ([`crate::FrameImage::interval_variance`]), and the image estimate stays
+/// calibrated at 2 passes with the robust scale's level [`crate::neighbours_level`] (with
+/// the 3x3 mean it was 0.79 of the measured error on veach-mis at 64 spp, below the
+/// calibration suite's 0.8). Whole-frame techniques (bdpt, vcm, ppm, mlt) and adaptive
+/// plans keep their rules: nothing was measured for them.
+pub const LOW_SPP_MIN_PASSES: u32 = 2;
+/// The samples per pixel at which [`FramePlan::for_spp`] aims for [`LOW_SPP_MIN_PASSES`]
+/// passes: from 16, where the calibration suite was measured (below it, passes of a few
+/// samples are skewed and 4 of them keep the estimate closer), to below 256, where a pass
+/// of 128 would exceed [`MAX_AUTO_SAMPLES_PER_PASS`] and 4 passes of 64 are what the cap
+/// gives anyway.
+pub const LOW_SPP: std::ops::Range<u32> = 16..256;
 
 /// Why a frame plan was rejected.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -199,36 +212,52 @@ impl FramePlan {
 
     /// Plans a frame for a requested number of samples per pixel `N`.
     ///
-    /// The samples per pass `S` is the largest power of two not above `max(1, N / 4)`
-    /// (integer division), capped at 64; the pass count is `K = ceil(N / S)`. So:
-    /// - for `N >= 4` there are at least 4 passes (between 4 and 8 until the cap is reached,
-    ///   at `N = 256`; more beyond it): the variance of the mean is estimated from the spread
-    ///   between passes and needs at least 2 of them;
+    /// With `m` = [`LOW_SPP_MIN_PASSES`] (2) from 16 to 255 spp ([`LOW_SPP`]) and
+    /// [`TARGET_MIN_PASSES`] (4) otherwise, the samples per pass `S` is the largest power of
+    /// two not above `max(1, N / m)` (integer division), capped at 64, and halved while the
+    /// planned spp `S * ceil(N / S)` would exceed `N` by `N / 4` or more; the pass count is
+    /// `K = ceil(N / S)`. So:
+    /// - for `N >= m` there are at least `m` passes (exactly 2 for a power of two from 16
+    ///   to 128, 4 below 16 and at 256, more beyond the cap): the variance of the mean is
+    ///   estimated from the spread between passes and needs at least 2 of them;
     /// - for `N < 4` every pass is a single sample (`S = 1`, `K = N`);
-    /// - few, large passes keep the stratification of the scrambled nets: at 64 spp, 4
-    ///   passes of 16 have less variance than 8 of 8, and at 1024 spp 16 passes of 64
-    ///   far less than 64 of 16 (Owen 2001, section 6.7; measured in `docs/benchmarks.md`,
-    ///   "Sampling structure"). The price is fewer degrees of freedom per pixel: a pixel's
-    ///   `mean +- 2 sqrt(variance)` covers its true value with Student's t probability for
-    ///   `K - 1` degrees of freedom (86% at `K = 4`, 94% at `K = 16`), while the image
-    ///   error estimate, an average over pixels, stays calibrated (ARCHITECTURE.md §3);
+    /// - few, large passes keep the stratification of the scrambled nets: at 64 spp, 2
+    ///   passes of 32 have 10-20% less variance than 4 of 16, and at 1024 spp 16 passes of
+    ///   64 far less than 64 of 16 (Owen 2001, section 6.7; measured in
+    ///   `docs/benchmarks.md`, "Sampling structure"). The price is fewer degrees of freedom
+    ///   per pixel: a pixel's `mean +- 2 sqrt(variance)` covers its true value with
+    ///   Student's t probability for `K - 1` degrees of freedom (70% at `K = 2`, 86% at
+    ///   `K = 4`), so its interval pools the variance of its 3x3 neighbourhood and uses t's
+    ///   quantile for the pooled degrees of freedom
+    ///   ([`crate::FrameImage::interval_variance`]); the image error estimate, an average
+    ///   over pixels, stays calibrated (ARCHITECTURE.md §3);
     /// - `S <= 64` keeps one pass of a large frame short, so progress and the farm's units
     ///   stay fine-grained.
     ///
-    /// The planned spp `S * K` may exceed `N` by less than `S` (e.g. `N = 100` gives
-    /// `S = 16`, `K = 7`, 112 spp). `N` may be at most `64 * 65536`.
+    /// The planned spp `S * K` exceeds `N` by less than `S` and less than `N / 4` (e.g.
+    /// `N = 100` gives `S = 16`, `K = 7`, 112 spp: 4 passes of 32 would be 128). `N` may be
+    /// at most `64 * 65536`.
     ///
     /// | N    | S  | K  | spp  |
     /// |------|----|----|------|
     /// | 1    | 1  | 1  | 1    |
     /// | 4    | 1  | 4  | 4    |
     /// | 8    | 2  | 4  | 8    |
-    /// | 64   | 16 | 4  | 64   |
+    /// | 16   | 8  | 2  | 16   |
+    /// | 64   | 32 | 2  | 64   |
     /// | 100  | 16 | 7  | 112  |
+    /// | 128  | 64 | 2  | 128  |
+    /// | 192  | 64 | 3  | 192  |
     /// | 256  | 64 | 4  | 256  |
     /// | 1000 | 64 | 16 | 1024 |
     pub fn for_spp(width: u32, height: u32, spp: u32, tile_size: u32) -> Result<Self, PlanError> {
-        let (samples_per_pass, passes) = Self::split_spp(spp, MAX_AUTO_SAMPLES_PER_PASS)?;
+        let min_passes = if LOW_SPP.contains(&spp) {
+            LOW_SPP_MIN_PASSES
+        } else {
+            TARGET_MIN_PASSES
+        };
+        let (samples_per_pass, passes) =
+            Self::split_spp(spp, MAX_AUTO_SAMPLES_PER_PASS, min_passes)?;
         Self::new(width, height, tile_size, samples_per_pass, passes)
     }
 
@@ -241,7 +270,8 @@ impl FramePlan {
     /// edge is `max(width, height)` (at least [`MIN_TILE_SIZE`]); frames above
     /// [`MAX_WHOLE_FRAME_PIXELS`] are refused with [`PlanError::WholeFrameTooLarge`].
     pub fn whole_frame(width: u32, height: u32, spp: u32) -> Result<Self, PlanError> {
-        let (samples_per_pass, passes) = Self::split_spp(spp, WHOLE_FRAME_MAX_SAMPLES_PER_PASS)?;
+        let (samples_per_pass, passes) =
+            Self::split_spp(spp, WHOLE_FRAME_MAX_SAMPLES_PER_PASS, TARGET_MIN_PASSES)?;
         let tile = width.max(height).max(MIN_TILE_SIZE);
         Self::new(width, height, tile, samples_per_pass, passes)
     }
@@ -252,16 +282,24 @@ impl FramePlan {
     }
 
     /// `(samples_per_pass, passes)` for a requested spp with at most `cap` (a power of
-    /// two) samples per pass; see [`FramePlan::for_spp`].
-    fn split_spp(spp: u32, cap: u32) -> Result<(u32, u32), PlanError> {
+    /// two) samples per pass and at least `min_passes` passes where the spp allows; see
+    /// [`FramePlan::for_spp`].
+    fn split_spp(spp: u32, cap: u32, min_passes: u32) -> Result<(u32, u32), PlanError> {
         let max = cap * MAX_PASSES;
         if spp == 0 || spp > max {
             return Err(PlanError::Spp { spp, max });
         }
-        let target = (spp / TARGET_MIN_PASSES).max(1);
+        let target = (spp / min_passes.max(1)).max(1);
         // Largest power of two <= target (target >= 1).
-        let pow2 = 1u32 << (31 - target.leading_zeros());
-        let samples_per_pass = pow2.min(cap);
+        let mut samples_per_pass = (1u32 << (31 - target.leading_zeros())).min(cap);
+        // Passes of spp / 2 may overshoot a spp that is not a power of two by almost half
+        // (130 as 3 x 64); never more than a quarter (at 4 passes it cannot happen: the
+        // overshoot is below S <= spp / 4). Ends at S = 1, whose overshoot is 0.
+        while 4 * (spp.div_ceil(samples_per_pass) * samples_per_pass - spp) >= spp
+            && samples_per_pass > 1
+        {
+            samples_per_pass /= 2;
+        }
         let passes = spp.div_ceil(samples_per_pass);
         Ok((samples_per_pass, passes))
     }
@@ -498,10 +536,16 @@ mod tests {
             (7, 1, 7),
             (8, 2, 4),
             (15, 2, 8),
-            (16, 4, 4),
-            (64, 16, 4),
+            (16, 8, 2),
+            (17, 4, 5),
+            (25, 4, 7),
+            (64, 32, 2),
             (100, 16, 7),
-            (128, 32, 4),
+            (128, 64, 2),
+            (130, 32, 5),
+            (192, 64, 3),
+            (200, 32, 7),
+            (255, 64, 4),
             (256, 64, 4),
             (1000, 64, 16),
             (1024, 64, 16),
@@ -510,17 +554,11 @@ mod tests {
         for (n, s, k) in cases {
             let p = FramePlan::for_spp(32, 32, n, 16).unwrap();
             assert_eq!((p.samples_per_pass, p.passes), (s, k), "N = {n}");
-            assert!(p.spp() >= n && p.spp() - n < s, "N = {n}");
-            assert!(
-                s.is_power_of_two() && s <= MAX_AUTO_SAMPLES_PER_PASS,
-                "N = {n}"
-            );
-            if n >= TARGET_MIN_PASSES {
-                assert!(p.passes >= TARGET_MIN_PASSES, "N = {n}");
-            }
         }
         // The rule's bounds for every N up to well past the cap: S a power of two, at most
-        // 64; 4 to 8 passes until S reaches the cap; overshoot below one pass.
+        // 64; at least 2 passes from 16 to 255 spp (exactly 2 for a power of two), at least
+        // 4 otherwise, at most 8 until S reaches the cap; overshoot below one pass and
+        // below a quarter of N.
         for n in 1..=5000 {
             let p = FramePlan::for_spp(32, 32, n, 16).unwrap();
             let (s, k) = (p.samples_per_pass, p.passes);
@@ -529,10 +567,19 @@ mod tests {
                 "N = {n}"
             );
             assert!(p.spp() >= n && p.spp() - n < s, "N = {n}");
-            if n >= TARGET_MIN_PASSES {
-                assert!(k >= TARGET_MIN_PASSES, "N = {n}");
+            assert!(4 * (p.spp() - n) < n, "N = {n}: {s} x {k}");
+            let m = if LOW_SPP.contains(&n) {
+                LOW_SPP_MIN_PASSES
+            } else {
+                TARGET_MIN_PASSES
+            };
+            if n >= m {
+                assert!(k >= m, "N = {n}");
             } else {
                 assert_eq!((s, k), (1, n), "N = {n}");
+            }
+            if LOW_SPP.contains(&n) && n.is_power_of_two() {
+                assert_eq!(k, 2, "N = {n}");
             }
             if s < MAX_AUTO_SAMPLES_PER_PASS {
                 assert!(k <= 2 * TARGET_MIN_PASSES, "N = {n}: {k} passes");

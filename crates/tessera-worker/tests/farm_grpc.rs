@@ -155,7 +155,8 @@ async fn a_worker_without_the_token_is_refused() {
     }
 }
 
-/// A longer job than [`settings`]: 128x128 at 64 spp in 16-pixel tiles, 256 units.
+/// A longer job than [`settings`]: 128x128 at 64 spp (2 passes of 32) in 16-pixel tiles,
+/// 128 units.
 fn long_settings() -> JobSettings {
     let mut s = settings();
     s.width = Some(128);

@@ -635,14 +635,15 @@ async fn a_held_spot_check_copy_wakes_the_other_workers_request() {
 }
 
 /// A coordinator with spot-check fraction `spot` and one queued job of one 16x16 tile and 4
-/// passes of one unit each (the Cornell box at 64 spp), for the ETA tests.
+/// passes of one unit each (the Cornell box at 8 spp, 4 passes of 2: from 16 spp the plan
+/// gives 2 passes), for the ETA tests.
 async fn one_tile_job(spot: f64) -> (tempfile::TempDir, Coordinator, tessera_api::JobStatus) {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = CoordinatorConfig::new(dir.path());
     (cfg.spot_check_fraction, cfg.passes_per_unit) = (spot, 1);
     let core = Coordinator::open(cfg).await.unwrap();
     let mut job = JobSettings::new("builtin:cornell-box");
-    (job.width, job.height, job.spp) = (Some(16), Some(16), 64);
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 8);
     let (status, _) = core.submit(job, None).await.unwrap();
     assert_eq!((status.tiles_total, status.passes_planned), (1, 4));
     (dir, core, status)

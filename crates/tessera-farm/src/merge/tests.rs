@@ -511,8 +511,9 @@ fn image_error_hand_computed() {
     // it is darker than its neighbourhood, so its scale is its own mean.
     let l0 = 0.2126f64 / 2.0;
     let rel0 = l0 / (l0 + 0.01);
-    // Pixel 1: passes 2 and 4, mean 3, standard error 1; its neighbourhood (pixels 0-2)
-    // has mean (l0 + 3) / 3 < 3, so the robust scale falls to the floor 3 - 1 = 2.
+    // Pixel 1: passes 2 and 4, mean 3, standard error 1; its level (`neighbours_level`:
+    // pixels 0 and 2 have mean l0 / 2, floored at 3 / 9) is below 3, so the robust scale
+    // falls to the floor 3 - 1 = 2.
     let rel1 = 1.0 / 2.01;
     let expected = ((rel0 * rel0 + rel1 * rel1) / 4.0).sqrt();
     let got = acc.image_error();

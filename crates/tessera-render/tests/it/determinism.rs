@@ -14,7 +14,8 @@ fn thread_count_and_unit_split_do_not_change_a_bit() {
     let (w, h) = (48, 40);
     let rs = RenderScene::build(&scene, w, h).unwrap();
     let plan = FramePlan::for_spp(w, h, 32, 16).unwrap();
-    assert!(plan.passes >= 4);
+    // At least 2 passes, so the halves below are units of their own.
+    assert!(plan.passes >= 2);
     let settings = RenderConfig {
         seed: 42,
         ..RenderConfig::default()
