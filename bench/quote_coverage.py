@@ -152,7 +152,9 @@ def bound_verdict(rs, above):
         f", {left} cut below it" if left else "")
 
 
-def table(path):
+def records(path):
+    """The quotes and renders recorded in `path` (JSON lines), keyed by (scene name,
+    target): `{key: quote}` and `{key: [render, ...]}`."""
     quotes, renders = {}, {}
     for line in open(path):
         r = json.loads(line)
@@ -162,6 +164,11 @@ def table(path):
             renders[key] = []
         else:
             renders.setdefault(key, []).append(r)
+    return quotes, renders
+
+
+def table(path):
+    quotes, renders = records(path)
     print("| scene (technique, size) | target | alpha / share / g | class | quote: s [95%] "
           "(spp) | actual CPU s, fewest-most (spp x renders) | covered |")
     print("|---|---|---|---|---|---|---|")
@@ -192,15 +199,7 @@ def requote(binary, path):
     so a debug build gives the release build's class and spp; its seconds are a debug
     build's, so the seconds are derived: the recorded quote's seconds per spp at each end
     times the new spp."""
-    quotes, renders = {}, {}
-    for line in open(path):
-        r = json.loads(line)
-        key = (r["name"], r["target"])
-        if r["kind"] == "quote":
-            quotes[key] = r
-            renders[key] = []
-        else:
-            renders.setdefault(key, []).append(r)
+    quotes, renders = records(path)
     print("| scene (technique, size) | target | class | quote: spp [95%] | seconds (derived) "
           "| renders' spp | covered |")
     print("|---|---|---|---|---|---|---|")
