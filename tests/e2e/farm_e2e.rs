@@ -547,7 +547,8 @@ fn tokens_are_required_when_configured() {
 fn faulty_results_are_rejected_and_the_image_is_unaffected() {
     use tessera_proto::v1;
     let dir = temp_dir("e2e", "faulty");
-    let s = job(32, 32, 16);
+    // One tile of 4 passes of 2 (8 spp): 4 units, of which the faulty worker leases 3.
+    let s = job(32, 32, 8);
     let reference = local_render(&dir, &s);
     let c = start_coordinator(&dir.join("data"), "127.0.0.1:0", "127.0.0.1:0", &[]);
     let client = Client::new(&c.http, None);
