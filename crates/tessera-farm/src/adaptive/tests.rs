@@ -75,6 +75,27 @@ fn off_matches_the_plain_merge_bit_for_bit() {
     assert!(off.traced_passes().all(|t| t == 10));
 }
 
+/// An adaptive frame fed every unit of `plan` split `per` passes a unit, in plan order or
+/// shuffled by `seed`, each unit's result made by `result`; checked finished.
+fn split_frame(
+    plan: FramePlan,
+    settings: AdaptiveSettings,
+    per: u32,
+    seed: Option<u64>,
+    result: impl Fn(TileRect, WorkUnit) -> UnitResult,
+) -> AdaptiveFrame {
+    let mut frame = AdaptiveFrame::new(plan, 0, settings).unwrap();
+    let mut units = plan.units(0, per);
+    if let Some(s) = seed {
+        Rng::new(s).shuffle(&mut units);
+    }
+    for u in units {
+        frame.offer(&result(plan.tile(u.tile), u)).unwrap();
+    }
+    assert!(frame.finished());
+    frame
+}
+
 /// The adaptive state is a function of the pass data only: any unit split and arrival
 /// order gives the same bits (ARCHITECTURE.md §2).
 #[test]
@@ -82,18 +103,9 @@ fn decisions_do_not_depend_on_unit_split_or_order() {
     let plan = FramePlan::new(20, 12, 8, 1, 64).unwrap();
     for settings in [seq(0.15), unb(0.15)] {
         let run = |per: u32, seed: Option<u64>| {
-            let mut frame = AdaptiveFrame::new(plan, 0, settings).unwrap();
-            let mut units = plan.units(0, per);
-            if let Some(s) = seed {
-                Rng::new(s).shuffle(&mut units);
-            }
-            for u in units {
-                let rect = plan.tile(u.tile);
-                frame
-                    .offer(&result_from(rect, u, &|p, i| noisy(u.tile, p, i)))
-                    .unwrap();
-            }
-            assert!(frame.finished());
+            let frame = split_frame(plan, settings, per, seed, |rect, u| {
+                result_from(rect, u, &|p, i| noisy(u.tile, p, i))
+            });
             let img = frame.image();
             let mut bits: Vec<u32> = img.mean.iter().flatten().map(|v| v.to_bits()).collect();
             bits.extend(img.variance_of_mean.iter().flatten().map(|v| v.to_bits()));
@@ -562,20 +574,11 @@ fn the_bias_channel_follows_the_passes_each_pixel_keeps() {
     let plan = FramePlan::new(20, 12, 8, 1, 64).unwrap();
     for settings in [seq(0.15), unb(0.15)] {
         let run = |per: u32, seed: Option<u64>| {
-            let mut frame = AdaptiveFrame::new(plan, 0, settings).unwrap();
-            let mut units = plan.units(0, per);
-            if let Some(s) = seed {
-                Rng::new(s).shuffle(&mut units);
-            }
-            for u in units {
-                let rect = plan.tile(u.tile);
-                let r = biased_result_from(rect, u, &|p, i| noisy(u.tile, p, i), &|p, i| {
+            split_frame(plan, settings, per, seed, |rect, u| {
+                biased_result_from(rect, u, &|p, i| noisy(u.tile, p, i), &|p, i| {
                     bias_of(u.tile, p, i)
-                });
-                frame.offer(&r).unwrap();
-            }
-            assert!(frame.finished());
-            frame
+                })
+            })
         };
         let frame = run(1, None);
         let mut kept_fewer = false;
