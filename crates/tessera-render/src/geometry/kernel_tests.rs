@@ -451,3 +451,59 @@ fn every_kernel_renders_the_builtin_scenes_and_a_large_one_bit_identically() {
         }
     }
 }
+
+#[test]
+fn packets_find_every_rays_single_ray_hit() {
+    let mut geometry = Geometry::build(terrain(60, 5), Vec::new());
+    // Coherent packets: a pinhole camera above the terrain, 4x2 blocks of a 64x32 film
+    // with a jittered point per pixel; incoherent ones: eight random rays (mixed
+    // dominant axes, `-0.0` components), one of them NaN or starting at infinity.
+    let eye = Vec3::new(0.2, 0.9, 1.6);
+    let mut s = 3u64;
+    let mut packets: Vec<([Vec3; PACKET], [Vec3; PACKET])> = Vec::new();
+    for by in 0..16 {
+        for bx in 0..16 {
+            let dirs = std::array::from_fn(|i| {
+                let (x, y) = (bx * 4 + i % 4, by * 2 + i / 4);
+                let u = (x as f32 + lcg(&mut s)) / 64.0 * 2.0 - 1.0;
+                let v = (y as f32 + lcg(&mut s)) / 32.0 * 2.0 - 1.0;
+                Vec3::new(u * 0.8, -0.45 - 0.4 * v, -1.0).normalize()
+            });
+            packets.push(([eye; PACKET], dirs));
+        }
+    }
+    let random = rays(8 * 200, 17);
+    for (k, chunk) in random.chunks_exact(PACKET).enumerate() {
+        let mut o: [Vec3; PACKET] = std::array::from_fn(|i| chunk[i].0);
+        let mut d: [Vec3; PACKET] = std::array::from_fn(|i| chunk[i].1);
+        match k % 3 {
+            0 => d[3] = Vec3::new(f32::NAN, 0.0, -1.0),
+            1 => o[5] = Vec3::new(f32::INFINITY, 0.5, 0.0),
+            _ => {}
+        }
+        packets.push((o, d));
+    }
+    let mut hits = 0;
+    for isa in Isa::ALL.into_iter().filter(|i| i.available()) {
+        geometry.set_isa(isa).unwrap();
+        for (k, (o, d)) in packets.iter().enumerate() {
+            for t_max in [f32::INFINITY, 1.2] {
+                let packet = geometry.intersect_packet(o, d, t_max);
+                for i in 0..PACKET {
+                    let single = hit_bits(geometry.intersect(o[i], d[i], t_max));
+                    hits += usize::from(single.is_some());
+                    assert_eq!(
+                        hit_bits(packet[i]),
+                        single,
+                        "{}: packet {k}, ray {i} ({}, {}), t_max {t_max}",
+                        isa.name(),
+                        o[i],
+                        d[i]
+                    );
+                }
+            }
+        }
+    }
+    // The comparison must have hits to compare (camera rays look down at the terrain).
+    assert!(hits > packets.len() * PACKET, "{hits} hits");
+}
