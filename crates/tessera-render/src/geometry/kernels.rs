@@ -27,12 +27,9 @@
 //! `TESSERA_ISA=scalar|sse2|avx2|avx512` forces a kernel; [`Isa::from_env`] refuses a
 //! value this CPU cannot run, with a message naming what it lacks.
 
-use super::packet::{self, PACKET};
-use super::watertight::WatertightRay;
 use super::wide::{
     self, far_scale, planes, BoxRay, BoxTest, Leaves, Nearest, WideBvh, WideNode, WIDTH,
 };
-use super::{HitTriangle, Triangles};
 use glam::Vec3;
 use std::sync::OnceLock;
 
@@ -267,52 +264,14 @@ pub(super) fn any<L: Leaves>(
     }
 }
 
-/// The nearest hits of a packet of rays in one level of triangles (see
-/// [`packet::nearest`]), with kernel `isa`'s box test for every ray.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-pub(super) fn nearest_packet<const KZ: usize, F>(
-    isa: Isa,
-    bvh: &WideBvh,
-    triangles: &Triangles,
-    instance: u32,
-    rays: &[BoxRay; PACKET],
-    wt: &[WatertightRay<KZ>; PACKET],
-    keep: &F,
-    best: &mut [Nearest; PACKET],
-    active: u32,
-) where
-    F: Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
-{
-    match isa {
-        Isa::Scalar => {
-            packet::nearest::<Scalar, KZ, F>(bvh, triangles, instance, rays, wt, keep, best, active)
-        }
-        Isa::Sse2 => {
-            packet::nearest::<Lanes, KZ, F>(bvh, triangles, instance, rays, wt, keep, best, active)
-        }
-        #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 | Isa::Avx512 => {
-            x86::nearest_packet(isa, bvh, triangles, instance, rays, wt, keep, best, active)
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        _ => {
-            packet::nearest::<Scalar, KZ, F>(bvh, triangles, instance, rays, wt, keep, best, active)
-        }
-    }
-}
-
 /// The traversals compiled for AVX2 and AVX-512, and the one place the crate calls a
 /// `#[target_feature]` function from code without those features (ARCHITECTURE.md §1).
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code)]
 mod x86 {
-    use super::super::packet::{self, PACKET};
-    use super::super::watertight::WatertightRay;
     use super::super::wide::{
         self, far_scale, planes, BoxRay, BoxTest, Leaves, Nearest, WideBvh, WideNode, WIDTH,
     };
-    use super::super::{HitTriangle, Triangles};
     use super::{Isa, Lanes};
     use std::arch::x86_64::{
         _mm256_cmp_ps, _mm256_loadu_ps, _mm256_max_ps, _mm256_min_ps, _mm256_movemask_ps,
@@ -447,64 +406,4 @@ mod x86 {
         "avx512f",
         Isa::Avx512
     );
-
-    macro_rules! packet_kernel {
-        ($name:ident, $feature:literal) => {
-            #[target_feature(enable = $feature)]
-            #[allow(clippy::too_many_arguments)]
-            fn $name<const KZ: usize, F>(
-                bvh: &WideBvh,
-                triangles: &Triangles,
-                instance: u32,
-                rays: &[BoxRay; PACKET],
-                wt: &[WatertightRay<KZ>; PACKET],
-                keep: &F,
-                best: &mut [Nearest; PACKET],
-                active: u32,
-            ) where
-                F: Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
-            {
-                packet::nearest::<Avx2Box, KZ, F>(
-                    bvh, triangles, instance, rays, wt, keep, best, active,
-                )
-            }
-        };
-    }
-
-    packet_kernel!(nearest_packet_avx2_tf, "avx2");
-    packet_kernel!(nearest_packet_avx512_tf, "avx512f");
-
-    /// The packet walk compiled for `isa` (AVX2 or AVX-512), or the array kernel's on a
-    /// CPU without it.
-    #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    pub(in super::super) fn nearest_packet<const KZ: usize, F>(
-        isa: Isa,
-        bvh: &WideBvh,
-        triangles: &Triangles,
-        instance: u32,
-        rays: &[BoxRay; PACKET],
-        wt: &[WatertightRay<KZ>; PACKET],
-        keep: &F,
-        best: &mut [Nearest; PACKET],
-        active: u32,
-    ) where
-        F: Fn(HitTriangle<'_>, u64, f32, f32) -> bool,
-    {
-        if !isa.available() {
-            return packet::nearest::<Lanes, KZ, F>(
-                bvh, triangles, instance, rays, wt, keep, best, active,
-            );
-        }
-        // SAFETY: `Isa::available` just confirmed with `is_x86_feature_detected!` that
-        // this CPU has the feature the function is compiled for (AVX-512 F and AVX2 for
-        // the AVX-512 kernel, whose box test is the AVX2 one).
-        unsafe {
-            if isa == Isa::Avx512 {
-                nearest_packet_avx512_tf(bvh, triangles, instance, rays, wt, keep, best, active)
-            } else {
-                nearest_packet_avx2_tf(bvh, triangles, instance, rays, wt, keep, best, active)
-            }
-        }
-    }
 }

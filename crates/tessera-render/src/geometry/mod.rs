@@ -66,14 +66,12 @@ mod watertight;
 mod build;
 pub mod kernels;
 mod moving;
-mod packet;
 mod traversal;
 mod wide;
 
 pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN, TIE_MIN};
 pub use kernels::Isa;
 pub use moving::{shutter_segment, MotionTriangles};
-pub use packet::PACKET;
 use traversal::{leaf_order, triangle_bvh, triangle_bvh_of, InstanceLeaves, TriangleLevel};
 pub use watertight::intersect_sphere;
 use wide::{Nearest, WideBvh};
@@ -811,83 +809,6 @@ impl Geometry {
             let leaves = self.instance_leaves(origin, dir, &keep);
             kernels::any(self.isa, &self.tlas, origin, dir, &leaves, t_max)
         }
-    }
-}
-
-impl Geometry {
-    /// The nearest hits of the [`PACKET`] rays `origin[i] + t dir[i]`, `0 < t < t_max`:
-    /// each the hit [`Geometry::intersect`] finds for its ray, bit for bit (see
-    /// `packet`). In a scene of world-space triangles alone, the finite rays that share
-    /// the first ray's dominant axis walk the BVH as one packet; the others, and every
-    /// ray of a scene with instances, moving triangles or spheres, are traced one by one.
-    /// A measurement of packets of camera rays (docs/benchmarks.md, "Packets of camera
-    /// rays"): the renderer does not call it.
-    pub fn intersect_packet(
-        &self,
-        origin: &[Vec3; PACKET],
-        dir: &[Vec3; PACKET],
-        t_max: f32,
-    ) -> [Option<Hit>; PACKET] {
-        let mut hits = [None; PACKET];
-        let mut single = u32::MAX >> (32 - PACKET);
-        if !self.triangles.is_empty()
-            && self.instances.is_empty()
-            && self.motion.is_none()
-            && self.spheres.is_empty()
-        {
-            single = match watertight::dominant_axis(dir[0]) {
-                0 => self.packet_of_axis::<0>(origin, dir, t_max, &mut hits),
-                1 => self.packet_of_axis::<1>(origin, dir, t_max, &mut hits),
-                _ => self.packet_of_axis::<2>(origin, dir, t_max, &mut hits),
-            };
-        }
-        while single != 0 {
-            let i = single.trailing_zeros() as usize;
-            single &= single - 1;
-            hits[i] = self.intersect(origin[i], dir[i], t_max);
-        }
-        hits
-    }
-
-    /// The packet walk of [`Geometry::intersect_packet`] for the finite rays whose
-    /// dominant axis is `KZ`, their hits written to `hits`; returns the mask of the rays
-    /// it left out.
-    #[inline(always)]
-    fn packet_of_axis<const KZ: usize>(
-        &self,
-        origin: &[Vec3; PACKET],
-        dir: &[Vec3; PACKET],
-        t_max: f32,
-        hits: &mut [Option<Hit>; PACKET],
-    ) -> u32 {
-        let mut active = 0u32;
-        for i in 0..PACKET {
-            // A NaN or infinite ray hits nothing in the single-ray walk; leave it to it.
-            let finite = origin[i].is_finite() && !dir[i].is_nan();
-            if finite && watertight::dominant_axis(dir[i]) == KZ {
-                active |= 1 << i;
-            }
-        }
-        let rays = std::array::from_fn(|i| wide::BoxRay::new(origin[i], dir[i]));
-        let wt = std::array::from_fn(|i| watertight::WatertightRay::<KZ>::new(origin[i], dir[i]));
-        let mut best: [Nearest; PACKET] = std::array::from_fn(|_| Nearest::new(t_max));
-        kernels::nearest_packet(
-            self.isa,
-            &self.bvh,
-            &self.triangles,
-            NO_INSTANCE,
-            &rays,
-            &wt,
-            &|_, _, _, _| true,
-            &mut best,
-            active,
-        );
-        for (i, b) in best.into_iter().enumerate() {
-            if active & (1 << i) != 0 {
-                hits[i] = b.hit;
-            }
-        }
-        !active & (u32::MAX >> (32 - PACKET))
     }
 }
 
