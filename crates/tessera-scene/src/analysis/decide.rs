@@ -19,10 +19,10 @@ pub(super) fn plan(
     transport: &Transport,
     lens_sampling: bool,
     mut effects: Vec<Effect>,
-    beyond_mnee: Vec<String>,
     direct: impl FnOnce() -> Option<DirectSurvey>,
 ) -> RenderPlan {
     let mut reasons: Vec<String> = Vec::new();
+    let beyond_mnee = transport.beyond_mnee.clone();
     let mut integrator = choose_integrator(lights, transport, &beyond_mnee, &mut reasons);
     // Tiny finite lights: path tracing is correct too, and which technique is more
     // efficient (Veach & Guibas 1995, section 2: 1 / (variance x time)) depends on the

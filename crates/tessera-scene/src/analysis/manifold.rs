@@ -61,6 +61,14 @@ struct Findings {
     mixed: Option<String>,
 }
 
+/// Where the survey's light rays start: a light's name for the evidence, its position and,
+/// for a spot, its axis and the cosine of its outer angle.
+struct Source {
+    name: String,
+    at: Vec3,
+    cone: Option<(Vec3, f32)>,
+}
+
 /// A branch of a light's specular chain: how it got where it is.
 #[derive(Clone, Copy)]
 struct Branch {
@@ -80,26 +88,28 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     let scene = survey.scene;
     let mut out = Vec::new();
     let tiny = TINY_LIGHT_FRACTION * survey.scene_radius;
-    let mut sources: Vec<(String, Vec3, Option<(Vec3, f32)>)> = Vec::new();
+    let mut sources: Vec<Source> = Vec::new();
     for (i, l) in scene.lights.iter().enumerate() {
         match *l {
             PunctualLight::Point {
                 position,
                 intensity,
-            } if intensity.max_element() > 0.0 => {
-                sources.push((format!("point light {i}"), position, None))
-            }
+            } if intensity.max_element() > 0.0 => sources.push(Source {
+                name: format!("point light {i}"),
+                at: position,
+                cone: None,
+            }),
             PunctualLight::Spot {
                 position,
                 direction,
                 intensity,
                 outer_angle,
                 ..
-            } if intensity.max_element() > 0.0 && outer_angle > 0.0 => sources.push((
-                format!("spot light {i}"),
-                position,
-                Some((direction.normalize_or_zero(), outer_angle.cos())),
-            )),
+            } if intensity.max_element() > 0.0 && outer_angle > 0.0 => sources.push(Source {
+                name: format!("spot light {i}"),
+                at: position,
+                cone: Some((direction.normalize_or_zero(), outer_angle.cos())),
+            }),
             PunctualLight::Directional { irradiance, .. } if irradiance.max_element() > 0.0 => out
                 .push(format!(
                     "directional light {i}: MNEE connects to light points (point, spot and \
@@ -119,14 +129,14 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     }
     for a in &lights.area {
         if a.bounds.radius() < tiny {
-            sources.push((
-                format!(
+            sources.push(Source {
+                name: format!(
                     "the area light of {}",
                     material_list(scene, &[a.material], &survey.classes, false)
                 ),
-                0.5 * (a.bounds.lo + a.bounds.hi),
-                None,
-            ));
+                at: 0.5 * (a.bounds.lo + a.bounds.hi),
+                cone: None,
+            });
         }
     }
     let Some(prims) = primitives(survey) else {
@@ -140,7 +150,7 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     let bvh = Bvh::new(prims);
     let eps = 1e-4 * survey.scene_radius;
     let mut found = Findings::default();
-    for (name, at, cone) in &sources {
+    for Source { name, at, cone } in &sources {
         for d in directions(*cone) {
             let branch = Branch {
                 vertices: 0,

@@ -229,14 +229,12 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
     let mut effects: Vec<Effect> = Vec::new();
     let lights = lights::find(scene);
     lights::report(&lights, &survey, &mut effects);
-    let transport = transport::analyse(&survey, &lights, &mut effects);
+    let mut transport = transport::analyse(&survey, &lights, &mut effects);
     let lens_sampling = appearance::report(&survey, &mut effects);
     // What MNEE cannot sample matters only where delta or tiny lights make caustics.
-    let beyond_mnee = if transport.delta_lit {
-        manifold::misses(&survey, &lights)
-    } else {
-        Vec::new()
-    };
+    if transport.delta_lit {
+        transport.beyond_mnee = manifold::misses(&survey, &lights);
+    }
     let mut plan = decide::plan(
         &scene.camera,
         scene.animated,
@@ -244,7 +242,6 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
         &transport,
         lens_sampling,
         effects,
-        beyond_mnee,
         || direct::survey(&survey),
     );
     plan.warnings = scene.warnings.clone();
