@@ -186,6 +186,27 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     out
 }
 
+/// Where a survey ray meets a scattering surface: the point, the geometric normal and the
+/// material.
+struct Hit {
+    x: Vec3,
+    n: Vec3,
+    m: usize,
+}
+
+/// The first hit along `d` from `o`, if its material scatters (an emitter that does not,
+/// or nothing, ends the ray).
+fn hit(survey: &Survey, bvh: &Bvh, o: Vec3, d: Vec3, eps: f32) -> Option<Hit> {
+    let (t, k) = bvh.trace(o, d, eps, f32::INFINITY, false)?;
+    let prim = &bvh.prims[k];
+    let x = o + t * d;
+    survey.scatters(prim.material).then(|| Hit {
+        x,
+        n: prim.normal(x),
+        m: prim.material,
+    })
+}
+
 /// Follows a light's ray from `o` along `d` through specular surfaces, recording the
 /// caustics it makes in `found`.
 #[allow(clippy::too_many_arguments)]
@@ -199,14 +220,9 @@ fn follow(
     branch: Branch,
     found: &mut Findings,
 ) {
-    let Some((t, k)) = bvh.trace(o, d, eps, f32::INFINITY, false) else {
+    let Some(Hit { x, n, m }) = hit(survey, bvh, o, d, eps) else {
         return;
     };
-    let prim = &bvh.prims[k];
-    let m = prim.material;
-    if !survey.scatters(m) {
-        return;
-    }
     let c = &survey.classes[m];
     let list = |m: &[usize]| material_list(survey.scene, m, &survey.classes, false);
     if branch.vertices > 0 && (c.diffuse || c.glossy) {
@@ -248,8 +264,6 @@ fn follow(
     if !(reflects || refracts) || branch.vertices > MNEE_MAX_CHAIN {
         return;
     }
-    let x = o + t * d;
-    let n = prim.normal(x);
     let mixed = (c.diffuse || c.glossy).then_some(m).or(branch.mixed);
     let first = if branch.vertices == 0 {
         m
@@ -290,14 +304,9 @@ fn first_seen(survey: &Survey, bvh: &Bvh, eps: f32) -> Vec<usize> {
         depth: usize,
         seen: &mut Vec<usize>,
     ) {
-        let Some((t, k)) = bvh.trace(o, d, eps, f32::INFINITY, false) else {
+        let Some(Hit { x, n, m }) = hit(survey, bvh, o, d, eps) else {
             return;
         };
-        let prim = &bvh.prims[k];
-        let m = prim.material;
-        if !survey.scatters(m) {
-            return;
-        }
         let c = &survey.classes[m];
         if c.diffuse || c.glossy {
             if !seen.contains(&m) {
@@ -308,8 +317,6 @@ fn first_seen(survey: &Survey, bvh: &Bvh, eps: f32) -> Vec<usize> {
         if depth == CAMERA_CHAIN {
             return;
         }
-        let x = o + t * d;
-        let n = prim.normal(x);
         if c.smooth_refraction {
             walk(survey, bvh, x, d, eps, depth + 1, seen);
         }
