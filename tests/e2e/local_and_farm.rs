@@ -1,5 +1,5 @@
 //! One job vocabulary, one resolution path: for a table of settings
-//! — every integrator (auto, path, direct, bdpt, vcm, ppm, mlt) times every adaptive mode, on a
+//! — every integrator (auto, path, direct, bdpt, vcm, ppm, mlt; mnee on the pool) times every adaptive mode, on a
 //! tiled glTF scene and on a glTF scene whose plan renders one whole-frame tile (a spot
 //! light through glass, seen through the glass: vcm), each
 //! rendered from a named camera — `tessera render` and a farm job give byte-identical
@@ -113,6 +113,43 @@ fn tessera_render_and_the_farm_write_the_same_exr_for_every_setting() {
         }
     }
     assert_eq!(compared, 42);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Path tracing with manifold next-event estimation, asked for (`--integrator mnee`) and
+/// chosen by the plan (`auto` on the pool: a point light's caustic seen through flat
+/// water), renders in tiles like path tracing, and the farm's EXR is byte-identical to
+/// `tessera render`'s, headers included; the job's status names no class it cannot
+/// sample.
+#[test]
+fn tessera_render_and_the_farm_write_the_same_exr_with_mnee() {
+    let dir = temp_dir("e2e", "local-and-farm-mnee");
+    let (_c, _ws, client) = two_worker_farm(&dir);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/pool.gltf");
+    let uploaded = client.upload_scene(&std::fs::read(&path).unwrap()).unwrap();
+    for (i, integrator) in ["mnee", "auto"].into_iter().enumerate() {
+        let mut s = JobSettings::new(uploaded.hash.clone());
+        s.width = Some(20);
+        s.height = Some(16);
+        s.spp = 8;
+        s.seed = 4;
+        s.tile_size = 8;
+        s.integrator = integrator.into();
+        let case = format!("pool.gltf --integrator {integrator}");
+        let st = client.submit(&s, None).unwrap();
+        let done = wait_done(&client, st.id);
+        assert!(done.tiles_total > 1, "{case}: mnee tiles like path");
+        let caveat = done.error_estimate_caveat.clone().unwrap_or_default();
+        assert!(!caveat.contains("cannot sample"), "{case}: {caveat}");
+        let farm = client.image(st.id, "exr").unwrap();
+        let local = local_render(&path, &s, &dir.join(format!("mnee{i}.exr")), &[]);
+        assert!(
+            farm == local,
+            "{case}: the farm's EXR differs from tessera render's"
+        );
+        let exr = tessera_image::read_exr(&local).unwrap();
+        assert!(exr.get("bias.Y").is_err(), "{case}: mnee is unbiased");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -19,7 +19,7 @@ FINAL_STATES = ("done", "failed", "canceled")
 #: ``JobSettings.adaptive`` values.
 ADAPTIVE_MODES = ("off", "sequential", "unbiased")
 #: ``JobSettings.integrator`` values.
-INTEGRATORS = ("auto", "path", "direct", "bdpt", "vcm", "ppm", "mlt")
+INTEGRATORS = ("auto", "path", "direct", "bdpt", "vcm", "ppm", "mlt", "mnee")
 #: ``JobSettings.sampler`` values.
 SAMPLERS = ("sobol", "independent")
 #: ``Error.error.code`` values.

@@ -42,9 +42,9 @@ pub struct JobArgs {
     /// Image height (default: the scene's).
     #[arg(long)]
     pub height: Option<u32>,
-    /// auto (follow the scene's render plan), path, direct, bdpt, vcm, ppm or mlt. An explicit integrator
-    /// overrides the plan and renders with the general configuration (max depth 16 unless
-    /// --max-depth is given).
+    /// auto (follow the scene's render plan), path, direct, bdpt, vcm, ppm, mlt or mnee. An
+    /// explicit integrator overrides the plan and renders with the general configuration
+    /// (max depth 16 unless --max-depth is given).
     #[arg(long, default_value = "auto")]
     pub integrator: String,
     /// MIS heuristic: balance, power, cutoff (cutoff:ALPHA sets the threshold) or maximum.

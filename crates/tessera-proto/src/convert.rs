@@ -375,6 +375,7 @@ impl From<Integrator> for v1::Integrator {
             Integrator::Vcm => Self::Vcm,
             Integrator::Ppm => Self::Ppm,
             Integrator::Mlt => Self::Mlt,
+            Integrator::Mnee => Self::Mnee,
         }
     }
 }
@@ -453,6 +454,7 @@ impl TryFrom<v1::RenderSettings> for RenderConfig {
             v1::Integrator::Vcm => Integrator::Vcm,
             v1::Integrator::Ppm => Integrator::Ppm,
             v1::Integrator::Mlt => Integrator::Mlt,
+            v1::Integrator::Mnee => Integrator::Mnee,
             v1::Integrator::Unspecified => unreachable!("rejected by enum_field"),
         };
         let mis = match enum_field("mis", s.mis, v1::MisHeuristic::Unspecified)? {

@@ -118,6 +118,7 @@ string_serde!(SceneRef);
 /// | `vcm` | vertex connection and merging (Georgiev et al. 2012): bdpt plus photon density estimation, for caustics seen through specular surfaces (biased, consistent) |
 /// | `ppm` | progressive photon mapping (Hachisuka & Jensen 2009; Knaus & Zwicker 2011): vcm's merging alone, at the first non-specular camera vertex (biased, consistent) |
 /// | `mlt` | Metropolis light transport (multiplexed over bdpt's techniques, Hachisuka et al. 2014): for light that reaches what the camera sees through narrow openings |
+/// | `mnee` | path tracing with manifold next-event estimation (Hanika, Droske & Fascione 2015) at the first non-specular camera vertex: caustics of point, spot and small area lights through up to two specular interfaces, seen directly or through specular surfaces (unbiased) |
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum Integrator {
     /// Path tracing with next-event estimation and MIS. The default.
@@ -138,10 +139,17 @@ pub enum Integrator {
     /// Metropolis light transport: Markov chains in primary sample space over the
     /// bidirectional techniques, each pass with its own chains and normalisation.
     Mlt,
+    /// Path tracing with manifold next-event estimation: at the camera path's first
+    /// non-specular vertex, a Newton solver connects to a point, spot or small area light
+    /// through a chain of up to two smooth specular interfaces (Hanika, Droske & Fascione
+    /// 2015), which samples `L S D S* E` caustics that plain path tracing cannot. Unbiased;
+    /// estimates each pixel on its own, so it tiles like path tracing.
+    Mnee,
 }
 
 impl Integrator {
-    /// The string form: `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"` or `"mlt"`.
+    /// The string form: `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"`, `"mlt"` or
+    /// `"mnee"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Path => "path",
@@ -150,6 +158,7 @@ impl Integrator {
             Self::Vcm => "vcm",
             Self::Ppm => "ppm",
             Self::Mlt => "mlt",
+            Self::Mnee => "mnee",
         }
     }
 
@@ -185,8 +194,9 @@ impl FromStr for Integrator {
             "vcm" => Ok(Self::Vcm),
             "ppm" => Ok(Self::Ppm),
             "mlt" => Ok(Self::Mlt),
+            "mnee" => Ok(Self::Mnee),
             _ => Err(format!(
-                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", \"mlt\", got {s:?}"
+                "expected one of \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", \"mlt\", \"mnee\", got {s:?}"
             )),
         }
     }
@@ -224,8 +234,11 @@ impl IntegratorChoice {
     pub const PPM: Self = Self::Fixed(Integrator::Ppm);
     /// Metropolis light transport.
     pub const MLT: Self = Self::Fixed(Integrator::Mlt);
+    /// Path tracing with manifold next-event estimation.
+    pub const MNEE: Self = Self::Fixed(Integrator::Mnee);
 
-    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"` or `"mlt"`.
+    /// The string form: `"auto"`, `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"`, `"mlt"`
+    /// or `"mnee"`.
     pub fn as_str(self) -> &'static str {
         match self {
             Self::Auto => "auto",
@@ -248,7 +261,7 @@ impl FromStr for IntegratorChoice {
             "auto" => Ok(Self::Auto),
             _ => s.parse().map(Self::Fixed).map_err(|_| {
                 format!(
-                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", \"mlt\", got {s:?}"
+                    "expected one of \"auto\", \"path\", \"direct\", \"bdpt\", \"vcm\", \"ppm\", \"mlt\", \"mnee\", got {s:?}"
                 )
             }),
         }
@@ -477,11 +490,19 @@ mod tests {
             Integrator::Vcm,
             Integrator::Ppm,
             Integrator::Mlt,
+            Integrator::Mnee,
         ] {
             assert_eq!(i.to_string().parse::<Integrator>(), Ok(i));
             let c = IntegratorChoice::from(i);
             assert_eq!(c.to_string().parse::<IntegratorChoice>(), Ok(c));
+            let json = serde_json::to_string(&c).unwrap();
+            assert_eq!(json, format!("\"{i}\""));
+            assert_eq!(serde_json::from_str::<IntegratorChoice>(&json).unwrap(), c);
         }
+        assert_eq!(Integrator::Mnee.as_str(), "mnee");
+        assert!(!Integrator::Mnee.whole_frame() && !Integrator::Mnee.is_biased());
+        let e = "manifold".parse::<IntegratorChoice>().unwrap_err();
+        assert!(e.contains("\"mnee\""), "{e}");
         assert_eq!(
             "auto".parse::<IntegratorChoice>(),
             Ok(IntegratorChoice::Auto)

@@ -36,6 +36,7 @@
 //!     overridden: None,
 //!     warnings: vec![],
 //!     technique_pilot: None,
+//!     beyond_mnee: vec![],
 //! };
 //! let resolved = job.resolve(SceneFacts { default_resolution: (512, 256) }, plan)?;
 //! assert_eq!(resolved.config.integrator, Integrator::Bdpt);

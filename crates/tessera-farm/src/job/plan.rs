@@ -139,6 +139,11 @@ pub enum PlannedIntegrator {
     /// analysis's own choice, only the technique pilot's, where it measured mlt the most
     /// efficient ([`PilotVerdict::mlt_wins`]).
     Mlt,
+    /// Path tracing with manifold next-event estimation (for caustics of delta lights seen
+    /// through specular surfaces, [`EffectKind::DeltaLitSds`], where every caustic of the
+    /// scene's delta and tiny lights is within MNEE's reach: [`RenderPlan::beyond_mnee`]
+    /// is empty). Unbiased, where vcm's merging is not.
+    Mnee,
 }
 
 impl PlannedIntegrator {
@@ -151,6 +156,7 @@ impl PlannedIntegrator {
             Self::Bdpt => "bdpt",
             Self::Vcm => "vcm",
             Self::Mlt => "mlt",
+            Self::Mnee => "mnee",
         }
     }
 }
@@ -189,6 +195,14 @@ pub struct RenderPlan {
     /// choice waits for a measured pilot of both (`tessera_render::pilot`), which settles it with
     /// [`RenderPlan::settle_technique`]. Not in [`RenderPlan::to_json`]: the verdict is.
     pub technique_pilot: Option<TechniquePilot>,
+    /// Why manifold next-event estimation cannot sample every caustic of the scene's delta
+    /// and tiny lights, each reason with its evidence (a reflection, a chain longer than
+    /// MNEE's, a directional light, a caustic the camera sees only after a diffuse
+    /// bounce); empty where it can, or where there are no such caustics. The plan chooses
+    /// mnee over vcm only when it is empty; a job that asks for mnee where it is not is
+    /// told what is missing ([`RenderPlan::unsampled`]). Not in [`RenderPlan::to_json`]:
+    /// the reasons say it where it decided the choice.
+    pub beyond_mnee: Vec<String>,
 }
 
 /// A plan's provisional choice between bdpt and path tracing ([`RenderPlan::technique_pilot`]).
@@ -296,9 +310,27 @@ impl RenderPlan {
                     .to_string(),
             );
         }
+        // MNEE samples the caustics within its reach at the first non-specular vertex the
+        // camera sees; their light after a further diffuse bounce has no technique in it.
+        if used == Integrator::Mnee {
+            if let Some(evidence) = self.evidence(EffectKind::DeltaLitCaustics) {
+                let beyond = if self.beyond_mnee.is_empty() {
+                    String::new()
+                } else {
+                    format!(", nor where {}", self.beyond_mnee.join("; nor where "))
+                };
+                parts.push(format!(
+                    "may be optimistic: mnee samples the caustics of point, spot and small area \
+                     lights ({evidence}) where the camera sees them first, directly or through \
+                     specular surfaces; not their light after a further diffuse or glossy \
+                     bounce (L S+ D .. D S* E){beyond}; light that no pass found is in neither \
+                     the image nor its error estimate, and bdpt and vcm sample it"
+                ));
+            }
+        }
         // bdpt finds those caustics by light tracing, vcm and ppm by merging, and mlt's chains
         // sample bdpt's techniques, light tracing included.
-        if used != Integrator::Bdpt && used != Integrator::Mlt && !used.merges() {
+        else if used != Integrator::Bdpt && used != Integrator::Mlt && !used.merges() {
             if let Some(evidence) = self.evidence(EffectKind::DeltaLitCaustics) {
                 parts.push(format!(
                     "may be optimistic: {} reaches the scene's caustics of tiny or delta lights only \
@@ -315,8 +347,9 @@ impl RenderPlan {
     /// The light path class of the scene that `used` cannot sample at all, said in words
     /// that start with [`UNSAMPLED_CAVEAT`], or `None`: light from a delta light that
     /// reaches the camera only as `L S+ D S+ E` ([`EffectKind::DeltaLitSds`]) has no
-    /// technique in path tracing, direct lighting or bdpt, so the image lacks it and no
-    /// pass shows that it does. No render with such an integrator reports its target
+    /// technique in path tracing, direct lighting or bdpt (nor in mnee where
+    /// [`RenderPlan::beyond_mnee`] says why), so the image lacks it and no pass shows that
+    /// it does. No render with such an integrator reports its target
     /// error reached ([`crate::job::StopVerdict::target_reached`]).
     pub fn unsampled(&self, used: Integrator) -> Option<String> {
         // Merging (vcm, ppm) samples L S+ D S+ E at the diffuse vertex.
@@ -324,6 +357,20 @@ impl RenderPlan {
             return None;
         }
         let evidence = self.evidence(EffectKind::DeltaLitSds)?;
+        // MNEE samples it at the first non-specular vertex where the survey of specular
+        // chains found every caustic within its reach.
+        if used == Integrator::Mnee {
+            if self.beyond_mnee.is_empty() {
+                return None;
+            }
+            return Some(format!(
+                "{UNSAMPLED_CAVEAT} every light path of this scene: mnee samples L S+ D S+ E \
+                 ({evidence}) only where its manifold connection reaches the light, and here \
+                 {}; that light is missing from the image and from its error estimate, so no \
+                 target error counts as reached; vcm and ppm sample it by vertex merging",
+                self.beyond_mnee.join("; ")
+            ));
+        }
         Some(format!(
             "{UNSAMPLED_CAVEAT} every light path of this scene: {} has no technique for light \
              from a delta light that reaches the camera as L S+ D S+ E ({evidence}); that \
@@ -527,6 +574,7 @@ mod tests {
                 path_reasons: vec!["path tracing: refraction".into()],
                 lit_through_opening: false,
             }),
+            beyond_mnee: vec![],
         }
     }
 

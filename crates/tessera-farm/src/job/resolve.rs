@@ -39,7 +39,7 @@ impl ValidatedJob {
     /// (`tessera_scene::analysis::analyse`).
     ///
     /// With `integrator` auto the render plan decides: black (no light), direct lighting
-    /// with one bounce, path or bdpt with the plan's depth and Russian roulette depth. An
+    /// with one bounce, path, mnee, bdpt, vcm or mlt with the plan's depth and Russian roulette depth. An
     /// explicit integrator uses the general configuration (depth [`DEFAULT_MAX_DEPTH`],
     /// roulette from [`DEFAULT_RR_DEPTH`]) and is recorded as an override, as is a
     /// `max_depth` other than the one chosen. Adaptive settings are checked against the
@@ -76,6 +76,11 @@ impl ValidatedJob {
                 PlannedIntegrator::Mlt => {
                     (Integrator::Mlt, render_plan.max_depth, render_plan.rr_depth)
                 }
+                PlannedIntegrator::Mnee => (
+                    Integrator::Mnee,
+                    render_plan.max_depth,
+                    render_plan.rr_depth,
+                ),
             },
             IntegratorChoice::Fixed(i) => {
                 forced.push(format!("--integrator {i}"));

@@ -323,7 +323,8 @@ pub struct JobSettings {
     /// Samples per pixel, 1..=1048576 (rounded up to whole passes). Default 64.
     #[serde(default = "default_spp")]
     pub spp: u32,
-    /// `"auto"` (default), `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"` or `"mlt"`.
+    /// `"auto"` (default), `"path"`, `"direct"`, `"bdpt"`, `"vcm"`, `"ppm"`, `"mlt"` or
+    /// `"mnee"`.
     #[serde(default = "default_integrator")]
     pub integrator: String,
     /// `"balance"`, `"power"` (default), `"cutoff"`, `"cutoff:ALPHA"` or `"maximum"`.
@@ -640,6 +641,7 @@ impl ValidatedJob {
     ///   tracing splats anywhere on the film, merging reads the whole pass's photon map and
     ///   mlt's Markov chains wander over the whole frame (whether chosen by the plan or
     ///   asked for, adaptive or not; the photon map is rebuilt per pass inside the unit);
+    ///   `path`, `direct` and `mnee` estimate each pixel on its own and tile;
     /// - adaptive stopping: [`adaptive_plan`], many short passes, since decisions fall
     ///   between passes (for the whole-frame techniques too, with the one whole-frame tile:
     ///   unbiased stopping needs a pilot of 8 passes and fresh ones after it, which

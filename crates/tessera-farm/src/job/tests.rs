@@ -159,8 +159,10 @@ fn enumerations() {
     for (field, good, bad) in [
         (
             "integrator",
-            &["auto", "path", "direct", "bdpt", "vcm", "ppm", "mlt"][..],
-            &["", "Path", "pt", "photon"][..],
+            &[
+                "auto", "path", "direct", "bdpt", "vcm", "ppm", "mlt", "mnee",
+            ][..],
+            &["", "Path", "pt", "photon", "MNEE", "manifold"][..],
         ),
         (
             "mis",
@@ -540,6 +542,7 @@ fn pool_plan() -> RenderPlan {
         overridden: None,
         warnings: vec![],
         technique_pilot: None,
+        beyond_mnee: vec![],
     }
 }
 
@@ -633,4 +636,45 @@ fn adaptive_whole_frame_plans_have_room_for_the_unbiased_pilot() {
     u.adaptive = AdaptiveMode::Off;
     let p = u.plan_for(u.render.integrator, 640, 480).unwrap();
     assert_eq!((p.samples_per_pass, p.passes), (16, 4));
+}
+
+/// A plan that chooses mnee resolves to it at the plan's depth, tiled like path tracing;
+/// on the pool (every caustic within MNEE's reach: `beyond_mnee` empty) nothing is
+/// unsampled, while where MNEE cannot reach a caveat says what it misses and the render
+/// holds every pixel to its passes, as for bdpt.
+#[test]
+fn mnee_resolves_in_tiles_and_is_unsampled_only_beyond_its_reach() {
+    let facts = SceneFacts {
+        default_resolution: (64, 64),
+    };
+    let mut plan = pool_plan();
+    plan.integrator = PlannedIntegrator::Mnee;
+    plan.max_depth = 12;
+    let mut s = base();
+    s.tile_size = 16;
+    let job = s.validate().unwrap();
+    let r = job.resolve(facts, plan.clone()).unwrap();
+    assert_eq!(r.config.integrator, Integrator::Mnee);
+    assert_eq!((r.config.max_depth, r.config.rr_depth), (12, 5));
+    assert_eq!(r.plan.tile_count(), 16);
+    assert!(r.render_plan.overridden.is_none());
+    assert!(!StopVerdict::unsampled_of(&r));
+    // Asked for explicitly: the same integrator, tiles, and nothing unsampled.
+    s.integrator = "mnee".into();
+    let r = s.validate().unwrap().resolve(facts, plan.clone()).unwrap();
+    assert_eq!(r.config.integrator, Integrator::Mnee);
+    assert_eq!(r.plan.tile_count(), 16);
+    assert!(!StopVerdict::unsampled_of(&r));
+    // Beyond MNEE's reach (a vcm plan that says why): forcing mnee leaves the class
+    // unsampled, and the caveat names what MNEE misses.
+    let mut beyond = pool_plan();
+    beyond.beyond_mnee = vec!["light of point light 0 reflects off specular material 1".into()];
+    let r = s.validate().unwrap().resolve(facts, beyond).unwrap();
+    assert!(StopVerdict::unsampled_of(&r));
+    let caveat = r.error_estimate_caveat().unwrap();
+    assert!(caveat.starts_with("cannot sample"), "{caveat}");
+    assert!(
+        caveat.contains("reflects off specular material 1"),
+        "{caveat}"
+    );
 }

@@ -304,6 +304,7 @@ fn configs() -> Vec<RenderConfig> {
         Integrator::Vcm,
         Integrator::Ppm,
         Integrator::Mlt,
+        Integrator::Mnee,
     ] {
         for mis in [
             MisHeuristic::Balance,
@@ -376,6 +377,15 @@ fn render_settings_rejections_name_the_field() {
     }
     // The empty message is rejected rather than read as some default.
     assert!(RenderConfig::try_from(v1::RenderSettings::default()).is_err());
+    // mnee has its own number (8, after mlt's 7: never renumbered), and a value beyond the
+    // newest this build knows is refused as coming from a newer peer, never guessed.
+    assert_eq!(v1::Integrator::Mnee as i32, 8);
+    assert_eq!(v1::Integrator::Mlt as i32, 7);
+    let mut s = good;
+    s.integrator = 9;
+    let e = RenderConfig::try_from(s).unwrap_err();
+    assert_eq!(e.field, "integrator");
+    assert!(e.reason.contains("unknown value 9"), "{e}");
     // The cutoff threshold is ignored by the other heuristics.
     let mut s = good;
     s.mis_cutoff_alpha = 7.0;

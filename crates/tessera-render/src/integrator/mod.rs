@@ -9,6 +9,7 @@
 //! | `vcm` | vertex connection and merging: bdpt's techniques plus merging with a per-pass photon map, all weighted by MIS; biased, consistent ([`vcm`]) |
 //! | `ppm` | progressive photon mapping: vcm's merging alone, at the first non-specular camera vertex; biased, consistent ([`vcm`]'s merge-only mode) |
 //! | `mlt` | Metropolis light transport: Markov chains in primary sample space over bdpt's techniques, each pass with its own bootstrap normalisation and chains ([`mlt`]) |
+//! | `mnee` | path tracing with manifold next-event estimation at the first non-specular camera vertex: caustics of point, spot and small area lights through up to [`mnee::MAX_CHAIN`] specular interfaces; unbiased ([`path::radiance_mnee`], [`mnee`]) |
 //!
 //! # The interface
 //!
@@ -144,6 +145,19 @@ pub fn render_unit_where(
                 path::radiance(scene, &path, o, d, time, sampler)
             })
         }
+        // Path tracing with MNEE estimates each pixel on its own, as path tracing does: the
+        // same camera-sample loop, tiles and unit splits; its own monomorphisation of the
+        // path loop, so plain path tracing's code and images are untouched.
+        Integrator::Mnee => {
+            let path = path::PathSettings {
+                mis: settings.mis,
+                max_depth: settings.max_depth,
+                rr_depth: settings.rr_depth,
+            };
+            render_camera_samples(scene, stream, plan, unit, wanted, |o, d, time, sampler| {
+                path::radiance_mnee(scene, &path, o, d, time, sampler)
+            })
+        }
         // Light tracing splats across pixels: see `bdpt` for how a unit stays deterministic
         // (and why bdpt plans use one whole-frame tile).
         Integrator::Bdpt => {
@@ -179,30 +193,20 @@ pub fn render_unit_where(
 }
 
 /// Renders one work unit with path tracing plus manifold next-event estimation
-/// ([`path::radiance_mnee`]): `settings` as for [`Integrator::Path`] (its integrator
-/// field is not read). Not yet selectable through the job contract; the plan's caustic
-/// class will choose it once measured to pay (docs/benchmarks.md, "Manifold next-event
-/// estimation").
+/// ([`Integrator::Mnee`]) whatever `settings.integrator` says: `settings` as for
+/// [`Integrator::Path`], so a test can render the same configuration with and without
+/// MNEE.
 pub fn render_unit_path_mnee(
     scene: &RenderScene,
     settings: &RenderConfig,
     plan: &FramePlan,
     unit: WorkUnit,
 ) -> UnitResult {
-    let stream = SampleStream::of(settings);
-    let path = path::PathSettings {
-        mis: settings.mis,
-        max_depth: settings.max_depth,
-        rr_depth: settings.rr_depth,
+    let settings = RenderConfig {
+        integrator: Integrator::Mnee,
+        ..*settings
     };
-    render_camera_samples(
-        scene,
-        stream,
-        plan,
-        unit,
-        |_, _| true,
-        |o, d, time, sampler| path::radiance_mnee(scene, &path, o, d, time, sampler),
-    )
+    render_unit(scene, &settings, plan, unit)
 }
 
 /// Adds the sample `l` to a pixel's sum if it is valid radiance (finite, every channel

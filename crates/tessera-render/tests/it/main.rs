@@ -21,6 +21,7 @@ mod light_tree;
 mod many_nodes;
 mod mlt;
 mod mnee;
+mod mnee_plan;
 mod motion_blur;
 mod pilot;
 mod plan_equivalence;

@@ -25,6 +25,7 @@ fn planned(scene: &Scene) -> (RenderConfig, PlannedIntegrator) {
         PlannedIntegrator::Bdpt => (Integrator::Bdpt, plan.max_depth),
         PlannedIntegrator::Vcm => (Integrator::Vcm, plan.max_depth),
         PlannedIntegrator::Mlt => (Integrator::Mlt, plan.max_depth),
+        PlannedIntegrator::Mnee => (Integrator::Mnee, plan.max_depth),
         PlannedIntegrator::Black => (Integrator::Direct, 1),
     };
     (

@@ -1045,7 +1045,7 @@ fn vcm_efficiency_table() {
 /// CPU seconds (user + system) this process has used so far, from `/proc/self/stat`
 /// (clock ticks of 1/100 s): the pool goal is stated in CPU time, which the shared
 /// machine's load does not inflate as it does wall time.
-fn cpu_seconds() -> f64 {
+pub(crate) fn cpu_seconds() -> f64 {
     let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
     // Fields after the command name (which is in parentheses): utime and stime are the
     // 12th and 13th of them.

@@ -7,7 +7,7 @@ use super::transport::Transport;
 use super::{
     Effect, EffectKind, PlannedIntegrator, RenderPlan, TechniquePilot, BRIGHT_ALBEDO,
     CLOSED_FRACTION, CLOSED_ROOM_DEPTH, DEFAULT_DEPTH, DEFAULT_RR_DEPTH, DIRECT_LIT_FRACTION,
-    DIRECT_SURVEY_GRID, OPEN_SCENE_RR_DEPTH, REFRACTION_DEPTH,
+    DIRECT_SURVEY_GRID, MNEE_MAX_CHAIN, OPEN_SCENE_RR_DEPTH, REFRACTION_DEPTH,
 };
 use crate::Camera;
 
@@ -22,7 +22,8 @@ pub(super) fn plan(
     direct: impl FnOnce() -> Option<DirectSurvey>,
 ) -> RenderPlan {
     let mut reasons: Vec<String> = Vec::new();
-    let mut integrator = choose_integrator(lights, transport, &mut reasons);
+    let beyond_mnee = transport.beyond_mnee.clone();
+    let mut integrator = choose_integrator(lights, transport, &beyond_mnee, &mut reasons);
     // Tiny finite lights: path tracing is correct too, and which technique is more
     // efficient (Veach & Guibas 1995, section 2: 1 / (variance x time)) depends on the
     // scene (their section 4.3 compares the two at equal time), so a measured pilot
@@ -107,6 +108,7 @@ pub(super) fn plan(
         overridden: None,
         warnings: Vec::new(),
         technique_pilot,
+        beyond_mnee,
     }
 }
 
@@ -126,10 +128,11 @@ fn through_an_opening(survey: &DirectSurvey) -> String {
     )
 }
 
-/// Black, direct, VCM, BDPT or path tracing, with the reason.
+/// Black, direct, MNEE, VCM, BDPT or path tracing, with the reason.
 fn choose_integrator(
     lights: &Lights,
     transport: &Transport,
+    beyond_mnee: &[String],
     reasons: &mut Vec<String>,
 ) -> PlannedIntegrator {
     let s = &transport.surfaces;
@@ -160,6 +163,29 @@ fn choose_integrator(
             }
         ));
         PlannedIntegrator::Direct
+    } else if transport.delta_sds && beyond_mnee.is_empty() {
+        reasons.push(format!(
+            "mnee: light from delta lights reaches the camera as L S+ D S+ E (a caustic seen \
+             through or in a specular surface), which no technique of plain path tracing or \
+             bdpt samples; every caustic of the scene's delta and tiny lights crosses at most \
+             {MNEE_MAX_CHAIN} refracting surfaces from a point, spot or small area light and \
+             appears where the camera first meets a non-specular surface (a survey of specular \
+             chains from the lights and the camera), so manifold next-event estimation (Hanika, \
+             Droske & Fascione 2015) connects to the light through them there: unbiased, where \
+             vcm's merging is biased"
+        ));
+        reasons.push(
+            "mnee does not sample a caustic's light after a further diffuse or glossy bounce \
+             (L S+ D .. D S* E, e.g. a pool floor's light returned to it by the water's \
+             underside, measured 15% of the pool's image at depth 16): a path tracer's \
+             BSDF-sampled rays never hit a delta light; the error estimate caveat says so"
+                .into(),
+        );
+        reasons.push(
+            "mnee estimates each pixel on its own: tiles and unit splits as for path tracing"
+                .into(),
+        );
+        PlannedIntegrator::Mnee
     } else if transport.delta_sds {
         reasons.push(
             "vcm: light from delta lights reaches the camera as L S+ D S+ E (a caustic seen \
@@ -178,6 +204,10 @@ fn choose_integrator(
              whole-frame tile, units split by passes, each pass's photon map built in its unit"
                 .into(),
         );
+        reasons.push(format!(
+            "not mnee: manifold next-event estimation cannot sample every caustic here: {}",
+            beyond_mnee.join("; ")
+        ));
         PlannedIntegrator::Vcm
     } else if transport.delta_lit {
         reasons.push(if transport.tiny_lit_only {
@@ -244,7 +274,8 @@ fn depths(
         PlannedIntegrator::Path
         | PlannedIntegrator::Bdpt
         | PlannedIntegrator::Vcm
-        | PlannedIntegrator::Mlt => {
+        | PlannedIntegrator::Mlt
+        | PlannedIntegrator::Mnee => {
             let closed_bright = transport.indirect_diffuse
                 && mean_albedo > BRIGHT_ALBEDO
                 && enclosure >= CLOSED_FRACTION;

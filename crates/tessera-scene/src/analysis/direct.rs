@@ -58,9 +58,10 @@ enum Shape {
 }
 
 #[derive(Clone, Copy)]
-struct Prim {
+pub(super) struct Prim {
     shape: Shape,
-    material: usize,
+    /// The primitive's material index.
+    pub(super) material: usize,
     lo: Vec3,
     hi: Vec3,
 }
@@ -107,7 +108,7 @@ impl Prim {
     }
 
     /// The unit geometric normal at `x` (a triangle's by its winding).
-    fn normal(&self, x: Vec3) -> Vec3 {
+    pub(super) fn normal(&self, x: Vec3) -> Vec3 {
         match self.shape {
             Shape::Triangle { e1, e2, .. } => e1.cross(e2).normalize_or_zero(),
             Shape::Sphere { center, .. } => (x - center).normalize_or_zero(),
@@ -117,13 +118,14 @@ impl Prim {
 
 /// The survey's primitives in obvhs' binary BVH (built by PLOC, as the render scene's),
 /// with its traversal: a survey ray needs no more than that.
-struct Bvh {
-    prims: Vec<Prim>,
+pub(super) struct Bvh {
+    /// The primitives, indexed as [`Bvh::trace`] returns them.
+    pub(super) prims: Vec<Prim>,
     tree: Bvh2,
 }
 
 impl Bvh {
-    fn new(prims: Vec<Prim>) -> Self {
+    pub(super) fn new(prims: Vec<Prim>) -> Self {
         let boxes: Vec<Aabb> = prims
             .iter()
             .map(|p| Aabb::new(p.lo.into(), p.hi.into()))
@@ -144,7 +146,14 @@ impl Bvh {
 
     /// The first hit along `d` from `o` in `(t_min, t_max)`: distance and primitive.
     /// With `any`, the first hit found (a shadow ray needs no more).
-    fn trace(&self, o: Vec3, d: Vec3, t_min: f32, t_max: f32, any: bool) -> Option<(f32, usize)> {
+    pub(super) fn trace(
+        &self,
+        o: Vec3,
+        d: Vec3,
+        t_min: f32,
+        t_max: f32,
+        any: bool,
+    ) -> Option<(f32, usize)> {
         if self.tree.nodes.is_empty() {
             return None;
         }
@@ -289,7 +298,7 @@ fn targets(survey: &Survey) -> Vec<Target> {
 }
 
 /// The scene's triangles and spheres, or `None` above [`DIRECT_SURVEY_MAX_PRIMITIVES`].
-fn primitives(survey: &Survey) -> Option<Vec<Prim>> {
+pub(super) fn primitives(survey: &Survey) -> Option<Vec<Prim>> {
     let scene = survey.scene;
     let mut prims = Vec::new();
     for placed in scene.placed_meshes() {
@@ -331,6 +340,50 @@ pub(super) fn survey(survey: &Survey) -> Option<DirectSurvey> {
     let bvh = Bvh::new(primitives(survey)?);
     let targets = targets(survey);
     let eps = 1e-4 * survey.scene_radius;
+    let (origin, rays) = camera_rays(scene);
+    let mut result = DirectSurvey {
+        surfaces: 0,
+        lit: 0,
+    };
+    for d in rays {
+        let Some((t, k)) = bvh.trace(origin, d, 0.0, f32::INFINITY, false) else {
+            continue;
+        };
+        let prim = &bvh.prims[k];
+        let Some(material) = scene.materials.get(prim.material) else {
+            continue;
+        };
+        if material.is_emissive() {
+            result.surfaces += 1;
+            result.lit += 1;
+            continue;
+        }
+        // Only where next-event estimation applies: a diffuse or glossy layer.
+        let classes = &survey.classes[prim.material];
+        if !(classes.diffuse || classes.glossy) {
+            continue;
+        }
+        result.surfaces += 1;
+        let x = origin + t * d;
+        let mut n = prim.normal(x);
+        if n.dot(d) > 0.0 {
+            n = -n;
+        }
+        let from = x + eps * n;
+        if targets
+            .iter()
+            .any(|target| sees(&bvh, from, n, target, eps))
+        {
+            result.lit += 1;
+        }
+    }
+    Some(result)
+}
+
+/// The pinhole camera's position and the unit directions of the survey's
+/// [`DIRECT_SURVEY_GRID`]² rays through pixel centres, row by row (the scene's aspect
+/// ratio).
+pub(super) fn camera_rays(scene: &crate::Scene) -> (Vec3, impl Iterator<Item = Vec3> + '_) {
     let camera = &scene.camera;
     let (w, h) = scene.default_resolution;
     let aspect = camera
@@ -338,56 +391,22 @@ pub(super) fn survey(survey: &Survey) -> Option<DirectSurvey> {
         .unwrap_or(w.max(1) as f32 / h.max(1) as f32);
     let tan = (0.5 * camera.yfov).tan();
     let origin = camera.world_from_camera.transform_point3(Vec3::ZERO);
-    let mut result = DirectSurvey {
-        surfaces: 0,
-        lit: 0,
-    };
     let g = DIRECT_SURVEY_GRID;
-    for j in 0..g {
-        for i in 0..g {
+    let rays = (0..g).flat_map(move |j| {
+        (0..g).map(move |i| {
             let uv = (Vec2::new(i as f32, j as f32) + 0.5) / g as f32;
             let local = Vec3::new(
                 (2.0 * uv.x - 1.0) * tan * aspect,
                 (1.0 - 2.0 * uv.y) * tan,
                 -1.0,
             );
-            let d = camera
+            camera
                 .world_from_camera
                 .transform_vector3(local)
-                .normalize_or_zero();
-            let Some((t, k)) = bvh.trace(origin, d, 0.0, f32::INFINITY, false) else {
-                continue;
-            };
-            let prim = &bvh.prims[k];
-            let Some(material) = scene.materials.get(prim.material) else {
-                continue;
-            };
-            if material.is_emissive() {
-                result.surfaces += 1;
-                result.lit += 1;
-                continue;
-            }
-            // Only where next-event estimation applies: a diffuse or glossy layer.
-            let classes = &survey.classes[prim.material];
-            if !(classes.diffuse || classes.glossy) {
-                continue;
-            }
-            result.surfaces += 1;
-            let x = origin + t * d;
-            let mut n = prim.normal(x);
-            if n.dot(d) > 0.0 {
-                n = -n;
-            }
-            let from = x + eps * n;
-            if targets
-                .iter()
-                .any(|target| sees(&bvh, from, n, target, eps))
-            {
-                result.lit += 1;
-            }
-        }
-    }
-    Some(result)
+                .normalize_or_zero()
+        })
+    });
+    (origin, rays)
 }
 
 /// Whether a shadow ray from `from` (on a surface of normal `n`, facing the camera)

@@ -84,8 +84,12 @@
 //! - [`PlannedIntegrator::Direct`] if nothing can bounce light to the camera a second
 //!   time: no indirect diffuse and nothing glossy, specular or refractive (e.g. a single
 //!   plane under a light);
+//! - [`PlannedIntegrator::Mnee`] if there are delta-lit caustics seen through specular
+//!   surfaces ([`EffectKind::DeltaLitSds`]) and manifold next-event estimation samples
+//!   every caustic of the scene's delta and tiny lights (below): path tracing with MNEE is
+//!   unbiased;
 //! - [`PlannedIntegrator::Vcm`] if there are delta-lit caustics seen through specular
-//!   surfaces ([`EffectKind::DeltaLitSds`]): vertex merging is the only technique for them;
+//!   surfaces that MNEE does not reach: vertex merging is the only technique for them;
 //! - [`PlannedIntegrator::Bdpt`] if there are (other) delta-lit caustics;
 //! - [`PlannedIntegrator::Bdpt`], left to the technique pilot, where the rules so far give
 //!   path tracing but the scene is lit through an opening (below);
@@ -94,6 +98,25 @@
 //! Where the caustics' only lights are tiny finite ones, or the scene is lit through an
 //! opening, path tracing is as correct as bdpt and the plan leaves the choice between them
 //! (and mlt) to the technique pilot ([`RenderPlan::technique_pilot`]).
+//!
+//! **Manifold next-event estimation.** For a scene with delta-lit caustics, a survey of
+//! specular chains (`manifold`) lists what MNEE (`tessera_render::integrator::mnee`:
+//! Hanika, Droske & Fascione 2015) cannot sample ([`RenderPlan::beyond_mnee`]). MNEE
+//! connects the camera path's first non-specular vertex to a point, spot or
+//! emissive-triangle light through the specular surfaces the straight segment between
+//! them crosses, at most [`MNEE_MAX_CHAIN`], each purely specular. So a caustic is within
+//! its reach when its light is a point, spot or tiny area light (not a directional or
+//! sphere light), it crosses (never reflects off) at most [`MNEE_MAX_CHAIN`] purely
+//! specular surfaces, and the camera sees its receiver at the first non-specular vertex,
+//! directly or through specular surfaces. The survey follows [`MNEE_LIGHT_RAYS`] rays
+//! from each point and spot light (over a spot's cone) and from each tiny area light's
+//! centre through the specular surfaces they meet (straight through refracting ones, as
+//! MNEE's seed segment; mirrored off reflecting ones, up to [`MNEE_MAX_CHAIN`] + 1
+//! vertices), and the direct-light survey's camera rays through specular surfaces (up to
+//! [`MNEE_CAMERA_CHAIN`] vertices) to the first non-specular materials; it compares
+//! materials. Finding no caustic at all counts as not reaching. What MNEE never samples,
+//! even within that reach: the caustic's light after a further diffuse or glossy bounce
+//! (`L S+ D .. D S* E`; the plan says so in its reasons and the error estimate caveat).
 //!
 //! **Light through an opening.** A path-traced plan is surveyed for how much of what the
 //! camera sees the lights reach directly: [`DIRECT_SURVEY_GRID`]² pinhole camera rays
@@ -144,6 +167,7 @@ mod decide;
 mod direct;
 mod evidence;
 mod lights;
+mod manifold;
 mod survey;
 mod transport;
 
@@ -193,6 +217,11 @@ pub const DEFAULT_RR_DEPTH: u32 = tessera_farm::job::DEFAULT_RR_DEPTH;
 /// instructions for the same noise, and buys the closed Cornell box 24% less noise for 27%
 /// more instructions.
 pub const OPEN_SCENE_RR_DEPTH: u32 = 3;
+/// Most specular vertices manifold next-event estimation connects through: the
+/// renderer's `tessera_render::integrator::mnee::MAX_CHAIN` (a test there checks that the
+/// two agree), which the plan's "Manifold next-event estimation" rule reads.
+pub const MNEE_MAX_CHAIN: usize = 2;
+pub use manifold::{CAMERA_CHAIN as MNEE_CAMERA_CHAIN, LIGHT_RAYS as MNEE_LIGHT_RAYS};
 
 /// Analyses `scene` into a render plan, following the rules in the module documentation.
 pub fn analyse(scene: &Scene) -> RenderPlan {
@@ -200,8 +229,12 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
     let mut effects: Vec<Effect> = Vec::new();
     let lights = lights::find(scene);
     lights::report(&lights, &survey, &mut effects);
-    let transport = transport::analyse(&survey, &lights, &mut effects);
+    let mut transport = transport::analyse(&survey, &lights, &mut effects);
     let lens_sampling = appearance::report(&survey, &mut effects);
+    // What MNEE cannot sample matters only where delta or tiny lights make caustics.
+    if transport.delta_lit {
+        transport.beyond_mnee = manifold::misses(&survey, &lights);
+    }
     let mut plan = decide::plan(
         &scene.camera,
         scene.animated,

@@ -86,6 +86,10 @@ pub(super) struct Transport {
     /// [`EffectKind::DeltaLitSds`] is present: a delta light's caustics may be seen through
     /// (or in) a specular surface the camera sees.
     pub(super) delta_sds: bool,
+    /// What manifold next-event estimation cannot sample of the delta and tiny lights'
+    /// caustics (`manifold::misses`), filled in by `analyse` after this step where
+    /// [`Transport::delta_lit`]; empty otherwise.
+    pub(super) beyond_mnee: Vec<String>,
 }
 
 /// Finds the transport effects, records them with their evidence, and returns what the
@@ -151,6 +155,7 @@ pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect
         delta_lit,
         tiny_lit_only,
         delta_sds,
+        beyond_mnee: Vec::new(),
     }
 }
 

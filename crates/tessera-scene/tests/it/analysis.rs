@@ -610,16 +610,186 @@ fn json_escapes_names() {
 
 /// The pool (`scenes/pool.gltf`): a point light above flat water over a diffuse floor, the
 /// camera above the water. Light reaches the camera only as `L S D S E`: the plan finds
-/// the class and chooses vcm, and says that merging is biased.
+/// the class, and since its one caustic crosses one refracting surface from a point light
+/// and the camera sees the floor through the water, chooses path tracing with manifold
+/// next-event estimation (unbiased), saying what MNEE covers and what it does not; nothing
+/// is left unsampled, and the error estimate caveat names the caustic's light after a
+/// further bounce.
 #[test]
-fn pool_gltf_is_a_delta_lit_sds_scene_for_vcm() {
+fn pool_gltf_is_a_delta_lit_sds_scene_for_mnee() {
     let plan = plan_of(&scene_path("pool.gltf"));
     eprintln!("{}", plan.summary());
     assert!(plan.has(DeltaLitCaustics) && plan.has(DeltaLitSds));
     assert!(evidence(&plan, DeltaLitSds).contains("material 1 'water'"));
-    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
-    assert!(plan.reasons.iter().any(|r| r.starts_with("vcm is biased")));
+    assert_eq!(
+        plan.integrator,
+        PlannedIntegrator::Mnee,
+        "{:?}",
+        plan.beyond_mnee
+    );
+    assert!(plan.beyond_mnee.is_empty(), "{:?}", plan.beyond_mnee);
+    assert!(plan.reasons[0].starts_with("mnee: "), "{}", plan.reasons[0]);
+    assert!(plan.reasons[1].contains("after a further diffuse or glossy bounce"));
+    assert!(!plan.reasons.iter().any(|r| r.contains("biased: ")));
+    // The floor and the water cover 80% of their bounding box: a closed bright room.
+    assert_eq!((plan.max_depth, plan.rr_depth), (16, 5));
     assert!(plan.technique_pilot.is_none());
+    let mnee = tessera_farm::job::Integrator::Mnee;
+    assert_eq!(plan.unsampled(mnee), None);
+    let caveat = plan.error_estimate_caveat(mnee).unwrap();
+    assert!(caveat.starts_with("may be optimistic: mnee"), "{caveat}");
+    assert!(
+        !caveat.contains("cannot sample") && !caveat.contains("biased"),
+        "{caveat}"
+    );
+    // Path tracing and bdpt still cannot sample it, and say so as before.
+    for used in [
+        tessera_farm::job::Integrator::Path,
+        tessera_farm::job::Integrator::Bdpt,
+    ] {
+        let caveat = plan.error_estimate_caveat(used).unwrap();
+        assert!(caveat.starts_with("cannot sample"), "{caveat}");
+    }
+}
+
+/// A synthetic pool: a 4 m x 4 m diffuse floor at y = 0 under flat water (index 1.33) at
+/// y = 0.5 (more water layers above it at `extra` heights), a point light at (1, 1.5, 0),
+/// and the camera above the water looking down at the floor through it.
+fn pool(extra: &[f32]) -> Scene {
+    let v = Vec3::new;
+    let water = Material {
+        name: "water".into(),
+        kind: MaterialKind::Dielectric {
+            ior: 1.33,
+            roughness: 0.0,
+            tint: Vec3::ONE,
+        },
+        emission: Vec3::ZERO,
+        double_sided: false,
+    };
+    let sheet = |y: f32, m: u32| {
+        quad(
+            m,
+            [
+                v(-2.0, y, -2.0),
+                v(-2.0, y, 2.0),
+                v(2.0, y, 2.0),
+                v(2.0, y, -2.0),
+            ],
+        )
+    };
+    let mut meshes = vec![sheet(0.0, 0), sheet(0.5, 1)];
+    meshes.extend(extra.iter().map(|&y| sheet(y, 1)));
+    let mut scene = base_scene(
+        vec![Material::diffuse("floor", Vec3::splat(0.8)), water],
+        meshes,
+    );
+    scene.camera = look_at_camera(v(0.0, 2.5, 0.05), Vec3::ZERO, Vec3::Y, 20.0);
+    scene.lights.push(PunctualLight::Point {
+        position: v(1.0, 1.5, 0.0),
+        intensity: Vec3::splat(10.0),
+    });
+    scene
+}
+
+/// MNEE's reach decides between mnee and vcm: the pool is within it; three water layers
+/// make a chain longer than MNEE's two vertices; a directional light is not a point MNEE
+/// connects to; a caustic that the camera sees only after a diffuse bounce (the pool's
+/// floor lighting a screen beside it, the water in view but nothing seen through it) is
+/// never at the first non-specular vertex where MNEE runs. Each keeps vcm and says why,
+/// and a job that forces mnee there is told it cannot sample the class.
+#[test]
+fn mnee_is_planned_where_every_caustic_is_within_its_reach() {
+    let plan = analyse_valid(&pool(&[]));
+    assert!(plan.has(DeltaLitSds));
+    assert_eq!(
+        plan.integrator,
+        PlannedIntegrator::Mnee,
+        "{}",
+        plan.summary()
+    );
+
+    let mnee = tessera_farm::job::Integrator::Mnee;
+    let expect_vcm = |name: &str, scene: &Scene, why: &str| {
+        let plan = analyse_valid(scene);
+        assert!(plan.has(DeltaLitSds), "{name}: {}", plan.summary());
+        assert_eq!(
+            plan.integrator,
+            PlannedIntegrator::Vcm,
+            "{name}: {}",
+            plan.summary()
+        );
+        assert!(
+            plan.beyond_mnee.iter().any(|r| r.contains(why)),
+            "{name}: {:?}",
+            plan.beyond_mnee
+        );
+        let not_mnee = plan.reasons.iter().find(|r| r.starts_with("not mnee: "));
+        assert!(
+            not_mnee.is_some_and(|r| r.contains(why)),
+            "{name}: {:?}",
+            plan.reasons
+        );
+        let caveat = plan.unsampled(mnee).unwrap();
+        assert!(
+            caveat.starts_with("cannot sample") && caveat.contains(why),
+            "{caveat}"
+        );
+    };
+
+    // Three refracting layers: the straight segment to the light crosses three.
+    expect_vcm(
+        "three layers",
+        &pool(&[0.6, 0.7]),
+        "3 or more specular surfaces",
+    );
+
+    let mut scene = pool(&[]);
+    scene.lights[0] = PunctualLight::Directional {
+        direction: Vec3::new(-0.3, -1.0, 0.0).normalize(),
+        irradiance: Vec3::splat(3.0),
+    };
+    expect_vcm("directional", &scene, "directional light 0");
+
+    // The screen: diffuse, beside the pool at z = 3 below the water's height (so the
+    // water's reflection, which goes up, never reaches it), facing the camera at z = 10,
+    // whose narrow view holds only the screen, though the water is in its view cone.
+    let mut scene = pool(&[]);
+    let v = Vec3::new;
+    scene
+        .materials
+        .push(Material::diffuse("screen", Vec3::splat(0.8)));
+    scene.meshes.push(quad(
+        2,
+        [
+            v(-3.0, 0.1, 3.0),
+            v(3.0, 0.1, 3.0),
+            v(3.0, 0.45, 3.0),
+            v(-3.0, 0.45, 3.0),
+        ],
+    ));
+    scene.camera = look_at_camera(v(0.0, 0.275, 10.0), v(0.0, 0.275, 0.0), Vec3::Y, 2.0);
+    scene.default_resolution = (32, 32);
+    expect_vcm(
+        "seen after a bounce",
+        &scene,
+        "appear at no surface the camera sees first",
+    );
+}
+
+/// The glass ball under a spot light: the light it reflects off the ball's outside onto
+/// the floor (Fresnel) is a caustic no MNEE seed finds, so the plan keeps vcm and says so.
+#[test]
+fn a_reflected_caustic_keeps_vcm() {
+    let plan = plan_of(&scene_path("glass-spot.gltf"));
+    assert_eq!(plan.integrator, PlannedIntegrator::Vcm);
+    assert!(
+        plan.beyond_mnee
+            .iter()
+            .any(|r| r.contains("reflects off specular")),
+        "{:?}",
+        plan.beyond_mnee
+    );
 }
 
 /// `scenes/mirror-caustic.gltf`: a point light's caustic under a glass ball, seen only in a

@@ -1,0 +1,347 @@
+//! Step 4b: which caustics of delta and tiny lights manifold next-event estimation (MNEE)
+//! samples (the module documentation's "Manifold next-event estimation" rule), by a
+//! survey of specular chains from the lights and from the camera.
+//!
+//! MNEE as the renderer builds it (`tessera_render::integrator::mnee`; Hanika, Droske &
+//! Fascione 2015, §3) runs at the camera path's first non-specular vertex `x` and connects
+//! it to a point, spot or emissive-triangle light through the specular surfaces that the
+//! straight segment from `x` to the light crosses (its *seed chain*), at most
+//! [`MNEE_MAX_CHAIN`] of them, each purely specular (a mirror or a smooth dielectric). So
+//! it samples a delta light's caustic `L S{1,2} D` where
+//!
+//! - the light is a point, spot or (tiny) area light, not a directional or sphere light;
+//! - the light reaches the receiver by crossing the specular surfaces, not by reflecting
+//!   off them: a reflection's vertex is not on the straight segment, so no seed finds it
+//!   (the Fresnel reflection of a glass ball onto the floor, a mirror's caustic);
+//! - the chain has at most [`MNEE_MAX_CHAIN`] vertices, none of them a mixed material (a
+//!   diffuse base under a specular coat is not a specular chain vertex);
+//! - the camera sees the receiver at its first non-specular vertex, directly or through
+//!   specular surfaces (`L S{1,2} D S* E`); a caustic that reaches the camera only after a
+//!   further diffuse or glossy bounce has no technique in path tracing with MNEE.
+//!
+//! The survey checks these the way MNEE's seed sees the scene: from each point and spot
+//! light (and the centre of each tiny area light) [`LIGHT_RAYS`] rays (a Fibonacci
+//! lattice over the sphere, or over a spot's cone) are followed through the specular
+//! surfaces they meet, straight on through a refracting one (as the seed segment crosses
+//! it) and mirrored about the geometric normal off a reflecting one, up to
+//! [`MNEE_MAX_CHAIN`] + 1 vertices; every branch that reaches a diffuse or glossy surface
+//! after at least one specular vertex is a caustic, and must be of MNEE's shape. From the
+//! camera, the direct-light survey's grid of rays is followed through specular surfaces
+//! (both branches, up to [`CAMERA_CHAIN`] vertices) to the first non-specular surfaces;
+//! the caustics' receivers must be among them. Materials, not points, are compared: the
+//! survey errs toward "MNEE reaches it" only where a caustic's receiver material is seen
+//! at all. A survey that finds no caustic at all (every ray missed the specular surfaces)
+//! counts as not reaching: the plan then keeps vertex merging.
+
+use super::direct::{camera_rays, primitives, Bvh};
+use super::evidence::material_list;
+use super::lights::Lights;
+use super::survey::Survey;
+use super::{MNEE_MAX_CHAIN, TINY_LIGHT_FRACTION};
+use crate::PunctualLight;
+use glam::Vec3;
+
+/// Rays traced from each point, spot and tiny area light.
+pub const LIGHT_RAYS: u32 = 1024;
+
+/// Specular vertices followed along a camera ray before giving up on it.
+pub const CAMERA_CHAIN: usize = 4;
+
+/// What keeps MNEE from a caustic, each kind with the first example found.
+#[derive(Default)]
+struct Findings {
+    /// Materials that receive a caustic MNEE samples (through purely refracting chains of
+    /// at most [`MNEE_MAX_CHAIN`] vertices).
+    receivers: Vec<usize>,
+    /// A caustic through more specular vertices than MNEE's chains hold.
+    longer: Option<String>,
+    /// A caustic by a reflection, which no seed segment finds.
+    reflection: Option<String>,
+    /// A caustic through a mixed (diffuse or glossy and specular) material.
+    mixed: Option<String>,
+}
+
+/// Where the survey's light rays start: a light's name for the evidence, its position and,
+/// for a spot, its axis and the cosine of its outer angle.
+struct Source {
+    name: String,
+    at: Vec3,
+    cone: Option<(Vec3, f32)>,
+}
+
+/// A branch of a light's specular chain: how it got where it is.
+#[derive(Clone, Copy)]
+struct Branch {
+    /// Specular vertices so far.
+    vertices: usize,
+    /// The first specular material met.
+    first: usize,
+    /// Whether some vertex reflected.
+    reflected: Option<usize>,
+    /// Whether some vertex was of a mixed material.
+    mixed: Option<usize>,
+}
+
+/// Why MNEE cannot sample every caustic of the scene's delta and tiny lights, each reason
+/// with its evidence; empty when it can. Run for scenes with delta-lit caustics.
+pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
+    let scene = survey.scene;
+    let mut out = Vec::new();
+    let tiny = TINY_LIGHT_FRACTION * survey.scene_radius;
+    let mut sources: Vec<Source> = Vec::new();
+    for (i, l) in scene.lights.iter().enumerate() {
+        match *l {
+            PunctualLight::Point {
+                position,
+                intensity,
+            } if intensity.max_element() > 0.0 => sources.push(Source {
+                name: format!("point light {i}"),
+                at: position,
+                cone: None,
+            }),
+            PunctualLight::Spot {
+                position,
+                direction,
+                intensity,
+                outer_angle,
+                ..
+            } if intensity.max_element() > 0.0 && outer_angle > 0.0 => sources.push(Source {
+                name: format!("spot light {i}"),
+                at: position,
+                cone: Some((direction.normalize_or_zero(), outer_angle.cos())),
+            }),
+            PunctualLight::Directional { irradiance, .. } if irradiance.max_element() > 0.0 => out
+                .push(format!(
+                    "directional light {i}: MNEE connects to light points (point, spot and \
+                     emissive-triangle lights), not to a direction"
+                )),
+            _ => {}
+        }
+    }
+    for (i, s) in &lights.spheres {
+        if s.radius < tiny {
+            out.push(format!(
+                "sphere light {i} (radius {}): MNEE connects to point, spot and \
+                 emissive-triangle lights, not to spheres",
+                s.radius
+            ));
+        }
+    }
+    for a in &lights.area {
+        if a.bounds.radius() < tiny {
+            sources.push(Source {
+                name: format!(
+                    "the area light of {}",
+                    material_list(scene, &[a.material], &survey.classes, false)
+                ),
+                at: 0.5 * (a.bounds.lo + a.bounds.hi),
+                cone: None,
+            });
+        }
+    }
+    let Some(prims) = primitives(survey) else {
+        out.push(
+            "the scene has too many primitives for the survey of specular chains, so \
+             MNEE's reach is unknown"
+                .into(),
+        );
+        return out;
+    };
+    let bvh = Bvh::new(prims);
+    let eps = 1e-4 * survey.scene_radius;
+    let mut found = Findings::default();
+    for Source { name, at, cone } in &sources {
+        for d in directions(*cone) {
+            let branch = Branch {
+                vertices: 0,
+                first: usize::MAX,
+                reflected: None,
+                mixed: None,
+            };
+            follow(survey, &bvh, name, *at, d, eps, branch, &mut found);
+        }
+    }
+    let list = |m: &[usize]| material_list(scene, m, &survey.classes, false);
+    out.extend(found.longer);
+    out.extend(found.reflection);
+    out.extend(found.mixed);
+    if found.receivers.is_empty() {
+        if !sources.is_empty() {
+            out.push(format!(
+                "the survey of {LIGHT_RAYS} rays from each light found no caustic that MNEE's \
+                 chains hold, so none is known to be within its reach"
+            ));
+        }
+        return out;
+    }
+    let seen = first_seen(survey, &bvh, eps);
+    if !found.receivers.iter().any(|m| seen.contains(m)) {
+        out.push(format!(
+            "the caustics on {} appear at no surface the camera sees first (directly or \
+             through specular surfaces): their light reaches the camera only after a further \
+             diffuse or glossy bounce, where MNEE does not run",
+            list(&found.receivers)
+        ));
+    }
+    out
+}
+
+/// Where a survey ray meets a scattering surface: the point, the geometric normal and the
+/// material.
+struct Hit {
+    x: Vec3,
+    n: Vec3,
+    m: usize,
+}
+
+/// The first hit along `d` from `o`, if its material scatters (an emitter that does not,
+/// or nothing, ends the ray).
+fn hit(survey: &Survey, bvh: &Bvh, o: Vec3, d: Vec3, eps: f32) -> Option<Hit> {
+    let (t, k) = bvh.trace(o, d, eps, f32::INFINITY, false)?;
+    let prim = &bvh.prims[k];
+    let x = o + t * d;
+    survey.scatters(prim.material).then(|| Hit {
+        x,
+        n: prim.normal(x),
+        m: prim.material,
+    })
+}
+
+/// Follows a light's ray from `o` along `d` through specular surfaces, recording the
+/// caustics it makes in `found`.
+#[allow(clippy::too_many_arguments)]
+fn follow(
+    survey: &Survey,
+    bvh: &Bvh,
+    light: &str,
+    o: Vec3,
+    d: Vec3,
+    eps: f32,
+    branch: Branch,
+    found: &mut Findings,
+) {
+    let Some(Hit { x, n, m }) = hit(survey, bvh, o, d, eps) else {
+        return;
+    };
+    let c = &survey.classes[m];
+    let list = |m: &[usize]| material_list(survey.scene, m, &survey.classes, false);
+    if branch.vertices > 0 && (c.diffuse || c.glossy) {
+        // A caustic: light reaching a diffuse or glossy surface through specular ones.
+        if branch.vertices > MNEE_MAX_CHAIN {
+            found.longer.get_or_insert_with(|| {
+                format!(
+                    "light of {light} crosses {} or more specular surfaces (the first of {}) \
+                     before reaching {}: MNEE's chains hold at most {MNEE_MAX_CHAIN}",
+                    branch.vertices,
+                    list(&[branch.first]),
+                    list(&[m])
+                )
+            });
+        } else if let Some(r) = branch.reflected {
+            found.reflection.get_or_insert_with(|| {
+                format!(
+                    "light of {light} reflects off specular {} onto {}: a reflection's vertex \
+                     is not on the straight segment to the light, so MNEE's seed never finds it",
+                    list(&[r]),
+                    list(&[m])
+                )
+            });
+        } else if let Some(x) = branch.mixed {
+            found.mixed.get_or_insert_with(|| {
+                format!(
+                    "light of {light} reaches {} through {}, which is diffuse or glossy as \
+                     well as specular: MNEE's chains hold only purely specular surfaces",
+                    list(&[m]),
+                    list(&[x])
+                )
+            });
+        } else if !found.receivers.contains(&m) {
+            found.receivers.push(m);
+        }
+    }
+    let reflects = c.specular;
+    let refracts = c.smooth_refraction;
+    if !(reflects || refracts) || branch.vertices > MNEE_MAX_CHAIN {
+        return;
+    }
+    let mixed = (c.diffuse || c.glossy).then_some(m).or(branch.mixed);
+    let first = if branch.vertices == 0 {
+        m
+    } else {
+        branch.first
+    };
+    if refracts {
+        // Straight on, as MNEE's seed segment crosses the interface.
+        let next = Branch {
+            vertices: branch.vertices + 1,
+            first,
+            mixed,
+            ..branch
+        };
+        follow(survey, bvh, light, x, d, eps, next, found);
+    }
+    if reflects {
+        let r = d - 2.0 * d.dot(n) * n;
+        let next = Branch {
+            vertices: branch.vertices + 1,
+            first,
+            reflected: branch.reflected.or(Some(m)),
+            mixed,
+        };
+        follow(survey, bvh, light, x, r, eps, next, found);
+    }
+}
+
+/// The materials of the first non-specular surfaces the camera sees, directly or through
+/// specular surfaces (both branches of each, up to [`CAMERA_CHAIN`] vertices).
+fn first_seen(survey: &Survey, bvh: &Bvh, eps: f32) -> Vec<usize> {
+    fn walk(
+        survey: &Survey,
+        bvh: &Bvh,
+        o: Vec3,
+        d: Vec3,
+        eps: f32,
+        depth: usize,
+        seen: &mut Vec<usize>,
+    ) {
+        let Some(Hit { x, n, m }) = hit(survey, bvh, o, d, eps) else {
+            return;
+        };
+        let c = &survey.classes[m];
+        if c.diffuse || c.glossy {
+            if !seen.contains(&m) {
+                seen.push(m);
+            }
+            return;
+        }
+        if depth == CAMERA_CHAIN {
+            return;
+        }
+        if c.smooth_refraction {
+            walk(survey, bvh, x, d, eps, depth + 1, seen);
+        }
+        if c.specular {
+            walk(survey, bvh, x, d - 2.0 * d.dot(n) * n, eps, depth + 1, seen);
+        }
+    }
+    let (origin, rays) = camera_rays(survey.scene);
+    let mut seen = Vec::new();
+    for d in rays {
+        walk(survey, bvh, origin, d, eps, 0, &mut seen);
+    }
+    seen
+}
+
+/// [`LIGHT_RAYS`] unit directions of a spherical Fibonacci lattice (González 2010), over
+/// the whole sphere or, for a spot `(axis, cos outer)`, over its cone.
+fn directions(cone: Option<(Vec3, f32)>) -> impl Iterator<Item = Vec3> {
+    let (axis, cos_outer) = cone.unwrap_or((Vec3::Z, -1.0));
+    let (b1, b2) = axis.any_orthonormal_pair();
+    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    (0..LIGHT_RAYS).map(move |i| {
+        let cos = 1.0 - (1.0 - cos_outer) * (i as f32 + 0.5) / LIGHT_RAYS as f32;
+        let sin = (1.0 - cos * cos).max(0.0).sqrt();
+        let phi = golden * i as f32;
+        cos * axis + sin * (phi.cos() * b1 + phi.sin() * b2)
+    })
+}
