@@ -57,7 +57,18 @@
 //! its cost table of 112 bytes per triangle ([`cwbvh_order`]); the records are made in
 //! leaf order once the binary tree is gone. obvhs' binary nodes are its 32-byte ones
 //! (the `small_bvh2_node` feature: the same trees, primitive count and index kept in the
-//! boxes' padding). None of this changes a tree or an image.
+//! boxes' padding); the tree's nodes become resident only as PLOC writes them and its
+//! identity primitive indices are made after PLOC ([`ploc_from_leaves`]); while the tree
+//! is collapsed, those indices hold the leaf order's positions (`traversal`). None of
+//! this changes a tree or an image.
+//!
+//! **Large levels in chunks.** One PLOC build holds, at its end, its two node arrays and
+//! its sort keys (80 bytes a primitive) beside the finished tree (64): with the scene's
+//! meshes, 162 bytes a triangle, more than a renderer that keeps its geometry in 67
+//! needs. A level of [`CHUNKED_FROM`] primitives or more is therefore built by PLOC in
+//! chunks of at most [`CHUNK_MAX`], split at spatial medians, written into the final node array,
+//! each optimised by the same reinsertion ([`chunked_bvh2`]): its tree, and so its
+//! triangles' numbers, differ from the single build's; smaller levels keep theirs.
 //!
 //! **Stack.** All builds run on a thread of their own with a stack of
 //! [`BUILD_STACK_BYTES`] ([`on_build_stack`]), so obvhs' recursions never depend on the
@@ -141,6 +152,9 @@ pub struct BvhBuildStats {
     pub work: u64,
     /// Primitives whose boxes were widened to break PLOC's ties (0 for ordinary scenes).
     pub tie_broken: u64,
+    /// Chunks built by separate PLOC builds in levels of [`CHUNKED_FROM`] primitives or
+    /// more (0 for smaller scenes; see "Memory" in the module docs).
+    pub chunks: u64,
     /// Deepest binary tree built by our own code or measured by it (the grafted trees
     /// and the tie-broken ones; 0 when every BVH took the ordinary path, whose depth
     /// obvhs does not report).
@@ -157,6 +171,7 @@ impl BvhBuildStats {
         self.ploc_inputs += other.ploc_inputs;
         self.work += other.work;
         self.tie_broken += other.tie_broken;
+        self.chunks += other.chunks;
         self.max_depth = self.max_depth.max(other.max_depth);
     }
 }
@@ -204,8 +219,9 @@ pub(super) fn triangles_bvh2(triangles: &[Triangle], stats: &mut BvhBuildStats) 
 /// other copy of the boxes (see "Memory" in the module docs); the tree is the one
 /// `PlocBuilder::build` makes of the same boxes, node for node.
 pub(super) fn leaves_bvh2(leaves: Vec<Bvh2Node>, stats: &mut BvhBuildStats) -> Bvh2 {
-    let mut bvh2 = match crowded_cells(&leaves, stats) {
-        None if tied_extents(&leaves, stats) => tie_broken_bvh2(&leaves, stats),
+    let bbox = |i: usize| leaves[i].bbox();
+    let mut bvh2 = match crowded_cells(leaves.len(), bbox, stats) {
+        None if tied_extents(leaves.len(), bbox, stats) => tie_broken_bvh2(&leaves, stats),
         None => {
             let p = params();
             let mut bvh2 = ploc_from_leaves(leaves, &p);
@@ -221,14 +237,198 @@ pub(super) fn leaves_bvh2(leaves: Vec<Bvh2Node>, stats: &mut BvhBuildStats) -> B
     bvh2
 }
 
+/// Levels of at least this many primitives are built in chunks ([`chunked_bvh2`]);
+/// smaller ones, every scene below about 4 million triangles in one level, keep the
+/// single PLOC build and so their trees, triangle numbers and images.
+pub const CHUNKED_FROM: usize = 1 << 22;
+
+/// The most primitives in one chunk of [`chunked_bvh2`]: PLOC's working arrays of a
+/// chunk and its tree (144 bytes a primitive) are then at most 144 MiB beside the tree
+/// being filled.
+pub(super) const CHUNK_MAX: usize = 1 << 20;
+
+/// A binary BVH over the `n` boxes `bbox(0..n)` (leaf `i` holds primitive `i`, as from
+/// [`leaves_bvh2`]) that never holds PLOC's working arrays for all of them at once: with
+/// `n >= chunked_from` and neither crowded cells nor tied extents among the boxes (those
+/// take [`leaves_bvh2`]'s robust builds, over every box at once), the primitives are
+/// split top down at the median of their box centres along the widest axis into
+/// `⌈n / chunk_max⌉` chunks of about equal size (the top of the tree: compact chunks
+/// whose centres do not overlap, as a spatial-median build's upper levels), and each
+/// chunk built as a level of its own is, by PLOC and obvhs' reinsertion with the usual
+/// parameters, then copied into the final node array. PLOC merges each cluster with a
+/// neighbour within its search radius in the Morton order (Meister & Bittner 2018, §3),
+/// so within a chunk the merges are much like the single build's. The reinsertion runs
+/// per chunk rather than once over the whole tree: obvhs takes its candidates from the
+/// start of the node array, which a single PLOC build fills with the top of the tree but
+/// which here holds the first chunk. Below `chunked_from`, or on the robust paths, it is
+/// [`leaves_bvh2`] of the boxes.
+///
+/// Memory: one PLOC build of all `n` holds its two node arrays and sort keys beside the
+/// tree (80 + 64 bytes a primitive) at its end; this holds
+/// the primitives' order (4 bytes a primitive), the tree (64) and one chunk's PLOC arrays
+/// (docs/benchmarks.md, "Large scene"). The tree is not the single build's, so the
+/// triangles' numbers (their CWBVH leaf order) differ and images can differ where
+/// two triangles are hit at exactly the same distance.
+pub(super) fn chunked_bvh2(
+    n: usize,
+    bbox: impl Fn(usize) -> Aabb,
+    chunked_from: usize,
+    chunk_max: usize,
+    stats: &mut BvhBuildStats,
+) -> Bvh2 {
+    let leaves = |bbox: &dyn Fn(usize) -> Aabb| -> Vec<Bvh2Node> {
+        (0..n)
+            .map(|i| Bvh2Node::new(bbox(i), 1, i as u32))
+            .collect()
+    };
+    if n < chunked_from.max(2) {
+        return leaves_bvh2(leaves(&bbox), stats);
+    }
+    // The robust builds' checks, on the boxes as read: if either finds its input, the
+    // whole level takes [`leaves_bvh2`] (which counts its own checks).
+    let mut probe = *stats;
+    let crowded = crowded_cells(n, &bbox, &mut probe).is_some();
+    if crowded || tied_extents(n, &bbox, &mut probe) {
+        return leaves_bvh2(leaves(&bbox), stats);
+    }
+    *stats = probe;
+    let count = n.div_ceil(chunk_max.max(1));
+    let mut chunks = Chunks {
+        order: (0..n as u32).collect(),
+        bbox: &bbox,
+        // Every node of the finished tree, reserved once: pages are resident only as
+        // chunks are copied in.
+        nodes: Vec::with_capacity(2 * n - 1),
+        max_depth: 0,
+        work: 0,
+    };
+    chunks.nodes.push(Bvh2Node::default());
+    chunks.build(count, 0..n, 0, 0);
+    debug_assert_eq!(chunks.nodes.len(), 2 * n - 1);
+    stats.chunks += count as u64;
+    stats.work += chunks.work;
+    let Chunks {
+        nodes, max_depth, ..
+    } = chunks;
+    Bvh2 {
+        nodes,
+        // Leaves name their primitive directly (`first_index`), through the identity.
+        primitive_indices: (0..n as u32).collect(),
+        max_depth: max_depth.max(obvhs::bvh2::DEFAULT_MAX_STACK_DEPTH),
+        ..Bvh2::default()
+    }
+}
+
+/// The state of [`chunked_bvh2`]'s build: the primitives (`order`, split in place into
+/// chunks), and the tree's nodes so far.
+struct Chunks<'a, F> {
+    order: Vec<u32>,
+    bbox: &'a F,
+    nodes: Vec<Bvh2Node>,
+    max_depth: usize,
+    /// One step per primitive per level of the splits above the chunks.
+    work: u64,
+}
+
+impl<F: Fn(usize) -> Aabb> Chunks<'_, F> {
+    /// Builds the primitives `order[range]` as `count` chunks into the subtree rooted at
+    /// `slot` (`depth` below the root): split at the median of their box centres along
+    /// the widest axis (the share of `count / 2` chunks of them on one side), down to
+    /// single chunks; returns the subtree's box.
+    fn build(
+        &mut self,
+        count: usize,
+        range: std::ops::Range<usize>,
+        slot: usize,
+        depth: usize,
+    ) -> Aabb {
+        if count <= 1 {
+            return self.chunk(range, slot, depth);
+        }
+        let members = &mut self.order[range.clone()];
+        let centre = |i: u32| (self.bbox)(i as usize).center();
+        let mut centres = Aabb::empty();
+        for &i in members.iter() {
+            centres.extend(centre(i));
+        }
+        let spread = centres.diagonal();
+        let axis = if spread.x >= spread.y && spread.x >= spread.z {
+            0
+        } else if spread.y >= spread.z {
+            1
+        } else {
+            2
+        };
+        let left_count = count / 2;
+        let mid = members.len() * left_count / count;
+        // Keys of 8 bytes for the selection, so the boxes are read once a level.
+        let mut keys: Vec<(f32, u32)> = members.iter().map(|&i| (centre(i)[axis], i)).collect();
+        keys.select_nth_unstable_by(mid, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        for (m, &(_, i)) in members.iter_mut().zip(&keys) {
+            *m = i;
+        }
+        drop(keys);
+        self.work += members.len() as u64;
+        let first = self.nodes.len();
+        self.nodes.push(Bvh2Node::default());
+        self.nodes.push(Bvh2Node::default());
+        let split = range.start + mid;
+        let left = self.build(left_count, range.start..split, first, depth + 1);
+        let right = self.build(count - left_count, split..range.end, first + 1, depth + 1);
+        let bounds = left.union(&right);
+        self.nodes[slot] = Bvh2Node::new(bounds, 0, first as u32);
+        bounds
+    }
+
+    /// PLOC over the chunk `order[range]` (in index order, so the chunk's tree does not
+    /// depend on how the splits arranged it), its root written at `slot` and its other
+    /// nodes appended, renumbered: interior children by where they land, leaves by the
+    /// primitive they hold.
+    fn chunk(&mut self, range: std::ops::Range<usize>, slot: usize, depth: usize) -> Aabb {
+        let members = &mut self.order[range];
+        members.sort_unstable();
+        let members = &*members;
+        let leaves: Vec<Bvh2Node> = members
+            .iter()
+            .enumerate()
+            .map(|(j, &i)| Bvh2Node::new((self.bbox)(i as usize), 1, j as u32))
+            .collect();
+        let p = params();
+        let mut tree = ploc_from_leaves(leaves, &p);
+        ReinsertionOptimizer::default().run(&mut tree, p.reinsertion_batch_ratio, None);
+        self.max_depth = self.max_depth.max(depth + tree.max_depth);
+        // Chunk node `j >= 1` lands at `base + j - 1`.
+        let base = self.nodes.len();
+        let renumber = |node: &Bvh2Node| {
+            let first = if node.is_leaf() {
+                members[node.first_index as usize]
+            } else {
+                (base + node.first_index as usize - 1) as u32
+            };
+            Bvh2Node::new(*node.aabb(), node.prim_count, first)
+        };
+        let root = renumber(&tree.nodes[0]);
+        self.nodes.extend(tree.nodes[1..].iter().map(renumber));
+        self.nodes[slot] = root;
+        *root.aabb()
+    }
+}
+
 /// PLOC over `leaves` (leaf `i` holding primitive `i`) with the parameters `p`: what
 /// `PlocBuilder::build` does with the leaves' boxes and the identity as indices (it sets
 /// the tree's primitive indices, makes one leaf node per box and sums the boxes into the
 /// scene's box in index order, then merges), without the slice of boxes it would read.
+///
+/// Memory: the tree's nodes are allocated zeroed (`Bvh2::zeroed`), so their pages become
+/// resident only as PLOC writes them, from the last pair to the root, and the identity
+/// primitive indices (PLOC does not read them: a leaf names its primitive) are made once
+/// PLOC's working arrays are freed. What is resident at the end of PLOC, its peak, is
+/// then its two node arrays and sort keys (80 bytes a primitive) and the tree's nodes
+/// (64); see docs/benchmarks.md, "Large scene".
 fn ploc_from_leaves(leaves: Vec<Bvh2Node>, p: &BvhBuildParams) -> Bvh2 {
     let n = leaves.len();
-    let mut bvh2 = Bvh2::default();
-    bvh2.reset_for_reuse(n, Some((0..n as u32).collect()));
+    let mut bvh2 = Bvh2::zeroed(n);
+    bvh2.primitive_indices = Vec::new();
     if n == 0 {
         return bvh2;
     }
@@ -261,6 +461,8 @@ fn ploc_from_leaves(leaves: Vec<Bvh2Node>, p: &BvhBuildParams) -> Bvh2 {
             builder.build_ploc_from_leaves::<32, false>(&mut bvh2, total, precision, depth)
         }
     }
+    drop(builder);
+    bvh2.primitive_indices = (0..n as u32).collect();
     bvh2
 }
 
@@ -321,11 +523,14 @@ fn ceil_log2(n: usize) -> u64 {
     u64::from(usize::BITS - n.saturating_sub(1).leading_zeros())
 }
 
-/// The centre cell of every box, as `(cell, index)` sorted, when some cell holds
+/// The centre cell of every box `bbox(0..n)`, as `(cell, index)` sorted, when some cell holds
 /// [`CLUSTER_MIN`] boxes or more; `None` otherwise (the ordinary path). Counts the
 /// primitives and the grouping work in `stats`.
-fn crowded_cells<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> Option<Vec<(u64, u32)>> {
-    let n = boxes.len();
+fn crowded_cells(
+    n: usize,
+    bbox: impl Fn(usize) -> Aabb,
+    stats: &mut BvhBuildStats,
+) -> Option<Vec<(u64, u32)>> {
     stats.bvhs += 1;
     stats.primitives += n as u64;
     stats.work += n as u64 * ceil_log2(n) + n as u64;
@@ -334,8 +539,8 @@ fn crowded_cells<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> Option<Ve
         return None;
     }
     let mut total = Aabb::empty();
-    for b in boxes {
-        let b = b.bbox();
+    for i in 0..n {
+        let b = bbox(i);
         total.extend(b.min);
         total.extend(b.max);
     }
@@ -350,11 +555,9 @@ fn crowded_cells<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> Option<Ve
             0
         }
     };
-    let mut keys: Vec<(u64, u32)> = boxes
-        .iter()
-        .enumerate()
-        .map(|(i, b)| {
-            let c = b.bbox().center().as_dvec3();
+    let mut keys: Vec<(u64, u32)> = (0..n)
+        .map(|i| {
+            let c = bbox(i).center().as_dvec3();
             let key = (quantise(c.x, lo.x, extent.x) << (2 * CELL_BITS))
                 | (quantise(c.y, lo.y, extent.y) << CELL_BITS)
                 | quantise(c.z, lo.z, extent.z);
@@ -373,19 +576,17 @@ fn crowded_cells<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> Option<Ve
     }
 }
 
-/// Whether [`TIE_MIN`] or more of `boxes` have bit-identical extents (the input that
+/// Whether [`TIE_MIN`] or more of the boxes `bbox(0..n)` have bit-identical extents (the input that
 /// ties PLOC's costs without crowding a cell; see the module docs). Counts its sort in
 /// `stats.work`.
-fn tied_extents<B: HasBox>(boxes: &[B], stats: &mut BvhBuildStats) -> bool {
-    let n = boxes.len();
+fn tied_extents(n: usize, bbox: impl Fn(usize) -> Aabb, stats: &mut BvhBuildStats) -> bool {
     if n < TIE_MIN {
         return false;
     }
     stats.work += n as u64 * ceil_log2(n) + n as u64;
-    let mut extents: Vec<[u32; 3]> = boxes
-        .iter()
-        .map(|b| {
-            let b = b.bbox();
+    let mut extents: Vec<[u32; 3]> = (0..n)
+        .map(|i| {
+            let b = bbox(i);
             (b.max - b.min).to_array().map(f32::to_bits)
         })
         .collect();

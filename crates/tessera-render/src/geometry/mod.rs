@@ -69,7 +69,7 @@ mod moving;
 mod traversal;
 mod wide;
 
-pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CLUSTER_MIN, TIE_MIN};
+pub use build::{BvhBuildStats, BUILD_STACK_BYTES, CHUNKED_FROM, CLUSTER_MIN, TIE_MIN};
 pub use kernels::Isa;
 pub use moving::{shutter_segment, MotionTriangles};
 use traversal::{leaf_order, triangle_bvh, triangle_bvh_of, InstanceLeaves, TriangleLevel};

@@ -1121,3 +1121,171 @@ fn greedy_cost(bvh2: &obvhs::bvh2::Bvh2, cost: wide::SahCost) -> f64 {
     }
     total
 }
+
+/// The binary SAH cost of `bvh2` relative to its root's box (each interior node its
+/// half area, each leaf its half area times its primitive count), in `f64`.
+fn bvh2_sah(bvh2: &obvhs::bvh2::Bvh2) -> f64 {
+    let area = |n: &obvhs::bvh2::node::Bvh2Node| {
+        half_area64(n.aabb().min.to_array(), n.aabb().max.to_array())
+    };
+    let total: f64 = bvh2
+        .nodes
+        .iter()
+        .map(|n| area(n) * f64::from(n.prim_count.max(1)))
+        .sum();
+    total / area(&bvh2.nodes[0])
+}
+
+/// The boxes of `tris` as the triangle build reads them.
+fn tri_box(tris: &[TriangleRecord]) -> impl Fn(usize) -> obvhs::aabb::Aabb + '_ {
+    |i| {
+        let p = tris[i].p;
+        obvhs::triangle::Triangle {
+            v0: p[0].into(),
+            v1: p[1].into(),
+            v2: p[2].into(),
+        }
+        .aabb()
+    }
+}
+
+/// A level built in chunks ([`build::chunked_bvh2`], here 10 chunks of 2,000 scattered
+/// triangles) is a valid tree: every node's box holds its children's, every primitive is
+/// in exactly one leaf, the primitive indices are the identity; the same input builds the
+/// same tree bit for bit; and its SAH cost is within 3% of the single PLOC build's.
+#[test]
+fn a_level_built_in_chunks_is_a_whole_tree_as_good_as_one_build() {
+    let tris = scattered(20_000, 31);
+    let n = tris.len();
+    let mut stats = BvhBuildStats::default();
+    let chunked = build::chunked_bvh2(n, tri_box(&tris), 1000, 2000, &mut stats);
+    assert_eq!(stats.chunks, 10, "{stats:?}");
+    assert_eq!(
+        (stats.bvhs, stats.primitives, stats.clustered),
+        (1, n as u64, 0)
+    );
+    let nodes = &chunked.nodes;
+    assert_eq!(nodes.len(), 2 * n - 1);
+    assert!(chunked
+        .primitive_indices
+        .iter()
+        .enumerate()
+        .all(|(i, &p)| p as usize == i));
+    let mut seen = vec![0u32; n];
+    let mut stack = vec![0usize];
+    let mut visited = 0;
+    while let Some(i) = stack.pop() {
+        visited += 1;
+        let node = &nodes[i];
+        let first = node.first_index as usize;
+        if node.is_leaf() {
+            assert_eq!(node.prim_count, 1);
+            seen[chunked.primitive_indices[first] as usize] += 1;
+            let b = tri_box(&tris)(chunked.primitive_indices[first] as usize);
+            assert!(node.aabb().min.cmple(b.min).all() && node.aabb().max.cmpge(b.max).all());
+            continue;
+        }
+        for c in [first, first + 1] {
+            let cb = nodes[c].aabb();
+            assert!(
+                node.aabb().min.cmple(cb.min).all() && node.aabb().max.cmpge(cb.max).all(),
+                "node {i} does not hold child {c}"
+            );
+            stack.push(c);
+        }
+    }
+    assert_eq!(visited, nodes.len(), "every node is reached once");
+    assert!(seen.iter().all(|&k| k == 1), "every primitive in one leaf");
+
+    let again = build::chunked_bvh2(n, tri_box(&tris), 1000, 2000, &mut BvhBuildStats::default());
+    let bits = |t: &obvhs::bvh2::Bvh2| -> Vec<[u32; 8]> {
+        t.nodes
+            .iter()
+            .map(|n| {
+                let (lo, hi) = (n.aabb().min.to_array(), n.aabb().max.to_array());
+                [lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]]
+                    .map(f32::to_bits)
+                    .iter()
+                    .copied()
+                    .chain([n.prim_count, n.first_index])
+                    .collect::<Vec<_>>()
+                    .try_into()
+                    .expect("8 words")
+            })
+            .collect()
+    };
+    assert_eq!(bits(&chunked), bits(&again), "deterministic");
+
+    let single = bvh2_of(&tris);
+    let (c, s) = (bvh2_sah(&chunked), bvh2_sah(&single));
+    eprintln!("chunked SAH {c} against one build's {s}");
+    assert!(c <= 1.03 * s, "chunked SAH {c} against one build's {s}");
+}
+
+/// Below the chunk threshold a level is the single build's, tree for tree; and input the
+/// robust builds must take (coincident triangles) takes them whatever its size.
+#[test]
+fn small_and_crowded_levels_are_not_built_in_chunks() {
+    let tris = scattered(3000, 41);
+    let mut stats = BvhBuildStats::default();
+    let below = build::chunked_bvh2(tris.len(), tri_box(&tris), 3001, 500, &mut stats);
+    assert_eq!(stats.chunks, 0);
+    let single = bvh2_of(&tris);
+    assert_eq!(below.nodes.len(), single.nodes.len());
+    for (a, b) in below.nodes.iter().zip(&single.nodes) {
+        assert_eq!(
+            (a.aabb().min, a.aabb().max, a.prim_count, a.first_index),
+            (b.aabb().min, b.aabb().max, b.prim_count, b.first_index)
+        );
+    }
+    let p = [Vec3::ZERO, Vec3::X, Vec3::Y];
+    let mut crowded = scattered(3000, 43);
+    crowded.extend((0..500u32).map(|i| record(p, 3000 + i)));
+    let mut stats = BvhBuildStats::default();
+    build::chunked_bvh2(crowded.len(), tri_box(&crowded), 1000, 500, &mut stats);
+    assert_eq!(
+        (stats.chunks, stats.clustered, stats.bvhs),
+        (0, 500, 1),
+        "{stats:?}"
+    );
+}
+
+/// A level of triangles built in chunks (through `triangle_bvh_chunked`, 8 chunks) finds
+/// the nearest hit by testing every triangle on 3,000 rays, and stores every triangle
+/// once with its own attributes.
+#[test]
+fn a_level_built_in_chunks_finds_the_brute_force_hits() {
+    let tris = scattered(16_000, 47);
+    let mut stats = BvhBuildStats::default();
+    let (bvh, triangles, _) =
+        traversal::triangle_bvh_chunked(tris.len(), &|i| tris[i], 1000, 2000, &mut stats);
+    assert_eq!(stats.chunks, 8);
+    assert_eq!(triangles.len(), tris.len());
+    let mut indices: Vec<u32> = (0..triangles.len())
+        .map(|s| {
+            let r = triangles.record(s);
+            assert_eq!(bits(&r.p), bits(&tris[r.index as usize].p));
+            r.index
+        })
+        .collect();
+    indices.sort_unstable();
+    assert!(indices.iter().enumerate().all(|(i, &k)| k as usize == i));
+    let level = traversal::TriangleLevel {
+        bvh: &bvh,
+        triangles: &triangles,
+        instance: NO_INSTANCE,
+        isa: kernels::active(),
+    };
+    let mut s = 53u64;
+    let mut hits = 0;
+    for k in 0..3000 {
+        let o = Vec3::new(lcg(&mut s), lcg(&mut s), -1.0);
+        let d = (Vec3::new(lcg(&mut s), lcg(&mut s), lcg(&mut s)) - o).normalize();
+        let mut best = Nearest::new(f32::INFINITY);
+        level.nearest(o, d, &mut best, &|_, _, _, _| true);
+        let got = best.hit.map(|h| h.t);
+        assert_eq!(got, brute_force(&tris, o, d), "ray {k}");
+        hits += usize::from(got.is_some());
+    }
+    assert!(hits > 1000, "{hits} hits");
+}

@@ -153,39 +153,87 @@ pub(super) fn triangle_bvh(
     triangle_bvh_of(triangles.len(), &|i| triangles[i], stats)
 }
 
-/// [`triangle_bvh`] over the `count` triangles `record(0..count)`, read twice (once for
-/// the boxes, once in leaf order for the triangles kept) instead of from a slice: the
-/// caller needs no array of every triangle beside the stored ones, and those are made
-/// only once the binary tree's temporaries are freed.
+/// [`triangle_bvh`] over the `count` triangles `record(0..count)`, read several times
+/// (for the boxes, once in leaf order for the triangles kept) instead of from a slice:
+/// the caller needs no array of every triangle beside the stored ones, and those are
+/// made only once the binary tree's temporaries are freed. Levels of
+/// [`build::CHUNKED_FROM`] triangles or more are built in chunks
+/// ([`build::chunked_bvh2`]).
 pub(super) fn triangle_bvh_of(
     count: usize,
     record: &impl Fn(usize) -> TriangleRecord,
     stats: &mut BvhBuildStats,
 ) -> (WideBvh, Triangles, Aabb) {
+    triangle_bvh_chunked(count, record, build::CHUNKED_FROM, build::CHUNK_MAX, stats)
+}
+
+/// [`triangle_bvh_of`] with levels of `chunked_from` triangles or more built in chunks of
+/// at most `chunk_max` (the tests build small levels in chunks).
+///
+/// Memory (docs/benchmarks.md, "Large scene"): the binary tree's primitive indices are
+/// the identity, so while the tree is collapsed they hold the triangles' leaf-order
+/// positions instead (the entries the wide leaves take), and the leaf order itself, the
+/// inverse, is made from them once the tree is freed: one array of 4 bytes a triangle
+/// beside the tree at the collapse instead of three.
+pub(super) fn triangle_bvh_chunked(
+    count: usize,
+    record: &impl Fn(usize) -> TriangleRecord,
+    chunked_from: usize,
+    chunk_max: usize,
+    stats: &mut BvhBuildStats,
+) -> (WideBvh, Triangles, Aabb) {
     if count == 0 {
         return (WideBvh::default(), Triangles::default(), Aabb::empty());
     }
-    // The boxes obvhs' triangle builder would compute (`Triangle::aabb`), as PLOC leaves,
-    // and the attributes of every place, as runs (see `Triangles`).
+    // The boxes obvhs' triangle builder would compute (`Triangle::aabb`), and the
+    // attributes of every place, as runs (see `Triangles`).
+    let triangle_box = |p: [Vec3; 3]| {
+        obvhs::triangle::Triangle {
+            v0: p[0].into(),
+            v1: p[1].into(),
+            v2: p[2].into(),
+        }
+        .aabb()
+    };
     let mut runs = AttributeRuns::default();
-    let leaves: Vec<Bvh2Node> = (0..count)
-        .map(|i| {
-            let r = record(i);
-            runs.push(i as u32, r.attributes());
-            let p = r.p;
-            let t = obvhs::triangle::Triangle {
-                v0: p[0].into(),
-                v1: p[1].into(),
-                v2: p[2].into(),
-            };
-            Bvh2Node::new(t.aabb(), 1, i as u32)
-        })
-        .collect();
-    let bvh2 = build::leaves_bvh2(leaves, stats);
-    let (order, position) = leaf_order(&bvh2);
+    let mut bvh2 = if count >= chunked_from {
+        for i in 0..count {
+            runs.push(i as u32, record(i).attributes());
+        }
+        let bbox = |i: usize| triangle_box(record(i).p);
+        build::chunked_bvh2(count, bbox, chunked_from, chunk_max, stats)
+    } else {
+        // The boxes as PLOC leaves, read once with the runs.
+        let leaves: Vec<Bvh2Node> = (0..count)
+            .map(|i| {
+                let r = record(i);
+                runs.push(i as u32, r.attributes());
+                Bvh2Node::new(triangle_box(r.p), 1, i as u32)
+            })
+            .collect();
+        build::leaves_bvh2(leaves, stats)
+    };
     let bounds = *bvh2.nodes[0].aabb();
-    let mut wide = WideBvh::collapse(&bvh2, &position);
-    drop((bvh2, position));
+    debug_assert!(
+        bvh2.primitive_indices
+            .iter()
+            .enumerate()
+            .all(|(i, &p)| p as usize == i),
+        "the builds' primitive indices are the identity"
+    );
+    let (order, position) = leaf_order(&bvh2);
+    drop(order);
+    bvh2.primitive_indices = position;
+    let mut wide = WideBvh::collapse_entries(&bvh2);
+    let position = std::mem::take(&mut bvh2.primitive_indices);
+    drop(bvh2);
+    // Shrinking copies the nodes: done with the binary tree gone, not beside it.
+    wide.nodes.shrink_to_fit();
+    let mut order = vec![0u32; count];
+    for (i, &k) in position.iter().enumerate() {
+        order[k as usize] = i as u32;
+    }
+    drop(position);
     // The leaves' entries, CWBVH positions leaf after leaf, become the stored order and
     // the triangles' numbers; the leaves' ranges then index the stored triangles.
     let ids = std::mem::take(&mut wide.prims);

@@ -287,19 +287,36 @@ impl WideBvh {
     }
 
     /// [`WideBvh::collapse`] with the costs `cost` (see the module docs).
-    #[allow(clippy::needless_range_loop)] // axes index the node's arrays and the box's
     pub(super) fn collapse_with(bvh2: &Bvh2, position: &[u32], cost: SahCost) -> Self {
+        let mut out = Self::collapse_by(bvh2, |p| position[p as usize], cost);
+        out.nodes.shrink_to_fit();
+        out
+    }
+
+    /// [`WideBvh::collapse`] of a tree whose primitive indices are already the leaf
+    /// entries (a level of triangles puts their positions there, see
+    /// `traversal::triangle_bvh_chunked`), with the node array not yet shrunk to its
+    /// length: its unused reserve was never written, so it is not resident, and shrinking
+    /// copies the array (its 64-byte alignment rules out an in-place `realloc`), which
+    /// the caller does once the binary tree is freed.
+    pub(super) fn collapse_entries(bvh2: &Bvh2) -> Self {
+        Self::collapse_by(bvh2, |p| p, SahCost::TRIANGLES)
+    }
+
+    /// The collapse, primitive `p` of `bvh2` becoming the leaf entry `entry(p)`.
+    #[allow(clippy::needless_range_loop)] // axes index the node's arrays and the box's
+    fn collapse_by(bvh2: &Bvh2, entry: impl Fn(u32) -> u32, cost: SahCost) -> Self {
         let bn = &bvh2.nodes;
         let (plans, internal) = plan(bvh2, cost);
         // Every wide node but the root stands for a distinct binary node planned as one,
         // so their count bounds the nodes. Reserving it up front keeps the array from
         // doubling (two copies at once at the build's memory peak); pages never written
-        // are never resident, and the shrink at the end returns the rest.
+        // are never resident, and the callers shrink the array to return the rest.
         let mut nodes = Vec::with_capacity(1 + internal);
         nodes.push(WideNode::EMPTY);
         let mut out = WideBvh {
             nodes,
-            prims: Vec::with_capacity(position.len()),
+            prims: Vec::with_capacity(bvh2.primitive_indices.len()),
             stack_need: 0,
         };
         // A child is a leaf when its plan for a budget of 1 is (binary leaves included).
@@ -351,7 +368,7 @@ impl WideBvh {
                         if n.is_leaf() {
                             let s = n.first_index as usize;
                             for &p in &bvh2.primitive_indices[s..s + n.prim_count as usize] {
-                                out.prims.push(position[p as usize]);
+                                out.prims.push(entry(p));
                             }
                         } else {
                             leaf_walk.push(n.first_index as usize + 1);
@@ -382,7 +399,6 @@ impl WideBvh {
             need[i] = inner.len().max(inner.len().saturating_sub(1) + below);
         }
         out.stack_need = need[0] + 1;
-        out.nodes.shrink_to_fit();
         out
     }
 
