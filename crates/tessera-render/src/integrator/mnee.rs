@@ -27,10 +27,18 @@
 //! its predecessor through the moved point (Zeltner, Georgiev & Jakob 2020, "Specular
 //! Manifold Sampling", §4.2 and §5.2): the solver needs nothing of the geometry but the
 //! renderer's ray casts and shading points, so it works on triangle meshes and spheres
-//! alike. The constraint Jacobian is formed by finite differences of that
-//! parametrisation (the shading normals' derivatives are not stored by the geometry), in
-//! `f64`: forward differences for Newton's steps, central ones for the geometry term. A step that fails to project, or does not reduce the constraint's norm, is
-//! halved.
+//! alike. The constraint Jacobian is in closed form, in `f64`, with no ray cast (Jakob &
+//! Marschner 2012, §4.1-4.2): each constraint depends on its vertex and the two
+//! neighbours (a block-tridiagonal matrix); moving a vertex along its tangent turns `wa`,
+//! `wb` and, through the derivative of the shading normal by position
+//! ([`RenderScene::shading_normal_derivative`]: on a triangle with vertex normals the
+//! interpolated normal is linear in the barycentrics, on a sphere `dn/dp = (I - n nᵀ)/r`),
+//! the normal and the tangent frame the constraint is expressed in. Where the geometry
+//! gives no such derivative (instances, moving triangles, normal maps) the Jacobian comes
+//! from finite differences of the ray-cast parametrisation instead: forward differences
+//! for Newton's steps, central ones for the geometry term. Ray casts are then needed only
+//! to project each Newton step onto the geometry. A step that fails to project, or does
+//! not reduce the constraint's norm, is halved.
 //!
 //! On convergence the contribution is, for an area light sampled with area density
 //! `p_A(y)`,
@@ -72,7 +80,7 @@ use crate::light::Light;
 use crate::math::offset_ray_origin;
 use crate::sampling::warp::Frame;
 use crate::scene::RenderScene;
-use glam::{DVec3, Vec2, Vec3};
+use glam::{DMat3, DVec3, Vec2, Vec3};
 
 /// Most specular vertices between the shading point and the light (a sphere's two
 /// interfaces, or one flat water surface).
@@ -126,12 +134,14 @@ impl Anchor {
     }
 }
 
-/// A specular vertex of a chain: its surface point and, for a dielectric, the relative
-/// index `η` (inside over outside); `0` for a mirror.
+/// A specular vertex of a chain: its surface point, for a dielectric the relative index
+/// `η` (inside over outside; `0` for a mirror), and the derivative of its shading normal
+/// by position ([`RenderScene::shading_normal_derivative`]) where the geometry gives it.
 #[derive(Clone, Copy, Debug)]
 struct Vertex {
     sp: SurfacePoint,
     eta: f32,
+    dn: Option<DMat3>,
 }
 
 /// The specular vertices between `x` and `y`, in order from `x`.
@@ -225,7 +235,8 @@ fn specular_vertex(
     if eta == 1.0 {
         return Err(());
     }
-    Ok(Some(Vertex { sp, eta }))
+    let dn = scene.shading_normal_derivative(&hit, &sp);
+    Ok(Some(Vertex { sp, eta, dn }))
 }
 
 /// The seed chain: the specular surfaces the segment `x -> y` crosses. `None` if an
@@ -243,6 +254,7 @@ fn seed(scene: &RenderScene, x: &Anchor, y: Vec3, time: f32, max_chain: usize) -
         v: [Vertex {
             sp: dummy_point(),
             eta: 0.0,
+            dn: None,
         }; MAX_CHAIN],
         len: 0,
     };
@@ -298,29 +310,124 @@ fn project(scene: &RenderScene, from: &Anchor, target: Vec3, time: f32) -> Optio
         .flatten()
 }
 
+/// The half-vector constraint at a vertex `p` between `a` (toward `x`) and `b`, with what
+/// its derivatives need (Jakob & Marschner 2012, §4.1): the unit directions `wa`, `wb` to
+/// the neighbours and their distances, the indices `η_a`, `η_b` of the media they lie in,
+/// the generalized half-vector `H = η_a wa + η_b wb` (`wa + wb` for a mirror) and its
+/// normalisation `h`, and the shading frame the constraint is expressed in.
+#[derive(Clone, Copy, Debug, Default)]
+struct Local {
+    wa: DVec3,
+    la: f64,
+    ea: f64,
+    wb: DVec3,
+    lb: f64,
+    eb: f64,
+    /// `|H|`.
+    len: f64,
+    h: DVec3,
+    n: DVec3,
+    s: DVec3,
+    t: DVec3,
+}
+
+impl Local {
+    fn of(a: DVec3, v: &Vertex, b: DVec3) -> Option<Self> {
+        let p = v.sp.p.as_dvec3();
+        let n = v.sp.ns.as_dvec3();
+        let (da, db) = (a - p, b - p);
+        let (la, lb) = (da.length(), db.length());
+        if !(la > 0.0 && lb > 0.0 && la.is_finite() && lb.is_finite()) {
+            return None;
+        }
+        let (wa, wb) = (da / la, db / lb);
+        let (ea, eb) = if v.eta > 0.0 {
+            let eta = v.eta as f64;
+            let side = |w: DVec3| if w.dot(n) > 0.0 { 1.0 } else { eta };
+            (side(wa), side(wb))
+        } else {
+            (1.0, 1.0)
+        };
+        let big_h = wa * ea + wb * eb;
+        let len = big_h.length();
+        if len < 1e-12 {
+            return None;
+        }
+        let (s, t) = frame_tangents(n);
+        Some(Self {
+            wa,
+            la,
+            ea,
+            wb,
+            lb,
+            eb,
+            len,
+            h: big_h / len,
+            n,
+            s,
+            t,
+        })
+    }
+
+    /// The two constraint components: `h`'s coordinates in the tangent plane.
+    fn value(&self) -> [f64; 2] {
+        [self.h.dot(self.s), self.h.dot(self.t)]
+    }
+
+    /// `∂H` when the neighbour toward `x` moves by `d`: `η_a (I - wa waᵀ) d / |a - p|`.
+    fn dh_a(&self, d: DVec3) -> DVec3 {
+        (d - self.wa * self.wa.dot(d)) * (self.ea / self.la)
+    }
+
+    /// `∂H` when the neighbour toward the light moves by `d`.
+    fn dh_b(&self, d: DVec3) -> DVec3 {
+        (d - self.wb * self.wb.dot(d)) * (self.eb / self.lb)
+    }
+
+    /// The constraint's change for a change `dh_big` of `H` and `(ds, dt)` of the frame:
+    /// `dh = (I - h hᵀ) dH / |H|`, `d(h · s) = dh · s + h · ds`.
+    fn d(&self, dh_big: DVec3, ds: DVec3, dt: DVec3) -> [f64; 2] {
+        let dh = (dh_big - self.h * self.h.dot(dh_big)) / self.len;
+        [
+            dh.dot(self.s) + self.h.dot(ds),
+            dh.dot(self.t) + self.h.dot(dt),
+        ]
+    }
+}
+
+/// The tangents `s`, `t` of [`Frame::from_normal`] (Duff et al. 2017, "Building an
+/// Orthonormal Basis, Revisited") in `f64`.
+fn frame_tangents(n: DVec3) -> (DVec3, DVec3) {
+    let sign = 1.0f64.copysign(n.z);
+    let a = -1.0 / (sign + n.z);
+    let b = n.x * n.y * a;
+    (
+        DVec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
+        DVec3::new(b, sign + n.y * n.y * a, -n.y),
+    )
+}
+
+/// The change of [`frame_tangents`]`(n)` when `n` changes by `dn`: the formulas
+/// differentiated (`da = a² dn_z`), so the constraint's derivative includes the frame's
+/// turning with the normal as the finite differences do.
+fn frame_tangents_derivative(n: DVec3, dn: DVec3) -> (DVec3, DVec3) {
+    let sign = 1.0f64.copysign(n.z);
+    let a = -1.0 / (sign + n.z);
+    let da = a * a * dn.z;
+    let db = (dn.x * n.y + n.x * dn.y) * a + n.x * n.y * da;
+    (
+        DVec3::new(
+            sign * (2.0 * n.x * dn.x * a + n.x * n.x * da),
+            sign * db,
+            -sign * dn.x,
+        ),
+        DVec3::new(db, 2.0 * n.y * dn.y * a + n.y * n.y * da, -dn.y),
+    )
+}
+
 /// The two constraint components of vertex `v` between `a` (toward `x`) and `b`.
 fn constraint(a: DVec3, v: &Vertex, b: DVec3) -> Option<[f64; 2]> {
-    let p = v.sp.p.as_dvec3();
-    let n = v.sp.ns.as_dvec3();
-    let wa = (a - p).normalize_or_zero();
-    let wb = (b - p).normalize_or_zero();
-    if wa == DVec3::ZERO || wb == DVec3::ZERO {
-        return None;
-    }
-    let h = if v.eta > 0.0 {
-        let eta = v.eta as f64;
-        let side = |w: DVec3| if w.dot(n) > 0.0 { 1.0 } else { eta };
-        wa * side(wa) + wb * side(wb)
-    } else {
-        wa + wb
-    };
-    let len = h.length();
-    if len < 1e-12 {
-        return None;
-    }
-    let h = h / len;
-    let f = Frame::from_normal(v.sp.ns);
-    Some([h.dot(f.s.as_dvec3()), h.dot(f.t.as_dvec3())])
+    Local::of(a, v, b).map(|l| l.value())
 }
 
 /// The chain's constraint vector (two components a vertex, from `x`).
@@ -358,10 +465,15 @@ fn step_of(x: Vec3, chain: &Chain, i: usize, y: Vec3) -> f32 {
     (1e-3 * seg).max(2e-5 * (1.0 + p.abs().max_element()))
 }
 
-/// `∂C/∂X`: column `2i + j` is the derivative by vertex `i`'s tangent coordinate `j`, each
-/// moved point projected from the vertex's predecessor. `central` takes central
-/// differences (for the geometry term, error `O(h²)`); otherwise forward differences from
-/// the chain's own constraints `c` (half the ray casts, enough for Newton's direction).
+/// A chain's constraint Jacobian `∂C/∂X` (rows: the constraints from `x`; columns: the
+/// vertices' tangent coordinates).
+type Matrix = [[f64; 2 * MAX_CHAIN]; 2 * MAX_CHAIN];
+
+/// `∂C/∂X`: column `2i + j` is the derivative by vertex `i`'s tangent coordinate `j` (a
+/// move of the vertex along its shading frame's `s` or `t`, projected onto the surface
+/// along the ray from its predecessor). In closed form ([`jacobian_analytic`]) where every
+/// vertex carries its normal's derivative, else by finite differences
+/// ([`jacobian_by_differences`]).
 fn jacobian(
     scene: &RenderScene,
     x: &Anchor,
@@ -369,7 +481,90 @@ fn jacobian(
     y: Vec3,
     time: f32,
     c: Option<&[f64; 2 * MAX_CHAIN]>,
-) -> Option<[[f64; 2 * MAX_CHAIN]; 2 * MAX_CHAIN]> {
+) -> Option<Matrix> {
+    if chain.v[..chain.len].iter().all(|v| v.dn.is_some()) {
+        jacobian_analytic(x.p, chain, y)
+    } else {
+        jacobian_by_differences(scene, x, chain, y, time, c)
+    }
+}
+
+/// The neighbours of vertex `i`: toward `x` and toward the light.
+fn neighbours(x: Vec3, chain: &Chain, i: usize, y: Vec3) -> (DVec3, DVec3) {
+    let a = if i == 0 { x } else { chain.v[i - 1].sp.p };
+    let b = if i + 1 == chain.len {
+        y
+    } else {
+        chain.v[i + 1].sp.p
+    };
+    (a.as_dvec3(), b.as_dvec3())
+}
+
+/// `∂C/∂X` in closed form, no ray cast (Jakob & Marschner 2012, §4.1-4.2: each vertex's
+/// constraint depends on itself and its two neighbours, so the matrix is block
+/// tridiagonal). A vertex's tangent move `e` (its frame's `s` or `t`) projected along the
+/// ray `d` from its predecessor lands, to first order, at `e' = e - d (e · n_g)/(d · n_g)`
+/// on the surface's plane; that moves `wa` and `wb` (`∂H = -(∂H/∂a + ∂H/∂b) e'`), the
+/// shading normal by [`RenderScene::shading_normal_derivative`]'s `dn = W e'`, and the
+/// frame with it. A neighbour's move changes only `wa` or `wb`. `None` if a vertex lacks
+/// its normal's derivative or the ray grazes a surface.
+fn jacobian_analytic(x: Vec3, chain: &Chain, y: Vec3) -> Option<Matrix> {
+    let len = chain.len;
+    let mut local = [Local::default(); MAX_CHAIN];
+    // Each vertex's tangent moves projected onto its surface.
+    let mut moves = [[DVec3::ZERO; 2]; MAX_CHAIN];
+    for i in 0..len {
+        let v = &chain.v[i];
+        let (a, b) = neighbours(x, chain, i, y);
+        local[i] = Local::of(a, v, b)?;
+        let d = (v.sp.p.as_dvec3() - a).normalize_or_zero();
+        let ng = v.sp.ng.as_dvec3();
+        let cos = d.dot(ng);
+        if cos.abs() < 1e-6 {
+            return None;
+        }
+        for (j, e) in [local[i].s, local[i].t].into_iter().enumerate() {
+            moves[i][j] = e - d * (e.dot(ng) / cos);
+        }
+    }
+    let mut m = [[0.0; 2 * MAX_CHAIN]; 2 * MAX_CHAIN];
+    for i in 0..len {
+        let l = &local[i];
+        let w = chain.v[i].dn?;
+        for j in 0..2 {
+            let e = moves[i][j];
+            // The vertex itself: both directions and the normal's frame move.
+            let (ds, dt) = frame_tangents_derivative(l.n, w * e);
+            let d = l.d(-(l.dh_a(e) + l.dh_b(e)), ds, dt);
+            m[2 * i][2 * i + j] = d[0];
+            m[2 * i + 1][2 * i + j] = d[1];
+            if i > 0 {
+                let d = l.d(l.dh_a(moves[i - 1][j]), DVec3::ZERO, DVec3::ZERO);
+                m[2 * i][2 * (i - 1) + j] = d[0];
+                m[2 * i + 1][2 * (i - 1) + j] = d[1];
+            }
+            if i + 1 < len {
+                let d = l.d(l.dh_b(moves[i + 1][j]), DVec3::ZERO, DVec3::ZERO);
+                m[2 * i][2 * (i + 1) + j] = d[0];
+                m[2 * i + 1][2 * (i + 1) + j] = d[1];
+            }
+        }
+    }
+    Some(m)
+}
+
+/// `∂C/∂X` by finite differences of the ray-cast projection, for vertices whose normal's
+/// derivative the geometry does not give: `c` is the chain's own constraints for forward
+/// differences (enough for Newton's direction); without it central differences (for the
+/// geometry term, error `O(h²)`).
+fn jacobian_by_differences(
+    scene: &RenderScene,
+    x: &Anchor,
+    chain: &Chain,
+    y: Vec3,
+    time: f32,
+    c: Option<&[f64; 2 * MAX_CHAIN]>,
+) -> Option<Matrix> {
     let n = 2 * chain.len;
     let mut a = [[0.0; 2 * MAX_CHAIN]; 2 * MAX_CHAIN];
     for i in 0..chain.len {
@@ -404,7 +599,7 @@ fn jacobian(
 /// the rows and columns of two arrays move together, as in the textbook elimination.
 #[allow(clippy::needless_range_loop)]
 fn solve<const C: usize>(
-    mut a: [[f64; 2 * MAX_CHAIN]; 2 * MAX_CHAIN],
+    mut a: Matrix,
     mut b: [[f64; C]; 2 * MAX_CHAIN],
     n: usize,
 ) -> Option<[[f64; C]; 2 * MAX_CHAIN]> {
@@ -495,9 +690,10 @@ fn step(
     let mut from = *x;
     for i in 0..chain.len {
         let v = &chain.v[i];
-        let f = Frame::from_normal(v.sp.ns);
-        let target =
-            v.sp.p + beta * (delta[2 * i][0] as f32 * f.s + delta[2 * i + 1][0] as f32 * f.t);
+        let (s, t) = frame_tangents(v.sp.ns.as_dvec3());
+        let target = (v.sp.p.as_dvec3()
+            + beta as f64 * (delta[2 * i][0] * s + delta[2 * i + 1][0] * t))
+            .as_vec3();
         moved.v[i] = project(scene, &from, target, time)?;
         from = Anchor::of(&moved.v[i].sp);
     }
@@ -517,16 +713,15 @@ fn geometry_term(
 ) -> Option<f32> {
     let n = 2 * chain.len;
     let a = jacobian(scene, x, chain, y, time, None)?;
+    // `∂C/∂y`: only the last vertex's constraint sees `y`, through its `wb`.
     let frame = Frame::from_normal(n_y);
-    let last = chain.v[chain.len - 1].sp.p;
-    let h = 1e-3 * (y - last).length().max(1e-6);
+    let (prev, _) = neighbours(x.p, chain, chain.len - 1, y);
+    let last = Local::of(prev, &chain.v[chain.len - 1], y.as_dvec3())?;
     let mut b = [[0.0; 2]; 2 * MAX_CHAIN];
     for (j, e) in [frame.s, frame.t].into_iter().enumerate() {
-        let plus = constraints(x.p, chain, y + h * e)?;
-        let minus = constraints(x.p, chain, y - h * e)?;
-        for r in 0..n {
-            b[r][j] = (plus[r] - minus[r]) / (2.0 * h as f64);
-        }
+        let d = last.d(last.dh_b(e.as_dvec3()), DVec3::ZERO, DVec3::ZERO);
+        b[n - 2][j] = d[0];
+        b[n - 1][j] = d[1];
     }
     let m = solve(a, b, n)?;
     let det = m[0][0] * m[1][1] - m[0][1] * m[1][0];
@@ -746,6 +941,137 @@ pub fn claims(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tessera_scene::Mesh;
+
+    /// A UV sphere of radius `r` about `c` (`segments` around, `rings` from pole to pole)
+    /// with its outward unit normals as vertex normals, counter-clockwise seen from outside.
+    fn sphere_mesh(c: Vec3, r: f32, segments: u32, rings: u32, material: u32) -> Mesh {
+        let (mut positions, mut normals, mut indices) = (Vec::new(), Vec::new(), Vec::new());
+        for i in 0..=rings {
+            let theta = std::f32::consts::PI * i as f32 / rings as f32;
+            for j in 0..=segments {
+                let phi = std::f32::consts::TAU * j as f32 / segments as f32;
+                let n = Vec3::new(
+                    theta.sin() * phi.cos(),
+                    theta.cos(),
+                    theta.sin() * phi.sin(),
+                );
+                positions.push(c + r * n);
+                normals.push(n);
+            }
+        }
+        let row = segments + 1;
+        for i in 0..rings {
+            for j in 0..segments {
+                let (a, b) = (i * row + j, (i + 1) * row + j);
+                if i > 0 {
+                    indices.push([a, a + 1, b]);
+                }
+                if i + 1 < rings {
+                    indices.push([a + 1, b + 1, b]);
+                }
+            }
+        }
+        Mesh {
+            name: "glass sphere".into(),
+            positions,
+            normals: Some(normals),
+            uvs: vec![],
+            tangents: None,
+            indices,
+            colors: None,
+            material,
+        }
+    }
+
+    /// `builtin:caustic`'s floor and glass (material 1) with a glass UV sphere mesh of
+    /// radius 0.5 about the origin, a flat glass square at y = -2 (no vertex normals),
+    /// and (`analytic`) the builtin's analytic glass sphere moved to (0, 0, 3).
+    fn glass_scene() -> RenderScene {
+        let mut scene = tessera_scene::builtin::caustic();
+        scene.meshes = vec![sphere_mesh(Vec3::ZERO, 0.5, 64, 32, 1)];
+        let h = 0.8;
+        scene.meshes.push(Mesh {
+            name: "flat glass".into(),
+            positions: vec![
+                Vec3::new(-h, -2.0, -h),
+                Vec3::new(-h, -2.0, h),
+                Vec3::new(h, -2.0, h),
+                Vec3::new(h, -2.0, -h),
+            ],
+            normals: None,
+            uvs: vec![],
+            tangents: None,
+            indices: vec![[0, 1, 2], [0, 2, 3]],
+            colors: None,
+            material: 1,
+        });
+        scene.spheres.truncate(1);
+        scene.spheres[0].center = Vec3::new(0.0, 0.0, 3.0);
+        scene.validate().unwrap();
+        RenderScene::build(&scene, 4, 4).unwrap()
+    }
+
+    /// The closed-form `∂C/∂X` against central differences of the ray-cast projection, at
+    /// the seed chain from `x` to `y` (off the manifold, where the frame's turning
+    /// matters) and at the solved chain: every entry within 0.2% of the matrix's largest.
+    fn check_jacobian(rs: &RenderScene, x: Vec3, y: Vec3, len: usize) {
+        let anchor = Anchor {
+            p: x,
+            p_error: Vec3::ZERO,
+            ng: (y - x).normalize(),
+        };
+        let seeded = seed(rs, &anchor, y, 0.0, MAX_CHAIN).expect("a seed chain");
+        assert_eq!(seeded.len(), len);
+        let solved = newton(rs, &anchor, seeded, y, 0.0).expect("a solution");
+        for chain in [seeded, solved] {
+            assert!(chain.v[..len].iter().all(|v| v.dn.is_some()));
+            let exact = jacobian_analytic(x, &chain, y).unwrap();
+            let fd = jacobian_by_differences(rs, &anchor, &chain, y, 0.0, None).unwrap();
+            let scale = exact[..2 * len]
+                .iter()
+                .flat_map(|r| r[..2 * len].iter())
+                .fold(0.0f64, |m, v| m.max(v.abs()));
+            assert!(scale > 0.1, "{exact:?}");
+            for r in 0..2 * len {
+                for c in 0..2 * len {
+                    let (e, f) = (exact[r][c], fd[r][c]);
+                    assert!(
+                        (e - f).abs() <= 2e-3 * scale,
+                        "x {x}, y {y}, ({r}, {c}): closed form {e}, differences {f}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_closed_form_jacobian_is_the_finite_differences() {
+        let rs = glass_scene();
+        // Through the sphere mesh, obliquely (shading normals well away from the frame's
+        // seam at n_z = 0, where the tangents jump and differences across it mean nothing).
+        check_jacobian(
+            &rs,
+            Vec3::new(0.1, 0.3, -2.0),
+            Vec3::new(-0.2, -0.1, 2.0),
+            2,
+        );
+        check_jacobian(
+            &rs,
+            Vec3::new(-0.3, 0.5, -1.5),
+            Vec3::new(0.25, -0.4, 1.8),
+            2,
+        );
+        // Through the flat interface (one vertex, constant normal).
+        check_jacobian(
+            &rs,
+            Vec3::new(0.2, -1.0, 0.3),
+            Vec3::new(-0.4, -3.0, -0.5),
+            1,
+        );
+        // Through the analytic sphere.
+        check_jacobian(&rs, Vec3::new(0.1, 0.2, 1.0), Vec3::new(-0.2, -0.1, 5.0), 2);
+    }
 
     #[test]
     fn solve_inverts_a_small_system() {
@@ -779,7 +1105,11 @@ mod tests {
         let mut sp = dummy_point();
         sp.ns = Vec3::Y;
         sp.ng = Vec3::Y;
-        let v = Vertex { sp, eta: 1.5 };
+        let v = Vertex {
+            sp,
+            eta: 1.5,
+            dn: None,
+        };
         let t1 = 30f64.to_radians();
         let t2 = (t1.sin() / 1.5).asin();
         let a = DVec3::new(-t1.sin(), t1.cos(), 0.0);
@@ -790,7 +1120,11 @@ mod tests {
         let c = constraint(a, &v, -a).unwrap();
         assert!(c[0].abs().max(c[1].abs()) > 0.1, "{c:?}");
         // A mirror reflects about the normal.
-        let m = Vertex { sp, eta: 0.0 };
+        let m = Vertex {
+            sp,
+            eta: 0.0,
+            dn: None,
+        };
         let c = constraint(a, &m, DVec3::new(t1.sin(), t1.cos(), 0.0)).unwrap();
         assert!(c[0].abs() < 1e-12 && c[1].abs() < 1e-12, "{c:?}");
     }

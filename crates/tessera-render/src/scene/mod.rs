@@ -32,7 +32,7 @@ use crate::sampling::{hash_combine, hash_u64};
 use crate::texture;
 mod build;
 
-use glam::{Affine3A, Mat3A, Vec2, Vec3, Vec3A, Vec4};
+use glam::{Affine3A, DMat3, DVec3, Mat3A, Vec2, Vec3, Vec3A, Vec4};
 use tessera_scene::{
     AlphaMode, GltfMaterial, Image, Material, MaterialKind, NormalMap, PunctualLight, Scene,
     Texture, TextureRef,
@@ -302,6 +302,72 @@ impl RenderScene {
             sp.ns = view_facing_normal(sp.ng, -dir, sp.ns);
         }
         sp
+    }
+
+    /// The derivative of the unit shading normal `ns` of `sp` (the surface point of `hit`)
+    /// by position: the linear map taking a displacement within the hit surface's tangent
+    /// plane to the change of `ns`, the Weingarten map of the shading normal field. On a
+    /// sphere it is `(I - n nᵀ) / r`; on a triangle with vertex normals the unnormalised
+    /// interpolated normal `N` and the position are both linear in the barycentrics, so
+    /// `dns = ±(I - ns nsᵀ) dN / |N|` with `dN` from the corners' normals and the
+    /// barycentric change from the corners' positions; a flat triangle's is zero. `None`
+    /// where the normal field is not stored in that form: instances, moving triangles and
+    /// normal-mapped materials (a caller falls back to finite differences there). Used by
+    /// manifold next-event estimation for its constraint Jacobian (Jakob & Marschner 2012,
+    /// "Manifold Exploration", §4.1).
+    pub fn shading_normal_derivative(&self, hit: &Hit, sp: &SurfacePoint) -> Option<DMat3> {
+        if self.normal_map(sp.material).is_some() {
+            return None;
+        }
+        match hit.primitive {
+            Primitive::Sphere { index } => {
+                let s = &self.geometry.spheres[index as usize];
+                let n = sp.ns.as_dvec3();
+                let r = s.radius.abs() as f64;
+                (r > 0.0).then(|| (DMat3::IDENTITY - outer(n, n)) * (1.0 / r))
+            }
+            Primitive::Triangle {
+                index, instance, ..
+            } if instance == NO_INSTANCE => {
+                let level = &self.geometry.triangles;
+                let tri = level.attributes(index as usize);
+                let mesh = &self.meshes[tri.mesh as usize];
+                let Some(normals) = mesh.normals.as_ref() else {
+                    return Some(DMat3::ZERO);
+                };
+                let [n0, n1, n2] =
+                    mesh.indices[tri.index as usize].map(|i| normals[i as usize].as_dvec3());
+                let [p0, p1, p2] = level.positions(index as usize).map(|p| p.as_dvec3());
+                let (b1, b2) = (sp.bary.x as f64, sp.bary.y as f64);
+                let big_n = n0 + b1 * (n1 - n0) + b2 * (n2 - n0);
+                let len = big_n.length();
+                if len <= 0.0 || !len.is_finite() {
+                    // `ns` fell back to the geometric normal: constant over the triangle.
+                    return Some(DMat3::ZERO);
+                }
+                let v = big_n / len;
+                // `ns` is `v` turned onto the geometric normal's side.
+                let side = if v.dot(sp.ng.as_dvec3()) < 0.0 {
+                    -1.0
+                } else {
+                    1.0
+                };
+                // Barycentric change of an in-plane displacement `dq`: the least-squares
+                // solution of `dq = e1 db1 + e2 db2`, `G⁻¹ [e1 e2]ᵀ dq` with the Gram matrix `G`.
+                let (e1, e2) = (p1 - p0, p2 - p0);
+                let (g11, g12, g22) = (e1.dot(e1), e1.dot(e2), e2.dot(e2));
+                let det = g11 * g22 - g12 * g12;
+                if det <= 1e-30 * g11 * g22 || !det.is_finite() {
+                    return None;
+                }
+                // Rows of G⁻¹ [e1 e2]ᵀ: db1 = r1 · dq, db2 = r2 · dq.
+                let r1 = (g22 * e1 - g12 * e2) / det;
+                let r2 = (g11 * e2 - g12 * e1) / det;
+                let project = (DMat3::IDENTITY - outer(v, v)) * (side / len);
+                Some(project * (outer(n1 - n0, r1) + outer(n2 - n0, r2)))
+            }
+            _ => None,
+        }
     }
 
     /// [`RenderScene::surface`] before a normal-mapped shading normal is bent for the view.
@@ -1016,6 +1082,11 @@ fn count_ray() {
 /// [`crate::pilot`]) and give rays per second beside paths per second.
 pub fn rays_traced() -> u64 {
     RAYS.with(std::cell::Cell::get)
+}
+
+/// The outer product `a bᵀ`.
+fn outer(a: DVec3, b: DVec3) -> DMat3 {
+    DMat3::from_cols(a * b.x, a * b.y, a * b.z)
 }
 
 #[cfg(test)]
