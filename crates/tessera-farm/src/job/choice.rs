@@ -118,7 +118,7 @@ string_serde!(SceneRef);
 /// | `vcm` | vertex connection and merging (Georgiev et al. 2012): bdpt plus photon density estimation, for caustics seen through specular surfaces (biased, consistent) |
 /// | `ppm` | progressive photon mapping (Hachisuka & Jensen 2009; Knaus & Zwicker 2011): vcm's merging alone, at the first non-specular camera vertex (biased, consistent) |
 /// | `mlt` | Metropolis light transport (multiplexed over bdpt's techniques, Hachisuka et al. 2014): for light that reaches what the camera sees through narrow openings |
-/// | `mnee` | path tracing with manifold next-event estimation (Hanika, Droske & Fascione 2015) at the first non-specular camera vertex: caustics of point, spot and small area lights through up to two specular interfaces, seen directly or through specular surfaces (unbiased) |
+/// | `mnee` | path tracing with manifold next-event estimation (Hanika, Droske & Fascione 2015) at every non-specular camera vertex: caustics of point, spot and small area lights through up to two specular interfaces, seen directly or through specular surfaces (unbiased) |
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub enum Integrator {
     /// Path tracing with next-event estimation and MIS. The default.

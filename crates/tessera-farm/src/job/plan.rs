@@ -310,8 +310,8 @@ impl RenderPlan {
                     .to_string(),
             );
         }
-        // MNEE samples the caustics within its reach at the first non-specular vertex the
-        // camera sees; their light after a further diffuse bounce has no technique in it.
+        // MNEE samples the caustics within its reach at every non-specular vertex; the
+        // caustics the survey found beyond it have no technique in it.
         if used == Integrator::Mnee {
             if let Some(evidence) = self.evidence(EffectKind::DeltaLitCaustics) {
                 let beyond = if self.beyond_mnee.is_empty() {
@@ -321,10 +321,10 @@ impl RenderPlan {
                 };
                 parts.push(format!(
                     "may be optimistic: mnee samples the caustics of point, spot and small area \
-                     lights ({evidence}) where the camera sees them first, directly or through \
-                     specular surfaces; not their light after a further diffuse or glossy \
-                     bounce (L S+ D .. D S* E){beyond}; light that no pass found is in neither \
-                     the image nor its error estimate, and bdpt and vcm sample it"
+                     lights ({evidence}) through at most two specular surfaces from the light, \
+                     at every non-specular vertex; not longer chains, reflections it does not \
+                     seed, nor other roots of the chain{beyond}; light that no pass found is in \
+                     neither the image nor its error estimate, and bdpt and vcm sample it"
                 ));
             }
         }
@@ -357,7 +357,7 @@ impl RenderPlan {
             return None;
         }
         let evidence = self.evidence(EffectKind::DeltaLitSds)?;
-        // MNEE samples it at the first non-specular vertex where the survey of specular
+        // MNEE samples it at the non-specular vertices where the survey of specular
         // chains found every caustic within its reach.
         if used == Integrator::Mnee {
             if self.beyond_mnee.is_empty() {

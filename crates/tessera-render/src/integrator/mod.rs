@@ -9,7 +9,7 @@
 //! | `vcm` | vertex connection and merging: bdpt's techniques plus merging with a per-pass photon map, all weighted by MIS; biased, consistent ([`vcm`]) |
 //! | `ppm` | progressive photon mapping: vcm's merging alone, at the first non-specular camera vertex; biased, consistent ([`vcm`]'s merge-only mode) |
 //! | `mlt` | Metropolis light transport: Markov chains in primary sample space over bdpt's techniques, each pass with its own bootstrap normalisation and chains ([`mlt`]) |
-//! | `mnee` | path tracing with manifold next-event estimation at the first non-specular camera vertex: caustics of point, spot and small area lights through up to [`mnee::MAX_CHAIN`] specular interfaces; unbiased ([`path::radiance_mnee`], [`mnee`]) |
+//! | `mnee` | path tracing with manifold next-event estimation at every non-specular camera vertex: caustics of point, spot and small area lights through up to [`mnee::MAX_CHAIN`] specular interfaces; unbiased ([`path::radiance_mnee`], [`mnee`]) |
 //!
 //! # The interface
 //!

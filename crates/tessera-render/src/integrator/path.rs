@@ -104,7 +104,7 @@ fn radiance_with<const MNEE: bool>(
     // MNEE's claim on the path so far (`None`: no MNEE connection can produce it).
     let mut mnee_origin: Option<MneeOrigin> = None;
     // Whether the path has passed a non-specular vertex: MNEE runs at the first one only
-    // (see `mnee::FIRST_VERTEX_ONLY`).
+    // if `mnee::FIRST_VERTEX_ONLY` says so (it does not: every non-specular vertex).
     let mut past_first = false;
     let max_depth = s.max_depth;
     let mut l = Vec3::ZERO;

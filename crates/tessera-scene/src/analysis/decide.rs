@@ -175,10 +175,11 @@ fn choose_integrator(
              vcm's merging is biased"
         ));
         reasons.push(
-            "mnee does not sample a caustic's light after a further diffuse or glossy bounce \
-             (L S+ D .. D S* E, e.g. a pool floor's light returned to it by the water's \
-             underside, measured 15% of the pool's image at depth 16): a path tracer's \
-             BSDF-sampled rays never hit a delta light; the error estimate caveat says so"
+            "mnee connects to the light at every non-specular vertex, so a caustic's light \
+             after a further diffuse or glossy bounce (L S+ D .. D S* E, e.g. a pool floor's \
+             light returned to it by the water's underside, about 15% of the pool's image at \
+             depth 16) is sampled too, which a path tracer's BSDF-sampled rays never do for a \
+             delta light"
                 .into(),
         );
         reasons.push(
