@@ -3,7 +3,7 @@
 //! survey of specular chains from the lights and from the camera.
 //!
 //! MNEE as the renderer builds it (`tessera_render::integrator::mnee`; Hanika, Droske &
-//! Fascione 2015, §3) runs at the camera path's first non-specular vertex `x` and connects
+//! Fascione 2015, §3) runs at every non-specular vertex `x` of the camera path and connects
 //! it to a point, spot or emissive-triangle light through the specular surfaces that the
 //! straight segment from `x` to the light crosses (its *seed chain*), at most
 //! [`MNEE_MAX_CHAIN`] of them, each purely specular (a mirror or a smooth dielectric). So
@@ -16,8 +16,11 @@
 //! - the chain has at most [`MNEE_MAX_CHAIN`] vertices, none of them a mixed material (a
 //!   diffuse base under a specular coat is not a specular chain vertex);
 //! - the camera sees the receiver at its first non-specular vertex, directly or through
-//!   specular surfaces (`L S{1,2} D S* E`); a caustic that reaches the camera only after a
-//!   further diffuse or glossy bounce has no technique in path tracing with MNEE.
+//!   specular surfaces (`L S{1,2} D S* E`). This condition is the survey's, and
+//!   conservative: MNEE also runs at the later vertices (so the same caustic's light after
+//!   further bounces is sampled), but the survey does not follow camera paths through
+//!   diffuse bounces, so a caustic seen only after one is not known to be within reach and
+//!   keeps vertex merging.
 //!
 //! The survey checks these the way MNEE's seed sees the scene: from each point and spot
 //! light (and the centre of each tiny area light) [`LIGHT_RAYS`] rays (a Fibonacci
@@ -179,7 +182,8 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
         out.push(format!(
             "the caustics on {} appear at no surface the camera sees first (directly or \
              through specular surfaces): their light reaches the camera only after a further \
-             diffuse or glossy bounce, where MNEE does not run",
+             diffuse or glossy bounce, which the survey does not follow, so they are not known \
+             to be within MNEE's reach",
             list(&found.receivers)
         ));
     }
