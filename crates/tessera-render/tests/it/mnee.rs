@@ -118,6 +118,26 @@ fn settings(seed: u64, max_depth: u32) -> RenderConfig {
     }
 }
 
+/// Each pool block's mean `(mean, variance of the mean)` in `stats` within `z σ` of the
+/// closed form's `exact` (Bonferroni 1% over the blocks) plus 0.5%: the closed form's 4 x 4
+/// film points per pixel against a render's random ones.
+pub(crate) fn pool_blocks_match_closed_form(stats: &[(f64, f64)], exact: &[f64], label: &str) {
+    let crit = z_critical(0.01, stats.len());
+    for (b, &(mean, var)) in stats.iter().enumerate() {
+        let se = var.sqrt();
+        eprintln!(
+            "pool block {b}: {label} {mean:.5} ± {se:.5}, closed form {:.5} ({:+.3}%)",
+            exact[b],
+            100.0 * (mean / exact[b] - 1.0)
+        );
+        assert!(
+            (mean - exact[b]).abs() <= crit * se + 5e-3 * exact[b],
+            "block {b}: {mean} vs {}",
+            exact[b]
+        );
+    }
+}
+
 /// Path tracing with MNEE renders the SDS pool (no technique of path tracing or bdpt
 /// samples it) to its closed form: each 6 x 6 block within `z σ` (Bonferroni 1%) plus
 /// 0.5% (the closed form's 4 x 4 film points per pixel against the render's random ones),
@@ -130,20 +150,7 @@ fn path_with_mnee_renders_the_pool_to_its_closed_form() {
     let s = settings(3, 3);
     let stats = block_stats(&passes(&rs, &s, &plan, block, true));
     let exact = expected_blocks(&rs, w, h, block, floor_irradiance);
-    let crit = z_critical(0.01, stats.len());
-    for (b, &(mean, var)) in stats.iter().enumerate() {
-        let se = var.sqrt();
-        eprintln!(
-            "pool block {b}: path+MNEE {mean:.5} ± {se:.5}, closed form {:.5} ({:+.3}%)",
-            exact[b],
-            100.0 * (mean / exact[b] - 1.0)
-        );
-        assert!(
-            (mean - exact[b]).abs() <= crit * se + 5e-3 * exact[b],
-            "block {b}: {mean} vs {}",
-            exact[b]
-        );
-    }
+    pool_blocks_match_closed_form(&stats, &exact, "path+MNEE");
     let mean: f64 = stats.iter().map(|s| s.0).sum::<f64>() / stats.len() as f64;
     let expect: f64 = exact.iter().sum::<f64>() / exact.len() as f64;
     eprintln!(

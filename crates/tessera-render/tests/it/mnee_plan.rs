@@ -87,20 +87,7 @@ fn the_pool_through_the_plan_renders_to_its_closed_form() {
         .collect();
     let stats = block_stats(&means);
     let exact = expected_blocks(&rs, w, h, block, floor_irradiance);
-    let crit = z_critical(0.01, stats.len());
-    for (b, &(mean, var)) in stats.iter().enumerate() {
-        let se = var.sqrt();
-        eprintln!(
-            "pool block {b}: mnee (plan) {mean:.5} ± {se:.5}, closed form {:.5} ({:+.3}%)",
-            exact[b],
-            100.0 * (mean / exact[b] - 1.0)
-        );
-        assert!(
-            (mean - exact[b]).abs() <= crit * se + 5e-3 * exact[b],
-            "block {b}: {mean} vs {}",
-            exact[b]
-        );
-    }
+    crate::mnee::pool_blocks_match_closed_form(&stats, &exact, "mnee (plan)");
     // The image mean, per pass, and its standard error over the passes.
     let image: Vec<Vec<f64>> = means
         .iter()
