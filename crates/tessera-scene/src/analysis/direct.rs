@@ -209,38 +209,47 @@ enum Target {
 /// Most points taken on the emissive triangles.
 const MAX_AREA_POINTS: usize = 16;
 
+/// A point or spot light that emits: where from and, for a spot, its cone (unit axis,
+/// cosine of the outer angle); `None` for dark lights and lights of other kinds.
+pub(super) fn emitting_point(l: &PunctualLight) -> Option<(Vec3, Option<(Vec3, f32)>)> {
+    match *l {
+        PunctualLight::Point {
+            position,
+            intensity,
+        } if intensity.max_element() > 0.0 => Some((position, None)),
+        PunctualLight::Spot {
+            position,
+            direction,
+            intensity,
+            outer_angle,
+            ..
+        } if intensity.max_element() > 0.0 && outer_angle > 0.0 => Some((
+            position,
+            Some((direction.normalize_or_zero(), outer_angle.cos())),
+        )),
+        _ => None,
+    }
+}
+
 /// The light samples of the survey.
 fn targets(survey: &Survey) -> Vec<Target> {
     let scene = survey.scene;
     let mut out = Vec::new();
     for l in &scene.lights {
-        match *l {
-            PunctualLight::Point {
-                position,
-                intensity,
-            } if intensity.max_element() > 0.0 => out.push(Target::Point {
-                at: position,
+        if let Some((at, cone)) = emitting_point(l) {
+            out.push(Target::Point {
+                at,
                 one_sided: None,
-                cone: None,
-            }),
-            PunctualLight::Spot {
-                position,
-                direction,
-                intensity,
-                outer_angle,
-                ..
-            } if intensity.max_element() > 0.0 && outer_angle > 0.0 => out.push(Target::Point {
-                at: position,
-                one_sided: None,
-                cone: Some((direction.normalize_or_zero(), outer_angle.cos())),
-            }),
-            PunctualLight::Directional {
-                direction,
-                irradiance,
-            } if irradiance.max_element() > 0.0 => {
-                out.push(Target::Direction(-direction.normalize_or_zero()))
+                cone,
+            });
+        } else if let PunctualLight::Directional {
+            direction,
+            irradiance,
+        } = *l
+        {
+            if irradiance.max_element() > 0.0 {
+                out.push(Target::Direction(-direction.normalize_or_zero()));
             }
-            _ => {}
         }
     }
     // Emissive triangles: four points each (the centroid and three towards the corners)

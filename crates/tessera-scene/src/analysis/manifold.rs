@@ -36,7 +36,7 @@
 //! at all. A survey that finds no caustic at all (every ray missed the specular surfaces)
 //! counts as not reaching: the plan then keeps vertex merging.
 
-use super::direct::{camera_rays, primitives, Bvh};
+use super::direct::{camera_rays, emitting_point, primitives, Bvh};
 use super::evidence::material_list;
 use super::lights::Lights;
 use super::survey::Survey;
@@ -93,32 +93,20 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     let tiny = TINY_LIGHT_FRACTION * survey.scene_radius;
     let mut sources: Vec<Source> = Vec::new();
     for (i, l) in scene.lights.iter().enumerate() {
-        match *l {
-            PunctualLight::Point {
-                position,
-                intensity,
-            } if intensity.max_element() > 0.0 => sources.push(Source {
-                name: format!("point light {i}"),
-                at: position,
-                cone: None,
-            }),
-            PunctualLight::Spot {
-                position,
-                direction,
-                intensity,
-                outer_angle,
-                ..
-            } if intensity.max_element() > 0.0 && outer_angle > 0.0 => sources.push(Source {
-                name: format!("spot light {i}"),
-                at: position,
-                cone: Some((direction.normalize_or_zero(), outer_angle.cos())),
-            }),
-            PunctualLight::Directional { irradiance, .. } if irradiance.max_element() > 0.0 => out
-                .push(format!(
+        if let Some((at, cone)) = emitting_point(l) {
+            let kind = if cone.is_some() { "spot" } else { "point" };
+            sources.push(Source {
+                name: format!("{kind} light {i}"),
+                at,
+                cone,
+            });
+        } else if let PunctualLight::Directional { irradiance, .. } = *l {
+            if irradiance.max_element() > 0.0 {
+                out.push(format!(
                     "directional light {i}: MNEE connects to light points (point, spot and \
                      emissive-triangle lights), not to a direction"
-                )),
-            _ => {}
+                ));
+            }
         }
     }
     for (i, s) in &lights.spheres {
