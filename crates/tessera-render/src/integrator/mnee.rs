@@ -86,16 +86,6 @@ use glam::{DMat3, DVec3, Vec2, Vec3};
 /// interfaces, or one flat water surface).
 pub const MAX_CHAIN: usize = 2;
 
-/// MNEE only at the camera path's first non-specular vertex (the caustic seen directly
-/// or through glass) when true; at every non-specular vertex when false, as now. At the
-/// later vertices BSDF sampling cannot stand in for it where the light is a point or spot
-/// light: a BSDF-sampled ray never hits a delta light, so a caustic's light after a
-/// further diffuse bounce (on the pool, the floor's light returned to it by the water's
-/// underside, 15% of the image at depth 16) would be lost, not merely noisy. The solver's
-/// cost there was measured small (docs/benchmarks.md, "Manifold next-event estimation":
-/// 6.99 against 6.56 CPU-s on the glass ball with the earlier finite-difference solver).
-pub const FIRST_VERTEX_ONLY: bool = false;
-
 /// Newton iterations before the solver gives up.
 const MAX_ITERATIONS: u32 = 6;
 

@@ -103,9 +103,6 @@ fn radiance_with<const MNEE: bool>(
 ) -> Vec3 {
     // MNEE's claim on the path so far (`None`: no MNEE connection can produce it).
     let mut mnee_origin: Option<MneeOrigin> = None;
-    // Whether the path has passed a non-specular vertex: MNEE runs at the first one only
-    // if `mnee::FIRST_VERTEX_ONLY` says so (it does not: every non-specular vertex).
-    let mut past_first = false;
     let max_depth = s.max_depth;
     let mut l = Vec3::ZERO;
     let mut beta = Vec3::ONE;
@@ -182,14 +179,14 @@ fn radiance_with<const MNEE: bool>(
         let bsdf = scene.bsdf(&sp, wo_world);
         let frame = Frame::from_normal(sp.ns);
         let wo = frame.to_local(wo_world);
-        // MNEE at this vertex: a non-specular one with room for a chain of one.
-        let mnee_here = MNEE
-            && bsdf.has_non_delta()
-            && !(mnee::FIRST_VERTEX_ONLY && past_first)
-            && depth + 2 <= max_depth;
-        if MNEE && bsdf.has_non_delta() {
-            past_first = true;
-        }
+        // MNEE at this vertex: a non-specular one with room for a chain of one. At every
+        // such vertex, not only the first: at the later ones BSDF sampling cannot stand in
+        // for it where the light is a point or spot light (a BSDF-sampled ray never hits a
+        // delta light), so a caustic's light after a further diffuse bounce (on the pool,
+        // the floor's light returned to it by the water's underside, 15% of the image at
+        // depth 16) would be lost, not merely noisy (docs/benchmarks.md, "MNEE at every
+        // non-specular vertex").
+        let mnee_here = MNEE && bsdf.has_non_delta() && depth + 2 <= max_depth;
 
         // 3. Next-event estimation: a light chosen by the light hierarchy for this point.
         // Transmissive surfaces pass no normal, so that lights behind them count.
