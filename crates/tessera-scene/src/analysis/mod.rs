@@ -73,6 +73,13 @@
 //!   in it, as `L S+ D S+ E` (Heckbert 1990), which neither path tracing nor bdpt can
 //!   sample.
 //!
+//! - [`EffectKind::TinyLightImages`]: a tiny sphere or area light (as above) and a smooth
+//!   specular primitive whose bounding sphere meets the camera's view cone: the light's
+//!   images may be seen in or through it, as `E S+ L`, which every integrator samples only
+//!   as path tracing does (a camera path whose specular chain happens to end on the light),
+//!   so the error estimate's caveat says the estimate may be optimistic there. Not a
+//!   choice between techniques: none of them has another way to that light.
+//!
 //! **Camera, motion, textures.** [`EffectKind::DepthOfField`] iff the camera aperture
 //! radius is > 0, and then `lens_sampling` is on; [`EffectKind::Motion`] is always absent
 //! (there is no motion blur: each frame of an animated scene is the scene at one time,

@@ -145,6 +145,7 @@ pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect
         (false, false)
     };
     let delta_sds = delta_lit && report_delta_sds(survey, lights, &surfaces, effects);
+    report_tiny_light_images(survey, lights, &surfaces, effects);
     Transport {
         surfaces,
         bouncing,
@@ -188,6 +189,69 @@ fn report_delta_sds(
         ),
     );
     true
+}
+
+/// The images of tiny lights in specular surfaces ([`EffectKind::TinyLightImages`]): a
+/// tiny sphere or area light ([`tiny_finite_lights`]) and a smooth specular primitive the
+/// camera may see ([`specular_in_view`]), in or through which the light may appear as
+/// `E S+ L`. Conservative as [`report_delta_sds`] is: whether the light shows in the
+/// surface is not checked. The error estimate's caveat says what it costs
+/// (docs/benchmarks.md, "the bdpt caustic re-measured, and where its error is": most of a
+/// render's error in one to three pixels holding a single sample of the light).
+fn report_tiny_light_images(
+    survey: &Survey,
+    lights: &Lights,
+    surfaces: &Surfaces,
+    effects: &mut Vec<Effect>,
+) {
+    let tiny = tiny_finite_lights(survey, lights);
+    if tiny.is_empty() {
+        return;
+    }
+    let seen = specular_in_view(survey, &surfaces.smooth_specular);
+    if seen.is_empty() {
+        return;
+    }
+    push(
+        effects,
+        EffectKind::TinyLightImages,
+        format!(
+            "the camera sees specular {}, in or through which the images of {} can appear \
+             (E S+ L)",
+            material_list(survey.scene, &seen, &survey.classes, false),
+            tiny.join(", ")
+        ),
+    );
+}
+
+/// The tiny finite lights, each described: sphere lights and groups of emissive triangles
+/// (by material) whose bounding radius is below [`TINY_LIGHT_FRACTION`] of the scene's.
+fn tiny_finite_lights(survey: &Survey, lights: &Lights) -> Vec<String> {
+    let scene_radius = survey.scene_radius;
+    let tiny = TINY_LIGHT_FRACTION * scene_radius;
+    let mut out = Vec::new();
+    for (i, s) in &lights.spheres {
+        if s.radius < tiny {
+            out.push(format!(
+                "sphere light {i} of radius {} ({:.2}% of the scene radius {:.2})",
+                s.radius,
+                100.0 * s.radius / scene_radius,
+                scene_radius
+            ));
+        }
+    }
+    for a in &lights.area {
+        let r = a.bounds.radius();
+        if r < tiny {
+            out.push(format!(
+                "area light of {} of radius {r} ({:.2}% of the scene radius {:.2})",
+                material_list(survey.scene, &[a.material], &survey.classes, false),
+                100.0 * r / scene_radius,
+                scene_radius
+            ));
+        }
+    }
+    out
 }
 
 /// The materials among `specular` of a sphere or triangle whose bounding sphere meets the
@@ -412,7 +476,6 @@ fn report_reflection(survey: &Survey, surfaces: &Surfaces, effects: &mut Vec<Eff
 /// For a scene with caustics: records [`EffectKind::DeltaLitCaustics`] if delta or tiny
 /// lights light them, and returns whether it did and whether only tiny finite lights did.
 fn report_delta_lit(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>) -> (bool, bool) {
-    let scene_radius = survey.scene_radius;
     let mut delta_evidence: Vec<String> = Vec::new();
     if lights.points > 0 {
         delta_evidence.push(plural(lights.points, "point light", "point lights"));
@@ -428,28 +491,7 @@ fn report_delta_lit(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect>)
         ));
     }
     let delta_lights = !delta_evidence.is_empty();
-    let tiny = TINY_LIGHT_FRACTION * scene_radius;
-    for (i, s) in &lights.spheres {
-        if s.radius < tiny {
-            delta_evidence.push(format!(
-                "sphere light {i} of radius {} ({:.2}% of the scene radius {:.2})",
-                s.radius,
-                100.0 * s.radius / scene_radius,
-                scene_radius
-            ));
-        }
-    }
-    for a in &lights.area {
-        let r = a.bounds.radius();
-        if r < tiny {
-            delta_evidence.push(format!(
-                "area light of {} of radius {r} ({:.2}% of the scene radius {:.2})",
-                material_list(survey.scene, &[a.material], &survey.classes, false),
-                100.0 * r / scene_radius,
-                scene_radius
-            ));
-        }
-    }
+    delta_evidence.extend(tiny_finite_lights(survey, lights));
     let delta_lit = !delta_evidence.is_empty();
     if delta_lit {
         push(

@@ -145,6 +145,7 @@ fn caustic_scene_needs_bdpt_for_its_tiny_light() {
             TotalInternalReflection,
             Caustics,
             DeltaLitCaustics,
+            TinyLightImages,
         ],
     );
     // Radius 0.05 against a scene radius of about 7.2: 0.7 %, below the 1 % threshold.
@@ -152,6 +153,12 @@ fn caustic_scene_needs_bdpt_for_its_tiny_light() {
     assert!(
         delta.contains("radius 0.05 (0.70% of the scene radius 7.19)"),
         "{delta}"
+    );
+    // The camera sees the glass ball, in and through which the tiny light shows: E S+ L.
+    let images = evidence(&plan, TinyLightImages);
+    assert!(
+        images.contains("material 1 'glass'") && images.contains("radius 0.05"),
+        "{images}"
     );
     assert!(evidence(&plan, Refraction).contains("material 1 'glass'"));
     assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
@@ -522,6 +529,7 @@ fn caustics_need_a_smooth_specular_surface_and_bdpt_needs_a_small_light() {
     scene.spheres[1].radius = 0.5;
     let plan = analyse_valid(&scene);
     assert!(plan.has(Caustics) && !plan.has(DeltaLitCaustics));
+    assert!(!plan.has(TinyLightImages), "{}", plan.summary());
     assert_eq!(plan.integrator, PlannedIntegrator::Path);
 
     // Rough glass: refraction without caustics.
