@@ -288,7 +288,7 @@ pub struct PilotArgs {
     #[arg(long, default_value_t = 1)]
     pub passes_per_unit: u32,
     /// Run the technique pilot instead of a quote (`tessera_render::pilot`): print
-    /// `{"path_wins":BOOL,"mlt_wins":BOOL,"reason":TEXT}`, or `{}` when the job's plan leaves no choice.
+    /// `{"path_wins":BOOL,"mlt_wins":BOOL,"mnee_wins":BOOL,"reason":TEXT}`, or `{}` when the job's plan leaves no choice.
     #[arg(long)]
     pub technique: bool,
 }

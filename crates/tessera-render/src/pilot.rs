@@ -36,6 +36,18 @@
 //! render`, the coordinator at submission and at every restart all choose alike, and a farm
 //! render stays byte-identical to a local one.
 //!
+//! # Path tracing against mnee
+//!
+//! Where the caustics are lit by small (not tiny) area lights through specular chains
+//! within manifold next-event estimation's reach, the analysis chooses path tracing and
+//! asks this pilot whether mnee (path tracing with MNEE, [`crate::integrator::mnee`]) is
+//! the more efficient ([`tessera_farm::job::TechniquePilot::mnee`]). Both are unbiased,
+//! so only efficiency is in question: [`run_mnee`] renders the two pilots, puts them on
+//! one scale with mnee in bdpt's place (path tracing's error not taken below what the
+//! difference of the images shows; errors relative to the image's mean luminance, the
+//! image's mean squared error), costs mnee's rays at [`MNEE_RAY_COST`], and chooses
+//! mnee when it is more than [`MNEE_MARGIN`] times as efficient ([`MneeVerdict`]).
+//!
 //! # Light through an opening
 //!
 //! The analysis also asks where the lights reach little of what the camera sees (Veach's
@@ -102,6 +114,15 @@ pub const PATH_MARGIN: f64 = 1.5;
 /// the pixels and claims 1.5-2.9x bdpt's efficiency; the variance over 24 seeds says
 /// 0.17x (docs/benchmarks.md, "Technique pilot").
 pub const MIN_PATH_SPREAD: f64 = 0.1;
+/// Time per ray of mnee relative to path tracing on bench/compare's glass ball: 1.23x the CPU
+/// seconds (docs/benchmarks.md, "MNEE with the constraint Jacobian in closed form") for
+/// 1.10x the rays (this pilot: 366,315 against 332,705), the Newton solver forming and
+/// solving the constraint Jacobian beside its projection rays.
+pub const MNEE_RAY_COST: f64 = 1.12;
+/// Mnee is chosen over path tracing only when its measured efficiency is more than this
+/// many times path tracing's (a tie goes to the simpler technique). No more margin is
+/// needed: path tracing's pilot, whose caustic is the rare paths, is the one flattered.
+pub const MNEE_MARGIN: f64 = 1.0;
 
 /// One technique's pilot.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -250,6 +271,7 @@ pub fn pilot_size(width: u32, height: u32) -> (u32, u32) {
 
 /// One technique's pilot before the two are put on one scale: per pixel the mean and
 /// the variance of the mean (luminance weights over the channels), and the rays traced.
+#[derive(Clone)]
 struct Raw {
     mean: Vec<f64>,
     variance: Vec<f64>,
@@ -371,24 +393,8 @@ pub fn run(
     plan: &RenderPlan,
     (width, height): (u32, u32),
 ) -> Result<TechniqueVerdict, String> {
-    let size = pilot_size(width, height);
-    let rs = RenderScene::build(scene, size.0, size.1).map_err(|e| e.to_string())?;
-    let frame = FramePlan::new(
-        size.0,
-        size.1,
-        size.0.max(size.1),
-        PILOT_SAMPLES_PER_PASS,
-        PILOT_PASSES,
-    )
-    .map_err(|e| e.to_string())?;
-    let config = |integrator| RenderConfig {
-        integrator,
-        mis: job.render.mis,
-        sampler: job.render.sampler,
-        seed: PILOT_SEED,
-        max_depth: job.render.max_depth.unwrap_or(plan.max_depth),
-        rr_depth: plan.rr_depth,
-    };
+    let (size, rs, frame) = pilot_frame(scene, (width, height))?;
+    let config = |integrator| pilot_config(job, plan, integrator);
     let image_mean_error = plan
         .technique_pilot
         .as_ref()
@@ -408,11 +414,134 @@ pub fn run(
     })
 }
 
+/// The pilot's frame for a job of `width x height`: its size, the scene built at it and
+/// one whole-frame tile of [`PILOT_PASSES`] passes of [`PILOT_SAMPLES_PER_PASS`].
+fn pilot_frame(
+    scene: &Scene,
+    (width, height): (u32, u32),
+) -> Result<((u32, u32), RenderScene, FramePlan), String> {
+    let size = pilot_size(width, height);
+    let rs = RenderScene::build(scene, size.0, size.1).map_err(|e| e.to_string())?;
+    let frame = FramePlan::new(
+        size.0,
+        size.1,
+        size.0.max(size.1),
+        PILOT_SAMPLES_PER_PASS,
+        PILOT_PASSES,
+    )
+    .map_err(|e| e.to_string())?;
+    Ok((size, rs, frame))
+}
+
+/// A technique's pilot settings: the plan's depths, the job's MIS and sampler, the
+/// pilot's seed.
+fn pilot_config(job: &ValidatedJob, plan: &RenderPlan, integrator: Integrator) -> RenderConfig {
+    RenderConfig {
+        integrator,
+        mis: job.render.mis,
+        sampler: job.render.sampler,
+        seed: PILOT_SEED,
+        max_depth: job.render.max_depth.unwrap_or(plan.max_depth),
+        rr_depth: plan.rr_depth,
+    }
+}
+
+/// What the pilot measured where the question is path tracing against mnee
+/// ([`tessera_farm::job::TechniquePilot::mnee`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MneeVerdict {
+    /// Path tracing's pilot, its error not taken below what the difference to mnee's image
+    /// shows.
+    pub path: TechniqueMeasurement,
+    /// Mnee's pilot, its cost its rays times [`MNEE_RAY_COST`].
+    pub mnee: TechniqueMeasurement,
+    /// Pilot frame size.
+    pub size: (u32, u32),
+}
+
+impl MneeVerdict {
+    /// Whether mnee is chosen: its efficiency more than [`MNEE_MARGIN`] times path
+    /// tracing's (error² x cost compared without dividing, so zero errors compare too).
+    pub fn mnee_wins(&self) -> bool {
+        let (m, p) = (&self.mnee, &self.path);
+        m.error * m.error * m.cost * MNEE_MARGIN < p.error * p.error * p.cost
+    }
+
+    /// The reason the plan records, with the measured efficiencies.
+    pub fn reason(&self) -> String {
+        let (p, m) = (&self.path, &self.mnee);
+        let ratio = if p.efficiency() > 0.0 && m.efficiency().is_finite() {
+            format!("{:.2}x", m.efficiency() / p.efficiency())
+        } else {
+            "n/a".into()
+        };
+        format!(
+            "technique pilot ({}x{}, {PILOT_PASSES} passes of {PILOT_SAMPLES_PER_PASS} samples \
+             each): path error {:.4} for {} rays, mnee error {:.4} for {} rays \
+             (x{MNEE_RAY_COST} per ray); efficiency 1/(error^2 x cost) path {:.4}, mnee {:.4} \
+             (mnee/path {ratio}; mnee needs more than {MNEE_MARGIN}x): {} chosen",
+            self.size.0,
+            self.size.1,
+            p.error,
+            p.rays,
+            m.error,
+            m.rays,
+            p.efficiency(),
+            m.efficiency(),
+            if self.mnee_wins() { "mnee" } else { "path" }
+        )
+    }
+}
+
+/// Measures path tracing and mnee on `scene` for a job of `width x height`, as [`run`]
+/// does path tracing and bdpt. Mnee stands where bdpt does in [`on_one_scale`]: the
+/// technique built for the caustics, whose own variance is trusted, while path tracing's
+/// error is not taken below what the difference of the two images shows (its passes may
+/// have missed a caustic mnee's found). Errors are relative to the image's mean
+/// luminance, so each technique is scored by its image's mean squared error, the
+/// efficiency `1 / (MSE x cost)` bench/compare measures: per pixel, relative to each
+/// pixel's own mean, the caustic (where the two differ) weighs no more than any dark
+/// pixel, and on bench/compare's glass ball the pilot ranked mnee at 0.76x path tracing
+/// where its measured efficiency is above path tracing's (docs/benchmarks.md, "MNEE
+/// retuned and chosen by the pilot").
+pub fn run_mnee(
+    scene: &Scene,
+    job: &ValidatedJob,
+    plan: &RenderPlan,
+    (width, height): (u32, u32),
+) -> Result<MneeVerdict, String> {
+    let (size, rs, frame) = pilot_frame(scene, (width, height))?;
+    let path = measure(&rs, &pilot_config(job, plan, Integrator::Path), &frame);
+    let mnee = measure(&rs, &pilot_config(job, plan, Integrator::Mnee), &frame);
+    let (path, mut mnee, _) = on_one_scale(path, mnee.clone(), mnee, true);
+    mnee.cost = mnee.rays as f64 * MNEE_RAY_COST;
+    Ok(MneeVerdict { path, mnee, size })
+}
+
 /// The technique pilot's verdict for `question` ([`tessera_scene::job::resolve_job`]
 /// calls it where the plan leaves the choice to a measurement): [`run`] at the job's
 /// resolution with the analysis's depths. Fails only when the pilot's scene or frame plan
 /// cannot be built; the job is then refused (the resolve path's one failure policy).
 pub fn verdict(question: &PilotQuestion<'_>) -> Result<PilotVerdict, String> {
+    if question
+        .plan
+        .technique_pilot
+        .as_ref()
+        .is_some_and(|t| t.mnee)
+    {
+        let v = run_mnee(
+            question.scene,
+            question.job,
+            question.plan,
+            question.resolution(),
+        )?;
+        return Ok(PilotVerdict {
+            path_wins: !v.mnee_wins(),
+            mlt_wins: false,
+            mnee_wins: v.mnee_wins(),
+            reason: v.reason(),
+        });
+    }
     let v = run(
         question.scene,
         question.job,
@@ -423,6 +552,7 @@ pub fn verdict(question: &PilotQuestion<'_>) -> Result<PilotVerdict, String> {
     Ok(PilotVerdict {
         path_wins: choice == PlannedIntegrator::Path,
         mlt_wins: choice == PlannedIntegrator::Mlt,
+        mnee_wins: false,
         reason: v.reason(),
     })
 }

@@ -176,7 +176,9 @@ pub fn resolve_job(
             plan: &plan,
         })
         .map_err(ResolveError::Pilot)?;
-        if verdict.mlt_wins {
+        if verdict.mnee_wins {
+            plan.settle_mnee(verdict.reason);
+        } else if verdict.mlt_wins {
             plan.settle_metropolis(verdict.reason);
         } else {
             plan.settle_technique(verdict.path_wins, verdict.reason);
@@ -189,15 +191,20 @@ pub fn resolve_job(
 }
 
 /// A pilot that does not measure: the analysis's choice (bdpt, which samples every path
-/// path tracing does) stands, and the plan's first reason says why, with `why`. For
+/// path tracing does; or path tracing where the question was mnee) stands, and the plan's
+/// first reason says why, with `why`. For
 /// renderers that cannot run the pilot (a coordinator without a pilot program) and for
 /// tests of resolution alone.
 pub fn no_pilot(why: &str) -> impl FnOnce(&PilotQuestion<'_>) -> Result<PilotVerdict, String> + '_ {
-    move |_| {
+    move |q| {
         Ok(PilotVerdict {
             path_wins: false,
             mlt_wins: false,
-            reason: format!("technique pilot not run ({why}): bdpt, the analysis's choice"),
+            mnee_wins: false,
+            reason: format!(
+                "technique pilot not run ({why}): {}, the analysis's choice",
+                q.plan.integrator
+            ),
         })
     }
 }

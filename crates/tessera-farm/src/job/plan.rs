@@ -202,7 +202,11 @@ pub struct RenderPlan {
     /// lights are tiny finite ones, which BSDF sampling can hit, or the scene is lit
     /// through an opening, where the lights reach little of what the camera sees): the
     /// choice waits for a measured pilot of both (`tessera_render::pilot`), which settles it with
-    /// [`RenderPlan::settle_technique`]. Not in [`RenderPlan::to_json`]: the verdict is.
+    /// [`RenderPlan::settle_technique`]. Also set when the analysis chose path tracing for
+    /// caustics of small area lights that manifold next-event estimation reaches
+    /// ([`TechniquePilot::mnee`]): the pilot then measures path tracing against mnee and
+    /// [`RenderPlan::settle_mnee`] takes mnee if it wins. Not in [`RenderPlan::to_json`]:
+    /// the verdict is.
     pub technique_pilot: Option<TechniquePilot>,
     /// Why manifold next-event estimation cannot sample every caustic of the scene's delta
     /// and tiny lights, each reason with its evidence (a reflection, a chain longer than
@@ -214,7 +218,8 @@ pub struct RenderPlan {
     pub beyond_mnee: Vec<String>,
 }
 
-/// A plan's provisional choice between bdpt and path tracing ([`RenderPlan::technique_pilot`]).
+/// A plan's provisional choice between bdpt and path tracing, or between path tracing and
+/// mnee ([`RenderPlan::technique_pilot`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TechniquePilot {
     /// How many leading [`RenderPlan::reasons`] explain bdpt (replaced if path wins).
@@ -226,6 +231,12 @@ pub struct TechniquePilot {
     /// scores each technique's squared error relative to the image's mean luminance (the
     /// efficiency `1 / (MSE x cost)`), not per pixel (`tessera_render::pilot`).
     pub lit_through_opening: bool,
+    /// The question is path tracing (the analysis's provisional choice, its reasons kept)
+    /// against mnee, path tracing with manifold next-event estimation: the scene's
+    /// caustics are lit by small area lights through specular chains within MNEE's reach.
+    /// Both are unbiased (BSDF sampling keeps every path MNEE does not claim), so only
+    /// their efficiency is in question.
+    pub mnee: bool,
 }
 
 /// The technique pilot's answer ([`RenderPlan::settle_technique`]): whether path tracing
@@ -242,6 +253,10 @@ pub struct PilotVerdict {
     /// the JSON of a pilot that did not measure it: false.
     #[serde(default)]
     pub mlt_wins: bool,
+    /// Mnee wins over path tracing ([`TechniquePilot::mnee`]; then `path_wins` is false).
+    /// Absent in the JSON of a pilot that did not measure it: false.
+    #[serde(default)]
+    pub mnee_wins: bool,
     /// The plan's first reason: what was measured, or why nothing was.
     pub reason: String,
 }
@@ -278,6 +293,18 @@ impl RenderPlan {
             self.integrator = PlannedIntegrator::Path;
             self.reasons.splice(0..n, pilot.path_reasons);
         }
+        self.reasons.insert(0, verdict);
+    }
+
+    /// Settles a provisional choice between path tracing and mnee
+    /// ([`TechniquePilot::mnee`]) by a pilot that measured mnee the more efficient: mnee,
+    /// which is path tracing with manifold next-event estimation, so path tracing's reasons
+    /// stay, after `verdict`. Does nothing on a plan without a pilot.
+    pub fn settle_mnee(&mut self, verdict: String) {
+        if self.technique_pilot.take().is_none() {
+            return;
+        }
+        self.integrator = PlannedIntegrator::Mnee;
         self.reasons.insert(0, verdict);
     }
 
@@ -594,6 +621,7 @@ mod tests {
                 bdpt_reasons: 2,
                 path_reasons: vec!["path tracing: refraction".into()],
                 lit_through_opening: false,
+                mnee: false,
             }),
             beyond_mnee: vec![],
         }
@@ -626,6 +654,45 @@ mod tests {
                 "max depth 12"
             ]
         );
+    }
+
+    /// The mnee question (a provisional path-traced plan): mnee won, path tracing's reasons
+    /// stay after the verdict; path won, the plan is unchanged but for the verdict; either
+    /// settles once. A verdict without `mnee_wins` in its JSON reads as not mnee.
+    #[test]
+    fn settling_the_mnee_question_keeps_path_tracings_reasons() {
+        let path_plan = || RenderPlan {
+            integrator: PlannedIntegrator::Path,
+            reasons: vec!["path tracing: refraction".into(), "max depth 12".into()],
+            technique_pilot: Some(TechniquePilot {
+                bdpt_reasons: 0,
+                path_reasons: vec![],
+                lit_through_opening: false,
+                mnee: true,
+            }),
+            ..provisional()
+        };
+        let mut plan = path_plan();
+        plan.settle_mnee("pilot: mnee".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Mnee);
+        assert_eq!(
+            plan.reasons,
+            ["pilot: mnee", "path tracing: refraction", "max depth 12"]
+        );
+        plan.settle_technique(true, "again".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Mnee);
+        let mut plan = path_plan();
+        plan.settle_technique(true, "pilot: path".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Path);
+        assert_eq!(
+            plan.reasons,
+            ["pilot: path", "path tracing: refraction", "max depth 12"]
+        );
+        plan.settle_mnee("again".into());
+        assert_eq!(plan.integrator, PlannedIntegrator::Path);
+        let v: PilotVerdict =
+            serde_json::from_str(r#"{"path_wins":true,"mlt_wins":false,"reason":"r"}"#).unwrap();
+        assert!(!v.mnee_wins);
     }
 
     /// mlt won: it renders, bdpt's reasons stay after the verdict (its chains sample

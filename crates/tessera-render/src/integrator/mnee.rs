@@ -886,6 +886,28 @@ pub fn estimate(
     f * c.throughput * c.emission * (c.geometry / pdf)
 }
 
+/// Whether next-event estimation's shadow ray from `x` to the light point `y` (position
+/// error `y_error`, normal `n_y`) is unoccluded: the ray the path tracer casts, from `x`
+/// offset toward `y` to `y` offset back toward `x`. Where it is, the straight segment
+/// crosses no specular surface, so MNEE's seed chain is empty and the path tracer does not
+/// run MNEE for that light sample; [`claims`] asks the same question first, so that a
+/// path MNEE never generates is never claimed (the partition below).
+pub fn shadow_ray_clear(
+    scene: &RenderScene,
+    x: &Anchor,
+    y: Vec3,
+    y_error: Vec3,
+    n_y: Vec3,
+    time: f32,
+) -> bool {
+    let wi = (y - x.p).normalize_or_zero();
+    let o = x.origin(wi);
+    let target = offset_ray_origin(y, y_error, n_y, -wi);
+    let d = target - o;
+    let dist = d.length();
+    dist > 0.0 && !scene.occluded_at(o, d / dist, dist * (1.0 - 1e-4), time)
+}
+
 /// Whether MNEE from `x` (selection normal `n_select`, chains up to `max_chain`) would
 /// have produced the BSDF-sampled path that left `x`, crossed the specular vertices
 /// `path` and hit the emitter at `light` (see "Combination with BSDF sampling" in the
@@ -914,6 +936,13 @@ pub fn claims(
     let pmf = scene.lights.pmf_at(x.p, n_select, li);
     let pdf = scene.lights.lights[li].pdf_li(x.p, d / dist, light.p, light.ng);
     if !(pmf > 0.0 && pdf > 0.0) || scene.emitted(light, -d / dist) == Vec3::ZERO {
+        return false;
+    }
+    // The path tracer runs MNEE only where next-event estimation's shadow ray to the light
+    // point was blocked: ask the same question, with the same ray, so that the two sides
+    // of the partition agree even where a seed ray and the shadow ray, whose ends are
+    // offset differently, would disagree at a silhouette's edge.
+    if shadow_ray_clear(scene, x, light.p, light.p_error, light.ng, time) {
         return false;
     }
     let end = LightEnd::Area {

@@ -224,3 +224,44 @@ fn on_the_door_ajar_room_the_pilot_picks_the_measured_best() {
     assert!(v.reason().ends_with(&format!("{chosen} chosen")));
     assert_eq!(pilot::run(&scene, &j, &plan, (64, 64)).unwrap(), v);
 }
+
+/// bench/compare's glass ball in small: `builtin:caustic`'s ball under a 0.2 m square light
+/// (0.02 of the scene's radius: small, not tiny) and no sky. The analysis path-traces it and
+/// asks the pilot about mnee; the pilot measures mnee the more efficient (its caustic is
+/// the image's noise) and the job renders with mnee, path tracing's reasons kept,
+/// deterministically.
+#[test]
+fn the_glass_ball_under_a_small_square_light_is_rendered_with_mnee() {
+    let mut scene = crate::mnee::glass_ball();
+    let light = scene.meshes.last_mut().unwrap();
+    let c = light.positions.iter().copied().sum::<Vec3>() / 4.0;
+    for p in &mut light.positions {
+        *p = c + 2.0 * (*p - c);
+    }
+    let last = scene.materials.len() - 1;
+    scene.materials[last].emission = Vec3::splat(500.0);
+    let analysed = tessera_scene::analysis::analyse(&scene);
+    assert_eq!(
+        analysed.integrator,
+        PlannedIntegrator::Path,
+        "{}",
+        analysed.summary()
+    );
+    assert!(analysed.technique_pilot.as_ref().is_some_and(|t| t.mnee));
+    let j = job(r#"{"scene":"builtin:caustic","width":64,"height":48,"spp":16}"#);
+    let v = pilot::run_mnee(&scene, &j, &analysed, (64, 48)).unwrap();
+    println!("{}", v.reason());
+    assert!(v.mnee_wins(), "{}", v.reason());
+    let r = resolve_job(&j, &scene).unwrap();
+    assert_eq!(r.config.integrator, Integrator::Mnee);
+    let reasons = &r.render_plan.reasons;
+    assert!(reasons[0].ends_with("mnee chosen"), "{reasons:?}");
+    assert!(
+        reasons
+            .iter()
+            .any(|r| r.starts_with("path tracing with next-event estimation")),
+        "{reasons:?}"
+    );
+    let again = resolve_job(&j, &scene).unwrap();
+    assert_eq!(again.metadata_json(None), r.metadata_json(None));
+}

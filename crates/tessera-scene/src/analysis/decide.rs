@@ -36,6 +36,7 @@ pub(super) fn plan(
                 bdpt_reasons: reasons.len(),
                 path_reasons,
                 lit_through_opening: false,
+                mnee: false,
             }
         });
     // Light through an opening: the same question where the lights reach little of what
@@ -53,6 +54,25 @@ pub(super) fn plan(
                 bdpt_reasons: reasons.len(),
                 path_reasons,
                 lit_through_opening: true,
+                mnee: false,
+            });
+        }
+    }
+    // Caustics of small area lights within MNEE's reach: path tracing with manifold
+    // next-event estimation may reach an error sooner; both are unbiased, so the pilot
+    // measures the two.
+    if integrator == PlannedIntegrator::Path && technique_pilot.is_none() {
+        if let Some(evidence) = &transport.small_light_mnee {
+            reasons.push(format!(
+                "caustics of small area lights within the reach of manifold next-event \
+                 estimation ({evidence}): path tracing with and without it is unbiased, so \
+                 the technique pilot measures mnee against path tracing"
+            ));
+            technique_pilot = Some(TechniquePilot {
+                bdpt_reasons: 0,
+                path_reasons: Vec::new(),
+                lit_through_opening: false,
+                mnee: true,
             });
         }
     }

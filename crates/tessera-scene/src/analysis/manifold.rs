@@ -38,9 +38,9 @@
 
 use super::direct::{camera_rays, emitting_point, primitives, Bvh};
 use super::evidence::material_list;
-use super::lights::Lights;
+use super::lights::{AreaLight, Lights};
 use super::survey::Survey;
-use super::{MNEE_MAX_CHAIN, TINY_LIGHT_FRACTION};
+use super::{MNEE_MAX_CHAIN, SMALL_LIGHT_FRACTION, TINY_LIGHT_FRACTION};
 use crate::PunctualLight;
 use glam::Vec3;
 
@@ -120,14 +120,7 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     }
     for a in &lights.area {
         if a.bounds.radius() < tiny {
-            sources.push(Source {
-                name: format!(
-                    "the area light of {}",
-                    material_list(scene, &[a.material], &survey.classes, false)
-                ),
-                at: 0.5 * (a.bounds.lo + a.bounds.hi),
-                cone: None,
-            });
+            sources.push(area_source(survey, a));
         }
     }
     let Some(prims) = primitives(survey) else {
@@ -176,6 +169,71 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
         ));
     }
     out
+}
+
+/// Whether manifold next-event estimation reaches caustics of the scene's small area
+/// lights (bounding radius below [`SMALL_LIGHT_FRACTION`] of the scene's; the module
+/// documentation's "Caustics of small area lights" rule): [`LIGHT_RAYS`] rays from each
+/// such light's centre are followed through the specular surfaces as for [`misses`], and
+/// the caustics of MNEE's shape (at most [`MNEE_MAX_CHAIN`] refracting surfaces, none
+/// mixed) that land on a material the camera sees first are the evidence. `None` where
+/// there is no small area light, no such caustic, or the scene is too large to survey.
+/// Unlike [`misses`] it does not ask that every caustic be within reach: with finite
+/// lights BSDF sampling keeps the paths MNEE does not claim.
+pub(super) fn small_light_caustics(survey: &Survey, lights: &Lights) -> Option<String> {
+    let scene = survey.scene;
+    let small = SMALL_LIGHT_FRACTION * survey.scene_radius;
+    let sources: Vec<Source> = lights
+        .area
+        .iter()
+        .filter(|a| a.bounds.radius() < small)
+        .map(|a| area_source(survey, a))
+        .collect();
+    if sources.is_empty() {
+        return None;
+    }
+    let bvh = Bvh::new(primitives(survey)?);
+    let eps = 1e-4 * survey.scene_radius;
+    let mut found = Findings::default();
+    for Source { name, at, cone } in &sources {
+        for d in directions(*cone) {
+            let branch = Branch {
+                vertices: 0,
+                first: usize::MAX,
+                reflected: None,
+                mixed: None,
+            };
+            follow(survey, &bvh, name, *at, d, eps, branch, &mut found);
+        }
+    }
+    let seen = first_seen(survey, &bvh, eps);
+    let reached: Vec<usize> = found
+        .receivers
+        .into_iter()
+        .filter(|m| seen.contains(m))
+        .collect();
+    if reached.is_empty() {
+        return None;
+    }
+    let names: Vec<&str> = sources.iter().map(|s| s.name.as_str()).collect();
+    Some(format!(
+        "{} through at most {MNEE_MAX_CHAIN} refracting surfaces onto {}, which the camera \
+         sees",
+        names.join(", "),
+        material_list(scene, &reached, &survey.classes, false)
+    ))
+}
+
+/// The survey's source for area light `a`: its bounding box's centre.
+fn area_source(survey: &Survey, a: &AreaLight) -> Source {
+    Source {
+        name: format!(
+            "the area light of {}",
+            material_list(survey.scene, &[a.material], &survey.classes, false)
+        ),
+        at: 0.5 * (a.bounds.lo + a.bounds.hi),
+        cone: None,
+    }
 }
 
 /// Where a survey ray meets a scattering surface: the point, the geometric normal and the

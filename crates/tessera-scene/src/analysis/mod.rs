@@ -100,7 +100,8 @@
 //! - [`PlannedIntegrator::Bdpt`] if there are (other) delta-lit caustics;
 //! - [`PlannedIntegrator::Bdpt`], left to the technique pilot, where the rules so far give
 //!   path tracing but the scene is lit through an opening (below);
-//! - [`PlannedIntegrator::Path`] otherwise.
+//! - [`PlannedIntegrator::Path`] otherwise; left to the technique pilot, against mnee,
+//!   where caustics of small area lights are within MNEE's reach (below).
 //!
 //! Where the caustics' only lights are tiny finite ones, or the scene is lit through an
 //! opening, path tracing is as correct as bdpt and the plan leaves the choice between them
@@ -124,6 +125,17 @@
 //! materials. Finding no caustic at all counts as not reaching. What MNEE never samples,
 //! even within that reach: the caustic's light after a further diffuse or glossy bounce
 //! (`L S+ D .. D S* E`; the plan says so in its reasons and the error estimate caveat).
+//!
+//! **Caustics of small area lights.** Where the caustics are lit only by finite lights,
+//! none tiny (no [`EffectKind::DeltaLitCaustics`]), path tracing finds them by BSDF
+//! sampling, noisily when the light is small. For the area lights whose bounding radius
+//! is below [`SMALL_LIGHT_FRACTION`] of the scene's, the survey of specular chains above
+//! follows [`MNEE_LIGHT_RAYS`] rays from each light's centre; if some caustic of MNEE's
+//! shape (at most [`MNEE_MAX_CHAIN`] refracting surfaces) lands on a material the camera
+//! sees first, a path-traced plan leaves the choice between path tracing and mnee to the
+//! technique pilot ([`RenderPlan::technique_pilot`], `mnee`). Both are unbiased: mnee is
+//! path tracing with manifold next-event estimation, which leaves every path it does not
+//! claim to BSDF sampling. A plan lit through an opening asks the bdpt question instead.
 //!
 //! **Light through an opening.** A path-traced plan is surveyed for how much of what the
 //! camera sees the lights reach directly: [`DIRECT_SURVEY_GRID`]² pinhole camera rays
@@ -194,6 +206,11 @@ pub const DIFFUSE_LIKE_ROUGHNESS: f32 = 0.9;
 /// A sphere or area light whose bounding radius is below this fraction of the scene's
 /// bounding radius is "tiny": for caustics it behaves like a point light.
 pub const TINY_LIGHT_FRACTION: f32 = 0.01;
+/// Bounding radius, as a fraction of the scene's bounding radius, below which an area
+/// light is *small* for the "Caustics of small area lights" rule: BSDF sampling finds its
+/// caustics rarely enough that manifold next-event estimation may pay (bench/compare's
+/// glass ball: a 0.2 m square light, 0.02 of the scene's radius).
+pub const SMALL_LIGHT_FRACTION: f32 = 0.05;
 /// Area-weighted mean diffuse albedo above which a room is "bright".
 pub const BRIGHT_ALBEDO: f32 = 0.5;
 /// Fraction of the bounding box's surface that scattering surfaces must cover for the
@@ -241,6 +258,8 @@ pub fn analyse(scene: &Scene) -> RenderPlan {
     // What MNEE cannot sample matters only where delta or tiny lights make caustics.
     if transport.delta_lit {
         transport.beyond_mnee = manifold::misses(&survey, &lights);
+    } else if transport.caustics {
+        transport.small_light_mnee = manifold::small_light_caustics(&survey, &lights);
     }
     let mut plan = decide::plan(
         &scene.camera,

@@ -90,6 +90,11 @@ pub(super) struct Transport {
     /// caustics (`manifold::misses`), filled in by `analyse` after this step where
     /// [`Transport::delta_lit`]; empty otherwise.
     pub(super) beyond_mnee: Vec<String>,
+    /// Where the caustics are lit by finite lights only, none of them tiny: the evidence
+    /// that some are lit by small area lights through specular chains within manifold
+    /// next-event estimation's reach (`manifold::small_light_caustics`), filled in by
+    /// `analyse` after this step; `None` otherwise.
+    pub(super) small_light_mnee: Option<String>,
 }
 
 /// Finds the transport effects, records them with their evidence, and returns what the
@@ -157,6 +162,7 @@ pub(super) fn analyse(survey: &Survey, lights: &Lights, effects: &mut Vec<Effect
         tiny_lit_only,
         delta_sds,
         beyond_mnee: Vec::new(),
+        small_light_mnee: None,
     }
 }
 

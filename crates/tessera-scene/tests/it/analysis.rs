@@ -590,6 +590,65 @@ fn caustics_need_a_smooth_specular_surface_and_bdpt_needs_a_small_light() {
     assert_eq!(plan.integrator, PlannedIntegrator::Bdpt);
 }
 
+/// Caustics of a small area light within MNEE's reach (bench/compare's glass ball: a 0.2 m
+/// square light over a glass ball on a floor): path tracing, with the choice against mnee
+/// left to the technique pilot. A large square light (2 m) or rough glass (no caustic):
+/// plain path tracing, no pilot.
+#[test]
+fn caustics_of_a_small_area_light_leave_mnee_to_the_pilot() {
+    let square = |h: f32| {
+        let mut scene = tessera_scene::builtin::caustic();
+        scene.spheres.truncate(1);
+        scene.environment = None;
+        scene.materials.push(Material {
+            name: "square light".into(),
+            kind: MaterialKind::Diffuse { albedo: Vec3::ZERO },
+            emission: Vec3::splat(250.0),
+            double_sided: false,
+        });
+        let y = 2.5;
+        scene.meshes.push(quad(
+            2,
+            [
+                Vec3::new(-h, y, -h),
+                Vec3::new(h, y, -h),
+                Vec3::new(h, y, h),
+                Vec3::new(-h, y, h),
+            ],
+        ));
+        scene
+    };
+    let plan = analyse_valid(&square(0.1));
+    assert!(
+        plan.has(Caustics) && !plan.has(DeltaLitCaustics),
+        "{}",
+        plan.summary()
+    );
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+    let pilot = plan.technique_pilot.as_ref().expect("the mnee question");
+    assert!(pilot.mnee && !pilot.lit_through_opening, "{pilot:?}");
+    assert!(
+        plan.reasons
+            .iter()
+            .any(|r| r.contains("measures mnee against path tracing")
+                && r.contains("material 0 'floor'")),
+        "{:?}",
+        plan.reasons
+    );
+    let plan = analyse_valid(&square(1.0));
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+    assert!(plan.technique_pilot.is_none(), "{}", plan.summary());
+    let mut rough = square(0.1);
+    rough.materials[1].kind = MaterialKind::Dielectric {
+        ior: 1.5,
+        roughness: 0.3,
+        tint: Vec3::ONE,
+    };
+    let plan = analyse_valid(&rough);
+    assert_eq!(plan.integrator, PlannedIntegrator::Path);
+    assert!(plan.technique_pilot.is_none(), "{}", plan.summary());
+}
+
 #[test]
 fn override_is_recorded_in_summary_and_json() {
     let mut plan = plan_of("builtin:caustic");
