@@ -407,6 +407,12 @@ pub struct JobRuntime {
     /// last computed with a history point: the status reads it instead of walking every
     /// pixel per request.
     pub(crate) adaptive_summary: (f64, Option<f64>),
+    /// An adaptive job with a target: what its merged passes say of its error's tail
+    /// (`tessera_farm::quote::EtaTrend`), as of its last history point, for the ETA.
+    pub(crate) eta_trend: Option<tessera_farm::quote::EtaTrend>,
+    /// The same job's mean per-pass relative variance at each history point of this run,
+    /// as (spp, figure): the trend's growth compares the last with the one at half its spp.
+    pub(crate) per_pass_history: Vec<(f64, f64)>,
     /// Results merged into this job so far in this run: the version of its images
     /// (the image cache's key, `service::images`).
     pub(crate) merges: u64,
@@ -486,6 +492,8 @@ impl JobRuntime {
             history: Vec::new(),
             plan_json,
             adaptive_summary: (0.0, None),
+            eta_trend: None,
+            per_pass_history: Vec::new(),
             merges: 0,
             unit_seconds: (0.0, 0),
             unsaved_checkpoints: false,

@@ -151,7 +151,7 @@ struct Writes {
     /// `checkpoint`, which is newer).
     resets: Vec<TileCheckpoint>,
     checkpoint: Option<TileCheckpoint>,
-    history: Option<(JobId, HistoryPoint)>,
+    history: Option<StoredPoint>,
     faults: Vec<FaultEvent>,
     /// Workers quarantined by this result's spot checks, for the store's quarantine list.
     quarantines: Vec<QuarantineRecord>,
@@ -306,8 +306,8 @@ impl Coordinator {
     /// result. A quarantine that is not stored still holds in memory until a restart.
     async fn write_back(&self, w: &Writes) {
         let store = &self.inner.store;
-        if let Some((job, point)) = w.history {
-            if let Err(e) = store.append_history(job, point).await {
+        if let Some((job, point, estimator)) = &w.history {
+            if let Err(e) = store.append_history(*job, *point, Some(estimator)).await {
                 tracing::warn!(job, error = %e, "history point not stored");
             }
         }
@@ -744,14 +744,37 @@ pub(crate) fn adaptive_summary(a: &tessera_farm::AdaptiveFrame) -> (f64, Option<
     )
 }
 
+/// The ETA's trend of an adaptive job with a target (`tessera_farm::quote::EtaTrend`):
+/// the spread of its first frame's error over the tiles, and the growth of its per-pass
+/// figure since half of `spp`. Walks every pixel once, as the history point's summary does.
+fn record_trend(rt: &mut crate::state::JobRuntime, a: &tessera_farm::AdaptiveFrame, spp: f64) {
+    use tessera_farm::quote::{error_groups, EtaTrend};
+    let groups = error_groups(a.tiles().iter().map(|t| (t.rect().width, t.pixels())));
+    let (rel_m, per_pass) = EtaTrend::of_groups(&groups);
+    rt.eta_trend = Some(EtaTrend::with_growth(
+        rel_m,
+        per_pass,
+        spp,
+        rt.per_pass_history.iter().copied(),
+    ));
+    if let Some(q) = per_pass {
+        rt.per_pass_history.push((spp, q));
+    }
+}
+
+/// A job's history point to store, with the name of the estimator of its error estimate.
+pub(crate) type StoredPoint = (JobId, HistoryPoint, String);
+
 /// A convergence-history point (spp, image error, elapsed seconds), at most every
-/// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10).
+/// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10), with the name
+/// of the estimator its error estimate is (stored with it: a job read back from the
+/// store names the estimate it shows, not the reading build's estimator).
 pub(crate) fn history_point(
     farm: &mut Farm,
     job: JobId,
     now: u64,
     complete: bool,
-) -> Option<(JobId, HistoryPoint)> {
+) -> Option<StoredPoint> {
     let p = farm.scheduler.progress(job)?;
     let rt = farm.runtime.get_mut(&job)?;
     if !complete && now < rt.last_history_ms + HISTORY_INTERVAL_MS {
@@ -762,6 +785,9 @@ pub(crate) fn history_point(
         Some(a) => {
             let summary = adaptive_summary(a);
             rt.adaptive_summary = summary;
+            if rt.job().target_error.is_some() {
+                record_trend(rt, a, summary.0);
+            }
             summary
         }
         // The first frame finished and was released: its final figures.
@@ -777,7 +803,7 @@ pub(crate) fn history_point(
         error_estimate,
     };
     rt.history.push(point);
-    Some((job, point))
+    Some((job, point, rt.resolved.error_estimator_name()))
 }
 
 /// Counts a refused result against the worker and its job, and returns the fault event
