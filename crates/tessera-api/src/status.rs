@@ -75,8 +75,11 @@ pub struct JobStatus {
     /// Samples per pixel merged so far, averaged over the pixels of all frames (not an
     /// integer under adaptive stopping).
     pub spp_so_far: f64,
-    /// The current image error estimate (RMS relative error, ARCHITECTURE.md §3); `None` until
-    /// every pixel has at least two passes.
+    /// The current image error estimate (RMS relative error, ARCHITECTURE.md §3), the one
+    /// `error_estimator` names, as of the job's last history point (at most 0.2 s old while
+    /// results arrive); `None` until every pixel has at least two passes. (Before
+    /// 2026-12-07 a job without adaptive stopping gave the RMS of each pixel's error over
+    /// its own mean here, not the robust scale its `error_estimator` named.)
     pub error_estimate: Option<f64>,
     /// Which estimator `error_estimate` and the per-pixel intervals are
     /// (`tessera_farm::ERROR_ESTIMATOR`, also in the EXR header). For a job read back from

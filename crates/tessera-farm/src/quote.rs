@@ -100,7 +100,10 @@ use serde::{Deserialize, Serialize};
 
 mod eta;
 mod tails;
-pub use eta::{error_groups, job_eta, job_eta_seconds, ErrorGroup, EtaTrend, JobEta, JobProgress};
+pub use eta::{
+    error_groups, job_eta, job_eta_seconds, pixel_work, AdaptiveEta, ErrorGroup, EtaSample,
+    EtaTrend, JobEta, JobProgress, PixelWork, LAW_KURTOSIS, LAW_SD,
+};
 pub use tails::{TailClass, Tails};
 
 /// The errors a quote is given when the job names none: 10%, 5%, 2% and 1%.

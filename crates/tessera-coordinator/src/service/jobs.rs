@@ -9,7 +9,7 @@ use tessera_api::{
     History, JobList, JobListQuery, JobSettings, JobState, JobStatus, ResolvedJob, ValidatedJob,
 };
 use tessera_farm::job::StopVerdict;
-use tessera_farm::quote::{job_eta, JobEta, JobProgress, TailClass};
+use tessera_farm::quote::{job_eta, AdaptiveEta, JobEta, JobProgress, TailClass};
 use tessera_farm::{frame_state_bytes_with_bias, FramePlan, JobId, Progress, WorkerId};
 
 use super::{Coordinator, MAX_PAGE};
@@ -552,6 +552,12 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             time_limit_left_seconds: rt.job().time_limit_seconds.map(|l| l - elapsed),
             // The tail class of the passes merged so far, as the quote classes its pilot.
             trend: rt.eta_trend,
+            // What ends an adaptive job: each pixel's own stop, as of the last history
+            // point (ARCHITECTURE.md §3, "The ETA").
+            adaptive: adaptive.and(rt.eta_adaptive).map(|(a, at)| AdaptiveEta {
+                age_seconds: now.saturating_sub(at) as f64 / 1e3,
+                ..a
+            }),
         })
     };
     let eta_interval = eta.as_ref().and_then(|e| e.interval);

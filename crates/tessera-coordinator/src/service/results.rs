@@ -762,6 +762,77 @@ fn record_trend(rt: &mut crate::state::JobRuntime, a: &tessera_farm::AdaptiveFra
     }
 }
 
+/// The ETA's measurement of an adaptive job with a target (`tessera_farm::quote::AdaptiveEta`,
+/// ARCHITECTURE.md §3 "The ETA"): each live frame's pixel work (`quote::pixel_work`, with the
+/// heavy extrapolation's exponent from the trend just recorded), frames released since
+/// their last measurement counted as done, frames not begun as the mean of those measured;
+/// the rate and the drift read against the job's earlier measurements. Walks every pixel
+/// of the live frames once.
+fn record_pixel_work(farm: &mut Farm, job: JobId, now: u64) {
+    use tessera_farm::quote::{pixel_work, AdaptiveEta, EtaSample, PixelWork, TailClass};
+    let Some(rt) = farm.runtime.get(&job) else {
+        return;
+    };
+    let first = rt.job().frames.start;
+    let count = rt.job().frames.count() as usize;
+    let trend = rt.eta_trend.unwrap_or_default();
+    let gamma = match trend.verdict().0 {
+        TailClass::Heavy => trend.growth.map_or(0.0, |g| g.max(1.0).log2()),
+        _ => 0.0,
+    };
+    let live: Vec<(usize, PixelWork)> = (0..count)
+        .filter_map(|k| {
+            let f = farm.scheduler.adaptive_frame(job, first + k as u32)?;
+            Some((k, pixel_work(f, gamma)))
+        })
+        .collect();
+    let Some(rt) = farm.runtime.get_mut(&job) else {
+        return;
+    };
+    if rt.eta_frames.len() != count {
+        rt.eta_frames = vec![None; count];
+    }
+    // A frame measured before and not live now was released: done, nothing left.
+    for (k, slot) in rt.eta_frames.iter_mut().enumerate() {
+        if let Some(w) = slot {
+            if !live.iter().any(|(j, _)| *j == k) {
+                *w = PixelWork {
+                    done: w.done,
+                    ..PixelWork::default()
+                };
+            }
+        }
+    }
+    for (k, w) in &live {
+        rt.eta_frames[*k] = Some(*w);
+    }
+    let seen: Vec<PixelWork> = rt.eta_frames.iter().flatten().copied().collect();
+    if seen.is_empty() {
+        return;
+    }
+    let unseen = rt.eta_frames.iter().filter(|f| f.is_none()).count() as f64;
+    let n = seen.len() as f64;
+    let mean = |f: fn(&PixelWork) -> f64| seen.iter().map(f).sum::<f64>() / n;
+    let mut work = seen.iter().fold(PixelWork::default(), |a, w| a.plus(*w));
+    if unseen > 0.0 {
+        // Frames not begun: each as the frames measured so far, done and left.
+        let total = mean(|w| w.total());
+        work.left += unseen * total;
+        work.left_heavy += unseen * (total - mean(|w| w.left) + mean(|w| w.left_heavy));
+        work.left_mean += unseen * (total - mean(|w| w.left) + mean(|w| w.left_mean));
+        work.left_var += unseen * mean(|w| w.left_var);
+        work.budget += unseen * total.max(mean(|w| w.done + w.budget));
+    }
+    let elapsed = rt.elapsed_seconds(now);
+    let measured = AdaptiveEta::measure(work, elapsed, &rt.eta_samples, 0.0);
+    rt.eta_samples.push(EtaSample {
+        elapsed_seconds: elapsed,
+        done: work.done,
+        total: work.total(),
+    });
+    rt.eta_adaptive = Some((measured, now));
+}
+
 /// A job's history point to store, with the name of the estimator of its error estimate.
 pub(crate) type StoredPoint = (JobId, HistoryPoint, String);
 
@@ -792,10 +863,24 @@ pub(crate) fn history_point(
         }
         // The first frame finished and was released: its final figures.
         None if rt.job().adaptive_settings().is_some() => rt.adaptive_summary,
-        None => (
-            spp_so_far(&rt.resolved, p.passes_done, rt.job().frames.count()),
-            rt.error_estimate(),
-        ),
+        None => {
+            // The estimate the status names, of each live frame every pixel of which has
+            // an estimate (a walk over its pixels, as the adaptive summary's).
+            let first = rt.job().frames.start;
+            for (k, slot) in rt.frame_error.iter_mut().enumerate() {
+                let tiles = rt.tile_error.get(k).map(Vec::as_slice).unwrap_or(&[]);
+                if tiles.iter().any(|&(_, c)| c == 0) {
+                    continue;
+                }
+                if let Some(acc) = farm.scheduler.frame(job, first + k as u32) {
+                    *slot = Some(acc.image_error()).filter(|e| e.is_finite());
+                }
+            }
+            (
+                spp_so_far(&rt.resolved, p.passes_done, rt.job().frames.count()),
+                rt.error_estimate(),
+            )
+        }
     };
     let point = HistoryPoint {
         elapsed_seconds: rt.elapsed_seconds(now),
@@ -803,7 +888,11 @@ pub(crate) fn history_point(
         error_estimate,
     };
     rt.history.push(point);
-    Some((job, point, rt.resolved.error_estimator_name()))
+    let name = rt.resolved.error_estimator_name();
+    if rt.job().target_error.is_some() && rt.job().adaptive_settings().is_some() && !complete {
+        record_pixel_work(farm, job, now);
+    }
+    Some((job, point, name))
 }
 
 /// Counts a refused result against the worker and its job, and returns the fault event

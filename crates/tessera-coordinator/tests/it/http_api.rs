@@ -942,3 +942,59 @@ async fn a_running_target_job_shows_its_eta_interval_over_http() {
         assert!(v.get(absent).is_none(), "{absent}: {v}");
     }
 }
+
+/// A uniform job's status gives the estimate its `error_estimator` names (the robust
+/// scale at the neighbours' level, as its EXR header's), not the RMS of each pixel's error
+/// over its own mean, which it gave before: on an image whose pixels differ from their
+/// neighbours the two differ, and the status is the named one to rounding.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_uniform_jobs_status_gives_the_estimate_its_estimator_names() {
+    let (_dir, core, status) = one_tile_job(0.0).await;
+    let w = core.register_worker("w".into(), 1, "t").unwrap();
+    let units = core.lease(w, 4).await.unwrap().units;
+    assert_eq!(units.len(), 4);
+    // Pixel i's pass p: a checkerboard of levels 0.2 and 0.8, each pixel's passes spread
+    // by a pattern of its own.
+    let value = |i: usize, p: u32| {
+        let level = if (i % 16 + i / 16).is_multiple_of(2) {
+            0.2
+        } else {
+            0.8
+        };
+        let wobble = ((i as u32 * 7 + p * 5) % 4) as f32 / 3.0 - 0.5;
+        level * (1.0 + 0.4 * wobble)
+    };
+    let mut stats = vec![tessera_farm::PixelStats::default(); 256];
+    for l in &units {
+        let mut d = delivery(w, l, false);
+        if let Ok(r) = &mut d.result {
+            for (i, px) in r.pass_means.iter_mut().enumerate() {
+                *px = [value(i, l.unit.first_pass); 3];
+                stats[i].push(*px);
+            }
+        }
+        core.accept_result(d).await.unwrap();
+    }
+    let s = core.status(status.id).await.unwrap();
+    assert_eq!(s.state, JobState::Done);
+    assert_eq!(
+        s.error_estimator.as_deref(),
+        Some(tessera_farm::ERROR_ESTIMATOR)
+    );
+    let named = tessera_farm::image_relative_error(16, 16, |x, y| {
+        let p = &stats[y * 16 + x];
+        Some((p.mean_lum, p.lum_variance_of_mean()))
+    });
+    let own = (stats
+        .iter()
+        .map(|p| p.relative_error().powi(2))
+        .sum::<f64>()
+        / 256.0)
+        .sqrt();
+    assert!(named > 1.03 * own, "robust {named}, own means {own}");
+    let e = s.error_estimate.expect("an estimate");
+    assert!(
+        (e / named - 1.0).abs() < 1e-9,
+        "status {e}, named {named}, own {own}"
+    );
+}

@@ -8,12 +8,45 @@
 //! Their work is known: the remaining passes at the rate so far, `t (planned - done) /
 //! done` (passes of a job cost alike), or what is left of a time limit if less.
 //!
-//! # Jobs that stop at a target error
+//! # Adaptive jobs that stop at a target error
+//!
+//! What ends them is each pixel's own stopping (ARCHITECTURE.md §3, "Adaptive
+//! stopping"), not the image estimate: a sequential job ends when every pixel's own `rel`
+//! is under the target at a decision (with its 3x3 neighbourhood), an unbiased one when
+//! every pixel has the fresh passes its pilot planned. Extrapolating the image estimate by
+//! `1/sqrt(work)` (the ETA before 2026-12-07) predicted veach-mis 39-75% short and
+//! glass-spot 17 times too long (docs/benchmarks.md, "Quotes and ETA"). So the ETA sums
+//! the work left pixel by pixel ([`pixel_work`], [`PixelWork`]), in pixel-passes (a
+//! stopped pixel is not traced):
+//!
+//! - **sequential**: an active pixel with `k` passes and relative error `r` reaches the
+//!   target `E` after `n = k (r / E)²` passes under its own `1/sqrt(n)` law; it stops at
+//!   the first decision boundary at or above the largest `n` of its neighbourhood (at most
+//!   the plan's end);
+//! - **unbiased**: after the tile's pilot, exactly the fresh passes it planned; before,
+//!   unknown (counted at the plan's end; "not predictable yet" while more than a tenth of
+//!   the active pixels are).
+//!
+//! The seconds are that work over the rate ([`AdaptiveEta`]): pixel-passes traced per
+//! second over the later half of the job so far, less the time since the measurement. Its
+//! 95% interval combines, on a log scale: the laws' own uncertainty (each neighbourhood's
+//! law log-normal with the relative variance of a variance from `k` passes,
+//! `2 / (k - 1) + kurtosis / k`, [`LAW_KURTOSIS`]; their sum fitted by a log-normal of
+//! the same moments, Fenton 1960), the drift of the predicted total since half the job
+//! (where the laws still move, the prediction is that uncertain), and [`LAW_SD`] for what
+//! the laws leave out (first passage, dilation); and the spread of the rate between the
+//! job's third and fourth quarters. The tail class is the merged passes' ([`EtaTrend`],
+//! below): heavy widens the high end to each pixel's law with its per-pass error growing
+//! like `n^gamma`; not predictable gives no point ETA and an interval up to the sample
+//! budget at the slow end of the rate.
+//!
+//! # The tail class of a job that stops at a target error
 //!
 //! The image error falls like `1/sqrt(work)` where the pass values' variance is finite
 //! and their per-pass error settled (the quote's law, module documentation of
 //! [`crate::quote`]): from the current error `e` after `t` seconds, reaching the target `E`
-//! takes `(e / E)²` times the work done, `t ((e / E)² - 1)` more seconds. The law rests on
+//! takes `(e / E)²` times the work done, `t ((e / E)² - 1)` more seconds (the image law,
+//! kept for a caller with no pixel statistics). The law rests on
 //! the same two things a quote's does, and the job's merged passes measure both
 //! ([`EtaTrend`]):
 //!
@@ -49,6 +82,9 @@
 use super::{ratio_mean, TailClass, REL_M_UNPREDICTABLE, Z95};
 use crate::quote::tails::{GROWTH_HEAVY, GROWTH_UNPREDICTABLE};
 use crate::PixelStats;
+
+mod work;
+pub use work::{pixel_work, PixelWork, LAW_KURTOSIS};
 
 /// A group of a frame's pixels whose errors are summed, for the spread of the image
 /// error over the frame and its per-pass figure ([`error_groups`]).
@@ -214,6 +250,177 @@ pub struct JobProgress {
     /// What the merged passes say of the error's tail, for a job that stops at its
     /// target; `None` reads as light with no spread.
     pub trend: Option<EtaTrend>,
+    /// An adaptive job that stops at its target: its pixels' work left and the measured
+    /// rate. `None` before its first measurement; the ETA then falls back to the image
+    /// law.
+    pub adaptive: Option<AdaptiveEta>,
+}
+
+/// The standard deviation of the logarithm allowed for the pixels' laws themselves in
+/// the work left ([`AdaptiveEta::eta`]): a pixel stops at the first decision its noisy estimate
+/// falls under the target (a first passage, earlier than the law's mean crossing) and only
+/// with its 3x3 neighbourhood (later); on synthetic frames with normal-tailed passes the
+/// two left the predicted work within 5% of what the frames then took
+/// (`the_work_left_holds_what_the_frame_then_takes`), and 10% is allowed for frames whose
+/// pixels are fewer or whose passes are less regular.
+pub const LAW_SD: f64 = 0.1;
+
+/// One measurement of an adaptive job's pixel work ([`PixelWork`]), kept over the job so
+/// that the rate and the drift of the prediction can be read off later ones.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct EtaSample {
+    /// Seconds since the job's first lease.
+    pub elapsed_seconds: f64,
+    /// Pixel-passes traced by then ([`PixelWork::done`]).
+    pub done: f64,
+    /// The total pixel-passes then predicted ([`PixelWork::total`]).
+    pub total: f64,
+}
+
+/// An adaptive job's work left and the rate it is done at: what the ETA of a job that
+/// stops at its target extrapolates (module documentation, "Adaptive jobs").
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct AdaptiveEta {
+    /// The job's pixel work, summed over its frames, as of the measurement.
+    pub work: PixelWork,
+    /// Pixel-passes traced per second, over the later half of the job so far (the
+    /// first lease, the scene's transfer and the workers' set-up left out), or over all
+    /// of it before there is an earlier measurement.
+    pub rate: f64,
+    /// The rate's spread, a standard deviation of its logarithm: `|ln(r3 / r4)|` of the
+    /// rates over the third and the fourth quarter of the job so far; 0 until measured.
+    pub rate_spread: f64,
+    /// How far the predicted total moved since about half the job so far, in
+    /// pixel-passes: where the laws' predictions still move, the prediction is that
+    /// uncertain.
+    pub drift: f64,
+    /// Seconds since the measurement (the status is asked between them).
+    pub age_seconds: f64,
+}
+
+impl AdaptiveEta {
+    /// The measurement `work` at `elapsed_seconds`, with the rate, its spread and the
+    /// drift read against `earlier` measurements of the same job (in any order);
+    /// `age_seconds` since it was taken.
+    pub fn measure(
+        work: PixelWork,
+        elapsed_seconds: f64,
+        earlier: &[EtaSample],
+        age_seconds: f64,
+    ) -> Self {
+        let t = elapsed_seconds;
+        // The latest measurement at or before `at`.
+        let at = |at: f64| {
+            earlier
+                .iter()
+                .filter(|s| s.elapsed_seconds > 0.0 && s.elapsed_seconds <= at)
+                .max_by(|a, b| a.elapsed_seconds.total_cmp(&b.elapsed_seconds))
+                .copied()
+        };
+        let rate_between = |a: EtaSample, b: EtaSample| {
+            let dt = b.elapsed_seconds - a.elapsed_seconds;
+            Some((b.done - a.done) / dt).filter(|r| dt > 0.0 && r.is_finite() && *r > 0.0)
+        };
+        let now = EtaSample {
+            elapsed_seconds: t,
+            done: work.done,
+            total: work.total(),
+        };
+        let half = at(0.5 * t);
+        let rate = half
+            .and_then(|h| rate_between(h, now))
+            .unwrap_or(if t > 0.0 { work.done / t } else { 0.0 });
+        let rate_spread = match (half, at(0.75 * t)) {
+            (Some(h), Some(q)) => match (rate_between(h, q), rate_between(q, now)) {
+                (Some(r3), Some(r4)) => (r3 / r4).ln().abs(),
+                _ => 0.0,
+            },
+            _ => 0.0,
+        };
+        Self {
+            work,
+            rate,
+            rate_spread,
+            drift: half.map_or(0.0, |h| (now.total - h.total).abs()),
+            age_seconds: age_seconds.max(0.0),
+        }
+    }
+
+    /// The ETA (module documentation, "Adaptive jobs"): the work left over the rate, its
+    /// 95% interval from the pixels' laws' variance and the prediction's drift (in
+    /// pixel-passes) and the rate's spread, classed by `trend` as the quote classes its
+    /// pilot, all less the measurement's age and capped by the sample budget at the
+    /// slow end of the rate and by `time_limit_left_seconds`.
+    pub fn eta(&self, trend: EtaTrend, time_limit_left_seconds: Option<f64>) -> JobEta {
+        let w = &self.work;
+        let spread = if self.rate_spread.is_finite() {
+            self.rate_spread
+        } else {
+            0.0
+        };
+        let f = (Z95 * spread).exp();
+        let seconds = |pixel_passes: f64, rate: f64| pixel_passes / rate - self.age_seconds;
+        let mut cap = if self.rate > 0.0 {
+            seconds(w.budget, self.rate / f)
+        } else {
+            f64::INFINITY
+        };
+        if let Some(limit) = time_limit_left_seconds {
+            cap = cap.min(limit);
+        }
+        let cap = cap.max(0.0);
+        let clamp = |s: f64| if s.is_nan() { cap } else { s.clamp(0.0, cap) };
+        let (mut class, mut note) = trend.verdict();
+        // Too many pixels without a law: nothing bounds the work from below (measured: a
+        // low end from their soonest stops at the early rate lay above the actual finish
+        // at all 4 such marks, docs/benchmarks.md "The ETA of adaptive jobs from each
+        // pixel's own law"), so the interval starts at 0.
+        let mut no_floor = false;
+        if self.rate.is_nan() || self.rate <= 0.0 {
+            class = TailClass::Unpredictable;
+            note = Some("not predictable yet: no rate measured".into());
+            no_floor = true;
+        } else if w.unknown * 10 > w.active {
+            class = TailClass::Unpredictable;
+            note = Some(format!(
+                "not predictable yet: {} of the {} pixels still sampling have no prediction \
+                 (fewer than 2 passes, or their tile's unbiased pilot has not decided); the \
+                 interval runs from 0 to the sample budget",
+                w.unknown, w.active
+            ));
+            no_floor = true;
+        }
+        // The work left's interval in pixel-passes, on a log scale: the pixels' laws
+        // (their log-normal sum), the prediction's drift and the laws' own error
+        // ([`LAW_SD`]) combined.
+        let (median, log_sd) = w.left_lognormal().unwrap_or((w.left, 0.0));
+        let rel_drift = if w.left > 0.0 {
+            self.drift / w.left
+        } else {
+            0.0
+        };
+        let log_sd = (log_sd * log_sd + rel_drift * rel_drift + LAW_SD * LAW_SD).sqrt();
+        let spread_work = (Z95 * log_sd).exp();
+        // Pixels without a law yet count at their soonest stop at the low end.
+        let floor = if w.unknown > 0 { w.left_floor } else { w.left };
+        let low = seconds(w.left.min(median).min(floor) / spread_work, self.rate * f);
+        let mut high = seconds(w.left.max(median) * spread_work, self.rate / f);
+        if class == TailClass::Heavy {
+            high = high.max(seconds(w.left_heavy * spread_work, self.rate / f));
+        }
+        let low = if no_floor { 0.0 } else { low };
+        let point = seconds(w.left, self.rate);
+        let (point, high) = match class {
+            TailClass::Unpredictable => (None, cap),
+            _ => (Some(point), high),
+        };
+        JobEta {
+            seconds: point.map(clamp),
+            interval: Some((clamp(low), clamp(high))),
+            tail_class: Some(class),
+            note,
+        }
+    }
 }
 
 /// A running job's ETA ([`job_eta`]).
@@ -231,9 +438,10 @@ pub struct JobEta {
 }
 
 /// Estimated seconds until a running job is done, with its interval and tail class (module
-/// documentation): the smallest of the remaining passes at the rate so far, for a job
-/// that stops at a target the 1/sqrt(work) law classed by [`EtaTrend::verdict`], and what
-/// is left of a time limit. `None` before any pass is merged. Never negative.
+/// documentation): the smallest of the remaining passes at the rate so far, for an
+/// adaptive job that stops at a target its pixels' work left ([`AdaptiveEta`]) at the
+/// measured rate, classed by [`EtaTrend::verdict`], and what is left of a time limit.
+/// `None` before any pass is merged. Never negative.
 pub fn job_eta(p: &JobProgress) -> Option<JobEta> {
     if p.passes_done == 0 || p.elapsed_seconds.is_nan() || p.elapsed_seconds <= 0.0 {
         return None;
@@ -245,23 +453,23 @@ pub fn job_eta(p: &JobProgress) -> Option<JobEta> {
         cap = cap.min(limit);
     }
     let cap = cap.max(0.0);
-    let clamp = |s: f64| if s.is_nan() { cap } else { s.clamp(0.0, cap) };
-    let (Some(e), Some(target)) = (p.error, p.stopping_target) else {
-        return Some(JobEta {
-            seconds: Some(cap),
-            interval: None,
-            tail_class: None,
-            note: None,
-        });
+    let planned = Some(JobEta {
+        seconds: Some(cap),
+        interval: None,
+        tail_class: None,
+        note: None,
+    });
+    let Some(target) = p.stopping_target.filter(|t| t.is_finite() && *t > 0.0) else {
+        return planned;
     };
-    if !(e.is_finite() && e >= 0.0 && target.is_finite() && target > 0.0) {
-        return Some(JobEta {
-            seconds: Some(cap),
-            interval: None,
-            tail_class: None,
-            note: None,
-        });
+    if let Some(a) = p.adaptive {
+        return Some(a.eta(p.trend.unwrap_or_default(), p.time_limit_left_seconds));
     }
+    let Some(e) = p.error.filter(|e| e.is_finite() && *e >= 0.0) else {
+        return planned;
+    };
+    // No pixel statistics (a caller that keeps none): the image law.
+    let clamp = |s: f64| if s.is_nan() { cap } else { s.clamp(0.0, cap) };
     let trend = p.trend.unwrap_or_default();
     let (class, note) = trend.verdict();
     let rel = trend.rel_m.unwrap_or(0.0);

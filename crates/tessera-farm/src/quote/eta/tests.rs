@@ -68,6 +68,7 @@ fn progress(frame: &Frame, history: &[(f64, f64)], target: f64, planned: f64) ->
             work,
             history.iter().copied(),
         )),
+        adaptive: None,
     }
 }
 
@@ -177,6 +178,7 @@ fn the_trend_is_classed_by_the_quote_thresholds() {
             rel_m: Some(0.1),
             growth: Some(1.0),
         }),
+        adaptive: None,
     };
     let light = job_eta(&p).unwrap();
     let heavy_trend = EtaTrend {
