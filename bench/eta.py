@@ -7,12 +7,20 @@ when 10%, 25% and 50% of the planned passes are merged. The predicted finishing 
 each point is `elapsed + eta_seconds`; the table compares it with the actual one, and a
 `tessera estimate` quote of the same job, made before, alongside.
 
-Usage: bench/eta.py [TESSERA_BINARY] (default target/release/tessera, else target/debug).
-Not a test: it measures the clock, and its figures go to docs/benchmarks.md.
+With `--target`, jobs that stop at a target error (adaptive, with `target_error`)
+instead: every poll is kept, and at the first poll past 10%, 25% and 50% of the actual
+finishing time the table gives the predicted finish `elapsed + eta_seconds` (or "not
+predictable"), the 95% interval `elapsed + [eta_low_seconds, eta_high_seconds]`, the
+tail class, and whether the interval covers the actual finish.
+
+Usage: bench/eta.py [--target] [TESSERA_BINARY] (default target/release/tessera, else
+target/debug). Not a test: it measures the clock, and its figures go to docs/benchmarks.md.
 """
 import json, os, socket, subprocess, sys, tempfile, time, urllib.request
 
-BIN = sys.argv[1] if len(sys.argv) > 1 else None
+ARGS = [a for a in sys.argv[1:] if a != "--target"]
+TARGET = "--target" in sys.argv[1:]
+BIN = ARGS[0] if ARGS else None
 if BIN is None:
     target = os.environ.get("CARGO_TARGET_DIR", "target")
     for kind in ("release", "debug"):
@@ -26,6 +34,27 @@ JOBS = [
     ("builtin:veach-mis", ["--width", "256", "--height", "192", "--spp", "256"]),
     ("scenes/glass-spot.gltf", ["--width", "192", "--height", "192", "--spp", "128"]),
 ]
+# Jobs that stop at a target error (sequential adaptive stopping), small enough for the
+# shared machine: the Cornell box (light tails), veach-mis (glossy highlights of small
+# lights: heavy) and glass-spot (a bdpt caustic).
+TARGET_JOBS = [
+    ("builtin:cornell-box", ["--width", "64", "--height", "64", "--spp", "4096",
+                             "--adaptive", "sequential", "--target-error", "0.03"]),
+    ("builtin:veach-mis", ["--width", "64", "--height", "48", "--spp", "4096",
+                           "--adaptive", "sequential", "--target-error", "0.05"]),
+    ("scenes/glass-spot.gltf", ["--width", "48", "--height", "48", "--spp", "4096",
+                                "--adaptive", "sequential", "--target-error", "0.08"]),
+    # Unbiased: the pilot plans every pixel's passes, so the work left is known after it.
+    ("builtin:veach-mis", ["--width", "64", "--height", "48", "--spp", "4096",
+                           "--adaptive", "unbiased", "--target-error", "0.05"]),
+    # Uniform with a target: on the farm it runs its planned passes (the target only
+    # feeds the verdict), so its ETA is the passes left.
+    ("builtin:cornell-box", ["--width", "64", "--height", "64", "--spp", "256",
+                             "--target-error", "0.03"]),
+]
+# ETA_ONLY=0,2 runs those of TARGET_JOBS alone (to keep each locked run short).
+if os.environ.get("ETA_ONLY"):
+    TARGET_JOBS = [TARGET_JOBS[int(i)] for i in os.environ["ETA_ONLY"].split(",")]
 WORKERS = int(os.environ.get("ETA_WORKERS", "2"))
 
 
@@ -50,8 +79,71 @@ def settings(scene_ref, flags):
     s = {"scene": scene_ref}
     it = iter(flags)
     for f, v in zip(it, it):
-        s[f.lstrip("-").replace("-", "_")] = int(v)
+        for kind in (int, float, str):
+            try:
+                s[f.lstrip("-").replace("-", "_")] = kind(v)
+                break
+            except ValueError:
+                pass
     return s
+
+
+def follow_target(base, scene, flags):
+    """Runs one target job, keeping every poll; returns (polls, final status)."""
+    ref = scene
+    if not scene.startswith("builtin:"):
+        with open(scene, "rb") as f:
+            ref = post(f"{base}/scenes", f.read(), "model/gltf+json")["hash"]
+    job = post(f"{base}/jobs", json.dumps(settings(ref, flags)).encode())
+    polls = []
+    while True:
+        st = get(f"{base}/jobs/{job['id']}")
+        if st["state"] in ("done", "failed", "canceled"):
+            return polls, st
+        if st["state"] == "running":
+            polls.append(st)
+        time.sleep(0.1)
+
+
+def target_table(rows):
+    """Marks at the first poll past 10%, 25% and 50% of the actual finishing time with an
+    ETA; a build without the interval fields (before them) gives the point alone."""
+    print("| scene | job | at | predicted finish (s) | 95% interval (s) | class | covered | actual (s), spp |")
+    print("|---|---|---|---|---|---|---|---|")
+    covered_n, marks_n, within20 = 0, 0, 0
+    for scene, flags, polls, final in rows:
+        actual = final["elapsed_seconds"]
+        for m in (0.10, 0.25, 0.50):
+            st = next((p for p in polls if p["elapsed_seconds"] >= m * actual
+                       and (p.get("eta_low_seconds") is not None
+                            or p.get("eta_seconds") is not None)), None)
+            if st is None:
+                print(f"| {scene} | {' '.join(flags)} | {m:.0%} | - | - | - | - | {actual:.1f} |")
+                continue
+            marks_n += 1
+            el = st["elapsed_seconds"]
+            if st["eta_seconds"] is None:
+                pred = "not predictable"
+            else:
+                p = el + st["eta_seconds"]
+                within20 += abs(p - actual) <= 0.2 * actual
+                pred = f"{p:.1f} ({(p - actual) / actual * 100:+.0f}%)"
+            if st.get("eta_low_seconds") is None:
+                interval, covered = "-", "no interval"
+            else:
+                lo, hi = el + st["eta_low_seconds"], el + st["eta_high_seconds"]
+                interval = f"[{lo:.1f}, {hi:.1f}]"
+                ok = lo <= actual <= hi
+                covered_n += ok
+                covered = "yes" if ok else ("no, above" if actual > hi else "no, below")
+            print(f"| {scene} | {' '.join(flags)} | {m:.0%} ({el:.1f} s) | {pred} | {interval} "
+                  f"| {st.get('eta_tail_class', '-')} | {covered} | {actual:.1f}, {final['spp_so_far']:.0f} "
+                  f"{'' if final['state'] == 'done' else final['state']} |")
+        notes = {p.get("eta_note") for p in polls if p.get("eta_note")}
+        for n in sorted(notes)[:1]:
+            print(f"<!-- {scene}: {n} -->")
+    print(f"\nmarks {marks_n}, intervals covering the finish {covered_n}, "
+          f"point within 20% {within20}")
 
 
 def main():
@@ -71,6 +163,11 @@ def main():
             except Exception:
                 pass
             time.sleep(0.1)
+        if TARGET:
+            for scene, flags in TARGET_JOBS:
+                polls, final = follow_target(base, scene, flags)
+                rows.append((scene, flags, polls, final))
+            return target_table(rows)
         for scene, flags in JOBS:
             quoted = json.loads(subprocess.run(
                 [BIN, "estimate", scene, *flags, "--workers", str(WORKERS), "--threads", "1", "--json"],

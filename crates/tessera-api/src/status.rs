@@ -75,12 +75,17 @@ pub struct JobStatus {
     /// Samples per pixel merged so far, averaged over the pixels of all frames (not an
     /// integer under adaptive stopping).
     pub spp_so_far: f64,
-    /// The current image error estimate (RMS relative error, ARCHITECTURE.md §3); `None` until
-    /// every pixel has at least two passes.
+    /// The current image error estimate (RMS relative error, ARCHITECTURE.md §3), the one
+    /// `error_estimator` names, as of the job's last history point (at most 0.2 s old while
+    /// results arrive); `None` until every pixel has at least two passes. (Before
+    /// 2026-12-07 a job without adaptive stopping gave the RMS of each pixel's error over
+    /// its own mean here, not the robust scale its `error_estimator` named.)
     pub error_estimate: Option<f64>,
     /// Which estimator `error_estimate` and the per-pixel intervals are
-    /// (`tessera_farm::ERROR_ESTIMATOR`, also in the EXR header). Absent from older
-    /// servers.
+    /// (`tessera_farm::ERROR_ESTIMATOR`, also in the EXR header). For a job read back from
+    /// the store, the name stored with its estimate (store schema version 9, PostgreSQL
+    /// 8); absent when the estimate was stored by an older build, which did not say which
+    /// estimator computed it, and from older servers.
     #[serde(default)]
     pub error_estimator: Option<String>,
     /// Why `error_estimate` may be optimistic for this job, when the render plan knows
@@ -107,8 +112,32 @@ pub struct JobStatus {
     pub stop_reason: Option<String>,
     /// Seconds since the job started running (0 while queued).
     pub elapsed_seconds: f64,
-    /// Estimated seconds until done; `None` when not yet predictable.
+    /// Estimated seconds until done; `None` when not yet predictable, and for a job that
+    /// stops at its target error whose error is not predictable from its passes so far
+    /// (`eta_tail_class` `unpredictable`; `eta_note` says why).
     pub eta_seconds: Option<f64>,
+    /// The low end of the 95% interval of the seconds until done, for a running job that
+    /// stops at its target error (adaptive with a target; ARCHITECTURE.md §3, "Quotes and
+    /// ETA"): where the law the ETA extrapolates is not predictable, a lower bound. Absent
+    /// for other jobs and from older servers.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta_low_seconds: Option<f64>,
+    /// The high end of that interval: where not predictable, the sample budget at the rate
+    /// so far (the job cannot run longer). Absent as `eta_low_seconds` is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta_high_seconds: Option<f64>,
+    /// For a running job that stops at its target error: how far the ETA's law can be
+    /// trusted, classed as a quote's pilot is (`tessera_farm::quote::TailClass`):
+    /// `light` (the interval stands), `heavy` (its high end widened for a per-pass error
+    /// still growing) or `unpredictable` (no `eta_seconds`). Absent for other jobs and
+    /// from older servers.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta_tail_class: Option<String>,
+    /// Why, unless `light`: the reason and the measured figures, e.g. "not predictable
+    /// from the passes so far: the error estimate grew with the passes instead of
+    /// falling, ...".
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub eta_note: Option<String>,
     /// When the job was accepted, Unix milliseconds.
     pub created_unix_ms: u64,
     /// When the job started running (its first lease), Unix milliseconds; `None` while
@@ -403,6 +432,10 @@ mod tests {
             stop_reason: None,
             elapsed_seconds: 3.25,
             eta_seconds: Some(10.0),
+            eta_low_seconds: None,
+            eta_high_seconds: None,
+            eta_tail_class: None,
+            eta_note: None,
             created_unix_ms: 1_700_000_000_000,
             started_unix_ms: Some(1_700_000_000_250),
             finished_unix_ms: None,
@@ -432,6 +465,28 @@ mod tests {
         assert_eq!(v["settings"]["mis"], "power");
         assert_eq!(v["target_error"], serde_json::Value::Null);
         assert_eq!(v["eta_seconds"], 10.0);
+        // The ETA's interval and class are for jobs that stop at a target: absent here, so
+        // a client of an older server reads the same JSON.
+        for absent in [
+            "eta_low_seconds",
+            "eta_high_seconds",
+            "eta_tail_class",
+            "eta_note",
+        ] {
+            assert!(v.get(absent).is_none(), "{absent}: {v}");
+        }
+        let not_predictable = JobStatus {
+            eta_seconds: None,
+            eta_low_seconds: Some(2.0),
+            eta_high_seconds: Some(90.0),
+            eta_tail_class: Some("unpredictable".into()),
+            eta_note: Some("not predictable from the passes so far: ...".into()),
+            ..status()
+        };
+        let v = round_trip(&not_predictable);
+        assert_eq!(v["eta_seconds"], serde_json::Value::Null);
+        assert_eq!(v["eta_high_seconds"], 90.0);
+        assert_eq!(v["eta_tail_class"], "unpredictable");
         assert_eq!(v["rejected_samples"], 3);
         let list = JobList {
             jobs: vec![status(), status()],

@@ -191,6 +191,7 @@ fn upload_environment(client: &Client, s: &mut JobSettings) -> Result<()> {
 /// last one to standard output; an end other than `done` is an error.
 fn wait(client: &Client, id: u64, timeout_seconds: f64) -> Result<JobStatus> {
     let mut last = String::new();
+    let mut last_class = None;
     let done = client
         .wait(
             id,
@@ -201,6 +202,14 @@ fn wait(client: &Client, id: u64, timeout_seconds: f64) -> Result<JobStatus> {
                 if line != last {
                     eprintln!("{line}");
                     last = line;
+                }
+                // Why the ETA is widened or not predictable, when its class changes (the
+                // note's figures change with every merge).
+                if st.eta_tail_class != last_class {
+                    if let Some(n) = &st.eta_note {
+                        eprintln!("eta: {n}");
+                    }
+                    last_class.clone_from(&st.eta_tail_class);
                 }
             },
         )

@@ -9,6 +9,7 @@ import { drawConvergence } from "./plot.js";
 import { drawHeatmap, tileAt, describeTile } from "./heatmap.js";
 import {
   h, s, setText, duration, num, int, percent, jobLabel, sceneLabel, progress, terminal, clock, download,
+  etaText,
 } from "./util.js";
 
 function field(dl, label) {
@@ -174,7 +175,9 @@ export function jobView(id, poke) {
     setText(f.error, `${percent(j.error_estimate)} / ${target}${verdict}${caveat}`);
     f.error.title = j.error_estimate_caveat || "";
     setText(f.elapsed, duration(j.elapsed_seconds));
-    setText(f.eta, terminal(j.state) ? "—" : j.eta_seconds === null ? "not yet predictable" : `≈ ${duration(j.eta_seconds)}`);
+    setText(f.eta, etaText(j));
+    // Why the ETA is widened or not predictable (a job that stops at its target): on hover.
+    f.eta.title = terminal(j.state) ? "" : j.eta_note || "";
     const w = j.width ?? j.settings?.width;
     const hh = j.height ?? j.settings?.height;
     setText(f.size, w && hh ? `${w} × ${hh}` : "from the scene (not loaded yet)");

@@ -66,6 +66,13 @@ function text(f) {
 
 const eta = (job) => (terminal(job.state) ? null : job.eta_seconds);
 
+/** The remaining time; a job whose ETA is not predictable says so, the reason on hover. */
+function etaCell(td, job) {
+  const unpredictable = !terminal(job.state) && job.eta_tail_class === "unpredictable";
+  setText(td, unpredictable ? "not predictable" : duration(eta(job)));
+  td.title = terminal(job.state) ? "" : job.eta_note ?? "";
+}
+
 const COLUMNS = [
   { key: "id", label: "ID", num: true, value: (j) => j.id, cell: text((j) => j.id) },
   { key: "name", label: "Job", value: (j) => jobLabel(j).toLowerCase(), cell: link },
@@ -82,7 +89,7 @@ const COLUMNS = [
     key: "elapsed", label: "Elapsed", num: true, value: (j) => j.elapsed_seconds,
     cell: text((j) => duration(j.elapsed_seconds)),
   },
-  { key: "eta", label: "Remaining", num: true, value: eta, cell: text((j) => duration(eta(j))) },
+  { key: "eta", label: "Remaining", num: true, value: eta, cell: etaCell },
 ];
 
 function compare(a, b) {

@@ -60,6 +60,27 @@ export function duration(seconds) {
   return `${min} min ${two(sec)} s`;
 }
 
+/**
+ * The ETA of a job for people: "≈ 3 min 05 s", with its 95% interval for a job that stops
+ * at its target ("≈ 3 min 05 s (2 min 40 s to 4 min 10 s)"), "not predictable (at least
+ * 12 s, at most 8 min 20 s)" when its passes so far cannot predict its error (the status's
+ * `eta_note` says why), "not yet predictable" before any, "—" once the job has ended.
+ */
+export function etaText(j) {
+  if (terminal(j.state)) return "—";
+  const lo = j.eta_low_seconds;
+  const hi = j.eta_high_seconds;
+  const interval = Number.isFinite(lo) && Number.isFinite(hi);
+  if (j.eta_seconds === null || j.eta_seconds === undefined) {
+    if (j.eta_tail_class === "unpredictable" && interval) {
+      return `not predictable (at least ${duration(lo)}, at most ${duration(hi)})`;
+    }
+    return "not yet predictable";
+  }
+  const point = `≈ ${duration(j.eta_seconds)}`;
+  return interval ? `${point} (${duration(lo)} to ${duration(hi)})` : point;
+}
+
 /** A number with about three significant digits; "—" for null. */
 export function num(x, digits = 3) {
   if (x === null || x === undefined || !Number.isFinite(x)) return "—";

@@ -395,6 +395,11 @@ pub struct JobRuntime {
     /// Per frame, per tile: (sum of squared relative errors, pixel count) of the tiles with
     /// at least two passes, kept incrementally so the image error costs O(tiles).
     pub(crate) tile_error: Vec<Vec<(f64, u64)>>,
+    /// Per frame: the image error estimate its status names (the robust scale,
+    /// `FrameAccumulator::image_error`), as of the frame's last history point while it
+    /// was live (a walk over its pixels and their neighbours, too slow per request);
+    /// `None` before. Jobs without adaptive stopping.
+    pub(crate) frame_error: Vec<Option<f64>>,
     /// Per frame, per tile: the samples its renderers rejected as invalid.
     pub(crate) tile_rejected: Vec<Vec<TileRejected>>,
     /// When the last convergence-history point was recorded, Unix ms.
@@ -407,6 +412,20 @@ pub struct JobRuntime {
     /// last computed with a history point: the status reads it instead of walking every
     /// pixel per request.
     pub(crate) adaptive_summary: (f64, Option<f64>),
+    /// An adaptive job with a target: what its merged passes say of its error's tail
+    /// (`tessera_farm::quote::EtaTrend`), as of its last history point, for the ETA.
+    pub(crate) eta_trend: Option<tessera_farm::quote::EtaTrend>,
+    /// The same job's mean per-pass relative variance at each history point of this run,
+    /// as (spp, figure): the trend's growth compares the last with the one at half its spp.
+    pub(crate) per_pass_history: Vec<(f64, f64)>,
+    /// The same job's pixel work (`tessera_farm::quote::AdaptiveEta`) as of its last
+    /// history point, and when that was (Unix ms), for the ETA.
+    pub(crate) eta_adaptive: Option<(tessera_farm::quote::AdaptiveEta, u64)>,
+    /// Its pixel work per frame as last measured (`None` for a frame not seen live): a
+    /// released frame keeps what it traced.
+    pub(crate) eta_frames: Vec<Option<tessera_farm::quote::PixelWork>>,
+    /// Its measurements at each history point of this run, for the rate and the drift.
+    pub(crate) eta_samples: Vec<tessera_farm::quote::EtaSample>,
     /// Results merged into this job so far in this run: the version of its images
     /// (the image cache's key, `service::images`).
     pub(crate) merges: u64,
@@ -481,11 +500,17 @@ impl JobRuntime {
             unusable_workers: std::collections::BTreeSet::new(),
             lost_units: BTreeMap::new(),
             tile_error: vec![vec![(0.0, 0); tiles]; frames],
+            frame_error: vec![None; frames],
             tile_rejected: vec![vec![TileRejected::default(); tiles]; frames],
             last_history_ms: 0,
             history: Vec::new(),
             plan_json,
             adaptive_summary: (0.0, None),
+            eta_trend: None,
+            per_pass_history: Vec::new(),
+            eta_adaptive: None,
+            eta_frames: Vec::new(),
+            eta_samples: Vec::new(),
             merges: 0,
             unit_seconds: (0.0, 0),
             unsaved_checkpoints: false,
@@ -499,20 +524,24 @@ impl JobRuntime {
         &self.resolved.job
     }
 
-    /// The RMS relative error over all pixels, once every tile has two passes.
+    /// The image error estimate of a job without adaptive stopping, the estimator its
+    /// status and its EXR header name (`ResolvedJob::error_estimator_name`: the robust
+    /// scale at the neighbours' level, not each pixel's error over its own mean, which the
+    /// status gave before): each frame's as of its last history point (`frame_error`),
+    /// their RMS over all pixels; once every tile has two passes and each frame's has
+    /// been computed.
     pub(crate) fn error_estimate(&self) -> Option<f64> {
-        let (mut sum, mut n) = (0.0, 0u64);
-        let mut all = true;
-        for frame in &self.tile_error {
-            for &(s, c) in frame {
-                if c == 0 {
-                    all = false;
-                }
-                sum += s;
-                n += c;
-            }
+        // Every tile of every frame with two passes: every pixel has an estimate.
+        if self.tile_error.iter().flatten().any(|&(_, c)| c == 0) {
+            return None;
         }
-        (all && n > 0).then(|| (sum / n as f64).sqrt())
+        let (mut sum, mut n) = (0.0, 0u64);
+        for (tiles, e) in self.tile_error.iter().zip(&self.frame_error) {
+            let pixels: u64 = tiles.iter().map(|&(_, c)| c).sum();
+            sum += e.as_ref()?.powi(2) * pixels as f64;
+            n += pixels;
+        }
+        (n > 0).then(|| (sum / n as f64).sqrt())
     }
 
     /// Samples rejected as invalid by the renderers, merged or buffered.

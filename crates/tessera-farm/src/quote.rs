@@ -98,7 +98,12 @@
 
 use serde::{Deserialize, Serialize};
 
+mod eta;
 mod tails;
+pub use eta::{
+    error_groups, job_eta, job_eta_seconds, pixel_work, AdaptiveEta, ErrorGroup, EtaSample,
+    EtaTrend, JobEta, JobProgress, PixelWork, LAW_KURTOSIS, LAW_SD,
+};
 pub use tails::{TailClass, Tails};
 
 /// The errors a quote is given when the job names none: 10%, 5%, 2% and 1%.
@@ -765,57 +770,6 @@ pub fn pilot_tiles(tile_count: u32, pixels_per_tile: u64) -> Vec<u32> {
     let mut tiles: Vec<u32> = (0..n).map(|i| (i * g % t) as u32).collect();
     tiles.sort_unstable();
     tiles
-}
-
-/// A running job's progress, what [`job_eta_seconds`] predicts from.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct JobProgress {
-    /// Seconds spent rendering so far (the rate's denominator; the coordinator counts
-    /// from when its first merged unit began rendering, not the set-up before it).
-    pub elapsed_seconds: f64,
-    /// Passes merged, over all tiles and frames; or any measure of the work done in the
-    /// unit of `passes_planned` (only their ratio counts: the coordinator passes passes
-    /// times units, to count the spot checks' copies without truncating).
-    pub passes_done: u64,
-    /// Passes planned, over all tiles and frames (or the work planned, as above).
-    pub passes_planned: u64,
-    /// The current image error estimate, if there is one.
-    pub error: Option<f64>,
-    /// The target error, if the job stops when its image reaches it (adaptive jobs). A
-    /// job without adaptive stopping on the farm runs its planned passes whatever its
-    /// target, so its target does not shorten its ETA.
-    pub stopping_target: Option<f64>,
-    /// Seconds left of the job's time limit, if it has one.
-    pub time_limit_left_seconds: Option<f64>,
-}
-
-/// Estimated seconds until a running job is done, from its measured progress: the
-/// smallest of
-///
-/// - the remaining passes at the rate so far, `t (planned - done) / done` (passes of a job
-///   cost alike: the same samples per pass over tiles of the same size, leased coarse to
-///   fine so every stretch of the job mixes the frame's tiles);
-/// - for a job that stops at a target, the 1/sqrt(work) law (ARCHITECTURE.md §3): from
-///   the current error `e`, reaching the target `E` takes `(e / E)²` times the work done,
-///   `t ((e / E)² - 1)` more seconds;
-/// - what is left of a time limit.
-///
-/// `None` before any pass is merged. Never negative.
-pub fn job_eta_seconds(p: &JobProgress) -> Option<f64> {
-    if p.passes_done == 0 || p.elapsed_seconds.is_nan() || p.elapsed_seconds <= 0.0 {
-        return None;
-    }
-    let t = p.elapsed_seconds;
-    let mut eta = t * p.passes_planned.saturating_sub(p.passes_done) as f64 / p.passes_done as f64;
-    if let (Some(e), Some(target)) = (p.error, p.stopping_target) {
-        if let Some(to_target) = crate::adaptive::eta_seconds(e, target, t) {
-            eta = eta.min(to_target);
-        }
-    }
-    if let Some(left) = p.time_limit_left_seconds {
-        eta = eta.min(left);
-    }
-    Some(eta.max(0.0))
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use tessera_api::{
     History, JobList, JobListQuery, JobSettings, JobState, JobStatus, ResolvedJob, ValidatedJob,
 };
 use tessera_farm::job::StopVerdict;
-use tessera_farm::quote::{job_eta_seconds, JobProgress};
+use tessera_farm::quote::{job_eta, AdaptiveEta, JobEta, JobProgress, TailClass};
 use tessera_farm::{frame_state_bytes_with_bias, FramePlan, JobId, Progress, WorkerId};
 
 use super::{Coordinator, MAX_PAGE};
@@ -232,11 +232,23 @@ impl Coordinator {
             p.get("integrator").and_then(|i| i.as_str())
                 == Some(tessera_farm::job::PlannedIntegrator::Black.as_str())
         });
-        let estimator = tessera_farm::ErrorEstimator::for_mode(mode).name();
-        let estimator = if biased && !black {
-            format!("{estimator}; {}", tessera_farm::BIAS_TERM)
+        let current = tessera_farm::ErrorEstimator::for_mode(mode).name();
+        let current = if biased && !black {
+            format!("{current}; {}", tessera_farm::BIAS_TERM)
         } else {
-            estimator.to_string()
+            current.to_string()
+        };
+        // The estimate shown is the last stored history point's, computed by the build
+        // that stored it: named as that build stored it (schema version 9), not as this
+        // build would compute it. The robust scale's level changed on 2026-12-06, and the
+        // estimates and the estimator's name with it, so an adaptive job finished before
+        // showed its old-level estimate under the new name. A point stored by an older
+        // build does not say which estimator computed it, and its name is not guessed.
+        let estimate = history.last().and_then(|h| h.error_estimate);
+        let estimator = match (&rec.error_estimator, estimate) {
+            (Some(stored), _) => Some(stored.clone()),
+            (None, Some(_)) => None,
+            (None, None) => Some(current),
         };
         Ok(JobStatus {
             id: rec.id,
@@ -260,14 +272,18 @@ impl Coordinator {
             passes_planned,
             passes_done,
             spp_so_far: if pixels > 0.0 { samples / pixels } else { 0.0 },
-            error_estimate: history.last().and_then(|h| h.error_estimate),
-            error_estimator: Some(estimator),
+            error_estimate: estimate,
+            error_estimator: estimator,
             // Both as accepted (store schema 6); absent for jobs stored by older builds.
             error_estimate_caveat: rec.error_estimate_caveat.clone(),
             target_reached: verdict.and_then(|v| v.target_reached()),
             stop_reason: verdict.map(|v| v.summary()),
             elapsed_seconds: elapsed,
             eta_seconds: None,
+            eta_low_seconds: None,
+            eta_high_seconds: None,
+            eta_tail_class: None,
+            eta_note: None,
             created_unix_ms: rec.created_unix_ms,
             started_unix_ms: rec.started_unix_ms,
             finished_unix_ms: rec.finished_unix_ms,
@@ -512,11 +528,16 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         rt.error_estimate()
     };
     let eta = if rt.state.is_terminal() {
-        Some(0.0)
+        Some(JobEta {
+            seconds: Some(0.0),
+            interval: None,
+            tail_class: None,
+            note: None,
+        })
     } else {
         let credit = in_flight_credit(farm, id, rt.unit_seconds, now);
         let (eta_done, eta_planned) = eta_work(progress, passes_done, passes_planned, credit);
-        job_eta_seconds(&JobProgress {
+        job_eta(&JobProgress {
             // Since the first lease. Not from when the first merged unit began rendering
             // (its merge time less its render seconds, as before): a worker submits a
             // batch's results together, so that start was the batch's last unit's and the
@@ -529,8 +550,17 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
             // On the farm only adaptive jobs stop at their target (ARCHITECTURE.md §3).
             stopping_target: adaptive.and(rt.job().target_error),
             time_limit_left_seconds: rt.job().time_limit_seconds.map(|l| l - elapsed),
+            // The tail class of the passes merged so far, as the quote classes its pilot.
+            trend: rt.eta_trend,
+            // What ends an adaptive job: each pixel's own stop, as of the last history
+            // point (ARCHITECTURE.md §3, "The ETA").
+            adaptive: adaptive.and(rt.eta_adaptive).map(|(a, at)| AdaptiveEta {
+                age_seconds: now.saturating_sub(at) as f64 / 1e3,
+                ..a
+            }),
         })
     };
+    let eta_interval = eta.as_ref().and_then(|e| e.interval);
     let verdict = match rt.stopped {
         Some(stop) if rt.state == JobState::Done && rt.job().stops_early() => Some(StopVerdict {
             time_limit: stop == Stop::TimeLimit,
@@ -566,7 +596,14 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         target_reached: verdict.and_then(|v| v.target_reached()),
         stop_reason: verdict.map(|v| v.summary()),
         elapsed_seconds: elapsed,
-        eta_seconds: eta,
+        eta_seconds: eta.as_ref().and_then(|e| e.seconds),
+        eta_low_seconds: eta_interval.map(|i| i.0),
+        eta_high_seconds: eta_interval.map(|i| i.1),
+        eta_tail_class: eta
+            .as_ref()
+            .and_then(|e| e.tail_class)
+            .map(|c| tail_class_name(c).to_string()),
+        eta_note: eta.and_then(|e| e.note),
         created_unix_ms: rt.created_unix_ms,
         started_unix_ms: rt.started_unix_ms,
         finished_unix_ms: rt.finished_unix_ms,
@@ -576,6 +613,15 @@ fn status_of(farm: &Farm, id: JobId, rt: &JobRuntime) -> JobStatus {
         error: rt.error.clone(),
         plan: rt.plan_json.clone(),
         adaptive: rt.job().adaptive.to_string(),
+    }
+}
+
+/// The status's spelling of a tail class (`eta_tail_class`), as a quote's JSON spells it.
+fn tail_class_name(c: TailClass) -> &'static str {
+    match c {
+        TailClass::Light => "light",
+        TailClass::Heavy => "heavy",
+        TailClass::Unpredictable => "unpredictable",
     }
 }
 

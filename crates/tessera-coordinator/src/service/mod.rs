@@ -427,7 +427,7 @@ impl Coordinator {
     /// the last checkpoint and the state change). No result would come to finish them, so
     /// they would stay `running` for ever.
     async fn finish_complete_jobs(&self) -> Result<(), StoreError> {
-        let complete: Vec<(JobId, Option<(JobId, tessera_api::HistoryPoint)>)> = {
+        let complete: Vec<(JobId, Option<results::StoredPoint>)> = {
             let Ok(mut farm) = self.inner.farm.lock() else {
                 return Ok(());
             };
@@ -443,8 +443,12 @@ impl Coordinator {
                 .collect()
         };
         for (id, point) in complete {
-            if let Some((job, point)) = point {
-                if let Err(e) = self.inner.store.append_history(job, point).await {
+            if let Some((job, point, estimator)) = point {
+                let stored = self
+                    .inner
+                    .store
+                    .append_history(job, point, Some(&estimator));
+                if let Err(e) = stored.await {
                     tracing::warn!(job, error = %e, "history point not stored");
                 }
             }
@@ -618,8 +622,12 @@ impl Coordinator {
                 tracing::warn!(job, error = %e, "cannot fail the job");
             }
         }
-        for (job, point) in final_points {
-            if let Err(e) = self.inner.store.append_history(job, point).await {
+        for (job, point, estimator) in final_points {
+            let stored = self
+                .inner
+                .store
+                .append_history(job, point, Some(&estimator));
+            if let Err(e) = stored.await {
                 tracing::warn!(job, error = %e, "history point not stored");
             }
         }

@@ -151,7 +151,7 @@ struct Writes {
     /// `checkpoint`, which is newer).
     resets: Vec<TileCheckpoint>,
     checkpoint: Option<TileCheckpoint>,
-    history: Option<(JobId, HistoryPoint)>,
+    history: Option<StoredPoint>,
     faults: Vec<FaultEvent>,
     /// Workers quarantined by this result's spot checks, for the store's quarantine list.
     quarantines: Vec<QuarantineRecord>,
@@ -306,8 +306,8 @@ impl Coordinator {
     /// result. A quarantine that is not stored still holds in memory until a restart.
     async fn write_back(&self, w: &Writes) {
         let store = &self.inner.store;
-        if let Some((job, point)) = w.history {
-            if let Err(e) = store.append_history(job, point).await {
+        if let Some((job, point, estimator)) = &w.history {
+            if let Err(e) = store.append_history(*job, *point, Some(estimator)).await {
                 tracing::warn!(job, error = %e, "history point not stored");
             }
         }
@@ -744,14 +744,108 @@ pub(crate) fn adaptive_summary(a: &tessera_farm::AdaptiveFrame) -> (f64, Option<
     )
 }
 
+/// The ETA's trend of an adaptive job with a target (`tessera_farm::quote::EtaTrend`):
+/// the spread of its first frame's error over the tiles, and the growth of its per-pass
+/// figure since half of `spp`. Walks every pixel once, as the history point's summary does.
+fn record_trend(rt: &mut crate::state::JobRuntime, a: &tessera_farm::AdaptiveFrame, spp: f64) {
+    use tessera_farm::quote::{error_groups, EtaTrend};
+    let groups = error_groups(a.tiles().iter().map(|t| (t.rect().width, t.pixels())));
+    let (rel_m, per_pass) = EtaTrend::of_groups(&groups);
+    rt.eta_trend = Some(EtaTrend::with_growth(
+        rel_m,
+        per_pass,
+        spp,
+        rt.per_pass_history.iter().copied(),
+    ));
+    if let Some(q) = per_pass {
+        rt.per_pass_history.push((spp, q));
+    }
+}
+
+/// The ETA's measurement of an adaptive job with a target (`tessera_farm::quote::AdaptiveEta`,
+/// ARCHITECTURE.md §3 "The ETA"): each live frame's pixel work (`quote::pixel_work`, with the
+/// heavy extrapolation's exponent from the trend just recorded), frames released since
+/// their last measurement counted as done, frames not begun as the mean of those measured;
+/// the rate and the drift read against the job's earlier measurements. Walks every pixel
+/// of the live frames once.
+fn record_pixel_work(farm: &mut Farm, job: JobId, now: u64) {
+    use tessera_farm::quote::{pixel_work, AdaptiveEta, EtaSample, PixelWork, TailClass};
+    let Some(rt) = farm.runtime.get(&job) else {
+        return;
+    };
+    let first = rt.job().frames.start;
+    let count = rt.job().frames.count() as usize;
+    let trend = rt.eta_trend.unwrap_or_default();
+    let gamma = match trend.verdict().0 {
+        TailClass::Heavy => trend.growth.map_or(0.0, |g| g.max(1.0).log2()),
+        _ => 0.0,
+    };
+    let live: Vec<(usize, PixelWork)> = (0..count)
+        .filter_map(|k| {
+            let f = farm.scheduler.adaptive_frame(job, first + k as u32)?;
+            Some((k, pixel_work(f, gamma)))
+        })
+        .collect();
+    let Some(rt) = farm.runtime.get_mut(&job) else {
+        return;
+    };
+    if rt.eta_frames.len() != count {
+        rt.eta_frames = vec![None; count];
+    }
+    // A frame measured before and not live now was released: done, nothing left.
+    for (k, slot) in rt.eta_frames.iter_mut().enumerate() {
+        if let Some(w) = slot {
+            if !live.iter().any(|(j, _)| *j == k) {
+                *w = PixelWork {
+                    done: w.done,
+                    ..PixelWork::default()
+                };
+            }
+        }
+    }
+    for (k, w) in &live {
+        rt.eta_frames[*k] = Some(*w);
+    }
+    let seen: Vec<PixelWork> = rt.eta_frames.iter().flatten().copied().collect();
+    if seen.is_empty() {
+        return;
+    }
+    let unseen = rt.eta_frames.iter().filter(|f| f.is_none()).count() as f64;
+    let n = seen.len() as f64;
+    let mean = |f: fn(&PixelWork) -> f64| seen.iter().map(f).sum::<f64>() / n;
+    let mut work = seen.iter().fold(PixelWork::default(), |a, w| a.plus(*w));
+    if unseen > 0.0 {
+        // Frames not begun: each as the frames measured so far, done and left.
+        let total = mean(|w| w.total());
+        work.left += unseen * total;
+        work.left_heavy += unseen * (total - mean(|w| w.left) + mean(|w| w.left_heavy));
+        work.left_mean += unseen * (total - mean(|w| w.left) + mean(|w| w.left_mean));
+        work.left_var += unseen * mean(|w| w.left_var);
+        work.budget += unseen * total.max(mean(|w| w.done + w.budget));
+    }
+    let elapsed = rt.elapsed_seconds(now);
+    let measured = AdaptiveEta::measure(work, elapsed, &rt.eta_samples, 0.0);
+    rt.eta_samples.push(EtaSample {
+        elapsed_seconds: elapsed,
+        done: work.done,
+        total: work.total(),
+    });
+    rt.eta_adaptive = Some((measured, now));
+}
+
+/// A job's history point to store, with the name of the estimator of its error estimate.
+pub(crate) type StoredPoint = (JobId, HistoryPoint, String);
+
 /// A convergence-history point (spp, image error, elapsed seconds), at most every
-/// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10).
+/// [`HISTORY_INTERVAL_MS`] and at completion (ARCHITECTURE.md §9, step 10), with the name
+/// of the estimator its error estimate is (stored with it: a job read back from the
+/// store names the estimate it shows, not the reading build's estimator).
 pub(crate) fn history_point(
     farm: &mut Farm,
     job: JobId,
     now: u64,
     complete: bool,
-) -> Option<(JobId, HistoryPoint)> {
+) -> Option<StoredPoint> {
     let p = farm.scheduler.progress(job)?;
     let rt = farm.runtime.get_mut(&job)?;
     if !complete && now < rt.last_history_ms + HISTORY_INTERVAL_MS {
@@ -762,14 +856,31 @@ pub(crate) fn history_point(
         Some(a) => {
             let summary = adaptive_summary(a);
             rt.adaptive_summary = summary;
+            if rt.job().target_error.is_some() {
+                record_trend(rt, a, summary.0);
+            }
             summary
         }
         // The first frame finished and was released: its final figures.
         None if rt.job().adaptive_settings().is_some() => rt.adaptive_summary,
-        None => (
-            spp_so_far(&rt.resolved, p.passes_done, rt.job().frames.count()),
-            rt.error_estimate(),
-        ),
+        None => {
+            // The estimate the status names, of each live frame every pixel of which has
+            // an estimate (a walk over its pixels, as the adaptive summary's).
+            let first = rt.job().frames.start;
+            for (k, slot) in rt.frame_error.iter_mut().enumerate() {
+                let tiles = rt.tile_error.get(k).map(Vec::as_slice).unwrap_or(&[]);
+                if tiles.iter().any(|&(_, c)| c == 0) {
+                    continue;
+                }
+                if let Some(acc) = farm.scheduler.frame(job, first + k as u32) {
+                    *slot = Some(acc.image_error()).filter(|e| e.is_finite());
+                }
+            }
+            (
+                spp_so_far(&rt.resolved, p.passes_done, rt.job().frames.count()),
+                rt.error_estimate(),
+            )
+        }
     };
     let point = HistoryPoint {
         elapsed_seconds: rt.elapsed_seconds(now),
@@ -777,7 +888,11 @@ pub(crate) fn history_point(
         error_estimate,
     };
     rt.history.push(point);
-    Some((job, point))
+    let name = rt.resolved.error_estimator_name();
+    if rt.job().target_error.is_some() && rt.job().adaptive_settings().is_some() && !complete {
+        record_pixel_work(farm, job, now);
+    }
+    Some((job, point, name))
 }
 
 /// Counts a refused result against the worker and its job, and returns the fault event

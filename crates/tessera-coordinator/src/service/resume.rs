@@ -134,6 +134,8 @@ struct CompleteFrame {
     frame: u32,
     rejected: Vec<u64>,
     errors: Vec<(f64, u64)>,
+    /// Its image error estimate (`FrameAccumulator::image_error`, the status's).
+    estimate: Option<f64>,
 }
 
 /// A job's frames that have checkpoints but are not complete, restored, and the
@@ -178,10 +180,12 @@ async fn restore_incomplete(
                 .iter()
                 .flat_map(|a| a.tiles().iter().map(tile_error))
                 .collect();
+            let estimate = one.frames.first().map(|a| a.image_error());
             complete.push(CompleteFrame {
                 frame,
                 rejected,
                 errors,
+                estimate,
             });
             continue;
         }
@@ -431,13 +435,21 @@ async fn resume_job(
         }
         Restart::Plain(restored, complete) => {
             for f in &restored.frames {
-                if let Some(slot) = rt.tile_error.get_mut((f.frame() - first) as usize) {
+                let k = (f.frame() - first) as usize;
+                if let Some(slot) = rt.tile_error.get_mut(k) {
                     *slot = f.tiles().iter().map(tile_error).collect();
+                }
+                if let Some(slot) = rt.frame_error.get_mut(k) {
+                    *slot = Some(f.image_error()).filter(|e| e.is_finite());
                 }
             }
             for c in &complete {
-                if let Some(slot) = rt.tile_error.get_mut((c.frame - first) as usize) {
+                let k = (c.frame - first) as usize;
+                if let Some(slot) = rt.tile_error.get_mut(k) {
                     slot.clone_from(&c.errors);
+                }
+                if let Some(slot) = rt.frame_error.get_mut(k) {
+                    *slot = c.estimate.filter(|e| e.is_finite());
                 }
             }
             let counts = complete.iter().map(|c| (c.frame, &c.rejected));

@@ -493,6 +493,11 @@ pub struct JobRecord {
     /// Why the job's error estimate may be optimistic; `None` when it has no caveat or
     /// was stored before schema version 6 (PostgreSQL 5).
     pub error_estimate_caveat: Option<String>,
+    /// The estimator the last stored history point's error estimate was computed with
+    /// (as [`Store::append_history`] was given it); `None` when every point was stored
+    /// before schema version 9 (PostgreSQL 8), or none named one. Not covered by the
+    /// row's checksum: it changes as the job runs.
+    pub error_estimator: Option<String>,
 }
 
 /// Order of [`Store::list_jobs`].
@@ -852,10 +857,17 @@ pub trait Store: Send + Sync {
     /// or succeeding coordinator recognises the leases of the one before.
     async fn fence_key(&self, fresh: [u8; 32]) -> StoreResult<[u8; 32]>;
 
-    /// Appends a convergence history point to a job. Values must be finite
+    /// Appends a convergence history point to a job, and with it the name of the
+    /// estimator its error estimate was computed with, if given (the job's
+    /// [`JobRecord::error_estimator`] from then on). Values must be finite
     /// ([`StoreError::InvalidInput`]); [`StoreError::JobNotFound`] if the job does not
     /// exist.
-    async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()>;
+    async fn append_history(
+        &self,
+        job: JobId,
+        point: HistoryPoint,
+        estimator: Option<&str>,
+    ) -> StoreResult<()>;
 
     /// A job's history points in the order they were appended (empty for an unknown job).
     async fn list_history(&self, job: JobId) -> StoreResult<Vec<HistoryPoint>>;

@@ -46,6 +46,10 @@ const MIGRATIONS: &[(i64, &str)] = &[
         7,
         include_str!("migrations/postgres/0007_scene_uploads.sql"),
     ),
+    (
+        8,
+        include_str!("migrations/postgres/0008_error_estimator.sql"),
+    ),
 ];
 
 /// The schema version that added row checksums (filled for existing rows as it is

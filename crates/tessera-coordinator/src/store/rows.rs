@@ -17,6 +17,15 @@ pub(super) const JOB_COLUMNS: &str = "id, idempotency_key, name, scene_ref, sett
      plan_width, plan_height, plan_tile_size, plan_samples_per_pass, plan_passes, \
      first_frame, last_frame, passes_per_unit, priority, state, error, \
      created_unix_ms, started_unix_ms, finished_unix_ms, render_plan_json, \
+     error_estimate_caveat, error_estimator, checksum";
+
+/// [`JOB_COLUMNS`] as they were before schema version 9 (PostgreSQL 8) added
+/// `error_estimator`: what a migration run before that one (the checksums' backfill) can
+/// select.
+pub(super) const JOB_COLUMNS_BEFORE_ESTIMATOR: &str = "id, idempotency_key, name, scene_ref, \
+     settings_json, plan_width, plan_height, plan_tile_size, plan_samples_per_pass, \
+     plan_passes, first_frame, last_frame, passes_per_unit, priority, state, error, \
+     created_unix_ms, started_unix_ms, finished_unix_ms, render_plan_json, \
      error_estimate_caveat, checksum";
 
 /// Columns of `jobs` read by [`plan_from_row`].
@@ -153,6 +162,12 @@ pub(super) fn decode_job(row: &Row) -> StoreResult<JobRecord> {
         finished_unix_ms: opt_int_col(row, "finished_unix_ms", &place)?,
         render_plan_json: row.try_get("render_plan_json")?,
         error_estimate_caveat: row.try_get("error_estimate_caveat")?,
+        // Not selected by the checksums' backfill (`JOB_COLUMNS_BEFORE_ESTIMATOR`), which
+        // runs before schema version 9 (PostgreSQL 8) adds the column.
+        error_estimator: match row.try_get::<Option<String>>("error_estimator") {
+            Err(sqlx::Error::ColumnNotFound(_)) => None,
+            other => other?,
+        },
     })
 }
 

@@ -34,6 +34,7 @@ const MIGRATIONS: &[(i64, &str)] = &[
         include_str!("migrations/0007_checksums.sql"),
     ),
     (8, include_str!("migrations/0008_scene_uploads.sql")),
+    (9, include_str!("migrations/0009_error_estimator.sql")),
 ];
 
 /// The schema version that added row checksums (filled for existing rows as it is

@@ -186,8 +186,13 @@ impl Store for WatchedStore {
         self.inner.fence_key(fresh).await
     }
 
-    async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {
-        let r = self.inner.append_history(job, point).await;
+    async fn append_history(
+        &self,
+        job: JobId,
+        point: HistoryPoint,
+        estimator: Option<&str>,
+    ) -> StoreResult<()> {
+        let r = self.inner.append_history(job, point, estimator).await;
         self.watch("storing a history point", r)
     }
 

@@ -829,3 +829,180 @@ async fn the_status_says_when_the_error_estimate_may_be_optimistic() {
     assert_eq!(stored.error_estimate_caveat, Some(bdpt_caveat));
     assert_eq!(stored.plan, bdpt.plan);
 }
+
+/// A finished job read back from the store names its error estimate as the build that
+/// stored it did, not as the reading build would: the robust scale's level changed on
+/// 2026-12-06, and with it the estimates and the estimator's name, so a job stored before
+/// showed its old-level estimate under the new name. Read back as stored; without a
+/// stored name (a build before store schema 9) no name at all; with the old name, the old
+/// name.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stored_job_names_the_estimator_its_estimate_was_stored_with() {
+    use sqlx::Connection;
+    let (dir, core, status) = one_tile_job(0.0).await;
+    let w = core.register_worker("w".into(), 1, "t").unwrap();
+    let units = core.lease(w, 4).await.unwrap().units;
+    assert_eq!(units.len(), 4);
+    for l in &units {
+        core.accept_result(delivery(w, l, false)).await.unwrap();
+    }
+    let live = core.status(status.id).await.unwrap();
+    assert_eq!(live.state, JobState::Done);
+    let name = live.error_estimator.clone().expect("a name");
+    assert!(live.error_estimate.is_some());
+    let reopen = |core: Coordinator| {
+        let path = dir.path().to_path_buf();
+        async move {
+            core.store().close().await;
+            drop(core);
+            Coordinator::open(CoordinatorConfig::new(&path))
+                .await
+                .unwrap()
+        }
+    };
+    let set_name = |name: Option<&'static str>| {
+        let db = dir.path().join(tessera_coordinator::store::DATABASE_FILE);
+        async move {
+            let mut c = sqlx::SqliteConnection::connect(&format!("sqlite://{}", db.display()))
+                .await
+                .unwrap();
+            sqlx::query("UPDATE jobs SET error_estimator = ?")
+                .bind(name)
+                .execute(&mut c)
+                .await
+                .unwrap();
+            c.close().await.unwrap();
+        }
+    };
+    let core = reopen(core).await;
+    let stored = core.status(status.id).await.unwrap();
+    assert_eq!(stored.error_estimator.as_deref(), Some(name.as_str()));
+    assert_eq!(stored.error_estimate, live.error_estimate);
+    // As a build before schema 9 left it: the estimate, and no name for it.
+    let core = reopen(core).await;
+    set_name(None).await;
+    let stored = core.status(status.id).await.unwrap();
+    assert_eq!(stored.error_estimator, None);
+    assert_eq!(stored.error_estimate, live.error_estimate);
+    // Stored under the name of the level before 2026-12-06: that name.
+    let old = "pass-spread, robust scale; pixel intervals pooled 3x3";
+    set_name(Some(old)).await;
+    let stored = core.status(status.id).await.unwrap();
+    assert_eq!(stored.error_estimator.as_deref(), Some(old));
+    assert_ne!(old, name);
+}
+
+/// A running job that stops at its target error (adaptive, with a target) shows the ETA's
+/// interval and tail class over HTTP, as the OpenAPI document describes them; a job that
+/// runs its planned passes shows neither.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_running_target_job_shows_its_eta_interval_over_http() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = CoordinatorConfig::new(dir.path());
+    (cfg.spot_check_fraction, cfg.passes_per_unit) = (0.0, 1);
+    let (http, _, core, _stop) = start(cfg).await;
+    let mut job = JobSettings::new("builtin:cornell-box");
+    (job.width, job.height, job.spp) = (Some(16), Some(16), 256);
+    job.adaptive = "sequential".into();
+    job.target_error = Some(0.001);
+    let (status, _) = core.submit(job, None).await.unwrap();
+    let w = core.register_worker("w".into(), 1, "t").unwrap();
+    // Two passes, each a history point apart, with values that differ between passes so
+    // that the image has an error above its target.
+    for pass in 0..2u32 {
+        let units = core.lease(w, 1).await.unwrap().units;
+        assert_eq!(units.len(), 1);
+        let mut d = delivery(w, &units[0], false);
+        if let Ok(r) = &mut d.result {
+            for (i, p) in r.pass_means.iter_mut().enumerate() {
+                let v = 0.5 + 0.2 * ((i as u32 * 7 + pass * 3) % 5) as f32 / 5.0;
+                *p = [v; 3];
+            }
+        }
+        core.accept_result(d).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+    let a = request(http, "GET", &format!("/api/v1/jobs/{}", status.id), &[], "").await;
+    assert_eq!(a.status, 200, "{}", a.body);
+    let v = a.json();
+    assert_eq!(v["state"], "running", "{v}");
+    assert!(v["error_estimate"].as_f64().unwrap() > 0.001, "{v}");
+    let (eta, low, high) = (
+        v["eta_seconds"].as_f64().expect("an ETA"),
+        v["eta_low_seconds"].as_f64().expect("an interval"),
+        v["eta_high_seconds"].as_f64().expect("an interval"),
+    );
+    assert!(low <= eta && eta <= high, "{v}");
+    assert_eq!(v["eta_tail_class"], "light", "{v}");
+    // A job that runs its planned passes: the ETA alone, as before.
+    let mut plain = JobSettings::new("builtin:cornell-box");
+    (plain.width, plain.height, plain.spp) = (Some(16), Some(16), 8);
+    let (plain, _) = core.submit(plain, None).await.unwrap();
+    let v = request(http, "GET", &format!("/api/v1/jobs/{}", plain.id), &[], "")
+        .await
+        .json();
+    for absent in [
+        "eta_low_seconds",
+        "eta_high_seconds",
+        "eta_tail_class",
+        "eta_note",
+    ] {
+        assert!(v.get(absent).is_none(), "{absent}: {v}");
+    }
+}
+
+/// A uniform job's status gives the estimate its `error_estimator` names (the robust
+/// scale at the neighbours' level, as its EXR header's), not the RMS of each pixel's error
+/// over its own mean, which it gave before: on an image whose pixels differ from their
+/// neighbours the two differ, and the status is the named one to rounding.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_uniform_jobs_status_gives_the_estimate_its_estimator_names() {
+    let (_dir, core, status) = one_tile_job(0.0).await;
+    let w = core.register_worker("w".into(), 1, "t").unwrap();
+    let units = core.lease(w, 4).await.unwrap().units;
+    assert_eq!(units.len(), 4);
+    // Pixel i's pass p: a checkerboard of levels 0.2 and 0.8, each pixel's passes spread
+    // by a pattern of its own.
+    let value = |i: usize, p: u32| {
+        let level = if (i % 16 + i / 16).is_multiple_of(2) {
+            0.2
+        } else {
+            0.8
+        };
+        let wobble = ((i as u32 * 7 + p * 5) % 4) as f32 / 3.0 - 0.5;
+        level * (1.0 + 0.4 * wobble)
+    };
+    let mut stats = vec![tessera_farm::PixelStats::default(); 256];
+    for l in &units {
+        let mut d = delivery(w, l, false);
+        if let Ok(r) = &mut d.result {
+            for (i, px) in r.pass_means.iter_mut().enumerate() {
+                *px = [value(i, l.unit.first_pass); 3];
+                stats[i].push(*px);
+            }
+        }
+        core.accept_result(d).await.unwrap();
+    }
+    let s = core.status(status.id).await.unwrap();
+    assert_eq!(s.state, JobState::Done);
+    assert_eq!(
+        s.error_estimator.as_deref(),
+        Some(tessera_farm::ERROR_ESTIMATOR)
+    );
+    let named = tessera_farm::image_relative_error(16, 16, |x, y| {
+        let p = &stats[y * 16 + x];
+        Some((p.mean_lum, p.lum_variance_of_mean()))
+    });
+    let own = (stats
+        .iter()
+        .map(|p| p.relative_error().powi(2))
+        .sum::<f64>()
+        / 256.0)
+        .sqrt();
+    assert!(named > 1.03 * own, "robust {named}, own means {own}");
+    let e = s.error_estimate.expect("an estimate");
+    assert!(
+        (e / named - 1.0).abs() < 1e-9,
+        "status {e}, named {named}, own {own}"
+    );
+}

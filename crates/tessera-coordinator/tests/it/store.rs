@@ -974,6 +974,7 @@ async fn stores_without_checksums_get_them_when_migrated(f: &Fixture) {
     f.exec(&format!(
         "DELETE FROM schema_version WHERE version >= {checksums}; \
          DROP TABLE scene_uploads; \
+         ALTER TABLE jobs DROP COLUMN error_estimator; \
          ALTER TABLE jobs DROP COLUMN checksum; \
          ALTER TABLE tiles DROP COLUMN checksum; \
          ALTER TABLE scenes DROP COLUMN checksum;"
@@ -1078,10 +1079,25 @@ async fn lease_high_water_history_and_faults(f: &Fixture) {
             error_estimate: Some(0.1 + 0.2),
         },
     ];
-    for p in points {
-        store.append_history(job, p).await.unwrap();
-    }
-    store.append_history(job2, points[0]).await.unwrap();
+    // The first point names no estimator (as a build before schema 9 stored none), the
+    // others do: the job's is its last point's.
+    let rec = |id| {
+        let store = store.clone();
+        async move { store.get_job(id).await.unwrap().unwrap() }
+    };
+    store.append_history(job, points[0], None).await.unwrap();
+    assert_eq!(rec(job).await.error_estimator, None);
+    store
+        .append_history(job, points[1], Some("old"))
+        .await
+        .unwrap();
+    store
+        .append_history(job, points[2], Some("new"))
+        .await
+        .unwrap();
+    assert_eq!(rec(job).await.error_estimator.as_deref(), Some("new"));
+    store.append_history(job2, points[0], None).await.unwrap();
+    assert_eq!(rec(job2).await.error_estimator, None);
     assert_eq!(store.list_history(job).await.unwrap(), points);
     assert_eq!(store.list_history(job2).await.unwrap(), &points[..1]);
     assert!(store.list_history(999).await.unwrap().is_empty());
@@ -1090,11 +1106,11 @@ async fn lease_high_water_history_and_faults(f: &Fixture) {
         ..points[0]
     };
     assert!(matches!(
-        store.append_history(job, nan).await,
+        store.append_history(job, nan, Some("x")).await,
         Err(StoreError::InvalidInput(_))
     ));
     assert!(matches!(
-        store.append_history(999, points[0]).await,
+        store.append_history(999, points[0], None).await,
         Err(StoreError::JobNotFound(999))
     ));
 
@@ -1212,6 +1228,7 @@ async fn reopened_store_sees_everything(f: &Fixture) {
                     spp: 8.0,
                     error_estimate: Some(0.5),
                 },
+                None,
             )
             .await
             .unwrap();
@@ -1345,7 +1362,7 @@ fn kill9_child_entry() {
                 spp: f64::from(i) * 4.0,
                 error_estimate: Some(1.0 / f64::from(i + 1)),
             };
-            store.append_history(job, p).await.unwrap();
+            store.append_history(job, p, None).await.unwrap();
             // Keep a tile being rewritten too, so the kill may land mid-transaction.
             let t = checkpoint(job, 3, 0, &[1 + i % 8]);
             store.save_tile(t.as_ref()).await.unwrap();
@@ -1578,6 +1595,7 @@ async fn a_deposed_leaders_writes_are_fenced() {
                 spp: 2.0,
                 error_estimate: None,
             },
+            None,
         )
         .await,
         "a history point",

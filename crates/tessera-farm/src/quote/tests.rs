@@ -464,6 +464,8 @@ fn eta_follows_progress_and_the_inverse_square_root_of_work() {
         error: Some(0.04),
         stopping_target: Some(0.02),
         time_limit_left_seconds: None,
+        trend: None,
+        adaptive: None,
     };
     // Error 0.04 after 10 s, target 0.02: four times the work, 30 s more.
     assert_eq!(job_eta_seconds(&p), Some(30.0));

@@ -54,7 +54,12 @@ async fn backfill_checksums(conn: &mut Conn<'_>) -> StoreResult<()> {
     for id in jobs {
         let id: i64 = id.try_get("id")?;
         let row = conn
-            .fetch_one(stmt(format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1")).bind(id))
+            .fetch_one(
+                stmt(format!(
+                    "SELECT {JOB_COLUMNS_BEFORE_ESTIMATOR} FROM jobs WHERE id = $1"
+                ))
+                .bind(id),
+            )
             .await?;
         if let Ok(job) = decode_job(&row) {
             let sum = JobSum::from(&job).checksum();

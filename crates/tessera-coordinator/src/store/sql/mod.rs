@@ -36,7 +36,7 @@ use super::rows::{
     check_finite, check_new_job, check_tile_to_save, decode_job, fault_from_row, fault_where,
     identity_col, int_col, job_from_row, now_unix_ms, parse_state, plan_from_row,
     quarantine_from_row, state_count_from_row, summary_from_row, tile_from_parts, to_i64,
-    JOB_COLUMNS, PLAN_COLUMNS, QUARANTINE_COLUMNS,
+    JOB_COLUMNS, JOB_COLUMNS_BEFORE_ESTIMATOR, PLAN_COLUMNS, QUARANTINE_COLUMNS,
 };
 use super::{
     FaultEvent, FaultFilter, JobOrder, JobQuery, JobRecord, NewJob, PreviousRun, QuarantineRecord,

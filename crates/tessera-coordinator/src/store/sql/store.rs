@@ -408,7 +408,12 @@ impl<B: SqlBackend> Store for B {
         Ok(key)
     }
 
-    async fn append_history(&self, job: JobId, point: HistoryPoint) -> StoreResult<()> {
+    async fn append_history(
+        &self,
+        job: JobId,
+        point: HistoryPoint,
+        estimator: Option<&str>,
+    ) -> StoreResult<()> {
         let key = i64::try_from(job).map_err(|_| StoreError::JobNotFound(job))?;
         let elapsed = check_finite(point.elapsed_seconds, "history elapsed_seconds")?;
         let spp = check_finite(point.spp, "history spp")?;
@@ -431,6 +436,15 @@ impl<B: SqlBackend> Store for B {
             .await?;
         if n == 0 {
             return Err(StoreError::JobNotFound(job));
+        }
+        if let Some(name) = estimator {
+            // In the same transaction: the job's name is the one of its last point.
+            w.execute(
+                stmt("UPDATE jobs SET error_estimator = $2 WHERE id = $1")
+                    .bind(key)
+                    .bind(name),
+            )
+            .await?;
         }
         self.finish_write(w, false).await
     }
