@@ -133,18 +133,7 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     };
     let bvh = Bvh::new(prims);
     let eps = 1e-4 * survey.scene_radius;
-    let mut found = Findings::default();
-    for Source { name, at, cone } in &sources {
-        for d in directions(*cone) {
-            let branch = Branch {
-                vertices: 0,
-                first: usize::MAX,
-                reflected: None,
-                mixed: None,
-            };
-            follow(survey, &bvh, name, *at, d, eps, branch, &mut found);
-        }
-    }
+    let found = survey_sources(survey, &bvh, &sources, eps);
     let list = |m: &[usize]| material_list(scene, m, &survey.classes, false);
     out.extend(found.longer);
     out.extend(found.reflection);
@@ -171,6 +160,24 @@ pub(super) fn misses(survey: &Survey, lights: &Lights) -> Vec<String> {
     out
 }
 
+/// Follows [`LIGHT_RAYS`] rays from each source through the specular surfaces they meet
+/// and collects what their chains found.
+fn survey_sources(survey: &Survey, bvh: &Bvh, sources: &[Source], eps: f32) -> Findings {
+    let mut found = Findings::default();
+    for Source { name, at, cone } in sources {
+        for d in directions(*cone) {
+            let branch = Branch {
+                vertices: 0,
+                first: usize::MAX,
+                reflected: None,
+                mixed: None,
+            };
+            follow(survey, bvh, name, *at, d, eps, branch, &mut found);
+        }
+    }
+    found
+}
+
 /// Whether manifold next-event estimation reaches caustics of the scene's small area
 /// lights (bounding radius below [`SMALL_LIGHT_FRACTION`] of the scene's; the module
 /// documentation's "Caustics of small area lights" rule): [`LIGHT_RAYS`] rays from each
@@ -194,18 +201,7 @@ pub(super) fn small_light_caustics(survey: &Survey, lights: &Lights) -> Option<S
     }
     let bvh = Bvh::new(primitives(survey)?);
     let eps = 1e-4 * survey.scene_radius;
-    let mut found = Findings::default();
-    for Source { name, at, cone } in &sources {
-        for d in directions(*cone) {
-            let branch = Branch {
-                vertices: 0,
-                first: usize::MAX,
-                reflected: None,
-                mixed: None,
-            };
-            follow(survey, &bvh, name, *at, d, eps, branch, &mut found);
-        }
-    }
+    let found = survey_sources(survey, &bvh, &sources, eps);
     let seen = first_seen(survey, &bvh, eps);
     let reached: Vec<usize> = found
         .receivers
