@@ -183,6 +183,15 @@ class JobStatus:
     error: Optional[str] = None
     plan: Optional[Dict[str, Any]] = None
     adaptive: Optional[str] = None
+    #: The 95% interval of the seconds until done, for a running job that stops at its
+    #: target error; when ``eta_tail_class`` is ``"unpredictable"`` the low end is a lower
+    #: bound and there is no ``eta_seconds``.
+    eta_low_seconds: Optional[float] = None
+    eta_high_seconds: Optional[float] = None
+    #: ``light``, ``heavy`` or ``unpredictable``: how far the ETA's laws can be trusted.
+    eta_tail_class: Optional[str] = None
+    #: Why the ETA is widened or not predictable, with the measured figures.
+    eta_note: Optional[str] = None
 
     @classmethod
     def from_json(cls, d: Dict[str, Any]) -> "JobStatus":
@@ -200,11 +209,28 @@ class JobStatus:
     def progress_line(self) -> str:
         """One line as ``tessera status`` prints it."""
         err = "-" if self.error_estimate is None else f"{self.error_estimate * 100:.2f}%"
-        eta = "-" if self.eta_seconds is None else f"{self.eta_seconds:.0f} s"
+        eta = self.eta_text()
         return (
             f"job {self.id} {self.state}: passes {self.passes_done}/{self.passes_planned}, "
             f"{self.spp_so_far:.1f} spp, error {err}, {self.elapsed_seconds:.1f} s, eta {eta}"
         )
+
+
+    def eta_text(self) -> str:
+        """The ETA as ``tessera status`` gives it: ``12 s``, with its 95% interval for a
+        job that stops at its target (``12 s [8, 20 s]``), ``not predictable (at least 5 s,
+        at most 120 s)`` when the passes so far cannot predict the error, ``-`` when there
+        is none."""
+        interval = None
+        if self.eta_low_seconds is not None and self.eta_high_seconds is not None:
+            interval = (self.eta_low_seconds, self.eta_high_seconds)
+        if self.eta_seconds is not None:
+            if interval is None:
+                return f"{self.eta_seconds:.0f} s"
+            return f"{self.eta_seconds:.0f} s [{interval[0]:.0f}, {interval[1]:.0f} s]"
+        if interval is not None and self.eta_tail_class == "unpredictable":
+            return f"not predictable (at least {interval[0]:.0f} s, at most {interval[1]:.0f} s)"
+        return "-"
 
 
 @dataclass
