@@ -38,6 +38,10 @@ ERROR_CODES = (
 )
 
 
+#: How far a running job's ETA can be trusted (``JobStatus.eta_tail_class``).
+ETA_TAIL_CLASSES = ("light", "heavy", "unpredictable")
+
+
 def _enum(values):
     """Field metadata: the values the schema's enum allows."""
     return {"enum": tuple(values)}
@@ -189,7 +193,7 @@ class JobStatus:
     eta_low_seconds: Optional[float] = None
     eta_high_seconds: Optional[float] = None
     #: ``light``, ``heavy`` or ``unpredictable``: how far the ETA's laws can be trusted.
-    eta_tail_class: Optional[str] = None
+    eta_tail_class: Optional[str] = field(default=None, metadata=_enum(ETA_TAIL_CLASSES))
     #: Why the ETA is widened or not predictable, with the measured figures.
     eta_note: Optional[str] = None
 
