@@ -35,6 +35,15 @@ impl Frame {
         }
     }
 
+    /// Appends the work so far and the trend's per-pass figure to `history`, once the
+    /// trend has one (as a job's status keeps its history points).
+    fn record(&self, history: &mut Vec<(f64, f64)>) {
+        let (_, work) = self.error_and_work();
+        if let (_, Some(q)) = EtaTrend::of_groups(&self.groups()) {
+            history.push((work, q));
+        }
+    }
+
     fn groups(&self) -> Vec<ErrorGroup> {
         error_groups(self.tiles.iter().map(|t| (16, t.as_slice())))
     }
@@ -85,10 +94,7 @@ fn a_light_tail_gives_an_interval_that_holds_the_law_and_the_finish() {
     let mut history = Vec::new();
     for _ in 0..16 {
         frame.pass(&mut rng, draw, |_| true);
-        let (_, work) = frame.error_and_work();
-        if let (_, Some(q)) = EtaTrend::of_groups(&frame.groups()) {
-            history.push((work, q));
-        }
+        frame.record(&mut history);
     }
     let (e, _) = frame.error_and_work();
     let target = e / 2.0;
@@ -136,10 +142,7 @@ fn a_heavy_tail_with_disagreeing_tiles_is_not_predictable() {
     let mut history = Vec::new();
     for _ in 0..16 {
         frame.pass(&mut rng, draw, |_| true);
-        let (_, work) = frame.error_and_work();
-        if let (_, Some(q)) = EtaTrend::of_groups(&frame.groups()) {
-            history.push((work, q));
-        }
+        frame.record(&mut history);
     }
     let (e, _) = frame.error_and_work();
     let p = progress(&frame, &history, e / 4.0, 64.0);
@@ -238,10 +241,7 @@ fn an_adaptive_job_whose_pixels_stop_early_stays_light() {
     for pass in 0..24 {
         // Sequential stopping from 8 passes: a pixel below the target stops.
         frame.pass(&mut rng, draw, |s| pass < 8 || s.relative_error() >= target);
-        let (_, work) = frame.error_and_work();
-        if let (_, Some(q)) = EtaTrend::of_groups(&frame.groups()) {
-            history.push((work, q));
-        }
+        frame.record(&mut history);
     }
     let stopped = frame
         .tiles
