@@ -105,6 +105,12 @@ def follow_target(base, scene, flags):
         time.sleep(0.1)
 
 
+def mark_note(st):
+    """The status's reason at a mark, to the first colon (e.g. "not predictable yet")."""
+    note = st.get("eta_note")
+    return f" ({note.split(':')[0]})" if note else ""
+
+
 def target_table(rows):
     """Marks at the first poll past 10%, 25% and 50% of the actual finishing time with an
     ETA; a build without the interval fields (before them) gives the point alone."""
@@ -131,13 +137,15 @@ def target_table(rows):
             if st.get("eta_low_seconds") is None:
                 interval, covered = "-", "no interval"
             else:
-                lo, hi = el + st["eta_low_seconds"], el + st["eta_high_seconds"]
+                # A missing high end (an older build's unbounded interval) is infinity.
+                high = st.get("eta_high_seconds")
+                lo, hi = el + st["eta_low_seconds"], el + (float("inf") if high is None else high)
                 interval = f"[{lo:.1f}, {hi:.1f}]"
                 ok = lo <= actual <= hi
                 covered_n += ok
                 covered = "yes" if ok else ("no, above" if actual > hi else "no, below")
             print(f"| {scene} | {' '.join(flags)} | {m:.0%} ({el:.1f} s) | {pred} | {interval} "
-                  f"| {st.get('eta_tail_class', '-')} | {covered} | {actual:.1f}, {final['spp_so_far']:.0f} "
+                  f"| {st.get('eta_tail_class', '-')}{mark_note(st)} | {covered} | {actual:.1f}, {final['spp_so_far']:.0f} "
                   f"{'' if final['state'] == 'done' else final['state']} |")
         notes = {p.get("eta_note") for p in polls if p.get("eta_note")}
         for n in sorted(notes)[:1]:

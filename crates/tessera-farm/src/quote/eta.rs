@@ -463,10 +463,29 @@ pub fn job_eta(p: &JobProgress) -> Option<JobEta> {
         return planned;
     };
     if let Some(a) = p.adaptive {
-        return Some(a.eta(p.trend.unwrap_or_default(), p.time_limit_left_seconds));
+        let mut eta = a.eta(p.trend.unwrap_or_default(), p.time_limit_left_seconds);
+        // No rate of pixel work yet: the planned passes at the job's pass rate bound it
+        // (an interval with no upper end reads as "unbounded" to every client).
+        if let Some((low, _)) = eta.interval.filter(|i| !i.1.is_finite()) {
+            eta.interval = Some((low.min(cap), cap));
+        }
+        return Some(eta);
     }
     let Some(e) = p.error.filter(|e| e.is_finite() && *e >= 0.0) else {
-        return planned;
+        // A job that stops at its target with no error estimate yet (the coordinator
+        // measures its pixels at its first history point): the passes it may take are
+        // the plan's, its stop unknown; a point here would be the plan's end, measured
+        // at +217% at 10% of a Cornell box job (docs/benchmarks.md).
+        return Some(JobEta {
+            seconds: None,
+            interval: Some((0.0, cap)),
+            tail_class: Some(TailClass::Unpredictable),
+            note: Some(
+                "not predictable yet: no error estimate merged; the interval runs from 0 \
+                 to the planned passes"
+                    .into(),
+            ),
+        });
     };
     // No pixel statistics (a caller that keeps none): the image law.
     let clamp = |s: f64| if s.is_nan() { cap } else { s.clamp(0.0, cap) };

@@ -498,6 +498,20 @@ fn eta_follows_progress_and_the_inverse_square_root_of_work() {
         ..p
     };
     assert_eq!(job_eta_seconds(&nothing), None);
+    // Stopping at a target with no estimate yet: no point, between now and the plan's end
+    // at the pass rate so far (9,900 passes at 10 per second).
+    let unknown = job_eta(&JobProgress { error: None, ..p }).unwrap();
+    assert_eq!(unknown.seconds, None);
+    assert_eq!(unknown.interval, Some((0.0, 990.0)));
+    assert_eq!(unknown.tail_class, Some(TailClass::Unpredictable));
+    assert!(unknown.note.unwrap().starts_with("not predictable yet"));
+    // A job that runs its passes needs no estimate.
+    let planned = job_eta(&JobProgress {
+        error: None,
+        ..no_stop
+    })
+    .unwrap();
+    assert_eq!(planned.seconds, Some(990.0));
 }
 
 #[test]

@@ -3,7 +3,7 @@
 //! what the frame then takes, and what cannot be predicted says so.
 
 use super::*;
-use crate::quote::{AdaptiveEta, EtaSample, EtaTrend, TailClass};
+use crate::quote::{job_eta, AdaptiveEta, EtaSample, EtaTrend, JobProgress, TailClass};
 use crate::test_util::Rng;
 use crate::{AdaptiveFrame, AdaptiveSettings, FramePlan, UnitResult};
 
@@ -306,4 +306,37 @@ fn the_rate_is_measured_over_the_later_half() {
     let limited = a.eta(EtaTrend::default(), Some(2.0));
     assert_eq!(limited.seconds, Some(2.0));
     assert_eq!(limited.interval.unwrap().1, 2.0);
+}
+
+/// Before any pixel-pass is counted the rate is zero: not predictable, and the interval
+/// ends at the plan's passes at the job's pass rate rather than at infinity (which the
+/// status would send as `null`, an interval without an upper end).
+#[test]
+fn no_rate_yet_ends_the_interval_at_the_plan() {
+    let work = PixelWork {
+        left: 800.0,
+        left_mean: 800.0,
+        budget: 4000.0,
+        active: 10,
+        unknown: 10,
+        ..Default::default()
+    };
+    let a = AdaptiveEta::measure(work, 2.0, &[], 0.0);
+    assert_eq!(a.rate, 0.0);
+    let p = JobProgress {
+        elapsed_seconds: 2.0,
+        passes_done: 4,
+        passes_planned: 64,
+        error: None,
+        stopping_target: Some(0.05),
+        time_limit_left_seconds: None,
+        trend: None,
+        adaptive: Some(a),
+    };
+    let eta = job_eta(&p).unwrap();
+    assert_eq!(eta.seconds, None);
+    assert_eq!(eta.tail_class, Some(TailClass::Unpredictable));
+    // 60 passes left at 2 per second.
+    assert_eq!(eta.interval, Some((0.0, 30.0)));
+    assert!(eta.note.unwrap().contains("no rate measured"));
 }
