@@ -73,6 +73,24 @@
 //! internal reflection) stay with BSDF sampling, so no energy is lost either. The price
 //! is one solve per BSDF-sampled path that reaches a light through a specular chain,
 //! which is rare.
+//!
+//! # Hopeless seeds
+//!
+//! A curved dielectric focuses what it transmits: under a glass ball most of the ball's
+//! shadow receives no refracted light from a small light above it, so from most shadow
+//! points the solver has no solution to find (97% of the solves on bench/compare's glass
+//! ball), and it fails in its first iteration, after the seed's three ray casts and a
+//! step's two or four. Such seeds enter the ball near its rim: their straight segment
+//! meets the surface steeply, while the seeds the solver converges from meet it within
+//! 17.7 degrees of its normal there (the glass ball lit from above and off to the side).
+//! So for an area light a seed that enters its first vertex, a curved dielectric, more
+//! than 25 degrees off the shading normal is not solved ([`STEEP_SEED_COS`]), and [`seed`]
+//! stops at that vertex, one ray cast in. This is a choice of which paths MNEE samples,
+//! not an approximation: [`claims`] runs the same [`connect`], so a path whose seed is
+//! skipped is left to BSDF sampling, which samples it unbiased (a caustic seen from much
+//! further behind a lens than its focus, where converging seeds do enter steeply, is
+//! then noisier, not darker). A point light's seeds are never skipped: no other
+//! technique samples its light.
 
 use crate::bsdf::Bsdf;
 use crate::geometry::SurfacePoint;
@@ -100,6 +118,13 @@ const TOLERANCE: f64 = 1e-5;
 /// A specular vertex's outgoing direction from the BSDF's delta sample must agree with
 /// the solved chain to this cosine (about 0.8 degrees).
 const DIRECTION_AGREEMENT: f32 = 0.9999;
+
+/// For an area light, a seed whose straight segment enters a curved dielectric at more
+/// than 25 degrees from its shading normal (the cosine of the angle below this) is not
+/// solved: [`seed`] stops at that first vertex (see "Hopeless seeds" in the module docs).
+/// On bench/compare's glass ball no seed the solver converges from enters steeper than 17.7
+/// degrees (docs/benchmarks.md, "Hopeless MNEE seeds skipped").
+const STEEP_SEED_COS: f32 = 0.906_307_8;
 
 /// The shading point a chain starts at: what a ray leaving it needs.
 #[derive(Clone, Copy, Debug)]
@@ -235,8 +260,17 @@ fn specular_vertex(
 
 /// The seed chain: the specular surfaces the segment `x -> y` crosses. `None` if an
 /// opaque non-specular surface blocks it, if there are more than `max_chain` of them, or
-/// none (ordinary next-event estimation covers that path).
-fn seed(scene: &RenderScene, x: &Anchor, y: Vec3, time: f32, max_chain: usize) -> Option<Chain> {
+/// none (ordinary next-event estimation covers that path); with `skip_steep` (an area
+/// light's end) also if the segment enters its first vertex, a curved dielectric, steeper
+/// than [`STEEP_SEED_COS`] allows, before the rest of the chain is cast.
+fn seed(
+    scene: &RenderScene,
+    x: &Anchor,
+    y: Vec3,
+    time: f32,
+    max_chain: usize,
+    skip_steep: bool,
+) -> Option<Chain> {
     let d = y - x.p;
     let dist = d.length();
     if dist <= 0.0 || !dist.is_finite() {
@@ -264,6 +298,9 @@ fn seed(scene: &RenderScene, x: &Anchor, y: Vec3, time: f32, max_chain: usize) -
                 if chain.len == max_chain.min(MAX_CHAIN) {
                     return None;
                 }
+                if skip_steep && chain.len == 0 && steep_entry(&v, dir) {
+                    return None;
+                }
                 origin = offset_ray_origin(v.sp.p, v.sp.p_error, v.sp.ng, dir);
                 chain.v[chain.len] = v;
                 chain.len += 1;
@@ -271,6 +308,15 @@ fn seed(scene: &RenderScene, x: &Anchor, y: Vec3, time: f32, max_chain: usize) -
         }
     }
     (chain.len > 0).then_some(chain)
+}
+
+/// Whether the straight segment along `dir` meets the vertex `v`, a curved dielectric
+/// (its shading normal has a nonzero derivative by position), more than 25 degrees off
+/// its shading normal ([`STEEP_SEED_COS`]). Flat interfaces, mirrors and surfaces whose
+/// curvature the geometry does not give are never steep: through a flat interface the
+/// solver converges from any seed.
+fn steep_entry(v: &Vertex, dir: Vec3) -> bool {
+    v.eta > 0.0 && v.dn.is_some_and(|w| w != DMat3::ZERO) && dir.dot(v.sp.ns).abs() < STEEP_SEED_COS
 }
 
 /// A placeholder for the unused slots of a chain.
@@ -738,7 +784,10 @@ pub fn connect(
     max_chain: usize,
 ) -> Option<Connection> {
     let y = end.p();
-    let chain = seed(scene, x, y, time, max_chain)?;
+    // Only an area light's seeds may be skipped: what MNEE leaves of its light, BSDF
+    // sampling finds. A point light's would be lost.
+    let skip_steep = matches!(end, LightEnd::Area { .. });
+    let chain = seed(scene, x, y, time, max_chain, skip_steep)?;
     let chain = newton(scene, x, chain, y, time)?;
     // The specular vertices' delta BSDF values along the solved directions, and the
     // media between them.
@@ -1044,7 +1093,7 @@ mod tests {
             p_error: Vec3::ZERO,
             ng: (y - x).normalize(),
         };
-        let seeded = seed(rs, &anchor, y, 0.0, MAX_CHAIN).expect("a seed chain");
+        let seeded = seed(rs, &anchor, y, 0.0, MAX_CHAIN, false).expect("a seed chain");
         assert_eq!(seeded.len(), len);
         let solved = newton(rs, &anchor, seeded, y, 0.0).expect("a solution");
         for chain in [seeded, solved] {
