@@ -84,7 +84,7 @@
 //! meets the surface steeply, while the seeds the solver converges from meet it within
 //! 16.1 degrees of its normal there (17.7 with the light off to the side).
 //! So for an area light a seed that enters its first vertex, a curved dielectric, more
-//! than 25 degrees off the shading normal is not solved ([`STEEP_SEED_COS`]), and [`seed`]
+//! than 25 degrees off the shading normal is not solved (`STEEP_SEED_COS`), and `seed`
 //! stops at that vertex, one ray cast in. This is a choice of which paths MNEE samples,
 //! not an approximation: [`claims`] runs the same [`connect`], so a path whose seed is
 //! skipped is left to BSDF sampling, which samples it unbiased (a caustic seen from much
@@ -314,7 +314,7 @@ fn seed(
 
 /// Whether the straight segment along `dir` meets the vertex `v`, a curved dielectric
 /// (its shading normal has a nonzero derivative by position), more than 25 degrees off
-/// its shading normal ([`STEEP_SEED_COS`]). Flat interfaces, mirrors and surfaces whose
+/// its shading normal (`STEEP_SEED_COS`). Flat interfaces, mirrors and surfaces whose
 /// curvature the geometry does not give are never steep: through a flat interface the
 /// solver converges from any seed.
 fn steep_entry(v: &Vertex, dir: Vec3) -> bool {
