@@ -70,9 +70,9 @@
 //! counts it otherwise. The solver is deterministic, so this partitions path space: no
 //! path is counted twice, and the paths the solver misses (other roots with the same end
 //! points, seeds blocked by an opaque surface, chains longer than [`MAX_CHAIN`], total
-//! internal reflection, an area light's steep seeds below) stay with BSDF sampling, so no energy is lost either. The price
-//! is one solve per BSDF-sampled path that reaches a light through a specular chain,
-//! which is rare.
+//! internal reflection, an area light's steep seeds below) stay with BSDF sampling, so no
+//! energy is lost either. The price is one solve per BSDF-sampled path that reaches a
+//! light through a specular chain, which is rare.
 //!
 //! # Hopeless seeds
 //!
@@ -89,8 +89,9 @@
 //! not an approximation: [`claims`] runs the same [`connect`], so a path whose seed is
 //! skipped is left to BSDF sampling, which samples it unbiased (a caustic seen from much
 //! further behind a lens than its focus, where converging seeds do enter steeply, is
-//! then noisier, not darker; tests `steep_seeds_are_the_hopeless_ones_under_a_ball_on_the_floor`
-//! and `claims_leaves_the_skipped_solutions_to_bsdf_sampling`). A point light's seeds are
+//! then noisier, not darker; the tests
+//! `steep_seeds_are_the_hopeless_ones_under_a_ball_on_the_floor` and
+//! `claims_leaves_the_skipped_solutions_to_bsdf_sampling`). A point light's seeds are
 //! never skipped: no other technique samples its light.
 
 use crate::bsdf::Bsdf;
@@ -1202,6 +1203,7 @@ mod tests {
         let c = constraint(a, &m, DVec3::new(t1.sin(), t1.cos(), 0.0)).unwrap();
         assert!(c[0].abs() < 1e-12 && c[1].abs() < 1e-12, "{c:?}");
     }
+
     /// Seeds and solves from a 48 x 48 grid of floor points (`2 r` wide about the origin)
     /// to a light point above `builtin:caustic`'s glass sphere with its centre at height
     /// `h`: the seeds, those [`steep_entry`] skips, the solves that converge, and those of
