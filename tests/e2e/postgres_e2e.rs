@@ -20,6 +20,31 @@ fn fresh_database(name: &str) -> Option<String> {
         .block_on(tessera_testkit::postgres::fresh_database(name))
 }
 
+/// The passes of `job` the store holds (its tiles' committed checkpoints), read from
+/// PostgreSQL directly. The job status counts a pass when it is merged; its checkpoint is
+/// committed in the next group commit, and its worker hears "accepted" only then
+/// (ARCHITECTURE.md §9). A `kill -9` between the two loses nothing (the worker delivers
+/// again), but the restart shows fewer passes than the status did.
+fn stored_passes(url: &str, job: u64) -> i64 {
+    use sqlx::Connection;
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(async {
+            let mut conn = sqlx::PgConnection::connect(url).await.unwrap();
+            let n: i64 = sqlx::query_scalar(
+                "SELECT COALESCE(SUM(merged_passes), 0)::BIGINT FROM tiles WHERE job = $1",
+            )
+            .bind(job as i64)
+            .fetch_one(&mut conn)
+            .await
+            .unwrap();
+            let _ = conn.close().await;
+            n
+        })
+}
+
 #[test]
 fn a_farm_on_postgres_renders_the_local_image_and_resumes_after_kill9() {
     let Some(url) = fresh_database("e2e_kill_coordinator") else {
@@ -44,6 +69,11 @@ fn a_farm_on_postgres_renders_the_local_image_and_resumes_after_kill9() {
     poll("a quarter of the passes", TIMEOUT, || {
         let j = client.job(running.id).unwrap();
         j.passes_done * 4 >= j.passes_planned
+    });
+    // Killed once the store holds some of them: under load the first group commit (a
+    // fresh connection) can still be on its way when the status shows a quarter merged.
+    poll("passes committed to the store", TIMEOUT, || {
+        stored_passes(&url, running.id) > 0
     });
     c.proc.kill9();
 
