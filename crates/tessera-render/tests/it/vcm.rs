@@ -670,6 +670,73 @@ fn agrees(
     );
 }
 
+/// A wall of no thickness (one quad at x = 0) stands on a floor that runs under it, and a
+/// point light lights the floor on the wall's left. The camera looks down at the floor on
+/// its right, where no path from the light arrives (nothing above or around the wall
+/// returns light): the exact image is black. Merging's disc reaches under the wall to the
+/// lit floor (here `r_1` is the scene cap, 0.19, and the camera sees the floor from 0.15
+/// beside the wall) unless a photon must be visible from the camera vertex (the module
+/// documentation of `integrator::vcm`, "Light leaks"): before that test vcm's and ppm's
+/// pixels beside the wall were lit. Every pixel of every pass must be exactly zero.
+#[test]
+fn no_light_leaks_under_a_wall_of_no_thickness() {
+    let v = Vec3::new;
+    let wall = Mesh {
+        name: "wall".into(),
+        positions: vec![
+            v(0.0, 0.0, -2.0),
+            v(0.0, 0.0, 2.0),
+            v(0.0, 3.0, 2.0),
+            v(0.0, 3.0, -2.0),
+        ],
+        normals: None,
+        uvs: vec![],
+        tangents: None,
+        indices: vec![[0, 1, 2], [0, 2, 3]],
+        colors: None,
+        material: 0,
+    };
+    let scene = Scene {
+        name: "test:wall".into(),
+        camera: look_at_camera(v(0.5, 2.0, 0.0), v(0.5, 0.0, 0.0), Vec3::Z, 20.0),
+        meshes: vec![quad("floor", 0.0, 2.0, 0), wall],
+        prototypes: Vec::new(),
+        instances: Vec::new(),
+        spheres: vec![],
+        materials: vec![Material::diffuse("white", Vec3::splat(0.8))],
+        textures: vec![],
+        images: vec![],
+        warnings: vec![],
+        lights: vec![PunctualLight::Point {
+            position: v(-0.5, 1.0, 0.0),
+            intensity: Vec3::splat(10.0),
+        }],
+        environment: None,
+        environment_map: None,
+        default_resolution: (24, 24),
+        animated: false,
+    };
+    let rs = RenderScene::build(&scene, 24, 24).unwrap();
+    let plan = FramePlan::new(24, 24, 24, 4, 4).unwrap();
+    for integrator in [Integrator::Vcm, Integrator::Ppm] {
+        let s = settings(integrator, 5, 8);
+        let st = merge_settings(integrator, &s, &rs, 24, 24);
+        assert!(
+            st.radius_1 > 0.15,
+            "the disc ({}) no longer reaches under the wall: the test shows nothing",
+            st.radius_1
+        );
+        let img = render_frame(&rs, &s, &plan, 0, 2, |_, _| {});
+        let lit = img
+            .image()
+            .mean
+            .iter()
+            .filter(|p| p.iter().any(|c| *c != 0.0))
+            .count();
+        assert_eq!(lit, 0, "{integrator}: {lit} pixels lit through the wall");
+    }
+}
+
 /// The merging bias term makes the caustic's error estimate honest (ARCHITECTURE.md §3,
 /// the module documentation of `integrator::vcm`, "The bias estimate"): on
 /// `builtin:caustic` at 32 x 32, 4 passes of 16 samples (the default plan of 64 spp), 4

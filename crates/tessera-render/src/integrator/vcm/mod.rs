@@ -107,6 +107,27 @@
 //! sums, never inside them: the images are bit-identical to those without it, and it is
 //! as deterministic as they are.
 //!
+//! # Light leaks
+//!
+//! The disc of radius `r` around a camera vertex is a disc in space, not on the surface:
+//! photons of another surface within `r` are merged as if they had arrived at the vertex
+//! (Jensen, the course notes' section 10.5.2: the estimate assumes the nearest photons
+//! represent the illumination at `x`). Two cases make that far worse than a blur. A wall
+//! of no thickness (a single quad, as interiors are often modelled) has the lit floor of
+//! one room within `r` of the dark floor of the next: on Veach's door-ajar room
+//! (`scenes/door-ajar.gltf`, 64 x 64, 128 spp) vcm's image mean was 3.8 times the
+//! reference's. And a corner: a floor's photons counted on the wall beside it. So a
+//! photon is merged only if its geometric normal is within [`MERGE_NORMAL_COS`] of the
+//! camera vertex's (both on the side their light and the camera are) and a shadow ray
+//! between the two points, lifted [`MERGE_LIFT`] radii off the camera vertex's surface
+//! (the photon's end raised to the vertex's tangent plane where it is below it, as on a
+//! convex surface), is clear. Both tests refuse only pairs whose merged path (the photon's last segment
+//! moved to the camera vertex) does not exist or belongs to another surface, and both
+//! pass every pair as `r` shrinks on a smooth surface, so merging stays consistent; the
+//! MIS weights are unchanged (merging estimates the same paths, from the photons of the
+//! vertex's own surface). The cost is a short shadow ray per merged photon
+//! (docs/benchmarks.md, "Light leaks in merging").
+//!
 //! # Determinism and the farm (ARCHITECTURE.md §2)
 //!
 //! As for bdpt: the plan is one whole-frame tile, a unit is (frame, pass range), and each
@@ -165,6 +186,18 @@ pub const MAX_VCM_DEPTH: u32 = 32;
 /// Light vertices a subpath can store (one per bounce).
 const MAX_LIGHT_VERTICES: usize = MAX_VCM_DEPTH as usize + 1;
 /// Mixed into the job seed for the light subpaths' sampler stream.
+/// A photon is merged only where its geometric normal is within 60 degrees of the camera
+/// vertex's: the radiance estimate assumes that the photons near `x` represent the
+/// illumination at `x` (Jensen, the course notes' section 10.5.2), and a floor's photons
+/// would otherwise count on the wall beside them as if they had arrived there (module
+/// documentation, "Light leaks").
+pub const MERGE_NORMAL_COS: f32 = 0.5;
+/// ... and nothing is between the two points lifted this many radii off the camera
+/// vertex's surface (at least four times its position's rounding error): a photon behind a
+/// wall of no thickness is within the radius of the floor on the wall's other side. Small,
+/// so that the shadow ray does not pass over a low obstacle or start inside a solid that
+/// meets the surface (a ball on the floor).
+pub const MERGE_LIFT: f32 = 1e-3;
 const LIGHT_STREAM: u64 = 0x7663_6d5f_6c69_6768; // "vcm_ligh"
 
 /// Settings of the vertex connection and merging integrator.
@@ -335,6 +368,8 @@ struct Photon {
     p: Vec3,
     /// Unit direction toward the previous light vertex (where the light came from).
     wo: Vec3,
+    /// The geometric normal on the side the light arrived from.
+    n: Vec3,
     beta: Vec3,
     depth: u32,
     d_vcm: f32,
@@ -529,6 +564,26 @@ impl Ctx<'_> {
         let a = v.frame.to_local(v.wo);
         let b = v.frame.to_local(wn);
         (v.bsdf.pdf(a, b), v.bsdf.pdf(b, a))
+    }
+
+    /// Whether the photon `ph` lies on the surface of the camera vertex `v` (the module
+    /// documentation, "Light leaks"): its normal within [`MERGE_NORMAL_COS`] of `v`'s, both
+    /// on the side their light and the camera are, and a clear shadow ray between the two
+    /// points just off the surface. The photon's end is raised to `v`'s tangent plane where
+    /// it lies below it, so that the chord of a convex surface does not pass through its
+    /// own solid. The shadow ray comes last: a photon the normals or the BSDF refuse costs
+    /// none.
+    fn mergeable(&self, v: &PathVertex, ph: &Photon, r2: f32) -> bool {
+        let n = if v.wo.dot(v.ng) >= 0.0 { v.ng } else { -v.ng };
+        if n.dot(ph.n) < MERGE_NORMAL_COS {
+            return false;
+        }
+        let eps = (MERGE_LIFT * r2.sqrt()).max(4.0 * n.abs().dot(v.p_error));
+        let a = v.p + n * eps;
+        let below = (v.p - ph.p).dot(n).max(0.0);
+        let d = ph.p + n * (below + eps) - a;
+        let dist = d.length();
+        dist == 0.0 || !self.scene.occluded_at(a, d / dist, dist, self.time)
     }
 
     /// Unoccluded between two points (robust shadow ray with offset end points).
@@ -846,7 +901,7 @@ fn camera_subpath(
                 let mut sum = Vec3::ZERO;
                 let mut bsum = Vec3::ZERO;
                 grid.query(photons, v.p, |ph| {
-                    if ph.depth + t - 1 <= max_depth {
+                    if ph.depth + t - 1 <= max_depth && ctx.mergeable(v, ph, grid.r2) {
                         let m = ctx.f(v, ph.wo, false) * ph.beta;
                         sum += m;
                         bsum += m * weight((ph.p - v.p).length_squared());
@@ -880,7 +935,7 @@ fn camera_subpath(
                     return;
                 }
                 let fc = ctx.f(v, ph.wo, false);
-                if fc == Vec3::ZERO {
+                if fc == Vec3::ZERO || !ctx.mergeable(v, ph, grid.r2) {
                     return;
                 }
                 let (dir_pdf, rev_pdf) = ctx.pdfs(v, ph.wo);
@@ -1081,6 +1136,7 @@ impl WholeFrame for Vcm<'_> {
                 photons.extend(light[..n].iter().map(|v| Photon {
                     p: v.p,
                     wo: v.wo,
+                    n: if v.wo.dot(v.ng) >= 0.0 { v.ng } else { -v.ng },
                     beta: v.beta,
                     depth: v.depth,
                     d_vcm: v.d_vcm,

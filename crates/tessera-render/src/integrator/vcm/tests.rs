@@ -26,6 +26,7 @@ fn density_estimate_is_the_irradiance() {
         .map(|_| Photon {
             p: Vec3::new(rng(&mut s), rng(&mut s), 0.25),
             wo: Vec3::Z,
+            n: Vec3::Z,
             beta: Vec3::splat(phi),
             depth: 1,
             d_vcm: 0.0,
