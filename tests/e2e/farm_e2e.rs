@@ -11,7 +11,7 @@ use tessera_testkit::{api_error, metric};
 
 use common::farm::{
     cornell_job as job, local_render, local_render_adaptive, local_render_with, start_coordinator,
-    start_worker, wait_done, TIMEOUT,
+    start_worker, stored_passes, wait_done, TIMEOUT,
 };
 use common::{free_addresses, http_get, output, poll, read_exr, temp_dir, tessera, Proc};
 use tessera_api::client::Client;
@@ -204,6 +204,12 @@ fn a_killed_coordinator_resumes_and_loses_no_job() {
         let j = client.job(running.id).unwrap();
         j.passes_done * 4 >= j.passes_planned
     });
+    // Killed once the store holds some of them (`stored_passes`: the status also counts
+    // passes whose group commit is still on its way).
+    let store = data.join("tessera.sqlite3");
+    poll("passes committed to the store", TIMEOUT, || {
+        stored_passes(store.to_str().unwrap(), running.id) > 0
+    });
     c.proc.kill9();
     // Restart on the same data directory and addresses; the workers reconnect by themselves.
     let c2 = start_coordinator(&data, &http, &grpc, &[]);
@@ -254,6 +260,12 @@ fn a_killed_coordinator_resumes_an_adaptive_job_where_its_policy_was() {
         poll("the first decisions", TIMEOUT, || {
             let j = client.job(st.id).unwrap();
             j.passes_done * 6 >= j.passes_planned || j.state == tessera_api::JobState::Done
+        });
+        // ... and an eighth of them committed to the store (`stored_passes`).
+        let planned = i64::try_from(client.job(st.id).unwrap().passes_planned).unwrap();
+        let store = data.join("tessera.sqlite3");
+        poll("passes committed to the store", TIMEOUT, || {
+            stored_passes(store.to_str().unwrap(), st.id) * 8 >= planned
         });
         c.proc.kill9();
         let c2 = start_coordinator(&data, &http, &grpc, &[]);

@@ -12,7 +12,9 @@ use crate::common;
 
 use std::time::{Duration, Instant};
 
-use common::farm::{cornell_job, local_render, start_coordinator, start_worker_of, wait_done};
+use common::farm::{
+    cornell_job, local_render, start_coordinator, start_worker_of, stored_passes, wait_done,
+};
 use common::farm::{Coord, TIMEOUT};
 use common::{http_get, poll, temp_dir, wait_for};
 use sqlx::Connection;
@@ -122,6 +124,10 @@ fn the_standby_takes_over_after_kill9_and_the_job_completes_byte_identical() {
     poll("a quarter of the passes", TIMEOUT, || {
         let j = client_a.job(job.id).unwrap();
         j.passes_done * 4 >= j.passes_planned
+    });
+    // Killed once the store holds some of them (`stored_passes`).
+    poll("passes committed to the store", TIMEOUT, || {
+        stored_passes(&url, job.id) > 0
     });
     let before = client_a.job(job.id).unwrap().passes_done;
 

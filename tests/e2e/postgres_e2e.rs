@@ -7,7 +7,9 @@
 use crate::common;
 
 use common::farm::TIMEOUT;
-use common::farm::{cornell_job, local_render, start_coordinator, start_worker, wait_done};
+use common::farm::{
+    cornell_job, local_render, start_coordinator, start_worker, stored_passes, wait_done,
+};
 use common::{free_addresses, output, poll, temp_dir};
 use tessera_api::client::Client;
 
@@ -18,31 +20,6 @@ fn fresh_database(name: &str) -> Option<String> {
         .build()
         .unwrap()
         .block_on(tessera_testkit::postgres::fresh_database(name))
-}
-
-/// The passes of `job` the store holds (its tiles' committed checkpoints), read from
-/// PostgreSQL directly. The job status counts a pass when it is merged; its checkpoint is
-/// committed in the next group commit, and its worker hears "accepted" only then
-/// (ARCHITECTURE.md §9). A `kill -9` between the two loses nothing (the worker delivers
-/// again), but the restart shows fewer passes than the status did.
-fn stored_passes(url: &str, job: u64) -> i64 {
-    use sqlx::Connection;
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap()
-        .block_on(async {
-            let mut conn = sqlx::PgConnection::connect(url).await.unwrap();
-            let n: i64 = sqlx::query_scalar(
-                "SELECT COALESCE(SUM(merged_passes), 0)::BIGINT FROM tiles WHERE job = $1",
-            )
-            .bind(job as i64)
-            .fetch_one(&mut conn)
-            .await
-            .unwrap();
-            let _ = conn.close().await;
-            n
-        })
 }
 
 #[test]

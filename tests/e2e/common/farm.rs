@@ -194,3 +194,48 @@ pub fn local_render_with(dir: &Path, name: &str, s: &JobSettings, extra: &[&str]
     );
     std::fs::read(out).unwrap()
 }
+
+/// The passes of `job` that a store holds: its tiles' committed checkpoints, read from the
+/// database directly (`store`: a `postgres://` URL, or the path of a SQLite store file).
+/// The job status counts a pass when it is merged; its checkpoint is committed in the next
+/// group commit, and its worker hears "accepted" only then (ARCHITECTURE.md §9). A `kill
+/// -9` between the two loses nothing (the worker delivers again), but the restarted
+/// coordinator shows fewer passes than the killed one did: tests that kill a coordinator
+/// wait for this count, not the status's.
+pub fn stored_passes(store: &str, job: u64) -> i64 {
+    use sqlx::Connection;
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+        .block_on(async {
+            if store.starts_with("postgres://") {
+                let mut conn = sqlx::PgConnection::connect(store).await.unwrap();
+                let n: i64 = sqlx::query_scalar(
+                    "SELECT COALESCE(SUM(merged_passes), 0)::BIGINT FROM tiles WHERE job = $1",
+                )
+                .bind(job as i64)
+                .fetch_one(&mut conn)
+                .await
+                .unwrap();
+                let _ = conn.close().await;
+                n
+            } else {
+                let options = sqlx::sqlite::SqliteConnectOptions::new()
+                    .filename(store)
+                    .read_only(true);
+                let mut conn = sqlx::SqliteConnection::connect_with(&options)
+                    .await
+                    .unwrap();
+                let n: i64 = sqlx::query_scalar(
+                    "SELECT COALESCE(SUM(merged_passes), 0) FROM tiles WHERE job = ?1",
+                )
+                .bind(job as i64)
+                .fetch_one(&mut conn)
+                .await
+                .unwrap();
+                let _ = conn.close().await;
+                n
+            }
+        })
+}
