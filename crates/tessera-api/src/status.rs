@@ -70,7 +70,10 @@ pub struct JobStatus {
     pub tiles_total: u64,
     /// Passes planned, over all tiles and frames.
     pub passes_planned: u64,
-    /// Passes merged, over all tiles and frames.
+    /// Passes merged, over all tiles and frames. A pass counts once it is merged, before
+    /// its checkpoint's group commit, after which its worker hears "accepted"; so after a
+    /// coordinator crash the count may start a little lower than it last read: those
+    /// passes are delivered again (or rendered again), never lost.
     pub passes_done: u64,
     /// Samples per pixel merged so far, averaged over the pixels of all frames (not an
     /// integer under adaptive stopping).
