@@ -566,18 +566,30 @@ impl Ctx<'_> {
         (v.bsdf.pdf(a, b), v.bsdf.pdf(b, a))
     }
 
-    /// Whether the photon `ph` lies on the surface of the camera vertex `v` (the module
-    /// documentation, "Light leaks"): its normal within [`MERGE_NORMAL_COS`] of `v`'s, both
-    /// on the side their light and the camera are, and a clear shadow ray between the two
-    /// points just off the surface. The photon's end is raised to `v`'s tangent plane where
-    /// it lies below it, so that the chord of a convex surface does not pass through its
-    /// own solid. The shadow ray comes last: a photon the normals or the BSDF refuse costs
-    /// none.
-    fn mergeable(&self, v: &PathVertex, ph: &Photon, r2: f32) -> bool {
-        let n = if v.wo.dot(v.ng) >= 0.0 { v.ng } else { -v.ng };
-        if n.dot(ph.n) < MERGE_NORMAL_COS {
-            return false;
+    /// The camera vertex's geometric normal on the camera's side.
+    #[inline]
+    fn merge_normal(v: &PathVertex) -> Vec3 {
+        if v.wo.dot(v.ng) >= 0.0 {
+            v.ng
+        } else {
+            -v.ng
         }
+    }
+
+    /// Whether the photon `ph` may lie on the surface of the camera vertex `v` (the module
+    /// documentation, "Light leaks"): its normal within [`MERGE_NORMAL_COS`] of `v`'s,
+    /// both on the side their light and the camera are. The cheap half of the test,
+    /// before the BSDF.
+    #[inline]
+    fn same_side(v: &PathVertex, ph: &Photon) -> bool {
+        Self::merge_normal(v).dot(ph.n) >= MERGE_NORMAL_COS
+    }
+
+    /// The costly half, after the BSDF: a clear shadow ray between the two points just off
+    /// the surface. The photon's end is raised to `v`'s tangent plane where it lies below
+    /// it, so that the chord of a convex surface does not pass through its own solid.
+    fn photon_visible(&self, v: &PathVertex, ph: &Photon, r2: f32) -> bool {
+        let n = Self::merge_normal(v);
         let eps = (MERGE_LIFT * r2.sqrt()).max(4.0 * n.abs().dot(v.p_error));
         let a = v.p + n * eps;
         let below = (v.p - ph.p).dot(n).max(0.0);
@@ -901,10 +913,13 @@ fn camera_subpath(
                 let mut sum = Vec3::ZERO;
                 let mut bsum = Vec3::ZERO;
                 grid.query(photons, v.p, |ph| {
-                    if ph.depth + t - 1 <= max_depth && ctx.mergeable(v, ph, grid.r2) {
-                        let m = ctx.f(v, ph.wo, false) * ph.beta;
-                        sum += m;
-                        bsum += m * weight((ph.p - v.p).length_squared());
+                    if ph.depth + t - 1 <= max_depth && Ctx::same_side(v, ph) {
+                        let f = ctx.f(v, ph.wo, false);
+                        if f != Vec3::ZERO && ctx.photon_visible(v, ph, grid.r2) {
+                            let m = f * ph.beta;
+                            sum += m;
+                            bsum += m * weight((ph.p - v.p).length_squared());
+                        }
                     }
                 });
                 total += v.beta * sum * c.norm;
@@ -934,8 +949,11 @@ fn camera_subpath(
                 if ph.depth + t - 1 > max_depth {
                     return;
                 }
+                if !Ctx::same_side(v, ph) {
+                    return;
+                }
                 let fc = ctx.f(v, ph.wo, false);
-                if fc == Vec3::ZERO || !ctx.mergeable(v, ph, grid.r2) {
+                if fc == Vec3::ZERO || !ctx.photon_visible(v, ph, grid.r2) {
                     return;
                 }
                 let (dir_pdf, rev_pdf) = ctx.pdfs(v, ph.wo);
