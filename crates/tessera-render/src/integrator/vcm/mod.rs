@@ -121,12 +121,12 @@
 //! camera vertex's (both on the side their light and the camera are) and a shadow ray
 //! between the two points, lifted [`MERGE_LIFT`] radii off the camera vertex's surface
 //! (the photon's end raised to the vertex's tangent plane where it is below it, as on a
-//! convex surface), is clear. Both tests refuse only pairs whose merged path (the photon's last segment
-//! moved to the camera vertex) does not exist or belongs to another surface, and both
-//! pass every pair as `r` shrinks on a smooth surface, so merging stays consistent; the
-//! MIS weights are unchanged (merging estimates the same paths, from the photons of the
-//! vertex's own surface). The cost is a short shadow ray per merged photon
-//! (docs/benchmarks.md, "Light leaks in merging").
+//! convex surface), is clear (`MergeGuard`). Both tests refuse only pairs whose merged
+//! path (the photon's last segment moved to the camera vertex) does not exist or belongs
+//! to another surface, and both pass every pair as `r` shrinks on a smooth surface, so
+//! merging stays consistent; the MIS weights are unchanged (merging estimates the same
+//! paths, from the photons of the vertex's own surface). The cost is a short shadow ray
+//! per merged photon (docs/benchmarks.md, "Light leaks in merging").
 //!
 //! # Determinism and the farm (ARCHITECTURE.md §2)
 //!
@@ -185,7 +185,6 @@ use tessera_farm::{FramePlan, UnitResult, WorkUnit};
 pub const MAX_VCM_DEPTH: u32 = 32;
 /// Light vertices a subpath can store (one per bounce).
 const MAX_LIGHT_VERTICES: usize = MAX_VCM_DEPTH as usize + 1;
-/// Mixed into the job seed for the light subpaths' sampler stream.
 /// A photon is merged only where its geometric normal is within 60 degrees of the camera
 /// vertex's: the radiance estimate assumes that the photons near `x` represent the
 /// illumination at `x` (Jensen, the course notes' section 10.5.2), and a floor's photons
@@ -198,6 +197,7 @@ pub const MERGE_NORMAL_COS: f32 = 0.5;
 /// so that the shadow ray does not pass over a low obstacle or start inside a solid that
 /// meets the surface (a ball on the floor).
 pub const MERGE_LIFT: f32 = 1e-3;
+/// Mixed into the job seed for the light subpaths' sampler stream.
 const LIGHT_STREAM: u64 = 0x7663_6d5f_6c69_6768; // "vcm_ligh"
 
 /// Settings of the vertex connection and merging integrator.
@@ -342,6 +342,17 @@ struct PathVertex {
 }
 
 impl PathVertex {
+    /// The geometric normal on the side `wo` points to: the camera's side for a camera
+    /// vertex, the side the light arrived from for a light vertex.
+    #[inline]
+    fn facing_ng(&self) -> Vec3 {
+        if self.wo.dot(self.ng) >= 0.0 {
+            self.ng
+        } else {
+            -self.ng
+        }
+    }
+
     fn empty() -> Self {
         Self {
             p: Vec3::ZERO,
@@ -374,6 +385,32 @@ struct Photon {
     depth: u32,
     d_vcm: f32,
     d_vm: f32,
+}
+
+/// The leak test of one camera vertex's merges (the module documentation, "Light
+/// leaks"), its per-vertex parts computed once before the photon query.
+struct MergeGuard {
+    /// The vertex's geometric normal on the camera's side.
+    n: Vec3,
+    /// How far both ends of the shadow ray are lifted off the surface: [`MERGE_LIFT`]
+    /// radii, at least four times the vertex position's rounding error.
+    eps: f32,
+}
+
+impl MergeGuard {
+    fn new(v: &PathVertex, r2: f32) -> Self {
+        let n = v.facing_ng();
+        let eps = (MERGE_LIFT * r2.sqrt()).max(4.0 * n.abs().dot(v.p_error));
+        Self { n, eps }
+    }
+
+    /// The cheap half of the test, before the BSDF: the photon's normal within
+    /// [`MERGE_NORMAL_COS`] of the vertex's, both on the side their light and the camera
+    /// are.
+    #[inline]
+    fn same_side(&self, ph: &Photon) -> bool {
+        self.n.dot(ph.n) >= MERGE_NORMAL_COS
+    }
 }
 
 /// The state of a random walk between vertices.
@@ -566,34 +603,15 @@ impl Ctx<'_> {
         (v.bsdf.pdf(a, b), v.bsdf.pdf(b, a))
     }
 
-    /// The camera vertex's geometric normal on the camera's side.
-    #[inline]
-    fn merge_normal(v: &PathVertex) -> Vec3 {
-        if v.wo.dot(v.ng) >= 0.0 {
-            v.ng
-        } else {
-            -v.ng
-        }
-    }
-
-    /// Whether the photon `ph` may lie on the surface of the camera vertex `v` (the module
-    /// documentation, "Light leaks"): its normal within [`MERGE_NORMAL_COS`] of `v`'s,
-    /// both on the side their light and the camera are. The cheap half of the test,
-    /// before the BSDF.
-    #[inline]
-    fn same_side(v: &PathVertex, ph: &Photon) -> bool {
-        Self::merge_normal(v).dot(ph.n) >= MERGE_NORMAL_COS
-    }
-
-    /// The costly half, after the BSDF: a clear shadow ray between the two points just off
-    /// the surface. The photon's end is raised to `v`'s tangent plane where it lies below
-    /// it, so that the chord of a convex surface does not pass through its own solid.
-    fn photon_visible(&self, v: &PathVertex, ph: &Photon, r2: f32) -> bool {
-        let n = Self::merge_normal(v);
-        let eps = (MERGE_LIFT * r2.sqrt()).max(4.0 * n.abs().dot(v.p_error));
-        let a = v.p + n * eps;
+    /// Whether nothing lies between the camera vertex `v` and the photon `ph`, both just
+    /// off `v`'s surface (`guard`, made for `v`): the costly half of the leak test, after
+    /// the BSDF. The photon's end is raised to `v`'s tangent plane where it lies below it,
+    /// so that the chord of a convex surface does not pass through its own solid.
+    fn photon_visible(&self, v: &PathVertex, guard: &MergeGuard, ph: &Photon) -> bool {
+        let n = guard.n;
+        let a = v.p + n * guard.eps;
         let below = (v.p - ph.p).dot(n).max(0.0);
-        let d = ph.p + n * (below + eps) - a;
+        let d = ph.p + n * (below + guard.eps) - a;
         let dist = d.length();
         dist == 0.0 || !self.scene.occluded_at(a, d / dist, dist, self.time)
     }
@@ -912,10 +930,11 @@ fn camera_subpath(
                 // non-specular vertex is the only technique for every path through it.
                 let mut sum = Vec3::ZERO;
                 let mut bsum = Vec3::ZERO;
+                let guard = MergeGuard::new(v, grid.r2);
                 grid.query(photons, v.p, |ph| {
-                    if ph.depth + t - 1 <= max_depth && Ctx::same_side(v, ph) {
+                    if ph.depth + t - 1 <= max_depth && guard.same_side(ph) {
                         let f = ctx.f(v, ph.wo, false);
-                        if f != Vec3::ZERO && ctx.photon_visible(v, ph, grid.r2) {
+                        if f != Vec3::ZERO && ctx.photon_visible(v, &guard, ph) {
                             let m = f * ph.beta;
                             sum += m;
                             bsum += m * weight((ph.p - v.p).length_squared());
@@ -945,15 +964,13 @@ fn camera_subpath(
             // Merging with the pass's photons (eqs. 38-39).
             let mut sum = Vec3::ZERO;
             let mut bsum = Vec3::ZERO;
+            let guard = MergeGuard::new(v, grid.r2);
             grid.query(photons, v.p, |ph| {
-                if ph.depth + t - 1 > max_depth {
-                    return;
-                }
-                if !Ctx::same_side(v, ph) {
+                if ph.depth + t - 1 > max_depth || !guard.same_side(ph) {
                     return;
                 }
                 let fc = ctx.f(v, ph.wo, false);
-                if fc == Vec3::ZERO || !ctx.photon_visible(v, ph, grid.r2) {
+                if fc == Vec3::ZERO || !ctx.photon_visible(v, &guard, ph) {
                     return;
                 }
                 let (dir_pdf, rev_pdf) = ctx.pdfs(v, ph.wo);
@@ -1154,7 +1171,7 @@ impl WholeFrame for Vcm<'_> {
                 photons.extend(light[..n].iter().map(|v| Photon {
                     p: v.p,
                     wo: v.wo,
-                    n: if v.wo.dot(v.ng) >= 0.0 { v.ng } else { -v.ng },
+                    n: v.facing_ng(),
                     beta: v.beta,
                     depth: v.depth,
                     d_vcm: v.d_vcm,
